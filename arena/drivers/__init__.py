@@ -1,0 +1,1 @@
+"""Masters (command sources) and slaves (executors) that attach to a robot."""

@@ -1,0 +1,94 @@
+"""The mock slave: a simulated arm that follows its targets exactly, after configured delays.
+
+With `simulate_errors` on it drops some updates and reports faults of every severity, drawn
+from a seeded random generator so that a test sees the same faults every run.
+"""
+
+from __future__ import annotations
+
+import random
+from dataclasses import dataclass
+from typing import Any
+
+import trio
+
+from arena.protocol.errors import ArenaError, ErrorCode, Severity
+from arena.robot.actor import SlaveLink
+from arena.robot.events import NoticeKind, SlaveNotice
+
+
+@dataclass(frozen=True, slots=True)
+class MockSlaveConfig:
+    """Delays in milliseconds, as the seed's `mock-slave` config gives them."""
+
+    simulate_latency: float = 0.0  # one-way network delay before a target arrives
+    response_delay: float = 0.0  # execution time before the new state is reported
+    simulate_errors: bool = False
+    error_rate: float = 0.1  # chance per update of an injected fault (when errors are on)
+    seed: int = 0
+
+    @classmethod
+    def from_wire(cls, config: dict[str, Any]) -> MockSlaveConfig:
+        """Read the seed's camelCase config; raises `ArenaError(INVALID_CONFIG)` if malformed."""
+        try:
+            made = cls(
+                simulate_latency=float(config.get("simulateLatency", 0.0)),
+                response_delay=float(config.get("responseDelay", 0.0)),
+                simulate_errors=bool(config.get("simulateErrors", False)),
+                error_rate=float(config.get("errorRate", 0.1)),
+                seed=int(config.get("seed", 0)),
+            )
+        except (TypeError, ValueError) as exc:
+            raise ArenaError(ErrorCode.INVALID_CONFIG, f"Invalid mock-slave config: {exc}") from exc
+        if not (0 <= made.simulate_latency <= 60_000 and 0 <= made.response_delay <= 60_000):
+            raise ArenaError(ErrorCode.INVALID_CONFIG, "Delays must be between 0 and 60000 ms.")
+        if not 0 <= made.error_rate <= 1:
+            raise ArenaError(ErrorCode.INVALID_CONFIG, "errorRate must be between 0 and 1.")
+        return made
+
+
+class MockSlave:
+    """A simulated arm: real value = target value, `latency + response_delay` later."""
+
+    kind = "mock-slave"
+
+    def __init__(self, config: MockSlaveConfig | None = None) -> None:
+        self.config = config or MockSlaveConfig()
+        self.positions: dict[str, float] = {}
+        self.received = 0
+        self.dropped_updates = 0
+        self.injected_faults: list[Severity] = []
+        self.notices: list[SlaveNotice] = []
+
+    async def run(self, link: SlaveLink) -> None:
+        """Follow targets until detached."""
+        rng = random.Random(self.config.seed)
+        delay = (self.config.simulate_latency + self.config.response_delay) / 1000.0
+        while True:
+            try:
+                message = await link.receive()
+            except trio.EndOfChannel:
+                return
+            if isinstance(message, SlaveNotice):
+                self.notices.append(message)
+                if message.kind is NoticeKind.SHUTDOWN:
+                    return
+                continue
+            self.received += 1
+            if delay:
+                await trio.sleep(delay)
+            self.positions.update(message.joints)
+            if self.config.simulate_errors and rng.random() < self.config.error_rate:
+                await self._inject_fault(link, rng)
+                continue
+            await link.report_joint_states(self.positions)
+
+    async def _inject_fault(self, link: SlaveLink, rng: random.Random) -> None:
+        choice = rng.randrange(len(Severity) + 1)
+        if choice == len(Severity):
+            self.dropped_updates += 1  # the update is lost on the way
+            return
+        severity = list(Severity)[choice]
+        self.injected_faults.append(severity)
+        joint = rng.choice(sorted(self.positions)) if self.positions else None
+        await link.report_fault("SIMULATED_FAULT", f"injected {severity} fault", severity, joint)

@@ -1,0 +1,65 @@
+"""The mock-sequence master: plays sequences onto a robot with their recorded timing."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable
+
+import trio
+
+from arena.protocol.errors import ErrorCode
+from arena.robot.actor import MasterLink
+from arena.drivers.sequences import Sequence
+
+log = logging.getLogger(__name__)
+
+
+class SequenceMaster:
+    """Plays `sequences` in order, once or forever (`loop`).
+
+    With `auto_start` off it claims the robot and waits for `start()`. It is autonomous: an
+    e-stop ends it for good, and it never resumes by itself.
+    """
+
+    kind = "mock-sequence"
+    autonomous = True
+
+    def __init__(
+        self, sequences: Iterable[Sequence], *, loop: bool = False, auto_start: bool = True
+    ) -> None:
+        self.sequences = tuple(sequences)
+        if not self.sequences:
+            raise ValueError("a sequence master needs at least one sequence")
+        self.loop = loop
+        self._started = trio.Event()
+        if auto_start:
+            self._started.set()
+        self.playing: str | None = None
+        self.refusals: list[tuple[ErrorCode | None, str]] = []
+
+    def start(self) -> None:
+        """Begin playing (for a master created with `auto_start=False`)."""
+        self._started.set()
+
+    async def run(self, link: MasterLink) -> None:
+        """Issue every keyframe at its time; return when done (unless looping)."""
+        await self._started.wait()
+        while True:
+            for sequence in self.sequences:
+                await self._play(link, sequence)
+            if not self.loop:
+                return
+
+    async def _play(self, link: MasterLink, sequence: Sequence) -> None:
+        self.playing = sequence.id
+        start = trio.current_time()
+        for keyframe in sequence.keyframes:
+            await trio.sleep_until(start + keyframe.at)
+            result = await link.command(keyframe.command)
+            if not result.accepted:
+                # Keep going: a refused keyframe (rate limit, say) must not stop the show, and
+                # losing ownership cancels this task anyway.
+                self.refusals.append((result.code, result.message))
+                log.warning("sequence %s: keyframe refused: %s", sequence.id, result.message)
+        await trio.sleep_until(start + sequence.total_duration)
+        self.playing = None

@@ -1,0 +1,59 @@
+"""Machine-readable error codes and the exception that carries one with a plain sentence."""
+
+from __future__ import annotations
+
+import enum
+
+
+class ErrorCode(enum.StrEnum):
+    """Every refusal Arena can give. The value is what goes on the wire."""
+
+    # Command content
+    UNKNOWN_JOINT = "UNKNOWN_JOINT"
+    INVALID_VALUE = "INVALID_VALUE"
+    EMPTY_COMMAND = "EMPTY_COMMAND"
+    # Ownership and safety
+    MASTER_ACTIVE = "MASTER_ACTIVE"
+    NOT_OWNER = "NOT_OWNER"
+    ESTOPPED = "ESTOPPED"
+    RATE_LIMITED = "RATE_LIMITED"
+    TAKEN_OVER = "TAKEN_OVER"
+    MASTER_LOST = "MASTER_LOST"
+    SLAVE_LOST = "SLAVE_LOST"
+    SLAVE_FAULT = "SLAVE_FAULT"
+    DRIVER_FAILED = "DRIVER_FAILED"
+    OVERLOADED = "OVERLOADED"
+    # Registry
+    UNKNOWN_ROBOT = "UNKNOWN_ROBOT"
+    UNKNOWN_ROBOT_TYPE = "UNKNOWN_ROBOT_TYPE"
+    ROBOT_EXISTS = "ROBOT_EXISTS"
+    UNKNOWN_SEQUENCE = "UNKNOWN_SEQUENCE"
+    UNKNOWN_SLAVE = "UNKNOWN_SLAVE"
+    INVALID_CONFIG = "INVALID_CONFIG"
+    ROBOT_STOPPED = "ROBOT_STOPPED"
+
+
+class ArenaError(Exception):
+    """An error with a machine-readable code and a sentence a person can act on."""
+
+    def __init__(self, code: ErrorCode, message: str) -> None:
+        super().__init__(f"{code}: {message}")
+        self.code = code
+        self.message = message
+
+
+class Severity(enum.StrEnum):
+    """How bad a reported fault is, in increasing order."""
+
+    INFO = "info"
+    WARNING = "warning"
+    ERROR = "error"
+    CRITICAL = "critical"
+
+    @property
+    def rank(self) -> int:
+        """Position in the order info < warning < error < critical."""
+        return _SEVERITY_ORDER.index(self)
+
+
+_SEVERITY_ORDER = list(Severity)

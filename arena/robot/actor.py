@@ -1,0 +1,947 @@
+"""The robot actor: one trio task that owns one robot.
+
+Everything that can change the robot arrives as a message on its bounded inbox and is handled
+in order by `Robot.run`. Handling never blocks: decisions come from the pure `RobotCore`, targets
+go to per-slave `LatestMailbox`es, events to observers' `EventQueue`s. Master and slave drivers
+run in the actor's own nursery, each in a cancel scope: a driver that raises is detached,
+reported, and the loss policy applies; nothing else is disturbed.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import logging
+import math
+import time as wallclock
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass, field
+from typing import Any, Generic, Protocol, TypeVar
+
+import trio
+
+from arena.protocol.errors import ArenaError, ErrorCode, Severity
+from arena.robot import safety
+from arena.robot.core import MANUAL_SOURCE, RobotCore, Step
+from arena.robot.events import (
+    CommandHandled,
+    FaultReported,
+    JointStatesReceived,
+    MasterNotice,
+    NoticeKind,
+    PeerChanged,
+    RobotEvent,
+    SlaveNotice,
+    SlaveTarget,
+    StateChanged,
+    TargetsSent,
+)
+from arena.robot.mailbox import EventQueue, LatestMailbox
+from arena.robot.model import RobotModel, SafetyPolicy
+from arena.robot.motion import Command, CommandResult
+from arena.robot.snapshot import JointSnapshot, PeerSnapshot, RobotSnapshot
+
+log = logging.getLogger(__name__)
+
+R = TypeVar("R")
+
+
+class MasterDriver(Protocol):
+    """A command source run by the robot (a sequence player, a replay, a remote link)."""
+
+    kind: str
+    autonomous: bool  # plays a program: ends for good on e-stop
+
+    async def run(self, link: MasterLink) -> None:
+        """Issue commands through `link` until done; returning detaches the master."""
+
+
+class SlaveDriver(Protocol):
+    """An executor run by the robot (a simulated arm, a servo bus, a remote robot)."""
+
+    kind: str
+
+    async def run(self, link: SlaveLink) -> None:
+        """Take targets and notices from `link`, report joint states back."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Inbox messages
+
+
+class _Reply(Generic[R]):
+    """A one-shot answer from the actor to a waiting caller."""
+
+    __slots__ = ("_done", "_error", "_value")
+
+    def __init__(self) -> None:
+        self._done = trio.Event()
+        self._value: R | None = None
+        self._error: BaseException | None = None
+
+    def set(self, value: R) -> None:
+        self._value = value
+        self._done.set()
+
+    def fail(self, error: BaseException) -> None:
+        self._error = error
+        self._done.set()
+
+    async def wait(self) -> R:
+        await self._done.wait()
+        if self._error is not None:
+            raise self._error
+        return self._value  # type: ignore[return-value]
+
+
+@dataclass(slots=True)
+class _CommandMsg:
+    source: str | None
+    command: Command
+    reply: _Reply[CommandResult] | None
+
+
+@dataclass(slots=True)
+class _EventMsg:
+    event: safety.Event
+    reply: _Reply[safety.Outcome] | None
+
+
+@dataclass(slots=True)
+class _AttachMsg:
+    role: str
+    peer_id: str | None
+    kind: str
+    driver: MasterDriver | SlaveDriver | None
+    autonomous: bool
+    takeover: bool
+    heartbeat_timeout: float | None
+    reply: _Reply[Any]
+
+
+@dataclass(slots=True)
+class _DetachMsg:
+    role: str
+    peer_id: str | None
+    lost: bool
+    reason: str
+    reply: _Reply[None] | None
+
+
+@dataclass(slots=True)
+class _StatesMsg:
+    slave_id: str
+    joints: Mapping[str, float]
+
+
+@dataclass(slots=True)
+class _FaultMsg:
+    peer_id: str
+    code: str
+    message: str
+    severity: Severity
+    joint: str | None
+
+
+@dataclass(slots=True)
+class _AliveMsg:
+    peer_id: str
+
+
+@dataclass(slots=True)
+class _DriverEndedMsg:
+    peer: _Peer
+    error: BaseException | None
+
+
+@dataclass(slots=True)
+class _ShutdownMsg:
+    reason: str
+    reply: _Reply[None] | None
+
+
+_Msg = (
+    _CommandMsg
+    | _EventMsg
+    | _AttachMsg
+    | _DetachMsg
+    | _StatesMsg
+    | _FaultMsg
+    | _AliveMsg
+    | _DriverEndedMsg
+    | _ShutdownMsg
+)
+
+
+# ---------------------------------------------------------------------------------------------
+# Links: what a driver (or a network edge) holds to talk to the robot
+
+
+class MasterLink:
+    """A master's handle on the robot: send commands, read notices, leave."""
+
+    def __init__(self, robot: Robot, master_id: str) -> None:
+        self.robot = robot
+        self.master_id = master_id
+        self.notices: EventQueue[MasterNotice] = EventQueue(256)
+        self.detached = trio.Event()
+
+    async def command(self, command: Command) -> CommandResult:
+        """Send a command as this master and wait for the answer."""
+        return await self.robot.command(command, master_id=self.master_id)
+
+    def command_nowait(self, command: Command) -> None:
+        """Send a command without waiting; raises `ArenaError(OVERLOADED)` if the inbox is full."""
+        self.robot._post_nowait(_CommandMsg(self.master_id, command, None))
+
+    def alive(self) -> None:
+        """Heartbeat: the peer is still there."""
+        self.robot._post_nowait(_AliveMsg(self.master_id), drop_if_full=True)
+
+    async def detach(self, reason: str = "master left") -> None:
+        """Give up ownership."""
+        await self.robot._detach("master", self.master_id, lost=False, reason=reason)
+
+    async def lost(self, reason: str = "connection lost") -> None:
+        """Report that this master's connection is gone (the loss policy applies)."""
+        await self.robot._detach("master", self.master_id, lost=True, reason=reason)
+
+
+class SlaveLink:
+    """A slave's handle on the robot: take targets and notices, report states and faults."""
+
+    def __init__(self, robot: Robot, slave_id: str) -> None:
+        self.robot = robot
+        self.slave_id = slave_id
+        self.mailbox: LatestMailbox[SlaveTarget, SlaveNotice] = LatestMailbox()
+
+    async def receive(self) -> SlaveTarget | SlaveNotice:
+        """The next notice, or else the newest target. `trio.EndOfChannel` once detached."""
+        return await self.mailbox.get()
+
+    async def report_joint_states(self, joints: Mapping[str, float]) -> None:
+        """Real joint values in degrees (protocol names or aliases)."""
+        await self.robot._post(_StatesMsg(self.slave_id, dict(joints)))
+
+    async def report_fault(
+        self, code: str, message: str, severity: Severity = Severity.ERROR, joint: str | None = None
+    ) -> None:
+        """A fault; at or above the robot's e-stop severity it e-stops the robot."""
+        await self.robot._post(_FaultMsg(self.slave_id, code, message, severity, joint))
+
+    def alive(self) -> None:
+        """Heartbeat: the peer is still there."""
+        self.robot._post_nowait(_AliveMsg(self.slave_id), drop_if_full=True)
+
+    async def detach(self, reason: str = "slave left") -> None:
+        """Leave the robot."""
+        await self.robot._detach("slave", self.slave_id, lost=False, reason=reason)
+
+    async def lost(self, reason: str = "connection lost") -> None:
+        """Report that this slave is gone (the loss policy applies)."""
+        await self.robot._detach("slave", self.slave_id, lost=True, reason=reason)
+
+
+@dataclass(eq=False)
+class _Peer:
+    peer_id: str
+    role: str
+    kind: str
+    link: MasterLink | SlaveLink
+    scope: trio.CancelScope | None  # set for drivers the robot runs itself
+    heartbeat_timeout: float | None
+    last_seen: float
+    last_error: str | None = None
+    real: dict[str, float] = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+class Robot:
+    """One robot: its public handle and, in `run`, its actor."""
+
+    def __init__(
+        self,
+        robot_id: str,
+        name: str,
+        model: RobotModel,
+        policy: SafetyPolicy | None = None,
+        inbox_size: int = 1024,
+    ) -> None:
+        self.robot_id = robot_id
+        self.name = name
+        self.model = model
+        self.core = RobotCore(model, trio.current_time(), policy)
+        self._send, self._receive = trio.open_memory_channel[_Msg](inbox_size)
+        self._master: _Peer | None = None
+        self._slaves: dict[str, _Peer] = {}
+        self._observers: set[EventQueue[RobotEvent]] = set()
+        self._real: dict[str, float] = {}
+        self._ids = itertools.count(1)
+        self._next_tick: float | None = None
+        self._nursery: trio.Nursery | None = None
+        self.stopped = trio.Event()
+
+    # -- public API ---------------------------------------------------------------------------
+
+    async def command(self, command: Command, master_id: str | None = None) -> CommandResult:
+        """Send a command (from master `master_id`, or manual control if None)."""
+        reply: _Reply[CommandResult] = _Reply()
+        await self._post(_CommandMsg(master_id, command, reply))
+        return await reply.wait()
+
+    async def estop(self, reason: str = "emergency stop") -> safety.Outcome:
+        """Emergency stop: nothing moves until `reset`."""
+        return await self._event(safety.EStop(reason))
+
+    async def reset(self) -> safety.Outcome:
+        """Leave the e-stop. Causes no motion by itself."""
+        return await self._event(safety.Reset())
+
+    async def attach_master(
+        self, driver: MasterDriver, *, takeover: bool = False, master_id: str | None = None
+    ) -> str:
+        """Run `driver` as this robot's master; returns its id. Refusals raise `ArenaError`."""
+        link: MasterLink = await self._attach(
+            "master", master_id, driver.kind, driver, driver.autonomous, takeover, None
+        )
+        return link.master_id
+
+    async def connect_master(
+        self,
+        master_id: str | None = None,
+        *,
+        kind: str = "external",
+        takeover: bool = False,
+        heartbeat_timeout: float | None = None,
+    ) -> MasterLink:
+        """Claim the robot for a master that runs elsewhere (a network connection)."""
+        link: MasterLink = await self._attach(
+            "master", master_id, kind, None, False, takeover, heartbeat_timeout
+        )
+        return link
+
+    async def detach_master(
+        self, master_id: str | None = None, reason: str = "detached on request"
+    ) -> None:
+        """Detach the master `master_id` (or whichever master holds the robot)."""
+        await self._detach("master", master_id, lost=False, reason=reason)
+
+    async def attach_slave(self, driver: SlaveDriver, slave_id: str | None = None) -> str:
+        """Run `driver` as a slave of this robot; returns its id."""
+        link: SlaveLink = await self._attach(
+            "slave", slave_id, driver.kind, driver, False, False, None
+        )
+        return link.slave_id
+
+    async def connect_slave(
+        self,
+        slave_id: str | None = None,
+        *,
+        kind: str = "external",
+        heartbeat_timeout: float | None = None,
+    ) -> SlaveLink:
+        """Attach a slave that runs elsewhere (a network connection)."""
+        link: SlaveLink = await self._attach(
+            "slave", slave_id, kind, None, False, False, heartbeat_timeout
+        )
+        return link
+
+    async def detach_slave(self, slave_id: str, reason: str = "detached on request") -> None:
+        """Detach a slave; it is told to stop. Unknown ids raise `ArenaError(UNKNOWN_SLAVE)`."""
+        await self._detach("slave", slave_id, lost=False, reason=reason)
+
+    @contextlib.contextmanager
+    def subscribe(self, maxlen: int = 1024) -> Iterator[EventQueue[RobotEvent]]:
+        """Observe this robot's events: `with robot.subscribe() as events: ...`.
+
+        A slow observer loses its oldest events (counted in `events.dropped`); it never slows
+        the robot.
+        """
+        queue: EventQueue[RobotEvent] = EventQueue(maxlen)
+        self._observers.add(queue)
+        try:
+            yield queue
+        finally:
+            self._observers.discard(queue)
+            queue.close()
+
+    def snapshot(self) -> RobotSnapshot:
+        """The robot as it is now."""
+        state = self.core.state
+        virtual = self.core.motion.positions
+        goals = self.core.motion.goals
+        joints = tuple(
+            JointSnapshot(
+                j.name,
+                j.servo_id,
+                virtual[j.name],
+                self._real.get(j.name),
+                goals[j.name],
+                j.lower,
+                j.upper,
+                j.max_velocity,
+            )
+            for j in self.model.joints
+        )
+        master = self._peer_snapshot(self._master) if self._master else None
+        slaves = tuple(self._peer_snapshot(p) for p in self._slaves.values())
+        return RobotSnapshot(
+            self.robot_id,
+            self.name,
+            self.model.robot_type,
+            state.mode,
+            state.owner,
+            state.estop_reason,
+            master,
+            slaves,
+            joints,
+        )
+
+    async def shutdown(self, reason: str = "robot deleted") -> None:
+        """Stop every driver cleanly and end the actor."""
+        reply: _Reply[None] = _Reply()
+        try:
+            await self._post(_ShutdownMsg(reason, reply))
+        except ArenaError:
+            return  # already stopped
+        await reply.wait()
+
+    # -- the actor ----------------------------------------------------------------------------
+
+    async def run(self, *, task_status: Any = trio.TASK_STATUS_IGNORED) -> None:
+        """The actor loop. Runs until `shutdown` (or cancellation)."""
+        try:
+            async with trio.open_nursery() as nursery:
+                self._nursery = nursery
+                task_status.started()
+                await self._loop()
+                nursery.cancel_scope.cancel()
+        finally:
+            self._nursery = None
+            self._send.close()
+            self._fail_pending(
+                ArenaError(ErrorCode.ROBOT_STOPPED, f"Robot {self.robot_id!r} has stopped.")
+            )
+            for queue in list(self._observers):
+                queue.close()
+            self.stopped.set()
+
+    async def _loop(self) -> None:
+        while True:
+            deadline = self._next_deadline()
+            message: _Msg | None = None
+            with trio.move_on_at(deadline):
+                message = await self._receive.receive()
+            now = trio.current_time()
+            if message is None:
+                self._on_timers(now)
+                continue
+            if isinstance(message, _ShutdownMsg):
+                self._on_shutdown(message.reason)
+                if message.reply is not None:
+                    message.reply.set(None)
+                return
+            self._dispatch(message, now)
+
+    def _next_deadline(self) -> float:
+        deadline = self._next_tick if self._next_tick is not None else math.inf
+        for peer in self._peers():
+            if peer.heartbeat_timeout is not None:
+                deadline = min(deadline, peer.last_seen + peer.heartbeat_timeout)
+        return deadline
+
+    def _peers(self) -> list[_Peer]:
+        peers = list(self._slaves.values())
+        if self._master is not None:
+            peers.append(self._master)
+        return peers
+
+    def _dispatch(self, message: _Msg, now: float) -> None:
+        if isinstance(message, _CommandMsg):
+            self._on_command(message, now)
+        elif isinstance(message, _StatesMsg):
+            self._on_states(message, now)
+        elif isinstance(message, _EventMsg):
+            outcome = self._apply(message.event, now, cause=type(message.event).__name__)
+            if message.reply is not None:
+                message.reply.set(outcome)
+        elif isinstance(message, _AttachMsg):
+            self._on_attach(message, now)
+        elif isinstance(message, _DetachMsg):
+            self._on_detach(message, now)
+        elif isinstance(message, _FaultMsg):
+            self._on_fault(message, now)
+        elif isinstance(message, _AliveMsg):
+            self._touch(message.peer_id, now)
+        elif isinstance(message, _DriverEndedMsg):
+            self._on_driver_ended(message, now)
+
+    # -- handlers -----------------------------------------------------------------------------
+
+    def _on_command(self, message: _CommandMsg, now: float) -> None:
+        if message.source is not None:
+            self._touch(message.source, now)
+        result, step = self.core.command(message.source, message.command, now)
+        self._publish(
+            CommandHandled(
+                self.robot_id,
+                message.source or MANUAL_SOURCE,
+                message.command,
+                result,
+                now,
+                wallclock.time(),
+            )
+        )
+        self._send_targets(step.targets, now)
+        if message.reply is not None:
+            message.reply.set(result)
+        elif (
+            not result.accepted
+            and self._master is not None
+            and self._master.peer_id == message.source
+        ):
+            # Fire-and-forget commands still get their refusal, as a notice.
+            assert isinstance(self._master.link, MasterLink)
+            self._master.link.notices.put(MasterNotice("refused", result.code, result.message))
+
+    def _on_states(self, message: _StatesMsg, now: float) -> None:
+        peer = self._slaves.get(message.slave_id)
+        if peer is None:
+            return
+        peer.last_seen = now
+        joints: dict[str, float] = {}
+        for name, value in message.joints.items():
+            spec = self.model.joint(name)
+            if spec is not None and isinstance(value, int | float) and math.isfinite(value):
+                joints[spec.name] = float(value)
+        if not joints:
+            return
+        peer.real.update(joints)
+        self._real.update(joints)
+        self._publish(
+            JointStatesReceived(self.robot_id, message.slave_id, joints, now, wallclock.time())
+        )
+
+    def _on_fault(self, message: _FaultMsg, now: float) -> None:
+        peer = self._slaves.get(message.peer_id)
+        if peer is None:
+            return
+        peer.last_seen = now
+        peer.last_error = f"{message.code}: {message.message}"
+        joint = self.model.joint(message.joint) if message.joint else None
+        self._publish(
+            FaultReported(
+                self.robot_id,
+                message.peer_id,
+                message.code,
+                message.message,
+                message.severity,
+                joint.name if joint else message.joint,
+                now,
+                wallclock.time(),
+            )
+        )
+        self._apply(
+            safety.SlaveError(message.peer_id, message.severity, message.message),
+            now,
+            cause=message.code,
+        )
+
+    def _on_attach(self, message: _AttachMsg, now: float) -> None:
+        peer_id = message.peer_id or f"{message.role}-{next(self._ids)}"
+        link: MasterLink | SlaveLink
+        if message.role == "master":
+            link = MasterLink(self, peer_id)
+            outcome = self._apply(
+                safety.MasterAttach(peer_id, message.autonomous, message.takeover),
+                now,
+                cause="master attach",
+            )
+            if isinstance(outcome, safety.Refused):
+                self._publish(
+                    PeerChanged(
+                        self.robot_id,
+                        "master",
+                        peer_id,
+                        message.kind,
+                        "refused",
+                        outcome.message,
+                        now,
+                        wallclock.time(),
+                    )
+                )
+                message.reply.fail(ArenaError(outcome.code, outcome.message))
+                return
+            if isinstance(outcome, safety.Ignored):  # the owner attaching again
+                assert self._master is not None
+                message.reply.set(self._master.link)
+                return
+        else:
+            if peer_id in self._slaves:
+                message.reply.fail(
+                    ArenaError(
+                        ErrorCode.INVALID_CONFIG, f"A slave called {peer_id!r} is attached already."
+                    )
+                )
+                return
+            link = SlaveLink(self, peer_id)
+            self._apply(safety.SlaveAttach(peer_id), now, cause="slave attach")
+        scope = trio.CancelScope() if message.driver is not None else None
+        peer = _Peer(
+            peer_id, message.role, message.kind, link, scope, message.heartbeat_timeout, now
+        )
+        if message.role == "master":
+            self._master = peer
+        else:
+            self._slaves[peer_id] = peer
+        if message.driver is not None:
+            assert self._nursery is not None
+            self._nursery.start_soon(self._run_driver, peer, message.driver)
+        log.info(
+            "robot %s: %s %s attached (%s)", self.robot_id, message.role, peer_id, message.kind
+        )
+        self._publish(
+            PeerChanged(
+                self.robot_id,
+                message.role,
+                peer_id,
+                message.kind,
+                "attached",
+                "",
+                now,
+                wallclock.time(),
+            )
+        )
+        message.reply.set(link)
+
+    def _on_detach(self, message: _DetachMsg, now: float) -> None:
+        if message.role == "master":
+            peer = self._master
+            if peer is None or (message.peer_id is not None and peer.peer_id != message.peer_id):
+                if message.reply is not None:
+                    message.reply.set(None)  # not the master (any more): nothing to do
+                return
+            event: safety.Event = (
+                safety.MasterLost(peer.peer_id, message.reason)
+                if message.lost
+                else safety.MasterDetach(peer.peer_id)
+            )
+            self._apply(event, now, cause=message.reason)
+            self._drop_master(
+                peer,
+                ErrorCode.MASTER_LOST if message.lost else None,
+                message.reason,
+                "lost" if message.lost else "detached",
+                now,
+            )
+        else:
+            slave = self._slaves.get(message.peer_id or "")
+            if slave is None:
+                if message.reply is not None:
+                    message.reply.fail(
+                        ArenaError(
+                            ErrorCode.UNKNOWN_SLAVE, f"No slave {message.peer_id!r} on this robot."
+                        )
+                    )
+                return
+            self._drop_slave(slave, message.reason, lost=message.lost, now=now)
+        if message.reply is not None:
+            message.reply.set(None)
+
+    def _on_driver_ended(self, message: _DriverEndedMsg, now: float) -> None:
+        peer = message.peer
+        if peer is not self._master and self._slaves.get(peer.peer_id) is not peer:
+            return  # already detached by the robot
+        error = message.error
+        if error is not None:
+            text = f"{type(error).__name__}: {error}"
+            log.error(
+                "robot %s: %s driver %s failed: %s",
+                self.robot_id,
+                peer.role,
+                peer.peer_id,
+                text,
+                exc_info=error,
+            )
+            self._publish(
+                FaultReported(
+                    self.robot_id,
+                    peer.peer_id,
+                    ErrorCode.DRIVER_FAILED,
+                    text,
+                    Severity.ERROR,
+                    None,
+                    now,
+                    wallclock.time(),
+                )
+            )
+        if peer.role == "master":
+            reason = "driver failed" if error else "driver finished"
+            event: safety.Event = (
+                safety.MasterLost(peer.peer_id, reason)
+                if error
+                else safety.MasterDetach(peer.peer_id)
+            )
+            self._apply(event, now, cause=reason)
+            self._drop_master(
+                peer,
+                ErrorCode.DRIVER_FAILED if error else None,
+                reason,
+                "lost" if error else "detached",
+                now,
+            )
+        else:
+            self._drop_slave(
+                peer,
+                "driver failed" if error else "driver finished",
+                lost=error is not None,
+                now=now,
+            )
+
+    def _on_timers(self, now: float) -> None:
+        if self._next_tick is not None and now >= self._next_tick:
+            self._next_tick = None
+            self._send_targets(self.core.tick(now), now)
+        for peer in self._peers():
+            timeout = peer.heartbeat_timeout
+            if timeout is not None and now >= peer.last_seen + timeout:
+                log.warning(
+                    "robot %s: %s %s missed its heartbeat", self.robot_id, peer.role, peer.peer_id
+                )
+                if peer.role == "master":
+                    self._apply(
+                        safety.HeartbeatTimeout(peer.peer_id), now, cause="heartbeat timeout"
+                    )
+                    if self._master is peer:
+                        self._drop_master(
+                            peer, ErrorCode.MASTER_LOST, "heartbeat timeout", "lost", now
+                        )
+                else:
+                    self._drop_slave(peer, "heartbeat timeout", lost=True, now=now)
+
+    def _on_shutdown(self, reason: str) -> None:
+        now = trio.current_time()
+        if self._master is not None:
+            self._apply(safety.MasterDetach(self._master.peer_id), now, cause=reason)
+            self._drop_master(self._master, ErrorCode.ROBOT_STOPPED, reason, "detached", now)
+        for slave in list(self._slaves.values()):
+            self._drop_slave(slave, reason, lost=False, now=now)
+        log.info("robot %s: stopped (%s)", self.robot_id, reason)
+
+    # -- effects ------------------------------------------------------------------------------
+
+    def _apply(self, event: safety.Event, now: float, cause: str) -> safety.Outcome:
+        before = self.core.state
+        step = self.core.handle(event, now)
+        self._carry_out(step, now)
+        after = self.core.state
+        if (before.mode, before.owner, before.estop_reason) != (
+            after.mode,
+            after.owner,
+            after.estop_reason,
+        ):
+            self._state_changed(cause, now)
+        return step.outcome
+
+    def _carry_out(self, step: Step, now: float) -> None:
+        self._send_targets(step.targets, now)
+        for effect in step.effects:
+            if isinstance(effect, safety.DetachMaster):
+                if self._master is not None and self._master.peer_id == effect.master_id:
+                    self._drop_master(self._master, effect.code, effect.message, "detached", now)
+            elif isinstance(effect, safety.StopMotion):
+                log.warning("robot %s: e-stop (%s)", self.robot_id, effect.reason)
+                self._notify_slaves(SlaveNotice(NoticeKind.ESTOP, effect.reason), clears=True)
+            elif isinstance(effect, safety.HoldPosition):
+                self._notify_slaves(SlaveNotice(NoticeKind.HOLD, "holding position"))
+            elif isinstance(effect, safety.ResumeSlaves):
+                log.info("robot %s: reset", self.robot_id)
+                self._notify_slaves(SlaveNotice(NoticeKind.RESET, "e-stop reset"))
+        if self._next_tick is None:
+            self._next_tick = self.core.next_tick(now)
+
+    def _send_targets(self, targets: dict[str, float] | None, now: float) -> None:
+        if targets is not None:
+            target = SlaveTarget(targets, now)
+            for slave in self._slaves.values():
+                assert isinstance(slave.link, SlaveLink)
+                slave.link.mailbox.put_target(target)
+            self._publish(TargetsSent(self.robot_id, targets, now, wallclock.time()))
+        if self._next_tick is None:
+            self._next_tick = self.core.next_tick(now)
+
+    def _notify_slaves(self, notice: SlaveNotice, clears: bool = False) -> None:
+        for slave in self._slaves.values():
+            assert isinstance(slave.link, SlaveLink)
+            slave.link.mailbox.put_notice(notice, clears=clears)
+
+    def _state_changed(self, cause: str, now: float) -> None:
+        state = self.core.state
+        self._publish(
+            StateChanged(
+                self.robot_id,
+                state.mode,
+                state.owner,
+                state.estop_reason,
+                cause,
+                now,
+                wallclock.time(),
+            )
+        )
+        if self._master is not None:
+            assert isinstance(self._master.link, MasterLink)
+            self._master.link.notices.put(MasterNotice("state", None, cause, state.mode))
+
+    def _drop_master(
+        self, peer: _Peer, code: ErrorCode | None, reason: str, change: str, now: float
+    ) -> None:
+        if self._master is not peer:
+            return
+        self._master = None
+        self.core.forget_master(peer.peer_id)
+        assert isinstance(peer.link, MasterLink)
+        if code is not None:
+            peer.link.notices.put(MasterNotice("detached", code, reason))
+        peer.link.detached.set()
+        peer.link.notices.close()
+        if peer.scope is not None:
+            peer.scope.cancel()
+        log.info("robot %s: master %s %s (%s)", self.robot_id, peer.peer_id, change, reason)
+        self._publish(
+            PeerChanged(
+                self.robot_id,
+                "master",
+                peer.peer_id,
+                peer.kind,
+                change,
+                reason,
+                now,
+                wallclock.time(),
+            )
+        )
+
+    def _drop_slave(self, peer: _Peer, reason: str, *, lost: bool, now: float) -> None:
+        if self._slaves.get(peer.peer_id) is not peer:
+            return
+        del self._slaves[peer.peer_id]
+        assert isinstance(peer.link, SlaveLink)
+        peer.link.mailbox.put_notice(SlaveNotice(NoticeKind.SHUTDOWN, reason), clears=True)
+        peer.link.mailbox.close()
+        if peer.scope is not None:
+            peer.scope.cancel()
+        event: safety.Event = (
+            safety.SlaveLost(peer.peer_id, reason) if lost else safety.SlaveDetach(peer.peer_id)
+        )
+        log.log(
+            logging.WARNING if lost else logging.INFO,
+            "robot %s: slave %s %s (%s)",
+            self.robot_id,
+            peer.peer_id,
+            "lost" if lost else "detached",
+            reason,
+        )
+        self._publish(
+            PeerChanged(
+                self.robot_id,
+                "slave",
+                peer.peer_id,
+                peer.kind,
+                "lost" if lost else "detached",
+                reason,
+                now,
+                wallclock.time(),
+            )
+        )
+        self._apply(event, now, cause=reason)
+
+    def _touch(self, peer_id: str, now: float) -> None:
+        if self._master is not None and self._master.peer_id == peer_id:
+            self._master.last_seen = now
+        elif (slave := self._slaves.get(peer_id)) is not None:
+            slave.last_seen = now
+
+    def _publish(self, event: RobotEvent) -> None:
+        for queue in self._observers:
+            queue.put(event)
+
+    # -- plumbing -----------------------------------------------------------------------------
+
+    async def _run_driver(self, peer: _Peer, driver: MasterDriver | SlaveDriver) -> None:
+        assert peer.scope is not None
+        error: BaseException | None = None
+        with peer.scope:
+            try:
+                await driver.run(peer.link)  # type: ignore[arg-type]
+            except Exception as exc:  # a failing driver is reported, never fatal to the robot
+                error = exc
+        if not peer.scope.cancel_called:
+            with contextlib.suppress(trio.ClosedResourceError, trio.BrokenResourceError):
+                await self._send.send(_DriverEndedMsg(peer, error))
+
+    async def _attach(
+        self,
+        role: str,
+        peer_id: str | None,
+        kind: str,
+        driver: MasterDriver | SlaveDriver | None,
+        autonomous: bool,
+        takeover: bool,
+        heartbeat_timeout: float | None,
+    ) -> Any:
+        reply: _Reply[Any] = _Reply()
+        await self._post(
+            _AttachMsg(role, peer_id, kind, driver, autonomous, takeover, heartbeat_timeout, reply)
+        )
+        return await reply.wait()
+
+    async def _detach(self, role: str, peer_id: str | None, *, lost: bool, reason: str) -> None:
+        reply: _Reply[None] = _Reply()
+        try:
+            await self._post(_DetachMsg(role, peer_id, lost, reason, reply))
+        except ArenaError as exc:
+            if exc.code is ErrorCode.ROBOT_STOPPED:
+                return  # the robot is gone, and the peer with it
+            raise
+        await reply.wait()
+
+    async def _event(self, event: safety.Event) -> safety.Outcome:
+        reply: _Reply[safety.Outcome] = _Reply()
+        await self._post(_EventMsg(event, reply))
+        return await reply.wait()
+
+    async def _post(self, message: _Msg) -> None:
+        try:
+            await self._send.send(message)
+        except (trio.ClosedResourceError, trio.BrokenResourceError):
+            raise ArenaError(
+                ErrorCode.ROBOT_STOPPED, f"Robot {self.robot_id!r} has stopped."
+            ) from None
+
+    def _post_nowait(self, message: _Msg, drop_if_full: bool = False) -> None:
+        try:
+            self._send.send_nowait(message)
+        except trio.WouldBlock:
+            if not drop_if_full:
+                raise ArenaError(
+                    ErrorCode.OVERLOADED, f"Robot {self.robot_id!r} is overloaded; slow down."
+                ) from None
+        except (trio.ClosedResourceError, trio.BrokenResourceError):
+            raise ArenaError(
+                ErrorCode.ROBOT_STOPPED, f"Robot {self.robot_id!r} has stopped."
+            ) from None
+
+    def _fail_pending(self, error: ArenaError) -> None:
+        while True:
+            try:
+                message = self._receive.receive_nowait()
+            except (trio.WouldBlock, trio.EndOfChannel, trio.ClosedResourceError):
+                return
+            reply = getattr(message, "reply", None)
+            if reply is not None:
+                reply.fail(error)
+
+    @staticmethod
+    def _peer_snapshot(peer: _Peer) -> PeerSnapshot:
+        return PeerSnapshot(peer.peer_id, peer.role, peer.kind, True, peer.last_error)

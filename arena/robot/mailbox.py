@@ -1,0 +1,115 @@
+"""Non-blocking hand-offs from the actor to slower consumers.
+
+The actor must never wait for a consumer. `LatestMailbox` keeps only the newest target (plus the
+notices, which are never coalesced); `EventQueue` keeps a bounded backlog and drops the oldest.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from typing import Generic, TypeVar
+
+import trio
+
+T = TypeVar("T")
+N = TypeVar("N")
+
+
+class _Parked:
+    """Shared wake-up and close logic."""
+
+    def __init__(self) -> None:
+        self._lot = trio.lowlevel.ParkingLot()
+        self.closed = False
+
+    def close(self) -> None:
+        """No more items will come; waiting readers get `trio.EndOfChannel` once drained."""
+        self.closed = True
+        self._lot.unpark_all()
+
+    def _wake(self) -> None:
+        if self._lot.statistics().tasks_waiting:
+            self._lot.unpark_all()
+
+
+class LatestMailbox(_Parked, Generic[T, N]):
+    """A one-slot box for targets where the newest wins, plus an ordered queue of notices.
+
+    A notice that `clears` (an e-stop) throws away a target not yet taken, so a slave that was
+    slow never acts on a target that the stop has overtaken.
+    """
+
+    def __init__(self, max_notices: int = 64) -> None:
+        super().__init__()
+        self._target: T | None = None
+        self._notices: deque[N] = deque(maxlen=max_notices)
+        self.coalesced = 0  # targets replaced before being taken
+
+    def put_target(self, target: T) -> None:
+        """Offer the newest target, replacing one not yet taken."""
+        if self._target is not None:
+            self.coalesced += 1
+        self._target = target
+        self._wake()
+
+    def put_notice(self, notice: N, *, clears: bool = False) -> None:
+        """Queue a notice; `clears` drops the pending target."""
+        if clears:
+            self._target = None
+        self._notices.append(notice)
+        self._wake()
+
+    async def get(self) -> T | N:
+        """The next notice if any, else the newest target; waits when there is neither."""
+        while True:
+            if self._notices:
+                return self._notices.popleft()
+            if self._target is not None:
+                target, self._target = self._target, None
+                return target
+            if self.closed:
+                raise trio.EndOfChannel
+            await self._lot.park()
+
+
+class EventQueue(_Parked, Generic[T]):
+    """A bounded queue that drops its oldest item when full, counting what it dropped."""
+
+    def __init__(self, maxlen: int = 1024) -> None:
+        super().__init__()
+        self._items: deque[T] = deque(maxlen=maxlen)
+        self.dropped = 0
+
+    def put(self, item: T) -> None:
+        """Append without ever blocking."""
+        if len(self._items) == self._items.maxlen:
+            self.dropped += 1
+        self._items.append(item)
+        self._wake()
+
+    def get_nowait(self) -> T:
+        """The oldest item; raises `trio.WouldBlock` when empty."""
+        if not self._items:
+            raise trio.WouldBlock
+        return self._items.popleft()
+
+    async def get(self) -> T:
+        """The oldest item, waiting for one; `trio.EndOfChannel` once closed and drained."""
+        while True:
+            if self._items:
+                return self._items.popleft()
+            if self.closed:
+                raise trio.EndOfChannel
+            await self._lot.park()
+
+    def __aiter__(self) -> EventQueue[T]:
+        return self
+
+    async def __anext__(self) -> T:
+        try:
+            return await self.get()
+        except trio.EndOfChannel:
+            raise StopAsyncIteration from None
+
+    def __len__(self) -> int:
+        return len(self._items)

@@ -1,0 +1,229 @@
+"""Robot types: a folder with a URDF and a `robot.toml`, turned into a `RobotModel`.
+
+Units: the wire speaks degrees measured from each joint's *neutral* pose; the URDF speaks
+radians. `JointSpec.to_urdf` and `JointSpec.from_urdf` are the only conversions between them.
+"""
+
+from __future__ import annotations
+
+import enum
+import functools
+import math
+import os
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from arena.protocol.errors import ArenaError, ErrorCode, Severity
+
+#: Folder of the robot types shipped with Arena.
+BUILTIN_TYPES_DIR = Path(__file__).resolve().parent.parent / "robot_types"
+#: Environment variable naming extra folders of robot types (os.pathsep separated).
+TYPES_PATH_ENV = "ARENA_ROBOT_TYPES"
+CONFIG_FILE = "robot.toml"
+
+
+class LossPolicy(enum.StrEnum):
+    """What the robot does when its active master is lost."""
+
+    ESTOP = "estop"
+    HOLD = "hold"
+
+
+@dataclass(frozen=True, slots=True)
+class SafetyPolicy:
+    """Per-robot safety settings (defaults come from the robot type's config)."""
+
+    loss_policy: LossPolicy = LossPolicy.ESTOP
+    command_rate: float = 100.0
+    command_burst: int = 10
+    estop_severity: Severity = Severity.CRITICAL
+    control_rate: float = 100.0
+    velocity_burst: float = 0.05
+
+
+@dataclass(frozen=True, slots=True)
+class JointSpec:
+    """One joint as the protocol sees it: name, servo, limits in degrees and deg/s."""
+
+    name: str
+    servo_id: int
+    aliases: tuple[str, ...]
+    lower: float
+    upper: float
+    max_velocity: float
+    neutral: float  # URDF radians that 0 degrees on the wire stands for
+
+    def to_urdf(self, degrees: float) -> float:
+        """Wire degrees to URDF radians."""
+        return self.neutral + math.radians(degrees)
+
+    def from_urdf(self, radians: float) -> float:
+        """URDF radians to wire degrees."""
+        return math.degrees(radians - self.neutral)
+
+    def clamp(self, degrees: float) -> float:
+        """The nearest value inside the joint's position limits."""
+        return min(self.upper, max(self.lower, degrees))
+
+
+@dataclass(frozen=True)
+class RobotModel:
+    """Everything Arena knows about a robot type: joints in servo order, safety, URDF."""
+
+    robot_type: str
+    description: str
+    joints: tuple[JointSpec, ...]
+    safety: SafetyPolicy
+    urdf_path: Path
+
+    _by_name: dict[str, JointSpec] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        names: dict[str, JointSpec] = {}
+        for joint in self.joints:
+            for name in (joint.name, *joint.aliases):
+                names[name] = joint
+                names[name.lower()] = joint
+        object.__setattr__(self, "_by_name", names)
+
+    def joint(self, name: str) -> JointSpec | None:
+        """The joint called `name` (protocol name or alias, any case), or None."""
+        found = self._by_name.get(name)
+        return found if found is not None else self._by_name.get(name.lower())
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        """Protocol names in servo order."""
+        return tuple(j.name for j in self.joints)
+
+
+def robot_type_dirs() -> list[Path]:
+    """Folders searched for robot types: `$ARENA_ROBOT_TYPES` entries first, then built-ins."""
+    extra = [Path(p) for p in os.environ.get(TYPES_PATH_ENV, "").split(os.pathsep) if p]
+    return [*extra, BUILTIN_TYPES_DIR]
+
+
+def list_robot_types() -> list[str]:
+    """Names of every robot type found on the search path."""
+    found: set[str] = set()
+    for folder in robot_type_dirs():
+        if folder.is_dir():
+            found.update(p.parent.name for p in folder.glob(f"*/{CONFIG_FILE}"))
+    return sorted(found)
+
+
+def load_robot_model(robot_type: str) -> RobotModel:
+    """Load a robot type by name from the search path.
+
+    Raises `ArenaError(UNKNOWN_ROBOT_TYPE)` when no folder has it and `ArenaError(INVALID_CONFIG)`
+    when its files are inconsistent.
+    """
+    for folder in robot_type_dirs():
+        candidate = folder / robot_type
+        if (candidate / CONFIG_FILE).is_file() and candidate.name == robot_type:
+            return _load_from_folder(candidate.resolve())
+    known = ", ".join(list_robot_types()) or "none"
+    raise ArenaError(
+        ErrorCode.UNKNOWN_ROBOT_TYPE, f"No robot type {robot_type!r}; known types: {known}."
+    )
+
+
+@functools.lru_cache(maxsize=32)
+def _load_from_folder(folder: Path) -> RobotModel:
+    def bad(why: str) -> ArenaError:
+        return ArenaError(ErrorCode.INVALID_CONFIG, f"Robot type {folder.name!r}: {why}")
+
+    try:
+        config = tomllib.loads((folder / CONFIG_FILE).read_text(encoding="utf-8"))
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise bad(f"cannot read {CONFIG_FILE}: {exc}") from exc
+    urdf_path = folder / str(config.get("urdf", f"{folder.name}.urdf"))
+    urdf_joints = _read_urdf_joints(urdf_path, bad)
+    try:
+        safety = _safety_policy(config.get("safety", {}))
+    except (TypeError, ValueError) as exc:
+        raise bad(f"invalid [safety]: {exc}") from exc
+    joints = tuple(_joint_spec(entry, urdf_joints, bad) for entry in config.get("joints", []))
+    if not joints:
+        raise bad("no [[joints]] defined")
+    names = [j.name for j in joints]
+    every_name = [n for j in joints for n in {x.lower() for x in (j.name, *j.aliases)}]
+    if len(set(every_name)) != len(every_name):
+        raise bad(f"joint names and aliases must be unique: {names}")
+    return RobotModel(
+        robot_type=folder.name,
+        description=str(config.get("description", folder.name)),
+        joints=joints,
+        safety=safety,
+        urdf_path=urdf_path,
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class _UrdfJoint:
+    lower: float
+    upper: float
+    velocity: float
+
+
+def _read_urdf_joints(path: Path, bad: Any) -> dict[str, _UrdfJoint]:
+    import yourdfpy  # costly import (trimesh, scipy): only when a type is first loaded
+
+    try:
+        urdf = yourdfpy.URDF.load(str(path), build_scene_graph=False, load_meshes=False)
+    except Exception as exc:  # yourdfpy raises many kinds; all mean the same to the user
+        raise bad(f"cannot parse URDF {path.name}: {exc}") from exc
+    joints: dict[str, _UrdfJoint] = {}
+    for joint in urdf.robot.joints:
+        if joint.type != "revolute" or joint.limit is None:
+            continue
+        joints[joint.name] = _UrdfJoint(
+            float(joint.limit.lower), float(joint.limit.upper), float(joint.limit.velocity)
+        )
+    return joints
+
+
+def _safety_policy(section: dict[str, Any]) -> SafetyPolicy:
+    policy = SafetyPolicy(
+        loss_policy=LossPolicy(section.get("loss_policy", LossPolicy.ESTOP)),
+        command_rate=float(section.get("command_rate", 100.0)),
+        command_burst=int(section.get("command_burst", 10)),
+        estop_severity=Severity(section.get("estop_severity", Severity.CRITICAL)),
+        control_rate=float(section.get("control_rate", 100.0)),
+        velocity_burst=float(section.get("velocity_burst", 0.05)),
+    )
+    if policy.command_rate <= 0 or policy.command_burst < 1 or policy.control_rate <= 0:
+        raise ValueError("command_rate, command_burst and control_rate must be positive")
+    if policy.velocity_burst < 0:
+        raise ValueError("velocity_burst must not be negative")
+    return policy
+
+
+def _joint_spec(entry: dict[str, Any], urdf: dict[str, _UrdfJoint], bad: Any) -> JointSpec:
+    name = str(entry.get("name", ""))
+    source = urdf.get(str(entry.get("urdf_joint", name)))
+    if source is None:
+        raise bad(f"joint {name!r} is not a revolute joint with limits in the URDF")
+    neutral = float(entry.get("neutral", (source.lower + source.upper) / 2))
+    lower = math.degrees(source.lower - neutral)
+    upper = math.degrees(source.upper - neutral)
+    # Optional soft limits narrow (never widen) what the URDF allows.
+    soft_lower = float(entry.get("lower", lower))
+    soft_upper = float(entry.get("upper", upper))
+    if not lower - 1e-9 <= soft_lower < soft_upper <= upper + 1e-9:
+        raise bad(f"joint {name!r}: soft limits must lie inside [{lower:.1f}, {upper:.1f}] deg")
+    velocity = math.degrees(source.velocity)
+    max_velocity = float(entry.get("max_velocity", velocity))
+    if not 0 < max_velocity <= velocity + 1e-9:
+        raise bad(f"joint {name!r}: max_velocity must be in (0, {velocity:.1f}] deg/s")
+    return JointSpec(
+        name=name,
+        servo_id=int(entry.get("servo_id", 0)),
+        aliases=tuple(str(a) for a in entry.get("aliases", ())),
+        lower=round(soft_lower, 6),
+        upper=round(soft_upper, 6),
+        max_velocity=max_velocity,
+        neutral=neutral,
+    )

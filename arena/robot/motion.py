@@ -1,0 +1,254 @@
+"""Motion safety, pure: command validation, clamping, velocity limits, interpolation, rate limits.
+
+Every target that reaches a slave comes out of `MotionLimiter.advance`. Its guarantee, per joint,
+for any two targets it emits at times t1 <= t2:
+
+    |x2 - x1| <= v * (t2 - t1) + v * velocity_burst
+
+where v is the joint's velocity limit (or the lower `speed` a command asked for). A small step
+inside that budget goes out at once; a larger one is spread over the following control ticks.
+Time is an argument everywhere (seconds, any monotonic origin): nothing here reads a clock.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+
+from arena.protocol.errors import ArenaError, ErrorCode
+from arena.robot.model import RobotModel
+
+
+@dataclass(frozen=True, slots=True)
+class JointGoal:
+    """One joint's requested value in wire degrees, with an optional speed cap in deg/s."""
+
+    name: str
+    value: float
+    speed: float | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Command:
+    """A request to move some joints; `duration` (seconds) asks for a smooth move over that time."""
+
+    joints: tuple[JointGoal, ...]
+    duration: float | None = None
+    source: str | None = None  # free-form label (the wire's metadata.source)
+
+    @classmethod
+    def of(cls, values: Mapping[str, float], duration: float | None = None) -> Command:
+        """Shorthand: `Command.of({"Rotation": 45})`."""
+        return cls(tuple(JointGoal(n, v) for n, v in values.items()), duration)
+
+
+@dataclass(frozen=True, slots=True)
+class Clamp:
+    """A requested value that was outside the limits and what was applied instead."""
+
+    joint: str
+    requested: float
+    applied: float
+
+
+@dataclass(frozen=True, slots=True)
+class CommandResult:
+    """The answer to a command: accepted (maybe clamped) or refused with a code."""
+
+    accepted: bool
+    code: ErrorCode | None = None
+    message: str = ""
+    clamped: tuple[Clamp, ...] = ()
+
+    @classmethod
+    def refused(cls, code: ErrorCode, message: str) -> CommandResult:
+        """A refusal."""
+        return cls(False, code, message)
+
+
+@dataclass(frozen=True, slots=True)
+class ResolvedGoal:
+    """A validated goal: protocol joint name, value inside the limits, effective speed."""
+
+    name: str
+    value: float
+    speed: float
+
+
+def resolve_command(model: RobotModel, command: Command) -> tuple[list[ResolvedGoal], list[Clamp]]:
+    """Validate a command against the model.
+
+    Unknown joints, non-finite values, bad speeds or durations raise `ArenaError`; values outside
+    the limits are clamped and listed. Names come back as protocol names (aliases resolved).
+    """
+    if not command.joints:
+        raise ArenaError(ErrorCode.EMPTY_COMMAND, "The command names no joints.")
+    if command.duration is not None and not (
+        math.isfinite(command.duration) and command.duration >= 0
+    ):
+        raise ArenaError(ErrorCode.INVALID_VALUE, "duration must be a finite number >= 0.")
+    goals: list[ResolvedGoal] = []
+    clamps: list[Clamp] = []
+    seen: set[str] = set()
+    for goal in command.joints:
+        spec = model.joint(goal.name)
+        if spec is None:
+            known = ", ".join(model.joint_names)
+            raise ArenaError(
+                ErrorCode.UNKNOWN_JOINT, f"Unknown joint {goal.name!r}; this robot has {known}."
+            )
+        if spec.name in seen:
+            raise ArenaError(ErrorCode.INVALID_VALUE, f"Joint {spec.name!r} is named twice.")
+        seen.add(spec.name)
+        if not _is_finite_number(goal.value):
+            raise ArenaError(
+                ErrorCode.INVALID_VALUE,
+                f"Joint {spec.name!r}: value must be a finite number of degrees.",
+            )
+        speed = spec.max_velocity
+        if goal.speed is not None:
+            if not _is_finite_number(goal.speed) or goal.speed <= 0:
+                raise ArenaError(
+                    ErrorCode.INVALID_VALUE,
+                    f"Joint {spec.name!r}: speed must be a positive number (deg/s).",
+                )
+            speed = min(speed, float(goal.speed))
+        value = spec.clamp(float(goal.value))
+        if value != goal.value:
+            clamps.append(Clamp(spec.name, float(goal.value), value))
+        goals.append(ResolvedGoal(spec.name, value, speed))
+    return goals, clamps
+
+
+def _is_finite_number(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def min_jerk(fraction: float) -> float:
+    """Smooth 0..1 progress with zero velocity and acceleration at both ends."""
+    f = min(1.0, max(0.0, fraction))
+    return f * f * f * (10.0 + f * (-15.0 + 6.0 * f))
+
+
+class _JointMotion:
+    """One joint's emitted position, goal and velocity budget."""
+
+    __slots__ = ("goal", "limit", "position", "profile", "speed", "tokens")
+
+    def __init__(self, position: float, limit: float, burst: float) -> None:
+        self.position = position
+        self.goal = position
+        self.limit = limit  # the joint's own velocity limit, deg/s
+        self.speed = limit  # effective cap for the current move
+        self.tokens = limit * burst  # degrees that may be emitted right now
+        self.profile: tuple[float, float, float] | None = None  # (start, t0, duration)
+
+    def desired(self, now: float) -> float:
+        if self.profile is None:
+            return self.goal
+        start, t0, duration = self.profile
+        if now >= t0 + duration:
+            return self.goal
+        return start + (self.goal - start) * min_jerk((now - t0) / duration)
+
+
+class MotionLimiter:
+    """Turns goals into a stream of velocity-limited targets for the slaves."""
+
+    def __init__(
+        self, model: RobotModel, now: float, initial: Mapping[str, float] | None = None
+    ) -> None:
+        self._burst = model.safety.velocity_burst
+        start = dict(initial or {})
+        self._joints = {
+            j.name: _JointMotion(j.clamp(start.get(j.name, 0.0)), j.max_velocity, self._burst)
+            for j in model.joints
+        }
+        self._last = now
+
+    @property
+    def positions(self) -> dict[str, float]:
+        """The last emitted target of every joint (the virtual values)."""
+        return {name: m.position for name, m in self._joints.items()}
+
+    @property
+    def goals(self) -> dict[str, float]:
+        """Where every joint is heading."""
+        return {name: m.goal for name, m in self._joints.items()}
+
+    @property
+    def moving(self) -> bool:
+        """True while some joint has not reached its goal (ticks are needed)."""
+        return any(m.position != m.goal or m.profile is not None for m in self._joints.values())
+
+    def set_goals(self, goals: Iterable[ResolvedGoal], duration: float | None, now: float) -> None:
+        """Aim joints at new goals; with `duration`, follow a smooth curve over that time."""
+        self._refill(now)
+        for goal in goals:
+            motion = self._joints[goal.name]
+            motion.goal = goal.value
+            motion.speed = goal.speed
+            motion.tokens = min(motion.tokens, motion.speed * self._burst)
+            motion.profile = (motion.position, now, duration) if duration else None
+
+    def advance(self, now: float) -> dict[str, float] | None:
+        """Move every joint as far toward its goal as its budget allows.
+
+        Returns the full target vector if any joint moved, else None.
+        """
+        self._refill(now)
+        changed = False
+        for motion in self._joints.values():
+            desired = motion.desired(now)
+            delta = desired - motion.position
+            if delta != 0.0:
+                if abs(delta) <= motion.tokens:
+                    motion.position = desired
+                    motion.tokens -= abs(delta)
+                else:
+                    motion.position += math.copysign(motion.tokens, delta)
+                    motion.tokens = 0.0
+                changed = True
+            if motion.profile is not None and motion.position == motion.goal:
+                _, t0, duration = motion.profile
+                if now >= t0 + duration:
+                    motion.profile = None
+        return self.positions if changed else None
+
+    def freeze(self, now: float) -> None:
+        """Stop every joint where it is: goals become the current targets."""
+        self._refill(now)
+        for motion in self._joints.values():
+            motion.goal = motion.position
+            motion.profile = None
+
+    def _refill(self, now: float) -> None:
+        elapsed = max(0.0, now - self._last)
+        self._last = max(self._last, now)
+        if elapsed == 0.0:
+            return
+        for motion in self._joints.values():
+            motion.tokens = min(motion.speed * self._burst, motion.tokens + motion.speed * elapsed)
+
+
+class RateLimiter:
+    """Token bucket: `rate` commands per second with bursts of up to `burst`."""
+
+    __slots__ = ("_last", "_tokens", "burst", "rate")
+
+    def __init__(self, rate: float, burst: int, now: float) -> None:
+        self.rate = rate
+        self.burst = float(burst)
+        self._tokens = float(burst)
+        self._last = now
+
+    def allow(self, now: float) -> bool:
+        """Take one token if there is one."""
+        elapsed = max(0.0, now - self._last)
+        self._last = max(self._last, now)
+        self._tokens = min(self.burst, self._tokens + elapsed * self.rate)
+        if self._tokens >= 1.0:
+            self._tokens -= 1.0
+            return True
+        return False

@@ -1,0 +1,511 @@
+"""The robot's ownership and safety state machine: one table, one pure function.
+
+`transition(state, event)` looks up the rule for (state.mode, type(event)) in `TABLE` and
+returns what happens: `Allowed` (a new state and the effects the actor must carry out),
+`Refused` (an error code and a sentence for the sender) or `Ignored`. Everything that affects
+who may command the robot lives in this file. No trio, no I/O, no clock.
+
+The same table is written out in specs/safety-state-machine.md; a test keeps the two in step.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from typing import TypeAlias
+
+from arena.protocol.errors import ErrorCode, Severity
+from arena.robot.model import LossPolicy
+
+
+class Mode(enum.StrEnum):
+    """The three safety modes of a robot."""
+
+    IDLE = "idle"  # no master; manual control allowed
+    MASTERED = "mastered"  # one master owns the robot
+    ESTOPPED = "estopped"  # nothing moves until an explicit reset
+
+
+@dataclass(frozen=True, slots=True)
+class SafetyState:
+    """The machine's whole state. `owner` may be set in ESTOPPED (a live master waiting)."""
+
+    mode: Mode = Mode.IDLE
+    owner: str | None = None
+    owner_autonomous: bool = False  # plays a program (sequence, replay): ends on e-stop
+    estop_reason: str | None = None
+    loss_policy: LossPolicy = LossPolicy.ESTOP
+    estop_severity: Severity = Severity.CRITICAL
+
+
+# ---------------------------------------------------------------------------------------------
+# Events
+
+
+@dataclass(frozen=True, slots=True)
+class MasterAttach:
+    """A master asks to own the robot; `takeover` displaces the current one."""
+
+    master_id: str
+    autonomous: bool = False
+    takeover: bool = False
+
+
+@dataclass(frozen=True, slots=True)
+class MasterDetach:
+    """A master leaves of its own accord."""
+
+    master_id: str
+
+
+@dataclass(frozen=True, slots=True)
+class MasterLost:
+    """A master's connection dropped or its driver failed."""
+
+    master_id: str
+    reason: str = "connection lost"
+
+
+@dataclass(frozen=True, slots=True)
+class MasterCommand:
+    """A command from the master `source`."""
+
+    source: str
+
+
+@dataclass(frozen=True, slots=True)
+class ManualCommand:
+    """A command from manual control (sliders, REST joints)."""
+
+
+@dataclass(frozen=True, slots=True)
+class EStop:
+    """Emergency stop."""
+
+    reason: str = "emergency stop"
+
+
+@dataclass(frozen=True, slots=True)
+class Reset:
+    """Leave the e-stop."""
+
+
+@dataclass(frozen=True, slots=True)
+class SlaveAttach:
+    """A slave joins."""
+
+    slave_id: str
+
+
+@dataclass(frozen=True, slots=True)
+class SlaveDetach:
+    """A slave leaves of its own accord."""
+
+    slave_id: str
+
+
+@dataclass(frozen=True, slots=True)
+class SlaveError:
+    """A slave reports a fault."""
+
+    slave_id: str
+    severity: Severity
+    message: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class SlaveLost:
+    """A slave stopped answering or its driver failed."""
+
+    slave_id: str
+    reason: str = "connection lost"
+
+
+@dataclass(frozen=True, slots=True)
+class HeartbeatTimeout:
+    """A peer was silent past its timeout (a master or a slave)."""
+
+    peer_id: str
+
+
+Event: TypeAlias = (
+    MasterAttach
+    | MasterDetach
+    | MasterLost
+    | MasterCommand
+    | ManualCommand
+    | EStop
+    | Reset
+    | SlaveAttach
+    | SlaveDetach
+    | SlaveError
+    | SlaveLost
+    | HeartbeatTimeout
+)
+EVENT_TYPES: tuple[type[Event], ...] = (
+    MasterAttach,
+    MasterDetach,
+    MasterLost,
+    MasterCommand,
+    ManualCommand,
+    EStop,
+    Reset,
+    SlaveAttach,
+    SlaveDetach,
+    SlaveError,
+    SlaveLost,
+    HeartbeatTimeout,
+)
+
+
+# ---------------------------------------------------------------------------------------------
+# Effects: what the actor must do when a transition is allowed
+
+
+@dataclass(frozen=True, slots=True)
+class ApplyCommand:
+    """Pass the command on to the motion filter."""
+
+
+@dataclass(frozen=True, slots=True)
+class DetachMaster:
+    """End a master's ownership and tell it why."""
+
+    master_id: str
+    code: ErrorCode
+    message: str
+
+
+@dataclass(frozen=True, slots=True)
+class StopMotion:
+    """Freeze every target where it is and tell the slaves to stop."""
+
+    reason: str
+
+
+@dataclass(frozen=True, slots=True)
+class HoldPosition:
+    """Freeze every target where it is; slaves keep holding the last target."""
+
+
+@dataclass(frozen=True, slots=True)
+class ResumeSlaves:
+    """Tell the slaves the e-stop is over (no motion until a new command)."""
+
+
+Effect: TypeAlias = ApplyCommand | DetachMaster | StopMotion | HoldPosition | ResumeSlaves
+
+
+# ---------------------------------------------------------------------------------------------
+# Outcomes
+
+
+@dataclass(frozen=True, slots=True)
+class Allowed:
+    """The event is accepted: move to `state` and carry out `effects` in order."""
+
+    state: SafetyState
+    effects: tuple[Effect, ...] = ()
+
+
+@dataclass(frozen=True, slots=True)
+class Refused:
+    """The event is refused; the sender gets `code` and `message`. State is unchanged."""
+
+    code: ErrorCode
+    message: str
+
+
+@dataclass(frozen=True, slots=True)
+class Ignored:
+    """The event changes nothing and needs no answer beyond `reason`."""
+
+    reason: str
+
+
+Outcome: TypeAlias = Allowed | Refused | Ignored
+Rule: TypeAlias = Callable[[SafetyState, Event], Outcome]
+
+
+# ---------------------------------------------------------------------------------------------
+# Rules. Each has a one-line summary: the text of its cell in the spec table.
+
+_SUMMARIES: dict[Rule, str] = {}
+
+
+def _rule(summary: str) -> Callable[[Rule], Rule]:
+    def register(fn: Rule) -> Rule:
+        _SUMMARIES[fn] = summary
+        return fn
+
+    return register
+
+
+def _estop_state(state: SafetyState, reason: str) -> tuple[SafetyState, tuple[Effect, ...]]:
+    """Enter ESTOPPED: autonomous masters end, live masters stay but may not move the robot."""
+    effects: list[Effect] = [StopMotion(reason)]
+    owner = state.owner
+    if owner is not None and state.owner_autonomous:
+        effects.append(DetachMaster(owner, ErrorCode.ESTOPPED, f"Stopped by e-stop: {reason}."))
+        owner = None
+    new = replace(
+        state,
+        mode=Mode.ESTOPPED,
+        owner=owner,
+        owner_autonomous=state.owner_autonomous and owner is not None,
+        estop_reason=reason,
+    )
+    return new, tuple(effects)
+
+
+def _apply_loss_policy(state: SafetyState, why: str) -> Outcome:
+    if state.loss_policy is LossPolicy.HOLD:
+        return Allowed(
+            replace(state, mode=Mode.IDLE, owner=None, owner_autonomous=False), (HoldPosition(),)
+        )
+    new, effects = _estop_state(replace(state, owner=None, owner_autonomous=False), why)
+    return Allowed(new, effects)
+
+
+@_rule("allowed: becomes owner -> mastered")
+def _claim(state: SafetyState, event: Event) -> Outcome:
+    assert isinstance(event, MasterAttach)
+    return Allowed(
+        replace(state, mode=Mode.MASTERED, owner=event.master_id, owner_autonomous=event.autonomous)
+    )
+
+
+@_rule(
+    "owner re-attaching: ignored; takeover: previous master detached (TAKEN_OVER); "
+    "else refused MASTER_ACTIVE"
+)
+def _claim_or_takeover(state: SafetyState, event: Event) -> Outcome:
+    assert isinstance(event, MasterAttach)
+    if event.master_id == state.owner:
+        return Ignored("already the owner")
+    if not event.takeover:
+        return Refused(
+            ErrorCode.MASTER_ACTIVE,
+            f"Robot is controlled by master {state.owner!r}; ask for takeover to replace it.",
+        )
+    assert state.owner is not None
+    effects = (
+        DetachMaster(
+            state.owner, ErrorCode.TAKEN_OVER, f"Master {event.master_id!r} took over the robot."
+        ),
+    )
+    return Allowed(
+        replace(state, owner=event.master_id, owner_autonomous=event.autonomous), effects
+    )
+
+
+@_rule(
+    "live master: becomes owner, stays estopped (takeover needed if owned); "
+    "autonomous: refused ESTOPPED"
+)
+def _claim_while_estopped(state: SafetyState, event: Event) -> Outcome:
+    assert isinstance(event, MasterAttach)
+    if event.autonomous:
+        return Refused(
+            ErrorCode.ESTOPPED, "Robot is e-stopped; reset it before starting a sequence or replay."
+        )
+    if state.owner is None:
+        return Allowed(replace(state, owner=event.master_id, owner_autonomous=False))
+    if event.master_id == state.owner:
+        return Ignored("already the owner")
+    if not event.takeover:
+        return Refused(
+            ErrorCode.MASTER_ACTIVE,
+            f"Robot is held by master {state.owner!r}; ask for takeover to replace it.",
+        )
+    effects = (
+        DetachMaster(
+            state.owner, ErrorCode.TAKEN_OVER, f"Master {event.master_id!r} took over the robot."
+        ),
+    )
+    return Allowed(replace(state, owner=event.master_id, owner_autonomous=False), effects)
+
+
+@_rule("ignored: no master")
+def _no_master(state: SafetyState, event: Event) -> Outcome:
+    return Ignored("the robot has no master")
+
+
+@_rule("owner: allowed, hold position -> idle; others: ignored")
+def _release(state: SafetyState, event: Event) -> Outcome:
+    assert isinstance(event, MasterDetach)
+    if event.master_id != state.owner:
+        return Ignored("not the owner")
+    return Allowed(
+        replace(state, mode=Mode.IDLE, owner=None, owner_autonomous=False), (HoldPosition(),)
+    )
+
+
+@_rule("owner: allowed, ownership ends, stays estopped; others: ignored")
+def _release_while_estopped(state: SafetyState, event: Event) -> Outcome:
+    assert isinstance(event, MasterDetach | MasterLost | HeartbeatTimeout)
+    peer = event.peer_id if isinstance(event, HeartbeatTimeout) else event.master_id
+    if peer != state.owner:
+        return Ignored("not the owner")
+    return Allowed(replace(state, owner=None, owner_autonomous=False))
+
+
+@_rule(
+    "owner: loss policy (estop: e-stop -> estopped; hold: hold position -> idle); others: ignored"
+)
+def _lose_master(state: SafetyState, event: Event) -> Outcome:
+    assert isinstance(event, MasterLost | HeartbeatTimeout)
+    if isinstance(event, HeartbeatTimeout):
+        peer, why = event.peer_id, "heartbeat timeout"
+    else:
+        peer, why = event.master_id, event.reason
+    if peer != state.owner:
+        return Ignored("not the owner")
+    return _apply_loss_policy(state, f"master {peer!r} lost: {why}")
+
+
+@_rule("refused NOT_OWNER")
+def _command_without_master(state: SafetyState, event: Event) -> Outcome:
+    assert isinstance(event, MasterCommand)
+    return Refused(
+        ErrorCode.NOT_OWNER, f"{event.source!r} is not this robot's master; attach as master first."
+    )
+
+
+@_rule("owner: allowed, apply; others: refused NOT_OWNER")
+def _owner_command(state: SafetyState, event: Event) -> Outcome:
+    assert isinstance(event, MasterCommand)
+    if event.source != state.owner:
+        return Refused(
+            ErrorCode.NOT_OWNER,
+            f"Robot is controlled by master {state.owner!r}, not {event.source!r}.",
+        )
+    return Allowed(state, (ApplyCommand(),))
+
+
+@_rule("refused ESTOPPED")
+def _refuse_estopped(state: SafetyState, event: Event) -> Outcome:
+    return Refused(
+        ErrorCode.ESTOPPED, f"Robot is e-stopped ({state.estop_reason}); reset it first."
+    )
+
+
+@_rule("allowed, apply")
+def _manual_command(state: SafetyState, event: Event) -> Outcome:
+    return Allowed(state, (ApplyCommand(),))
+
+
+@_rule("refused MASTER_ACTIVE")
+def _manual_refused(state: SafetyState, event: Event) -> Outcome:
+    return Refused(
+        ErrorCode.MASTER_ACTIVE,
+        f"Manual control is off while master {state.owner!r} controls the robot.",
+    )
+
+
+@_rule("allowed: stop motion, autonomous master detached -> estopped")
+def _estop(state: SafetyState, event: Event) -> Outcome:
+    assert isinstance(event, EStop)
+    new, effects = _estop_state(state, event.reason)
+    return Allowed(new, effects)
+
+
+@_rule("ignored: already estopped")
+def _already_estopped(state: SafetyState, event: Event) -> Outcome:
+    return Ignored("already e-stopped")
+
+
+@_rule("allowed: slaves resumed, no motion -> mastered if owner else idle")
+def _reset(state: SafetyState, event: Event) -> Outcome:
+    mode = Mode.MASTERED if state.owner is not None else Mode.IDLE
+    return Allowed(replace(state, mode=mode, estop_reason=None), (ResumeSlaves(),))
+
+
+@_rule("ignored: not estopped")
+def _not_estopped(state: SafetyState, event: Event) -> Outcome:
+    return Ignored("not e-stopped")
+
+
+@_rule("allowed")
+def _slave_membership(state: SafetyState, event: Event) -> Outcome:
+    return Allowed(state)
+
+
+@_rule("severity >= estop_severity: e-stop -> estopped; else allowed")
+def _slave_error(state: SafetyState, event: Event) -> Outcome:
+    assert isinstance(event, SlaveError)
+    if event.severity.rank < state.estop_severity.rank:
+        return Allowed(state)
+    reason = f"slave {event.slave_id!r} reported a {event.severity} fault: {event.message}"
+    new, effects = _estop_state(state, reason)
+    return Allowed(new, effects)
+
+
+@_rule("allowed: stays estopped")
+def _slave_error_while_estopped(state: SafetyState, event: Event) -> Outcome:
+    return Allowed(state)
+
+
+@_rule("loss policy (estop: e-stop -> estopped; hold: hold position)")
+def _lose_slave(state: SafetyState, event: Event) -> Outcome:
+    assert isinstance(event, SlaveLost)
+    why = f"slave {event.slave_id!r} lost: {event.reason}"
+    if state.loss_policy is LossPolicy.HOLD:
+        return Allowed(state, (HoldPosition(),))
+    new, effects = _estop_state(state, why)
+    return Allowed(new, effects)
+
+
+_I, _M, _E = Mode.IDLE, Mode.MASTERED, Mode.ESTOPPED
+
+#: Every (mode, event type) pair and its rule. Heartbeat timeouts name the peer; a timed-out
+#: slave is reported by the actor as SlaveLost, so here a timeout concerns masters only.
+TABLE: dict[tuple[Mode, type[Event]], Rule] = {
+    (_I, MasterAttach): _claim,
+    (_M, MasterAttach): _claim_or_takeover,
+    (_E, MasterAttach): _claim_while_estopped,
+    (_I, MasterDetach): _no_master,
+    (_M, MasterDetach): _release,
+    (_E, MasterDetach): _release_while_estopped,
+    (_I, MasterLost): _no_master,
+    (_M, MasterLost): _lose_master,
+    (_E, MasterLost): _release_while_estopped,
+    (_I, HeartbeatTimeout): _no_master,
+    (_M, HeartbeatTimeout): _lose_master,
+    (_E, HeartbeatTimeout): _release_while_estopped,
+    (_I, MasterCommand): _command_without_master,
+    (_M, MasterCommand): _owner_command,
+    (_E, MasterCommand): _refuse_estopped,
+    (_I, ManualCommand): _manual_command,
+    (_M, ManualCommand): _manual_refused,
+    (_E, ManualCommand): _refuse_estopped,
+    (_I, EStop): _estop,
+    (_M, EStop): _estop,
+    (_E, EStop): _already_estopped,
+    (_I, Reset): _not_estopped,
+    (_M, Reset): _not_estopped,
+    (_E, Reset): _reset,
+    (_I, SlaveAttach): _slave_membership,
+    (_M, SlaveAttach): _slave_membership,
+    (_E, SlaveAttach): _slave_membership,
+    (_I, SlaveDetach): _slave_membership,
+    (_M, SlaveDetach): _slave_membership,
+    (_E, SlaveDetach): _slave_membership,
+    (_I, SlaveError): _slave_error,
+    (_M, SlaveError): _slave_error,
+    (_E, SlaveError): _slave_error_while_estopped,
+    (_I, SlaveLost): _lose_slave,
+    (_M, SlaveLost): _lose_slave,
+    (_E, SlaveLost): _slave_error_while_estopped,
+}
+
+
+def transition(state: SafetyState, event: Event) -> Outcome:
+    """The outcome of `event` in `state`. Pure: same inputs, same answer."""
+    return TABLE[(state.mode, type(event))](state, event)
+
+
+def describe_table() -> dict[tuple[str, str], str]:
+    """The table as text: (mode, event name) -> rule summary, as in the spec document."""
+    return {(mode.value, event.__name__): _SUMMARIES[rule] for (mode, event), rule in TABLE.items()}

@@ -1,0 +1,54 @@
+"""Read-only views of a robot, for listings, status endpoints and the demo printout."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from arena.robot.safety import Mode
+
+
+@dataclass(frozen=True, slots=True)
+class JointSnapshot:
+    """One joint: commanded (virtual) and measured (real) value in degrees, with its limits."""
+
+    name: str
+    servo_id: int
+    virtual_value: float
+    real_value: float | None
+    goal: float
+    lower: float
+    upper: float
+    velocity: float
+
+
+@dataclass(frozen=True, slots=True)
+class PeerSnapshot:
+    """An attached master or slave."""
+
+    peer_id: str
+    role: str
+    kind: str
+    connected: bool = True
+    last_error: str | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class RobotSnapshot:
+    """A robot at one instant."""
+
+    robot_id: str
+    name: str
+    robot_type: str
+    mode: Mode
+    owner: str | None
+    estop_reason: str | None
+    master: PeerSnapshot | None
+    slaves: tuple[PeerSnapshot, ...]
+    joints: tuple[JointSnapshot, ...]
+
+    def joint(self, name: str) -> JointSnapshot:
+        """The joint called `name` (protocol name)."""
+        for joint in self.joints:
+            if joint.name == name:
+                return joint
+        raise KeyError(name)
