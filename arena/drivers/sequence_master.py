@@ -7,9 +7,9 @@ from collections.abc import Iterable
 
 import trio
 
+from arena.drivers.sequences import Sequence
 from arena.protocol.errors import ErrorCode
 from arena.robot.actor import MasterLink
-from arena.drivers.sequences import Sequence
 
 log = logging.getLogger(__name__)
 
