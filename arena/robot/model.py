@@ -222,8 +222,8 @@ def _joint_spec(entry: dict[str, Any], urdf: dict[str, _UrdfJoint], bad: Any) ->
         name=name,
         servo_id=int(entry.get("servo_id", 0)),
         aliases=tuple(str(a) for a in entry.get("aliases", ())),
-        lower=round(soft_lower, 6),
-        upper=round(soft_upper, 6),
+        lower=soft_lower,
+        upper=soft_upper,
         max_velocity=max_velocity,
         neutral=neutral,
     )

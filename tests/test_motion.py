@@ -1,0 +1,275 @@
+"""Motion safety and the pure robot core: validation, clamping, velocity, interpolation, rates."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from arena.protocol.errors import ArenaError, ErrorCode
+from arena.robot import safety as sm
+from arena.robot.core import RobotCore
+from arena.robot.model import RobotModel, load_robot_model
+from arena.robot.motion import (
+    Command,
+    JointGoal,
+    MotionLimiter,
+    RateLimiter,
+    min_jerk,
+    resolve_command,
+)
+
+MODEL = load_robot_model("so-arm100")
+V = MODEL.joints[0].max_velocity  # deg/s, the same for every so-arm100 joint
+BURST = MODEL.safety.velocity_burst
+
+
+def unlimited_core(model: RobotModel = MODEL) -> RobotCore:
+    """A core with the command rate limit out of the way."""
+    return RobotCore(
+        model, 0.0, dataclasses.replace(model.safety, command_rate=1e9, command_burst=10**9)
+    )
+
+
+# --- validation -------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("command", "code"),
+    [
+        (Command(()), ErrorCode.EMPTY_COMMAND),
+        (Command.of({"Shoulder": 1.0}), ErrorCode.UNKNOWN_JOINT),
+        (Command.of({"Rotation": math.nan}), ErrorCode.INVALID_VALUE),
+        (Command.of({"Rotation": math.inf}), ErrorCode.INVALID_VALUE),
+        (Command.of({"Rotation": -math.inf}), ErrorCode.INVALID_VALUE),
+        (Command((JointGoal("Rotation", True),)), ErrorCode.INVALID_VALUE),
+        (Command((JointGoal("Rotation", "45"),)), ErrorCode.INVALID_VALUE),  # type: ignore[arg-type]
+        (
+            Command((JointGoal("Rotation", 1.0), JointGoal("shoulder_pan", 2.0))),
+            ErrorCode.INVALID_VALUE,
+        ),
+        (Command((JointGoal("Rotation", 1.0, speed=0.0),)), ErrorCode.INVALID_VALUE),
+        (Command((JointGoal("Rotation", 1.0, speed=math.nan),)), ErrorCode.INVALID_VALUE),
+        (Command.of({"Rotation": 1.0}, duration=-1.0), ErrorCode.INVALID_VALUE),
+        (Command.of({"Rotation": 1.0}, duration=math.inf), ErrorCode.INVALID_VALUE),
+    ],
+)
+def test_bad_commands_are_refused_with_a_code(command: Command, code: ErrorCode) -> None:
+    with pytest.raises(ArenaError) as info:
+        resolve_command(MODEL, command)
+    assert info.value.code is code
+    assert info.value.message
+
+
+def test_aliases_resolve_to_protocol_names_and_clamps_are_reported() -> None:
+    goals, clamps = resolve_command(MODEL, Command.of({"shoulder_pan": 500.0, "gripper": 10.0}))
+    assert [(g.name, g.value) for g in goals] == [
+        ("Rotation", MODEL.joints[0].upper),
+        ("Jaw", 10.0),
+    ]
+    assert len(clamps) == 1
+    assert clamps[0].joint == "Rotation" and clamps[0].requested == 500.0
+    assert clamps[0].applied == MODEL.joints[0].upper
+
+
+def test_speed_can_only_lower_the_velocity_limit() -> None:
+    goals, _ = resolve_command(
+        MODEL, Command((JointGoal("Rotation", 1, speed=50), JointGoal("Pitch", 1, speed=5000)))
+    )
+    assert [g.speed for g in goals] == [50.0, V]
+
+
+# --- the limiter ------------------------------------------------------------------------------
+
+
+def test_a_step_inside_the_velocity_budget_goes_out_at_once() -> None:
+    core = unlimited_core()
+    result, step = core.command(None, Command.of({"Rotation": 5.0}), 0.0)
+    assert result.accepted and not result.clamped
+    assert step.targets is not None and step.targets["Rotation"] == 5.0
+    assert core.next_tick(0.0) is None  # nothing left to do: no tick needed
+
+
+def test_a_large_step_is_spread_at_the_velocity_limit() -> None:
+    core = unlimited_core()
+    _, step = core.command(None, Command.of({"Rotation": 90.0}), 0.0)
+    assert step.targets is not None
+    assert step.targets["Rotation"] == pytest.approx(V * BURST)
+    now, last, ticks = 0.0, step.targets["Rotation"], 0
+    while (due := core.next_tick(now)) is not None:
+        now = due
+        targets = core.tick(now)
+        assert targets is not None
+        assert targets["Rotation"] - last <= V * core.tick_interval + 1e-9
+        last = targets["Rotation"]
+        ticks += 1
+    assert last == 90.0
+    assert now == pytest.approx((90.0 - V * BURST) / V, abs=core.tick_interval)
+
+
+def test_duration_moves_follow_a_smooth_curve_and_arrive_on_time() -> None:
+    core = unlimited_core()
+    core.command(None, Command.of({"Rotation": 20.0}, duration=2.0), 0.0)
+    seen = {}
+    now = 0.0
+    while (due := core.next_tick(now)) is not None:
+        now = due
+        targets = core.tick(now)
+        if targets is not None:
+            seen[round(now, 2)] = targets["Rotation"]
+    assert seen[1.0] == pytest.approx(20.0 * min_jerk(0.5), abs=1e-6)
+    assert seen[0.5] == pytest.approx(20.0 * min_jerk(0.25), abs=1e-6)
+    assert max(seen) == pytest.approx(2.0, abs=0.011)
+    assert seen[max(seen)] == 20.0
+
+
+def test_a_command_speed_slows_the_move() -> None:
+    core = unlimited_core()
+    _, step = core.command(None, Command((JointGoal("Rotation", 10.0, speed=10.0),)), 0.0)
+    assert step.targets is not None and step.targets["Rotation"] == pytest.approx(10.0 * BURST)
+    now = 0.0
+    while (due := core.next_tick(now)) is not None:
+        now = due
+        core.tick(now)
+    assert now == pytest.approx((10.0 - 10.0 * BURST) / 10.0, abs=0.011)
+
+
+def test_freeze_stops_every_joint_where_it_is() -> None:
+    limiter = MotionLimiter(MODEL, 0.0)
+    goals, _ = resolve_command(MODEL, Command.of({"Rotation": 90.0, "Elbow": -50.0}))
+    limiter.set_goals(goals, None, 0.0)
+    limiter.advance(0.0)
+    limiter.advance(0.1)
+    limiter.freeze(0.1)
+    assert not limiter.moving
+    assert limiter.goals == limiter.positions
+    assert limiter.advance(1.0) is None
+
+
+def test_rate_limiter_allows_the_burst_then_the_rate() -> None:
+    limiter = RateLimiter(100.0, 10, 0.0)
+    assert all(limiter.allow(0.0) for _ in range(10))
+    assert not limiter.allow(0.0)
+    assert not limiter.allow(0.005)
+    assert limiter.allow(0.0101)
+    assert sum(limiter.allow(1.0 + i * 0.01) for i in range(100)) == 100  # steady 100/s passes
+
+
+def test_the_core_answers_the_excess_with_rate_limited() -> None:
+    core = RobotCore(MODEL, 0.0)
+    answers = [core.command(None, Command.of({"Rotation": 0.1 * i}), 0.0)[0] for i in range(12)]
+    assert [a.accepted for a in answers] == [True] * 10 + [False] * 2
+    assert answers[-1].code is ErrorCode.RATE_LIMITED
+    assert "100" in answers[-1].message
+
+
+def test_rate_limits_are_per_master() -> None:
+    core = RobotCore(MODEL, 0.0)
+    core.handle(sm.MasterAttach("alice"), 0.0)
+    for _ in range(10):
+        core.command("alice", Command.of({"Rotation": 1.0}), 0.0)
+    assert core.command("alice", Command.of({"Rotation": 1.0}), 0.0)[0].code is (
+        ErrorCode.RATE_LIMITED
+    )
+    core.handle(sm.MasterAttach("bob", takeover=True), 0.0)
+    assert core.command("bob", Command.of({"Rotation": 1.0}), 0.0)[0].accepted
+
+
+def test_estop_freezes_and_reset_moves_nothing() -> None:
+    core = unlimited_core()
+    core.command(None, Command.of({"Rotation": 90.0}), 0.0)
+    core.tick(0.01)
+    step = core.handle(sm.EStop("test"), 0.02)
+    assert step.targets is None
+    frozen = core.motion.positions
+    assert core.next_tick(0.02) is None
+    assert core.tick(0.5) is None
+    result, step = core.command(None, Command.of({"Rotation": 0.0}), 0.6)
+    assert not result.accepted and result.code is ErrorCode.ESTOPPED and step.targets is None
+    step = core.handle(sm.Reset(), 1.0)
+    assert step.targets is None and core.next_tick(1.0) is None
+    assert core.motion.positions == frozen
+    result, step = core.command(None, Command.of({"Rotation": frozen["Rotation"] - 1}), 1.1)
+    assert result.accepted and step.targets is not None
+
+
+# --- random operation sequences against the invariants -----------------------------------------
+
+JOINT_NAMES = [*MODEL.joint_names, "shoulder_pan", "gripper", "Bogus"]
+VALUES = st.one_of(st.floats(-400, 400), st.sampled_from([math.nan, math.inf, 0.0]))
+GOALS = st.lists(
+    st.builds(
+        JointGoal, st.sampled_from(JOINT_NAMES), VALUES, st.one_of(st.none(), st.floats(1, 400))
+    ),
+    min_size=1,
+    max_size=4,
+)
+SOURCES = st.sampled_from([None, "alice", "bob"])
+OPS = st.one_of(
+    st.tuples(st.just("command"), SOURCES, GOALS, st.one_of(st.none(), st.floats(0, 1.5))),
+    st.tuples(st.just("attach"), st.sampled_from(["alice", "bob"]), st.booleans()),
+    st.tuples(st.just("detach"), st.sampled_from(["alice", "bob"])),
+    st.tuples(st.just("lost"), st.sampled_from(["alice", "bob"])),
+    st.tuples(st.just("estop")),
+    st.tuples(st.just("reset")),
+    st.tuples(st.just("wait"), st.floats(0.0005, 0.3)),
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(OPS, max_size=40))
+def test_random_operations_keep_targets_safe(ops: list[tuple]) -> None:  # type: ignore[type-arg]
+    core = unlimited_core()
+    now = 0.0
+    emitted: list[tuple[float, dict[str, float]]] = [(0.0, core.motion.positions)]
+
+    def record(targets: dict[str, float] | None, estopped_before: bool) -> None:
+        if targets is None:
+            return
+        assert not estopped_before, "a target was sent while e-stopped"
+        assert core.state.mode is not sm.Mode.ESTOPPED
+        emitted.append((now, dict(targets)))
+
+    for op in ops:
+        estopped = core.state.mode is sm.Mode.ESTOPPED
+        kind = op[0]
+        if kind == "command":
+            _, source, goals, duration = op
+            owner_before = core.state.owner
+            goals_before = core.motion.goals
+            result, step = core.command(source, Command(tuple(goals), duration), now)
+            if source is not None and source != owner_before:
+                assert not result.accepted and step.targets is None
+                assert core.motion.goals == goals_before, "a non-owner changed a target"
+            if source is None and owner_before is not None:
+                assert not result.accepted
+            record(step.targets, estopped)
+        elif kind == "wait":
+            # Tick on a fixed grid whether or not the core asks for it: a tick that comes when
+            # nothing should move must move nothing.
+            end = now + op[1]
+            while now + core.tick_interval <= end:
+                now += core.tick_interval
+                record(core.tick(now), core.state.mode is sm.Mode.ESTOPPED)
+            now = end
+        else:
+            event = {
+                "attach": lambda: sm.MasterAttach(op[1], takeover=op[2]),
+                "detach": lambda: sm.MasterDetach(op[1]),
+                "lost": lambda: sm.MasterLost(op[1]),
+                "estop": lambda: sm.EStop("test"),
+                "reset": lambda: sm.Reset(),
+            }[kind]()
+            record(core.handle(event, now).targets, estopped)
+
+    for _, targets in emitted:
+        for joint in MODEL.joints:
+            assert joint.lower <= targets[joint.name] <= joint.upper
+    for i, (t1, first) in enumerate(emitted):
+        for t2, second in emitted[i + 1 :]:
+            for joint in MODEL.joints:
+                bound = joint.max_velocity * (t2 - t1 + BURST) + 1e-6
+                assert abs(second[joint.name] - first[joint.name]) <= bound
