@@ -219,6 +219,17 @@ OPS = st.one_of(
 )
 
 
+def _event_for(op: tuple) -> sm.Event:  # type: ignore[type-arg]
+    kind = op[0]
+    if kind == "attach":
+        return sm.MasterAttach(op[1], takeover=op[2])
+    if kind == "detach":
+        return sm.MasterDetach(op[1])
+    if kind == "lost":
+        return sm.MasterLost(op[1])
+    return sm.EStop("test") if kind == "estop" else sm.Reset()
+
+
 @settings(max_examples=300, deadline=None)
 @given(st.lists(OPS, max_size=40))
 def test_random_operations_keep_targets_safe(ops: list[tuple]) -> None:  # type: ignore[type-arg]
@@ -256,13 +267,7 @@ def test_random_operations_keep_targets_safe(ops: list[tuple]) -> None:  # type:
                 record(core.tick(now), core.state.mode is sm.Mode.ESTOPPED)
             now = end
         else:
-            event = {
-                "attach": lambda: sm.MasterAttach(op[1], takeover=op[2]),
-                "detach": lambda: sm.MasterDetach(op[1]),
-                "lost": lambda: sm.MasterLost(op[1]),
-                "estop": lambda: sm.EStop("test"),
-                "reset": lambda: sm.Reset(),
-            }[kind]()
+            event = _event_for(op)
             record(core.handle(event, now).targets, estopped)
 
     for _, targets in emitted:
