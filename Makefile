@@ -18,7 +18,7 @@ run: install
 	$(BIN)/arena demo
 
 test: install
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -q
 
 lint: install
 	$(BIN)/ruff check arena tests

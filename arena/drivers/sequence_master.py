@@ -17,12 +17,13 @@ log = logging.getLogger(__name__)
 class SequenceMaster:
     """Plays `sequences` in order, once or forever (`loop`).
 
-    With `auto_start` off it claims the robot and waits for `start()`. It is autonomous: an
-    e-stop ends it for good, and it never resumes by itself.
+    With `auto_start` off it claims the robot and waits for `start()`. Attaching it takes the
+    robot over. It is autonomous: an e-stop ends it for good, and it never resumes by itself.
     """
 
     kind = "mock-sequence"
     autonomous = True
+    takes_over = True  # the seed's sequences take the robot over from its master
 
     def __init__(
         self, sequences: Iterable[Sequence], *, loop: bool = False, auto_start: bool = True

@@ -51,6 +51,7 @@ class MasterDriver(Protocol):
 
     kind: str
     autonomous: bool  # plays a program: ends for good on e-stop
+    takes_over: bool  # attaching displaces the current master
 
     async def run(self, link: MasterLink) -> None:
         """Issue commands through `link` until done; returning detaches the master."""
@@ -300,9 +301,14 @@ class Robot:
         return await self._event(safety.Reset())
 
     async def attach_master(
-        self, driver: MasterDriver, *, takeover: bool = False, master_id: str | None = None
+        self, driver: MasterDriver, *, takeover: bool | None = None, master_id: str | None = None
     ) -> str:
-        """Run `driver` as this robot's master; returns its id. Refusals raise `ArenaError`."""
+        """Run `driver` as this robot's master; returns its id. Refusals raise `ArenaError`.
+
+        `takeover` defaults to the driver's own `takes_over`.
+        """
+        if takeover is None:
+            takeover = driver.takes_over
         link: MasterLink = await self._attach(
             "master", master_id, driver.kind, driver, driver.autonomous, takeover, None
         )

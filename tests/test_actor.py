@@ -1,0 +1,546 @@
+"""The robot actor and its manager, on trio's MockClock: ownership, e-stop, drivers, observers."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import trio
+from trio.testing import MockClock
+
+from arena.drivers.mock_slave import MockSlave, MockSlaveConfig
+from arena.drivers.sequence_master import SequenceMaster
+from arena.drivers.sequences import get_sequence, parse_sequence
+from arena.protocol.errors import ArenaError, ErrorCode, Severity
+from arena.robot.actor import MasterLink, Robot
+from arena.robot.events import (
+    FaultReported,
+    JointStatesReceived,
+    NoticeKind,
+    PeerChanged,
+    SlaveNotice,
+    SlaveTarget,
+    StateChanged,
+)
+from arena.robot.manager import RobotManager
+from arena.robot.model import LossPolicy, load_robot_model
+from arena.robot.motion import Command
+from arena.robot.safety import Mode
+from tests.conftest import RecordingSlave
+
+MODEL = load_robot_model("so-arm100")
+
+
+async def new_robot(manager: RobotManager, robot_id: str = "arm", **policy: object) -> Robot:
+    safety = dataclasses.replace(MODEL.safety, **policy) if policy else None  # type: ignore[arg-type]
+    return await manager.create_robot("so-arm100", robot_id=robot_id, policy=safety)
+
+
+def short_sequence(value: float = 20.0) -> SequenceMaster:
+    sequence = parse_sequence(
+        {
+            "id": "short",
+            "name": "Short",
+            "total_duration": 3000,
+            "commands": [
+                {
+                    "timestamp": 0,
+                    "duration": 1000,
+                    "joints": [{"name": "Rotation", "value": value}],
+                },
+                {"timestamp": 1500, "duration": 1000, "joints": [{"name": "Rotation", "value": 0}]},
+            ],
+        }
+    )
+    return SequenceMaster([sequence])
+
+
+# --- commands and slaves ----------------------------------------------------------------------
+
+
+async def test_a_command_reaches_the_slave_at_once(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    link = await robot.connect_slave("s1")
+    before = trio.current_time()
+    result = await robot.command(Command.of({"Rotation": 5.0, "gripper": 3.0}))
+    assert result.accepted
+    message = await link.receive()
+    assert isinstance(message, SlaveTarget)
+    assert message.joints["Rotation"] == 5.0 and message.joints["Jaw"] == 3.0
+    assert message.time == before == trio.current_time()  # no tick, no waiting
+
+
+async def test_the_mock_slave_follows_after_its_delays(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    slave = MockSlave(MockSlaveConfig(simulate_latency=50, response_delay=20))
+    await robot.attach_slave(slave)
+    start = trio.current_time()
+    await robot.command(Command.of({"Elbow": -5.0}))
+    await trio.sleep_until(start + 0.069)
+    assert robot.snapshot().joint("Elbow").real_value is None
+    await trio.sleep_until(start + 0.071)
+    assert robot.snapshot().joint("Elbow").real_value == -5.0
+    await robot.command(Command.of({"Rotation": 45.0, "Pitch": -30.0}))
+    await trio.sleep(1.0)
+    snapshot = robot.snapshot()
+    for name, value in (("Rotation", 45.0), ("Pitch", -30.0), ("Elbow", -5.0)):
+        joint = snapshot.joint(name)
+        assert joint.virtual_value == joint.real_value == value
+
+
+async def test_a_slow_slave_gets_only_the_newest_target(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager, command_rate=1e6, command_burst=10**6)
+    link = await robot.connect_slave("slow")
+    for i in range(50):
+        await robot.command(Command.of({"Rotation": (i + 1) * 0.1}))
+        await trio.sleep(0.01)
+    message = await link.receive()
+    assert isinstance(message, SlaveTarget)
+    assert message.joints["Rotation"] == pytest.approx(5.0)
+    assert link.mailbox.coalesced == 49
+    with trio.move_on_after(1):
+        await link.receive()
+        pytest.fail("a backlog reached the slave")
+
+
+async def test_joint_states_update_real_values(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    link = await robot.connect_slave("s1")
+    with robot.subscribe() as events:
+        await link.report_joint_states({"shoulder_pan": 12.5, "Bogus": 1.0, "Elbow": float("nan")})
+        await trio.sleep(0.01)
+        received = [e for e in [events.get_nowait()] if isinstance(e, JointStatesReceived)]
+    assert received[0].joints == {"Rotation": 12.5}
+    snapshot = robot.snapshot()
+    assert snapshot.joint("Rotation").real_value == 12.5
+    assert snapshot.joint("Elbow").real_value is None
+
+
+async def test_manual_commands_are_rate_limited(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    answers = [await robot.command(Command.of({"Rotation": i * 0.1})) for i in range(12)]
+    assert [a.accepted for a in answers[:10]] == [True] * 10
+    assert answers[10].code is ErrorCode.RATE_LIMITED
+    await trio.sleep(0.05)
+    assert (await robot.command(Command.of({"Rotation": 0.0}))).accepted
+
+
+async def test_bad_commands_change_nothing(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    link = await robot.connect_slave("s1")
+    before = robot.snapshot()
+    for command in (Command.of({"Nope": 1.0}), Command.of({"Rotation": float("nan")}), Command(())):
+        result = await robot.command(command)
+        assert not result.accepted and result.code is not None and result.message
+    assert robot.snapshot() == before
+    with trio.move_on_after(1):
+        await link.receive()
+        pytest.fail("a refused command reached the slave")
+
+
+async def test_clamped_values_are_reported(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    result = await robot.command(Command.of({"Jaw": 500.0}))
+    assert result.accepted
+    assert [(c.joint, c.requested, c.applied) for c in result.clamped] == [
+        ("Jaw", 500.0, MODEL.joints[5].upper)
+    ]
+    await trio.sleep(1)
+    assert robot.snapshot().joint("Jaw").virtual_value == MODEL.joints[5].upper
+
+
+# --- masters ----------------------------------------------------------------------------------
+
+
+async def test_one_master_at_a_time_and_takeover(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    alice = await robot.connect_master("alice")
+    with pytest.raises(ArenaError) as info:
+        await robot.connect_master("bob")
+    assert info.value.code is ErrorCode.MASTER_ACTIVE
+    manual = await robot.command(Command.of({"Rotation": 1.0}))
+    assert manual.code is ErrorCode.MASTER_ACTIVE
+    bob = await robot.connect_master("bob", takeover=True)
+    assert robot.snapshot().owner == "bob"
+    assert alice.detached.is_set()
+    notices = [notice async for notice in alice.notices]
+    assert notices[-1].kind == "detached" and notices[-1].code is ErrorCode.TAKEN_OVER
+    refused = await alice.command(Command.of({"Rotation": 1.0}))
+    assert refused.code is ErrorCode.NOT_OWNER
+    assert (await bob.command(Command.of({"Rotation": 1.0}))).accepted
+
+
+async def test_a_sequence_takes_over_and_plays_in_virtual_time(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    recorder = RecordingSlave()
+    await robot.attach_slave(recorder)
+    alice = await robot.connect_master("alice")
+    start = trio.current_time()
+    await robot.attach_master(SequenceMaster([get_sequence("tiny-flex")]))
+    assert alice.detached.is_set()
+    while robot.snapshot().master is not None:
+        await trio.sleep(0.1)
+    assert trio.current_time() - start == pytest.approx(8.0, abs=0.11)
+    assert robot.snapshot().mode is Mode.IDLE
+    final = recorder.targets[-1][1]
+    assert all(value == 0.0 for value in final.values())
+    assert all(abs(v) <= 25.0 for _, targets in recorder.targets for v in targets.values())
+
+
+async def _trace_of_a_sequence() -> list[tuple[float, dict[str, float]]]:
+    from arena.robot.manager import open_manager
+
+    async with open_manager() as manager:
+        robot = await new_robot(manager)
+        recorder = RecordingSlave()
+        await robot.attach_slave(recorder)
+        start = trio.current_time()
+        await robot.attach_master(SequenceMaster([get_sequence("gentle-wave")]))
+        await trio.sleep(7)
+    return [(round(t - start, 9), targets) for t, targets in recorder.targets]
+
+
+def test_a_sequence_plays_the_same_way_every_run() -> None:
+    runs = [
+        trio.run(_trace_of_a_sequence, clock=trio.testing.MockClock(autojump_threshold=0))
+        for _ in range(2)
+    ]
+    assert len(runs[0]) > 100
+    assert runs[0] == runs[1]
+
+
+async def test_estop_ends_a_sequence_for_good(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    recorder = RecordingSlave()
+    await robot.attach_slave(recorder)
+    master = SequenceMaster([get_sequence("small-scan")], loop=True)
+    await robot.attach_master(master)
+    await trio.sleep(1.0)
+    await robot.estop("operator pressed the button")
+    stopped_at = trio.current_time()
+    snapshot = robot.snapshot()
+    assert snapshot.mode is Mode.ESTOPPED and snapshot.owner is None
+    assert snapshot.estop_reason == "operator pressed the button"
+    frozen = {j.name: j.virtual_value for j in snapshot.joints}
+    await trio.sleep(5.0)
+    assert recorder.notices[-1][1].kind is NoticeKind.ESTOP
+    assert all(t <= stopped_at for t, _ in recorder.targets), "a target after the e-stop"
+    refused = await robot.command(Command.of({"Rotation": 0.0}))
+    assert refused.code is ErrorCode.ESTOPPED
+    with pytest.raises(ArenaError) as info:
+        await robot.attach_master(short_sequence())
+    assert info.value.code is ErrorCode.ESTOPPED
+    await robot.reset()
+    assert robot.snapshot().mode is Mode.IDLE
+    await trio.sleep(20.0)
+    assert all(t <= stopped_at for t, _ in recorder.targets), "the sequence came back"
+    assert {j.name: j.virtual_value for j in robot.snapshot().joints} == frozen
+    assert recorder.notices[-1][1].kind is NoticeKind.RESET
+    assert (await robot.command(Command.of({"Rotation": 1.0}))).accepted
+
+
+async def test_a_live_master_survives_estop_and_commands_after_reset(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    alice = await robot.connect_master("alice")
+    await robot.estop()
+    assert (await alice.command(Command.of({"Rotation": 1.0}))).code is ErrorCode.ESTOPPED
+    outcome = await robot.reset()
+    assert robot.snapshot().mode is Mode.MASTERED and outcome is not None
+    assert (await alice.command(Command.of({"Rotation": 1.0}))).accepted
+    states = []
+    while True:
+        try:
+            states.append(alice.notices.get_nowait())
+        except trio.WouldBlock:
+            break
+    assert [n.mode for n in states if n.kind == "state"] == [Mode.ESTOPPED, Mode.MASTERED]
+
+
+async def test_losing_the_master_estops(autojump_clock: MockClock, manager: RobotManager) -> None:
+    robot = await new_robot(manager)
+    alice = await robot.connect_master("alice")
+    await alice.lost("socket closed")
+    snapshot = robot.snapshot()
+    assert snapshot.mode is Mode.ESTOPPED and snapshot.owner is None
+    assert "alice" in (snapshot.estop_reason or "")
+
+
+async def test_losing_the_master_holds_under_the_hold_policy(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager, loss_policy=LossPolicy.HOLD)
+    link = await robot.connect_slave("s1")
+    alice = await robot.connect_master("alice")
+    await alice.command(Command.of({"Rotation": 90.0}))
+    await trio.sleep(0.1)
+    await alice.lost("socket closed")
+    snapshot = robot.snapshot()
+    assert snapshot.mode is Mode.IDLE and snapshot.owner is None
+    held = snapshot.joint("Rotation").virtual_value
+    assert 0 < held < 90.0
+    await trio.sleep(1.0)
+    assert robot.snapshot().joint("Rotation").virtual_value == held
+    messages = []
+    with trio.move_on_after(0.1):
+        while True:
+            messages.append(await link.receive())
+    assert any(isinstance(m, SlaveNotice) and m.kind is NoticeKind.HOLD for m in messages)
+
+
+async def test_a_silent_master_is_dropped_after_its_heartbeat_timeout(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    alice = await robot.connect_master("alice", heartbeat_timeout=1.0)
+    for _ in range(6):
+        await trio.sleep(0.5)
+        alice.alive()
+    assert robot.snapshot().owner == "alice"
+    silent_from = trio.current_time()
+    await alice.detached.wait()
+    assert trio.current_time() - silent_from == pytest.approx(1.0, abs=1e-6)
+    assert robot.snapshot().mode is Mode.ESTOPPED
+    notices = [n async for n in alice.notices]
+    assert notices[-1].kind == "detached" and notices[-1].code is ErrorCode.MASTER_LOST
+
+
+async def test_a_silent_slave_is_dropped_after_its_heartbeat_timeout(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    link = await robot.connect_slave("s1", heartbeat_timeout=2.0)
+    await trio.sleep(1.5)
+    await link.report_joint_states({"Rotation": 0.0})  # any message counts as a heartbeat
+    await trio.sleep(1.5)
+    assert robot.snapshot().slaves
+    await trio.sleep(1.0)
+    assert not robot.snapshot().slaves
+    assert robot.snapshot().mode is Mode.ESTOPPED
+
+
+# --- failing drivers --------------------------------------------------------------------------
+
+
+class CrashingMaster:
+    kind = "crashing-master"
+    autonomous = True
+    takes_over = False
+
+    async def run(self, link: MasterLink) -> None:
+        await link.command(Command.of({"Rotation": 1.0}))
+        await trio.sleep(0.5)
+        raise ValueError("bug in the master")
+
+
+async def test_a_crashing_slave_is_detached_and_reported(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    other_robot = await new_robot(manager, "other")
+    healthy, crashing = RecordingSlave(), RecordingSlave(fail_after=1)
+    await robot.attach_slave(healthy, "healthy")
+    await robot.attach_slave(crashing, "crashing")
+    with robot.subscribe() as events:
+        await robot.command(Command.of({"Rotation": 2.0}))
+        await trio.sleep(0.1)
+        seen = [events.get_nowait() for _ in range(len(events))]
+    faults = [e for e in seen if isinstance(e, FaultReported)]
+    assert faults and faults[0].code == ErrorCode.DRIVER_FAILED
+    assert "simulated driver crash" in faults[0].message
+    lost = [e for e in seen if isinstance(e, PeerChanged) and e.change == "lost"]
+    assert [e.peer_id for e in lost] == ["crashing"]
+    snapshot = robot.snapshot()
+    assert [s.peer_id for s in snapshot.slaves] == ["healthy"]
+    assert snapshot.mode is Mode.ESTOPPED  # the default loss policy
+    assert other_robot.snapshot().mode is Mode.IDLE
+    assert (await other_robot.command(Command.of({"Rotation": 1.0}))).accepted
+    await robot.reset()
+    assert (await robot.command(Command.of({"Rotation": 3.0}))).accepted
+    await trio.sleep(0.01)
+    assert healthy.targets[-1][1]["Rotation"] == 3.0
+
+
+async def test_a_crashing_master_applies_the_loss_policy(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    await robot.attach_master(CrashingMaster())
+    await trio.sleep(1.0)
+    snapshot = robot.snapshot()
+    assert snapshot.master is None and snapshot.mode is Mode.ESTOPPED
+    await robot.reset()
+    assert (await robot.command(Command.of({"Rotation": 1.0}))).accepted
+
+
+async def test_mock_slave_error_injection(autojump_clock: MockClock, manager: RobotManager) -> None:
+    robot = await new_robot(manager, command_rate=1e6, command_burst=10**6)
+    slave = MockSlave(MockSlaveConfig(simulate_errors=True, error_rate=0.5, seed=7))
+    await robot.attach_slave(slave)
+    with robot.subscribe(maxlen=10_000) as events:
+        for i in range(200):
+            if robot.snapshot().mode is Mode.ESTOPPED:
+                await robot.reset()
+            await robot.command(Command.of({"Rotation": (i % 10) * 0.5}))
+            await trio.sleep(0.02)
+        seen = [events.get_nowait() for _ in range(len(events))]
+    severities = {e.severity for e in seen if isinstance(e, FaultReported)}
+    assert severities == set(Severity)
+    assert slave.dropped_updates > 0
+    estops = [e for e in seen if isinstance(e, StateChanged) and e.mode is Mode.ESTOPPED]
+    criticals = [
+        e for e in seen if isinstance(e, FaultReported) and e.severity is Severity.CRITICAL
+    ]
+    assert len(estops) == len(criticals) > 0
+
+
+# --- observers --------------------------------------------------------------------------------
+
+
+async def test_a_slow_observer_does_not_slow_the_robot(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager, command_rate=1e6, command_burst=10**6)
+    link = await robot.connect_slave("s1")
+    with robot.subscribe(maxlen=5) as slow:
+        start = trio.current_time()
+        for i in range(100):
+            assert (await robot.command(Command.of({"Rotation": i * 0.01}))).accepted
+        assert trio.current_time() == start
+        assert slow.dropped > 0 and len(slow) == 5
+    message = await link.receive()
+    assert isinstance(message, SlaveTarget) and message.joints["Rotation"] == pytest.approx(0.99)
+
+
+async def test_observers_see_state_changes_and_peers(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    with robot.subscribe() as events:
+        await robot.attach_slave(MockSlave())
+        await robot.estop("test")
+        await robot.reset()
+        seen = [events.get_nowait() for _ in range(len(events))]
+    assert [e.mode for e in seen if isinstance(e, StateChanged)] == [Mode.ESTOPPED, Mode.IDLE]
+    assert [(e.role, e.change) for e in seen if isinstance(e, PeerChanged)] == [
+        ("slave", "attached")
+    ]
+
+
+# --- the manager ------------------------------------------------------------------------------
+
+
+async def test_manager_create_get_list_delete(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    first = await new_robot(manager, "first")
+    second = await manager.create_robot("so-arm100", "Second arm")
+    assert second.robot_id.startswith("robot-") and second.name == "Second arm"
+    assert manager.get("first") is first
+    assert [r.robot_id for r in manager.robots()] == ["first", second.robot_id]
+    await manager.delete("first")
+    assert [r.robot_id for r in manager.robots()] == [second.robot_id]
+    with pytest.raises(ArenaError) as info:
+        manager.get("first")
+    assert info.value.code is ErrorCode.UNKNOWN_ROBOT
+
+
+@pytest.mark.parametrize(
+    ("robot_type", "robot_id", "code"),
+    [
+        ("so-arm100", "taken", ErrorCode.ROBOT_EXISTS),
+        ("so-arm100", "../etc", ErrorCode.INVALID_CONFIG),
+        ("so-arm100", "", ErrorCode.INVALID_CONFIG),
+        ("toaster", "t1", ErrorCode.UNKNOWN_ROBOT_TYPE),
+    ],
+)
+async def test_manager_refusals(
+    autojump_clock: MockClock,
+    manager: RobotManager,
+    robot_type: str,
+    robot_id: str,
+    code: ErrorCode,
+) -> None:
+    await new_robot(manager, "taken")
+    with pytest.raises(ArenaError) as info:
+        await manager.create_robot(robot_type, robot_id=robot_id)
+    assert info.value.code is code
+
+
+async def test_deleting_a_robot_under_load_stops_its_drivers(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager, command_rate=1e6, command_burst=10**6)
+    bystander = await new_robot(manager, "bystander")
+    mock = MockSlave(MockSlaveConfig(simulate_latency=5))
+    await robot.attach_slave(mock)
+    external = await robot.connect_slave("external")
+    await robot.attach_master(SequenceMaster([get_sequence("gentle-wave")], loop=True))
+    flood_results: list[ErrorCode | None] = []
+
+    async def flood() -> None:
+        for i in range(10_000):
+            try:
+                result = await robot.command(Command.of({"Rotation": i % 5}))
+            except ArenaError as exc:
+                flood_results.append(exc.code)
+                return
+            flood_results.append(result.code)
+            await trio.sleep(0.001)
+
+    async with trio.open_nursery() as nursery:
+        nursery.start_soon(flood)
+        await trio.sleep(2.0)
+        await manager.delete("arm")
+    assert robot.stopped.is_set()
+    assert flood_results[-1] is ErrorCode.ROBOT_STOPPED
+    assert mock.notices[-1].kind is NoticeKind.SHUTDOWN
+    messages = []
+    with pytest.raises(trio.EndOfChannel):
+        while True:
+            messages.append(await external.receive())
+    assert isinstance(messages[-1], SlaveNotice) and messages[-1].kind is NoticeKind.SHUTDOWN
+    with pytest.raises(ArenaError) as info:
+        await robot.command(Command.of({"Rotation": 0.0}))
+    assert info.value.code is ErrorCode.ROBOT_STOPPED
+    assert [r.robot_id for r in manager.robots()] == ["bystander"]
+    assert (await bystander.command(Command.of({"Rotation": 1.0}))).accepted
+
+
+async def test_detach_slave(autojump_clock: MockClock, manager: RobotManager) -> None:
+    robot = await new_robot(manager)
+    link = await robot.connect_slave("s1")
+    await robot.detach_slave("s1")
+    message = await link.receive()
+    assert isinstance(message, SlaveNotice) and message.kind is NoticeKind.SHUTDOWN
+    assert robot.snapshot().mode is Mode.IDLE  # a voluntary detach is no loss
+    with pytest.raises(ArenaError) as info:
+        await robot.detach_slave("s1")
+    assert info.value.code is ErrorCode.UNKNOWN_SLAVE
+
+
+async def test_estop_all(autojump_clock: MockClock, manager: RobotManager) -> None:
+    robots = [await new_robot(manager, f"r{i}") for i in range(3)]
+    await manager.estop_all()
+    assert all(r.snapshot().mode is Mode.ESTOPPED for r in robots)
