@@ -269,12 +269,7 @@ async def test_a_live_master_survives_estop_and_commands_after_reset(
     outcome = await robot.reset()
     assert robot.snapshot().mode is Mode.MASTERED and outcome is not None
     assert (await alice.command(Command.of({"Rotation": 1.0}))).accepted
-    states = []
-    while True:
-        try:
-            states.append(alice.notices.get_nowait())
-        except trio.WouldBlock:
-            break
+    states = alice.notices.drain()
     assert [n.mode for n in states if n.kind == "state"] == [Mode.ESTOPPED, Mode.MASTERED]
 
 
@@ -365,7 +360,7 @@ async def test_a_crashing_slave_is_detached_and_reported(
     with robot.subscribe() as events:
         await robot.command(Command.of({"Rotation": 2.0}))
         await trio.sleep(0.1)
-        seen = [events.get_nowait() for _ in range(len(events))]
+        seen = events.drain()
     faults = [e for e in seen if isinstance(e, FaultReported)]
     assert faults and faults[0].code == ErrorCode.DRIVER_FAILED
     assert "simulated driver crash" in faults[0].message
@@ -404,7 +399,7 @@ async def test_mock_slave_error_injection(autojump_clock: MockClock, manager: Ro
                 await robot.reset()
             await robot.command(Command.of({"Rotation": (i % 10) * 0.5}))
             await trio.sleep(0.02)
-        seen = [events.get_nowait() for _ in range(len(events))]
+        seen = events.drain()
     severities = {e.severity for e in seen if isinstance(e, FaultReported)}
     assert severities == set(Severity)
     assert slave.dropped_updates > 0
@@ -441,7 +436,7 @@ async def test_observers_see_state_changes_and_peers(
         await robot.attach_slave(MockSlave())
         await robot.estop("test")
         await robot.reset()
-        seen = [events.get_nowait() for _ in range(len(events))]
+        seen = events.drain()
     assert [e.mode for e in seen if isinstance(e, StateChanged)] == [Mode.ESTOPPED, Mode.IDLE]
     assert [(e.role, e.change) for e in seen if isinstance(e, PeerChanged)] == [
         ("slave", "attached")

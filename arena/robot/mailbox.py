@@ -93,6 +93,12 @@ class EventQueue(_Parked, Generic[T]):
             raise trio.WouldBlock
         return self._items.popleft()
 
+    def drain(self) -> list[T]:
+        """Every queued item, oldest first, without waiting."""
+        items = list(self._items)
+        self._items.clear()
+        return items
+
     async def get(self) -> T:
         """The oldest item, waiting for one; `trio.EndOfChannel` once closed and drained."""
         while True:
