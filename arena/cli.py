@@ -6,6 +6,7 @@ import argparse
 import logging
 import os
 import sys
+from functools import partial
 
 import trio
 
@@ -54,14 +55,42 @@ def main(argv: list[str] | None = None) -> int:
     )
     demo.add_argument("--loop", action="store_true", help="repeat until Ctrl-C")
     demo.add_argument("--interval", type=float, default=0.5, help="seconds between printouts")
+    serve = commands.add_parser("serve", help="run the HTTP and WebSocket server")
+    serve.add_argument("--host", default=None, help="address to bind (default 127.0.0.1)")
+    serve.add_argument("--port", type=int, default=None, help="port (default 8080; 0: any)")
+    serve.add_argument(
+        "--demo",
+        action="store_true",
+        default=None,
+        help="create robot demo-arm (so-arm100) with a mock slave",
+    )
+    serve.add_argument("--config", help="a TOML file of server settings")
+    serve.add_argument(
+        "--api-key",
+        action="append",
+        default=[],
+        dest="api_keys",
+        help="an API key clients must present (repeatable)",
+    )
+    serve.add_argument(
+        "--insecure",
+        action="store_true",
+        default=None,
+        help="allow binding beyond loopback without API keys",
+    )
+    serve.add_argument("--certfile", help="TLS certificate (PEM)")
+    serve.add_argument("--keyfile", help="TLS private key (PEM)")
     bench = commands.add_parser("bench", help="run the benchmarks and print medians")
     bench.add_argument("--json", help="also write the results to this file")
     args = parser.parse_args(argv)
+    default_level = "INFO" if args.command == "serve" else "WARNING"
     logging.basicConfig(
-        level=os.environ.get("LOG_LEVEL", "WARNING").upper(),
+        level=os.environ.get("LOG_LEVEL", default_level).upper(),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
     try:
+        if args.command == "serve":
+            return _serve(args)
         if args.command == "demo":
             trio.run(run_demo, args.sequence or list(demo_sequences()), args.loop, args.interval)
         elif args.command == "bench":
@@ -70,6 +99,30 @@ def main(argv: list[str] | None = None) -> int:
             run_benchmarks(args.json)
     except KeyboardInterrupt:
         return 130
+    return 0
+
+
+def _serve(args: argparse.Namespace) -> int:
+    from arena.protocol.errors import ArenaError
+    from arena.server.config import load_config
+    from arena.server.run import run_server
+
+    try:
+        config = load_config(
+            args.config,
+            host=args.host,
+            port=args.port,
+            demo=args.demo,
+            api_keys=tuple(args.api_keys),
+            insecure=args.insecure,
+            certfile=args.certfile,
+            keyfile=args.keyfile,
+        )
+        config.check()
+    except ArenaError as error:
+        print(f"arena serve: {error.message}", file=sys.stderr)
+        return 2
+    trio.run(partial(run_server, config, handle_signals=True))
     return 0
 
 

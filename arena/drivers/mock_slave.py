@@ -64,6 +64,9 @@ class MockSlave:
         """Follow targets until detached."""
         rng = random.Random(self.config.seed)
         delay = (self.config.simulate_latency + self.config.response_delay) / 1000.0
+        # A simulated arm starts at rest in its neutral pose, and says so.
+        self.positions = dict.fromkeys(link.robot.model.joint_names, 0.0)
+        await link.report_joint_states(self.positions)
         while True:
             try:
                 message = await link.receive()

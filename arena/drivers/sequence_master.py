@@ -13,6 +13,9 @@ from arena.robot.actor import MasterLink
 
 log = logging.getLogger(__name__)
 
+#: Refusals after which a sequence stops rather than skipping the keyframe.
+_FINAL_REFUSALS = frozenset({ErrorCode.ESTOPPED, ErrorCode.NOT_OWNER})
+
 
 class SequenceMaster:
     """Plays `sequences` in order, once or forever (`loop`).
@@ -45,22 +48,28 @@ class SequenceMaster:
     async def run(self, link: MasterLink) -> None:
         """Issue every keyframe at its time; return when done (unless looping)."""
         await self._started.wait()
-        while True:
-            for sequence in self.sequences:
-                await self._play(link, sequence)
-            if not self.loop:
-                return
+        try:
+            while True:
+                for sequence in self.sequences:
+                    if not await self._play(link, sequence):
+                        return
+                if not self.loop:
+                    return
+        finally:
+            self.playing = None
 
-    async def _play(self, link: MasterLink, sequence: Sequence) -> None:
+    async def _play(self, link: MasterLink, sequence: Sequence) -> bool:
+        """Play one sequence; False if the robot stopped it (e-stop, lost ownership)."""
         self.playing = sequence.id
         start = trio.current_time()
         for keyframe in sequence.keyframes:
             await trio.sleep_until(start + keyframe.at)
             result = await link.command(keyframe.command)
             if not result.accepted:
-                # Keep going: a refused keyframe (rate limit, say) must not stop the show, and
-                # losing ownership cancels this task anyway.
                 self.refusals.append((result.code, result.message))
                 log.warning("sequence %s: keyframe refused: %s", sequence.id, result.message)
+                if result.code in _FINAL_REFUSALS:
+                    return False  # stopped for good: never resume by itself
+                # Otherwise (a rate limit, say) keep going with the next keyframe.
         await trio.sleep_until(start + sequence.total_duration)
-        self.playing = None
+        return True

@@ -9,6 +9,7 @@ reported, and the loss policy applies; nothing else is disturbed.
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import itertools
 import logging
@@ -283,6 +284,9 @@ class Robot:
         self._next_tick: float | None = None
         self._nursery: trio.Nursery | None = None
         self.stopped = trio.Event()
+        #: Commands answered, by outcome: "accepted" or the refusal code (for metrics).
+        self.command_counts: collections.Counter[str] = collections.Counter()
+        self.estop_count = 0
 
     # -- public API ---------------------------------------------------------------------------
 
@@ -490,6 +494,7 @@ class Robot:
         if message.source is not None:
             self._touch(message.source, now)
         result, step = self.core.command(message.source, message.command, now)
+        self.command_counts["accepted" if result.accepted else str(result.code)] += 1
         self._publish(
             CommandHandled(
                 self.robot_id,
@@ -758,6 +763,7 @@ class Robot:
                 if self._master is not None and self._master.peer_id == effect.master_id:
                     self._drop_master(self._master, effect.code, effect.message, "detached", now)
             elif isinstance(effect, safety.StopMotion):
+                self.estop_count += 1
                 log.warning("robot %s: e-stop (%s)", self.robot_id, effect.reason)
                 self._notify_slaves(SlaveNotice(NoticeKind.ESTOP, effect.reason), clears=True)
             elif isinstance(effect, safety.HoldPosition):

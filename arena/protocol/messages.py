@@ -1,0 +1,338 @@
+"""The wire messages, as typed structs: decode and validate at the edge, encode on the way out.
+
+The shapes follow the LeRobot Arena contract (`type`, `timestamp`, `data`). Unknown fields are
+ignored so that existing clients keep working; missing or mistyped fields are errors. Joint
+values are degrees, durations and sequence timestamps are milliseconds, speeds are deg/s.
+
+`decode_master`, `decode_slave` return a message or raise `ArenaError` with one of
+INVALID_JSON, UNKNOWN_MESSAGE_TYPE, INVALID_MESSAGE, MESSAGE_TOO_LARGE. No I/O here.
+"""
+
+from __future__ import annotations
+
+import datetime
+from typing import Any, Literal, TypeAlias
+
+import msgspec
+
+from arena.protocol.errors import ArenaError, ErrorCode, Severity
+
+#: Largest accepted WebSocket frame or request body, in bytes.
+MAX_MESSAGE_BYTES = 64 * 1024
+
+
+class _Msg(msgspec.Struct, tag_field="type", omit_defaults=True, kw_only=True):
+    """Base of every message: the `type` tag and an optional ISO timestamp."""
+
+    timestamp: str | None = None
+
+
+# --- shared pieces ----------------------------------------------------------------------------
+
+
+class JointValue(msgspec.Struct, omit_defaults=True):
+    """A joint and its value in degrees; `speed` caps its velocity (deg/s)."""
+
+    name: str
+    value: float
+    speed: float | None = None
+
+
+class CommandData(msgspec.Struct, omit_defaults=True):
+    """The body of a command."""
+
+    joints: list[JointValue]
+    timestamp: float | None = None  # client's milliseconds since the epoch
+    duration: float | None = None  # ms: reach the targets smoothly over this time
+    metadata: dict[str, Any] | None = None
+
+
+class SequenceStep(msgspec.Struct, omit_defaults=True):
+    """One command of a sequence, `timestamp` ms after the start."""
+
+    joints: list[JointValue]
+    timestamp: float = 0.0
+    duration: float | None = None
+
+
+class SequenceData(msgspec.Struct, omit_defaults=True):
+    """A movement sequence."""
+
+    commands: list[SequenceStep]
+    id: str = "custom"
+    name: str | None = None
+    total_duration: float | None = None
+    loop: bool = False
+
+
+class ReasonData(msgspec.Struct, omit_defaults=True):
+    """Why something happened."""
+
+    reason: str | None = None
+
+
+# --- master -> server -------------------------------------------------------------------------
+
+
+class CommandMessage(_Msg, tag="command"):
+    """Move joints."""
+
+    data: CommandData
+
+
+class SequenceMessage(_Msg, tag="sequence"):
+    """Play a sequence of commands with its timing."""
+
+    data: SequenceData
+
+
+class HeartbeatMessage(_Msg, tag="heartbeat"):
+    """I am still here."""
+
+
+class EStopMessage(_Msg, tag="estop"):
+    """Emergency stop."""
+
+    data: ReasonData | None = None
+
+
+class ResetMessage(_Msg, tag="reset"):
+    """Leave the e-stop."""
+
+
+MasterMessage: TypeAlias = (
+    CommandMessage | SequenceMessage | HeartbeatMessage | EStopMessage | ResetMessage
+)
+
+
+# --- slave -> server --------------------------------------------------------------------------
+
+
+class StatusData(msgspec.Struct, omit_defaults=True):
+    """A slave's connection status."""
+
+    isConnected: bool = True
+    lastConnected: str | None = None
+    error: str | None = None
+
+
+class StatusUpdateMessage(_Msg, tag="status_update"):
+    """A slave reports its status."""
+
+    data: StatusData
+
+
+class JointStateEntry(msgspec.Struct, omit_defaults=True):
+    """A joint's measured value: `real_value`, or `value` from simpler slaves."""
+
+    name: str
+    real_value: float | None = None
+    value: float | None = None
+    virtual_value: float | None = None
+    servo_id: int | None = None
+    type: str | None = None
+    limits: dict[str, Any] | None = None
+
+
+class JointStatesMessage(_Msg, tag="joint_states"):
+    """Measured joint values."""
+
+    data: list[JointStateEntry]
+
+
+class ErrorData(msgspec.Struct, omit_defaults=True):
+    """A fault: code, sentence, joint, severity."""
+
+    code: str
+    message: str = ""
+    joint: str | None = None
+    severity: Severity = Severity.ERROR
+
+
+class ErrorMessage(_Msg, tag="error"):
+    """A fault report (from a slave) or an error answer (from the server)."""
+
+    data: ErrorData
+
+
+SlaveMessage: TypeAlias = StatusUpdateMessage | JointStatesMessage | ErrorMessage | HeartbeatMessage
+
+
+# --- server -> clients ------------------------------------------------------------------------
+
+
+class ClampInfo(msgspec.Struct):
+    """A value that was clamped to the limits."""
+
+    joint: str
+    requested: float
+    applied: float
+
+
+class AckData(msgspec.Struct):
+    """The answer to a command: accepted, clamped (with what) or refused (with a code)."""
+
+    status: Literal["accepted", "clamped", "refused"]
+    code: str | None = None
+    message: str = ""
+    clamped: list[ClampInfo] = msgspec.field(default_factory=list)
+
+
+class AckMessage(_Msg, tag="ack"):
+    """Acknowledgment of one command or sequence."""
+
+    data: AckData | None = None
+
+
+class JointLimits(msgspec.Struct):
+    """A joint's limits in degrees and deg/s."""
+
+    lower: float
+    upper: float
+    velocity: float
+
+
+class JointStateOut(msgspec.Struct):
+    """A joint as the server reports it."""
+
+    name: str
+    servo_id: int
+    type: str
+    virtual_value: float
+    real_value: float | None
+    limits: JointLimits
+
+
+class JointStatesOut(_Msg, tag="joint_states"):
+    """Every joint's commanded and measured value."""
+
+    data: list[JointStateOut] = msgspec.field(default_factory=list)
+
+
+class StateData(msgspec.Struct):
+    """A robot's safety state."""
+
+    robot_id: str
+    mode: str
+    owner: str | None
+    estop_reason: str | None
+
+
+class StateMessage(_Msg, tag="state"):
+    """The robot's safety state changed (or, on connect, what it is)."""
+
+    data: StateData | None = None
+
+
+class ExecuteData(msgspec.Struct):
+    """Targets for a slave."""
+
+    joints: list[JointValue]
+
+
+class ExecuteCommandMessage(_Msg, tag="execute_command"):
+    """Move to these targets now."""
+
+    data: ExecuteData | None = None
+
+
+class NoticeData(msgspec.Struct):
+    """Why a notice was sent."""
+
+    reason: str = ""
+
+
+class EStopNotice(_Msg, tag="estop"):
+    """Stop at once (sent to slaves)."""
+
+    data: NoticeData | None = None
+
+
+class ResetNotice(_Msg, tag="reset"):
+    """The e-stop is over; wait for the next target (sent to slaves)."""
+
+    data: NoticeData | None = None
+
+
+class HoldNotice(_Msg, tag="hold"):
+    """Hold the current position (sent to slaves)."""
+
+    data: NoticeData | None = None
+
+
+class StopNotice(_Msg, tag="stop"):
+    """The slave was detached or the robot is going away (sent to slaves)."""
+
+    data: NoticeData | None = None
+
+
+class DetachedData(msgspec.Struct):
+    """Why a master lost the robot."""
+
+    code: str
+    message: str
+
+
+class DetachedMessage(_Msg, tag="detached"):
+    """This master no longer owns the robot."""
+
+    data: DetachedData | None = None
+
+
+# --- codec ------------------------------------------------------------------------------------
+
+_master_decoder = msgspec.json.Decoder(MasterMessage)
+_slave_decoder = msgspec.json.Decoder(SlaveMessage)
+_encoder = msgspec.json.Encoder()
+
+
+def now_iso() -> str:
+    """The current UTC time as ISO 8601, the wire's `timestamp` format."""
+    return (
+        datetime.datetime.now(datetime.UTC)
+        .isoformat(timespec="milliseconds")
+        .replace("+00:00", "Z")
+    )
+
+
+def _decode(decoder: msgspec.json.Decoder[Any], raw: str | bytes) -> Any:
+    if len(raw) > MAX_MESSAGE_BYTES:
+        raise ArenaError(
+            ErrorCode.MESSAGE_TOO_LARGE,
+            f"Message of {len(raw)} bytes is over the {MAX_MESSAGE_BYTES}-byte limit.",
+        )
+    try:
+        return decoder.decode(raw)
+    except msgspec.ValidationError as exc:
+        text = str(exc)
+        if text.endswith("at `$.type`") or "missing required field `type`" in text:
+            raise ArenaError(
+                ErrorCode.UNKNOWN_MESSAGE_TYPE, f"Unknown or missing message type: {text}"
+            ) from None
+        raise ArenaError(ErrorCode.INVALID_MESSAGE, f"Invalid message: {text}") from None
+    except msgspec.DecodeError as exc:
+        raise ArenaError(ErrorCode.INVALID_JSON, f"Not valid JSON: {exc}") from None
+
+
+def decode_master(raw: str | bytes) -> MasterMessage:
+    """Decode and validate a message from a master."""
+    message: MasterMessage = _decode(_master_decoder, raw)
+    return message
+
+
+def decode_slave(raw: str | bytes) -> SlaveMessage:
+    """Decode and validate a message from a slave."""
+    message: SlaveMessage = _decode(_slave_decoder, raw)
+    return message
+
+
+def encode(message: msgspec.Struct) -> str:
+    """Encode an outgoing message as JSON text."""
+    return _encoder.encode(message).decode()
+
+
+def error_message(code: ErrorCode | str, message: str) -> str:
+    """An `error` message as JSON text."""
+    return encode(
+        ErrorMessage(timestamp=now_iso(), data=ErrorData(code=str(code), message=message))
+    )

@@ -1,0 +1,55 @@
+"""REST request bodies, as typed structs (validated at the edge; exported to OpenAPI)."""
+
+from __future__ import annotations
+
+from typing import TypeAlias
+
+import msgspec
+
+from arena.protocol.messages import JointValue
+
+
+class CreateRobotBody(msgspec.Struct, omit_defaults=True):
+    """`POST /api/robots`: a robot type, a display name and, optionally, the id to use."""
+
+    robot_type: str = "so-arm100"
+    name: str | None = None
+    id: str | None = None
+
+
+class JointsBody(msgspec.Struct, omit_defaults=True):
+    """`PUT /api/robots/{id}/joints`: manual control. `duration` is in milliseconds."""
+
+    joints: list[JointValue]
+    duration: float | None = None
+
+
+class ReasonBody(msgspec.Struct, omit_defaults=True):
+    """An optional reason (e-stop)."""
+
+    reason: str | None = None
+
+
+class MockSlaveBody(msgspec.Struct, tag="mock-slave", tag_field="type", omit_defaults=True):
+    """A simulated arm. Delays in milliseconds."""
+
+    simulateLatency: float = 0.0
+    responseDelay: float = 0.0
+    simulateErrors: bool = False
+    errorRate: float = 0.1
+    seed: int = 0
+
+
+SlaveBody: TypeAlias = MockSlaveBody
+
+
+class SequenceMasterBody(msgspec.Struct, tag="mock-sequence", tag_field="type", omit_defaults=True):
+    """The demo-sequence master: which sequences (default: all), loop, auto start, takeover."""
+
+    sequences: list[str] | None = None
+    loop: bool = False
+    autoStart: bool = True
+    takeover: bool = True
+
+
+MasterBody: TypeAlias = SequenceMasterBody

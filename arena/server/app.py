@@ -1,0 +1,309 @@
+"""The quart-trio application: REST routes, error handling, auth, docs and metrics."""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from collections.abc import Iterable
+from typing import Any, TypeVar
+
+import msgspec
+import trio
+from quart import Response, request
+from quart_trio import QuartTrio
+from werkzeug.exceptions import HTTPException
+
+import arena
+from arena.drivers.factory import make_master, make_slave
+from arena.drivers.sequence_master import SequenceMaster
+from arena.drivers.sequences import demo_sequences, get_sequence
+from arena.protocol.errors import ArenaError, ErrorCode
+from arena.protocol.messages import MAX_MESSAGE_BYTES
+from arena.protocol.rest import CreateRobotBody, JointsBody, MasterBody, ReasonBody, SlaveBody
+from arena.robot.manager import RobotManager
+from arena.server import convert, openapi
+from arena.server.config import ServerConfig
+from arena.server.metrics import Metrics
+from arena.server.websockets import blueprint as websocket_blueprint
+from arena.server.websockets import check_token
+
+T = TypeVar("T")
+
+#: HTTP status for each error code (anything missing is 400).
+STATUS_FOR: dict[ErrorCode, int] = {
+    ErrorCode.UNKNOWN_ROBOT: 404,
+    ErrorCode.UNKNOWN_SEQUENCE: 404,
+    ErrorCode.UNKNOWN_SLAVE: 404,
+    ErrorCode.NOT_FOUND: 404,
+    ErrorCode.ROBOT_STOPPED: 404,
+    ErrorCode.METHOD_NOT_ALLOWED: 405,
+    ErrorCode.MASTER_ACTIVE: 409,
+    ErrorCode.NOT_OWNER: 409,
+    ErrorCode.ROBOT_EXISTS: 409,
+    ErrorCode.ESTOPPED: 423,
+    ErrorCode.MESSAGE_TOO_LARGE: 413,
+    ErrorCode.INVALID_JSON: 422,
+    ErrorCode.INVALID_BODY: 422,
+    ErrorCode.INVALID_VALUE: 422,
+    ErrorCode.INVALID_CONFIG: 422,
+    ErrorCode.UNKNOWN_JOINT: 422,
+    ErrorCode.EMPTY_COMMAND: 422,
+    ErrorCode.UNKNOWN_ROBOT_TYPE: 422,
+    ErrorCode.RATE_LIMITED: 429,
+    ErrorCode.UNAUTHORIZED: 401,
+    ErrorCode.FORBIDDEN: 403,
+    ErrorCode.OVERLOADED: 503,
+    ErrorCode.INTERNAL_ERROR: 500,
+}
+
+#: Paths anyone may read, keys or not: the documentation.
+PUBLIC_PATHS = frozenset({"/docs", "/openapi.json"})
+
+
+class ArenaApp(QuartTrio):
+    """The Quart app, carrying the manager, the settings and the metrics."""
+
+    manager: RobotManager
+    arena_config: ServerConfig
+    metrics: Metrics
+    shutting_down: trio.Event
+    started_at: float
+
+
+def error_response(code: ErrorCode, message: str) -> tuple[dict[str, Any], int]:
+    """The one error shape: `{"error": {"code", "message"}}` with a fitting status."""
+    return {"error": {"code": str(code), "message": message}}, STATUS_FOR.get(code, 400)
+
+
+async def read_body(kind: type[T], *, optional: bool = False) -> T:
+    """Decode and validate the JSON body as `kind`, or raise `ArenaError(INVALID_BODY)`."""
+    raw = await request.get_data(cache=False)
+    if len(raw) > MAX_MESSAGE_BYTES:
+        raise ArenaError(
+            ErrorCode.MESSAGE_TOO_LARGE, f"Body over the {MAX_MESSAGE_BYTES}-byte limit."
+        )
+    if not raw.strip() and optional:
+        raw = b"{}"
+    try:
+        return msgspec.json.decode(raw, type=kind)
+    except msgspec.ValidationError as exc:
+        raise ArenaError(ErrorCode.INVALID_BODY, f"Invalid request body: {exc}") from None
+    except msgspec.DecodeError as exc:
+        raise ArenaError(ErrorCode.INVALID_JSON, f"The body is not valid JSON: {exc}") from None
+
+
+def create_app(manager: RobotManager, config: ServerConfig) -> ArenaApp:
+    """Build the app around a running `RobotManager`."""
+    app = ArenaApp(__name__)
+    app.manager = manager
+    app.arena_config = config
+    app.metrics = Metrics()
+    app.shutting_down = trio.Event()
+    app.started_at = time.time()
+    app.config["MAX_CONTENT_LENGTH"] = MAX_MESSAGE_BYTES
+    app.register_blueprint(websocket_blueprint)
+    _register_errors(app)
+    _register_routes(app)
+    return app
+
+
+def _register_errors(app: ArenaApp) -> None:
+    @app.before_request
+    async def authorize() -> None:
+        if request.path not in PUBLIC_PATHS:
+            check_token(
+                app,
+                request.headers.get("Authorization"),
+                None,
+                mutating=request.method not in ("GET", "HEAD", "OPTIONS"),
+            )
+
+    @app.after_request
+    async def count(response: Response) -> Response:
+        app.metrics.requests[f"{response.status_code // 100}xx"] += 1
+        return response
+
+    @app.errorhandler(ArenaError)
+    async def arena_error(error: ArenaError) -> tuple[dict[str, Any], int]:
+        app.metrics.message_errors[str(error.code)] += 1
+        return error_response(error.code, error.message)
+
+    @app.errorhandler(HTTPException)
+    async def http_error(error: HTTPException) -> tuple[dict[str, Any], int]:
+        status = error.code or 500
+        code = {
+            404: ErrorCode.NOT_FOUND,
+            405: ErrorCode.METHOD_NOT_ALLOWED,
+            413: ErrorCode.MESSAGE_TOO_LARGE,
+        }.get(status, ErrorCode.INVALID_BODY)
+        body, _ = error_response(code, error.description or error.name)
+        return body, status
+
+    @app.errorhandler(Exception)
+    async def internal_error(error: Exception) -> tuple[dict[str, Any], int]:
+        app.logger.exception("unhandled error on %s %s", request.method, request.path)
+        return error_response(
+            ErrorCode.INTERNAL_ERROR, "Something went wrong inside Arena; the log has the details."
+        )
+
+
+def _register_routes(app: ArenaApp) -> None:
+    manager = app.manager
+
+    @app.get("/")
+    async def status() -> dict[str, Any]:
+        robots = manager.robots()
+        return {
+            "name": "Arena",
+            "version": arena.__version__,
+            "status": "running",
+            "uptime_s": round(time.time() - app.started_at, 3),
+            "robots": len(robots),
+            "robots_by_state": dict(Counter(str(r.snapshot().mode) for r in robots)),
+            "connections": dict(app.metrics.connections),
+            "commands": _sum_counters(r.command_counts for r in robots),
+            "estops": sum(r.estop_count for r in robots),
+            "auth": app.arena_config.auth_enabled,
+            "links": {
+                "robots": "/api/robots",
+                "docs": "/docs",
+                "openapi": "/openapi.json",
+                "metrics": "/metrics",
+            },
+        }
+
+    @app.get("/api/robots")
+    async def list_robots() -> list[dict[str, Any]]:
+        return [convert.robot_summary(r) for r in manager.robots()]
+
+    @app.post("/api/robots")
+    async def create_robot() -> tuple[dict[str, Any], int]:
+        body = await read_body(CreateRobotBody)
+        robot = await manager.create_robot(body.robot_type, body.name, body.id)
+        return convert.robot_summary(robot), 201
+
+    @app.get("/api/robots/<robot_id>")
+    async def get_robot(robot_id: str) -> dict[str, Any]:
+        return convert.robot_summary(manager.get(robot_id))
+
+    @app.get("/api/robots/<robot_id>/status")
+    async def robot_status(robot_id: str) -> dict[str, Any]:
+        return convert.robot_status(manager.get(robot_id))
+
+    @app.delete("/api/robots/<robot_id>")
+    async def delete_robot(robot_id: str) -> dict[str, Any]:
+        robot = manager.get(robot_id)
+        await manager.delete(robot_id)
+        app.metrics.retire(robot)
+        return {"deleted": robot_id}
+
+    @app.get("/api/sequences")
+    async def list_sequences() -> list[dict[str, Any]]:
+        return [s.summary() for s in demo_sequences().values()]
+
+    @app.post("/api/robots/<robot_id>/play-sequence/<sequence_id>")
+    async def play_sequence(robot_id: str, sequence_id: str) -> dict[str, Any]:
+        robot = manager.get(robot_id)
+        sequence = get_sequence(sequence_id)
+        master_id = await robot.attach_master(SequenceMaster([sequence]))
+        return {
+            "robot": robot_id,
+            "sequence": sequence_id,
+            "master": master_id,
+            "duration": sequence.summary()["duration"],
+        }
+
+    @app.post("/api/robots/<robot_id>/stop-sequence")
+    async def stop_sequence(robot_id: str) -> dict[str, Any]:
+        robot = manager.get(robot_id)
+        master = robot.snapshot().master
+        if master is None or master.kind != SequenceMaster.kind:
+            return {"robot": robot_id, "stopped": False}
+        await robot.detach_master(master.peer_id, reason="sequence stopped on request")
+        return {"robot": robot_id, "stopped": True, "master": master.peer_id}
+
+    @app.post("/api/robots/<robot_id>/estop")
+    async def estop(robot_id: str) -> dict[str, Any]:
+        robot = manager.get(robot_id)
+        body = await read_body(ReasonBody, optional=True)
+        await robot.estop(body.reason or "e-stop over REST")
+        return convert.robot_status(robot)
+
+    @app.post("/api/robots/<robot_id>/reset")
+    async def reset(robot_id: str) -> dict[str, Any]:
+        robot = manager.get(robot_id)
+        await robot.reset()
+        return convert.robot_status(robot)
+
+    @app.post("/api/estop")
+    async def estop_all() -> dict[str, Any]:
+        body = await read_body(ReasonBody, optional=True)
+        await manager.estop_all(body.reason or "e-stop of every robot over REST")
+        return {"estopped": [r.robot_id for r in manager.robots()]}
+
+    @app.get("/api/robots/<robot_id>/joints")
+    async def get_joints(robot_id: str) -> list[dict[str, Any]]:
+        snapshot = manager.get(robot_id).snapshot()
+        data: list[dict[str, Any]] = msgspec.to_builtins(convert.joint_states(snapshot).data)
+        return data
+
+    @app.put("/api/robots/<robot_id>/joints")
+    async def put_joints(robot_id: str) -> dict[str, Any]:
+        robot = manager.get(robot_id)
+        body = await read_body(JointsBody)
+        result = await robot.command(
+            convert.command_from_wire(body.joints, body.duration, {"source": "rest"})
+        )
+        if not result.accepted:
+            assert result.code is not None
+            raise ArenaError(result.code, result.message)
+        ack: dict[str, Any] = msgspec.to_builtins(convert.ack(result).data)
+        return ack
+
+    @app.post("/api/robots/<robot_id>/slaves")
+    async def attach_slave(robot_id: str) -> tuple[dict[str, Any], int]:
+        robot = manager.get(robot_id)
+        body = await read_body(SlaveBody)
+        slave_id = await robot.attach_slave(make_slave(body))
+        return {"id": slave_id, "type": type(body).__struct_config__.tag}, 201
+
+    @app.delete("/api/robots/<robot_id>/slaves/<slave_id>")
+    async def detach_slave(robot_id: str, slave_id: str) -> dict[str, Any]:
+        await manager.get(robot_id).detach_slave(slave_id)
+        return {"detached": slave_id}
+
+    @app.post("/api/robots/<robot_id>/master")
+    async def attach_master(robot_id: str) -> tuple[dict[str, Any], int]:
+        robot = manager.get(robot_id)
+        body = await read_body(MasterBody)
+        master_id = await robot.attach_master(make_master(body))
+        return {"id": master_id, "type": type(body).__struct_config__.tag}, 201
+
+    @app.delete("/api/robots/<robot_id>/master")
+    async def detach_master(robot_id: str) -> dict[str, Any]:
+        robot = manager.get(robot_id)
+        master = robot.snapshot().master
+        if master is not None:
+            await robot.detach_master(master.peer_id)
+        return {"detached": master.peer_id if master else None}
+
+    @app.get("/metrics")
+    async def metrics() -> Response:
+        return Response(
+            app.metrics.render(manager.robots()), content_type="text/plain; version=0.0.4"
+        )
+
+    @app.get("/openapi.json")
+    async def openapi_json() -> dict[str, Any]:
+        return openapi.document(app)
+
+    @app.get("/docs")
+    async def docs() -> Response:
+        return Response(openapi.DOCS_PAGE, content_type="text/html; charset=utf-8")
+
+
+def _sum_counters(counters: Iterable[Counter[str]]) -> dict[str, int]:
+    total: Counter[str] = Counter()
+    for counter in counters:
+        total.update(counter)
+    return dict(total)

@@ -1,0 +1,88 @@
+"""Server settings: command-line flags, an optional TOML file and the environment."""
+
+from __future__ import annotations
+
+import ipaddress
+import os
+import tomllib
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from arena.protocol.errors import ArenaError, ErrorCode
+
+API_KEYS_ENV = "ARENA_API_KEYS"
+
+
+@dataclass(frozen=True)
+class ServerConfig:
+    """Everything the server needs to start."""
+
+    host: str = "127.0.0.1"
+    port: int = 8080
+    demo: bool = False
+    api_keys: tuple[str, ...] = ()
+    open_reads: bool = False  # with keys configured, let GET requests through without one
+    insecure: bool = False  # allow binding beyond loopback without keys
+    certfile: str | None = None
+    keyfile: str | None = None
+    heartbeat_interval: float = 30.0  # seconds between our heartbeats to each peer
+    heartbeat_timeout: float = 90.0  # a peer silent this long is dropped
+    shutdown_grace: float = 1.0
+    cors_origins: tuple[str, ...] = field(default=())
+
+    @property
+    def auth_enabled(self) -> bool:
+        """True when API keys are configured."""
+        return bool(self.api_keys)
+
+    def check(self) -> None:
+        """Refuse unsafe or inconsistent settings with a clear sentence."""
+        if not self.api_keys and not self.insecure and not _is_loopback(self.host):
+            raise ArenaError(
+                ErrorCode.INVALID_CONFIG,
+                f"Refusing to listen on {self.host} without API keys: anyone on the network "
+                "could move the robot. Give --api-key KEY, or --insecure if you mean it.",
+            )
+        if bool(self.certfile) != bool(self.keyfile):
+            raise ArenaError(ErrorCode.INVALID_CONFIG, "TLS needs both --certfile and --keyfile.")
+        if self.heartbeat_interval <= 0 or self.heartbeat_timeout <= 0:
+            raise ArenaError(ErrorCode.INVALID_CONFIG, "Heartbeat settings must be positive.")
+
+
+def _is_loopback(host: str) -> bool:
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def load_config(path: str | None, **overrides: Any) -> ServerConfig:
+    """Defaults, then the TOML file at `path`, then `$ARENA_API_KEYS`, then `overrides`."""
+    config = ServerConfig()
+    if path:
+        try:
+            data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+        except (OSError, tomllib.TOMLDecodeError) as exc:
+            raise ArenaError(ErrorCode.INVALID_CONFIG, f"Cannot read {path}: {exc}") from exc
+        known = set(ServerConfig.__dataclass_fields__)
+        unknown = set(data) - known
+        if unknown:
+            raise ArenaError(
+                ErrorCode.INVALID_CONFIG,
+                f"Unknown settings in {path}: {', '.join(sorted(unknown))}.",
+            )
+        for key in ("api_keys", "cors_origins"):
+            if key in data:
+                data[key] = tuple(data[key])
+        config = replace(config, **data)
+    env_keys = tuple(k for k in os.environ.get(API_KEYS_ENV, "").split(",") if k.strip())
+    if env_keys:
+        config = replace(config, api_keys=config.api_keys + tuple(k.strip() for k in env_keys))
+    extra_keys = overrides.pop("api_keys", ())
+    config = replace(config, **{k: v for k, v in overrides.items() if v is not None})
+    if extra_keys:
+        config = replace(config, api_keys=config.api_keys + tuple(extra_keys))
+    return config

@@ -1,0 +1,130 @@
+"""Between wire messages (degrees, milliseconds, the seed's shapes) and the robot core's types."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgspec
+
+from arena.drivers.sequences import Sequence, parse_sequence
+from arena.protocol import messages as wire
+from arena.robot.actor import Robot
+from arena.robot.events import NoticeKind, SlaveNotice, SlaveTarget
+from arena.robot.motion import Command, CommandResult, JointGoal
+from arena.robot.snapshot import PeerSnapshot, RobotSnapshot
+
+
+def command_from_wire(
+    joints: list[wire.JointValue], duration_ms: float | None, metadata: dict[str, Any] | None = None
+) -> Command:
+    """A wire command (degrees, milliseconds) as a core `Command` (degrees, seconds)."""
+    source = metadata.get("source") if metadata else None
+    return Command(
+        tuple(JointGoal(j.name, j.value, j.speed) for j in joints),
+        None if duration_ms is None else duration_ms / 1000.0,
+        str(source) if source is not None else None,
+    )
+
+
+def sequence_from_wire(data: wire.SequenceData) -> Sequence:
+    """A wire sequence as a core `Sequence` (raises `ArenaError` when malformed)."""
+    return parse_sequence(msgspec.to_builtins(data))
+
+
+def ack(result: CommandResult) -> wire.AckMessage:
+    """The acknowledgment of a command."""
+    if not result.accepted:
+        data = wire.AckData("refused", str(result.code), result.message)
+    elif result.clamped:
+        clamps = [wire.ClampInfo(c.joint, c.requested, c.applied) for c in result.clamped]
+        data = wire.AckData("clamped", None, result.message, clamps)
+    else:
+        data = wire.AckData("accepted")
+    return wire.AckMessage(timestamp=wire.now_iso(), data=data)
+
+
+def joint_states(snapshot: RobotSnapshot) -> wire.JointStatesOut:
+    """Every joint's virtual and real value, in the seed's `joint_states` shape."""
+    return wire.JointStatesOut(
+        timestamp=wire.now_iso(),
+        data=[
+            wire.JointStateOut(
+                j.name,
+                j.servo_id,
+                "revolute",
+                j.virtual_value,
+                j.real_value,
+                wire.JointLimits(j.lower, j.upper, j.velocity),
+            )
+            for j in snapshot.joints
+        ],
+    )
+
+
+def state(snapshot: RobotSnapshot) -> wire.StateMessage:
+    """The robot's safety state."""
+    return wire.StateMessage(
+        timestamp=wire.now_iso(),
+        data=wire.StateData(
+            snapshot.robot_id, str(snapshot.mode), snapshot.owner, snapshot.estop_reason
+        ),
+    )
+
+
+_NOTICES: dict[
+    NoticeKind, type[wire.EStopNotice | wire.ResetNotice | wire.HoldNotice | wire.StopNotice]
+] = {
+    NoticeKind.ESTOP: wire.EStopNotice,
+    NoticeKind.RESET: wire.ResetNotice,
+    NoticeKind.HOLD: wire.HoldNotice,
+    NoticeKind.SHUTDOWN: wire.StopNotice,
+}
+
+
+def to_slave(message: SlaveTarget | SlaveNotice) -> msgspec.Struct:
+    """What a WebSocket slave receives: `execute_command` or a notice."""
+    if isinstance(message, SlaveTarget):
+        joints = [wire.JointValue(name, value) for name, value in message.joints.items()]
+        return wire.ExecuteCommandMessage(timestamp=wire.now_iso(), data=wire.ExecuteData(joints))
+    return _NOTICES[message.kind](timestamp=wire.now_iso(), data=wire.NoticeData(message.reason))
+
+
+def _peer(peer: PeerSnapshot | None) -> dict[str, Any] | None:
+    if peer is None:
+        return None
+    return {
+        "id": peer.peer_id,
+        "type": peer.kind,
+        "connected": peer.connected,
+        "last_error": peer.last_error,
+    }
+
+
+def robot_summary(robot: Robot) -> dict[str, Any]:
+    """A robot as the REST API shows it."""
+    snapshot = robot.snapshot()
+    return {
+        "id": snapshot.robot_id,
+        "name": snapshot.name,
+        "robot_type": snapshot.robot_type,
+        "state": str(snapshot.mode),
+        "owner": snapshot.owner,
+        "estop_reason": snapshot.estop_reason,
+        "master": _peer(snapshot.master),
+        "slaves": [_peer(s) for s in snapshot.slaves],
+        "joints": msgspec.to_builtins(joint_states(snapshot).data),
+    }
+
+
+def robot_status(robot: Robot) -> dict[str, Any]:
+    """Connection status: who is attached, and the safety state."""
+    snapshot = robot.snapshot()
+    return {
+        "id": snapshot.robot_id,
+        "state": str(snapshot.mode),
+        "has_master": snapshot.master is not None,
+        "master": _peer(snapshot.master),
+        "slave_count": len(snapshot.slaves),
+        "slaves": [_peer(s) for s in snapshot.slaves],
+        "estop_reason": snapshot.estop_reason,
+    }

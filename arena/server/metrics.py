@@ -1,0 +1,94 @@
+"""Prometheus text-format metrics, without a client library: a few counters and a histogram."""
+
+from __future__ import annotations
+
+import bisect
+import collections
+from collections.abc import Iterable
+
+from arena.robot.actor import Robot
+
+#: Upper bounds (seconds) of the message latency histogram buckets.
+LATENCY_BUCKETS = (0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.1, 1.0)
+
+
+class Metrics:
+    """Counters the server keeps at its edges; robot counters are read from the actors."""
+
+    def __init__(self) -> None:
+        self.connections: collections.Counter[str] = collections.Counter()  # open, by role
+        self.requests: collections.Counter[str] = collections.Counter()  # by status class
+        self.messages: collections.Counter[str] = collections.Counter()  # in, by role
+        self.message_errors: collections.Counter[str] = collections.Counter()  # by code
+        self._latency_counts = [0] * (len(LATENCY_BUCKETS) + 1)
+        self._latency_sum = 0.0
+        self._retired: collections.Counter[str] = collections.Counter()  # deleted robots
+        self._retired_estops = 0
+
+    def observe_latency(self, seconds: float) -> None:
+        """Time from a message's arrival to its answer."""
+        self._latency_counts[bisect.bisect_left(LATENCY_BUCKETS, seconds)] += 1
+        self._latency_sum += seconds
+
+    def retire(self, robot: Robot) -> None:
+        """Keep a deleted robot's counts in the totals."""
+        self._retired.update(robot.command_counts)
+        self._retired_estops += robot.estop_count
+
+    def render(self, robots: Iterable[Robot]) -> str:
+        """The Prometheus exposition text."""
+        robots = list(robots)
+        commands = collections.Counter(self._retired)
+        estops = self._retired_estops
+        for robot in robots:
+            commands.update(robot.command_counts)
+            estops += robot.estop_count
+        lines = [
+            "# HELP arena_robots Robots that exist now.",
+            "# TYPE arena_robots gauge",
+            f"arena_robots {len(robots)}",
+            "# HELP arena_connections Open WebSocket connections by role.",
+            "# TYPE arena_connections gauge",
+        ]
+        for role in ("master", "slave", "viewer"):
+            lines.append(f'arena_connections{{role="{role}"}} {self.connections[role]}')
+        lines += [
+            "# HELP arena_commands_total Commands answered, by result (accepted or refusal code).",
+            "# TYPE arena_commands_total counter",
+        ]
+        for result, count in sorted(commands.items()):
+            lines.append(f'arena_commands_total{{result="{result}"}} {count}')
+        lines += [
+            "# HELP arena_estops_total Emergency stops.",
+            "# TYPE arena_estops_total counter",
+            f"arena_estops_total {estops}",
+            "# HELP arena_messages_total WebSocket messages received, by role.",
+            "# TYPE arena_messages_total counter",
+        ]
+        for role, count in sorted(self.messages.items()):
+            lines.append(f'arena_messages_total{{role="{role}"}} {count}')
+        lines += [
+            "# HELP arena_message_errors_total Messages and requests refused at the edge.",
+            "# TYPE arena_message_errors_total counter",
+        ]
+        for code, count in sorted(self.message_errors.items()):
+            lines.append(f'arena_message_errors_total{{code="{code}"}} {count}')
+        lines += [
+            "# HELP arena_http_requests_total HTTP requests by status class.",
+            "# TYPE arena_http_requests_total counter",
+        ]
+        for status, count in sorted(self.requests.items()):
+            lines.append(f'arena_http_requests_total{{status="{status}"}} {count}')
+        lines += [
+            "# HELP arena_message_latency_seconds From a message's arrival to its answer.",
+            "# TYPE arena_message_latency_seconds histogram",
+        ]
+        cumulative = 0
+        for bound, count in zip(LATENCY_BUCKETS, self._latency_counts, strict=False):
+            cumulative += count
+            lines.append(f'arena_message_latency_seconds_bucket{{le="{bound}"}} {cumulative}')
+        cumulative += self._latency_counts[-1]
+        lines.append(f'arena_message_latency_seconds_bucket{{le="+Inf"}} {cumulative}')
+        lines.append(f"arena_message_latency_seconds_sum {self._latency_sum}")
+        lines.append(f"arena_message_latency_seconds_count {cumulative}")
+        return "\n".join(lines) + "\n"

@@ -1,0 +1,173 @@
+"""The OpenAPI document, built from the same structs that validate requests, and `/docs`."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import msgspec
+
+import arena
+from arena.protocol import messages as wire
+from arena.protocol.rest import CreateRobotBody, JointsBody, MasterBody, ReasonBody, SlaveBody
+
+if TYPE_CHECKING:
+    from arena.server.app import ArenaApp
+
+#: (method, path, summary, request body type or None). A test checks it covers every route.
+ROUTES: list[tuple[str, str, str, Any]] = [
+    ("GET", "/", "Server status and metrics", None),
+    ("GET", "/api/robots", "List all robots", None),
+    ("POST", "/api/robots", "Create a robot", CreateRobotBody),
+    ("GET", "/api/robots/{robot_id}", "Get a robot's details", None),
+    ("GET", "/api/robots/{robot_id}/status", "Get a robot's connection status", None),
+    ("DELETE", "/api/robots/{robot_id}", "Delete a robot (its drivers stop)", None),
+    ("GET", "/api/sequences", "List the demo sequences", None),
+    (
+        "POST",
+        "/api/robots/{robot_id}/play-sequence/{sequence_id}",
+        "Play a demo sequence (takes the robot over)",
+        None,
+    ),
+    ("POST", "/api/robots/{robot_id}/stop-sequence", "Stop the playing sequence", None),
+    ("POST", "/api/robots/{robot_id}/estop", "Emergency-stop a robot", ReasonBody),
+    ("POST", "/api/robots/{robot_id}/reset", "Leave the e-stop (moves nothing)", None),
+    ("POST", "/api/estop", "Emergency-stop every robot", ReasonBody),
+    ("GET", "/api/robots/{robot_id}/joints", "Joint values, virtual and real", None),
+    ("PUT", "/api/robots/{robot_id}/joints", "Manual control (refused while mastered)", JointsBody),
+    ("POST", "/api/robots/{robot_id}/slaves", "Attach a slave driver", SlaveBody),
+    ("DELETE", "/api/robots/{robot_id}/slaves/{slave_id}", "Detach a slave", None),
+    ("POST", "/api/robots/{robot_id}/master", "Attach a master driver", MasterBody),
+    ("DELETE", "/api/robots/{robot_id}/master", "Detach the master", None),
+    ("GET", "/metrics", "Prometheus metrics", None),
+    ("GET", "/openapi.json", "This document", None),
+    ("GET", "/docs", "Interactive API documentation", None),
+]
+
+#: WebSocket message types, documented as schemas (OpenAPI has no WebSocket operations).
+WEBSOCKET_TYPES: list[Any] = [
+    wire.MasterMessage,
+    wire.SlaveMessage,
+    wire.AckMessage,
+    wire.JointStatesOut,
+    wire.StateMessage,
+    wire.ExecuteCommandMessage,
+    wire.DetachedMessage,
+]
+
+_ERROR_SCHEMA = {
+    "type": "object",
+    "properties": {
+        "error": {
+            "type": "object",
+            "properties": {"code": {"type": "string"}, "message": {"type": "string"}},
+        }
+    },
+}
+
+
+def document(app: ArenaApp | None = None) -> dict[str, Any]:
+    """The OpenAPI 3.1 document."""
+    bodies = [body for *_, body in ROUTES if body is not None]
+    schemas, components = msgspec.json.schema_components(
+        [*bodies, *WEBSOCKET_TYPES], ref_template="#/components/schemas/{name}"
+    )
+    body_schema = dict(zip(map(id, bodies), schemas, strict=False))
+    paths: dict[str, dict[str, Any]] = {}
+    for method, path, summary, body in ROUTES:
+        operation: dict[str, Any] = {
+            "summary": summary,
+            "responses": {
+                "200": {"description": "OK"},
+                "default": {
+                    "description": "Error",
+                    "content": {
+                        "application/json": {"schema": {"$ref": "#/components/schemas/Error"}}
+                    },
+                },
+            },
+        }
+        parameters = [
+            {"name": part[1:-1], "in": "path", "required": True, "schema": {"type": "string"}}
+            for part in path.split("/")
+            if part.startswith("{")
+        ]
+        if parameters:
+            operation["parameters"] = parameters
+        if body is not None:
+            operation["requestBody"] = {
+                "required": body is not ReasonBody,
+                "content": {"application/json": {"schema": body_schema[id(body)]}},
+            }
+        paths.setdefault(path, {})[method.lower()] = operation
+    components["Error"] = _ERROR_SCHEMA
+    return {
+        "openapi": "3.1.0",
+        "info": {
+            "title": "Arena",
+            "version": arena.__version__,
+            "description": "Robot control: one master per robot, many slaves, e-stop. "
+            "WebSockets: /ws/master/{robot_id}, /ws/slave/{robot_id}, "
+            "/ws/robots/{robot_id}/state (message schemas below).",
+        },
+        "paths": paths,
+        "components": {
+            "schemas": components,
+            "securitySchemes": {"apiKey": {"type": "http", "scheme": "bearer"}},
+        },
+        "security": [{"apiKey": []}],
+    }
+
+
+#: A self-contained page (no CDN): lists the operations from /openapi.json and lets you try them.
+DOCS_PAGE = """<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>Arena API</title>
+<meta name="viewport" content="width=device-width, initial-scale=1">
+<style>
+body{font-family:system-ui,sans-serif;margin:1rem auto;max-width:60rem;padding:0 1rem}
+.op{border:1px solid #ccc;border-radius:6px;margin:.5rem 0;padding:.5rem}
+.m{display:inline-block;min-width:4.5rem;font-weight:bold}
+textarea{width:100%;height:5rem;font-family:monospace}
+pre{background:#f5f5f5;padding:.5rem;overflow:auto;max-height:20rem}
+</style></head><body>
+<h1>Arena API</h1>
+<p>API key (if the server needs one): <input id="key" size="30"></p>
+<div id="ops">Loading /openapi.json ...</div>
+<script>
+async function main() {
+  const doc = await (await fetch('/openapi.json')).json();
+  const ops = document.getElementById('ops'); ops.textContent = '';
+  for (const [path, methods] of Object.entries(doc.paths)) {
+    for (const [method, op] of Object.entries(methods)) {
+      const box = document.createElement('div'); box.className = 'op';
+      const head = document.createElement('div');
+      head.innerHTML = '<span class="m"></span> <code></code> <span></span>';
+      head.children[0].textContent = method.toUpperCase();
+      head.children[1].textContent = path; head.children[2].textContent = op.summary;
+      box.appendChild(head);
+      const params = (op.parameters || []).map(p => {
+        const input = document.createElement('input'); input.placeholder = p.name;
+        box.appendChild(input); return [p.name, input];
+      });
+      let body = null;
+      if (op.requestBody) { body = document.createElement('textarea'); body.value = '{}';
+        box.appendChild(body); }
+      const button = document.createElement('button'); button.textContent = 'Try it';
+      const out = document.createElement('pre'); out.hidden = true;
+      button.onclick = async () => {
+        let url = path; for (const [name, input] of params)
+          url = url.replace('{' + name + '}', encodeURIComponent(input.value));
+        const headers = {'Content-Type': 'application/json'};
+        const key = document.getElementById('key').value;
+        if (key) headers['Authorization'] = 'Bearer ' + key;
+        const response = await fetch(url, {method: method.toUpperCase(), headers,
+          body: body ? body.value : undefined});
+        out.hidden = false;
+        out.textContent = response.status + ' ' + await response.text();
+      };
+      box.appendChild(button); box.appendChild(out); ops.appendChild(box);
+    }
+  }
+}
+main();
+</script></body></html>
+"""

@@ -1,0 +1,98 @@
+"""Run the server: the robot manager and hypercorn's trio worker in one nursery."""
+
+from __future__ import annotations
+
+import logging
+import signal
+from typing import Any
+
+import trio
+from hypercorn.config import Config as HypercornConfig
+from hypercorn.trio import serve
+
+from arena.drivers.mock_slave import MockSlave, MockSlaveConfig
+from arena.robot.manager import open_manager
+from arena.server.app import ArenaApp, create_app
+from arena.server.config import ServerConfig
+
+log = logging.getLogger(__name__)
+
+DEMO_ROBOT_ID = "demo-arm"
+
+
+def hypercorn_config(config: ServerConfig) -> HypercornConfig:
+    """Hypercorn settings from ours."""
+    hc = HypercornConfig()
+    host = f"[{config.host}]" if ":" in config.host else config.host
+    hc.bind = [f"{host}:{config.port}"]
+    hc.graceful_timeout = config.shutdown_grace
+    hc.websocket_max_message_size = 1024 * 1024  # hard cap; messages over 64 KiB get an error
+    hc.accesslog = None
+    hc.errorlog = logging.getLogger("hypercorn.error")
+    if config.certfile and config.keyfile:
+        hc.certfile, hc.keyfile = config.certfile, config.keyfile
+    return hc
+
+
+async def run_server(
+    config: ServerConfig,
+    *,
+    stop: trio.Event | None = None,
+    handle_signals: bool = False,
+    task_status: Any = trio.TASK_STATUS_IGNORED,
+) -> None:
+    """Serve until `stop` is set (or, with `handle_signals`, SIGINT or SIGTERM arrives).
+
+    `task_status.started` receives `(app, urls)` once the sockets are bound; with port 0 the
+    URLs carry the ports the system chose.
+    """
+    config.check()
+    stop = stop or trio.Event()
+    async with open_manager() as manager:
+        app = create_app(manager, config)
+        if config.demo:
+            await _create_demo_robot(app)
+
+        async def shutdown_trigger() -> None:
+            await stop.wait()
+            log.info("shutting down")
+            app.shutting_down.set()
+
+        hc = hypercorn_config(config)
+        async with trio.open_nursery() as nursery:
+            if handle_signals:
+                nursery.start_soon(_stop_on_signals, stop)
+
+            async def serve_then_stop(task_status: Any = trio.TASK_STATUS_IGNORED) -> None:
+                await serve(
+                    app,
+                    hc,
+                    shutdown_trigger=shutdown_trigger,  # type: ignore[arg-type]
+                    task_status=task_status,
+                )
+                nursery.cancel_scope.cancel()
+
+            urls: list[str] = await nursery.start(serve_then_stop)
+            for url in urls:
+                log.info("Arena listening on %s", url)
+            task_status.started((app, urls))
+            await stop.wait()
+            # Our WebSockets close themselves with 1001 at once; whatever hypercorn still
+            # holds after its grace period is cancelled.
+            await trio.sleep(config.shutdown_grace + 1.0)
+            nursery.cancel_scope.cancel()
+
+
+async def _create_demo_robot(app: ArenaApp) -> None:
+    robot = await app.manager.create_robot("so-arm100", "Demo arm", DEMO_ROBOT_ID)
+    await robot.attach_slave(
+        MockSlave(MockSlaveConfig(simulate_latency=20, response_delay=10)), "demo-mock-slave"
+    )
+
+
+async def _stop_on_signals(stop: trio.Event) -> None:
+    with trio.open_signal_receiver(signal.SIGINT, signal.SIGTERM) as signals:
+        async for signum in signals:
+            log.info("received %s", signal.Signals(signum).name)
+            stop.set()
+            return

@@ -1,0 +1,458 @@
+"""The WebSocket endpoints: masters, slaves and read-only state viewers.
+
+Each connection runs its tasks in one nursery and ends in one of three ways: the client goes
+away (quart-trio cancels the handler; for a master or slave that is a loss, and the robot's
+loss policy applies), the robot ends the link (detached, deleted), or the server shuts down
+(the socket is closed with 1001 at once rather than left for hypercorn's grace period).
+"""
+
+from __future__ import annotations
+
+import hmac
+import itertools
+import logging
+import time
+from collections.abc import Awaitable, Callable
+from typing import TYPE_CHECKING, Any
+
+import msgspec
+import trio
+from quart import Blueprint, websocket
+
+from arena.drivers.sequence_master import SequenceMaster
+from arena.protocol import messages as wire
+from arena.protocol.errors import ArenaError, ErrorCode
+from arena.robot.actor import MasterLink, Robot, SlaveLink
+from arena.robot.events import (
+    JointStatesReceived,
+    MasterNotice,
+    RobotEvent,
+    StateChanged,
+    TargetsSent,
+)
+from arena.robot.mailbox import EventQueue
+from arena.server import convert
+
+if TYPE_CHECKING:
+    from arena.server.app import ArenaApp
+
+log = logging.getLogger(__name__)
+blueprint = Blueprint("websockets", __name__)
+_ids = itertools.count(1)
+
+#: Close codes: 1000 normal, 1001 going away, 4000 + an HTTP-like status for refusals.
+CLOSE_NORMAL, CLOSE_GOING_AWAY = 1000, 1001
+_CLOSE_FOR = {
+    ErrorCode.UNAUTHORIZED: 4401,
+    ErrorCode.FORBIDDEN: 4403,
+    ErrorCode.UNKNOWN_ROBOT: 4404,
+    ErrorCode.MASTER_ACTIVE: 4409,
+    ErrorCode.ESTOPPED: 4423,
+    ErrorCode.TAKEN_OVER: 4409,
+    ErrorCode.MASTER_LOST: 4408,
+}
+
+
+def _app() -> ArenaApp:
+    from quart import current_app
+
+    return current_app  # type: ignore[return-value]
+
+
+class Connection:
+    """One accepted WebSocket: send helpers, refusals, and the shutdown race."""
+
+    def __init__(self, role: str) -> None:
+        self.role = role
+        self.app = _app()
+        self.closed = False
+        self._ended = trio.Event()
+
+    async def send(self, message: msgspec.Struct | str) -> None:
+        """Send a message (a struct is encoded as JSON)."""
+        text = message if isinstance(message, str) else wire.encode(message)
+        await websocket.send(text)
+
+    async def send_error(self, code: ErrorCode | str, message: str) -> None:
+        """Send an `error` message and count it."""
+        self.app.metrics.message_errors[str(code)] += 1
+        await websocket.send(wire.error_message(code, message))
+
+    async def close(self, code: int, reason: str = "") -> None:
+        """Close once."""
+        if not self.closed:
+            self.closed = True
+            try:
+                await websocket.close(code, reason[:120])
+            finally:
+                self._ended.set()
+
+    async def refuse(self, error: ArenaError) -> None:
+        """Tell the client why in an `error` message, then close with a 4xxx code."""
+        await self.send_error(error.code, error.message)
+        await self.close(_CLOSE_FOR.get(error.code, 4400), error.message)
+
+    async def run(self, body: Callable[[trio.Nursery], Awaitable[None]]) -> None:
+        """Run `body` until it returns, the client leaves or the server shuts down."""
+        async with trio.open_nursery() as nursery:
+
+            async def on_shutdown() -> None:
+                await self.app.shutting_down.wait()
+                await self.close(CLOSE_GOING_AWAY, "server shutting down")
+                nursery.cancel_scope.cancel()
+
+            async def main() -> None:
+                await body(nursery)
+                nursery.cancel_scope.cancel()
+
+            async def on_closed() -> None:
+                await self._ended.wait()
+                nursery.cancel_scope.cancel()
+
+            nursery.start_soon(on_shutdown)
+            nursery.start_soon(on_closed)
+            nursery.start_soon(main)
+
+
+async def _accept(role: str, robot_id: str) -> tuple[Connection, Robot] | None:
+    """Accept, check the key and find the robot; on failure refuse and return None."""
+    await websocket.accept()
+    connection = Connection(role)
+    try:
+        check_token(
+            connection.app, websocket.headers.get("Authorization"), websocket.args.get("token")
+        )
+        robot = connection.app.manager.get(robot_id)
+    except ArenaError as error:
+        await connection.refuse(error)
+        return None
+    return connection, robot
+
+
+def check_token(
+    app: ArenaApp, authorization: str | None, token: str | None, mutating: bool = True
+) -> None:
+    """Raise UNAUTHORIZED / FORBIDDEN unless the request carries a configured API key."""
+    keys = app.arena_config.api_keys
+    if not keys or (not mutating and app.arena_config.open_reads):
+        return
+    if authorization and authorization.lower().startswith("bearer "):
+        token = authorization[7:].strip()
+    if not token:
+        raise ArenaError(
+            ErrorCode.UNAUTHORIZED,
+            "An API key is required: send 'Authorization: Bearer KEY' "
+            "(or ?token=KEY on a WebSocket).",
+        )
+    given = token.encode()
+    # Compare against every key, in constant time, so timing tells nothing about any key.
+    matched = False
+    for key in keys:
+        matched |= hmac.compare_digest(given, key.encode())
+    if not matched:
+        raise ArenaError(ErrorCode.FORBIDDEN, "That API key is not valid here.")
+
+
+def _flag(value: str | None) -> bool:
+    return value is not None and value.lower() in ("1", "true", "yes", "on")
+
+
+async def _receive_text(connection: Connection) -> str | None:
+    """The next text frame; binary frames are answered with an error and skipped."""
+    while True:
+        frame = await websocket.receive()
+        connection.app.metrics.messages[connection.role] += 1
+        if isinstance(frame, str):
+            return frame
+        await connection.send_error(
+            ErrorCode.BINARY_NOT_SUPPORTED, "Send JSON text frames, not binary frames."
+        )
+
+
+async def _heartbeats(connection: Connection) -> None:
+    interval = connection.app.arena_config.heartbeat_interval
+    while True:
+        await trio.sleep(interval)
+        await connection.send(wire.HeartbeatMessage(timestamp=wire.now_iso()))
+
+
+async def _forward_robot_events(
+    connection: Connection, robot: Robot, events: EventQueue[RobotEvent]
+) -> None:
+    """Joint states and state changes to the client, coalesced when it falls behind."""
+    while True:
+        try:
+            first = await events.get()
+        except trio.EndOfChannel:  # the robot is gone
+            await connection.close(CLOSE_NORMAL, "robot deleted")
+            return
+        batch = [first, *events.drain()]
+        if any(isinstance(e, StateChanged) for e in batch):
+            await connection.send(convert.state(robot.snapshot()))
+        if any(isinstance(e, JointStatesReceived | TargetsSent) for e in batch):
+            await connection.send(convert.joint_states(robot.snapshot()))
+
+
+# --- masters ----------------------------------------------------------------------------------
+
+
+@blueprint.websocket("/ws/master/<robot_id>")
+async def master_socket(robot_id: str) -> None:
+    """A master: commands in, acknowledgments, joint states and state changes out."""
+    accepted = await _accept("master", robot_id)
+    if accepted is None:
+        return
+    connection, robot = accepted
+    app = connection.app
+    try:
+        link = await robot.connect_master(
+            websocket.args.get("id") or f"ws-master-{next(_ids)}",
+            kind="websocket",
+            takeover=_flag(websocket.args.get("takeover")),
+            heartbeat_timeout=app.arena_config.heartbeat_timeout,
+        )
+    except ArenaError as error:
+        await connection.refuse(error)
+        return
+    app.metrics.connections["master"] += 1
+    reason = "connection closed"
+    try:
+        await connection.send(convert.state(robot.snapshot()))
+        await connection.send(convert.joint_states(robot.snapshot()))
+        with robot.subscribe(maxlen=256) as events:
+            player = _SequencePlayer()
+
+            async def body(nursery: trio.Nursery) -> None:
+                nursery.start_soon(_forward_robot_events, connection, robot, events)
+                nursery.start_soon(_forward_master_notices, connection, link)
+                nursery.start_soon(_heartbeats, connection)
+                await _master_reader(connection, robot, link, player, nursery)
+
+            await connection.run(body)
+        if link.detached.is_set():
+            reason = "detached"
+    finally:
+        app.metrics.connections["master"] -= 1
+        with trio.CancelScope(shield=True):
+            if app.shutting_down.is_set():
+                await link.detach("server shutting down")
+            elif not link.detached.is_set():
+                await link.lost(reason)
+
+
+class _SequencePlayer:
+    """The sequence a WebSocket master asked for, played under that master's ownership."""
+
+    def __init__(self) -> None:
+        self.scope: trio.CancelScope | None = None
+
+    def stop(self) -> None:
+        if self.scope is not None:
+            self.scope.cancel()
+            self.scope = None
+
+    async def play(self, link: MasterLink, master: SequenceMaster) -> None:
+        with trio.CancelScope() as scope:
+            self.scope = scope
+            await master.run(link)
+
+
+async def _forward_master_notices(connection: Connection, link: MasterLink) -> None:
+    async for notice in link.notices:
+        if notice.kind == "detached":
+            await _send_detached(connection, notice)
+            return
+        if notice.kind == "refused":
+            await connection.send_error(notice.code or ErrorCode.INVALID_MESSAGE, notice.message)
+    # The robot closed the link (deleted, or detached without a word).
+    await connection.close(CLOSE_NORMAL, "robot link closed")
+
+
+async def _send_detached(connection: Connection, notice: MasterNotice) -> None:
+    code = notice.code or ErrorCode.MASTER_LOST
+    await connection.send(
+        wire.DetachedMessage(
+            timestamp=wire.now_iso(), data=wire.DetachedData(str(code), notice.message)
+        )
+    )
+    await connection.close(_CLOSE_FOR.get(code, CLOSE_NORMAL), notice.message)
+
+
+async def _master_reader(
+    connection: Connection,
+    robot: Robot,
+    link: MasterLink,
+    player: _SequencePlayer,
+    nursery: trio.Nursery,
+) -> None:
+    app = connection.app
+    while True:
+        raw = await _receive_text(connection)
+        if raw is None:
+            return
+        started = time.perf_counter()
+        try:
+            message = wire.decode_master(raw)
+        except ArenaError as error:
+            await connection.send_error(error.code, error.message)
+            continue
+        link.alive()
+        if isinstance(message, wire.CommandMessage):
+            data = message.data
+            result = await link.command(
+                convert.command_from_wire(data.joints, data.duration, data.metadata)
+            )
+            await connection.send(convert.ack(result))
+        elif isinstance(message, wire.SequenceMessage):
+            try:
+                sequence = convert.sequence_from_wire(message.data)
+                sequence.check_against(robot.model)
+            except ArenaError as error:
+                await connection.send_error(error.code, error.message)
+                continue
+            player.stop()
+            nursery.start_soon(player.play, link, SequenceMaster([sequence], loop=sequence.loop))
+            await connection.send(
+                wire.AckMessage(timestamp=wire.now_iso(), data=wire.AckData("accepted"))
+            )
+        elif isinstance(message, wire.EStopMessage):
+            player.stop()
+            reason = (message.data.reason if message.data else None) or "e-stop from master"
+            await robot.estop(reason)
+        elif isinstance(message, wire.ResetMessage):
+            await robot.reset()
+        elif isinstance(message, wire.HeartbeatMessage):
+            await connection.send(wire.HeartbeatMessage(timestamp=wire.now_iso()))
+        app.metrics.observe_latency(time.perf_counter() - started)
+
+
+# --- slaves -----------------------------------------------------------------------------------
+
+
+@blueprint.websocket("/ws/slave/<robot_id>")
+async def slave_socket(robot_id: str) -> None:
+    """A slave: `execute_command` and notices out; joint states, status and errors in."""
+    accepted = await _accept("slave", robot_id)
+    if accepted is None:
+        return
+    connection, robot = accepted
+    app = connection.app
+    try:
+        link = await robot.connect_slave(
+            websocket.args.get("id") or f"ws-slave-{next(_ids)}",
+            kind="websocket",
+            heartbeat_timeout=app.arena_config.heartbeat_timeout,
+        )
+    except ArenaError as error:
+        await connection.refuse(error)
+        return
+    app.metrics.connections["slave"] += 1
+    ended_by_robot = trio.Event()
+    try:
+
+        async def body(nursery: trio.Nursery) -> None:
+            nursery.start_soon(_slave_writer, connection, link, ended_by_robot)
+            nursery.start_soon(_heartbeats, connection)
+            await _slave_reader(connection, link)
+
+        await connection.run(body)
+    finally:
+        app.metrics.connections["slave"] -= 1
+        if not ended_by_robot.is_set():
+            with trio.CancelScope(shield=True):
+                if app.shutting_down.is_set():
+                    await link.detach("server shutting down")
+                else:
+                    await link.lost("connection closed")
+
+
+async def _slave_writer(connection: Connection, link: SlaveLink, ended: trio.Event) -> None:
+    while True:
+        try:
+            message = await link.receive()
+        except trio.EndOfChannel:
+            ended.set()
+            await connection.close(CLOSE_NORMAL, "detached from the robot")
+            return
+        await connection.send(convert.to_slave(message))
+
+
+async def _slave_reader(connection: Connection, link: SlaveLink) -> None:
+    while True:
+        raw = await _receive_text(connection)
+        if raw is None:
+            return
+        try:
+            message = wire.decode_slave(raw)
+        except ArenaError as error:
+            await connection.send_error(error.code, error.message)
+            continue
+        if isinstance(message, wire.JointStatesMessage):
+            values: dict[str, float] = {}
+            for entry in message.data:
+                value = entry.real_value if entry.real_value is not None else entry.value
+                if value is not None:
+                    values[entry.name] = value
+            unknown = [n for n in values if link.robot.model.joint(n) is None]
+            if unknown:
+                await connection.send_error(
+                    ErrorCode.UNKNOWN_JOINT, f"Unknown joints ignored: {', '.join(unknown)}."
+                )
+            await link.report_joint_states(values)
+        elif isinstance(message, wire.ErrorMessage):
+            data = message.data
+            await link.report_fault(data.code, data.message, data.severity, data.joint)
+        elif isinstance(message, wire.StatusUpdateMessage):
+            link.alive()
+            if not message.data.isConnected or message.data.error:
+                await link.report_fault("SLAVE_STATUS", message.data.error or "disconnected")
+        else:
+            link.alive()
+
+
+# --- viewers ----------------------------------------------------------------------------------
+
+
+@blueprint.websocket("/ws/robots/<robot_id>/state")
+async def state_socket(robot_id: str) -> None:
+    """Read-only: the robot's state and joint states as they change. Any number may watch."""
+    await websocket.accept()
+    connection = Connection("viewer")
+    app = connection.app
+    try:
+        check_token(
+            app, websocket.headers.get("Authorization"), websocket.args.get("token"), mutating=False
+        )
+        robot = app.manager.get(robot_id)
+    except ArenaError as error:
+        await connection.refuse(error)
+        return
+    app.metrics.connections["viewer"] += 1
+    try:
+        with robot.subscribe(maxlen=256) as events:
+            await connection.send(convert.state(robot.snapshot()))
+            await connection.send(convert.joint_states(robot.snapshot()))
+
+            async def body(nursery: trio.Nursery) -> None:
+                nursery.start_soon(_heartbeats, connection)
+                nursery.start_soon(_forward_robot_events, connection, robot, events)
+                await _viewer_reader(connection)
+
+            await connection.run(body)
+    finally:
+        app.metrics.connections["viewer"] -= 1
+
+
+async def _viewer_reader(connection: Connection) -> Any:
+    while True:
+        raw = await _receive_text(connection)
+        if raw is None:
+            return
+        try:
+            message = msgspec.json.decode(raw)
+        except msgspec.DecodeError:
+            message = None
+        if not (isinstance(message, dict) and message.get("type") == "heartbeat"):
+            await connection.send_error(
+                ErrorCode.FORBIDDEN, "This stream is read-only; it takes only heartbeats."
+            )
