@@ -67,7 +67,7 @@ async def run_server(
                 await serve(
                     app,
                     hc,
-                    shutdown_trigger=shutdown_trigger,  # type: ignore[arg-type]
+                    shutdown_trigger=shutdown_trigger,
                     task_status=task_status,
                 )
                 nursery.cancel_scope.cancel()
