@@ -1,16 +1,21 @@
-"""Shared fixtures: a robot manager on trio's MockClock, and a slave that records its targets."""
+"""Shared fixtures: a robot manager, a slave that records its targets, real servers on port 0."""
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
+from functools import partial
+from typing import Any
 
+import httpx
 import pytest
 import trio
 
 from arena.robot.actor import SlaveLink
 from arena.robot.events import SlaveNotice, SlaveTarget
 from arena.robot.manager import RobotManager, open_manager
+from arena.server.config import ServerConfig
+from arena.server.run import run_server
 
 
 @pytest.fixture
@@ -42,3 +47,45 @@ class RecordingSlave:
                 await link.report_joint_states(message.joints)
             else:
                 self.notices.append((trio.current_time(), message))
+
+
+@dataclass
+class RunningServer:
+    """A real Arena server on 127.0.0.1 with a port the system chose."""
+
+    app: Any
+    url: str
+    stop: trio.Event
+
+    @property
+    def ws_url(self) -> str:
+        return "ws" + self.url[len("http") :]
+
+    def client(self, **kwargs: Any) -> httpx.AsyncClient:
+        return httpx.AsyncClient(base_url=self.url, timeout=10, **kwargs)
+
+
+@pytest.fixture
+async def start_server(
+    nursery: trio.Nursery,
+) -> AsyncIterator[Callable[..., Awaitable[RunningServer]]]:
+    """Start servers with settings of the test's choosing; each stops when the test ends."""
+    started: list[RunningServer] = []
+
+    async def start(**settings: Any) -> RunningServer:
+        config = ServerConfig(port=0, **settings)
+        stop = trio.Event()
+        app, urls = await nursery.start(partial(run_server, config, stop=stop))
+        server = RunningServer(app, urls[0], stop)
+        started.append(server)
+        return server
+
+    yield start
+    for server in started:
+        server.stop.set()
+
+
+@pytest.fixture
+async def server(start_server: Callable[..., Awaitable[RunningServer]]) -> RunningServer:
+    """A server with the demo robot `demo-arm` (a mock slave attached)."""
+    return await start_server(demo=True)

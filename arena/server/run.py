@@ -47,7 +47,7 @@ async def run_server(
     URLs carry the ports the system chose.
     """
     config.check()
-    stop = stop or trio.Event()
+    stop = trio.Event() if stop is None else stop
     async with open_manager() as manager:
         app = create_app(manager, config)
         if config.demo:
