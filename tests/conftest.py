@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
-from functools import partial
 from typing import Any
 
 import httpx
@@ -56,6 +55,7 @@ class RunningServer:
     app: Any
     url: str
     stop: trio.Event
+    done: trio.Event
 
     @property
     def ws_url(self) -> str:
@@ -74,15 +74,25 @@ async def start_server(
 
     async def start(**settings: Any) -> RunningServer:
         config = ServerConfig(port=0, **settings)
-        stop = trio.Event()
-        app, urls = await nursery.start(partial(run_server, config, stop=stop))
-        server = RunningServer(app, urls[0], stop)
+        stop, done = trio.Event(), trio.Event()
+
+        async def run(task_status: trio.TaskStatus[Any]) -> None:
+            try:
+                await run_server(config, stop=stop, task_status=task_status)
+            finally:
+                done.set()
+
+        app, urls = await nursery.start(run)
+        server = RunningServer(app, urls[0], stop, done)
         started.append(server)
         return server
 
     yield start
     for server in started:
         server.stop.set()
+    with trio.move_on_after(5):
+        for server in started:
+            await server.done.wait()
 
 
 @pytest.fixture

@@ -414,9 +414,9 @@ class Robot:
         reply: _Reply[None] = _Reply()
         try:
             await self._post(_ShutdownMsg(reason, reply))
+            await reply.wait()
         except ArenaError:
             return  # already stopped
-        await reply.wait()
 
     # -- the actor ----------------------------------------------------------------------------
 
@@ -912,11 +912,10 @@ class Robot:
         reply: _Reply[None] = _Reply()
         try:
             await self._post(_DetachMsg(role, peer_id, lost, reason, reply))
+            await reply.wait()
         except ArenaError as exc:
-            if exc.code is ErrorCode.ROBOT_STOPPED:
-                return  # the robot is gone, and the peer with it
-            raise
-        await reply.wait()
+            if exc.code is not ErrorCode.ROBOT_STOPPED:
+                raise  # else the robot is gone, and the peer with it
 
     async def _event(self, event: safety.Event) -> safety.Outcome:
         reply: _Reply[safety.Outcome] = _Reply()

@@ -296,34 +296,47 @@ async def _master_reader(
         except ArenaError as error:
             await connection.send_error(error.code, error.message)
             continue
-        link.alive()
-        if isinstance(message, wire.CommandMessage):
-            data = message.data
-            result = await link.command(
-                convert.command_from_wire(data.joints, data.duration, data.metadata)
-            )
-            await connection.send(convert.ack(result))
-        elif isinstance(message, wire.SequenceMessage):
-            try:
-                sequence = convert.sequence_from_wire(message.data)
-                sequence.check_against(robot.model)
-            except ArenaError as error:
-                await connection.send_error(error.code, error.message)
-                continue
-            player.stop()
-            nursery.start_soon(player.play, link, SequenceMaster([sequence], loop=sequence.loop))
-            await connection.send(
-                wire.AckMessage(timestamp=wire.now_iso(), data=wire.AckData("accepted"))
-            )
-        elif isinstance(message, wire.EStopMessage):
-            player.stop()
-            reason = (message.data.reason if message.data else None) or "e-stop from master"
-            await robot.estop(reason)
-        elif isinstance(message, wire.ResetMessage):
-            await robot.reset()
-        elif isinstance(message, wire.HeartbeatMessage):
-            await connection.send(wire.HeartbeatMessage(timestamp=wire.now_iso()))
+        try:
+            await _handle_master_message(connection, robot, link, player, nursery, message)
+        except ArenaError as error:
+            if error.code is ErrorCode.ROBOT_STOPPED:
+                await connection.close(CLOSE_NORMAL, "robot deleted")
+                return
+            await connection.send_error(error.code, error.message)
         app.metrics.observe_latency(time.perf_counter() - started)
+
+
+async def _handle_master_message(
+    connection: Connection,
+    robot: Robot,
+    link: MasterLink,
+    player: _SequencePlayer,
+    nursery: trio.Nursery,
+    message: wire.MasterMessage,
+) -> None:
+    link.alive()
+    if isinstance(message, wire.CommandMessage):
+        data = message.data
+        result = await link.command(
+            convert.command_from_wire(data.joints, data.duration, data.metadata)
+        )
+        await connection.send(convert.ack(result))
+    elif isinstance(message, wire.SequenceMessage):
+        sequence = convert.sequence_from_wire(message.data)
+        sequence.check_against(robot.model)
+        player.stop()
+        nursery.start_soon(player.play, link, SequenceMaster([sequence], loop=sequence.loop))
+        await connection.send(
+            wire.AckMessage(timestamp=wire.now_iso(), data=wire.AckData("accepted"))
+        )
+    elif isinstance(message, wire.EStopMessage):
+        player.stop()
+        reason = (message.data.reason if message.data else None) or "e-stop from master"
+        await robot.estop(reason)
+    elif isinstance(message, wire.ResetMessage):
+        await robot.reset()
+    elif isinstance(message, wire.HeartbeatMessage):
+        await connection.send(wire.HeartbeatMessage(timestamp=wire.now_iso()))
 
 
 # --- slaves -----------------------------------------------------------------------------------
@@ -383,31 +396,38 @@ async def _slave_reader(connection: Connection, link: SlaveLink) -> None:
         if raw is None:
             return
         try:
-            message = wire.decode_slave(raw)
+            await _handle_slave_message(connection, link, wire.decode_slave(raw))
         except ArenaError as error:
+            if error.code is ErrorCode.ROBOT_STOPPED:
+                await connection.close(CLOSE_NORMAL, "robot deleted")
+                return
             await connection.send_error(error.code, error.message)
-            continue
-        if isinstance(message, wire.JointStatesMessage):
-            values: dict[str, float] = {}
-            for entry in message.data:
-                value = entry.real_value if entry.real_value is not None else entry.value
-                if value is not None:
-                    values[entry.name] = value
-            unknown = [n for n in values if link.robot.model.joint(n) is None]
-            if unknown:
-                await connection.send_error(
-                    ErrorCode.UNKNOWN_JOINT, f"Unknown joints ignored: {', '.join(unknown)}."
-                )
-            await link.report_joint_states(values)
-        elif isinstance(message, wire.ErrorMessage):
-            data = message.data
-            await link.report_fault(data.code, data.message, data.severity, data.joint)
-        elif isinstance(message, wire.StatusUpdateMessage):
-            link.alive()
-            if not message.data.isConnected or message.data.error:
-                await link.report_fault("SLAVE_STATUS", message.data.error or "disconnected")
-        else:
-            link.alive()
+
+
+async def _handle_slave_message(
+    connection: Connection, link: SlaveLink, message: wire.SlaveMessage
+) -> None:
+    if isinstance(message, wire.JointStatesMessage):
+        values: dict[str, float] = {}
+        for entry in message.data:
+            value = entry.real_value if entry.real_value is not None else entry.value
+            if value is not None:
+                values[entry.name] = value
+        unknown = [n for n in values if link.robot.model.joint(n) is None]
+        if unknown:
+            await connection.send_error(
+                ErrorCode.UNKNOWN_JOINT, f"Unknown joints ignored: {', '.join(unknown)}."
+            )
+        await link.report_joint_states(values)
+    elif isinstance(message, wire.ErrorMessage):
+        data = message.data
+        await link.report_fault(data.code, data.message, data.severity, data.joint)
+    elif isinstance(message, wire.StatusUpdateMessage):
+        link.alive()
+        if not message.data.isConnected or message.data.error:
+            await link.report_fault("SLAVE_STATUS", message.data.error or "disconnected")
+    else:
+        link.alive()
 
 
 # --- viewers ----------------------------------------------------------------------------------

@@ -1,0 +1,443 @@
+"""The WebSocket API against a real server on 127.0.0.1: the seed's clients, errors, races."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import pytest
+import trio
+from trio_websocket import ConnectionClosed, WebSocketConnection, open_websocket_url
+
+from tests.conftest import RunningServer
+
+StartServer = Callable[..., Awaitable[RunningServer]]
+
+
+async def receive(ws: WebSocketConnection, wanted: str, timeout: float = 5.0) -> dict[str, Any]:
+    """The next message of type `wanted`, skipping others."""
+    with trio.fail_after(timeout):
+        while True:
+            message = json.loads(await ws.get_message())
+            if message["type"] == wanted:
+                return message
+
+
+async def command(ws: WebSocketConnection, joints: dict[str, float], **data: Any) -> dict[str, Any]:
+    """Send a command in the seed's format and return its acknowledgment."""
+    await ws.send_message(
+        json.dumps(
+            {
+                "type": "command",
+                "timestamp": "2024-01-01T12:00:00Z",
+                "data": {
+                    "timestamp": 1704110400000,
+                    "joints": [{"name": n, "value": v} for n, v in joints.items()],
+                    **data,
+                },
+            }
+        )
+    )
+    return await receive(ws, "ack")
+
+
+async def closed_with(ws: WebSocketConnection, timeout: float = 5.0) -> int | None:
+    """Wait for the server to close the socket; its close code."""
+    with trio.fail_after(timeout):
+        try:
+            while True:
+                await ws.get_message()
+        except ConnectionClosed as closed:
+            return closed.reason.code
+
+
+def test_seed_python_example_with_websockets() -> None:
+    """The seed's `websockets` master snippet, unchanged but for stopping after one answer."""
+
+    async def scenario() -> list[str]:
+        async with trio.open_nursery() as nursery:
+            from arena.server.config import ServerConfig
+            from arena.server.run import run_server
+
+            stop = trio.Event()
+            app, urls = await nursery.start(
+                lambda task_status: run_server(
+                    ServerConfig(port=0), stop=stop, task_status=task_status
+                )
+            )
+            robot = await app.manager.create_robot("so-arm100", "My Robot", "my-robot")
+            from arena.drivers.mock_slave import MockSlave
+
+            await robot.attach_slave(MockSlave())
+            uri = urls[0].replace("http", "ws") + "/ws/master/my-robot"
+            printed = await trio.to_thread.run_sync(asyncio.run, seed_example(uri))
+            stop.set()
+            return printed
+
+    printed = trio.run(scenario)
+    assert printed and printed[0].startswith("Robot position: [{")
+
+
+async def seed_example(uri: str) -> list[str]:
+    import websockets
+
+    printed: list[str] = []
+    async with websockets.connect(uri) as websocket:
+        # Send command
+        command = {
+            "type": "command",
+            "timestamp": "2024-01-01T12:00:00Z",
+            "data": {
+                "timestamp": 1704110400000,
+                "joints": [{"name": "Rotation", "value": 45}],
+            },
+        }
+        await websocket.send(json.dumps(command))
+        # Listen for responses
+        async for message in websocket:
+            data = json.loads(message)
+            if data["type"] == "joint_states":
+                printed.append(f"Robot position: {data['data']}")
+                rotation = next(j for j in data["data"] if j["name"] == "Rotation")
+                if rotation["real_value"] == 45:
+                    break
+    return printed
+
+
+async def test_arduino_like_slave_reads_only_data_joints(server: RunningServer) -> None:
+    async with (
+        open_websocket_url(server.ws_url + "/ws/slave/demo-arm?id=arduino") as slave,
+        open_websocket_url(server.ws_url + "/ws/master/demo-arm") as master,
+    ):
+        ack = await command(master, {"Rotation": 10, "Jaw": 5})
+        assert ack["data"]["status"] == "accepted"
+        doc = await receive(slave, "execute_command")
+        moved = {
+            doc["data"]["joints"][i]["name"]: doc["data"]["joints"][i]["value"]
+            for i in range(len(doc["data"]["joints"]))
+        }
+        assert moved["Rotation"] == 10 and moved["Jaw"] == 5
+        # Like the sketch, it moves its servos and reports plain values back.
+        await slave.send_message(
+            json.dumps(
+                {
+                    "type": "joint_states",
+                    "data": [{"name": n, "value": v + 0.5} for n, v in moved.items()],
+                }
+            )
+        )
+        async with server.client() as http:
+            with trio.fail_after(5):
+                while True:
+                    joints = {
+                        j["name"]: j for j in (await http.get("/api/robots/demo-arm/joints")).json()
+                    }
+                    if joints["Rotation"]["real_value"] == 10.5:
+                        break
+                    await trio.sleep(0.01)
+
+
+async def test_acks_accepted_clamped_refused(server: RunningServer) -> None:
+    async with open_websocket_url(server.ws_url + "/ws/master/demo-arm") as master:
+        state = await receive(master, "state")
+        assert state["data"]["mode"] == "mastered"
+        assert (await command(master, {"Rotation": 45, "Pitch": -30}))["data"]["status"] == (
+            "accepted"
+        )
+        clamped = (await command(master, {"Rotation": 500}))["data"]
+        assert clamped["status"] == "clamped"
+        assert clamped["clamped"][0]["joint"] == "Rotation"
+        assert clamped["clamped"][0]["requested"] == 500
+        refused = (await command(master, {"Nope": 1}))["data"]
+        assert refused["status"] == "refused" and refused["code"] == "UNKNOWN_JOINT"
+        smooth = await command(master, {"Rotation": 0}, duration=500)
+        assert smooth["data"]["status"] == "accepted"
+
+
+BAD_MESSAGES: list[tuple[str | bytes, str]] = [
+    ("{not json", "INVALID_JSON"),
+    ('{"type": "teleport", "data": {}}', "UNKNOWN_MESSAGE_TYPE"),
+    ('{"data": {}}', "UNKNOWN_MESSAGE_TYPE"),
+    ('{"type": "command"}', "INVALID_MESSAGE"),
+    ('{"type": "command", "data": {"joints": "Rotation"}}', "INVALID_MESSAGE"),
+    (
+        '{"type": "command", "data": {"joints": [{"name": "Rotation", "value": "45"}]}}',
+        "INVALID_MESSAGE",
+    ),
+    (
+        '{"type": "command", "data": {"joints": [{"name": "Rotation", "value": 1e400}]}}',
+        "INVALID_MESSAGE",
+    ),
+    (
+        '{"type": "command", "data": {"joints": [{"name": "Rotation", "value": NaN}]}}',
+        "INVALID_JSON",
+    ),
+    ('{"type": "sequence", "data": {"commands": []}}', "INVALID_VALUE"),
+    (
+        '{"type": "sequence", "data": {"commands": [{"joints": [{"name": "X", "value": 1}]}]}}',
+        "UNKNOWN_JOINT",
+    ),
+    ("[1, 2, 3]", "INVALID_MESSAGE"),
+    (
+        '{"type": "command", "data": {"joints": [], "pad": "' + "x" * 70_000 + '"}}',
+        "MESSAGE_TOO_LARGE",
+    ),
+    (b'{"type": "heartbeat"}', "BINARY_NOT_SUPPORTED"),
+]
+
+
+@pytest.mark.parametrize(("raw", "code"), BAD_MESSAGES)
+async def test_bad_master_messages_get_an_error_and_change_nothing(
+    server: RunningServer, raw: str | bytes, code: str
+) -> None:
+    async with (
+        server.client() as http,
+        open_websocket_url(server.ws_url + "/ws/master/demo-arm") as master,
+    ):
+        await receive(master, "joint_states")
+        before = (await http.get("/api/robots/demo-arm")).json()
+        await master.send_message(raw)
+        error = await receive(master, "error")
+        assert error["data"]["code"] == code and error["data"]["message"]
+        assert (await http.get("/api/robots/demo-arm")).json() == before
+        # The connection is still usable.
+        assert (await command(master, {"Rotation": 1}))["data"]["status"] == "accepted"
+
+
+async def test_bad_slave_messages_get_an_error(server: RunningServer) -> None:
+    async with open_websocket_url(server.ws_url + "/ws/slave/demo-arm") as slave:
+        for raw, code in [
+            ("nope", "INVALID_JSON"),
+            ('{"type": "command", "data": {}}', "UNKNOWN_MESSAGE_TYPE"),
+            ('{"type": "joint_states", "data": [{"name": 5}]}', "INVALID_MESSAGE"),
+            ('{"type": "joint_states", "data": [{"name": "Zz", "value": 1}]}', "UNKNOWN_JOINT"),
+        ]:
+            await slave.send_message(raw)
+            assert (await receive(slave, "error"))["data"]["code"] == code
+        await slave.send_message(
+            json.dumps(
+                {
+                    "type": "error",
+                    "data": {
+                        "code": "SERVO_TIMEOUT",
+                        "message": "Servo 3 not responding",
+                        "joint": "Elbow",
+                        "severity": "warning",
+                    },
+                }
+            )
+        )
+        await slave.send_message(
+            json.dumps(
+                {
+                    "type": "status_update",
+                    "data": {
+                        "isConnected": True,
+                        "lastConnected": "2024-01-01T11:58:00Z",
+                        "error": None,
+                    },
+                }
+            )
+        )
+        await slave.send_message('{"type": "heartbeat"}')
+        async with server.client() as http:
+            with trio.fail_after(5):
+                while True:
+                    status = (await http.get("/api/robots/demo-arm/status")).json()
+                    errors = [s["last_error"] for s in status["slaves"] if s["last_error"]]
+                    if errors:
+                        break
+                    await trio.sleep(0.01)
+        assert errors == ["SERVO_TIMEOUT: Servo 3 not responding"]
+        assert status["state"] == "idle"  # a warning does not stop the robot
+
+
+async def test_two_masters_and_takeover(server: RunningServer) -> None:
+    url = server.ws_url + "/ws/master/demo-arm"
+    async with open_websocket_url(url + "?id=alice") as alice:
+        await receive(alice, "state")
+        async with open_websocket_url(url + "?id=bob") as bob:
+            error = await receive(bob, "error")
+            assert error["data"]["code"] == "MASTER_ACTIVE"
+            assert await closed_with(bob) == 4409
+        async with open_websocket_url(url + "?id=carol&takeover=1") as carol:
+            detached = await receive(alice, "detached")
+            assert detached["data"]["code"] == "TAKEN_OVER"
+            assert await closed_with(alice) == 4409
+            assert (await command(carol, {"Rotation": 3}))["data"]["status"] == "accepted"
+
+
+async def test_racing_masters_one_wins(server: RunningServer) -> None:
+    url = server.ws_url + "/ws/master/demo-arm"
+    outcomes: list[str] = []
+
+    async def contender(name: str) -> None:
+        async with open_websocket_url(f"{url}?id={name}") as ws:
+            first = json.loads(await ws.get_message())
+            outcomes.append(first["type"] if first["type"] != "error" else first["data"]["code"])
+            if first["type"] == "state":
+                await trio.sleep(0.5)
+
+    async with trio.open_nursery() as nursery:
+        for name in ("m1", "m2", "m3", "m4"):
+            nursery.start_soon(contender, name)
+    assert sorted(outcomes) == ["MASTER_ACTIVE"] * 3 + ["state"]
+
+
+async def test_master_disconnect_estops_the_robot(server: RunningServer) -> None:
+    async with open_websocket_url(server.ws_url + "/ws/master/demo-arm?id=alice") as alice:
+        await command(alice, {"Rotation": 5})
+    async with server.client() as http:
+        with trio.fail_after(5):
+            while (status := (await http.get("/api/robots/demo-arm/status")).json())[
+                "state"
+            ] != "estopped":
+                await trio.sleep(0.01)
+    assert "alice" in status["estop_reason"]
+
+
+async def test_heartbeat_timeout_drops_a_silent_master(start_server: StartServer) -> None:
+    server = await start_server(demo=True, heartbeat_timeout=0.3, heartbeat_interval=0.1)
+    async with open_websocket_url(server.ws_url + "/ws/master/demo-arm") as master:
+        heartbeat = await receive(master, "heartbeat")  # the server's heartbeats reach us
+        assert heartbeat["timestamp"]
+        detached = await receive(master, "detached")
+        assert detached["data"]["code"] == "MASTER_LOST"
+        assert await closed_with(master) == 4408
+    async with server.client() as http:
+        assert (await http.get("/api/robots/demo-arm/status")).json()["state"] == "estopped"
+
+
+async def test_heartbeats_keep_a_master(start_server: StartServer) -> None:
+    server = await start_server(demo=True, heartbeat_timeout=0.3, heartbeat_interval=10)
+    async with open_websocket_url(server.ws_url + "/ws/master/demo-arm") as master:
+        for _ in range(10):
+            await trio.sleep(0.1)
+            await master.send_message('{"type": "heartbeat"}')
+        assert (await command(master, {"Rotation": 1}))["data"]["status"] == "accepted"
+
+
+async def test_rest_estop_stops_a_websocket_master_and_reset_resumes(server: RunningServer) -> None:
+    async with (
+        server.client() as http,
+        open_websocket_url(server.ws_url + "/ws/slave/demo-arm") as slave,
+        open_websocket_url(server.ws_url + "/ws/master/demo-arm") as master,
+    ):
+        assert (await command(master, {"Rotation": 2}))["data"]["status"] == "accepted"
+        await receive(slave, "execute_command")
+        await http.post("/api/robots/demo-arm/estop", json={"reason": "hand in the way"})
+        notice = await receive(slave, "estop")
+        assert notice["data"]["reason"] == "hand in the way"
+        state = await receive(master, "state")
+        assert state["data"]["mode"] == "estopped"
+        refused = (await command(master, {"Rotation": 3}))["data"]
+        assert refused["status"] == "refused" and refused["code"] == "ESTOPPED"
+        await http.post("/api/robots/demo-arm/reset")
+        await receive(slave, "reset")
+        assert (await command(master, {"Rotation": 3}))["data"]["status"] == "accepted"
+        assert (await receive(slave, "execute_command"))["data"]["joints"][0]["value"] == 3
+
+
+async def test_master_estop_and_reset_messages(server: RunningServer) -> None:
+    async with open_websocket_url(server.ws_url + "/ws/master/demo-arm") as master:
+        assert (await receive(master, "state"))["data"]["mode"] == "mastered"  # on connect
+        await master.send_message('{"type": "estop", "data": {"reason": "operator"}}')
+        assert (await receive(master, "state"))["data"]["mode"] == "estopped"
+        await master.send_message('{"type": "reset"}')
+        assert (await receive(master, "state"))["data"]["mode"] == "mastered"
+
+
+async def test_sequence_message_plays(server: RunningServer) -> None:
+    async with open_websocket_url(server.ws_url + "/ws/master/demo-arm") as master:
+        await master.send_message(
+            json.dumps(
+                {
+                    "type": "sequence",
+                    "data": {
+                        "id": "custom-dance",
+                        "name": "Custom Dance Sequence",
+                        "commands": [
+                            {
+                                "timestamp": 0,
+                                "joints": [{"name": "Rotation", "value": -30}],
+                                "duration": 200,
+                            },
+                            {
+                                "timestamp": 300,
+                                "joints": [{"name": "Rotation", "value": 30}],
+                                "duration": 200,
+                            },
+                        ],
+                        "total_duration": 600,
+                        "loop": False,
+                    },
+                }
+            )
+        )
+        assert (await receive(master, "ack"))["data"]["status"] == "accepted"
+        seen = set()
+        with trio.fail_after(5):
+            while not {-30.0, 30.0} <= seen:
+                states = await receive(master, "joint_states")
+                seen.add(
+                    next(j["virtual_value"] for j in states["data"] if j["name"] == "Rotation")
+                )
+
+
+async def test_state_stream_for_many_viewers(server: RunningServer) -> None:
+    url = server.ws_url + "/ws/robots/demo-arm/state"
+    async with open_websocket_url(url) as one, open_websocket_url(url) as two:
+        for viewer in (one, two):
+            assert (await receive(viewer, "state"))["data"]["mode"] == "idle"
+        async with server.client() as http:
+            await http.post("/api/robots/demo-arm/estop")
+        for viewer in (one, two):
+            assert (await receive(viewer, "state"))["data"]["mode"] == "estopped"
+        await one.send_message('{"type": "command", "data": {"joints": []}}')
+        assert (await receive(one, "error"))["data"]["code"] == "FORBIDDEN"
+
+
+async def test_websocket_auth(start_server: StartServer) -> None:
+    server = await start_server(demo=True, api_keys=("k1",))
+    async with open_websocket_url(server.ws_url + "/ws/master/demo-arm") as master:
+        assert (await receive(master, "error"))["data"]["code"] == "UNAUTHORIZED"
+        assert await closed_with(master) == 4401
+    async with open_websocket_url(server.ws_url + "/ws/slave/demo-arm?token=bad") as slave:
+        assert (await receive(slave, "error"))["data"]["code"] == "FORBIDDEN"
+    async with open_websocket_url(server.ws_url + "/ws/master/demo-arm?token=k1") as master:
+        assert (await command(master, {"Rotation": 1}))["data"]["status"] == "accepted"
+
+
+async def test_unknown_robot_is_refused(server: RunningServer) -> None:
+    async with open_websocket_url(server.ws_url + "/ws/master/ghost") as master:
+        assert (await receive(master, "error"))["data"]["code"] == "UNKNOWN_ROBOT"
+        assert await closed_with(master) == 4404
+
+
+async def test_shutdown_closes_every_socket_with_1001(server: RunningServer) -> None:
+    base = server.ws_url
+    async with (
+        open_websocket_url(base + "/ws/master/demo-arm") as master,
+        open_websocket_url(base + "/ws/slave/demo-arm") as slave,
+        open_websocket_url(base + "/ws/robots/demo-arm/state") as viewer,
+    ):
+        for ws in (master, slave, viewer):
+            await ws.send_message('{"type": "heartbeat"}')
+        await receive(master, "heartbeat")
+        server.stop.set()
+        codes = [await closed_with(ws, timeout=1.0) for ws in (master, slave, viewer)]
+    assert codes == [1001, 1001, 1001]
+
+
+async def test_deleting_a_robot_closes_its_sockets(server: RunningServer) -> None:
+    async with (
+        open_websocket_url(server.ws_url + "/ws/master/demo-arm") as master,
+        open_websocket_url(server.ws_url + "/ws/slave/demo-arm") as slave,
+    ):
+        await receive(master, "state")
+        async with server.client() as http:
+            await http.delete("/api/robots/demo-arm")
+        assert await closed_with(slave) == 1000
+        assert await closed_with(master) in (1000, 4404)
