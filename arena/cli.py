@@ -80,6 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     serve.add_argument("--certfile", help="TLS certificate (PEM)")
     serve.add_argument("--keyfile", help="TLS private key (PEM)")
+    schemas = commands.add_parser("schemas", help="write the JSON Schemas of the wire messages")
+    schemas.add_argument("--out", default="specs/schemas", help="folder to write them into")
     bench = commands.add_parser("bench", help="run the benchmarks and print medians")
     bench.add_argument("--json", help="also write the results to this file")
     args = parser.parse_args(argv)
@@ -91,6 +93,14 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "serve":
             return _serve(args)
+        if args.command == "schemas":
+            from pathlib import Path
+
+            from arena.protocol.schemas import write_schemas
+
+            for path in write_schemas(Path(args.out)):
+                print(path)
+            return 0
         if args.command == "demo":
             trio.run(run_demo, args.sequence or list(demo_sequences()), args.loop, args.interval)
         elif args.command == "bench":

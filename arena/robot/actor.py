@@ -571,6 +571,7 @@ class Robot:
                 cause="master attach",
             )
             if isinstance(outcome, safety.Refused):
+                log.info("robot %s: master %s refused (%s)", self.robot_id, peer_id, outcome.code)
                 self._publish(
                     PeerChanged(
                         self.robot_id,

@@ -1,0 +1,50 @@
+"""JSON Schemas of every wire message, written to specs/schemas/ (a test keeps them in sync)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import msgspec
+
+from arena.protocol import messages as wire
+from arena.protocol import rest
+
+#: File name (without .json) -> the type it describes.
+SCHEMA_TYPES: dict[str, Any] = {
+    "master-message": wire.MasterMessage,
+    "slave-message": wire.SlaveMessage,
+    "ack": wire.AckMessage,
+    "error": wire.ErrorMessage,
+    "joint-states": wire.JointStatesOut,
+    "state": wire.StateMessage,
+    "execute-command": wire.ExecuteCommandMessage,
+    "slave-notice": wire.EStopNotice | wire.ResetNotice | wire.HoldNotice | wire.StopNotice,
+    "detached": wire.DetachedMessage,
+    "heartbeat": wire.HeartbeatMessage,
+    "rest-create-robot": rest.CreateRobotBody,
+    "rest-joints": rest.JointsBody,
+    "rest-slave": rest.SlaveBody,
+    "rest-master": rest.MasterBody,
+    "rest-reason": rest.ReasonBody,
+}
+
+
+def schemas() -> dict[str, str]:
+    """File name -> JSON text of its schema."""
+    return {
+        f"{name}.json": json.dumps(msgspec.json.schema(kind), indent=2, sort_keys=True) + "\n"
+        for name, kind in SCHEMA_TYPES.items()
+    }
+
+
+def write_schemas(folder: Path) -> list[Path]:
+    """Write every schema into `folder`; returns the paths written."""
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name, text in schemas().items():
+        path = folder / name
+        path.write_text(text, encoding="utf-8")
+        written.append(path)
+    return written
