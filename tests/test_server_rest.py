@@ -328,3 +328,19 @@ async def test_metrics(server: RunningServer) -> None:
     assert 'arena_commands_total{result="UNKNOWN_JOINT"} 1' in text
     assert "arena_estops_total 1" in text
     assert 'arena_connections{role="master"} 0' in text
+
+
+async def test_tls(start_server: StartServer, tmp_path: Any) -> None:
+    import shutil
+    import subprocess
+
+    if shutil.which("openssl") is None:
+        pytest.skip("openssl is not installed")
+    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
+    subprocess.run(["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "1",
+                    "-subj", "/CN=127.0.0.1", "-keyout", str(key), "-out", str(cert)],
+                   check=True, capture_output=True)
+    server = await start_server(demo=True, certfile=str(cert), keyfile=str(key))
+    assert server.url.startswith("https://")
+    async with server.client(verify=False) as http:
+        assert (await http.get("/")).json()["status"] == "running"
