@@ -13,7 +13,8 @@ import itertools
 import logging
 import time
 from collections.abc import Awaitable, Callable
-from typing import TYPE_CHECKING, Any
+from functools import partial
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import msgspec
 import trio
@@ -36,6 +37,7 @@ from arena.server import convert
 if TYPE_CHECKING:
     from arena.server.app import ArenaApp
 
+T = TypeVar("T")
 log = logging.getLogger(__name__)
 blueprint = Blueprint("websockets", __name__)
 _ids = itertools.count(1)
@@ -120,7 +122,10 @@ async def _accept(role: str, robot_id: str) -> tuple[Connection, Robot] | None:
     connection = Connection(role)
     try:
         check_token(
-            connection.app, websocket.headers.get("Authorization"), websocket.args.get("token")
+            connection.app,
+            websocket.headers.get("Authorization"),
+            websocket.args.get("token"),
+            mutating=role != "viewer",
         )
         robot = connection.app.manager.get(robot_id)
     except ArenaError as error:
@@ -226,7 +231,11 @@ async def master_socket(robot_id: str) -> None:
                 nursery.start_soon(_forward_robot_events, connection, robot, events)
                 nursery.start_soon(_forward_master_notices, connection, link)
                 nursery.start_soon(_heartbeats, connection)
-                await _master_reader(connection, robot, link, player, nursery)
+                await _read_loop(
+                    connection,
+                    wire.decode_master,
+                    partial(_handle_master_message, connection, robot, link, player, nursery),
+                )
 
             await connection.run(body)
         if link.detached.is_set():
@@ -278,32 +287,23 @@ async def _send_detached(connection: Connection, notice: MasterNotice) -> None:
     await connection.close(_CLOSE_FOR.get(code, CLOSE_NORMAL), notice.message)
 
 
-async def _master_reader(
-    connection: Connection,
-    robot: Robot,
-    link: MasterLink,
-    player: _SequencePlayer,
-    nursery: trio.Nursery,
+async def _read_loop(
+    connection: Connection, decode: Callable[[str], T], handle: Callable[[T], Awaitable[None]]
 ) -> None:
-    app = connection.app
+    """Decode and handle frames until the client leaves; errors are answered, not fatal."""
     while True:
         raw = await _receive_text(connection)
         if raw is None:
             return
         started = time.perf_counter()
         try:
-            message = wire.decode_master(raw)
-        except ArenaError as error:
-            await connection.send_error(error.code, error.message)
-            continue
-        try:
-            await _handle_master_message(connection, robot, link, player, nursery, message)
+            await handle(decode(raw))
         except ArenaError as error:
             if error.code is ErrorCode.ROBOT_STOPPED:
                 await connection.close(CLOSE_NORMAL, "robot deleted")
                 return
             await connection.send_error(error.code, error.message)
-        app.metrics.observe_latency(time.perf_counter() - started)
+        connection.app.metrics.observe_latency(time.perf_counter() - started)
 
 
 async def _handle_master_message(
@@ -366,7 +366,9 @@ async def slave_socket(robot_id: str) -> None:
         async def body(nursery: trio.Nursery) -> None:
             nursery.start_soon(_slave_writer, connection, link, ended_by_robot)
             nursery.start_soon(_heartbeats, connection)
-            await _slave_reader(connection, link)
+            await _read_loop(
+                connection, wire.decode_slave, partial(_handle_slave_message, connection, link)
+            )
 
         await connection.run(body)
     finally:
@@ -388,20 +390,6 @@ async def _slave_writer(connection: Connection, link: SlaveLink, ended: trio.Eve
             await connection.close(CLOSE_NORMAL, "detached from the robot")
             return
         await connection.send(convert.to_slave(message))
-
-
-async def _slave_reader(connection: Connection, link: SlaveLink) -> None:
-    while True:
-        raw = await _receive_text(connection)
-        if raw is None:
-            return
-        try:
-            await _handle_slave_message(connection, link, wire.decode_slave(raw))
-        except ArenaError as error:
-            if error.code is ErrorCode.ROBOT_STOPPED:
-                await connection.close(CLOSE_NORMAL, "robot deleted")
-                return
-            await connection.send_error(error.code, error.message)
 
 
 async def _handle_slave_message(
@@ -436,17 +424,11 @@ async def _handle_slave_message(
 @blueprint.websocket("/ws/robots/<robot_id>/state")
 async def state_socket(robot_id: str) -> None:
     """Read-only: the robot's state and joint states as they change. Any number may watch."""
-    await websocket.accept()
-    connection = Connection("viewer")
-    app = connection.app
-    try:
-        check_token(
-            app, websocket.headers.get("Authorization"), websocket.args.get("token"), mutating=False
-        )
-        robot = app.manager.get(robot_id)
-    except ArenaError as error:
-        await connection.refuse(error)
+    accepted = await _accept("viewer", robot_id)
+    if accepted is None:
         return
+    connection, robot = accepted
+    app = connection.app
     app.metrics.connections["viewer"] += 1
     try:
         with robot.subscribe(maxlen=256) as events:
