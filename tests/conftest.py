@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -67,12 +68,16 @@ class RunningServer:
 
 @pytest.fixture
 async def start_server(
-    nursery: trio.Nursery,
+    nursery: trio.Nursery, tmp_path: Path
 ) -> AsyncIterator[Callable[..., Awaitable[RunningServer]]]:
-    """Start servers with settings of the test's choosing; each stops when the test ends."""
+    """Start servers with settings of the test's choosing; each stops when the test ends.
+
+    Recordings go to the test's own folder unless the test says otherwise.
+    """
     started: list[RunningServer] = []
 
     async def start(**settings: Any) -> RunningServer:
+        settings.setdefault("recordings_dir", str(tmp_path / "recordings"))
         config = ServerConfig(port=0, **settings)
         stop, done = trio.Event(), trio.Event()
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import json
 from collections.abc import Awaitable, Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -53,7 +54,7 @@ async def closed_with(ws: WebSocketConnection, timeout: float = 5.0) -> int | No
             return closed.reason.code
 
 
-def test_seed_python_example_with_websockets() -> None:
+def test_seed_python_example_with_websockets(tmp_path: Path) -> None:
     """The seed's `websockets` master snippet, unchanged but for stopping after one answer."""
 
     async def scenario() -> list[str]:

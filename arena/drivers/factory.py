@@ -2,11 +2,19 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 from arena.drivers.mock_slave import MockSlave, MockSlaveConfig
 from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import demo_sequences, get_sequence
 from arena.protocol.errors import ArenaError, ErrorCode
-from arena.protocol.rest import MasterBody, MockSlaveBody, SequenceMasterBody, SlaveBody
+from arena.protocol.rest import (
+    MasterBody,
+    MockSlaveBody,
+    ReplayMasterBody,
+    SequenceMasterBody,
+    SlaveBody,
+)
 from arena.robot.actor import MasterDriver, SlaveDriver
 
 
@@ -27,8 +35,19 @@ def make_slave(body: SlaveBody) -> SlaveDriver:
     raise ArenaError(ErrorCode.INVALID_CONFIG, f"Unsupported slave type {body!r}.")
 
 
-def make_master(body: MasterBody) -> MasterDriver:
-    """Build a master driver from its config."""
+def make_master(body: MasterBody, recordings: Path | None = None) -> MasterDriver:
+    """Build a master driver from its config (`recordings`: where replay finds its files)."""
+    if isinstance(body, ReplayMasterBody):
+        from arena.recording.mcap_file import read_recording
+        from arena.recording.recorder import check_name
+        from arena.recording.replay import ReplayMaster, pick_robot, recorded_commands
+
+        if recordings is None:
+            raise ArenaError(ErrorCode.INVALID_CONFIG, "This server keeps no recordings.")
+        recording = read_recording(check_name(recordings, body.recording))
+        source = pick_robot(recording, body.source_robot)
+        commands = recorded_commands(recording, source, body.start, body.end)
+        return ReplayMaster(commands, speed=body.speed, loop=body.loop, name=body.recording)
     if isinstance(body, SequenceMasterBody):
         ids = body.sequences if body.sequences else list(demo_sequences())
         master = SequenceMaster(

@@ -28,14 +28,23 @@ SCHEMA_TYPES: dict[str, Any] = {
     "rest-slave": rest.SlaveBody,
     "rest-master": rest.MasterBody,
     "rest-reason": rest.ReasonBody,
+    "rest-replay": rest.ReplayBody,
 }
+
+
+def _recording_types() -> dict[str, Any]:
+    # Imported here: the recording package builds on the protocol, not the other way round.
+    from arena.recording.records import RECORD_TYPES
+
+    return {f"record-{kind.replace('_', '-')}": kind_type
+            for kind, kind_type in RECORD_TYPES.items()}
 
 
 def schemas() -> dict[str, str]:
     """File name -> JSON text of its schema."""
     return {
         f"{name}.json": json.dumps(msgspec.json.schema(kind), indent=2, sort_keys=True) + "\n"
-        for name, kind in SCHEMA_TYPES.items()
+        for name, kind in {**SCHEMA_TYPES, **_recording_types()}.items()
     }
 
 

@@ -325,10 +325,11 @@ class Robot:
         kind: str = "external",
         takeover: bool = False,
         heartbeat_timeout: float | None = None,
+        autonomous: bool = False,
     ) -> MasterLink:
         """Claim the robot for a master that runs elsewhere (a network connection)."""
         link: MasterLink = await self._attach(
-            "master", master_id, kind, None, False, takeover, heartbeat_timeout
+            "master", master_id, kind, None, autonomous, takeover, heartbeat_timeout
         )
         return link
 
@@ -624,6 +625,7 @@ class Robot:
                 "",
                 now,
                 wallclock.time(),
+                message.autonomous,
             )
         )
         message.reply.set(link)

@@ -123,6 +123,7 @@ class PeerChanged:
     reason: str
     time: float
     wall_time: float
+    autonomous: bool = False  # a master that plays a program (sequence, replay)
 
 
 RobotEvent: TypeAlias = (

@@ -10,7 +10,7 @@ import contextlib
 import logging
 import re
 import secrets
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 
 import trio
 
@@ -32,6 +32,8 @@ class RobotManager:
         self._nursery = nursery
         self._robots: dict[str, Robot] = {}
         self._scopes: dict[Robot, trio.CancelScope] = {}
+        #: Called with every new robot once it runs (the recorder follows robots this way).
+        self.on_create: list[Callable[[Robot], None]] = []
 
     async def create_robot(
         self,
@@ -55,6 +57,8 @@ class RobotManager:
         robot = Robot(robot_id, name or robot_id, model, policy)
         self._robots[robot_id] = robot
         await self._nursery.start(self._supervise, robot)
+        for callback in self.on_create:
+            callback(robot)
         log.info("robot %s created (%s)", robot_id, robot_type)
         return robot
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from collections import Counter
 from collections.abc import Iterable
-from typing import Any, TypeVar
+from typing import Any
 
 import msgspec
 import trio
@@ -20,20 +20,22 @@ from arena.drivers.sequences import demo_sequences, get_sequence
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.messages import MAX_MESSAGE_BYTES
 from arena.protocol.rest import CreateRobotBody, JointsBody, MasterBody, ReasonBody, SlaveBody
+from arena.recording.recorder import Recorder
 from arena.robot.manager import RobotManager
 from arena.server import convert, openapi
 from arena.server.config import ServerConfig
 from arena.server.metrics import Metrics
+from arena.server.recordings_api import blueprint as recordings_blueprint
 from arena.server.websockets import blueprint as websocket_blueprint
 from arena.server.websockets import check_token
-
-T = TypeVar("T")
 
 #: HTTP status for each error code (anything missing is 400).
 STATUS_FOR: dict[ErrorCode, int] = {
     ErrorCode.UNKNOWN_ROBOT: 404,
     ErrorCode.UNKNOWN_SEQUENCE: 404,
     ErrorCode.UNKNOWN_SLAVE: 404,
+    ErrorCode.UNKNOWN_RECORDING: 404,
+    ErrorCode.INVALID_RECORDING: 422,
     ErrorCode.NOT_FOUND: 404,
     ErrorCode.ROBOT_STOPPED: 404,
     ErrorCode.METHOD_NOT_ALLOWED: 405,
@@ -68,6 +70,7 @@ class ArenaApp(QuartTrio):
     metrics: Metrics
     shutting_down: trio.Event
     started_at: float
+    recorder: Recorder
 
 
 def error_response(code: ErrorCode, message: str) -> tuple[dict[str, Any], int]:
@@ -75,7 +78,7 @@ def error_response(code: ErrorCode, message: str) -> tuple[dict[str, Any], int]:
     return {"error": {"code": str(code), "message": message}}, STATUS_FOR.get(code, 400)
 
 
-async def read_body(kind: type[T], *, optional: bool = False) -> T:
+async def read_body(kind: Any, *, optional: bool = False) -> Any:
     """Decode and validate the JSON body as `kind`, or raise `ArenaError(INVALID_BODY)`."""
     raw = await request.get_data(cache=False)
     if len(raw) > MAX_MESSAGE_BYTES:
@@ -92,16 +95,18 @@ async def read_body(kind: type[T], *, optional: bool = False) -> T:
         raise ArenaError(ErrorCode.INVALID_JSON, f"The body is not valid JSON: {exc}") from None
 
 
-def create_app(manager: RobotManager, config: ServerConfig) -> ArenaApp:
-    """Build the app around a running `RobotManager`."""
+def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) -> ArenaApp:
+    """Build the app around a running `RobotManager` and `Recorder`."""
     app = ArenaApp(__name__)
     app.manager = manager
+    app.recorder = recorder
     app.arena_config = config
     app.metrics = Metrics()
     app.shutting_down = trio.Event()
     app.started_at = time.time()
     app.config["MAX_CONTENT_LENGTH"] = MAX_MESSAGE_BYTES
     app.register_blueprint(websocket_blueprint)
+    app.register_blueprint(recordings_blueprint)
     _register_errors(app)
     _register_routes(app)
     return app
@@ -164,6 +169,7 @@ def _register_routes(app: ArenaApp) -> None:
             "commands": _sum_counters(r.command_counts for r in robots),
             "estops": sum(r.estop_count for r in robots),
             "auth": app.arena_config.auth_enabled,
+            "recording": app.recorder.status(),
             "links": {
                 "robots": "/api/robots",
                 "docs": "/docs",
@@ -275,8 +281,8 @@ def _register_routes(app: ArenaApp) -> None:
     @app.post("/api/robots/<robot_id>/master")
     async def attach_master(robot_id: str) -> tuple[dict[str, Any], int]:
         robot = manager.get(robot_id)
-        body = await read_body(MasterBody)
-        master_id = await robot.attach_master(make_master(body))
+        body: MasterBody = await read_body(MasterBody)
+        master_id = await robot.attach_master(make_master(body, app.recorder.folder))
         return {"id": master_id, "type": type(body).__struct_config__.tag}, 201
 
     @app.delete("/api/robots/<robot_id>/master")

@@ -29,6 +29,10 @@ class ServerConfig:
     heartbeat_interval: float = 30.0  # seconds between our heartbeats to each peer
     heartbeat_timeout: float = 90.0  # a peer silent this long is dropped
     shutdown_grace: float = 1.0
+    record: bool = True  # record every robot to MCAP from the start
+    recordings_dir: str = "recordings"
+    recording_max_bytes: int = 256 << 20
+    recording_max_seconds: float = 3600.0
     cors_origins: tuple[str, ...] = field(default=())
 
     @property

@@ -8,7 +8,14 @@ import msgspec
 
 import arena
 from arena.protocol import messages as wire
-from arena.protocol.rest import CreateRobotBody, JointsBody, MasterBody, ReasonBody, SlaveBody
+from arena.protocol.rest import (
+    CreateRobotBody,
+    JointsBody,
+    MasterBody,
+    ReasonBody,
+    ReplayBody,
+    SlaveBody,
+)
 
 if TYPE_CHECKING:
     from arena.server.app import ArenaApp
@@ -38,6 +45,12 @@ ROUTES: list[tuple[str, str, str, Any]] = [
     ("DELETE", "/api/robots/{robot_id}/slaves/{slave_id}", "Detach a slave", None),
     ("POST", "/api/robots/{robot_id}/master", "Attach a master driver", MasterBody),
     ("DELETE", "/api/robots/{robot_id}/master", "Detach the master", None),
+    ("GET", "/api/recordings", "List recordings and the recorder's state", None),
+    ("POST", "/api/recordings", "Start recording", None),
+    ("POST", "/api/recordings/{name}/stop", "Stop recording (name or 'current')", None),
+    ("GET", "/api/recordings/{name}", "Summary of a recording", None),
+    ("GET", "/api/recordings/{name}/file", "Download a recording (MCAP)", None),
+    ("POST", "/api/robots/{robot_id}/replay", "Replay a recording onto a robot", ReplayBody),
     ("GET", "/metrics", "Prometheus metrics", None),
     ("GET", "/openapi.json", "This document", None),
     ("GET", "/docs", "Interactive API documentation", None),

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
 import signal
+from pathlib import Path
 from typing import Any
 
 import trio
@@ -11,6 +14,7 @@ from hypercorn.config import Config as HypercornConfig
 from hypercorn.trio import serve
 
 from arena.drivers.mock_slave import MockSlave, MockSlaveConfig
+from arena.recording.recorder import Recorder
 from arena.robot.manager import open_manager
 from arena.server.app import ArenaApp, create_app
 from arena.server.config import ServerConfig
@@ -48,39 +52,62 @@ async def run_server(
     """
     config.check()
     stop = trio.Event() if stop is None else stop
-    async with open_manager() as manager:
-        app = create_app(manager, config)
-        if config.demo:
-            await _create_demo_robot(app)
+    recorder = Recorder(
+        Path(config.recordings_dir),
+        {"config": json.dumps(_public_settings(config))},
+        max_bytes=config.recording_max_bytes,
+        max_seconds=config.recording_max_seconds,
+        active=config.record,
+    )
+    async with trio.open_nursery() as recording_nursery:
+        await recording_nursery.start(recorder.run)
+        async with open_manager() as manager:
+            manager.on_create.append(recorder.follow)
+            app = create_app(manager, config, recorder)
+            if config.demo:
+                await _create_demo_robot(app)
+            await _serve(app, config, stop, handle_signals, task_status)
+        recording_nursery.cancel_scope.cancel()  # robots are stopped: finish the file
 
-        async def shutdown_trigger() -> None:
-            await stop.wait()
-            log.info("shutting down")
-            app.shutting_down.set()
 
-        hc = hypercorn_config(config)
-        async with trio.open_nursery() as nursery:
-            if handle_signals:
-                nursery.start_soon(_stop_on_signals, stop)
+async def _serve(
+    app: ArenaApp, config: ServerConfig, stop: trio.Event, handle_signals: bool, task_status: Any
+) -> None:
+    async def shutdown_trigger() -> None:
+        await stop.wait()
+        log.info("shutting down")
+        app.shutting_down.set()
 
-            async def serve_then_stop(task_status: Any = trio.TASK_STATUS_IGNORED) -> None:
-                await serve(
-                    app,
-                    hc,
-                    shutdown_trigger=shutdown_trigger,
-                    task_status=task_status,
-                )
-                nursery.cancel_scope.cancel()
+    hc = hypercorn_config(config)
+    async with trio.open_nursery() as nursery:
+        if handle_signals:
+            nursery.start_soon(_stop_on_signals, stop)
 
-            urls: list[str] = await nursery.start(serve_then_stop)
-            for url in urls:
-                log.info("Arena listening on %s", url)
-            task_status.started((app, urls))
-            await stop.wait()
-            # Our WebSockets close themselves with 1001 at once; whatever hypercorn still
-            # holds after its grace period is cancelled.
-            await trio.sleep(config.shutdown_grace + 1.0)
+        async def serve_then_stop(task_status: Any = trio.TASK_STATUS_IGNORED) -> None:
+            await serve(
+                app,
+                hc,
+                shutdown_trigger=shutdown_trigger,
+                task_status=task_status,
+            )
             nursery.cancel_scope.cancel()
+
+        urls: list[str] = await nursery.start(serve_then_stop)
+        for url in urls:
+            log.info("Arena listening on %s", url)
+        task_status.started((app, urls))
+        await stop.wait()
+        # Our WebSockets close themselves with 1001 at once; whatever hypercorn still
+        # holds after its grace period is cancelled.
+        await trio.sleep(config.shutdown_grace + 1.0)
+        nursery.cancel_scope.cancel()
+
+
+def _public_settings(config: ServerConfig) -> dict[str, Any]:
+    """The settings worth keeping in a recording (never the API keys)."""
+    settings = dataclasses.asdict(config)
+    settings["api_keys"] = len(config.api_keys)
+    return settings
 
 
 async def _create_demo_robot(app: ArenaApp) -> None:

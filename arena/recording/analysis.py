@@ -1,0 +1,178 @@
+"""Offline debugging: summaries, timelines and exports of a recording (truncated ones too)."""
+
+from __future__ import annotations
+
+import csv
+import io
+import itertools
+import json
+from collections import defaultdict
+from typing import Any
+
+from arena.recording.mcap_file import RecordedMessage, Recording
+
+#: Silences longer than this (seconds) on a topic are reported as gaps.
+GAP_SECONDS = 1.0
+
+
+def _seconds(message: RecordedMessage, origin: int) -> float:
+    return (message.log_time - origin) / 1e9
+
+
+def summarize(recording: Recording) -> dict[str, Any]:
+    """Robots, time span, per-topic counts and rates, gaps, e-stops, faults, tracking error."""
+    messages = recording.messages
+    summary: dict[str, Any] = {
+        "file": recording.path.name,
+        "truncated": recording.truncated,
+        "messages": len(messages),
+        "robots": {},
+    }
+    if not messages:
+        return summary
+    origin = min(m.log_time for m in messages)
+    end = max(m.log_time for m in messages)
+    summary["start_ns"], summary["end_ns"] = origin, end
+    summary["duration_s"] = round((end - origin) / 1e9, 6)
+    by_topic: dict[str, list[RecordedMessage]] = defaultdict(list)
+    for message in messages:
+        by_topic[message.topic].append(message)
+    topics = {}
+    gaps = []
+    for name, group in sorted(by_topic.items()):
+        span = (group[-1].log_time - group[0].log_time) / 1e9
+        topics[name] = {
+            "count": len(group),
+            "rate_hz": round((len(group) - 1) / span, 3) if span > 0 else None,
+        }
+        for before, after in itertools.pairwise(group):
+            silence = (after.log_time - before.log_time) / 1e9
+            if silence > GAP_SECONDS:
+                gaps.append(
+                    {
+                        "topic": name,
+                        "from_s": round(_seconds(before, origin), 3),
+                        "seconds": round(silence, 3),
+                    }
+                )
+    summary["topics"] = topics
+    summary["gaps"] = gaps
+    summary["estops"] = [
+        {
+            "robot": m.robot_id,
+            "at_s": round(_seconds(m, origin), 3),
+            "reason": m.data["estop_reason"],
+        }
+        for m in messages
+        if m.kind == "state" and m.data["mode"] == "estopped"
+    ]
+    summary["faults"] = [
+        {
+            "robot": m.robot_id,
+            "at_s": round(_seconds(m, origin), 3),
+            "code": m.data["code"],
+            "severity": m.data["severity"],
+            "joint": m.data["joint"],
+            "message": m.data["message"],
+        }
+        for m in messages
+        if m.kind == "fault"
+    ]
+    summary["refused_commands"] = sum(
+        1 for m in messages if m.kind == "command" and not m.data["accepted"]
+    )
+    for robot_id in dict.fromkeys(m.robot_id for m in messages):
+        meta = recording.metadata.get(f"robot/{robot_id}", {})
+        summary["robots"][robot_id] = {
+            "robot_type": meta.get("robot_type"),
+            "tracking_error_deg": tracking_errors(messages, robot_id),
+        }
+    return summary
+
+
+def tracking_errors(messages: list[RecordedMessage], robot_id: str) -> dict[str, float]:
+    """Largest |virtual - real| per joint: each measured value against the latest target."""
+    virtual: dict[str, float] = {}
+    worst: dict[str, float] = {}
+    for message in messages:
+        if message.robot_id != robot_id:
+            continue
+        if message.kind == "targets":
+            virtual.update(message.data["joints"])
+        elif message.kind == "joint_states":
+            for joint, real in message.data["joints"].items():
+                if joint in virtual:
+                    error = abs(virtual[joint] - real)
+                    worst[joint] = round(max(worst.get(joint, 0.0), error), 6)
+    return worst
+
+
+def timeline(
+    recording: Recording,
+    robot: str | None = None,
+    start: float | None = None,
+    end: float | None = None,
+) -> list[str]:
+    """The events in order, one readable line each (seconds from the start of the file)."""
+    if not recording.messages:
+        return []
+    origin = min(m.log_time for m in recording.messages)
+    lines = []
+    for message in recording.messages:
+        at = _seconds(message, origin)
+        if robot is not None and message.robot_id != robot:
+            continue
+        if (start is not None and at < start) or (end is not None and at > end):
+            continue
+        lines.append(f"{at:10.3f}  {message.robot_id:<14} {message.kind:<12} {_describe(message)}")
+    return lines
+
+
+def _describe(message: RecordedMessage) -> str:
+    data = message.data
+    if message.kind == "command":
+        joints = " ".join(f"{j['name']}={j['value']:g}" for j in data["joints"])
+        verdict = "accepted" if data["accepted"] else f"refused {data['code']}"
+        duration = f" over {data['duration']:g} ms" if data.get("duration") else ""
+        return f"from {data['source']}: {joints}{duration} -> {verdict}"
+    if message.kind in ("targets", "joint_states"):
+        values = " ".join(f"{k}={v:.2f}" for k, v in data["joints"].items())
+        origin = f"{data['slave_id']}: " if message.kind == "joint_states" else ""
+        return origin + values
+    if message.kind == "state":
+        extra = f" ({data['estop_reason']})" if data["estop_reason"] else ""
+        owner = f" owner={data['owner']}" if data["owner"] else ""
+        return f"{data['mode']}{owner}{extra} <- {data['cause']}"
+    if message.kind == "fault":
+        return f"{data['severity']} {data['code']} from {data['peer_id']}: {data['message']}"
+    return f"{data['role']} {data['peer_id']} ({data['kind']}) {data['change']} {data['reason']}"
+
+
+def export(recording: Recording, fmt: str, topic: str | None = None) -> str:
+    """The messages as JSON lines or CSV (one column per field; joints flattened)."""
+    chosen = [m for m in recording.messages if topic is None or m.topic == topic]
+    if fmt == "jsonl":
+        return "".join(
+            json.dumps({"topic": m.topic, "log_time": m.log_time, **m.data}) + "\n" for m in chosen
+        )
+    rows = [_flatten(m) for m in chosen]
+    columns = list(dict.fromkeys(key for row in rows for key in row))
+    out = io.StringIO()
+    writer = csv.DictWriter(out, fieldnames=columns)
+    writer.writeheader()
+    writer.writerows(rows)
+    return out.getvalue()
+
+
+def _flatten(message: RecordedMessage) -> dict[str, Any]:
+    row: dict[str, Any] = {"topic": message.topic, "log_time": message.log_time}
+    for key, value in message.data.items():
+        if key == "joints" and isinstance(value, dict):
+            row.update({f"joint.{name}": v for name, v in value.items()})
+        elif key == "joints" and isinstance(value, list):
+            row.update({f"joint.{j['name']}": j["value"] for j in value})
+        elif isinstance(value, dict | list):
+            row[key] = json.dumps(value)
+        else:
+            row[key] = value
+    return row

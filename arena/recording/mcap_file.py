@@ -1,0 +1,226 @@
+"""MCAP files, synchronously: the writer (run in a worker thread) and a forgiving reader.
+
+The writer keeps chunks small and is flushed often, so a process killed mid-recording loses at
+most the last flush interval; the reader reads every complete record of such a file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime
+import json
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+from mcap.records import Channel, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+from mcap.writer import CompressionType, Writer
+
+from arena.protocol.errors import ArenaError, ErrorCode
+from arena.recording.records import schema_of, split_topic, topic
+
+SUFFIX = ".mcap"
+PROFILE = "arena"
+
+
+def new_file_name(now: float | None = None) -> str:
+    """`arena-YYYYmmdd-HHMMSS-mmm.mcap` from the start time (UTC)."""
+    stamp = datetime.datetime.fromtimestamp(now or time.time(), datetime.UTC)
+    return f"arena-{stamp:%Y%m%d-%H%M%S}-{stamp.microsecond // 1000:03d}{SUFFIX}"
+
+
+#: One record to write: (robot id, kind, JSON bytes, log time in ns).
+Item = tuple[str, str, bytes, int]
+
+
+class McapFileWriter:
+    """Writes records into a rotating series of MCAP files in one folder. Not thread-safe:
+    one thread at a time (the recorder's writer task guarantees it)."""
+
+    def __init__(
+        self,
+        folder: Path,
+        metadata: dict[str, str],
+        *,
+        max_bytes: int = 256 << 20,
+        max_seconds: float = 3600.0,
+        chunk_size: int = 64 * 1024,
+    ) -> None:
+        self.folder = folder
+        self.metadata = metadata
+        self.max_bytes = max_bytes
+        self.max_seconds = max_seconds
+        self.chunk_size = chunk_size
+        self.robots: dict[str, dict[str, str]] = {}  # robot id -> metadata, set by the recorder
+        self.path: Path | None = None
+        self.files: list[Path] = []
+        self._stream: IO[bytes] | None = None
+        self._writer: Writer | None = None
+        self._opened_at = 0.0
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._robots_written: set[str] = set()
+        self.messages = 0
+
+    def write(self, items: list[Item]) -> None:
+        """Append records, opening or rotating files as needed, then flush to the OS."""
+        for robot_id, kind, data, log_time in items:
+            writer = self._current()
+            if robot_id not in self._robots_written and robot_id in self.robots:
+                writer.add_metadata(f"robot/{robot_id}", self.robots[robot_id])
+                self._robots_written.add(robot_id)
+            writer.add_message(self._channel(writer, robot_id, kind), log_time, data, log_time)
+            self.messages += 1
+        self.flush()
+
+    def flush(self) -> None:
+        """Close the chunk in progress and hand everything to the OS."""
+        if self._writer is not None:
+            self._writer.flush()
+            assert self._stream is not None
+            if (
+                self._stream.tell() > self.max_bytes
+                or time.monotonic() - self._opened_at > self.max_seconds
+            ):
+                self.close()
+
+    def close(self) -> None:
+        """Finish the current file (summary and index written)."""
+        if self._writer is not None:
+            self._writer.finish()
+            assert self._stream is not None
+            self._stream.close()
+        self._writer = self._stream = None
+        self.path = None
+
+    def abandon(self) -> None:
+        """Drop the current file without finishing it (after an I/O error)."""
+        if self._stream is not None:
+            with contextlib.suppress(OSError):
+                self._stream.close()
+        self._writer = self._stream = None
+        self.path = None
+
+    def _current(self) -> Writer:
+        if self._writer is None:
+            self.folder.mkdir(parents=True, exist_ok=True)
+            path = self.folder / new_file_name()
+            while path.exists():  # two files within a millisecond: keep both
+                path = path.with_name(path.stem + "-1" + SUFFIX)
+            self._stream = open(path, "wb")  # noqa: SIM115 - closed in close()
+            self._writer = Writer(
+                self._stream, chunk_size=self.chunk_size, compression=CompressionType.ZSTD
+            )
+            self._writer.start(profile=PROFILE, library="arena")
+            self._writer.add_metadata("arena", self.metadata)
+            self._opened_at = time.monotonic()
+            self._schemas.clear()
+            self._channels.clear()
+            self._robots_written.clear()
+            self.path = path
+            self.files.append(path)
+        return self._writer
+
+    def _channel(self, writer: Writer, robot_id: str, kind: str) -> int:
+        name = topic(robot_id, kind)
+        channel = self._channels.get(name)
+        if channel is None:
+            schema = self._schemas.get(kind)
+            if schema is None:
+                schema = writer.register_schema(
+                    kind, "jsonschema", json.dumps(schema_of(kind)).encode()
+                )
+                self._schemas[kind] = schema
+            channel = writer.register_channel(name, "json", schema)
+            self._channels[name] = channel
+        return channel
+
+
+@dataclass
+class RecordedMessage:
+    """One message read back: where it came from and its decoded JSON."""
+
+    topic: str
+    robot_id: str
+    kind: str
+    log_time: int
+    data: dict[str, Any]
+
+
+@dataclass
+class Recording:
+    """Everything in a file: metadata, schemas by topic, messages, and whether it was cut."""
+
+    path: Path
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    schemas: dict[str, dict[str, Any]] = field(default_factory=dict)
+    messages: list[RecordedMessage] = field(default_factory=list)
+    truncated: bool = False
+    foreign_topics: int = 0
+
+
+def read_recording(path: str | Path) -> Recording:
+    """Read a whole recording, also one whose writer was killed (`truncated` is then True).
+
+    Raises `ArenaError(INVALID_RECORDING)` for a file that is not MCAP at all.
+    """
+    path = Path(path)
+    recording = Recording(path)
+    try:
+        stream = open(path, "rb")  # noqa: SIM115
+    except OSError as exc:
+        raise ArenaError(ErrorCode.INVALID_RECORDING, f"Cannot open {path}: {exc}") from exc
+    with stream:
+        if stream.read(8) != b"\x89MCAP0\r\n":
+            raise ArenaError(
+                ErrorCode.INVALID_RECORDING, f"{path.name} is not an MCAP file (bad magic)."
+            )
+        stream.seek(0)
+        recording.truncated = not _read_into(recording, iter_records(stream))
+    return recording
+
+
+def iter_records(stream: IO[bytes]) -> Iterator[Any]:
+    """Every record of a stream, chunks opened; stops quietly where a record is cut off."""
+    yield from StreamReader(stream).records
+
+
+def _read_into(recording: Recording, records: Iterator[Any]) -> bool:
+    """Fill `recording`; True when the file ended properly (with its footer)."""
+    channels: dict[int, Channel] = {}
+    schemas: dict[int, Schema] = {}
+    complete = False
+    try:
+        for record in records:
+            if isinstance(record, Schema):
+                schemas[record.id] = record
+            elif isinstance(record, Channel):
+                channels[record.id] = record
+            elif isinstance(record, Metadata):
+                recording.metadata[record.name] = dict(record.metadata)
+            elif isinstance(record, Message):
+                channel = channels.get(record.channel_id)
+                parsed = split_topic(channel.topic) if channel else None
+                if channel is None or parsed is None:
+                    recording.foreign_topics += 1
+                    continue
+                if channel.topic not in recording.schemas and channel.schema_id in schemas:
+                    recording.schemas[channel.topic] = json.loads(schemas[channel.schema_id].data)
+                recording.messages.append(
+                    RecordedMessage(
+                        channel.topic,
+                        parsed[0],
+                        parsed[1],
+                        record.log_time,
+                        json.loads(record.data),
+                    )
+                )
+            elif type(record).__name__ == "Footer":
+                complete = True
+    except Exception:
+        # A cut-off record (killed writer, copy in progress): keep everything before it.
+        return False
+    return complete

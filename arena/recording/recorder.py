@@ -1,0 +1,168 @@
+"""The recorder: follows every robot's events and writes them to MCAP without stalling control.
+
+Each robot gets a follower task with a large drop-oldest queue (a robot never waits for the
+recorder; anything dropped is counted). One writer task batches the records and hands each
+batch to a worker thread, where the MCAP writer does its compression and file I/O.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+import msgspec
+import trio
+
+import arena
+from arena.protocol.errors import ArenaError, ErrorCode
+from arena.recording.mcap_file import Item, McapFileWriter
+from arena.recording.records import record_of
+from arena.robot.actor import Robot
+
+log = logging.getLogger(__name__)
+
+_encoder = msgspec.json.Encoder()
+
+
+class Recorder:
+    """Records every robot it is given into `folder`, rotating files by size and age."""
+
+    def __init__(
+        self,
+        folder: Path,
+        metadata: dict[str, str] | None = None,
+        *,
+        max_bytes: int = 256 << 20,
+        max_seconds: float = 3600.0,
+        flush_interval: float = 0.25,
+        queue_size: int = 100_000,
+        active: bool = True,
+    ) -> None:
+        base = {"server": "arena", "version": arena.__version__}
+        self.writer = McapFileWriter(
+            folder, {**base, **(metadata or {})}, max_bytes=max_bytes, max_seconds=max_seconds
+        )
+        self.flush_interval = flush_interval
+        self.queue_size = queue_size
+        self.active = active
+        self.error: str | None = None
+        self.dropped = 0
+        self._pending: deque[Item] = deque()
+        self._wake = trio.Event()
+        self._nursery: trio.Nursery | None = None
+
+    @property
+    def folder(self) -> Path:
+        """Where the files go."""
+        return self.writer.folder
+
+    @property
+    def current_file(self) -> Path | None:
+        """The file being written, if any."""
+        return self.writer.path
+
+    async def run(self, *, task_status: Any = trio.TASK_STATUS_IGNORED) -> None:
+        """Write until cancelled; then finish the open file."""
+        try:
+            async with trio.open_nursery() as nursery:
+                self._nursery = nursery
+                task_status.started()
+                await self._write_forever()
+        finally:
+            with trio.CancelScope(shield=True):
+                await self._write_pending()
+                await trio.to_thread.run_sync(self.writer.close)
+
+    def follow(self, robot: Robot) -> None:
+        """Record this robot from now on (its type and URDF go into the file's metadata)."""
+        urdf = robot.model.urdf_path.read_text(encoding="utf-8")
+        self.writer.robots[robot.robot_id] = {
+            "robot_type": robot.model.robot_type,
+            "name": robot.name,
+            "urdf": urdf,
+        }
+        assert self._nursery is not None
+        self._nursery.start_soon(self._follow, robot)
+
+    async def start(self) -> Path | None:
+        """Resume recording into a new file (after `stop`)."""
+        self.active = True
+        return self.writer.path
+
+    async def stop(self) -> Path | None:
+        """Pause recording and finish the current file; returns its path."""
+        self.active = False
+        path = self.writer.path
+        await self._write_pending()
+        await trio.to_thread.run_sync(self.writer.close)
+        return path
+
+    async def _follow(self, robot: Robot) -> None:
+        with robot.subscribe(maxlen=self.queue_size) as events:
+            async for event in events:
+                self.dropped = max(self.dropped, events.dropped)
+                if not self.active:
+                    continue
+                kind, record = record_of(event)
+                self._pending.append(
+                    (robot.robot_id, kind, _encoder.encode(record), int(event.wall_time * 1e9))
+                )
+                self._wake.set()
+
+    async def _write_forever(self) -> None:
+        while True:
+            with trio.move_on_after(self.flush_interval):
+                await self._wake.wait()
+            self._wake = trio.Event()
+            await self._write_pending()
+
+    async def _write_pending(self) -> None:
+        if not self._pending:
+            return
+        batch = list(self._pending)
+        self._pending.clear()
+        try:
+            await trio.to_thread.run_sync(self.writer.write, batch)
+            if self.error is not None:
+                log.warning("recording resumed in %s", self.writer.path)
+            self.error = None
+        except OSError as exc:
+            # A full or read-only disk must not stop control: say so, drop the batch, and try
+            # a fresh file with the next one.
+            if self.error is None:
+                log.error("recording failed: %s", exc)
+            self.error = f"{type(exc).__name__}: {exc}"
+            self.dropped += len(batch)
+            self.writer.abandon()
+
+    def status(self) -> dict[str, Any]:
+        """What the recorder is doing, for the REST API."""
+        return {
+            "active": self.active,
+            "file": self.writer.path.name if self.writer.path else None,
+            "folder": str(self.folder),
+            "messages": self.writer.messages,
+            "dropped": self.dropped,
+            "error": self.error,
+        }
+
+
+def check_name(folder: Path, name: str) -> Path:
+    """The recording `name` inside `folder`; refuses anything that would leave the folder."""
+    if (
+        not name
+        or "/" in name
+        or "\\" in name
+        or name.startswith(".")
+        or not name.endswith(".mcap")
+    ):
+        raise ArenaError(
+            ErrorCode.UNKNOWN_RECORDING,
+            f"{name!r} is not a recording name (expected NAME.mcap, no folders).",
+        )
+    path = (folder / name).resolve()
+    if path.parent != folder.resolve():
+        raise ArenaError(ErrorCode.UNKNOWN_RECORDING, f"{name!r} is outside the recordings.")
+    return path

@@ -1,0 +1,112 @@
+"""REST for recordings: list, start, stop, summary, download, and replay onto a robot."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import trio
+from quart import Blueprint, current_app, send_file
+
+from arena.protocol.errors import ArenaError, ErrorCode
+from arena.protocol.rest import ReplayBody, ReplayMasterBody
+from arena.recording.analysis import summarize
+from arena.recording.mcap_file import SUFFIX, read_recording
+from arena.recording.recorder import check_name
+
+if TYPE_CHECKING:
+    from arena.server.app import ArenaApp
+
+blueprint = Blueprint("recordings", __name__)
+
+
+def _app() -> ArenaApp:
+    return current_app  # type: ignore[return-value]
+
+
+def _existing(name: str) -> Any:
+    recorder = _app().recorder
+    path = check_name(recorder.folder, name)
+    if not path.is_file():
+        raise ArenaError(ErrorCode.UNKNOWN_RECORDING, f"No recording called {name!r}.")
+    return path
+
+
+@blueprint.get("/api/recordings")
+async def list_recordings() -> dict[str, Any]:
+    """Every recording in the folder, newest first, and what the recorder is doing."""
+    recorder = _app().recorder
+    files = sorted(recorder.folder.glob(f"*{SUFFIX}"), key=lambda p: p.name, reverse=True)
+    current = recorder.current_file
+    return {
+        "recorder": recorder.status(),
+        "recordings": [
+            {
+                "name": p.name,
+                "bytes": p.stat().st_size,
+                "active": current is not None and p == current,
+            }
+            for p in files
+        ],
+    }
+
+
+@blueprint.post("/api/recordings")
+async def start_recording() -> tuple[dict[str, Any], int]:
+    """Start recording (a new file begins with the next message)."""
+    recorder = _app().recorder
+    await recorder.start()
+    return recorder.status(), 201
+
+
+@blueprint.post("/api/recordings/<name>/stop")
+async def stop_recording(name: str) -> dict[str, Any]:
+    """Stop recording; `name` must be the file being written (or `current`)."""
+    recorder = _app().recorder
+    current = recorder.current_file
+    if name != "current":
+        path = check_name(recorder.folder, name)
+        if current is None or path != current.resolve():
+            raise ArenaError(ErrorCode.UNKNOWN_RECORDING, f"{name!r} is not being recorded.")
+    stopped = await recorder.stop()
+    return {**recorder.status(), "stopped": stopped.name if stopped else None}
+
+
+@blueprint.get("/api/recordings/<name>")
+async def recording_summary(name: str) -> dict[str, Any]:
+    """Robots, span, counts, gaps, e-stops, faults and tracking errors of one recording."""
+    path = _existing(name)
+    recording = await trio.to_thread.run_sync(read_recording, path)
+    return summarize(recording)
+
+
+@blueprint.get("/api/recordings/<name>/file")
+async def download_recording(name: str) -> Any:
+    """The MCAP file itself."""
+    return await send_file(
+        _existing(name),
+        mimetype="application/octet-stream",
+        as_attachment=True,
+        attachment_filename=name,
+    )
+
+
+@blueprint.post("/api/robots/<robot_id>/replay")
+async def replay(robot_id: str) -> tuple[dict[str, Any], int]:
+    """Replay a recording's commands onto `robot_id` as its master."""
+    from arena.drivers.factory import make_master
+    from arena.server.app import read_body
+
+    app = _app()
+    robot = app.manager.get(robot_id)
+    body: ReplayBody = await read_body(ReplayBody)
+    config = ReplayMasterBody(
+        recording=body.recording,
+        source_robot=body.source_robot,
+        speed=body.speed,
+        loop=body.loop,
+        start=body.start,
+        end=body.end,
+    )
+    driver = await trio.to_thread.run_sync(make_master, config, app.recorder.folder)
+    master_id = await robot.attach_master(driver)
+    return {"robot": robot_id, "master": master_id, "recording": body.recording}, 201
