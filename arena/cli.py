@@ -80,6 +80,39 @@ def main(argv: list[str] | None = None) -> int:
     )
     serve.add_argument("--certfile", help="TLS certificate (PEM)")
     serve.add_argument("--keyfile", help="TLS private key (PEM)")
+    serve.add_argument(
+        "--no-record",
+        action="store_false",
+        dest="record",
+        default=None,
+        help="do not record to MCAP (recording can be started over REST)",
+    )
+    serve.add_argument("--recordings-dir", help="where recordings go (default recordings/)")
+    inspect = commands.add_parser("inspect", help="summarize a recording")
+    inspect.add_argument("file")
+    inspect.add_argument("--json", action="store_true", help="print the summary as JSON")
+    timeline = commands.add_parser("timeline", help="a recording's events in order")
+    timeline.add_argument("file")
+    timeline.add_argument("--robot")
+    timeline.add_argument("--from", dest="start", type=float, help="seconds from the start")
+    timeline.add_argument("--to", dest="end", type=float, help="seconds from the start")
+    export = commands.add_parser("export", help="a recording as CSV or JSON lines")
+    export.add_argument("file")
+    export.add_argument("--format", choices=["csv", "jsonl"], default="jsonl")
+    export.add_argument("--topic")
+    recover = commands.add_parser("recover", help="rewrite a truncated recording completely")
+    recover.add_argument("file")
+    recover.add_argument("-o", "--output", help="default: FILE with .recovered.mcap")
+    replay = commands.add_parser("replay", help="replay a recording into a server's robot")
+    replay.add_argument("file")
+    replay.add_argument("--robot", help="the recorded robot whose commands to replay")
+    replay.add_argument(
+        "--to", required=True, help="master WebSocket URL, e.g. ws://127.0.0.1:8080/ws/master/arm"
+    )
+    replay.add_argument("--speed", type=float, default=1.0)
+    replay.add_argument("--loop", action="store_true")
+    replay.add_argument("--from", dest="start", type=float, help="seconds into the commands")
+    replay.add_argument("--until", dest="end", type=float, help="seconds into the commands")
     schemas = commands.add_parser("schemas", help="write the JSON Schemas of the wire messages")
     schemas.add_argument("--out", default="specs/schemas", help="folder to write them into")
     bench = commands.add_parser("bench", help="run the benchmarks and print medians")
@@ -93,6 +126,14 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "serve":
             return _serve(args)
+        if args.command in ("inspect", "timeline", "export", "recover", "replay"):
+            from arena.protocol.errors import ArenaError
+
+            try:
+                return _recording_command(args)
+            except ArenaError as error:
+                print(f"arena {args.command}: {error.message}", file=sys.stderr)
+                return 2
         if args.command == "schemas":
             from pathlib import Path
 
@@ -112,6 +153,67 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
+def _recording_command(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    from arena.recording import analysis
+    from arena.recording.mcap_file import read_recording, write_recording
+
+    recording = read_recording(args.file)
+    if recording.truncated:
+        print(
+            f"note: {Path(args.file).name} is truncated; read every complete record",
+            file=sys.stderr,
+        )
+    if args.command == "inspect":
+        summary = analysis.summarize(recording)
+        print(json.dumps(summary, indent=2) if args.json else _format_summary(summary))
+    elif args.command == "timeline":
+        print("\n".join(analysis.timeline(recording, args.robot, args.start, args.end)))
+    elif args.command == "export":
+        sys.stdout.write(analysis.export(recording, args.format, args.topic))
+    elif args.command == "recover":
+        output = Path(args.output or str(Path(args.file).with_suffix("")) + ".recovered.mcap")
+        count = write_recording(recording, output)
+        print(f"wrote {count} messages to {output}")
+    else:
+        from arena.recording.client_replay import replay_to_server
+        from arena.recording.replay import pick_robot, recorded_commands
+
+        source = pick_robot(recording, args.robot)
+        commands = recorded_commands(recording, source, args.start, args.end)
+        sent, refused = trio.run(
+            partial(replay_to_server, args.to, commands, speed=args.speed, loop=args.loop)
+        )
+        print(f"sent {sent} commands, {refused} refused")
+    return 0
+
+
+def _format_summary(summary: dict[str, object]) -> str:
+    lines = [
+        f"file       {summary['file']}" + ("  (truncated)" if summary["truncated"] else ""),
+        f"messages   {summary['messages']}",
+        f"duration   {summary.get('duration_s', 0)} s",
+    ]
+    robots = summary["robots"]
+    assert isinstance(robots, dict)
+    for robot_id, info in robots.items():
+        lines.append(f"robot      {robot_id} ({info['robot_type']})")
+        for joint, error in info["tracking_error_deg"].items():
+            lines.append(f"  max tracking error {joint:<12} {error:8.3f} deg")
+    topics = summary.get("topics", {})
+    assert isinstance(topics, dict)
+    for name, info in topics.items():
+        lines.append(f"topic      {name:<36} {info['count']:>8} msgs  {info['rate_hz']} Hz")
+    for key in ("gaps", "estops", "faults"):
+        entries = summary.get(key, [])
+        assert isinstance(entries, list)
+        for entry in entries:
+            lines.append(f"{key[:-1]:<10} " + " ".join(f"{k}={v}" for k, v in entry.items()))
+    return "\n".join(lines)
+
+
 def _serve(args: argparse.Namespace) -> int:
     from arena.protocol.errors import ArenaError
     from arena.server.config import load_config
@@ -120,6 +222,8 @@ def _serve(args: argparse.Namespace) -> int:
     try:
         config = load_config(
             args.config,
+            record=args.record,
+            recordings_dir=args.recordings_dir,
             host=args.host,
             port=args.port,
             demo=args.demo,

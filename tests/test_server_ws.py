@@ -65,7 +65,9 @@ def test_seed_python_example_with_websockets(tmp_path: Path) -> None:
             stop = trio.Event()
             app, urls = await nursery.start(
                 lambda task_status: run_server(
-                    ServerConfig(port=0), stop=stop, task_status=task_status
+                    ServerConfig(port=0, recordings_dir=str(tmp_path)),
+                    stop=stop,
+                    task_status=task_status,
                 )
             )
             robot = await app.manager.create_robot("so-arm100", "My Robot", "my-robot")

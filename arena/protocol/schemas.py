@@ -36,8 +36,9 @@ def _recording_types() -> dict[str, Any]:
     # Imported here: the recording package builds on the protocol, not the other way round.
     from arena.recording.records import RECORD_TYPES
 
-    return {f"record-{kind.replace('_', '-')}": kind_type
-            for kind, kind_type in RECORD_TYPES.items()}
+    return {
+        f"record-{kind.replace('_', '-')}": kind_type for kind, kind_type in RECORD_TYPES.items()
+    }
 
 
 def schemas() -> dict[str, str]:

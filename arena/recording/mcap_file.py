@@ -224,3 +224,28 @@ def _read_into(recording: Recording, records: Iterator[Any]) -> bool:
         # A cut-off record (killed writer, copy in progress): keep everything before it.
         return False
     return complete
+
+
+def write_recording(recording: Recording, path: Path) -> int:
+    """Write everything read from `recording` as a complete, indexed MCAP file at `path`."""
+    with open(path, "wb") as stream:
+        writer = Writer(stream, chunk_size=1 << 20, compression=CompressionType.ZSTD)
+        writer.start(profile=PROFILE, library="arena")
+        for name, values in recording.metadata.items():
+            writer.add_metadata(name, values)
+        schema_ids: dict[str, int] = {}
+        channel_ids: dict[str, int] = {}
+        for message in recording.messages:
+            channel = channel_ids.get(message.topic)
+            if channel is None:
+                schema = schema_ids.get(message.kind)
+                if schema is None:
+                    text = json.dumps(recording.schemas.get(message.topic, schema_of(message.kind)))
+                    schema = writer.register_schema(message.kind, "jsonschema", text.encode())
+                    schema_ids[message.kind] = schema
+                channel = writer.register_channel(message.topic, "json", schema)
+                channel_ids[message.topic] = channel
+            data = json.dumps(message.data, separators=(",", ":")).encode()
+            writer.add_message(channel, message.log_time, data, message.log_time)
+        writer.finish()
+    return len(recording.messages)

@@ -1,0 +1,90 @@
+"""`arena replay`: play a recording into a running server as a WebSocket master."""
+
+from __future__ import annotations
+
+import json
+import sys
+from typing import TextIO
+
+import trio
+from trio_websocket import ConnectionClosed, open_websocket_url
+
+from arena.protocol.errors import ArenaError, ErrorCode
+from arena.recording.replay import TimedCommand
+
+
+def _message(command: TimedCommand, speed: float) -> str:
+    data: dict[str, object] = {
+        "joints": [
+            {"name": g.name, "value": g.value, **({"speed": g.speed} if g.speed else {})}
+            for g in command.command.joints
+        ],
+        "metadata": {"source": "arena replay"},
+    }
+    if command.command.duration is not None:
+        data["duration"] = command.command.duration * 1000.0 / speed
+    return json.dumps({"type": "command", "data": data})
+
+
+def _progress(out: TextIO, done: int, total: int, refused: int) -> None:
+    width = 30
+    filled = width * done // total
+    out.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {done}/{total} refused {refused}")
+    out.flush()
+
+
+async def replay_to_server(
+    url: str,
+    commands: list[TimedCommand],
+    *,
+    speed: float = 1.0,
+    loop: bool = False,
+    out: TextIO = sys.stderr,
+) -> tuple[int, int]:
+    """Send `commands` with their timing to a master WebSocket; returns (sent, refused)."""
+    if not 0.01 <= speed <= 1000:
+        raise ArenaError(ErrorCode.INVALID_VALUE, "speed must be between 0.01 and 1000.")
+    sent = refused = 0
+    async with open_websocket_url(url) as ws:
+        stopped = trio.Event()
+
+        async def read_answers() -> None:
+            nonlocal refused
+            try:
+                while True:
+                    answer = json.loads(await ws.get_message())
+                    kind = answer.get("type")
+                    if kind == "ack" and answer["data"]["status"] == "refused":
+                        refused += 1
+                        if answer["data"]["code"] in ("ESTOPPED", "NOT_OWNER"):
+                            stopped.set()
+                    elif kind in ("detached", "error") and answer.get("data", {}).get("code") in (
+                        "MASTER_ACTIVE",
+                        "TAKEN_OVER",
+                        "UNKNOWN_ROBOT",
+                        "UNAUTHORIZED",
+                        "FORBIDDEN",
+                        "MASTER_LOST",
+                    ):
+                        out.write(f"\nserver: {answer['data']['message']}\n")
+                        stopped.set()
+            except ConnectionClosed:
+                stopped.set()
+
+        async with trio.open_nursery() as nursery:
+            nursery.start_soon(read_answers)
+            while not stopped.is_set():
+                start = trio.current_time()
+                for index, command in enumerate(commands):
+                    await trio.sleep_until(start + command.at / speed)
+                    if stopped.is_set():
+                        break
+                    await ws.send_message(_message(command, speed))
+                    sent += 1
+                    _progress(out, index + 1, len(commands), refused)
+                if not loop:
+                    break
+            await trio.sleep(0.2)  # let the last answers arrive
+            nursery.cancel_scope.cancel()
+    out.write("\n")
+    return sent, refused
