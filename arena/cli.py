@@ -161,6 +161,13 @@ def _recording_command(args: argparse.Namespace) -> int:
     from arena.recording.mcap_file import read_recording, write_recording
 
     recording = read_recording(args.file)
+    if not recording.messages and recording.foreign_topics:
+        from arena.protocol.errors import ArenaError, ErrorCode
+
+        raise ArenaError(
+            ErrorCode.INVALID_RECORDING,
+            f"{args.file} holds no Arena topics (only other MCAP data).",
+        )
     if recording.truncated:
         print(
             f"note: {Path(args.file).name} is truncated; read every complete record",

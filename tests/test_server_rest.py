@@ -361,3 +361,58 @@ async def test_tls(start_server: StartServer, tmp_path: Any) -> None:
     assert server.url.startswith("https://")
     async with server.client(verify=False) as http:
         assert (await http.get("/")).json()["status"] == "running"
+
+
+async def test_recordings_over_rest(server: RunningServer) -> None:
+    async with server.client() as http:
+        await http.put(
+            "/api/robots/demo-arm/joints", json={"joints": [{"name": "Rotation", "value": 20}]}
+        )
+        await trio.sleep(0.5)
+        listing = (await http.get("/api/recordings")).json()
+        assert listing["recorder"]["active"] is True
+        (current,) = [r for r in listing["recordings"] if r["active"]]
+        name = current["name"]
+        stopped = (await http.post(f"/api/recordings/{name}/stop")).json()
+        assert stopped["stopped"] == name and stopped["active"] is False
+        summary = (await http.get(f"/api/recordings/{name}")).json()
+        assert summary["truncated"] is False
+        assert summary["topics"]["/robots/demo-arm/command"]["count"] == 1
+        download = await http.get(f"/api/recordings/{name}/file")
+        assert download.status_code == 200
+        assert download.content == (server.app.recorder.folder / name).read_bytes()
+        assert (await http.post("/api/recordings")).json()["active"] is True
+        await http.put(
+            "/api/robots/demo-arm/joints", json={"joints": [{"name": "Rotation", "value": 0}]}
+        )
+        await trio.sleep(0.5)
+        names = [r["name"] for r in (await http.get("/api/recordings")).json()["recordings"]]
+        assert len(names) == 2
+        replay = await http.post(
+            "/api/robots/demo-arm/replay", json={"recording": name, "speed": 4}
+        )
+        assert replay.status_code == 201
+        assert replay.json()["master"]
+
+        async def replayed() -> bool:
+            joints = (await http.get("/api/robots/demo-arm/joints")).json()
+            return joints[0]["real_value"] == 20
+
+        await wait_for(replayed)
+        for bad in ("..%2F..%2Fetc%2Fpasswd", "nope.mcap", ".hidden.mcap"):
+            response = await http.get(f"/api/recordings/{bad}")
+            assert response.status_code == 404, bad
+        missing = await http.post("/api/robots/demo-arm/replay", json={"recording": "x.mcap"})
+        assert missing.status_code == 404
+        assert missing.json()["error"]["code"] == "UNKNOWN_RECORDING"
+
+
+async def test_no_record_starts_idle(start_server: StartServer) -> None:
+    server = await start_server(demo=True, record=False)
+    async with server.client() as http:
+        await http.put(
+            "/api/robots/demo-arm/joints", json={"joints": [{"name": "Rotation", "value": 20}]}
+        )
+        await trio.sleep(0.3)
+        listing = (await http.get("/api/recordings")).json()
+        assert listing["recorder"]["active"] is False and listing["recordings"] == []

@@ -39,12 +39,12 @@ def make_master(body: MasterBody, recordings: Path | None = None) -> MasterDrive
     """Build a master driver from its config (`recordings`: where replay finds its files)."""
     if isinstance(body, ReplayMasterBody):
         from arena.recording.mcap_file import read_recording
-        from arena.recording.recorder import check_name
+        from arena.recording.recorder import existing_recording
         from arena.recording.replay import ReplayMaster, pick_robot, recorded_commands
 
         if recordings is None:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "This server keeps no recordings.")
-        recording = read_recording(check_name(recordings, body.recording))
+        recording = read_recording(existing_recording(recordings, body.recording))
         source = pick_robot(recording, body.source_robot)
         commands = recorded_commands(recording, source, body.start, body.end)
         return ReplayMaster(commands, speed=body.speed, loop=body.loop, name=body.recording)

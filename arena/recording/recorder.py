@@ -166,3 +166,11 @@ def check_name(folder: Path, name: str) -> Path:
     if path.parent != folder.resolve():
         raise ArenaError(ErrorCode.UNKNOWN_RECORDING, f"{name!r} is outside the recordings.")
     return path
+
+
+def existing_recording(folder: Path, name: str) -> Path:
+    """Like `check_name`, and the file must exist."""
+    path = check_name(folder, name)
+    if not path.is_file():
+        raise ArenaError(ErrorCode.UNKNOWN_RECORDING, f"No recording called {name!r}.")
+    return path

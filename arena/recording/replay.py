@@ -160,7 +160,8 @@ async def redrive_session(recording: Recording, source: str, robot: Robot) -> No
                 if data["change"] == "lost":
                     await links[peer].lost(str(data["reason"]))
                 else:
-                    await links[peer].detach(str(data["reason"]))
+                    finished = data["reason"] == "driver finished"  # see Robot._on_driver_ended
+                    await links[peer].detach(str(data["reason"]), finish_motion=finished)
         elif message.kind == "command":
             source_id = str(data["source"])
             master = None if source_id == "manual" else links.get(source_id)

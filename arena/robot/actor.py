@@ -128,6 +128,7 @@ class _DetachMsg:
     lost: bool
     reason: str
     reply: _Reply[None] | None
+    hold: bool = True
 
 
 @dataclass(slots=True)
@@ -200,9 +201,11 @@ class MasterLink:
         """Heartbeat: the peer is still there."""
         self.robot._post_nowait(_AliveMsg(self.master_id), drop_if_full=True)
 
-    async def detach(self, reason: str = "master left") -> None:
-        """Give up ownership."""
-        await self.robot._detach("master", self.master_id, lost=False, reason=reason)
+    async def detach(self, reason: str = "master left", *, finish_motion: bool = False) -> None:
+        """Give up ownership; motion in progress stops, unless `finish_motion`."""
+        await self.robot._detach(
+            "master", self.master_id, lost=False, reason=reason, hold=not finish_motion
+        )
 
     async def lost(self, reason: str = "connection lost") -> None:
         """Report that this master's connection is gone (the loss policy applies)."""
@@ -640,7 +643,7 @@ class Robot:
             event: safety.Event = (
                 safety.MasterLost(peer.peer_id, message.reason)
                 if message.lost
-                else safety.MasterDetach(peer.peer_id)
+                else safety.MasterDetach(peer.peer_id, message.hold)
             )
             self._apply(event, now, cause=message.reason)
             self._drop_master(
@@ -696,7 +699,7 @@ class Robot:
             event: safety.Event = (
                 safety.MasterLost(peer.peer_id, reason)
                 if error
-                else safety.MasterDetach(peer.peer_id)
+                else safety.MasterDetach(peer.peer_id, hold=False)  # its last move completes
             )
             self._apply(event, now, cause=reason)
             self._drop_master(
@@ -911,10 +914,12 @@ class Robot:
         )
         return await reply.wait()
 
-    async def _detach(self, role: str, peer_id: str | None, *, lost: bool, reason: str) -> None:
+    async def _detach(
+        self, role: str, peer_id: str | None, *, lost: bool, reason: str, hold: bool = True
+    ) -> None:
         reply: _Reply[None] = _Reply()
         try:
-            await self._post(_DetachMsg(role, peer_id, lost, reason, reply))
+            await self._post(_DetachMsg(role, peer_id, lost, reason, reply, hold))
             await reply.wait()
         except ArenaError as exc:
             if exc.code is not ErrorCode.ROBOT_STOPPED:

@@ -54,9 +54,11 @@ class MasterAttach:
 
 @dataclass(frozen=True, slots=True)
 class MasterDetach:
-    """A master leaves of its own accord."""
+    """A master leaves of its own accord: `hold` stops motion in progress where it is (an
+    operator's stop); without it the last command completes (a sequence that finished)."""
 
     master_id: str
+    hold: bool = True
 
 
 @dataclass(frozen=True, slots=True)
@@ -332,14 +334,15 @@ def _no_master(state: SafetyState, event: Event) -> Outcome:
     return Ignored("the robot has no master")
 
 
-@_rule("owner: allowed, hold position -> idle; others: ignored")
+@_rule(
+    "owner: allowed -> idle (hold position if asked, else the last move completes); others: ignored"
+)
 def _release(state: SafetyState, event: Event) -> Outcome:
     assert isinstance(event, MasterDetach)
     if event.master_id != state.owner:
         return Ignored("not the owner")
-    return Allowed(
-        replace(state, mode=Mode.IDLE, owner=None, owner_autonomous=False), (HoldPosition(),)
-    )
+    effects: tuple[Effect, ...] = (HoldPosition(),) if event.hold else ()
+    return Allowed(replace(state, mode=Mode.IDLE, owner=None, owner_autonomous=False), effects)
 
 
 @_rule("owner: allowed, ownership ends, stays estopped; others: ignored")

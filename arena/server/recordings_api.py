@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import trio
@@ -11,7 +12,7 @@ from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import ReplayBody, ReplayMasterBody
 from arena.recording.analysis import summarize
 from arena.recording.mcap_file import SUFFIX, read_recording
-from arena.recording.recorder import check_name
+from arena.recording.recorder import check_name, existing_recording
 
 if TYPE_CHECKING:
     from arena.server.app import ArenaApp
@@ -23,12 +24,8 @@ def _app() -> ArenaApp:
     return current_app  # type: ignore[return-value]
 
 
-def _existing(name: str) -> Any:
-    recorder = _app().recorder
-    path = check_name(recorder.folder, name)
-    if not path.is_file():
-        raise ArenaError(ErrorCode.UNKNOWN_RECORDING, f"No recording called {name!r}.")
-    return path
+def _existing(name: str) -> Path:
+    return existing_recording(_app().recorder.folder, name)
 
 
 @blueprint.get("/api/recordings")

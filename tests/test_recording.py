@@ -1,0 +1,288 @@
+"""Recording to MCAP and back: schemas, deterministic replay, replay master, bad files, tools."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import jsonschema
+import pytest
+import trio
+from mcap.reader import make_reader
+from trio.testing import MockClock
+
+from arena import cli
+from arena.drivers.mock_slave import MockSlave
+from arena.drivers.sequence_master import SequenceMaster
+from arena.drivers.sequences import get_sequence
+from arena.protocol.errors import ArenaError, ErrorCode
+from arena.recording.analysis import export, summarize, timeline
+from arena.recording.mcap_file import read_recording, write_recording
+from arena.recording.recorder import Recorder, check_name
+from arena.recording.replay import ReplayMaster, recorded_commands
+from arena.recording.session import behaviour, replay_session
+from arena.robot.manager import RobotManager, open_manager
+from arena.robot.motion import Command
+from arena.robot.safety import Mode
+from tests.conftest import RecordingSlave
+
+SPEC_SCHEMAS = Path(__file__).resolve().parent.parent / "specs" / "schemas"
+
+
+async def record_session(folder: Path) -> Path:
+    """A session worth replaying: manual commands, a sequence, an e-stop and a reset."""
+    recorder = Recorder(folder, flush_interval=0.05)
+    async with trio.open_nursery() as nursery:
+        await nursery.start(recorder.run)
+        async with open_manager() as manager:
+            manager.on_create.append(recorder.follow)
+            robot = await manager.create_robot("so-arm100", robot_id="arm")
+            await robot.attach_slave(MockSlave())
+            await robot.command(Command.of({"Rotation": 45.0, "Pitch": -30.0}))
+            await trio.sleep(1.0)
+            await robot.command(Command.of({"Elbow": -20.0}, duration=0.5))
+            await trio.sleep(1.0)
+            await robot.attach_master(SequenceMaster([get_sequence("gentle-wave")]))
+            await trio.sleep(2.5)
+            await robot.estop("test stop")
+            await trio.sleep(0.5)
+            await robot.command(Command.of({"Rotation": 0.0}))  # refused: e-stopped
+            await robot.reset()
+            await trio.sleep(0.3)
+            await robot.command(Command.of({"Rotation": 10.0, "Jaw": 500.0}))  # clamped
+            await trio.sleep(2.0)
+        nursery.cancel_scope.cancel()
+    (path,) = recorder.writer.files
+    return path
+
+
+@pytest.fixture
+async def session_file(autojump_clock: MockClock, tmp_path: Path) -> AsyncIterator[Path]:
+    yield await record_session(tmp_path)
+
+
+async def test_round_trip_through_the_mcap_reader(
+    autojump_clock: MockClock, session_file: Path
+) -> None:
+    with open(session_file, "rb") as stream:
+        reader = make_reader(stream)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        topics = {channel.topic for channel in summary.channels.values()}
+        messages = list(reader.iter_messages())
+        metadata = {m.name: m.metadata for m in reader.iter_metadata()}
+    assert {
+        "/robots/arm/command",
+        "/robots/arm/targets",
+        "/robots/arm/joint_states",
+        "/robots/arm/state",
+        "/robots/arm/peer",
+    } <= topics
+    assert summary.statistics.message_count == len(messages) > 100
+    assert all(schema.encoding == "jsonschema" for schema in summary.schemas.values())
+    assert all(channel.message_encoding == "json" for channel in summary.channels.values())
+    assert metadata["arena"]["server"] == "arena"
+    assert '<robot name="so-arm100">' in metadata["robot/arm"]["urdf"]
+    recording = read_recording(session_file)
+    assert not recording.truncated and len(recording.messages) == len(messages)
+
+
+async def test_every_message_fits_its_schema_in_specs(
+    autojump_clock: MockClock, session_file: Path
+) -> None:
+    recording = read_recording(session_file)
+    schemas = {
+        kind: json.loads((SPEC_SCHEMAS / f"record-{kind.replace('_', '-')}.json").read_text())
+        for kind in ("command", "targets", "joint_states", "state", "fault", "peer")
+    }
+    for message in recording.messages:
+        jsonschema.validate(message.data, schemas[message.kind])
+    with pytest.raises(jsonschema.ValidationError):
+        jsonschema.validate({"t": "soon"}, schemas["targets"])
+
+
+async def test_the_recording_tells_the_story(autojump_clock: MockClock, session_file: Path) -> None:
+    recording = read_recording(session_file)
+    summary = summarize(recording)
+    assert [e["reason"] for e in summary["estops"]] == ["test stop"]
+    assert summary["refused_commands"] == 1
+    assert summary["robots"]["arm"]["robot_type"] == "so-arm100"
+    errors = summary["robots"]["arm"]["tracking_error_deg"]
+    assert set(errors) == {"Rotation", "Pitch", "Elbow", "Wrist_Pitch", "Wrist_Roll", "Jaw"}
+    lines = timeline(recording, robot="arm")
+    assert any("estopped" in line and "test stop" in line for line in lines)
+    assert any("refused ESTOPPED" in line for line in lines)
+    rows = export(recording, "csv", "/robots/arm/targets").splitlines()
+    assert rows[0].startswith("topic,log_time,t,joint.Rotation")
+    assert len(rows) - 1 == sum(1 for m in recording.messages if m.kind == "targets")
+    lines_jsonl = export(recording, "jsonl").splitlines()
+    assert len(lines_jsonl) == len(recording.messages)
+
+
+async def test_a_replayed_session_behaves_the_same(
+    autojump_clock: MockClock, session_file: Path
+) -> None:
+    original = read_recording(session_file)
+    replayed = await replay_session(original, "arm")
+    expected, actual = behaviour(original, "arm"), behaviour(replayed, "arm")
+    assert len(expected) > 100
+    assert [e[1] for e in expected].count("command") == 6
+    assert actual == expected
+
+
+async def test_replay_master_timing_speed_and_window(
+    autojump_clock: MockClock, session_file: Path, manager: RobotManager
+) -> None:
+    commands = recorded_commands(read_recording(session_file), "arm")
+    assert commands[0].at == 0.0
+    robot = await manager.create_robot("so-arm100", robot_id="copy")
+    received: list[float] = []
+    with robot.subscribe(maxlen=10_000) as events:
+        start = trio.current_time()
+        await robot.attach_master(ReplayMaster(commands, speed=2.0))
+        await trio.sleep(commands[-1].at)
+        for event in events.drain():
+            if type(event).__name__ == "CommandHandled":
+                received.append(round(event.time - start, 9))  # type: ignore[union-attr]
+    assert received == [round(c.at / 2.0, 9) for c in commands]
+    window = recorded_commands(read_recording(session_file), "arm", start=1.5, end=4.0)
+    assert window and all(0 <= c.at < 2.5 for c in window)
+    assert len(window) < len(commands)
+
+
+async def test_replay_is_refused_during_estop_and_stopped_by_one(
+    autojump_clock: MockClock, session_file: Path, manager: RobotManager
+) -> None:
+    commands = recorded_commands(read_recording(session_file), "arm")
+    robot = await manager.create_robot("so-arm100", robot_id="copy")
+    recorder = RecordingSlave()
+    await robot.attach_slave(recorder)
+    await robot.estop("before")
+    with pytest.raises(ArenaError) as info:
+        await robot.attach_master(ReplayMaster(commands))
+    assert info.value.code is ErrorCode.ESTOPPED
+    await robot.reset()
+    master = ReplayMaster(commands, loop=True)
+    await robot.attach_master(master)
+    await trio.sleep(1.5)
+    await robot.estop("during")
+    stopped_at = trio.current_time()
+    await robot.reset()
+    await trio.sleep(30)
+    assert robot.snapshot().master is None and robot.snapshot().mode is Mode.IDLE
+    assert all(t <= stopped_at for t, _ in recorder.targets)
+
+
+def test_bad_files_give_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    not_mcap = tmp_path / "notes.mcap"
+    not_mcap.write_text("hello")
+    empty = tmp_path / "empty.mcap"
+    empty.write_bytes(b"")
+    for path in (not_mcap, empty, tmp_path / "missing.mcap"):
+        with pytest.raises(ArenaError) as info:
+            read_recording(path)
+        assert info.value.code is ErrorCode.INVALID_RECORDING
+        assert cli.main(["inspect", str(path)]) == 2
+        assert "arena inspect:" in capsys.readouterr().err
+
+
+def test_foreign_mcap_files_are_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from mcap.writer import Writer
+
+    path = tmp_path / "foreign.mcap"
+    with open(path, "wb") as stream:
+        writer = Writer(stream)
+        writer.start()
+        schema = writer.register_schema("x", "jsonschema", b"{}")
+        channel = writer.register_channel("/camera/image", "json", schema)
+        writer.add_message(channel, 1, b"{}", 1)
+        writer.finish()
+    assert cli.main(["inspect", str(path)]) == 2
+    assert "no Arena" in capsys.readouterr().err
+
+
+def test_truncated_files_are_read_and_recovered(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    complete = trio.run(record_session, tmp_path, clock=MockClock(autojump_threshold=0))
+    whole = read_recording(complete)
+    data = complete.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) * 2 // 3])
+    partial = read_recording(cut)
+    assert partial.truncated and 0 < len(partial.messages) < len(whole.messages)
+    assert partial.messages == whole.messages[: len(partial.messages)]
+    for command in (
+        ["inspect", str(cut)],
+        ["timeline", str(cut)],
+        ["export", str(cut), "--format", "csv"],
+    ):
+        assert cli.main(command) == 0
+        assert "truncated" in capsys.readouterr().err
+    assert cli.main(["recover", str(cut), "-o", str(tmp_path / "fixed.mcap")]) == 0
+    with open(tmp_path / "fixed.mcap", "rb") as stream:
+        fixed = list(make_reader(stream).iter_messages())
+    assert len(fixed) == len(partial.messages)
+    assert write_recording(partial, tmp_path / "again.mcap") == len(partial.messages)
+
+
+def test_recording_names_cannot_escape_the_folder(tmp_path: Path) -> None:
+    assert check_name(tmp_path, "a.mcap") == (tmp_path / "a.mcap").resolve()
+    for name in ("../a.mcap", "/etc/passwd", "a/b.mcap", ".hidden.mcap", "a.txt", "", "..\\a.mcap"):
+        with pytest.raises(ArenaError) as info:
+            check_name(tmp_path, name)
+        assert info.value.code is ErrorCode.UNKNOWN_RECORDING
+
+
+async def test_sigkill_loses_at_most_the_last_flush(tmp_path: Path) -> None:
+    """A real server process, recording, killed with SIGKILL: the file reads and recovers."""
+    import os
+    import re
+    import signal
+    import sys
+    import time
+
+    import httpx
+
+    folder = tmp_path / "rec"
+    env = {**os.environ, "LOG_LEVEL": "INFO"}
+    process = await trio.lowlevel.open_process(
+        [
+            sys.executable,
+            "-m",
+            "arena.cli",
+            "serve",
+            "--demo",
+            "--port",
+            "0",
+            "--recordings-dir",
+            str(folder),
+        ],
+        stderr=-1,
+        env=env,
+    )
+    assert process.stderr is not None
+    text = b""
+    with trio.fail_after(30):
+        while (found := re.search(rb"listening on (http://\S+)", text)) is None:
+            chunk = await process.stderr.receive_some()
+            assert chunk, text.decode()
+            text += chunk
+    url = found.group(1).decode()
+    async with httpx.AsyncClient(base_url=url) as http:
+        await http.post("/api/robots/demo-arm/master", json={"type": "mock-sequence", "loop": True})
+        await trio.sleep(2.0)
+        killed_at = time.time()
+        process.send_signal(signal.SIGKILL)
+    await process.wait()
+    (path,) = folder.glob("*.mcap")
+    recording = read_recording(path)
+    assert recording.truncated
+    last = max(m.log_time for m in recording.messages) / 1e9
+    assert killed_at - last < 1.0, "more than a second of recording was lost"
+    assert any(m.kind == "command" for m in recording.messages)
+    fixed = tmp_path / "fixed.mcap"
+    assert cli.main(["recover", str(path), "-o", str(fixed)]) == 0
+    with open(fixed, "rb") as stream:
+        assert len(list(make_reader(stream).iter_messages())) == len(recording.messages)
