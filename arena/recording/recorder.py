@@ -8,6 +8,7 @@ batch to a worker thread, where the MCAP writer does its compression and file I/
 from __future__ import annotations
 
 import logging
+import time
 from collections import deque
 from pathlib import Path
 from typing import Any
@@ -52,6 +53,7 @@ class Recorder:
         self._pending: deque[Item] = deque()
         self._wake = trio.Event()
         self._nursery: trio.Nursery | None = None
+        self._wall_offset = 0.0
 
     @property
     def folder(self) -> Path:
@@ -68,6 +70,7 @@ class Recorder:
         try:
             async with trio.open_nursery() as nursery:
                 self._nursery = nursery
+                self._wall_offset = time.time() - trio.current_time()
                 task_status.started()
                 await self._write_forever()
         finally:
@@ -106,9 +109,10 @@ class Recorder:
                 if not self.active:
                     continue
                 kind, record = record_of(event)
-                self._pending.append(
-                    (robot.robot_id, kind, _encoder.encode(record), int(event.wall_time * 1e9))
-                )
+                # Log times follow trio's clock from one wall-clock anchor: monotonic within a
+                # file (no NTP jumps), and virtual time stays consistent in tests.
+                log_time = int((event.time + self._wall_offset) * 1e9)
+                self._pending.append((robot.robot_id, kind, _encoder.encode(record), log_time))
                 self._wake.set()
 
     async def _write_forever(self) -> None:
