@@ -103,6 +103,10 @@ def main(argv: list[str] | None = None) -> int:
     recover = commands.add_parser("recover", help="rewrite a truncated recording completely")
     recover.add_argument("file")
     recover.add_argument("-o", "--output", help="default: FILE with .recovered.mcap")
+    plot = commands.add_parser("plot", help="plot a robot's joints from a recording")
+    plot.add_argument("file")
+    plot.add_argument("--robot", help="the recorded robot (default: the only one)")
+    plot.add_argument("-o", "--output", required=True, help="image file (.png, .svg, .pdf)")
     replay = commands.add_parser("replay", help="replay a recording into a server's robot")
     replay.add_argument("file")
     replay.add_argument("--robot", help="the recorded robot whose commands to replay")
@@ -126,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "serve":
             return _serve(args)
-        if args.command in ("inspect", "timeline", "export", "recover", "replay"):
+        if args.command in ("inspect", "timeline", "export", "recover", "replay", "plot"):
             from arena.protocol.errors import ArenaError
 
             try:
@@ -180,6 +184,11 @@ def _recording_command(args: argparse.Namespace) -> int:
         print("\n".join(analysis.timeline(recording, args.robot, args.start, args.end)))
     elif args.command == "export":
         sys.stdout.write(analysis.export(recording, args.format, args.topic))
+    elif args.command == "plot":
+        from arena.recording.plot import plot_recording
+        from arena.recording.replay import pick_robot
+
+        print(plot_recording(recording, pick_robot(recording, args.robot), Path(args.output)))
     elif args.command == "recover":
         output = Path(args.output or str(Path(args.file).with_suffix("")) + ".recovered.mcap")
         count = write_recording(recording, output)

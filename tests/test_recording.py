@@ -286,3 +286,28 @@ async def test_sigkill_loses_at_most_the_last_flush(tmp_path: Path) -> None:
     assert cli.main(["recover", str(path), "-o", str(fixed)]) == 0
     with open(fixed, "rb") as stream:
         assert len(list(make_reader(stream).iter_messages())) == len(recording.messages)
+
+
+def test_plot_draws_every_joint(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    golden = Path(__file__).resolve().parent.parent / "recordings" / "golden"
+    output = tmp_path / "wave.png"
+    assert cli.main(["plot", str(golden / "manual-estop-reset.mcap"), "-o", str(output)]) == 0
+    assert output.read_bytes().startswith(b"\x89PNG") and output.stat().st_size > 10_000
+
+
+def test_plot_says_how_to_install_matplotlib(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import builtins
+
+    real_import = builtins.__import__
+
+    def no_matplotlib(name: str, *args: object, **kwargs: object) -> object:
+        if name.startswith("matplotlib"):
+            raise ImportError(name)
+        return real_import(name, *args, **kwargs)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(builtins, "__import__", no_matplotlib)
+    golden = Path(__file__).resolve().parent.parent / "recordings" / "golden"
+    assert cli.main(["plot", str(golden / "gentle-wave.mcap"), "-o", str(tmp_path / "x.png")]) == 2
+    assert "pip install" in capsys.readouterr().err
