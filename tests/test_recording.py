@@ -311,3 +311,27 @@ def test_plot_says_how_to_install_matplotlib(
     golden = Path(__file__).resolve().parent.parent / "recordings" / "golden"
     assert cli.main(["plot", str(golden / "gentle-wave.mcap"), "-o", str(tmp_path / "x.png")]) == 2
     assert "pip install" in capsys.readouterr().err
+
+
+async def test_files_rotate_by_size_and_each_stands_alone(
+    autojump_clock: MockClock, tmp_path: Path
+) -> None:
+    recorder = Recorder(tmp_path, flush_interval=0.05, max_bytes=20_000)
+    async with trio.open_nursery() as nursery:
+        await nursery.start(recorder.run)
+        async with open_manager() as manager:
+            manager.on_create.append(recorder.follow)
+            robot = await manager.create_robot("so-arm100", robot_id="arm")
+            await robot.attach_slave(MockSlave())
+            await robot.attach_master(SequenceMaster([get_sequence("tiny-flex")]))
+            await trio.sleep(8.5)
+        nursery.cancel_scope.cancel()
+    files = recorder.writer.files
+    assert len(files) >= 3
+    total = 0
+    for path in files:
+        with open(path, "rb") as stream:
+            reader = make_reader(stream)
+            total += len(list(reader.iter_messages()))
+            assert "robot/arm" in {m.name for m in reader.iter_metadata()}
+    assert total == recorder.writer.messages
