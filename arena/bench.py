@@ -1,116 +1,446 @@
-"""`arena bench`: in-process benchmarks of the robot core. Prints medians; asserts nothing.
+"""`arena bench`: benchmarks against a real server on loopback. Prints medians; asserts nothing.
 
-Scenarios (each run several times, the median reported):
-- core: `RobotCore.command` calls per second (pure decision code: safety, limits, motion).
-- actor: commands per second through a robot actor with one slave attached, awaiting each answer,
-  and the per-command round-trip time (p50, p99).
-- relay: time from a master's command to a slave taking the target (p50, p99).
+The server runs as its own process (`arena serve`, recording on unless a scenario says
+otherwise); clients use the `websockets` package on asyncio in this process. The robots use a
+copy of the so-arm100 type whose rate limit is raised (the default 100 commands/s per master
+would be the only thing measured otherwise); every other check stays on.
+
+Scenarios:
+  relay       one master, one slave, commands one at a time: send -> slave's execute_command
+  throughput  commands as fast as one master can send: accepted/s, and what reached the slave
+  fleet       N robots, each a master at 50 Hz and a slave: latency p50/p99, server CPU and RSS
+  estop       POST /api/robots/{id}/estop -> the slave's estop notice; POST /api/estop -> last
+  recording   throughput with recording on against off (ratio)
+  replay      commands/s of a replay at maximum speed (in process)
+  core        RobotCore.command calls/s (pure decision code)
 """
 
 from __future__ import annotations
 
+import asyncio
 import dataclasses
 import json
+import os
+import re
+import shutil
 import statistics
+import subprocess
+import sys
+import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
+from pathlib import Path
 from typing import Any
 
-import trio
+import httpx
 
-from arena.robot.actor import SlaveLink
-from arena.robot.core import RobotCore
-from arena.robot.events import SlaveTarget
-from arena.robot.manager import open_manager
-from arena.robot.model import load_robot_model
-from arena.robot.motion import Command
+from arena.robot.model import BUILTIN_TYPES_DIR, TYPES_PATH_ENV
 
-REPEATS = 5
-COMMANDS = 20_000
-
-
-def _commands(count: int) -> list[Command]:
-    # Tiny alternating steps that stay inside the velocity budget even at tens of thousands of
-    # commands per second, so every command produces a target.
-    return [
-        Command.of({"Rotation": (i % 2) * 0.001, "Elbow": -(i % 2) * 0.001}) for i in range(count)
-    ]
-
-
-def bench_core() -> float:
-    """Pure core: commands per second."""
-    model = load_robot_model("so-arm100")
-    policy = dataclasses.replace(model.safety, command_rate=1e12, command_burst=10**9)
-    core = RobotCore(model, 0.0, policy)
-    commands = _commands(COMMANDS)
-    start = time.perf_counter()
-    for i, command in enumerate(commands):
-        core.command(None, command, i * 0.01)
-    return COMMANDS / (time.perf_counter() - start)
-
-
-async def _actor_round_trips() -> tuple[float, list[float], list[float]]:
-    model = load_robot_model("so-arm100")
-    policy = dataclasses.replace(model.safety, command_rate=1e12, command_burst=10**9)
-    received: list[float] = []
-
-    async def slave(link: SlaveLink) -> None:
-        while True:
-            message = await link.receive()
-            if isinstance(message, SlaveTarget):
-                received.append(time.perf_counter())
-
-    async with open_manager() as manager:
-        robot = await manager.create_robot("so-arm100", robot_id="bench", policy=policy)
-        link = await robot.connect_slave("bench-slave")
-        async with trio.open_nursery() as nursery:
-            nursery.start_soon(slave, link)
-            master = await robot.connect_master("bench-master")
-            round_trips: list[float] = []
-            relays: list[float] = []
-            commands = _commands(COMMANDS // 4)
-            start = time.perf_counter()
-            for command in commands:
-                sent = time.perf_counter()
-                await master.command(command)
-                round_trips.append(time.perf_counter() - sent)
-                count = len(received)
-                for _ in range(100):  # let the slave take the target
-                    if len(received) > count:
-                        relays.append(received[-1] - sent)
-                        break
-                    await trio.sleep(0)
-            elapsed = time.perf_counter() - start
-            nursery.cancel_scope.cancel()
-    return len(commands) / elapsed, round_trips, relays
-
-
-def _median_of(runs: int, fn: Callable[[], float]) -> float:
-    return statistics.median(fn() for _ in range(runs))
+BENCH_TYPE = "so-arm100-bench"
 
 
 def _percentile(values: list[float], q: float) -> float:
     ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, int(q * len(ordered)))]
+    return ordered[min(len(ordered) - 1, int(q * len(ordered)))] if ordered else float("nan")
 
 
-def run_benchmarks(json_path: str | None = None) -> dict[str, Any]:
-    """Run every scenario, print a table, optionally write JSON."""
+def _bench_types(folder: Path) -> Path:
+    """A robot-type folder holding so-arm100 with the rate limit out of the way."""
+    target = folder / BENCH_TYPE
+    shutil.copytree(BUILTIN_TYPES_DIR / "so-arm100", target)
+    config = target / "robot.toml"
+    text = config.read_text()
+    text = re.sub(r"command_rate = [\d.]+", "command_rate = 1000000.0", text)
+    text = re.sub(r"command_burst = \d+", "command_burst = 1000000", text)
+    config.write_text(text)
+    return folder
+
+
+@dataclasses.dataclass
+class Server:
+    """A server process and its base URL."""
+
+    process: subprocess.Popen[bytes]
+    url: str
+
+    @property
+    def ws(self) -> str:
+        return "ws" + self.url[4:]
+
+    def cpu_seconds(self) -> float:
+        """User + system CPU time of the server process so far."""
+        with open(f"/proc/{self.process.pid}/stat") as stat:
+            fields = stat.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+    def rss_mib(self) -> float:
+        """Resident memory of the server process."""
+        with open(f"/proc/{self.process.pid}/status") as status:
+            for line in status:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024
+        return float("nan")
+
+
+@asynccontextmanager
+async def running_server(record: bool = True) -> AsyncIterator[Server]:
+    """`arena serve` on 127.0.0.1 with a port the system chose, stopped on exit."""
+    with tempfile.TemporaryDirectory() as scratch:
+        folder = Path(scratch)
+        env = {
+            **os.environ,
+            TYPES_PATH_ENV: str(_bench_types(folder / "types")),
+            "LOG_LEVEL": "WARNING",
+        }
+        args = [
+            sys.executable,
+            "-m",
+            "arena.cli",
+            "serve",
+            "--port",
+            "0",
+            "--recordings-dir",
+            str(folder / "recordings"),
+        ]
+        if not record:
+            args.append("--no-record")
+        env["LOG_LEVEL"] = "INFO"
+        process = subprocess.Popen(args, env=env, stderr=subprocess.PIPE)
+        assert process.stderr is not None
+        url = None
+        deadline = time.monotonic() + 60
+        while url is None and time.monotonic() < deadline:
+            line = process.stderr.readline().decode()
+            if not line:
+                break
+            found = re.search(r"listening on (http://\S+)", line)
+            if found:
+                url = found.group(1)
+        if url is None:
+            process.kill()
+            raise RuntimeError("the server did not start")
+        # Drain the log so the server never blocks on a full pipe.
+        loop = asyncio.get_running_loop()
+        drain = loop.run_in_executor(None, lambda: process.stderr.read() if process.stderr else b"")
+        try:
+            yield Server(process, url)
+        finally:
+            process.terminate()
+            await drain
+            process.wait(timeout=10)
+
+
+async def _robot(http: httpx.AsyncClient, robot_id: str) -> None:
+    response = await http.post("/api/robots", json={"robot_type": BENCH_TYPE, "id": robot_id})
+    response.raise_for_status()
+
+
+def _command(i: int) -> str:
+    # Tiny alternating steps: always inside the velocity budget, so each goes out at once.
+    value = (i % 2) * 0.001
+    return json.dumps(
+        {
+            "type": "command",
+            "data": {
+                "joints": [{"name": "Rotation", "value": value}, {"name": "Elbow", "value": -value}]
+            },
+        }
+    )
+
+
+async def relay(server: Server, count: int = 5000) -> dict[str, float]:
+    """Master send -> slave receipt of execute_command, one command at a time."""
+    import websockets
+
+    async with httpx.AsyncClient(base_url=server.url) as http:
+        await _robot(http, "relay")
+    async with (
+        websockets.connect(server.ws + "/ws/slave/relay") as slave,
+        websockets.connect(server.ws + "/ws/master/relay") as master,
+    ):
+        latencies = []
+        for i in range(count + 100):
+            sent = time.perf_counter()
+            await master.send(_command(i + 1))
+            while True:
+                message = json.loads(await slave.recv())
+                if message["type"] == "execute_command":
+                    break
+            if i >= 100:  # warm-up excluded
+                latencies.append(time.perf_counter() - sent)
+            while json.loads(await master.recv())["type"] != "ack":
+                pass
+    return {
+        "relay_p50_us": _percentile(latencies, 0.5) * 1e6,
+        "relay_p99_us": _percentile(latencies, 0.99) * 1e6,
+        "relay_max_us": max(latencies) * 1e6,
+    }
+
+
+async def throughput(
+    server: Server, count: int = 20_000, robot_id: str = "flood"
+) -> dict[str, float]:
+    """Commands as fast as one master can send them; acks counted as they come back."""
+    import websockets
+
+    async with httpx.AsyncClient(base_url=server.url) as http:
+        await _robot(http, robot_id)
+    reached = 0
+    async with (
+        websockets.connect(server.ws + f"/ws/slave/{robot_id}") as slave,
+        websockets.connect(server.ws + f"/ws/master/{robot_id}") as master,
+    ):
+
+        async def count_slave() -> None:
+            nonlocal reached
+            async for raw in slave:
+                if '"execute_command"' in raw:
+                    reached += 1
+
+        counter = asyncio.create_task(count_slave())
+        accepted = refused = 0
+        start = time.perf_counter()
+
+        async def send_all() -> None:
+            for i in range(count):
+                await master.send(_command(i + 1))
+
+        sender = asyncio.create_task(send_all())
+        while accepted + refused < count:
+            message = json.loads(await master.recv())
+            if message["type"] == "ack":
+                if message["data"]["status"] == "refused":
+                    refused += 1
+                else:
+                    accepted += 1
+        elapsed = time.perf_counter() - start
+        await sender
+        await asyncio.sleep(0.2)
+        counter.cancel()
+    return {
+        "throughput_accepted_per_s": accepted / elapsed,
+        "throughput_refused": refused,
+        "throughput_reached_slave": reached,
+    }
+
+
+async def fleet(
+    server: Server, robots: int = 100, rate: float = 50.0, seconds: float = 10.0
+) -> dict[str, float]:
+    """`robots` robots, each with a master at `rate` Hz and a slave, for `seconds`."""
+    import websockets
+
+    async with httpx.AsyncClient(base_url=server.url) as http:
+        for n in range(robots):
+            await _robot(http, f"fleet-{n}")
+    latencies: list[float] = []
+    cpu_before = server.cpu_seconds()
+
+    async def pair(n: int) -> None:
+        async with (
+            websockets.connect(server.ws + f"/ws/slave/fleet-{n}") as slave,
+            websockets.connect(server.ws + f"/ws/master/fleet-{n}") as master,
+        ):
+            sent_at: dict[float, float] = {}
+
+            async def drain_acks() -> None:
+                async for _ in master:
+                    pass
+
+            acks = asyncio.create_task(drain_acks())
+
+            async def receive() -> None:
+                async for raw in slave:
+                    message = json.loads(raw)
+                    if message["type"] == "execute_command":
+                        value = message["data"]["joints"][0]["value"]
+                        started = sent_at.pop(value, None)
+                        if started is not None:
+                            latencies.append(time.perf_counter() - started)
+
+            receiver = asyncio.create_task(receive())
+            end = time.perf_counter() + seconds
+            i = 0
+            while time.perf_counter() < end:
+                i += 1
+                value = round((i % 2) * 0.001 + n * 1e-6, 9)
+                sent_at[value] = time.perf_counter()
+                await master.send(
+                    json.dumps(
+                        {
+                            "type": "command",
+                            "data": {"joints": [{"name": "Rotation", "value": value}]},
+                        }
+                    )
+                )
+                await asyncio.sleep(1 / rate)
+            await asyncio.sleep(0.2)
+            receiver.cancel()
+            acks.cancel()
+
+    wall = time.perf_counter()
+    await asyncio.gather(*(pair(n) for n in range(robots)))
+    wall = time.perf_counter() - wall
+    return {
+        "fleet_p50_us": _percentile(latencies, 0.5) * 1e6,
+        "fleet_p99_us": _percentile(latencies, 0.99) * 1e6,
+        "fleet_server_cpu_percent": 100 * (server.cpu_seconds() - cpu_before) / wall,
+        "fleet_server_rss_mib": server.rss_mib(),
+        "fleet_messages": len(latencies),
+    }
+
+
+async def estop(server: Server, trials: int = 200, robots: int = 100) -> dict[str, float]:
+    """REST e-stop to the slave's notice: one robot, then every robot at once."""
+    import websockets
+
+    async with httpx.AsyncClient(base_url=server.url) as http:
+        await _robot(http, "stop-one")
+        one = []
+        async with websockets.connect(server.ws + "/ws/slave/stop-one") as slave:
+            for _ in range(trials):
+                start = time.perf_counter()
+                response = await http.post("/api/robots/stop-one/estop")
+                while json.loads(await slave.recv())["type"] != "estop":
+                    pass
+                one.append(time.perf_counter() - start)
+                response.raise_for_status()
+                await http.post("/api/robots/stop-one/reset")
+                while json.loads(await slave.recv())["type"] != "reset":
+                    pass
+        for n in range(robots):
+            await _robot(http, f"stop-{n}")
+        slaves = [
+            await websockets.connect(server.ws + f"/ws/slave/stop-{n}") for n in range(robots)
+        ]
+        everyone = []
+        try:
+            for _ in range(5):
+                start = time.perf_counter()
+                await http.post("/api/estop")
+
+                async def notice(ws: Any) -> float:
+                    while json.loads(await ws.recv())["type"] != "estop":
+                        pass
+                    return time.perf_counter()
+
+                done = await asyncio.gather(*(notice(ws) for ws in slaves))
+                everyone.append(max(done) - start)
+                for n in range(robots):
+                    await http.post(f"/api/robots/stop-{n}/reset")
+                await asyncio.gather(*(_skip_until(ws, "reset") for ws in slaves))
+        finally:
+            for ws in slaves:
+                await ws.close()
+    return {
+        "estop_one_p50_ms": _percentile(one, 0.5) * 1e3,
+        "estop_one_p99_ms": _percentile(one, 0.99) * 1e3,
+        "estop_all_median_ms": statistics.median(everyone) * 1e3,
+    }
+
+
+async def _skip_until(ws: Any, kind: str) -> None:
+    while json.loads(await ws.recv())["type"] != kind:
+        pass
+
+
+def replay_rate(commands: int = 20_000) -> dict[str, float]:
+    """A replay at maximum speed, in process: commands per second issued and answered."""
+    import trio
+    import trio.testing
+
+    from arena.recording.replay import ReplayMaster, TimedCommand
+    from arena.robot.manager import open_manager
+    from arena.robot.model import load_robot_model
+    from arena.robot.motion import Command
+
+    model = load_robot_model("so-arm100")
+    policy = dataclasses.replace(model.safety, command_rate=1e9, command_burst=10**9)
+    timed = [
+        TimedCommand(i * 0.01, Command.of({"Rotation": (i % 2) * 0.001})) for i in range(commands)
+    ]
+
+    async def run() -> float:
+        async with open_manager() as manager:
+            robot = await manager.create_robot("so-arm100", robot_id="replay", policy=policy)
+            master = ReplayMaster(timed, speed=1000.0)
+            start = time.perf_counter()
+            await robot.attach_master(master)
+            while robot.snapshot().master is not None:
+                await trio.sleep(0.01)
+            return commands / (time.perf_counter() - start)
+
+    # Virtual time: the replay's own pacing costs nothing, what is left is the work per command.
+    return {
+        "replay_commands_per_s": trio.run(run, clock=trio.testing.MockClock(autojump_threshold=0))
+    }
+
+
+def core_rate(count: int = 20_000) -> dict[str, float]:
+    """Pure core: commands per second."""
+    from arena.robot.core import RobotCore
+    from arena.robot.model import load_robot_model
+    from arena.robot.motion import Command
+
+    model = load_robot_model("so-arm100")
+    policy = dataclasses.replace(model.safety, command_rate=1e12, command_burst=10**9)
+    core = RobotCore(model, 0.0, policy)
+    commands = [Command.of({"Rotation": (i % 2) * 0.001}) for i in range(count)]
+    start = time.perf_counter()
+    for i, command in enumerate(commands):
+        core.command(None, command, i * 0.01)
+    return {"core_commands_per_s": count / (time.perf_counter() - start)}
+
+
+async def _with_server(scenario: Callable[[Server], Any], record: bool = True) -> Any:
+    async with running_server(record=record) as server:
+        return await scenario(server)
+
+
+SCENARIOS = ("relay", "throughput", "fleet", "estop", "recording", "replay", "core")
+
+
+def run_benchmarks(
+    json_path: str | None = None,
+    only: list[str] | None = None,
+    repeats: int = 3,
+    fleet_robots: int = 100,
+) -> dict[str, Any]:
+    """Run the chosen scenarios (medians of `repeats` runs where cheap), print, write JSON."""
+    chosen = only or list(SCENARIOS)
     results: dict[str, Any] = {}
-    results["core_commands_per_s"] = _median_of(REPEATS, bench_core)
-    actor_runs = [trio.run(_actor_round_trips) for _ in range(REPEATS)]
-    results["actor_commands_per_s"] = statistics.median(r[0] for r in actor_runs)
-    trips = [t for r in actor_runs for t in r[1]]
-    relays = [t for r in actor_runs for t in r[2]]
-    results["actor_round_trip_us_p50"] = _percentile(trips, 0.5) * 1e6
-    results["actor_round_trip_us_p99"] = _percentile(trips, 0.99) * 1e6
-    results["relay_us_p50"] = _percentile(relays, 0.5) * 1e6
-    results["relay_us_p99"] = _percentile(relays, 0.99) * 1e6
+
+    def median_of(runs: list[dict[str, float]]) -> dict[str, float]:
+        return {key: statistics.median(run[key] for run in runs) for key in runs[0]}
+
+    if "core" in chosen:
+        results.update(median_of([core_rate() for _ in range(repeats)]))
+    if "replay" in chosen:
+        results.update(median_of([replay_rate() for _ in range(repeats)]))
+    if "relay" in chosen:
+        results.update(median_of([asyncio.run(_with_server(relay)) for _ in range(repeats)]))
+    if "throughput" in chosen or "recording" in chosen:
+        on = median_of([asyncio.run(_with_server(throughput)) for _ in range(repeats)])
+        results.update(on)
+        if "recording" in chosen:
+            off = median_of(
+                [asyncio.run(_with_server(throughput, record=False)) for _ in range(repeats)]
+            )
+            results["throughput_no_recording_per_s"] = off["throughput_accepted_per_s"]
+            results["recording_cost_ratio"] = (
+                on["throughput_accepted_per_s"] / off["throughput_accepted_per_s"]
+            )
+    if "estop" in chosen:
+        results.update(asyncio.run(_with_server(estop)))
+    if "fleet" in chosen:
+        results.update(asyncio.run(_with_server(lambda server: fleet(server, robots=fleet_robots))))
+    results["usb_slave_control_rate_hz"] = "n/a: the USB slave is issue 5"
     width = max(len(k) for k in results)
-    print(f"{'scenario':<{width}}  median of {REPEATS} runs")
+    print(f"{'scenario':<{width}}  value (medians of {repeats} runs where repeated)")
     for key, value in results.items():
-        print(f"{key:<{width}}  {value:12.1f}")
+        shown = f"{value:14.1f}" if isinstance(value, float) else f"{value!s:>14}"
+        print(f"{key:<{width}}  {shown}")
     if json_path:
-        with open(json_path, "w", encoding="utf-8") as handle:
-            json.dump(results, handle, indent=2)
+        Path(json_path).write_text(json.dumps(results, indent=2))
     return results

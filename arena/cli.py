@@ -121,6 +121,13 @@ def main(argv: list[str] | None = None) -> int:
     schemas.add_argument("--out", default="specs/schemas", help="folder to write them into")
     bench = commands.add_parser("bench", help="run the benchmarks and print medians")
     bench.add_argument("--json", help="also write the results to this file")
+    bench.add_argument(
+        "scenarios",
+        nargs="*",
+        help="which (default: all): relay throughput fleet estop recording replay core",
+    )
+    bench.add_argument("--repeats", type=int, default=3)
+    bench.add_argument("--fleet-robots", type=int, default=100)
     args = parser.parse_args(argv)
     default_level = "INFO" if args.command == "serve" else "WARNING"
     logging.basicConfig(
@@ -151,7 +158,7 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "bench":
             from arena.bench import run_benchmarks
 
-            run_benchmarks(args.json)
+            run_benchmarks(args.json, args.scenarios or None, args.repeats, args.fleet_robots)
     except KeyboardInterrupt:
         return 130
     return 0

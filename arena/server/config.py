@@ -28,6 +28,7 @@ class ServerConfig:
     keyfile: str | None = None
     heartbeat_interval: float = 30.0  # seconds between our heartbeats to each peer
     heartbeat_timeout: float = 90.0  # a peer silent this long is dropped
+    joint_states_interval: float = 0.02  # at most 50 joint_states a second to each client
     shutdown_grace: float = 1.0
     record: bool = True  # record every robot to MCAP from the start
     recordings_dir: str = "recordings"

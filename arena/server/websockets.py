@@ -11,6 +11,7 @@ from __future__ import annotations
 import hmac
 import itertools
 import logging
+import math
 import time
 from collections.abc import Awaitable, Callable
 from functools import partial
@@ -184,18 +185,27 @@ async def _heartbeats(connection: Connection) -> None:
 async def _forward_robot_events(
     connection: Connection, robot: Robot, events: EventQueue[RobotEvent]
 ) -> None:
-    """Joint states and state changes to the client, coalesced when it falls behind."""
+    """State changes at once; joint states at most every `joint_states_interval` seconds."""
+    interval = connection.app.arena_config.joint_states_interval
+    pending = False  # joint values changed since the last joint_states sent
+    next_send = 0.0
     while True:
-        try:
-            first = await events.get()
-        except trio.EndOfChannel:  # the robot is gone
-            await connection.close(CLOSE_NORMAL, "robot deleted")
-            return
-        batch = [first, *events.drain()]
+        wait = next_send - trio.current_time() if pending else math.inf
+        batch: list[RobotEvent] = []
+        with trio.move_on_after(max(0.0, wait)):
+            try:
+                batch = [await events.get(), *events.drain()]
+            except trio.EndOfChannel:  # the robot is gone
+                await connection.close(CLOSE_NORMAL, "robot deleted")
+                return
         if any(isinstance(e, StateChanged) for e in batch):
             await connection.send(convert.state(robot.snapshot()))
-        if any(isinstance(e, JointStatesReceived | TargetsSent) for e in batch):
+        pending = pending or any(isinstance(e, JointStatesReceived | TargetsSent) for e in batch)
+        now = trio.current_time()
+        if pending and now >= next_send:
             await connection.send(convert.joint_states(robot.snapshot()))
+            pending = False
+            next_send = now + interval
 
 
 # --- masters ----------------------------------------------------------------------------------
