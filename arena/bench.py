@@ -156,8 +156,8 @@ async def relay(server: Server, count: int = 5000) -> dict[str, float]:
     async with httpx.AsyncClient(base_url=server.url) as http:
         await _robot(http, "relay")
     async with (
-        websockets.connect(server.ws + "/ws/slave/relay") as slave,
-        websockets.connect(server.ws + "/ws/master/relay") as master,
+        websockets.connect(compression=None, uri=server.ws + "/ws/slave/relay") as slave,
+        websockets.connect(compression=None, uri=server.ws + "/ws/master/relay") as master,
     ):
         latencies = []
         for i in range(count + 100):
@@ -188,8 +188,8 @@ async def throughput(
         await _robot(http, robot_id)
     reached = 0
     async with (
-        websockets.connect(server.ws + f"/ws/slave/{robot_id}") as slave,
-        websockets.connect(server.ws + f"/ws/master/{robot_id}") as master,
+        websockets.connect(compression=None, uri=server.ws + f"/ws/slave/{robot_id}") as slave,
+        websockets.connect(compression=None, uri=server.ws + f"/ws/master/{robot_id}") as master,
     ):
 
         async def count_slave() -> None:
@@ -239,8 +239,8 @@ async def fleet(
 
     async def pair(n: int) -> None:
         async with (
-            websockets.connect(server.ws + f"/ws/slave/fleet-{n}") as slave,
-            websockets.connect(server.ws + f"/ws/master/fleet-{n}") as master,
+            websockets.connect(compression=None, uri=server.ws + f"/ws/slave/fleet-{n}") as slave,
+            websockets.connect(compression=None, uri=server.ws + f"/ws/master/fleet-{n}") as master,
         ):
             sent_at: dict[float, float] = {}
 
@@ -298,7 +298,9 @@ async def estop(server: Server, trials: int = 200, robots: int = 100) -> dict[st
     async with httpx.AsyncClient(base_url=server.url) as http:
         await _robot(http, "stop-one")
         one = []
-        async with websockets.connect(server.ws + "/ws/slave/stop-one") as slave:
+        async with websockets.connect(
+            compression=None, uri=server.ws + "/ws/slave/stop-one"
+        ) as slave:
             for _ in range(trials):
                 start = time.perf_counter()
                 response = await http.post("/api/robots/stop-one/estop")
@@ -312,7 +314,8 @@ async def estop(server: Server, trials: int = 200, robots: int = 100) -> dict[st
         for n in range(robots):
             await _robot(http, f"stop-{n}")
         slaves = [
-            await websockets.connect(server.ws + f"/ws/slave/stop-{n}") for n in range(robots)
+            await websockets.connect(compression=None, uri=server.ws + f"/ws/slave/stop-{n}")
+            for n in range(robots)
         ]
         everyone = []
         try:

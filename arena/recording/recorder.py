@@ -51,7 +51,6 @@ class Recorder:
         self.error: str | None = None
         self.dropped = 0
         self._pending: deque[Item] = deque()
-        self._wake = trio.Event()
         self._nursery: trio.Nursery | None = None
         self._wall_offset = 0.0
 
@@ -113,13 +112,11 @@ class Recorder:
                 # file (no NTP jumps), and virtual time stays consistent in tests.
                 log_time = int((event.time + self._wall_offset) * 1e9)
                 self._pending.append((robot.robot_id, kind, _encoder.encode(record), log_time))
-                self._wake.set()
 
     async def _write_forever(self) -> None:
+        # One batch per interval: a single thread hop and a single chunk however busy it is.
         while True:
-            with trio.move_on_after(self.flush_interval):
-                await self._wake.wait()
-            self._wake = trio.Event()
+            await trio.sleep(self.flush_interval)
             await self._write_pending()
 
     async def _write_pending(self) -> None:
