@@ -1,0 +1,35 @@
+"""The benchmark scenarios run end to end (tiny sizes). Nothing about speed is asserted here."""
+
+from __future__ import annotations
+
+import asyncio
+
+from arena import bench
+
+
+def test_bench_scenarios_run_against_a_real_server() -> None:
+    async def scenarios() -> dict[str, float]:
+        async with bench.running_server() as server:
+            results = await bench.relay(server, count=20)
+            results.update(await bench.throughput(server, count=200))
+            results.update(await bench.estop(server, trials=3, robots=3))
+            results.update(await bench.fleet(server, robots=2, rate=20, seconds=0.5))
+            return results
+
+    results = asyncio.run(scenarios())
+    assert results["throughput_refused"] == 0
+    assert results["throughput_reached_slave"] >= 1
+    assert results["fleet_messages"] > 0
+    for key in (
+        "relay_p50_us",
+        "throughput_accepted_per_s",
+        "estop_one_p50_ms",
+        "estop_all_median_ms",
+        "fleet_p99_us",
+    ):
+        assert results[key] > 0, key
+
+
+def test_in_process_scenarios() -> None:
+    assert bench.core_rate(count=200)["core_commands_per_s"] > 0
+    assert bench.replay_rate(commands=200)["replay_commands_per_s"] > 0
