@@ -11,11 +11,9 @@ from pathlib import Path
 import trio
 from trio.testing import MockClock
 
-from arena.drivers.mock_slave import MockSlave
 from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import get_sequence
-from arena.recording.recorder import Recorder
-from arena.robot.manager import open_manager
+from arena.recording.session import record_scenario
 from arena.robot.motion import Command
 
 GOLDEN = Path(__file__).resolve().parent.parent / "recordings" / "golden"
@@ -45,16 +43,7 @@ SCENARIOS = {"manual-estop-reset": manual_estop_reset, "gentle-wave": gentle_wav
 
 async def make(name: str, folder: Path) -> Path:
     """Record one scenario into `folder/NAME.mcap` (virtual time)."""
-    recorder = Recorder(folder, flush_interval=0.05)
-    async with trio.open_nursery() as nursery:
-        await nursery.start(recorder.run)
-        async with open_manager() as manager:
-            manager.on_create.append(recorder.follow)
-            robot = await manager.create_robot("so-arm100", robot_id="arm")
-            await robot.attach_slave(MockSlave())
-            await SCENARIOS[name](robot)
-        nursery.cancel_scope.cancel()
-    (made,) = recorder.writer.files
+    (made,) = await record_scenario(folder, SCENARIOS[name])
     target = folder / f"{name}.mcap"
     made.replace(target)
     return target

@@ -13,16 +13,16 @@ from mcap.reader import make_reader
 from trio.testing import MockClock
 
 from arena import cli
-from arena.drivers.mock_slave import MockSlave
 from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import get_sequence
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording.analysis import export, summarize, timeline
 from arena.recording.mcap_file import read_recording, write_recording
-from arena.recording.recorder import Recorder, check_name
+from arena.recording.recorder import check_name
 from arena.recording.replay import ReplayMaster, recorded_commands
-from arena.recording.session import behaviour, replay_session
-from arena.robot.manager import RobotManager, open_manager
+from arena.recording.session import behaviour, record_scenario, replay_session
+from arena.robot.actor import Robot
+from arena.robot.manager import RobotManager
 from arena.robot.motion import Command
 from arena.robot.safety import Mode
 from tests.conftest import RecordingSlave
@@ -30,30 +30,25 @@ from tests.conftest import RecordingSlave
 SPEC_SCHEMAS = Path(__file__).resolve().parent.parent / "specs" / "schemas"
 
 
-async def record_session(folder: Path) -> Path:
+async def session_scenario(robot: Robot) -> None:
     """A session worth replaying: manual commands, a sequence, an e-stop and a reset."""
-    recorder = Recorder(folder, flush_interval=0.05)
-    async with trio.open_nursery() as nursery:
-        await nursery.start(recorder.run)
-        async with open_manager() as manager:
-            manager.on_create.append(recorder.follow)
-            robot = await manager.create_robot("so-arm100", robot_id="arm")
-            await robot.attach_slave(MockSlave())
-            await robot.command(Command.of({"Rotation": 45.0, "Pitch": -30.0}))
-            await trio.sleep(1.0)
-            await robot.command(Command.of({"Elbow": -20.0}, duration=0.5))
-            await trio.sleep(1.0)
-            await robot.attach_master(SequenceMaster([get_sequence("gentle-wave")]))
-            await trio.sleep(2.5)
-            await robot.estop("test stop")
-            await trio.sleep(0.5)
-            await robot.command(Command.of({"Rotation": 0.0}))  # refused: e-stopped
-            await robot.reset()
-            await trio.sleep(0.3)
-            await robot.command(Command.of({"Rotation": 10.0, "Jaw": 500.0}))  # clamped
-            await trio.sleep(2.0)
-        nursery.cancel_scope.cancel()
-    (path,) = recorder.writer.files
+    await robot.command(Command.of({"Rotation": 45.0, "Pitch": -30.0}))
+    await trio.sleep(1.0)
+    await robot.command(Command.of({"Elbow": -20.0}, duration=0.5))
+    await trio.sleep(1.0)
+    await robot.attach_master(SequenceMaster([get_sequence("gentle-wave")]))
+    await trio.sleep(2.5)
+    await robot.estop("test stop")
+    await trio.sleep(0.5)
+    await robot.command(Command.of({"Rotation": 0.0}))  # refused: e-stopped
+    await robot.reset()
+    await trio.sleep(0.3)
+    await robot.command(Command.of({"Rotation": 10.0, "Jaw": 500.0}))  # clamped
+    await trio.sleep(2.0)
+
+
+async def record_session(folder: Path) -> Path:
+    (path,) = await record_scenario(folder, session_scenario)
     return path
 
 
@@ -316,17 +311,11 @@ def test_plot_says_how_to_install_matplotlib(
 async def test_files_rotate_by_size_and_each_stands_alone(
     autojump_clock: MockClock, tmp_path: Path
 ) -> None:
-    recorder = Recorder(tmp_path, flush_interval=0.05, max_bytes=20_000)
-    async with trio.open_nursery() as nursery:
-        await nursery.start(recorder.run)
-        async with open_manager() as manager:
-            manager.on_create.append(recorder.follow)
-            robot = await manager.create_robot("so-arm100", robot_id="arm")
-            await robot.attach_slave(MockSlave())
-            await robot.attach_master(SequenceMaster([get_sequence("tiny-flex")]))
-            await trio.sleep(8.5)
-        nursery.cancel_scope.cancel()
-    files = recorder.writer.files
+    async def tiny_flex(robot: Robot) -> None:
+        await robot.attach_master(SequenceMaster([get_sequence("tiny-flex")]))
+        await trio.sleep(8.5)
+
+    files = await record_scenario(tmp_path, tiny_flex, max_bytes=20_000)
     assert len(files) >= 3
     total = 0
     for path in files:
@@ -334,4 +323,4 @@ async def test_files_rotate_by_size_and_each_stands_alone(
             reader = make_reader(stream)
             total += len(list(reader.iter_messages()))
             assert "robot/arm" in {m.name for m in reader.iter_metadata()}
-    assert total == recorder.writer.messages
+    assert total == sum(len(read_recording(path).messages) for path in files)

@@ -52,19 +52,8 @@ class SequenceMasterBody(msgspec.Struct, tag="mock-sequence", tag_field="type", 
     takeover: bool = True
 
 
-class ReplayMasterBody(msgspec.Struct, tag="replay", tag_field="type", omit_defaults=True):
-    """Replay a recording's commands: which file and robot, speed, loop, window (seconds)."""
-
-    recording: str
-    source_robot: str | None = None
-    speed: float = 1.0
-    loop: bool = False
-    start: float | None = None
-    end: float | None = None
-
-
 class ReplayBody(msgspec.Struct, omit_defaults=True):
-    """`POST /api/robots/{id}/replay`: as the `replay` master config, without the type."""
+    """`POST /api/robots/{id}/replay`: which file and robot, speed, loop, window (seconds)."""
 
     recording: str
     source_robot: str | None = None
@@ -72,6 +61,10 @@ class ReplayBody(msgspec.Struct, omit_defaults=True):
     loop: bool = False
     start: float | None = None
     end: float | None = None
+
+
+class ReplayMasterBody(ReplayBody, tag="replay", tag_field="type"):
+    """The `replay` master config: a `ReplayBody` with its type."""
 
 
 MasterBody: TypeAlias = SequenceMasterBody | ReplayMasterBody

@@ -9,6 +9,7 @@ behaviours; under `trio.testing.MockClock` they match message for message.
 from __future__ import annotations
 
 import tempfile
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,7 @@ from arena.drivers.mock_slave import MockSlave
 from arena.recording.mcap_file import Recording, read_recording
 from arena.recording.recorder import Recorder
 from arena.recording.replay import redrive_session
+from arena.robot.actor import Robot
 from arena.robot.manager import open_manager
 
 #: Decimal places kept when comparing times (virtual time is exact; this absorbs float noise).
@@ -43,22 +45,37 @@ def behaviour(recording: Recording, robot_id: str) -> list[tuple[float, str, Any
     return trace
 
 
-async def replay_session(
-    recording: Recording, source: str, *, settle: float = 5.0, folder: Path | None = None
-) -> Recording:
+async def record_scenario(
+    folder: Path,
+    scenario: Callable[[Robot], Awaitable[None]],
+    *,
+    robot_type: str = "so-arm100",
+    robot_id: str = "arm",
+    **recorder_options: Any,
+) -> list[Path]:
+    """Run `scenario` on a fresh robot with a mock slave, recording into `folder`; the files."""
+    recorder = Recorder(folder, flush_interval=0.05, **recorder_options)
+    async with trio.open_nursery() as nursery:
+        await nursery.start(recorder.run)
+        async with open_manager() as manager:
+            manager.on_create.append(recorder.follow)
+            robot = await manager.create_robot(robot_type, robot_id=robot_id)
+            await robot.attach_slave(MockSlave())
+            await scenario(robot)
+        nursery.cancel_scope.cancel()
+    return recorder.writer.files
+
+
+async def replay_session(recording: Recording, source: str, *, settle: float = 5.0) -> Recording:
     """Re-drive `source`'s session into a fresh robot of the same type; its recording."""
     robot_type = recording.metadata.get(f"robot/{source}", {}).get("robot_type", "so-arm100")
+
+    async def redrive(robot: Robot) -> None:
+        await redrive_session(recording, source, robot)
+        await trio.sleep(settle)
+
     with tempfile.TemporaryDirectory() as scratch:
-        target = folder or Path(scratch)
-        recorder = Recorder(target, flush_interval=0.05)
-        async with trio.open_nursery() as nursery:
-            await nursery.start(recorder.run)
-            async with open_manager() as manager:
-                manager.on_create.append(recorder.follow)
-                robot = await manager.create_robot(robot_type, robot_id=source)
-                await robot.attach_slave(MockSlave())
-                await redrive_session(recording, source, robot)
-                await trio.sleep(settle)
-            nursery.cancel_scope.cancel()
-        (path,) = recorder.writer.files
+        (path,) = await record_scenario(
+            Path(scratch), redrive, robot_type=robot_type, robot_id=source
+        )
         return read_recording(path)

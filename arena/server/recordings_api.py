@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import msgspec
 import trio
 from quart import Blueprint, current_app, send_file
 
@@ -96,14 +97,7 @@ async def replay(robot_id: str) -> tuple[dict[str, Any], int]:
     app = _app()
     robot = app.manager.get(robot_id)
     body: ReplayBody = await read_body(ReplayBody)
-    config = ReplayMasterBody(
-        recording=body.recording,
-        source_robot=body.source_robot,
-        speed=body.speed,
-        loop=body.loop,
-        start=body.start,
-        end=body.end,
-    )
+    config = ReplayMasterBody(**msgspec.structs.asdict(body))
     driver = await trio.to_thread.run_sync(make_master, config, app.recorder.folder)
     master_id = await robot.attach_master(driver)
     return {"robot": robot_id, "master": master_id, "recording": body.recording}, 201
