@@ -91,7 +91,7 @@ async def running_server(record: bool = True) -> AsyncIterator[Server]:
         env = {
             **os.environ,
             TYPES_PATH_ENV: str(_bench_types(folder / "types")),
-            "LOG_LEVEL": "WARNING",
+            "LOG_LEVEL": "INFO",  # the "listening on" line is how we learn the port
         }
         args = [
             sys.executable,
@@ -105,7 +105,6 @@ async def running_server(record: bool = True) -> AsyncIterator[Server]:
         ]
         if not record:
             args.append("--no-record")
-        env["LOG_LEVEL"] = "INFO"
         process = subprocess.Popen(args, env=env, stderr=subprocess.PIPE)
         assert process.stderr is not None
         url = None

@@ -21,6 +21,8 @@ from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording.mcap_file import Item, McapFileWriter
 from arena.recording.records import record_of
 from arena.robot.actor import Robot
+from arena.robot.events import RobotEvent
+from arena.robot.mailbox import EventQueue
 
 log = logging.getLogger(__name__)
 
@@ -49,7 +51,8 @@ class Recorder:
         self.queue_size = queue_size
         self.active = active
         self.error: str | None = None
-        self.dropped = 0
+        self._write_failures = 0  # records lost to disk errors
+        self._follower_queues: set[EventQueue[RobotEvent]] = set()
         self._pending: deque[Item] = deque()
         self._nursery: trio.Nursery | None = None
         self._wall_offset = 0.0
@@ -103,8 +106,8 @@ class Recorder:
 
     async def _follow(self, robot: Robot) -> None:
         with robot.subscribe(maxlen=self.queue_size) as events:
+            self._follower_queues.add(events)
             async for event in events:
-                self.dropped = max(self.dropped, events.dropped)
                 if not self.active:
                     continue
                 kind, record = record_of(event)
@@ -135,8 +138,13 @@ class Recorder:
             if self.error is None:
                 log.error("recording failed: %s", exc)
             self.error = f"{type(exc).__name__}: {exc}"
-            self.dropped += len(batch)
+            self._write_failures += len(batch)
             self.writer.abandon()
+
+    @property
+    def dropped(self) -> int:
+        """Records lost: events the followers could not keep plus batches a disk refused."""
+        return self._write_failures + sum(q.dropped for q in self._follower_queues)
 
     def status(self) -> dict[str, Any]:
         """What the recorder is doing, for the REST API."""

@@ -193,10 +193,6 @@ class MasterLink:
         """Send a command as this master and wait for the answer."""
         return await self.robot.command(command, master_id=self.master_id)
 
-    def command_nowait(self, command: Command) -> None:
-        """Send a command without waiting; raises `ArenaError(OVERLOADED)` if the inbox is full."""
-        self.robot._post_nowait(_CommandMsg(self.master_id, command, None))
-
     def alive(self) -> None:
         """Heartbeat: the peer is still there."""
         self.robot._post_nowait(_AliveMsg(self.master_id), drop_if_full=True)
@@ -512,14 +508,6 @@ class Robot:
         self._send_targets(step.targets, now)
         if message.reply is not None:
             message.reply.set(result)
-        elif (
-            not result.accepted
-            and self._master is not None
-            and self._master.peer_id == message.source
-        ):
-            # Fire-and-forget commands still get their refusal, as a notice.
-            assert isinstance(self._master.link, MasterLink)
-            self._master.link.notices.put(MasterNotice("refused", result.code, result.message))
 
     def _on_states(self, message: _StatesMsg, now: float) -> None:
         peer = self._slaves.get(message.slave_id)

@@ -23,11 +23,11 @@ from arena.protocol.rest import CreateRobotBody, JointsBody, MasterBody, ReasonB
 from arena.recording.recorder import Recorder
 from arena.robot.manager import RobotManager
 from arena.server import convert, openapi
+from arena.server.auth import check_token
 from arena.server.config import ServerConfig
 from arena.server.metrics import Metrics
 from arena.server.recordings_api import blueprint as recordings_blueprint
 from arena.server.websockets import blueprint as websocket_blueprint
-from arena.server.websockets import check_token
 
 #: HTTP status for each error code (anything missing is 400).
 STATUS_FOR: dict[ErrorCode, int] = {

@@ -8,7 +8,6 @@ loss policy applies), the robot ends the link (detached, deleted), or the server
 
 from __future__ import annotations
 
-import hmac
 import itertools
 import logging
 import math
@@ -34,6 +33,7 @@ from arena.robot.events import (
 )
 from arena.robot.mailbox import EventQueue
 from arena.server import convert
+from arena.server.auth import check_token
 
 if TYPE_CHECKING:
     from arena.server.app import ArenaApp
@@ -135,30 +135,6 @@ async def _accept(role: str, robot_id: str) -> tuple[Connection, Robot] | None:
     return connection, robot
 
 
-def check_token(
-    app: ArenaApp, authorization: str | None, token: str | None, mutating: bool = True
-) -> None:
-    """Raise UNAUTHORIZED / FORBIDDEN unless the request carries a configured API key."""
-    keys = app.arena_config.api_keys
-    if not keys or (not mutating and app.arena_config.open_reads):
-        return
-    if authorization and authorization.lower().startswith("bearer "):
-        token = authorization[7:].strip()
-    if not token:
-        raise ArenaError(
-            ErrorCode.UNAUTHORIZED,
-            "An API key is required: send 'Authorization: Bearer KEY' "
-            "(or ?token=KEY on a WebSocket).",
-        )
-    given = token.encode()
-    # Compare against every key, in constant time, so timing tells nothing about any key.
-    matched = False
-    for key in keys:
-        matched |= hmac.compare_digest(given, key.encode())
-    if not matched:
-        raise ArenaError(ErrorCode.FORBIDDEN, "That API key is not valid here.")
-
-
 def _flag(value: str | None) -> bool:
     return value is not None and value.lower() in ("1", "true", "yes", "on")
 
@@ -230,7 +206,6 @@ async def master_socket(robot_id: str) -> None:
         await connection.refuse(error)
         return
     app.metrics.connections["master"] += 1
-    reason = "connection closed"
     try:
         await connection.send(convert.state(robot.snapshot()))
         await connection.send(convert.joint_states(robot.snapshot()))
@@ -248,15 +223,13 @@ async def master_socket(robot_id: str) -> None:
                 )
 
             await connection.run(body)
-        if link.detached.is_set():
-            reason = "detached"
     finally:
         app.metrics.connections["master"] -= 1
         with trio.CancelScope(shield=True):
             if app.shutting_down.is_set():
                 await link.detach("server shutting down")
             elif not link.detached.is_set():
-                await link.lost(reason)
+                await link.lost("connection closed")
 
 
 class _SequencePlayer:
@@ -281,8 +254,6 @@ async def _forward_master_notices(connection: Connection, link: MasterLink) -> N
         if notice.kind == "detached":
             await _send_detached(connection, notice)
             return
-        if notice.kind == "refused":
-            await connection.send_error(notice.code or ErrorCode.INVALID_MESSAGE, notice.message)
     # The robot closed the link (deleted, or detached without a word).
     await connection.close(CLOSE_NORMAL, "robot link closed")
 
