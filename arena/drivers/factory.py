@@ -14,12 +14,30 @@ from arena.protocol.rest import (
     ReplayMasterBody,
     SequenceMasterBody,
     SlaveBody,
+    UsbSlaveBody,
 )
 from arena.robot.actor import MasterDriver, SlaveDriver
+from arena.robot.model import RobotModel
 
 
-def make_slave(body: SlaveBody) -> SlaveDriver:
-    """Build a slave driver from its config."""
+def make_slave(
+    body: SlaveBody,
+    model: RobotModel | None = None,
+    calibration_dir: Path | None = None,
+    robot_id: str = "robot",
+) -> SlaveDriver:
+    """Build a slave driver from its config.
+
+    Hardware slaves need the robot's `model`; their calibration file is
+    `calibration_dir/<name>.json`, the name defaulting to `robot_id`.
+    """
+    if isinstance(body, UsbSlaveBody):
+        from arena.drivers.usb_slave import UsbSlave
+
+        if model is None:
+            raise ArenaError(ErrorCode.INVALID_CONFIG, "A usb-slave needs the robot's model.")
+        folder = calibration_dir or Path("calibration")
+        return UsbSlave(body, model, folder / f"{body.calibration or robot_id}.json")
     if isinstance(body, MockSlaveBody):
         return MockSlave(
             MockSlaveConfig.from_wire(

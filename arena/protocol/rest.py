@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import TypeAlias
+from typing import Annotated, Literal, TypeAlias
 
 import msgspec
 
@@ -40,7 +40,33 @@ class MockSlaveBody(msgspec.Struct, tag="mock-slave", tag_field="type", omit_def
     seed: int = 0
 
 
-SlaveBody: TypeAlias = MockSlaveBody
+class UsbSlaveBody(msgspec.Struct, tag="usb-slave", tag_field="type", omit_defaults=True):
+    """An arm on a Feetech servo bus. No `port`: find the adapter by USB id.
+
+    `estop`: what the servos do on an e-stop, `hold` (torque kept, goal = present) or
+    `torque-off`. `calibration`: the calibration's name (default: the robot's id).
+    """
+
+    port: str | None = None
+    baudRate: int = 1_000_000
+    rate: Annotated[float, msgspec.Meta(gt=0, le=2000)] = 100.0
+    estop: Literal["hold", "torque-off"] = "hold"
+    calibration: (
+        Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$")] | None
+    ) = None
+
+
+SlaveBody: TypeAlias = MockSlaveBody | UsbSlaveBody
+
+
+class CalibrationBody(msgspec.Struct, omit_defaults=True):
+    """Calibration steps. `slave`: which hardware slave (when the robot has several);
+    `rest` (start only): the pose the arm is put in, degrees by joint (default: the twin's);
+    `writeHoming` (finish only): also store the offsets in the servos."""
+
+    slave: str | None = None
+    rest: dict[str, Annotated[float, msgspec.Meta(ge=-360, le=360)]] | None = None
+    writeHoming: bool = False
 
 
 class SequenceMasterBody(msgspec.Struct, tag="mock-sequence", tag_field="type", omit_defaults=True):

@@ -152,6 +152,13 @@ class _AliveMsg:
 
 
 @dataclass(slots=True)
+class _LinkMsg:
+    slave_id: str
+    connected: bool
+    reason: str
+
+
+@dataclass(slots=True)
 class _DriverEndedMsg:
     peer: _Peer
     error: BaseException | None
@@ -171,6 +178,7 @@ _Msg = (
     | _StatesMsg
     | _FaultMsg
     | _AliveMsg
+    | _LinkMsg
     | _DriverEndedMsg
     | _ShutdownMsg
 )
@@ -234,6 +242,18 @@ class SlaveLink:
         """Heartbeat: the peer is still there."""
         self.robot._post_nowait(_AliveMsg(self.slave_id), drop_if_full=True)
 
+    async def connection_lost(self, reason: str) -> None:
+        """The hardware behind this slave is gone, but the driver stays and keeps trying.
+
+        The loss policy applies as for a lost slave; the slave stays attached and shows as
+        disconnected until `connection_restored`.
+        """
+        await self.robot._post(_LinkMsg(self.slave_id, False, reason))
+
+    async def connection_restored(self, reason: str = "reconnected") -> None:
+        """The hardware answers again (nothing moves until a new target arrives)."""
+        await self.robot._post(_LinkMsg(self.slave_id, True, reason))
+
     async def detach(self, reason: str = "slave left") -> None:
         """Leave the robot."""
         await self.robot._detach("slave", self.slave_id, lost=False, reason=reason)
@@ -254,6 +274,7 @@ class _Peer:
     last_seen: float
     last_error: str | None = None
     real: dict[str, float] = field(default_factory=dict)
+    connected: bool = True
 
 
 # ---------------------------------------------------------------------------------------------
@@ -485,6 +506,8 @@ class Robot:
             self._on_fault(message, now)
         elif isinstance(message, _AliveMsg):
             self._touch(message.peer_id, now)
+        elif isinstance(message, _LinkMsg):
+            self._on_link(message, now)
         elif isinstance(message, _DriverEndedMsg):
             self._on_driver_ended(message, now)
 
@@ -551,6 +574,36 @@ class Robot:
             now,
             cause=message.code,
         )
+
+    def _on_link(self, message: _LinkMsg, now: float) -> None:
+        peer = self._slaves.get(message.slave_id)
+        if peer is None or peer.connected == message.connected:
+            return
+        peer.connected = message.connected
+        change = "reconnected" if message.connected else "disconnected"
+        log.log(
+            logging.INFO if message.connected else logging.WARNING,
+            "robot %s: slave %s %s (%s)",
+            self.robot_id,
+            peer.peer_id,
+            change,
+            message.reason,
+        )
+        self._publish(
+            PeerChanged(
+                self.robot_id,
+                "slave",
+                peer.peer_id,
+                peer.kind,
+                change,
+                message.reason,
+                now,
+                wallclock.time(),
+            )
+        )
+        if not message.connected:
+            peer.last_error = f"{ErrorCode.SLAVE_LOST}: {message.reason}"
+            self._apply(safety.SlaveLost(peer.peer_id, message.reason), now, cause=message.reason)
 
     def _on_attach(self, message: _AttachMsg, now: float) -> None:
         peer_id = message.peer_id or f"{message.role}-{next(self._ids)}"
@@ -951,4 +1004,4 @@ class Robot:
 
     @staticmethod
     def _peer_snapshot(peer: _Peer) -> PeerSnapshot:
-        return PeerSnapshot(peer.peer_id, peer.role, peer.kind, True, peer.last_error)
+        return PeerSnapshot(peer.peer_id, peer.role, peer.kind, peer.connected, peer.last_error)

@@ -119,7 +119,7 @@ class PeerChanged:
     role: str  # "master" | "slave"
     peer_id: str
     kind: str  # driver kind, e.g. "mock-slave"
-    change: str  # "attached" | "detached" | "lost" | "refused"
+    change: str  # "attached" | "detached" | "lost" | "refused" | "disconnected" | "reconnected"
     reason: str
     time: float
     wall_time: float

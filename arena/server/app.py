@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 from collections import Counter
 from collections.abc import Iterable
+from pathlib import Path
 from typing import Any
 
 import msgspec
@@ -24,6 +25,8 @@ from arena.recording.recorder import Recorder
 from arena.robot.manager import RobotManager
 from arena.server import convert, openapi
 from arena.server.auth import check_token
+from arena.server.calibration_api import Hardware
+from arena.server.calibration_api import blueprint as calibration_blueprint
 from arena.server.config import ServerConfig
 from arena.server.metrics import Metrics
 from arena.server.recordings_api import blueprint as recordings_blueprint
@@ -56,6 +59,14 @@ STATUS_FOR: dict[ErrorCode, int] = {
     ErrorCode.FORBIDDEN: 403,
     ErrorCode.OVERLOADED: 503,
     ErrorCode.INTERNAL_ERROR: 500,
+    ErrorCode.NO_HARDWARE: 404,
+    ErrorCode.PORT_NOT_FOUND: 404,
+    ErrorCode.PORT_BUSY: 409,
+    ErrorCode.CALIBRATION_STATE: 409,
+    ErrorCode.PORT_PERMISSION_DENIED: 403,
+    ErrorCode.PORT_DISCONNECTED: 503,
+    ErrorCode.SERVO_TIMEOUT: 504,
+    ErrorCode.SERVO_WRONG_MODEL: 422,
 }
 
 #: Paths anyone may read, keys or not: the documentation.
@@ -71,6 +82,7 @@ class ArenaApp(QuartTrio):
     shutting_down: trio.Event
     started_at: float
     recorder: Recorder
+    hardware: Hardware
 
 
 def error_response(code: ErrorCode, message: str) -> tuple[dict[str, Any], int]:
@@ -102,11 +114,13 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.recorder = recorder
     app.arena_config = config
     app.metrics = Metrics()
+    app.hardware = Hardware()
     app.shutting_down = trio.Event()
     app.started_at = time.time()
     app.config["MAX_CONTENT_LENGTH"] = MAX_MESSAGE_BYTES
     app.register_blueprint(websocket_blueprint)
     app.register_blueprint(recordings_blueprint)
+    app.register_blueprint(calibration_blueprint)
     _register_errors(app)
     _register_routes(app)
     return app
@@ -270,7 +284,17 @@ def _register_routes(app: ArenaApp) -> None:
     async def attach_slave(robot_id: str) -> tuple[dict[str, Any], int]:
         robot = manager.get(robot_id)
         body = await read_body(SlaveBody)
-        slave_id = await robot.attach_slave(make_slave(body))
+        driver = make_slave(
+            body,
+            robot.model,
+            Path(app.arena_config.calibration_dir),
+            robot_id,
+        )
+        prepare = getattr(driver, "prepare", None)
+        if prepare is not None:
+            await prepare()  # hardware: a missing or busy port is the caller's error, now
+        slave_id = await robot.attach_slave(driver)
+        app.hardware.add(robot_id, slave_id, driver)
         return {"id": slave_id, "type": type(body).__struct_config__.tag}, 201
 
     @app.delete("/api/robots/<robot_id>/slaves/<slave_id>")

@@ -32,6 +32,7 @@ class ServerConfig:
     shutdown_grace: float = 1.0
     record: bool = True  # record every robot to MCAP from the start
     recordings_dir: str = "recordings"
+    calibration_dir: str = "calibration"  # one calibration file per robot (or per name)
     recording_max_bytes: int = 256 << 20
     recording_max_seconds: float = 3600.0
     cors_origins: tuple[str, ...] = field(default=())

@@ -9,6 +9,7 @@ import msgspec
 import arena
 from arena.protocol import messages as wire
 from arena.protocol.rest import (
+    CalibrationBody,
     CreateRobotBody,
     JointsBody,
     MasterBody,
@@ -51,6 +52,31 @@ ROUTES: list[tuple[str, str, str, Any]] = [
     ("GET", "/api/recordings/{name}", "Summary of a recording", None),
     ("GET", "/api/recordings/{name}/file", "Download a recording (MCAP)", None),
     ("POST", "/api/robots/{robot_id}/replay", "Replay a recording onto a robot", ReplayBody),
+    ("GET", "/api/robots/{robot_id}/calibration", "Calibration of a hardware slave", None),
+    (
+        "POST",
+        "/api/robots/{robot_id}/calibration/start",
+        "Start calibrating: torque off, pose the arm like the twin",
+        CalibrationBody,
+    ),
+    (
+        "POST",
+        "/api/robots/{robot_id}/calibration/capture",
+        "Capture the rest pose (offsets); range capture starts",
+        CalibrationBody,
+    ),
+    (
+        "POST",
+        "/api/robots/{robot_id}/calibration/finish",
+        "Store the calibration; torque back on where the arm is",
+        CalibrationBody,
+    ),
+    (
+        "POST",
+        "/api/robots/{robot_id}/calibration/cancel",
+        "Abandon the calibration in progress",
+        CalibrationBody,
+    ),
     ("GET", "/metrics", "Prometheus metrics", None),
     ("GET", "/openapi.json", "This document", None),
     ("GET", "/docs", "Interactive API documentation", None),

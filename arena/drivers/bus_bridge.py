@@ -1,0 +1,87 @@
+"""From the servo-bus thread to trio: latest reading wins, events are kept in order.
+
+The worker thread never blocks on trio: it stores what it saw and schedules one wake-up on the
+trio loop (coalesced while one is pending).
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import threading
+from concurrent.futures import Future
+from typing import TypeVar
+
+import trio
+
+from arena.feetech.worker import Reading, WorkerEvent
+
+T = TypeVar("T")
+
+
+class BusBridge:
+    """A `worker.Listener` whose readings and events a trio task takes with `next()`."""
+
+    def __init__(self) -> None:
+        self._token = trio.lowlevel.current_trio_token()
+        self._lock = threading.Lock()
+        self._reading: Reading | None = None
+        self._events: collections.deque[WorkerEvent] = collections.deque(maxlen=10_000)
+        self._wake = trio.Event()
+        self._wake_pending = False
+        self.readings = 0
+
+    # -- worker thread side -------------------------------------------------------------------
+
+    def reading(self, reading: Reading) -> None:
+        """Keep the newest reading."""
+        with self._lock:
+            self._reading = reading
+            self.readings += 1
+            self._poke()
+
+    def event(self, event: WorkerEvent) -> None:
+        """Queue an event."""
+        with self._lock:
+            self._events.append(event)
+            self._poke()
+
+    def _poke(self) -> None:
+        if self._wake_pending:
+            return
+        self._wake_pending = True
+        with contextlib.suppress(trio.RunFinishedError):  # trio is gone: nobody listens
+            self._token.run_sync_soon(self._wake_up)
+
+    # -- trio side ----------------------------------------------------------------------------
+
+    def _wake_up(self) -> None:
+        with self._lock:
+            self._wake_pending = False
+        self._wake.set()
+
+    async def next(self) -> tuple[Reading | None, list[WorkerEvent]]:
+        """Wait for news: the newest reading (None if only events came) and the events."""
+        while True:
+            self._wake = trio.Event()
+            with self._lock:
+                reading, self._reading = self._reading, None
+                events = list(self._events)
+                self._events.clear()
+            if reading is not None or events:
+                return reading, events
+            await self._wake.wait()
+
+
+async def wait_future(future: Future[T]) -> T:
+    """Wait in trio for a `concurrent.futures.Future` that another thread completes."""
+    token = trio.lowlevel.current_trio_token()
+    done = trio.Event()
+
+    def finished(_: Future[T]) -> None:
+        with contextlib.suppress(trio.RunFinishedError):
+            token.run_sync_soon(done.set)
+
+    future.add_done_callback(finished)
+    await done.wait()
+    return future.result()

@@ -1,0 +1,328 @@
+"""The USB slave: an so-arm100 on a Feetech servo bus follows the robot's targets.
+
+The bus belongs to a `BusWorker` thread (the trio loop never waits on serial I/O). Targets go
+through the calibration to raw goal steps; present positions come back as degrees. E-stop:
+`hold` keeps torque with goal = present, `torque-off` releases the servos; either way targets
+are ignored until the reset. Losing the bus applies the robot's loss policy while the worker
+reconnects; after a reconnection nothing queued during the outage is executed.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import stat
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import trio
+
+from arena.drivers.bus_bridge import BusBridge, wait_future
+from arena.feetech import registers as reg
+from arena.feetech.bus import ServoBus, find_adapter
+from arena.feetech.calibration import (
+    DEGREES_PER_STEP,
+    Calibration,
+    RangeCapture,
+    calibrate_rest,
+)
+from arena.feetech.health import ServoFault
+from arena.feetech.worker import (
+    BusWorker,
+    Connected,
+    Lost,
+    Reading,
+    WorkerSettings,
+    hold_here,
+    read_positions,
+    store_offsets_in_servos,
+)
+from arena.protocol.errors import ArenaError, ErrorCode, Severity
+from arena.protocol.rest import UsbSlaveBody
+from arena.robot.actor import SlaveLink
+from arena.robot.events import NoticeKind, SlaveNotice
+from arena.robot.model import RobotModel
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class CalibrationSession:
+    """A calibration in progress: `posing` until the rest pose is captured, then `range`."""
+
+    rest: dict[str, float]
+    previous: Calibration
+    phase: str = "posing"
+    capture: RangeCapture = field(default_factory=RangeCapture)
+
+
+class UsbSlave:
+    """See the module docstring. `open_bus` replaces the serial bus (tests, benchmarks)."""
+
+    kind = "usb-slave"
+
+    def __init__(
+        self,
+        config: UsbSlaveBody,
+        model: RobotModel,
+        calibration_file: Path | None = None,
+        *,
+        settings: WorkerSettings | None = None,
+        open_bus: Callable[[str], ServoBus] | None = None,
+    ) -> None:
+        self.config = config
+        self.model = model
+        self.calibration_file = calibration_file
+        self.servo_ids = {joint.name: joint.servo_id for joint in model.joints}
+        self.joint_of = {sid: name for name, sid in self.servo_ids.items()}
+        self.settings = settings or WorkerSettings(
+            rate=config.rate, speed_limit=_speed_limit(model)
+        )
+        self._open_bus = open_bus or (lambda port: ServoBus(port, config.baudRate))
+        self.calibration = Calibration.identity(self.servo_ids, model.robot_type)
+        self.calibrated = False
+        self.session: CalibrationSession | None = None
+        self.port: str | None = None
+        self.worker: BusWorker | None = None
+        self.bridge: BusBridge | None = None
+        self.frozen = False  # e-stopped: targets are ignored until the reset
+        self.telemetry: Reading | None = None
+        self.running = False
+        self._accept_after = 0.0  # targets sent before this trio time are stale (bus was away)
+
+    # -- lifetime -----------------------------------------------------------------------------
+
+    async def prepare(self) -> None:
+        """Find and open the bus and check every servo; errors say what to do."""
+        if self.worker is not None:
+            return
+        if self.calibration_file is not None and self.calibration_file.exists():
+            self.calibration = Calibration.load(self.calibration_file)
+            self.calibrated = True
+        port = self.config.port
+        if port is None:
+            port = await trio.to_thread.run_sync(find_adapter)
+        _check_port(port)
+        self.port = port
+        self.bridge = BusBridge()
+        worker = BusWorker(
+            lambda: self._open_bus(port), tuple(self.servo_ids.values()), self.bridge, self.settings
+        )
+        worker.start()
+        try:
+            await wait_future(worker.first_connect)
+        except BaseException:
+            await trio.to_thread.run_sync(worker.stop)
+            raise
+        self.worker = worker
+
+    async def run(self, link: SlaveLink) -> None:
+        """Follow targets and report joint states until detached; torque off at the end."""
+        await self.prepare()
+        assert self.worker is not None
+        self.running = True
+        try:
+            if not self.calibrated:
+                await link.report_fault(
+                    ErrorCode.UNCALIBRATED,
+                    "This arm has no calibration yet: raw step 2048 is taken as 0 degrees. "
+                    "Calibrate it before trusting its poses.",
+                    Severity.WARNING,
+                )
+            async with trio.open_nursery() as nursery:
+                nursery.start_soon(self._report, link)
+                await self._follow(link)
+                nursery.cancel_scope.cancel()
+        finally:
+            self.running = False
+            with trio.CancelScope(shield=True):
+                await trio.to_thread.run_sync(self.worker.stop)
+
+    # -- targets and notices ------------------------------------------------------------------
+
+    async def _follow(self, link: SlaveLink) -> None:
+        assert self.worker is not None
+        while True:
+            try:
+                message = await link.receive()
+            except trio.EndOfChannel:
+                return
+            if isinstance(message, SlaveNotice):
+                if message.kind is NoticeKind.SHUTDOWN:
+                    return
+                await self._on_notice(message.kind)
+                continue
+            if self.frozen or self.session is not None or message.time < self._accept_after:
+                continue  # e-stopped, calibrating, or sent while the bus was away: never later
+            self.worker.set_goals(self.calibration.to_steps(message.joints))
+
+    async def _on_notice(self, kind: NoticeKind) -> None:
+        torque_off = self.config.estop == "torque-off"
+        if kind is NoticeKind.ESTOP:
+            self.frozen = True
+            if self.session is None:
+                await self._safe_job(lambda bus: self._hold(bus, torque=not torque_off))
+        elif kind is NoticeKind.HOLD:
+            if self.session is None:
+                await self._safe_job(lambda bus: self._hold(bus, torque=True))
+        elif kind is NoticeKind.RESET:
+            self.frozen = False
+            if torque_off and self.session is None:
+                await self._safe_job(lambda bus: self._hold(bus, torque=True))
+
+    def _hold(self, bus: ServoBus, *, torque: bool) -> None:
+        # Runs in the worker thread: goals not yet written are dropped, then hold where it is.
+        assert self.worker is not None
+        self.worker.clear_goals()
+        self.worker.torque_wanted = torque
+        hold_here(bus, self.worker.servo_ids, torque=torque, speed=self.settings.speed_limit)
+
+    async def _safe_job(self, job: Callable[[ServoBus], object]) -> None:
+        assert self.worker is not None
+        try:
+            await wait_future(self.worker.submit(job))
+        except ArenaError as exc:
+            # The bus is down: the worker applies torque_wanted when it reconnects.
+            log.warning("usb-slave on %s: %s", self.port, exc.message)
+
+    # -- what the bus reports -----------------------------------------------------------------
+
+    async def _report(self, link: SlaveLink) -> None:
+        assert self.bridge is not None
+        while True:
+            reading, events = await self.bridge.next()
+            for event in events:
+                await self._on_event(link, event)
+            if reading is None:
+                continue
+            if reading.temperatures is not None:
+                self.telemetry = reading
+            degrees = self.calibration.to_degrees(reading.positions)
+            if self.session is not None and self.session.phase == "range":
+                self.session.capture.observe(degrees)
+            await link.report_joint_states(degrees)
+
+    async def _on_event(self, link: SlaveLink, event: object) -> None:
+        if isinstance(event, ServoFault):
+            joint = self.joint_of.get(event.servo_id) if event.servo_id is not None else None
+            message = f"{joint}: {event.message}" if joint else event.message
+            await link.report_fault(event.code, message, event.severity, joint)
+        elif isinstance(event, Lost):
+            self._accept_after = math.inf
+            await link.connection_lost(f"servo bus on {self.port}: {event.reason}")
+        elif isinstance(event, Connected) and event.again:
+            self._accept_after = trio.current_time()
+            await link.connection_restored(f"servo bus on {self.port} answers again")
+
+    # -- calibration --------------------------------------------------------------------------
+
+    async def calibration_start(self, rest: Mapping[str, float]) -> None:
+        """Torque off so the user can pose the arm like the twin's `rest` pose (degrees)."""
+        if self.session is not None:
+            raise ArenaError(ErrorCode.CALIBRATION_STATE, "A calibration is already running.")
+        unknown = sorted(set(rest) - set(self.servo_ids))
+        if unknown:
+            raise ArenaError(
+                ErrorCode.UNKNOWN_JOINT, f"Unknown joints in the rest pose: {unknown}."
+            )
+        self.session = CalibrationSession(
+            {name: float(rest.get(name, 0.0)) for name in self.servo_ids}, self.calibration
+        )
+        await self._job(lambda bus: self._hold(bus, torque=False))
+
+    async def calibration_capture(self) -> Calibration:
+        """Take the present pose as the rest pose; then the range capture runs."""
+        session = self._session("posing")
+        ids = tuple(self.servo_ids.values())
+        raw = await self._job(lambda bus: read_positions(bus, ids))
+        self.calibration = calibrate_rest(self.calibration, raw, session.rest)
+        session.phase = "range"
+        session.capture.observe(self.calibration.to_degrees(raw))
+        return self.calibration
+
+    async def calibration_finish(self, write_homing: bool = False) -> Calibration:
+        """Keep the captured ranges, store the calibration, torque back on (goal = present)."""
+        session = self._session("range")
+        calibration = session.capture.apply(self.calibration)
+        if write_homing:
+            ids = tuple(self.servo_ids.values())
+            calibration = await self._job(
+                lambda bus: store_offsets_in_servos(bus, calibration, ids)
+            )
+        if self.calibration_file is not None:
+            await trio.to_thread.run_sync(calibration.save, self.calibration_file)
+        self.calibration = calibration
+        self.calibrated = True
+        self.session = None
+        await self._job(lambda bus: self._hold(bus, torque=not self._torque_stays_off()))
+        return calibration
+
+    async def calibration_cancel(self) -> None:
+        """Back to the calibration from before; torque back on (goal = present)."""
+        session = self._session(None)
+        self.calibration = session.previous
+        self.session = None
+        await self._job(lambda bus: self._hold(bus, torque=not self._torque_stays_off()))
+
+    def calibration_status(self) -> dict[str, Any]:
+        """The calibration in use and the session, for the REST API."""
+        session = self.session
+        return {
+            "calibrated": self.calibrated,
+            "file": str(self.calibration_file) if self.calibration_file else None,
+            "calibration": self.calibration,
+            "session": None
+            if session is None
+            else {
+                "phase": session.phase,
+                "rest": session.rest,
+                "range": {
+                    name: [session.capture.low[name], session.capture.high[name]]
+                    for name in session.capture.low
+                },
+            },
+        }
+
+    def _torque_stays_off(self) -> bool:
+        return self.frozen and self.config.estop == "torque-off"
+
+    def _session(self, phase: str | None) -> CalibrationSession:
+        if self.session is None:
+            raise ArenaError(ErrorCode.CALIBRATION_STATE, "No calibration is running: start one.")
+        if phase is not None and self.session.phase != phase:
+            hint = "capture the rest pose first" if phase == "range" else "it was captured already"
+            raise ArenaError(
+                ErrorCode.CALIBRATION_STATE,
+                f"The calibration is in its {self.session.phase} phase: {hint}.",
+            )
+        return self.session
+
+    async def _job(self, job: Callable[[ServoBus], Any]) -> Any:
+        if self.worker is None or not self.worker.connected:
+            raise ArenaError(ErrorCode.PORT_DISCONNECTED, "The servo bus is not connected.")
+        return await wait_future(self.worker.submit(job))
+
+
+def _speed_limit(model: RobotModel) -> int:
+    """Goal_Velocity for the servos: the slowest joint's velocity limit, in steps/s."""
+    fastest_allowed = min(joint.max_velocity for joint in model.joints)
+    return max(1, min(reg.STEPS_PER_TURN, round(fastest_allowed / DEGREES_PER_STEP)))
+
+
+def _check_port(port: str) -> None:
+    """Only serial devices: a REST client must not make the server open arbitrary files."""
+    try:
+        mode = os.stat(port).st_mode
+    except FileNotFoundError:
+        from arena.feetech.bus import port_error
+
+        raise port_error(port, FileNotFoundError(2, "No such file or directory")) from None
+    except OSError as exc:
+        from arena.feetech.bus import port_error
+
+        raise port_error(port, exc) from None
+    if not stat.S_ISCHR(mode):
+        raise ArenaError(ErrorCode.INVALID_CONFIG, f"{port} is not a serial device.")

@@ -1,0 +1,1 @@
+"""Feetech STS3215 servo bus: packet codec, registers, calibration, bus access, simulated bus."""

@@ -1,0 +1,147 @@
+"""Servo health, without I/O: which faults to report, and when the bus counts as lost.
+
+Faults are reported on their rising edge (once while they last), so a servo that stays hot
+gives one message, not one per control cycle.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+
+from arena.feetech.bus import SyncReadResult
+from arena.feetech.registers import ErrorBit
+from arena.protocol.errors import ErrorCode, Severity
+
+# Status error bits -> (code, severity, what it means). Overheat, overload and over-current
+# are critical: the servo protects itself by dropping torque, so the arm is no longer held.
+ERROR_BITS: dict[ErrorBit, tuple[ErrorCode, Severity, str]] = {
+    ErrorBit.OVERHEAT: (ErrorCode.SERVO_OVERHEAT, Severity.CRITICAL, "is overheating"),
+    ErrorBit.OVERLOAD: (ErrorCode.SERVO_OVERLOAD, Severity.CRITICAL, "is overloaded"),
+    ErrorBit.OVERCURRENT: (
+        ErrorCode.SERVO_OVERCURRENT,
+        Severity.CRITICAL,
+        "draws too much current",
+    ),
+    ErrorBit.VOLTAGE: (
+        ErrorCode.SERVO_VOLTAGE,
+        Severity.ERROR,
+        "has its supply voltage out of range",
+    ),
+    ErrorBit.ANGLE: (ErrorCode.SERVO_ANGLE, Severity.ERROR, "reports a position sensor error"),
+}
+
+
+@dataclass(frozen=True, slots=True)
+class ServoFault:
+    """A fault of one servo (or of the bus, `servo_id` None)."""
+
+    code: ErrorCode
+    severity: Severity
+    servo_id: int | None
+    message: str
+
+
+@dataclass(frozen=True, slots=True)
+class HealthLimits:
+    """Thresholds: temperatures in degrees C; `lost_after` consecutive failed cycles."""
+
+    hot: float = 55.0
+    overheat: float = 65.0
+    lost_after: int = 20
+
+
+class HealthMonitor:
+    """Feed it each cycle's read result (and telemetry); it says what to report."""
+
+    def __init__(self, servo_ids: Iterable[int], limits: HealthLimits | None = None) -> None:
+        self.servo_ids = tuple(servo_ids)
+        self.limits = limits or HealthLimits()
+        # (code, servo, source): the same code can come from the error bits and from telemetry.
+        self._active: set[tuple[ErrorCode, int | None, str]] = set()
+        self._misses: dict[int, int] = dict.fromkeys(self.servo_ids, 0)
+
+    @property
+    def lost(self) -> int | None:
+        """A servo silent for `lost_after` cycles in a row (the bus counts as lost), or None."""
+        for servo_id, misses in self._misses.items():
+            if misses >= self.limits.lost_after:
+                return servo_id
+        return None
+
+    def reset(self) -> None:
+        """Forget everything (after a reconnection)."""
+        self._active.clear()
+        self._misses = dict.fromkeys(self.servo_ids, 0)
+
+    def on_read(self, result: SyncReadResult) -> list[ServoFault]:
+        """The faults a cycle's read result raises."""
+        faults: list[ServoFault] = []
+        for servo_id in self.servo_ids:
+            if servo_id in result.missing:
+                self._misses[servo_id] += 1
+                faults += self._edge(
+                    True,
+                    ErrorCode.SERVO_TIMEOUT,
+                    Severity.ERROR,
+                    servo_id,
+                    f"Servo {servo_id} does not answer; retrying.",
+                )
+                continue
+            if servo_id in result.corrupt:
+                faults += self._edge(
+                    True,
+                    ErrorCode.SERVO_CORRUPT,
+                    Severity.WARNING,
+                    servo_id,
+                    f"Servo {servo_id} sent a garbled answer (bad checksum).",
+                )
+                continue
+            self._misses[servo_id] = 0
+            self._active.discard((ErrorCode.SERVO_TIMEOUT, servo_id, ""))
+            self._active.discard((ErrorCode.SERVO_CORRUPT, servo_id, ""))
+            bits = ErrorBit(result.errors.get(servo_id, 0))
+            for bit, (code, severity, what) in ERROR_BITS.items():
+                faults += self._edge(
+                    bool(bits & bit), code, severity, servo_id, f"Servo {servo_id} {what}."
+                )
+        return faults
+
+    def on_temperatures(self, temperatures: Mapping[int, float]) -> list[ServoFault]:
+        """The faults a telemetry read's temperatures raise."""
+        faults: list[ServoFault] = []
+        for servo_id, celsius in temperatures.items():
+            faults += self._edge(
+                celsius >= self.limits.overheat,
+                ErrorCode.SERVO_OVERHEAT,
+                Severity.CRITICAL,
+                servo_id,
+                f"Servo {servo_id} is at {celsius:.0f} C (limit {self.limits.overheat:.0f} C).",
+                source="temperature",
+            )
+            faults += self._edge(
+                self.limits.hot <= celsius < self.limits.overheat,
+                ErrorCode.SERVO_HOT,
+                Severity.WARNING,
+                servo_id,
+                f"Servo {servo_id} is warm: {celsius:.0f} C.",
+            )
+        return faults
+
+    def _edge(
+        self,
+        active: bool,
+        code: ErrorCode,
+        severity: Severity,
+        servo_id: int | None,
+        message: str,
+        source: str = "",
+    ) -> list[ServoFault]:
+        key = (code, servo_id, source)
+        if not active:
+            self._active.discard(key)
+            return []
+        if key in self._active:
+            return []
+        self._active.add(key)
+        return [ServoFault(code, severity, servo_id, message)]

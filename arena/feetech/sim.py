@@ -1,0 +1,271 @@
+"""A simulated STS3215 bus, without I/O: servos with register files and a motion model.
+
+`SimBus.handle(packet, now)` takes one instruction packet and returns the status packets the
+servos would answer with, in order. Time is passed in (seconds, any monotonic origin), so the
+motion model is deterministic under test. `arena.feetech.sim_pty` puts a `SimBus` on a pty.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from arena.feetech import registers as reg
+from arena.feetech.packets import Instruction, Packet, encode
+from arena.feetech.registers import ErrorBit
+
+MAX_SPEED = 3400.0  # steps/s at Goal_Velocity 0 (about 300 deg/s, the STS3215 at 12 V)
+ACCELERATION_UNIT = 100.0  # steps/s^2 per unit of the Acceleration register
+AMBIENT_C = 30.0
+HEATING_C_PER_S = 4.0  # under full stall
+COOLING_PER_S = 0.05  # fraction of the excess over ambient lost each second
+OVERLOAD_AFTER_S = 1.0  # stall time before the overload protection trips
+FULL_LOAD = 1000
+
+
+@dataclass
+class ServoFaults:
+    """Faults a test can inject into one servo."""
+
+    silent: bool = False  # answers nothing
+    corrupt: bool = False  # answers with a bad checksum
+    late: float = 0.0  # seconds its answers are held back
+    error_bits: int = 0  # always set in its status packets
+    stalled: bool = False  # an obstacle: it cannot move, load and heat rise
+
+
+@dataclass
+class SimServo:
+    """One servo: a register file, where it physically is, and what it is doing."""
+
+    servo_id: int
+    actual: float = reg.CENTER_STEP  # physical position in steps (before Homing_Offset)
+    voltage: float = 12.0
+    temperature: float = AMBIENT_C
+    faults: ServoFaults = field(default_factory=ServoFaults)
+    memory: bytearray = field(default_factory=lambda: bytearray(reg.MEMORY_SIZE))
+    velocity: float = 0.0
+    stall_time: float = 0.0
+    pending: tuple[int, bytes] | None = None  # REG_WRITE waiting for ACTION
+    last_update: float | None = None
+
+    def __post_init__(self) -> None:
+        defaults = {
+            reg.MODEL_NUMBER: reg.STS3215_MODEL,
+            reg.ID: self.servo_id,
+            reg.MIN_POSITION_LIMIT: 0,
+            reg.MAX_POSITION_LIMIT: reg.MAX_STEP,
+            reg.MAX_TEMPERATURE: 70,
+            reg.MAX_TORQUE: FULL_LOAD,
+            reg.TORQUE_LIMIT: FULL_LOAD,
+            reg.LOCK: 1,
+        }
+        for register, value in defaults.items():
+            self.poke(register, value)
+        self.poke(reg.GOAL_POSITION, self.present)
+        self._refresh()
+
+    # -- registers ----------------------------------------------------------------------------
+
+    def peek(self, register: reg.Register) -> int:
+        """A register's value."""
+        start = register.address
+        return register.decode(bytes(self.memory[start : start + register.size]))
+
+    def poke(self, register: reg.Register, value: int) -> None:
+        """Set a register directly (the servo's own doing, not a bus write)."""
+        start = register.address
+        self.memory[start : start + register.size] = register.encode(value)
+
+    def read(self, address: int, length: int) -> bytes:
+        """Bytes of the register file (beyond its end reads as zeros)."""
+        data = bytes(self.memory[address : address + length])
+        return data + bytes(length - len(data))
+
+    def write(self, address: int, data: bytes) -> None:
+        """A bus write: read-only bytes are kept; EEPROM bytes only change while unlocked."""
+        locked = self.peek(reg.LOCK) != 0
+        for offset, byte in enumerate(data):
+            register = _REGISTER_AT.get(address + offset)
+            if register is None or address + offset >= reg.MEMORY_SIZE:
+                continue
+            if not register.writable or (register.eeprom and locked):
+                continue
+            self.memory[address + offset] = byte
+        if self.peek(reg.TORQUE_ENABLE) == 0:
+            self.stall_time = 0.0
+
+    # -- physics ------------------------------------------------------------------------------
+
+    @property
+    def homing(self) -> int:
+        """The Homing_Offset register."""
+        return self.peek(reg.HOMING_OFFSET)
+
+    @property
+    def present(self) -> int:
+        """Present position as the servo reports it (steps, 0..4095)."""
+        return round(self.actual - self.homing) % reg.STEPS_PER_TURN
+
+    def move_by_hand(self, present: float) -> None:
+        """Someone moves the horn (torque off) so that it reads `present`."""
+        self.actual = (present + self.homing) % reg.STEPS_PER_TURN
+        self.velocity = 0.0
+        self._refresh()
+
+    def advance(self, now: float) -> None:
+        """Run the motion, load and thermal model up to `now`."""
+        if self.last_update is None:
+            self.last_update = now
+        dt = max(0.0, now - self.last_update)
+        self.last_update = now
+        if dt:
+            self._step(dt)
+        self._refresh()
+
+    def _step(self, dt: float) -> None:
+        torque = self.peek(reg.TORQUE_ENABLE) != 0
+        goal_actual = self.peek(reg.GOAL_POSITION) + self.homing
+        error = goal_actual - self.actual
+        wants_to_move = torque and abs(error) > 0.5
+        if self.faults.stalled and wants_to_move:
+            self.velocity = 0.0
+            self.stall_time += dt
+            self.temperature += HEATING_C_PER_S * dt
+            if self.stall_time >= OVERLOAD_AFTER_S:
+                self.poke(reg.TORQUE_ENABLE, 0)  # the overload protection releases the horn
+            return
+        self.stall_time = 0.0
+        self.temperature -= (self.temperature - AMBIENT_C) * min(1.0, COOLING_PER_S * dt)
+        if not wants_to_move:
+            self.velocity = 0.0
+            return
+        speed = abs(self.peek(reg.GOAL_VELOCITY)) or MAX_SPEED
+        accel = self.peek(reg.ACCELERATION) * ACCELERATION_UNIT
+        wanted = math.copysign(min(speed, abs(error) / dt), error)
+        if accel:
+            change = max(-accel * dt, min(accel * dt, wanted - self.velocity))
+            wanted = self.velocity + change
+        self.velocity = wanted
+        step = wanted * dt
+        self.actual = goal_actual if abs(step) >= abs(error) else self.actual + step
+
+    def _refresh(self) -> None:
+        self.poke(reg.PRESENT_POSITION, self.present)
+        self.poke(reg.PRESENT_VELOCITY, round(self.velocity))
+        stalled_load = self.faults.stalled and self.stall_time > 0
+        load = FULL_LOAD if stalled_load else min(FULL_LOAD, round(abs(self.velocity) / 10))
+        self.poke(reg.PRESENT_LOAD, load)
+        self.poke(reg.PRESENT_VOLTAGE, round(self.voltage * 10))
+        self.poke(reg.PRESENT_TEMPERATURE, max(0, min(255, round(self.temperature))))
+        self.poke(reg.MOVING, 1 if self.velocity else 0)
+        self.poke(reg.STATUS, self.error_byte)
+
+    @property
+    def error_byte(self) -> int:
+        """The error bits of its status packets."""
+        bits = ErrorBit(self.faults.error_bits)
+        if self.temperature >= self.peek(reg.MAX_TEMPERATURE):
+            bits |= ErrorBit.OVERHEAT
+        if self.stall_time >= OVERLOAD_AFTER_S:
+            bits |= ErrorBit.OVERLOAD
+        if not 4.5 <= self.voltage <= 14.0:
+            bits |= ErrorBit.VOLTAGE
+        return int(bits)
+
+
+@dataclass(frozen=True, slots=True)
+class Reply:
+    """A status packet and how long after the request the servo holds it back."""
+
+    data: bytes
+    delay: float = 0.0
+
+
+class SimBus:
+    """Servos on one bus, answering instruction packets."""
+
+    def __init__(self, servo_ids: tuple[int, ...] = (1, 2, 3, 4, 5, 6)) -> None:
+        self.servos = {sid: SimServo(sid) for sid in servo_ids}
+        self.corrupt_requests = 0
+        self.handled = 0
+
+    def servo(self, servo_id: int) -> SimServo:
+        """The servo with that id."""
+        return self.servos[servo_id]
+
+    def advance(self, now: float) -> None:
+        """Run every servo's model up to `now`."""
+        for servo in self.servos.values():
+            servo.advance(now)
+
+    def handle(self, packet: Packet, now: float) -> list[Reply]:
+        """Carry out one instruction; the replies, in the order the servos send them."""
+        self.handled += 1
+        self.advance(now)
+        params = packet.params
+        try:
+            code = Instruction(packet.code)
+        except ValueError:
+            return []  # servos ignore instructions they do not know
+        if code is Instruction.SYNC_WRITE:
+            self._sync_write(params)
+            return []
+        if code is Instruction.SYNC_READ:
+            if len(params) < 2:
+                return []
+            address, length = params[0], params[1]
+            return [
+                self._status(servo, servo.read(address, length))
+                for sid in params[2:]
+                if (servo := self.servos.get(sid)) is not None
+            ]
+        if packet.servo_id == reg.BROADCAST_ID:
+            for servo in self.servos.values():
+                self._execute(servo, code, params)
+            return []
+        servo = self.servos.get(packet.servo_id)
+        if servo is None:
+            return []
+        data = self._execute(servo, code, params)
+        return [self._status(servo, data or b"")]
+
+    def _execute(self, servo: SimServo, code: Instruction, params: bytes) -> bytes | None:
+        if code is Instruction.READ and len(params) >= 2:
+            return servo.read(params[0], params[1])
+        if code is Instruction.WRITE and params:
+            servo.write(params[0], params[1:])
+            servo.advance(servo.last_update or 0.0)
+        elif code is Instruction.REG_WRITE and params:
+            servo.pending = (params[0], params[1:])
+        elif code is Instruction.ACTION and servo.pending is not None:
+            servo.write(*servo.pending)
+            servo.pending = None
+        return None
+
+    def _sync_write(self, params: bytes) -> None:
+        if len(params) < 2:
+            return
+        address, length = params[0], params[1]
+        body = params[2:]
+        for start in range(0, len(body) - length, length + 1):
+            servo = self.servos.get(body[start])
+            if servo is not None:
+                servo.write(address, body[start + 1 : start + 1 + length])
+
+    def _status(self, servo: SimServo, data: bytes) -> Reply:
+        faults = servo.faults
+        if faults.silent:
+            return Reply(b"", 0.0)
+        frame = encode(servo.servo_id, servo.error_byte, data)
+        if faults.corrupt:
+            frame = frame[:-1] + bytes(((frame[-1] + 1) & 0xFF,))
+        delay = faults.late + servo.peek(reg.RETURN_DELAY) * 2e-6
+        return Reply(frame, delay)
+
+
+_REGISTER_AT: dict[int, reg.Register] = {
+    register.address + offset: register
+    for register in reg.REGISTERS
+    for offset in range(register.size)
+}

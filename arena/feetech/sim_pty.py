@@ -1,0 +1,154 @@
+"""A `SimBus` on a pseudo-terminal, so the real servo SDK can talk to it.
+
+The bus runs in its own thread. Its port is the pty's slave side, reached through a stable
+symlink (`link`) that survives `unplug()` / `plug()`: a test can make the bus disappear and
+come back under the same path, as a USB adapter does.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import select
+import threading
+import time
+import tty
+from collections.abc import Iterator
+from pathlib import Path
+
+from arena.feetech.packets import Corrupt, PacketParser
+from arena.feetech.sim import SimBus
+
+BITS_PER_BYTE = 10  # 8N1: start bit, 8 data bits, stop bit
+
+
+class PtySimBus:
+    """Serve a `SimBus` on a pty at `link` (a symlink to the pty) until `close()`.
+
+    With `wire_time` each exchange takes as long as its bytes would at `baud`, so a driver
+    sees the same timing as on a real bus.
+    """
+
+    def __init__(
+        self,
+        link: Path,
+        bus: SimBus | None = None,
+        *,
+        wire_time: bool = False,
+        baud: int = 1_000_000,
+    ) -> None:
+        self.link = link
+        self.bus = bus or SimBus()
+        self.wire_time = wire_time
+        self.baud = baud
+        self.lock = threading.Lock()  # held while the bus handles a packet: tests poke safely
+        self.requests = 0
+        self._master: int | None = None
+        self._slave: int | None = None
+        self._wake_r, self._wake_w = os.pipe()
+        self._stop = False
+        self._thread: threading.Thread | None = None
+
+    # -- lifetime -----------------------------------------------------------------------------
+
+    def start(self) -> PtySimBus:
+        """Create the pty and start serving."""
+        self.plug()
+        self._thread = threading.Thread(target=self._serve, name="sim-bus", daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        """Stop serving and remove the port."""
+        self._stop = True
+        os.write(self._wake_w, b"x")
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+        self.unplug()
+        os.close(self._wake_r)
+        os.close(self._wake_w)
+
+    def unplug(self) -> None:
+        """The adapter disappears: the port path goes away and open handles see errors."""
+        with self.lock:
+            for fd in (self._master, self._slave):
+                if fd is not None:
+                    os.close(fd)
+            self._master = self._slave = None
+            with contextlib.suppress(FileNotFoundError):
+                self.link.unlink()
+        os.write(self._wake_w, b"x")
+
+    def plug(self) -> None:
+        """The adapter comes (back): a fresh pty behind the same path."""
+        with self.lock:
+            master, slave = os.openpty()
+            tty.setraw(master)
+            tty.setraw(slave)  # pyserial sets it raw too; this covers the moment before
+            self._master, self._slave = master, slave
+            with contextlib.suppress(FileNotFoundError):
+                self.link.unlink()
+            self.link.symlink_to(os.ttyname(slave))
+        os.write(self._wake_w, b"x")
+
+    @property
+    def plugged(self) -> bool:
+        """Whether the port exists now."""
+        return self._master is not None
+
+    def __enter__(self) -> PtySimBus:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @contextlib.contextmanager
+    def paused(self) -> Iterator[SimBus]:
+        """Hold the bus still (no packet handled) while a test changes it."""
+        with self.lock:
+            yield self.bus
+
+    # -- serving ------------------------------------------------------------------------------
+
+    def _serve(self) -> None:
+        parser = PacketParser()
+        while not self._stop:
+            master = self._master
+            watch = [self._wake_r] + ([master] if master is not None else [])
+            ready, _, _ = select.select(watch, [], [], 0.5)
+            if self._wake_r in ready:
+                os.read(self._wake_r, 64)
+                parser.clear()
+                continue
+            if master is None or master not in ready:
+                continue
+            try:
+                data = os.read(master, 4096)
+            except OSError:
+                continue  # unplugged under us
+            started = time.monotonic()
+            for frame in parser.feed(data):
+                if isinstance(frame, Corrupt):
+                    with self.lock:
+                        self.bus.corrupt_requests += 1
+                    continue
+                with self.lock:
+                    replies = self.bus.handle(frame, time.monotonic())
+                self.requests += 1
+                out = b"".join(reply.data for reply in replies)
+                delay = max((reply.delay for reply in replies), default=0.0)
+                if self.wire_time:
+                    delay += (len(data) + len(out)) * BITS_PER_BYTE / self.baud
+                    _sleep_until(started + delay)
+                elif delay:
+                    time.sleep(delay)
+                if out:
+                    with contextlib.suppress(OSError, TypeError):
+                        os.write(master, out)
+
+
+def _sleep_until(deadline: float) -> None:
+    # time.sleep overshoots by ~50-100 us; the wire times here are a few hundred us, so sleep
+    # most of the way and yield the CPU in short naps for the rest.
+    while (remaining := deadline - time.monotonic()) > 0:
+        time.sleep(remaining if remaining > 2e-4 else 0)

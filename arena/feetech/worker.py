@@ -1,0 +1,386 @@
+"""The thread that owns a servo bus and runs its control loop.
+
+Each cycle: write the newest goals (if any arrived), read present positions (every few cycles
+the whole telemetry block: position, velocity, load, voltage, temperature), check servo health,
+hand the reading to the listener. Between cycles it runs jobs other threads submit (torque,
+hold, calibration reads), so the bus is only ever touched from this thread. When the bus fails
+or a servo stays silent, it reports the loss and reconnects on its own.
+
+Connecting is always safe: present positions are read and written back as goals before torque
+goes on, so nothing jumps, and goals queued before the connection are dropped.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Protocol, TypeVar
+
+import msgspec
+
+from arena.feetech import registers as reg
+from arena.feetech.bus import BusError, ServoBus, SyncReadResult
+from arena.feetech.calibration import Calibration, homing_offset_register
+from arena.feetech.health import HealthLimits, HealthMonitor, ServoFault
+from arena.protocol.errors import ArenaError, ErrorCode
+
+T = TypeVar("T")
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class Reading:
+    """Raw present positions by servo id; telemetry when this cycle read it."""
+
+    positions: dict[int, int]
+    time: float  # time.monotonic() of the read
+    temperatures: dict[int, int] | None = None
+    loads: dict[int, int] | None = None
+    voltages: dict[int, float] | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class Connected:
+    """The bus answers; `again` after a loss."""
+
+    again: bool
+
+
+@dataclass(frozen=True, slots=True)
+class Lost:
+    """The bus or a servo stopped answering; the worker keeps trying to reconnect."""
+
+    reason: str
+
+
+WorkerEvent = Connected | Lost | ServoFault
+
+
+class Listener(Protocol):
+    """Receives what the worker sees. Called from the worker thread: must not block."""
+
+    def reading(self, reading: Reading) -> None: ...
+
+    def event(self, event: WorkerEvent) -> None: ...
+
+
+@dataclass
+class WorkerSettings:
+    """How the loop runs. `rate` 0 means as fast as the bus allows."""
+
+    rate: float = 100.0
+    telemetry_rate: float = 10.0
+    reconnect_interval: float = 0.5
+    speed_limit: int | None = None  # Goal_Velocity (steps/s) set at connect
+    limits: HealthLimits = field(default_factory=HealthLimits)
+
+
+@dataclass
+class WorkerStats:
+    """Counters for benchmarks and status."""
+
+    cycles: int = 0
+    started: float = 0.0
+    busy: float = 0.0  # seconds spent inside cycles
+    thread_cpu: float = 0.0  # CPU seconds of the worker thread
+
+
+class BusWorker:
+    """Run a `ServoBus` in a thread of its own. See the module docstring."""
+
+    def __init__(
+        self,
+        open_bus: Callable[[], ServoBus],
+        servo_ids: Sequence[int],
+        listener: Listener,
+        settings: WorkerSettings | None = None,
+    ) -> None:
+        self.open_bus = open_bus
+        self.servo_ids = tuple(servo_ids)
+        self.listener = listener
+        self.settings = settings or WorkerSettings()
+        self.health = HealthMonitor(self.servo_ids, self.settings.limits)
+        self.stats = WorkerStats()
+        self.first_connect: Future[None] = Future()
+        self.torque_wanted = True
+        self._bus: ServoBus | None = None
+        self._lock = threading.Lock()
+        self._goals: dict[int, int] | None = None
+        self._jobs: list[tuple[Callable[[ServoBus], object], Future[object]]] = []
+        self._stopping = threading.Event()
+        self._thread = threading.Thread(target=self._main, name="servo-bus", daemon=True)
+
+    # -- other threads ------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Start the thread; `first_connect` resolves once the first connection is made or fails."""
+        self._thread.start()
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Torque off, close the port, end the thread (blocks until it has)."""
+        self._stopping.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout)
+
+    def set_goals(self, goals: Mapping[int, int]) -> None:
+        """New raw goal steps; only the newest set is written (older ones are dropped).
+
+        Goals given while the bus is away are dropped: they would be stale when it returns.
+        """
+        with self._lock:
+            if self._bus is None:
+                return
+            self._goals = dict(goals) if self._goals is None else {**self._goals, **goals}
+
+    def clear_goals(self) -> None:
+        """Drop goals not yet written."""
+        with self._lock:
+            self._goals = None
+
+    def submit(self, job: Callable[[ServoBus], T]) -> Future[T]:
+        """Run `job(bus)` in the worker thread between cycles (fails at once if the bus is away)."""
+        future: Future[T] = Future()
+        with self._lock:
+            if self._bus is None:
+                future.set_exception(
+                    ArenaError(ErrorCode.PORT_DISCONNECTED, "The servo bus is not connected.")
+                )
+                return future
+            self._jobs.append((job, future))  # type: ignore[arg-type]
+        return future
+
+    @property
+    def connected(self) -> bool:
+        """Whether the bus is up now."""
+        return self._bus is not None
+
+    # -- the thread ---------------------------------------------------------------------------
+
+    def _main(self) -> None:
+        try:
+            self._loop()
+        finally:
+            cpu = time.thread_time()
+            self.stats.thread_cpu = cpu
+            self._shutdown()
+            if not self.first_connect.done():
+                self.first_connect.set_exception(
+                    ArenaError(
+                        ErrorCode.NO_HARDWARE, "The servo bus was stopped before it connected."
+                    )
+                )
+
+    def _loop(self) -> None:
+        period = 1.0 / self.settings.rate if self.settings.rate > 0 else 0.0
+        telemetry_every = (
+            max(1, round(self.settings.rate / self.settings.telemetry_rate))
+            if self.settings.rate > 0 and self.settings.telemetry_rate > 0
+            else 10
+        )
+        again = False
+        self.stats.started = time.monotonic()
+        next_cycle = time.monotonic()
+        while not self._stopping.is_set():
+            if self._bus is None:
+                if not self._try_connect(again):
+                    self._stopping.wait(self.settings.reconnect_interval)
+                    continue
+                again = True
+                next_cycle = time.monotonic()
+            self._run_jobs()
+            started = time.monotonic()
+            try:
+                self._cycle(self.stats.cycles % telemetry_every == 0)
+            except BusError as exc:
+                self._lose(exc.message)
+                continue
+            except Exception as exc:  # a bug must not leave the arm with nobody watching
+                log.exception("servo bus cycle failed")
+                self._lose(f"internal error: {exc!r}")
+                continue
+            self.stats.cycles += 1
+            self.stats.busy += time.monotonic() - started
+            if (silent := self.health.lost) is not None:
+                self._lose(
+                    f"servo {silent} has not answered for {self.settings.limits.lost_after} cycles"
+                )
+                continue
+            if period:
+                next_cycle += period
+                delay = next_cycle - time.monotonic()
+                if delay > 0:
+                    self._stopping.wait(delay)
+                else:
+                    next_cycle = time.monotonic()  # fell behind: do not try to catch up
+            self.stats.thread_cpu = time.thread_time()
+
+    def _try_connect(self, again: bool) -> bool:
+        bus = self.open_bus()
+        try:
+            bus.open()
+            self._connect(bus)
+        except ArenaError as exc:
+            bus.close()
+            if not self.first_connect.done():
+                self.first_connect.set_exception(exc)
+                self._stopping.set()  # the caller hears why; nothing to retry for
+            return False
+        self._bus = bus
+        self.health.reset()
+        if not self.first_connect.done():
+            self.first_connect.set_result(None)
+        self.listener.event(Connected(again))
+        return True
+
+    def _connect(self, bus: ServoBus) -> None:
+        """Check every servo, then hold each where it is, then torque (if wanted)."""
+        for servo_id in self.servo_ids:
+            model = bus.ping(servo_id)
+            if model != reg.STS3215_MODEL:
+                raise ArenaError(
+                    ErrorCode.SERVO_WRONG_MODEL,
+                    f"Servo {servo_id} is model {model}, not an STS3215 ({reg.STS3215_MODEL}).",
+                )
+        self.clear_goals()  # goals from before the connection are stale
+        hold_here(bus, self.servo_ids, torque=self.torque_wanted, speed=self.settings.speed_limit)
+
+    def _lose(self, reason: str) -> None:
+        if self._bus is not None:
+            self._bus.close()
+            self._bus = None
+        self.clear_goals()
+        self._fail_jobs()
+        self.listener.event(Lost(reason))
+
+    def _cycle(self, telemetry: bool) -> None:
+        assert self._bus is not None
+        with self._lock:
+            goals, self._goals = self._goals, None
+        if goals:
+            self._bus.sync_write(reg.GOAL_POSITION, goals)
+        if telemetry:
+            result = self._bus.sync_read(reg.TELEMETRY_START, reg.TELEMETRY_SIZE, self.servo_ids)
+            reading = _telemetry_reading(result)
+        else:
+            result = self._bus.sync_read(
+                reg.PRESENT_POSITION.address, reg.PRESENT_POSITION.size, self.servo_ids
+            )
+            reading = Reading(
+                {sid: reg.PRESENT_POSITION.decode(d) for sid, d in result.data.items()},
+                time.monotonic(),
+            )
+        faults = self.health.on_read(result)
+        if reading.temperatures:
+            faults += self.health.on_temperatures(reading.temperatures)
+        for fault in faults:
+            self.listener.event(fault)
+        if reading.positions:
+            self.listener.reading(reading)
+
+    def _run_jobs(self) -> None:
+        with self._lock:
+            jobs, self._jobs = self._jobs, []
+        for job, future in jobs:
+            if not future.set_running_or_notify_cancel():
+                continue
+            try:
+                assert self._bus is not None
+                future.set_result(job(self._bus))
+            except BusError as exc:
+                future.set_exception(exc)
+                self._lose(exc.message)
+                return
+            except Exception as exc:
+                future.set_exception(exc)
+
+    def _fail_jobs(self) -> None:
+        with self._lock:
+            jobs, self._jobs = self._jobs, []
+        for _, future in jobs:
+            if future.set_running_or_notify_cancel():
+                future.set_exception(
+                    ArenaError(ErrorCode.PORT_DISCONNECTED, "The servo bus is not connected.")
+                )
+
+    def _shutdown(self) -> None:
+        self._fail_jobs()
+        if self._bus is None:
+            return
+        with contextlib.suppress(ArenaError):  # a bus that is gone hears nothing anyway
+            set_torque(self._bus, self.servo_ids, on=False)
+        self._bus.close()
+        self._bus = None
+
+
+def _telemetry_reading(result: SyncReadResult) -> Reading:
+    def field_of(register: reg.Register, data: bytes) -> int:
+        start = register.address - reg.TELEMETRY_START
+        return register.decode(data[start : start + register.size])
+
+    data = {sid: d for sid, d in result.data.items() if len(d) >= reg.TELEMETRY_SIZE}
+    return Reading(
+        {sid: field_of(reg.PRESENT_POSITION, d) for sid, d in data.items()},
+        time.monotonic(),
+        temperatures={sid: field_of(reg.PRESENT_TEMPERATURE, d) for sid, d in data.items()},
+        loads={sid: field_of(reg.PRESENT_LOAD, d) for sid, d in data.items()},
+        voltages={sid: field_of(reg.PRESENT_VOLTAGE, d) / 10 for sid, d in data.items()},
+    )
+
+
+def read_positions(bus: ServoBus, servo_ids: Sequence[int]) -> dict[int, int]:
+    """Present positions of every servo; `SERVO_TIMEOUT` naming any that did not answer."""
+    positions, result = bus.sync_read_register(reg.PRESENT_POSITION, servo_ids)
+    if result.missing or result.corrupt:
+        silent = sorted(result.missing + result.corrupt)
+        raise ArenaError(
+            ErrorCode.SERVO_TIMEOUT, f"Servo(s) {silent} did not answer the position read."
+        )
+    return positions
+
+
+def set_torque(bus: ServoBus, servo_ids: Sequence[int], *, on: bool) -> None:
+    """Torque on or off for every servo."""
+    bus.sync_write(reg.TORQUE_ENABLE, dict.fromkeys(servo_ids, 1 if on else 0))
+
+
+def hold_here(
+    bus: ServoBus, servo_ids: Sequence[int], *, torque: bool, speed: int | None = None
+) -> dict[int, int]:
+    """Goal = present for every servo, then torque as asked: nothing jumps. Returns the pose."""
+    present = read_positions(bus, servo_ids)
+    bus.sync_write(reg.GOAL_POSITION, present)
+    if speed is not None:
+        bus.sync_write(reg.GOAL_VELOCITY, dict.fromkeys(servo_ids, speed))
+    set_torque(bus, servo_ids, on=torque)
+    return present
+
+
+def store_offsets_in_servos(
+    bus: ServoBus, calibration: Calibration, servo_ids: Sequence[int]
+) -> Calibration:
+    """Move each joint's offset into its servo's Homing_Offset register (EEPROM).
+
+    The servo then reports calibrated steps itself, and the returned calibration carries zero
+    offsets. Every offset is checked against the register's range before anything is written.
+    """
+    wanted = {
+        joint.servo_id: homing_offset_register(
+            joint.offset, bus.read(joint.servo_id, reg.HOMING_OFFSET)
+        )
+        for joint in calibration.joints.values()
+        if joint.servo_id in servo_ids
+    }
+    for servo_id, homing in wanted.items():
+        bus.write(servo_id, reg.LOCK, 0)
+        bus.write(servo_id, reg.HOMING_OFFSET, homing)
+        bus.write(servo_id, reg.LOCK, 1)
+    joints = {
+        name: msgspec.structs.replace(joint, offset=0) if joint.servo_id in wanted else joint
+        for name, joint in calibration.joints.items()
+    }
+    return msgspec.structs.replace(calibration, joints=joints, homing_in_servos=True)

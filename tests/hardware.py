@@ -1,0 +1,77 @@
+"""Helpers for tests of the servo-bus drivers: a simulated bus on a pty and polling waits."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import trio
+
+from arena.drivers.usb_slave import UsbSlave
+from arena.feetech.bus import ServoBus
+from arena.feetech.health import HealthLimits
+from arena.feetech.sim_pty import PtySimBus
+from arena.feetech.worker import WorkerSettings
+from arena.protocol.rest import UsbSlaveBody
+from arena.robot.model import RobotModel
+
+# Generous reply timeout: a loaded CI machine must not turn into a "silent servo".
+TEST_TIMEOUT_MARGIN = 0.05
+
+
+def open_test_bus(port: str) -> ServoBus:
+    """A `ServoBus` with the test timeout margin."""
+    return ServoBus(port, timeout_margin=TEST_TIMEOUT_MARGIN)
+
+
+def usb_slave(
+    sim: PtySimBus,
+    model: RobotModel,
+    calibration: Path | None = None,
+    *,
+    lost_after: int = 5,
+    **config: object,
+) -> UsbSlave:
+    """A real `UsbSlave` on the simulated bus (control loop at 200 Hz)."""
+    body = UsbSlaveBody(port=str(sim.link), **config)  # type: ignore[arg-type]
+    settings = WorkerSettings(
+        rate=200.0, reconnect_interval=0.1, limits=HealthLimits(lost_after=lost_after)
+    )
+    return UsbSlave(body, model, calibration, settings=settings, open_bus=open_test_bus)
+
+
+async def eventually(
+    check: Callable[[], bool], timeout: float = 5.0, what: str = "condition"
+) -> None:
+    """Wait (real time) until `check()` holds; fail the test after `timeout` seconds."""
+    with trio.move_on_after(timeout):
+        while not check():
+            await trio.sleep(0.01)
+        return
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+def servo_goals(sim: PtySimBus) -> dict[int, int]:
+    """Goal_Position of every simulated servo."""
+    from arena.feetech import registers as reg
+
+    with sim.paused() as bus:
+        return {sid: servo.peek(reg.GOAL_POSITION) for sid, servo in bus.servos.items()}
+
+
+def servo_torque(sim: PtySimBus) -> dict[int, int]:
+    """Torque_Enable of every simulated servo."""
+    from arena.feetech import registers as reg
+
+    with sim.paused() as bus:
+        return {sid: servo.peek(reg.TORQUE_ENABLE) for sid, servo in bus.servos.items()}
+
+
+def running_sim(tmp_path: Path, **kwargs: object) -> Iterator[PtySimBus]:
+    """A started `PtySimBus` at `tmp_path/ttySIM0` (a fixture body)."""
+    sim = PtySimBus(tmp_path / "ttySIM0", **kwargs)  # type: ignore[arg-type]
+    sim.start()
+    try:
+        yield sim
+    finally:
+        sim.close()

@@ -1,0 +1,198 @@
+"""The USB slave: the real driver and the real scservo_sdk against a simulated bus on a pty."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import trio
+
+from arena.feetech import registers as reg
+from arena.feetech.calibration import Calibration
+from arena.feetech.sim_pty import PtySimBus
+from arena.protocol.errors import ErrorCode, Severity
+from arena.robot.events import FaultReported, JointStatesReceived, PeerChanged
+from arena.robot.manager import RobotManager
+from arena.robot.model import load_robot_model
+from arena.robot.motion import Command
+from arena.robot.safety import Mode
+from tests.hardware import eventually, running_sim, servo_goals, servo_torque, usb_slave
+
+MODEL = load_robot_model("so-arm100")
+
+
+@pytest.fixture
+def sim(tmp_path: Path) -> Iterator[PtySimBus]:
+    yield from running_sim(tmp_path)
+
+
+def steps(degrees: float) -> int:
+    """Raw steps of an uncalibrated servo for `degrees` from neutral."""
+    return round(degrees * 4096 / 360) + 2048
+
+
+async def test_connect_holds_the_arm_where_it_is_before_torque(
+    manager: RobotManager, sim: PtySimBus
+) -> None:
+    with sim.paused() as bus:
+        for sid, servo in bus.servos.items():
+            servo.move_by_hand(1500 + 100 * sid)  # somewhere else than the goal register says
+            servo.poke(reg.GOAL_POSITION, 3000)
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    driver = usb_slave(sim, MODEL)
+    await robot.attach_slave(driver)
+    await eventually(lambda: all(servo_torque(sim).values()), what="torque on")
+    assert servo_goals(sim) == {sid: 1500 + 100 * sid for sid in range(1, 7)}
+    await eventually(lambda: robot.snapshot().joint("Rotation").real_value is not None)
+    real = robot.snapshot().joint("Rotation").real_value
+    assert real == pytest.approx((1600 - 2048) * 360 / 4096)
+    await robot.detach_slave(robot.snapshot().slaves[0].peer_id)
+    await eventually(lambda: not any(servo_torque(sim).values()), what="torque off on detach")
+
+
+async def test_follows_targets_and_reports_real_values(
+    manager: RobotManager, sim: PtySimBus
+) -> None:
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    await robot.attach_slave(usb_slave(sim, MODEL))
+    await eventually(lambda: all(servo_torque(sim).values()))
+    with robot.subscribe() as events:
+        result = await robot.command(Command.of({"Rotation": 20.0, "Elbow": -30.0}, duration=0.3))
+        assert result.accepted
+        await eventually(
+            lambda: abs((robot.snapshot().joint("Elbow").real_value or 0) + 30.0) < 0.2,
+            what="the real elbow to reach -30",
+        )
+        final = {1: steps(20.0), 3: steps(-30.0)}
+        await eventually(lambda: {k: servo_goals(sim)[k] for k in final} == final)
+        got = events.drain()
+    readings = [e for e in got if isinstance(e, JointStatesReceived)]
+    assert len(readings) > 10  # the move was reported as it happened, not just at the end
+    rotation = [e.joints["Rotation"] for e in readings]
+    assert rotation == sorted(rotation)  # and it moved monotonically (min-jerk, no overshoot)
+
+
+@pytest.mark.parametrize("policy", ["hold", "torque-off"])
+async def test_estop_freezes_the_arm(manager: RobotManager, sim: PtySimBus, policy: str) -> None:
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    await robot.attach_slave(usb_slave(sim, MODEL, estop=policy))
+    await eventually(lambda: all(servo_torque(sim).values()))
+    await robot.command(Command.of({"Rotation": 60.0}, duration=2.0))
+    await eventually(lambda: (robot.snapshot().joint("Rotation").real_value or 0) > 10)
+    await robot.estop("test")
+    await trio.sleep(0.1)
+    with sim.paused() as bus:
+        rotation = bus.servo(1)
+        present, goal = rotation.present, rotation.peek(reg.GOAL_POSITION)
+    assert abs(present - goal) <= 2  # goal = present: it stopped where it was
+    assert goal < steps(59.0)
+    torque = servo_torque(sim)
+    assert set(torque.values()) == ({1} if policy == "hold" else {0})
+    # Targets that still arrive are ignored; a manual command is refused anyway.
+    assert not (await robot.command(Command.of({"Rotation": 0.0}))).accepted
+    await robot.reset()
+    await eventually(lambda: all(servo_torque(sim).values()), what="torque back after reset")
+    assert abs(servo_goals(sim)[1] - goal) <= 2  # the reset moved nothing
+
+
+async def test_silent_servo_times_out_then_the_bus_is_lost_and_recovers(
+    manager: RobotManager, sim: PtySimBus
+) -> None:
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    with robot.subscribe() as events:
+        await robot.attach_slave(usb_slave(sim, MODEL, lost_after=5))
+        await eventually(lambda: all(servo_torque(sim).values()))
+        with sim.paused() as bus:
+            bus.servo(3).faults.silent = True
+        await eventually(lambda: robot.snapshot().mode is Mode.ESTOPPED, what="e-stop")
+        slave = robot.snapshot().slaves[0]
+        assert not slave.connected
+        with sim.paused() as bus:
+            bus.servo(3).faults.silent = False
+        await eventually(lambda: robot.snapshot().slaves[0].connected, what="reconnection")
+        got = events.drain()
+    faults = [e for e in got if isinstance(e, FaultReported)]
+    timeout = next(f for f in faults if f.code == ErrorCode.SERVO_TIMEOUT)
+    assert timeout.joint == "Elbow"
+    changes = [e.change for e in got if isinstance(e, PeerChanged)]
+    assert changes[-2:] == ["disconnected", "reconnected"]
+    assert robot.snapshot().mode is Mode.ESTOPPED  # the loss policy: stays stopped until reset
+
+
+async def test_unplugged_bus_comes_back_without_stale_goals(
+    manager: RobotManager, sim: PtySimBus
+) -> None:
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    await robot.attach_slave(usb_slave(sim, MODEL))
+    await eventually(lambda: all(servo_torque(sim).values()))
+    sim.unplug()
+    await eventually(lambda: not robot.snapshot().slaves[0].connected, what="loss")
+    assert robot.snapshot().mode is Mode.ESTOPPED
+    await robot.reset()
+    await robot.command(Command.of({"Rotation": 45.0}))  # sent while the bus is away
+    await trio.sleep(0.6)  # the whole move happens (virtually) during the outage
+    sim.plug()
+    await eventually(lambda: robot.snapshot().slaves[0].connected, what="reconnection")
+    await trio.sleep(0.2)
+    with sim.paused() as bus:
+        assert bus.servo(1).peek(reg.GOAL_POSITION) == bus.servo(1).present  # nothing stale
+        assert bus.servo(1).present == steps(0.0)
+
+
+@pytest.mark.parametrize(
+    ("fault", "code", "severity"),
+    [
+        ("overheat", ErrorCode.SERVO_OVERHEAT, Severity.CRITICAL),
+        ("voltage", ErrorCode.SERVO_VOLTAGE, Severity.ERROR),
+        ("corrupt", ErrorCode.SERVO_CORRUPT, Severity.WARNING),
+        ("stall", ErrorCode.SERVO_OVERLOAD, Severity.CRITICAL),
+    ],
+)
+async def test_servo_faults_become_errors_naming_the_joint(
+    manager: RobotManager, sim: PtySimBus, fault: str, code: ErrorCode, severity: Severity
+) -> None:
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    with robot.subscribe() as events:
+        await robot.attach_slave(usb_slave(sim, MODEL))
+        await eventually(lambda: all(servo_torque(sim).values()))
+        with sim.paused() as bus:
+            servo = bus.servo(2)
+            if fault == "overheat":
+                servo.temperature = 72.0
+            elif fault == "voltage":
+                servo.voltage = 3.0
+            elif fault == "corrupt":
+                servo.faults.corrupt = True
+            else:
+                servo.faults.stalled = True
+        if fault == "stall":
+            await robot.command(Command.of({"Pitch": 20.0}))
+        found: list[FaultReported] = []
+
+        def seen() -> bool:
+            found.extend(e for e in events.drain() if isinstance(e, FaultReported))
+            return any(f.code == code for f in found)
+
+        await eventually(seen, timeout=8.0, what=str(code))
+    fault_event = next(f for f in found if f.code == code)
+    assert fault_event.joint == "Pitch"
+    assert fault_event.severity == severity
+    critical = severity is Severity.CRITICAL
+    assert (robot.snapshot().mode is Mode.ESTOPPED) == critical
+
+
+async def test_uses_the_calibration_file(
+    manager: RobotManager, sim: PtySimBus, tmp_path: Path
+) -> None:
+    calibration = Calibration.identity({j.name: j.servo_id for j in MODEL.joints})
+    joints = dict(calibration.joints)
+    joints["Rotation"] = joints["Rotation"].__class__(servo_id=1, offset=100, direction=-1)
+    path = tmp_path / "arm.json"
+    Calibration(joints=joints).save(path)
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    await robot.attach_slave(usb_slave(sim, MODEL, path))
+    await eventually(lambda: all(servo_torque(sim).values()))
+    await robot.command(Command.of({"Rotation": 10.0}))
+    # degrees = -(raw + 100 - 2048) * 360/4096  ->  raw = 2048 - 100 - 10 * 4096/360
+    await eventually(lambda: servo_goals(sim)[1] == round(2048 - 100 - 10 * 4096 / 360))
