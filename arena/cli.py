@@ -117,6 +117,25 @@ def main(argv: list[str] | None = None) -> int:
     replay.add_argument("--loop", action="store_true")
     replay.add_argument("--from", dest="start", type=float, help="seconds into the commands")
     replay.add_argument("--until", dest="end", type=float, help="seconds into the commands")
+    sim_bus = commands.add_parser("sim-bus", help="a simulated STS3215 servo bus on a pty")
+    sim_bus.add_argument(
+        "--link", default="/tmp/arena-sim-bus", help="path of the port (a symlink to the pty)"
+    )
+    sim_bus.add_argument("--ids", default="1,2,3,4,5,6", help="servo ids, comma-separated")
+    sim_bus.add_argument(
+        "--wire-time", action="store_true", help="answer as slowly as a real wire at --baud"
+    )
+    sim_bus.add_argument("--baud", type=int, default=1_000_000)
+    calibrate = commands.add_parser("calibrate", help="calibrate an arm on a servo bus")
+    calibrate.add_argument("--port", help="serial port (default: find the adapter by USB id)")
+    calibrate.add_argument("--baud", type=int, default=1_000_000)
+    calibrate.add_argument("--robot-type", default="so-arm100")
+    calibrate.add_argument(
+        "--out", default="calibration/robot.json", help="calibration file to write"
+    )
+    calibrate.add_argument(
+        "--write-homing", action="store_true", help="also store the offsets in the servos"
+    )
     schemas = commands.add_parser("schemas", help="write the JSON Schemas of the wire messages")
     schemas.add_argument("--out", default="specs/schemas", help="folder to write them into")
     bench = commands.add_parser("bench", help="run the benchmarks and print medians")
@@ -145,6 +164,14 @@ def main(argv: list[str] | None = None) -> int:
             except ArenaError as error:
                 print(f"arena {args.command}: {error.message}", file=sys.stderr)
                 return 2
+        if args.command in ("sim-bus", "calibrate"):
+            from arena.protocol.errors import ArenaError
+
+            try:
+                return _bus_command(args)
+            except ArenaError as error:
+                print(f"arena {args.command}: {error.message}", file=sys.stderr)
+                return 2
         if args.command == "schemas":
             from pathlib import Path
 
@@ -161,6 +188,33 @@ def main(argv: list[str] | None = None) -> int:
             run_benchmarks(args.json, args.scenarios or None, args.repeats, args.fleet_robots)
     except KeyboardInterrupt:
         return 130
+    return 0
+
+
+def _bus_command(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from arena.feetech import terminal
+    from arena.feetech.bus import ServoBus, find_adapter
+    from arena.robot.model import load_robot_model
+
+    if args.command == "sim-bus":
+        ids = tuple(int(part) for part in args.ids.split(",") if part.strip())
+        terminal.serve_sim_bus(Path(args.link), ids, args.wire_time, args.baud)
+        return 0
+    model = load_robot_model(args.robot_type)
+    bus = ServoBus(args.port or find_adapter(), args.baud)
+    bus.open()
+    try:
+        terminal.calibrate_interactively(
+            bus,
+            {joint.name: joint.servo_id for joint in model.joints},
+            Path(args.out),
+            robot_type=args.robot_type,
+            write_homing=args.write_homing,
+        )
+    finally:
+        bus.close()
     return 0
 
 

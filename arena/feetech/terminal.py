@@ -1,0 +1,91 @@
+"""Terminal tools: `arena calibrate` (the calibration workflow without a server) and
+`arena sim-bus` (a simulated bus anyone can point the USB slave at)."""
+
+from __future__ import annotations
+
+import signal
+import threading
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+from arena.feetech.bus import ServoBus
+from arena.feetech.calibration import Calibration, RangeCapture, calibrate_rest
+from arena.feetech.sim import SimBus
+from arena.feetech.sim_pty import PtySimBus
+from arena.feetech.worker import read_positions, set_torque, store_offsets_in_servos
+
+
+def calibrate_interactively(
+    bus: ServoBus,
+    servo_ids: Mapping[str, int],
+    out: Path,
+    *,
+    robot_type: str = "so-arm100",
+    write_homing: bool = False,
+    ask: Callable[[str], str] = input,
+    say: Callable[[str], None] = print,
+    poll_interval: float = 0.05,
+) -> Calibration:
+    """Walk the user through calibrating the arm on `bus`; store the result in `out`.
+
+    Torque goes off, the user poses the arm at rest (every joint at 0 degrees: the middle of
+    its range), then moves each joint through its range while min and max are recorded.
+    """
+    ids = tuple(servo_ids.values())
+    set_torque(bus, ids, on=False)
+    say("Torque is off: the arm can be moved by hand (hold it, it will not hold itself).")
+    say(
+        "1/2  Put the arm in its rest pose, the pose the digital twin shows at 0 degrees: "
+        "every joint in the middle of its range."
+    )
+    ask("     Press Enter when it is in place. ")
+    raw = read_positions(bus, ids)
+    start = Calibration.load(out) if out.exists() else Calibration.identity(servo_ids, robot_type)
+    calibration = calibrate_rest(start, raw, dict.fromkeys(servo_ids, 0.0))
+    say("     Rest pose captured.")
+    say("2/2  Move every joint slowly through its whole range, one after the other.")
+    capture = RangeCapture()
+    done = threading.Event()
+
+    def watch() -> None:  # owns the bus while the main thread waits for Enter
+        while not done.is_set():
+            capture.observe(calibration.to_degrees(read_positions(bus, ids)))
+            done.wait(poll_interval)
+
+    watcher = threading.Thread(target=watch, name="range-capture", daemon=True)
+    watcher.start()
+    try:
+        ask("     Press Enter when every joint has been to both ends. ")
+    finally:
+        done.set()
+        watcher.join()
+    calibration = capture.apply(calibration)
+    if write_homing:
+        calibration = store_offsets_in_servos(bus, calibration, ids)
+        say("     Offsets written to the servos' Homing_Offset registers.")
+    calibration.save(out)
+    say(f"Saved {out}:")
+    for name, joint in calibration.joints.items():
+        span = (
+            f"{joint.min_degrees:8.1f} .. {joint.max_degrees:6.1f} deg"
+            if joint.min_degrees is not None and joint.max_degrees is not None
+            else "   (no range captured)"
+        )
+        say(f"  {name:<12} servo {joint.servo_id}  offset {joint.offset:+5d}  {span}")
+    say("Torque stays off until a server drives the arm.")
+    return calibration
+
+
+def serve_sim_bus(link: Path, servo_ids: tuple[int, ...], wire_time: bool, baud: int) -> None:
+    """Run a simulated bus at `link` until SIGINT or SIGTERM."""
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    with PtySimBus(link, SimBus(servo_ids), wire_time=wire_time, baud=baud) as sim:
+        timing = f", wire time at {baud} baud" if wire_time else ""
+        print(
+            f"simulated STS3215 bus: servos {','.join(map(str, servo_ids))} on {sim.link} "
+            f"-> {sim.link.resolve()}{timing}",
+            flush=True,
+        )
+        stop.wait()
