@@ -13,6 +13,8 @@ Scenarios:
   recording   throughput with recording on against off (ratio)
   replay      commands/s of a replay at maximum speed (in process)
   core        RobotCore.command calls/s (pure decision code)
+  usb         the USB slave's control loop on a simulated bus (`arena sim-bus --wire-time`, its
+              own process) at 1 Mbaud: the highest cycle rate, and the CPU at 500 Hz
 """
 
 from __future__ import annotations
@@ -395,12 +397,73 @@ def core_rate(count: int = 20_000) -> dict[str, float]:
     return {"core_commands_per_s": count / (time.perf_counter() - start)}
 
 
+def usb_control_rate(seconds: float = 3.0, rate: float = 500.0) -> dict[str, float]:
+    """The bus worker (sync write goals + sync read positions of 6 servos per cycle) against a
+    simulated bus with wire-time emulation in another process: cycles/s flat out, and the
+    worker thread's CPU share when paced at `rate`."""
+    from arena.feetech.bus import ServoBus
+    from arena.feetech.worker import BusWorker, Reading, WorkerEvent, WorkerSettings
+
+    class Count:
+        def __init__(self) -> None:
+            self.readings = 0
+            self.faults = 0
+
+        def reading(self, reading: Reading) -> None:
+            self.readings += 1
+
+        def event(self, event: WorkerEvent) -> None:
+            self.faults += type(event).__name__ == "ServoFault"
+
+    def run(worker_rate: float, link: Path) -> tuple[float, float, int]:
+        listener = Count()
+        ids = (1, 2, 3, 4, 5, 6)
+        worker = BusWorker(
+            lambda: ServoBus(str(link)), ids, listener, WorkerSettings(rate=worker_rate)
+        )
+        worker.start()
+        worker.first_connect.result(timeout=10)
+        goal = 0
+        start = time.perf_counter()
+        cycles0, cpu0 = worker.stats.cycles, worker.stats.thread_cpu
+        while (elapsed := time.perf_counter() - start) < seconds:
+            goal = (goal + 7) % 400
+            worker.set_goals(dict.fromkeys(ids, 1848 + goal))
+            time.sleep(0.002)
+        cycles, cpu = worker.stats.cycles - cycles0, worker.stats.thread_cpu - cpu0
+        worker.stop()
+        return cycles / elapsed, cpu / elapsed, listener.faults
+
+    with tempfile.TemporaryDirectory() as folder:
+        link = Path(folder) / "ttySIM"
+        sim = subprocess.Popen(
+            [sys.executable, "-m", "arena.cli", "sim-bus", "--link", str(link), "--wire-time"],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            assert sim.stdout is not None
+            sim.stdout.readline()  # the banner: the port is there
+            top_rate, top_cpu, faults_top = run(0.0, link)
+            paced_rate, paced_cpu, faults_paced = run(rate, link)
+        finally:
+            sim.terminate()
+            sim.wait(timeout=10)
+    return {
+        "usb_max_control_rate_hz": top_rate,
+        "usb_max_rate_cpu_percent": 100 * top_cpu,
+        f"usb_{rate:.0f}hz_achieved_hz": paced_rate,
+        f"usb_{rate:.0f}hz_cpu_percent": 100 * paced_cpu,
+        "usb_servo_faults": float(faults_top + faults_paced),
+    }
+
+
 async def _with_server(scenario: Callable[[Server], Any], record: bool = True) -> Any:
     async with running_server(record=record) as server:
         return await scenario(server)
 
 
-SCENARIOS = ("relay", "throughput", "fleet", "estop", "recording", "replay", "core")
+SCENARIOS = ("relay", "throughput", "fleet", "estop", "recording", "replay", "core", "usb")
 
 
 def run_benchmarks(
@@ -437,7 +500,8 @@ def run_benchmarks(
         results.update(asyncio.run(_with_server(estop)))
     if "fleet" in chosen:
         results.update(asyncio.run(_with_server(lambda server: fleet(server, robots=fleet_robots))))
-    results["usb_slave_control_rate_hz"] = "n/a: the USB slave is issue 5"
+    if "usb" in chosen:
+        results.update(median_of([usb_control_rate() for _ in range(repeats)]))
     width = max(len(k) for k in results)
     print(f"{'scenario':<{width}}  value (medians of {repeats} runs where repeated)")
     for key, value in results.items():

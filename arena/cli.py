@@ -143,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
     bench.add_argument(
         "scenarios",
         nargs="*",
-        help="which (default: all): relay throughput fleet estop recording replay core",
+        help="which (default: all): relay throughput fleet estop recording replay core usb",
     )
     bench.add_argument("--repeats", type=int, default=3)
     bench.add_argument("--fleet-robots", type=int, default=100)

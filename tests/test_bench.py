@@ -33,3 +33,9 @@ def test_bench_scenarios_run_against_a_real_server() -> None:
 def test_in_process_scenarios() -> None:
     assert bench.core_rate(count=200)["core_commands_per_s"] > 0
     assert bench.replay_rate(commands=200)["replay_commands_per_s"] > 0
+
+
+def test_usb_scenario_runs_on_the_simulated_bus() -> None:
+    results = bench.usb_control_rate(seconds=0.3, rate=100)
+    assert results["usb_max_control_rate_hz"] > 0
+    assert results["usb_100hz_achieved_hz"] > 0
