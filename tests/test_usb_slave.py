@@ -196,3 +196,62 @@ async def test_uses_the_calibration_file(
     await robot.command(Command.of({"Rotation": 10.0}))
     # degrees = -(raw + 100 - 2048) * 360/4096  ->  raw = 2048 - 100 - 10 * 4096/360
     await eventually(lambda: servo_goals(sim)[1] == round(2048 - 100 - 10 * 4096 / 360))
+
+
+async def test_follows_a_sequence_closely(manager: RobotManager, sim: PtySimBus) -> None:
+    from arena.drivers.sequence_master import SequenceMaster
+    from arena.drivers.sequences import parse_sequence
+
+    sequence = parse_sequence(
+        {
+            "id": "short",
+            "name": "short",
+            "commands": [
+                {"timestamp": 0, "duration": 400, "joints": [{"name": "Elbow", "value": -20}]},
+                {"timestamp": 500, "duration": 400, "joints": [{"name": "Elbow", "value": 15}]},
+                {"timestamp": 1000, "duration": 400, "joints": [{"name": "Elbow", "value": 0}]},
+            ],
+            "total_duration": 1500,
+        }
+    )
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    await robot.attach_slave(usb_slave(sim, MODEL))
+    await eventually(lambda: all(servo_torque(sim).values()))
+    extremes: list[float] = []
+    with robot.subscribe() as events:
+        await robot.attach_master(SequenceMaster([sequence]))
+        await eventually(lambda: robot.snapshot().owner is None, what="the sequence to end")
+        await trio.sleep(0.3)
+        for event in events.drain():
+            if isinstance(event, JointStatesReceived) and "Elbow" in event.joints:
+                extremes.append(event.joints["Elbow"])
+    assert min(extremes) == pytest.approx(-20, abs=0.5)
+    assert max(extremes) == pytest.approx(15, abs=0.5)
+    assert extremes[-1] == pytest.approx(0, abs=0.2)  # and it came to rest where it should
+
+
+async def test_late_replies_time_out_and_readings_stay_right(
+    manager: RobotManager, sim: PtySimBus
+) -> None:
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    with sim.paused() as bus:
+        for sid, servo in bus.servos.items():
+            servo.move_by_hand(2048 + 100 * sid)  # every servo reads differently
+    with robot.subscribe() as events:
+        await robot.attach_slave(usb_slave(sim, MODEL, lost_after=1000))
+        await eventually(lambda: all(servo_torque(sim).values()))
+        with sim.paused() as bus:
+            bus.servo(2).faults.late = 0.08  # past the reply timeout: it lands in the next read
+        await trio.sleep(0.5)
+        with sim.paused() as bus:
+            bus.servo(2).faults.late = 0.0
+        await trio.sleep(0.3)
+        got = events.drain()
+    faults = [e for e in got if isinstance(e, FaultReported)]
+    assert any(f.code == ErrorCode.SERVO_TIMEOUT and f.joint == "Pitch" for f in faults)
+    expected = {j.name: 100 * j.servo_id * 360 / 4096 for j in MODEL.joints}
+    readings = [e.joints for e in got if isinstance(e, JointStatesReceived)]
+    assert len(readings) > 10
+    for joints in readings:
+        for name, value in joints.items():
+            assert value == pytest.approx(expected[name], abs=0.1), name
