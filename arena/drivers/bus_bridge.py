@@ -9,12 +9,14 @@ from __future__ import annotations
 import collections
 import contextlib
 import threading
+from collections.abc import Callable
 from concurrent.futures import Future
 from typing import TypeVar
 
 import trio
 
-from arena.feetech.worker import Reading, WorkerEvent
+from arena.feetech.bus import ServoBus, check_serial_device, find_adapter
+from arena.feetech.worker import BusWorker, Reading, WorkerEvent, WorkerSettings
 
 T = TypeVar("T")
 
@@ -60,6 +62,12 @@ class BusBridge:
             self._wake_pending = False
         self._wake.set()
 
+    def take_reading(self) -> Reading | None:
+        """The newest reading not yet taken, without waiting."""
+        with self._lock:
+            reading, self._reading = self._reading, None
+        return reading
+
     async def next(self) -> tuple[Reading | None, list[WorkerEvent]]:
         """Wait for news: the newest reading (None if only events came) and the events."""
         while True:
@@ -71,6 +79,30 @@ class BusBridge:
             if reading is not None or events:
                 return reading, events
             await self._wake.wait()
+
+
+async def start_worker(
+    port: str | None,
+    servo_ids: tuple[int, ...],
+    settings: WorkerSettings,
+    open_bus: Callable[[str], ServoBus],
+) -> tuple[str, BusWorker, BusBridge]:
+    """Find the port (by USB id when None), start a `BusWorker` on it, wait until every servo
+    answered. Errors (no adapter, missing or busy port, a silent servo) say what to do."""
+    if port is None:
+        port = await trio.to_thread.run_sync(find_adapter)
+    check_serial_device(port)
+    bridge = BusBridge()
+    chosen = port
+    worker = BusWorker(lambda: open_bus(chosen), servo_ids, bridge, settings)
+    worker.start()
+    try:
+        await wait_future(worker.first_connect)
+    except BaseException:
+        with trio.CancelScope(shield=True):
+            await trio.to_thread.run_sync(worker.stop)
+        raise
+    return port, worker, bridge
 
 
 async def wait_future(future: Future[T]) -> T:

@@ -14,6 +14,7 @@ from arena.protocol.rest import (
     ReplayMasterBody,
     SequenceMasterBody,
     SlaveBody,
+    UsbMasterBody,
     UsbSlaveBody,
 )
 from arena.robot.actor import MasterDriver, SlaveDriver
@@ -53,8 +54,22 @@ def make_slave(
     raise ArenaError(ErrorCode.INVALID_CONFIG, f"Unsupported slave type {body!r}.")
 
 
-def make_master(body: MasterBody, recordings: Path | None = None) -> MasterDriver:
-    """Build a master driver from its config (`recordings`: where replay finds its files)."""
+def make_master(
+    body: MasterBody,
+    recordings: Path | None = None,
+    model: RobotModel | None = None,
+    calibration_dir: Path | None = None,
+    robot_id: str = "robot",
+) -> MasterDriver:
+    """Build a master driver from its config (`recordings`: where replay finds its files;
+    a leader arm's calibration is `calibration_dir/<name>.json`, default `<robot_id>-leader`)."""
+    if isinstance(body, UsbMasterBody):
+        from arena.drivers.usb_master import UsbMaster
+
+        if model is None:
+            raise ArenaError(ErrorCode.INVALID_CONFIG, "A usb-master needs the robot's model.")
+        folder = calibration_dir or Path("calibration")
+        return UsbMaster(body, model, folder / f"{body.calibration or robot_id + '-leader'}.json")
     if isinstance(body, ReplayMasterBody):
         from arena.recording.mcap_file import read_recording
         from arena.recording.recorder import existing_recording

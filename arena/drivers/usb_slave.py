@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
-import stat
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -20,9 +18,9 @@ from typing import Any
 
 import trio
 
-from arena.drivers.bus_bridge import BusBridge, wait_future
+from arena.drivers.bus_bridge import BusBridge, start_worker, wait_future
 from arena.feetech import registers as reg
-from arena.feetech.bus import ServoBus, find_adapter
+from arena.feetech.bus import ServoBus
 from arena.feetech.calibration import (
     DEGREES_PER_STEP,
     Calibration,
@@ -102,22 +100,9 @@ class UsbSlave:
         if self.calibration_file is not None and self.calibration_file.exists():
             self.calibration = Calibration.load(self.calibration_file)
             self.calibrated = True
-        port = self.config.port
-        if port is None:
-            port = await trio.to_thread.run_sync(find_adapter)
-        _check_port(port)
-        self.port = port
-        self.bridge = BusBridge()
-        worker = BusWorker(
-            lambda: self._open_bus(port), tuple(self.servo_ids.values()), self.bridge, self.settings
+        self.port, self.worker, self.bridge = await start_worker(
+            self.config.port, tuple(self.servo_ids.values()), self.settings, self._open_bus
         )
-        worker.start()
-        try:
-            await wait_future(worker.first_connect)
-        except BaseException:
-            await trio.to_thread.run_sync(worker.stop)
-            raise
-        self.worker = worker
 
     async def run(self, link: SlaveLink) -> None:
         """Follow targets and report joint states until detached; torque off at the end."""
@@ -310,19 +295,3 @@ def _speed_limit(model: RobotModel) -> int:
     """Goal_Velocity for the servos: the slowest joint's velocity limit, in steps/s."""
     fastest_allowed = min(joint.max_velocity for joint in model.joints)
     return max(1, min(reg.STEPS_PER_TURN, round(fastest_allowed / DEGREES_PER_STEP)))
-
-
-def _check_port(port: str) -> None:
-    """Only serial devices: a REST client must not make the server open arbitrary files."""
-    try:
-        mode = os.stat(port).st_mode
-    except FileNotFoundError:
-        from arena.feetech.bus import port_error
-
-        raise port_error(port, FileNotFoundError(2, "No such file or directory")) from None
-    except OSError as exc:
-        from arena.feetech.bus import port_error
-
-        raise port_error(port, exc) from None
-    if not stat.S_ISCHR(mode):
-        raise ArenaError(ErrorCode.INVALID_CONFIG, f"{port} is not a serial device.")

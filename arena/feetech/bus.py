@@ -16,7 +16,9 @@ the SDK's traps (see the so-arm100 robot notes):
 from __future__ import annotations
 
 import errno
+import os
 import select
+import stat
 import termios
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -263,6 +265,16 @@ def port_error(port: str, exc: BaseException) -> BusError:
             "a serial monitor): close it first.",
         )
     return BusError(ErrorCode.PORT_DISCONNECTED, f"Cannot open serial port {port}: {text}")
+
+
+def check_serial_device(port: str) -> None:
+    """Only serial devices: a REST client must not make the server open arbitrary files."""
+    try:
+        mode = os.stat(port).st_mode
+    except OSError as exc:
+        raise port_error(port, exc) from None
+    if not stat.S_ISCHR(mode):
+        raise ArenaError(ErrorCode.INVALID_CONFIG, f"{port} is not a serial device.")
 
 
 @dataclass(frozen=True, slots=True)

@@ -88,6 +88,7 @@ class PtySimBus:
             self._master, self._slave = master, slave
             with contextlib.suppress(FileNotFoundError):
                 self.link.unlink()
+            self.link.parent.mkdir(parents=True, exist_ok=True)
             self.link.symlink_to(os.ttyname(slave))
         os.write(self._wake_w, b"x")
 
@@ -115,7 +116,10 @@ class PtySimBus:
         while not self._stop:
             master = self._master
             watch = [self._wake_r] + ([master] if master is not None else [])
-            ready, _, _ = select.select(watch, [], [], 0.5)
+            try:
+                ready, _, _ = select.select(watch, [], [], 0.5)
+            except (OSError, ValueError):
+                continue  # the pty was closed under us (unplugged): look again
             if self._wake_r in ready:
                 os.read(self._wake_r, 64)
                 parser.clear()

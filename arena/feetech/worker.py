@@ -77,6 +77,7 @@ class WorkerSettings:
     telemetry_rate: float = 10.0
     reconnect_interval: float = 0.5
     speed_limit: int | None = None  # Goal_Velocity (steps/s) set at connect
+    torque_on_connect: bool = True  # False for a leader arm, moved by hand
     limits: HealthLimits = field(default_factory=HealthLimits)
 
 
@@ -107,7 +108,7 @@ class BusWorker:
         self.health = HealthMonitor(self.servo_ids, self.settings.limits)
         self.stats = WorkerStats()
         self.first_connect: Future[None] = Future()
-        self.torque_wanted = True
+        self.torque_wanted = self.settings.torque_on_connect
         self._bus: ServoBus | None = None
         self._lock = threading.Lock()
         self._goals: dict[int, int] | None = None

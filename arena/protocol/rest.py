@@ -40,6 +40,10 @@ class MockSlaveBody(msgspec.Struct, tag="mock-slave", tag_field="type", omit_def
     seed: int = 0
 
 
+#: A calibration file's name: letters, digits, `_-.`, not starting with a dot (no paths).
+CalibrationName = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$")]
+
+
 class UsbSlaveBody(msgspec.Struct, tag="usb-slave", tag_field="type", omit_defaults=True):
     """An arm on a Feetech servo bus. No `port`: find the adapter by USB id.
 
@@ -51,9 +55,7 @@ class UsbSlaveBody(msgspec.Struct, tag="usb-slave", tag_field="type", omit_defau
     baudRate: int = 1_000_000
     rate: Annotated[float, msgspec.Meta(gt=0, le=2000)] = 100.0
     estop: Literal["hold", "torque-off"] = "hold"
-    calibration: (
-        Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$")] | None
-    ) = None
+    calibration: CalibrationName | None = None
 
 
 SlaveBody: TypeAlias = MockSlaveBody | UsbSlaveBody
@@ -93,4 +95,18 @@ class ReplayMasterBody(ReplayBody, tag="replay", tag_field="type"):
     """The `replay` master config: a `ReplayBody` with its type."""
 
 
-MasterBody: TypeAlias = SequenceMasterBody | ReplayMasterBody
+class UsbMasterBody(msgspec.Struct, tag="usb-master", tag_field="type", omit_defaults=True):
+    """A leader arm on a Feetech servo bus, moved by hand (torque stays off).
+
+    `rate`: Hz at which it is read; `deadband`: degrees a joint must move before a new command
+    goes out; `calibration`: the leader's calibration name (default: `<robot id>-leader`).
+    """
+
+    port: str | None = None
+    baudRate: int = 1_000_000
+    rate: Annotated[float, msgspec.Meta(gt=0, le=2000)] = 100.0
+    deadband: Annotated[float, msgspec.Meta(ge=0, le=10)] = 0.5
+    calibration: CalibrationName | None = None
+
+
+MasterBody: TypeAlias = SequenceMasterBody | ReplayMasterBody | UsbMasterBody

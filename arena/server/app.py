@@ -306,7 +306,28 @@ def _register_routes(app: ArenaApp) -> None:
     async def attach_master(robot_id: str) -> tuple[dict[str, Any], int]:
         robot = manager.get(robot_id)
         body: MasterBody = await read_body(MasterBody)
-        master_id = await robot.attach_master(make_master(body, app.recorder.folder))
+        driver = make_master(
+            body,
+            app.recorder.folder,
+            robot.model,
+            Path(app.arena_config.calibration_dir),
+            robot_id,
+        )
+        prepare = getattr(driver, "prepare", None)
+        if prepare is not None:
+            holder = robot.snapshot().master
+            if holder is not None and not driver.takes_over:
+                raise ArenaError(  # say so before opening any hardware
+                    ErrorCode.MASTER_ACTIVE, f"Master {holder.peer_id!r} already drives this robot."
+                )
+            await prepare()  # hardware: port problems are the caller's error, now
+        try:
+            master_id = await robot.attach_master(driver)
+        except BaseException:
+            close = getattr(driver, "close", None)
+            if close is not None:
+                await close()  # refused (another master holds the robot): free the port
+            raise
         return {"id": master_id, "type": type(body).__struct_config__.tag}, 201
 
     @app.delete("/api/robots/<robot_id>/master")

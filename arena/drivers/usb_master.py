@@ -1,0 +1,141 @@
+"""The USB master: a leader arm, moved by hand, commands the robot.
+
+Torque stays off on the leader. Its present positions are read on its own bus thread (the same
+`BusWorker` as the USB slave), turned into degrees through the leader's calibration, and sent
+as commands whenever a joint moved more than the dead band, at most as often as the robot's
+rate limit allows (the newest pose wins). It claims the robot like any master (no takeover), an
+e-stop ends it for good, and losing the leader's bus is a lost master (the loss policy applies).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+import trio
+
+from arena.drivers.bus_bridge import BusBridge, start_worker
+from arena.feetech.bus import ServoBus
+from arena.feetech.calibration import Calibration
+from arena.feetech.health import ServoFault
+from arena.feetech.worker import BusWorker, Lost, Reading, WorkerSettings
+from arena.protocol.errors import ErrorCode
+from arena.protocol.rest import UsbMasterBody
+from arena.robot.actor import MasterLink
+from arena.robot.model import RobotModel
+from arena.robot.motion import Command, JointGoal
+
+log = logging.getLogger(__name__)
+
+#: Refusals after which the leader stops for good.
+_FINAL_REFUSALS = frozenset({ErrorCode.ESTOPPED, ErrorCode.NOT_OWNER})
+
+
+class UsbMaster:
+    """See the module docstring. `open_bus` replaces the serial bus (tests, benchmarks)."""
+
+    kind = "usb-master"
+    autonomous = True  # an e-stop ends it: a leader arm must not drive on after a reset
+    takes_over = False
+
+    def __init__(
+        self,
+        config: UsbMasterBody,
+        model: RobotModel,
+        calibration_file: Path | None = None,
+        *,
+        settings: WorkerSettings | None = None,
+        open_bus: Callable[[str], ServoBus] | None = None,
+    ) -> None:
+        self.config = config
+        self.model = model
+        self.calibration_file = calibration_file
+        self.servo_ids = {joint.name: joint.servo_id for joint in model.joints}
+        # Torque off, always: the leader is moved by hand.
+        self.settings = dataclasses.replace(
+            settings or WorkerSettings(rate=config.rate), torque_on_connect=False
+        )
+        self._open_bus = open_bus or (lambda port: ServoBus(port, config.baudRate))
+        self.calibration = Calibration.identity(self.servo_ids, model.robot_type)
+        self.calibrated = False
+        self.port: str | None = None
+        self.worker: BusWorker | None = None
+        self.bridge: BusBridge | None = None
+        self.sent = 0
+        self.refusals: list[tuple[ErrorCode | None, str]] = []
+
+    async def prepare(self) -> None:
+        """Open the leader's bus with torque off; errors say what to do."""
+        if self.worker is not None:
+            return
+        if self.calibration_file is not None and self.calibration_file.exists():
+            self.calibration = Calibration.load(self.calibration_file)
+            self.calibrated = True
+        else:
+            log.warning(
+                "usb-master: no calibration at %s: raw 2048 is 0 deg", self.calibration_file
+            )
+        self.port, self.worker, self.bridge = await start_worker(
+            self.config.port, tuple(self.servo_ids.values()), self.settings, self._open_bus
+        )
+
+    async def close(self) -> None:
+        """Stop the bus thread (for a prepared master that never ran)."""
+        if self.worker is not None:
+            with trio.CancelScope(shield=True):
+                await trio.to_thread.run_sync(self.worker.stop)
+
+    async def run(self, link: MasterLink) -> None:
+        """Mirror the leader onto the robot until detached, e-stopped or the bus is lost."""
+        await self.prepare()
+        assert self.worker is not None and self.bridge is not None
+        try:
+            await self._mirror(link, self.bridge)
+        finally:
+            await self.close()
+
+    async def _mirror(self, link: MasterLink, bridge: BusBridge) -> None:
+        interval = 1.0 / min(self.config.rate, self.model.safety.command_rate)
+        last_sent: dict[str, float] | None = None
+        last_at = -math.inf
+        while True:
+            reading, events = await bridge.next()
+            for event in events:
+                if isinstance(event, Lost):
+                    await link.lost(f"leader arm bus on {self.port}: {event.reason}")
+                    return
+                if isinstance(event, ServoFault):
+                    log.warning("usb-master on %s: %s", self.port, event.message)
+            if reading is None:
+                continue
+            pose = self._pose(reading)
+            if last_sent is not None and not _moved(pose, last_sent, self.config.deadband):
+                continue
+            wait = last_at + interval - trio.current_time()
+            if wait > 0:  # the robot's rate limit: wait, then send the newest pose there is
+                await trio.sleep(wait)
+                newer = bridge.take_reading()
+                if newer is not None:
+                    pose = self._pose(newer)
+            last_at = trio.current_time()
+            result = await link.command(
+                Command(tuple(JointGoal(n, v) for n, v in pose.items()), source="leader-arm")
+            )
+            self.sent += 1
+            if result.accepted:
+                last_sent = pose
+                continue
+            self.refusals.append((result.code, result.message))
+            if result.code in _FINAL_REFUSALS:
+                return  # stopped for good: a leader never resumes by itself
+
+    def _pose(self, reading: Reading) -> dict[str, float]:
+        return self.calibration.to_degrees(reading.positions)
+
+
+def _moved(pose: Mapping[str, float], last: Mapping[str, float], deadband: float) -> bool:
+    """Whether any joint moved more than `deadband` degrees since the last command."""
+    return any(abs(value - last.get(name, math.inf)) > deadband for name, value in pose.items())

@@ -1,0 +1,158 @@
+"""The leader arm (usb-master) driving a follower (usb-slave): two simulated buses, real SDK."""
+
+from __future__ import annotations
+
+from collections.abc import Awaitable, Callable, Iterator
+from pathlib import Path
+
+import pytest
+import trio
+
+from arena.drivers.usb_master import UsbMaster
+from arena.feetech import registers as reg
+from arena.feetech.calibration import Calibration, calibrate_rest
+from arena.feetech.health import HealthLimits
+from arena.feetech.sim_pty import PtySimBus
+from arena.feetech.worker import WorkerSettings
+from arena.protocol.rest import UsbMasterBody
+from arena.robot.actor import Robot
+from arena.robot.manager import RobotManager
+from arena.robot.model import load_robot_model
+from arena.robot.safety import Mode
+from tests.conftest import RunningServer
+from tests.hardware import (
+    eventually,
+    open_test_bus,
+    running_sim,
+    servo_goals,
+    servo_torque,
+    usb_slave,
+)
+
+MODEL = load_robot_model("so-arm100")
+JOINTS = {j.name: j.servo_id for j in MODEL.joints}
+LEADER_REST = {1: 1000, 2: 1500, 3: 2500, 4: 3000, 5: 100, 6: 2048}
+FOLLOWER_REST = {1: 2100, 2: 900, 3: 3500, 4: 2000, 5: 4000, 6: 1500}
+
+
+@pytest.fixture
+def leader(tmp_path: Path) -> Iterator[PtySimBus]:
+    yield from running_sim(tmp_path / "leader")
+
+
+@pytest.fixture
+def follower(tmp_path: Path) -> Iterator[PtySimBus]:
+    yield from running_sim(tmp_path / "follower")
+
+
+def pose(sim: PtySimBus, raw: dict[int, int]) -> None:
+    with sim.paused() as bus:
+        for sid, value in raw.items():
+            bus.servo(sid).move_by_hand(value)
+
+
+def calibrated_at(raw: dict[int, int], path: Path) -> Path:
+    """A calibration in which the pose `raw` is the twin's rest pose (every joint at 0)."""
+    calibrate_rest(Calibration.identity(JOINTS), raw, dict.fromkeys(JOINTS, 0.0)).save(path)
+    return path
+
+
+def leader_arm(sim: PtySimBus, calibration: Path, **config: object) -> UsbMaster:
+    body = UsbMasterBody(port=str(sim.link), **config)  # type: ignore[arg-type]
+    settings = WorkerSettings(rate=200.0, limits=HealthLimits(lost_after=5))
+    return UsbMaster(body, MODEL, calibration, settings=settings, open_bus=open_test_bus)
+
+
+async def teleop(
+    manager: RobotManager, leader: PtySimBus, follower: PtySimBus, tmp_path: Path
+) -> tuple[Robot, UsbMaster]:
+    pose(leader, LEADER_REST)
+    pose(follower, FOLLOWER_REST)
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    await robot.attach_slave(
+        usb_slave(follower, MODEL, calibrated_at(FOLLOWER_REST, tmp_path / "arm.json"))
+    )
+    await eventually(lambda: all(servo_torque(follower).values()), what="follower torque")
+    master = leader_arm(leader, calibrated_at(LEADER_REST, tmp_path / "arm-leader.json"))
+    await master.prepare()  # as the server does: the bus is up before the master claims
+    await robot.attach_master(master)
+    return robot, master
+
+
+async def test_the_follower_mirrors_the_leader(
+    manager: RobotManager, leader: PtySimBus, follower: PtySimBus, tmp_path: Path
+) -> None:
+    robot, _ = await teleop(manager, leader, follower, tmp_path)
+    assert robot.snapshot().master is not None and robot.snapshot().master.kind == "usb-master"
+    assert not any(servo_torque(leader).values())  # the leader stays limp
+    # Both calibrated to the same rest pose: at rest, the follower holds its own rest.
+    await eventually(lambda: servo_goals(follower) == FOLLOWER_REST, what="rest mirrored")
+    moved = {3: LEADER_REST[3] + 300, 1: LEADER_REST[1] - 200}
+    pose(leader, moved)
+    expected = {**FOLLOWER_REST, 3: FOLLOWER_REST[3] + 300, 1: FOLLOWER_REST[1] - 200}
+    await eventually(lambda: servo_goals(follower) == expected, what="the move mirrored")
+
+
+async def test_a_leader_at_rest_sends_nothing(
+    manager: RobotManager, leader: PtySimBus, follower: PtySimBus, tmp_path: Path
+) -> None:
+    _, master = await teleop(manager, leader, follower, tmp_path)
+    await eventually(lambda: master.sent >= 1, what="the first command")
+    await trio.sleep(0.2)
+    before = master.sent
+    for jitter in (2, -3, 1, 0, 3):  # a hand resting on the leader: under half a degree
+        pose(leader, {2: LEADER_REST[2] + jitter})
+        await trio.sleep(0.05)
+    assert master.sent == before
+    pose(leader, {2: LEADER_REST[2] + 40})  # 3.5 degrees: a real move
+    await eventually(lambda: master.sent == before + 1, what="one command for the move")
+
+
+async def test_estop_freezes_the_follower_for_good(
+    manager: RobotManager, leader: PtySimBus, follower: PtySimBus, tmp_path: Path
+) -> None:
+    robot, _ = await teleop(manager, leader, follower, tmp_path)
+    await eventually(lambda: servo_goals(follower) == FOLLOWER_REST)
+    await robot.estop("test")
+    assert robot.snapshot().master is None  # an e-stop ends the leader's command
+    pose(leader, {3: LEADER_REST[3] + 400})
+    await trio.sleep(0.3)
+    assert servo_goals(follower)[3] == FOLLOWER_REST[3]
+    await robot.reset()
+    await trio.sleep(0.3)
+    assert servo_goals(follower)[3] == FOLLOWER_REST[3]  # and it does not resume by itself
+
+
+async def test_unplugging_the_leader_estops_the_robot(
+    manager: RobotManager, leader: PtySimBus, follower: PtySimBus, tmp_path: Path
+) -> None:
+    robot, _ = await teleop(manager, leader, follower, tmp_path)
+    await eventually(lambda: servo_goals(follower) == FOLLOWER_REST)
+    leader.unplug()
+    await eventually(lambda: robot.snapshot().mode is Mode.ESTOPPED, what="e-stop")
+    assert "leader arm bus" in (robot.snapshot().estop_reason or "")
+    assert robot.snapshot().master is None
+
+
+StartServer = Callable[..., Awaitable[RunningServer]]
+
+
+async def test_leader_over_rest_claims_the_robot_and_frees_its_port(
+    start_server: StartServer, leader: PtySimBus, tmp_path: Path
+) -> None:
+    server = await start_server(calibration_dir=str(tmp_path / "calibration"))
+    config = {"type": "usb-master", "port": str(leader.link)}
+    async with server.client() as http:
+        await http.post("/api/robots", json={"id": "arm"})
+        first = await http.post("/api/robots/arm/master", json=config)
+        assert first.status_code == 201, first.text
+        assert (await http.get("/api/robots/arm")).json()["master"]["type"] == "usb-master"
+        second = await http.post("/api/robots/arm/master", json=config)
+        assert (second.status_code, second.json()["error"]["code"]) == (409, "MASTER_ACTIVE")
+        await http.delete("/api/robots/arm/master")
+        again = await http.post("/api/robots/arm/master", json=config)
+        assert again.status_code == 201, again.text  # the port was freed both times
+        bad = await http.post("/api/robots/arm/master", json={**config, "deadband": -1})
+        assert bad.json()["error"]["code"] == "INVALID_BODY"
+    with leader.paused() as bus:
+        assert all(s.peek(reg.TORQUE_ENABLE) == 0 for s in bus.servos.values())
