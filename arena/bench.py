@@ -13,6 +13,8 @@ Scenarios:
   recording   throughput with recording on against off (ratio)
   replay      commands/s of a replay at maximum speed (in process)
   core        RobotCore.command calls/s (pure decision code)
+  teleop      leader arm -> follower: a leader register change to the follower's goal write,
+              two simulated buses at 1 Mbaud in this process, p50/p99 at 100 and 500 Hz
   usb         the USB slave's control loop on a simulated bus (`arena sim-bus --wire-time`, its
               own process) at 1 Mbaud: the highest cycle rate, and the CPU at 500 Hz
 """
@@ -458,12 +460,83 @@ def usb_control_rate(seconds: float = 3.0, rate: float = 500.0) -> dict[str, flo
     }
 
 
+def teleop_latency(moves: int = 200, rate: float = 100.0) -> dict[str, float]:
+    """Leader register change -> follower Goal_Position write, through a robot (usb-master and
+    usb-slave on two simulated buses with wire-time emulation, both loops at `rate`)."""
+    import trio
+
+    from arena.drivers.usb_master import UsbMaster
+    from arena.drivers.usb_slave import UsbSlave
+    from arena.feetech import registers as reg
+    from arena.feetech.sim_pty import PtySimBus
+    from arena.protocol.rest import UsbMasterBody, UsbSlaveBody
+    from arena.robot.manager import open_manager
+    from arena.robot.model import load_robot_model
+
+    latencies: list[float] = []
+
+    async def run(leader: PtySimBus, follower: PtySimBus) -> None:
+        model = load_robot_model("so-arm100")
+        log: list[tuple[float, int, int, bytes]] = []
+        async with open_manager() as manager:
+            robot = await manager.create_robot("so-arm100", robot_id="arm")
+            await robot.attach_slave(
+                UsbSlave(UsbSlaveBody(port=str(follower.link), rate=rate), model)
+            )
+            master = UsbMaster(UsbMasterBody(port=str(leader.link), rate=rate), model)
+            await master.prepare()
+            await robot.attach_master(master)
+            await trio.sleep(0.3)
+            with follower.paused() as bus:
+                bus.write_log = log
+            for i in range(moves):
+                target = 2048 + (25 if i % 2 == 0 else -25)  # 2.2 degrees: one direct step
+                with leader.paused() as bus:
+                    bus.servo(1).move_by_hand(target)
+                    moved_at = time.monotonic()
+                want = reg.GOAL_POSITION.encode(target)
+                deadline = moved_at + 1.0
+                while time.monotonic() < deadline:
+                    await trio.sleep(0.0005)
+                    with follower.paused():
+                        hit = [t for t, sid, a, d in log if sid == 1 and a == 42 and d == want]
+                        log.clear()
+                    if hit:
+                        latencies.append(hit[0] - moved_at)
+                        break
+                await trio.sleep(0.03 + (i % 7) * 0.003)  # spaced: the rate limit never waits
+
+    with (
+        tempfile.TemporaryDirectory() as folder,
+        PtySimBus(Path(folder) / "leader", wire_time=True) as leader,
+        PtySimBus(Path(folder) / "follower", wire_time=True) as follower,
+    ):
+        trio.run(run, leader, follower)
+    latencies.sort()
+    tag = f"{rate:.0f}hz"
+    return {
+        f"teleop_{tag}_p50_ms": 1000 * _percentile(latencies, 0.5),
+        f"teleop_{tag}_p99_ms": 1000 * _percentile(latencies, 0.99),
+        f"teleop_{tag}_missed": float(moves - len(latencies)),
+    }
+
+
 async def _with_server(scenario: Callable[[Server], Any], record: bool = True) -> Any:
     async with running_server(record=record) as server:
         return await scenario(server)
 
 
-SCENARIOS = ("relay", "throughput", "fleet", "estop", "recording", "replay", "core", "usb")
+SCENARIOS = (
+    "relay",
+    "throughput",
+    "fleet",
+    "estop",
+    "recording",
+    "replay",
+    "core",
+    "usb",
+    "teleop",
+)
 
 
 def run_benchmarks(
@@ -502,6 +575,9 @@ def run_benchmarks(
         results.update(asyncio.run(_with_server(lambda server: fleet(server, robots=fleet_robots))))
     if "usb" in chosen:
         results.update(median_of([usb_control_rate() for _ in range(repeats)]))
+    if "teleop" in chosen:
+        for rate in (100.0, 250.0, 500.0):
+            results.update(median_of([teleop_latency(rate=rate) for _ in range(repeats)]))
     width = max(len(k) for k in results)
     print(f"{'scenario':<{width}}  value (medians of {repeats} runs where repeated)")
     for key, value in results.items():

@@ -35,6 +35,12 @@ def test_in_process_scenarios() -> None:
     assert bench.replay_rate(commands=200)["replay_commands_per_s"] > 0
 
 
+def test_teleop_scenario_runs_on_two_simulated_buses() -> None:
+    results = bench.teleop_latency(moves=5, rate=250)
+    assert results["teleop_250hz_missed"] == 0
+    assert results["teleop_250hz_p99_ms"] > 0
+
+
 def test_usb_scenario_runs_on_the_simulated_bus() -> None:
     results = bench.usb_control_rate(seconds=0.3, rate=100)
     assert results["usb_max_control_rate_hz"] > 0

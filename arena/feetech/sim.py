@@ -189,6 +189,9 @@ class SimBus:
         self.servos = {sid: SimServo(sid) for sid in servo_ids}
         self.corrupt_requests = 0
         self.handled = 0
+        #: When a list: every write as (time, servo id, address, bytes), for latency benchmarks.
+        self.write_log: list[tuple[float, int, int, bytes]] | None = None
+        self._now = 0.0
 
     def servo(self, servo_id: int) -> SimServo:
         """The servo with that id."""
@@ -202,6 +205,7 @@ class SimBus:
     def handle(self, packet: Packet, now: float) -> list[Reply]:
         """Carry out one instruction; the replies, in the order the servos send them."""
         self.handled += 1
+        self._now = now
         self.advance(now)
         params = packet.params
         try:
@@ -234,6 +238,7 @@ class SimBus:
         if code is Instruction.READ and len(params) >= 2:
             return servo.read(params[0], params[1])
         if code is Instruction.WRITE and params:
+            self._log(servo.servo_id, params[0], params[1:])
             servo.write(params[0], params[1:])
             servo.advance(servo.last_update or 0.0)
         elif code is Instruction.REG_WRITE and params:
@@ -251,7 +256,12 @@ class SimBus:
         for start in range(0, len(body) - length, length + 1):
             servo = self.servos.get(body[start])
             if servo is not None:
+                self._log(servo.servo_id, address, body[start + 1 : start + 1 + length])
                 servo.write(address, body[start + 1 : start + 1 + length])
+
+    def _log(self, servo_id: int, address: int, data: bytes) -> None:
+        if self.write_log is not None:
+            self.write_log.append((self._now, servo_id, address, bytes(data)))
 
     def _status(self, servo: SimServo, data: bytes) -> Reply:
         faults = servo.faults

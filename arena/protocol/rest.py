@@ -53,7 +53,7 @@ class UsbSlaveBody(msgspec.Struct, tag="usb-slave", tag_field="type", omit_defau
 
     port: str | None = None
     baudRate: int = 1_000_000
-    rate: Annotated[float, msgspec.Meta(gt=0, le=2000)] = 100.0
+    rate: Annotated[float, msgspec.Meta(gt=0, le=2000)] = 250.0
     estop: Literal["hold", "torque-off"] = "hold"
     calibration: CalibrationName | None = None
 
@@ -104,7 +104,7 @@ class UsbMasterBody(msgspec.Struct, tag="usb-master", tag_field="type", omit_def
 
     port: str | None = None
     baudRate: int = 1_000_000
-    rate: Annotated[float, msgspec.Meta(gt=0, le=2000)] = 100.0
+    rate: Annotated[float, msgspec.Meta(gt=0, le=2000)] = 250.0
     deadband: Annotated[float, msgspec.Meta(ge=0, le=10)] = 0.5
     calibration: CalibrationName | None = None
 
