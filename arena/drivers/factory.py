@@ -21,6 +21,11 @@ from arena.robot.actor import MasterDriver, SlaveDriver
 from arena.robot.model import RobotModel
 
 
+def _calibration_file(folder: Path | None, name: str | None, robot_id: str) -> Path:
+    """`folder/<name>.json` (names are checked at the edge: no paths)."""
+    return (folder or Path("calibration")) / f"{name or robot_id}.json"
+
+
 def make_slave(
     body: SlaveBody,
     model: RobotModel | None = None,
@@ -37,8 +42,7 @@ def make_slave(
 
         if model is None:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "A usb-slave needs the robot's model.")
-        folder = calibration_dir or Path("calibration")
-        return UsbSlave(body, model, folder / f"{body.calibration or robot_id}.json")
+        return UsbSlave(body, model, _calibration_file(calibration_dir, body.calibration, robot_id))
     if isinstance(body, MockSlaveBody):
         return MockSlave(
             MockSlaveConfig.from_wire(
@@ -68,8 +72,8 @@ def make_master(
 
         if model is None:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "A usb-master needs the robot's model.")
-        folder = calibration_dir or Path("calibration")
-        return UsbMaster(body, model, folder / f"{body.calibration or robot_id + '-leader'}.json")
+        name = body.calibration or f"{robot_id}-leader"
+        return UsbMaster(body, model, _calibration_file(calibration_dir, name, robot_id))
     if isinstance(body, ReplayMasterBody):
         from arena.recording.mcap_file import read_recording
         from arena.recording.recorder import existing_recording

@@ -17,11 +17,11 @@ from pathlib import Path
 
 import trio
 
-from arena.drivers.bus_bridge import BusBridge, start_worker
+from arena.drivers.bus_bridge import BusBridge
+from arena.drivers.servo_arm import ServoArm
 from arena.feetech.bus import ServoBus
-from arena.feetech.calibration import Calibration
 from arena.feetech.health import ServoFault
-from arena.feetech.worker import BusWorker, Lost, Reading, WorkerSettings
+from arena.feetech.worker import Lost, Reading, WorkerSettings
 from arena.protocol.errors import ErrorCode
 from arena.protocol.rest import UsbMasterBody
 from arena.robot.actor import MasterLink
@@ -34,7 +34,7 @@ log = logging.getLogger(__name__)
 _FINAL_REFUSALS = frozenset({ErrorCode.ESTOPPED, ErrorCode.NOT_OWNER})
 
 
-class UsbMaster:
+class UsbMaster(ServoArm):
     """See the module docstring. `open_bus` replaces the serial bus (tests, benchmarks)."""
 
     kind = "usb-master"
@@ -50,48 +50,27 @@ class UsbMaster:
         settings: WorkerSettings | None = None,
         open_bus: Callable[[str], ServoBus] | None = None,
     ) -> None:
-        self.config = config
-        self.model = model
-        self.calibration_file = calibration_file
-        self.servo_ids = {joint.name: joint.servo_id for joint in model.joints}
-        # Torque off, always: the leader is moved by hand.
-        self.settings = dataclasses.replace(
-            settings or WorkerSettings(rate=config.rate), torque_on_connect=False
+        super().__init__(
+            config.port,
+            config.baudRate,
+            model,
+            calibration_file,
+            # Torque off, always: the leader is moved by hand.
+            dataclasses.replace(
+                settings or WorkerSettings(rate=config.rate), torque_on_connect=False
+            ),
+            open_bus,
         )
-        self._open_bus = open_bus or (lambda port: ServoBus(port, config.baudRate))
-        self.calibration = Calibration.identity(self.servo_ids, model.robot_type)
-        self.calibrated = False
-        self.port: str | None = None
-        self.worker: BusWorker | None = None
-        self.bridge: BusBridge | None = None
+        self.config = config
         self.sent = 0
         self.refusals: list[tuple[ErrorCode | None, str]] = []
-
-    async def prepare(self) -> None:
-        """Open the leader's bus with torque off; errors say what to do."""
-        if self.worker is not None:
-            return
-        if self.calibration_file is not None and self.calibration_file.exists():
-            self.calibration = Calibration.load(self.calibration_file)
-            self.calibrated = True
-        else:
-            log.warning(
-                "usb-master: no calibration at %s: raw 2048 is 0 deg", self.calibration_file
-            )
-        self.port, self.worker, self.bridge = await start_worker(
-            self.config.port, tuple(self.servo_ids.values()), self.settings, self._open_bus
-        )
-
-    async def close(self) -> None:
-        """Stop the bus thread (for a prepared master that never ran)."""
-        if self.worker is not None:
-            with trio.CancelScope(shield=True):
-                await trio.to_thread.run_sync(self.worker.stop)
 
     async def run(self, link: MasterLink) -> None:
         """Mirror the leader onto the robot until detached, e-stopped or the bus is lost."""
         await self.prepare()
         assert self.worker is not None and self.bridge is not None
+        if not self.calibrated:
+            log.warning("usb-master on %s: uncalibrated, raw 2048 is 0 deg", self.port)
         try:
             await self._mirror(link, self.bridge)
         finally:

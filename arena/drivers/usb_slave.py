@@ -18,7 +18,8 @@ from typing import Any
 
 import trio
 
-from arena.drivers.bus_bridge import BusBridge, start_worker, wait_future
+from arena.drivers.bus_bridge import wait_future
+from arena.drivers.servo_arm import ServoArm
 from arena.feetech import registers as reg
 from arena.feetech.bus import ServoBus
 from arena.feetech.calibration import (
@@ -29,7 +30,6 @@ from arena.feetech.calibration import (
 )
 from arena.feetech.health import ServoFault
 from arena.feetech.worker import (
-    BusWorker,
     Connected,
     Lost,
     Reading,
@@ -57,7 +57,7 @@ class CalibrationSession:
     capture: RangeCapture = field(default_factory=RangeCapture)
 
 
-class UsbSlave:
+class UsbSlave(ServoArm):
     """See the module docstring. `open_bus` replaces the serial bus (tests, benchmarks)."""
 
     kind = "usb-slave"
@@ -71,38 +71,21 @@ class UsbSlave:
         settings: WorkerSettings | None = None,
         open_bus: Callable[[str], ServoBus] | None = None,
     ) -> None:
-        self.config = config
-        self.model = model
-        self.calibration_file = calibration_file
-        self.servo_ids = {joint.name: joint.servo_id for joint in model.joints}
-        self.joint_of = {sid: name for name, sid in self.servo_ids.items()}
-        self.settings = settings or WorkerSettings(
-            rate=config.rate, speed_limit=_speed_limit(model)
+        super().__init__(
+            config.port,
+            config.baudRate,
+            model,
+            calibration_file,
+            settings or WorkerSettings(rate=config.rate, speed_limit=_speed_limit(model)),
+            open_bus,
         )
-        self._open_bus = open_bus or (lambda port: ServoBus(port, config.baudRate))
-        self.calibration = Calibration.identity(self.servo_ids, model.robot_type)
-        self.calibrated = False
+        self.config = config
+        self.joint_of = {sid: name for name, sid in self.servo_ids.items()}
         self.session: CalibrationSession | None = None
-        self.port: str | None = None
-        self.worker: BusWorker | None = None
-        self.bridge: BusBridge | None = None
         self.frozen = False  # e-stopped: targets are ignored until the reset
         self.telemetry: Reading | None = None
         self.running = False
         self._accept_after = 0.0  # targets sent before this trio time are stale (bus was away)
-
-    # -- lifetime -----------------------------------------------------------------------------
-
-    async def prepare(self) -> None:
-        """Find and open the bus and check every servo; errors say what to do."""
-        if self.worker is not None:
-            return
-        if self.calibration_file is not None and self.calibration_file.exists():
-            self.calibration = Calibration.load(self.calibration_file)
-            self.calibrated = True
-        self.port, self.worker, self.bridge = await start_worker(
-            self.config.port, tuple(self.servo_ids.values()), self.settings, self._open_bus
-        )
 
     async def run(self, link: SlaveLink) -> None:
         """Follow targets and report joint states until detached; torque off at the end."""
@@ -123,8 +106,7 @@ class UsbSlave:
                 nursery.cancel_scope.cancel()
         finally:
             self.running = False
-            with trio.CancelScope(shield=True):
-                await trio.to_thread.run_sync(self.worker.stop)
+            await self.close()
 
     # -- targets and notices ------------------------------------------------------------------
 
