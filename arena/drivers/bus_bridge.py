@@ -17,8 +17,10 @@ import trio
 
 from arena.feetech.bus import ServoBus, check_serial_device, find_adapter
 from arena.feetech.worker import BusWorker, Reading, WorkerEvent, WorkerSettings
+from arena.protocol.errors import ArenaError, ErrorCode
 
 T = TypeVar("T")
+BUSY_PORT_PATIENCE = 1.0  # seconds
 
 
 class BusBridge:
@@ -92,17 +94,27 @@ async def start_worker(
     if port is None:
         port = await trio.to_thread.run_sync(find_adapter)
     check_serial_device(port)
-    bridge = BusBridge()
     chosen = port
-    worker = BusWorker(lambda: open_bus(chosen), servo_ids, bridge, settings)
-    worker.start()
-    try:
-        await wait_future(worker.first_connect)
-    except BaseException:
-        with trio.CancelScope(shield=True):
+    # A driver that just let go of this port (detach, then attach again at once) may still be
+    # closing it: a busy port is retried for a moment before the caller hears about it.
+    deadline = trio.current_time() + BUSY_PORT_PATIENCE
+    while True:
+        bridge = BusBridge()
+        worker = BusWorker(lambda: open_bus(chosen), servo_ids, bridge, settings)
+        worker.start()
+        try:
+            await wait_future(worker.first_connect)
+        except ArenaError as error:
             await trio.to_thread.run_sync(worker.stop)
-        raise
-    return port, worker, bridge
+            if error.code is ErrorCode.PORT_BUSY and trio.current_time() < deadline:
+                await trio.sleep(0.05)
+                continue
+            raise
+        except BaseException:
+            with trio.CancelScope(shield=True):
+                await trio.to_thread.run_sync(worker.stop)
+            raise
+        return port, worker, bridge
 
 
 async def wait_future(future: Future[T]) -> T:

@@ -312,6 +312,8 @@ def _decode(decoder: msgspec.json.Decoder[Any], raw: str | bytes) -> Any:
         raise ArenaError(ErrorCode.INVALID_MESSAGE, f"Invalid message: {text}") from None
     except msgspec.DecodeError as exc:
         raise ArenaError(ErrorCode.INVALID_JSON, f"Not valid JSON: {exc}") from None
+    except RecursionError:  # msgspec's own depth guard
+        raise ArenaError(ErrorCode.INVALID_JSON, "The message is nested too deeply.") from None
 
 
 def decode_master(raw: str | bytes) -> MasterMessage:

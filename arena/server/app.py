@@ -105,6 +105,8 @@ async def read_body(kind: Any, *, optional: bool = False) -> Any:
         raise ArenaError(ErrorCode.INVALID_BODY, f"Invalid request body: {exc}") from None
     except msgspec.DecodeError as exc:
         raise ArenaError(ErrorCode.INVALID_JSON, f"The body is not valid JSON: {exc}") from None
+    except RecursionError:  # msgspec's own depth guard (found by the fuzz tests)
+        raise ArenaError(ErrorCode.INVALID_JSON, "The body is nested too deeply.") from None
 
 
 def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) -> ArenaApp:

@@ -30,7 +30,10 @@ def hypercorn_config(config: ServerConfig) -> HypercornConfig:
     host = f"[{config.host}]" if ":" in config.host else config.host
     hc.bind = [f"{host}:{config.port}"]
     hc.graceful_timeout = config.shutdown_grace
-    hc.websocket_max_message_size = 1024 * 1024  # hard cap; messages over 64 KiB get an error
+    # Hard cap. Frames up to it are read and answered MESSAGE_TOO_LARGE (over 64 KiB); a frame
+    # over it makes hypercorn close with 1009 without telling the app, which then learns it only
+    # from the peer's missing heartbeats: so the cap is set well above the message limit.
+    hc.websocket_max_message_size = 16 * 1024 * 1024
     hc.accesslog = None
     hc.errorlog = logging.getLogger("hypercorn.error")
     if config.certfile and config.keyfile:

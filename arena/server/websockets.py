@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 import msgspec
 import trio
+from hypercorn.utils import UnexpectedMessageError
 from quart import Blueprint, websocket
 
 from arena.drivers.sequence_master import SequenceMaster
@@ -74,12 +75,22 @@ class Connection:
     async def send(self, message: msgspec.Struct | str) -> None:
         """Send a message (a struct is encoded as JSON)."""
         text = message if isinstance(message, str) else wire.encode(message)
-        await websocket.send(text)
+        await self._transmit(text)
 
     async def send_error(self, code: ErrorCode | str, message: str) -> None:
         """Send an `error` message and count it."""
         self.app.metrics.message_errors[str(code)] += 1
-        await websocket.send(wire.error_message(code, message))
+        await self._transmit(wire.error_message(code, message))
+
+    async def _transmit(self, text: str) -> None:
+        try:
+            await websocket.send(text)
+        except UnexpectedMessageError:
+            # hypercorn closed the socket without telling the app (it does so, with 1009, for
+            # a frame over its size cap): the first send after that is how we learn it.
+            self.closed = True
+            self._ended.set()
+            await trio.lowlevel.checkpoint()
 
     async def close(self, code: int, reason: str = "") -> None:
         """Close once."""

@@ -1,0 +1,238 @@
+"""Fuzzing the edges: generated messages and bodies, from nearly valid to hostile.
+
+Every one gets an error code (or, if it happens to be valid, an ordinary answer), nothing
+crashes, and the robot is left as it was.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import pytest
+import trio
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from trio_websocket import ConnectionClosed, open_websocket_url
+
+from arena.protocol.errors import ArenaError, ErrorCode
+from arena.protocol.messages import decode_master, decode_slave
+from tests.conftest import RunningServer
+from tests.test_server_ws import command, receive
+
+EDGE_CODES = {
+    ErrorCode.INVALID_JSON,
+    ErrorCode.INVALID_MESSAGE,
+    ErrorCode.UNKNOWN_MESSAGE_TYPE,
+    ErrorCode.MESSAGE_TOO_LARGE,
+}
+
+json_values = st.recursive(
+    st.none()
+    | st.booleans()
+    | st.integers(-(10**30), 10**30)
+    | st.floats(allow_nan=False, allow_infinity=False)
+    | st.text(max_size=20),
+    lambda children: (
+        st.lists(children, max_size=4) | st.dictionaries(st.text(max_size=8), children, max_size=4)
+    ),
+    max_leaves=20,
+)
+hostile_numbers = st.sampled_from(
+    ["NaN", "Infinity", "-Infinity", "1e400", "-1e309", "1" * 400, "0x10", "00", "1.", ".5"]
+)
+joint_names = st.sampled_from(["Rotation", "Pitch", "Jaw", "shoulder_pan", "Nope", "", "ROTATION"])
+message_types = st.sampled_from(
+    ["command", "sequence", "heartbeat", "estop", "reset", "joint_states", "error", "teleport"]
+)
+
+
+@st.composite
+def nearly_valid(draw: st.DrawFn) -> str:
+    """A command or sequence with one part wrong (or a hostile number spliced in)."""
+    joints = [
+        {"name": draw(joint_names), "value": draw(json_values)}
+        for _ in range(draw(st.integers(0, 3)))
+    ]
+    data: dict[str, Any] = {"joints": joints}
+    if draw(st.booleans()):
+        data["duration"] = draw(json_values)
+    message = {"type": draw(message_types), "data": draw(st.sampled_from([data, json_values]))}
+    text = json.dumps(message, default=str)
+    if draw(st.booleans()) and '"value": ' in text:
+        text = text.replace('"value": ', f'"value": {draw(hostile_numbers)}, "x": ', 1)
+    return text
+
+
+@st.composite
+def deep(draw: st.DrawFn) -> str:
+    depth = draw(st.integers(50, 5000))
+    return '{"type": "command", "data": ' + "[" * depth + "]" * depth + "}"
+
+
+frames = (
+    nearly_valid()
+    | deep()
+    | json_values.map(json.dumps)
+    | st.text(max_size=100)
+    | st.binary(max_size=64)
+)
+
+
+def predicted(frame: str | bytes, decode: Any) -> ErrorCode | None:
+    """What the edge should answer, from the codec alone (None: the frame is valid)."""
+    if isinstance(frame, bytes):
+        return ErrorCode.BINARY_NOT_SUPPORTED
+    try:
+        decode(frame)
+    except ArenaError as error:
+        return error.code
+    return None
+
+
+@given(frames)
+def test_the_codecs_only_ever_raise_arena_errors(frame: str | bytes) -> None:
+    for decode in (decode_master, decode_slave):
+        try:
+            message = decode(frame)
+        except ArenaError as error:
+            assert error.code in EDGE_CODES
+            assert error.message
+            continue
+        # Whatever got through is well typed: finite numbers only.
+        data = getattr(message, "data", None)
+        for joint in getattr(data, "joints", None) or []:
+            assert math.isfinite(joint.value)
+
+
+def generate(strategy: st.SearchStrategy[Any], count: int) -> list[Any]:
+    """`count` examples of `strategy`, hypothesis-generated (edge cases included), in order.
+
+    The server is started once per test: hypothesis drives the inputs, the test sends them.
+    """
+    found: list[Any] = []
+
+    @settings(max_examples=count, deadline=None, database=None)
+    @given(strategy)
+    def collect(example: Any) -> None:
+        found.append(example)
+
+    collect()
+    return found
+
+
+async def test_fuzzed_master_frames(server: RunningServer) -> None:
+    async with (
+        server.client() as http,
+        open_websocket_url(server.ws_url + "/ws/master/demo-arm?takeover=1") as master,
+    ):
+        await receive(master, "joint_states")
+        for frame in generate(frames, 300):
+            before = (await http.get("/api/robots/demo-arm/joints")).json()
+            expected = predicted(frame, decode_master)
+            await master.send_message(frame)
+            if expected is None:
+                continue  # valid by chance: answered like any message
+            error = await receive(master, "error")
+            assert error["data"]["code"] == expected, frame
+            after = (await http.get("/api/robots/demo-arm/joints")).json()
+            assert [j["virtual_value"] for j in after] == [j["virtual_value"] for j in before]
+        # The connection and the robot still work.
+        reply = await command(master, {"Rotation": 1})
+        assert reply["data"]["status"] in ("accepted", "refused"), reply
+
+
+async def test_fuzzed_slave_frames(server: RunningServer) -> None:
+    async with open_websocket_url(server.ws_url + "/ws/slave/demo-arm") as slave:
+        for frame in generate(frames, 300):
+            expected = predicted(frame, decode_slave)
+            await slave.send_message(frame)
+            if expected is not None:
+                error = await receive(slave, "error")
+                assert error["data"]["code"] == expected, frame
+    async with server.client() as http:
+        assert (await http.get("/api/robots/demo-arm")).status_code == 200
+
+
+REST_TARGETS = [
+    ("POST", "/api/robots"),
+    ("PUT", "/api/robots/demo-arm/joints"),
+    ("POST", "/api/robots/demo-arm/slaves"),
+    ("POST", "/api/robots/demo-arm/master"),
+    ("POST", "/api/robots/demo-arm/estop"),
+    ("POST", "/api/robots/demo-arm/calibration/start"),
+    ("POST", "/api/robots/demo-arm/replay"),
+]
+rest_bodies = nearly_valid() | json_values.map(json.dumps) | st.text(max_size=50) | deep()
+
+
+async def test_fuzzed_rest_bodies(server: RunningServer) -> None:
+    async with server.client() as http:
+        for (method, path), body in generate(
+            st.tuples(st.sampled_from(REST_TARGETS), rest_bodies), 300
+        ):
+            before = (await http.get("/api/robots/demo-arm")).json()
+            reply = await http.request(
+                method, path, content=body, headers={"Content-Type": "application/json"}
+            )
+            assert reply.status_code < 500, (path, body, reply.text)
+            answer = reply.json()
+            if reply.status_code >= 400:
+                assert answer["error"]["code"] and answer["error"]["message"]
+                after = (await http.get("/api/robots/demo-arm")).json()
+                assert after["joints"] == before["joints"], (path, body)
+                assert after["state"] == before["state"], (path, body)
+            elif path.endswith("/estop"):
+                await http.post("/api/robots/demo-arm/reset")
+
+
+def padded(size: int) -> str:
+    return '{"type": "command", "data": {"joints": [], "pad": "' + "x" * size + '"}}'
+
+
+async def test_multi_megabyte_frames_get_an_error(server: RunningServer) -> None:
+    async with server.client() as http:
+        before = (await http.get("/api/robots/demo-arm/joints")).json()
+        async with open_websocket_url(
+            server.ws_url + "/ws/master/demo-arm", max_message_size=64 << 20
+        ) as master:
+            await receive(master, "joint_states")
+            await master.send_message(padded(3 << 20))
+            assert (await receive(master, "error"))["data"]["code"] == "MESSAGE_TOO_LARGE"
+            assert (await command(master, {"Rotation": 2}))["data"]["status"] == "accepted"
+        after = (await http.get("/api/robots/demo-arm/joints")).json()
+        assert after[0]["virtual_value"] == pytest.approx(2.0)  # only the valid command moved it
+        assert [j["virtual_value"] for j in after[1:]] == [j["virtual_value"] for j in before[1:]]
+
+
+async def test_a_frame_over_the_socket_cap_closes_it_and_the_master_is_lost(
+    start_server: Callable[..., Awaitable[RunningServer]],
+) -> None:
+    server = await start_server(demo=True, heartbeat_interval=0.2, heartbeat_timeout=1.0)
+    async with open_websocket_url(
+        server.ws_url + "/ws/master/demo-arm", max_message_size=64 << 20
+    ) as master:
+        await receive(master, "joint_states")
+        await master.send_message(padded(17 << 20))  # over the server's 16 MiB frame cap
+        with pytest.raises(ConnectionClosed) as closed:
+            await receive(master, "error")
+        assert closed.value.reason.code == 1009  # MESSAGE_TOO_BIG
+    robot = server.app.manager.get("demo-arm")
+    # hypercorn closes such a socket without telling the app: the master counts as lost at its
+    # heartbeat timeout (the loss policy applies; a closed socket sends nothing meanwhile).
+    with trio.fail_after(5):
+        while robot.snapshot().master is not None:
+            await trio.sleep(0.05)
+    async with server.client() as http:
+        status = (await http.get("/api/robots/demo-arm")).json()
+    assert status["state"] == "estopped" and "heartbeat" in status["estop_reason"]
+
+
+@pytest.mark.parametrize("depth", [10, 1000, 100_000])
+def test_deep_nesting_is_refused_without_recursion_errors(depth: int) -> None:
+    frame = '{"type": "command", "data": {"joints": ' + "[" * depth + "]" * depth + "}}"
+    with pytest.raises(ArenaError) as caught:
+        decode_master(frame)
+    assert caught.value.code in EDGE_CODES
