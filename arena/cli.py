@@ -73,6 +73,13 @@ def main(argv: list[str] | None = None) -> int:
         help="an API key clients must present (repeatable)",
     )
     serve.add_argument(
+        "--viewer-key",
+        action="append",
+        default=[],
+        dest="viewer_keys",
+        help="a read-only key: GET requests and the state WebSocket only (repeatable)",
+    )
+    serve.add_argument(
         "--insecure",
         action="store_true",
         default=None,
@@ -305,6 +312,7 @@ def _serve(args: argparse.Namespace) -> int:
             port=args.port,
             demo=args.demo,
             api_keys=tuple(args.api_keys),
+            viewer_keys=tuple(args.viewer_keys) or None,
             insecure=args.insecure,
             certfile=args.certfile,
             keyfile=args.keyfile,

@@ -22,6 +22,7 @@ class ServerConfig:
     port: int = 8080
     demo: bool = False
     api_keys: tuple[str, ...] = ()
+    viewer_keys: tuple[str, ...] = ()  # read-only keys (need api_keys to mean anything)
     open_reads: bool = False  # with keys configured, let GET requests through without one
     insecure: bool = False  # allow binding beyond loopback without keys
     certfile: str | None = None
@@ -80,7 +81,7 @@ def load_config(path: str | None, **overrides: Any) -> ServerConfig:
                 ErrorCode.INVALID_CONFIG,
                 f"Unknown settings in {path}: {', '.join(sorted(unknown))}.",
             )
-        for key in ("api_keys", "cors_origins"):
+        for key in ("api_keys", "viewer_keys", "cors_origins"):
             if key in data:
                 data[key] = tuple(data[key])
         config = replace(config, **data)

@@ -110,6 +110,7 @@ def _public_settings(config: ServerConfig) -> dict[str, Any]:
     """The settings worth keeping in a recording (never the API keys)."""
     settings = dataclasses.asdict(config)
     settings["api_keys"] = len(config.api_keys)
+    settings["viewer_keys"] = len(config.viewer_keys)
     return settings
 
 
