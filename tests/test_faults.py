@@ -58,3 +58,54 @@ async def test_a_failing_recordings_folder_never_stops_control(
         m for path in files for m in read_recording(path).messages if m.topic.endswith("/command")
     ]
     assert commands  # what came after the disk returned is in the new file
+
+
+async def _open_and_drop(host: str, port: int, path: str) -> None:
+    """A WebSocket handshake, then the TCP connection is cut without a close frame."""
+    stream = await trio.open_tcp_stream(host, port)
+    request = (
+        f"GET {path} HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\n"
+        "Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
+        "Sec-WebSocket-Version: 13\r\n\r\n"
+    )
+    await stream.send_all(request.encode())
+    answer = b""
+    while b"\r\n\r\n" not in answer:
+        chunk = await stream.receive_some(4096)
+        if not chunk:
+            break
+        answer += chunk
+    assert answer.startswith(b"HTTP/1.1 101"), answer[:80]
+    await stream.aclose()
+
+
+async def test_a_thousand_connections_opened_and_dropped(server: RunningServer) -> None:
+    host, port = server.url.split("//")[1].rsplit(":", 1)
+    paths = ["/ws/robots/demo-arm/state", "/ws/slave/demo-arm", "/ws/master/demo-arm?takeover=1"]
+    limit = trio.CapacityLimiter(50)
+
+    async def one(i: int) -> None:
+        async with limit:
+            await _open_and_drop(host, int(port), paths[i % len(paths)])
+
+    with trio.fail_after(60):
+        async with trio.open_nursery() as nursery:
+            for i in range(1000):
+                nursery.start_soon(one, i)
+    async with server.client() as http:
+        with trio.fail_after(10):  # every dropped socket is noticed and its peer let go
+            while True:
+                robot = (await http.get("/api/robots/demo-arm")).json()
+                gauges = (await http.get("/metrics")).text
+                open_sockets = [
+                    line
+                    for line in gauges.splitlines()
+                    if line.startswith("arena_connections{") and not line.endswith(" 0")
+                ]
+                if not open_sockets and robot["master"] is None and len(robot["slaves"]) == 1:
+                    break
+                await trio.sleep(0.1)
+        assert (await http.post("/api/robots/demo-arm/reset")).status_code == 200
+    async with open_websocket_url(server.ws_url + "/ws/master/demo-arm") as master:
+        await receive(master, "joint_states")
+        assert (await command(master, {"Rotation": 4}))["data"]["status"] == "accepted"

@@ -953,7 +953,22 @@ class Robot:
         await self._post(
             _AttachMsg(role, peer_id, kind, driver, autonomous, takeover, heartbeat_timeout, reply)
         )
-        return await reply.wait()
+        try:
+            return await reply.wait()
+        except trio.Cancelled:
+            # The actor attaches the peer all the same: take its answer (it comes at once) and
+            # undo it, or the robot would keep a peer that nobody drives (a client that hung up
+            # during its handshake, found by the 1,000-connections test).
+            with trio.CancelScope(shield=True), trio.move_on_after(5):
+                try:
+                    link = await reply.wait()
+                except ArenaError:
+                    pass  # refused: nothing to undo
+                else:
+                    peer = link.master_id if isinstance(link, MasterLink) else link.slave_id
+                    with contextlib.suppress(ArenaError):  # gone already
+                        await self._detach(role, peer, lost=False, reason="attach cancelled")
+            raise
 
     async def _detach(
         self, role: str, peer_id: str | None, *, lost: bool, reason: str, hold: bool = True
