@@ -404,6 +404,7 @@ def usb_control_rate(seconds: float = 3.0, rate: float = 500.0) -> dict[str, flo
     simulated bus with wire-time emulation in another process: cycles/s flat out, and the
     worker thread's CPU share when paced at `rate`."""
     from arena.feetech.bus import ServoBus
+    from arena.feetech.health import ServoFault
     from arena.feetech.worker import BusWorker, Reading, WorkerEvent, WorkerSettings
 
     class Count:
@@ -415,7 +416,7 @@ def usb_control_rate(seconds: float = 3.0, rate: float = 500.0) -> dict[str, flo
             self.readings += 1
 
         def event(self, event: WorkerEvent) -> None:
-            self.faults += type(event).__name__ == "ServoFault"
+            self.faults += isinstance(event, ServoFault)
 
     def run(worker_rate: float, link: Path) -> tuple[float, float, int]:
         listener = Count()

@@ -35,11 +35,7 @@ class RecordingSlave:
     fail_after: int | None = None  # raise after this many targets (a crashing driver)
 
     async def run(self, link: SlaveLink) -> None:
-        while True:
-            try:
-                message = await link.receive()
-            except trio.EndOfChannel:
-                return
+        async for message in link.messages():
             if isinstance(message, SlaveTarget):
                 self.targets.append((trio.current_time(), dict(message.joints)))
                 if self.fail_after is not None and len(self.targets) >= self.fail_after:

@@ -8,6 +8,7 @@ from pathlib import Path
 import trio
 
 from arena.drivers.usb_slave import UsbSlave
+from arena.feetech import registers as reg
 from arena.feetech.bus import ServoBus
 from arena.feetech.health import HealthLimits
 from arena.feetech.sim_pty import PtySimBus
@@ -53,16 +54,12 @@ async def eventually(
 
 def servo_goals(sim: PtySimBus) -> dict[int, int]:
     """Goal_Position of every simulated servo."""
-    from arena.feetech import registers as reg
-
     with sim.paused() as bus:
         return {sid: servo.peek(reg.GOAL_POSITION) for sid, servo in bus.servos.items()}
 
 
 def servo_torque(sim: PtySimBus) -> dict[int, int]:
     """Torque_Enable of every simulated servo."""
-    from arena.feetech import registers as reg
-
     with sim.paused() as bus:
         return {sid: servo.peek(reg.TORQUE_ENABLE) for sid, servo in bus.servos.items()}
 

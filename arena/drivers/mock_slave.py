@@ -14,7 +14,7 @@ import trio
 
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot.actor import SlaveLink
-from arena.robot.events import NoticeKind, SlaveNotice
+from arena.robot.events import SlaveNotice
 
 
 @dataclass(frozen=True, slots=True)
@@ -67,15 +67,9 @@ class MockSlave:
         # A simulated arm starts at rest in its neutral pose, and says so.
         self.positions = dict.fromkeys(link.robot.model.joint_names, 0.0)
         await link.report_joint_states(self.positions)
-        while True:
-            try:
-                message = await link.receive()
-            except trio.EndOfChannel:
-                return
+        async for message in link.messages():
             if isinstance(message, SlaveNotice):
                 self.notices.append(message)
-                if message.kind is NoticeKind.SHUTDOWN:
-                    return
                 continue
             self.received += 1
             if delay:

@@ -48,7 +48,9 @@ class ServoArm:
         if self.worker is not None:
             return
         if self.calibration_file is not None and self.calibration_file.exists():
-            self.calibration = Calibration.load(self.calibration_file)
+            self.calibration = await trio.to_thread.run_sync(
+                Calibration.load, self.calibration_file
+            )
             self.calibrated = True
         self.port, self.worker, self.bridge = await start_worker(
             self.requested_port, tuple(self.servo_ids.values()), self.settings, self._open_bus

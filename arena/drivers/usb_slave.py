@@ -112,14 +112,8 @@ class UsbSlave(ServoArm):
 
     async def _follow(self, link: SlaveLink) -> None:
         assert self.worker is not None
-        while True:
-            try:
-                message = await link.receive()
-            except trio.EndOfChannel:
-                return
+        async for message in link.messages():
             if isinstance(message, SlaveNotice):
-                if message.kind is NoticeKind.SHUTDOWN:
-                    return
                 await self._on_notice(message.kind)
                 continue
             if self.frozen or self.session is not None or message.time < self._accept_after:
@@ -274,6 +268,7 @@ class UsbSlave(ServoArm):
 
 
 def _speed_limit(model: RobotModel) -> int:
-    """Goal_Velocity for the servos: the slowest joint's velocity limit, in steps/s."""
-    fastest_allowed = min(joint.max_velocity for joint in model.joints)
-    return max(1, min(reg.STEPS_PER_TURN, round(fastest_allowed / DEGREES_PER_STEP)))
+    """Goal_Velocity for the servos, in steps/s: the lowest joint velocity limit, so that no
+    servo outruns the robot's own limit even on a jump the limiter did not shape."""
+    lowest_limit = min(joint.max_velocity for joint in model.joints)
+    return max(1, min(reg.STEPS_PER_TURN, round(lowest_limit / DEGREES_PER_STEP)))

@@ -240,7 +240,6 @@ class SimBus:
         if code is Instruction.WRITE and params:
             self._log(servo.servo_id, params[0], params[1:])
             servo.write(params[0], params[1:])
-            servo.advance(servo.last_update or 0.0)
         elif code is Instruction.REG_WRITE and params:
             servo.pending = (params[0], params[1:])
         elif code is Instruction.ACTION and servo.pending is not None:

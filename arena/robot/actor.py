@@ -15,7 +15,7 @@ import itertools
 import logging
 import math
 import time as wallclock
-from collections.abc import Iterator, Mapping
+from collections.abc import AsyncIterator, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Generic, Protocol, TypeVar
 
@@ -227,6 +227,21 @@ class SlaveLink:
     async def receive(self) -> SlaveTarget | SlaveNotice:
         """The next notice, or else the newest target. `trio.EndOfChannel` once detached."""
         return await self.mailbox.get()
+
+    async def messages(self) -> AsyncIterator[SlaveTarget | SlaveNotice]:
+        """Every notice and newest target until the slave is detached.
+
+        A shutdown notice is the last thing yielded: the loop ends after it (or when the robot
+        goes away), so a driver's `async for` needs no exit of its own.
+        """
+        while True:
+            try:
+                message = await self.mailbox.get()
+            except trio.EndOfChannel:
+                return
+            yield message
+            if isinstance(message, SlaveNotice) and message.kind is NoticeKind.SHUTDOWN:
+                return
 
     async def report_joint_states(self, joints: Mapping[str, float]) -> None:
         """Real joint values in degrees (protocol names or aliases)."""

@@ -374,14 +374,10 @@ async def slave_socket(robot_id: str) -> None:
 
 
 async def _slave_writer(connection: Connection, link: SlaveLink, ended: trio.Event) -> None:
-    while True:
-        try:
-            message = await link.receive()
-        except trio.EndOfChannel:
-            ended.set()
-            await connection.close(CLOSE_NORMAL, "detached from the robot")
-            return
+    async for message in link.messages():
         await connection.send(convert.to_slave(message))
+    ended.set()
+    await connection.close(CLOSE_NORMAL, "detached from the robot")
 
 
 async def _handle_slave_message(
