@@ -81,6 +81,15 @@ frames = (
 )
 
 
+def intent(server: RunningServer) -> tuple[object, ...]:
+    """What a refused input must not change: the robot's mode, owner and joint goals.
+
+    (Virtual values keep moving while an earlier, valid move plays out: goals do not.)
+    """
+    snapshot = server.app.manager.get("demo-arm").snapshot()
+    return (snapshot.mode, snapshot.owner, tuple(j.goal for j in snapshot.joints))
+
+
 def predicted(frame: str | bytes, decode: Any) -> ErrorCode | None:
     """What the edge should answer, from the codec alone (None: the frame is valid)."""
     if isinstance(frame, bytes):
@@ -124,34 +133,36 @@ def generate(strategy: st.SearchStrategy[Any], count: int) -> list[Any]:
 
 
 async def test_fuzzed_master_frames(server: RunningServer) -> None:
-    async with (
-        server.client() as http,
-        open_websocket_url(server.ws_url + "/ws/master/demo-arm?takeover=1") as master,
-    ):
+    async with open_websocket_url(server.ws_url + "/ws/master/demo-arm?takeover=1") as master:
         await receive(master, "joint_states")
+        before = intent(server)
+        refused = 0
         for frame in generate(frames, 300):
-            before = (await http.get("/api/robots/demo-arm/joints")).json()
             expected = predicted(frame, decode_master)
-            await master.send_message(frame)
             if expected is None:
-                continue  # valid by chance: answered like any message
+                continue  # valid by chance: not this test's business (and it would move things)
+            await master.send_message(frame)
             error = await receive(master, "error")
             assert error["data"]["code"] == expected, frame
-            after = (await http.get("/api/robots/demo-arm/joints")).json()
-            assert [j["virtual_value"] for j in after] == [j["virtual_value"] for j in before]
+            assert intent(server) == before, frame
+            refused += 1
+        assert refused > 200
         # The connection and the robot still work.
         reply = await command(master, {"Rotation": 1})
-        assert reply["data"]["status"] in ("accepted", "refused"), reply
+        assert reply["data"]["status"] == "accepted", reply
 
 
 async def test_fuzzed_slave_frames(server: RunningServer) -> None:
+    before = intent(server)
     async with open_websocket_url(server.ws_url + "/ws/slave/demo-arm") as slave:
         for frame in generate(frames, 300):
             expected = predicted(frame, decode_slave)
+            if expected is None:
+                continue  # valid by chance (it may even carry a fault): not this test's business
             await slave.send_message(frame)
-            if expected is not None:
-                error = await receive(slave, "error")
-                assert error["data"]["code"] == expected, frame
+            error = await receive(slave, "error")
+            assert error["data"]["code"] == expected, frame
+            assert intent(server) == before, frame
     async with server.client() as http:
         assert (await http.get("/api/robots/demo-arm")).status_code == 200
 
@@ -173,7 +184,7 @@ async def test_fuzzed_rest_bodies(server: RunningServer) -> None:
         for (method, path), body in generate(
             st.tuples(st.sampled_from(REST_TARGETS), rest_bodies), 300
         ):
-            before = (await http.get("/api/robots/demo-arm")).json()
+            before = intent(server)
             reply = await http.request(
                 method, path, content=body, headers={"Content-Type": "application/json"}
             )
@@ -181,9 +192,7 @@ async def test_fuzzed_rest_bodies(server: RunningServer) -> None:
             answer = reply.json()
             if reply.status_code >= 400:
                 assert answer["error"]["code"] and answer["error"]["message"]
-                after = (await http.get("/api/robots/demo-arm")).json()
-                assert after["joints"] == before["joints"], (path, body)
-                assert after["state"] == before["state"], (path, body)
+                assert intent(server) == before, (path, body)
             elif path.endswith("/estop"):
                 await http.post("/api/robots/demo-arm/reset")
 
