@@ -1,16 +1,21 @@
-"""Faults around the server: a recordings folder that fails while the robot is driven."""
+"""Faults around the server: failing disks, slow and vanishing peers, flapping masters."""
 
 from __future__ import annotations
 
+import json
 import shutil
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 
+import pytest
 import trio
 from trio_websocket import open_websocket_url
 
+from arena.bench import BENCH_TYPE, _bench_types
 from arena.recording.mcap_file import read_recording
+from arena.robot.model import TYPES_PATH_ENV
 from tests.conftest import RunningServer
+from tests.raw_websocket import OP_TEXT, Frame, RawWebSocket
 from tests.test_server_ws import command, receive
 
 StartServer = Callable[..., Awaitable[RunningServer]]
@@ -60,33 +65,14 @@ async def test_a_failing_recordings_folder_never_stops_control(
     assert commands  # what came after the disk returned is in the new file
 
 
-async def _open_and_drop(host: str, port: int, path: str) -> None:
-    """A WebSocket handshake, then the TCP connection is cut without a close frame."""
-    stream = await trio.open_tcp_stream(host, port)
-    request = (
-        f"GET {path} HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\n"
-        "Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
-        "Sec-WebSocket-Version: 13\r\n\r\n"
-    )
-    await stream.send_all(request.encode())
-    answer = b""
-    while b"\r\n\r\n" not in answer:
-        chunk = await stream.receive_some(4096)
-        if not chunk:
-            break
-        answer += chunk
-    assert answer.startswith(b"HTTP/1.1 101"), answer[:80]
-    await stream.aclose()
-
-
 async def test_a_thousand_connections_opened_and_dropped(server: RunningServer) -> None:
-    host, port = server.url.split("//")[1].rsplit(":", 1)
     paths = ["/ws/robots/demo-arm/state", "/ws/slave/demo-arm", "/ws/master/demo-arm?takeover=1"]
     limit = trio.CapacityLimiter(50)
 
     async def one(i: int) -> None:
         async with limit:
-            await _open_and_drop(host, int(port), paths[i % len(paths)])
+            connection = await RawWebSocket.connect(server.url, paths[i % len(paths)])
+            await connection.aclose()
 
     with trio.fail_after(60):
         async with trio.open_nursery() as nursery:
@@ -109,3 +95,137 @@ async def test_a_thousand_connections_opened_and_dropped(server: RunningServer) 
     async with open_websocket_url(server.ws_url + "/ws/master/demo-arm") as master:
         await receive(master, "joint_states")
         assert (await command(master, {"Rotation": 4}))["data"]["status"] == "accepted"
+
+
+ARM = ["Rotation", "Pitch", "Elbow", "Wrist_Pitch", "Wrist_Roll", "Jaw"]
+
+
+def whole_arm(value: float) -> str:
+    """A command that moves every joint, so each `execute_command` is a few hundred bytes."""
+    joints = [{"name": name, "value": value} for name in ARM]
+    return json.dumps({"type": "command", "data": {"joints": joints}})
+
+
+def targets_in(payload: bytes) -> list[float]:
+    """The Rotation value of an `execute_command` frame (nothing for other messages)."""
+    message = json.loads(payload)
+    if message["type"] != "execute_command":
+        return []
+    return [j["value"] for j in message["data"]["joints"] if j["name"] == "Rotation"]
+
+
+async def test_a_slave_that_stops_reading_slows_no_one(
+    start_server: StartServer, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A slave with a 4 KiB receive buffer that never reads: after a few frames the server's
+    # writes to it block. Its targets are latest-wins, so the robot, the master and the other
+    # slaves go on, and when it reads again it gets the newest target, not a backlog.
+    # (The robot type has its rate limit lifted, so the master can send as fast as it likes.)
+    monkeypatch.setenv(TYPES_PATH_ENV, str(_bench_types(tmp_path / "types")))
+    server = await start_server()
+    async with server.client() as http:
+        created = await http.post("/api/robots", json={"robot_type": BENCH_TYPE, "id": "fast"})
+        assert created.status_code == 201, created.text
+    stalled = await RawWebSocket.connect(server.url, "/ws/slave/fast?id=slow", 4096)
+    sent = 2000
+    final = 33.3
+    async with (
+        open_websocket_url(server.ws_url + "/ws/slave/fast?id=brisk") as brisk,
+        open_websocket_url(server.ws_url + "/ws/master/fast") as master,
+    ):
+        await receive(master, "joint_states")
+        brisk_seen: list[float] = []
+        brisk_done = trio.Event()
+
+        async def read_brisk() -> None:
+            while True:
+                brisk_seen.extend(targets_in((await brisk.get_message()).encode()))
+                if brisk_seen and brisk_seen[-1] == final:
+                    brisk_done.set()
+                    return
+
+        async with trio.open_nursery() as nursery:
+            nursery.start_soon(read_brisk)
+            with trio.fail_after(60):
+                for i in range(sent):
+                    value = final if i == sent - 1 else 10 + (i % 50) * 0.1
+                    await master.send_message(whole_arm(value))
+                    ack = await receive(master, "ack")
+                    assert ack["data"]["status"] in ("accepted", "clamped"), ack
+                await brisk_done.wait()
+        # The brisk slave kept pace (latest-wins may merge a few targets, never most of them).
+        assert len(brisk_seen) > sent // 2
+        frames: list[float] = []
+        with trio.fail_after(10):  # the stalled slave reads again: a short backlog, the newest
+            while not frames or frames[-1] != final:
+                frame = await stalled.receive_frame()
+                assert frame is not None
+                frames.extend(targets_in(frame.payload))
+    # Its connection pushed back long before the master was done: most targets were merged.
+    assert len(frames) < sent // 4, len(frames)
+    await stalled.aclose()
+
+
+async def test_a_slave_that_vanishes_mid_motion_stops_the_robot_safely(
+    server: RunningServer,
+) -> None:
+    async with (
+        server.client() as http,
+        open_websocket_url(server.ws_url + "/ws/master/demo-arm") as master,
+    ):
+        await receive(master, "joint_states")
+        vanishing = await RawWebSocket.connect(server.url, "/ws/slave/demo-arm?id=vanishing")
+        for step in range(5):
+            await master.send_message(whole_arm(10 + step))
+            await receive(master, "ack")
+        with trio.fail_after(5):  # it has a target in hand when it goes
+            while not targets_in((await vanishing.receive_frame() or Frame(0, b"{}")).payload):
+                pass
+        await vanishing.aclose()
+        # The loss policy (e-stop by default) names the slave; the master is told.
+        with trio.fail_after(5):
+            while (await receive(master, "state"))["data"]["mode"] != "estopped":
+                pass
+        robot = (await http.get("/api/robots/demo-arm")).json()
+        assert "vanishing" in robot["estop_reason"]
+        assert [s["id"] for s in robot["slaves"]] == ["demo-mock-slave"]
+        refused = await command(master, {"Rotation": 20})
+        assert refused["data"]["status"] == "refused"
+        assert (await http.post("/api/robots/demo-arm/reset")).status_code == 200
+        again = await command(master, {"Rotation": 21})
+        assert again["data"]["status"] in ("accepted", "clamped")
+
+
+async def test_a_flapping_master(server: RunningServer) -> None:
+    # Forty masters in a row, each gone without a word after one command: the first loss
+    # e-stops the robot, the later ones are refused, none of them lingers, and after a reset
+    # the robot is still where the last accepted command put it.
+    robot = server.app.manager.get("demo-arm")
+    for flap in range(40):
+        master = await RawWebSocket.connect(server.url, "/ws/master/demo-arm")
+        await master.send_frame(OP_TEXT, whole_arm(5 + flap).encode())
+        with trio.fail_after(5):
+            while True:
+                frame = await master.receive_frame()
+                assert frame is not None
+                reply = json.loads(frame.payload)
+                if reply["type"] == "ack":
+                    break
+        if flap == 0:
+            assert reply["data"]["status"] in ("accepted", "clamped"), reply
+        else:
+            assert reply["data"]["code"] == "ESTOPPED", reply
+        await master.aclose()
+        with trio.fail_after(5):
+            while robot.snapshot().owner is not None:
+                await trio.sleep(0.01)
+    snapshot = robot.snapshot()
+    assert str(snapshot.mode) == "estopped"
+    assert {round(j.goal or 0) for j in snapshot.joints} == {5}
+    async with server.client() as http:
+        gauges = (await http.get("/metrics")).text
+        assert 'arena_connections{role="master"} 0' in gauges
+        assert (await http.post("/api/robots/demo-arm/reset")).status_code == 200
+    async with open_websocket_url(server.ws_url + "/ws/master/demo-arm") as master:
+        await receive(master, "joint_states")
+        assert (await command(master, {"Rotation": 6}))["data"]["status"] == "accepted"

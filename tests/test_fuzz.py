@@ -20,6 +20,7 @@ from trio_websocket import ConnectionClosed, open_websocket_url
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.messages import decode_master, decode_slave
 from tests.conftest import RunningServer
+from tests.raw_websocket import OP_TEXT, RawWebSocket
 from tests.test_server_ws import command, receive
 
 EDGE_CODES = {
@@ -245,3 +246,34 @@ def test_deep_nesting_is_refused_without_recursion_errors(depth: int) -> None:
     with pytest.raises(ArenaError) as caught:
         decode_master(frame)
     assert caught.value.code in EDGE_CODES
+
+
+@pytest.mark.parametrize("role", ["viewer", "master"])
+async def test_text_that_is_not_utf8_fails_the_connection(server: RunningServer, role: str) -> None:
+    # RFC 6455 8.1: an endpoint that finds invalid UTF-8 in a text frame fails the connection.
+    # (hypercorn drops the TCP connection without a 1007 close frame, which 8.1 allows.)
+    # The peer is let go at once: a viewer changes nothing, a master is lost (loss policy).
+    path = "/ws/robots/demo-arm/state" if role == "viewer" else "/ws/master/demo-arm"
+    before = intent(server)
+    raw = await RawWebSocket.connect(server.url, path)
+    first = await raw.receive_frame()  # the state: the peer is in place
+    assert first is not None and json.loads(first.payload)["type"] == "state"
+    await raw.send_frame(OP_TEXT, b'{"type": "heartbeat", "x": "\xff\xfe\xc3\x28"}')
+    with trio.fail_after(5):
+        while (frame := await raw.receive_frame()) is not None:
+            assert frame.opcode == OP_TEXT  # what was sent before; no answer to the bad frame
+    await raw.aclose()
+    robot = server.app.manager.get("demo-arm")
+    with trio.fail_after(5):
+        while robot.snapshot().owner is not None:
+            await trio.sleep(0.02)
+    if role == "viewer":
+        assert intent(server) == before
+    else:
+        assert str(robot.snapshot().mode) == "estopped"
+        assert "lost" in (robot.snapshot().estop_reason or "")
+    async with server.client() as http:
+        await http.post("/api/robots/demo-arm/reset")
+    async with open_websocket_url(server.ws_url + "/ws/master/demo-arm") as master:
+        await receive(master, "joint_states")
+        assert (await command(master, {"Rotation": 3}))["data"]["status"] == "accepted"

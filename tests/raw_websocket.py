@@ -1,0 +1,118 @@
+"""A bare WebSocket client on a TCP socket, for what polite clients never do.
+
+It can stop reading (a slow consumer with a tiny receive buffer), cut the connection without a
+close frame, and send frames no library would send (text that is not UTF-8).
+"""
+
+from __future__ import annotations
+
+import os
+import socket
+import struct
+from dataclasses import dataclass, field
+
+import trio
+
+OP_TEXT = 0x1
+OP_CLOSE = 0x8
+
+
+@dataclass
+class Frame:
+    """One frame from the server (servers never mask)."""
+
+    opcode: int
+    payload: bytes
+
+    @property
+    def close_code(self) -> int | None:
+        """The code of a close frame."""
+        if self.opcode != OP_CLOSE or len(self.payload) < 2:
+            return None
+        return int(struct.unpack("!H", self.payload[:2])[0])
+
+
+@dataclass
+class RawWebSocket:
+    """A WebSocket connection with every frame in the test's hands."""
+
+    stream: trio.SocketStream
+    buffer: bytearray = field(default_factory=bytearray)
+
+    @classmethod
+    async def connect(cls, url: str, path: str, receive_buffer: int | None = None) -> RawWebSocket:
+        """Connect to `url` (http://host:port) and upgrade `path`.
+
+        `receive_buffer` shrinks the socket's receive buffer before it connects, so a client
+        that stops reading pushes back on the server after a few kilobytes.
+        """
+        host, port = url.split("//")[1].rsplit(":", 1)
+        sock = trio.socket.socket()
+        if receive_buffer is not None:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, receive_buffer)
+        await sock.connect((host, int(port)))
+        connection = cls(trio.SocketStream(sock))
+        request = (
+            f"GET {path} HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\n"
+            "Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
+            "Sec-WebSocket-Version: 13\r\n\r\n"
+        )
+        await connection.stream.send_all(request.encode())
+        while b"\r\n\r\n" not in connection.buffer:
+            if not await connection._fill():
+                break
+        head, _, rest = bytes(connection.buffer).partition(b"\r\n\r\n")
+        if not head.startswith(b"HTTP/1.1 101"):
+            raise ConnectionError(f"upgrade refused: {head[:80]!r}")
+        connection.buffer = bytearray(rest)
+        return connection
+
+    async def _fill(self) -> bool:
+        chunk = await self.stream.receive_some(65536)
+        self.buffer += chunk
+        return bool(chunk)
+
+    async def send_frame(self, opcode: int, payload: bytes) -> None:
+        """Send one final, masked frame as a client must."""
+        mask = os.urandom(4)
+        size = len(payload)
+        if size < 126:
+            header = struct.pack("!BB", 0x80 | opcode, 0x80 | size)
+        elif size < 1 << 16:
+            header = struct.pack("!BBH", 0x80 | opcode, 0x80 | 126, size)
+        else:
+            header = struct.pack("!BBQ", 0x80 | opcode, 0x80 | 127, size)
+        masked = bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
+        await self.stream.send_all(header + mask + masked)
+
+    async def receive_frame(self) -> Frame | None:
+        """The next frame, or None once the server has closed the TCP connection."""
+        while True:
+            frame = self._parse()
+            if frame is not None:
+                return frame
+            if not await self._fill():
+                return None
+
+    def _parse(self) -> Frame | None:
+        data = self.buffer
+        if len(data) < 2:
+            return None
+        size, start = data[1] & 0x7F, 2
+        if size == 126:
+            if len(data) < 4:
+                return None
+            size, start = struct.unpack("!H", data[2:4])[0], 4
+        elif size == 127:
+            if len(data) < 10:
+                return None
+            size, start = struct.unpack("!Q", data[2:10])[0], 10
+        if len(data) < start + size:
+            return None
+        frame = Frame(data[0] & 0x0F, bytes(data[start : start + size]))
+        del data[: start + size]
+        return frame
+
+    async def aclose(self) -> None:
+        """Cut the TCP connection (no close frame)."""
+        await self.stream.aclose()
