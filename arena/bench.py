@@ -17,6 +17,8 @@ Scenarios:
               two simulated buses at 1 Mbaud in this process, p50/p99 at 100 and 500 Hz
   usb         the USB slave's control loop on a simulated bus (`arena sim-bus --wire-time`, its
               own process) at 1 Mbaud: the highest cycle rate, and the CPU at 500 Hz
+  soak        (only when named) the fleet held for 10 minutes: latency and memory of the first
+              minute against the last, commands unacknowledged, recording messages dropped
 """
 
 from __future__ import annotations
@@ -228,17 +230,43 @@ async def throughput(
     }
 
 
-async def fleet(
-    server: Server, robots: int = 100, rate: float = 50.0, seconds: float = 10.0
-) -> dict[str, float]:
-    """`robots` robots, each with a master at `rate` Hz and a slave, for `seconds`."""
+@dataclasses.dataclass
+class FleetRun:
+    """What a fleet run saw: latencies stamped with their send time, counts, server samples."""
+
+    started: float
+    latencies: list[tuple[float, float]] = dataclasses.field(default_factory=list)
+    sent: int = 0
+    acked: int = 0
+    refused: int = 0
+    # (seconds since start, server CPU seconds, server RSS MiB), every `sample_every` seconds
+    samples: list[tuple[float, float, float]] = dataclasses.field(default_factory=list)
+
+    def window(self, start: float, end: float) -> list[float]:
+        """Latencies of commands sent between `start` and `end` seconds into the run."""
+        return [lat for at, lat in self.latencies if start <= at - self.started < end]
+
+
+async def drive_fleet(
+    server: Server, robots: int, rate: float, seconds: float, sample_every: float = 1.0
+) -> FleetRun:
+    """`robots` robots, each with a WebSocket master at `rate` Hz and a WebSocket slave.
+
+    Latency is the master's send to the slave's `execute_command` for that value.
+    """
     import websockets
 
     async with httpx.AsyncClient(base_url=server.url) as http:
         for n in range(robots):
             await _robot(http, f"fleet-{n}")
-    latencies: list[float] = []
-    cpu_before = server.cpu_seconds()
+    run = FleetRun(started=time.perf_counter())
+    end = run.started + seconds
+
+    async def sample() -> None:
+        while True:
+            now = time.perf_counter()
+            run.samples.append((now - run.started, server.cpu_seconds(), server.rss_mib()))
+            await asyncio.sleep(sample_every)
 
     async def pair(n: int) -> None:
         async with (
@@ -247,11 +275,12 @@ async def fleet(
         ):
             sent_at: dict[float, float] = {}
 
-            async def drain_acks() -> None:
-                async for _ in master:
-                    pass
-
-            acks = asyncio.create_task(drain_acks())
+            async def count_acks() -> None:
+                async for raw in master:
+                    message = json.loads(raw)
+                    if message["type"] == "ack":
+                        run.acked += 1
+                        run.refused += message["data"]["status"] == "refused"
 
             async def receive() -> None:
                 async for raw in slave:
@@ -260,15 +289,16 @@ async def fleet(
                         value = message["data"]["joints"][0]["value"]
                         started = sent_at.pop(value, None)
                         if started is not None:
-                            latencies.append(time.perf_counter() - started)
+                            arrived = time.perf_counter()
+                            run.latencies.append((started, arrived - started))
 
-            receiver = asyncio.create_task(receive())
-            end = time.perf_counter() + seconds
+            tasks = [asyncio.create_task(count_acks()), asyncio.create_task(receive())]
             i = 0
             while time.perf_counter() < end:
                 i += 1
                 value = round((i % 2) * 0.001 + n * 1e-6, 9)
                 sent_at[value] = time.perf_counter()
+                run.sent += 1
                 await master.send(
                     json.dumps(
                         {
@@ -278,19 +308,67 @@ async def fleet(
                     )
                 )
                 await asyncio.sleep(1 / rate)
-            await asyncio.sleep(0.2)
-            receiver.cancel()
-            acks.cancel()
+            await asyncio.sleep(0.5)  # the last acknowledgments
+            for task in tasks:
+                task.cancel()
 
-    wall = time.perf_counter()
+    sampler = asyncio.create_task(sample())
     await asyncio.gather(*(pair(n) for n in range(robots)))
-    wall = time.perf_counter() - wall
+    sampler.cancel()
+    now = time.perf_counter()
+    run.samples.append((now - run.started, server.cpu_seconds(), server.rss_mib()))
+    return run
+
+
+async def fleet(
+    server: Server, robots: int = 100, rate: float = 50.0, seconds: float = 10.0
+) -> dict[str, float]:
+    """`robots` robots, each with a master at `rate` Hz and a slave, for `seconds`."""
+    run = await drive_fleet(server, robots, rate, seconds)
+    (t0, cpu0, _), (t1, cpu1, rss) = run.samples[0], run.samples[-1]
+    latencies = [lat for _, lat in run.latencies]
     return {
         "fleet_p50_us": _percentile(latencies, 0.5) * 1e6,
         "fleet_p99_us": _percentile(latencies, 0.99) * 1e6,
-        "fleet_server_cpu_percent": 100 * (server.cpu_seconds() - cpu_before) / wall,
-        "fleet_server_rss_mib": server.rss_mib(),
+        "fleet_server_cpu_percent": 100 * (cpu1 - cpu0) / (t1 - t0),
+        "fleet_server_rss_mib": rss,
         "fleet_messages": len(latencies),
+    }
+
+
+async def soak(
+    server: Server,
+    robots: int = 100,
+    rate: float = 50.0,
+    seconds: float = 600.0,
+    window: float = 60.0,
+) -> dict[str, float]:
+    """The fleet held for `seconds`: the first `window` against the last, and what was lost.
+
+    Memory is read after the first window (caches and buffers warmed) and at the end; lost
+    commands are those sent without an acknowledgment; the recorder reports what it wrote.
+    """
+    run = await drive_fleet(server, robots, rate, seconds, sample_every=window / 6)
+    first, last = run.window(0, window), run.window(seconds - window, seconds)
+    warm = next(s for s in run.samples if s[0] >= window)
+    (t0, cpu0, _), (t1, cpu1, rss_end) = run.samples[0], run.samples[-1]
+    async with httpx.AsyncClient(base_url=server.url) as http:
+        recorder = (await http.get("/api/recordings")).json()["recorder"]
+    return {
+        "soak_robots": robots,
+        "soak_seconds": seconds,
+        "soak_commands_sent": run.sent,
+        "soak_commands_unacknowledged": run.sent - run.acked,
+        "soak_commands_refused": run.refused,
+        "soak_first_p50_us": _percentile(first, 0.5) * 1e6,
+        "soak_first_p99_us": _percentile(first, 0.99) * 1e6,
+        "soak_last_p50_us": _percentile(last, 0.5) * 1e6,
+        "soak_last_p99_us": _percentile(last, 0.99) * 1e6,
+        "soak_rss_warm_mib": warm[2],
+        "soak_rss_end_mib": rss_end,
+        "soak_server_cpu_percent": 100 * (cpu1 - cpu0) / (t1 - t0),
+        "soak_recorded_messages": recorder["messages"],
+        "soak_recording_dropped": recorder["dropped"],
     }
 
 
@@ -538,6 +616,8 @@ SCENARIOS = (
     "usb",
     "teleop",
 )
+#: Long scenarios, run only when named.
+LONG_SCENARIOS = ("soak",)
 
 
 def run_benchmarks(
@@ -545,9 +625,14 @@ def run_benchmarks(
     only: list[str] | None = None,
     repeats: int = 3,
     fleet_robots: int = 100,
+    soak_seconds: float = 600.0,
 ) -> dict[str, Any]:
     """Run the chosen scenarios (medians of `repeats` runs where cheap), print, write JSON."""
     chosen = only or list(SCENARIOS)
+    unknown = sorted(set(chosen) - set(SCENARIOS) - set(LONG_SCENARIOS))
+    if unknown:
+        known = ", ".join((*SCENARIOS, *LONG_SCENARIOS))
+        raise ValueError(f"unknown scenarios: {', '.join(unknown)} (known: {known})")
     results: dict[str, Any] = {}
 
     def median_of(runs: list[dict[str, float]]) -> dict[str, float]:
@@ -574,6 +659,17 @@ def run_benchmarks(
         results.update(asyncio.run(_with_server(estop)))
     if "fleet" in chosen:
         results.update(asyncio.run(_with_server(lambda server: fleet(server, robots=fleet_robots))))
+    if "soak" in chosen:
+        window = min(60.0, soak_seconds / 4)
+        results.update(
+            asyncio.run(
+                _with_server(
+                    lambda server: soak(
+                        server, robots=fleet_robots, seconds=soak_seconds, window=window
+                    )
+                )
+            )
+        )
     if "usb" in chosen:
         results.update(median_of([usb_control_rate() for _ in range(repeats)]))
     if "teleop" in chosen:

@@ -150,10 +150,12 @@ def main(argv: list[str] | None = None) -> int:
     bench.add_argument(
         "scenarios",
         nargs="*",
-        help="which (default: all): relay throughput fleet estop recording replay core usb",
+        help="which (default: all but soak): relay throughput fleet estop recording replay "
+        "core usb teleop soak",
     )
     bench.add_argument("--repeats", type=int, default=3)
-    bench.add_argument("--fleet-robots", type=int, default=100)
+    bench.add_argument("--fleet-robots", type=int, default=100, help="robots in fleet and soak")
+    bench.add_argument("--soak-seconds", type=float, default=600.0)
     args = parser.parse_args(argv)
     default_level = "INFO" if args.command == "serve" else "WARNING"
     logging.basicConfig(
@@ -192,7 +194,13 @@ def main(argv: list[str] | None = None) -> int:
         elif args.command == "bench":
             from arena.bench import run_benchmarks
 
-            run_benchmarks(args.json, args.scenarios or None, args.repeats, args.fleet_robots)
+            run_benchmarks(
+                args.json,
+                args.scenarios or None,
+                args.repeats,
+                args.fleet_robots,
+                args.soak_seconds,
+            )
     except KeyboardInterrupt:
         return 130
     return 0

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import asyncio
 
+import pytest
+
 from arena import bench
 
 
@@ -28,6 +30,27 @@ def test_bench_scenarios_run_against_a_real_server() -> None:
         "fleet_p99_us",
     ):
         assert results[key] > 0, key
+
+
+def test_soak_reports_start_against_end_and_losses() -> None:
+    async def short_soak() -> dict[str, float]:
+        async with bench.running_server() as server:
+            return await bench.soak(server, robots=3, rate=20, seconds=2.0, window=0.5)
+
+    results = asyncio.run(short_soak())
+    assert results["soak_commands_sent"] >= 3 * 20  # about 40 a robot; a busy box sends fewer
+    assert results["soak_commands_unacknowledged"] == 0
+    assert results["soak_commands_refused"] == 0
+    assert results["soak_recording_dropped"] == 0
+    # Every command is recorded (plus what the robots sent and reported).
+    assert results["soak_recorded_messages"] >= results["soak_commands_sent"]
+    for key in ("soak_first_p99_us", "soak_last_p99_us", "soak_rss_warm_mib", "soak_rss_end_mib"):
+        assert results[key] > 0, key
+
+
+def test_unknown_scenarios_are_named() -> None:
+    with pytest.raises(ValueError, match="unknown scenarios: sock"):
+        bench.run_benchmarks(only=["sock"])
 
 
 def test_in_process_scenarios() -> None:
