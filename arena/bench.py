@@ -270,20 +270,28 @@ async def drive_fleet(
 
     async def pair(n: int) -> None:
         async with (
-            websockets.connect(compression=None, uri=server.ws + f"/ws/slave/fleet-{n}") as slave,
-            websockets.connect(compression=None, uri=server.ws + f"/ws/master/fleet-{n}") as master,
+            # No client pings: latency is measured here, and a busy load generator must not
+            # drop its own connections for a late pong.
+            websockets.connect(
+                server.ws + f"/ws/slave/fleet-{n}", compression=None, ping_interval=None
+            ) as slave,
+            websockets.connect(
+                server.ws + f"/ws/master/fleet-{n}", compression=None, ping_interval=None
+            ) as master,
         ):
             sent_at: dict[float, float] = {}
+            counts = {"sent": 0, "acked": 0}
 
             async def count_acks() -> None:
-                async for raw in master:
-                    message = json.loads(raw)
-                    if message["type"] == "ack":
-                        run.acked += 1
-                        run.refused += message["data"]["status"] == "refused"
+                async for raw in master:  # a prefix test: json.loads here would cap the load
+                    if isinstance(raw, str) and raw.startswith('{"type":"ack"'):
+                        counts["acked"] += 1
+                        run.refused += '"status":"refused"' in raw
 
             async def receive() -> None:
                 async for raw in slave:
+                    if not (isinstance(raw, str) and raw.startswith('{"type":"execute_command"')):
+                        continue
                     message = json.loads(raw)
                     if message["type"] == "execute_command":
                         value = message["data"]["joints"][0]["value"]
@@ -294,11 +302,12 @@ async def drive_fleet(
 
             tasks = [asyncio.create_task(count_acks()), asyncio.create_task(receive())]
             i = 0
+            next_at = time.perf_counter()
             while time.perf_counter() < end:
                 i += 1
                 value = round((i % 2) * 0.001 + n * 1e-6, 9)
                 sent_at[value] = time.perf_counter()
-                run.sent += 1
+                counts["sent"] += 1
                 await master.send(
                     json.dumps(
                         {
@@ -307,10 +316,17 @@ async def drive_fleet(
                         }
                     )
                 )
-                await asyncio.sleep(1 / rate)
-            await asyncio.sleep(0.5)  # the last acknowledgments
+                # A fixed schedule (no drift); a late generator skips, it never bursts.
+                next_at = max(next_at + 1 / rate, time.perf_counter())
+                await asyncio.sleep(next_at - time.perf_counter())
+            deadline = time.perf_counter() + 10  # the last acknowledgments: late is not lost
+            while counts["acked"] < counts["sent"] and time.perf_counter() < deadline:
+                await asyncio.sleep(0.05)
+            await asyncio.sleep(0.2)
             for task in tasks:
                 task.cancel()
+            run.sent += counts["sent"]
+            run.acked += counts["acked"]
 
     sampler = asyncio.create_task(sample())
     await asyncio.gather(*(pair(n) for n in range(robots)))
@@ -356,7 +372,9 @@ async def soak(
         recorder = (await http.get("/api/recordings")).json()["recorder"]
     return {
         "soak_robots": robots,
+        "soak_rate_hz": rate,
         "soak_seconds": seconds,
+        "soak_commands_per_s": run.sent / seconds,
         "soak_commands_sent": run.sent,
         "soak_commands_unacknowledged": run.sent - run.acked,
         "soak_commands_refused": run.refused,
@@ -626,6 +644,7 @@ def run_benchmarks(
     repeats: int = 3,
     fleet_robots: int = 100,
     soak_seconds: float = 600.0,
+    soak_rate: float = 50.0,
 ) -> dict[str, Any]:
     """Run the chosen scenarios (medians of `repeats` runs where cheap), print, write JSON."""
     chosen = only or list(SCENARIOS)
@@ -665,7 +684,11 @@ def run_benchmarks(
             asyncio.run(
                 _with_server(
                     lambda server: soak(
-                        server, robots=fleet_robots, seconds=soak_seconds, window=window
+                        server,
+                        robots=fleet_robots,
+                        rate=soak_rate,
+                        seconds=soak_seconds,
+                        window=window,
                     )
                 )
             )

@@ -156,6 +156,7 @@ def main(argv: list[str] | None = None) -> int:
     bench.add_argument("--repeats", type=int, default=3)
     bench.add_argument("--fleet-robots", type=int, default=100, help="robots in fleet and soak")
     bench.add_argument("--soak-seconds", type=float, default=600.0)
+    bench.add_argument("--soak-rate", type=float, default=50.0, help="commands/s per robot")
     args = parser.parse_args(argv)
     default_level = "INFO" if args.command == "serve" else "WARNING"
     logging.basicConfig(
@@ -200,6 +201,7 @@ def main(argv: list[str] | None = None) -> int:
                 args.repeats,
                 args.fleet_robots,
                 args.soak_seconds,
+                args.soak_rate,
             )
     except KeyboardInterrupt:
         return 130
