@@ -74,7 +74,8 @@ async def start_server(
 
     async def start(**settings: Any) -> RunningServer:
         settings.setdefault("recordings_dir", str(tmp_path / "recordings"))
-        config = ServerConfig(port=0, **settings)
+        settings.setdefault("port", 0)  # a restarted server may ask for its old port
+        config = ServerConfig(**settings)
         stop, done = trio.Event(), trio.Event()
 
         async def run(task_status: trio.TaskStatus[Any]) -> None:

@@ -11,11 +11,13 @@ from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import (
     MasterBody,
     MockSlaveBody,
+    RemoteServerBody,
     ReplayMasterBody,
     SequenceMasterBody,
     SlaveBody,
     UsbMasterBody,
     UsbSlaveBody,
+    WebSocketSlaveBody,
 )
 from arena.robot.actor import MasterDriver, SlaveDriver
 from arena.robot.model import RobotModel
@@ -55,7 +57,12 @@ def make_slave(
                 }
             )
         )
-    raise ArenaError(ErrorCode.INVALID_CONFIG, f"Unsupported slave type {body!r}.")
+    if isinstance(body, WebSocketSlaveBody):
+        from arena.drivers.remote import WebSocketSlave
+
+        return WebSocketSlave(body)
+    # (the type's name only: a config may hold an API key, which must not reach any log)
+    raise ArenaError(ErrorCode.INVALID_CONFIG, f"Unsupported slave type {type(body).__name__}.")
 
 
 def make_master(
@@ -92,4 +99,8 @@ def make_master(
         )
         master.takes_over = body.takeover
         return master
-    raise ArenaError(ErrorCode.INVALID_CONFIG, f"Unsupported master type {body!r}.")
+    if isinstance(body, RemoteServerBody):
+        from arena.drivers.remote import RemoteServerMaster
+
+        return RemoteServerMaster(body, robot_id)
+    raise ArenaError(ErrorCode.INVALID_CONFIG, f"Unsupported master type {type(body).__name__}.")

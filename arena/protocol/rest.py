@@ -58,7 +58,40 @@ class UsbSlaveBody(msgspec.Struct, tag="usb-slave", tag_field="type", omit_defau
     calibration: CalibrationName | None = None
 
 
-SlaveBody: TypeAlias = MockSlaveBody | UsbSlaveBody
+#: Where another Arena server listens: ws(s):// or http(s)://, host and port.
+ServerUrl = Annotated[str, msgspec.Meta(pattern=r"^(ws|wss|http|https)://[^\s/?#]+/?$")]
+#: A robot id on another server.
+RemoteRobotId = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.:-]{1,64}$")]
+
+
+class RemoteLinkBody(msgspec.Struct, omit_defaults=True):
+    """What both remote drivers share: where, which robot, the key, heartbeats, backoff.
+
+    `heartbeat`: seconds between heartbeats; `reconnectInitial`/`reconnectMax`: the first and
+    the longest wait between reconnection attempts (doubling, with 20 % jitter).
+    """
+
+    url: ServerUrl
+    robotId: RemoteRobotId | None = None
+    apiKey: str | None = None
+    heartbeat: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 30.0
+    reconnectInitial: Annotated[float, msgspec.Meta(gt=0, le=60)] = 0.5
+    reconnectMax: Annotated[float, msgspec.Meta(gt=0, le=600)] = 30.0
+
+
+class WebSocketSlaveBody(RemoteLinkBody, tag="websocket-slave", tag_field="type"):
+    """Forward this robot's targets to `robotId` on another Arena server, as its master
+    (`takeover`: displace a master there). Its real joint values come back as ours."""
+
+    takeover: bool = False
+
+
+class RemoteServerBody(RemoteLinkBody, tag="remote-server", tag_field="type"):
+    """Take the commands another Arena server issues for its robot `robotId` (default: this
+    robot's id), as this robot's master; our real joint values go back as that robot's."""
+
+
+SlaveBody: TypeAlias = MockSlaveBody | UsbSlaveBody | WebSocketSlaveBody
 
 
 class CalibrationBody(msgspec.Struct, omit_defaults=True):
@@ -109,4 +142,4 @@ class UsbMasterBody(msgspec.Struct, tag="usb-master", tag_field="type", omit_def
     calibration: CalibrationName | None = None
 
 
-MasterBody: TypeAlias = SequenceMasterBody | ReplayMasterBody | UsbMasterBody
+MasterBody: TypeAlias = SequenceMasterBody | ReplayMasterBody | UsbMasterBody | RemoteServerBody
