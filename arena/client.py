@@ -496,6 +496,19 @@ class _Endpoints(Generic[T]):
         body = {"id": group_id, "members": members, "stopTogether": stop_together}
         return self._call("POST", "/api/groups", body)
 
+    def group(self, group_id: str) -> T:
+        """One group with its members' states."""
+        return self._call("GET", f"/api/groups/{quote(group_id)}")
+
+    def estop_group(self, group_id: str, reason: str | None = None) -> T:
+        """E-stop every member of a group."""
+        body = {"reason": reason} if reason else {}
+        return self._call("POST", f"/api/groups/{quote(group_id)}/estop", body)
+
+    def reset_group(self, group_id: str) -> T:
+        """Clear every member's e-stop."""
+        return self._call("POST", f"/api/groups/{quote(group_id)}/reset")
+
     def delete_group(self, group_id: str) -> T:
         """Delete a group (its robots stay)."""
         return self._call("DELETE", f"/api/groups/{quote(group_id)}")
@@ -503,6 +516,10 @@ class _Endpoints(Generic[T]):
     def recordings(self) -> T:
         """Recordings and the recorder's status."""
         return self._call("GET", "/api/recordings")
+
+
+def _unreachable(url: httpx.URL, error: Exception) -> ArenaClientError:
+    return ArenaClientError("UNREACHABLE", f"cannot reach {url}: {error or type(error).__name__}")
 
 
 def _answer(response: httpx.Response) -> Any:
@@ -524,7 +541,11 @@ class Arena(_Endpoints[Any]):
         self.http = httpx.Client(base_url=base_url, headers=headers, timeout=timeout)
 
     def _call(self, method: str, path: str, body: Any = None) -> Any:
-        return _answer(self.http.request(method, path, json=body))
+        try:
+            response = self.http.request(method, path, json=body)
+        except httpx.TransportError as error:
+            raise _unreachable(self.http.base_url, error) from None
+        return _answer(response)
 
     def close(self) -> None:
         """Close the HTTP connections."""
@@ -545,7 +566,11 @@ class AsyncArena(_Endpoints[Awaitable[Any]]):
         self.http = httpx.AsyncClient(base_url=base_url, headers=headers, timeout=timeout)
 
     async def _request(self, method: str, path: str, body: Any) -> Any:
-        return _answer(await self.http.request(method, path, json=body))
+        try:
+            response = await self.http.request(method, path, json=body)
+        except httpx.TransportError as error:
+            raise _unreachable(self.http.base_url, error) from None
+        return _answer(response)
 
     def _call(self, method: str, path: str, body: Any = None) -> Awaitable[Any]:
         return self._request(method, path, body)

@@ -143,3 +143,16 @@ class UsbMasterBody(msgspec.Struct, tag="usb-master", tag_field="type", omit_def
 
 
 MasterBody: TypeAlias = SequenceMasterBody | ReplayMasterBody | UsbMasterBody | RemoteServerBody
+
+
+#: A group id: like a robot id.
+GroupId = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.-]{1,64}$")]
+
+
+class GroupBody(msgspec.Struct, omit_defaults=True):
+    """`POST /api/groups`: a group one master can drive. `stopTogether`: an e-stop of any
+    member e-stops them all."""
+
+    id: GroupId
+    members: Annotated[list[str], msgspec.Meta(min_length=1, max_length=256)]
+    stopTogether: bool = False

@@ -10,7 +10,7 @@ import contextlib
 import logging
 import re
 import secrets
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable
 
 import trio
 
@@ -77,6 +77,10 @@ class RobotManager:
         """Stop a robot's drivers cleanly and remove it."""
         robot = self.get(robot_id)
         await self._stop(robot, "robot deleted")
+
+    def spawn(self, task: Callable[..., Awaitable[object]], *args: object) -> None:
+        """Run a background task for as long as the manager (group watchers, say)."""
+        self._nursery.start_soon(task, *args)
 
     async def estop_all(self, reason: str = "emergency stop (all robots)") -> None:
         """E-stop every robot."""

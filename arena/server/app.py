@@ -22,12 +22,14 @@ from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.messages import MAX_MESSAGE_BYTES
 from arena.protocol.rest import CreateRobotBody, JointsBody, MasterBody, ReasonBody, SlaveBody
 from arena.recording.recorder import Recorder
+from arena.robot.groups import GroupRegistry
 from arena.robot.manager import RobotManager
 from arena.server import convert, openapi
 from arena.server.auth import check_token
 from arena.server.calibration_api import Hardware
 from arena.server.calibration_api import blueprint as calibration_blueprint
 from arena.server.config import ServerConfig
+from arena.server.groups_api import blueprint as groups_blueprint
 from arena.server.metrics import Metrics
 from arena.server.recordings_api import blueprint as recordings_blueprint
 from arena.server.websockets import blueprint as websocket_blueprint
@@ -87,6 +89,7 @@ class ArenaApp(QuartTrio):
     started_at: float
     recorder: Recorder
     hardware: Hardware
+    groups: GroupRegistry
 
 
 def error_response(code: ErrorCode, message: str) -> tuple[dict[str, Any], int]:
@@ -121,12 +124,14 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.arena_config = config
     app.metrics = Metrics()
     app.hardware = Hardware()
+    app.groups = GroupRegistry(manager)
     app.shutting_down = trio.Event()
     app.started_at = time.time()
     app.config["MAX_CONTENT_LENGTH"] = MAX_MESSAGE_BYTES
     app.register_blueprint(websocket_blueprint)
     app.register_blueprint(recordings_blueprint)
     app.register_blueprint(calibration_blueprint)
+    app.register_blueprint(groups_blueprint)
     _register_errors(app)
     _register_routes(app)
     return app

@@ -8,6 +8,7 @@ loss policy applies), the robot ends the link (detached, deleted), or the server
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 import math
@@ -128,8 +129,10 @@ class Connection:
             nursery.start_soon(main)
 
 
-async def _accept(role: str, robot_id: str) -> tuple[Connection, Robot] | None:
-    """Accept, check the key and find the robot; on failure refuse and return None."""
+async def _accept(
+    role: str, robot_id: str | None
+) -> tuple[Connection, Robot | None] | tuple[None, None]:
+    """Accept, check the key and find the robot (if any); on failure refuse, return Nones."""
     await websocket.accept()
     connection = Connection(role)
     try:
@@ -139,10 +142,10 @@ async def _accept(role: str, robot_id: str) -> tuple[Connection, Robot] | None:
             websocket.args.get("token"),
             mutating=role != "viewer",
         )
-        robot = connection.app.manager.get(robot_id)
+        robot = None if robot_id is None else connection.app.manager.get(robot_id)
     except ArenaError as error:
         await connection.refuse(error)
-        return None
+        return None, None
     return connection, robot
 
 
@@ -170,9 +173,15 @@ async def _heartbeats(connection: Connection) -> None:
 
 
 async def _forward_robot_events(
-    connection: Connection, robot: Robot, events: EventQueue[RobotEvent]
+    connection: Connection,
+    robot: Robot,
+    events: EventQueue[RobotEvent],
+    name_robot: bool = False,
 ) -> None:
-    """State changes at once; joint states at most every `joint_states_interval` seconds."""
+    """State changes at once; joint states at most every `joint_states_interval` seconds.
+
+    `name_robot` adds the robot's id to joint states (a group master hears from several).
+    """
     interval = connection.app.arena_config.joint_states_interval
     pending = False  # joint values changed since the last joint_states sent
     next_send = 0.0
@@ -190,7 +199,12 @@ async def _forward_robot_events(
         pending = pending or any(isinstance(e, JointStatesReceived | TargetsSent) for e in batch)
         now = trio.current_time()
         if pending and now >= next_send:
-            await connection.send(convert.joint_states(robot.snapshot()))
+            states = convert.joint_states(robot.snapshot())
+            if name_robot:
+                named = msgspec.to_builtins(states) | {"robot_id": robot.robot_id}
+                await connection.send(msgspec.json.encode(named).decode())
+            else:
+                await connection.send(states)
             pending = False
             next_send = now + interval
 
@@ -201,10 +215,12 @@ async def _forward_robot_events(
 @blueprint.websocket("/ws/master/<robot_id>")
 async def master_socket(robot_id: str) -> None:
     """A master: commands in, acknowledgments, joint states and state changes out."""
-    accepted = await _accept("master", robot_id)
-    if accepted is None:
+    if robot_id in _app().groups:
+        await _group_master_socket(robot_id)
         return
-    connection, robot = accepted
+    connection, robot = await _accept("master", robot_id)
+    if connection is None or robot is None:
+        return
     app = connection.app
     try:
         link = await robot.connect_master(
@@ -241,6 +257,102 @@ async def master_socket(robot_id: str) -> None:
                 await link.detach("server shutting down")
             elif not link.detached.is_set():
                 await link.lost("connection closed")
+
+
+async def _group_master_socket(group_id: str) -> None:
+    """A master of a group: it claims every member; each command goes to each member, and
+    the ack tells how each answered. Members keep their own safety state."""
+    connection, _ = await _accept("master", None)
+    if connection is None:
+        return
+    app = connection.app
+    links: dict[str, MasterLink] = {}
+    try:
+        group = app.groups.get(group_id)
+        robots = [app.manager.get(robot_id) for robot_id in group.members]
+        master_id = websocket.args.get("id") or f"ws-group-master-{next(_ids)}"
+        for robot in robots:
+            links[robot.robot_id] = await robot.connect_master(
+                master_id,
+                kind="websocket-group",
+                takeover=_flag(websocket.args.get("takeover")),
+                heartbeat_timeout=app.arena_config.heartbeat_timeout,
+            )
+    except ArenaError as error:
+        with trio.CancelScope(shield=True):
+            for link in links.values():
+                await link.detach("the group could not be claimed whole")
+        await connection.refuse(error)
+        return
+    app.metrics.connections["master"] += 1
+    try:
+        with contextlib.ExitStack() as stack:
+            queues = [stack.enter_context(robot.subscribe(maxlen=256)) for robot in robots]
+            for robot in robots:
+                await connection.send(convert.state(robot.snapshot()))
+
+            async def body(nursery: trio.Nursery) -> None:
+                for robot, queue in zip(robots, queues, strict=True):
+                    nursery.start_soon(_forward_robot_events, connection, robot, queue, True)
+                nursery.start_soon(_heartbeats, connection)
+                await _read_loop(
+                    connection,
+                    wire.decode_master,
+                    partial(_handle_group_message, connection, links),
+                )
+
+            await connection.run(body)
+    finally:
+        app.metrics.connections["master"] -= 1
+        with trio.CancelScope(shield=True):
+            for link in links.values():
+                if app.shutting_down.is_set():
+                    await link.detach("server shutting down")
+                elif not link.detached.is_set():
+                    await link.lost("connection closed")
+
+
+async def _handle_group_message(
+    connection: Connection, links: dict[str, MasterLink], message: wire.MasterMessage
+) -> None:
+    for link in links.values():
+        link.alive()
+    if isinstance(message, wire.CommandMessage):
+        data = message.data
+        command = convert.command_from_wire(data.joints, data.duration, data.metadata)
+        answers: dict[str, Any] = {}
+
+        async def one(robot_id: str, link: MasterLink) -> None:
+            answers[robot_id] = msgspec.to_builtins(convert.ack(await link.command(command)).data)
+
+        async with trio.open_nursery() as nursery:
+            for robot_id, link in links.items():
+                nursery.start_soon(one, robot_id, link)
+        statuses = {answer["status"] for answer in answers.values()}
+        if "refused" in statuses:
+            status = "refused" if statuses == {"refused"} else "partial"
+        else:
+            status = "clamped" if "clamped" in statuses else "accepted"
+        ack = {
+            "type": "ack",
+            "timestamp": wire.now_iso(),
+            "data": {"status": status, "members": answers},
+        }
+        await connection.send(msgspec.json.encode(ack).decode())
+    elif isinstance(message, wire.EStopMessage):
+        reason = (message.data.reason if message.data else None) or "e-stop from group master"
+        for link in links.values():
+            await link.robot.estop(reason)
+    elif isinstance(message, wire.ResetMessage):
+        for link in links.values():
+            if str(link.robot.snapshot().mode) == "estopped":
+                await link.robot.reset()
+    elif isinstance(message, wire.HeartbeatMessage):
+        await connection.send(wire.HeartbeatMessage(timestamp=wire.now_iso()))
+    else:
+        await connection.send_error(
+            ErrorCode.INVALID_MESSAGE, "A group master sends commands, e-stops, resets, heartbeats."
+        )
 
 
 class _SequencePlayer:
@@ -337,10 +449,9 @@ async def _handle_master_message(
 @blueprint.websocket("/ws/slave/<robot_id>")
 async def slave_socket(robot_id: str) -> None:
     """A slave: `execute_command` and notices out; joint states, status and errors in."""
-    accepted = await _accept("slave", robot_id)
-    if accepted is None:
+    connection, robot = await _accept("slave", robot_id)
+    if connection is None or robot is None:
         return
-    connection, robot = accepted
     app = connection.app
     try:
         link = await robot.connect_slave(
@@ -412,10 +523,9 @@ async def _handle_slave_message(
 @blueprint.websocket("/ws/robots/<robot_id>/state")
 async def state_socket(robot_id: str) -> None:
     """Read-only: the robot's state and joint states as they change. Any number may watch."""
-    accepted = await _accept("viewer", robot_id)
-    if accepted is None:
+    connection, robot = await _accept("viewer", robot_id)
+    if connection is None or robot is None:
         return
-    connection, robot = accepted
     app = connection.app
     app.metrics.connections["viewer"] += 1
     try:

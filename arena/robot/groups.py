@@ -1,0 +1,119 @@
+"""Robot groups: one master drives several robots, each keeping its own safety state.
+
+A group names its members; a master attached to the group claims every member and each of its
+commands goes to each member, which accepts or refuses it by its own rules (an e-stopped member
+stays still while the others move). With `stop_together`, an e-stop of any member e-stops the
+rest of the group too.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import trio
+
+from arena.protocol.errors import ArenaError, ErrorCode
+from arena.robot.events import StateChanged
+from arena.robot.manager import RobotManager
+from arena.robot.safety import Mode
+
+
+@dataclass
+class Group:
+    """A named set of robots."""
+
+    group_id: str
+    members: tuple[str, ...]
+    stop_together: bool = False
+    scope: trio.CancelScope = field(default_factory=trio.CancelScope)
+
+    def describe(self, manager: RobotManager) -> dict[str, object]:
+        """The group and each member's state, for the REST API."""
+        states: dict[str, dict[str, str | None]] = {}
+        for robot_id in self.members:
+            try:
+                snapshot = manager.get(robot_id).snapshot()
+            except ArenaError:
+                states[robot_id] = {"state": "deleted"}
+                continue
+            states[robot_id] = {
+                "state": str(snapshot.mode),
+                "master": snapshot.owner,
+                "estop_reason": snapshot.estop_reason,
+            }
+        return {
+            "id": self.group_id,
+            "members": list(self.members),
+            "stopTogether": self.stop_together,
+            "states": states,
+        }
+
+
+class GroupRegistry:
+    """Every group of a server; ids share no space with robots, so `/ws/master/{id}` is plain."""
+
+    def __init__(self, manager: RobotManager) -> None:
+        self.manager = manager
+        self._groups: dict[str, Group] = {}
+
+    def __contains__(self, group_id: str) -> bool:
+        return group_id in self._groups
+
+    def all(self) -> list[Group]:
+        """Every group, oldest first."""
+        return list(self._groups.values())
+
+    def get(self, group_id: str) -> Group:
+        """The group, or UNKNOWN_GROUP."""
+        group = self._groups.get(group_id)
+        if group is None:
+            raise ArenaError(ErrorCode.UNKNOWN_GROUP, f"No group {group_id!r}.")
+        return group
+
+    def create(self, group_id: str, members: list[str], stop_together: bool) -> Group:
+        """A new group of existing robots (at least one, no repeats)."""
+        if group_id in self._groups:
+            raise ArenaError(ErrorCode.GROUP_EXISTS, f"A group {group_id!r} exists already.")
+        if any(robot.robot_id == group_id for robot in self.manager.robots()):
+            raise ArenaError(ErrorCode.GROUP_EXISTS, f"{group_id!r} is a robot's id.")
+        if not members or len(set(members)) != len(members):
+            raise ArenaError(ErrorCode.INVALID_BODY, "A group needs one or more distinct robots.")
+        for robot_id in members:
+            self.manager.get(robot_id)  # UNKNOWN_ROBOT for a stranger
+        group = Group(group_id, tuple(members), stop_together)
+        self._groups[group_id] = group
+        if stop_together:
+            self.manager.spawn(self._stop_together, group)
+        return group
+
+    def delete(self, group_id: str) -> None:
+        """Forget the group; its robots stay as they are."""
+        self.get(group_id).scope.cancel()
+        del self._groups[group_id]
+
+    async def _stop_together(self, group: Group) -> None:
+        with group.scope:
+            async with trio.open_nursery() as nursery:
+                for robot_id in group.members:
+                    nursery.start_soon(self._watch, group, robot_id)
+
+    async def _watch(self, group: Group, robot_id: str) -> None:
+        with self.manager.get(robot_id).subscribe(maxlen=64) as events:
+            while True:
+                try:
+                    event = await events.get()
+                except trio.EndOfChannel:  # the robot was deleted
+                    return
+                if isinstance(event, StateChanged) and event.mode is Mode.ESTOPPED:
+                    await self._estop_others(group, robot_id)
+
+    async def _estop_others(self, group: Group, stopped: str) -> None:
+        for other in group.members:
+            if other == stopped:
+                continue
+            try:
+                robot = self.manager.get(other)
+            except ArenaError:
+                continue
+            if robot.snapshot().mode is not Mode.ESTOPPED:
+                await robot.estop(f"group {group.group_id!r}: {stopped!r} was e-stopped")

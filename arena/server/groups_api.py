@@ -1,0 +1,80 @@
+"""REST for robot groups: create, list, read, delete, and e-stop or reset a whole group."""
+
+from __future__ import annotations
+
+import contextlib
+from typing import TYPE_CHECKING, Any
+
+from quart import Blueprint, current_app
+
+from arena.protocol.errors import ArenaError
+from arena.protocol.rest import GroupBody, ReasonBody
+
+if TYPE_CHECKING:
+    from arena.server.app import ArenaApp
+
+blueprint = Blueprint("groups", __name__)
+
+
+def _app() -> ArenaApp:
+    return current_app  # type: ignore[return-value]
+
+
+@blueprint.get("/api/groups")
+async def list_groups() -> dict[str, Any]:
+    """Every group with its members' states."""
+    app = _app()
+    return {"groups": [group.describe(app.manager) for group in app.groups.all()]}
+
+
+@blueprint.post("/api/groups")
+async def create_group() -> tuple[dict[str, Any], int]:
+    """Create a group of existing robots."""
+    from arena.server.app import read_body
+
+    app = _app()
+    body: GroupBody = await read_body(GroupBody)
+    group = app.groups.create(body.id, body.members, body.stopTogether)
+    return group.describe(app.manager), 201
+
+
+@blueprint.get("/api/groups/<group_id>")
+async def read_group(group_id: str) -> dict[str, Any]:
+    """One group."""
+    app = _app()
+    return app.groups.get(group_id).describe(app.manager)
+
+
+@blueprint.delete("/api/groups/<group_id>")
+async def delete_group(group_id: str) -> dict[str, Any]:
+    """Forget a group (its robots and their masters stay)."""
+    _app().groups.delete(group_id)
+    return {"deleted": group_id}
+
+
+@blueprint.post("/api/groups/<group_id>/estop")
+async def estop_group(group_id: str) -> dict[str, Any]:
+    """E-stop every member."""
+    from arena.server.app import read_body
+
+    app = _app()
+    group = app.groups.get(group_id)
+    body: ReasonBody = await read_body(ReasonBody, optional=True)
+    reason = body.reason or f"group {group_id!r} e-stop"
+    for robot_id in group.members:
+        with contextlib.suppress(ArenaError):  # a deleted member
+            await app.manager.get(robot_id).estop(reason)
+    return group.describe(app.manager)
+
+
+@blueprint.post("/api/groups/<group_id>/reset")
+async def reset_group(group_id: str) -> dict[str, Any]:
+    """Clear every member's e-stop."""
+    app = _app()
+    group = app.groups.get(group_id)
+    for robot_id in group.members:
+        with contextlib.suppress(ArenaError):
+            robot = app.manager.get(robot_id)
+            if str(robot.snapshot().mode) == "estopped":
+                await robot.reset()
+    return group.describe(app.manager)

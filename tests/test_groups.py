@@ -1,0 +1,107 @@
+"""Robot groups: one master drives several robots, each with its own safety state."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Awaitable, Callable
+
+import trio
+from trio_websocket import open_websocket_url
+
+from arena.client import AsyncArena, MasterSession
+from tests.conftest import RunningServer
+from tests.test_server_ws import receive
+
+StartServer = Callable[..., Awaitable[RunningServer]]
+
+
+async def three_arms(server: RunningServer, stop_together: bool = False) -> AsyncArena:
+    arena = AsyncArena(server.url)
+    for robot_id in ("left", "middle", "right"):
+        await arena.create_robot(robot_id)
+        await arena.attach_slave(robot_id, {"type": "mock-slave"})
+    await arena.create_group("line", ["left", "middle", "right"], stop_together=stop_together)
+    return arena
+
+
+def goal(server: RunningServer, robot_id: str) -> float:
+    return server.app.manager.get(robot_id).snapshot().joint("Rotation").goal
+
+
+async def test_a_group_master_fans_out_and_an_estopped_member_stays_still(
+    start_server: StartServer,
+) -> None:
+    server = await start_server()
+    arena = await three_arms(server)
+    async with MasterSession.open(server.url, "line") as master:
+        ack = await master.command({"Rotation": 4})
+        assert ack["data"]["status"] == "accepted"
+        assert set(ack["data"]["members"]) == {"left", "middle", "right"}
+        assert all(goal(server, r) == 4 for r in ("left", "middle", "right"))
+        # Every member is mastered by the group's master.
+        states = (await arena.group("line"))["states"]
+        owners = {state["master"] for state in states.values()}
+        assert len(owners) == 1 and owners.pop().startswith("ws-group-master")
+        await arena.estop("middle", "a hand in the way")
+        ack = await master.command({"Rotation": 6})
+        assert ack["data"]["status"] == "partial"
+        assert ack["data"]["members"]["middle"]["code"] == "ESTOPPED"
+        assert (goal(server, "left"), goal(server, "middle"), goal(server, "right")) == (6, 4, 6)
+        await arena.reset("middle")
+        assert (await master.command({"Rotation": 7}))["data"]["status"] == "accepted"
+        assert goal(server, "middle") == 7
+        described = await arena.estop_group("line", "end of shift")
+        assert {state["state"] for state in described["states"].values()} == {"estopped"}
+    await arena.aclose()
+
+
+async def test_a_group_that_stops_together(start_server: StartServer) -> None:
+    server = await start_server()
+    arena = await three_arms(server, stop_together=True)
+    async with MasterSession.open(server.url, "line") as master:
+        await master.command({"Rotation": 2})
+        await arena.estop("right", "bumper hit")
+        with trio.fail_after(5):
+            while True:
+                states = (await arena.group("line"))["states"]
+                if all(s["state"] == "estopped" for s in states.values()):
+                    break
+                await trio.sleep(0.02)
+        assert "right" in states["left"]["estop_reason"]
+        ack = await master.command({"Rotation": 3})
+        assert ack["data"]["status"] == "refused"
+        await arena.reset_group("line")
+        assert (await master.command({"Rotation": 3}))["data"]["status"] == "accepted"
+    await arena.aclose()
+
+
+async def test_group_claims_are_whole_or_nothing_and_bad_groups_are_refused(
+    start_server: StartServer,
+) -> None:
+    server = await start_server()
+    arena = await three_arms(server)
+    async with server.client() as http:
+        for body, code in [
+            ({"id": "line", "members": ["left"]}, "GROUP_EXISTS"),
+            ({"id": "left", "members": ["right"]}, "GROUP_EXISTS"),
+            ({"id": "g", "members": ["left", "ghost"]}, "UNKNOWN_ROBOT"),
+            ({"id": "g", "members": []}, "INVALID_BODY"),
+            ({"id": "g", "members": ["left", "left"]}, "INVALID_BODY"),
+            ({"id": "../g", "members": ["left"]}, "INVALID_BODY"),
+        ]:
+            answer = await http.post("/api/groups", json=body)
+            assert answer.json()["error"]["code"] == code, body
+        assert (await http.get("/api/groups/nope")).json()["error"]["code"] == "UNKNOWN_GROUP"
+    # "right" already has a master: the group is refused and no member is left claimed.
+    async with open_websocket_url(server.ws_url + "/ws/master/right") as holder:
+        await receive(holder, "state")
+        async with open_websocket_url(server.ws_url + "/ws/master/line") as group_master:
+            refusal = json.loads(await group_master.get_message())
+            assert refusal["data"]["code"] == "MASTER_ACTIVE"
+        with trio.fail_after(5):
+            while server.app.manager.get("left").snapshot().owner is not None:
+                await trio.sleep(0.02)
+        assert str(server.app.manager.get("left").snapshot().mode) == "idle"
+    await arena.delete_group("line")
+    assert (await arena.groups())["groups"] == []
+    await arena.aclose()
