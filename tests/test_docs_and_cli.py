@@ -11,6 +11,7 @@ import trio
 import trio.testing
 
 from arena import cli
+from tests.conftest import RunningServer
 
 README = Path(__file__).resolve().parent.parent / "README.md"
 
@@ -44,3 +45,18 @@ def test_demo_command_plays_and_finishes(capsys: pytest.CaptureFixture[str]) -> 
 def test_demo_rejects_an_unknown_sequence() -> None:
     with pytest.raises(SystemExit):
         cli.main(["demo", "--sequence", "moonwalk"])
+
+
+async def test_readme_agent_example_drives_the_demo_robot(
+    server: RunningServer, capsys: pytest.CaptureFixture[str]
+) -> None:
+    block = re.search(r"### Agent example\s+```python\n(.*?)```", README.read_text(), re.S)
+    assert block is not None
+    namespace: dict[str, Any] = {}
+    exec(compile(block.group(1).replace("trio.run(agent)", ""), "README.md", "exec"), namespace)
+    await namespace["agent"](server.url, "demo-arm", 4)
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 4
+    assert all(line.split()[0] in ("accepted", "clamped") for line in lines), lines
+    # The mock arm followed: by the last step the agent saw a real Rotation above zero.
+    assert float(lines[-1].split()[1]) > 0
