@@ -300,7 +300,16 @@ async def drive_fleet(
                             arrived = time.perf_counter()
                             run.latencies.append((started, arrived - started))
 
-            tasks = [asyncio.create_task(count_acks()), asyncio.create_task(receive())]
+            async def heartbeats() -> None:  # a silent slave is dropped (and e-stops)
+                while True:
+                    await asyncio.sleep(10)
+                    await slave.send('{"type": "heartbeat"}')
+
+            tasks = [
+                asyncio.create_task(count_acks()),
+                asyncio.create_task(receive()),
+                asyncio.create_task(heartbeats()),
+            ]
             i = 0
             next_at = time.perf_counter()
             while time.perf_counter() < end:
