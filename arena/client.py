@@ -253,7 +253,37 @@ def _describe(closed: ConnectionClosed) -> str:
     return f"closed by the server ({reason.code}: {reason.reason or reason.name})"
 
 
-class MasterSession(Session):
+class _Watching(Session):
+    """A session that keeps a robot's newest `state` and `joint_states`."""
+
+    def __init__(self, url: str, **options: Any) -> None:
+        super().__init__(url, **options)
+        self.state: dict[str, Any] | None = None
+        self.joints: dict[str, dict[str, Any]] = {}
+        self._changed = trio.Event()
+
+    async def wait_for(self, check: Callable[[Self], bool], timeout: float = 5.0) -> None:
+        """Until `check(self)` holds (checked after every message that changes something)."""
+        with trio.fail_after(timeout):
+            while not check(self):
+                await self._changed.wait()
+
+    def real(self, joint: str) -> float | None:
+        """The newest real value of `joint`."""
+        entry = self.joints.get(joint)
+        return None if entry is None else entry.get("real_value")
+
+    async def on_message(self, message: dict[str, Any]) -> None:
+        kind = message.get("type")
+        if kind == "state":
+            self.state = message.get("data")
+        elif kind == "joint_states":
+            self.joints = {j["name"]: j for j in message.get("data") or []}
+        self._changed.set()
+        self._changed = trio.Event()
+
+
+class MasterSession(_Watching):
     """A master of one robot (or group): commands with their acknowledgments, state, joints.
 
     While the link is down `command` raises `Disconnected`; the server applies its loss policy
@@ -262,11 +292,8 @@ class MasterSession(Session):
 
     def __init__(self, url: str, **options: Any) -> None:
         super().__init__(url, **options)
-        self.state: dict[str, Any] | None = None
-        self.joints: dict[str, dict[str, Any]] = {}
         self.errors: deque[dict[str, Any]] = deque(maxlen=64)
         self._acks: deque[trio.MemorySendChannel[dict[str, Any]]] = deque()
-        self._changed = trio.Event()
 
     @classmethod
     @asynccontextmanager
@@ -310,31 +337,15 @@ class MasterSession(Session):
         """Clear the robot's e-stop."""
         await self.send({"type": "reset", "timestamp": now_iso()})
 
-    async def wait_for(self, check: Callable[[Self], bool], timeout: float = 5.0) -> None:
-        """Until `check(self)` holds (checked after every state or joint_states message)."""
-        with trio.fail_after(timeout):
-            while not check(self):
-                await self._changed.wait()
-
-    def real(self, joint: str) -> float | None:
-        """The newest real value of `joint`."""
-        entry = self.joints.get(joint)
-        return None if entry is None else entry.get("real_value")
-
     async def on_message(self, message: dict[str, Any]) -> None:
         kind = message.get("type")
         if kind == "ack":
             if self._acks:
                 await self._acks.popleft().send(message)
             return
-        if kind == "state":
-            self.state = message.get("data")
-        elif kind == "joint_states":
-            self.joints = {j["name"]: j for j in message.get("data") or []}
-        elif kind in ("error", "detached"):
+        if kind in ("error", "detached"):
             self.errors.append(message)
-        self._changed.set()
-        self._changed = trio.Event()
+        await super().on_message(message)
 
     async def on_disconnect(self, reason: str) -> None:
         while self._acks:  # commands in flight never get an ack now
@@ -387,14 +398,8 @@ class SlaveSession(Session):
             self.notices.append(kind)
 
 
-class ViewerSession(Session):
+class ViewerSession(_Watching):
     """A read-only watcher of one robot: its newest state and joint states."""
-
-    def __init__(self, url: str, **options: Any) -> None:
-        super().__init__(url, **options)
-        self.state: dict[str, Any] | None = None
-        self.joints: dict[str, dict[str, Any]] = {}
-        self._changed = trio.Event()
 
     @classmethod
     @asynccontextmanager
@@ -403,20 +408,6 @@ class ViewerSession(Session):
         session = cls(ws_url(base_url, f"/ws/robots/{quote(robot_id)}/state"), **options)
         async with _running(session):
             yield session
-
-    async def wait_for(self, check: Callable[[Self], bool], timeout: float = 5.0) -> None:
-        """Until `check(self)` holds."""
-        with trio.fail_after(timeout):
-            while not check(self):
-                await self._changed.wait()
-
-    async def on_message(self, message: dict[str, Any]) -> None:
-        if message.get("type") == "state":
-            self.state = message.get("data")
-        elif message.get("type") == "joint_states":
-            self.joints = {j["name"]: j for j in message.get("data") or []}
-        self._changed.set()
-        self._changed = trio.Event()
 
 
 @asynccontextmanager
