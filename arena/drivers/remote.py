@@ -109,7 +109,6 @@ class WebSocketSlave:
         """Forward targets and notices until detached."""
         self.session.link = link
         interval = 1.0 / link.robot.model.safety.command_rate
-        last_sent = -math.inf
         async with trio.open_nursery() as nursery:
             nursery.start_soon(self.session.run)
             async for message in link.messages():
@@ -118,8 +117,7 @@ class WebSocketSlave:
                         await self.session.forward(message.joints)
                         # Within the rate limit (the other side has the same robot type):
                         # targets that come meanwhile merge, the newest wins.
-                        last_sent = trio.current_time()
-                        await trio.sleep_until(last_sent + interval)
+                        await trio.sleep(interval)
                 elif message.kind is NoticeKind.ESTOP:
                     await self.session.try_send({"type": "estop", "data": {"reason": "upstream"}})
                 elif message.kind is NoticeKind.RESET:
@@ -139,14 +137,10 @@ class _Upstream(MasterSession):
         self.refused = 0
 
     async def forward(self, joints: dict[str, float]) -> None:
-        """Send a target as a command; its ack comes back through `on_message`."""
-        await self.try_send(
-            {
-                "type": "command",
-                "data": {"joints": [{"name": n, "value": v} for n, v in joints.items()]},
-            }
-        )
-        self.sent += 1
+        """Send a target as a command (if the link is up); its ack comes to `on_message`."""
+        entries = [{"name": n, "value": v} for n, v in joints.items()]
+        if await self.try_send({"type": "command", "data": {"joints": entries}}):
+            self.sent += 1
 
     async def on_connect(self) -> None:
         self.accept_after = trio.current_time()

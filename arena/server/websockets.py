@@ -252,11 +252,7 @@ async def master_socket(robot_id: str) -> None:
             await connection.run(body)
     finally:
         app.metrics.connections["master"] -= 1
-        with trio.CancelScope(shield=True):
-            if app.shutting_down.is_set():
-                await link.detach("server shutting down")
-            elif not link.detached.is_set():
-                await link.lost("connection closed")
+        await _release_master(app, link)
 
 
 async def _group_master_socket(group_id: str) -> None:
@@ -304,12 +300,8 @@ async def _group_master_socket(group_id: str) -> None:
             await connection.run(body)
     finally:
         app.metrics.connections["master"] -= 1
-        with trio.CancelScope(shield=True):
-            for link in links.values():
-                if app.shutting_down.is_set():
-                    await link.detach("server shutting down")
-                elif not link.detached.is_set():
-                    await link.lost("connection closed")
+        for link in links.values():
+            await _release_master(app, link)
 
 
 async def _handle_group_message(
@@ -353,6 +345,16 @@ async def _handle_group_message(
         await connection.send_error(
             ErrorCode.INVALID_MESSAGE, "A group master sends commands, e-stops, resets, heartbeats."
         )
+
+
+async def _release_master(app: ArenaApp, link: MasterLink) -> None:
+    """The socket of a master is gone: a shutdown detaches it, anything else loses it (the
+    robot's loss policy applies) unless the robot let it go first."""
+    with trio.CancelScope(shield=True):
+        if app.shutting_down.is_set():
+            await link.detach("server shutting down")
+        elif not link.detached.is_set():
+            await link.lost("connection closed")
 
 
 class _SequencePlayer:
