@@ -17,7 +17,7 @@ from typing import IO, Any
 
 from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
-from mcap.writer import CompressionType, Writer
+from mcap.writer import CompressionType, IndexType, Writer
 
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording.records import schema_of, split_topic, topic
@@ -111,8 +111,14 @@ class McapFileWriter:
             while path.exists():  # two files within a millisecond: keep both
                 path = path.with_name(path.stem + "-1" + SUFFIX)
             self._stream = open(path, "wb")  # noqa: SIM115 - closed in close()
+            # No message indexes: they would keep an entry per channel per chunk in
+            # memory until the file ends (59 MiB over a 10-minute, 100-robot soak); readers
+            # find every message through the chunk indexes all the same.
             self._writer = Writer(
-                self._stream, chunk_size=self.chunk_size, compression=CompressionType.ZSTD
+                self._stream,
+                chunk_size=self.chunk_size,
+                compression=CompressionType.ZSTD,
+                index_types=IndexType.ALL & ~IndexType.MESSAGE,
             )
             self._writer.start(profile=PROFILE, library="arena")
             self._writer.add_metadata("arena", self.metadata)
