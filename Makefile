@@ -4,7 +4,16 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install run demo test lint bench clean
+# The dashboard: built with the machine's Node.js and npm (packages from the npm registry).
+UI := arena/dashboard
+UI_BUILT := $(UI)/dist/index.html
+UI_MODULES := $(UI)/node_modules/.package-lock.json
+UI_SOURCES := $(UI)/build.mjs $(UI)/index.html $(UI)/style.css $(wildcard $(UI)/src/*.js)
+# The browser tests drive Debian's chromium (Playwright cannot download its own browser here).
+CHROMIUM := /usr/bin/chromium
+SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
+
+.PHONY: install ui browser run demo test lint bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -14,10 +23,22 @@ $(STAMP): pyproject.toml
 
 install: $(STAMP)
 
-run: install
+$(UI_MODULES): $(UI)/package.json $(UI)/package-lock.json
+	cd $(UI) && npm ci --no-audit --no-fund --loglevel=error
+
+$(UI_BUILT): $(UI_MODULES) $(UI_SOURCES)
+	cd $(UI) && node build.mjs
+
+ui: $(UI_BUILT)
+
+browser:
+	@test -x $(CHROMIUM) || { $(SUDO) apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq chromium >/dev/null; }
+
+run: install ui
 	$(BIN)/arena serve --demo
 
-test: install
+test: install ui browser
 	$(BIN)/python -m pytest -q
 
 lint: install
@@ -29,4 +50,4 @@ bench: install
 	$(BIN)/arena bench
 
 clean:
-	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache .hypothesis
+	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache .hypothesis $(UI)/node_modules $(UI)/dist

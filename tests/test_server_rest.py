@@ -302,7 +302,7 @@ async def test_openapi_covers_every_route_and_docs_load_nothing_external(
     for rule in server.app.url_map.iter_rules():
         if rule.websocket or rule.endpoint == "static":
             continue
-        path = re.sub(r"<(\w+)>", r"{\1}", rule.rule)
+        path = re.sub(r"<(?:\w+:)?(\w+)>", r"{\1}", rule.rule)
         for method in rule.methods - {"HEAD", "OPTIONS"}:
             routes.add((method, path))
     assert routes == documented

@@ -7,8 +7,10 @@ import io
 import itertools
 import json
 from collections import defaultdict
+from dataclasses import dataclass, field
 from typing import Any
 
+from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording.mcap_file import RecordedMessage, Recording
 
 #: Silences longer than this (seconds) on a topic are reported as gaps.
@@ -88,6 +90,51 @@ def summarize(recording: Recording) -> dict[str, Any]:
             "tracking_error_deg": tracking_errors(messages, robot_id),
         }
     return summary
+
+
+@dataclass
+class JointSeries:
+    """One robot's joints over a recording: (seconds, degrees) points, and e-stop instants."""
+
+    virtual: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
+    real: dict[str, list[tuple[float, float]]] = field(default_factory=dict)
+    estops: list[float] = field(default_factory=list)
+
+    @property
+    def joints(self) -> list[str]:
+        """Joint names in the order they first appear."""
+        return list(dict.fromkeys([*self.virtual, *self.real]))
+
+
+def joint_series(recording: Recording, robot_id: str) -> JointSeries:
+    """Targets (virtual) and measured (real) values of each joint, seconds from the robot's start.
+
+    Raises `ArenaError(UNKNOWN_ROBOT)` when the robot is not in the recording.
+    """
+    mine = [m for m in recording.messages if m.robot_id == robot_id]
+    if not mine:
+        raise ArenaError(ErrorCode.UNKNOWN_ROBOT, f"No robot {robot_id!r} in the recording.")
+    origin = min(float(m.data["t"]) for m in mine)
+    series = JointSeries()
+    for message in mine:
+        at = float(message.data["t"]) - origin
+        if message.kind in ("targets", "joint_states"):
+            into = series.virtual if message.kind == "targets" else series.real
+            for joint, value in message.data["joints"].items():
+                into.setdefault(joint, []).append((at, value))
+        elif message.kind == "state" and message.data["mode"] == "estopped":
+            series.estops.append(at)
+    return series
+
+
+def thin(points: list[tuple[float, float]], most: int) -> list[tuple[float, float]]:
+    """At most `most` points, evenly picked, the first and the last always kept (for plots)."""
+    if len(points) <= most:
+        return points
+    if most < 2:
+        return points[-most:] if most > 0 else []
+    step = (len(points) - 1) / (most - 1)
+    return [points[round(i * step)] for i in range(most)]
 
 
 def tracking_errors(messages: list[RecordedMessage], robot_id: str) -> dict[str, float]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.recording.analysis import joint_series
 from arena.recording.mcap_file import Recording
 
 INSTALL_HINT = "Plotting needs matplotlib: pip install 'arena[plot]' (or pip install matplotlib)."
@@ -19,35 +20,21 @@ def plot_recording(recording: Recording, robot_id: str, output: Path) -> Path:
         import matplotlib.pyplot as plt
     except ImportError as exc:
         raise ArenaError(ErrorCode.INVALID_CONFIG, INSTALL_HINT) from exc
-    mine = [m for m in recording.messages if m.robot_id == robot_id]
-    if not mine:
-        raise ArenaError(ErrorCode.UNKNOWN_ROBOT, f"No robot {robot_id!r} in the recording.")
-    origin = min(float(m.data["t"]) for m in mine)
-    virtual: dict[str, list[tuple[float, float]]] = {}
-    real: dict[str, list[tuple[float, float]]] = {}
-    estops: list[float] = []
-    for message in mine:
-        at = float(message.data["t"]) - origin
-        if message.kind in ("targets", "joint_states"):
-            series = virtual if message.kind == "targets" else real
-            for joint, value in message.data["joints"].items():
-                series.setdefault(joint, []).append((at, value))
-        elif message.kind == "state" and message.data["mode"] == "estopped":
-            estops.append(at)
-    joints = list(dict.fromkeys([*virtual, *real]))
+    series = joint_series(recording, robot_id)
+    joints = series.joints
     figure, axes = plt.subplots(
         len(joints), 1, sharex=True, figsize=(10, 2 * len(joints)), squeeze=False
     )
     for axis, joint in zip(axes[:, 0], joints, strict=True):
-        for series, label, style in ((virtual, "virtual", "-"), (real, "real", "--")):
-            points = series.get(joint, [])
+        for values, label, style in ((series.virtual, "virtual", "-"), (series.real, "real", "--")):
+            points = values.get(joint, [])
             if points:
                 axis.plot([p[0] for p in points], [p[1] for p in points], style, label=label)
-        for at in estops:
+        for at in series.estops:
             axis.axvline(at, color="red", linewidth=1)
         axis.set_ylabel(f"{joint} (deg)")
         axis.legend(loc="upper right", fontsize="small")
-    axes[-1, 0].set_xlabel("seconds" + ("  (red: e-stop)" if estops else ""))
+    axes[-1, 0].set_xlabel("seconds" + ("  (red: e-stop)" if series.estops else ""))
     figure.suptitle(f"{recording.path.name}: {robot_id}")
     figure.tight_layout()
     figure.savefig(output)

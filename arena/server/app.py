@@ -10,7 +10,7 @@ from typing import Any
 
 import msgspec
 import trio
-from quart import Response, request
+from quart import Response, redirect, request
 from quart_trio import QuartTrio
 from werkzeug.exceptions import HTTPException
 
@@ -24,14 +24,16 @@ from arena.protocol.rest import CreateRobotBody, JointsBody, MasterBody, ReasonB
 from arena.recording.recorder import Recorder
 from arena.robot.groups import GroupRegistry
 from arena.robot.manager import RobotManager
-from arena.server import convert, openapi
+from arena.server import convert, dashboard, openapi
 from arena.server.auth import check_token
 from arena.server.calibration_api import Hardware
 from arena.server.calibration_api import blueprint as calibration_blueprint
 from arena.server.config import ServerConfig
+from arena.server.dashboard import blueprint as dashboard_blueprint
 from arena.server.groups_api import blueprint as groups_blueprint
 from arena.server.metrics import Metrics
 from arena.server.recordings_api import blueprint as recordings_blueprint
+from arena.server.robot_types_api import blueprint as robot_types_blueprint
 from arena.server.websockets import blueprint as websocket_blueprint
 
 #: HTTP status for each error code (anything missing is 400).
@@ -75,8 +77,9 @@ STATUS_FOR: dict[ErrorCode, int] = {
     ErrorCode.GROUP_EXISTS: 409,
 }
 
-#: Paths anyone may read, keys or not: the documentation.
-PUBLIC_PATHS = frozenset({"/docs", "/openapi.json"})
+#: Paths anyone may read, keys or not: the documentation and the dashboard's files.
+PUBLIC_PATHS = frozenset({"/docs", "/openapi.json", "/ui"})
+PUBLIC_PREFIXES = ("/ui/",)
 
 
 class ArenaApp(QuartTrio):
@@ -132,6 +135,8 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.register_blueprint(recordings_blueprint)
     app.register_blueprint(calibration_blueprint)
     app.register_blueprint(groups_blueprint)
+    app.register_blueprint(robot_types_blueprint)
+    app.register_blueprint(dashboard_blueprint)
     _register_errors(app)
     _register_routes(app)
     return app
@@ -139,14 +144,17 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
 
 def _register_errors(app: ArenaApp) -> None:
     @app.before_request
-    async def authorize() -> None:
-        if request.path not in PUBLIC_PATHS:
+    async def authorize() -> Response | None:
+        if request.path == "/" and dashboard.is_built() and _wants_html():
+            return redirect("/ui/")  # type: ignore[return-value]  # a browser: show the page
+        if request.path not in PUBLIC_PATHS and not request.path.startswith(PUBLIC_PREFIXES):
             check_token(
                 app,
                 request.headers.get("Authorization"),
                 None,
                 mutating=request.method not in ("GET", "HEAD", "OPTIONS"),
             )
+        return None
 
     @app.after_request
     async def count(response: Response) -> Response:
@@ -197,6 +205,8 @@ def _register_routes(app: ArenaApp) -> None:
             "recording": app.recorder.status(),
             "links": {
                 "robots": "/api/robots",
+                "robot_types": "/api/robot-types",
+                "dashboard": "/ui/",
                 "docs": "/docs",
                 "openapi": "/openapi.json",
                 "metrics": "/metrics",
@@ -362,6 +372,12 @@ def _register_routes(app: ArenaApp) -> None:
     @app.get("/docs")
     async def docs() -> Response:
         return Response(openapi.DOCS_PAGE, content_type="text/html; charset=utf-8")
+
+
+def _wants_html() -> bool:
+    """Whether the client prefers a page to JSON (a browser does; httpx, curl and clients don't)."""
+    best = request.accept_mimetypes.best_match(["application/json", "text/html"])
+    return best == "text/html"
 
 
 def _sum_counters(counters: Iterable[Counter[str]]) -> dict[str, int]:

@@ -7,11 +7,11 @@ from typing import TYPE_CHECKING, Any
 
 import msgspec
 import trio
-from quart import Blueprint, current_app, send_file
+from quart import Blueprint, current_app, request, send_file
 
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import ReplayBody, ReplayMasterBody
-from arena.recording.analysis import summarize
+from arena.recording.analysis import joint_series, summarize, thin
 from arena.recording.mcap_file import SUFFIX, read_recording
 from arena.recording.recorder import check_name, existing_recording
 
@@ -75,6 +75,40 @@ async def recording_summary(name: str) -> dict[str, Any]:
     path = _existing(name)
     recording = await trio.to_thread.run_sync(read_recording, path)
     return summarize(recording)
+
+
+#: Most points per joint series a plot request may ask for.
+MAX_PLOT_POINTS = 5000
+
+
+@blueprint.get("/api/recordings/<name>/joints")
+async def recording_joints(name: str) -> dict[str, Any]:
+    """One robot's joints over the recording, thinned for a plot (`?robot=`, `?points=`)."""
+    path = _existing(name)
+    recording = await trio.to_thread.run_sync(read_recording, path)
+    robots = sorted({m.robot_id for m in recording.messages if m.robot_id})
+    robot_id = request.args.get("robot") or (robots[0] if robots else "")
+    raw_points = request.args.get("points", "300")
+    if not raw_points.isdigit() or not 2 <= int(raw_points) <= MAX_PLOT_POINTS:
+        raise ArenaError(
+            ErrorCode.INVALID_VALUE, f"points must be a whole number from 2 to {MAX_PLOT_POINTS}."
+        )
+    series = joint_series(recording, robot_id)
+    most = int(raw_points)
+    return {
+        "recording": path.name,
+        "robot": robot_id,
+        "robots": robots,
+        "joints": [
+            {
+                "name": joint,
+                "virtual": thin(series.virtual.get(joint, []), most),
+                "real": thin(series.real.get(joint, []), most),
+            }
+            for joint in series.joints
+        ],
+        "estops": series.estops,
+    }
 
 
 @blueprint.get("/api/recordings/<name>/file")

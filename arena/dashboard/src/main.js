@@ -1,0 +1,186 @@
+// The dashboard's entry: the robot list, the selected robot (in the URL's #hash), the header's
+// stop buttons, the API key, and the periodic refresh of what the sockets do not push.
+
+import { ApiError, apiKey, call, setApiKey } from "./api.js";
+import { RecordingsPanel } from "./recordings.js";
+import { RobotView } from "./robot_view.js";
+
+const $ = (id) => document.getElementById(id);
+const REFRESH_MS = 1000;
+
+let view = null; // the RobotView of the selected robot
+let robots = [];
+
+function selectedId() {
+  const match = location.hash.match(/^#\/robots\/(.+)$/);
+  return match ? decodeURIComponent(match[1]) : null;
+}
+
+function report(text, isError = false) {
+  if (view) view.log(text, isError);
+  $("notice").textContent = text;
+  $("notice").className = isError ? "error" : "muted";
+}
+
+const recordings = new RecordingsPanel({ selectedRobot: selectedId, report });
+
+async function refresh() {
+  try {
+    const status = await call("GET", "/");
+    $("server-status").textContent =
+      `${status.robots} robot${status.robots === 1 ? "" : "s"}, ` +
+      `recording ${status.recording.active ? "on" : "off"}${status.auth ? ", keys on" : ""}`;
+    robots = await call("GET", "/api/robots");
+  } catch (error) {
+    $("server-status").textContent = `${error.code}: ${error.message}`;
+    if (error instanceof ApiError && error.status === 401 && !apiKey()) $("key-dialog").showModal();
+    return;
+  }
+  showRobotList();
+  const id = selectedId();
+  const summary = robots.find((robot) => robot.id === id);
+  if (!summary) {
+    if (view) closeView();
+  } else if (!view || view.robotId !== id) {
+    closeView();
+    view = new RobotView(summary, { onChanged: () => refresh() });
+    $("robot-panel").hidden = false;
+  } else {
+    view.applySummary(summary);
+  }
+  await recordings.refresh();
+}
+
+function closeView() {
+  if (view) view.close();
+  view = null;
+  $("robot-panel").hidden = true;
+  $("estop").disabled = true;
+  $("reset").disabled = true;
+}
+
+function showRobotList() {
+  const list = $("robot-list");
+  list.replaceChildren();
+  for (const robot of robots) {
+    const item = document.createElement("li");
+    item.dataset.robot = robot.id;
+    if (robot.id === selectedId()) item.className = "selected";
+    const link = document.createElement("a");
+    link.href = `#/robots/${encodeURIComponent(robot.id)}`;
+    link.textContent = robot.name;
+    const state = document.createElement("span");
+    state.className = `state ${robot.state}`;
+    state.textContent = robot.master ? `${robot.state} by ${robot.master.id}` : robot.state;
+    if (robot.estop_reason) state.title = robot.estop_reason;
+    item.append(link, state);
+    list.append(item);
+  }
+  if (!robots.length) list.innerHTML = '<li class="muted">no robots yet</li>';
+}
+
+async function act(method, path, body) {
+  try {
+    const answer = await call(method, path, body);
+    await refresh();
+    return answer;
+  } catch (error) {
+    report(`${error.code}: ${error.message}`, true);
+    return null;
+  }
+}
+
+function wireHeader() {
+  $("estop").addEventListener("click", () =>
+    act("POST", `/api/robots/${encodeURIComponent(selectedId())}/estop`, {
+      reason: "e-stop from the dashboard",
+    }),
+  );
+  $("stop-all").addEventListener("click", () =>
+    act("POST", "/api/estop", { reason: "stop-everything from the dashboard" }),
+  );
+  $("reset").addEventListener("click", () =>
+    act("POST", `/api/robots/${encodeURIComponent(selectedId())}/reset`),
+  );
+  $("key-button").addEventListener("click", () => {
+    $("key-input").value = apiKey();
+    $("key-dialog").showModal();
+  });
+  // Keep the key at the click itself: a request failing meanwhile must not ask again.
+  $("key-save").addEventListener("click", () => setApiKey($("key-input").value.trim()));
+  $("key-dialog").addEventListener("close", () => {
+    if ($("key-dialog").returnValue === "save") {
+      closeView(); // sockets reopen with the new key
+      fillChoices().then(refresh);
+    }
+  });
+}
+
+function wireRobotControls() {
+  const robotPath = () => `/api/robots/${encodeURIComponent(selectedId())}`;
+  $("create-robot").addEventListener("submit", async (event) => {
+    event.preventDefault();
+    const body = { robot_type: $("create-type").value, name: $("create-name").value.trim() };
+    const id = $("create-id").value.trim();
+    if (id) body.id = id;
+    const robot = await act("POST", "/api/robots", body);
+    if (robot) {
+      $("create-robot").reset();
+      location.hash = `#/robots/${encodeURIComponent(robot.id)}`;
+    }
+  });
+  $("play").addEventListener("click", () =>
+    act("POST", `${robotPath()}/play-sequence/${encodeURIComponent($("sequence").value)}`),
+  );
+  $("stop-sequence").addEventListener("click", () => act("POST", `${robotPath()}/stop-sequence`));
+  $("add-mock").addEventListener("click", () =>
+    act("POST", `${robotPath()}/slaves`, { type: "mock-slave" }),
+  );
+  $("add-usb").addEventListener("click", () => {
+    const port = $("usb-port").value.trim();
+    act("POST", `${robotPath()}/slaves`, port ? { type: "usb-slave", port } : { type: "usb-slave" });
+  });
+  // Deleting needs a second click on the same button: no modal dialog to dismiss on a phone.
+  const remove = $("delete-robot");
+  remove.addEventListener("click", async () => {
+    if (!remove.dataset.armed) {
+      remove.dataset.armed = "1";
+      remove.textContent = "Really delete?";
+      setTimeout(() => {
+        delete remove.dataset.armed;
+        remove.textContent = "Delete robot";
+      }, 4000);
+      return;
+    }
+    const answer = await act("DELETE", robotPath());
+    if (answer) location.hash = "";
+  });
+}
+
+async function fillChoices() {
+  try {
+    const [types, sequences] = await Promise.all([
+      call("GET", "/api/robot-types"),
+      call("GET", "/api/sequences"),
+    ]);
+    $("create-robot").querySelector("button").disabled = !types.length;
+    $("create-type").replaceChildren(
+      ...types.map((type) => {
+        const option = new Option(type.id, type.id);
+        option.title = type.description;
+        return option;
+      }),
+    );
+    $("sequence").replaceChildren(
+      ...sequences.map((sequence) => new Option(`${sequence.name} (${sequence.duration / 1000} s)`, sequence.id)),
+    );
+  } catch (error) {
+    report(`${error.code}: ${error.message}`, true);
+  }
+}
+
+wireHeader();
+wireRobotControls();
+window.addEventListener("hashchange", refresh);
+fillChoices().then(refresh);
+setInterval(refresh, REFRESH_MS);

@@ -1,0 +1,232 @@
+// One robot's panel: state, sliders, live virtual and real values, the 3D twin, sequences,
+// master and slaves, recent events. Everything goes through the public API.
+
+import { call, watchRobot } from "./api.js";
+import { Twin } from "./twin.js";
+
+const $ = (id) => document.getElementById(id);
+
+// Slider commands go out at most this often (ms), newest value wins: well under the robot's
+// command rate limit, and smooth enough for a hand on a slider.
+const SEND_INTERVAL = 50;
+const MAX_EVENTS = 30;
+
+function degrees(value) {
+  return value === null || value === undefined ? "–" : value.toFixed(1);
+}
+
+export class RobotView {
+  constructor(summary, { onChanged }) {
+    this.robotId = summary.id;
+    this.onChanged = onChanged;
+    this.state = null;
+    this.summary = summary;
+    this.sliders = new Map();
+    this.pending = new Map(); // joint -> value not yet sent
+    this.sending = false;
+    this.closed = false;
+    this.buildJoints(summary.joints);
+    this.applySummary(summary);
+    this.watcher = watchRobot(
+      this.robotId,
+      (type, data) => this.onMessage(type, data),
+      (status) => {
+        $("watch-status").textContent = status === "connected" ? "live" : status;
+      },
+    );
+    Twin.create($("twin"), summary.robot_type)
+      .then((twin) => {
+        if (this.closed) {
+          twin.dispose();
+          return;
+        }
+        this.twin = twin;
+        if (this.lastJoints) twin.show(this.lastJoints);
+      })
+      .catch((error) => this.log(`3D view: ${error.message}`, true));
+  }
+
+  close() {
+    this.closed = true;
+    this.watcher.close();
+    if (this.twin) this.twin.dispose();
+    $("twin").replaceChildren();
+  }
+
+  /** One table row per joint: name, slider within the model's limits, virtual, real. */
+  buildJoints(joints) {
+    const body = $("joints").querySelector("tbody");
+    body.replaceChildren();
+    for (const joint of joints) {
+      const row = document.createElement("tr");
+      const slider = document.createElement("input");
+      slider.type = "range";
+      slider.min = joint.limits.lower;
+      slider.max = joint.limits.upper;
+      slider.step = 0.5;
+      slider.value = joint.virtual_value;
+      slider.dataset.joint = joint.name;
+      slider.setAttribute("aria-label", joint.name);
+      slider.addEventListener("input", () => this.queue(joint.name, Number(slider.value)));
+      // While a hand is on it, the slider shows the hand's value, not the robot's.
+      slider.addEventListener("pointerdown", () => (slider.dataset.held = "1"));
+      slider.addEventListener("pointerup", () => delete slider.dataset.held);
+      slider.addEventListener("blur", () => delete slider.dataset.held);
+      const cells = [joint.name, slider, "", ""].map((content) => {
+        const cell = document.createElement("td");
+        cell.append(content);
+        return cell;
+      });
+      cells[2].className = cells[3].className = "value";
+      cells[2].dataset.virtual = joint.name;
+      cells[3].dataset.real = joint.name;
+      row.append(...cells);
+      body.append(row);
+      this.sliders.set(joint.name, { slider, virtual: cells[2], real: cells[3] });
+    }
+    this.showJoints(joints);
+  }
+
+  /** A new robot summary (polled): who is attached, and how they are doing. */
+  applySummary(summary) {
+    this.summary = summary;
+    $("robot-title").textContent = `${summary.name} (${summary.id})`;
+    if (!this.state) {
+      this.applyState({ mode: summary.state, owner: summary.owner, estop_reason: summary.estop_reason });
+    }
+    this.showMaster();
+    const peers = $("peers");
+    peers.replaceChildren();
+    const entries = [
+      ...(summary.master ? [["master", summary.master]] : []),
+      ...summary.slaves.map((slave) => ["slave", slave]),
+    ];
+    for (const [role, peer] of entries) {
+      const item = document.createElement("li");
+      item.dataset.peer = peer.id;
+      const tag = document.createElement("span");
+      tag.className = `tag ${peer.connected ? "up" : "down"}`;
+      tag.textContent = peer.connected ? "connected" : "disconnected";
+      const label = document.createElement("span");
+      label.textContent = `${role}: ${peer.id} (${peer.type})`;
+      const detach = document.createElement("button");
+      detach.type = "button";
+      detach.textContent = "Detach";
+      detach.className = "quiet";
+      detach.addEventListener("click", () =>
+        this.act(
+          "DELETE",
+          role === "master"
+            ? `/api/robots/${this.robotId}/master`
+            : `/api/robots/${this.robotId}/slaves/${encodeURIComponent(peer.id)}`,
+        ),
+      );
+      item.append(label, tag, detach);
+      if (peer.last_error) {
+        const error = document.createElement("span");
+        error.className = "muted";
+        error.textContent = peer.last_error;
+        item.append(error);
+        if (this.lastErrors?.get(peer.id) !== peer.last_error) this.log(`${peer.id}: ${peer.last_error}`, true);
+      }
+      peers.append(item);
+    }
+    this.lastErrors = new Map(entries.map(([, peer]) => [peer.id, peer.last_error]));
+    if (!entries.length) peers.innerHTML = '<li class="muted">nothing attached</li>';
+  }
+
+  onMessage(type, data) {
+    if (type === "state") this.applyState(data);
+    else if (type === "joint_states") this.showJoints(data);
+  }
+
+  /** The safety state: the badge, the master line, and whether the sliders may move. */
+  applyState(state) {
+    const previous = this.state;
+    this.state = state;
+    const badge = $("robot-state");
+    badge.className = `state ${state.mode}`;
+    badge.textContent = state.mode === "estopped" ? "E-STOPPED" : state.mode;
+    $("robot-state").title = state.estop_reason || "";
+    if (previous && previous.mode !== state.mode) {
+      const why = state.mode === "estopped" ? `: ${state.estop_reason}` : "";
+      this.log(`now ${state.mode}${why}`, state.mode === "estopped");
+      this.onChanged();
+    }
+    const locked = state.mode !== "idle";
+    for (const { slider } of this.sliders.values()) slider.disabled = locked;
+    $("estop").disabled = state.mode === "estopped";
+    $("reset").disabled = state.mode !== "estopped";
+    this.showMaster();
+  }
+
+  showMaster() {
+    const state = this.state || {};
+    const master = this.summary.master;
+    let text;
+    if (state.mode === "estopped") text = `E-stopped: ${state.estop_reason || "no reason given"}. Reset to move again.`;
+    else if (master) text = `Held by master ${master.id} (${master.type}): the sliders are locked.`;
+    else if (state.owner) text = `Held by master ${state.owner}: the sliders are locked.`;
+    else text = "No master: the sliders drive the robot.";
+    $("master-line").textContent = text;
+  }
+
+  showJoints(joints) {
+    this.lastJoints = joints;
+    for (const joint of joints) {
+      const entry = this.sliders.get(joint.name);
+      if (!entry) continue;
+      entry.virtual.textContent = degrees(joint.virtual_value);
+      entry.real.textContent = degrees(joint.real_value);
+      if (!entry.slider.dataset.held && !this.pending.has(joint.name) && !this.sending) {
+        entry.slider.value = joint.virtual_value;
+      }
+    }
+    if (this.twin) this.twin.show(joints);
+  }
+
+  /** A slider moved: send the newest values, one request at a time. */
+  queue(joint, value) {
+    this.pending.set(joint, value);
+    if (!this.sending) this.flush();
+  }
+
+  async flush() {
+    this.sending = true;
+    while (this.pending.size && !this.closed) {
+      const joints = [...this.pending].map(([name, value]) => ({ name, value }));
+      this.pending.clear();
+      const started = performance.now();
+      try {
+        const ack = await call("PUT", `/api/robots/${this.robotId}/joints`, { joints });
+        if (ack && ack.status === "clamped") this.log(`clamped: ${ack.message}`);
+      } catch (error) {
+        this.log(`${error.code}: ${error.message}`, true);
+      }
+      const wait = SEND_INTERVAL - (performance.now() - started);
+      if (wait > 0) await new Promise((resolve) => setTimeout(resolve, wait));
+    }
+    this.sending = false;
+  }
+
+  /** Call the API for a button; errors go to the events list. */
+  async act(method, path, body) {
+    try {
+      const answer = await call(method, path, body);
+      this.onChanged();
+      return answer;
+    } catch (error) {
+      this.log(`${error.code}: ${error.message}`, true);
+      return null;
+    }
+  }
+
+  log(text, isError = false) {
+    const item = document.createElement("li");
+    item.textContent = `${new Date().toLocaleTimeString()} ${text}`;
+    if (isError) item.className = "error";
+    const events = $("events");
+    events.prepend(item);
+    while (events.children.length > MAX_EVENTS) events.lastChild.remove();
+  }
+}

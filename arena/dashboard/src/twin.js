@@ -1,0 +1,227 @@
+// The 3D twin: the robot built from its URDF and meshes (served by the robot-types API),
+// drawn twice: solid at the commanded (virtual) pose, and as a ghost at the measured (real) pose.
+
+import * as THREE from "three";
+import { OrbitControls } from "three/examples/jsm/controls/OrbitControls.js";
+import { STLLoader } from "three/examples/jsm/loaders/STLLoader.js";
+import { call, fetchBytes, fetchText } from "./api.js";
+
+/** URDF `xyz` / `rpy` attributes as three numbers (missing means zeros). */
+function triple(text) {
+  const values = (text || "").trim().split(/\s+/).filter(Boolean).map(Number);
+  return values.length === 3 && values.every(Number.isFinite) ? values : [0, 0, 0];
+}
+
+/** Place `object` at a URDF <origin>: translation, then fixed-axis roll, pitch, yaw. */
+function applyOrigin(object, origin) {
+  if (!origin) return;
+  object.position.fromArray(triple(origin.getAttribute("xyz")));
+  const [roll, pitch, yaw] = triple(origin.getAttribute("rpy"));
+  // URDF's fixed-axis R = Rz(yaw) Ry(pitch) Rx(roll) is three.js's intrinsic "ZYX" order.
+  object.rotation.set(roll, pitch, yaw, "ZYX");
+}
+
+/** The parsed URDF: links with their visuals, joints with frames and axes. */
+export function parseUrdf(text) {
+  const xml = new DOMParser().parseFromString(text, "application/xml");
+  if (xml.querySelector("parsererror")) throw new Error("The URDF is not valid XML.");
+  const robot = xml.documentElement;
+  const links = [...robot.children].filter((e) => e.tagName === "link");
+  const joints = [...robot.children]
+    .filter((e) => e.tagName === "joint")
+    .map((e) => ({
+      name: e.getAttribute("name"),
+      type: e.getAttribute("type"),
+      parent: e.querySelector("parent").getAttribute("link"),
+      child: e.querySelector("child").getAttribute("link"),
+      origin: e.querySelector("origin"),
+      axis: new THREE.Vector3(...triple(e.querySelector("axis")?.getAttribute("xyz") || "1 0 0")),
+    }));
+  return { links, joints };
+}
+
+/** One drawable copy of the robot: its root object and a setter for joint angles (radians). */
+class RobotCopy {
+  constructor(urdf, geometries, material) {
+    this.root = new THREE.Group();
+    this.motions = new Map();
+    this.linkObjects = new Map();
+    for (const link of urdf.links) {
+      const object = new THREE.Group();
+      object.name = link.getAttribute("name");
+      for (const visual of link.querySelectorAll("visual")) {
+        const mesh = visual.querySelector("geometry > mesh");
+        const geometry = mesh && geometries.get(mesh.getAttribute("filename"));
+        if (!geometry) continue;
+        const part = new THREE.Mesh(geometry, material);
+        applyOrigin(part, visual.querySelector("origin"));
+        const scale = mesh.getAttribute("scale");
+        if (scale) part.scale.fromArray(triple(scale));
+        object.add(part);
+      }
+      this.linkObjects.set(object.name, object);
+    }
+    const children = new Set(urdf.joints.map((j) => j.child));
+    for (const joint of urdf.joints) {
+      const frame = new THREE.Group();
+      applyOrigin(frame, joint.origin);
+      const motion = new THREE.Group();
+      frame.add(motion);
+      motion.add(this.linkObjects.get(joint.child));
+      this.linkObjects.get(joint.parent).add(frame);
+      this.motions.set(joint.name, { motion, joint });
+    }
+    for (const [name, object] of this.linkObjects) {
+      if (!children.has(name)) this.root.add(object);
+    }
+    // The deepest link: its world position tells where the arm's tip is.
+    this.tip = this.linkObjects.get(urdf.joints.length ? urdf.joints.at(-1).child : urdf.links[0]);
+  }
+
+  /** Set one joint: radians for revolute joints, metres for prismatic ones. */
+  setJoint(name, value) {
+    const entry = this.motions.get(name);
+    if (!entry || !Number.isFinite(value)) return;
+    if (entry.joint.type === "prismatic") {
+      entry.motion.position.copy(entry.joint.axis).multiplyScalar(value);
+    } else if (entry.joint.type !== "fixed") {
+      entry.motion.quaternion.setFromAxisAngle(entry.joint.axis, value);
+    }
+  }
+
+  /** Where the tip link is in the world (the scene's frame), rounded to 0.1 mm. */
+  tipPosition() {
+    this.root.updateMatrixWorld(true);
+    const at = this.tip.getWorldPosition(new THREE.Vector3());
+    return [at.x, at.y, at.z].map((v) => Math.round(v * 10000) / 10000);
+  }
+}
+
+/** A robot type drawn in `container`, with `show(joints)` to follow the wire's joint states. */
+export class Twin {
+  static async create(container, robotType) {
+    const type = await call("GET", `/api/robot-types/${encodeURIComponent(robotType)}`);
+    const urdfText = await fetchText(type.urdf);
+    const urdf = parseUrdf(urdfText);
+    const geometries = new Map();
+    const loader = new STLLoader();
+    const names = new Set();
+    for (const mesh of urdfText.matchAll(/<mesh[^>]*filename="([^"]+)"/g)) names.add(mesh[1]);
+    await Promise.all(
+      [...names].map(async (name) => {
+        try {
+          const geometry = loader.parse(await fetchBytes(type.files + name));
+          geometry.computeVertexNormals();
+          geometries.set(name, geometry);
+        } catch {
+          // A missing mesh leaves its part out; the pose is still computed and shown.
+        }
+      }),
+    );
+    return new Twin(container, type, urdf, geometries);
+  }
+
+  constructor(container, type, urdf, geometries) {
+    this.container = container;
+    this.type = type;
+    this.commanded = new RobotCopy(
+      urdf,
+      geometries,
+      new THREE.MeshStandardMaterial({ color: 0xe8a33d, metalness: 0.1, roughness: 0.6 }),
+    );
+    this.measured = new RobotCopy(
+      urdf,
+      geometries,
+      new THREE.MeshStandardMaterial({
+        color: 0x3d8be8,
+        transparent: true,
+        opacity: 0.35,
+        depthWrite: false,
+      }),
+    );
+    this.scene = new THREE.Scene();
+    const world = new THREE.Group();
+    world.rotation.x = -Math.PI / 2; // URDF is z-up, three.js is y-up
+    world.add(this.commanded.root, this.measured.root);
+    this.scene.add(world);
+    this.scene.add(new THREE.HemisphereLight(0xffffff, 0x404050, 2.2));
+    const sun = new THREE.DirectionalLight(0xffffff, 1.5);
+    sun.position.set(0.5, 1, 0.7);
+    this.scene.add(sun);
+    this.scene.add(new THREE.GridHelper(0.6, 12, 0x888888, 0x444444));
+    this.camera = new THREE.PerspectiveCamera(40, 1, 0.01, 10);
+    this.camera.position.set(0.35, 0.35, 0.45);
+    try {
+      this.renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
+      this.renderer.setPixelRatio(Math.min(window.devicePixelRatio, 2));
+      container.append(this.renderer.domElement);
+      this.controls = new OrbitControls(this.camera, this.renderer.domElement);
+      this.controls.target.set(0, 0.15, 0);
+      this.controls.update();
+      this.controls.addEventListener("change", () => this.render());
+      new ResizeObserver(() => this.resize()).observe(container);
+      this.resize();
+    } catch {
+      this.renderer = null; // no WebGL here: the pose is still tracked, just not drawn
+      container.textContent = "3D view unavailable (this browser has no WebGL).";
+    }
+    this.show([]);
+  }
+
+  resize() {
+    const width = this.container.clientWidth || 300;
+    const height = this.container.clientHeight || 240;
+    this.renderer.setSize(width, height);
+    this.camera.aspect = width / height;
+    this.camera.updateProjectionMatrix();
+    this.render();
+  }
+
+  /** Follow a `joint_states` message: virtual values pose the solid arm, real ones the ghost. */
+  show(states) {
+    const byName = new Map(this.type.joints.map((j) => [j.name, j]));
+    for (const state of states) {
+      const spec = byName.get(state.name);
+      if (!spec) continue;
+      const toUrdf = (degrees) => spec.neutral + (degrees * Math.PI) / 180;
+      this.commanded.setJoint(state.name, toUrdf(state.virtual_value));
+      if (state.real_value !== null && state.real_value !== undefined) {
+        this.measured.setJoint(state.name, toUrdf(state.real_value));
+      }
+    }
+    if (states.length && !this.framed) this.frame();
+    // The tips' positions, for people reading the page and for the browser tests.
+    this.container.dataset.tip = this.commanded.tipPosition().join(",");
+    this.container.dataset.ghostTip = this.measured.tipPosition().join(",");
+    this.render();
+  }
+
+  /** Aim the camera at the arm as it first stands, from the front-right and a little above. */
+  frame() {
+    this.framed = true;
+    if (!this.controls) return;
+    this.scene.updateMatrixWorld(true);
+    const box = new THREE.Box3().setFromObject(this.commanded.root);
+    if (box.isEmpty()) return;
+    const center = box.getCenter(new THREE.Vector3());
+    const size = Math.max(box.getSize(new THREE.Vector3()).length(), 0.2);
+    this.controls.target.copy(center);
+    this.camera.position.copy(center).add(new THREE.Vector3(0.7, 0.5, 0.9).multiplyScalar(size));
+    this.controls.update();
+  }
+
+  render() {
+    if (!this.renderer || this.pending) return;
+    this.pending = true;
+    requestAnimationFrame(() => {
+      this.pending = false;
+      this.renderer.render(this.scene, this.camera);
+    });
+  }
+
+  dispose() {
+    if (this.renderer) this.renderer.dispose();
+    if (this.controls) this.controls.dispose();
+    this.container.replaceChildren();
+  }
+}

@@ -1,0 +1,331 @@
+"""The dashboard in a real browser: Debian's chromium driven by Playwright, against a real
+server on 127.0.0.1. Each test leaves a screenshot in tests/screenshots/.
+
+`make test` builds the page and installs chromium first.
+"""
+
+from __future__ import annotations
+
+import queue
+import re
+import shutil
+import threading
+from collections.abc import Iterator
+from dataclasses import dataclass
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+import trio
+
+from arena.server import dashboard
+from arena.server.config import ServerConfig
+from arena.server.run import run_server
+from tests.golden import GOLDEN
+
+playwright_api = pytest.importorskip("playwright.sync_api")
+from playwright.sync_api import Browser, Page, expect  # noqa: E402
+
+CHROMIUM = Path("/usr/bin/chromium")
+SCREENSHOTS = Path(__file__).resolve().parent / "screenshots"
+# Flags for a headless, offline, root-run chromium; software WebGL for the 3D view.
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+]
+WAIT_MS = 15_000
+
+pytestmark = [
+    pytest.mark.skipif(not CHROMIUM.exists(), reason="needs Debian's chromium: run `make test`"),
+    pytest.mark.skipif(not dashboard.is_built(), reason="the page is not built: run `make test`"),
+]
+
+
+@dataclass
+class LiveServer:
+    """A real Arena server running in a thread of its own (the browser API here is blocking)."""
+
+    url: str
+    _stop: Any
+
+    def http(self, key: str | None = None) -> httpx.Client:
+        headers = {"Authorization": f"Bearer {key}"} if key else {}
+        return httpx.Client(base_url=self.url, timeout=10, headers=headers)
+
+    def stop(self) -> None:
+        self._stop()
+
+
+@pytest.fixture
+def start_live(tmp_path: Path) -> Iterator[Any]:
+    """Start servers in threads; every one stops when the test ends."""
+    stops = []
+
+    def start(**settings: Any) -> LiveServer:
+        settings.setdefault("recordings_dir", str(tmp_path / "recordings"))
+        config = ServerConfig(port=0, shutdown_grace=0.2, **settings)
+        ready: queue.Queue[Any] = queue.Queue()
+
+        async def main() -> None:
+            stop = trio.Event()
+            async with trio.open_nursery() as nursery:
+                try:
+                    _, urls = await nursery.start(partial(run_server, config, stop=stop))
+                except BaseException as error:
+                    ready.put(error)
+                    raise
+                ready.put((urls[0], trio.lowlevel.current_trio_token(), stop))
+
+        thread = threading.Thread(target=trio.run, args=(main,), daemon=True)
+        thread.start()
+        answer = ready.get(timeout=30)
+        if isinstance(answer, BaseException):
+            raise answer
+        url, token, stop = answer
+
+        def stop_server() -> None:
+            trio.from_thread.run_sync(stop.set, trio_token=token)
+            thread.join(timeout=15)
+
+        stops.append(stop_server)
+        return LiveServer(url, stop_server)
+
+    yield start
+    for stop in stops:
+        stop()
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Browser]:
+    with playwright_api.sync_playwright() as driver:
+        launched = driver.chromium.launch(
+            executable_path=str(CHROMIUM), headless=True, args=CHROMIUM_ARGS
+        )
+        yield launched
+        launched.close()
+
+
+@pytest.fixture
+def page(browser: Browser, request: pytest.FixtureRequest) -> Iterator[Page]:
+    """A fresh browser context; page errors fail the test; a screenshot is taken at the end."""
+    context = browser.new_context(viewport={"width": 1280, "height": 900}, accept_downloads=True)
+    opened = context.new_page()
+    errors: list[str] = []
+    opened.on("pageerror", lambda error: errors.append(str(error)))
+    yield opened
+    SCREENSHOTS.mkdir(exist_ok=True)
+    opened.screenshot(path=str(SCREENSHOTS / f"{request.node.name}.png"), full_page=True)
+    context.close()
+    assert errors == [], f"the page threw: {errors}"
+
+
+def slider(page: Page, joint: str) -> Any:
+    return page.locator(f'input[type=range][data-joint="{joint}"]')
+
+
+def click_slider_at(page: Page, joint: str, fraction: float) -> float:
+    """Click the slider's track like a hand would; returns the value the slider took."""
+    handle = slider(page, joint)
+    box = handle.bounding_box()
+    assert box is not None
+    page.mouse.click(box["x"] + box["width"] * fraction, box["y"] + box["height"] / 2)
+    return float(handle.input_value())
+
+
+def real_value(server: LiveServer, robot: str, joint: str) -> float:
+    with server.http() as http:
+        joints = http.get(f"/api/robots/{robot}/joints").json()
+    return float(next(j["real_value"] for j in joints if j["name"] == joint))
+
+
+def test_create_a_robot_attach_a_mock_slave_and_drive_it_with_a_slider(
+    start_live: Any, page: Page
+) -> None:
+    server = start_live()
+    page.goto(server.url + "/ui/")
+    page.fill("#create-name", "Bench arm")
+    page.fill("#create-id", "bench-arm")
+    page.click("#create-robot button[type=submit]")
+    expect(page).to_have_url(re.compile(r"#/robots/bench-arm$"))
+    expect(page.locator("#robot-title")).to_have_text("Bench arm (bench-arm)")
+    expect(page.locator("#robot-state")).to_have_text("idle")
+    expect(page.locator('#robot-list li[data-robot="bench-arm"]')).to_be_visible()
+    expect(page.locator("#peers")).to_have_text("nothing attached")
+
+    page.click("#add-mock")
+    expect(page.locator("#peers li").first).to_contain_text("mock-slave")
+    expect(page.locator("#peers li .tag").first).to_have_text("connected")
+    expect(page.locator('td[data-real="Rotation"]')).to_have_text("0.0")
+
+    wanted = click_slider_at(page, "Rotation", 0.8)
+    assert wanted > 20  # the right part of the track is well away from zero
+    # The mock slave's measured value follows the slider, on the page and on the server.
+    expect(page.locator('td[data-virtual="Rotation"]')).to_have_text(f"{wanted:.1f}")
+    expect(page.locator('td[data-real="Rotation"]')).to_have_text(f"{wanted:.1f}", timeout=WAIT_MS)
+    assert real_value(server, "bench-arm", "Rotation") == pytest.approx(wanted, abs=0.05)
+    # The 3D view is drawn (software WebGL) and its ghost (the real pose) caught up too.
+    expect(page.locator("#twin canvas")).to_have_count(1)
+    twin = page.locator("#twin")
+    expect(twin).to_have_attribute("data-ghost-tip", twin.get_attribute("data-tip") or "")
+
+
+def test_estop_locks_the_sliders_and_reset_frees_them(start_live: Any, page: Page) -> None:
+    server = start_live(demo=True)
+    with server.http() as http:
+        assert http.post("/api/robots", json={"robot_type": "so-arm100", "name": "Second"})
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    expect(page.locator("#robot-state")).to_have_text("idle")
+    expect(slider(page, "Elbow")).to_be_enabled()
+    expect(page.locator("#estop")).to_be_enabled()
+
+    page.click("#estop")
+    expect(page.locator("#robot-state")).to_have_text("E-STOPPED")
+    for joint in ("Rotation", "Pitch", "Elbow", "Wrist_Pitch", "Wrist_Roll", "Jaw"):
+        expect(slider(page, joint)).to_be_disabled()
+    expect(page.locator("#master-line")).to_contain_text("e-stop from the dashboard")
+    expect(page.locator("#events")).to_contain_text("now estopped")
+    expect(page.locator("#reset")).to_be_enabled()
+    with server.http() as http:
+        status = http.get("/api/robots/demo-arm/status").json()
+        assert status["state"] == "estopped"
+        # A command now is refused by the server too, not just hidden by the page.
+        refused = http.put(
+            "/api/robots/demo-arm/joints", json={"joints": [{"name": "Elbow", "value": -5}]}
+        )
+        assert refused.json()["error"]["code"] == "ESTOPPED"
+
+    page.click("#reset")
+    expect(page.locator("#robot-state")).to_have_text("idle")
+    expect(slider(page, "Elbow")).to_be_enabled()
+    wanted = click_slider_at(page, "Elbow", 0.3)
+    expect(page.locator('td[data-real="Elbow"]')).to_have_text(f"{wanted:.1f}", timeout=WAIT_MS)
+
+    # Stop everything: every robot, the one on screen and the other.
+    page.click("#stop-all")
+    expect(page.locator("#robot-state")).to_have_text("E-STOPPED")
+    with server.http() as http:
+        states = {r["id"]: r["state"] for r in http.get("/api/robots").json()}
+    assert set(states.values()) == {"estopped"} and len(states) == 2
+    expect(page.locator("#robot-list .state.estopped")).to_have_count(2)
+
+
+def test_a_sequence_takes_the_robot_and_moves_the_3d_twin(start_live: Any, page: Page) -> None:
+    server = start_live(demo=True)
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    twin = page.locator("#twin")
+    expect(twin).to_have_attribute("data-tip", re.compile(r"^-?\d"))
+    rest = twin.get_attribute("data-tip")
+    page.select_option("#sequence", "gentle-wave")
+    page.click("#play")
+    expect(page.locator("#robot-state")).to_have_text("mastered")
+    expect(page.locator("#master-line")).to_contain_text("mock-sequence")
+    expect(slider(page, "Rotation")).to_be_disabled()
+    # The solid (commanded) arm's tip travels more than 2 cm from where it stood.
+    page.wait_for_function(
+        """rest => {
+            const now = document.getElementById("twin").dataset.tip.split(",").map(Number);
+            const was = rest.split(",").map(Number);
+            return Math.hypot(...now.map((v, i) => v - was[i])) > 0.02;
+        }""",
+        arg=rest,
+        timeout=WAIT_MS,
+    )
+    page.screenshot(path=str(SCREENSHOTS / "sequence-playing.png"))
+
+    page.click("#stop-sequence")
+    expect(page.locator("#robot-state")).to_have_text("idle")
+    expect(slider(page, "Rotation")).to_be_enabled()
+    expect(page.locator("#master-line")).to_have_text("No master: the sliders drive the robot.")
+
+
+def test_recordings_list_download_plot_replay_and_start_stop(
+    start_live: Any, page: Page, tmp_path: Path
+) -> None:
+    folder = tmp_path / "recordings"
+    folder.mkdir()
+    shutil.copy(GOLDEN / "gentle-wave.mcap", folder)
+    server = start_live(demo=True, recordings_dir=str(folder))
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    expect(page.locator("#recorder-status")).to_contain_text("Recording")
+    page.click("#record-stop")
+    expect(page.locator("#recorder-status")).to_have_text("Not recording.")
+    golden = page.locator('#recording-list li[data-recording="gentle-wave.mcap"]')
+    expect(golden).to_be_visible()
+
+    with page.expect_download() as download:
+        golden.get_by_role("button", name="Download").click()
+    saved = tmp_path / "downloaded.mcap"
+    download.value.save_as(saved)
+    assert saved.read_bytes() == (folder / "gentle-wave.mcap").read_bytes()
+
+    golden.get_by_role("button", name="Plot").click()
+    plot = page.locator("#plot")
+    expect(plot).to_be_visible()
+    expect(plot).to_have_attribute("data-recording", "gentle-wave.mcap")
+    assert int(plot.get_attribute("data-points") or 0) > 20
+    expect(page.locator("#plot-legend")).to_contain_text("Rotation")
+
+    golden.get_by_role("button", name="Replay").click()
+    expect(page.locator("#robot-state")).to_have_text("mastered")
+    expect(page.locator("#master-line")).to_contain_text("replay")
+
+    page.click("#record-start")
+    expect(page.locator("#recorder-status")).to_contain_text("Recording")
+    with server.http() as http:
+        assert http.get("/api/recordings").json()["recorder"]["active"] is True
+
+
+def test_with_keys_the_page_asks_for_one_and_a_viewer_key_cannot_stop(
+    start_live: Any, page: Page
+) -> None:
+    server = start_live(demo=True, api_keys=("operator-key",), viewer_keys=("viewer-key",))
+    page.goto(server.url + "/ui/")
+    expect(page.locator("#key-dialog")).to_be_visible()
+    expect(page.locator("#server-status")).to_contain_text("UNAUTHORIZED")
+    page.fill("#key-input", "viewer-key")
+    page.click("#key-save")
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    expect(page.locator("#robot-state")).to_have_text("idle")
+    expect(page.locator("#watch-status")).to_have_text("live")
+    page.click("#estop")
+    expect(page.locator("#events")).to_contain_text("FORBIDDEN")
+    expect(page.locator("#robot-state")).to_have_text("idle")
+
+    page.click("#key-button")
+    page.fill("#key-input", "operator-key")
+    page.click("#key-save")
+    expect(page.locator("#robot-state")).to_have_text("idle")
+    page.click("#estop")
+    expect(page.locator("#robot-state")).to_have_text("E-STOPPED")
+    with server.http("operator-key") as http:
+        assert http.get("/api/robots/demo-arm/status").json()["state"] == "estopped"
+
+
+def test_on_a_phone_the_stop_buttons_stay_in_view(start_live: Any, browser: Browser) -> None:
+    server = start_live(demo=True)
+    context = browser.new_context(viewport={"width": 390, "height": 844}, is_mobile=True)
+    phone = context.new_page()
+    try:
+        phone.goto(server.url + "/ui/#/robots/demo-arm")
+        expect(phone.locator("#robot-state")).to_have_text("idle")
+        width = phone.evaluate("document.documentElement.scrollWidth")
+        assert width <= 390  # one column, nothing wider than the screen
+        phone.locator("#recordings-panel").scroll_into_view_if_needed()
+        assert phone.evaluate("window.scrollY") > 300
+        for button in ("#estop", "#stop-all"):
+            box = phone.locator(button).bounding_box()
+            assert box is not None and box["y"] >= 0 and box["y"] + box["height"] <= 844
+        phone.click("#estop")
+        expect(phone.locator("#robot-state")).to_have_text("E-STOPPED")
+        SCREENSHOTS.mkdir(exist_ok=True)
+        phone.screenshot(path=str(SCREENSHOTS / "phone.png"))
+    finally:
+        context.close()
