@@ -176,6 +176,19 @@ def test_create_a_robot_attach_a_mock_slave_and_drive_it_with_a_slider(
     twin = page.locator("#twin")
     expect(twin).to_have_attribute("data-ghost-tip", twin.get_attribute("data-tip") or "")
 
+    # Detach the slave, then delete the robot (the second click confirms).
+    page.locator("#peers li").first.get_by_role("button", name="Detach").click()
+    expect(page.locator("#peers")).to_have_text("nothing attached")
+    page.click("#delete-robot")
+    expect(page.locator("#delete-robot")).to_have_text("Really delete?")
+    with server.http() as http:
+        assert http.get("/api/robots/bench-arm").status_code == 200  # one click deletes nothing
+    page.click("#delete-robot")
+    expect(page.locator("#robot-panel")).to_be_hidden()
+    expect(page.locator("#robot-list")).to_have_text("no robots yet")
+    with server.http() as http:
+        assert http.get("/api/robots/bench-arm").json()["error"]["code"] == "UNKNOWN_ROBOT"
+
 
 def test_estop_locks_the_sliders_and_reset_frees_them(start_live: Any, page: Page) -> None:
     server = start_live(demo=True)
