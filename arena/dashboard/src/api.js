@@ -55,6 +55,19 @@ export async function call(method, path, body) {
   return data;
 }
 
+/**
+ * Call the REST API for something a person clicked: the answer, or null once the error went to
+ * `report(text, true)` (pages show errors, they do not throw them).
+ */
+export async function callReporting(report, method, path, body) {
+  try {
+    return await call(method, path, body);
+  } catch (error) {
+    report(`${error.code}: ${error.message}`, true);
+    return null;
+  }
+}
+
 /** Fetch a file (a URDF, a mesh) with the API key, as a Response that is known to be ok. */
 async function fetchFile(path) {
   const key = apiKey();

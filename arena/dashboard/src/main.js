@@ -1,7 +1,7 @@
 // The dashboard's entry: the robot list, the selected robot (in the URL's #hash), the header's
 // stop buttons, the API key, and the periodic refresh of what the sockets do not push.
 
-import { ApiError, apiKey, call, setApiKey } from "./api.js";
+import { ApiError, apiKey, call, callReporting, setApiKey } from "./api.js";
 import { RecordingsPanel } from "./recordings.js";
 import { RobotView } from "./robot_view.js";
 
@@ -80,14 +80,9 @@ function showRobotList() {
 }
 
 async function act(method, path, body) {
-  try {
-    const answer = await call(method, path, body);
-    await refresh();
-    return answer;
-  } catch (error) {
-    report(`${error.code}: ${error.message}`, true);
-    return null;
-  }
+  const answer = await callReporting(report, method, path, body);
+  if (answer !== null) await refresh();
+  return answer;
 }
 
 function wireHeader() {

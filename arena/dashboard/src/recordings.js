@@ -1,7 +1,7 @@
 // The recordings panel: the recorder's state, start and stop, the files with download,
 // replay onto the selected robot, and a small plot of a recording's joints.
 
-import { call, download } from "./api.js";
+import { call, callReporting, download } from "./api.js";
 
 const $ = (id) => document.getElementById(id);
 const COLORS = ["#e8a33d", "#3d8be8", "#46c37b", "#e5484d", "#b07be8", "#3dd6e8", "#e87bd0"];
@@ -23,14 +23,9 @@ export class RecordingsPanel {
   }
 
   async act(method, path, body) {
-    try {
-      const answer = await call(method, path, body);
-      await this.refresh();
-      return answer;
-    } catch (error) {
-      this.report(`${error.code}: ${error.message}`, true);
-      return null;
-    }
+    const answer = await callReporting(this.report, method, path, body);
+    if (answer !== null) await this.refresh();
+    return answer;
   }
 
   async refresh() {

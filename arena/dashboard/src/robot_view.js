@@ -1,7 +1,7 @@
 // One robot's panel: state, sliders, live virtual and real values, the 3D twin, sequences,
 // master and slaves, recent events. Everything goes through the public API.
 
-import { call, watchRobot } from "./api.js";
+import { call, callReporting, watchRobot } from "./api.js";
 import { Twin } from "./twin.js";
 
 const $ = (id) => document.getElementById(id);
@@ -211,14 +211,9 @@ export class RobotView {
 
   /** Call the API for a button; errors go to the events list. */
   async act(method, path, body) {
-    try {
-      const answer = await call(method, path, body);
-      this.onChanged();
-      return answer;
-    } catch (error) {
-      this.log(`${error.code}: ${error.message}`, true);
-      return null;
-    }
+    const answer = await callReporting((text, isError) => this.log(text, isError), method, path, body);
+    if (answer !== null) this.onChanged();
+    return answer;
   }
 
   log(text, isError = false) {
