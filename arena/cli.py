@@ -331,7 +331,7 @@ def _serve(args: argparse.Namespace) -> int:
     except ArenaError as error:
         print(f"arena serve: {error.message}", file=sys.stderr)
         return 2
-    trio.run(partial(run_server, config, handle_signals=True))
+    trio.run(partial(run_server, config, handle_signals=True, freeze_startup_objects=True))
     return 0
 
 
