@@ -13,6 +13,7 @@ import pytest
 
 from arena.recording.analysis import joint_series, thin
 from arena.recording.mcap_file import read_recording
+from arena.robot.model import BUILTIN_TYPES_DIR, TYPES_PATH_ENV
 from arena.server import dashboard
 from tests.conftest import RunningServer
 from tests.golden import GOLDEN
@@ -31,14 +32,23 @@ async def test_robot_types_give_joints_urdf_and_every_mesh(server: RunningServer
             "Rotation", "Pitch", "Elbow", "Wrist_Pitch", "Wrist_Roll", "Jaw",
         ]  # fmt: skip
         robot = (await http.get("/api/robots/demo-arm")).json()
-        for spec, state in zip(arm["joints"], robot["joints"], strict=True):
-            # The same limits as the robot's joint states, and neutral is their URDF middle.
-            assert spec["lower"] == pytest.approx(state["limits"]["lower"], abs=1e-6)
-            assert spec["upper"] == pytest.approx(state["limits"]["upper"], abs=1e-6)
-            assert spec["neutral_degrees"] == pytest.approx(math.degrees(spec["neutral"]))
         assert urdf.status_code == 200
         assert urdf.headers["content-type"].startswith("application/xml")
-        meshes = [m.get("filename") for m in ET.fromstring(urdf.text).iter("mesh")]
+        document = ET.fromstring(urdf.text)
+        urdf_limits = {
+            str(joint.get("name")): joint.find("limit") for joint in document.iter("joint")
+        }
+        for spec, state in zip(arm["joints"], robot["joints"], strict=True):
+            # The same limits as the robot's joint states; neutral (no robot.toml override
+            # here) is the middle of the URDF range, and the wire limits are measured from it.
+            assert spec["lower"] == pytest.approx(state["limits"]["lower"], abs=1e-6)
+            assert spec["upper"] == pytest.approx(state["limits"]["upper"], abs=1e-6)
+            limit = urdf_limits[spec["name"]]
+            assert limit is not None
+            lower, upper = float(limit.get("lower", 0)), float(limit.get("upper", 0))
+            assert spec["neutral"] == pytest.approx((lower + upper) / 2)
+            assert spec["lower"] == pytest.approx(math.degrees(lower - spec["neutral"]))
+        meshes = [m.get("filename") for m in document.iter("mesh")]
         assert len(meshes) == 13
         for name in meshes:
             mesh = await http.get(arm["files"] + str(name))
@@ -48,25 +58,40 @@ async def test_robot_types_give_joints_urdf_and_every_mesh(server: RunningServer
             assert len(mesh.content) == 84 + 50 * triangles > 84
 
 
+@pytest.fixture
+def outside_mesh(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    """Robot type `tmp-arm` (a copy of so-arm100) in a folder that also holds `outside.stl`."""
+    types = tmp_path / "types"
+    shutil.copytree(BUILTIN_TYPES_DIR / "so-arm100", types / "tmp-arm")
+    (types / "outside.stl").write_bytes(b"not the type's own")
+    monkeypatch.setenv(TYPES_PATH_ENV, str(types))
+    return types / "outside.stl"
+
+
 @pytest.mark.parametrize(
     ("path", "status", "code"),
     [
         ("/api/robot-types/no-such-arm", 422, "UNKNOWN_ROBOT_TYPE"),
         ("/api/robot-types/no-such-arm/urdf", 422, "UNKNOWN_ROBOT_TYPE"),
-        ("/api/robot-types/so-arm100/files/robot.toml", 404, "NOT_FOUND"),
-        ("/api/robot-types/so-arm100/files/meshes/LICENSE", 404, "NOT_FOUND"),
-        ("/api/robot-types/so-arm100/files/meshes/Nothing.stl", 404, "NOT_FOUND"),
-        ("/api/robot-types/so-arm100/files/..%2F..%2Fserver%2Fapp.stl", 404, "NOT_FOUND"),
-        ("/api/robot-types/so-arm100/files/%2Fetc%2Fpasswd.stl", 404, "NOT_FOUND"),
+        ("/api/robot-types/tmp-arm/files/robot.toml", 404, "NOT_FOUND"),
+        ("/api/robot-types/tmp-arm/files/meshes/LICENSE", 404, "NOT_FOUND"),
+        ("/api/robot-types/tmp-arm/files/meshes/Nothing.stl", 404, "NOT_FOUND"),
+        # outside.stl exists, one folder up: only the folder check keeps it in
+        ("/api/robot-types/tmp-arm/files/..%2Foutside.stl", 404, "NOT_FOUND"),
+        ("/api/robot-types/tmp-arm/files/meshes%2F..%2F..%2Foutside.stl", 404, "NOT_FOUND"),
+        ("/api/robot-types/tmp-arm/files/%2Fetc%2Fpasswd.stl", 404, "NOT_FOUND"),
     ],
 )
 async def test_robot_type_files_are_meshes_of_the_type_and_nothing_else(
-    server: RunningServer, path: str, status: int, code: str
+    server: RunningServer, outside_mesh: Path, path: str, status: int, code: str
 ) -> None:
     async with server.client() as http:
+        own = await http.get("/api/robot-types/tmp-arm/files/meshes/Base.stl")
         answer = await http.get(path, follow_redirects=True)  # "//" is first merged by a 308
+    assert own.status_code == 200  # the type is found, so refusals below are the folder check
     assert answer.status_code == status
     assert answer.json()["error"]["code"] == code
+    assert outside_mesh.read_bytes() not in answer.content
 
 
 async def test_a_recordings_joints_come_thinned_for_a_plot(
@@ -86,7 +111,13 @@ async def test_a_recordings_joints_come_thinned_for_a_plot(
         ).json()
         bad = [
             await http.get("/api/recordings/manual-estop-reset.mcap/joints", params=params)
-            for params in ({"points": "1"}, {"points": "x"}, {"points": "5001"})
+            for params in (
+                {"points": "1"},
+                {"points": "x"},
+                {"points": "5001"},
+                {"points": "²"},  # a digit to str.isdigit(), not to int()
+                {"points": "9" * 5000},  # beyond int()'s digit limit
+            )
         ]
         stranger = await http.get(
             "/api/recordings/manual-estop-reset.mcap/joints", params={"robot": "stranger"}
@@ -125,6 +156,7 @@ async def test_the_page_is_public_but_the_api_keeps_its_keys(
 ) -> None:
     built = tmp_path / "dist"
     built.mkdir()
+    (tmp_path / "secret.txt").write_text("beside the page, not part of it")
     (built / "index.html").write_text("<!doctype html><title>Arena</title>")
     (built / "app.js").write_text("export {};")
     monkeypatch.setattr(dashboard, "BUILD_DIR", built)
@@ -133,7 +165,7 @@ async def test_the_page_is_public_but_the_api_keeps_its_keys(
         root = await http.get("/ui", follow_redirects=False)
         page = await http.get("/ui/")
         script = await http.get("/ui/app.js")
-        escape = await http.get("/ui/..%2F..%2Fpyproject.toml")
+        escape = await http.get("/ui/..%2Fsecret.txt")
         absent = await http.get("/ui/nothing.js")
         types = await http.get("/api/robot-types")
         types_with_key = await http.get(

@@ -81,20 +81,27 @@ async def recording_summary(name: str) -> dict[str, Any]:
 MAX_PLOT_POINTS = 5000
 
 
+def _plot_points(raw: str) -> int:
+    """The `points` query parameter, checked before any file is read."""
+    # ASCII digits only, and short: str.isdigit() accepts "²" and int() refuses huge strings.
+    if not (raw.isascii() and raw.isdigit() and len(raw) <= 6) or not (
+        2 <= int(raw) <= MAX_PLOT_POINTS
+    ):
+        raise ArenaError(
+            ErrorCode.INVALID_VALUE, f"points must be a whole number from 2 to {MAX_PLOT_POINTS}."
+        )
+    return int(raw)
+
+
 @blueprint.get("/api/recordings/<name>/joints")
 async def recording_joints(name: str) -> dict[str, Any]:
     """One robot's joints over the recording, thinned for a plot (`?robot=`, `?points=`)."""
+    most = _plot_points(request.args.get("points", "300"))
     path = _existing(name)
     recording = await trio.to_thread.run_sync(read_recording, path)
     robots = sorted({m.robot_id for m in recording.messages if m.robot_id})
     robot_id = request.args.get("robot") or (robots[0] if robots else "")
-    raw_points = request.args.get("points", "300")
-    if not raw_points.isdigit() or not 2 <= int(raw_points) <= MAX_PLOT_POINTS:
-        raise ArenaError(
-            ErrorCode.INVALID_VALUE, f"points must be a whole number from 2 to {MAX_PLOT_POINTS}."
-        )
     series = joint_series(recording, robot_id)
-    most = int(raw_points)
     return {
         "recording": path.name,
         "robot": robot_id,

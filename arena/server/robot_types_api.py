@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
+import trio
 from quart import Blueprint, Response
 
 from arena.protocol.errors import ArenaError, ErrorCode
@@ -35,7 +35,6 @@ def describe_type(model: RobotModel) -> dict[str, Any]:
                 "velocity": round(joint.max_velocity, 6),
                 # wire degrees d stand for URDF radians neutral + d * pi / 180
                 "neutral": round(joint.neutral, 9),
-                "neutral_degrees": round(math.degrees(joint.neutral), 6),
             }
             for joint in model.joints
         ],
@@ -58,7 +57,8 @@ async def get_type(robot_type: str) -> dict[str, Any]:
 async def get_urdf(robot_type: str) -> Response:
     """The type's URDF; mesh file names in it are relative to `/api/robot-types/{type}/files/`."""
     model = load_robot_model(robot_type)
-    return Response(model.urdf_path.read_bytes(), content_type="application/xml")
+    urdf = await trio.Path(model.urdf_path).read_bytes()
+    return Response(urdf, content_type="application/xml")
 
 
 @blueprint.get("/api/robot-types/<robot_type>/files/<path:name>")

@@ -102,7 +102,9 @@ export class RecordingsPanel {
       }
       // The selected robot is not in this file: plot the first robot that is.
       query.delete("robot");
-      series = await call("GET", `/api/recordings/${encodeURIComponent(name)}/joints?${query}`);
+      const path = `/api/recordings/${encodeURIComponent(name)}/joints?${query}`;
+      series = await callReporting(this.report, "GET", path);
+      if (!series) return;
     }
     const canvas = $("plot");
     canvas.hidden = false;

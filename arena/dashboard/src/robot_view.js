@@ -147,7 +147,7 @@ export class RobotView {
     const badge = $("robot-state");
     badge.className = `state ${state.mode}`;
     badge.textContent = state.mode === "estopped" ? "E-STOPPED" : state.mode;
-    $("robot-state").title = state.estop_reason || "";
+    badge.title = state.estop_reason || "";
     if (previous && previous.mode !== state.mode) {
       const why = state.mode === "estopped" ? `: ${state.estop_reason}` : "";
       this.log(`now ${state.mode}${why}`, state.mode === "estopped");
