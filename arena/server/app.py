@@ -34,7 +34,6 @@ from arena.server.groups_api import blueprint as groups_blueprint
 from arena.server.metrics import Metrics
 from arena.server.recordings_api import blueprint as recordings_blueprint
 from arena.server.robot_types_api import blueprint as robot_types_blueprint
-from arena.server.websockets import blueprint as websocket_blueprint
 
 #: HTTP status for each error code (anything missing is 400).
 STATUS_FOR: dict[ErrorCode, int] = {
@@ -131,7 +130,6 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.shutting_down = trio.Event()
     app.started_at = time.time()
     app.config["MAX_CONTENT_LENGTH"] = MAX_MESSAGE_BYTES
-    app.register_blueprint(websocket_blueprint)
     app.register_blueprint(recordings_blueprint)
     app.register_blueprint(calibration_blueprint)
     app.register_blueprint(groups_blueprint)

@@ -1,4 +1,4 @@
-"""Run the server: the robot manager and hypercorn's trio worker in one nursery."""
+"""Run the server: the robot manager and the listener (hypercorn behind it) in one nursery."""
 
 from __future__ import annotations
 
@@ -12,17 +12,21 @@ from typing import Any
 
 import trio
 from hypercorn.config import Config as HypercornConfig
-from hypercorn.trio import serve
 
 from arena.drivers.mock_slave import MockSlave, MockSlaveConfig
 from arena.recording.recorder import Recorder
 from arena.robot.manager import open_manager
 from arena.server.app import ArenaApp, create_app
 from arena.server.config import ServerConfig
+from arena.server.listener import ArenaListener
+from arena.server.websockets import router
 
 log = logging.getLogger(__name__)
 
 DEMO_ROBOT_ID = "demo-arm"
+#: Hard cap on a WebSocket message. Messages up to it are read and answered MESSAGE_TOO_LARGE
+#: when over the 64 KiB protocol limit; one over it closes the connection with 1009.
+MAX_WEBSOCKET_MESSAGE = 16 * 1024 * 1024
 
 
 def hypercorn_config(config: ServerConfig) -> HypercornConfig:
@@ -31,10 +35,6 @@ def hypercorn_config(config: ServerConfig) -> HypercornConfig:
     host = f"[{config.host}]" if ":" in config.host else config.host
     hc.bind = [f"{host}:{config.port}"]
     hc.graceful_timeout = config.shutdown_grace
-    # Hard cap. Frames up to it are read and answered MESSAGE_TOO_LARGE (over 64 KiB); a frame
-    # over it makes hypercorn close with 1009 without telling the app, which then learns it only
-    # from the peer's missing heartbeats: so the cap is set well above the message limit.
-    hc.websocket_max_message_size = 16 * 1024 * 1024
     hc.accesslog = None
     hc.errorlog = logging.getLogger("hypercorn.error")
     if config.certfile and config.keyfile:
@@ -88,18 +88,13 @@ async def _serve(
         log.info("shutting down")
         app.shutting_down.set()
 
-    hc = hypercorn_config(config)
+    listener = ArenaListener(app, hypercorn_config(config), router(app), MAX_WEBSOCKET_MESSAGE)
     async with trio.open_nursery() as nursery:
         if handle_signals:
             nursery.start_soon(_stop_on_signals, stop)
 
         async def serve_then_stop(task_status: Any = trio.TASK_STATUS_IGNORED) -> None:
-            await serve(
-                app,
-                hc,
-                shutdown_trigger=shutdown_trigger,
-                task_status=task_status,
-            )
+            await listener.serve(shutdown_trigger, task_status=task_status)
             nursery.cancel_scope.cancel()
 
         urls: list[str] = await nursery.start(serve_then_stop)
@@ -107,8 +102,8 @@ async def _serve(
             log.info("Arena listening on %s", url)
         task_status.started((app, urls))
         await stop.wait()
-        # Our WebSockets close themselves with 1001 at once; whatever hypercorn still
-        # holds after its grace period is cancelled.
+        # The WebSockets close themselves with 1001 at once; whatever HTTP requests are
+        # still open after the grace period are cancelled.
         await trio.sleep(config.shutdown_grace + 1.0)
         nursery.cancel_scope.cancel()
 

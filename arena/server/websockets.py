@@ -1,9 +1,9 @@
 """The WebSocket endpoints: masters, slaves and read-only state viewers.
 
-Each connection runs its tasks in one nursery and ends in one of three ways: the client goes
-away (quart-trio cancels the handler; for a master or slave that is a loss, and the robot's
-loss policy applies), the robot ends the link (detached, deleted), or the server shuts down
-(the socket is closed with 1001 at once rather than left for hypercorn's grace period).
+They run on Arena's own WebSocket transport (`listener`, `ws_transport`), not Quart's. Each
+connection runs its tasks in one nursery and ends in one of three ways: the client goes away
+(for a master or slave that is a loss, and the robot's loss policy applies), the robot ends the
+link (detached, deleted), or the server shuts down (closed with 1001 at once).
 """
 
 from __future__ import annotations
@@ -19,8 +19,6 @@ from typing import TYPE_CHECKING, Any, TypeVar
 
 import msgspec
 import trio
-from hypercorn.utils import UnexpectedMessageError
-from quart import Blueprint, websocket
 
 from arena.drivers.sequence_master import SequenceMaster
 from arena.protocol import messages as wire
@@ -36,13 +34,14 @@ from arena.robot.events import (
 from arena.robot.mailbox import EventQueue
 from arena.server import convert
 from arena.server.auth import check_token
+from arena.server.listener import WebSocketHandler
+from arena.server.ws_transport import UpgradeRequest, WebSocket, WebSocketClosed
 
 if TYPE_CHECKING:
     from arena.server.app import ArenaApp
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)
-blueprint = Blueprint("websockets", __name__)
 _ids = itertools.count(1)
 
 #: Close codes: 1000 normal, 1001 going away, 4000 + an HTTP-like status for refusals.
@@ -58,18 +57,33 @@ _CLOSE_FOR = {
 }
 
 
-def _app() -> ArenaApp:
-    from quart import current_app
+def router(app: ArenaApp) -> Callable[[UpgradeRequest], WebSocketHandler | None]:
+    """The WebSocket endpoints by path (None for any other path)."""
 
-    return current_app  # type: ignore[return-value]
+    def route(request: UpgradeRequest) -> WebSocketHandler | None:
+        parts = request.path.split("/")
+        if len(parts) == 4 and parts[1] == "ws" and parts[3]:
+            handler = {"master": master_socket, "slave": slave_socket}.get(parts[2])
+        elif len(parts) == 5 and parts[1:3] == ["ws", "robots"] and parts[4] == "state":
+            handler = state_socket
+        else:
+            handler = None
+        if handler is None:
+            return None
+        robot_id = parts[3]
+        return lambda ws: handler(Connection(app, ws, handler.__name__), robot_id)
+
+    return route
 
 
 class Connection:
     """One accepted WebSocket: send helpers, refusals, and the shutdown race."""
 
-    def __init__(self, role: str) -> None:
-        self.role = role
-        self.app = _app()
+    def __init__(self, app: ArenaApp, ws: WebSocket, endpoint: str) -> None:
+        self.app = app
+        self.ws = ws
+        self.role = {"master_socket": "master", "slave_socket": "slave"}.get(endpoint, "viewer")
+        self.args = ws.request.args
         self.closed = False
         self._ended = trio.Event()
 
@@ -84,23 +98,17 @@ class Connection:
         await self._transmit(wire.error_message(code, message))
 
     async def _transmit(self, text: str) -> None:
-        try:
-            await websocket.send(text)
-        except UnexpectedMessageError:
-            # hypercorn closed the socket without telling the app (it does so, with 1009, for
-            # a frame over its size cap): the first send after that is how we learn it.
-            self.closed = True
+        await self.ws.send(text)
+        if self.ws.close_sent:  # the transport closed (protocol error, or the peer is gone)
             self._ended.set()
-            await trio.lowlevel.checkpoint()
 
     async def close(self, code: int, reason: str = "") -> None:
         """Close once."""
         if not self.closed:
             self.closed = True
-            try:
-                await websocket.close(code, reason[:120])
-            finally:
-                self._ended.set()
+            self.ws.close_nowait(code, reason)
+            self._ended.set()
+        await trio.lowlevel.checkpoint()
 
     async def refuse(self, error: ArenaError) -> None:
         """Tell the client why in an `error` message, then close with a 4xxx code."""
@@ -129,24 +137,30 @@ class Connection:
             nursery.start_soon(main)
 
 
-async def _accept(
-    role: str, robot_id: str | None
-) -> tuple[Connection, Robot | None] | tuple[None, None]:
-    """Accept, check the key and find the robot (if any); on failure refuse, return Nones."""
-    await websocket.accept()
-    connection = Connection(role)
+async def _authorized(connection: Connection) -> bool:
+    """Check the key; a refusal is sent and the answer is False."""
     try:
         check_token(
             connection.app,
-            websocket.headers.get("Authorization"),
-            websocket.args.get("token"),
-            mutating=role != "viewer",
+            connection.ws.request.headers.get("authorization"),
+            connection.args.get("token"),
+            mutating=connection.role != "viewer",
         )
-        robot = None if robot_id is None else connection.app.manager.get(robot_id)
     except ArenaError as error:
         await connection.refuse(error)
-        return None, None
-    return connection, robot
+        return False
+    return True
+
+
+async def _accept(connection: Connection, robot_id: str) -> Robot | None:
+    """Check the key and find the robot; a refusal is sent and the answer is None."""
+    if not await _authorized(connection):
+        return None
+    try:
+        return connection.app.manager.get(robot_id)
+    except ArenaError as error:
+        await connection.refuse(error)
+        return None
 
 
 def _flag(value: str | None) -> bool:
@@ -156,7 +170,10 @@ def _flag(value: str | None) -> bool:
 async def _receive_text(connection: Connection) -> str | None:
     """The next text frame; binary frames are answered with an error and skipped."""
     while True:
-        frame = await websocket.receive()
+        try:
+            frame = await connection.ws.receive()
+        except WebSocketClosed:
+            return None
         connection.app.metrics.messages[connection.role] += 1
         if isinstance(frame, str):
             return frame
@@ -212,21 +229,20 @@ async def _forward_robot_events(
 # --- masters ----------------------------------------------------------------------------------
 
 
-@blueprint.websocket("/ws/master/<robot_id>")
-async def master_socket(robot_id: str) -> None:
+async def master_socket(connection: Connection, robot_id: str) -> None:
     """A master: commands in, acknowledgments, joint states and state changes out."""
-    if robot_id in _app().groups:
-        await _group_master_socket(robot_id)
+    if robot_id in connection.app.groups:
+        await _group_master_socket(connection, robot_id)
         return
-    connection, robot = await _accept("master", robot_id)
-    if connection is None or robot is None:
+    robot = await _accept(connection, robot_id)
+    if robot is None:
         return
     app = connection.app
     try:
         link = await robot.connect_master(
-            websocket.args.get("id") or f"ws-master-{next(_ids)}",
+            connection.args.get("id") or f"ws-master-{next(_ids)}",
             kind="websocket",
-            takeover=_flag(websocket.args.get("takeover")),
+            takeover=_flag(connection.args.get("takeover")),
             heartbeat_timeout=app.arena_config.heartbeat_timeout,
         )
     except ArenaError as error:
@@ -255,23 +271,22 @@ async def master_socket(robot_id: str) -> None:
         await _release_master(app, link)
 
 
-async def _group_master_socket(group_id: str) -> None:
+async def _group_master_socket(connection: Connection, group_id: str) -> None:
     """A master of a group: it claims every member; each command goes to each member, and
     the ack tells how each answered. Members keep their own safety state."""
-    connection, _ = await _accept("master", None)
-    if connection is None:
+    if not await _authorized(connection):
         return
     app = connection.app
     links: dict[str, MasterLink] = {}
     try:
         group = app.groups.get(group_id)
         robots = [app.manager.get(robot_id) for robot_id in group.members]
-        master_id = websocket.args.get("id") or f"ws-group-master-{next(_ids)}"
+        master_id = connection.args.get("id") or f"ws-group-master-{next(_ids)}"
         for robot in robots:
             links[robot.robot_id] = await robot.connect_master(
                 master_id,
                 kind="websocket-group",
-                takeover=_flag(websocket.args.get("takeover")),
+                takeover=_flag(connection.args.get("takeover")),
                 heartbeat_timeout=app.arena_config.heartbeat_timeout,
             )
     except ArenaError as error:
@@ -420,14 +435,17 @@ async def _handle_master_message(
     nursery: trio.Nursery,
     message: wire.MasterMessage,
 ) -> None:
-    link.alive()
     if isinstance(message, wire.CommandMessage):
         data = message.data
-        result = await link.command(
-            convert.command_from_wire(data.joints, data.duration, data.metadata)
-        )
+        command = convert.command_from_wire(data.joints, data.duration, data.metadata)
+        # The command counts as a heartbeat (the robot notes the time of each).
+        result = link.command_now(command)
+        if result is None:
+            result = await link.command(command)
         await connection.send(convert.ack(result))
-    elif isinstance(message, wire.SequenceMessage):
+        return
+    link.alive()
+    if isinstance(message, wire.SequenceMessage):
         sequence = convert.sequence_from_wire(message.data)
         sequence.check_against(robot.model)
         player.stop()
@@ -448,16 +466,15 @@ async def _handle_master_message(
 # --- slaves -----------------------------------------------------------------------------------
 
 
-@blueprint.websocket("/ws/slave/<robot_id>")
-async def slave_socket(robot_id: str) -> None:
+async def slave_socket(connection: Connection, robot_id: str) -> None:
     """A slave: `execute_command` and notices out; joint states, status and errors in."""
-    connection, robot = await _accept("slave", robot_id)
-    if connection is None or robot is None:
+    robot = await _accept(connection, robot_id)
+    if robot is None:
         return
     app = connection.app
     try:
         link = await robot.connect_slave(
-            websocket.args.get("id") or f"ws-slave-{next(_ids)}",
+            connection.args.get("id") or f"ws-slave-{next(_ids)}",
             kind="websocket",
             heartbeat_timeout=app.arena_config.heartbeat_timeout,
         )
@@ -522,11 +539,10 @@ async def _handle_slave_message(
 # --- viewers ----------------------------------------------------------------------------------
 
 
-@blueprint.websocket("/ws/robots/<robot_id>/state")
-async def state_socket(robot_id: str) -> None:
+async def state_socket(connection: Connection, robot_id: str) -> None:
     """Read-only: the robot's state and joint states as they change. Any number may watch."""
-    connection, robot = await _accept("viewer", robot_id)
-    if connection is None or robot is None:
+    robot = await _accept(connection, robot_id)
+    if robot is None:
         return
     app = connection.app
     app.metrics.connections["viewer"] += 1

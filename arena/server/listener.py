@@ -1,0 +1,244 @@
+"""The listening sockets: WebSocket upgrades to Arena's own transport, the rest to hypercorn.
+
+The first bytes of each connection decide. A `GET /ws/...` asking for a WebSocket on a path
+the router knows is answered here (`ws_transport`); anything else (REST, the dashboard, HTTP/2)
+is handed, with the bytes already read, to hypercorn's connection handler, exactly as
+hypercorn's own `serve` would. Hypercorn and Quart cost some 100 us per WebSocket frame
+(wsproto, the ASGI wrapper, a task hop each way, a system call per frame); the robot's hot
+endpoints skip all of it.
+
+This uses hypercorn's per-connection `TCPServer`, `Lifespan` and `WorkerContext`, which are
+not public API: pyproject pins hypercorn below 0.19.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Awaitable, Callable
+from functools import partial
+from typing import Any
+from urllib.parse import parse_qsl, unquote, urlsplit
+
+import msgspec
+import trio
+from hypercorn.config import Config as HypercornConfig
+from hypercorn.trio.lifespan import Lifespan
+from hypercorn.trio.tcp_server import TCPServer
+from hypercorn.trio.worker_context import WorkerContext
+from hypercorn.typing import ConnectionState
+from hypercorn.utils import repr_socket_addr, wrap_app
+
+from arena.protocol.errors import ErrorCode
+from arena.server import ws_frames
+from arena.server.ws_transport import UpgradeRequest, WebSocket
+
+log = logging.getLogger(__name__)
+
+WebSocketHandler = Callable[[WebSocket], Awaitable[None]]
+#: Picks the handler for an upgrade request, or None to let hypercorn answer it.
+Router = Callable[[UpgradeRequest], WebSocketHandler | None]
+
+_WS_PREFIX = b"GET /ws/"
+MAX_HEAD_BYTES = 16 * 1024
+HEAD_TIMEOUT = 10.0
+#: How long a closed WebSocket waits for the peer's close frame and for its last bytes to go.
+CLOSE_TIMEOUT = 2.0
+
+
+class _Replay:
+    """A stream that first gives back bytes already read from it (for hypercorn)."""
+
+    def __init__(self, stream: trio.abc.Stream, head: bytes) -> None:
+        self._stream = stream
+        self._head = head
+
+    async def receive_some(self, max_bytes: int | None = None) -> bytes | bytearray:
+        if self._head:
+            head, self._head = self._head, b""
+            await trio.lowlevel.checkpoint()
+            return head
+        return await self._stream.receive_some(max_bytes)
+
+    def __getattr__(self, name: str) -> Any:  # send_all, aclose, socket, do_handshake...
+        return getattr(self._stream, name)
+
+
+def parse_upgrade(head: bytes) -> UpgradeRequest | None:
+    """The upgrade request in an HTTP/1.1 request head, or None if it is not one."""
+    lines = head.decode("latin-1").split("\r\n")
+    parts = lines[0].split(" ")
+    if len(parts) != 3 or parts[0] != "GET" or not parts[2].startswith("HTTP/1."):
+        return None
+    headers: dict[str, str] = {}
+    for line in lines[1:]:
+        name, colon, value = line.partition(":")
+        if not colon:
+            continue
+        key = name.strip().lower()
+        headers[key] = f"{headers[key]}, {value.strip()}" if key in headers else value.strip()
+    if headers.get("upgrade", "").lower() != "websocket":
+        return None
+    target = urlsplit(parts[1])
+    args: dict[str, str] = {}
+    for key, value in parse_qsl(target.query, keep_blank_values=True):
+        args.setdefault(key, value)
+    return UpgradeRequest(unquote(target.path), args, headers)
+
+
+def _handshake_problem(request: UpgradeRequest) -> str | None:
+    tokens = request.headers.get("connection", "").split(",")
+    if "upgrade" not in {token.strip().lower() for token in tokens}:
+        return "The Connection header must include 'Upgrade'."
+    if request.headers.get("sec-websocket-version") != "13":
+        return "Only WebSocket version 13 is spoken here."
+    if not ws_frames.valid_client_key(request.headers.get("sec-websocket-key", "")):
+        return "Sec-WebSocket-Key must be 16 bytes in base64."
+    return None
+
+
+def _http_error(status: str, message: str) -> bytes:
+    body = msgspec.json.encode(
+        {"error": {"code": str(ErrorCode.INVALID_MESSAGE), "message": message}}
+    )
+    head = (
+        f"HTTP/1.1 {status}\r\nContent-Type: application/json\r\n"
+        f"Content-Length: {len(body)}\r\nConnection: close\r\n\r\n"
+    )
+    return head.encode("latin-1") + body
+
+
+class ArenaListener:
+    """Serves an ASGI app (hypercorn) with Arena's WebSocket routes in front of it."""
+
+    def __init__(self, app: Any, config: HypercornConfig, router: Router, max_message: int) -> None:
+        self.config = config
+        self.router = router
+        self.max_message = max_message
+        self._app = wrap_app(app, config.wsgi_max_body_size, "asgi")
+        self._lifespan_state: dict[str, Any] = {}
+        self._context = WorkerContext(None)
+
+    async def serve(
+        self,
+        shutdown_trigger: Callable[[], Awaitable[None]],
+        *,
+        task_status: trio.TaskStatus[list[str]] = trio.TASK_STATUS_IGNORED,
+    ) -> None:
+        """Bind, serve until `shutdown_trigger` returns, then give connections the grace time."""
+        lifespan = Lifespan(self._app, self.config, self._lifespan_state)
+        async with trio.open_nursery() as lifespan_nursery:
+            await lifespan_nursery.start(lifespan.handle_lifespan)
+            await lifespan.wait_for_startup()
+            ssl_context = self.config.create_ssl_context()
+            scheme = "https" if ssl_context else "http"
+            sockets = self.config.create_sockets()
+            listeners, urls = [], []
+            for sock in [*sockets.secure_sockets, *sockets.insecure_sockets]:
+                sock.listen(self.config.backlog)
+                listeners.append(trio.SocketListener(trio.socket.from_stdlib_socket(sock)))
+                urls.append(f"{scheme}://{repr_socket_addr(sock.family, sock.getsockname())}")
+            async with trio.open_nursery() as connections:
+                async with trio.open_nursery() as accepting:
+                    accepting.start_soon(
+                        partial(
+                            trio.serve_listeners,
+                            partial(self._connection, ssl_context=ssl_context),
+                            listeners,
+                            handler_nursery=connections,
+                        )
+                    )
+                    task_status.started(urls)
+                    await shutdown_trigger()
+                    accepting.cancel_scope.cancel()
+                await self._context.terminated.set()
+                connections.cancel_scope.deadline = (
+                    trio.current_time() + self.config.graceful_timeout
+                )
+            await lifespan.wait_for_shutdown()
+            lifespan_nursery.cancel_scope.cancel()
+
+    async def _connection(self, stream: trio.abc.Stream, ssl_context: Any) -> None:
+        if ssl_context is not None:
+            stream = trio.SSLStream(stream, ssl_context, server_side=True, https_compatible=True)
+            try:
+                with trio.fail_after(self.config.ssl_handshake_timeout):
+                    await stream.do_handshake()
+            except (trio.BrokenResourceError, trio.TooSlowError):
+                await trio.aclose_forcefully(stream)
+                return
+            if stream.selected_alpn_protocol() == "h2":
+                await self._to_hypercorn(stream, b"")
+                return
+        head = b""
+        with trio.move_on_after(HEAD_TIMEOUT) as timer:
+            try:
+                head = await self._read_head(stream)
+            except (trio.BrokenResourceError, trio.ClosedResourceError):
+                head = b""
+        if timer.cancelled_caught or not head:
+            await trio.aclose_forcefully(stream)
+            return
+        end = head.find(b"\r\n\r\n")
+        request = parse_upgrade(head[:end]) if head.startswith(_WS_PREFIX) and end > 0 else None
+        handler = self.router(request) if request is not None else None
+        if request is None or handler is None:
+            await self._to_hypercorn(stream, head)
+            return
+        await self._websocket(stream, request, handler, head[end + 4 :])
+
+    async def _read_head(self, stream: trio.abc.Stream) -> bytes:
+        """Enough bytes to tell a WebSocket upgrade (its whole head) from anything else."""
+        data = b""
+        while True:
+            if not _WS_PREFIX.startswith(data[: len(_WS_PREFIX)]):
+                return data  # not for us: hypercorn reads the rest
+            if len(data) >= len(_WS_PREFIX) and b"\r\n\r\n" in data:
+                return data
+            if len(data) > MAX_HEAD_BYTES:
+                return data  # hypercorn answers an oversized head
+            chunk = await stream.receive_some(MAX_HEAD_BYTES)
+            if not chunk:
+                return data
+            data += chunk
+
+    async def _to_hypercorn(self, stream: trio.abc.Stream, head: bytes) -> None:
+        state = ConnectionState(self._lifespan_state.copy())
+        await TCPServer(self._app, self.config, self._context, state, _Replay(stream, head))  # type: ignore[arg-type]
+
+    async def _websocket(
+        self,
+        stream: trio.abc.Stream,
+        request: UpgradeRequest,
+        handler: WebSocketHandler,
+        rest: bytes,
+    ) -> None:
+        try:
+            problem = _handshake_problem(request)
+            if problem is not None:
+                await stream.send_all(_http_error("400 Bad Request", problem))
+                return
+            key = ws_frames.accept_key(request.headers["sec-websocket-key"])
+            await stream.send_all(
+                b"HTTP/1.1 101 Switching Protocols\r\nUpgrade: websocket\r\n"
+                b"Connection: Upgrade\r\nSec-WebSocket-Accept: " + key.encode("ascii") + b"\r\n\r\n"
+            )
+            websocket = WebSocket(stream, request, max_message=self.max_message)
+            if rest:
+                websocket.feed(rest)
+            async with trio.open_nursery() as nursery:
+                nursery.start_soon(websocket.run_writer)
+                try:
+                    await handler(websocket)
+                finally:
+                    websocket.close_nowait(1000)
+                    with trio.CancelScope(shield=True):
+                        await websocket.wait_for_peer_close(CLOSE_TIMEOUT)
+                    websocket.finish()
+                    nursery.cancel_scope.deadline = trio.current_time() + CLOSE_TIMEOUT
+        except (trio.BrokenResourceError, trio.ClosedResourceError):
+            pass
+        except Exception:
+            log.exception("WebSocket %s failed", request.path)
+        finally:
+            with trio.CancelScope(shield=True):
+                await trio.aclose_forcefully(stream)

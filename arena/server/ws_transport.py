@@ -1,0 +1,219 @@
+"""One server-side WebSocket on a trio stream: receive messages, send text, close.
+
+Sending never waits for the socket: frames go to an outbox that a writer task empties with one
+`send_all` per burst, so a command's ack and its `execute_command` (and everything else made in
+the same scheduler pass) share one system call. A sender waits only when the peer has let more
+than `high_water` bytes pile up, which bounds memory for a peer that stops reading.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass, field
+
+import trio
+
+from arena.server import ws_frames
+from arena.server.ws_frames import (
+    OP_BINARY,
+    OP_CLOSE,
+    OP_PING,
+    OP_PONG,
+    OP_TEXT,
+    FrameParser,
+    ProtocolViolation,
+)
+
+RECEIVE_BYTES = 65536
+#: Frames received in a row before the reader lets other tasks run.
+_FAIRNESS_BATCH = 32
+
+
+@dataclass
+class UpgradeRequest:
+    """What the client asked for in its opening handshake."""
+
+    path: str
+    #: Query parameters (the first value of each).
+    args: dict[str, str] = field(default_factory=dict)
+    #: Headers, names in lower case.
+    headers: dict[str, str] = field(default_factory=dict)
+
+
+class WebSocketClosed(Exception):
+    """The connection is closed (by either side); `code` is the peer's close code if any."""
+
+    def __init__(self, code: int, reason: str = "") -> None:
+        super().__init__(f"closed with {code} {reason}".strip())
+        self.code = code
+        self.reason = reason
+
+
+class WebSocket:
+    """An accepted WebSocket. Run `run_writer` beside the handler; `finish` when done."""
+
+    def __init__(
+        self,
+        stream: trio.abc.Stream,
+        request: UpgradeRequest,
+        *,
+        max_message: int,
+        high_water: int = 16 * 1024,
+    ) -> None:
+        self.request = request
+        self._stream = stream
+        self._parser = FrameParser(max_message)
+        self._outbox: list[bytes] = []
+        self._outbox_bytes = 0
+        self.high_water = high_water
+        self._writer_lot = trio.lowlevel.ParkingLot()
+        self._drained_lot = trio.lowlevel.ParkingLot()
+        self._received_in_a_row = 0
+        self._finishing = False
+        #: Set once a close frame is sent (or the stream is gone): nothing more goes out.
+        self.close_sent = False
+        #: Set once the peer's close frame or the end of the stream is seen.
+        self.closed_by_peer: WebSocketClosed | None = None
+        self.broken = False
+        self._failed = False
+
+    # -- receiving ------------------------------------------------------------------------------
+
+    def feed(self, data: bytes) -> None:
+        """Bytes that arrived with the handshake."""
+        self._parser.feed(data)
+
+    async def receive(self) -> str | bytes:
+        """The next data message: `str` for text, `bytes` for binary.
+
+        Pings are answered on the way. Raises `WebSocketClosed` once the peer closes, the
+        stream ends, or the peer breaks the protocol (which is answered with a close frame).
+        """
+        if self._received_in_a_row >= _FAIRNESS_BATCH:
+            self._received_in_a_row = 0
+            await trio.lowlevel.checkpoint()
+        while True:
+            if self.closed_by_peer is not None:
+                raise self.closed_by_peer
+            try:
+                message = self._parser.next()
+            except ProtocolViolation as violation:
+                self._fail(violation.code, violation.reason)
+                raise self.closed_by_peer from None  # type: ignore[misc]
+            if message is None:
+                await self._receive_more()
+                continue
+            if message.opcode == OP_TEXT:
+                try:
+                    text = message.payload.decode("utf-8")
+                except UnicodeDecodeError:
+                    self._fail(ws_frames.CLOSE_INVALID_DATA, "Text frames must be UTF-8.")
+                    continue
+                self._received_in_a_row += 1
+                return text
+            if message.opcode == OP_BINARY:
+                self._received_in_a_row += 1
+                return message.payload
+            if message.opcode == OP_PING:
+                self._queue(ws_frames.encode_frame(OP_PONG, message.payload))
+            elif message.opcode == OP_CLOSE:
+                try:
+                    code, reason = ws_frames.parse_close(message.payload)
+                except ProtocolViolation as violation:
+                    self._fail(violation.code, violation.reason)
+                    continue
+                # Echo the close (RFC 6455 5.5.1), with the code unless the peer gave none.
+                self._send_close(1000 if code == 1005 else code, "")
+                self.closed_by_peer = WebSocketClosed(code, reason)
+
+    async def _receive_more(self) -> None:
+        self._received_in_a_row = 0
+        try:
+            data = await self._stream.receive_some(RECEIVE_BYTES)
+        except (trio.BrokenResourceError, trio.ClosedResourceError):
+            data = b""
+        if not data:
+            self.broken = True
+            self.close_sent = True
+            self.closed_by_peer = WebSocketClosed(1006, "connection lost")
+            self._writer_lot.unpark_all()
+            return
+        self._parser.feed(data)
+
+    def _fail(self, code: int, reason: str) -> None:
+        self._send_close(code, reason)
+        self.closed_by_peer = WebSocketClosed(code, reason)
+        self._failed = True
+
+    # -- sending --------------------------------------------------------------------------------
+
+    def send_nowait(self, text: str) -> None:
+        """Queue a text message (dropped silently once the connection is closing)."""
+        self._queue(ws_frames.encode_frame(OP_TEXT, text.encode("utf-8")))
+
+    async def send(self, text: str) -> None:
+        """Queue a text message, first waiting while the peer is too far behind.
+
+        Unlike most trio calls this yields only when it has to wait: a reader answering a
+        burst of messages keeps the whole burst for one write.
+        """
+        while self._outbox_bytes > self.high_water and not self.close_sent:
+            await self._drained_lot.park()
+        self.send_nowait(text)
+
+    def close_nowait(self, code: int, reason: str = "") -> None:
+        """Send a close frame once; everything queued before it still goes out."""
+        self._send_close(code, reason)
+
+    def _send_close(self, code: int, reason: str) -> None:
+        if not self.close_sent:
+            self._queue(ws_frames.encode_close(code, reason))
+            self.close_sent = True
+
+    def _queue(self, frame: bytes) -> None:
+        if self.close_sent:
+            return
+        self._outbox.append(frame)
+        self._outbox_bytes += len(frame)
+        if self._writer_lot:
+            self._writer_lot.unpark()
+
+    async def run_writer(self) -> None:
+        """Write whatever is queued, a burst per system call, until `finish` and drained."""
+        while True:
+            if not self._outbox:
+                self._drained_lot.unpark_all()
+                if self._finishing or self.broken:
+                    return
+                await self._writer_lot.park()
+                continue
+            data = b"".join(self._outbox) if len(self._outbox) > 1 else self._outbox[0]
+            self._outbox.clear()
+            self._outbox_bytes = 0
+            self._drained_lot.unpark_all()
+            try:
+                await self._stream.send_all(data)
+            except (trio.BrokenResourceError, trio.ClosedResourceError):
+                self.broken = True
+                self.close_sent = True
+                self._drained_lot.unpark_all()
+                return
+
+    def finish(self) -> None:
+        """No more messages: the writer ends once the outbox is empty."""
+        self._finishing = True
+        self._writer_lot.unpark_all()
+
+    async def wait_for_peer_close(self, timeout: float) -> None:
+        """After our close frame, read (and drop) until the peer's close or end of stream.
+
+        After a protocol error the frames cannot be parsed any more: raw bytes are dropped
+        instead, so a peer still sending (a frame over the size cap) reads our close frame
+        rather than a reset connection.
+        """
+        with trio.move_on_after(timeout), contextlib.suppress(WebSocketClosed):
+            while not self._failed:
+                await self.receive()
+            while not self.broken:
+                self._parser = FrameParser(0)
+                await self._receive_more()
