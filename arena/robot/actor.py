@@ -482,14 +482,16 @@ class Robot:
             async with trio.open_nursery() as nursery:
                 self._nursery = nursery
                 task_status.started()
-                await self._loop()
+                try:
+                    await self._loop()
+                finally:
+                    # Refuse what comes now, before waiting for the drivers: one that is
+                    # shielded while it waits for an answer would otherwise wait forever.
+                    self._stop_taking_messages()
                 nursery.cancel_scope.cancel()
         finally:
             self._nursery = None
-            self._send.close()
-            self._fail_pending(
-                ArenaError(ErrorCode.ROBOT_STOPPED, f"Robot {self.robot_id!r} has stopped.")
-            )
+            self._stop_taking_messages()
             for queue in list(self._observers):
                 queue.close()
             self.stopped.set()
@@ -1069,6 +1071,13 @@ class Robot:
             raise ArenaError(
                 ErrorCode.ROBOT_STOPPED, f"Robot {self.robot_id!r} has stopped."
             ) from None
+
+    def _stop_taking_messages(self) -> None:
+        self._idle_wait = None
+        self._send.close()
+        self._fail_pending(
+            ArenaError(ErrorCode.ROBOT_STOPPED, f"Robot {self.robot_id!r} has stopped.")
+        )
 
     def _fail_pending(self, error: ArenaError) -> None:
         while True:

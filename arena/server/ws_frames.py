@@ -121,6 +121,10 @@ class FrameParser:
             self._position = 0
         self._buffer += data
 
+    def has_data(self) -> bool:
+        """Whether received bytes are waiting to be parsed (more frames may be in hand)."""
+        return self._position < len(self._buffer)
+
     def next(self) -> Message | None:
         """The next whole message, or None until more bytes arrive.
 

@@ -1,9 +1,10 @@
 """One server-side WebSocket on a trio stream: receive messages, send text, close.
 
-Sending never waits for the socket: frames go to an outbox that a writer task empties with one
-`send_all` per burst, so a command's ack and its `execute_command` (and everything else made in
-the same scheduler pass) share one system call. A sender waits only when the peer has let more
-than `high_water` bytes pile up, which bounds memory for a peer that stops reading.
+A message is written at once when the socket is idle and the reader has no more frames in
+hand (the lowest latency). Otherwise it goes to an outbox that a writer task empties with one
+`send_all` per burst, so the answers to a burst of commands share one system call. A sender
+waits only when the peer has let more than `high_water` bytes pile up, which bounds memory
+for a peer that stops reading.
 """
 
 from __future__ import annotations
@@ -70,6 +71,7 @@ class WebSocket:
         self._drained_lot = trio.lowlevel.ParkingLot()
         self._received_in_a_row = 0
         self._finishing = False
+        self._sending = False  # a send_all is under way (the writer's or a direct one)
         #: Set once a close frame is sent (or the stream is gone): nothing more goes out.
         self.close_sent = False
         #: Set once the peer's close frame or the end of the stream is seen.
@@ -133,10 +135,8 @@ class WebSocket:
         except (trio.BrokenResourceError, trio.ClosedResourceError):
             data = b""
         if not data:
-            self.broken = True
-            self.close_sent = True
             self.closed_by_peer = WebSocketClosed(1006, "connection lost")
-            self._writer_lot.unpark_all()
+            self._set_broken()
             return
         self._parser.feed(data)
 
@@ -159,7 +159,18 @@ class WebSocket:
         """
         while self._outbox_bytes > self.high_water and not self.close_sent:
             await self._drained_lot.park()
-        self.send_nowait(text)
+        if self._sending or self._outbox or self.close_sent or self._parser.has_data():
+            self.send_nowait(text)
+            return
+        self._sending = True
+        try:
+            await self._stream.send_all(ws_frames.encode_frame(OP_TEXT, text.encode("utf-8")))
+        except (trio.BrokenResourceError, trio.ClosedResourceError):
+            self._set_broken()
+        finally:
+            self._sending = False
+            if self._outbox or self._finishing:
+                self._writer_lot.unpark()
 
     def close_nowait(self, code: int, reason: str = "") -> None:
         """Send a close frame once; everything queued before it still goes out."""
@@ -181,23 +192,31 @@ class WebSocket:
     async def run_writer(self) -> None:
         """Write whatever is queued, a burst per system call, until `finish` and drained."""
         while True:
-            if not self._outbox:
+            if self.broken or (self._finishing and not self._outbox and not self._sending):
+                return
+            if not self._outbox or self._sending:
                 self._drained_lot.unpark_all()
-                if self._finishing or self.broken:
-                    return
                 await self._writer_lot.park()
                 continue
             data = b"".join(self._outbox) if len(self._outbox) > 1 else self._outbox[0]
             self._outbox.clear()
             self._outbox_bytes = 0
             self._drained_lot.unpark_all()
+            self._sending = True
             try:
                 await self._stream.send_all(data)
             except (trio.BrokenResourceError, trio.ClosedResourceError):
-                self.broken = True
-                self.close_sent = True
-                self._drained_lot.unpark_all()
-                return
+                self._set_broken()
+            finally:
+                self._sending = False
+
+    def _set_broken(self) -> None:
+        self.broken = True
+        self.close_sent = True
+        self._outbox.clear()
+        self._outbox_bytes = 0
+        self._drained_lot.unpark_all()
+        self._writer_lot.unpark_all()
 
     def finish(self) -> None:
         """No more messages: the writer ends once the outbox is empty."""
