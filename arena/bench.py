@@ -7,6 +7,7 @@ would be the only thing measured otherwise); every other check stays on.
 
 Scenarios:
   relay       one master, one slave, commands one at a time: send -> slave's execute_command
+              (a lean client, then again with the `websockets` library)
   throughput  commands as fast as one master can send: accepted/s, and what reached the slave
   fleet       N robots, each a master at 50 Hz and a slave: latency p50/p99, server CPU and RSS
   estop       POST /api/robots/{id}/estop -> the slave's estop notice; POST /api/estop -> last
@@ -24,6 +25,7 @@ Scenarios:
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import json
 import os
@@ -33,6 +35,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
@@ -41,6 +44,7 @@ from typing import Any
 
 import httpx
 
+from arena.bench_client import BlockingWebSocket, masked_frame
 from arena.robot.model import BUILTIN_TYPES_DIR, TYPES_PATH_ENV
 
 BENCH_TYPE = "so-arm100-bench"
@@ -141,6 +145,10 @@ async def _robot(http: httpx.AsyncClient, robot_id: str) -> None:
     response.raise_for_status()
 
 
+_EXECUTE = '"type":"execute_command"'
+_ACK = '"type":"ack"'
+
+
 def _command(i: int) -> str:
     # Tiny alternating steps: always inside the velocity budget, so each goes out at once.
     value = (i % 2) * 0.001
@@ -155,14 +163,46 @@ def _command(i: int) -> str:
 
 
 async def relay(server: Server, count: int = 5000) -> dict[str, float]:
-    """Master send -> slave receipt of execute_command, one command at a time."""
+    """Master send -> slave receipt of execute_command, one command at a time (lean client)."""
+    async with httpx.AsyncClient(base_url=server.url) as http:
+        await _robot(http, "relay")
+    return await asyncio.to_thread(_lean_relay, server.ws, count)
+
+
+def _lean_relay(ws: str, count: int) -> dict[str, float]:
+    slave = BlockingWebSocket(ws + "/ws/slave/relay")
+    master = BlockingWebSocket(ws + "/ws/master/relay")
+    frames = [masked_frame(_command(i + 1)) for i in range(count + 100)]
+    latencies = []
+    try:
+        for i, frame in enumerate(frames):
+            sent = time.perf_counter()
+            master.send_raw(frame)
+            while _EXECUTE not in slave.receive():
+                pass
+            if i >= 100:  # warm-up excluded
+                latencies.append(time.perf_counter() - sent)
+            while _ACK not in master.receive():
+                pass
+    finally:
+        master.close()
+        slave.close()
+    return {
+        "relay_p50_us": _percentile(latencies, 0.5) * 1e6,
+        "relay_p99_us": _percentile(latencies, 0.99) * 1e6,
+        "relay_max_us": max(latencies) * 1e6,
+    }
+
+
+async def relay_with_websockets(server: Server, count: int = 5000) -> dict[str, float]:
+    """The relay again with the `websockets` client library (what a Python user sees)."""
     import websockets
 
     async with httpx.AsyncClient(base_url=server.url) as http:
-        await _robot(http, "relay")
+        await _robot(http, "relay-ws")
     async with (
-        websockets.connect(compression=None, uri=server.ws + "/ws/slave/relay") as slave,
-        websockets.connect(compression=None, uri=server.ws + "/ws/master/relay") as master,
+        websockets.connect(compression=None, uri=server.ws + "/ws/slave/relay-ws") as slave,
+        websockets.connect(compression=None, uri=server.ws + "/ws/master/relay-ws") as master,
     ):
         latencies = []
         for i in range(count + 100):
@@ -177,52 +217,58 @@ async def relay(server: Server, count: int = 5000) -> dict[str, float]:
             while json.loads(await master.recv())["type"] != "ack":
                 pass
     return {
-        "relay_p50_us": _percentile(latencies, 0.5) * 1e6,
-        "relay_p99_us": _percentile(latencies, 0.99) * 1e6,
-        "relay_max_us": max(latencies) * 1e6,
+        "relay_websockets_p50_us": _percentile(latencies, 0.5) * 1e6,
+        "relay_websockets_p99_us": _percentile(latencies, 0.99) * 1e6,
     }
 
 
 async def throughput(
     server: Server, count: int = 20_000, robot_id: str = "flood"
 ) -> dict[str, float]:
-    """Commands as fast as one master can send them; acks counted as they come back."""
-    import websockets
+    """Commands as fast as one master can send them; acks counted as they come back.
 
+    The frames are made before the clock starts and go out in one `sendall` from a thread,
+    so the client costs as little as it can (lean client, see `bench_client`).
+    """
     async with httpx.AsyncClient(base_url=server.url) as http:
         await _robot(http, robot_id)
-    reached = 0
-    async with (
-        websockets.connect(compression=None, uri=server.ws + f"/ws/slave/{robot_id}") as slave,
-        websockets.connect(compression=None, uri=server.ws + f"/ws/master/{robot_id}") as master,
-    ):
+    return await asyncio.to_thread(_lean_throughput, server.ws, robot_id, count)
 
-        async def count_slave() -> None:
-            nonlocal reached
-            async for raw in slave:
-                if '"execute_command"' in raw:
+
+def _lean_throughput(ws: str, robot_id: str, count: int) -> dict[str, float]:
+    slave = BlockingWebSocket(ws + f"/ws/slave/{robot_id}")
+    master = BlockingWebSocket(ws + f"/ws/master/{robot_id}")
+    frames = b"".join(masked_frame(_command(i + 1)) for i in range(count))
+    reached = 0
+
+    def count_slave() -> None:
+        nonlocal reached
+        with contextlib.suppress(OSError):  # the socket closes under it at the end
+            while True:
+                if _EXECUTE in slave.receive():
                     reached += 1
 
-        counter = asyncio.create_task(count_slave())
-        accepted = refused = 0
-        start = time.perf_counter()
-
-        async def send_all() -> None:
-            for i in range(count):
-                await master.send(_command(i + 1))
-
-        sender = asyncio.create_task(send_all())
+    counter = threading.Thread(target=count_slave, daemon=True)
+    counter.start()
+    accepted = refused = 0
+    start = time.perf_counter()
+    sender = threading.Thread(target=master.send_raw, args=(frames,), daemon=True)
+    sender.start()
+    try:
         while accepted + refused < count:
-            message = json.loads(await master.recv())
-            if message["type"] == "ack":
-                if message["data"]["status"] == "refused":
+            message = master.receive()
+            if _ACK in message:
+                if '"refused"' in message:
                     refused += 1
                 else:
                     accepted += 1
         elapsed = time.perf_counter() - start
-        await sender
-        await asyncio.sleep(0.2)
-        counter.cancel()
+        sender.join()
+        time.sleep(0.2)  # the last targets on their way to the slave
+    finally:
+        master.close()
+        slave.close()
+    counter.join(timeout=5)
     return {
         "throughput_accepted_per_s": accepted / elapsed,
         "throughput_refused": refused,
@@ -672,6 +718,9 @@ def run_benchmarks(
         results.update(median_of([replay_rate() for _ in range(repeats)]))
     if "relay" in chosen:
         results.update(median_of([asyncio.run(_with_server(relay)) for _ in range(repeats)]))
+        results.update(
+            median_of([asyncio.run(_with_server(relay_with_websockets)) for _ in range(repeats)])
+        )
     if "throughput" in chosen or "recording" in chosen:
         on = median_of([asyncio.run(_with_server(throughput)) for _ in range(repeats)])
         results.update(on)

@@ -564,9 +564,13 @@ class Robot:
         return now if now < wait.deadline else None
 
     def _rearm_idle_wait(self) -> None:
-        """After work done outside the actor: wake it for a timer that is now sooner."""
-        if self._idle_wait is not None:
-            self._idle_wait.deadline = min(self._idle_wait.deadline, self._next_deadline())
+        """After a command decided outside the actor: wake it for a motion tick now sooner.
+
+        (A command can only bring the next tick closer; heartbeat deadlines only move later.)
+        """
+        wait, tick = self._idle_wait, self._next_tick
+        if wait is not None and tick is not None and tick < wait.deadline:
+            wait.deadline = tick
 
     def _alive(self, peer_id: str) -> None:
         now = self._idle_now()

@@ -28,7 +28,7 @@ class _Parked:
         self._lot.unpark_all()
 
     def _wake(self) -> None:
-        if self._lot.statistics().tasks_waiting:
+        if self._lot:  # someone is waiting
             self._lot.unpark_all()
 
 

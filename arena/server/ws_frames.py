@@ -151,6 +151,7 @@ class FrameParser:
             else:
                 self._fragment_opcode = opcode
             self._fragments.append(payload)
+            self._fragment_size += len(payload)
             if fin:
                 message = Message(self._fragment_opcode, b"".join(self._fragments))
                 self._fragments.clear()
@@ -195,6 +196,4 @@ class FrameParser:
         mask = bytes(buffer[start + header - 4 : start + header])
         payload = _unmask(bytes(buffer[start + header : start + header + size]), mask)
         self._position = start + header + size
-        if opcode < OP_CLOSE:
-            self._fragment_size += size
         return fin, opcode, payload

@@ -1,0 +1,238 @@
+"""Arena's own WebSocket transport: the frame codec alone, then the real server on loopback."""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+
+import httpx
+import pytest
+import trio
+
+from arena.server import ws_frames
+from arena.server.ws_frames import (
+    OP_BINARY,
+    OP_CLOSE,
+    OP_CONTINUATION,
+    OP_PING,
+    OP_PONG,
+    OP_TEXT,
+    FrameParser,
+    ProtocolViolation,
+)
+from tests.conftest import RunningServer
+from tests.raw_websocket import RawWebSocket
+
+
+def client_frame(
+    opcode: int, payload: bytes, *, fin: bool = True, masked: bool = True, rsv: int = 0
+) -> bytes:
+    """A frame as a client would send it, or as a broken client might."""
+    size = len(payload)
+    first = (0x80 if fin else 0) | rsv | opcode
+    mask_bit = 0x80 if masked else 0
+    if size < 126:
+        header = struct.pack("!BB", first, mask_bit | size)
+    elif size < 65536:
+        header = struct.pack("!BBH", first, mask_bit | 126, size)
+    else:
+        header = struct.pack("!BBQ", first, mask_bit | 127, size)
+    if not masked:
+        return header + payload
+    mask = os.urandom(4)
+    return header + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
+
+
+def parse_all(parser: FrameParser, data: bytes) -> list[ws_frames.Message]:
+    parser.feed(data)
+    messages = []
+    while (message := parser.next()) is not None:
+        messages.append(message)
+    return messages
+
+
+# --- the codec -------------------------------------------------------------------------------
+
+
+def test_accept_key_matches_the_rfc_example() -> None:
+    assert ws_frames.accept_key("dGhlIHNhbXBsZSBub25jZQ==") == "s3pPLMBiTxaQ9kYGzzhZRbK+xOo="
+    assert ws_frames.valid_client_key("dGhlIHNhbXBsZSBub25jZQ==")
+    assert not ws_frames.valid_client_key("c2hvcnQ=")  # 5 bytes
+    assert not ws_frames.valid_client_key("not base64!")
+
+
+@pytest.mark.parametrize("size", [0, 1, 125, 126, 65535, 65536, 70_000])
+def test_every_length_form_parses_fed_whole_or_a_byte_at_a_time(size: int) -> None:
+    payload = bytes(i % 251 for i in range(size))
+    data = client_frame(OP_BINARY, payload) + client_frame(OP_TEXT, b"next")
+    whole = parse_all(FrameParser(1 << 20), data)
+    assert [(m.opcode, m.payload) for m in whole] == [(OP_BINARY, payload), (OP_TEXT, b"next")]
+    if size <= 126:  # byte by byte: the parser waits for each header form and payload
+        parser = FrameParser(1 << 20)
+        trickled = [m for byte in data for m in parse_all(parser, bytes([byte]))]
+        assert [(m.opcode, m.payload) for m in trickled] == [
+            (OP_BINARY, payload),
+            (OP_TEXT, b"next"),
+        ]
+
+
+def test_the_size_cap_is_per_message_not_per_connection() -> None:
+    # Many messages that add up to far more than the cap all pass.
+    parser = FrameParser(1000)
+    frame = client_frame(OP_TEXT, b"x" * 900)
+    for _ in range(50):
+        assert [m.payload for m in parse_all(parser, frame)] == [b"x" * 900]
+
+
+def test_fragments_are_joined_and_control_frames_come_between() -> None:
+    data = (
+        client_frame(OP_TEXT, b"hel", fin=False)
+        + client_frame(OP_PING, b"p")
+        + client_frame(OP_CONTINUATION, b"lo ", fin=False)
+        + client_frame(OP_CONTINUATION, b"arm")
+    )
+    messages = parse_all(FrameParser(100), data)
+    assert [(m.opcode, m.payload) for m in messages] == [(OP_PING, b"p"), (OP_TEXT, b"hello arm")]
+
+
+@pytest.mark.parametrize(
+    ("data", "code"),
+    [
+        (client_frame(OP_TEXT, b"hi", masked=False), 1002),
+        (client_frame(OP_TEXT, b"hi", rsv=0x40), 1002),  # no extension was agreed
+        (client_frame(0x3, b"hi"), 1002),  # a reserved opcode
+        (client_frame(OP_PING, b"x" * 126), 1002),
+        (client_frame(OP_PING, b"x", fin=False), 1002),
+        (client_frame(OP_CONTINUATION, b"x"), 1002),
+        (client_frame(OP_TEXT, b"a", fin=False) + client_frame(OP_TEXT, b"b"), 1002),
+        (client_frame(OP_TEXT, b"x" * 101), 1009),
+        (
+            client_frame(OP_TEXT, b"x" * 60, fin=False) + client_frame(OP_CONTINUATION, b"y" * 41),
+            1009,
+        ),
+    ],
+)
+def test_protocol_violations_fail_with_the_rfc_code(data: bytes, code: int) -> None:
+    with pytest.raises(ProtocolViolation) as violation:
+        parse_all(FrameParser(100), data)
+    assert violation.value.code == code
+    assert violation.value.reason.endswith(".")
+
+
+def test_close_frames_are_read_and_checked() -> None:
+    assert ws_frames.parse_close(b"") == (1005, "")
+    assert ws_frames.parse_close(struct.pack("!H", 4000) + b"bye") == (4000, "bye")
+    for bad in (b"\x03", struct.pack("!H", 1005), struct.pack("!H", 999), struct.pack("!H", 2000)):
+        with pytest.raises(ProtocolViolation):
+            ws_frames.parse_close(bad)
+    # Our own close frames fit a control frame even with a long reason.
+    frame = ws_frames.encode_close(1000, "é" * 200)
+    assert frame[1] <= 125 and frame[4:].decode("utf-8")
+
+
+# --- on the real server ----------------------------------------------------------------------
+
+
+async def _first_text(raw: RawWebSocket) -> dict[str, object]:
+    frame = await raw.receive_frame()
+    assert frame is not None and frame.opcode == OP_TEXT
+    return json.loads(frame.payload)  # type: ignore[no-any-return]
+
+
+async def test_pings_are_answered_with_their_payload(server: RunningServer) -> None:
+    raw = await RawWebSocket.connect(server.url, "/ws/robots/demo-arm/state")
+    await _first_text(raw)
+    await raw.send_frame(OP_PING, b"are you there")
+    with trio.fail_after(5):
+        while (frame := await raw.receive_frame()) is not None and frame.opcode != OP_PONG:
+            pass
+    assert frame is not None and frame.payload == b"are you there"
+    await raw.aclose()
+
+
+async def test_a_fragmented_command_is_one_command(server: RunningServer) -> None:
+    raw = await RawWebSocket.connect(server.url, "/ws/master/demo-arm")
+    await _first_text(raw)
+    text = json.dumps({"type": "command", "data": {"joints": [{"name": "Rotation", "value": 4}]}})
+    half = len(text) // 2
+    await raw.stream.send_all(
+        client_frame(OP_TEXT, text[:half].encode(), fin=False)
+        + client_frame(OP_CONTINUATION, text[half:].encode())
+    )
+    with trio.fail_after(5):
+        while (message := await _first_text(raw))["type"] != "ack":
+            pass
+    assert message["data"]["status"] in ("accepted", "clamped")  # type: ignore[index]
+    await raw.aclose()
+
+
+async def test_a_client_close_is_echoed_and_a_master_leaves(server: RunningServer) -> None:
+    raw = await RawWebSocket.connect(server.url, "/ws/master/demo-arm?id=polite")
+    await _first_text(raw)
+    await raw.send_frame(OP_CLOSE, struct.pack("!H", 1000) + b"done")
+    with trio.fail_after(5):
+        while (frame := await raw.receive_frame()) is not None and frame.opcode != OP_CLOSE:
+            pass
+        assert frame is not None and frame.close_code == 1000
+        assert await raw.receive_frame() is None  # then the server closes the TCP connection
+    robot = server.app.manager.get("demo-arm")
+    with trio.fail_after(5):
+        while robot.snapshot().master is not None:
+            await trio.sleep(0.02)
+    await raw.aclose()
+
+
+async def test_an_unmasked_frame_fails_the_connection_with_1002(server: RunningServer) -> None:
+    raw = await RawWebSocket.connect(server.url, "/ws/robots/demo-arm/state")
+    await _first_text(raw)
+    await raw.stream.send_all(client_frame(OP_TEXT, b'{"type":"heartbeat"}', masked=False))
+    with trio.fail_after(5):
+        while (frame := await raw.receive_frame()) is not None and frame.opcode == OP_TEXT:
+            pass
+    assert frame is not None and frame.close_code == 1002
+    assert b"masked" in frame.payload
+    await raw.aclose()
+
+
+async def _handshake(server: RunningServer, request: str) -> bytes:
+    host, port = server.url.split("//")[1].rsplit(":", 1)
+    stream = await trio.open_tcp_stream(host, int(port))
+    await stream.send_all(request.encode())
+    answer = b""
+    with trio.fail_after(5):
+        while chunk := await stream.receive_some(65536):
+            answer += chunk
+            if b"\r\n\r\n" in answer and b"Content-Length" not in answer.split(b"\r\n\r\n")[0]:
+                break
+            head, _, body = answer.partition(b"\r\n\r\n")
+            length = [ln for ln in head.split(b"\r\n") if ln.lower().startswith(b"content-length")]
+            if length and len(body) >= int(length[0].split(b":")[1]):
+                break
+    await stream.aclose()
+    return answer
+
+
+async def test_a_bad_handshake_gets_a_json_400(server: RunningServer) -> None:
+    answer = await _handshake(
+        server,
+        "GET /ws/master/demo-arm HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\n"
+        "Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
+        "Sec-WebSocket-Version: 8\r\n\r\n",
+    )
+    head, _, body = answer.partition(b"\r\n\r\n")
+    assert head.startswith(b"HTTP/1.1 400")
+    error = json.loads(body)["error"]
+    assert error["code"] == "INVALID_MESSAGE" and "version 13" in error["message"]
+    robot = server.app.manager.get("demo-arm")
+    assert robot.snapshot().master is None  # nothing was claimed
+
+
+async def test_other_paths_and_plain_gets_still_reach_the_http_app(server: RunningServer) -> None:
+    async with httpx.AsyncClient(base_url=server.url) as http:
+        # /ws/ without an upgrade is ordinary HTTP: the app's JSON 404.
+        plain = await http.get("/ws/master/demo-arm")
+        assert plain.status_code == 404 and plain.json()["error"]["code"] == "NOT_FOUND"
+        assert (await http.get("/api/robots")).status_code == 200
+    with pytest.raises(ConnectionError):  # an upgrade to a path with no endpoint is refused
+        await RawWebSocket.connect(server.url, "/ws/nothing-here")
