@@ -62,16 +62,14 @@ def router(app: ArenaApp) -> Callable[[UpgradeRequest], WebSocketHandler | None]
 
     def route(request: UpgradeRequest) -> WebSocketHandler | None:
         parts = request.path.split("/")
-        if len(parts) == 4 and parts[1] == "ws" and parts[3]:
-            handler = {"master": master_socket, "slave": slave_socket}.get(parts[2])
+        if len(parts) == 4 and parts[1] == "ws" and parts[2] in _PEER_ENDPOINTS and parts[3]:
+            role = parts[2]
         elif len(parts) == 5 and parts[1:3] == ["ws", "robots"] and parts[4] == "state":
-            handler = state_socket
+            role = "viewer"
         else:
-            handler = None
-        if handler is None:
             return None
-        robot_id = parts[3]
-        return lambda ws: handler(Connection(app, ws, handler.__name__), robot_id)
+        handler, robot_id = _ENDPOINTS[role], parts[3]
+        return lambda ws: handler(Connection(app, ws, role), robot_id)
 
     return route
 
@@ -79,10 +77,10 @@ def router(app: ArenaApp) -> Callable[[UpgradeRequest], WebSocketHandler | None]
 class Connection:
     """One accepted WebSocket: send helpers, refusals, and the shutdown race."""
 
-    def __init__(self, app: ArenaApp, ws: WebSocket, endpoint: str) -> None:
+    def __init__(self, app: ArenaApp, ws: WebSocket, role: str) -> None:
         self.app = app
         self.ws = ws
-        self.role = {"master_socket": "master", "slave_socket": "slave"}.get(endpoint, "viewer")
+        self.role = role  # master, slave or viewer
         self.args = ws.request.args
         self.closed = False
         self._ended = trio.Event()
@@ -574,3 +572,11 @@ async def _viewer_reader(connection: Connection) -> Any:
             await connection.send_error(
                 ErrorCode.FORBIDDEN, "This stream is read-only; it takes only heartbeats."
             )
+
+
+_ENDPOINTS: dict[str, Callable[[Connection, str], Awaitable[None]]] = {
+    "master": master_socket,
+    "slave": slave_socket,
+    "viewer": state_socket,
+}
+_PEER_ENDPOINTS = ("master", "slave")
