@@ -9,26 +9,18 @@ server and the loopback. Text frames only, no fragmentation, no extensions: enou
 from __future__ import annotations
 
 import base64
+import contextlib
 import os
 import socket
 import struct
 from urllib.parse import urlsplit
 
+from arena.server.ws_frames import OP_CLOSE, OP_TEXT, encode_frame, split_unmasked
+
 
 def masked_frame(text: str) -> bytes:
     """A client text frame (masked, as RFC 6455 requires of clients)."""
-    payload = text.encode("utf-8")
-    size = len(payload)
-    if size < 126:
-        header = struct.pack("!BB", 0x81, 0x80 | size)
-    elif size < 65536:
-        header = struct.pack("!BBH", 0x81, 0x80 | 126, size)
-    else:
-        header = struct.pack("!BBQ", 0x81, 0x80 | 127, size)
-    mask = os.urandom(4)
-    key = (mask * (size // 4 + 1))[:size]
-    body = (int.from_bytes(payload, "big") ^ int.from_bytes(key, "big")).to_bytes(size, "big")
-    return header + mask + body
+    return encode_frame(OP_TEXT, text.encode("utf-8"), mask=os.urandom(4))
 
 
 class BlockingWebSocket:
@@ -69,23 +61,15 @@ class BlockingWebSocket:
     def receive(self) -> str:
         """The next text message; raises `ConnectionError` on a close frame or end of stream."""
         while True:
-            buffer = self._buffer
-            if len(buffer) >= 2:
-                size, start = buffer[1] & 0x7F, 2
-                if size == 126 and len(buffer) >= 4:
-                    size, start = struct.unpack_from("!H", buffer, 2)[0], 4
-                elif size == 127 and len(buffer) >= 10:
-                    size, start = struct.unpack_from("!Q", buffer, 2)[0], 10
-                if size < 126 or start > 2:
-                    end = start + size
-                    if len(buffer) >= end:
-                        opcode = buffer[0] & 0x0F
-                        self._buffer = buffer[end:]
-                        if opcode == 0x1:
-                            return buffer[start:end].decode("utf-8")
-                        if opcode == 0x8:
-                            raise ConnectionError(f"closed by the server: {buffer[start:end]!r}")
-                        continue  # ping/pong: not expected from Arena, skipped
+            frame = split_unmasked(self._buffer)
+            if frame is not None:
+                opcode, payload, used = frame
+                self._buffer = self._buffer[used:]
+                if opcode == OP_TEXT:
+                    return payload.decode("utf-8")
+                if opcode == OP_CLOSE:
+                    raise ConnectionError(f"closed by the server: {payload!r}")
+                continue  # ping/pong: not expected from Arena, skipped
             chunk = self.sock.recv(65536)
             if not chunk:
                 raise ConnectionError("the server closed the connection")
@@ -93,10 +77,6 @@ class BlockingWebSocket:
 
     def close(self) -> None:
         """Send a close frame (1000) and close the socket."""
-        try:
-            mask = os.urandom(4)
-            code = bytes(a ^ b for a, b in zip(struct.pack("!H", 1000), mask, strict=False))
-            self.sock.sendall(b"\x88\x82" + mask + code)
-        except OSError:
-            pass
+        with contextlib.suppress(OSError):
+            self.sock.sendall(encode_frame(OP_CLOSE, struct.pack("!H", 1000), mask=os.urandom(4)))
         self.sock.close()

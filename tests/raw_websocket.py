@@ -13,6 +13,8 @@ from dataclasses import dataclass, field
 
 import trio
 
+from arena.server.ws_frames import encode_frame, split_unmasked
+
 OP_TEXT = 0x1
 OP_CLOSE = 0x8
 
@@ -74,16 +76,7 @@ class RawWebSocket:
 
     async def send_frame(self, opcode: int, payload: bytes) -> None:
         """Send one final, masked frame as a client must."""
-        mask = os.urandom(4)
-        size = len(payload)
-        if size < 126:
-            header = struct.pack("!BB", 0x80 | opcode, 0x80 | size)
-        elif size < 1 << 16:
-            header = struct.pack("!BBH", 0x80 | opcode, 0x80 | 126, size)
-        else:
-            header = struct.pack("!BBQ", 0x80 | opcode, 0x80 | 127, size)
-        masked = bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
-        await self.stream.send_all(header + mask + masked)
+        await self.stream.send_all(encode_frame(opcode, payload, mask=os.urandom(4)))
 
     async def receive_frame(self) -> Frame | None:
         """The next frame, or None once the server has closed the TCP connection."""
@@ -95,23 +88,12 @@ class RawWebSocket:
                 return None
 
     def _parse(self) -> Frame | None:
-        data = self.buffer
-        if len(data) < 2:
+        found = split_unmasked(self.buffer)
+        if found is None:
             return None
-        size, start = data[1] & 0x7F, 2
-        if size == 126:
-            if len(data) < 4:
-                return None
-            size, start = struct.unpack("!H", data[2:4])[0], 4
-        elif size == 127:
-            if len(data) < 10:
-                return None
-            size, start = struct.unpack("!Q", data[2:10])[0], 10
-        if len(data) < start + size:
-            return None
-        frame = Frame(data[0] & 0x0F, bytes(data[start : start + size]))
-        del data[: start + size]
-        return frame
+        opcode, payload, used = found
+        del self.buffer[:used]
+        return Frame(opcode, payload)
 
     async def aclose(self) -> None:
         """Cut the TCP connection (no close frame)."""

@@ -6,6 +6,7 @@ import dataclasses
 
 import pytest
 import trio
+import trio.testing
 from trio.testing import MockClock
 
 from arena.drivers.mock_slave import MockSlave, MockSlaveConfig
@@ -70,6 +71,40 @@ async def test_a_command_reaches_the_slave_at_once(
     assert isinstance(message, SlaveTarget)
     assert message.joints["Rotation"] == 5.0 and message.joints["Jaw"] == 3.0
     assert message.time == before == trio.current_time()  # no tick, no waiting
+
+
+async def test_a_command_decided_in_the_callers_task_still_gets_its_motion_ticks(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    # `command_now` decides outside the actor; a long move then needs the actor to wake for
+    # its motion ticks, which it would not if its wait were not brought forward.
+    robot = await new_robot(manager)
+    link = await robot.connect_master("alice")
+    await trio.testing.wait_all_tasks_blocked()  # the actor is idle
+    result = link.command_now(Command.of({"Rotation": 90.0}))
+    assert result is not None and result.accepted
+    assert robot.snapshot().joint("Rotation").goal == 90.0
+    started = trio.current_time()
+    while robot.snapshot().joint("Rotation").virtual_value < 90.0:
+        await trio.sleep(0.05)
+        assert trio.current_time() - started < 10, "the motion stopped advancing"
+    assert trio.current_time() - started > 0.1  # it was limited, so ticks carried it
+
+
+async def test_a_due_timer_goes_before_a_command_decided_at_once(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    # The master's heartbeat deadline has passed but the actor has not run yet: `command_now`
+    # must leave the command alone (deciding it would count as a heartbeat and keep a master
+    # that has already timed out), and the actor drops the master first.
+    robot = await new_robot(manager)
+    alice = await robot.connect_master("alice", heartbeat_timeout=1.0)
+    await trio.testing.wait_all_tasks_blocked()
+    autojump_clock.jump(1.5)  # no task runs between this and the next line
+    assert alice.command_now(Command.of({"Rotation": 5.0})) is None
+    await trio.testing.wait_all_tasks_blocked()
+    assert robot.snapshot().mode is Mode.ESTOPPED and robot.snapshot().owner is None
+    assert not (await alice.command(Command.of({"Rotation": 5.0}))).accepted
 
 
 async def test_the_mock_slave_follows_after_its_delays(

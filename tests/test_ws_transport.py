@@ -29,19 +29,8 @@ def client_frame(
     opcode: int, payload: bytes, *, fin: bool = True, masked: bool = True, rsv: int = 0
 ) -> bytes:
     """A frame as a client would send it, or as a broken client might."""
-    size = len(payload)
-    first = (0x80 if fin else 0) | rsv | opcode
-    mask_bit = 0x80 if masked else 0
-    if size < 126:
-        header = struct.pack("!BB", first, mask_bit | size)
-    elif size < 65536:
-        header = struct.pack("!BBH", first, mask_bit | 126, size)
-    else:
-        header = struct.pack("!BBQ", first, mask_bit | 127, size)
-    if not masked:
-        return header + payload
-    mask = os.urandom(4)
-    return header + mask + bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
+    frame = ws_frames.encode_frame(opcode, payload, mask=os.urandom(4) if masked else None, fin=fin)
+    return bytes([frame[0] | rsv]) + frame[1:]
 
 
 def parse_all(parser: FrameParser, data: bytes) -> list[ws_frames.Message]:

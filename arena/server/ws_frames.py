@@ -57,16 +57,43 @@ class Message:
     payload: bytes
 
 
-def encode_frame(opcode: int, payload: bytes) -> bytes:
-    """One unfragmented, unmasked frame (what a server sends)."""
+def encode_frame(
+    opcode: int, payload: bytes, *, mask: bytes | None = None, fin: bool = True
+) -> bytes:
+    """One frame: unmasked as a server sends it, or with a 4-byte `mask` as a client must."""
     size = len(payload)
+    first = (0x80 if fin else 0) | opcode
+    mask_bit = 0x80 if mask is not None else 0
     if size < 126:
-        header = struct.pack("!BB", 0x80 | opcode, size)
+        header = struct.pack("!BB", first, mask_bit | size)
     elif size < 65536:
-        header = struct.pack("!BBH", 0x80 | opcode, 126, size)
+        header = struct.pack("!BBH", first, mask_bit | 126, size)
     else:
-        header = struct.pack("!BBQ", 0x80 | opcode, 127, size)
-    return header + payload
+        header = struct.pack("!BBQ", first, mask_bit | 127, size)
+    if mask is None:
+        return header + payload
+    return header + mask + _unmask(payload, mask)  # masking and unmasking are the same XOR
+
+
+def split_unmasked(buffer: bytes | bytearray) -> tuple[int, bytes, int] | None:
+    """The first server frame in `buffer`: (opcode, payload, bytes used), None if incomplete.
+
+    For clients (the benchmark's and the tests'); a server parses with `FrameParser`.
+    """
+    if len(buffer) < 2:
+        return None
+    size, start = buffer[1] & 0x7F, 2
+    if size == 126:
+        if len(buffer) < 4:
+            return None
+        size, start = struct.unpack_from("!H", buffer, 2)[0], 4
+    elif size == 127:
+        if len(buffer) < 10:
+            return None
+        size, start = struct.unpack_from("!Q", buffer, 2)[0], 10
+    if len(buffer) < start + size:
+        return None
+    return buffer[0] & 0x0F, bytes(buffer[start : start + size]), start + size
 
 
 def encode_close(code: int, reason: str = "") -> bytes:

@@ -230,9 +230,10 @@ class WebSocket:
         instead, so a peer still sending (a frame over the size cap) reads our close frame
         rather than a reset connection.
         """
-        with trio.move_on_after(timeout), contextlib.suppress(WebSocketClosed):
-            while not self._failed:
-                await self.receive()
-            while not self.broken:
-                self._parser = FrameParser(0)
-                await self._receive_more()
+        with trio.move_on_after(timeout):
+            with contextlib.suppress(WebSocketClosed):
+                while not self._failed:
+                    await self.receive()
+            with contextlib.suppress(trio.BrokenResourceError, trio.ClosedResourceError):
+                while not self.broken and await self._stream.receive_some(RECEIVE_BYTES):
+                    pass
