@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -19,10 +20,12 @@ from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording.analysis import export, summarize, timeline
 from arena.recording.mcap_file import read_recording, write_recording
 from arena.recording.recorder import check_name
-from arena.recording.replay import ReplayMaster, recorded_commands
+from arena.recording.replay import ReplayMaster, TimedCommand, recorded_commands
 from arena.recording.session import behaviour, record_scenario, replay_session
 from arena.robot.actor import Robot
+from arena.robot.events import CommandHandled, StateChanged
 from arena.robot.manager import RobotManager
+from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
 from arena.robot.safety import Mode
 from tests.conftest import RecordingSlave
@@ -326,3 +329,54 @@ async def test_files_rotate_by_size_and_each_stands_alone(
             total += len(list(reader.iter_messages()))
             assert "robot/arm" in {m.name for m in reader.iter_metadata()}
     assert total == sum(len(read_recording(path).messages) for path in files)
+
+
+async def test_a_replay_behind_schedule_keeps_order_and_yields_to_an_estop(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    # Every command is due at once: the fast path (decided in the replay's own task while the
+    # robot is idle) must keep them in order, let other tasks run, and stop on an e-stop.
+    robot = await manager.create_robot(
+        "so-arm100",
+        robot_id="burst",
+        policy=dataclasses.replace(
+            load_robot_model("so-arm100").safety, command_rate=1e9, command_burst=10**9
+        ),
+    )
+    slave = RecordingSlave()
+    await robot.attach_slave(slave)
+    values = [round(0.01 * i, 2) for i in range(1, 2001)]
+    burst = [TimedCommand(0.0, Command.of({"Rotation": v})) for v in values]
+    handled: list[tuple[float, bool]] = []
+    stopped_after: list[int] = []
+    with robot.subscribe(maxlen=100_000) as events:
+
+        async def estop_midway() -> None:
+            async for event in events:
+                if isinstance(event, CommandHandled):
+                    handled.append((event.command.joints[0].value, event.result.accepted))
+                    if len(handled) == 300:
+                        stopped_after.append(len(handled))
+                        await robot.estop("midway")
+                elif isinstance(event, StateChanged) and event.mode is Mode.ESTOPPED:
+                    return
+
+        master = ReplayMaster(burst, speed=1000.0)
+        async with trio.open_nursery() as nursery:
+            nursery.start_soon(estop_midway)
+            await robot.attach_master(master)
+        await trio.sleep(1.0)
+    accepted = [value for value, ok in handled if ok]
+    # The watcher ran while the replay was still going (the replay yields), so the e-stop cut
+    # it short: it detaches the master, and a command already on its way when it struck is
+    # refused (trio runs ready tasks in either order). What was accepted came in recorded order.
+    assert stopped_after == [300]
+    assert 300 <= len(accepted) < len(values)
+    assert accepted == values[: len(accepted)]
+    refused = handled[len(accepted) :]
+    assert handled[: len(accepted)] == [(value, True) for value in accepted]
+    assert len(refused) <= 1 and master.refused <= 1
+    assert robot.snapshot().mode is Mode.ESTOPPED and robot.snapshot().master is None
+    assert slave.targets and all(
+        target["Rotation"] <= accepted[-1] + 1e-9 for _, target in slave.targets
+    )

@@ -107,15 +107,17 @@ async def test_the_relay_stops_and_restarts_mid_motion(start_server: StartServer
         r2 = await start_server(port=port)
         async with AsyncArena(r2.url) as relay:
             await relay.create_robot("relay-arm")
+        # Both links attached to the new relay robot: an attempt that came before the robot
+        # existed (refused with 4404, one more e-stop) is over before the resets below.
         await until(lambda: a.app.manager.get("avatar").snapshot().slaves[0].connected)
         await until(lambda: len(r2.app.manager.get("relay-arm").snapshot().slaves) == 1)
+        await until(lambda: r2.app.manager.get("relay-arm").snapshot().master is not None)
         await trio.sleep(0.3)
         # Nothing queued during the outage ran: B has not moved since it stopped.
         assert b.app.manager.get("physical").snapshot().joint("Rotation").goal == frozen
         async with AsyncArena(a.url) as rest_a, AsyncArena(b.url) as rest_b:
             await rest_b.reset("physical")  # an e-stop from a lost link is reset by a person
             await rest_a.reset("avatar")
-        await until(lambda: r2.app.manager.get("relay-arm").snapshot().master is not None)
         assert (await operator.command({"Rotation": 7}))["data"]["status"] in (
             "accepted",
             "clamped",
