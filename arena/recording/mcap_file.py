@@ -66,15 +66,23 @@ class McapFileWriter:
         self.messages = 0
 
     def write(self, items: list[Item]) -> None:
-        """Append records, opening or rotating files as needed, then flush to the OS."""
-        for robot_id, kind, data, log_time in items:
-            writer = self._current()
-            if robot_id not in self._robots_written and robot_id in self.robots:
-                writer.add_metadata(f"robot/{robot_id}", self.robots[robot_id])
-                self._robots_written.add(robot_id)
-            writer.add_message(self._channel(writer, robot_id, kind), log_time, data, log_time)
-            self.messages += 1
-        self.flush()
+        """Append records, opening or rotating files as needed, then flush to the OS.
+
+        On `OSError` (a full or vanished disk) the current file is abandoned and the error
+        raised: the next call starts a fresh file.
+        """
+        try:
+            for robot_id, kind, data, log_time in items:
+                writer = self._current()
+                if robot_id not in self._robots_written and robot_id in self.robots:
+                    writer.add_metadata(f"robot/{robot_id}", self.robots[robot_id])
+                    self._robots_written.add(robot_id)
+                writer.add_message(self._channel(writer, robot_id, kind), log_time, data, log_time)
+                self.messages += 1
+            self.flush()
+        except OSError:
+            self.abandon()
+            raise
 
     def flush(self) -> None:
         """Close the chunk in progress and hand everything to the OS."""

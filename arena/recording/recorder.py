@@ -2,7 +2,8 @@
 
 Each robot gets a follower task with a large drop-oldest queue (a robot never waits for the
 recorder; anything dropped is counted). One writer task batches the records and hands each
-batch to a worker thread, where the MCAP writer does its compression and file I/O.
+batch, from a worker thread, to the MCAP writer in its own process (`writer_process`), where
+encoding, compression and file I/O run on another core than control.
 """
 
 from __future__ import annotations
@@ -18,8 +19,9 @@ import trio
 
 import arena
 from arena.protocol.errors import ArenaError, ErrorCode
-from arena.recording.mcap_file import Item, McapFileWriter
+from arena.recording.mcap_file import Item
 from arena.recording.records import record_of
+from arena.recording.writer_process import McapWriterProcess
 from arena.robot.actor import Robot
 from arena.robot.events import RobotEvent
 from arena.robot.mailbox import EventQueue
@@ -44,7 +46,7 @@ class Recorder:
         active: bool = True,
     ) -> None:
         base = {"server": "arena", "version": arena.__version__}
-        self.writer = McapFileWriter(
+        self.writer = McapWriterProcess(
             folder, {**base, **(metadata or {})}, max_bytes=max_bytes, max_seconds=max_seconds
         )
         self.flush_interval = flush_interval
@@ -68,8 +70,9 @@ class Recorder:
         return self.writer.path
 
     async def run(self, *, task_status: Any = trio.TASK_STATUS_IGNORED) -> None:
-        """Write until cancelled; then finish the open file."""
+        """Write until cancelled; then finish the open file and end the writer process."""
         try:
+            await trio.to_thread.run_sync(self.writer.launch)
             async with trio.open_nursery() as nursery:
                 self._nursery = nursery
                 self._wall_offset = time.time() - trio.current_time()
@@ -78,7 +81,7 @@ class Recorder:
         finally:
             with trio.CancelScope(shield=True):
                 await self._write_pending()
-                await trio.to_thread.run_sync(self.writer.close)
+                await trio.to_thread.run_sync(self.writer.shutdown)
 
     def follow(self, robot: Robot) -> None:
         """Record this robot from now on (its type and URDF go into the file's metadata)."""
@@ -138,8 +141,7 @@ class Recorder:
             if self.error is None:
                 log.error("recording failed: %s", exc)
             self.error = f"{type(exc).__name__}: {exc}"
-            self._write_failures += len(batch)
-            self.writer.abandon()
+            self._write_failures += len(batch)  # the writer has dropped its file
 
     @property
     def dropped(self) -> int:

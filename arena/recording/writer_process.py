@@ -1,0 +1,198 @@
+"""The MCAP writer in a child process, so that writing never competes with control for the GIL.
+
+mcap's Python writer costs about 5 us a message, and every command leaves two or three records:
+in the server's process that is a quarter of the work per command. `McapWriterProcess` offers
+the same calls as `McapFileWriter` and runs one in a child Python process (`python -m
+arena.recording.writer_process`), which does the encoding, compression and file I/O on the other
+core. The parent only pickles each batch into a pipe.
+
+The protocol on the child's stdin/stdout is a series of frames (8-byte big-endian length, then a
+pickle), one request and one reply at a time:
+  first frame      (folder, metadata, max_bytes, max_seconds), no reply
+  ("write", items, robots)   append records; `robots` holds metadata of robots new to the child
+  ("close", None, None)      finish the current file
+and each reply is (error or None, current path or None, messages written, every file opened).
+End of input makes the child finish its file and exit: a killed server still leaves a complete
+file behind.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import pickle
+import struct
+import subprocess
+import sys
+import threading
+from pathlib import Path
+from typing import IO, Any
+
+from arena.recording.mcap_file import Item, McapFileWriter
+
+_LENGTH = struct.Struct(">Q")
+#: How long the child may take to finish its file at shutdown before it is killed.
+SHUTDOWN_TIMEOUT = 10.0
+
+
+def send_frame(stream: IO[bytes], value: object) -> None:
+    """Write one length-prefixed pickle and flush it."""
+    payload = pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
+    stream.write(_LENGTH.pack(len(payload)) + payload)
+    stream.flush()
+
+
+def receive_frame(stream: IO[bytes]) -> Any:
+    """Read one frame; `EOFError` when the other side has gone."""
+    header = stream.read(_LENGTH.size)
+    if len(header) < _LENGTH.size:
+        raise EOFError("the pipe closed")
+    (length,) = _LENGTH.unpack(header)
+    payload = stream.read(length)
+    if len(payload) < length:
+        raise EOFError("the pipe closed mid-frame")
+    return pickle.loads(payload)
+
+
+class McapWriterProcess:
+    """`McapFileWriter`'s calls, served by a child process (started by `launch` or on first use).
+
+    Thread-safe: each call holds a lock for its request and reply. A failure of the child (or
+    of its disk) comes back as `OSError`, as it would from a local writer; the next call starts
+    a fresh child if the old one is gone.
+    """
+
+    def __init__(
+        self,
+        folder: Path,
+        metadata: dict[str, str],
+        *,
+        max_bytes: int = 256 << 20,
+        max_seconds: float = 3600.0,
+    ) -> None:
+        self.folder = folder
+        self.metadata = metadata
+        self.max_bytes = max_bytes
+        self.max_seconds = max_seconds
+        self.robots: dict[str, dict[str, str]] = {}  # robot id -> metadata, set by the recorder
+        self.path: Path | None = None
+        self.files: list[Path] = []
+        self.messages = 0
+        self._process: subprocess.Popen[bytes] | None = None
+        self._robots_sent: set[str] = set()
+        self._earlier_messages = 0  # written by children that have gone, and their files
+        self._earlier_files: list[Path] = []
+        self._child_messages = 0
+        self._lock = threading.Lock()
+
+    def launch(self) -> None:
+        """Start the child now (it takes ~0.1 s), so that the first batch does not wait for it."""
+        with self._lock:
+            self._running()
+
+    def write(self, items: list[Item]) -> None:
+        """Append records (the child opens or rotates files as needed) and flush them."""
+        with self._lock:
+            new = {r: meta for r, meta in self.robots.items() if r not in self._robots_sent}
+            self._request(("write", items, new))
+            self._robots_sent.update(new)
+
+    def close(self) -> None:
+        """Finish the current file; the child stays for the next one."""
+        with self._lock:
+            if self._process is not None:
+                self._request(("close", None, None))
+
+    def shutdown(self) -> None:
+        """Finish the current file and end the child."""
+        with self._lock:
+            process, self._process = self._process, None
+            if process is None:
+                return
+            assert process.stdin is not None
+            try:
+                process.stdin.close()  # end of input: the child finishes its file
+                process.wait(SHUTDOWN_TIMEOUT)
+            except (OSError, subprocess.TimeoutExpired):
+                process.kill()
+                process.wait()
+            self.path = None
+
+    def _request(self, request: tuple[str, object, object]) -> None:
+        process = self._running()
+        assert process.stdin is not None and process.stdout is not None
+        try:
+            send_frame(process.stdin, request)
+            error, path, messages, files = receive_frame(process.stdout)
+        except (OSError, EOFError, pickle.PickleError) as exc:
+            self._abandon_child()
+            raise OSError(f"the recording process failed: {exc}") from exc
+        self.path = None if path is None else Path(path)
+        self._child_messages = messages
+        self.messages = self._earlier_messages + messages
+        self.files = self._earlier_files + [Path(f) for f in files]
+        if error is not None:
+            raise OSError(error)
+
+    def _running(self) -> subprocess.Popen[bytes]:
+        if self._process is not None and self._process.poll() is None:
+            return self._process
+        if self._process is not None:
+            self._abandon_child()
+        package_root = str(Path(__file__).resolve().parents[2])
+        path = os.environ.get("PYTHONPATH")
+        env = {**os.environ, "PYTHONPATH": package_root + (os.pathsep + path if path else "")}
+        process = subprocess.Popen(
+            [sys.executable, "-m", "arena.recording.writer_process"],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            env=env,
+            close_fds=True,
+            start_new_session=True,  # a Ctrl-C at the terminal is the server's to handle
+        )
+        assert process.stdin is not None
+        send_frame(
+            process.stdin, (str(self.folder), self.metadata, self.max_bytes, self.max_seconds)
+        )
+        self._process = process
+        self._robots_sent.clear()  # a new child knows no robot yet
+        return process
+
+    def _abandon_child(self) -> None:
+        process, self._process = self._process, None
+        self.path = None
+        self._earlier_messages, self._child_messages = self.messages, 0
+        self._earlier_files = list(self.files)
+        if process is not None:
+            process.kill()
+            process.wait()
+
+
+def serve(requests: IO[bytes], replies: IO[bytes]) -> None:
+    """The child's loop: one `McapFileWriter`, driven by frames until end of input."""
+    folder, metadata, max_bytes, max_seconds = receive_frame(requests)
+    writer = McapFileWriter(Path(folder), metadata, max_bytes=max_bytes, max_seconds=max_seconds)
+    try:
+        while True:
+            try:
+                kind, items, robots = receive_frame(requests)
+            except EOFError:
+                return
+            error = None
+            try:
+                if kind == "write":
+                    writer.robots.update(robots)
+                    writer.write(items)
+                else:
+                    writer.close()
+            except OSError as exc:
+                error = f"{type(exc).__name__}: {exc}"
+            path = None if writer.path is None else str(writer.path)
+            send_frame(replies, (error, path, writer.messages, [str(f) for f in writer.files]))
+    finally:
+        with contextlib.suppress(OSError):
+            writer.close()
+
+
+if __name__ == "__main__":
+    serve(sys.stdin.buffer, sys.stdout.buffer)
