@@ -25,7 +25,7 @@ from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import get_sequence
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording.analysis import export, summarize, timeline
-from arena.recording.mcap_file import read_recording, write_recording
+from arena.recording.mcap_file import FileSeries, read_recording, write_recording
 from arena.recording.recorder import check_name
 from arena.recording.replay import ReplayMaster, TimedCommand, recorded_commands
 from arena.recording.session import behaviour, record_scenario, replay_session
@@ -346,7 +346,9 @@ def test_files_rotate_by_size_and_each_stands_alone(tmp_path: Path) -> None:
     # The writer process rotates between batches, once a file has passed max_bytes.
     golden = read_recording(GOLDEN / "gentle-wave.mcap")
     items = [(m.robot_id, m.kind, json.dumps(m.data).encode(), m.log_time) for m in golden.messages]
-    writer = McapWriterProcess(tmp_path, {"test": "rotation"}, max_bytes=1)  # every batch fills one
+    writer = McapWriterProcess(
+        FileSeries(tmp_path, {"test": "rotation"}, max_bytes=1)
+    )  # every batch fills one
     writer.robots["arm"] = {"robot_type": "so-arm100", "name": "arm", "urdf": "<robot/>"}
     batches = [items[i : i + 100] for i in range(0, 500, 100)]
     try:
@@ -366,7 +368,7 @@ def test_files_rotate_by_size_and_each_stands_alone(tmp_path: Path) -> None:
 def test_after_the_writer_process_dies_the_next_batch_starts_a_new_one(tmp_path: Path) -> None:
     golden = read_recording(GOLDEN / "gentle-wave.mcap")
     items = [(m.robot_id, m.kind, json.dumps(m.data).encode(), m.log_time) for m in golden.messages]
-    writer = McapWriterProcess(tmp_path, {"test": "restart"})
+    writer = McapWriterProcess(FileSeries(tmp_path, {"test": "restart"}))
     writer.shutdown()  # nothing started yet: nothing to do
     try:
         writer.write(items[:50])
@@ -391,7 +393,7 @@ def test_after_the_writer_process_dies_the_next_batch_starts_a_new_one(tmp_path:
 def test_a_writer_process_that_fails_mid_batch_is_reported_as_an_io_error(tmp_path: Path) -> None:
     # A record of a kind with no schema crashes the child (a bug, not a disk error): the
     # batch fails with OSError, which the recorder counts as dropped, and the next one works.
-    writer = McapWriterProcess(tmp_path, {"test": "crash"})
+    writer = McapWriterProcess(FileSeries(tmp_path, {"test": "crash"}))
     good = [("arm", "state", b"{}", 1)]
     try:
         with pytest.raises(OSError, match="recording process failed"):

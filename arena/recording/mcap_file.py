@@ -36,23 +36,25 @@ def new_file_name(now: float | None = None) -> str:
 Item = tuple[str, str, bytes, int]
 
 
+@dataclass(frozen=True)
+class FileSeries:
+    """Where a recorder's files go and when a new one starts (by size or age)."""
+
+    folder: Path
+    metadata: dict[str, str]  # written into every file
+    max_bytes: int = 256 << 20
+    max_seconds: float = 3600.0
+
+
 class McapFileWriter:
     """Writes records into a rotating series of MCAP files in one folder. Not thread-safe:
     one thread at a time (the recorder's writer task guarantees it)."""
 
-    def __init__(
-        self,
-        folder: Path,
-        metadata: dict[str, str],
-        *,
-        max_bytes: int = 256 << 20,
-        max_seconds: float = 3600.0,
-        chunk_size: int = 64 * 1024,
-    ) -> None:
-        self.folder = folder
-        self.metadata = metadata
-        self.max_bytes = max_bytes
-        self.max_seconds = max_seconds
+    def __init__(self, series: FileSeries, *, chunk_size: int = 64 * 1024) -> None:
+        self.folder = series.folder
+        self.metadata = series.metadata
+        self.max_bytes = series.max_bytes
+        self.max_seconds = series.max_seconds
         self.chunk_size = chunk_size
         self.robots: dict[str, dict[str, str]] = {}  # robot id -> metadata, set by the recorder
         self.path: Path | None = None

@@ -19,7 +19,7 @@ import trio
 
 import arena
 from arena.protocol.errors import ArenaError, ErrorCode
-from arena.recording.mcap_file import Item
+from arena.recording.mcap_file import FileSeries, Item
 from arena.recording.records import record_of
 from arena.recording.writer_process import McapWriterProcess
 from arena.robot.actor import Robot
@@ -47,7 +47,7 @@ class Recorder:
     ) -> None:
         base = {"server": "arena", "version": arena.__version__}
         self.writer = McapWriterProcess(
-            folder, {**base, **(metadata or {})}, max_bytes=max_bytes, max_seconds=max_seconds
+            FileSeries(folder, {**base, **(metadata or {})}, max_bytes, max_seconds)
         )
         self.flush_interval = flush_interval
         self.queue_size = queue_size

@@ -8,7 +8,7 @@ core. The parent only pickles each batch into a pipe.
 
 The protocol on the child's stdin/stdout is a series of frames (8-byte big-endian length, then a
 pickle), one request and one reply at a time:
-  first frame      (folder, metadata, max_bytes, max_seconds), no reply
+  first frame      the `FileSeries`, no reply
   ("write", items, robots)   append records; `robots` holds metadata of robots new to the child
   ("close", None, None)      finish the current file
 and each reply is (error or None, current path or None, messages written, every file opened).
@@ -28,7 +28,7 @@ import threading
 from pathlib import Path
 from typing import IO, Any
 
-from arena.recording.mcap_file import Item, McapFileWriter
+from arena.recording.mcap_file import FileSeries, Item, McapFileWriter
 
 _LENGTH = struct.Struct(">Q")
 #: How long the child may take to finish its file at shutdown before it is killed.
@@ -62,18 +62,9 @@ class McapWriterProcess:
     a fresh child if the old one is gone.
     """
 
-    def __init__(
-        self,
-        folder: Path,
-        metadata: dict[str, str],
-        *,
-        max_bytes: int = 256 << 20,
-        max_seconds: float = 3600.0,
-    ) -> None:
-        self.folder = folder
-        self.metadata = metadata
-        self.max_bytes = max_bytes
-        self.max_seconds = max_seconds
+    def __init__(self, series: FileSeries) -> None:
+        self.series = series
+        self.folder = series.folder
         self.robots: dict[str, dict[str, str]] = {}  # robot id -> metadata, set by the recorder
         self.path: Path | None = None
         self.files: list[Path] = []
@@ -151,9 +142,7 @@ class McapWriterProcess:
             start_new_session=True,  # a Ctrl-C at the terminal is the server's to handle
         )
         assert process.stdin is not None
-        send_frame(
-            process.stdin, (str(self.folder), self.metadata, self.max_bytes, self.max_seconds)
-        )
+        send_frame(process.stdin, self.series)
         self._process = process
         self._robots_sent.clear()  # a new child knows no robot yet
         return process
@@ -170,8 +159,7 @@ class McapWriterProcess:
 
 def serve(requests: IO[bytes], replies: IO[bytes]) -> None:
     """The child's loop: one `McapFileWriter`, driven by frames until end of input."""
-    folder, metadata, max_bytes, max_seconds = receive_frame(requests)
-    writer = McapFileWriter(Path(folder), metadata, max_bytes=max_bytes, max_seconds=max_seconds)
+    writer = McapFileWriter(receive_frame(requests))
     try:
         while True:
             try:
