@@ -1,7 +1,8 @@
 """`arena bench`: benchmarks against a real server on loopback. Prints medians; asserts nothing.
 
 The server runs as its own process (`arena serve`, recording on unless a scenario says
-otherwise); clients use the `websockets` package on asyncio in this process. The robots use a
+otherwise); relay, throughput and fleet use the lean client of `bench_client` in this process,
+the estop and soak scenarios the `websockets` package on asyncio. The robots use a
 copy of the so-arm100 type whose rate limit is raised (the default 100 commands/s per master
 would be the only thing measured otherwise); every other check stays on.
 
@@ -9,7 +10,8 @@ Scenarios:
   relay       one master, one slave, commands one at a time: send -> slave's execute_command
               (a lean client, then again with the `websockets` library)
   throughput  commands as fast as one master can send: accepted/s, and what reached the slave
-  fleet       N robots, each a master at 50 Hz and a slave: latency p50/p99, server CPU and RSS
+  fleet       N robots, each a master at 50 Hz (then 25 Hz) and a slave: latency p50/p99,
+              server CPU and RSS (with its recording process); a lean selector-loop client
   estop       POST /api/robots/{id}/estop -> the slave's estop notice; POST /api/estop -> last
   recording   throughput with recording on against off (ratio)
   replay      commands/s of a replay at maximum speed (in process)
@@ -78,19 +80,32 @@ class Server:
     def ws(self) -> str:
         return "ws" + self.url[4:]
 
+    def pids(self) -> list[int]:
+        """The server process and its children (the recording writer)."""
+        pid = self.process.pid
+        children = [
+            int(child)
+            for task in Path(f"/proc/{pid}/task").glob("*/children")
+            for child in task.read_text().split()
+        ]
+        return [pid, *children]
+
     def cpu_seconds(self) -> float:
-        """User + system CPU time of the server process so far."""
-        with open(f"/proc/{self.process.pid}/stat") as stat:
-            fields = stat.read().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        """User + system CPU time of the server and its children so far."""
+        total = 0
+        for pid in self.pids():
+            with contextlib.suppress(OSError), open(f"/proc/{pid}/stat") as stat:
+                fields = stat.read().rsplit(")", 1)[1].split()
+                total += int(fields[11]) + int(fields[12])
+        return total / os.sysconf("SC_CLK_TCK")
 
     def rss_mib(self) -> float:
-        """Resident memory of the server process."""
-        with open(f"/proc/{self.process.pid}/status") as status:
-            for line in status:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) / 1024
-        return float("nan")
+        """Resident memory of the server and its children."""
+        total = 0
+        for pid in self.pids():
+            with contextlib.suppress(OSError), open(f"/proc/{pid}/status") as status:
+                total += next(int(line.split()[1]) for line in status if line.startswith("VmRSS:"))
+        return total / 1024
 
 
 @asynccontextmanager
@@ -394,15 +409,102 @@ async def drive_fleet(
 async def fleet(
     server: Server, robots: int = 100, rate: float = 50.0, seconds: float = 10.0
 ) -> dict[str, float]:
-    """`robots` robots, each with a master at `rate` Hz and a slave, for `seconds`."""
-    run = await drive_fleet(server, robots, rate, seconds)
-    (t0, cpu0, _), (t1, cpu1, rss) = run.samples[0], run.samples[-1]
-    latencies = [lat for _, lat in run.latencies]
+    """`robots` robots, each with a master at `rate` Hz and a slave, for `seconds` (lean
+    client: one selector loop in a thread, its masters' schedules spread over the period)."""
+    async with httpx.AsyncClient(base_url=server.url) as http:
+        for n in range(robots):
+            await _robot(http, f"fleet-{n}")
+    return await asyncio.to_thread(_lean_fleet, server, robots, rate, seconds)
+
+
+def _lean_fleet(server: Server, robots: int, rate: float, seconds: float) -> dict[str, float]:
+    import heapq
+    import selectors
+
+    pairs = [
+        (
+            BlockingWebSocket(server.ws + f"/ws/slave/fleet-{n}"),
+            BlockingWebSocket(server.ws + f"/ws/master/fleet-{n}"),
+        )
+        for n in range(robots)
+    ]
+    selector = selectors.DefaultSelector()
+    for n, (slave, master) in enumerate(pairs):
+        for ws, is_slave in ((slave, True), (master, False)):
+            ws.sock.setblocking(False)
+            selector.register(ws.sock, selectors.EVENT_READ, (n, ws, is_slave))
+    # Two alternating values per robot, unique across robots: the slave's value names the send.
+    values = [(round(n * 1e-6, 9), round(0.001 + n * 1e-6, 9)) for n in range(robots)]
+    frames = [
+        tuple(
+            masked_frame(
+                json.dumps(
+                    {"type": "command", "data": {"joints": [{"name": "Rotation", "value": v}]}}
+                )
+            )
+            for v in pair
+        )
+        for pair in values
+    ]
+    heartbeat = masked_frame('{"type": "heartbeat"}')
+    sent_at: list[dict[float, float]] = [{} for _ in range(robots)]
+    latencies: list[float] = []
+    sent = acked = refused = 0
+    period = 1.0 / rate
+    start = time.perf_counter()
+    end = start + seconds
+    # Independent robots do not tick in step: their first sends are spread over one period.
+    schedule = [(start + period * n / robots, n, 0) for n in range(robots)]
+    heapq.heapify(schedule)
+    next_heartbeat = start + 5.0
+    cpu_start = server.cpu_seconds()
+
+    def handle(timeout: float) -> None:
+        nonlocal acked, refused
+        for key, _ in selector.select(timeout):
+            n, ws, is_slave = key.data
+            for message in ws.receive_ready():
+                if is_slave:
+                    if message.startswith('{"type":"execute_command"'):
+                        value = json.loads(message)["data"]["joints"][0]["value"]
+                        began = sent_at[n].pop(value, None)
+                        if began is not None:
+                            latencies.append(time.perf_counter() - began)
+                elif message.startswith('{"type":"ack"'):
+                    acked += 1
+                    refused += '"status":"refused"' in message
+
+    try:
+        while (now := time.perf_counter()) < end:
+            due, n, i = schedule[0]
+            if due > now:
+                handle(due - now)
+                continue
+            sent_at[n][values[n][i % 2]] = now
+            pairs[n][1].send_raw(frames[n][i % 2])
+            sent += 1
+            # A fixed schedule (no drift); a late client skips a beat, it never bursts.
+            heapq.heapreplace(schedule, (max(due + period, now), n, i + 1))
+            if now >= next_heartbeat:  # a silent slave is dropped (and e-stops)
+                for slave, _ in pairs:
+                    slave.send_raw(heartbeat)
+                next_heartbeat = now + 5.0
+        cpu_used = server.cpu_seconds() - cpu_start
+        elapsed = time.perf_counter() - start
+        settle = time.perf_counter() + 10  # the last acknowledgments: late is not lost
+        while acked < sent and time.perf_counter() < settle:
+            handle(0.05)
+    finally:
+        for slave, master in pairs:
+            master.close()
+            slave.close()
     return {
         "fleet_p50_us": _percentile(latencies, 0.5) * 1e6,
         "fleet_p99_us": _percentile(latencies, 0.99) * 1e6,
-        "fleet_server_cpu_percent": 100 * (cpu1 - cpu0) / (t1 - t0),
-        "fleet_server_rss_mib": rss,
+        "fleet_server_cpu_percent": 100 * cpu_used / elapsed,
+        "fleet_server_rss_mib": server.rss_mib(),
+        "fleet_commands_sent": sent,
+        "fleet_commands_unacknowledged": sent - acked,
         "fleet_messages": len(latencies),
     }
 
@@ -751,6 +853,11 @@ def run_benchmarks(
         results.update(asyncio.run(_with_server(estop)))
     if "fleet" in chosen:
         results.update(asyncio.run(_with_server(lambda server: fleet(server, robots=fleet_robots))))
+        # Half the rate as well: where the latency stands before one core is full.
+        half = asyncio.run(
+            _with_server(lambda server: fleet(server, robots=fleet_robots, rate=25.0))
+        )
+        results.update({k.replace("fleet_", "fleet_25hz_", 1): v for k, v in half.items()})
     if "soak" in chosen:
         window = min(60.0, soak_seconds / 4)
         results.update(

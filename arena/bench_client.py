@@ -75,6 +75,23 @@ class BlockingWebSocket:
                 raise ConnectionError("the server closed the connection")
             self._buffer += chunk
 
+    def receive_ready(self) -> list[str]:
+        """The text messages that one `recv` completes (for a socket a selector says is
+        readable); raises `ConnectionError` on a close frame or end of stream."""
+        chunk = self.sock.recv(65536)
+        if not chunk:
+            raise ConnectionError("the server closed the connection")
+        self._buffer += chunk
+        messages = []
+        while (frame := split_unmasked(self._buffer)) is not None:
+            opcode, payload, used = frame
+            self._buffer = self._buffer[used:]
+            if opcode == OP_TEXT:
+                messages.append(payload.decode("utf-8"))
+            elif opcode == OP_CLOSE:
+                raise ConnectionError(f"closed by the server: {payload!r}")
+        return messages
+
     def close(self) -> None:
         """Send a close frame (1000) and close the socket."""
         with contextlib.suppress(OSError):

@@ -72,7 +72,8 @@ class Recorder:
     async def run(self, *, task_status: Any = trio.TASK_STATUS_IGNORED) -> None:
         """Write until cancelled; then finish the open file and end the writer process."""
         try:
-            await trio.to_thread.run_sync(self.writer.launch)
+            if self.active:  # else the writer starts with the first batch
+                await trio.to_thread.run_sync(self.writer.launch)
             async with trio.open_nursery() as nursery:
                 self._nursery = nursery
                 self._wall_offset = time.time() - trio.current_time()

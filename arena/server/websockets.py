@@ -85,18 +85,17 @@ class Connection:
         self.closed = False
         self._ended = trio.Event()
 
-    async def send(self, message: msgspec.Struct | str) -> None:
-        """Send a message (a struct is encoded as JSON)."""
-        text = message if isinstance(message, str) else wire.encode(message)
-        await self._transmit(text)
+    async def send(self, *messages: msgspec.Struct | str) -> None:
+        """Send messages in one write (a struct is encoded as JSON)."""
+        await self._transmit(*(m if isinstance(m, str) else wire.encode(m) for m in messages))
 
     async def send_error(self, code: ErrorCode | str, message: str) -> None:
         """Send an `error` message and count it."""
         self.app.metrics.message_errors[str(code)] += 1
         await self._transmit(wire.error_message(code, message))
 
-    async def _transmit(self, text: str) -> None:
-        await self.ws.send(text)
+    async def _transmit(self, *texts: str) -> None:
+        await self.ws.send(*texts)
         if self.ws.close_sent:  # the transport closed (protocol error, or the peer is gone)
             self._ended.set()
 
@@ -187,41 +186,75 @@ async def _heartbeats(connection: Connection) -> None:
         await connection.send(wire.HeartbeatMessage(timestamp=wire.now_iso()))
 
 
+class _RobotEventForwarder:
+    """State changes at once; joint states at most every `joint_states_interval` seconds.
+
+    `name_robot` adds the robot's id to joint states (a group master hears from several).
+    Besides its own task (`run`), the connection's reader can `take_due` what is ready right
+    after answering a command, so that the acknowledgment and the joint states it caused leave
+    in one write.
+    """
+
+    def __init__(
+        self,
+        connection: Connection,
+        robot: Robot,
+        events: EventQueue[RobotEvent],
+        name_robot: bool = False,
+    ) -> None:
+        self.connection = connection
+        self.robot = robot
+        self.events = events
+        self.name_robot = name_robot
+        self.interval = connection.app.arena_config.joint_states_interval
+        self.pending = False  # joint values changed since the last joint_states sent
+        self.next_send = 0.0
+
+    async def run(self) -> None:
+        """Forward until the robot is gone."""
+        while True:
+            wait = self.next_send - trio.current_time() if self.pending else math.inf
+            batch: list[RobotEvent] = []
+            with trio.move_on_after(max(0.0, wait)):
+                try:
+                    batch = [await self.events.get(), *self.events.drain()]
+                except trio.EndOfChannel:  # the robot is gone
+                    await self.connection.close(CLOSE_NORMAL, "robot deleted")
+                    return
+            for message in self._messages(batch):
+                await self.connection.send(message)
+
+    def take_due(self) -> list[msgspec.Struct | str]:
+        """What is ready to go now, taken from the queue (the task then finds it empty)."""
+        return self._messages(self.events.drain())
+
+    def _messages(self, batch: list[RobotEvent]) -> list[msgspec.Struct | str]:
+        out: list[msgspec.Struct | str] = []
+        if any(isinstance(e, StateChanged) for e in batch):
+            out.append(convert.state(self.robot.snapshot()))
+        self.pending = self.pending or any(
+            isinstance(e, JointStatesReceived | TargetsSent) for e in batch
+        )
+        now = trio.current_time()
+        if self.pending and now >= self.next_send:
+            states = convert.joint_states(self.robot.snapshot())
+            if self.name_robot:
+                named = msgspec.to_builtins(states) | {"robot_id": self.robot.robot_id}
+                out.append(msgspec.json.encode(named).decode())
+            else:
+                out.append(states)
+            self.pending = False
+            self.next_send = now + self.interval
+        return out
+
+
 async def _forward_robot_events(
     connection: Connection,
     robot: Robot,
     events: EventQueue[RobotEvent],
     name_robot: bool = False,
 ) -> None:
-    """State changes at once; joint states at most every `joint_states_interval` seconds.
-
-    `name_robot` adds the robot's id to joint states (a group master hears from several).
-    """
-    interval = connection.app.arena_config.joint_states_interval
-    pending = False  # joint values changed since the last joint_states sent
-    next_send = 0.0
-    while True:
-        wait = next_send - trio.current_time() if pending else math.inf
-        batch: list[RobotEvent] = []
-        with trio.move_on_after(max(0.0, wait)):
-            try:
-                batch = [await events.get(), *events.drain()]
-            except trio.EndOfChannel:  # the robot is gone
-                await connection.close(CLOSE_NORMAL, "robot deleted")
-                return
-        if any(isinstance(e, StateChanged) for e in batch):
-            await connection.send(convert.state(robot.snapshot()))
-        pending = pending or any(isinstance(e, JointStatesReceived | TargetsSent) for e in batch)
-        now = trio.current_time()
-        if pending and now >= next_send:
-            states = convert.joint_states(robot.snapshot())
-            if name_robot:
-                named = msgspec.to_builtins(states) | {"robot_id": robot.robot_id}
-                await connection.send(msgspec.json.encode(named).decode())
-            else:
-                await connection.send(states)
-            pending = False
-            next_send = now + interval
+    await _RobotEventForwarder(connection, robot, events, name_robot).run()
 
 
 # --- masters ----------------------------------------------------------------------------------
@@ -253,14 +286,18 @@ async def master_socket(connection: Connection, robot_id: str) -> None:
         with robot.subscribe(maxlen=256) as events:
             player = _SequencePlayer()
 
+            forwarder = _RobotEventForwarder(connection, robot, events)
+
             async def body(nursery: trio.Nursery) -> None:
-                nursery.start_soon(_forward_robot_events, connection, robot, events)
+                nursery.start_soon(forwarder.run)
                 nursery.start_soon(_forward_master_notices, connection, link)
                 nursery.start_soon(_heartbeats, connection)
                 await _read_loop(
                     connection,
                     wire.decode_master,
-                    partial(_handle_master_message, connection, robot, link, player, nursery),
+                    partial(
+                        _handle_master_message, connection, robot, link, forwarder, player, nursery
+                    ),
                 )
 
             await connection.run(body)
@@ -429,6 +466,7 @@ async def _handle_master_message(
     connection: Connection,
     robot: Robot,
     link: MasterLink,
+    forwarder: _RobotEventForwarder,
     player: _SequencePlayer,
     nursery: trio.Nursery,
     message: wire.MasterMessage,
@@ -440,7 +478,8 @@ async def _handle_master_message(
         result = link.command_now(command)
         if result is None:
             result = await link.command(command)
-        await connection.send(convert.ack(result))
+        # The joint states the command caused ride along: one write instead of two.
+        await connection.send(convert.ack(result), *forwarder.take_due())
         return
     link.alive()
     if isinstance(message, wire.SequenceMessage):
