@@ -361,6 +361,19 @@ async def test_tls(start_server: StartServer, tmp_path: Any) -> None:
     assert server.url.startswith("https://")
     async with server.client(verify=False) as http:
         assert (await http.get("/")).json()["status"] == "running"
+    # WebSockets over TLS take the transport's stream path (no raw socket to write to).
+    import ssl
+
+    from trio_websocket import open_websocket_url
+
+    from tests.test_server_ws import command
+
+    context = ssl.create_default_context(cafile=str(cert))
+    context.check_hostname = False
+    wss = "wss" + server.url[len("https") :] + "/ws/master/demo-arm"
+    async with open_websocket_url(wss, ssl_context=context) as master:
+        reply = await command(master, {"Rotation": 4})
+        assert reply["data"]["status"] == "accepted"
 
 
 async def test_recordings_over_rest(server: RunningServer) -> None:
