@@ -200,13 +200,9 @@ class WebSocket:
             if written < len(frame):
                 self._queue(frame[written:])  # the kernel's buffer is full: the writer waits
             return
-        self._sending = True
         try:
-            await self._stream.send_all(frame)
-        except (trio.BrokenResourceError, trio.ClosedResourceError):
-            self._set_broken()
+            await self._write(frame)
         finally:
-            self._sending = False
             if self._outbox or self._finishing:
                 self._writer_lot.unpark()
 
@@ -240,13 +236,17 @@ class WebSocket:
             self._outbox.clear()
             self._outbox_bytes = 0
             self._drained_lot.unpark_all()
-            self._sending = True
-            try:
-                await self._stream.send_all(data)
-            except (trio.BrokenResourceError, trio.ClosedResourceError):
-                self._set_broken()
-            finally:
-                self._sending = False
+            await self._write(data)
+
+    async def _write(self, data: bytes) -> None:
+        """One `send_all` under the `_sending` flag; a vanished peer marks the socket broken."""
+        self._sending = True
+        try:
+            await self._stream.send_all(data)
+        except (trio.BrokenResourceError, trio.ClosedResourceError):
+            self._set_broken()
+        finally:
+            self._sending = False
 
     def _set_broken(self) -> None:
         self.broken = True
