@@ -104,7 +104,8 @@ class Server:
         total = 0
         for pid in self.pids():
             with contextlib.suppress(OSError), open(f"/proc/{pid}/status") as status:
-                total += next(int(line.split()[1]) for line in status if line.startswith("VmRSS:"))
+                rss = (int(line.split()[1]) for line in status if line.startswith("VmRSS:"))
+                total += next(rss, 0)  # an exiting process has none
         return total / 1024
 
 
@@ -505,6 +506,7 @@ def _lean_fleet(server: Server, robots: int, rate: float, seconds: float) -> dic
         "fleet_server_rss_mib": server.rss_mib(),
         "fleet_commands_sent": sent,
         "fleet_commands_unacknowledged": sent - acked,
+        "fleet_commands_refused": refused,
         "fleet_messages": len(latencies),
     }
 

@@ -6,12 +6,18 @@ import asyncio
 import json
 from collections.abc import Awaitable, Callable
 from pathlib import Path
-from typing import Any
+from types import SimpleNamespace
+from typing import Any, cast
 
 import pytest
 import trio
+from trio.testing import MockClock
 from trio_websocket import ConnectionClosed, WebSocketConnection, open_websocket_url
 
+from arena.protocol import messages as wire
+from arena.robot.manager import RobotManager
+from arena.robot.motion import Command
+from arena.server.websockets import _RobotEventForwarder
 from tests.conftest import RunningServer
 
 StartServer = Callable[..., Awaitable[RunningServer]]
@@ -450,3 +456,25 @@ async def test_deleting_a_robot_closes_its_sockets(server: RunningServer) -> Non
             await http.delete("/api/robots/demo-arm")
         assert await closed_with(slave) == 1000
         assert await closed_with(master) in (1000, 4404)
+
+
+async def test_a_reader_takes_the_due_joint_states_so_the_forwarder_sends_no_copy(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    # What the reader takes along with an ack leaves the queue (the forwarder's task finds
+    # nothing to repeat); pacing and state changes work as they do in the forwarder's task.
+    robot = await manager.create_robot("so-arm100", robot_id="paced")
+    config = SimpleNamespace(joint_states_interval=0.02)
+    connection = cast(Any, SimpleNamespace(app=SimpleNamespace(arena_config=config)))
+    with robot.subscribe(maxlen=256) as events:
+        forwarder = _RobotEventForwarder(connection, robot, events)
+        await robot.command(Command.of({"Rotation": 1.0}))
+        assert [type(m) for m in forwarder.take_due()] == [wire.JointStatesOut]
+        assert len(events) == 0
+        await robot.command(Command.of({"Rotation": 2.0}))
+        assert forwarder.take_due() == [] and forwarder.pending  # held for the interval
+        await trio.sleep(0.025)
+        assert [type(m) for m in forwarder.take_due()] == [wire.JointStatesOut]
+        await robot.estop("test")
+        due = forwarder.take_due()
+        assert isinstance(due[0], wire.StateMessage) and due[0].data.mode == "estopped"

@@ -73,7 +73,6 @@ class McapWriterProcess:
         self._robots_sent: set[str] = set()
         self._earlier_messages = 0  # written by children that have gone, and their files
         self._earlier_files: list[Path] = []
-        self._child_messages = 0
         self._lock = threading.Lock()
 
     def launch(self) -> None:
@@ -119,7 +118,6 @@ class McapWriterProcess:
             self._abandon_child()
             raise OSError(f"the recording process failed: {exc}") from exc
         self.path = None if path is None else Path(path)
-        self._child_messages = messages
         self.messages = self._earlier_messages + messages
         self.files = self._earlier_files + [Path(f) for f in files]
         if error is not None:
@@ -150,7 +148,7 @@ class McapWriterProcess:
     def _abandon_child(self) -> None:
         process, self._process = self._process, None
         self.path = None
-        self._earlier_messages, self._child_messages = self.messages, 0
+        self._earlier_messages = self.messages
         self._earlier_files = list(self.files)
         if process is not None:
             process.kill()
