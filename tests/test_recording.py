@@ -26,13 +26,13 @@ from arena.drivers.sequences import get_sequence
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording.analysis import export, summarize, timeline
 from arena.recording.mcap_file import FileSeries, read_recording, write_recording
-from arena.recording.recorder import check_name
+from arena.recording.recorder import Recorder, check_name
 from arena.recording.replay import ReplayMaster, TimedCommand, recorded_commands
 from arena.recording.session import behaviour, record_scenario, replay_session
 from arena.recording.writer_process import McapWriterProcess
 from arena.robot.actor import Robot
 from arena.robot.events import CommandHandled, StateChanged
-from arena.robot.manager import RobotManager
+from arena.robot.manager import RobotManager, open_manager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
 from arena.robot.safety import Mode
@@ -454,3 +454,40 @@ async def test_a_replay_behind_schedule_keeps_order_and_yields_to_an_estop(
     assert slave.targets and all(
         target["Rotation"] <= accepted[-1] + 1e-9 for _, target in slave.targets
     )
+
+
+async def test_the_recorder_counts_overflow_and_writes_robots_in_time_order(
+    autojump_clock: MockClock, tmp_path: Path
+) -> None:
+    # Followers are drained once per flush: a queue shorter than a burst loses its oldest.
+    recorder = Recorder(tmp_path, flush_interval=1.0, queue_size=20)
+    async with trio.open_nursery() as nursery:
+        await nursery.start(recorder.run)
+        async with open_manager() as manager:
+            manager.on_create.append(recorder.follow)
+            robots = [await manager.create_robot("so-arm100", robot_id=n) for n in ("a", "b")]
+            for robot in robots:
+                await robot.estop("hold still")  # refused commands: one event each
+            await trio.sleep(1.5)  # a flush between: the set-up is written whole
+            assert recorder.dropped == 0
+            for n in range(30):  # inside one flush interval, the robots interleaved in time
+                for robot in robots:
+                    await robot.command(Command.of({"Rotation": float(n)}))
+                    await trio.sleep(0.001)
+            await trio.sleep(1.0)
+            assert recorder.dropped == 2 * 10
+            await manager.delete("b")
+            await trio.sleep(1.0)
+            assert recorder.dropped == 2 * 10, "a deleted robot's losses still count"
+        nursery.cancel_scope.cancel()
+    (path,) = recorder.writer.files
+    with open(path, "rb") as stream:
+        in_file_order = list(make_reader(stream).iter_messages(log_time_order=False))
+    log_times = [message.log_time for _, _, message in in_file_order]
+    assert log_times == sorted(log_times)
+    refused = [
+        (channel.topic, json.loads(message.data)["joints"][0]["value"])
+        for _, channel, message in in_file_order
+        if channel.topic.endswith("/command")
+    ]
+    assert refused == [(f"/robots/{r}/command", float(n)) for n in range(10, 30) for r in "ab"]

@@ -1,16 +1,18 @@
 """The recorder: follows every robot's events and writes them to MCAP without stalling control.
 
-Each robot gets a follower task with a large drop-oldest queue (a robot never waits for the
-recorder; anything dropped is counted). One writer task batches the records and hands each
+Each robot's events go into a large drop-oldest queue (a robot never waits for the recorder;
+anything dropped is counted). Nothing wakes per event: one writer task drains the queues every
+`flush_interval`, encodes the records in slices (other tasks run between them) and hands the
 batch, from a worker thread, to the MCAP writer in its own process (`writer_process`), where
-encoding, compression and file I/O run on another core than control.
+compression and file I/O run on another core than control.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import time
-from collections import deque
+from operator import itemgetter
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +31,9 @@ from arena.robot.mailbox import EventQueue
 log = logging.getLogger(__name__)
 
 _encoder = msgspec.json.Encoder()
+#: Records encoded between two checkpoints, so a large batch never holds up control for long.
+_ENCODE_SLICE = 256
+_by_log_time = itemgetter(3)
 
 
 class Recorder:
@@ -54,10 +59,9 @@ class Recorder:
         self.active = active
         self.error: str | None = None
         self._write_failures = 0  # records lost to disk errors
-        self._follower_queues: set[EventQueue[RobotEvent]] = set()
-        self._pending: deque[Item] = deque()
-        self._nursery: trio.Nursery | None = None
-        self._wall_offset = 0.0
+        self._dropped_by_gone = 0  # queue overflows of robots no longer followed
+        self._followed: dict[EventQueue[RobotEvent], tuple[str, contextlib.ExitStack]] = {}
+        self._wall_offset = 0.0  # wall clock minus trio's clock, taken when `run` starts
 
     @property
     def folder(self) -> Path:
@@ -74,15 +78,16 @@ class Recorder:
         try:
             if self.active:  # else the writer starts with the first batch
                 await trio.to_thread.run_sync(self.writer.launch)
-            async with trio.open_nursery() as nursery:
-                self._nursery = nursery
-                self._wall_offset = time.time() - trio.current_time()
-                task_status.started()
-                await self._write_forever()
+            self._wall_offset = time.time() - trio.current_time()
+            task_status.started()
+            await self._write_forever()
         finally:
             with trio.CancelScope(shield=True):
                 await self._write_pending()
                 await trio.to_thread.run_sync(self.writer.shutdown)
+                for _, subscription in self._followed.values():
+                    subscription.close()
+                self._followed.clear()
 
     def follow(self, robot: Robot) -> None:
         """Record this robot from now on (its type and URDF go into the file's metadata)."""
@@ -92,8 +97,9 @@ class Recorder:
             "name": robot.name,
             "urdf": urdf,
         }
-        assert self._nursery is not None
-        self._nursery.start_soon(self._follow, robot)
+        subscription = contextlib.ExitStack()
+        queue = subscription.enter_context(robot.subscribe(maxlen=self.queue_size))
+        self._followed[queue] = (robot.robot_id, subscription)
 
     async def start(self) -> Path | None:
         """Resume recording into a new file (after `stop`)."""
@@ -102,23 +108,33 @@ class Recorder:
 
     async def stop(self) -> Path | None:
         """Pause recording and finish the current file; returns its path."""
-        self.active = False
         path = self.writer.path
-        await self._write_pending()
+        batch = await self._collect()  # what happened up to now still goes in
+        self.active = False
+        await self._write(batch)
         await trio.to_thread.run_sync(self.writer.close)
         return path
 
-    async def _follow(self, robot: Robot) -> None:
-        with robot.subscribe(maxlen=self.queue_size) as events:
-            self._follower_queues.add(events)
-            async for event in events:
-                if not self.active:
-                    continue
+    async def _collect(self) -> list[Item]:
+        """Drain every followed robot's queue and encode the records (none while paused)."""
+        batch: list[Item] = []
+        for queue, (robot_id, subscription) in list(self._followed.items()):
+            events = queue.drain()
+            if queue.closed:  # the robot is gone (and its queue now empty)
+                self._dropped_by_gone += queue.dropped
+                del self._followed[queue]
+                subscription.close()
+            if not self.active:
+                continue
+            for event in events:
                 kind, record = record_of(event)
                 # Log times follow trio's clock from one wall-clock anchor: monotonic within a
                 # file (no NTP jumps), and virtual time stays consistent in tests.
                 log_time = int((event.time + self._wall_offset) * 1e9)
-                self._pending.append((robot.robot_id, kind, _encoder.encode(record), log_time))
+                batch.append((robot_id, kind, _encoder.encode(record), log_time))
+                if len(batch) % _ENCODE_SLICE == 0:
+                    await trio.lowlevel.checkpoint()
+        return batch
 
     async def _write_forever(self) -> None:
         # One batch per interval: a single thread hop and a single chunk however busy it is.
@@ -127,12 +143,18 @@ class Recorder:
             await self._write_pending()
 
     async def _write_pending(self) -> None:
-        if not self._pending:
+        await self._write(await self._collect())
+
+    async def _write(self, batch: list[Item]) -> None:
+        if not batch:
             return
-        batch = list(self._pending)
-        self._pending.clear()
+
+        def write_in_time_order() -> None:
+            batch.sort(key=_by_log_time)  # one sorted run per robot: a cheap merge
+            self.writer.write(batch)
+
         try:
-            await trio.to_thread.run_sync(self.writer.write, batch)
+            await trio.to_thread.run_sync(write_in_time_order)
             if self.error is not None:
                 log.warning("recording resumed in %s", self.writer.path)
             self.error = None
@@ -147,7 +169,8 @@ class Recorder:
     @property
     def dropped(self) -> int:
         """Records lost: events the followers could not keep plus batches a disk refused."""
-        return self._write_failures + sum(q.dropped for q in self._follower_queues)
+        followed = sum(queue.dropped for queue in self._followed)
+        return self._write_failures + self._dropped_by_gone + followed
 
     def status(self) -> dict[str, Any]:
         """What the recorder is doing, for the REST API."""
