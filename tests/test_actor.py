@@ -23,6 +23,7 @@ from arena.robot.events import (
     SlaveTarget,
     StateChanged,
 )
+from arena.robot.mailbox import EventQueue
 from arena.robot.manager import RobotManager
 from arena.robot.model import LossPolicy, load_robot_model
 from arena.robot.motion import Command
@@ -461,6 +462,35 @@ async def test_a_slow_observer_does_not_slow_the_robot(
         assert slow.dropped > 0 and len(slow) == 5
     message = await link.receive()
     assert isinstance(message, SlaveTarget) and message.joints["Rotation"] == pytest.approx(0.99)
+
+
+async def test_a_queue_holding_wakes_wakes_its_reader_once_only_if_items_are_left() -> None:
+    queue: EventQueue[int] = EventQueue()
+    woken: list[int] = []
+
+    async def reader() -> None:
+        while True:
+            woken.append(await queue.get())
+
+    async with trio.open_nursery() as nursery:
+        nursery.start_soon(reader)
+        await trio.testing.wait_all_tasks_blocked()
+        with queue.holding_wakes():
+            queue.put(1)
+            await trio.testing.wait_all_tasks_blocked()
+            assert woken == [] and queue.drain() == [1]  # taken by the holder itself
+        await trio.testing.wait_all_tasks_blocked()
+        assert woken == []
+        with queue.holding_wakes():
+            queue.put(2)
+            queue.put(3)
+            assert queue.get_nowait() == 2
+        await trio.testing.wait_all_tasks_blocked()
+        assert woken == [3]  # what the holder left goes to the reader
+        queue.put(4)
+        await trio.testing.wait_all_tasks_blocked()
+        assert woken == [3, 4]
+        nursery.cancel_scope.cancel()
 
 
 async def test_observers_see_state_changes_and_peers(

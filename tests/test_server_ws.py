@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import itertools
 import json
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -15,6 +16,9 @@ from trio.testing import MockClock
 from trio_websocket import ConnectionClosed, WebSocketConnection, open_websocket_url
 
 from arena.protocol import messages as wire
+from arena.robot.actor import Robot
+from arena.robot.events import RobotEvent
+from arena.robot.mailbox import EventQueue
 from arena.robot.manager import RobotManager
 from arena.robot.motion import Command
 from arena.server.websockets import _RobotEventForwarder
@@ -478,3 +482,65 @@ async def test_a_reader_takes_the_due_joint_states_so_the_forwarder_sends_no_cop
         await robot.estop("test")
         due = forwarder.take_due()
         assert isinstance(due[0], wire.StateMessage) and due[0].data.mode == "estopped"
+
+
+def _forwarder_on(robot: Robot, events: EventQueue[RobotEvent]) -> tuple[Any, list[Any]]:
+    """A forwarder for `robot` whose connection notes (time, message type) of what it sends."""
+    sent: list[tuple[float, type]] = []
+
+    async def send(*messages: Any) -> None:
+        sent.extend((trio.current_time(), type(m)) for m in messages)
+
+    config = SimpleNamespace(joint_states_interval=0.02)
+    connection = SimpleNamespace(app=SimpleNamespace(arena_config=config), send=send)
+    return _RobotEventForwarder(cast(Any, connection), robot, events), sent
+
+
+async def test_joint_states_the_reader_held_back_are_sent_by_the_task_when_due(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    # While the reader handles a command the forwarder's task is not woken; what the reader
+    # leaves pending must still go out, when the interval allows, from the task.
+    robot = await manager.create_robot("so-arm100", robot_id="held")
+    with robot.subscribe(maxlen=256) as events:
+        forwarder, sent = _forwarder_on(robot, events)
+        async with trio.open_nursery() as nursery:
+            nursery.start_soon(forwarder.run)
+            await trio.sleep(0.1)
+            with forwarder.handling_command():
+                # Moves so small that each is done in one step (no motion ticks follow).
+                await robot.command(Command.of({"Rotation": 0.01}))
+                assert [type(m) for m in forwarder.take_due()] == [wire.JointStatesOut]
+                await robot.command(Command.of({"Rotation": 0.02}))
+                assert forwarder.take_due() == [] and forwarder.pending
+            await trio.sleep(0.1)
+            assert [kind for _, kind in sent] == [wire.JointStatesOut]
+            assert sent[0][0] == pytest.approx(0.1 + 0.02 / 2)
+            nursery.cancel_scope.cancel()
+
+
+async def test_joint_states_keep_to_the_interval_on_average_despite_jitter(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await manager.create_robot("so-arm100", robot_id="jitter")
+    with robot.subscribe(maxlen=256) as events:
+        forwarder, _ = _forwarder_on(robot, events)
+        # A client at the interval's own rate, each send up to 1 ms early or late.
+        with_states = 0
+        for n in range(50):
+            await trio.sleep(0.02 + (0.0005 if n % 2 else -0.0005))
+            await robot.command(Command.of({"Rotation": 0.01 * (1 + n % 2)}))  # one step each
+            with_states += any(isinstance(m, wire.JointStatesOut) for m in forwarder.take_due())
+        assert with_states == 50, "every acknowledgment carries joint states"
+        # Commands at twice the interval's rate (inside the robot's command rate): about one
+        # per interval, never two within half an interval.
+        times = []
+        started = trio.current_time()
+        for n in range(200):
+            await trio.sleep(0.011)
+            await robot.command(Command.of({"Rotation": 0.01 * (1 + n % 2)}))
+            if any(isinstance(m, wire.JointStatesOut) for m in forwarder.take_due()):
+                times.append(trio.current_time())
+        elapsed = trio.current_time() - started
+        assert elapsed / 0.025 <= len(times) <= elapsed / 0.02 + 1
+        assert min(b - a for a, b in itertools.pairwise(times)) >= 0.01

@@ -465,6 +465,14 @@ class Robot:
             joints,
         )
 
+    def joint_values(self) -> tuple[dict[str, float], Mapping[str, float]]:
+        """Virtual (commanded) and real (measured) values now, by joint name, in degrees.
+
+        Much cheaper than `snapshot` (for messages sent with every command). The real values
+        are the robot's own mapping: read it at once, never keep or change it.
+        """
+        return self.core.motion.positions, self._real
+
     async def shutdown(self, reason: str = "robot deleted") -> None:
         """Stop every driver cleanly and end the actor."""
         reply: _Reply[None] = _Reply()

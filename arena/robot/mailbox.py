@@ -7,6 +7,8 @@ notices, which are never coalesced); `EventQueue` keeps a bounded backlog and dr
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Generic, TypeVar
 
 import trio
@@ -21,6 +23,7 @@ class _Parked:
     def __init__(self) -> None:
         self._lot = trio.lowlevel.ParkingLot()
         self.closed = False
+        self._holding = False
 
     def close(self) -> None:
         """No more items will come; waiting readers get `trio.EndOfChannel` once drained."""
@@ -28,8 +31,24 @@ class _Parked:
         self._lot.unpark_all()
 
     def _wake(self) -> None:
-        if self._lot:  # someone is waiting
+        if self._lot and not self._holding:  # someone is waiting
             self._lot.unpark_all()
+
+    @contextmanager
+    def holding_wakes(self) -> Iterator[None]:
+        """Puts inside this block do not wake the reader; leaving it wakes them once if
+        anything is still queued. For a caller that will take the items itself: the reader's
+        task is then not woken only to find nothing."""
+        self._holding = True
+        try:
+            yield
+        finally:
+            self._holding = False
+            if self._has_items():
+                self._wake()
+
+    def _has_items(self) -> bool:
+        raise NotImplementedError
 
 
 class LatestMailbox(_Parked, Generic[T, N]):
@@ -71,6 +90,9 @@ class LatestMailbox(_Parked, Generic[T, N]):
                 raise trio.EndOfChannel
             await self._lot.park()
 
+    def _has_items(self) -> bool:
+        return self._target is not None or bool(self._notices)
+
 
 class EventQueue(_Parked, Generic[T]):
     """A bounded queue that drops its oldest item when full, counting what it dropped."""
@@ -86,6 +108,9 @@ class EventQueue(_Parked, Generic[T]):
             self.dropped += 1
         self._items.append(item)
         self._wake()
+
+    def _has_items(self) -> bool:
+        return bool(self._items)
 
     def get_nowait(self) -> T:
         """The oldest item; raises `trio.WouldBlock` when empty."""

@@ -61,6 +61,31 @@ def joint_states(snapshot: RobotSnapshot) -> wire.JointStatesOut:
     )
 
 
+class JointStatesView:
+    """`joint_states` of one robot as it is now, without a full snapshot: WebSocket clients
+    get one after almost every command, so the parts that never change are built once."""
+
+    def __init__(self, robot: Robot) -> None:
+        self.robot = robot
+        self._fixed = [
+            (j.name, j.servo_id, wire.JointLimits(j.lower, j.upper, j.max_velocity))
+            for j in robot.model.joints
+        ]
+
+    def message(self) -> wire.JointStatesOut:
+        """The message, stamped now."""
+        virtual, real = self.robot.joint_values()
+        return wire.JointStatesOut(
+            timestamp=wire.now_iso(),
+            data=[
+                wire.JointStateOut(
+                    name, servo_id, "revolute", virtual[name], real.get(name), limits
+                )
+                for name, servo_id, limits in self._fixed
+            ],
+        )
+
+
 def state(snapshot: RobotSnapshot) -> wire.StateMessage:
     """The robot's safety state."""
     return wire.StateMessage(

@@ -187,12 +187,15 @@ async def _heartbeats(connection: Connection) -> None:
 
 
 class _RobotEventForwarder:
-    """State changes at once; joint states at most every `joint_states_interval` seconds.
+    """State changes at once; joint states once per `joint_states_interval` on average.
 
-    `name_robot` adds the robot's id to joint states (a group master hears from several).
-    Besides its own task (`run`), the connection's reader can `take_due` what is ready right
-    after answering a command, so that the acknowledgment and the joint states it caused leave
-    in one write.
+    Joint states keep to a grid of one interval, so that a client commanding at that rate gets
+    one with every acknowledgment despite jitter; two are never less than half an interval
+    apart. `name_robot` adds the robot's id to them (a group master hears from several).
+
+    Besides its own task (`run`), the connection's reader can take what is ready right after
+    answering a command (`handling_command`, `take_due`), so that the acknowledgment and the
+    joint states it caused leave in one write, and the task is not woken for them.
     """
 
     def __init__(
@@ -208,25 +211,37 @@ class _RobotEventForwarder:
         self.name_robot = name_robot
         self.interval = connection.app.arena_config.joint_states_interval
         self.pending = False  # joint values changed since the last joint_states sent
-        self.next_send = 0.0
+        self.next_send = -math.inf
+        self.joint_states = convert.JointStatesView(robot)
+        self._waiting: trio.CancelScope | None = None  # the task's wait, while it waits
 
     async def run(self) -> None:
         """Forward until the robot is gone."""
         while True:
-            wait = self.next_send - trio.current_time() if self.pending else math.inf
             batch: list[RobotEvent] = []
-            with trio.move_on_after(max(0.0, wait)):
+            with trio.CancelScope(deadline=self._deadline()) as self._waiting:
                 try:
                     batch = [await self.events.get(), *self.events.drain()]
                 except trio.EndOfChannel:  # the robot is gone
                     await self.connection.close(CLOSE_NORMAL, "robot deleted")
                     return
+            self._waiting = None
             for message in self._messages(batch):
                 await self.connection.send(message)
 
+    def handling_command(self) -> contextlib.AbstractContextManager[None]:
+        """Around a command whose events the reader will `take_due` itself."""
+        return self.events.holding_wakes()
+
     def take_due(self) -> list[msgspec.Struct | str]:
         """What is ready to go now, taken from the queue (the task then finds it empty)."""
-        return self._messages(self.events.drain())
+        messages = self._messages(self.events.drain())
+        if self._waiting is not None:  # joint states held back: the task sends them when due
+            self._waiting.deadline = self._deadline()
+        return messages
+
+    def _deadline(self) -> float:
+        return self.next_send if self.pending else math.inf
 
     def _messages(self, batch: list[RobotEvent]) -> list[msgspec.Struct | str]:
         out: list[msgspec.Struct | str] = []
@@ -237,14 +252,14 @@ class _RobotEventForwarder:
         )
         now = trio.current_time()
         if self.pending and now >= self.next_send:
-            states = convert.joint_states(self.robot.snapshot())
+            states = self.joint_states.message()
             if self.name_robot:
                 named = msgspec.to_builtins(states) | {"robot_id": self.robot.robot_id}
                 out.append(msgspec.json.encode(named).decode())
             else:
                 out.append(states)
             self.pending = False
-            self.next_send = now + self.interval
+            self.next_send = max(self.next_send + self.interval, now + self.interval / 2)
         return out
 
 
@@ -282,11 +297,10 @@ async def master_socket(connection: Connection, robot_id: str) -> None:
     app.metrics.connections["master"] += 1
     try:
         await connection.send(convert.state(robot.snapshot()))
-        await connection.send(convert.joint_states(robot.snapshot()))
         with robot.subscribe(maxlen=256) as events:
             player = _SequencePlayer()
-
             forwarder = _RobotEventForwarder(connection, robot, events)
+            await connection.send(forwarder.joint_states.message())
 
             async def body(nursery: trio.Nursery) -> None:
                 nursery.start_soon(forwarder.run)
@@ -475,11 +489,13 @@ async def _handle_master_message(
         data = message.data
         command = convert.command_from_wire(data.joints, data.duration, data.metadata)
         # The command counts as a heartbeat (the robot notes the time of each).
-        result = link.command_now(command)
-        if result is None:
-            result = await link.command(command)
-        # The joint states the command caused ride along: one write instead of two.
-        await connection.send(convert.ack(result), *forwarder.take_due())
+        with forwarder.handling_command():
+            result = link.command_now(command)
+            if result is None:
+                result = await link.command(command)
+            # The joint states the command caused ride along: one write instead of two.
+            due = forwarder.take_due()
+        await connection.send(convert.ack(result), *due)
         return
     link.alive()
     if isinstance(message, wire.SequenceMessage):
