@@ -23,7 +23,7 @@ from arena.robot.events import (
     SlaveTarget,
     StateChanged,
 )
-from arena.robot.mailbox import EventQueue
+from arena.robot.mailbox import EventQueue, LatestMailbox
 from arena.robot.manager import RobotManager
 from arena.robot.model import LossPolicy, load_robot_model
 from arena.robot.motion import Command
@@ -490,6 +490,46 @@ async def test_a_queue_holding_wakes_wakes_its_reader_once_only_if_items_are_lef
         queue.put(4)
         await trio.testing.wait_all_tasks_blocked()
         assert woken == [3, 4]
+        nursery.cancel_scope.cancel()
+
+
+async def test_a_mailbox_hands_items_straight_to_an_idle_consumer_in_order() -> None:
+    box: LatestMailbox[str, str] = LatestMailbox()
+    handed: list[str] = []
+    accept = True
+
+    def deliver_now(item: str) -> bool:
+        if accept:
+            handed.append(item)
+        return accept
+
+    taken: list[str] = []
+
+    async def reader() -> None:
+        while True:
+            taken.append(await box.get())
+            await trio.sleep(1.0)  # busy with it: nothing is handed straight on meanwhile
+
+    box.deliver_now = deliver_now
+    box.put_target("before the reader waits")  # no reader waiting: queued
+    async with trio.open_nursery() as nursery:
+        nursery.start_soon(reader)
+        await trio.testing.wait_all_tasks_blocked()
+        assert taken == ["before the reader waits"] and handed == []
+        await trio.sleep(1.5)  # the reader waits again
+        box.put_target("t1")
+        box.put_notice("estop", clears=True)
+        await trio.testing.wait_all_tasks_blocked()
+        assert handed == ["t1", "estop"] and taken == ["before the reader waits"]
+        accept = False  # declined (a socket with no room): queued and the reader woken
+        box.put_target("t2")
+        await trio.testing.wait_all_tasks_blocked()
+        assert taken[1:] == ["t2"]
+        accept = True
+        box.put_target("t3")  # the reader is busy with t2: t3 waits in the box
+        box.put_target("t4")  # and t4 replaces it, as targets do
+        await trio.sleep(1.5)
+        assert taken[1:] == ["t2", "t4"] and handed == ["t1", "estop"] and box.coalesced == 1
         nursery.cancel_scope.cancel()
 
 

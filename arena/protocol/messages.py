@@ -288,17 +288,21 @@ _encoder = msgspec.json.Encoder()
 
 
 _second_cache: tuple[int, str] = (-1, "")
+_millisecond_cache: tuple[int, str] = (-1, "")
 
 
 def now_iso() -> str:
     """The current UTC time as ISO 8601 to the millisecond, the wire's `timestamp` format."""
-    global _second_cache
+    global _second_cache, _millisecond_cache
     milliseconds = time.time_ns() // 1_000_000
+    if _millisecond_cache[0] == milliseconds:  # the messages one command causes share it
+        return _millisecond_cache[1]
     second, millisecond = divmod(milliseconds, 1000)
     if _second_cache[0] != second:  # formatting a date costs ~1 us; most calls share a second
         moment = datetime.datetime.fromtimestamp(second, datetime.UTC)
         _second_cache = (second, moment.strftime("%Y-%m-%dT%H:%M:%S"))
-    return f"{_second_cache[1]}.{millisecond:03d}Z"
+    _millisecond_cache = (milliseconds, f"{_second_cache[1]}.{millisecond:03d}Z")
+    return _millisecond_cache[1]
 
 
 def _decode(decoder: msgspec.json.Decoder[Any], raw: str | bytes) -> Any:

@@ -7,7 +7,7 @@ notices, which are never coalesced); `EventQueue` keeps a bounded backlog and dr
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Generic, TypeVar
 
@@ -56,6 +56,10 @@ class LatestMailbox(_Parked, Generic[T, N]):
 
     A notice that `clears` (an e-stop) throws away a target not yet taken, so a slave that was
     slow never acts on a target that the stop has overtaken.
+
+    A consumer may offer `deliver_now`, a hand-off that never blocks (a write to a socket with
+    room): while its reader waits and nothing is queued, an item goes straight through it, so
+    no task is woken for it. It returns False to decline; the item is then queued as usual.
     """
 
     def __init__(self, max_notices: int = 64) -> None:
@@ -63,9 +67,12 @@ class LatestMailbox(_Parked, Generic[T, N]):
         self._target: T | None = None
         self._notices: deque[N] = deque(maxlen=max_notices)
         self.coalesced = 0  # targets replaced before being taken
+        self.deliver_now: Callable[[T | N], bool] | None = None
 
     def put_target(self, target: T) -> None:
         """Offer the newest target, replacing one not yet taken."""
+        if self._handed_off(target):
+            return
         if self._target is not None:
             self.coalesced += 1
         self._target = target
@@ -75,8 +82,21 @@ class LatestMailbox(_Parked, Generic[T, N]):
         """Queue a notice; `clears` drops the pending target."""
         if clears:
             self._target = None
+        if self._handed_off(notice):
+            return
         self._notices.append(notice)
         self._wake()
+
+    def _handed_off(self, item: T | N) -> bool:
+        # Only while the reader waits with nothing queued: then nothing of its can be in
+        # flight, and the item cannot overtake one that came before it.
+        return (
+            self.deliver_now is not None
+            and bool(self._lot)
+            and not self._has_items()
+            and not self.closed
+            and self.deliver_now(item)
+        )
 
     async def get(self) -> T | N:
         """The next notice if any, else the newest target; waits when there is neither."""

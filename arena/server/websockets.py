@@ -27,7 +27,10 @@ from arena.robot.actor import MasterLink, Robot, SlaveLink
 from arena.robot.events import (
     JointStatesReceived,
     MasterNotice,
+    NoticeKind,
     RobotEvent,
+    SlaveNotice,
+    SlaveTarget,
     StateChanged,
     TargetsSent,
 )
@@ -88,6 +91,14 @@ class Connection:
     async def send(self, *messages: msgspec.Struct | str) -> None:
         """Send messages in one write (a struct is encoded as JSON)."""
         await self._transmit(*(m if isinstance(m, str) else wire.encode(m) for m in messages))
+
+    def send_now(self, message: msgspec.Struct) -> bool:
+        """Write a message at once if the socket is idle; False (nothing sent) if it is not."""
+        if not self.ws.send_now(wire.encode(message)):
+            return False
+        if self.ws.close_sent:  # the peer is gone
+            self._ended.set()
+        return True
 
     async def send_error(self, code: ErrorCode | str, message: str) -> None:
         """Send an `error` message and count it."""
@@ -189,9 +200,10 @@ async def _heartbeats(connection: Connection) -> None:
 class _RobotEventForwarder:
     """State changes at once; joint states once per `joint_states_interval` on average.
 
-    Joint states keep to a grid of one interval, so that a client commanding at that rate gets
-    one with every acknowledgment despite jitter; two are never less than half an interval
-    apart. `name_robot` adds the robot's id to them (a group master hears from several).
+    Joint states are paced by a token bucket of two intervals: at most one per interval on
+    average and two at once, so that a client commanding at that rate gets one with every
+    acknowledgment despite jitter (a late command followed by one on time) without a separate
+    write. `name_robot` adds the robot's id to them (a group master hears from several).
 
     Besides its own task (`run`), the connection's reader can take what is ready right after
     answering a command (`handling_command`, `take_due`), so that the acknowledgment and the
@@ -259,7 +271,8 @@ class _RobotEventForwarder:
             else:
                 out.append(states)
             self.pending = False
-            self.next_send = max(self.next_send + self.interval, now + self.interval / 2)
+            # The time the bucket holds a token again (it holds at most two).
+            self.next_send = max(self.next_send + self.interval, now)
         return out
 
 
@@ -557,8 +570,18 @@ async def slave_socket(connection: Connection, robot_id: str) -> None:
 
 
 async def _slave_writer(connection: Connection, link: SlaveLink, ended: trio.Event) -> None:
-    async for message in link.messages():
-        await connection.send(convert.to_slave(message))
+    def deliver_now(message: SlaveTarget | SlaveNotice) -> bool:
+        # The robot writes to an idle socket itself; the end (shutdown) stays with this task.
+        if isinstance(message, SlaveNotice) and message.kind is NoticeKind.SHUTDOWN:
+            return False
+        return connection.send_now(convert.to_slave(message))
+
+    link.mailbox.deliver_now = deliver_now
+    try:
+        async for message in link.messages():
+            await connection.send(convert.to_slave(message))
+    finally:
+        link.mailbox.deliver_now = None
     ended.set()
     await connection.close(CLOSE_NORMAL, "detached from the robot")
 

@@ -47,6 +47,11 @@ class UpgradeRequest:
     headers: dict[str, str] = field(default_factory=dict)
 
 
+def _frames(texts: tuple[str, ...]) -> bytes:
+    frames = [ws_frames.encode_frame(OP_TEXT, text.encode("utf-8")) for text in texts]
+    return frames[0] if len(frames) == 1 else b"".join(frames)
+
+
 class WebSocketClosed(Exception):
     """The connection is closed (by either side); `code` is the peer's close code if any."""
 
@@ -175,6 +180,14 @@ class WebSocket:
         """Queue a text message (dropped silently once the connection is closing)."""
         self._queue(ws_frames.encode_frame(OP_TEXT, text.encode("utf-8")))
 
+    def send_now(self, *texts: str) -> bool:
+        """Write text messages at once if nothing else is under way on a plain TCP socket;
+        False (and nothing done) otherwise. Never waits: the caller may be a robot's actor."""
+        if self._socket is None or not self._idle():
+            return False
+        self._write_socket(self._socket, _frames(texts))
+        return True
+
     async def send(self, *texts: str) -> None:
         """Queue text messages, first waiting while the peer is too far behind.
 
@@ -183,28 +196,33 @@ class WebSocket:
         """
         while self._outbox_bytes > self.high_water and not self.close_sent:
             await self._drained_lot.park()
-        if self._sending or self._outbox or self.close_sent or self._parser.has_data():
+        if not self._idle():
             for text in texts:
                 self.send_nowait(text)
             return
-        frames = [ws_frames.encode_frame(OP_TEXT, text.encode("utf-8")) for text in texts]
-        frame = frames[0] if len(frames) == 1 else b"".join(frames)
         if self._socket is not None:
-            try:
-                written = os.write(self._socket.fileno(), frame)  # -1 once closed: EBADF
-            except BlockingIOError:
-                written = 0
-            except OSError:  # the peer is gone: the reader sees the end of the stream
-                self._set_broken()
-                return
-            if written < len(frame):
-                self._queue(frame[written:])  # the kernel's buffer is full: the writer waits
+            self._write_socket(self._socket, _frames(texts))
             return
         try:
-            await self._write(frame)
+            await self._write(_frames(texts))
         finally:
             if self._outbox or self._finishing:
                 self._writer_lot.unpark()
+
+    def _idle(self) -> bool:
+        """Nothing queued or being written, and no more frames in hand to answer first."""
+        return not (self._sending or self._outbox or self.close_sent or self._parser.has_data())
+
+    def _write_socket(self, sock: trio.socket.SocketType, frame: bytes) -> None:
+        try:
+            written = os.write(sock.fileno(), frame)  # -1 once closed: EBADF
+        except BlockingIOError:
+            written = 0
+        except OSError:  # the peer is gone: the reader sees the end of the stream
+            self._set_broken()
+            return
+        if written < len(frame):
+            self._queue(frame[written:])  # the kernel's buffer is full: the writer waits
 
     def close_nowait(self, code: int, reason: str = "") -> None:
         """Send a close frame once; everything queued before it still goes out."""
