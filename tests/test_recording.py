@@ -459,8 +459,8 @@ async def test_a_replay_behind_schedule_keeps_order_and_yields_to_an_estop(
 async def test_the_recorder_counts_overflow_and_writes_robots_in_time_order(
     autojump_clock: MockClock, tmp_path: Path
 ) -> None:
-    # Followers are drained once per flush: a queue shorter than a burst loses its oldest.
-    recorder = Recorder(tmp_path, flush_interval=1.0, queue_size=20)
+    # Queues are drained once per batch: a queue shorter than a burst loses its oldest.
+    recorder = Recorder(tmp_path, flush_interval=1.0, batch_interval=1.0, queue_size=20)
     async with trio.open_nursery() as nursery:
         await nursery.start(recorder.run)
         async with open_manager() as manager:
@@ -491,3 +491,37 @@ async def test_the_recorder_counts_overflow_and_writes_robots_in_time_order(
         if channel.topic.endswith("/command")
     ]
     assert refused == [(f"/robots/{r}/command", float(n)) for n in range(10, 30) for r in "ab"]
+
+
+async def test_records_reach_the_disk_within_a_flush_interval_when_the_robot_goes_quiet(
+    tmp_path: Path,
+) -> None:
+    # Real time: the batches cross a thread and a process. Batches between flushes stay in
+    # the open chunk; the next flush writes them even if nothing else happens.
+    recorder = Recorder(tmp_path, flush_interval=0.5, batch_interval=0.05)
+
+    def commands_on_disk() -> int:
+        files = list(tmp_path.glob("*.mcap"))
+        try:
+            return sum(m.kind == "command" for m in read_recording(files[0]).messages)
+        except (IndexError, ArenaError):  # no file yet, or not even its magic on disk
+            return 0
+
+    async with trio.open_nursery() as nursery:
+        await nursery.start(recorder.run)
+        async with open_manager() as manager:
+            manager.on_create.append(recorder.follow)
+            robot = await manager.create_robot("so-arm100", robot_id="quiet")
+            await robot.command(Command.of({"Rotation": 0.01}))
+            with trio.fail_after(5):
+                while commands_on_disk() < 1:  # in the first batch, which is flushed
+                    await trio.sleep(0.01)
+            flushed_at = trio.current_time()
+            await robot.command(Command.of({"Rotation": 0.02}))
+            await trio.sleep(0.2)  # handed to the writer in a batch, not yet flushed
+            assert commands_on_disk() == 1
+            with trio.fail_after(5):
+                while commands_on_disk() < 2:
+                    await trio.sleep(0.01)
+            assert trio.current_time() - flushed_at >= 0.5 - 0.06
+        nursery.cancel_scope.cancel()

@@ -67,8 +67,9 @@ class McapFileWriter:
         self._robots_written: set[str] = set()
         self.messages = 0
 
-    def write(self, items: list[Item]) -> None:
-        """Append records, opening or rotating files as needed, then flush to the OS.
+    def write(self, items: list[Item], *, flush: bool = True) -> None:
+        """Append records, opening or rotating files as needed, then (with `flush`) close the
+        chunk in progress and hand it to the OS.
 
         On `OSError` (a full or vanished disk) the current file is abandoned and the error
         raised: the next call starts a fresh file.
@@ -81,7 +82,8 @@ class McapFileWriter:
                     self._robots_written.add(robot_id)
                 writer.add_message(self._channel(writer, robot_id, kind), log_time, data, log_time)
                 self.messages += 1
-            self.flush()
+            if flush:
+                self.flush()
         except OSError:
             self.abandon()
             raise

@@ -2,9 +2,12 @@
 
 Each robot's events go into a large drop-oldest queue (a robot never waits for the recorder;
 anything dropped is counted). Nothing wakes per event: one writer task drains the queues every
-`flush_interval`, encodes the records in slices (other tasks run between them) and hands the
+`batch_interval`, encodes the records in slices (other tasks run between them) and hands the
 batch, from a worker thread, to the MCAP writer in its own process (`writer_process`), where
-compression and file I/O run on another core than control.
+compression and file I/O run on another core than control. Small batches keep that work
+smooth: on a small machine a burst of writing every quarter second showed as latency spikes.
+Every `flush_interval` the open chunk is closed and handed to the OS, which bounds what a
+power cut can take.
 """
 
 from __future__ import annotations
@@ -47,6 +50,7 @@ class Recorder:
         max_bytes: int = 256 << 20,
         max_seconds: float = 3600.0,
         flush_interval: float = 0.25,
+        batch_interval: float = 0.05,
         queue_size: int = 100_000,
         active: bool = True,
     ) -> None:
@@ -55,6 +59,7 @@ class Recorder:
             FileSeries(folder, {**base, **(metadata or {})}, max_bytes, max_seconds)
         )
         self.flush_interval = flush_interval
+        self.batch_interval = min(batch_interval, flush_interval)
         self.queue_size = queue_size
         self.active = active
         self.error: str | None = None
@@ -62,6 +67,8 @@ class Recorder:
         self._dropped_by_gone = 0  # queue overflows of robots no longer followed
         self._followed: dict[EventQueue[RobotEvent], tuple[str, contextlib.ExitStack]] = {}
         self._wall_offset = 0.0  # wall clock minus trio's clock, taken when `run` starts
+        self._next_flush = 0.0
+        self._unflushed = False  # records handed over since the last flush
 
     @property
     def folder(self) -> Path:
@@ -137,24 +144,27 @@ class Recorder:
         return batch
 
     async def _write_forever(self) -> None:
-        # One batch per interval: a single thread hop and a single chunk however busy it is.
+        # One batch per interval: a single thread hop however busy it is.
         while True:
-            await trio.sleep(self.flush_interval)
-            await self._write_pending()
+            await trio.sleep(self.batch_interval)
+            await self._write_pending(flush=trio.current_time() >= self._next_flush)
 
-    async def _write_pending(self) -> None:
-        await self._write(await self._collect())
+    async def _write_pending(self, flush: bool = True) -> None:
+        await self._write(await self._collect(), flush)
 
-    async def _write(self, batch: list[Item]) -> None:
-        if not batch:
+    async def _write(self, batch: list[Item], flush: bool = True) -> None:
+        if not batch and not (flush and self._unflushed):
             return
 
         def write_in_time_order() -> None:
             batch.sort(key=_by_log_time)  # one sorted run per robot: a cheap merge
-            self.writer.write(batch)
+            self.writer.write(batch, flush=flush)
 
         try:
             await trio.to_thread.run_sync(write_in_time_order)
+            self._unflushed = not flush
+            if flush:
+                self._next_flush = trio.current_time() + self.flush_interval
             if self.error is not None:
                 log.warning("recording resumed in %s", self.writer.path)
             self.error = None
@@ -165,6 +175,7 @@ class Recorder:
                 log.error("recording failed: %s", exc)
             self.error = f"{type(exc).__name__}: {exc}"
             self._write_failures += len(batch)  # the writer has dropped its file
+            self._unflushed = False
 
     @property
     def dropped(self) -> int:

@@ -9,8 +9,9 @@ core. The parent only pickles each batch into a pipe.
 The protocol on the child's stdin/stdout is a series of frames (8-byte big-endian length, then a
 pickle), one request and one reply at a time:
   first frame      the `FileSeries`, no reply
-  ("write", items, robots)   append records; `robots` holds metadata of robots new to the child
-  ("close", None, None)      finish the current file
+  ("write", items, robots, flush)   append records; `robots` holds metadata of robots new to
+                                    the child; `flush` closes the chunk and hands it to the OS
+  ("close", None, None, True)       finish the current file
 and each reply is (error or None, current path or None, messages written, every file opened).
 End of input makes the child finish its file and exit: a killed server still leaves a complete
 file behind.
@@ -80,18 +81,19 @@ class McapWriterProcess:
         with self._lock:
             self._running()
 
-    def write(self, items: list[Item]) -> None:
-        """Append records (the child opens or rotates files as needed) and flush them."""
+    def write(self, items: list[Item], *, flush: bool = True) -> None:
+        """Append records (the child opens or rotates files as needed); `flush` as in
+        `McapFileWriter.write`."""
         with self._lock:
             new = {r: meta for r, meta in self.robots.items() if r not in self._robots_sent}
-            self._request(("write", items, new))
+            self._request(("write", items, new, flush))
             self._robots_sent.update(new)
 
     def close(self) -> None:
         """Finish the current file; the child stays for the next one."""
         with self._lock:
             if self._process is not None:
-                self._request(("close", None, None))
+                self._request(("close", None, None, True))
 
     def shutdown(self) -> None:
         """Finish the current file and end the child."""
@@ -108,7 +110,7 @@ class McapWriterProcess:
                 process.wait()
             self.path = None
 
-    def _request(self, request: tuple[str, object, object]) -> None:
+    def _request(self, request: tuple[str, object, object, bool]) -> None:
         process = self._running()
         assert process.stdin is not None and process.stdout is not None
         try:
@@ -161,14 +163,14 @@ def serve(requests: IO[bytes], replies: IO[bytes]) -> None:
     try:
         while True:
             try:
-                kind, items, robots = receive_frame(requests)
+                kind, items, robots, flush = receive_frame(requests)
             except EOFError:
                 return
             error = None
             try:
                 if kind == "write":
                     writer.robots.update(robots)
-                    writer.write(items)
+                    writer.write(items, flush=flush)
                 else:
                     writer.close()
             except OSError as exc:
@@ -180,8 +182,19 @@ def serve(requests: IO[bytes], replies: IO[bytes]) -> None:
             writer.close()
 
 
+def _yield_to_everything_else() -> None:
+    """Run only on a core nothing else wants (Linux's SCHED_IDLE; elsewhere the lowest nice).
+
+    When the cores are busy the writer falls behind (its batches grow) rather than take CPU
+    from the server: a plain lower priority still lets it delay the server's wake-ups by a few
+    milliseconds, which showed in the fleet benchmark's p99.
+    """
+    try:
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+    except (AttributeError, OSError):
+        os.nice(19)
+
+
 if __name__ == "__main__":
-    # Below control in the scheduler's eyes: when the cores are busy the writer falls behind
-    # (its batches grow) rather than taking CPU from the server.
-    os.nice(10)
+    _yield_to_everything_else()
     serve(sys.stdin.buffer, sys.stdout.buffer)
