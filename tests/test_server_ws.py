@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from types import SimpleNamespace
@@ -21,7 +22,9 @@ from arena.robot.mailbox import EventQueue
 from arena.robot.manager import RobotManager
 from arena.robot.motion import Command
 from arena.server.websockets import _RobotEventForwarder
+from arena.server.ws_frames import encode_frame
 from tests.conftest import RunningServer
+from tests.raw_websocket import OP_TEXT, RawWebSocket
 
 StartServer = Callable[..., Awaitable[RunningServer]]
 
@@ -459,6 +462,39 @@ async def test_deleting_a_robot_closes_its_sockets(server: RunningServer) -> Non
             await http.delete("/api/robots/demo-arm")
         assert await closed_with(slave) == 1000
         assert await closed_with(master) in (1000, 4404)
+
+
+async def test_a_slave_gets_each_lone_command_at_once_and_the_newest_of_a_burst(
+    server: RunningServer,
+) -> None:
+    # Targets are written to an idle slave's socket by the robot itself; during a master's
+    # burst they wait for the slave's writer task, which sends the newest once.
+    async with open_websocket_url(server.ws_url + "/ws/slave/demo-arm?id=ws-slave") as slave:
+        master = await RawWebSocket.connect(server.url, "/ws/master/demo-arm")
+
+        async def rotations_until(last: float) -> list[float]:
+            seen: list[float] = []
+            while not seen or seen[-1] != last:
+                doc = await receive(slave, "execute_command")
+                seen += [j["value"] for j in doc["data"]["joints"] if j["name"] == "Rotation"]
+            return seen
+
+        def frame(value: float) -> bytes:
+            text = json.dumps(
+                {"type": "command", "data": {"joints": [{"name": "Rotation", "value": value}]}}
+            )
+            return encode_frame(OP_TEXT, text.encode(), mask=os.urandom(4))
+
+        lone = [0.01, 0.02, 0.03]  # moves done in one step: one target each
+        for value in lone:
+            await master.stream.send_all(frame(value))
+            assert await rotations_until(value) == [value]
+        await trio.sleep(0.2)  # the robot's rate limit refills its burst of ten
+        burst = [0.01 * n for n in range(4, 14)]
+        await master.stream.send_all(b"".join(frame(v) for v in burst))  # one write
+        seen = await rotations_until(burst[-1])
+        assert len(seen) < len(burst) and seen == sorted(seen)
+        await master.aclose()
 
 
 async def test_a_reader_takes_the_due_joint_states_so_the_forwarder_sends_no_copy(

@@ -9,6 +9,7 @@ link (detached, deleted), or the server shuts down (closed with 1001 at once).
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import itertools
 import logging
 import math
@@ -46,6 +47,13 @@ if TYPE_CHECKING:
 T = TypeVar("T")
 log = logging.getLogger(__name__)
 _ids = itertools.count(1)
+
+#: Set in a reader's task while it holds further frames of the same burst. A robot deciding a
+#: command in that task then leaves its slaves' targets to their writer tasks, which send the
+#: newest once per burst, instead of writing every one to the socket at once.
+_burst_continues: contextvars.ContextVar[bool] = contextvars.ContextVar(
+    "burst_continues", default=False
+)
 
 #: Close codes: 1000 normal, 1001 going away, 4000 + an HTTP-like status for refusals.
 CLOSE_NORMAL, CLOSE_GOING_AWAY = 1000, 1001
@@ -479,6 +487,7 @@ async def _read_loop(
         if raw is None:
             return
         started = time.perf_counter()
+        _burst_continues.set(connection.ws.holds_more())
         try:
             await handle(decode(raw))
         except ArenaError as error:
@@ -571,8 +580,12 @@ async def slave_socket(connection: Connection, robot_id: str) -> None:
 
 async def _slave_writer(connection: Connection, link: SlaveLink, ended: trio.Event) -> None:
     def deliver_now(message: SlaveTarget | SlaveNotice) -> bool:
-        # The robot writes to an idle socket itself; the end (shutdown) stays with this task.
-        if isinstance(message, SlaveNotice) and message.kind is NoticeKind.SHUTDOWN:
+        # The robot writes to an idle socket itself; the end (shutdown) stays with this task,
+        # and so do targets in the middle of a master's burst (they are coalesced).
+        if isinstance(message, SlaveNotice):
+            if message.kind is NoticeKind.SHUTDOWN:
+                return False
+        elif _burst_continues.get():
             return False
         return connection.send_now(convert.to_slave(message))
 

@@ -180,6 +180,10 @@ class WebSocket:
         """Queue a text message (dropped silently once the connection is closing)."""
         self._queue(ws_frames.encode_frame(OP_TEXT, text.encode("utf-8")))
 
+    def holds_more(self) -> bool:
+        """Bytes of further frames are in hand (the peer sent a burst)."""
+        return self._parser.has_data()
+
     def send_now(self, *texts: str) -> bool:
         """Write text messages at once if nothing else is under way on a plain TCP socket;
         False (and nothing done) otherwise. Never waits: the caller may be a robot's actor."""
