@@ -26,6 +26,7 @@ def test_bench_scenarios_run_against_a_real_server() -> None:
         "relay_p50_us",
         "throughput_accepted_per_s",
         "estop_one_p50_ms",
+        "estop_one_answered_p99_ms",
         "estop_all_median_ms",
         "fleet_p99_us",
     ):
