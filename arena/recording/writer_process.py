@@ -9,8 +9,10 @@ core. The parent only pickles each batch into a pipe.
 The protocol on the child's stdin/stdout is a series of frames (8-byte big-endian length, then a
 pickle), one request and one reply at a time:
   first frame      the `FileSeries`, no reply
-  ("write", items, robots, flush)   append records; `robots` holds metadata of robots new to
-                                    the child; `flush` closes the chunk and hands it to the OS
+  ("write", items, robots, flush)   append records (`items` packed with msgpack, which costs
+                                    the parent a third of what pickle does); `robots` holds
+                                    metadata of robots new to the child; `flush` closes the
+                                    chunk and hands it to the OS
   ("close", None, None, True)       finish the current file
 and each reply is (error or None, current path or None, messages written, every file opened).
 End of input makes the child finish its file and exit: a killed server still leaves a complete
@@ -29,11 +31,15 @@ import threading
 from pathlib import Path
 from typing import IO, Any
 
+import msgspec
+
 from arena.recording.mcap_file import FileSeries, Item, McapFileWriter
 
 _LENGTH = struct.Struct(">Q")
 #: How long the child may take to finish its file at shutdown before it is killed.
 SHUTDOWN_TIMEOUT = 10.0
+_pack_items = msgspec.msgpack.Encoder().encode
+_unpack_items = msgspec.msgpack.Decoder(list[tuple[str, str, bytes, int]]).decode
 
 
 def send_frame(stream: IO[bytes], value: object) -> None:
@@ -86,7 +92,7 @@ class McapWriterProcess:
         `McapFileWriter.write`."""
         with self._lock:
             new = {r: meta for r, meta in self.robots.items() if r not in self._robots_sent}
-            self._request(("write", items, new, flush))
+            self._request(("write", _pack_items(items), new, flush))
             self._robots_sent.update(new)
 
     def close(self) -> None:
@@ -170,7 +176,7 @@ def serve(requests: IO[bytes], replies: IO[bytes]) -> None:
             try:
                 if kind == "write":
                     writer.robots.update(robots)
-                    writer.write(items, flush=flush)
+                    writer.write(_unpack_items(items), flush=flush)
                 else:
                     writer.close()
             except OSError as exc:
