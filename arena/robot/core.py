@@ -31,6 +31,9 @@ from arena.robot.safety import (
 
 #: Rate-limit key of manual control (sliders, REST joints), which has no master id.
 MANUAL_SOURCE = "manual"
+# Immutable values every command would otherwise build afresh.
+_MANUAL = ManualCommand()
+_ACCEPTED = CommandResult(True)
 
 
 @dataclass(slots=True)
@@ -53,6 +56,7 @@ class RobotCore:
         )
         self.motion = MotionLimiter(model, now)
         self._rates: dict[str, RateLimiter] = {}
+        self._master_events: dict[str, MasterCommand] = {}
 
     @property
     def tick_interval(self) -> float:
@@ -69,18 +73,25 @@ class RobotCore:
             if isinstance(effect, StopMotion | HoldPosition):
                 self.motion.freeze(now)
             elif isinstance(effect, DetachMaster):
-                self._rates.pop(effect.master_id, None)
+                self.forget_master(effect.master_id)
         return Step(outcome, None, outcome.effects)
 
     def forget_master(self, master_id: str) -> None:
         """Drop per-master bookkeeping once a master is gone for good."""
         self._rates.pop(master_id, None)
+        self._master_events.pop(master_id, None)
 
     def command(
         self, source: str | None, command: Command, now: float
     ) -> tuple[CommandResult, Step]:
         """A command from master `source` (None: manual control). Returns the answer and step."""
-        event = ManualCommand() if source is None else MasterCommand(source)
+        if source is None:
+            event: Event = _MANUAL
+        else:
+            known = self._master_events.get(source)
+            if known is None:  # one immutable event per master: a command allocates less
+                known = self._master_events[source] = MasterCommand(source)
+            event = known
         outcome = transition(self.state, event)
         if isinstance(outcome, Refused):
             return CommandResult.refused(outcome.code, outcome.message), Step(outcome)
@@ -101,7 +112,8 @@ class RobotCore:
         self.motion.set_goals(goals, command.duration, now)
         targets = self.motion.advance(now)
         message = "clamped to the joint limits" if clamps else ""
-        return CommandResult(True, None, message, tuple(clamps)), Step(outcome, targets)
+        result = CommandResult(True, None, message, tuple(clamps)) if clamps else _ACCEPTED
+        return result, Step(outcome, targets)
 
     def tick(self, now: float) -> dict[str, float] | None:
         """Advance interpolation; returns new targets, or None if nothing moved."""

@@ -170,6 +170,10 @@ class ApplyCommand:
     """Pass the command on to the motion filter."""
 
 
+#: The effects of an allowed command, shared: effects are immutable values.
+_APPLY_COMMAND = (ApplyCommand(),)
+
+
 @dataclass(frozen=True, slots=True)
 class DetachMaster:
     """End a master's ownership and tell it why."""
@@ -384,7 +388,7 @@ def _owner_command(state: SafetyState, event: Event) -> Outcome:
             ErrorCode.NOT_OWNER,
             f"Robot is controlled by master {state.owner!r}, not {event.source!r}.",
         )
-    return Allowed(state, (ApplyCommand(),))
+    return Allowed(state, _APPLY_COMMAND)
 
 
 @_rule("refused ESTOPPED")
@@ -396,7 +400,7 @@ def _refuse_estopped(state: SafetyState, event: Event) -> Outcome:
 
 @_rule("allowed, apply")
 def _manual_command(state: SafetyState, event: Event) -> Outcome:
-    return Allowed(state, (ApplyCommand(),))
+    return Allowed(state, _APPLY_COMMAND)
 
 
 @_rule("refused MASTER_ACTIVE")
