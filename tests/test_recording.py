@@ -17,7 +17,7 @@ import httpx
 import jsonschema
 import pytest
 import trio
-from mcap.reader import make_reader
+from mcap.reader import NonSeekingReader, make_reader
 from trio.testing import MockClock
 
 from arena import cli
@@ -26,6 +26,7 @@ from arena.drivers.sequences import get_sequence
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording.analysis import export, summarize, timeline
 from arena.recording.mcap_file import FileSeries, read_recording, write_recording
+from arena.recording.mcap_writer import ChunkedWriter
 from arena.recording.recorder import Recorder, check_name
 from arena.recording.replay import ReplayMaster, TimedCommand, recorded_commands
 from arena.recording.session import behaviour, record_scenario, replay_session
@@ -525,3 +526,45 @@ async def test_records_reach_the_disk_within_a_flush_interval_when_the_robot_goe
                     await trio.sleep(0.01)
             assert trio.current_time() - flushed_at >= 0.5 - 0.06
         nursery.cancel_scope.cancel()
+
+
+def test_the_chunked_writer_makes_files_mcaps_own_readers_read_whole(tmp_path: Path) -> None:
+    path = tmp_path / "w.mcap"
+    sent: list[tuple[str, int, bytes]] = []
+    with open(path, "wb") as stream:
+        writer = ChunkedWriter(stream, chunk_size=2048)  # many chunks
+        writer.start(profile="arena", library="test")
+        writer.add_metadata("arena", {"server": "test"})
+        schema = writer.register_schema("targets", "jsonschema", b'{"type": "object"}')
+        topics = ["/robots/a/targets", "/robots/b/targets"]
+        channels = [writer.register_channel(t, "json", schema) for t in topics]
+        for n in range(500):
+            # Times out of order inside a chunk too (the recorder sorts; a writer must not care).
+            log_time = 1_000_000_000 + n * 1000 + (500 if n % 3 == 0 else 0)
+            data = json.dumps({"t": n, "joints": {"Rotation": n * 0.5}}).encode()
+            writer.add_message(channels[n % 2], log_time, data)
+            sent.append((topics[n % 2], log_time, data))
+        writer.finish()
+    with open(path, "rb") as stream:
+        reader = make_reader(stream, validate_crcs=True)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics is not None
+        statistics = summary.statistics
+        assert statistics.message_count == 500 and statistics.chunk_count > 5
+        assert statistics.channel_message_counts == {channels[0]: 250, channels[1]: 250}
+        assert statistics.message_start_time == min(t for _, t, _ in sent)
+        assert statistics.message_end_time == max(t for _, t, _ in sent)
+        read = [(c.topic, m.log_time, m.data) for _, c, m in reader.iter_messages()]
+        assert read == sorted(sent, key=lambda item: item[1])
+        assert [m.metadata for m in reader.iter_metadata()] == [{"server": "test"}]
+    with open(path, "rb") as stream:
+        streamed = NonSeekingReader(stream, validate_crcs=True).iter_messages(log_time_order=False)
+        assert [(c.topic, m.log_time, m.data) for _, c, m in streamed] == sent
+    # Cut mid-file: every complete chunk still reads, and the file shows as cut.
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    recording = read_recording(cut)
+    assert recording.truncated and 100 < len(recording.messages) < 500
+    assert [m.log_time for m in recording.messages] == [t for _, t, _ in sent][
+        : len(recording.messages)
+    ]

@@ -17,9 +17,9 @@ from typing import IO, Any
 
 from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
-from mcap.writer import CompressionType, IndexType, Writer
 
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.recording.mcap_writer import ChunkedWriter
 from arena.recording.records import schema_of, split_topic, topic
 
 SUFFIX = ".mcap"
@@ -60,7 +60,7 @@ class McapFileWriter:
         self.path: Path | None = None
         self.files: list[Path] = []
         self._stream: IO[bytes] | None = None
-        self._writer: Writer | None = None
+        self._writer: ChunkedWriter | None = None
         self._opened_at = 0.0
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
@@ -80,7 +80,7 @@ class McapFileWriter:
                 if robot_id not in self._robots_written and robot_id in self.robots:
                     writer.add_metadata(f"robot/{robot_id}", self.robots[robot_id])
                     self._robots_written.add(robot_id)
-                writer.add_message(self._channel(writer, robot_id, kind), log_time, data, log_time)
+                writer.add_message(self._channel(writer, robot_id, kind), log_time, data)
                 self.messages += 1
             if flush:
                 self.flush()
@@ -116,22 +116,14 @@ class McapFileWriter:
         self._writer = self._stream = None
         self.path = None
 
-    def _current(self) -> Writer:
+    def _current(self) -> ChunkedWriter:
         if self._writer is None:
             self.folder.mkdir(parents=True, exist_ok=True)
             path = self.folder / new_file_name()
             while path.exists():  # two files within a millisecond: keep both
                 path = path.with_name(path.stem + "-1" + SUFFIX)
             self._stream = open(path, "wb")  # noqa: SIM115 - closed in close()
-            # No message indexes: they would keep an entry per channel per chunk in
-            # memory until the file ends (59 MiB over a 10-minute, 100-robot soak); readers
-            # find every message through the chunk indexes all the same.
-            self._writer = Writer(
-                self._stream,
-                chunk_size=self.chunk_size,
-                compression=CompressionType.ZSTD,
-                index_types=IndexType.ALL & ~IndexType.MESSAGE,
-            )
+            self._writer = ChunkedWriter(self._stream, chunk_size=self.chunk_size)
             self._writer.start(profile=PROFILE, library="arena")
             self._writer.add_metadata("arena", self.metadata)
             self._opened_at = time.monotonic()
@@ -142,7 +134,7 @@ class McapFileWriter:
             self.files.append(path)
         return self._writer
 
-    def _channel(self, writer: Writer, robot_id: str, kind: str) -> int:
+    def _channel(self, writer: ChunkedWriter, robot_id: str, kind: str) -> int:
         name = topic(robot_id, kind)
         channel = self._channels.get(name)
         if channel is None:
@@ -247,7 +239,7 @@ def _read_into(recording: Recording, records: Iterator[Any]) -> bool:
 def write_recording(recording: Recording, path: Path) -> int:
     """Write everything read from `recording` as a complete, indexed MCAP file at `path`."""
     with open(path, "wb") as stream:
-        writer = Writer(stream, chunk_size=1 << 20, compression=CompressionType.ZSTD)
+        writer = ChunkedWriter(stream, chunk_size=1 << 20)
         writer.start(profile=PROFILE, library="arena")
         for name, values in recording.metadata.items():
             writer.add_metadata(name, values)
@@ -264,6 +256,6 @@ def write_recording(recording: Recording, path: Path) -> int:
                 channel = writer.register_channel(message.topic, "json", schema)
                 channel_ids[message.topic] = channel
             data = json.dumps(message.data, separators=(",", ":")).encode()
-            writer.add_message(channel, message.log_time, data, message.log_time)
+            writer.add_message(channel, message.log_time, data)
         writer.finish()
     return len(recording.messages)
