@@ -1,10 +1,10 @@
 """The MCAP writer in a child process, so that writing never competes with control for the GIL.
 
-mcap's Python writer costs about 5 us a message, and every command leaves two or three records:
-in the server's process that is a quarter of the work per command. `McapWriterProcess` offers
-the same calls as `McapFileWriter` and runs one in a child Python process (`python -m
-arena.recording.writer_process`), which does the encoding, compression and file I/O on the other
-core. The parent only pickles each batch into a pipe.
+Writing MCAP (building records, compressing chunks, file I/O) costs a microsecond or more a
+message, and every command leaves two or three records. `McapWriterProcess` offers the same
+calls as `McapFileWriter` and runs one in a child Python process (`python -m
+arena.recording.writer_process`), which does that work on the other core at idle priority.
+The parent only packs each batch and writes it into a pipe.
 
 The protocol on the child's stdin/stdout is a series of frames (8-byte big-endian length, then a
 pickle), one request and one reply at a time:

@@ -56,7 +56,7 @@ class RobotCore:
         )
         self.motion = MotionLimiter(model, now)
         self._rates: dict[str, RateLimiter] = {}
-        self._master_events: dict[str, MasterCommand] = {}
+        self._last_master_event: MasterCommand | None = None  # reused while one master commands
 
     @property
     def tick_interval(self) -> float:
@@ -73,25 +73,24 @@ class RobotCore:
             if isinstance(effect, StopMotion | HoldPosition):
                 self.motion.freeze(now)
             elif isinstance(effect, DetachMaster):
-                self.forget_master(effect.master_id)
+                self._rates.pop(effect.master_id, None)
         return Step(outcome, None, outcome.effects)
 
     def forget_master(self, master_id: str) -> None:
         """Drop per-master bookkeeping once a master is gone for good."""
         self._rates.pop(master_id, None)
-        self._master_events.pop(master_id, None)
 
     def command(
         self, source: str | None, command: Command, now: float
     ) -> tuple[CommandResult, Step]:
         """A command from master `source` (None: manual control). Returns the answer and step."""
+        last = self._last_master_event
         if source is None:
             event: Event = _MANUAL
+        elif last is not None and last.source == source:
+            event = last  # immutable: a command from the same master allocates less
         else:
-            known = self._master_events.get(source)
-            if known is None:  # one immutable event per master: a command allocates less
-                known = self._master_events[source] = MasterCommand(source)
-            event = known
+            event = self._last_master_event = MasterCommand(source)
         outcome = transition(self.state, event)
         if isinstance(outcome, Refused):
             return CommandResult.refused(outcome.code, outcome.message), Step(outcome)
