@@ -503,10 +503,8 @@ async def test_a_reader_takes_the_due_joint_states_so_the_forwarder_sends_no_cop
     # What the reader takes along with an ack leaves the queue (the forwarder's task finds
     # nothing to repeat); pacing and state changes work as they do in the forwarder's task.
     robot = await manager.create_robot("so-arm100", robot_id="paced")
-    config = SimpleNamespace(joint_states_interval=0.02)
-    connection = cast(Any, SimpleNamespace(app=SimpleNamespace(arena_config=config)))
     with robot.subscribe(maxlen=256) as events:
-        forwarder = _RobotEventForwarder(connection, robot, events)
+        forwarder, _ = _forwarder_on(robot, events)
         await robot.command(Command.of({"Rotation": 1.0}))
         assert [type(m) for m in forwarder.take_due()] == [wire.JointStatesOut]
         assert len(events) == 0
