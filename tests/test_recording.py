@@ -15,6 +15,7 @@ from pathlib import Path
 
 import httpx
 import jsonschema
+import msgspec
 import pytest
 import trio
 from mcap.reader import NonSeekingReader, make_reader
@@ -23,19 +24,28 @@ from trio.testing import MockClock
 from arena import cli
 from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import get_sequence
-from arena.protocol.errors import ArenaError, ErrorCode
+from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.recording.analysis import export, summarize, timeline
 from arena.recording.mcap_file import FileSeries, read_recording, write_recording
 from arena.recording.mcap_writer import ChunkedWriter
 from arena.recording.recorder import Recorder, check_name
+from arena.recording.records import KIND_OF_EVENT, record_of
 from arena.recording.replay import ReplayMaster, TimedCommand, recorded_commands
 from arena.recording.session import behaviour, record_scenario, replay_session
-from arena.recording.writer_process import McapWriterProcess
+from arena.recording.writer_process import McapWriterProcess, items_of_events, pack_events
 from arena.robot.actor import Robot
-from arena.robot.events import CommandHandled, StateChanged
+from arena.robot.events import (
+    CommandHandled,
+    FaultReported,
+    JointStatesReceived,
+    PeerChanged,
+    RobotEvent,
+    StateChanged,
+    TargetsSent,
+)
 from arena.robot.manager import RobotManager, open_manager
 from arena.robot.model import load_robot_model
-from arena.robot.motion import Command
+from arena.robot.motion import Clamp, Command, CommandResult, JointGoal
 from arena.robot.safety import Mode
 from tests.conftest import RecordingSlave
 
@@ -568,3 +578,34 @@ def test_the_chunked_writer_makes_files_mcaps_own_readers_read_whole(tmp_path: P
     assert [m.log_time for m in recording.messages] == [t for _, t, _ in sent][
         : len(recording.messages)
     ]
+
+
+def test_events_packed_for_the_writer_process_become_the_same_records() -> None:
+    # The server packs robot events as they are; the writer process makes the records. Every
+    # kind, with the awkward fields (enums, None, tuples of clamps, speeds), must survive.
+    command = Command((JointGoal("Rotation", 10.0, 30.0), JointGoal("Jaw", 900.0)), 0.5, "ui")
+    events: list[RobotEvent] = [
+        CommandHandled(
+            "a",
+            "m1",
+            command,
+            CommandResult(True, None, "clamped", (Clamp("Jaw", 900.0, 100.0),)),
+            1.5,
+            2.0,
+        ),
+        CommandHandled(
+            "a", "m2", command, CommandResult.refused(ErrorCode.ESTOPPED, "no"), 1.6, 2.1
+        ),
+        TargetsSent("a", {"Rotation": 1.25, "Jaw": -3.0}, 1.7, 2.2),
+        JointStatesReceived("b", "s1", {"Rotation": 1.0}, 1.8, 2.3),
+        StateChanged("a", Mode.ESTOPPED, None, "stop", "button", 1.9, 2.4),
+        FaultReported("b", "s1", "OVERHEAT", "hot", Severity.CRITICAL, "Elbow", 2.0, 2.5),
+        PeerChanged("a", "master", "m1", "websocket", "detached", "left", 2.1, 2.6, True),
+    ]
+    packed = [(e.robot_id, KIND_OF_EVENT[type(e)], e, 1000 - n) for n, e in enumerate(events)]
+    items = items_of_events([pack_events(packed[:3]), pack_events(packed[3:])])
+    expected = [
+        (robot_id, record_of(e)[0], msgspec.json.encode(record_of(e)[1]), log_time)
+        for robot_id, _, e, log_time in reversed(packed)  # the child writes in time order
+    ]
+    assert items == expected

@@ -2,9 +2,10 @@
 
 Each robot's events go into a large drop-oldest queue (a robot never waits for the recorder;
 anything dropped is counted). Nothing wakes per event: one writer task drains the queues every
-`batch_interval`, encodes the records in slices (other tasks run between them) and hands the
-batch, from a worker thread, to the MCAP writer in its own process (`writer_process`), where
-compression and file I/O run on another core than control. Small batches keep that work
+`batch_interval`, packs the events as they are in slices (other tasks run between them) and
+hands the batch, from a worker thread, to the MCAP writer in its own process
+(`writer_process`), where the records are made, compressed and written on another core than
+control. Small batches keep that work
 smooth: on a small machine a burst of writing every quarter second showed as latency spikes.
 Every `flush_interval` the open chunk is closed and handed to the OS, which bounds what a
 power cut can take.
@@ -15,29 +16,40 @@ from __future__ import annotations
 import contextlib
 import logging
 import time
-from operator import itemgetter
+from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
-import msgspec
 import trio
 
 import arena
 from arena.protocol.errors import ArenaError, ErrorCode
-from arena.recording.mcap_file import FileSeries, Item
-from arena.recording.records import record_of
-from arena.recording.writer_process import McapWriterProcess
+from arena.recording.mcap_file import FileSeries
+from arena.recording.records import KIND_OF_EVENT
+from arena.recording.writer_process import McapWriterProcess, pack_events
 from arena.robot.actor import Robot
 from arena.robot.events import RobotEvent
 from arena.robot.mailbox import EventQueue
 
 log = logging.getLogger(__name__)
 
-_encoder = msgspec.json.Encoder()
-#: Records encoded between two checkpoints (~60 us of work), so a batch never holds up control
-#: for long: with 256 the relay benchmark's p99 rose by 100 us.
-_ENCODE_SLICE = 32
-_by_log_time = itemgetter(3)
+#: Events packed between two checkpoints (~30 us of work), so a batch never holds up control
+#: for long: with 256 records a slice the relay benchmark's p99 rose by 100 us.
+_PACK_SLICE = 32
+
+
+@dataclass
+class _Batch:
+    """Events drained since the last batch, packed in slices for the writer process."""
+
+    slices: list[bytes] = field(default_factory=list)
+    events: int = 0
+
+    def add(self, part: list[tuple[str, str, RobotEvent, int]]) -> None:
+        if part:
+            self.slices.append(pack_events(part))
+            self.events += len(part)
 
 
 class Recorder:
@@ -123,9 +135,10 @@ class Recorder:
         await trio.to_thread.run_sync(self.writer.close)
         return path
 
-    async def _collect(self) -> list[Item]:
-        """Drain every followed robot's queue and encode the records (none while paused)."""
-        batch: list[Item] = []
+    async def _collect(self) -> _Batch:
+        """Drain every followed robot's queue and pack the events (none while paused)."""
+        batch = _Batch()
+        part: list[tuple[str, str, RobotEvent, int]] = []
         for queue, (robot_id, subscription) in list(self._followed.items()):
             events = queue.drain()
             if queue.closed:  # the robot is gone (and its queue now empty)
@@ -135,13 +148,15 @@ class Recorder:
             if not self.active:
                 continue
             for event in events:
-                kind, record = record_of(event)
                 # Log times follow trio's clock from one wall-clock anchor: monotonic within a
                 # file (no NTP jumps), and virtual time stays consistent in tests.
                 log_time = int((event.time + self._wall_offset) * 1e9)
-                batch.append((robot_id, kind, _encoder.encode(record), log_time))
-                if len(batch) % _ENCODE_SLICE == 0:
+                part.append((robot_id, KIND_OF_EVENT[type(event)], event, log_time))
+                if len(part) == _PACK_SLICE:
+                    batch.add(part)
+                    part = []
                     await trio.lowlevel.checkpoint()
+        batch.add(part)
         return batch
 
     async def _write_forever(self) -> None:
@@ -153,16 +168,13 @@ class Recorder:
     async def _write_pending(self, flush: bool = True) -> None:
         await self._write(await self._collect(), flush)
 
-    async def _write(self, batch: list[Item], flush: bool = True) -> None:
-        if not batch and not (flush and self._unflushed):
+    async def _write(self, batch: _Batch, flush: bool = True) -> None:
+        if not batch.events and not (flush and self._unflushed):
             return
-
-        def write_in_time_order() -> None:
-            batch.sort(key=_by_log_time)  # one sorted run per robot: a cheap merge
-            self.writer.write(batch, flush=flush)
-
         try:
-            await trio.to_thread.run_sync(write_in_time_order)
+            await trio.to_thread.run_sync(
+                partial(self.writer.write_events, batch.slices, flush=flush)
+            )
             self._unflushed = not flush
             if flush:
                 self._next_flush = trio.current_time() + self.flush_interval
@@ -175,7 +187,7 @@ class Recorder:
             if self.error is None:
                 log.error("recording failed: %s", exc)
             self.error = f"{type(exc).__name__}: {exc}"
-            self._write_failures += len(batch)  # the writer has dropped its file
+            self._write_failures += batch.events  # the writer has dropped its file
             self._unflushed = False
 
     @property

@@ -16,6 +16,7 @@ from arena.robot.events import (
     CommandHandled,
     FaultReported,
     JointStatesReceived,
+    PeerChanged,
     RobotEvent,
     StateChanged,
     TargetsSent,
@@ -155,6 +156,19 @@ def record_of(event: RobotEvent) -> tuple[str, msgspec.Struct]:
         reason=event.reason,
         autonomous=event.autonomous,
     )
+
+
+#: Topic kind -> the robot event it records (what `record_of` maps).
+EVENT_TYPES: dict[str, type[RobotEvent]] = {
+    "command": CommandHandled,
+    "targets": TargetsSent,
+    "joint_states": JointStatesReceived,
+    "state": StateChanged,
+    "fault": FaultReported,
+    "peer": PeerChanged,
+}
+#: Robot event type -> topic kind.
+KIND_OF_EVENT: dict[type[RobotEvent], str] = {event: kind for kind, event in EVENT_TYPES.items()}
 
 
 def schema_of(kind: str) -> dict[str, Any]:

@@ -4,7 +4,8 @@ Writing MCAP (building records, compressing chunks, file I/O) costs a microsecon
 message, and every command leaves two or three records. `McapWriterProcess` offers the same
 calls as `McapFileWriter` and runs one in a child Python process (`python -m
 arena.recording.writer_process`), which does that work on the other core at idle priority.
-The parent only packs each batch and writes it into a pipe.
+The parent only packs the robots' events as they are (msgspec encodes the dataclasses in one
+call) and writes them into a pipe; the child turns them into records.
 
 The protocol on the child's stdin/stdout is a series of frames (8-byte big-endian length, then a
 pickle), one request and one reply at a time:
@@ -13,6 +14,9 @@ pickle), one request and one reply at a time:
                                     the parent a third of what pickle does); `robots` holds
                                     metadata of robots new to the child; `flush` closes the
                                     chunk and hands it to the OS
+  ("events", slices, robots, flush)  the same from robot events: `slices` are msgpack lists of
+                                    (robot id, kind, event, log time); the child makes the
+                                    records (`records.record_of`) and writes them in time order
   ("close", None, None, True)       finish the current file
 and each reply is (error or None, current path or None, messages written, every file opened).
 End of input makes the child finish its file and exit: a killed server still leaves a complete
@@ -34,12 +38,29 @@ from typing import IO, Any
 import msgspec
 
 from arena.recording.mcap_file import FileSeries, Item, McapFileWriter
+from arena.recording.records import EVENT_TYPES, record_of
 
 _LENGTH = struct.Struct(">Q")
 #: How long the child may take to finish its file at shutdown before it is killed.
 SHUTDOWN_TIMEOUT = 10.0
 _pack_items = msgspec.msgpack.Encoder().encode
 _unpack_items = msgspec.msgpack.Decoder(list[tuple[str, str, bytes, int]]).decode
+#: A slice of events as `Recorder` packs it: (robot id, kind, event, log time in ns).
+pack_events = msgspec.msgpack.Encoder().encode
+_unpack_slice = msgspec.msgpack.Decoder(list[tuple[str, str, msgspec.Raw, int]]).decode
+_event_decoders = {kind: msgspec.msgpack.Decoder(event) for kind, event in EVENT_TYPES.items()}
+_json = msgspec.json.Encoder()
+
+
+def items_of_events(slices: list[bytes]) -> list[Item]:
+    """The records of packed event slices, in log-time order."""
+    items: list[Item] = []
+    for packed in slices:
+        for robot_id, kind, raw, log_time in _unpack_slice(packed):
+            _, record = record_of(_event_decoders[kind].decode(raw))
+            items.append((robot_id, kind, _json.encode(record), log_time))
+    items.sort(key=lambda item: item[3])
+    return items
 
 
 def send_frame(stream: IO[bytes], value: object) -> None:
@@ -90,9 +111,16 @@ class McapWriterProcess:
     def write(self, items: list[Item], *, flush: bool = True) -> None:
         """Append records (the child opens or rotates files as needed); `flush` as in
         `McapFileWriter.write`."""
+        self._append("write", _pack_items(items), flush)
+
+    def write_events(self, slices: list[bytes], *, flush: bool = True) -> None:
+        """Like `write`, from slices of events packed with `pack_events`."""
+        self._append("events", slices, flush)
+
+    def _append(self, kind: str, payload: object, flush: bool) -> None:
         with self._lock:
             new = {r: meta for r, meta in self.robots.items() if r not in self._robots_sent}
-            self._request(("write", _pack_items(items), new, flush))
+            self._request((kind, payload, new, flush))
             self._robots_sent.update(new)
 
     def close(self) -> None:
@@ -174,9 +202,10 @@ def serve(requests: IO[bytes], replies: IO[bytes]) -> None:
                 return
             error = None
             try:
-                if kind == "write":
+                if kind in ("write", "events"):
                     writer.robots.update(robots)
-                    writer.write(_unpack_items(items), flush=flush)
+                    unpacked = _unpack_items(items) if kind == "write" else items_of_events(items)
+                    writer.write(unpacked, flush=flush)
                 else:
                     writer.close()
             except OSError as exc:
