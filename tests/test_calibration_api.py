@@ -102,9 +102,9 @@ async def test_calibration_workflow(
 def _joints(server: RunningServer) -> list[dict[str, Any]]:
     from arena.server import convert
 
-    snapshot = server.app.manager.get("arm").snapshot()
+    robot = server.app.manager.get("arm")
     data: list[dict[str, Any]] = [
-        {"name": j.name, "real_value": j.real_value} for j in convert.joint_states(snapshot).data
+        {"name": j.name, "real_value": j.real_value} for j in convert.joint_states(robot).data
     ]
     return data
 

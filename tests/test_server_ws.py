@@ -12,6 +12,7 @@ from typing import Any, cast
 
 import pytest
 import trio
+import trio.testing
 from trio.testing import MockClock
 from trio_websocket import ConnectionClosed, WebSocketConnection, open_websocket_url
 
@@ -21,7 +22,7 @@ from arena.robot.events import RobotEvent
 from arena.robot.mailbox import EventQueue
 from arena.robot.manager import RobotManager
 from arena.robot.motion import Command
-from arena.server.websockets import _RobotEventForwarder
+from arena.server.websockets import _burst_continues, _RobotEventForwarder, _slave_writer
 from arena.server.ws_frames import encode_frame
 from tests.conftest import RunningServer
 from tests.raw_websocket import OP_TEXT, RawWebSocket
@@ -495,6 +496,44 @@ async def test_a_slave_gets_each_lone_command_at_once_and_the_newest_of_a_burst(
         seen = await rotations_until(burst[-1])
         assert len(seen) < len(burst) and seen == sorted(seen)
         await master.aclose()
+
+
+async def test_the_slave_writer_lets_the_robot_write_lone_targets_itself(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    # With the writer task waiting, a target goes out inside the robot's own step (no task
+    # wakes); inside a master's burst it goes through the task; the end always does.
+    robot = await manager.create_robot("so-arm100", robot_id="direct")
+    link = await robot.connect_slave("ws")
+    direct: list[str] = []
+    by_task: list[str] = []
+
+    def send_now(message: Any) -> bool:
+        direct.append(type(message).__name__)
+        return True
+
+    async def send(*messages: Any) -> None:
+        by_task.extend(type(m).__name__ for m in messages)
+
+    async def close(code: int, reason: str = "") -> None:
+        by_task.append(f"close {code}")
+
+    connection = cast(Any, SimpleNamespace(send_now=send_now, send=send, close=close))
+    ended = trio.Event()
+    async with trio.open_nursery() as nursery:
+        nursery.start_soon(_slave_writer, connection, link, ended)
+        await trio.testing.wait_all_tasks_blocked()
+        assert robot.command_now(Command.of({"Rotation": 0.01})) is not None
+        assert direct == ["ExecuteCommandMessage"] and by_task == []  # written before any switch
+        token = _burst_continues.set(True)
+        robot.command_now(Command.of({"Rotation": 0.02}))
+        _burst_continues.reset(token)
+        assert direct == ["ExecuteCommandMessage"]
+        await trio.testing.wait_all_tasks_blocked()
+        assert by_task == ["ExecuteCommandMessage"]
+        await link.detach("done")
+        await trio.testing.wait_all_tasks_blocked()
+    assert ended.is_set() and by_task == ["ExecuteCommandMessage", "StopNotice", "close 1000"]
 
 
 async def test_a_reader_takes_the_due_joint_states_so_the_forwarder_sends_no_copy(

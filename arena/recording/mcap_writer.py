@@ -66,8 +66,6 @@ class ChunkedWriter:
         self._chunk_indexes: list[ChunkIndex] = []
         self._metadata_indexes: list[MetadataIndex] = []
         self._counts: Counter[int] = Counter()
-        self._first_time: int | None = None
-        self._last_time = 0
 
     def start(self, profile: str, library: str) -> None:
         """The magic and the header."""
@@ -147,9 +145,6 @@ class ChunkedWriter:
                 uncompressed_size=len(data),
             )
         )
-        if self._first_time is None or chunk.message_start_time < self._first_time:
-            self._first_time = chunk.message_start_time
-        self._last_time = max(self._last_time, chunk.message_end_time)
 
     def flush(self) -> None:
         """Close the open chunk and hand everything to the OS."""
@@ -163,6 +158,7 @@ class ChunkedWriter:
         summary_start = self._offset
         summary = RecordBuilder()
         offsets: list[SummaryOffset] = []
+        chunks = self._chunk_indexes
         statistics = Statistics(
             message_count=sum(self._counts.values()),
             schema_count=len(self._schemas),
@@ -170,8 +166,8 @@ class ChunkedWriter:
             attachment_count=0,
             metadata_count=len(self._metadata_indexes),
             chunk_count=len(self._chunk_indexes),
-            message_start_time=self._first_time or 0,
-            message_end_time=self._last_time,
+            message_start_time=min((c.message_start_time for c in chunks), default=0),
+            message_end_time=max((c.message_end_time for c in chunks), default=0),
             channel_message_counts=dict(self._counts),
         )
         groups: list[tuple[Opcode, Sequence[_Record]]] = [

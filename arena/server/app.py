@@ -282,8 +282,9 @@ def _register_routes(app: ArenaApp) -> None:
 
     @app.get("/api/robots/<robot_id>/joints")
     async def get_joints(robot_id: str) -> list[dict[str, Any]]:
-        snapshot = manager.get(robot_id).snapshot()
-        data: list[dict[str, Any]] = msgspec.to_builtins(convert.joint_states(snapshot).data)
+        data: list[dict[str, Any]] = msgspec.to_builtins(
+            convert.joint_states(manager.get(robot_id)).data
+        )
         return data
 
     @app.put("/api/robots/<robot_id>/joints")

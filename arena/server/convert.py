@@ -43,27 +43,15 @@ def ack(result: CommandResult) -> wire.AckMessage:
     return wire.AckMessage(timestamp=wire.now_iso(), data=data)
 
 
-def joint_states(snapshot: RobotSnapshot) -> wire.JointStatesOut:
-    """Every joint's virtual and real value, in the seed's `joint_states` shape."""
-    return wire.JointStatesOut(
-        timestamp=wire.now_iso(),
-        data=[
-            wire.JointStateOut(
-                j.name,
-                j.servo_id,
-                "revolute",
-                j.virtual_value,
-                j.real_value,
-                wire.JointLimits(j.lower, j.upper, j.velocity),
-            )
-            for j in snapshot.joints
-        ],
-    )
+def joint_states(robot: Robot) -> wire.JointStatesOut:
+    """Every joint's virtual and real value now, in the seed's `joint_states` shape."""
+    return JointStatesView(robot).message()
 
 
 class JointStatesView:
-    """`joint_states` of one robot as it is now, without a full snapshot: WebSocket clients
-    get one after almost every command, so the parts that never change are built once."""
+    """`joint_states` of one robot as it is now, without a full snapshot. WebSocket clients
+    get one after almost every command: keep a view, and the parts that never change are
+    built once."""
 
     def __init__(self, robot: Robot) -> None:
         self.robot = robot
@@ -137,7 +125,7 @@ def robot_summary(robot: Robot) -> dict[str, Any]:
         "estop_reason": snapshot.estop_reason,
         "master": _peer(snapshot.master),
         "slaves": [_peer(s) for s in snapshot.slaves],
-        "joints": msgspec.to_builtins(joint_states(snapshot).data),
+        "joints": msgspec.to_builtins(joint_states(robot).data),
     }
 
 

@@ -638,7 +638,7 @@ async def state_socket(connection: Connection, robot_id: str) -> None:
     try:
         with robot.subscribe(maxlen=256) as events:
             await connection.send(convert.state(robot.snapshot()))
-            await connection.send(convert.joint_states(robot.snapshot()))
+            await connection.send(convert.joint_states(robot))
 
             async def body(nursery: trio.Nursery) -> None:
                 nursery.start_soon(_heartbeats, connection)
