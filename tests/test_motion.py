@@ -264,11 +264,17 @@ def test_random_operations_keep_targets_safe(ops: list[tuple]) -> None:  # type:
             end = now + op[1]
             while now + core.tick_interval <= end:
                 now += core.tick_interval
-                record(core.tick(now), core.state.mode is sm.Mode.ESTOPPED)
+                was_moving = core.motion.moving
+                targets = core.tick(now)
+                # The actor stops ticking when `moving` says so: it must never be stale.
+                assert targets is None or was_moving, "a joint moved while not `moving`"
+                record(targets, core.state.mode is sm.Mode.ESTOPPED)
             now = end
         else:
             event = _event_for(op)
             record(core.handle(event, now).targets, estopped)
+        if core.motion.positions != core.motion.goals:
+            assert core.motion.moving, "a joint short of its goal is not `moving`"
 
     for _, targets in emitted:
         for joint in MODEL.joints:

@@ -132,17 +132,29 @@ def min_jerk(fraction: float) -> float:
 
 
 class _JointMotion:
-    """One joint's emitted position, goal and velocity budget."""
+    """One joint's emitted position, goal and velocity budget.
 
-    __slots__ = ("goal", "limit", "position", "profile", "speed", "tokens")
+    The budget refills lazily: `tokens` is what was left at `stamp`, and `refill` brings it up
+    to date only for a joint that is about to spend or change it, so an idle joint costs nothing
+    per command. Saturating refills add up exactly, so the budget is the same either way.
+    """
 
-    def __init__(self, position: float, limit: float, burst: float) -> None:
+    __slots__ = ("cap", "goal", "limit", "position", "profile", "speed", "stamp", "tokens")
+
+    def __init__(self, position: float, limit: float, burst: float, now: float) -> None:
         self.position = position
         self.goal = position
         self.limit = limit  # the joint's own velocity limit, deg/s
         self.speed = limit  # effective cap for the current move
-        self.tokens = limit * burst  # degrees that may be emitted right now
+        self.cap = limit * burst  # the most degrees the budget can hold at `speed`
+        self.tokens = self.cap  # degrees that may be emitted at `stamp`
+        self.stamp = now
         self.profile: tuple[float, float, float] | None = None  # (start, t0, duration)
+
+    def refill(self, now: float) -> None:
+        if now > self.stamp:
+            self.tokens = min(self.cap, self.tokens + self.speed * (now - self.stamp))
+            self.stamp = now
 
     def desired(self, now: float) -> float:
         if self.profile is None:
@@ -162,10 +174,12 @@ class MotionLimiter:
         self._burst = model.safety.velocity_burst
         start = dict(initial or {})
         self._joints = {
-            j.name: _JointMotion(j.clamp(start.get(j.name, 0.0)), j.max_velocity, self._burst)
+            j.name: _JointMotion(
+                j.clamp(start.get(j.name, 0.0)), j.max_velocity, self._burst, now
+            )
             for j in model.joints
         }
-        self._last = now
+        self._moving: bool | None = False  # None: not known since the goals last changed
 
     @property
     def positions(self) -> dict[str, float]:
@@ -180,29 +194,35 @@ class MotionLimiter:
     @property
     def moving(self) -> bool:
         """True while some joint has not reached its goal (ticks are needed)."""
-        return any(m.position != m.goal or m.profile is not None for m in self._joints.values())
+        if self._moving is None:
+            self._moving = any(
+                m.position != m.goal or m.profile is not None for m in self._joints.values()
+            )
+        return self._moving
 
     def set_goals(self, goals: Iterable[ResolvedGoal], duration: float | None, now: float) -> None:
         """Aim joints at new goals; with `duration`, follow a smooth curve over that time."""
-        self._refill(now)
         for goal in goals:
             motion = self._joints[goal.name]
+            motion.refill(now)  # what was earned so far, at the old speed
             motion.goal = goal.value
             motion.speed = goal.speed
-            motion.tokens = min(motion.tokens, motion.speed * self._burst)
+            motion.cap = goal.speed * self._burst
+            motion.tokens = min(motion.tokens, motion.cap)
             motion.profile = (motion.position, now, duration) if duration else None
+        self._moving = None
 
     def advance(self, now: float) -> dict[str, float] | None:
         """Move every joint as far toward its goal as its budget allows.
 
         Returns the full target vector if any joint moved, else None.
         """
-        self._refill(now)
-        changed = False
+        changed = moving = False
         for motion in self._joints.values():
             desired = motion.desired(now)
             delta = desired - motion.position
             if delta != 0.0:
+                motion.refill(now)
                 if abs(delta) <= motion.tokens:
                     motion.position = desired
                     motion.tokens -= abs(delta)
@@ -210,26 +230,22 @@ class MotionLimiter:
                     motion.position += math.copysign(motion.tokens, delta)
                     motion.tokens = 0.0
                 changed = True
-            if motion.profile is not None and motion.position == motion.goal:
-                _, t0, duration = motion.profile
-                if now >= t0 + duration:
+            if motion.profile is not None:
+                if motion.position == motion.goal and now >= motion.profile[1] + motion.profile[2]:
                     motion.profile = None
+                else:
+                    moving = True
+            elif motion.position != motion.goal:
+                moving = True
+        self._moving = moving
         return self.positions if changed else None
 
     def freeze(self, now: float) -> None:
         """Stop every joint where it is: goals become the current targets."""
-        self._refill(now)
         for motion in self._joints.values():
             motion.goal = motion.position
             motion.profile = None
-
-    def _refill(self, now: float) -> None:
-        elapsed = max(0.0, now - self._last)
-        self._last = max(self._last, now)
-        if elapsed == 0.0:
-            return
-        for motion in self._joints.values():
-            motion.tokens = min(motion.speed * self._burst, motion.tokens + motion.speed * elapsed)
+        self._moving = False
 
 
 class RateLimiter:
