@@ -174,9 +174,7 @@ class MotionLimiter:
         self._burst = model.safety.velocity_burst
         start = dict(initial or {})
         self._joints = {
-            j.name: _JointMotion(
-                j.clamp(start.get(j.name, 0.0)), j.max_velocity, self._burst, now
-            )
+            j.name: _JointMotion(j.clamp(start.get(j.name, 0.0)), j.max_velocity, self._burst, now)
             for j in model.joints
         }
         self._moving: bool | None = False  # None: not known since the goals last changed
