@@ -8,16 +8,16 @@ Observers (the server, dashboards, the recorder) receive `RobotEvent`s; masters 
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass
 from typing import TypeAlias
+
+import msgspec
 
 from arena.protocol.errors import ErrorCode, Severity
 from arena.robot.motion import Command, CommandResult
 from arena.robot.safety import Mode
 
 
-@dataclass(frozen=True, slots=True)
-class SlaveTarget:
+class SlaveTarget(msgspec.Struct, frozen=True):
     """Where every joint should be now (wire degrees), with the speed cap per joint (deg/s)."""
 
     joints: dict[str, float]
@@ -33,16 +33,14 @@ class NoticeKind(enum.StrEnum):
     SHUTDOWN = "shutdown"  # the robot is going away or the slave was detached
 
 
-@dataclass(frozen=True, slots=True)
-class SlaveNotice:
+class SlaveNotice(msgspec.Struct, frozen=True):
     """A control notice to a slave."""
 
     kind: NoticeKind
     reason: str = ""
 
 
-@dataclass(frozen=True, slots=True)
-class MasterNotice:
+class MasterNotice(msgspec.Struct, frozen=True):
     """Something a master should know: it was detached, or the robot changed state."""
 
     kind: str  # "detached" | "state"
@@ -51,8 +49,7 @@ class MasterNotice:
     mode: Mode | None = None
 
 
-@dataclass(frozen=True, slots=True)
-class StateChanged:
+class StateChanged(msgspec.Struct, frozen=True):
     """The safety state changed (mode, owner or e-stop reason)."""
 
     robot_id: str
@@ -64,8 +61,7 @@ class StateChanged:
     wall_time: float
 
 
-@dataclass(frozen=True, slots=True)
-class CommandHandled:
+class CommandHandled(msgspec.Struct, frozen=True):
     """A command arrived (from `source`: a master id or 'manual') and how it was answered."""
 
     robot_id: str
@@ -76,8 +72,7 @@ class CommandHandled:
     wall_time: float
 
 
-@dataclass(frozen=True, slots=True)
-class TargetsSent:
+class TargetsSent(msgspec.Struct, frozen=True):
     """Targets sent to every slave."""
 
     robot_id: str
@@ -86,8 +81,7 @@ class TargetsSent:
     wall_time: float
 
 
-@dataclass(frozen=True, slots=True)
-class JointStatesReceived:
+class JointStatesReceived(msgspec.Struct, frozen=True):
     """Real joint values reported by a slave."""
 
     robot_id: str
@@ -97,8 +91,7 @@ class JointStatesReceived:
     wall_time: float
 
 
-@dataclass(frozen=True, slots=True)
-class FaultReported:
+class FaultReported(msgspec.Struct, frozen=True):
     """A fault reported by a slave or a driver."""
 
     robot_id: str
@@ -111,8 +104,7 @@ class FaultReported:
     wall_time: float
 
 
-@dataclass(frozen=True, slots=True)
-class PeerChanged:
+class PeerChanged(msgspec.Struct, frozen=True):
     """A master or slave attached, detached or was lost."""
 
     robot_id: str

@@ -14,14 +14,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+
+import msgspec
 
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.robot.model import RobotModel
 
 
-@dataclass(frozen=True, slots=True)
-class JointGoal:
+class JointGoal(msgspec.Struct, frozen=True):
     """One joint's requested value in wire degrees, with an optional speed cap in deg/s."""
 
     name: str
@@ -29,8 +29,7 @@ class JointGoal:
     speed: float | None = None
 
 
-@dataclass(frozen=True, slots=True)
-class Command:
+class Command(msgspec.Struct, frozen=True):
     """A request to move some joints; `duration` (seconds) asks for a smooth move over that time."""
 
     joints: tuple[JointGoal, ...]
@@ -43,8 +42,7 @@ class Command:
         return cls(tuple(JointGoal(n, v) for n, v in values.items()), duration)
 
 
-@dataclass(frozen=True, slots=True)
-class Clamp:
+class Clamp(msgspec.Struct, frozen=True):
     """A requested value that was outside the limits and what was applied instead."""
 
     joint: str
@@ -52,8 +50,7 @@ class Clamp:
     applied: float
 
 
-@dataclass(frozen=True, slots=True)
-class CommandResult:
+class CommandResult(msgspec.Struct, frozen=True):
     """The answer to a command: accepted (maybe clamped) or refused with a code."""
 
     accepted: bool
@@ -67,8 +64,7 @@ class CommandResult:
         return cls(False, code, message)
 
 
-@dataclass(frozen=True, slots=True)
-class ResolvedGoal:
+class ResolvedGoal(msgspec.Struct, frozen=True):
     """A validated goal: protocol joint name, value inside the limits, effective speed."""
 
     name: str
