@@ -30,6 +30,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import gc
 import json
 import os
 import re
@@ -625,6 +626,7 @@ def replay_rate(commands: int = 20_000) -> dict[str, float]:
     from arena.robot.manager import open_manager
     from arena.robot.model import load_robot_model
     from arena.robot.motion import Command
+    from arena.server.run import tune_garbage_collector
 
     model = load_robot_model("so-arm100")
     policy = dataclasses.replace(model.safety, command_rate=1e9, command_burst=10**9)
@@ -657,8 +659,16 @@ def replay_rate(commands: int = 20_000) -> dict[str, float]:
             "replay_recording_dropped": float(recorder.status()["dropped"]),
         }
 
-    with tempfile.TemporaryDirectory() as folder:
-        return trio.run(run, Path(folder))
+    # The collector tuned as `arena serve` tunes it, and put back after (this process goes on
+    # to run the benchmark's clients).
+    thresholds = gc.get_threshold()
+    tune_garbage_collector()
+    try:
+        with tempfile.TemporaryDirectory() as folder:
+            return trio.run(run, Path(folder))
+    finally:
+        gc.unfreeze()
+        gc.set_threshold(*thresholds)
 
 
 def core_rate(count: int = 20_000) -> dict[str, float]:
