@@ -590,8 +590,40 @@ async def test_joint_states_the_reader_held_back_are_sent_by_the_task_when_due(
                 assert forwarder.take_due() == [] and forwarder.pending
             await trio.sleep(0.1)
             assert [kind for _, kind in sent] == [wire.JointStatesOut]
-            assert sent[0][0] == pytest.approx(0.1 + 0.02)
+            # An interval after the bucket allows them (a command before then carries them).
+            assert sent[0][0] == pytest.approx(0.1 + 0.02 + 0.02)
             nursery.cancel_scope.cancel()
+
+
+async def test_after_a_stall_the_acknowledgments_carry_the_joint_states_again(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    # A client at the interval's own rate whose two commands arrive together after a stall:
+    # one acknowledgment goes without, the next carries them again, and the forwarder's task
+    # never sends joint states on its own (it did, for every command, before the fix).
+    robot = await manager.create_robot("so-arm100", robot_id="stalled")
+    with robot.subscribe(maxlen=256) as events:
+        forwarder, sent = _forwarder_on(robot, events)
+        carried: list[bool] = []
+        async with trio.open_nursery() as nursery:
+            nursery.start_soon(forwarder.run)
+            start = trio.current_time() + 0.0003
+            for n in range(60):
+                due = start + 0.02 * n
+                if n == 21:
+                    continue  # sent on time but stuck behind number 20: it arrives with it
+                if n == 20:
+                    due += 0.025
+                await trio.sleep_until(due)
+                for value in (0.01, 0.02) if n == 20 else (0.01 * (1 + n % 2),):
+                    with forwarder.handling_command():
+                        await robot.command(Command.of({"Rotation": value}))
+                        due_now = forwarder.take_due()
+                    carried.append(any(isinstance(m, wire.JointStatesOut) for m in due_now))
+            await trio.sleep(0.1)
+            nursery.cancel_scope.cancel()
+        assert carried.count(False) == 1, carried
+        assert [kind for _, kind in sent] == []
 
 
 async def test_joint_states_keep_to_the_interval_on_average_despite_jitter(

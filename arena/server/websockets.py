@@ -216,6 +216,13 @@ class _RobotEventForwarder:
     Besides its own task (`run`), the connection's reader can take what is ready right after
     answering a command (`handling_command`, `take_due`), so that the acknowledgment and the
     joint states it caused leave in one write, and the task is not woken for them.
+
+    The task sends pending joint states one interval after the bucket would allow them, so a
+    command that comes before then carries them. Sending them as soon as allowed locks a
+    client that commands at the interval's own rate, after any stall that made two of its
+    commands arrive together, into a phase where every joint state leaves in a write of its
+    own a few milliseconds before the command that could have carried it. The bucket never
+    refills at that rate, so the phase lasts as long as the client.
     """
 
     def __init__(
@@ -257,11 +264,13 @@ class _RobotEventForwarder:
         """What is ready to go now, taken from the queue (the task then finds it empty)."""
         messages = self._messages(self.events.drain())
         if self._waiting is not None:  # joint states held back: the task sends them when due
-            self._waiting.deadline = self._deadline()
+            deadline = self._deadline()
+            if deadline != self._waiting.deadline:  # (setting it costs even when unchanged)
+                self._waiting.deadline = deadline
         return messages
 
     def _deadline(self) -> float:
-        return self.next_send if self.pending else math.inf
+        return self.next_send + self.interval if self.pending else math.inf
 
     def _messages(self, batch: list[RobotEvent]) -> list[msgspec.Struct | str]:
         out: list[msgspec.Struct | str] = []
