@@ -644,3 +644,35 @@ async def test_estop_all(autojump_clock: MockClock, manager: RobotManager) -> No
     robots = [await new_robot(manager, f"r{i}") for i in range(3)]
     await manager.estop_all()
     assert all(r.snapshot().mode is Mode.ESTOPPED for r in robots)
+
+
+async def test_an_idle_robot_is_estopped_before_the_caller_yields(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    await trio.testing.wait_all_tasks_blocked()
+    outcome = robot.estop_now("now")  # no await between this and the checks
+    assert outcome is not None and robot.snapshot().mode is Mode.ESTOPPED
+    assert robot.snapshot().estop_reason == "now"
+
+
+async def test_estop_all_stops_idle_robots_at_once_and_busy_ones_after_their_step(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    idle = [await new_robot(manager, f"idle{i}") for i in range(3)]
+    busy = await new_robot(manager, "busy", loss_policy=LossPolicy.HOLD)
+    await busy.connect_master("alice", heartbeat_timeout=1.0)
+    slaves = {r.robot_id: await r.connect_slave("arm") for r in [*idle, busy]}
+    await trio.testing.wait_all_tasks_blocked()
+    autojump_clock.jump(1.5)  # the busy robot's heartbeat check is due, not yet run
+    assert busy.estop_now("x") is None  # a due timer goes first
+    await manager.estop_all("all stop")
+    for robot in [*idle, busy]:
+        assert robot.snapshot().mode is Mode.ESTOPPED
+        assert robot.snapshot().estop_reason == "all stop"
+    # Each slave heard of it; the busy robot's after the hold for its silent master.
+    for robot, expected in [(r, [NoticeKind.ESTOP]) for r in idle] + [
+        (busy, [NoticeKind.HOLD, NoticeKind.ESTOP])
+    ]:
+        notices = [await slaves[robot.robot_id].receive() for _ in expected]
+        assert [n.kind for n in notices if isinstance(n, SlaveNotice)] == expected

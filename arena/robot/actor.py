@@ -352,8 +352,26 @@ class Robot:
         return result
 
     async def estop(self, reason: str = "emergency stop") -> safety.Outcome:
-        """Emergency stop: nothing moves until `reset`."""
-        return await self._event(safety.EStop(reason))
+        """Emergency stop: nothing moves until `reset`.
+
+        An idle actor is stopped in the caller's task, before this yields (see `estop_now`).
+        """
+        outcome = self.estop_now(reason)
+        if outcome is None:
+            return await self._event(safety.EStop(reason))
+        await trio.lowlevel.checkpoint()
+        return outcome
+
+    def estop_now(self, reason: str = "emergency stop") -> safety.Outcome | None:
+        """The e-stop applied in the caller's task if the actor is idle (as `command_now`
+        decides a command), its slaves told at once; else None (use `estop`)."""
+        now = self._idle_now()
+        if now is None:
+            return None
+        event = safety.EStop(reason)
+        outcome = self._apply(event, now, cause=type(event).__name__)
+        self._rearm_idle_wait()
+        return outcome
 
     async def reset(self) -> safety.Outcome:
         """Leave the e-stop. Causes no motion by itself."""
