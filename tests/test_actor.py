@@ -656,6 +656,22 @@ async def test_an_idle_robot_is_estopped_before_the_caller_yields(
     assert robot.snapshot().estop_reason == "now"
 
 
+async def test_an_estop_from_a_caller_being_cancelled_still_stops_an_idle_robot(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    # `estop` applies the stop before its first checkpoint, so even a caller whose scope is
+    # already cancelled (a request whose client went away) stops the robot. Posted to the
+    # actor instead, the cancellation would win before the message was sent.
+    robot = await new_robot(manager)
+    await trio.testing.wait_all_tasks_blocked()
+    with trio.CancelScope() as scope:
+        scope.cancel()
+        await robot.estop("client gone")
+    assert scope.cancelled_caught
+    assert robot.snapshot().mode is Mode.ESTOPPED
+    assert robot.snapshot().estop_reason == "client gone"
+
+
 async def test_estop_all_stops_idle_robots_at_once_and_busy_ones_after_their_step(
     autojump_clock: MockClock, manager: RobotManager
 ) -> None:

@@ -143,7 +143,7 @@ def test_freeze_stops_every_joint_where_it_is() -> None:
     limiter.set_goals(goals, None, 0.0)
     limiter.advance(0.0)
     limiter.advance(0.1)
-    limiter.freeze(0.1)
+    limiter.freeze()
     assert not limiter.moving
     assert limiter.goals == limiter.positions
     assert limiter.advance(1.0) is None

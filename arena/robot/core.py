@@ -71,7 +71,7 @@ class RobotCore:
         self.state = outcome.state
         for effect in outcome.effects:
             if isinstance(effect, StopMotion | HoldPosition):
-                self.motion.freeze(now)
+                self.motion.freeze()
             elif isinstance(effect, DetachMaster):
                 self._rates.pop(effect.master_id, None)
         return Step(outcome, None, outcome.effects)

@@ -135,13 +135,12 @@ class _JointMotion:
     per command. Saturating refills add up exactly, so the budget is the same either way.
     """
 
-    __slots__ = ("cap", "goal", "limit", "position", "profile", "speed", "stamp", "tokens")
+    __slots__ = ("cap", "goal", "position", "profile", "speed", "stamp", "tokens")
 
     def __init__(self, position: float, limit: float, burst: float, now: float) -> None:
         self.position = position
         self.goal = position
-        self.limit = limit  # the joint's own velocity limit, deg/s
-        self.speed = limit  # effective cap for the current move
+        self.speed = limit  # effective cap for the current move (the joint's limit at first)
         self.cap = limit * burst  # the most degrees the budget can hold at `speed`
         self.tokens = self.cap  # degrees that may be emitted at `stamp`
         self.stamp = now
@@ -234,7 +233,7 @@ class MotionLimiter:
         self._moving = moving
         return self.positions if changed else None
 
-    def freeze(self, now: float) -> None:
+    def freeze(self) -> None:
         """Stop every joint where it is: goals become the current targets."""
         for motion in self._joints.values():
             motion.goal = motion.position
