@@ -1,8 +1,10 @@
 """`arena bench`: benchmarks against a real server on loopback. Prints medians; asserts nothing.
 
 The server runs as its own process (`arena serve`, recording on unless a scenario says
-otherwise); relay, throughput and fleet use the lean client of `bench_client` in this process,
-the estop and soak scenarios the `websockets` package on asyncio. The robots use a
+otherwise); relay, throughput, fleet and one robot's e-stop use the lean clients of
+`bench_client` in this process (with its garbage collector kept out of the way), the relay and
+e-stop again with `websockets` and httpx on asyncio, as do the e-stop of every robot and the
+soak. The robots use a
 copy of the so-arm100 type whose rate limit is raised (the default 100 commands/s per master
 would be the only thing measured otherwise); every other check stays on.
 
@@ -13,7 +15,8 @@ Scenarios:
   fleet       N robots, each a master at 50 Hz (then 25 Hz) and a slave: latency p50/p99,
               server CPU and RSS (with its recording process); a lean selector-loop client
   estop       POST /api/robots/{id}/estop -> the slave's estop notice (and -> the HTTP answer,
-              which comes after the notice); POST /api/estop -> the last robot's notice
+              which comes after the notice); a master's estop message -> the notice;
+              POST /api/estop -> the last robot's notice
   recording   throughput with recording on against off (ratio)
   replay      commands/s of a replay at maximum speed (in process)
   core        RobotCore.command calls/s (pure decision code)
@@ -44,14 +47,30 @@ import time
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import httpx
 
-from arena.bench_client import BlockingWebSocket, masked_frame
+from arena.bench_client import BlockingHttp, BlockingWebSocket, masked_frame
 from arena.robot.model import BUILTIN_TYPES_DIR, TYPES_PATH_ENV
 
 BENCH_TYPE = "so-arm100-bench"
+
+T = TypeVar("T")
+
+
+def _without_client_gc(run: Callable[..., T], *args: Any) -> T:
+    """Run a lean client with this process's objects frozen out of the garbage collector.
+
+    A full collection here (httpx, asyncio, websockets and their imports) takes ~20 ms; it
+    fell two seconds into every fleet run, at the same point, as a spike the server never saw.
+    """
+    gc.collect()
+    gc.freeze()
+    try:
+        return run(*args)
+    finally:
+        gc.unfreeze()
 
 
 def _percentile(values: list[float], q: float) -> float:
@@ -165,6 +184,8 @@ async def _robot(http: httpx.AsyncClient, robot_id: str) -> None:
 
 _EXECUTE = '"type":"execute_command"'
 _ACK = '"type":"ack"'
+_ESTOP = '"type":"estop"'
+_RESET = '"type":"reset"'
 
 
 def _command(i: int) -> str:
@@ -184,7 +205,18 @@ async def relay(server: Server, count: int = 5000) -> dict[str, float]:
     """Master send -> slave receipt of execute_command, one command at a time (lean client)."""
     async with httpx.AsyncClient(base_url=server.url) as http:
         await _robot(http, "relay")
-    return await asyncio.to_thread(_lean_relay, server.ws, count)
+    return await asyncio.to_thread(_without_client_gc, _lean_relay, server.ws, count)
+
+
+def _time_to(
+    marker: str, receiver: BlockingWebSocket, sender: BlockingWebSocket, frame: bytes
+) -> float:
+    """Seconds from sending `frame` to `receiver`'s first message containing `marker`."""
+    start = time.perf_counter()
+    sender.send_raw(frame)
+    while marker not in receiver.receive():
+        pass
+    return time.perf_counter() - start
 
 
 def _lean_relay(ws: str, count: int) -> dict[str, float]:
@@ -194,12 +226,9 @@ def _lean_relay(ws: str, count: int) -> dict[str, float]:
     latencies = []
     try:
         for i, frame in enumerate(frames):
-            sent = time.perf_counter()
-            master.send_raw(frame)
-            while _EXECUTE not in slave.receive():
-                pass
+            latency = _time_to(_EXECUTE, slave, master, frame)
             if i >= 100:  # warm-up excluded
-                latencies.append(time.perf_counter() - sent)
+                latencies.append(latency)
             while _ACK not in master.receive():
                 pass
     finally:
@@ -250,7 +279,7 @@ async def throughput(
     """
     async with httpx.AsyncClient(base_url=server.url) as http:
         await _robot(http, robot_id)
-    return await asyncio.to_thread(_lean_throughput, server.ws, robot_id, count)
+    return await asyncio.to_thread(_without_client_gc, _lean_throughput, server.ws, robot_id, count)
 
 
 def _lean_throughput(ws: str, robot_id: str, count: int) -> dict[str, float]:
@@ -417,7 +446,7 @@ async def fleet(
     async with httpx.AsyncClient(base_url=server.url) as http:
         for n in range(robots):
             await _robot(http, f"fleet-{n}")
-    return await asyncio.to_thread(_lean_fleet, server, robots, rate, seconds)
+    return await asyncio.to_thread(_without_client_gc, _lean_fleet, server, robots, rate, seconds)
 
 
 def _lean_fleet(server: Server, robots: int, rate: float, seconds: float) -> dict[str, float]:
@@ -450,6 +479,7 @@ def _lean_fleet(server: Server, robots: int, rate: float, seconds: float) -> dic
         for pair in values
     ]
     heartbeat = masked_frame('{"type": "heartbeat"}')
+    heartbeats = 0
     sent_at: list[dict[float, float]] = [{} for _ in range(robots)]
     latencies: list[float] = []
     sent = acked = refused = 0
@@ -459,7 +489,9 @@ def _lean_fleet(server: Server, robots: int, rate: float, seconds: float) -> dic
     # Independent robots do not tick in step: their first sends are spread over one period.
     schedule = [(start + period * n / robots, n, 0) for n in range(robots)]
     heapq.heapify(schedule)
-    next_heartbeat = start + 5.0
+    # Each slave says it is alive every 5 s, and they too are spread: one every 50 ms for 100.
+    heartbeat_spacing = 5.0 / robots
+    next_heartbeat = start + heartbeat_spacing
     cpu_start = server.cpu_seconds()
 
     def handle(timeout: float) -> None:
@@ -489,9 +521,9 @@ def _lean_fleet(server: Server, robots: int, rate: float, seconds: float) -> dic
             # A fixed schedule (no drift); a late client skips a beat, it never bursts.
             heapq.heapreplace(schedule, (max(due + period, now), n, i + 1))
             if now >= next_heartbeat:  # a silent slave is dropped (and e-stops)
-                for slave, _ in pairs:
-                    slave.send_raw(heartbeat)
-                next_heartbeat = now + 5.0
+                pairs[heartbeats % robots][0].send_raw(heartbeat)
+                heartbeats += 1
+                next_heartbeat = start + heartbeat_spacing * (heartbeats + 1)
         cpu_used = server.cpu_seconds() - cpu_start
         elapsed = time.perf_counter() - start
         settle = time.perf_counter() + 10  # the last acknowledgments: late is not lost
@@ -555,27 +587,38 @@ async def estop(server: Server, trials: int = 200, robots: int = 100) -> dict[st
     """REST e-stop to the slave's notice: one robot, then every robot at once.
 
     The clock runs from the request's start to the notice, which the robot sends before the
-    HTTP answer is written; the time to the answer is reported beside it."""
+    HTTP answer is written; the time to the answer is reported beside it. One robot is timed
+    with the lean client (raw HTTP on a keep-alive connection, a lean WebSocket slave), then
+    again with httpx and `websockets` (what a Python user sees)."""
     import websockets
 
     async with httpx.AsyncClient(base_url=server.url) as http:
         await _robot(http, "stop-one")
+        results = await asyncio.to_thread(_without_client_gc, _lean_estop_one, server, trials)
+        await _robot(http, "stop-ws")
+        results.update(
+            await asyncio.to_thread(_without_client_gc, _lean_estop_over_websocket, server, trials)
+        )
+        await _robot(http, "stop-httpx")  # its own robot: a slave that leaves e-stops "stop-one"
         one, answered = [], []
         async with websockets.connect(
-            compression=None, uri=server.ws + "/ws/slave/stop-one"
+            compression=None, uri=server.ws + "/ws/slave/stop-httpx"
         ) as slave:
             for _ in range(trials):
                 start = time.perf_counter()
-                request = asyncio.create_task(http.post("/api/robots/stop-one/estop"))
+                request = asyncio.create_task(http.post("/api/robots/stop-httpx/estop"))
                 while json.loads(await slave.recv())["type"] != "estop":
                     pass
                 one.append(time.perf_counter() - start)
                 response = await request
                 answered.append(time.perf_counter() - start)
                 response.raise_for_status()
-                await http.post("/api/robots/stop-one/reset")
+                await http.post("/api/robots/stop-httpx/reset")
                 while json.loads(await slave.recv())["type"] != "reset":
                     pass
+        results["estop_one_httpx_p50_ms"] = _percentile(one, 0.5) * 1e3
+        results["estop_one_httpx_p99_ms"] = _percentile(one, 0.99) * 1e3
+        results["estop_one_httpx_answered_p99_ms"] = _percentile(answered, 0.99) * 1e3
         for n in range(robots):
             await _robot(http, f"stop-{n}")
         slaves = [
@@ -602,11 +645,64 @@ async def estop(server: Server, trials: int = 200, robots: int = 100) -> dict[st
         finally:
             for ws in slaves:
                 await ws.close()
+    results["estop_all_median_ms"] = statistics.median(everyone) * 1e3
+    return results
+
+
+def _lean_estop_one(server: Server, trials: int, warm_up: int = 10) -> dict[str, float]:
+    slave = BlockingWebSocket(server.ws + "/ws/slave/stop-one")
+    http = BlockingHttp(server.url)
+    stop = http.request_bytes("POST", "/api/robots/stop-one/estop")
+    reset = http.request_bytes("POST", "/api/robots/stop-one/reset")
+    noticed, answered = [], []
+    try:
+        for trial in range(warm_up + trials):
+            start = time.perf_counter()
+            http.send(stop)
+            while _ESTOP not in slave.receive():
+                pass
+            notice = time.perf_counter() - start
+            status, body = http.answer()
+            if status != 200:
+                raise RuntimeError(f"e-stop answered {status}: {body!r}")
+            if trial >= warm_up:
+                noticed.append(notice)
+                answered.append(time.perf_counter() - start)
+            http.send(reset)
+            status, body = http.answer()
+            if status != 200:
+                raise RuntimeError(f"reset answered {status}: {body!r}")
+            while _RESET not in slave.receive():
+                pass
+    finally:
+        http.close()
+        slave.close()
     return {
-        "estop_one_p50_ms": _percentile(one, 0.5) * 1e3,
-        "estop_one_p99_ms": _percentile(one, 0.99) * 1e3,
+        "estop_one_p50_ms": _percentile(noticed, 0.5) * 1e3,
+        "estop_one_p99_ms": _percentile(noticed, 0.99) * 1e3,
         "estop_one_answered_p99_ms": _percentile(answered, 0.99) * 1e3,
-        "estop_all_median_ms": statistics.median(everyone) * 1e3,
+    }
+
+
+def _lean_estop_over_websocket(server: Server, trials: int, warm_up: int = 10) -> dict[str, float]:
+    """A master's `estop` message to the slave's notice: the e-stop that skips HTTP."""
+    slave = BlockingWebSocket(server.ws + "/ws/slave/stop-ws")
+    master = BlockingWebSocket(server.ws + "/ws/master/stop-ws")
+    stop = masked_frame('{"type": "estop", "data": {"reason": "bench"}}')
+    reset = masked_frame('{"type": "reset"}')
+    noticed = []
+    try:
+        for trial in range(warm_up + trials):
+            notice = _time_to(_ESTOP, slave, master, stop)
+            if trial >= warm_up:
+                noticed.append(notice)
+            _time_to(_RESET, slave, master, reset)
+    finally:
+        master.close()
+        slave.close()
+    return {
+        "estop_one_websocket_p50_ms": _percentile(noticed, 0.5) * 1e3,
+        "estop_one_websocket_p99_ms": _percentile(noticed, 0.99) * 1e3,
     }
 
 

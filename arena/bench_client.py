@@ -97,3 +97,71 @@ class BlockingWebSocket:
         with contextlib.suppress(OSError):
             self.sock.sendall(encode_frame(OP_CLOSE, struct.pack("!H", 1000), mask=os.urandom(4)))
         self.sock.close()
+
+
+class BlockingHttp:
+    """One keep-alive HTTP/1.1 connection: requests written whole, answers read by length.
+
+    Enough for Arena's JSON answers (hypercorn sends a Content-Length); `send` and `answer`
+    are apart so a benchmark can time what happens between the request and its answer.
+    """
+
+    def __init__(self, url: str, timeout: float = 30.0) -> None:
+        target = urlsplit(url)
+        self.host, self.port = target.hostname or "127.0.0.1", target.port or 80
+        self.timeout = timeout
+        self.sock = self._connect()
+        self._buffer = b""
+        self._closing = False  # the last answer said "Connection: close"
+
+    def _connect(self) -> socket.socket:
+        sock = socket.create_connection((self.host, self.port), timeout=self.timeout)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        return sock
+
+    def request_bytes(self, method: str, path: str, body: bytes = b"") -> bytes:
+        """The bytes of one request (made before a clock starts)."""
+        head = (
+            f"{method} {path} HTTP/1.1\r\nHost: {self.host}:{self.port}\r\n"
+            f"Content-Type: application/json\r\nContent-Length: {len(body)}\r\n\r\n"
+        )
+        return head.encode() + body
+
+    def send(self, request: bytes) -> None:
+        """Send a request made with `request_bytes` (on a new connection if the server closed
+        the last one: hypercorn ends a keep-alive connection after 1,000 requests)."""
+        if self._closing:
+            self.sock.close()
+            self.sock, self._buffer, self._closing = self._connect(), b"", False
+        self.sock.sendall(request)
+
+    def answer(self) -> tuple[int, bytes]:
+        """The status and body of the next answer."""
+        while b"\r\n\r\n" not in self._buffer:
+            self._receive()
+        head, _, rest = self._buffer.partition(b"\r\n\r\n")
+        lines = head.decode("latin-1").split("\r\n")
+        status = int(lines[0].split()[1])
+        fields = {
+            name.strip().lower(): value.strip()
+            for name, _, value in (line.partition(":") for line in lines[1:])
+        }
+        if "content-length" not in fields:
+            raise ConnectionError(f"an answer without Content-Length: {lines[0]}")
+        length = int(fields["content-length"])
+        while len(rest) < length:
+            self._receive()
+            rest = self._buffer.partition(b"\r\n\r\n")[2]
+        self._buffer = rest[length:]
+        self._closing = fields.get("connection", "").lower() == "close"
+        return status, rest[:length]
+
+    def _receive(self) -> None:
+        chunk = self.sock.recv(65536)
+        if not chunk:
+            raise ConnectionError("the server closed the connection")
+        self._buffer += chunk
+
+    def close(self) -> None:
+        """Close the connection."""
+        self.sock.close()

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import asyncio
+import socket
+import threading
 
 import pytest
 
 from arena import bench
+from arena.bench_client import BlockingHttp
 
 
 def test_bench_scenarios_run_against_a_real_server() -> None:
@@ -27,6 +30,8 @@ def test_bench_scenarios_run_against_a_real_server() -> None:
         "throughput_accepted_per_s",
         "estop_one_p50_ms",
         "estop_one_answered_p99_ms",
+        "estop_one_httpx_p50_ms",
+        "estop_one_websocket_p99_ms",
         "estop_all_median_ms",
         "fleet_p99_us",
     ):
@@ -69,3 +74,37 @@ def test_usb_scenario_runs_on_the_simulated_bus() -> None:
     results = bench.usb_control_rate(seconds=0.3, rate=100)
     assert results["usb_max_control_rate_hz"] > 0
     assert results["usb_100hz_achieved_hz"] > 0
+
+
+def test_the_lean_http_client_goes_on_after_the_server_closes_the_connection() -> None:
+    # hypercorn ends a keep-alive connection after 1,000 requests ("Connection: close"): the
+    # e-stop scenario then hung on its 501st trial.
+    listener = socket.create_server(("127.0.0.1", 0))
+
+    def serve_two_connections() -> None:
+        for n in range(2):
+            connection, _ = listener.accept()
+            with connection:
+                head = b""
+                while b"\r\n\r\n" not in head:
+                    head += connection.recv(1024)
+                body = b'{"connection": %d}' % n
+                connection.sendall(
+                    b"HTTP/1.1 200 OK\r\nContent-Length: %d\r\nConnection: close\r\n\r\n"
+                    % len(body)
+                    + body
+                )
+
+    server = threading.Thread(target=serve_two_connections, daemon=True)
+    server.start()
+    http = BlockingHttp(f"http://127.0.0.1:{listener.getsockname()[1]}", timeout=5)
+    request = http.request_bytes("POST", "/api/estop")
+    try:
+        http.send(request)
+        assert http.answer() == (200, b'{"connection": 0}')
+        http.send(request)
+        assert http.answer() == (200, b'{"connection": 1}')
+    finally:
+        http.close()
+        server.join(5)
+        listener.close()
