@@ -997,7 +997,7 @@ def run_benchmarks(
     width = max(len(k) for k in results)
     print(f"{'scenario':<{width}}  value (medians of {repeats} runs where repeated)")
     for key, value in results.items():
-        shown = f"{value:14.1f}" if isinstance(value, float) else f"{value!s:>14}"
+        shown = f"{value:14.2f}" if isinstance(value, float) else f"{value!s:>14}"
         print(f"{key:<{width}}  {shown}")
     if json_path:
         Path(json_path).write_text(json.dumps(results, indent=2))
