@@ -4,9 +4,8 @@ The server runs as its own process (`arena serve`, recording on unless a scenari
 otherwise); relay, throughput, fleet and one robot's e-stop use the lean clients of
 `bench_client` in this process (with its garbage collector kept out of the way), the relay and
 e-stop again with `websockets` and httpx on asyncio, as do the e-stop of every robot and the
-soak. The robots use a
-copy of the so-arm100 type whose rate limit is raised (the default 100 commands/s per master
-would be the only thing measured otherwise); every other check stays on.
+soak. The robots use a copy of the so-arm100 type whose rate limit is raised (the default 100
+commands/s per master would be the only thing measured otherwise); every other check stays on.
 
 Scenarios:
   relay       one master, one slave, commands one at a time: send -> slave's execute_command
