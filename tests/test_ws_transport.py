@@ -9,6 +9,7 @@ import struct
 import httpx
 import pytest
 import trio
+import trio.testing
 
 from arena.server import ws_frames
 from arena.server.ws_frames import (
@@ -149,6 +150,23 @@ async def test_a_fragmented_command_is_one_command(server: RunningServer) -> Non
         client_frame(OP_TEXT, text[:half].encode(), fin=False)
         + client_frame(OP_CONTINUATION, text[half:].encode())
     )
+    with trio.fail_after(5):
+        while (message := await _first_text(raw))["type"] != "ack":
+            pass
+    assert message["data"]["status"] in ("accepted", "clamped")  # type: ignore[index]
+    await raw.aclose()
+
+
+async def test_a_frame_that_arrives_in_pieces_is_read_whole(server: RunningServer) -> None:
+    # After each piece the server has read all there was (a short read) and waits for the
+    # next edge: no piece may be left unread.
+    raw = await RawWebSocket.connect(server.url, "/ws/master/demo-arm")
+    await _first_text(raw)
+    text = json.dumps({"type": "command", "data": {"joints": [{"name": "Rotation", "value": 3}]}})
+    frame = client_frame(OP_TEXT, text.encode())
+    for start in range(0, len(frame), 7):
+        await raw.stream.send_all(frame[start : start + 7])
+        await trio.testing.wait_all_tasks_blocked()
     with trio.fail_after(5):
         while (message := await _first_text(raw))["type"] != "ack":
             pass

@@ -30,6 +30,7 @@ from hypercorn.utils import repr_socket_addr, wrap_app
 
 from arena.protocol.errors import ErrorCode
 from arena.server import ws_frames
+from arena.server.read_poller import ReadPoller
 from arena.server.ws_transport import UpgradeRequest, WebSocket
 
 log = logging.getLogger(__name__)
@@ -117,6 +118,7 @@ class ArenaListener:
         self._app = wrap_app(app, config.wsgi_max_body_size, "asgi")
         self._lifespan_state: dict[str, Any] = {}
         self._context = WorkerContext(None)
+        self._poller = ReadPoller() if ReadPoller.available() else None
 
     async def serve(
         self,
@@ -129,6 +131,8 @@ class ArenaListener:
         async with trio.open_nursery() as lifespan_nursery:
             await lifespan_nursery.start(lifespan.handle_lifespan)
             await lifespan.wait_for_startup()
+            if self._poller is not None:  # outlives every connection: cancelled below
+                lifespan_nursery.start_soon(self._poller.run)
             ssl_context = self.config.create_ssl_context()
             scheme = "https" if ssl_context else "http"
             sockets = self.config.create_sockets()
@@ -222,7 +226,9 @@ class ArenaListener:
                 b"HTTP/1.1 101 Switching Protocols\r\nUpgrade: websocket\r\n"
                 b"Connection: Upgrade\r\nSec-WebSocket-Accept: " + key.encode("ascii") + b"\r\n\r\n"
             )
-            websocket = WebSocket(stream, request, max_message=self.max_message)
+            websocket = WebSocket(
+                stream, request, max_message=self.max_message, poller=self._poller
+            )
             if rest:
                 websocket.feed(rest)
             async with trio.open_nursery() as nursery:
@@ -240,5 +246,7 @@ class ArenaListener:
         except Exception:
             log.exception("WebSocket %s failed", request.path)
         finally:
+            if self._poller is not None and isinstance(stream, trio.SocketStream):
+                self._poller.forget(stream.socket)
             with trio.CancelScope(shield=True):
                 await trio.aclose_forcefully(stream)

@@ -6,10 +6,12 @@ hand (the lowest latency). Otherwise it goes to an outbox that a writer task emp
 waits only when the peer has let more than `high_water` bytes pile up, which bounds memory
 for a peer that stops reading.
 
-On a plain TCP socket the transport reads and writes the file descriptor itself and waits on
-trio only when the kernel says it would block: trio's socket calls end every read and write
-with a trip through the scheduler, which with many quiet connections cost more than the
-messages. Other streams (TLS) go through trio's stream calls.
+On a plain TCP socket the transport reads and writes the file descriptor itself and waits
+only when the kernel says it would block: trio's socket calls end every read and write with a
+trip through the scheduler, which with many quiet connections cost more than the messages.
+It waits after a read that left the socket empty (EAGAIN, or a read shorter than asked), with
+the listener's `ReadPoller` when there is one, else on trio. Other streams (TLS) go through
+trio's stream calls.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from dataclasses import dataclass, field
 import trio
 
 from arena.server import ws_frames
+from arena.server.read_poller import ReadPoller
 from arena.server.ws_frames import (
     OP_BINARY,
     OP_CLOSE,
@@ -71,11 +74,14 @@ class WebSocket:
         *,
         max_message: int,
         high_water: int = 16 * 1024,
+        poller: ReadPoller | None = None,
     ) -> None:
         self.request = request
         self._stream = stream
         # The socket of a plain TCP stream (trio keeps it non-blocking), else None.
         self._socket = stream.socket if isinstance(stream, trio.SocketStream) else None
+        self._poller = poller
+        self._may_hold_more = True  # the last read filled its buffer: read before waiting
         self._parser = FrameParser(max_message)
         self._outbox: list[bytes] = []
         self._outbox_bytes = 0
@@ -161,13 +167,24 @@ class WebSocket:
             fd = sock.fileno()  # -1 once closed: never a number reused by another socket
             if fd < 0:
                 return b""
-            try:
-                return os.read(fd, RECEIVE_BYTES)
-            except BlockingIOError:
-                self._received_in_a_row = 0  # waiting lets every other task run
+            if self._may_hold_more:
+                try:
+                    data = os.read(fd, RECEIVE_BYTES)
+                except BlockingIOError:
+                    pass
+                except OSError:  # reset by the peer
+                    return b""
+                else:
+                    # A short read took all the kernel held: the next read waits for more,
+                    # which saves the read that would only find the socket empty.
+                    self._may_hold_more = len(data) == RECEIVE_BYTES or not data
+                    return data
+            self._received_in_a_row = 0  # waiting lets every other task run
+            if self._poller is None:
                 await trio.lowlevel.wait_readable(sock)
-            except OSError:  # reset by the peer
-                return b""
+            else:
+                await self._poller.wait_readable(sock)
+            self._may_hold_more = True
 
     def _fail(self, code: int, reason: str) -> None:
         self._send_close(code, reason)
