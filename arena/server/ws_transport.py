@@ -81,7 +81,7 @@ class WebSocket:
         # The socket of a plain TCP stream (trio keeps it non-blocking), else None.
         self._socket = stream.socket if isinstance(stream, trio.SocketStream) else None
         self._poller = poller
-        self._may_hold_more = True  # the last read filled its buffer: read before waiting
+        self._may_hold_more = True  # more may be waiting (a full read, or a wake-up): read first
         self._parser = FrameParser(max_message)
         self._outbox: list[bytes] = []
         self._outbox_bytes = 0
