@@ -438,17 +438,26 @@ async def drive_fleet(
 
 
 async def fleet(
-    server: Server, robots: int = 100, rate: float = 50.0, seconds: float = 10.0
+    server: Server,
+    robots: int = 100,
+    rate: float = 50.0,
+    seconds: float = 10.0,
+    heartbeat_period: float = 5.0,
 ) -> dict[str, float]:
     """`robots` robots, each with a master at `rate` Hz and a slave, for `seconds` (lean
-    client: one selector loop in a thread, its masters' schedules spread over the period)."""
+    client: one selector loop in a thread, its masters' schedules spread over the period and
+    its slaves' heartbeats over `heartbeat_period`)."""
     async with httpx.AsyncClient(base_url=server.url) as http:
         for n in range(robots):
             await _robot(http, f"fleet-{n}")
-    return await asyncio.to_thread(_without_client_gc, _lean_fleet, server, robots, rate, seconds)
+    return await asyncio.to_thread(
+        _without_client_gc, _lean_fleet, server, robots, rate, seconds, heartbeat_period
+    )
 
 
-def _lean_fleet(server: Server, robots: int, rate: float, seconds: float) -> dict[str, float]:
+def _lean_fleet(
+    server: Server, robots: int, rate: float, seconds: float, heartbeat_period: float
+) -> dict[str, float]:
     import heapq
     import selectors
 
@@ -488,8 +497,9 @@ def _lean_fleet(server: Server, robots: int, rate: float, seconds: float) -> dic
     # Independent robots do not tick in step: their first sends are spread over one period.
     schedule = [(start + period * n / robots, n, 0) for n in range(robots)]
     heapq.heapify(schedule)
-    # Each slave says it is alive every 5 s, and they too are spread: one every 50 ms for 100.
-    heartbeat_spacing = 5.0 / robots
+    # Each slave says it is alive every period, and they too are spread: one every 50 ms for
+    # 100 robots and 5 s.
+    heartbeat_spacing = heartbeat_period / robots
     next_heartbeat = start + heartbeat_spacing
     cpu_start = server.cpu_seconds()
 
@@ -541,6 +551,7 @@ def _lean_fleet(server: Server, robots: int, rate: float, seconds: float) -> dic
         "fleet_commands_unacknowledged": sent - acked,
         "fleet_commands_refused": refused,
         "fleet_messages": len(latencies),
+        "fleet_heartbeats_sent": heartbeats,
     }
 
 

@@ -18,13 +18,17 @@ def test_bench_scenarios_run_against_a_real_server() -> None:
             results = await bench.relay(server, count=20)
             results.update(await bench.throughput(server, count=200))
             results.update(await bench.estop(server, trials=3, robots=3))
-            results.update(await bench.fleet(server, robots=2, rate=20, seconds=0.5))
+            results.update(
+                await bench.fleet(server, robots=2, rate=20, seconds=0.5, heartbeat_period=0.2)
+            )
             return results
 
     results = asyncio.run(scenarios())
     assert results["throughput_refused"] == 0
     assert results["throughput_reached_slave"] >= 1
     assert results["fleet_messages"] > 0
+    assert results["fleet_heartbeats_sent"] >= 4  # one every 0.1 s, each slave in turn
+    assert results["fleet_commands_unacknowledged"] == 0
     for key in (
         "relay_p50_us",
         "throughput_accepted_per_s",

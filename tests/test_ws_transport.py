@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import struct
+from collections.abc import Awaitable, Callable
 
 import httpx
 import pytest
@@ -12,6 +13,7 @@ import trio
 import trio.testing
 
 from arena.server import ws_frames
+from arena.server.read_poller import ReadPoller
 from arena.server.ws_frames import (
     OP_BINARY,
     OP_CLOSE,
@@ -172,6 +174,42 @@ async def test_a_frame_that_arrives_in_pieces_is_read_whole(server: RunningServe
             pass
     assert message["data"]["status"] in ("accepted", "clamped")  # type: ignore[index]
     await raw.aclose()
+
+
+@pytest.mark.skipif(not ReadPoller.available(), reason="epoll is Linux only")
+async def test_the_servers_websocket_reads_wait_on_its_poller_which_forgets_them_at_the_end(
+    start_server: Callable[..., Awaitable[RunningServer]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Every other test would pass as well with reads waiting on trio: this one says the
+    # listener hands its poller to the transport and lets go of each socket before closing it.
+    waited: list[int] = []
+    forgotten: list[int] = []
+    wait_readable, forget = ReadPoller.wait_readable, ReadPoller.forget
+
+    async def noting_wait(poller: ReadPoller, sock: trio.socket.SocketType) -> None:
+        waited.append(sock.fileno())
+        await wait_readable(poller, sock)
+
+    def noting_forget(poller: ReadPoller, sock: trio.socket.SocketType) -> None:
+        forgotten.append(sock.fileno())
+        forget(poller, sock)
+
+    monkeypatch.setattr(ReadPoller, "wait_readable", noting_wait)
+    monkeypatch.setattr(ReadPoller, "forget", noting_forget)
+    server = await start_server(demo=True)
+    raw = await RawWebSocket.connect(server.url, "/ws/master/demo-arm")
+    await _first_text(raw)
+    command = {"type": "command", "data": {"joints": [{"name": "Rotation", "value": 2}]}}
+    await raw.stream.send_all(client_frame(OP_TEXT, json.dumps(command).encode()))
+    with trio.fail_after(5):
+        while (await _first_text(raw))["type"] != "ack":
+            pass
+    assert waited, "the master's reads never waited on the poller"
+    await raw.aclose()
+    with trio.fail_after(5):
+        while not forgotten:
+            await trio.sleep(0.01)
+    assert set(waited) == set(forgotten)
 
 
 async def test_a_client_close_is_echoed_and_a_master_leaves(server: RunningServer) -> None:
