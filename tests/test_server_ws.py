@@ -518,7 +518,7 @@ async def test_the_slave_writer_lets_the_robot_write_lone_targets_itself(
     async def close(code: int, reason: str = "") -> None:
         by_task.append(f"close {code}")
 
-    connection = cast(Any, SimpleNamespace(send_now=send_now, send=send, close=close))
+    connection = cast(Any, SimpleNamespace(send_now=send_now, send_in_turn=send, close=close))
     ended = trio.Event()
     async with trio.open_nursery() as nursery:
         nursery.start_soon(_slave_writer, connection, link, ended)
@@ -566,7 +566,9 @@ def _forwarder_on(robot: Robot, events: EventQueue[RobotEvent]) -> tuple[Any, li
         sent.extend((trio.current_time(), type(m)) for m in messages)
 
     config = SimpleNamespace(joint_states_interval=0.02)
-    connection = SimpleNamespace(app=SimpleNamespace(arena_config=config), send=send)
+    connection = SimpleNamespace(
+        app=SimpleNamespace(arena_config=config), send=send, wants_joint_states=True
+    )
     return _RobotEventForwarder(cast(Any, connection), robot, events), sent
 
 

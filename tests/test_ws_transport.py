@@ -24,6 +24,7 @@ from arena.server.ws_frames import (
     FrameParser,
     ProtocolViolation,
 )
+from arena.server.ws_transport import UpgradeRequest, WebSocket
 from tests.conftest import RunningServer
 from tests.raw_websocket import RawWebSocket
 
@@ -141,6 +142,65 @@ async def test_pings_are_answered_with_their_payload(server: RunningServer) -> N
             pass
     assert frame is not None and frame.payload == b"are you there"
     await raw.aclose()
+
+
+async def test_a_ping_flood_from_a_peer_that_never_reads_is_bounded_and_slows_no_one(
+    server: RunningServer,
+) -> None:
+    # A viewer with a 4 KiB receive buffer sends pings as fast as it can and reads nothing:
+    # the server keeps only the newest pong it owes, other clients are answered meanwhile,
+    # and when the flooder reads again it gets the pong of its newest ping.
+    flooder = await RawWebSocket.connect(server.url, "/ws/robots/demo-arm/state", 4096)
+    highest = 0
+    sent = 0
+    async with server.client() as http:
+        for _ in range(40):
+            burst = b"".join(
+                client_frame(OP_PING, struct.pack("!I", sent + i)) for i in range(1000)
+            )
+            sent += 1000
+            await flooder.stream.send_all(burst)
+            # Another client is answered while the flood goes on.
+            assert (await http.post("/api/robots/demo-arm/estop")).status_code == 200
+            assert (await http.post("/api/robots/demo-arm/reset")).status_code == 200
+            highest = max([highest, *(c.ws.queued_bytes for c in server.app.connections)])
+    flooding = next(c for c in server.app.connections if c.role == "viewer")
+    assert flooding.ws.pongs_dropped > 0
+    assert highest < 64 * 1024, highest
+    pongs = 0
+    with trio.fail_after(10):
+        while True:
+            frame = await flooder.receive_frame()
+            assert frame is not None
+            if frame.opcode == OP_PONG:
+                pongs += 1
+                if frame.payload == struct.pack("!I", sent - 1):
+                    break
+    assert pongs < sent
+    await flooder.aclose()
+
+
+async def test_control_frames_count_toward_the_readers_fair_share() -> None:
+    # A thousand pings in hand before a text frame: reading through them lets other tasks run.
+    left, _right = trio.testing.memory_stream_pair()
+    ws = WebSocket(left, UpgradeRequest("/"), max_message=1024)
+    ws.feed(b"".join(client_frame(OP_PING, b"") for _ in range(1000)))
+    ws.feed(client_frame(OP_TEXT, b"after the pings"))
+    turns = 0
+
+    async def other() -> None:
+        nonlocal turns
+        while True:
+            turns += 1
+            await trio.lowlevel.checkpoint()
+
+    async with trio.open_nursery() as nursery:
+        nursery.start_soon(other)
+        await trio.lowlevel.checkpoint()  # it has started
+        turns = 0
+        assert await ws.receive() == "after the pings"
+        nursery.cancel_scope.cancel()
+    assert turns >= 1000 // 32 - 1, turns
 
 
 async def test_a_fragmented_command_is_one_command(server: RunningServer) -> None:

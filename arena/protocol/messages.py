@@ -280,6 +280,23 @@ class DetachedMessage(_Msg, tag="detached"):
     data: DetachedData | None = None
 
 
+class MissedData(msgspec.Struct):
+    """How many messages of each kind a peer that stopped reading did not get. Joint states
+    and states count those superseded by a newer one, which follows this message."""
+
+    ack: int = 0
+    joint_states: int = 0
+    state: int = 0
+    error: int = 0
+    heartbeat: int = 0
+
+
+class MissedMessage(_Msg, tag="missed"):
+    """Sent once a peer that stopped reading reads again, before the newest states."""
+
+    data: MissedData
+
+
 # --- codec ------------------------------------------------------------------------------------
 
 _master_decoder = msgspec.json.Decoder(MasterMessage)

@@ -22,6 +22,7 @@ SCHEMA_TYPES: dict[str, Any] = {
     "execute-command": wire.ExecuteCommandMessage,
     "slave-notice": wire.EStopNotice | wire.ResetNotice | wire.HoldNotice | wire.StopNotice,
     "detached": wire.DetachedMessage,
+    "missed": wire.MissedMessage,
     "heartbeat": wire.HeartbeatMessage,
     "rest-create-robot": rest.CreateRobotBody,
     "rest-joints": rest.JointsBody,

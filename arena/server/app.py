@@ -6,7 +6,7 @@ import time
 from collections import Counter
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import msgspec
 import trio
@@ -33,6 +33,9 @@ from arena.server.dashboard import blueprint as dashboard_blueprint
 from arena.server.groups_api import blueprint as groups_blueprint
 from arena.server.metrics import Metrics
 from arena.server.recordings_api import blueprint as recordings_blueprint
+
+if TYPE_CHECKING:
+    from arena.server.websockets import Connection
 from arena.server.robot_types_api import blueprint as robot_types_blueprint
 
 #: HTTP status for each error code (anything missing is 400).
@@ -92,6 +95,8 @@ class ArenaApp(QuartTrio):
     recorder: Recorder
     hardware: Hardware
     groups: GroupRegistry
+    #: The open WebSocket connections (their queued bytes show in /metrics).
+    connections: set[Connection]
 
 
 def error_response(code: ErrorCode, message: str) -> tuple[dict[str, Any], int]:
@@ -125,6 +130,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.recorder = recorder
     app.arena_config = config
     app.metrics = Metrics()
+    app.connections = set()
     app.hardware = Hardware()
     app.groups = GroupRegistry(manager)
     app.shutting_down = trio.Event()
@@ -361,7 +367,8 @@ def _register_routes(app: ArenaApp) -> None:
     @app.get("/metrics")
     async def metrics() -> Response:
         return Response(
-            app.metrics.render(manager.robots()), content_type="text/plain; version=0.0.4"
+            app.metrics.render(manager.robots(), sum(c.ws.queued_bytes for c in app.connections)),
+            content_type="text/plain; version=0.0.4",
         )
 
     @app.get("/openapi.json")

@@ -20,6 +20,8 @@ class Metrics:
         self.requests: collections.Counter[str] = collections.Counter()  # by status class
         self.messages: collections.Counter[str] = collections.Counter()  # in, by role
         self.message_errors: collections.Counter[str] = collections.Counter()  # by code
+        #: Messages a peer that stopped reading did not get, by kind (ack, joint_states...).
+        self.dropped: collections.Counter[str] = collections.Counter()
         self._latency_counts = [0] * (len(LATENCY_BUCKETS) + 1)
         self._latency_sum = 0.0
         self._retired: collections.Counter[str] = collections.Counter()  # deleted robots
@@ -35,8 +37,9 @@ class Metrics:
         self._retired.update(robot.command_counts)
         self._retired_estops += robot.estop_count
 
-    def render(self, robots: Iterable[Robot]) -> str:
-        """The Prometheus exposition text."""
+    def render(self, robots: Iterable[Robot], queued_bytes: int = 0) -> str:
+        """The Prometheus exposition text; `queued_bytes` is what the WebSocket connections
+        hold for their peers."""
         robots = list(robots)
         commands = collections.Counter(self._retired)
         estops = self._retired_estops
@@ -67,6 +70,18 @@ class Metrics:
         ]
         for role, count in sorted(self.messages.items()):
             lines.append(f'arena_messages_total{{role="{role}"}} {count}')
+        lines += [
+            "# HELP arena_ws_dropped_total Messages not sent to a peer that stopped reading"
+            " (superseded states, dropped acks), by kind.",
+            "# TYPE arena_ws_dropped_total counter",
+        ]
+        for kind, count in sorted(self.dropped.items()):
+            lines.append(f'arena_ws_dropped_total{{kind="{kind}"}} {count}')
+        lines += [
+            "# HELP arena_ws_queued_bytes Bytes queued for WebSocket peers, over all connections.",
+            "# TYPE arena_ws_queued_bytes gauge",
+            f"arena_ws_queued_bytes {queued_bytes}",
+        ]
         lines += [
             "# HELP arena_message_errors_total Messages and requests refused at the edge.",
             "# TYPE arena_message_errors_total counter",

@@ -106,6 +106,7 @@ WEBSOCKET_TYPES: list[Any] = [
     wire.StateMessage,
     wire.ExecuteCommandMessage,
     wire.DetachedMessage,
+    wire.MissedMessage,
 ]
 
 _ERROR_SCHEMA = {

@@ -8,6 +8,7 @@ link (detached, deleted), or the server shuts down (closed with 1001 at once).
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import contextvars
 import itertools
@@ -16,7 +17,7 @@ import math
 import time
 from collections.abc import Awaitable, Callable
 from functools import partial
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, NamedTuple, TypeVar
 
 import msgspec
 import trio
@@ -85,38 +86,130 @@ def router(app: ArenaApp) -> Callable[[UpgradeRequest], WebSocketHandler | None]
     return route
 
 
+class Encoded(NamedTuple):
+    """A message encoded already, with its kind: `ack`, `error`, `heartbeat`, `state` or
+    `joint_states`, the last two optionally `:<robot id>` (a group master hears from several)."""
+
+    kind: str
+    text: str
+
+
+Outgoing = msgspec.Struct | Encoded
+
+#: Kinds of which a peer that is behind gets only the newest, once it reads again.
+_LATEST_KINDS = frozenset({"state", "joint_states"})
+#: Kinds that a peer that is behind misses (counted in the `missed` message).
+_DROPPED_KINDS = frozenset({"ack", "error", "heartbeat"})
+_KIND_OF: dict[type, str] = {
+    wire.StateMessage: "state",
+    wire.JointStatesOut: "joint_states",
+    wire.AckMessage: "ack",
+    wire.ErrorMessage: "error",
+    wire.HeartbeatMessage: "heartbeat",
+}
+
+
+def _switch(args: dict[str, str], name: str) -> bool:
+    """A query parameter that is on unless it says off."""
+    return args.get(name, "").lower() not in ("0", "false", "no", "off")
+
+
 class Connection:
-    """One accepted WebSocket: send helpers, refusals, and the shutdown race."""
+    """One accepted WebSocket: send helpers, refusals, and the shutdown race.
+
+    `send` never waits, so a reader answering its peer never stalls on that peer. Once the
+    peer has let the transport's `high_water` bytes pile up, states and joint states keep
+    only the newest of each, and acks, errors and heartbeats are dropped and counted; when
+    the peer has read what was queued, it gets one `missed` message with the counts, then the
+    newest states. Messages that must not be dropped (a slave's targets) go through
+    `send_in_turn`, which waits for room in the writer task that sends them.
+    """
 
     def __init__(self, app: ArenaApp, ws: WebSocket, role: str) -> None:
         self.app = app
         self.ws = ws
         self.role = role  # master, slave or viewer
         self.args = ws.request.args
+        #: Query parameters `acks=false`, `joint_states=false`: a fire-and-forget master
+        #: hears only refusals; a viewer may watch state changes alone.
+        self.wants_acks = _switch(self.args, "acks")
+        self.wants_joint_states = _switch(self.args, "joint_states")
         self.closed = False
         self._ended = trio.Event()
+        self._held: dict[str, str] = {}  # the newest text of each latest-only kind
+        self._missed: collections.Counter[str] = collections.Counter()
+        self._behind = trio.Event()  # set while something is held or missed
 
-    async def send(self, *messages: msgspec.Struct | str) -> None:
-        """Send messages in one write (a struct is encoded as JSON)."""
-        await self._transmit(*(m if isinstance(m, str) else wire.encode(m) for m in messages))
+    async def send(self, *messages: Outgoing) -> None:
+        """Send messages in one write (a struct is encoded as JSON); never waits."""
+        if self._held or self._missed:
+            self._catch_up()
+        texts = [m.text if isinstance(m, Encoded) else wire.encode(m) for m in messages]
+        if not (self._held or self._missed) and self.ws.offer(*texts):
+            self._note_closed()
+            return
+        for message, text in zip(messages, texts, strict=True):
+            kind = message.kind if isinstance(message, Encoded) else _KIND_OF.get(type(message))
+            self._keep(kind, text)
+
+    async def send_in_turn(self, message: msgspec.Struct) -> None:
+        """Send a message that must not be dropped, first waiting while the peer is behind."""
+        await self.ws.send(wire.encode(message))
+        self._note_closed()
+
+    def _keep(self, kind: str | None, text: str) -> None:
+        """A message for a peer that is behind: keep the newest of its kind, or count it."""
+        base = kind.partition(":")[0] if kind else ""
+        if base in _LATEST_KINDS:
+            assert kind is not None
+            if self._held.pop(kind, None) is not None:
+                self._missed[base] += 1
+                self.app.metrics.dropped[base] += 1
+            self._held[kind] = text
+        elif base in _DROPPED_KINDS:
+            self._missed[base] += 1
+            self.app.metrics.dropped[base] += 1
+        else:  # rare and small (a detach notice): queued whatever the backlog
+            self.ws.send_nowait(text)
+            return
+        self._behind.set()
+
+    def _catch_up(self) -> None:
+        """If the peer has room again: the `missed` counts, then the newest states."""
+        if self.ws.backlogged:
+            return
+        texts = []
+        if self._missed:
+            missed = wire.MissedData(**{k: self._missed[k] for k in self._missed})
+            texts.append(wire.encode(wire.MissedMessage(timestamp=wire.now_iso(), data=missed)))
+        texts.extend(self._held.values())
+        self._held.clear()
+        self._missed.clear()
+        self._behind = trio.Event()
+        self.ws.offer(*texts)
+        self._note_closed()
+
+    async def _catch_up_when_read(self) -> None:
+        while not self.ws.close_sent:
+            await self._behind.wait()
+            await self.ws.wait_drained()
+            self._catch_up()
+
+    def _note_closed(self) -> None:
+        if self.ws.close_sent:  # the transport closed (protocol error, or the peer is gone)
+            self._ended.set()
 
     def send_now(self, message: msgspec.Struct) -> bool:
         """Write a message at once if the socket is idle; False (nothing sent) if it is not."""
         if not self.ws.send_now(wire.encode(message)):
             return False
-        if self.ws.close_sent:  # the peer is gone
-            self._ended.set()
+        self._note_closed()
         return True
 
     async def send_error(self, code: ErrorCode | str, message: str) -> None:
         """Send an `error` message and count it."""
         self.app.metrics.message_errors[str(code)] += 1
-        await self._transmit(wire.error_message(code, message))
-
-    async def _transmit(self, *texts: str) -> None:
-        await self.ws.send(*texts)
-        if self.ws.close_sent:  # the transport closed (protocol error, or the peer is gone)
-            self._ended.set()
+        await self.send(Encoded("error", wire.error_message(code, message)))
 
     async def close(self, code: int, reason: str = "") -> None:
         """Close once."""
@@ -133,6 +226,13 @@ class Connection:
 
     async def run(self, body: Callable[[trio.Nursery], Awaitable[None]]) -> None:
         """Run `body` until it returns, the client leaves or the server shuts down."""
+        self.app.connections.add(self)
+        try:
+            await self._run(body)
+        finally:
+            self.app.connections.discard(self)
+
+    async def _run(self, body: Callable[[trio.Nursery], Awaitable[None]]) -> None:
         async with trio.open_nursery() as nursery:
 
             async def on_shutdown() -> None:
@@ -150,6 +250,7 @@ class Connection:
 
             nursery.start_soon(on_shutdown)
             nursery.start_soon(on_closed)
+            nursery.start_soon(self._catch_up_when_read)
             nursery.start_soon(main)
 
 
@@ -260,7 +361,7 @@ class _RobotEventForwarder:
         """Around a command whose events the reader will `take_due` itself."""
         return self.events.holding_wakes()
 
-    def take_due(self) -> list[msgspec.Struct | str]:
+    def take_due(self) -> list[Outgoing]:
         """What is ready to go now, taken from the queue (the task then finds it empty)."""
         messages = self._messages(self.events.drain())
         if self._waiting is not None:  # joint states held back: the task sends them when due
@@ -272,19 +373,25 @@ class _RobotEventForwarder:
     def _deadline(self) -> float:
         return self.next_send + self.interval if self.pending else math.inf
 
-    def _messages(self, batch: list[RobotEvent]) -> list[msgspec.Struct | str]:
-        out: list[msgspec.Struct | str] = []
+    def _messages(self, batch: list[RobotEvent]) -> list[Outgoing]:
+        out: list[Outgoing] = []
         if any(isinstance(e, StateChanged) for e in batch):
-            out.append(convert.state(self.robot.snapshot()))
-        self.pending = self.pending or any(
-            isinstance(e, JointStatesReceived | TargetsSent) for e in batch
+            state = convert.state(self.robot.snapshot())
+            if self.name_robot:  # the newest of each member's is kept for a peer behind
+                out.append(Encoded(f"state:{self.robot.robot_id}", wire.encode(state)))
+            else:
+                out.append(state)
+        self.pending = self.pending or (
+            self.connection.wants_joint_states
+            and any(isinstance(e, JointStatesReceived | TargetsSent) for e in batch)
         )
         now = trio.current_time()
         if self.pending and now >= self.next_send:
             states = self.joint_states.message()
             if self.name_robot:
                 named = msgspec.to_builtins(states) | {"robot_id": self.robot.robot_id}
-                out.append(msgspec.json.encode(named).decode())
+                text = msgspec.json.encode(named).decode()
+                out.append(Encoded(f"joint_states:{self.robot.robot_id}", text))
             else:
                 out.append(states)
             self.pending = False
@@ -330,7 +437,8 @@ async def master_socket(connection: Connection, robot_id: str) -> None:
         with robot.subscribe(maxlen=256) as events:
             player = _SequencePlayer()
             forwarder = _RobotEventForwarder(connection, robot, events)
-            await connection.send(forwarder.joint_states.message())
+            if connection.wants_joint_states:
+                await connection.send(forwarder.joint_states.message())
 
             async def body(nursery: trio.Nursery) -> None:
                 nursery.start_soon(forwarder.run)
@@ -424,7 +532,8 @@ async def _handle_group_message(
             "timestamp": wire.now_iso(),
             "data": {"status": status, "members": answers},
         }
-        await connection.send(msgspec.json.encode(ack).decode())
+        if connection.wants_acks or status != "accepted":
+            await connection.send(Encoded("ack", msgspec.json.encode(ack).decode()))
     elif isinstance(message, wire.EStopMessage):
         reason = (message.data.reason if message.data else None) or "e-stop from group master"
         for link in links.values():
@@ -479,7 +588,7 @@ async def _forward_master_notices(connection: Connection, link: MasterLink) -> N
 
 async def _send_detached(connection: Connection, notice: MasterNotice) -> None:
     code = notice.code or ErrorCode.MASTER_LOST
-    await connection.send(
+    await connection.send(  # queued even to a peer that is behind: it is the last word
         wire.DetachedMessage(
             timestamp=wire.now_iso(), data=wire.DetachedData(str(code), notice.message)
         )
@@ -526,7 +635,10 @@ async def _handle_master_message(
                 result = await link.command(command)
             # The joint states the command caused ride along: one write instead of two.
             due = forwarder.take_due()
-        await connection.send(convert.ack(result), *due)
+        if connection.wants_acks or not result.accepted:
+            await connection.send(convert.ack(result), *due)
+        elif due:
+            await connection.send(*due)
         return
     link.alive()
     if isinstance(message, wire.SequenceMessage):
@@ -601,7 +713,7 @@ async def _slave_writer(connection: Connection, link: SlaveLink, ended: trio.Eve
     link.mailbox.deliver_now = deliver_now
     try:
         async for message in link.messages():
-            await connection.send(convert.to_slave(message))
+            await connection.send_in_turn(convert.to_slave(message))
     finally:
         link.mailbox.deliver_now = None
     ended.set()
@@ -647,7 +759,8 @@ async def state_socket(connection: Connection, robot_id: str) -> None:
     try:
         with robot.subscribe(maxlen=256) as events:
             await connection.send(convert.state(robot.snapshot()))
-            await connection.send(convert.joint_states(robot))
+            if connection.wants_joint_states:
+                await connection.send(convert.joint_states(robot))
 
             async def body(nursery: trio.Nursery) -> None:
                 nursery.start_soon(_heartbeats, connection)

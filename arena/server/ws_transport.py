@@ -2,9 +2,13 @@
 
 A message is written at once when the socket is idle and the reader has no more frames in
 hand (the lowest latency). Otherwise it goes to an outbox that a writer task empties with one
-`send_all` per burst, so the answers to a burst of commands share one system call. A sender
-waits only when the peer has let more than `high_water` bytes pile up, which bounds memory
-for a peer that stops reading.
+`send_all` per burst, so the answers to a burst of commands share one system call.
+
+Once a peer has let more than `high_water` bytes pile up, `offer` refuses more (the caller
+decides what to drop, see `websockets.Connection`) and `send` waits for room; a reader never
+waits on writing. Pongs owed to a peer that does not read are kept to the newest one, and
+control frames count toward the reader's fair share like data frames, so a ping flood costs
+the flooder its own turn and bounded memory.
 
 On a plain TCP socket the transport reads and writes the file descriptor itself and waits
 only when the kernel says it would block: trio's socket calls end every read and write with a
@@ -89,6 +93,9 @@ class WebSocket:
         self._writer_lot = trio.lowlevel.ParkingLot()
         self._drained_lot = trio.lowlevel.ParkingLot()
         self._received_in_a_row = 0
+        self._owed_pong: bytes | None = None  # the newest ping's payload, while backlogged
+        #: Pongs not sent because a newer ping came while the peer was not reading.
+        self.pongs_dropped = 0
         self._finishing = False
         self._sending = False  # a send_all is under way (the writer's or a direct one)
         #: Set once a close frame is sent (or the stream is gone): nothing more goes out.
@@ -110,10 +117,10 @@ class WebSocket:
         Pings are answered on the way. Raises `WebSocketClosed` once the peer closes, the
         stream ends, or the peer breaks the protocol (which is answered with a close frame).
         """
-        if self._received_in_a_row >= _FAIRNESS_BATCH:
-            self._received_in_a_row = 0
-            await trio.lowlevel.checkpoint()
         while True:
+            if self._received_in_a_row >= _FAIRNESS_BATCH:  # control frames count too
+                self._received_in_a_row = 0
+                await trio.lowlevel.checkpoint()
             if self.closed_by_peer is not None:
                 raise self.closed_by_peer
             try:
@@ -124,19 +131,17 @@ class WebSocket:
             if message is None:
                 await self._receive_more()
                 continue
+            self._received_in_a_row += 1
             if message.opcode == OP_TEXT:
                 try:
-                    text = message.payload.decode("utf-8")
+                    return message.payload.decode("utf-8")
                 except UnicodeDecodeError:
                     self._fail(ws_frames.CLOSE_INVALID_DATA, "Text frames must be UTF-8.")
                     continue
-                self._received_in_a_row += 1
-                return text
             if message.opcode == OP_BINARY:
-                self._received_in_a_row += 1
                 return message.payload
             if message.opcode == OP_PING:
-                self._queue(ws_frames.encode_frame(OP_PONG, message.payload))
+                self._pong(message.payload)
             elif message.opcode == OP_CLOSE:
                 try:
                     code, reason = ws_frames.parse_close(message.payload)
@@ -186,6 +191,16 @@ class WebSocket:
                 await self._poller.wait_readable(sock)
             self._may_hold_more = True
 
+    def _pong(self, payload: bytes) -> None:
+        """Answer a ping; while the peer is behind, only the newest ping is answered
+        (RFC 6455 5.5.3 allows answering just the most recent one)."""
+        if self._outbox_bytes <= self.high_water:
+            self._queue(ws_frames.encode_frame(OP_PONG, payload))
+            return
+        if self._owed_pong is not None:
+            self.pongs_dropped += 1
+        self._owed_pong = payload
+
     def _fail(self, code: int, reason: str) -> None:
         self._send_close(code, reason)
         self.closed_by_peer = WebSocketClosed(code, reason)
@@ -209,26 +224,47 @@ class WebSocket:
         self._write_socket(self._socket, _frames(texts))
         return True
 
-    async def send(self, *texts: str) -> None:
-        """Queue text messages, first waiting while the peer is too far behind.
+    @property
+    def queued_bytes(self) -> int:
+        """Bytes waiting for the peer to read (what this connection holds in memory)."""
+        return self._outbox_bytes
 
-        Unlike most trio calls this yields only when it has to wait: a reader answering a
-        burst of messages keeps the whole burst for one write.
+    @property
+    def backlogged(self) -> bool:
+        """The peer has let more than `high_water` bytes pile up."""
+        return self._outbox_bytes > self.high_water and not self.close_sent
+
+    def offer(self, *texts: str) -> bool:
+        """Send text messages unless the peer is backlogged (then False, nothing queued).
+
+        Never waits: a reader answering a burst of messages keeps the whole burst for one
+        write, and a peer that stops reading never stalls the reader.
         """
-        while self._outbox_bytes > self.high_water and not self.close_sent:
-            await self._drained_lot.park()
-        if not self._idle():
+        if self.backlogged:
+            return False
+        if self._socket is not None and self._idle():
+            self._write_socket(self._socket, _frames(texts))
+        else:  # busy, or a stream (TLS) that only the writer task writes to
             for text in texts:
                 self.send_nowait(text)
-            return
-        if self._socket is not None:
-            self._write_socket(self._socket, _frames(texts))
-            return
-        try:
-            await self._write(_frames(texts))
-        finally:
-            if self._outbox or self._finishing:
-                self._writer_lot.unpark()
+        return True
+
+    async def send(self, *texts: str) -> None:
+        """Send text messages, first waiting while the peer is backlogged (for writer tasks
+        whose messages must not be dropped, such as a slave's targets)."""
+        await self.wait_for_room()
+        self.offer(*texts)
+        await trio.lowlevel.checkpoint()
+
+    async def wait_for_room(self) -> None:
+        """Until the peer is no longer backlogged (or the connection is closing)."""
+        while self.backlogged:
+            await self._drained_lot.park()
+
+    async def wait_drained(self) -> None:
+        """Until everything queued is handed to the kernel (or the connection is closing)."""
+        while (self._outbox or self._sending) and not self.close_sent:
+            await self._drained_lot.park()
 
     def _idle(self) -> bool:
         """Nothing queued or being written, and no more frames in hand to answer first."""
@@ -276,6 +312,9 @@ class WebSocket:
             self._outbox_bytes = 0
             self._drained_lot.unpark_all()
             await self._write(data)
+            if self._owed_pong is not None:  # the peer reads again: answer its newest ping
+                pong, self._owed_pong = self._owed_pong, None
+                self._queue(ws_frames.encode_frame(OP_PONG, pong))
 
     async def _write(self, data: bytes) -> None:
         """One `send_all` under the `_sending` flag; a vanished peer marks the socket broken."""
