@@ -37,26 +37,30 @@ async def test_a_failing_recordings_folder_never_stops_control(
         shutil.move(folder, tmp_path / "rec-before")
         folder.write_text("not a folder")
         assert (await http.post("/api/recordings")).status_code == 201
-        for step in range(20):  # control goes on all the while
-            reply = await command(master, {"Rotation": 2 + step * 0.5})
-            assert reply["data"]["status"] == "accepted"
-            await trio.sleep(0.03)
-        with trio.fail_after(5):
-            while True:
-                status = (await http.get("/api/recordings")).json()["recorder"]
-                if status["error"] is not None:
-                    break
-                await trio.sleep(0.05)
-        assert status["dropped"] > 0
-        # The disk comes back: recording resumes by itself.
+        step = 0
+        with trio.fail_after(30):  # control goes on all the while; the recorder says why
+            while (status := (await http.get("/api/recordings")).json()["recorder"])[
+                "error"
+            ] is None:
+                reply = await command(master, {"Rotation": 2 + step % 20 * 0.5})
+                assert reply["data"]["status"] == "accepted"
+                step += 1
+                await trio.sleep(0.02)  # pacing only: the loop waits for the error
+        assert status["dropped"] > 0 and status["errors"] >= 1
+        assert "Not a directory" in status["error"] or "File exists" in status["error"]
+        gauges = (await http.get("/metrics")).text
+        assert "arena_recording_active 1" in gauges and "arena_recording_failing 1" in gauges
+        # The disk comes back; starting the recording again retries at once.
         folder.unlink()
         folder.mkdir()
-        await command(master, {"Rotation": 30})
-        with trio.fail_after(5):
+        assert (await http.post("/api/recordings")).status_code == 201
+        with trio.fail_after(30):
             while (await http.get("/api/recordings")).json()["recorder"]["error"] is not None:
                 await command(master, {"Rotation": 31})
-                await trio.sleep(0.1)
+                await trio.sleep(0.02)
+        await command(master, {"Rotation": 30})
         await http.post("/api/recordings/current/stop")
+        assert "arena_recording_failing 0" in (await http.get("/metrics")).text
     files = list(folder.glob("*.mcap"))
     assert files
     commands = [

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import errno
+import io
+import itertools
 import json
 import os
 import re
@@ -12,6 +15,7 @@ import sys
 import time
 from collections.abc import AsyncIterator
 from pathlib import Path
+from typing import IO, Any
 
 import httpx
 import jsonschema
@@ -25,10 +29,11 @@ from arena import cli
 from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import get_sequence
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
+from arena.recording import mcap_file
 from arena.recording.analysis import export, summarize, timeline
 from arena.recording.mcap_file import FileSeries, read_recording, write_recording
 from arena.recording.mcap_writer import ChunkedWriter
-from arena.recording.recorder import Recorder, check_name
+from arena.recording.recorder import Backoff, Recorder, check_name
 from arena.recording.records import KIND_OF_EVENT, record_of
 from arena.recording.replay import ReplayMaster, TimedCommand, recorded_commands
 from arena.recording.session import behaviour, record_scenario, replay_session
@@ -609,3 +614,52 @@ def test_events_packed_for_the_writer_process_become_the_same_records() -> None:
         for robot_id, _, e, log_time in reversed(packed)  # the child writes in time order
     ]
     assert items == expected
+
+
+def test_the_recorders_retries_back_off_from_one_second_to_thirty() -> None:
+    retry = Backoff(1.0, 30.0)
+    assert retry.ready(0.0)
+    attempts = []
+    now = 0.0
+    while now < 120.0:  # a full disk for two minutes, the recorder asking every 50 ms
+        if retry.ready(now):
+            attempts.append(now)
+            retry.failed(now)
+        now = round(now + 0.05, 2)
+    gaps = [round(b - a, 2) for a, b in itertools.pairwise(attempts)]
+    assert gaps == [1.0, 2.0, 4.0, 8.0, 16.0, 30.0, 30.0]  # 7 attempts, not 2,400
+    assert retry.wait(now) > 0
+    retry.succeeded()  # the disk is back (or the operator starts recording again)
+    assert retry.ready(now) and retry.wait(now) == 0.0
+
+
+def test_a_full_disk_leaves_no_empty_file_behind(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Every file's writes fail once a few bytes are in (ENOSPC): the files the writer opens
+    # while the disk is full hold nothing, and are removed; one that holds flushed messages
+    # stays, cut where the disk filled, and reads back.
+    room = {"bytes": 1 << 20}
+
+    class FullDisk(io.FileIO):
+        def write(self, data: Any) -> int:
+            if len(data) > room["bytes"]:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            room["bytes"] -= len(data)
+            return super().write(data)
+
+    def opener(path: Path, mode: str) -> IO[bytes]:
+        return FullDisk(path, "w") if "w" in mode else open(path, mode)
+
+    monkeypatch.setattr(mcap_file, "open", opener, raising=False)
+    writer = mcap_file.McapFileWriter(FileSeries(tmp_path, {"test": "full"}))
+    state = json.dumps({"robot_id": "arm", "mode": "idle"}).encode()
+    writer.write([("arm", "state", state, 1)])  # flushed while there was room
+    kept = writer.path
+    room["bytes"] = 0  # the disk fills
+    for attempt in range(20):
+        with pytest.raises(OSError):
+            writer.write([("arm", "state", state, 2 + attempt)])
+    assert kept is not None
+    assert [p.name for p in tmp_path.iterdir()] == [kept.name]
+    assert read_recording(kept).messages

@@ -9,12 +9,15 @@ from __future__ import annotations
 import contextlib
 import datetime
 import json
+import struct
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
+import zstandard
+from mcap.exceptions import McapError
 from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
@@ -66,6 +69,8 @@ class McapFileWriter:
         self._channels: dict[str, int] = {}
         self._robots_written: set[str] = set()
         self.messages = 0
+        self._messages_at_open = 0  # `messages` when the current file was opened
+        self._flushed_in_file = 0  # messages of the current file handed to the OS
 
     def write(self, items: list[Item], *, flush: bool = True) -> None:
         """Append records, opening or rotating files as needed, then (with `flush`) close the
@@ -93,6 +98,7 @@ class McapFileWriter:
         if self._writer is not None:
             self._writer.flush()
             assert self._stream is not None
+            self._flushed_in_file = self.messages - self._messages_at_open
             if (
                 self._stream.tell() > self.max_bytes
                 or time.monotonic() - self._opened_at > self.max_seconds
@@ -109,10 +115,16 @@ class McapFileWriter:
         self.path = None
 
     def abandon(self) -> None:
-        """Drop the current file without finishing it (after an I/O error)."""
+        """Drop the current file without finishing it (after an I/O error). A file that
+        never held a flushed message is removed: a full disk must not leave empty files."""
         if self._stream is not None:
             with contextlib.suppress(OSError):
                 self._stream.close()
+        if self.path is not None and not self._flushed_in_file:
+            with contextlib.suppress(OSError):
+                self.path.unlink()
+            if self.path in self.files:
+                self.files.remove(self.path)
         self._writer = self._stream = None
         self.path = None
 
@@ -123,15 +135,18 @@ class McapFileWriter:
             while path.exists():  # two files within a millisecond: keep both
                 path = path.with_name(path.stem + "-1" + SUFFIX)
             self._stream = open(path, "wb")  # noqa: SIM115 - closed in close()
-            self._writer = ChunkedWriter(self._stream, chunk_size=self.chunk_size)
-            self._writer.start(profile=PROFILE, library="arena")
-            self._writer.add_metadata("arena", self.metadata)
+            self.path = path  # before the first write, so that `abandon` can remove it
+            self.files.append(path)
+            self._messages_at_open = self.messages
+            self._flushed_in_file = 0
+            writer = ChunkedWriter(self._stream, chunk_size=self.chunk_size)
+            writer.start(profile=PROFILE, library="arena")
+            writer.add_metadata("arena", self.metadata)
+            self._writer = writer
             self._opened_at = time.monotonic()
             self._schemas.clear()
             self._channels.clear()
             self._robots_written.clear()
-            self.path = path
-            self.files.append(path)
         return self._writer
 
     def _channel(self, writer: ChunkedWriter, robot_id: str, kind: str) -> int:
@@ -193,6 +208,11 @@ def read_recording(path: str | Path) -> Recording:
     return recording
 
 
+#: What reading a file cut mid-record raises: mcap's own errors, a short struct or length,
+#: a truncated zstd frame, JSON cut mid-message. Anything else is a bug and is let out.
+_CUT_FILE_ERRORS = (McapError, EOFError, struct.error, ValueError, zstandard.ZstdError)
+
+
 def iter_records(stream: IO[bytes]) -> Iterator[Any]:
     """Every record of a stream, chunks opened; stops quietly where a record is cut off."""
     yield from StreamReader(stream).records
@@ -230,7 +250,7 @@ def _read_into(recording: Recording, records: Iterator[Any]) -> bool:
                 )
             elif type(record).__name__ == "Footer":
                 complete = True
-    except Exception:
+    except _CUT_FILE_ERRORS:
         # A cut-off record (killed writer, copy in progress): keep everything before it.
         return False
     return complete

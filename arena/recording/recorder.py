@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import time
 from dataclasses import dataclass, field
 from functools import partial
@@ -52,6 +53,35 @@ class _Batch:
             self.events += len(part)
 
 
+class Backoff:
+    """When to try again after a failure: `initial` seconds, doubling up to `maximum`. A full
+    disk then costs one attempt now and then instead of one (and a new file) every batch."""
+
+    def __init__(self, initial: float, maximum: float) -> None:
+        self.initial = initial
+        self.maximum = maximum
+        self._delay = initial
+        self._at = -math.inf
+
+    def ready(self, now: float) -> bool:
+        """Time for an attempt."""
+        return now >= self._at
+
+    def wait(self, now: float) -> float:
+        """Seconds until the next attempt."""
+        return max(0.0, self._at - now)
+
+    def failed(self, now: float) -> None:
+        """An attempt failed at `now`."""
+        self._at = now + self._delay
+        self._delay = min(self._delay * 2, self.maximum)
+
+    def succeeded(self) -> None:
+        """An attempt worked (or someone asked to try at once): back to the start."""
+        self._delay = self.initial
+        self._at = -math.inf
+
+
 class Recorder:
     """Records every robot it is given into `folder`, rotating files by size and age."""
 
@@ -66,6 +96,8 @@ class Recorder:
         batch_interval: float = 0.05,
         queue_size: int = 100_000,
         active: bool = True,
+        retry_initial: float = 1.0,
+        retry_max: float = 30.0,
     ) -> None:
         base = {"server": "arena", "version": arena.__version__}
         self.writer = McapWriterProcess(
@@ -76,7 +108,10 @@ class Recorder:
         self.queue_size = queue_size
         self.active = active
         self.error: str | None = None
+        #: Disk errors since the server started (each failed attempt once).
+        self.errors = 0
         self._write_failures = 0  # records lost to disk errors
+        self._retry = Backoff(retry_initial, retry_max)
         self._dropped_by_gone = 0  # queue overflows of robots no longer followed
         self._followed: dict[EventQueue[RobotEvent], tuple[str, contextlib.ExitStack]] = {}
         self._wall_offset = 0.0  # wall clock minus trio's clock, taken when `run` starts
@@ -122,8 +157,10 @@ class Recorder:
         self._followed[queue] = (robot.robot_id, subscription)
 
     async def start(self) -> Path | None:
-        """Resume recording into a new file (after `stop`)."""
+        """Resume recording into a new file (after `stop`); after a disk error, try again
+        with the next batch instead of waiting out the backoff."""
         self.active = True
+        self._retry.succeeded()
         return self.writer.path
 
     async def stop(self) -> Path | None:
@@ -171,6 +208,9 @@ class Recorder:
     async def _write(self, batch: _Batch, flush: bool = True) -> None:
         if not batch.events and not (flush and self._unflushed):
             return
+        if not self._retry.ready(trio.current_time()):  # the disk failed lately: not yet
+            self._write_failures += batch.events
+            return
         try:
             await trio.to_thread.run_sync(
                 partial(self.writer.write_events, batch.slices, flush=flush)
@@ -181,14 +221,17 @@ class Recorder:
             if self.error is not None:
                 log.warning("recording resumed in %s", self.writer.path)
             self.error = None
+            self._retry.succeeded()
         except OSError as exc:
             # A full or read-only disk must not stop control: say so, drop the batch, and try
-            # a fresh file with the next one.
+            # a fresh file after the backoff.
             if self.error is None:
                 log.error("recording failed: %s", exc)
-            self.error = f"{type(exc).__name__}: {exc}"
+            self.error = str(exc)
+            self.errors += 1
             self._write_failures += batch.events  # the writer has dropped its file
             self._unflushed = False
+            self._retry.failed(trio.current_time())
 
     @property
     def dropped(self) -> int:
@@ -205,6 +248,8 @@ class Recorder:
             "messages": self.writer.messages,
             "dropped": self.dropped,
             "error": self.error,
+            "errors": self.errors,
+            "retry_in": self._retry.wait(trio.current_time()) if self.error else None,
         }
 
 

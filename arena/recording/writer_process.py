@@ -209,7 +209,7 @@ def serve(requests: IO[bytes], replies: IO[bytes]) -> None:
                 else:
                     writer.close()
             except OSError as exc:
-                error = f"{type(exc).__name__}: {exc}"
+                error = str(exc)  # "[Errno 28] No space left on device: '...'"
             path = None if writer.path is None else str(writer.path)
             send_frame(replies, (error, path, writer.messages, [str(f) for f in writer.files]))
     finally:

@@ -367,7 +367,11 @@ def _register_routes(app: ArenaApp) -> None:
     @app.get("/metrics")
     async def metrics() -> Response:
         return Response(
-            app.metrics.render(manager.robots(), sum(c.ws.queued_bytes for c in app.connections)),
+            app.metrics.render(
+                manager.robots(),
+                sum(c.ws.queued_bytes for c in app.connections),
+                app.recorder.status(),
+            ),
             content_type="text/plain; version=0.0.4",
         )
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import bisect
 import collections
 from collections.abc import Iterable
+from typing import Any
 
 from arena.robot.actor import Robot
 
@@ -37,9 +38,14 @@ class Metrics:
         self._retired.update(robot.command_counts)
         self._retired_estops += robot.estop_count
 
-    def render(self, robots: Iterable[Robot], queued_bytes: int = 0) -> str:
+    def render(
+        self,
+        robots: Iterable[Robot],
+        queued_bytes: int = 0,
+        recording: dict[str, Any] | None = None,
+    ) -> str:
         """The Prometheus exposition text; `queued_bytes` is what the WebSocket connections
-        hold for their peers."""
+        hold for their peers, `recording` the recorder's status."""
         robots = list(robots)
         commands = collections.Counter(self._retired)
         estops = self._retired_estops
@@ -94,6 +100,25 @@ class Metrics:
         ]
         for status, count in sorted(self.requests.items()):
             lines.append(f'arena_http_requests_total{{status="{status}"}} {count}')
+        if recording is not None:
+            failing = recording["error"] is not None
+            lines += [
+                "# HELP arena_recording_active Recording is switched on.",
+                "# TYPE arena_recording_active gauge",
+                f"arena_recording_active {int(bool(recording['active']))}",
+                "# HELP arena_recording_failing Recording is on but the disk refuses it.",
+                "# TYPE arena_recording_failing gauge",
+                f"arena_recording_failing {int(failing)}",
+                "# HELP arena_recording_messages_total Messages written to recordings.",
+                "# TYPE arena_recording_messages_total counter",
+                f"arena_recording_messages_total {recording['messages']}",
+                "# HELP arena_recording_dropped_total Messages lost (full queues, disk errors).",
+                "# TYPE arena_recording_dropped_total counter",
+                f"arena_recording_dropped_total {recording['dropped']}",
+                "# HELP arena_recording_errors_total Failed attempts to write to the disk.",
+                "# TYPE arena_recording_errors_total counter",
+                f"arena_recording_errors_total {recording['errors']}",
+            ]
         lines += [
             "# HELP arena_message_latency_seconds From a message's arrival to its answer.",
             "# TYPE arena_message_latency_seconds histogram",
