@@ -85,6 +85,22 @@ def main(argv: list[str] | None = None) -> int:
         default=None,
         help="allow binding beyond loopback without API keys",
     )
+    serve.add_argument(
+        "--allow-origin",
+        action="append",
+        default=[],
+        dest="allowed_origins",
+        metavar="ORIGIN",
+        help="a web page origin (scheme://host:port) that may change things (repeatable)",
+    )
+    serve.add_argument(
+        "--allow-host",
+        action="append",
+        default=[],
+        dest="allowed_hosts",
+        metavar="NAME",
+        help="a host name a loopback server answers to besides localhost (repeatable)",
+    )
     serve.add_argument("--certfile", help="TLS certificate (PEM)")
     serve.add_argument("--keyfile", help="TLS private key (PEM)")
     serve.add_argument(
@@ -326,6 +342,8 @@ def _serve(args: argparse.Namespace) -> int:
             insecure=args.insecure,
             certfile=args.certfile,
             keyfile=args.keyfile,
+            allowed_origins=tuple(args.allowed_origins),
+            allowed_hosts=tuple(args.allowed_hosts),
         )
         config.check()
     except ArenaError as error:

@@ -4,17 +4,22 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 from collections.abc import Awaitable, Callable
 from pathlib import Path
+from urllib.parse import quote
 
 import pytest
+import trio
 from trio_websocket import open_websocket_url
 
+from arena.server.config import load_config
 from tests.conftest import RunningServer
 from tests.test_server_ws import closed_with, command, receive
 
 StartServer = Callable[..., Awaitable[RunningServer]]
 ADMIN, VIEWER = "adm1n-k3y-zz", "v1ewer-k3y-zz"
+GOLDEN = Path(__file__).resolve().parent.parent / "recordings" / "golden" / "gentle-wave.mcap"
 
 
 async def test_a_viewer_key_watches_but_cannot_command(start_server: StartServer) -> None:
@@ -97,20 +102,42 @@ async def test_a_slave_cannot_command_and_a_master_reaches_only_its_robot(
         assert (await http.get("/api/robots/other/joints")).json() == before_other
 
 
-async def test_recording_names_cannot_escape_the_folder(server: RunningServer) -> None:
+async def test_recording_names_cannot_escape_the_folder(
+    start_server: StartServer, tmp_path: Path
+) -> None:
+    # A real recording sits just outside the folder and one inside: the inside one is served
+    # (so a refusal below means something), and no name reaches the outside one.
+    folder = tmp_path / "recordings"
+    folder.mkdir()
+    shutil.copy(GOLDEN, folder / "inside.mcap")
+    shutil.copy(GOLDEN, tmp_path / "secret.mcap")
+    server = await start_server(demo=True, recordings_dir=str(folder), record=False)
     async with server.client() as http:
-        for name in ("..%2F..%2Fetc%2Fpasswd", "..", ".hidden.mcap", "a%00b"):
+        assert (await http.get("/api/recordings/inside.mcap/file")).status_code == 200
+        for name in (
+            "..%2Fsecret.mcap",
+            "%2E%2E%2Fsecret.mcap",
+            "..%5Csecret.mcap",
+            quote(str(tmp_path / "secret.mcap"), safe=""),
+            "recordings%2F..%2F..%2Fsecret.mcap",
+            "..",
+            ".hidden.mcap",
+            "a%00b",
+        ):
             reply = await http.get(f"/api/recordings/{name}/file")
             assert reply.status_code in (404, 422), name
+            assert not reply.content.startswith(b"\x89MCAP"), name
             assert reply.json()["error"]["code"] in (
                 "UNKNOWN_RECORDING",
                 "INVALID_BODY",
                 "NOT_FOUND",
             )
-        replay = await http.post(
-            "/api/robots/demo-arm/replay", json={"recording": "../../etc/passwd"}
-        )
-        assert replay.status_code in (404, 422) and "error" in replay.json()
+            summary = await http.get(f"/api/recordings/{name}")
+            assert summary.status_code in (404, 422), name
+        for recording in ("../secret.mcap", str(tmp_path / "secret.mcap")):
+            replay = await http.post("/api/robots/demo-arm/replay", json={"recording": recording})
+            assert replay.status_code in (404, 422), recording
+        assert server.app.manager.get("demo-arm").snapshot().master is None
 
 
 async def test_cors_is_closed_by_default(server: RunningServer) -> None:
@@ -123,3 +150,135 @@ async def test_cors_is_closed_by_default(server: RunningServer) -> None:
             headers={**origin, "Access-Control-Request-Method": "POST"},
         )
         assert "access-control-allow-origin" not in preflight.headers
+
+
+async def _upgrade(server: RunningServer, path: str, headers: dict[str, str]) -> tuple[int, bytes]:
+    """A WebSocket handshake with the headers given; the HTTP status and body answered."""
+    host, port = server.url.split("//")[1].rsplit(":", 1)
+    lines = {
+        "Host": f"{host}:{port}",
+        "Upgrade": "websocket",
+        "Connection": "Upgrade",
+        "Sec-WebSocket-Key": "dGhlIHNhbXBsZSBub25jZQ==",
+        "Sec-WebSocket-Version": "13",
+        **headers,
+    }
+    request = f"GET {path} HTTP/1.1\r\n" + "".join(f"{k}: {v}\r\n" for k, v in lines.items())
+    stream = await trio.open_tcp_stream(host, int(port))
+    await stream.send_all((request + "\r\n").encode())
+    answer = b""
+    with trio.fail_after(10):
+        while b"\r\n\r\n" not in answer:
+            answer += await stream.receive_some(65536)
+        head, _, body = answer.partition(b"\r\n\r\n")
+        if head.startswith(b"HTTP/1.1 403"):
+            length = int(head.lower().split(b"content-length:")[1].split(b"\r\n")[0])
+            while len(body) < length:
+                body += await stream.receive_some(65536)
+    await stream.aclose()
+    return int(head.split()[1]), body
+
+
+EVIL = "https://evil.example"
+
+
+@pytest.mark.parametrize("keys", [(), (ADMIN,)])
+async def test_a_foreign_page_changes_nothing_over_rest(
+    start_server: StartServer, keys: tuple[str, ...]
+) -> None:
+    # A page elsewhere can POST text/plain without a preflight; with or without API keys
+    # (its fetch could even carry a key it learned), its Origin gives it away.
+    server = await start_server(demo=True, api_keys=keys)
+    auth = {"Authorization": f"Bearer {ADMIN}"} if keys else {}
+    robot = server.app.manager.get("demo-arm")
+    async with server.client() as http:
+        for path, body in [
+            ("/api/robots/demo-arm/estop", b""),
+            ("/api/robots", b'{"robot_type": "so-arm100", "id": "planted"}'),
+        ]:
+            reply = await http.post(
+                path, content=body, headers={**auth, "Origin": EVIL, "Content-Type": "text/plain"}
+            )
+            assert reply.status_code == 403, reply.text
+            assert reply.json()["error"]["code"] == "ORIGIN_NOT_ALLOWED"
+        assert str(robot.snapshot().mode) != "estopped"
+        assert [r["id"] for r in (await http.get("/api/robots", headers=auth)).json()] == [
+            "demo-arm"
+        ]
+        # Reading is not changing: a foreign page may GET (CORS keeps the answer from it).
+        assert (await http.get("/api/robots", headers={**auth, "Origin": EVIL})).status_code == 200
+        # The server's own pages (the dashboard) may, and so may a script with no Origin.
+        own = server.url
+        estop = await http.post("/api/robots/demo-arm/estop", headers={**auth, "Origin": own})
+        assert estop.status_code == 200
+        assert (await http.post("/api/robots/demo-arm/reset", headers=auth)).status_code == 200
+
+
+async def test_a_body_must_be_json(server: RunningServer) -> None:
+    async with server.client() as http:
+        for content_type in (
+            "text/plain",
+            "application/x-www-form-urlencoded",
+            "multipart/form-data",
+        ):
+            reply = await http.post(
+                "/api/robots",
+                content=b'{"robot_type": "so-arm100", "id": "planted"}',
+                headers={"Content-Type": content_type},
+            )
+            assert reply.status_code == 415, content_type
+            assert reply.json()["error"]["code"] == "UNSUPPORTED_MEDIA_TYPE"
+        assert [r["id"] for r in (await http.get("/api/robots")).json()] == ["demo-arm"]
+        # A bare POST needs no content type; JSON declared as such (with a charset) passes.
+        assert (await http.post("/api/robots/demo-arm/estop")).status_code == 200
+        assert (await http.post("/api/robots/demo-arm/reset")).status_code == 200
+        created = await http.post(
+            "/api/robots",
+            content=b'{"robot_type": "so-arm100", "id": "fine"}',
+            headers={"Content-Type": "application/json; charset=utf-8"},
+        )
+        assert created.status_code == 201, created.text
+
+
+async def test_a_foreign_page_cannot_open_a_websocket(start_server: StartServer) -> None:
+    server = await start_server(demo=True, allowed_origins=("http://lab-tools.local:3000",))
+    robot = server.app.manager.get("demo-arm")
+    for path in ("/ws/master/demo-arm", "/ws/slave/demo-arm", "/ws/robots/demo-arm/state"):
+        status, body = await _upgrade(server, path, {"Origin": EVIL})
+        assert status == 403, path
+        assert json.loads(body)["error"]["code"] == "ORIGIN_NOT_ALLOWED"
+    assert robot.snapshot().master is None
+    for origin in (server.url, "http://lab-tools.local:3000"):
+        status, _ = await _upgrade(server, "/ws/robots/demo-arm/state", {"Origin": origin})
+        assert status == 101, origin
+
+
+async def test_a_loopback_server_answers_only_to_its_own_names(start_server: StartServer) -> None:
+    # DNS rebinding: evil.example resolves to 127.0.0.1, so its page is "same-origin"; the
+    # Host header still names evil.example.
+    server = await start_server(demo=True, allowed_hosts=("arena.lab",))
+    port = server.url.rsplit(":", 1)[1]
+    async with server.client() as http:
+        for host in (f"evil.example:{port}", "evil.example"):
+            reply = await http.get("/api/robots", headers={"Host": host})
+            assert reply.status_code == 403 and reply.json()["error"]["code"] == "HOST_NOT_ALLOWED"
+            rebound = await http.post(
+                "/api/robots/demo-arm/estop",
+                headers={"Host": host, "Origin": f"http://{host}"},
+            )
+            assert rebound.status_code == 403
+        for host in (f"localhost:{port}", f"127.0.0.1:{port}", f"arena.lab:{port}", "[::1]"):
+            assert (await http.get("/api/robots", headers={"Host": host})).status_code == 200, host
+    status, body = await _upgrade(server, "/ws/master/demo-arm", {"Host": f"evil.example:{port}"})
+    assert status == 403 and json.loads(body)["error"]["code"] == "HOST_NOT_ALLOWED"
+    assert str(server.app.manager.get("demo-arm").snapshot().mode) != "estopped"
+
+
+def test_allowed_origins_come_from_flags_and_the_config_file(tmp_path: Path) -> None:
+    config_file = tmp_path / "arena.toml"
+    config_file.write_text('allowed_origins = ["http://a.example"]\nallowed_hosts = ["lab"]\n')
+    config = load_config(
+        str(config_file), allowed_origins=("http://b.example",), allowed_hosts=("rig",)
+    )
+    assert config.allowed_origins == ("http://a.example", "http://b.example")
+    assert config.allowed_hosts == ("lab", "rig")

@@ -321,7 +321,7 @@ async def _handshake(server: RunningServer, request: str) -> bytes:
 async def test_a_bad_handshake_gets_a_json_400(server: RunningServer) -> None:
     answer = await _handshake(
         server,
-        "GET /ws/master/demo-arm HTTP/1.1\r\nHost: x\r\nUpgrade: websocket\r\n"
+        "GET /ws/master/demo-arm HTTP/1.1\r\nHost: 127.0.0.1\r\nUpgrade: websocket\r\n"
         "Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
         "Sec-WebSocket-Version: 8\r\n\r\n",
     )

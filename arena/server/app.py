@@ -6,12 +6,11 @@ import time
 from collections import Counter
 from collections.abc import Iterable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import msgspec
 import trio
 from quart import Response, redirect, request
-from quart_trio import QuartTrio
 from werkzeug.exceptions import HTTPException
 
 import arena
@@ -26,101 +25,19 @@ from arena.robot.groups import GroupRegistry
 from arena.robot.manager import RobotManager
 from arena.server import convert, dashboard, openapi
 from arena.server.auth import check_token
-from arena.server.calibration_api import Hardware
+from arena.server.base import ArenaApp, Hardware, error_response, read_body
 from arena.server.calibration_api import blueprint as calibration_blueprint
 from arena.server.config import ServerConfig
 from arena.server.dashboard import blueprint as dashboard_blueprint
 from arena.server.groups_api import blueprint as groups_blueprint
 from arena.server.metrics import Metrics
+from arena.server.origin import SAFE_METHODS, OriginPolicy, is_json
 from arena.server.recordings_api import blueprint as recordings_blueprint
-
-if TYPE_CHECKING:
-    from arena.server.websockets import Connection
 from arena.server.robot_types_api import blueprint as robot_types_blueprint
-
-#: HTTP status for each error code (anything missing is 400).
-STATUS_FOR: dict[ErrorCode, int] = {
-    ErrorCode.UNKNOWN_ROBOT: 404,
-    ErrorCode.UNKNOWN_SEQUENCE: 404,
-    ErrorCode.UNKNOWN_SLAVE: 404,
-    ErrorCode.UNKNOWN_RECORDING: 404,
-    ErrorCode.INVALID_RECORDING: 422,
-    ErrorCode.NOT_FOUND: 404,
-    ErrorCode.ROBOT_STOPPED: 404,
-    ErrorCode.METHOD_NOT_ALLOWED: 405,
-    ErrorCode.MASTER_ACTIVE: 409,
-    ErrorCode.NOT_OWNER: 409,
-    ErrorCode.ROBOT_EXISTS: 409,
-    ErrorCode.ESTOPPED: 423,
-    ErrorCode.MESSAGE_TOO_LARGE: 413,
-    ErrorCode.INVALID_JSON: 422,
-    ErrorCode.INVALID_BODY: 422,
-    ErrorCode.INVALID_VALUE: 422,
-    ErrorCode.INVALID_CONFIG: 422,
-    ErrorCode.UNKNOWN_JOINT: 422,
-    ErrorCode.EMPTY_COMMAND: 422,
-    ErrorCode.UNKNOWN_ROBOT_TYPE: 422,
-    ErrorCode.RATE_LIMITED: 429,
-    ErrorCode.UNAUTHORIZED: 401,
-    ErrorCode.FORBIDDEN: 403,
-    ErrorCode.OVERLOADED: 503,
-    ErrorCode.INTERNAL_ERROR: 500,
-    ErrorCode.NO_HARDWARE: 404,
-    ErrorCode.PORT_NOT_FOUND: 404,
-    ErrorCode.PORT_BUSY: 409,
-    ErrorCode.CALIBRATION_STATE: 409,
-    ErrorCode.PORT_PERMISSION_DENIED: 403,
-    ErrorCode.PORT_DISCONNECTED: 503,
-    ErrorCode.SERVO_TIMEOUT: 504,
-    ErrorCode.SERVO_WRONG_MODEL: 422,
-    ErrorCode.REMOTE_UNREACHABLE: 502,
-    ErrorCode.REMOTE_REFUSED: 502,
-    ErrorCode.UNKNOWN_GROUP: 404,
-    ErrorCode.GROUP_EXISTS: 409,
-}
 
 #: Paths anyone may read, keys or not: the documentation and the dashboard's files.
 PUBLIC_PATHS = frozenset({"/docs", "/openapi.json", "/ui"})
 PUBLIC_PREFIXES = ("/ui/",)
-
-
-class ArenaApp(QuartTrio):
-    """The Quart app, carrying the manager, the settings and the metrics."""
-
-    manager: RobotManager
-    arena_config: ServerConfig
-    metrics: Metrics
-    shutting_down: trio.Event
-    started_at: float
-    recorder: Recorder
-    hardware: Hardware
-    groups: GroupRegistry
-    #: The open WebSocket connections (their queued bytes show in /metrics).
-    connections: set[Connection]
-
-
-def error_response(code: ErrorCode, message: str) -> tuple[dict[str, Any], int]:
-    """The one error shape: `{"error": {"code", "message"}}` with a fitting status."""
-    return {"error": {"code": str(code), "message": message}}, STATUS_FOR.get(code, 400)
-
-
-async def read_body(kind: Any, *, optional: bool = False) -> Any:
-    """Decode and validate the JSON body as `kind`, or raise `ArenaError(INVALID_BODY)`."""
-    raw = await request.get_data(cache=False)
-    if len(raw) > MAX_MESSAGE_BYTES:
-        raise ArenaError(
-            ErrorCode.MESSAGE_TOO_LARGE, f"Body over the {MAX_MESSAGE_BYTES}-byte limit."
-        )
-    if not raw.strip() and optional:
-        raw = b"{}"
-    try:
-        return msgspec.json.decode(raw, type=kind)
-    except msgspec.ValidationError as exc:
-        raise ArenaError(ErrorCode.INVALID_BODY, f"Invalid request body: {exc}") from None
-    except msgspec.DecodeError as exc:
-        raise ArenaError(ErrorCode.INVALID_JSON, f"The body is not valid JSON: {exc}") from None
-    except RecursionError:  # msgspec's own depth guard (found by the fuzz tests)
-        raise ArenaError(ErrorCode.INVALID_JSON, "The body is nested too deeply.") from None
 
 
 def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) -> ArenaApp:
@@ -131,6 +48,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.arena_config = config
     app.metrics = Metrics()
     app.connections = set()
+    app.origin_policy = OriginPolicy(config.host, config.allowed_origins, config.allowed_hosts)
     app.hardware = Hardware()
     app.groups = GroupRegistry(manager)
     app.shutting_down = trio.Event()
@@ -149,6 +67,22 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
 def _register_errors(app: ArenaApp) -> None:
     @app.before_request
     async def authorize() -> Response | None:
+        app.origin_policy.check(
+            request.method,
+            request.headers.get("Origin"),
+            request.headers.get("Host"),
+            request.scheme,
+        )
+        # A page's form or `fetch` can send text/plain without a preflight; a body is JSON,
+        # declared so (or undeclared, as from a script: no browser sends that).
+        mimetype = request.mimetype
+        changing = request.method not in SAFE_METHODS
+        if changing and mimetype and _has_body() and not is_json(mimetype):
+            raise ArenaError(
+                ErrorCode.UNSUPPORTED_MEDIA_TYPE,
+                f"A request body must be JSON, not {mimetype}: "
+                "send 'Content-Type: application/json'.",
+            )
         if request.path == "/" and dashboard.is_built() and _wants_html():
             return redirect("/ui/")  # type: ignore[return-value]  # a browser: show the page
         if request.path not in PUBLIC_PATHS and not request.path.startswith(PUBLIC_PREFIXES):
@@ -187,6 +121,13 @@ def _register_errors(app: ArenaApp) -> None:
         return error_response(
             ErrorCode.INTERNAL_ERROR, "Something went wrong inside Arena; the log has the details."
         )
+
+
+def _has_body() -> bool:
+    length = request.headers.get("Content-Length")
+    if length is not None:
+        return length.strip() not in ("", "0")
+    return "chunked" in request.headers.get("Transfer-Encoding", "").lower()
 
 
 def _register_routes(app: ArenaApp) -> None:
@@ -369,7 +310,7 @@ def _register_routes(app: ArenaApp) -> None:
         return Response(
             app.metrics.render(
                 manager.robots(),
-                sum(c.ws.queued_bytes for c in app.connections),
+                sum(c.queued_bytes for c in app.connections),
                 app.recorder.status(),
             ),
             content_type="text/plain; version=0.0.4",

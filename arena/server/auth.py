@@ -3,12 +3,9 @@
 from __future__ import annotations
 
 import hmac
-from typing import TYPE_CHECKING
 
 from arena.protocol.errors import ArenaError, ErrorCode
-
-if TYPE_CHECKING:
-    from arena.server.app import ArenaApp
+from arena.server.base import ArenaApp
 
 
 def check_token(

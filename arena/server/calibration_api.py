@@ -8,7 +8,7 @@ in the servos' Homing_Offset registers) and torque comes back with goal = presen
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import Any, Protocol
 
 import msgspec
 from quart import Blueprint, current_app, request
@@ -17,9 +17,7 @@ from arena.feetech.calibration import Calibration
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import CalibrationBody
 from arena.robot.safety import Mode
-
-if TYPE_CHECKING:
-    from arena.server.app import ArenaApp
+from arena.server.base import ArenaApp, read_body
 
 blueprint = Blueprint("calibration", __name__)
 
@@ -36,47 +34,11 @@ class Calibratable(Protocol):
     def calibration_status(self) -> dict[str, Any]: ...
 
 
-class Hardware:
-    """The hardware slaves attached over REST, by robot and slave id."""
-
-    def __init__(self) -> None:
-        self._drivers: dict[tuple[str, str], object] = {}
-
-    def add(self, robot_id: str, slave_id: str, driver: object) -> None:
-        """Remember `driver` if it can be calibrated."""
-        if hasattr(driver, "calibration_status"):
-            self._drivers[(robot_id, slave_id)] = driver
-
-    def find(self, robot_id: str, slave_id: str | None, attached: set[str]) -> tuple[str, Any]:
-        """The robot's calibratable slave (`slave_id`, or the only one)."""
-        for key in [k for k in self._drivers if k[1] not in attached and k[0] == robot_id]:
-            del self._drivers[key]  # detached since
-        found = [
-            (sid, driver)
-            for (rid, sid), driver in self._drivers.items()
-            if rid == robot_id and (slave_id is None or sid == slave_id)
-        ]
-        if not found:
-            which = f"slave {slave_id!r}" if slave_id else "a hardware slave"
-            raise ArenaError(
-                ErrorCode.NO_HARDWARE,
-                f"Robot {robot_id!r} has no {which} to calibrate: attach a usb-slave first.",
-            )
-        if len(found) > 1:
-            raise ArenaError(
-                ErrorCode.INVALID_BODY,
-                f'Robot {robot_id!r} has several hardware slaves: say which with "slave".',
-            )
-        return found[0]
-
-
 def _app() -> ArenaApp:
     return current_app  # type: ignore[return-value]
 
 
 async def _body() -> CalibrationBody:
-    from arena.server.app import read_body
-
     body: CalibrationBody = await read_body(CalibrationBody, optional=True)
     return body
 

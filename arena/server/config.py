@@ -36,7 +36,10 @@ class ServerConfig:
     calibration_dir: str = "calibration"  # one calibration file per robot (or per name)
     recording_max_bytes: int = 256 << 20
     recording_max_seconds: float = 3600.0
-    cors_origins: tuple[str, ...] = field(default=())
+    #: Web pages (scheme://host:port) besides the server's own that may change anything.
+    allowed_origins: tuple[str, ...] = field(default=())
+    #: Names besides localhost and loopback addresses that a loopback server answers to.
+    allowed_hosts: tuple[str, ...] = field(default=())
 
     @property
     def auth_enabled(self) -> bool:
@@ -81,13 +84,16 @@ def load_config(path: str | None, **overrides: Any) -> ServerConfig:
                 ErrorCode.INVALID_CONFIG,
                 f"Unknown settings in {path}: {', '.join(sorted(unknown))}.",
             )
-        for key in ("api_keys", "viewer_keys", "cors_origins"):
+        for key in ("api_keys", "viewer_keys", "allowed_origins", "allowed_hosts"):
             if key in data:
                 data[key] = tuple(data[key])
         config = replace(config, **data)
     env_keys = tuple(k for k in os.environ.get(API_KEYS_ENV, "").split(",") if k.strip())
     if env_keys:
         config = replace(config, api_keys=config.api_keys + tuple(k.strip() for k in env_keys))
+    for key in ("allowed_origins", "allowed_hosts"):  # flags add to the file's list
+        extra = overrides.pop(key, None) or ()
+        config = replace(config, **{key: getattr(config, key) + tuple(extra)})
     extra_keys = overrides.pop("api_keys", ())
     config = replace(config, **{k: v for k, v in overrides.items() if v is not None})
     if extra_keys:

@@ -3,15 +3,13 @@
 from __future__ import annotations
 
 import contextlib
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 from quart import Blueprint, current_app
 
 from arena.protocol.errors import ArenaError
 from arena.protocol.rest import GroupBody, ReasonBody
-
-if TYPE_CHECKING:
-    from arena.server.app import ArenaApp
+from arena.server.base import ArenaApp, read_body
 
 blueprint = Blueprint("groups", __name__)
 
@@ -30,8 +28,6 @@ async def list_groups() -> dict[str, Any]:
 @blueprint.post("/api/groups")
 async def create_group() -> tuple[dict[str, Any], int]:
     """Create a group of existing robots."""
-    from arena.server.app import read_body
-
     app = _app()
     body: GroupBody = await read_body(GroupBody)
     group = app.groups.create(body.id, body.members, body.stopTogether)
@@ -55,8 +51,6 @@ async def delete_group(group_id: str) -> dict[str, Any]:
 @blueprint.post("/api/groups/<group_id>/estop")
 async def estop_group(group_id: str) -> dict[str, Any]:
     """E-stop every member."""
-    from arena.server.app import read_body
-
     app = _app()
     group = app.groups.get(group_id)
     body: ReasonBody = await read_body(ReasonBody, optional=True)

@@ -13,6 +13,7 @@ not public API: pyproject pins hypercorn below 0.19.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 from collections.abc import Awaitable, Callable
 from functools import partial
@@ -28,7 +29,7 @@ from hypercorn.trio.worker_context import WorkerContext
 from hypercorn.typing import ConnectionState
 from hypercorn.utils import repr_socket_addr, wrap_app
 
-from arena.protocol.errors import ErrorCode
+from arena.protocol.errors import ArenaError, ErrorCode
 from arena.server import ws_frames
 from arena.server.read_poller import ReadPoller
 from arena.server.ws_transport import UpgradeRequest, WebSocket
@@ -97,10 +98,8 @@ def _handshake_problem(request: UpgradeRequest) -> str | None:
     return None
 
 
-def _http_error(status: str, message: str) -> bytes:
-    body = msgspec.json.encode(
-        {"error": {"code": str(ErrorCode.INVALID_MESSAGE), "message": message}}
-    )
+def _http_error(status: str, message: str, code: ErrorCode = ErrorCode.INVALID_MESSAGE) -> bytes:
+    body = msgspec.json.encode({"error": {"code": str(code), "message": message}})
     head = (
         f"HTTP/1.1 {status}\r\nContent-Type: application/json\r\n"
         f"Content-Length: {len(body)}\r\nConnection: close\r\n\r\n"
@@ -184,7 +183,15 @@ class ArenaListener:
             return
         end = head.find(b"\r\n\r\n")
         request = parse_upgrade(head[:end]) if head.startswith(_WS_PREFIX) and end > 0 else None
-        handler = self.router(request) if request is not None else None
+        if request is not None and ssl_context is not None:
+            request.scheme = "https"
+        try:
+            handler = self.router(request) if request is not None else None
+        except ArenaError as refusal:  # a page or host name the server does not answer to
+            with contextlib.suppress(trio.BrokenResourceError, trio.ClosedResourceError):
+                await stream.send_all(_http_error("403 Forbidden", refusal.message, refusal.code))
+            await trio.aclose_forcefully(stream)
+            return
         if request is None or handler is None:
             await self._to_hypercorn(stream, head)
             return

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import msgspec
 
@@ -18,9 +18,7 @@ from arena.protocol.rest import (
     ReplayBody,
     SlaveBody,
 )
-
-if TYPE_CHECKING:
-    from arena.server.app import ArenaApp
+from arena.server.base import ArenaApp
 
 #: (method, path, summary, request body type or None). A test checks it covers every route.
 ROUTES: list[tuple[str, str, str, Any]] = [

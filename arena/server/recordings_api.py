@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import msgspec
 import trio
@@ -14,9 +14,7 @@ from arena.protocol.rest import ReplayBody, ReplayMasterBody
 from arena.recording.analysis import joint_series, summarize, thin
 from arena.recording.mcap_file import SUFFIX, read_recording
 from arena.recording.recorder import check_name, existing_recording
-
-if TYPE_CHECKING:
-    from arena.server.app import ArenaApp
+from arena.server.base import ArenaApp, read_body
 
 blueprint = Blueprint("recordings", __name__)
 
@@ -133,7 +131,6 @@ async def download_recording(name: str) -> Any:
 async def replay(robot_id: str) -> tuple[dict[str, Any], int]:
     """Replay a recording's commands onto `robot_id` as its master."""
     from arena.drivers.factory import make_master
-    from arena.server.app import read_body
 
     app = _app()
     robot = app.manager.get(robot_id)

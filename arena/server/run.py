@@ -16,7 +16,8 @@ from hypercorn.config import Config as HypercornConfig
 from arena.drivers.mock_slave import MockSlave, MockSlaveConfig
 from arena.recording.recorder import Recorder
 from arena.robot.manager import open_manager
-from arena.server.app import ArenaApp, create_app
+from arena.server.app import create_app
+from arena.server.base import ArenaApp
 from arena.server.config import ServerConfig
 from arena.server.listener import ArenaListener
 from arena.server.websockets import router

@@ -17,7 +17,7 @@ import math
 import time
 from collections.abc import Awaitable, Callable
 from functools import partial
-from typing import TYPE_CHECKING, Any, NamedTuple, TypeVar
+from typing import Any, NamedTuple, TypeVar
 
 import msgspec
 import trio
@@ -39,11 +39,9 @@ from arena.robot.events import (
 from arena.robot.mailbox import EventQueue
 from arena.server import convert
 from arena.server.auth import check_token
+from arena.server.base import ArenaApp
 from arena.server.listener import WebSocketHandler
 from arena.server.ws_transport import UpgradeRequest, WebSocket, WebSocketClosed
-
-if TYPE_CHECKING:
-    from arena.server.app import ArenaApp
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)
@@ -73,6 +71,7 @@ def router(app: ArenaApp) -> Callable[[UpgradeRequest], WebSocketHandler | None]
     """The WebSocket endpoints by path (None for any other path)."""
 
     def route(request: UpgradeRequest) -> WebSocketHandler | None:
+        """The handler for the path; raises `ArenaError` for a foreign page or host name."""
         parts = request.path.split("/")
         if len(parts) == 4 and parts[1] == "ws" and parts[2] in _PEER_ENDPOINTS and parts[3]:
             role = parts[2]
@@ -81,6 +80,9 @@ def router(app: ArenaApp) -> Callable[[UpgradeRequest], WebSocketHandler | None]
         else:
             return None
         handler, robot_id = _ENDPOINTS[role], parts[3]
+        host = request.headers.get("host")
+        app.origin_policy.check_host(host)
+        app.origin_policy.check_origin(request.headers.get("origin"), host, request.scheme)
         return lambda ws: handler(Connection(app, ws, role), robot_id)
 
     return route
@@ -198,6 +200,11 @@ class Connection:
     def _note_closed(self) -> None:
         if self.ws.close_sent:  # the transport closed (protocol error, or the peer is gone)
             self._ended.set()
+
+    @property
+    def queued_bytes(self) -> int:
+        """Bytes waiting for the peer to read."""
+        return self.ws.queued_bytes
 
     def send_now(self, message: msgspec.Struct) -> bool:
         """Write a message at once if the socket is idle; False (nothing sent) if it is not."""

@@ -52,6 +52,8 @@ class UpgradeRequest:
     args: dict[str, str] = field(default_factory=dict)
     #: Headers, names in lower case.
     headers: dict[str, str] = field(default_factory=dict)
+    #: `https` when the connection is TLS (the page's origin would then be https too).
+    scheme: str = "http"
 
 
 def _frames(texts: tuple[str, ...]) -> bytes:

@@ -1,0 +1,151 @@
+"""What the app and its blueprints share: the app's type, the error shape, the body reader,
+and the registry of hardware slaves. It sits below `app` and every blueprint, which import it
+and never each other."""
+
+from __future__ import annotations
+
+from typing import Any, Protocol
+
+import msgspec
+import trio
+from quart import request
+from quart_trio import QuartTrio
+
+from arena.protocol.errors import ArenaError, ErrorCode
+from arena.protocol.messages import MAX_MESSAGE_BYTES
+from arena.recording.recorder import Recorder
+from arena.robot.groups import GroupRegistry
+from arena.robot.manager import RobotManager
+from arena.server.config import ServerConfig
+from arena.server.metrics import Metrics
+from arena.server.origin import OriginPolicy
+
+#: HTTP status for each error code (anything missing is 400).
+STATUS_FOR: dict[ErrorCode, int] = {
+    ErrorCode.UNKNOWN_ROBOT: 404,
+    ErrorCode.UNKNOWN_SEQUENCE: 404,
+    ErrorCode.UNKNOWN_SLAVE: 404,
+    ErrorCode.UNKNOWN_RECORDING: 404,
+    ErrorCode.INVALID_RECORDING: 422,
+    ErrorCode.NOT_FOUND: 404,
+    ErrorCode.ROBOT_STOPPED: 404,
+    ErrorCode.METHOD_NOT_ALLOWED: 405,
+    ErrorCode.MASTER_ACTIVE: 409,
+    ErrorCode.NOT_OWNER: 409,
+    ErrorCode.ROBOT_EXISTS: 409,
+    ErrorCode.ESTOPPED: 423,
+    ErrorCode.MESSAGE_TOO_LARGE: 413,
+    ErrorCode.INVALID_JSON: 422,
+    ErrorCode.INVALID_BODY: 422,
+    ErrorCode.INVALID_VALUE: 422,
+    ErrorCode.INVALID_CONFIG: 422,
+    ErrorCode.UNKNOWN_JOINT: 422,
+    ErrorCode.EMPTY_COMMAND: 422,
+    ErrorCode.UNKNOWN_ROBOT_TYPE: 422,
+    ErrorCode.RATE_LIMITED: 429,
+    ErrorCode.UNAUTHORIZED: 401,
+    ErrorCode.FORBIDDEN: 403,
+    ErrorCode.ORIGIN_NOT_ALLOWED: 403,
+    ErrorCode.HOST_NOT_ALLOWED: 403,
+    ErrorCode.UNSUPPORTED_MEDIA_TYPE: 415,
+    ErrorCode.OVERLOADED: 503,
+    ErrorCode.INTERNAL_ERROR: 500,
+    ErrorCode.NO_HARDWARE: 404,
+    ErrorCode.PORT_NOT_FOUND: 404,
+    ErrorCode.PORT_BUSY: 409,
+    ErrorCode.CALIBRATION_STATE: 409,
+    ErrorCode.PORT_PERMISSION_DENIED: 403,
+    ErrorCode.PORT_DISCONNECTED: 503,
+    ErrorCode.SERVO_TIMEOUT: 504,
+    ErrorCode.SERVO_WRONG_MODEL: 422,
+    ErrorCode.REMOTE_UNREACHABLE: 502,
+    ErrorCode.REMOTE_REFUSED: 502,
+    ErrorCode.UNKNOWN_GROUP: 404,
+    ErrorCode.GROUP_EXISTS: 409,
+}
+
+
+class OpenConnection(Protocol):
+    """What the app knows of an open WebSocket connection."""
+
+    role: str
+
+    @property
+    def queued_bytes(self) -> int:
+        """Bytes waiting for the peer to read."""
+        ...
+
+
+class Hardware:
+    """The hardware slaves attached over REST, by robot and slave id."""
+
+    def __init__(self) -> None:
+        self._drivers: dict[tuple[str, str], object] = {}
+
+    def add(self, robot_id: str, slave_id: str, driver: object) -> None:
+        """Remember `driver` if it can be calibrated."""
+        if hasattr(driver, "calibration_status"):
+            self._drivers[(robot_id, slave_id)] = driver
+
+    def find(self, robot_id: str, slave_id: str | None, attached: set[str]) -> tuple[str, Any]:
+        """The robot's calibratable slave (`slave_id`, or the only one)."""
+        for key in [k for k in self._drivers if k[1] not in attached and k[0] == robot_id]:
+            del self._drivers[key]  # detached since
+        found = [
+            (sid, driver)
+            for (rid, sid), driver in self._drivers.items()
+            if rid == robot_id and (slave_id is None or sid == slave_id)
+        ]
+        if not found:
+            which = f"slave {slave_id!r}" if slave_id else "a hardware slave"
+            raise ArenaError(
+                ErrorCode.NO_HARDWARE,
+                f"Robot {robot_id!r} has no {which} to calibrate: attach a usb-slave first.",
+            )
+        if len(found) > 1:
+            raise ArenaError(
+                ErrorCode.INVALID_BODY,
+                f'Robot {robot_id!r} has several hardware slaves: say which with "slave".',
+            )
+        return found[0]
+
+
+class ArenaApp(QuartTrio):
+    """The Quart app, carrying the manager, the settings and the metrics."""
+
+    manager: RobotManager
+    arena_config: ServerConfig
+    metrics: Metrics
+    shutting_down: trio.Event
+    started_at: float
+    recorder: Recorder
+    hardware: Hardware
+    groups: GroupRegistry
+    #: The open WebSocket connections (their queued bytes show in /metrics).
+    connections: set[OpenConnection]
+    #: Which pages and host names may reach the server (see `origin`).
+    origin_policy: OriginPolicy
+
+
+def error_response(code: ErrorCode, message: str) -> tuple[dict[str, Any], int]:
+    """The one error shape: `{"error": {"code", "message"}}` with a fitting status."""
+    return {"error": {"code": str(code), "message": message}}, STATUS_FOR.get(code, 400)
+
+
+async def read_body(kind: Any, *, optional: bool = False) -> Any:
+    """Decode and validate the JSON body as `kind`, or raise `ArenaError(INVALID_BODY)`."""
+    raw = await request.get_data(cache=False)
+    if len(raw) > MAX_MESSAGE_BYTES:
+        raise ArenaError(
+            ErrorCode.MESSAGE_TOO_LARGE, f"Body over the {MAX_MESSAGE_BYTES}-byte limit."
+        )
+    if not raw.strip() and optional:
+        raw = b"{}"
+    try:
+        return msgspec.json.decode(raw, type=kind)
+    except msgspec.ValidationError as exc:
+        raise ArenaError(ErrorCode.INVALID_BODY, f"Invalid request body: {exc}") from None
+    except msgspec.DecodeError as exc:
+        raise ArenaError(ErrorCode.INVALID_JSON, f"The body is not valid JSON: {exc}") from None
+    except RecursionError:  # msgspec's own depth guard (found by the fuzz tests)
+        raise ArenaError(ErrorCode.INVALID_JSON, "The body is nested too deeply.") from None
