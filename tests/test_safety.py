@@ -60,8 +60,15 @@ def test_takeover_detaches_the_previous_master_and_tells_it_why() -> None:
     assert "bob" in effect.message
 
 
-def test_owner_reattaching_is_ignored() -> None:
-    assert isinstance(sm.transition(MASTERED, sm.MasterAttach("alice")), sm.Ignored)
+def test_a_second_connection_under_the_owners_id_is_another_master() -> None:
+    # An id is a label, not a credential: never two connections on one link.
+    for state in (MASTERED, replace(MASTERED, mode=sm.Mode.ESTOPPED)):
+        refused = sm.transition(state, sm.MasterAttach("alice"))
+        assert isinstance(refused, sm.Refused) and refused.code is ErrorCode.MASTER_ACTIVE
+        taken = sm.transition(state, sm.MasterAttach("alice", takeover=True))
+        assert isinstance(taken, sm.Allowed) and taken.state.owner == "alice"
+        (effect,) = taken.effects
+        assert isinstance(effect, sm.DetachMaster) and effect.code is ErrorCode.TAKEN_OVER
 
 
 def test_manual_control_only_without_master() -> None:

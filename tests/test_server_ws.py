@@ -289,16 +289,42 @@ async def test_two_masters_and_takeover(server: RunningServer) -> None:
             assert (await command(carol, {"Rotation": 3}))["data"]["status"] == "accepted"
 
 
+async def test_a_second_connection_under_the_owners_id_is_another_master(
+    server: RunningServer,
+) -> None:
+    # An id is a label, not a credential: "alice" twice is refused like any second master,
+    # and with takeover the first alice is told and closed; never two sockets on one link.
+    url = server.ws_url + "/ws/master/demo-arm?id=alice"
+    robot = server.app.manager.get("demo-arm")
+    async with open_websocket_url(url) as first:
+        await receive(first, "joint_states")
+        async with open_websocket_url(url) as second:
+            error = await receive(second, "error")
+            assert error["data"]["code"] == "MASTER_ACTIVE"
+            assert await closed_with(second) == 4409
+        assert (await command(first, {"Rotation": 2}))["data"]["status"] == "accepted"
+        async with open_websocket_url(url + "&takeover=1") as third:
+            detached = await receive(first, "detached")
+            assert detached["data"]["code"] == "TAKEN_OVER"
+            assert await closed_with(first) == 4409
+            # The first one's leaving (a loss) did not take the new alice's robot away.
+            assert (await command(third, {"Rotation": 4}))["data"]["status"] == "accepted"
+            assert robot.snapshot().owner == "alice" and str(robot.snapshot().mode) != "estopped"
+
+
 async def test_racing_masters_one_wins(server: RunningServer) -> None:
     url = server.ws_url + "/ws/master/demo-arm"
     outcomes: list[str] = []
+    everyone_answered = trio.Event()
 
     async def contender(name: str) -> None:
         async with open_websocket_url(f"{url}?id={name}") as ws:
             first = json.loads(await ws.get_message())
             outcomes.append(first["type"] if first["type"] != "error" else first["data"]["code"])
+            if len(outcomes) == 4:
+                everyone_answered.set()
             if first["type"] == "state":
-                await trio.sleep(0.5)
+                await everyone_answered.wait()  # the winner holds on until all have tried
 
     async with trio.open_nursery() as nursery:
         for name in ("m1", "m2", "m3", "m4"):

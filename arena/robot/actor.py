@@ -189,7 +189,12 @@ _Msg = (
 
 
 class MasterLink:
-    """A master's handle on the robot: send commands, read notices, leave."""
+    """A master's handle on the robot: send commands, read notices, leave.
+
+    The robot knows its master by id, and a later connection may take over under the same
+    id: once detached, a link speaks for no one (its commands are refused, its heartbeats and
+    its leaving change nothing).
+    """
 
     def __init__(self, robot: Robot, master_id: str) -> None:
         self.robot = robot
@@ -199,25 +204,37 @@ class MasterLink:
 
     async def command(self, command: Command) -> CommandResult:
         """Send a command as this master and wait for the answer."""
+        if self.detached.is_set():
+            return _DETACHED_LINK
         return await self.robot.command(command, master_id=self.master_id)
 
     def command_now(self, command: Command) -> CommandResult | None:
         """The answer at once when the robot is idle (see `Robot.command_now`), else None."""
+        if self.detached.is_set():
+            return _DETACHED_LINK
         return self.robot.command_now(command, master_id=self.master_id)
 
     def alive(self) -> None:
         """Heartbeat: the peer is still there."""
-        self.robot._alive(self.master_id)
+        if not self.detached.is_set():
+            self.robot._alive(self.master_id)
 
     async def detach(self, reason: str = "master left", *, finish_motion: bool = False) -> None:
         """Give up ownership; motion in progress stops, unless `finish_motion`."""
-        await self.robot._detach(
-            "master", self.master_id, lost=False, reason=reason, hold=not finish_motion
-        )
+        if not self.detached.is_set():
+            await self.robot._detach(
+                "master", self.master_id, lost=False, reason=reason, hold=not finish_motion
+            )
 
     async def lost(self, reason: str = "connection lost") -> None:
         """Report that this master's connection is gone (the loss policy applies)."""
-        await self.robot._detach("master", self.master_id, lost=True, reason=reason)
+        if not self.detached.is_set():
+            await self.robot._detach("master", self.master_id, lost=True, reason=reason)
+
+
+_DETACHED_LINK = CommandResult.refused(
+    ErrorCode.NOT_OWNER, "This connection no longer holds the robot (it was detached)."
+)
 
 
 class SlaveLink:
@@ -723,10 +740,6 @@ class Robot:
                     )
                 )
                 message.reply.fail(ArenaError(outcome.code, outcome.message))
-                return
-            if isinstance(outcome, safety.Ignored):  # the owner attaching again
-                assert self._master is not None
-                message.reply.set(self._master.link)
                 return
         else:
             if peer_id in self._slaves:

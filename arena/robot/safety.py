@@ -282,33 +282,41 @@ def _claim(state: SafetyState, event: Event) -> Outcome:
     )
 
 
-@_rule(
-    "owner re-attaching: ignored; takeover: previous master detached (TAKEN_OVER); "
-    "else refused MASTER_ACTIVE"
-)
-def _claim_or_takeover(state: SafetyState, event: Event) -> Outcome:
-    assert isinstance(event, MasterAttach)
-    if event.master_id == state.owner:
-        return Ignored("already the owner")
+def _refuse_or_take_over(state: SafetyState, event: MasterAttach) -> Refused | DetachMaster:
+    """A master attaching while another holds the robot (an id is a label, not a credential:
+    a second connection under the owner's id is another master): refused, or with takeover
+    the previous one is detached."""
+    assert state.owner is not None
     if not event.takeover:
+        if event.master_id == state.owner:
+            return Refused(
+                ErrorCode.MASTER_ACTIVE,
+                f"A master called {state.owner!r} is connected already; a second connection "
+                "under that id is another master: ask for takeover to replace it.",
+            )
         return Refused(
             ErrorCode.MASTER_ACTIVE,
             f"Robot is controlled by master {state.owner!r}; ask for takeover to replace it.",
         )
-    assert state.owner is not None
-    effects = (
-        DetachMaster(
-            state.owner, ErrorCode.TAKEN_OVER, f"Master {event.master_id!r} took over the robot."
-        ),
+    return DetachMaster(
+        state.owner, ErrorCode.TAKEN_OVER, f"Master {event.master_id!r} took over the robot."
     )
+
+
+@_rule("takeover: previous master detached (TAKEN_OVER), even under the same id; else refused")
+def _claim_or_takeover(state: SafetyState, event: Event) -> Outcome:
+    assert isinstance(event, MasterAttach)
+    answer = _refuse_or_take_over(state, event)
+    if isinstance(answer, Refused):
+        return answer
     return Allowed(
-        replace(state, owner=event.master_id, owner_autonomous=event.autonomous), effects
+        replace(state, owner=event.master_id, owner_autonomous=event.autonomous), (answer,)
     )
 
 
 @_rule(
-    "live master: becomes owner, stays estopped (takeover needed if owned); "
-    "autonomous: refused ESTOPPED"
+    "live master: becomes owner, stays estopped (takeover needed if owned, even under the "
+    "same id); autonomous: refused ESTOPPED"
 )
 def _claim_while_estopped(state: SafetyState, event: Event) -> Outcome:
     assert isinstance(event, MasterAttach)
@@ -318,19 +326,10 @@ def _claim_while_estopped(state: SafetyState, event: Event) -> Outcome:
         )
     if state.owner is None:
         return Allowed(replace(state, owner=event.master_id, owner_autonomous=False))
-    if event.master_id == state.owner:
-        return Ignored("already the owner")
-    if not event.takeover:
-        return Refused(
-            ErrorCode.MASTER_ACTIVE,
-            f"Robot is held by master {state.owner!r}; ask for takeover to replace it.",
-        )
-    effects = (
-        DetachMaster(
-            state.owner, ErrorCode.TAKEN_OVER, f"Master {event.master_id!r} took over the robot."
-        ),
-    )
-    return Allowed(replace(state, owner=event.master_id, owner_autonomous=False), effects)
+    answer = _refuse_or_take_over(state, event)
+    if isinstance(answer, Refused):
+        return answer
+    return Allowed(replace(state, owner=event.master_id, owner_autonomous=False), (answer,))
 
 
 @_rule("ignored: no master")
