@@ -5,10 +5,14 @@ from __future__ import annotations
 import json
 from collections.abc import Awaitable, Callable
 
+import pytest
 import trio
+import trio.testing
 from trio_websocket import open_websocket_url
 
 from arena.client import AsyncArena, MasterSession
+from arena.robot.groups import GroupRegistry
+from arena.robot.manager import RobotManager
 from tests.conftest import RunningServer
 from tests.test_server_ws import receive
 
@@ -105,3 +109,67 @@ async def test_group_claims_are_whole_or_nothing_and_bad_groups_are_refused(
     await arena.delete_group("line")
     assert (await arena.groups())["groups"] == []
     await arena.aclose()
+
+
+async def test_deleting_a_member_leaves_the_group_master_with_the_rest(
+    start_server: StartServer,
+) -> None:
+    server = await start_server()
+    arena = await three_arms(server)
+    async with open_websocket_url(server.ws_url + "/ws/master/line") as master:
+        await receive(master, "state")
+        await arena.delete_robot("left")
+        left = await receive(master, "member_left")
+        assert left["data"] == {"robot_id": "left", "reason": "robot deleted"}
+        # Still attached to the others: its e-stop stops every remaining member.
+        await master.send_message(json.dumps({"type": "estop", "data": {"reason": "hand"}}))
+        with trio.fail_after(5):
+            while {str(server.app.manager.get(r).snapshot().mode) for r in ("middle", "right")} != {
+                "estopped"
+            }:
+                await receive(master, "state")
+        await master.send_message(json.dumps({"type": "reset"}))
+        with trio.fail_after(5):
+            while "estopped" in {
+                str(server.app.manager.get(r).snapshot().mode) for r in ("middle", "right")
+            }:
+                await receive(master, "state")
+        command = {"type": "command", "data": {"joints": [{"name": "Rotation", "value": 5}]}}
+        await master.send_message(json.dumps(command))
+        ack = await receive(master, "ack")
+        assert ack["data"]["status"] == "accepted" and set(ack["data"]["members"]) == {
+            "middle",
+            "right",
+        }
+        # The last members go: the group master is told each, then closed.
+        await arena.delete_robot("middle")
+        await arena.delete_robot("right")
+        gone = {(await receive(master, "member_left"))["data"]["robot_id"] for _ in range(2)}
+        assert gone == {"middle", "right"}
+    await arena.aclose()
+
+
+async def test_stop_together_watchers_survive_deletion_at_any_moment(
+    autojump_clock: trio.testing.MockClock, manager: RobotManager
+) -> None:
+    for robot_id in ("a", "b", "c", "d"):
+        await manager.create_robot("so-arm100", robot_id=robot_id)
+    registry = GroupRegistry(manager)
+    # Before: the robot is deleted before its watcher starts (the watcher is spawned, not run).
+    group = registry.create("g", ["a", "b", "c", "d"], stop_together=True)
+    await manager.delete("a")
+    await trio.testing.wait_all_tasks_blocked()
+    # During: deleted while its watcher waits on its events.
+    await manager.delete("b")
+    await trio.testing.wait_all_tasks_blocked()
+    # After: a robot that has stopped hands a new observer a queue that has ended.
+    stopped = await manager.create_robot("so-arm100", robot_id="gone")
+    await manager.delete("gone")
+    with stopped.subscribe() as events, pytest.raises(trio.EndOfChannel):
+        await events.get()
+    await registry._watch(group, "gone")  # returns at once, raises nothing
+    # The group still stops together.
+    await manager.get("c").estop("bumper")
+    await trio.testing.wait_all_tasks_blocked()
+    assert str(manager.get("d").snapshot().mode) == "estopped"
+    registry.delete("g")

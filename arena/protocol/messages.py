@@ -280,6 +280,19 @@ class DetachedMessage(_Msg, tag="detached"):
     data: DetachedData | None = None
 
 
+class MemberLeftData(msgspec.Struct):
+    """Which member of a group left, and why."""
+
+    robot_id: str
+    reason: str
+
+
+class MemberLeftMessage(_Msg, tag="member_left"):
+    """To a group master: a member is gone (deleted); the group goes on with the rest."""
+
+    data: MemberLeftData
+
+
 class MissedData(msgspec.Struct):
     """How many messages of each kind a peer that stopped reading did not get. Joint states
     and states count those superseded by a newer one, which follows this message."""

@@ -23,6 +23,7 @@ SCHEMA_TYPES: dict[str, Any] = {
     "slave-notice": wire.EStopNotice | wire.ResetNotice | wire.HoldNotice | wire.StopNotice,
     "detached": wire.DetachedMessage,
     "missed": wire.MissedMessage,
+    "member-left": wire.MemberLeftMessage,
     "heartbeat": wire.HeartbeatMessage,
     "rest-create-robot": rest.CreateRobotBody,
     "rest-joints": rest.JointsBody,

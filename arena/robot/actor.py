@@ -458,10 +458,13 @@ class Robot:
         """Observe this robot's events: `with robot.subscribe() as events: ...`.
 
         A slow observer loses its oldest events (counted in `events.dropped`); it never slows
-        the robot.
+        the robot. The queue ends (`trio.EndOfChannel`) when the robot stops, at once if it
+        has stopped already.
         """
         queue: EventQueue[RobotEvent] = EventQueue(maxlen)
         self._observers.add(queue)
+        if self.stopped.is_set():
+            queue.close()
         try:
             yield queue
         finally:

@@ -14,7 +14,7 @@ import trio
 
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.robot.events import StateChanged
-from arena.robot.manager import RobotManager
+from arena.robot.manager import RobotManager, estop_together
 from arena.robot.safety import Mode
 
 
@@ -98,7 +98,11 @@ class GroupRegistry:
                     nursery.start_soon(self._watch, group, robot_id)
 
     async def _watch(self, group: Group, robot_id: str) -> None:
-        with self.manager.get(robot_id).subscribe(maxlen=64) as events:
+        try:
+            robot = self.manager.get(robot_id)
+        except ArenaError:  # deleted before this watcher started
+            return
+        with robot.subscribe(maxlen=64) as events:
             while True:
                 try:
                     event = await events.get()
@@ -108,12 +112,14 @@ class GroupRegistry:
                     await self._estop_others(group, robot_id)
 
     async def _estop_others(self, group: Group, stopped: str) -> None:
+        others = []
         for other in group.members:
             if other == stopped:
                 continue
             try:
                 robot = self.manager.get(other)
-            except ArenaError:
+            except ArenaError:  # deleted
                 continue
             if robot.snapshot().mode is not Mode.ESTOPPED:
-                await robot.estop(f"group {group.group_id!r}: {stopped!r} was e-stopped")
+                others.append(robot)
+        await estop_together(others, f"group {group.group_id!r}: {stopped!r} was e-stopped")

@@ -10,7 +10,7 @@ import contextlib
 import logging
 import re
 import secrets
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterable
 
 import trio
 
@@ -23,6 +23,27 @@ log = logging.getLogger(__name__)
 _ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 #: Seconds a robot gets to stop its drivers before it is cancelled.
 SHUTDOWN_GRACE = 1.0
+
+
+async def estop_together(robots: Iterable[Robot], reason: str) -> None:
+    """E-stop robots: the idle ones at once in this task, the busy ones together (each after
+    the message it is handling), rather than one after another. A robot that has stopped (was
+    deleted) is skipped: it moves nothing."""
+
+    async def stop(robot: Robot) -> None:
+        with contextlib.suppress(ArenaError):
+            await robot.estop(reason)
+
+    busy = []
+    for robot in robots:
+        try:
+            if robot.estop_now(reason) is None:
+                busy.append(robot)
+        except ArenaError:
+            continue
+    async with trio.open_nursery() as nursery:
+        for robot in busy:
+            nursery.start_soon(stop, robot)
 
 
 class RobotManager:
@@ -83,17 +104,8 @@ class RobotManager:
         self._nursery.start_soon(task, *args)
 
     async def estop_all(self, reason: str = "emergency stop (all robots)") -> None:
-        """E-stop every robot: the idle ones at once in this task, the busy ones together (each
-        after the message it is handling), rather than one after another."""
-
-        async def stop(robot: Robot) -> None:
-            with contextlib.suppress(ArenaError):  # a robot that has stopped moves nothing
-                await robot.estop(reason)
-
-        busy = [robot for robot in self.robots() if robot.estop_now(reason) is None]
-        async with trio.open_nursery() as nursery:
-            for robot in busy:
-                nursery.start_soon(stop, robot)
+        """E-stop every robot at once (see `estop_together`)."""
+        await estop_together(self.robots(), reason)
 
     async def close(self) -> None:
         """Stop every robot."""

@@ -105,6 +105,7 @@ WEBSOCKET_TYPES: list[Any] = [
     wire.ExecuteCommandMessage,
     wire.DetachedMessage,
     wire.MissedMessage,
+    wire.MemberLeftMessage,
 ]
 
 _ERROR_SCHEMA = {

@@ -37,6 +37,7 @@ from arena.robot.events import (
     TargetsSent,
 )
 from arena.robot.mailbox import EventQueue
+from arena.robot.manager import estop_together
 from arena.server import convert
 from arena.server.auth import check_token
 from arena.server.base import ArenaApp
@@ -339,11 +340,13 @@ class _RobotEventForwarder:
         robot: Robot,
         events: EventQueue[RobotEvent],
         name_robot: bool = False,
+        on_robot_gone: Callable[[str], Awaitable[None]] | None = None,
     ) -> None:
         self.connection = connection
         self.robot = robot
         self.events = events
         self.name_robot = name_robot
+        self.on_robot_gone = on_robot_gone
         self.interval = connection.app.arena_config.joint_states_interval
         self.pending = False  # joint values changed since the last joint_states sent
         self.next_send = -math.inf
@@ -358,7 +361,10 @@ class _RobotEventForwarder:
                 try:
                     batch = [await self.events.get(), *self.events.drain()]
                 except trio.EndOfChannel:  # the robot is gone
-                    await self.connection.close(CLOSE_NORMAL, "robot deleted")
+                    if self.on_robot_gone is not None:
+                        await self.on_robot_gone(self.robot.robot_id)
+                    else:
+                        await self.connection.close(CLOSE_NORMAL, "robot deleted")
                     return
             self._waiting = None
             for message in self._messages(batch):
@@ -408,12 +414,9 @@ class _RobotEventForwarder:
 
 
 async def _forward_robot_events(
-    connection: Connection,
-    robot: Robot,
-    events: EventQueue[RobotEvent],
-    name_robot: bool = False,
+    connection: Connection, robot: Robot, events: EventQueue[RobotEvent]
 ) -> None:
-    await _RobotEventForwarder(connection, robot, events, name_robot).run()
+    await _RobotEventForwarder(connection, robot, events).run()
 
 
 # --- masters ----------------------------------------------------------------------------------
@@ -465,6 +468,28 @@ async def master_socket(connection: Connection, robot_id: str) -> None:
         await _release_master(app, link)
 
 
+class _GroupMembers:
+    """A group master's links to the members still there. A member that is deleted leaves
+    the group master's hands (it is told in a `member_left` message); the rest stay claimed,
+    and its e-stop still stops every one of them. When none is left, the socket closes."""
+
+    def __init__(self, connection: Connection, links: dict[str, MasterLink]) -> None:
+        self.connection = connection
+        self.links = links
+
+    async def leave(self, robot_id: str, reason: str = "robot deleted") -> None:
+        """`robot_id` is gone: forget it and say so (once)."""
+        if self.links.pop(robot_id, None) is None:
+            return
+        await self.connection.send(
+            wire.MemberLeftMessage(
+                timestamp=wire.now_iso(), data=wire.MemberLeftData(robot_id, reason)
+            )
+        )
+        if not self.links:
+            await self.connection.close(CLOSE_NORMAL, "every member of the group is gone")
+
+
 async def _group_master_socket(connection: Connection, group_id: str) -> None:
     """A master of a group: it claims every member; each command goes to each member, and
     the ack tells how each answered. Members keep their own safety state."""
@@ -490,6 +515,7 @@ async def _group_master_socket(connection: Connection, group_id: str) -> None:
         await connection.refuse(error)
         return
     app.metrics.connections["master"] += 1
+    members = _GroupMembers(connection, dict(links))
     try:
         with contextlib.ExitStack() as stack:
             queues = [stack.enter_context(robot.subscribe(maxlen=256)) for robot in robots]
@@ -498,12 +524,13 @@ async def _group_master_socket(connection: Connection, group_id: str) -> None:
 
             async def body(nursery: trio.Nursery) -> None:
                 for robot, queue in zip(robots, queues, strict=True):
-                    nursery.start_soon(_forward_robot_events, connection, robot, queue, True)
+                    forwarder = _RobotEventForwarder(
+                        connection, robot, queue, name_robot=True, on_robot_gone=members.leave
+                    )
+                    nursery.start_soon(forwarder.run)
                 nursery.start_soon(_heartbeats, connection)
                 await _read_loop(
-                    connection,
-                    wire.decode_master,
-                    partial(_handle_group_message, connection, links),
+                    connection, wire.decode_master, partial(_handle_group_message, members)
                 )
 
             await connection.run(body)
@@ -513,22 +540,33 @@ async def _group_master_socket(connection: Connection, group_id: str) -> None:
             await _release_master(app, link)
 
 
-async def _handle_group_message(
-    connection: Connection, links: dict[str, MasterLink], message: wire.MasterMessage
-) -> None:
-    for link in links.values():
+async def _handle_group_message(members: _GroupMembers, message: wire.MasterMessage) -> None:
+    connection = members.connection
+    for link in members.links.values():
         link.alive()
     if isinstance(message, wire.CommandMessage):
         data = message.data
         command = convert.command_from_wire(data.joints, data.duration, data.metadata)
         answers: dict[str, Any] = {}
+        gone: list[str] = []
 
         async def one(robot_id: str, link: MasterLink) -> None:
-            answers[robot_id] = msgspec.to_builtins(convert.ack(await link.command(command)).data)
+            try:
+                result = await link.command(command)
+            except ArenaError as error:
+                if error.code is not ErrorCode.ROBOT_STOPPED:
+                    raise
+                gone.append(robot_id)  # deleted just now: it leaves the group's answer
+                return
+            answers[robot_id] = msgspec.to_builtins(convert.ack(result).data)
 
         async with trio.open_nursery() as nursery:
-            for robot_id, link in links.items():
+            for robot_id, link in list(members.links.items()):
                 nursery.start_soon(one, robot_id, link)
+        for robot_id in gone:
+            await members.leave(robot_id)
+        if not answers:
+            return
         statuses = {answer["status"] for answer in answers.values()}
         if "refused" in statuses:
             status = "refused" if statuses == {"refused"} else "partial"
@@ -543,12 +581,12 @@ async def _handle_group_message(
             await connection.send(Encoded("ack", msgspec.json.encode(ack).decode()))
     elif isinstance(message, wire.EStopMessage):
         reason = (message.data.reason if message.data else None) or "e-stop from group master"
-        for link in links.values():
-            await link.robot.estop(reason)
+        await estop_together([link.robot for link in members.links.values()], reason)
     elif isinstance(message, wire.ResetMessage):
-        for link in links.values():
+        for link in list(members.links.values()):
             if str(link.robot.snapshot().mode) == "estopped":
-                await link.robot.reset()
+                with contextlib.suppress(ArenaError):  # deleted meanwhile: its forwarder tells
+                    await link.robot.reset()
     elif isinstance(message, wire.HeartbeatMessage):
         await connection.send(wire.HeartbeatMessage(timestamp=wire.now_iso()))
     else:
