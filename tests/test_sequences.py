@@ -8,7 +8,8 @@ import pytest
 import trio
 from trio.testing import MockClock
 
-from arena.drivers.sequence_master import SequenceMaster
+from arena.drivers.refusals import KEPT, Refusals
+from arena.drivers.sequence_master import MIN_LOOP_PERIOD, SequenceMaster
 from arena.drivers.sequences import demo_sequences, get_sequence, parse_sequence
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.robot.manager import RobotManager
@@ -152,3 +153,41 @@ async def test_loop_mode_repeats_until_detached(
     count = len(recorder.targets)
     await trio.sleep(10)
     assert len(recorder.targets) == count and robot.snapshot().owner is None
+
+
+def test_a_looping_sequence_of_no_duration_is_refused() -> None:
+    at_zero = {
+        "id": "spin",
+        "commands": [{"timestamp": 0, "joints": [{"name": "Jaw", "value": 1}]}],
+    }
+    parse_sequence(at_zero)  # once: fine
+    with pytest.raises(ArenaError) as refused:
+        parse_sequence({**at_zero, "loop": True})
+    assert refused.value.code is ErrorCode.INVALID_VALUE
+    assert "duration above zero" in refused.value.message
+    looping = parse_sequence({**at_zero, "loop": True, "total_duration": 500})
+    assert looping.loop and looping.total_duration == 0.5
+
+
+async def test_a_loop_that_takes_no_time_is_paced(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    # Built directly from a sequence of no duration (parsing refuses it looping). Unpaced,
+    # it would never let virtual time move on (and take a core in real time).
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    spin = parse_sequence(
+        {"id": "spin", "commands": [{"timestamp": 0, "joints": [{"name": "Jaw", "value": 1}]}]}
+    )
+    await robot.attach_master(SequenceMaster([spin], loop=True))
+    await trio.sleep(60.0)
+    sent = sum(robot.command_counts.values())
+    assert 60.0 / MIN_LOOP_PERIOD * 0.9 <= sent <= 60.0 / MIN_LOOP_PERIOD + 1
+
+
+def test_a_masters_refusals_are_counted_and_only_the_newest_kept() -> None:
+    refusals = Refusals()
+    for n in range(10_000):
+        refusals.append((ErrorCode.RATE_LIMITED, f"refusal {n}"))
+    assert refusals.total == 10_000 and len(refusals) == KEPT
+    assert refusals[-1] == (ErrorCode.RATE_LIMITED, "refusal 9999")
+    assert next(iter(refusals))[1] == f"refusal {10_000 - KEPT}"

@@ -680,3 +680,21 @@ async def test_joint_states_keep_to_the_interval_on_average_despite_jitter(
         assert elapsed / 0.025 <= len(times) <= elapsed / 0.02 + 2
         for start in times:
             assert sum(start <= t < start + 0.1 for t in times) <= 0.1 / 0.02 + 2
+
+
+async def test_a_looping_sequence_of_no_duration_is_refused_over_the_wire(
+    server: RunningServer,
+) -> None:
+    async with open_websocket_url(server.ws_url + "/ws/master/demo-arm") as master:
+        await receive(master, "joint_states")
+        spin = {
+            "id": "spin",
+            "name": "spin",
+            "loop": True,
+            "commands": [{"timestamp": 0, "joints": [{"name": "Jaw", "value": 1}]}],
+        }
+        await master.send_message(json.dumps({"type": "sequence", "data": spin}))
+        error = await receive(master, "error")
+        assert error["data"]["code"] == "INVALID_VALUE" and "duration" in error["data"]["message"]
+        # Nothing plays; the master still commands.
+        assert (await command(master, {"Rotation": 3}))["data"]["status"] == "accepted"

@@ -7,6 +7,7 @@ from collections.abc import Iterable
 
 import trio
 
+from arena.drivers.refusals import Refusals
 from arena.drivers.sequences import Sequence
 from arena.protocol.errors import ErrorCode
 from arena.robot.actor import MasterLink
@@ -15,6 +16,10 @@ log = logging.getLogger(__name__)
 
 #: Refusals after which a sequence stops rather than skipping the keyframe.
 _FINAL_REFUSALS = frozenset({ErrorCode.ESTOPPED, ErrorCode.NOT_OWNER})
+
+
+#: The shortest time one round of a looping sequence master takes (seconds).
+MIN_LOOP_PERIOD = 0.02
 
 
 class SequenceMaster:
@@ -39,7 +44,7 @@ class SequenceMaster:
         if auto_start:
             self._started.set()
         self.playing: str | None = None
-        self.refusals: list[tuple[ErrorCode | None, str]] = []
+        self.refusals = Refusals()
 
     def start(self) -> None:
         """Begin playing (for a master created with `auto_start=False`)."""
@@ -50,11 +55,14 @@ class SequenceMaster:
         await self._started.wait()
         try:
             while True:
+                started = trio.current_time()
                 for sequence in self.sequences:
                     if not await self._play(link, sequence):
                         return
                 if not self.loop:
                     return
+                # A loop of (nearly) no duration would spin a core: pace every round.
+                await trio.sleep_until(started + MIN_LOOP_PERIOD)
         finally:
             self.playing = None
 

@@ -97,12 +97,18 @@ def parse_sequence(data: Any) -> Sequence:
     total_s = ends if total is None else _milliseconds(total, "total_duration", bad)
     if total_s < keyframes[-1].at:
         raise bad("total_duration ends before the last command")
+    loop = bool(data.get("loop", False))
+    if loop and total_s <= 0:
+        raise bad(
+            "a looping sequence needs a duration above zero (a total_duration, or commands "
+            "at different timestamps): one of no duration would repeat without pause"
+        )
     return Sequence(
         id=str(data.get("id", "custom")),
         name=str(data.get("name", data.get("id", "custom"))),
         keyframes=tuple(keyframes),
         total_duration=total_s,
-        loop=bool(data.get("loop", False)),
+        loop=loop,
         description=str(data.get("description", "")),
     )
 

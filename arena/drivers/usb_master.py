@@ -18,6 +18,7 @@ from pathlib import Path
 import trio
 
 from arena.drivers.bus_bridge import BusBridge
+from arena.drivers.refusals import Refusals
 from arena.drivers.servo_arm import ServoArm
 from arena.feetech.bus import ServoBus
 from arena.feetech.health import ServoFault
@@ -63,7 +64,7 @@ class UsbMaster(ServoArm):
         )
         self.config = config
         self.sent = 0
-        self.refusals: list[tuple[ErrorCode | None, str]] = []
+        self.refusals = Refusals()
 
     async def run(self, link: MasterLink) -> None:
         """Mirror the leader onto the robot until detached, e-stopped or the bus is lost."""
