@@ -692,3 +692,42 @@ async def test_estop_all_stops_idle_robots_at_once_and_busy_ones_after_their_ste
     ]:
         notices = [await slaves[robot.robot_id].receive() for _ in expected]
         assert [n.kind for n in notices if isinstance(n, SlaveNotice)] == expected
+
+
+async def test_a_drivers_end_is_not_overtaken_by_a_command_decided_at_once(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    # A master driver returns; its end goes to the actor's inbox. A manual command decided
+    # right then in the caller's task (command_now) would still see the master as the owner
+    # and be refused: it must wait its turn behind the end (None: use `command`).
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    decided_at_once: list[object] = []
+    inbox = robot._send
+
+    class Inbox:
+        """The actor's inbox, deciding a manual command right after the driver's end."""
+
+        def __getattr__(self, name: str) -> object:
+            return getattr(inbox, name)
+
+        async def send(self, message: object) -> None:
+            inbox.send_nowait(message)  # queued, the actor not yet run
+            if type(message).__name__ == "_DriverEndedMsg":
+                decided_at_once.append(robot.command_now(Command.of({"Rotation": 1.0})))
+            await trio.lowlevel.checkpoint()
+
+    robot._send = Inbox()  # type: ignore[assignment]
+
+    class Brief:
+        kind = "brief"
+        autonomous = False
+        takes_over = False
+
+        async def run(self, link: MasterLink) -> None:
+            await trio.sleep(1.0)
+
+    await robot.attach_master(Brief())  # type: ignore[arg-type]
+    await trio.sleep(2.0)
+    assert decided_at_once == [None]
+    result = await robot.command(Command.of({"Rotation": 1.0}))
+    assert result.accepted and robot.snapshot().owner is None

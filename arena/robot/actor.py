@@ -1045,8 +1045,9 @@ class Robot:
             except Exception as exc:  # a failing driver is reported, never fatal to the robot
                 error = exc
         if not peer.scope.cancel_called:
-            with contextlib.suppress(trio.ClosedResourceError, trio.BrokenResourceError):
-                await self._send.send(_DriverEndedMsg(peer, error))
+            # Through `_post`, like every message: a `command_now` must not overtake it.
+            with contextlib.suppress(ArenaError):  # the robot has stopped
+                await self._post(_DriverEndedMsg(peer, error))
 
     async def _attach(
         self,
