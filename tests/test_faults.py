@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import threading
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 
@@ -12,13 +13,16 @@ import trio
 from trio_websocket import open_websocket_url
 
 from arena.bench import BENCH_TYPE, _bench_types
-from arena.recording.mcap_file import read_recording
+from arena.recording import mcap_file
+from arena.recording.mcap_file import Recording, read_recording
 from arena.robot.model import TYPES_PATH_ENV
+from arena.server import recordings_api
 from tests.conftest import RunningServer
 from tests.raw_websocket import OP_TEXT, Frame, RawWebSocket
 from tests.test_server_ws import command, receive
 
 StartServer = Callable[..., Awaitable[RunningServer]]
+GOLDEN = Path(__file__).resolve().parent.parent / "recordings" / "golden" / "gentle-wave.mcap"
 
 
 async def test_a_failing_recordings_folder_never_stops_control(
@@ -233,3 +237,51 @@ async def test_a_flapping_master(server: RunningServer) -> None:
     async with open_websocket_url(server.ws_url + "/ws/master/demo-arm") as master:
         await receive(master, "joint_states")
         assert (await command(master, {"Rotation": 6}))["data"]["status"] == "accepted"
+
+
+@pytest.mark.parametrize("reader", ["master", "replay", "summary"])
+async def test_reading_a_recording_stalls_no_robot(
+    start_server: StartServer, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, reader: str
+) -> None:
+    # The file read is held until the test lets it go: an e-stop sent meanwhile is answered
+    # first, which it could not be if the read ran on the event loop.
+    folder = tmp_path / "rec"
+    folder.mkdir()
+    shutil.copy(GOLDEN, folder / "long.mcap")
+    server = await start_server(demo=True, recordings_dir=str(folder), record=False)
+    entered, release = threading.Event(), threading.Event()
+    order: list[str] = []
+
+    def held_read(path: Path) -> Recording:
+        entered.set()
+        release.wait(30)
+        order.append("read")
+        return read_recording(path)
+
+    monkeypatch.setattr(mcap_file, "read_recording", held_read)
+    monkeypatch.setattr(recordings_api, "read_recording", held_read)
+    answers: list[int] = []
+    async with server.client() as http:
+
+        async def load() -> None:
+            body = {"recording": "long.mcap", "speed": 100}
+            if reader == "master":
+                reply = await http.post(
+                    "/api/robots/demo-arm/master", json={"type": "replay", **body}
+                )
+            elif reader == "replay":
+                reply = await http.post("/api/robots/demo-arm/replay", json=body)
+            else:
+                reply = await http.get("/api/recordings/long.mcap")
+            answers.append(reply.status_code)
+
+        async with trio.open_nursery() as nursery:
+            nursery.start_soon(load)
+            await trio.to_thread.run_sync(entered.wait, 30)
+            assert (await http.post("/api/estop")).status_code == 200
+            order.append("estop answered")
+            release.set()
+        assert (await http.post("/api/robots/demo-arm/reset")).status_code == 200
+    assert order == ["estop answered", "read"]
+    # The e-stop came first: a replay is then refused (423 ESTOPPED), a summary answered.
+    assert answers == [200 if reader == "summary" else 423]

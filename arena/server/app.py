@@ -33,6 +33,7 @@ from arena.server.groups_api import blueprint as groups_blueprint
 from arena.server.metrics import Metrics
 from arena.server.origin import SAFE_METHODS, OriginPolicy, is_json
 from arena.server.recordings_api import blueprint as recordings_blueprint
+from arena.server.recordings_api import off_the_loop
 from arena.server.robot_types_api import blueprint as robot_types_blueprint
 
 #: Paths anyone may read, keys or not: the documentation and the dashboard's files.
@@ -273,7 +274,9 @@ def _register_routes(app: ArenaApp) -> None:
     async def attach_master(robot_id: str) -> tuple[dict[str, Any], int]:
         robot = manager.get(robot_id)
         body: MasterBody = await read_body(MasterBody)
-        driver = make_master(
+        # A replay reads its recording: in a thread, never stalling the robots.
+        driver = await off_the_loop(
+            make_master,
             body,
             app.recorder.folder,
             robot.model,

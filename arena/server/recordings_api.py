@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import msgspec
 import trio
@@ -17,6 +18,7 @@ from arena.recording.recorder import check_name, existing_recording
 from arena.server.base import ArenaApp, read_body
 
 blueprint = Blueprint("recordings", __name__)
+T = TypeVar("T")
 
 
 def _app() -> ArenaApp:
@@ -67,12 +69,24 @@ async def stop_recording(name: str) -> dict[str, Any]:
     return {**recorder.status(), "stopped": stopped.name if stopped else None}
 
 
+#: Recordings read at once for requests: each takes memory in proportion to its file.
+_LOADS = trio.CapacityLimiter(2)
+
+
+async def off_the_loop(work: Callable[..., T], *args: Any) -> T:
+    """Run `work` (reading and digesting a recording) in a thread, a bounded number at once,
+    so that no robot waits on a large file."""
+    return await trio.to_thread.run_sync(work, *args, limiter=_LOADS)
+
+
+def _summary(path: Path) -> dict[str, Any]:
+    return summarize(read_recording(path))
+
+
 @blueprint.get("/api/recordings/<name>")
 async def recording_summary(name: str) -> dict[str, Any]:
     """Robots, span, counts, gaps, e-stops, faults and tracking errors of one recording."""
-    path = _existing(name)
-    recording = await trio.to_thread.run_sync(read_recording, path)
-    return summarize(recording)
+    return await off_the_loop(_summary, _existing(name))
 
 
 #: Most points per joint series a plot request may ask for.
@@ -95,10 +109,13 @@ def _plot_points(raw: str) -> int:
 async def recording_joints(name: str) -> dict[str, Any]:
     """One robot's joints over the recording, thinned for a plot (`?robot=`, `?points=`)."""
     most = _plot_points(request.args.get("points", "300"))
-    path = _existing(name)
-    recording = await trio.to_thread.run_sync(read_recording, path)
+    return await off_the_loop(_joints, _existing(name), request.args.get("robot"), most)
+
+
+def _joints(path: Path, robot: str | None, most: int) -> dict[str, Any]:
+    recording = read_recording(path)
     robots = sorted({m.robot_id for m in recording.messages if m.robot_id})
-    robot_id = request.args.get("robot") or (robots[0] if robots else "")
+    robot_id = robot or (robots[0] if robots else "")
     series = joint_series(recording, robot_id)
     return {
         "recording": path.name,
@@ -136,6 +153,6 @@ async def replay(robot_id: str) -> tuple[dict[str, Any], int]:
     robot = app.manager.get(robot_id)
     body: ReplayBody = await read_body(ReplayBody)
     config = ReplayMasterBody(**msgspec.structs.asdict(body))
-    driver = await trio.to_thread.run_sync(make_master, config, app.recorder.folder)
+    driver = await off_the_loop(make_master, config, app.recorder.folder)
     master_id = await robot.attach_master(driver)
     return {"robot": robot_id, "master": master_id, "recording": body.recording}, 201
