@@ -45,6 +45,7 @@ lint: install
 	$(BIN)/ruff check arena tests
 	$(BIN)/ruff format --check arena tests
 	$(BIN)/mypy
+	$(BIN)/deptry .
 
 bench: install
 	$(BIN)/arena bench
