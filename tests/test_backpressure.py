@@ -18,7 +18,7 @@ import pytest
 import trio
 from trio_websocket import WebSocketConnection, open_websocket_url
 
-from arena.bench import BENCH_TYPE, _bench_types
+from arena.bench import BENCH_TYPE, bench_types
 from arena.robot.model import TYPES_PATH_ENV
 from tests.conftest import RunningServer
 from tests.raw_websocket import OP_TEXT, RawWebSocket
@@ -46,7 +46,7 @@ async def fast_server(
     start_server: StartServer, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> RunningServer:
     """A server with robot `fast` (rate limit lifted) and small outbound buffers."""
-    monkeypatch.setenv(TYPES_PATH_ENV, str(_bench_types(tmp_path / "types")))
+    monkeypatch.setenv(TYPES_PATH_ENV, str(bench_types(tmp_path / "types")))
     server = await start_server(joint_states_interval=0.0)
     async with server.client() as http:
         created = await http.post("/api/robots", json={"robot_type": BENCH_TYPE, "id": "fast"})

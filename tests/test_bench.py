@@ -9,7 +9,7 @@ import threading
 import pytest
 
 from arena import bench
-from arena.bench_client import BlockingHttp
+from arena.bench.client import BlockingHttp
 
 
 def test_bench_scenarios_run_against_a_real_server() -> None:

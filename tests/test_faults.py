@@ -12,7 +12,7 @@ import pytest
 import trio
 from trio_websocket import open_websocket_url
 
-from arena.bench import BENCH_TYPE, _bench_types
+from arena.bench import BENCH_TYPE, bench_types
 from arena.recording import mcap_file
 from arena.recording.mcap_file import Recording, read_recording
 from arena.robot.model import TYPES_PATH_ENV
@@ -129,7 +129,7 @@ async def test_a_slave_that_stops_reading_slows_no_one(
     # writes to it block. Its targets are latest-wins, so the robot, the master and the other
     # slaves go on, and when it reads again it gets the newest target, not a backlog.
     # (The robot type has its rate limit lifted, so the master can send as fast as it likes.)
-    monkeypatch.setenv(TYPES_PATH_ENV, str(_bench_types(tmp_path / "types")))
+    monkeypatch.setenv(TYPES_PATH_ENV, str(bench_types(tmp_path / "types")))
     server = await start_server()
     async with server.client() as http:
         created = await http.post("/api/robots", json={"robot_type": BENCH_TYPE, "id": "fast"})

@@ -1,0 +1,165 @@
+"""`arena bench`: benchmarks against a real server on loopback. Prints medians; asserts nothing.
+
+The server runs as its own process (`arena serve`, recording on unless a scenario says
+otherwise); relay, throughput, fleet and one robot's e-stop use the lean clients of
+`bench_client` in this process (with its garbage collector kept out of the way), the relay and
+e-stop again with `websockets` and httpx on asyncio, as do the e-stop of every robot and the
+soak. The robots use a copy of the so-arm100 type whose rate limit is raised (the default 100
+commands/s per master would be the only thing measured otherwise); every other check stays on.
+
+Scenarios:
+  relay       one master, one slave, commands one at a time: send -> slave's execute_command
+              (a lean client, then again with the `websockets` library)
+  throughput  commands as fast as one master can send: accepted/s, and what reached the slave
+  fleet       N robots, each a master at 50 Hz (then 25 Hz) and a slave: latency p50/p99,
+              server CPU and RSS (with its recording process); a lean selector-loop client
+  estop       POST /api/robots/{id}/estop -> the slave's estop notice (and -> the HTTP answer,
+              which comes after the notice); a master's estop message -> the notice;
+              POST /api/estop -> the last robot's notice
+  recording   throughput with recording on against off (ratio)
+  replay      commands/s of a replay at maximum speed (in process)
+  core        RobotCore.command calls/s (pure decision code)
+  teleop      leader arm -> follower: a leader register change to the follower's goal write,
+              two simulated buses at 1 Mbaud in this process, p50/p99 at 100 and 500 Hz
+  usb         the USB slave's control loop on a simulated bus (`arena sim-bus --wire-time`, its
+              own process) at 1 Mbaud: the highest cycle rate, and the CPU at 500 Hz
+  soak        (only when named) the fleet held for 10 minutes: latency and memory of the first
+              minute against the last, commands unacknowledged, recording messages dropped
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import statistics
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from arena.bench.common import BENCH_TYPE, Server, bench_types, running_server
+from arena.bench.estop import estop
+from arena.bench.fleet import FleetRun, drive_fleet, fleet, soak
+from arena.bench.hardware import teleop_latency, usb_control_rate
+from arena.bench.inprocess import core_rate, replay_rate
+from arena.bench.relay import relay, relay_with_websockets, throughput
+
+
+async def _with_server(scenario: Callable[[Server], Any], record: bool = True) -> Any:
+    async with running_server(record=record) as server:
+        return await scenario(server)
+
+
+SCENARIOS = (
+    "relay",
+    "throughput",
+    "fleet",
+    "estop",
+    "recording",
+    "replay",
+    "core",
+    "usb",
+    "teleop",
+)
+#: Long scenarios, run only when named.
+LONG_SCENARIOS = ("soak",)
+
+
+def run_benchmarks(
+    json_path: str | None = None,
+    only: list[str] | None = None,
+    repeats: int = 3,
+    fleet_robots: int = 100,
+    soak_seconds: float = 600.0,
+    soak_rate: float = 50.0,
+) -> dict[str, Any]:
+    """Run the chosen scenarios (medians of `repeats` runs where cheap), print, write JSON."""
+    chosen = only or list(SCENARIOS)
+    unknown = sorted(set(chosen) - set(SCENARIOS) - set(LONG_SCENARIOS))
+    if unknown:
+        known = ", ".join((*SCENARIOS, *LONG_SCENARIOS))
+        raise ValueError(f"unknown scenarios: {', '.join(unknown)} (known: {known})")
+    results: dict[str, Any] = {}
+
+    def median_of(runs: list[dict[str, float]]) -> dict[str, float]:
+        return {key: statistics.median(run[key] for run in runs) for key in runs[0]}
+
+    if "core" in chosen:
+        results.update(median_of([core_rate() for _ in range(repeats)]))
+    if "replay" in chosen:
+        results.update(median_of([replay_rate() for _ in range(repeats)]))
+    if "relay" in chosen:
+        results.update(median_of([asyncio.run(_with_server(relay)) for _ in range(repeats)]))
+        results.update(
+            median_of([asyncio.run(_with_server(relay_with_websockets)) for _ in range(repeats)])
+        )
+    if "throughput" in chosen or "recording" in chosen:
+        on = median_of([asyncio.run(_with_server(throughput)) for _ in range(repeats)])
+        results.update(on)
+        if "recording" in chosen:
+            off = median_of(
+                [asyncio.run(_with_server(throughput, record=False)) for _ in range(repeats)]
+            )
+            results["throughput_no_recording_per_s"] = off["throughput_accepted_per_s"]
+            results["recording_cost_ratio"] = (
+                on["throughput_accepted_per_s"] / off["throughput_accepted_per_s"]
+            )
+    if "estop" in chosen:
+        results.update(asyncio.run(_with_server(estop)))
+    if "fleet" in chosen:
+        results.update(asyncio.run(_with_server(lambda server: fleet(server, robots=fleet_robots))))
+        # Half the rate as well: where the latency stands before one core is full.
+        half = asyncio.run(
+            _with_server(lambda server: fleet(server, robots=fleet_robots, rate=25.0))
+        )
+        results.update({k.replace("fleet_", "fleet_25hz_", 1): v for k, v in half.items()})
+    if "soak" in chosen:
+        window = min(60.0, soak_seconds / 4)
+        results.update(
+            asyncio.run(
+                _with_server(
+                    lambda server: soak(
+                        server,
+                        robots=fleet_robots,
+                        rate=soak_rate,
+                        seconds=soak_seconds,
+                        window=window,
+                    )
+                )
+            )
+        )
+    if "usb" in chosen:
+        results.update(median_of([usb_control_rate() for _ in range(repeats)]))
+    if "teleop" in chosen:
+        for rate in (100.0, 250.0, 500.0):
+            results.update(median_of([teleop_latency(rate=rate) for _ in range(repeats)]))
+    width = max(len(k) for k in results)
+    print(f"{'scenario':<{width}}  value (medians of {repeats} runs where repeated)")
+    for key, value in results.items():
+        shown = f"{value:14.2f}" if isinstance(value, float) else f"{value!s:>14}"
+        print(f"{key:<{width}}  {shown}")
+    if json_path:
+        Path(json_path).write_text(json.dumps(results, indent=2))
+    return results
+
+
+__all__ = [
+    "BENCH_TYPE",
+    "LONG_SCENARIOS",
+    "SCENARIOS",
+    "FleetRun",
+    "Server",
+    "bench_types",
+    "core_rate",
+    "drive_fleet",
+    "estop",
+    "fleet",
+    "relay",
+    "relay_with_websockets",
+    "replay_rate",
+    "run_benchmarks",
+    "running_server",
+    "soak",
+    "teleop_latency",
+    "throughput",
+    "usb_control_rate",
+]

@@ -1,0 +1,182 @@
+"""What every scenario shares: the benchmark robot type, the server process, helpers."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import dataclasses
+import gc
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any, TypeVar
+
+import httpx
+
+from arena.bench.client import BlockingWebSocket
+from arena.robot.model import BUILTIN_TYPES_DIR, TYPES_PATH_ENV
+
+BENCH_TYPE = "so-arm100-bench"
+
+T = TypeVar("T")
+
+
+def _without_client_gc(run: Callable[..., T], *args: Any) -> T:
+    """Run a lean client with this process's objects frozen out of the garbage collector.
+
+    A full collection here (httpx, asyncio, websockets and their imports) takes ~20 ms; it
+    fell two seconds into every fleet run, at the same point, as a spike the server never saw.
+    """
+    gc.collect()
+    gc.freeze()
+    try:
+        return run(*args)
+    finally:
+        gc.unfreeze()
+
+
+def _percentile(values: list[float], q: float) -> float:
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, int(q * len(ordered)))] if ordered else float("nan")
+
+
+def bench_types(folder: Path) -> Path:
+    """A robot-type folder holding so-arm100 with the rate limit out of the way."""
+    target = folder / BENCH_TYPE
+    shutil.copytree(BUILTIN_TYPES_DIR / "so-arm100", target)
+    config = target / "robot.toml"
+    text = config.read_text()
+    text = re.sub(r"command_rate = [\d.]+", "command_rate = 1000000.0", text)
+    text = re.sub(r"command_burst = \d+", "command_burst = 1000000", text)
+    config.write_text(text)
+    return folder
+
+
+@dataclasses.dataclass
+class Server:
+    """A server process and its base URL."""
+
+    process: subprocess.Popen[bytes]
+    url: str
+
+    @property
+    def ws(self) -> str:
+        return "ws" + self.url[4:]
+
+    def pids(self) -> list[int]:
+        """The server process and its children (the recording writer)."""
+        pid = self.process.pid
+        children = [
+            int(child)
+            for task in Path(f"/proc/{pid}/task").glob("*/children")
+            for child in task.read_text().split()
+        ]
+        return [pid, *children]
+
+    def cpu_seconds(self) -> float:
+        """User + system CPU time of the server and its children so far."""
+        total = 0
+        for pid in self.pids():
+            with contextlib.suppress(OSError), open(f"/proc/{pid}/stat") as stat:
+                fields = stat.read().rsplit(")", 1)[1].split()
+                total += int(fields[11]) + int(fields[12])
+        return total / os.sysconf("SC_CLK_TCK")
+
+    def rss_mib(self) -> float:
+        """Resident memory of the server and its children."""
+        total = 0
+        for pid in self.pids():
+            with contextlib.suppress(OSError), open(f"/proc/{pid}/status") as status:
+                rss = (int(line.split()[1]) for line in status if line.startswith("VmRSS:"))
+                total += next(rss, 0)  # an exiting process has none
+        return total / 1024
+
+
+@asynccontextmanager
+async def running_server(record: bool = True) -> AsyncIterator[Server]:
+    """`arena serve` on 127.0.0.1 with a port the system chose, stopped on exit."""
+    with tempfile.TemporaryDirectory() as scratch:
+        folder = Path(scratch)
+        env = {
+            **os.environ,
+            TYPES_PATH_ENV: str(bench_types(folder / "types")),
+            "LOG_LEVEL": "INFO",  # the "listening on" line is how we learn the port
+        }
+        args = [
+            sys.executable,
+            "-m",
+            "arena.cli",
+            "serve",
+            "--port",
+            "0",
+            "--recordings-dir",
+            str(folder / "recordings"),
+        ]
+        if not record:
+            args.append("--no-record")
+        process = subprocess.Popen(args, env=env, stderr=subprocess.PIPE)
+        assert process.stderr is not None
+        url = None
+        deadline = time.monotonic() + 60
+        while url is None and time.monotonic() < deadline:
+            line = process.stderr.readline().decode()
+            if not line:
+                break
+            found = re.search(r"listening on (http://\S+)", line)
+            if found:
+                url = found.group(1)
+        if url is None:
+            process.kill()
+            raise RuntimeError("the server did not start")
+        # Drain the log so the server never blocks on a full pipe.
+        loop = asyncio.get_running_loop()
+        drain = loop.run_in_executor(None, lambda: process.stderr.read() if process.stderr else b"")
+        try:
+            yield Server(process, url)
+        finally:
+            process.terminate()
+            await drain
+            process.wait(timeout=10)
+
+
+async def _robot(http: httpx.AsyncClient, robot_id: str) -> None:
+    response = await http.post("/api/robots", json={"robot_type": BENCH_TYPE, "id": robot_id})
+    response.raise_for_status()
+
+
+_EXECUTE = '"type":"execute_command"'
+_ACK = '"type":"ack"'
+_ESTOP = '"type":"estop"'
+_RESET = '"type":"reset"'
+
+
+def _command(i: int) -> str:
+    # Tiny alternating steps: always inside the velocity budget, so each goes out at once.
+    value = (i % 2) * 0.001
+    return json.dumps(
+        {
+            "type": "command",
+            "data": {
+                "joints": [{"name": "Rotation", "value": value}, {"name": "Elbow", "value": -value}]
+            },
+        }
+    )
+
+
+def _time_to(
+    marker: str, receiver: BlockingWebSocket, sender: BlockingWebSocket, frame: bytes
+) -> float:
+    """Seconds from sending `frame` to `receiver`'s first message containing `marker`."""
+    start = time.perf_counter()
+    sender.send_raw(frame)
+    while marker not in receiver.receive():
+        pass
+    return time.perf_counter() - start

@@ -1,0 +1,150 @@
+"""E-stops: one robot over REST and over its master socket, and every robot at once."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import statistics
+import time
+from typing import Any
+
+import httpx
+
+from arena.bench.client import BlockingHttp, BlockingWebSocket, masked_frame
+from arena.bench.common import (
+    _ESTOP,
+    _RESET,
+    Server,
+    _percentile,
+    _robot,
+    _time_to,
+    _without_client_gc,
+)
+
+
+async def estop(server: Server, trials: int = 200, robots: int = 100) -> dict[str, float]:
+    """REST e-stop to the slave's notice: one robot, then every robot at once.
+
+    The clock runs from the request's start to the notice, which the robot sends before the
+    HTTP answer is written; the time to the answer is reported beside it. One robot is timed
+    with the lean client (raw HTTP on a keep-alive connection, a lean WebSocket slave), then
+    again with httpx and `websockets` (what a Python user sees)."""
+    import websockets
+
+    async with httpx.AsyncClient(base_url=server.url) as http:
+        await _robot(http, "stop-one")
+        results = await asyncio.to_thread(_without_client_gc, _lean_estop_one, server, trials)
+        await _robot(http, "stop-ws")
+        results.update(
+            await asyncio.to_thread(_without_client_gc, _lean_estop_over_websocket, server, trials)
+        )
+        await _robot(http, "stop-httpx")  # its own robot: a slave that leaves e-stops "stop-one"
+        one, answered = [], []
+        async with websockets.connect(
+            compression=None, uri=server.ws + "/ws/slave/stop-httpx"
+        ) as slave:
+            for _ in range(trials):
+                start = time.perf_counter()
+                request = asyncio.create_task(http.post("/api/robots/stop-httpx/estop"))
+                while json.loads(await slave.recv())["type"] != "estop":
+                    pass
+                one.append(time.perf_counter() - start)
+                response = await request
+                answered.append(time.perf_counter() - start)
+                response.raise_for_status()
+                await http.post("/api/robots/stop-httpx/reset")
+                while json.loads(await slave.recv())["type"] != "reset":
+                    pass
+        results["estop_one_httpx_p50_ms"] = _percentile(one, 0.5) * 1e3
+        results["estop_one_httpx_p99_ms"] = _percentile(one, 0.99) * 1e3
+        results["estop_one_httpx_answered_p99_ms"] = _percentile(answered, 0.99) * 1e3
+        for n in range(robots):
+            await _robot(http, f"stop-{n}")
+        slaves = [
+            await websockets.connect(compression=None, uri=server.ws + f"/ws/slave/stop-{n}")
+            for n in range(robots)
+        ]
+        everyone = []
+        try:
+            for _ in range(5):
+                start = time.perf_counter()
+                request = asyncio.create_task(http.post("/api/estop"))
+
+                async def notice(ws: Any) -> float:
+                    while json.loads(await ws.recv())["type"] != "estop":
+                        pass
+                    return time.perf_counter()
+
+                done = await asyncio.gather(*(notice(ws) for ws in slaves))
+                everyone.append(max(done) - start)
+                (await request).raise_for_status()
+                for n in range(robots):
+                    await http.post(f"/api/robots/stop-{n}/reset")
+                await asyncio.gather(*(_skip_until(ws, "reset") for ws in slaves))
+        finally:
+            for ws in slaves:
+                await ws.close()
+    results["estop_all_median_ms"] = statistics.median(everyone) * 1e3
+    return results
+
+
+def _lean_estop_one(server: Server, trials: int, warm_up: int = 10) -> dict[str, float]:
+    slave = BlockingWebSocket(server.ws + "/ws/slave/stop-one")
+    http = BlockingHttp(server.url)
+    stop = http.request_bytes("POST", "/api/robots/stop-one/estop")
+    reset = http.request_bytes("POST", "/api/robots/stop-one/reset")
+    noticed, answered = [], []
+    try:
+        for trial in range(warm_up + trials):
+            start = time.perf_counter()
+            http.send(stop)
+            while _ESTOP not in slave.receive():
+                pass
+            notice = time.perf_counter() - start
+            status, body = http.answer()
+            if status != 200:
+                raise RuntimeError(f"e-stop answered {status}: {body!r}")
+            if trial >= warm_up:
+                noticed.append(notice)
+                answered.append(time.perf_counter() - start)
+            http.send(reset)
+            status, body = http.answer()
+            if status != 200:
+                raise RuntimeError(f"reset answered {status}: {body!r}")
+            while _RESET not in slave.receive():
+                pass
+    finally:
+        http.close()
+        slave.close()
+    return {
+        "estop_one_p50_ms": _percentile(noticed, 0.5) * 1e3,
+        "estop_one_p99_ms": _percentile(noticed, 0.99) * 1e3,
+        "estop_one_answered_p99_ms": _percentile(answered, 0.99) * 1e3,
+    }
+
+
+def _lean_estop_over_websocket(server: Server, trials: int, warm_up: int = 10) -> dict[str, float]:
+    """A master's `estop` message to the slave's notice: the e-stop that skips HTTP."""
+    slave = BlockingWebSocket(server.ws + "/ws/slave/stop-ws")
+    master = BlockingWebSocket(server.ws + "/ws/master/stop-ws")
+    stop = masked_frame('{"type": "estop", "data": {"reason": "bench"}}')
+    reset = masked_frame('{"type": "reset"}')
+    noticed = []
+    try:
+        for trial in range(warm_up + trials):
+            notice = _time_to(_ESTOP, slave, master, stop)
+            if trial >= warm_up:
+                noticed.append(notice)
+            _time_to(_RESET, slave, master, reset)
+    finally:
+        master.close()
+        slave.close()
+    return {
+        "estop_one_websocket_p50_ms": _percentile(noticed, 0.5) * 1e3,
+        "estop_one_websocket_p99_ms": _percentile(noticed, 0.99) * 1e3,
+    }
+
+
+async def _skip_until(ws: Any, kind: str) -> None:
+    while json.loads(await ws.recv())["type"] != kind:
+        pass

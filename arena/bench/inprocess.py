@@ -1,0 +1,81 @@
+"""In-process scenarios: a replay at full speed and the pure core."""
+
+from __future__ import annotations
+
+import dataclasses
+import gc
+import tempfile
+import time
+from pathlib import Path
+
+
+def replay_rate(commands: int = 20_000) -> dict[str, float]:
+    """A replay at maximum speed, in process, everything on: a mock slave follows and the
+    recorder writes MCAP. Commands per second issued and answered, on the real clock."""
+    import trio
+
+    from arena.drivers.mock_slave import MockSlave
+    from arena.recording.recorder import Recorder
+    from arena.recording.replay import ReplayMaster, TimedCommand
+    from arena.robot.manager import open_manager
+    from arena.robot.model import load_robot_model
+    from arena.robot.motion import Command
+    from arena.server.run import tune_garbage_collector
+
+    model = load_robot_model("so-arm100")
+    policy = dataclasses.replace(model.safety, command_rate=1e9, command_burst=10**9)
+    # Recorded at 100 Hz; at the highest speed (1000x) the replay is always behind its
+    # schedule, so what is measured is the work per command.
+    timed = [
+        TimedCommand(i * 0.01, Command.of({"Rotation": (i % 2) * 0.001})) for i in range(commands)
+    ]
+
+    async def run(folder: Path) -> dict[str, float]:
+        recorder = Recorder(folder)
+        async with trio.open_nursery() as recording:
+            await recording.start(recorder.run)
+            async with open_manager() as manager:
+                manager.on_create.append(recorder.follow)
+                robot = await manager.create_robot("so-arm100", robot_id="replay", policy=policy)
+                slave = MockSlave()
+                await robot.attach_slave(slave)
+                master = ReplayMaster(timed, speed=1000.0)
+                start = time.perf_counter()
+                await robot.attach_master(master)
+                while robot.snapshot().master is not None:
+                    await trio.sleep(0.005)  # a snapshot costs ~10 us: not too often
+                elapsed = time.perf_counter() - start
+            recording.cancel_scope.cancel()
+        return {
+            "replay_commands_per_s": master.sent / elapsed,
+            "replay_refused": float(master.refused),
+            "replay_recorded_messages": float(recorder.writer.messages),
+            "replay_recording_dropped": float(recorder.status()["dropped"]),
+        }
+
+    # The collector tuned as `arena serve` tunes it, and put back after (this process goes on
+    # to run the benchmark's clients).
+    thresholds = gc.get_threshold()
+    tune_garbage_collector()
+    try:
+        with tempfile.TemporaryDirectory() as folder:
+            return trio.run(run, Path(folder))
+    finally:
+        gc.unfreeze()
+        gc.set_threshold(*thresholds)
+
+
+def core_rate(count: int = 20_000) -> dict[str, float]:
+    """Pure core: commands per second."""
+    from arena.robot.core import RobotCore
+    from arena.robot.model import load_robot_model
+    from arena.robot.motion import Command
+
+    model = load_robot_model("so-arm100")
+    policy = dataclasses.replace(model.safety, command_rate=1e12, command_burst=10**9)
+    core = RobotCore(model, 0.0, policy)
+    commands = [Command.of({"Rotation": (i % 2) * 0.001}) for i in range(count)]
+    start = time.perf_counter()
+    for i, command in enumerate(commands):
+        core.command(None, command, i * 0.01)
+    return {"core_commands_per_s": count / (time.perf_counter() - start)}

@@ -1,0 +1,134 @@
+"""Relay and throughput: one master and one slave, commands one at a time and as fast as they go."""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import threading
+import time
+
+import httpx
+
+from arena.bench.client import BlockingWebSocket, masked_frame
+from arena.bench.common import (
+    _ACK,
+    _EXECUTE,
+    Server,
+    _command,
+    _percentile,
+    _robot,
+    _time_to,
+    _without_client_gc,
+)
+
+
+async def relay(server: Server, count: int = 5000) -> dict[str, float]:
+    """Master send -> slave receipt of execute_command, one command at a time (lean client)."""
+    async with httpx.AsyncClient(base_url=server.url) as http:
+        await _robot(http, "relay")
+    return await asyncio.to_thread(_without_client_gc, _lean_relay, server.ws, count)
+
+
+def _lean_relay(ws: str, count: int) -> dict[str, float]:
+    slave = BlockingWebSocket(ws + "/ws/slave/relay")
+    master = BlockingWebSocket(ws + "/ws/master/relay")
+    frames = [masked_frame(_command(i + 1)) for i in range(count + 100)]
+    latencies = []
+    try:
+        for i, frame in enumerate(frames):
+            latency = _time_to(_EXECUTE, slave, master, frame)
+            if i >= 100:  # warm-up excluded
+                latencies.append(latency)
+            while _ACK not in master.receive():
+                pass
+    finally:
+        master.close()
+        slave.close()
+    return {
+        "relay_p50_us": _percentile(latencies, 0.5) * 1e6,
+        "relay_p99_us": _percentile(latencies, 0.99) * 1e6,
+        "relay_max_us": max(latencies) * 1e6,
+    }
+
+
+async def relay_with_websockets(server: Server, count: int = 5000) -> dict[str, float]:
+    """The relay again with the `websockets` client library (what a Python user sees)."""
+    import websockets
+
+    async with httpx.AsyncClient(base_url=server.url) as http:
+        await _robot(http, "relay-ws")
+    async with (
+        websockets.connect(compression=None, uri=server.ws + "/ws/slave/relay-ws") as slave,
+        websockets.connect(compression=None, uri=server.ws + "/ws/master/relay-ws") as master,
+    ):
+        latencies = []
+        for i in range(count + 100):
+            sent = time.perf_counter()
+            await master.send(_command(i + 1))
+            while True:
+                message = json.loads(await slave.recv())
+                if message["type"] == "execute_command":
+                    break
+            if i >= 100:  # warm-up excluded
+                latencies.append(time.perf_counter() - sent)
+            while json.loads(await master.recv())["type"] != "ack":
+                pass
+    return {
+        "relay_websockets_p50_us": _percentile(latencies, 0.5) * 1e6,
+        "relay_websockets_p99_us": _percentile(latencies, 0.99) * 1e6,
+    }
+
+
+async def throughput(
+    server: Server, count: int = 20_000, robot_id: str = "flood"
+) -> dict[str, float]:
+    """Commands as fast as one master can send them; acks counted as they come back.
+
+    The frames are made before the clock starts and go out in one `sendall` from a thread,
+    so the client costs as little as it can (lean client, see `bench_client`).
+    """
+    async with httpx.AsyncClient(base_url=server.url) as http:
+        await _robot(http, robot_id)
+    return await asyncio.to_thread(_without_client_gc, _lean_throughput, server.ws, robot_id, count)
+
+
+def _lean_throughput(ws: str, robot_id: str, count: int) -> dict[str, float]:
+    slave = BlockingWebSocket(ws + f"/ws/slave/{robot_id}")
+    master = BlockingWebSocket(ws + f"/ws/master/{robot_id}")
+    frames = b"".join(masked_frame(_command(i + 1)) for i in range(count))
+    reached = 0
+
+    def count_slave() -> None:
+        nonlocal reached
+        with contextlib.suppress(OSError):  # the socket closes under it at the end
+            while True:
+                if _EXECUTE in slave.receive():
+                    reached += 1
+
+    counter = threading.Thread(target=count_slave, daemon=True)
+    counter.start()
+    accepted = refused = 0
+    start = time.perf_counter()
+    sender = threading.Thread(target=master.send_raw, args=(frames,), daemon=True)
+    sender.start()
+    try:
+        while accepted + refused < count:
+            message = master.receive()
+            if _ACK in message:
+                if '"refused"' in message:
+                    refused += 1
+                else:
+                    accepted += 1
+        elapsed = time.perf_counter() - start
+        sender.join()
+        time.sleep(0.2)  # the last targets on their way to the slave
+    finally:
+        master.close()
+        slave.close()
+    counter.join(timeout=5)
+    return {
+        "throughput_accepted_per_s": accepted / elapsed,
+        "throughput_refused": refused,
+        "throughput_reached_slave": reached,
+    }
