@@ -201,7 +201,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.command == "schemas":
             from pathlib import Path
 
-            from arena.protocol.schemas import write_schemas
+            from arena.schemas import write_schemas
 
             for path in write_schemas(Path(args.out)):
                 print(path)

@@ -11,8 +11,8 @@ import httpx
 import pytest
 import trio
 
-from arena.robot.actor import SlaveLink
 from arena.robot.events import SlaveNotice, SlaveTarget
+from arena.robot.links import SlaveLink
 from arena.robot.manager import RobotManager, open_manager
 from arena.server.config import ServerConfig
 from arena.server.run import run_server

@@ -13,7 +13,7 @@ from arena.drivers.mock_slave import MockSlave, MockSlaveConfig
 from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import get_sequence, parse_sequence
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
-from arena.robot.actor import MasterLink, Robot
+from arena.robot.actor import Robot
 from arena.robot.events import (
     FaultReported,
     JointStatesReceived,
@@ -23,6 +23,8 @@ from arena.robot.events import (
     SlaveTarget,
     StateChanged,
 )
+from arena.robot.inbox import DriverEndedMsg
+from arena.robot.links import MasterLink
 from arena.robot.mailbox import EventQueue, LatestMailbox
 from arena.robot.manager import RobotManager
 from arena.robot.model import LossPolicy, load_robot_model
@@ -712,7 +714,7 @@ async def test_a_drivers_end_is_not_overtaken_by_a_command_decided_at_once(
 
         async def send(self, message: object) -> None:
             inbox.send_nowait(message)  # queued, the actor not yet run
-            if type(message).__name__ == "_DriverEndedMsg":
+            if isinstance(message, DriverEndedMsg):
                 decided_at_once.append(robot.command_now(Command.of({"Rotation": 1.0})))
             await trio.lowlevel.checkpoint()
 

@@ -13,9 +13,9 @@ import trio
 from trio_websocket import open_websocket_url
 
 from arena.bench import BENCH_TYPE, bench_types
-from arena.recording import mcap_file
 from arena.recording.mcap_file import Recording, read_recording
 from arena.robot.model import TYPES_PATH_ENV
+from arena.server import drivers as server_drivers
 from arena.server import recordings_api
 from tests.conftest import RunningServer
 from tests.raw_websocket import OP_TEXT, Frame, RawWebSocket
@@ -258,7 +258,7 @@ async def test_reading_a_recording_stalls_no_robot(
         order.append("read")
         return read_recording(path)
 
-    monkeypatch.setattr(mcap_file, "read_recording", held_read)
+    monkeypatch.setattr(server_drivers, "read_recording", held_read)
     monkeypatch.setattr(recordings_api, "read_recording", held_read)
     answers: list[int] = []
     async with server.client() as http:

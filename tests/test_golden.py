@@ -8,7 +8,7 @@ import pytest
 from trio.testing import MockClock
 
 from arena.recording.mcap_file import read_recording
-from arena.recording.session import behaviour, replay_session
+from arena.session import behaviour, replay_session
 from tests.golden import GOLDEN, SCENARIOS
 
 

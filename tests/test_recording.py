@@ -36,7 +36,6 @@ from arena.recording.mcap_writer import ChunkedWriter
 from arena.recording.recorder import Backoff, Recorder, check_name
 from arena.recording.records import KIND_OF_EVENT, record_of
 from arena.recording.replay import ReplayMaster, TimedCommand, recorded_commands
-from arena.recording.session import behaviour, record_scenario, replay_session
 from arena.recording.writer_process import McapWriterProcess, items_of_events, pack_events
 from arena.robot.actor import Robot
 from arena.robot.events import (
@@ -52,6 +51,7 @@ from arena.robot.manager import RobotManager, open_manager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Clamp, Command, CommandResult, JointGoal
 from arena.robot.safety import Mode
+from arena.session import behaviour, record_scenario, replay_session
 from tests.conftest import RecordingSlave
 
 GOLDEN = Path(__file__).resolve().parent.parent / "recordings" / "golden"

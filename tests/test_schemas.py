@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from arena.protocol.schemas import schemas
+from arena.schemas import schemas
 
 SPEC_DIR = Path(__file__).resolve().parent.parent / "specs" / "schemas"
 

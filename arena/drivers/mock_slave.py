@@ -13,8 +13,8 @@ from typing import Any
 import trio
 
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
-from arena.robot.actor import SlaveLink
 from arena.robot.events import SlaveNotice
+from arena.robot.links import SlaveLink
 
 
 @dataclass(frozen=True, slots=True)

@@ -27,8 +27,8 @@ import trio
 from arena.client import Backoff, MasterSession, SlaveSession, ws_url
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.protocol.rest import RemoteLinkBody, RemoteServerBody, WebSocketSlaveBody
-from arena.robot.actor import MasterLink, SlaveLink
 from arena.robot.events import JointStatesReceived, NoticeKind, SlaveTarget
+from arena.robot.links import MasterLink, SlaveLink
 from arena.robot.model import LossPolicy
 from arena.robot.motion import Command, JointGoal
 

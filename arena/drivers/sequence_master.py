@@ -10,7 +10,7 @@ import trio
 from arena.drivers.refusals import Refusals
 from arena.drivers.sequences import Sequence
 from arena.protocol.errors import ErrorCode
-from arena.robot.actor import MasterLink
+from arena.robot.links import MasterLink
 
 log = logging.getLogger(__name__)
 

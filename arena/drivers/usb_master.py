@@ -25,7 +25,7 @@ from arena.feetech.health import ServoFault
 from arena.feetech.worker import Lost, Reading, WorkerSettings
 from arena.protocol.errors import ErrorCode
 from arena.protocol.rest import UsbMasterBody
-from arena.robot.actor import MasterLink
+from arena.robot.links import MasterLink
 from arena.robot.model import RobotModel
 from arena.robot.motion import Command, JointGoal
 

@@ -40,8 +40,8 @@ from arena.feetech.worker import (
 )
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.protocol.rest import UsbSlaveBody
-from arena.robot.actor import SlaveLink
 from arena.robot.events import NoticeKind, SlaveNotice
+from arena.robot.links import SlaveLink
 from arena.robot.model import RobotModel
 
 log = logging.getLogger(__name__)

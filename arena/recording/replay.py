@@ -17,7 +17,8 @@ import trio
 
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording.mcap_file import RecordedMessage, Recording
-from arena.robot.actor import MasterLink, Robot
+from arena.robot.actor import Robot
+from arena.robot.links import MasterLink
 from arena.robot.motion import Command, JointGoal
 
 log = logging.getLogger(__name__)

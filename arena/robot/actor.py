@@ -15,9 +15,9 @@ import itertools
 import logging
 import math
 import time as wallclock
-from collections.abc import AsyncIterator, Iterator, Mapping
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
-from typing import Any, Generic, Protocol, TypeVar
+from typing import Any
 
 import trio
 
@@ -37,266 +37,27 @@ from arena.robot.events import (
     StateChanged,
     TargetsSent,
 )
-from arena.robot.mailbox import EventQueue, LatestMailbox
+from arena.robot.inbox import (
+    AliveMsg,
+    AttachMsg,
+    CommandMsg,
+    DetachMsg,
+    DriverEndedMsg,
+    EventMsg,
+    FaultMsg,
+    LinkMsg,
+    Msg,
+    Reply,
+    ShutdownMsg,
+    StatesMsg,
+)
+from arena.robot.links import MasterDriver, MasterLink, SlaveDriver, SlaveLink
+from arena.robot.mailbox import EventQueue
 from arena.robot.model import RobotModel, SafetyPolicy
 from arena.robot.motion import Command, CommandResult
 from arena.robot.snapshot import JointSnapshot, PeerSnapshot, RobotSnapshot
 
 log = logging.getLogger(__name__)
-
-R = TypeVar("R")
-
-
-class MasterDriver(Protocol):
-    """A command source run by the robot (a sequence player, a replay, a remote link)."""
-
-    kind: str
-    autonomous: bool  # plays a program: ends for good on e-stop
-    takes_over: bool  # attaching displaces the current master
-
-    async def run(self, link: MasterLink) -> None:
-        """Issue commands through `link` until done; returning detaches the master."""
-
-
-class SlaveDriver(Protocol):
-    """An executor run by the robot (a simulated arm, a servo bus, a remote robot)."""
-
-    kind: str
-
-    async def run(self, link: SlaveLink) -> None:
-        """Take targets and notices from `link`, report joint states back."""
-
-
-# ---------------------------------------------------------------------------------------------
-# Inbox messages
-
-
-class _Reply(Generic[R]):
-    """A one-shot answer from the actor to a waiting caller."""
-
-    __slots__ = ("_done", "_error", "_value")
-
-    def __init__(self) -> None:
-        self._done = trio.Event()
-        self._value: R | None = None
-        self._error: BaseException | None = None
-
-    def set(self, value: R) -> None:
-        self._value = value
-        self._done.set()
-
-    def fail(self, error: BaseException) -> None:
-        self._error = error
-        self._done.set()
-
-    async def wait(self) -> R:
-        await self._done.wait()
-        if self._error is not None:
-            raise self._error
-        return self._value  # type: ignore[return-value]
-
-
-@dataclass(slots=True)
-class _CommandMsg:
-    source: str | None
-    command: Command
-    reply: _Reply[CommandResult] | None
-
-
-@dataclass(slots=True)
-class _EventMsg:
-    event: safety.Event
-    reply: _Reply[safety.Outcome] | None
-
-
-@dataclass(slots=True)
-class _AttachMsg:
-    role: str
-    peer_id: str | None
-    kind: str
-    driver: MasterDriver | SlaveDriver | None
-    autonomous: bool
-    takeover: bool
-    heartbeat_timeout: float | None
-    reply: _Reply[Any]
-
-
-@dataclass(slots=True)
-class _DetachMsg:
-    role: str
-    peer_id: str | None
-    lost: bool
-    reason: str
-    reply: _Reply[None] | None
-    hold: bool = True
-
-
-@dataclass(slots=True)
-class _StatesMsg:
-    slave_id: str
-    joints: Mapping[str, float]
-
-
-@dataclass(slots=True)
-class _FaultMsg:
-    peer_id: str
-    code: str
-    message: str
-    severity: Severity
-    joint: str | None
-
-
-@dataclass(slots=True)
-class _AliveMsg:
-    peer_id: str
-
-
-@dataclass(slots=True)
-class _LinkMsg:
-    slave_id: str
-    connected: bool
-    reason: str
-
-
-@dataclass(slots=True)
-class _DriverEndedMsg:
-    peer: _Peer
-    error: BaseException | None
-
-
-@dataclass(slots=True)
-class _ShutdownMsg:
-    reason: str
-    reply: _Reply[None] | None
-
-
-_Msg = (
-    _CommandMsg
-    | _EventMsg
-    | _AttachMsg
-    | _DetachMsg
-    | _StatesMsg
-    | _FaultMsg
-    | _AliveMsg
-    | _LinkMsg
-    | _DriverEndedMsg
-    | _ShutdownMsg
-)
-
-
-# ---------------------------------------------------------------------------------------------
-# Links: what a driver (or a network edge) holds to talk to the robot
-
-
-class MasterLink:
-    """A master's handle on the robot: send commands, read notices, leave.
-
-    The robot knows its master by id, and a later connection may take over under the same
-    id: once detached, a link speaks for no one (its commands are refused, its heartbeats and
-    its leaving change nothing).
-    """
-
-    def __init__(self, robot: Robot, master_id: str) -> None:
-        self.robot = robot
-        self.master_id = master_id
-        self.notices: EventQueue[MasterNotice] = EventQueue(256)
-        self.detached = trio.Event()
-
-    async def command(self, command: Command) -> CommandResult:
-        """Send a command as this master and wait for the answer."""
-        if self.detached.is_set():
-            return _DETACHED_LINK
-        return await self.robot.command(command, master_id=self.master_id)
-
-    def command_now(self, command: Command) -> CommandResult | None:
-        """The answer at once when the robot is idle (see `Robot.command_now`), else None."""
-        if self.detached.is_set():
-            return _DETACHED_LINK
-        return self.robot.command_now(command, master_id=self.master_id)
-
-    def alive(self) -> None:
-        """Heartbeat: the peer is still there."""
-        if not self.detached.is_set():
-            self.robot._alive(self.master_id)
-
-    async def detach(self, reason: str = "master left", *, finish_motion: bool = False) -> None:
-        """Give up ownership; motion in progress stops, unless `finish_motion`."""
-        if not self.detached.is_set():
-            await self.robot._detach(
-                "master", self.master_id, lost=False, reason=reason, hold=not finish_motion
-            )
-
-    async def lost(self, reason: str = "connection lost") -> None:
-        """Report that this master's connection is gone (the loss policy applies)."""
-        if not self.detached.is_set():
-            await self.robot._detach("master", self.master_id, lost=True, reason=reason)
-
-
-_DETACHED_LINK = CommandResult.refused(
-    ErrorCode.NOT_OWNER, "This connection no longer holds the robot (it was detached)."
-)
-
-
-class SlaveLink:
-    """A slave's handle on the robot: take targets and notices, report states and faults."""
-
-    def __init__(self, robot: Robot, slave_id: str) -> None:
-        self.robot = robot
-        self.slave_id = slave_id
-        self.mailbox: LatestMailbox[SlaveTarget, SlaveNotice] = LatestMailbox()
-
-    async def receive(self) -> SlaveTarget | SlaveNotice:
-        """The next notice, or else the newest target. `trio.EndOfChannel` once detached."""
-        return await self.mailbox.get()
-
-    async def messages(self) -> AsyncIterator[SlaveTarget | SlaveNotice]:
-        """Every notice and newest target until the slave is detached.
-
-        A shutdown notice is the last thing yielded: the loop ends after it (or when the robot
-        goes away), so a driver's `async for` needs no exit of its own.
-        """
-        while True:
-            try:
-                message = await self.mailbox.get()
-            except trio.EndOfChannel:
-                return
-            yield message
-            if isinstance(message, SlaveNotice) and message.kind is NoticeKind.SHUTDOWN:
-                return
-
-    async def report_joint_states(self, joints: Mapping[str, float]) -> None:
-        """Real joint values in degrees (protocol names or aliases)."""
-        await self.robot._post(_StatesMsg(self.slave_id, dict(joints)))
-
-    async def report_fault(
-        self, code: str, message: str, severity: Severity = Severity.ERROR, joint: str | None = None
-    ) -> None:
-        """A fault; at or above the robot's e-stop severity it e-stops the robot."""
-        await self.robot._post(_FaultMsg(self.slave_id, code, message, severity, joint))
-
-    def alive(self) -> None:
-        """Heartbeat: the peer is still there."""
-        self.robot._alive(self.slave_id)
-
-    async def connection_lost(self, reason: str) -> None:
-        """The hardware behind this slave is gone, but the driver stays and keeps trying.
-
-        The loss policy applies as for a lost slave; the slave stays attached and shows as
-        disconnected until `connection_restored`.
-        """
-        await self.robot._post(_LinkMsg(self.slave_id, False, reason))
-
-    async def connection_restored(self, reason: str = "reconnected") -> None:
-        """The hardware answers again (nothing moves until a new target arrives)."""
-        await self.robot._post(_LinkMsg(self.slave_id, True, reason))
-
-    async def detach(self, reason: str = "slave left") -> None:
-        """Leave the robot."""
-        await self.robot._detach("slave", self.slave_id, lost=False, reason=reason)
-
-    async def lost(self, reason: str = "connection lost") -> None:
-        """Report that this slave is gone (the loss policy applies)."""
-        await self.robot._detach("slave", self.slave_id, lost=True, reason=reason)
 
 
 @dataclass(eq=False)
@@ -331,7 +92,7 @@ class Robot:
         self.name = name
         self.model = model
         self.core = RobotCore(model, trio.current_time(), policy)
-        self._send, self._receive = trio.open_memory_channel[_Msg](inbox_size)
+        self._send, self._receive = trio.open_memory_channel[Msg](inbox_size)
         self._master: _Peer | None = None
         self._slaves: dict[str, _Peer] = {}
         self._observers: set[EventQueue[RobotEvent]] = set()
@@ -350,8 +111,8 @@ class Robot:
 
     async def command(self, command: Command, master_id: str | None = None) -> CommandResult:
         """Send a command (from master `master_id`, or manual control if None)."""
-        reply: _Reply[CommandResult] = _Reply()
-        await self._post(_CommandMsg(master_id, command, reply))
+        reply: Reply[CommandResult] = Reply()
+        await self._post(CommandMsg(master_id, command, reply))
         return await reply.wait()
 
     def command_now(self, command: Command, master_id: str | None = None) -> CommandResult | None:
@@ -364,7 +125,7 @@ class Robot:
         now = self._idle_now()
         if now is None:
             return None
-        result = self._on_command(_CommandMsg(master_id, command, None), now)
+        result = self._on_command(CommandMsg(master_id, command, None), now)
         self._rearm_idle_wait()
         return result
 
@@ -513,9 +274,9 @@ class Robot:
 
     async def shutdown(self, reason: str = "robot deleted") -> None:
         """Stop every driver cleanly and end the actor."""
-        reply: _Reply[None] = _Reply()
+        reply: Reply[None] = Reply()
         try:
-            await self._post(_ShutdownMsg(reason, reply))
+            await self._post(ShutdownMsg(reason, reply))
             await reply.wait()
         except ArenaError:
             return  # already stopped
@@ -545,7 +306,7 @@ class Robot:
     async def _loop(self) -> None:
         while True:
             deadline = self._next_deadline()
-            message: _Msg | None = None
+            message: Msg | None = None
             with trio.move_on_at(deadline) as wait:
                 if not self._receive.statistics().current_buffer_used:
                     self._idle_wait = wait
@@ -557,7 +318,7 @@ class Robot:
             if message is None:
                 self._on_timers(now)
                 continue
-            if isinstance(message, _ShutdownMsg):
+            if isinstance(message, ShutdownMsg):
                 self._on_shutdown(message.reason)
                 if message.reply is not None:
                     message.reply.set(None)
@@ -577,26 +338,26 @@ class Robot:
             peers.append(self._master)
         return peers
 
-    def _dispatch(self, message: _Msg, now: float) -> None:
-        if isinstance(message, _CommandMsg):
+    def _dispatch(self, message: Msg, now: float) -> None:
+        if isinstance(message, CommandMsg):
             self._on_command(message, now)
-        elif isinstance(message, _StatesMsg):
+        elif isinstance(message, StatesMsg):
             self._on_states(message, now)
-        elif isinstance(message, _EventMsg):
+        elif isinstance(message, EventMsg):
             outcome = self._apply(message.event, now, cause=type(message.event).__name__)
             if message.reply is not None:
                 message.reply.set(outcome)
-        elif isinstance(message, _AttachMsg):
+        elif isinstance(message, AttachMsg):
             self._on_attach(message, now)
-        elif isinstance(message, _DetachMsg):
+        elif isinstance(message, DetachMsg):
             self._on_detach(message, now)
-        elif isinstance(message, _FaultMsg):
+        elif isinstance(message, FaultMsg):
             self._on_fault(message, now)
-        elif isinstance(message, _AliveMsg):
+        elif isinstance(message, AliveMsg):
             self._touch(message.peer_id, now)
-        elif isinstance(message, _LinkMsg):
+        elif isinstance(message, LinkMsg):
             self._on_link(message, now)
-        elif isinstance(message, _DriverEndedMsg):
+        elif isinstance(message, DriverEndedMsg):
             self._on_driver_ended(message, now)
 
     # -- handlers -----------------------------------------------------------------------------
@@ -623,9 +384,9 @@ class Robot:
         if now is not None:
             self._touch(peer_id, now)  # only moves a deadline later: no rearm needed
         else:
-            self._post_nowait(_AliveMsg(peer_id), drop_if_full=True)
+            self._post_nowait(AliveMsg(peer_id), drop_if_full=True)
 
-    def _on_command(self, message: _CommandMsg, now: float) -> CommandResult:
+    def _on_command(self, message: CommandMsg, now: float) -> CommandResult:
         if message.source is not None:
             self._touch(message.source, now)
         result, step = self.core.command(message.source, message.command, now)
@@ -645,7 +406,7 @@ class Robot:
             message.reply.set(result)
         return result
 
-    def _on_states(self, message: _StatesMsg, now: float) -> None:
+    def _on_states(self, message: StatesMsg, now: float) -> None:
         peer = self._slaves.get(message.slave_id)
         if peer is None:
             return
@@ -663,7 +424,7 @@ class Robot:
             JointStatesReceived(self.robot_id, message.slave_id, joints, now, wallclock.time())
         )
 
-    def _on_fault(self, message: _FaultMsg, now: float) -> None:
+    def _on_fault(self, message: FaultMsg, now: float) -> None:
         peer = self._slaves.get(message.peer_id)
         if peer is None:
             return
@@ -688,7 +449,7 @@ class Robot:
             cause=message.code,
         )
 
-    def _on_link(self, message: _LinkMsg, now: float) -> None:
+    def _on_link(self, message: LinkMsg, now: float) -> None:
         peer = self._slaves.get(message.slave_id)
         if peer is None or peer.connected == message.connected:
             return
@@ -718,7 +479,7 @@ class Robot:
             peer.last_error = f"{ErrorCode.SLAVE_LOST}: {message.reason}"
             self._apply(safety.SlaveLost(peer.peer_id, message.reason), now, cause=message.reason)
 
-    def _on_attach(self, message: _AttachMsg, now: float) -> None:
+    def _on_attach(self, message: AttachMsg, now: float) -> None:
         peer_id = message.peer_id or f"{message.role}-{next(self._ids)}"
         link: MasterLink | SlaveLink
         if message.role == "master":
@@ -783,7 +544,7 @@ class Robot:
         )
         message.reply.set(link)
 
-    def _on_detach(self, message: _DetachMsg, now: float) -> None:
+    def _on_detach(self, message: DetachMsg, now: float) -> None:
         if message.role == "master":
             peer = self._master
             if peer is None or (message.peer_id is not None and peer.peer_id != message.peer_id):
@@ -817,7 +578,7 @@ class Robot:
         if message.reply is not None:
             message.reply.set(None)
 
-    def _on_driver_ended(self, message: _DriverEndedMsg, now: float) -> None:
+    def _on_driver_ended(self, message: DriverEndedMsg, now: float) -> None:
         peer = message.peer
         if peer is not self._master and self._slaves.get(peer.peer_id) is not peer:
             return  # already detached by the robot
@@ -1047,7 +808,7 @@ class Robot:
         if not peer.scope.cancel_called:
             # Through `_post`, like every message: a `command_now` must not overtake it.
             with contextlib.suppress(ArenaError):  # the robot has stopped
-                await self._post(_DriverEndedMsg(peer, error))
+                await self._post(DriverEndedMsg(peer, error))
 
     async def _attach(
         self,
@@ -1059,9 +820,9 @@ class Robot:
         takeover: bool,
         heartbeat_timeout: float | None,
     ) -> Any:
-        reply: _Reply[Any] = _Reply()
+        reply: Reply[Any] = Reply()
         await self._post(
-            _AttachMsg(role, peer_id, kind, driver, autonomous, takeover, heartbeat_timeout, reply)
+            AttachMsg(role, peer_id, kind, driver, autonomous, takeover, heartbeat_timeout, reply)
         )
         try:
             return await reply.wait()
@@ -1083,20 +844,20 @@ class Robot:
     async def _detach(
         self, role: str, peer_id: str | None, *, lost: bool, reason: str, hold: bool = True
     ) -> None:
-        reply: _Reply[None] = _Reply()
+        reply: Reply[None] = Reply()
         try:
-            await self._post(_DetachMsg(role, peer_id, lost, reason, reply, hold))
+            await self._post(DetachMsg(role, peer_id, lost, reason, reply, hold))
             await reply.wait()
         except ArenaError as exc:
             if exc.code is not ErrorCode.ROBOT_STOPPED:
                 raise  # else the robot is gone, and the peer with it
 
     async def _event(self, event: safety.Event) -> safety.Outcome:
-        reply: _Reply[safety.Outcome] = _Reply()
-        await self._post(_EventMsg(event, reply))
+        reply: Reply[safety.Outcome] = Reply()
+        await self._post(EventMsg(event, reply))
         return await reply.wait()
 
-    async def _post(self, message: _Msg) -> None:
+    async def _post(self, message: Msg) -> None:
         self._idle_wait = None  # the actor has work: nothing may overtake this message
         try:
             await self._send.send(message)
@@ -1105,7 +866,7 @@ class Robot:
                 ErrorCode.ROBOT_STOPPED, f"Robot {self.robot_id!r} has stopped."
             ) from None
 
-    def _post_nowait(self, message: _Msg, drop_if_full: bool = False) -> None:
+    def _post_nowait(self, message: Msg, drop_if_full: bool = False) -> None:
         self._idle_wait = None
         try:
             self._send.send_nowait(message)

@@ -14,7 +14,6 @@ from quart import Response, redirect, request
 from werkzeug.exceptions import HTTPException
 
 import arena
-from arena.drivers.factory import make_master, make_slave
 from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import demo_sequences, get_sequence
 from arena.protocol.errors import ArenaError, ErrorCode
@@ -29,6 +28,7 @@ from arena.server.base import ArenaApp, Hardware, error_response, read_body
 from arena.server.calibration_api import blueprint as calibration_blueprint
 from arena.server.config import ServerConfig
 from arena.server.dashboard import blueprint as dashboard_blueprint
+from arena.server.drivers import make_master, make_slave
 from arena.server.groups_api import blueprint as groups_blueprint
 from arena.server.metrics import Metrics
 from arena.server.origin import SAFE_METHODS, OriginPolicy, is_json

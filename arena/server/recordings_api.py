@@ -16,6 +16,7 @@ from arena.recording.analysis import joint_series, summarize, thin
 from arena.recording.mcap_file import SUFFIX, read_recording
 from arena.recording.recorder import check_name, existing_recording
 from arena.server.base import ArenaApp, read_body
+from arena.server.drivers import make_master
 
 blueprint = Blueprint("recordings", __name__)
 T = TypeVar("T")
@@ -147,8 +148,6 @@ async def download_recording(name: str) -> Any:
 @blueprint.post("/api/robots/<robot_id>/replay")
 async def replay(robot_id: str) -> tuple[dict[str, Any], int]:
     """Replay a recording's commands onto `robot_id` as its master."""
-    from arena.drivers.factory import make_master
-
     app = _app()
     robot = app.manager.get(robot_id)
     body: ReplayBody = await read_body(ReplayBody)

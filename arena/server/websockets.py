@@ -25,7 +25,7 @@ import trio
 from arena.drivers.sequence_master import SequenceMaster
 from arena.protocol import messages as wire
 from arena.protocol.errors import ArenaError, ErrorCode
-from arena.robot.actor import MasterLink, Robot, SlaveLink
+from arena.robot.actor import Robot
 from arena.robot.events import (
     JointStatesReceived,
     MasterNotice,
@@ -36,6 +36,7 @@ from arena.robot.events import (
     StateChanged,
     TargetsSent,
 )
+from arena.robot.links import MasterLink, SlaveLink
 from arena.robot.mailbox import EventQueue
 from arena.robot.manager import estop_together
 from arena.server import convert

@@ -1,4 +1,5 @@
-"""JSON Schemas of every wire message, written to specs/schemas/ (a test keeps them in sync)."""
+"""JSON Schemas of every wire message and recorded record, written to specs/schemas/ (a test
+keeps them in sync). It sits above `protocol` and `recording`, whose types it describes."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import msgspec
 
 from arena.protocol import messages as wire
 from arena.protocol import rest
+from arena.recording.records import RECORD_TYPES
 
 #: File name (without .json) -> the type it describes.
 SCHEMA_TYPES: dict[str, Any] = {
@@ -35,9 +37,6 @@ SCHEMA_TYPES: dict[str, Any] = {
 
 
 def _recording_types() -> dict[str, Any]:
-    # Imported here: the recording package builds on the protocol, not the other way round.
-    from arena.recording.records import RECORD_TYPES
-
     return {
         f"record-{kind.replace('_', '-')}": kind_type for kind, kind_type in RECORD_TYPES.items()
     }

@@ -1,4 +1,5 @@
-"""Drivers from their wire configs: `{"type": "mock-slave", ...}` -> a driver object."""
+"""Drivers from their wire configs: `{"type": "mock-slave", ...}` -> a driver object. It lives in
+the server because it composes every driver package with the recordings (replay)."""
 
 from __future__ import annotations
 
@@ -19,7 +20,10 @@ from arena.protocol.rest import (
     UsbSlaveBody,
     WebSocketSlaveBody,
 )
-from arena.robot.actor import MasterDriver, SlaveDriver
+from arena.recording.mcap_file import read_recording
+from arena.recording.recorder import existing_recording
+from arena.recording.replay import ReplayMaster, pick_robot, recorded_commands
+from arena.robot.links import MasterDriver, SlaveDriver
 from arena.robot.model import RobotModel
 
 
@@ -82,10 +86,6 @@ def make_master(
         name = body.calibration or f"{robot_id}-leader"
         return UsbMaster(body, model, _calibration_file(calibration_dir, name, robot_id))
     if isinstance(body, ReplayMasterBody):
-        from arena.recording.mcap_file import read_recording
-        from arena.recording.recorder import existing_recording
-        from arena.recording.replay import ReplayMaster, pick_robot, recorded_commands
-
         if recordings is None:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "This server keeps no recordings.")
         recording = read_recording(existing_recording(recordings, body.recording))

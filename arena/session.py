@@ -3,7 +3,8 @@
 `behaviour(recording, robot_id)` reduces a recording to what a robot decided: the accepted
 commands and the targets it sent, with times relative to the first input. `replay_and_compare`
 re-drives a recorded session into a fresh robot (with a mock slave) and returns both
-behaviours; under `trio.testing.MockClock` they match message for message.
+behaviours; under `trio.testing.MockClock` they match message for message. It sits above
+`recording` and `drivers`, using both.
 """
 
 from __future__ import annotations

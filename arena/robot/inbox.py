@@ -1,0 +1,137 @@
+"""What arrives on a robot actor's inbox: one message type per kind of request, and the
+reply a caller waits on. Only the actor and the links make them."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Generic, TypeVar
+
+import trio
+
+from arena.protocol.errors import Severity
+from arena.robot import safety
+from arena.robot.motion import Command, CommandResult
+
+if TYPE_CHECKING:
+    from arena.robot.actor import _Peer
+    from arena.robot.links import MasterDriver, SlaveDriver
+
+R = TypeVar("R")
+
+
+class Reply(Generic[R]):
+    """A one-shot answer from the actor to a waiting caller."""
+
+    __slots__ = ("_done", "_error", "_value")
+
+    def __init__(self) -> None:
+        self._done = trio.Event()
+        self._value: R | None = None
+        self._error: BaseException | None = None
+
+    def set(self, value: R) -> None:
+        self._value = value
+        self._done.set()
+
+    def fail(self, error: BaseException) -> None:
+        self._error = error
+        self._done.set()
+
+    async def wait(self) -> R:
+        await self._done.wait()
+        if self._error is not None:
+            raise self._error
+        return self._value  # type: ignore[return-value]
+
+
+@dataclass(slots=True)
+class CommandMsg:
+    source: str | None
+    command: Command
+    reply: Reply[CommandResult] | None
+
+
+@dataclass(slots=True)
+class EventMsg:
+    event: safety.Event
+    reply: Reply[safety.Outcome] | None
+
+
+@dataclass(slots=True)
+class AttachMsg:
+    role: str
+    peer_id: str | None
+    kind: str
+    driver: MasterDriver | SlaveDriver | None
+    autonomous: bool
+    takeover: bool
+    heartbeat_timeout: float | None
+    reply: Reply[Any]
+
+
+@dataclass(slots=True)
+class DetachMsg:
+    role: str
+    peer_id: str | None
+    lost: bool
+    reason: str
+    reply: Reply[None] | None
+    hold: bool = True
+
+
+@dataclass(slots=True)
+class StatesMsg:
+    slave_id: str
+    joints: Mapping[str, float]
+
+
+@dataclass(slots=True)
+class FaultMsg:
+    peer_id: str
+    code: str
+    message: str
+    severity: Severity
+    joint: str | None
+
+
+@dataclass(slots=True)
+class AliveMsg:
+    peer_id: str
+
+
+@dataclass(slots=True)
+class LinkMsg:
+    slave_id: str
+    connected: bool
+    reason: str
+
+
+@dataclass(slots=True)
+class DriverEndedMsg:
+    peer: _Peer
+    error: BaseException | None
+
+
+@dataclass(slots=True)
+class ShutdownMsg:
+    reason: str
+    reply: Reply[None] | None
+
+
+Msg = (
+    CommandMsg
+    | EventMsg
+    | AttachMsg
+    | DetachMsg
+    | StatesMsg
+    | FaultMsg
+    | AliveMsg
+    | LinkMsg
+    | DriverEndedMsg
+    | ShutdownMsg
+)
+
+
+# ---------------------------------------------------------------------------------------------
+# Links: what a driver (or a network edge) holds to talk to the robot

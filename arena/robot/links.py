@@ -1,0 +1,162 @@
+"""How drivers and connections meet a robot: the driver protocols, and the links a master or
+a slave holds (commands in, notices out; targets out, joint states and faults in)."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator, Mapping
+from typing import TYPE_CHECKING, Protocol
+
+import trio
+
+from arena.protocol.errors import ErrorCode, Severity
+from arena.robot.events import (
+    MasterNotice,
+    NoticeKind,
+    SlaveNotice,
+    SlaveTarget,
+)
+from arena.robot.inbox import (
+    FaultMsg,
+    LinkMsg,
+    StatesMsg,
+)
+from arena.robot.mailbox import EventQueue, LatestMailbox
+from arena.robot.motion import Command, CommandResult
+
+if TYPE_CHECKING:
+    from arena.robot.actor import Robot
+
+
+class MasterDriver(Protocol):
+    """A command source run by the robot (a sequence player, a replay, a remote link)."""
+
+    kind: str
+    autonomous: bool  # plays a program: ends for good on e-stop
+    takes_over: bool  # attaching displaces the current master
+
+    async def run(self, link: MasterLink) -> None:
+        """Issue commands through `link` until done; returning detaches the master."""
+
+
+class SlaveDriver(Protocol):
+    """An executor run by the robot (a simulated arm, a servo bus, a remote robot)."""
+
+    kind: str
+
+    async def run(self, link: SlaveLink) -> None:
+        """Take targets and notices from `link`, report joint states back."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Inbox messages
+
+
+class MasterLink:
+    """A master's handle on the robot: send commands, read notices, leave.
+
+    The robot knows its master by id, and a later connection may take over under the same
+    id: once detached, a link speaks for no one (its commands are refused, its heartbeats and
+    its leaving change nothing).
+    """
+
+    def __init__(self, robot: Robot, master_id: str) -> None:
+        self.robot = robot
+        self.master_id = master_id
+        self.notices: EventQueue[MasterNotice] = EventQueue(256)
+        self.detached = trio.Event()
+
+    async def command(self, command: Command) -> CommandResult:
+        """Send a command as this master and wait for the answer."""
+        if self.detached.is_set():
+            return DETACHED_LINK
+        return await self.robot.command(command, master_id=self.master_id)
+
+    def command_now(self, command: Command) -> CommandResult | None:
+        """The answer at once when the robot is idle (see `Robot.command_now`), else None."""
+        if self.detached.is_set():
+            return DETACHED_LINK
+        return self.robot.command_now(command, master_id=self.master_id)
+
+    def alive(self) -> None:
+        """Heartbeat: the peer is still there."""
+        if not self.detached.is_set():
+            self.robot._alive(self.master_id)
+
+    async def detach(self, reason: str = "master left", *, finish_motion: bool = False) -> None:
+        """Give up ownership; motion in progress stops, unless `finish_motion`."""
+        if not self.detached.is_set():
+            await self.robot._detach(
+                "master", self.master_id, lost=False, reason=reason, hold=not finish_motion
+            )
+
+    async def lost(self, reason: str = "connection lost") -> None:
+        """Report that this master's connection is gone (the loss policy applies)."""
+        if not self.detached.is_set():
+            await self.robot._detach("master", self.master_id, lost=True, reason=reason)
+
+
+DETACHED_LINK = CommandResult.refused(
+    ErrorCode.NOT_OWNER, "This connection no longer holds the robot (it was detached)."
+)
+
+
+class SlaveLink:
+    """A slave's handle on the robot: take targets and notices, report states and faults."""
+
+    def __init__(self, robot: Robot, slave_id: str) -> None:
+        self.robot = robot
+        self.slave_id = slave_id
+        self.mailbox: LatestMailbox[SlaveTarget, SlaveNotice] = LatestMailbox()
+
+    async def receive(self) -> SlaveTarget | SlaveNotice:
+        """The next notice, or else the newest target. `trio.EndOfChannel` once detached."""
+        return await self.mailbox.get()
+
+    async def messages(self) -> AsyncIterator[SlaveTarget | SlaveNotice]:
+        """Every notice and newest target until the slave is detached.
+
+        A shutdown notice is the last thing yielded: the loop ends after it (or when the robot
+        goes away), so a driver's `async for` needs no exit of its own.
+        """
+        while True:
+            try:
+                message = await self.mailbox.get()
+            except trio.EndOfChannel:
+                return
+            yield message
+            if isinstance(message, SlaveNotice) and message.kind is NoticeKind.SHUTDOWN:
+                return
+
+    async def report_joint_states(self, joints: Mapping[str, float]) -> None:
+        """Real joint values in degrees (protocol names or aliases)."""
+        await self.robot._post(StatesMsg(self.slave_id, dict(joints)))
+
+    async def report_fault(
+        self, code: str, message: str, severity: Severity = Severity.ERROR, joint: str | None = None
+    ) -> None:
+        """A fault; at or above the robot's e-stop severity it e-stops the robot."""
+        await self.robot._post(FaultMsg(self.slave_id, code, message, severity, joint))
+
+    def alive(self) -> None:
+        """Heartbeat: the peer is still there."""
+        self.robot._alive(self.slave_id)
+
+    async def connection_lost(self, reason: str) -> None:
+        """The hardware behind this slave is gone, but the driver stays and keeps trying.
+
+        The loss policy applies as for a lost slave; the slave stays attached and shows as
+        disconnected until `connection_restored`.
+        """
+        await self.robot._post(LinkMsg(self.slave_id, False, reason))
+
+    async def connection_restored(self, reason: str = "reconnected") -> None:
+        """The hardware answers again (nothing moves until a new target arrives)."""
+        await self.robot._post(LinkMsg(self.slave_id, True, reason))
+
+    async def detach(self, reason: str = "slave left") -> None:
+        """Leave the robot."""
+        await self.robot._detach("slave", self.slave_id, lost=False, reason=reason)
+
+    async def lost(self, reason: str = "connection lost") -> None:
+        """Report that this slave is gone (the loss policy applies)."""
+        await self.robot._detach("slave", self.slave_id, lost=True, reason=reason)
