@@ -42,9 +42,10 @@ def usb_slave(
 
 
 async def eventually(
-    check: Callable[[], bool], timeout: float = 5.0, what: str = "condition"
+    check: Callable[[], bool], timeout: float = 30.0, what: str = "condition"
 ) -> None:
-    """Wait (real time) until `check()` holds; fail the test after `timeout` seconds."""
+    """Wait (real time) until `check()` holds; fail the test after `timeout` seconds (a
+    deadline only a broken feature reaches, never a slow machine)."""
     with trio.move_on_after(timeout):
         while not check():
             await trio.sleep(0.01)

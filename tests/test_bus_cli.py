@@ -5,16 +5,18 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-import time
+import threading
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
 from arena.feetech import registers as reg
+from arena.feetech import terminal
 from arena.feetech.calibration import Calibration
 from arena.feetech.sim_pty import PtySimBus
-from arena.feetech.terminal import calibrate_interactively
+from arena.feetech.terminal import calibrate_interactively, read_positions
 from tests.hardware import open_test_bus, running_sim
 
 JOINTS = {"Rotation": 1, "Pitch": 2, "Elbow": 3, "Wrist_Pitch": 4, "Wrist_Roll": 5, "Jaw": 6}
@@ -25,11 +27,26 @@ def sim(tmp_path: Path) -> Iterator[PtySimBus]:
     yield from running_sim(tmp_path)
 
 
-def test_calibrate_interactively(sim: PtySimBus, tmp_path: Path) -> None:
+def test_calibrate_interactively(
+    sim: PtySimBus, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     with sim.paused() as bus:
         bus.servo(1).poke(reg.TORQUE_ENABLE, 1)
     prompts: list[str] = []
     said: list[str] = []
+    # The range watcher's reads, counted: each pose of the sweep is held until the watcher
+    # has read the bus twice since (however slow the machine), never for a fixed time.
+    reads = threading.Condition()
+    count = [0]
+
+    def counted_read(*args: Any) -> Any:
+        positions = read_positions(*args)
+        with reads:
+            count[0] += 1
+            reads.notify_all()
+        return positions
+
+    monkeypatch.setattr(terminal, "read_positions", counted_read)
 
     def ask(prompt: str) -> str:
         prompts.append(prompt)
@@ -41,7 +58,9 @@ def test_calibrate_interactively(sim: PtySimBus, tmp_path: Path) -> None:
             for delta in (-500, 0, 700, 0):
                 with sim.paused() as bus:
                     bus.servo(3).move_by_hand(1600 + delta)
-                time.sleep(0.15)
+                with reads:
+                    seen = count[0]
+                    assert reads.wait_for(lambda seen=seen: count[0] >= seen + 2, timeout=30)
         return ""
 
     bus = open_test_bus(str(sim.link))

@@ -13,7 +13,8 @@ import re
 import signal
 import sys
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
+from functools import partial
 from pathlib import Path
 from typing import IO, Any
 
@@ -513,8 +514,13 @@ async def test_records_reach_the_disk_within_a_flush_interval_when_the_robot_goe
     tmp_path: Path,
 ) -> None:
     # Real time: the batches cross a thread and a process. Batches between flushes stay in
-    # the open chunk; the next flush writes them even if nothing else happens.
+    # the open chunk; the next flush writes them even if nothing else happens. What is on disk
+    # is checked right after each hand-over returns (in the recorder's thread), and the
+    # recorder's own clock says when each flush was decided: nothing depends on how fast the
+    # test itself runs.
     recorder = Recorder(tmp_path, flush_interval=0.5, batch_interval=0.05)
+    handed: list[tuple[float, bool, int]] = []  # (trio time, flush, commands on disk after)
+    write_events = recorder.writer.write_events
 
     def commands_on_disk() -> int:
         files = list(tmp_path.glob("*.mcap"))
@@ -523,24 +529,48 @@ async def test_records_reach_the_disk_within_a_flush_interval_when_the_robot_goe
         except (IndexError, ArenaError):  # no file yet, or not even its magic on disk
             return 0
 
+    def watched(slices: list[bytes], *, flush: bool = True, at: float = 0.0) -> None:
+        write_events(slices, flush=flush)
+        handed.append((at, flush, commands_on_disk()))
+
+    async def write(batch: Any, flush: bool = True) -> None:
+        original = recorder.writer.write_events
+        recorder.writer.write_events = partial(watched, at=trio.current_time())  # type: ignore[method-assign]
+        try:
+            await real_write(batch, flush)
+        finally:
+            recorder.writer.write_events = original  # type: ignore[method-assign]
+
+    real_write = recorder._write
+    recorder._write = write  # type: ignore[method-assign]
+
+    async def until(condition: Callable[[], bool]) -> None:
+        with trio.fail_after(30):
+            while not condition():
+                await trio.sleep(0.01)
+
     async with trio.open_nursery() as nursery:
         await nursery.start(recorder.run)
         async with open_manager() as manager:
             manager.on_create.append(recorder.follow)
             robot = await manager.create_robot("so-arm100", robot_id="quiet")
             await robot.command(Command.of({"Rotation": 0.01}))
-            with trio.fail_after(5):
-                while commands_on_disk() < 1:  # in the first batch, which is flushed
-                    await trio.sleep(0.01)
-            flushed_at = trio.current_time()
+            await until(lambda: any(on_disk == 1 for _, _, on_disk in handed))
+            first = len(handed)
             await robot.command(Command.of({"Rotation": 0.02}))
-            await trio.sleep(0.2)  # handed to the writer in a batch, not yet flushed
-            assert commands_on_disk() == 1
-            with trio.fail_after(5):
-                while commands_on_disk() < 2:
-                    await trio.sleep(0.01)
-            assert trio.current_time() - flushed_at >= 0.5 - 0.06
+            await until(lambda: any(on_disk == 2 for _, _, on_disk in handed))
         nursery.cancel_scope.cancel()
+    # The batch holding the first command was flushed at once (the first flush is due).
+    flushed_first = next(i for i, (_, _, on_disk) in enumerate(handed) if on_disk == 1)
+    assert handed[flushed_first][1]
+    # The second command went out in a batch that was not flushed, and stayed in the open
+    # chunk until the next flush, a flush interval after the one before.
+    after = handed[first:]
+    done = next(i for i, (_, _, on_disk) in enumerate(after) if on_disk == 2)
+    assert all(not flush and on_disk == 1 for _, flush, on_disk in after[:done])
+    assert after[done][1]
+    flushes = [at for at, flush, _ in handed if flush]
+    assert after[done][0] - flushes[flushes.index(after[done][0]) - 1] >= 0.5 - 1e-9
 
 
 def test_the_chunked_writer_makes_files_mcaps_own_readers_read_whole(tmp_path: Path) -> None:

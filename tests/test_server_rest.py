@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import logging
 import re
+import shutil
 from collections.abc import Awaitable, Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
 import trio
 
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.robot.model import BUILTIN_TYPES_DIR, TYPES_PATH_ENV
 from arena.server.config import ServerConfig, load_config
 from tests.conftest import RunningServer
 
@@ -140,16 +143,29 @@ async def test_slaves_and_masters_over_rest(server: RunningServer) -> None:
         assert detached.json() == {"detached": master.json()["id"]}
 
 
-async def test_manual_control_is_rate_limited(server: RunningServer) -> None:
+async def test_manual_control_is_rate_limited(
+    start_server: StartServer, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # A robot type allowing one command and then one a thousand seconds: however slow the
+    # machine, the second request comes too soon (the limiter's timing is tested on MockClock).
+    folder = tmp_path / "types" / "so-arm100-slow"
+    shutil.copytree(BUILTIN_TYPES_DIR / "so-arm100", folder)
+    config = folder / "robot.toml"
+    text = re.sub(r"command_rate = [\d.]+", "command_rate = 0.001", config.read_text())
+    config.write_text(re.sub(r"command_burst = \d+", "command_burst = 1", text))
+    monkeypatch.setenv(TYPES_PATH_ENV, str(folder.parent))
+    server = await start_server()
     async with server.client() as http:
+        created = await http.post("/api/robots", json={"robot_type": "so-arm100-slow", "id": "s"})
+        assert created.status_code == 201, created.text
         codes = []
-        for i in range(30):
+        for i in range(3):
             response = await http.put(
-                "/api/robots/demo-arm/joints",
-                json={"joints": [{"name": "Rotation", "value": i * 0.01}]},
+                "/api/robots/s/joints", json={"joints": [{"name": "Rotation", "value": i}]}
             )
             codes.append(response.status_code)
-        assert 429 in codes and codes[0] == 200
+        assert codes == [200, 429, 429]
+        assert response.json()["error"]["code"] == "RATE_LIMITED"
 
 
 BAD_REQUESTS: list[tuple[str, str, Any, int, str]] = [
@@ -381,8 +397,12 @@ async def test_recordings_over_rest(server: RunningServer) -> None:
         await http.put(
             "/api/robots/demo-arm/joints", json={"joints": [{"name": "Rotation", "value": 20}]}
         )
-        await trio.sleep(0.5)
-        listing = (await http.get("/api/recordings")).json()
+        with trio.fail_after(30):  # the recorder's next batch opens the file
+            while True:
+                listing = (await http.get("/api/recordings")).json()
+                if any(r["active"] for r in listing["recordings"]):
+                    break
+                await trio.sleep(0.02)
         assert listing["recorder"]["active"] is True
         (current,) = [r for r in listing["recordings"] if r["active"]]
         name = current["name"]
@@ -398,8 +418,16 @@ async def test_recordings_over_rest(server: RunningServer) -> None:
         await http.put(
             "/api/robots/demo-arm/joints", json={"joints": [{"name": "Rotation", "value": 0}]}
         )
-        await trio.sleep(0.5)
-        names = [r["name"] for r in (await http.get("/api/recordings")).json()["recordings"]]
+        with trio.fail_after(30):  # a new file, once the next batch comes
+            while (
+                len(
+                    names := [
+                        r["name"] for r in (await http.get("/api/recordings")).json()["recordings"]
+                    ]
+                )
+                < 2
+            ):
+                await trio.sleep(0.02)
         assert len(names) == 2
         replay = await http.post(
             "/api/robots/demo-arm/replay", json={"recording": name, "speed": 4}
@@ -426,6 +454,9 @@ async def test_no_record_starts_idle(start_server: StartServer) -> None:
         await http.put(
             "/api/robots/demo-arm/joints", json={"joints": [{"name": "Rotation", "value": 20}]}
         )
-        await trio.sleep(0.3)
+        recorder = server.app.recorder
+        with trio.fail_after(30):  # the recorder has taken (and, paused, dropped) the events
+            while any(len(queue) for queue in recorder._followed):
+                await trio.sleep(0.02)
         listing = (await http.get("/api/recordings")).json()
         assert listing["recorder"]["active"] is False and listing["recordings"] == []

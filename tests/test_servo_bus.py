@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 import scservo_sdk as sdk
@@ -29,6 +30,14 @@ def bus(sim: PtySimBus) -> Iterator[ServoBus]:
     opened.close()
 
 
+def wait_for_bytes(port: Any) -> None:
+    """Until the late reply has arrived in the serial port's input buffer (event, not time)."""
+    deadline = time.monotonic() + 30
+    while not port.in_waiting:
+        assert time.monotonic() < deadline, "the late reply never came"
+        time.sleep(0.005)
+
+
 def test_a_late_reply_is_not_taken_as_the_next_answer(sim: PtySimBus, bus: ServoBus) -> None:
     with sim.paused() as simulated:
         simulated.servo(2).move_by_hand(2148)
@@ -36,7 +45,7 @@ def test_a_late_reply_is_not_taken_as_the_next_answer(sim: PtySimBus, bus: Servo
     with pytest.raises(ArenaError) as missed:
         bus.read(2, reg.PRESENT_POSITION)
     assert missed.value.code is ErrorCode.SERVO_TIMEOUT
-    time.sleep(0.15)  # the late answer (2148) is now waiting in the input buffer
+    wait_for_bytes(bus._port.ser)  # the late answer (2148) is now waiting in the input buffer
     with sim.paused() as simulated:
         simulated.servo(2).faults.late = 0.0
     assert bus.read(2, reg.HOMING_OFFSET) == 0  # not 2148
@@ -53,7 +62,7 @@ def test_the_stock_sdk_port_does_fall_into_that_trap(sim: PtySimBus) -> None:
             simulated.servo(2).faults.late = 0.12
         _, result, _ = handler.read2ByteTxRx(port, 2, reg.PRESENT_POSITION.address)
         assert result == sdk.COMM_RX_TIMEOUT
-        time.sleep(0.15)
+        wait_for_bytes(port.ser)
         with sim.paused() as simulated:
             simulated.servo(2).faults.late = 0.0
         value, result, _ = handler.read2ByteTxRx(port, 2, reg.HOMING_OFFSET.address)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -81,14 +81,19 @@ async def test_estop_freezes_the_arm(manager: RobotManager, sim: PtySimBus, poli
     await robot.command(Command.of({"Rotation": 60.0}, duration=2.0))
     await eventually(lambda: (robot.snapshot().joint("Rotation").real_value or 0) > 10)
     await robot.estop("test")
-    await trio.sleep(0.1)
+
+    torque_now = {1} if policy == "hold" else {0}
+
+    def stopped() -> bool:
+        with sim.paused() as bus:
+            rotation = bus.servo(1)
+            held = abs(rotation.present - rotation.peek(reg.GOAL_POSITION)) <= 2
+        return held and set(servo_torque(sim).values()) == torque_now
+
+    await eventually(stopped, what="goal = present (stopped where it was), torque per policy")
     with sim.paused() as bus:
-        rotation = bus.servo(1)
-        present, goal = rotation.present, rotation.peek(reg.GOAL_POSITION)
-    assert abs(present - goal) <= 2  # goal = present: it stopped where it was
+        goal = bus.servo(1).peek(reg.GOAL_POSITION)
     assert goal < steps(59.0)
-    torque = servo_torque(sim)
-    assert set(torque.values()) == ({1} if policy == "hold" else {0})
     # Targets that still arrive are ignored; a manual command is refused anyway.
     assert not (await robot.command(Command.of({"Rotation": 0.0}))).accepted
     await robot.reset()
@@ -221,10 +226,14 @@ async def test_follows_a_sequence_closely(manager: RobotManager, sim: PtySimBus)
     with robot.subscribe() as events:
         await robot.attach_master(SequenceMaster([sequence]))
         await eventually(lambda: robot.snapshot().owner is None, what="the sequence to end")
-        await trio.sleep(0.3)
-        for event in events.drain():
-            if isinstance(event, JointStatesReceived) and "Elbow" in event.joints:
-                extremes.append(event.joints["Elbow"])
+
+        def at_rest() -> bool:
+            for event in events.drain():
+                if isinstance(event, JointStatesReceived) and "Elbow" in event.joints:
+                    extremes.append(event.joints["Elbow"])
+            return bool(extremes) and abs(extremes[-1]) <= 0.2
+
+        await eventually(at_rest, what="the arm at rest")
     assert min(extremes) == pytest.approx(-20, abs=0.5)
     assert max(extremes) == pytest.approx(15, abs=0.5)
     assert extremes[-1] == pytest.approx(0, abs=0.2)  # and it came to rest where it should
@@ -240,13 +249,31 @@ async def test_late_replies_time_out_and_readings_stay_right(
     with robot.subscribe() as events:
         await robot.attach_slave(usb_slave(sim, MODEL, lost_after=1000))
         await eventually(lambda: all(servo_torque(sim).values()))
+        got: list[object] = []
+
+        def seen(condition: Callable[[list[object]], bool]) -> Callable[[], bool]:
+            def check() -> bool:
+                got.extend(events.drain())
+                return condition(got)
+
+            return check
+
+        def timed_out(events_so_far: list[object]) -> bool:
+            return any(
+                isinstance(e, FaultReported) and e.code == ErrorCode.SERVO_TIMEOUT
+                for e in events_so_far
+            )
+
         with sim.paused() as bus:
             bus.servo(2).faults.late = 0.08  # past the reply timeout: it lands in the next read
-        await trio.sleep(0.5)
+        await eventually(seen(timed_out), what="a timeout")
         with sim.paused() as bus:
             bus.servo(2).faults.late = 0.0
-        await trio.sleep(0.3)
-        got = events.drain()
+        cleared = len(got)
+        await eventually(
+            seen(lambda g: sum(isinstance(e, JointStatesReceived) for e in g[cleared:]) > 10),
+            what="readings after the fault",
+        )
     faults = [e for e in got if isinstance(e, FaultReported)]
     assert any(f.code == ErrorCode.SERVO_TIMEOUT and f.joint == "Pitch" for f in faults)
     expected = {j.name: 100 * j.servo_id * 360 / 4096 for j in MODEL.joints}
