@@ -342,3 +342,25 @@ def test_on_a_phone_the_stop_buttons_stay_in_view(start_live: Any, browser: Brow
         phone.screenshot(path=str(SCREENSHOTS / "phone.png"))
     finally:
         context.close()
+
+
+def test_the_page_says_when_recording_stopped_and_why(
+    start_live: Any, page: Page, tmp_path: Path
+) -> None:
+    folder = tmp_path / "recordings"
+    server = start_live(demo=True, recordings_dir=str(folder))
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    expect(page.locator("#recorder-status")).to_contain_text("Recording")
+    page.click("#record-stop")
+    expect(page.locator("#recorder-status")).to_have_text("Not recording.")
+    # The disk goes bad: the folder becomes a file, and recording is switched on again.
+    shutil.rmtree(folder)
+    folder.write_text("not a folder")
+    page.click("#record-start")
+    with server.http() as http:  # something to record
+        http.put("/api/robots/demo-arm/joints", json={"joints": [{"name": "Rotation", "value": 3}]})
+    status = page.locator("#recorder-status")
+    expect(status).to_contain_text("Recording stopped", timeout=30_000)
+    expect(status).to_have_class(re.compile("failing"))
+    expect(page.locator("#server-status")).to_contain_text("recording FAILING", timeout=30_000)
+    page.screenshot(path=str(SCREENSHOTS / "recording-failing.png"))

@@ -172,6 +172,21 @@ async def test_a_slave_that_stops_reading_slows_no_one(
     # Its connection pushed back long before the master was done: most targets were merged.
     assert len(frames) < sent // 4, len(frames)
     await stalled.aclose()
+    async with server.client() as http:
+        gauges = (await http.get("/metrics")).text
+        (superseded,) = [
+            int(line.split()[1])
+            for line in gauges.splitlines()
+            if line.startswith("arena_targets_superseded_total ")
+        ]
+        # Each slave was offered the same targets, at least as many as the brisk one saw: what
+        # the stalled one did not get was superseded, and counted.
+        assert superseded >= len(brisk_seen) - len(frames) > sent // 2
+        stopped = (await http.post("/api/recordings/current/stop")).json()["stopped"]
+    # Every accepted command is in the recording, superseded targets or not.
+    recording = read_recording(tmp_path / "recordings" / stopped)
+    commands = [m for m in recording.messages if m.topic == "/robots/fast/command"]
+    assert len(commands) == sent
 
 
 async def test_a_slave_that_vanishes_mid_motion_stops_the_robot_safely(

@@ -23,6 +23,8 @@ Scenarios:
               two simulated buses at 1 Mbaud in this process, p50/p99 at 100 and 500 Hz
   usb         the USB slave's control loop on a simulated bus (`arena sim-bus --wire-time`, its
               own process) at 1 Mbaud: the highest cycle rate, and the CPU at 500 Hz
+  flood       one robot's REST e-stop alone and while a viewer floods the server with pings and
+              never reads; the server's memory growth during the flood
   soak        (only when named) the fleet held for 10 minutes: latency and memory of the first
               minute against the last, commands unacknowledged, recording messages dropped
 """
@@ -37,7 +39,7 @@ from pathlib import Path
 from typing import Any
 
 from arena.bench.common import BENCH_TYPE, Server, bench_types, running_server
-from arena.bench.estop import estop
+from arena.bench.estop import estop, flood
 from arena.bench.fleet import FleetRun, drive_fleet, fleet, soak
 from arena.bench.hardware import teleop_latency, usb_control_rate
 from arena.bench.inprocess import core_rate, replay_rate
@@ -54,6 +56,7 @@ SCENARIOS = (
     "throughput",
     "fleet",
     "estop",
+    "flood",
     "recording",
     "replay",
     "core",
@@ -105,6 +108,8 @@ def run_benchmarks(
             )
     if "estop" in chosen:
         results.update(asyncio.run(_with_server(estop)))
+    if "flood" in chosen:
+        results.update(asyncio.run(_with_server(flood)))
     if "fleet" in chosen:
         results.update(asyncio.run(_with_server(lambda server: fleet(server, robots=fleet_robots))))
         # Half the rate as well: where the latency stands before one core is full.
@@ -153,6 +158,7 @@ __all__ = [
     "drive_fleet",
     "estop",
     "fleet",
+    "flood",
     "relay",
     "relay_with_websockets",
     "replay_rate",

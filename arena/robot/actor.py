@@ -106,8 +106,20 @@ class Robot:
         #: Commands answered, by outcome: "accepted" or the refusal code (for metrics).
         self.command_counts: collections.Counter[str] = collections.Counter()
         self.estop_count = 0
+        self._superseded_by_gone = 0  # targets superseded at slaves that have left
 
     # -- public API ---------------------------------------------------------------------------
+
+    @property
+    def targets_superseded(self) -> int:
+        """Targets a newer one replaced before a slave took it (latest wins toward a slave
+        slower than its master); every accepted command is still recorded."""
+        current = sum(
+            peer.link.mailbox.coalesced
+            for peer in self._slaves.values()
+            if isinstance(peer.link, SlaveLink)
+        )
+        return self._superseded_by_gone + current
 
     async def command(self, command: Command, master_id: str | None = None) -> CommandResult:
         """Send a command (from master `master_id`, or manual control if None)."""
@@ -755,6 +767,8 @@ class Robot:
         if self._slaves.get(peer.peer_id) is not peer:
             return
         del self._slaves[peer.peer_id]
+        assert isinstance(peer.link, SlaveLink)
+        self._superseded_by_gone += peer.link.mailbox.coalesced
         assert isinstance(peer.link, SlaveLink)
         peer.link.mailbox.put_notice(SlaveNotice(NoticeKind.SHUTDOWN, reason), clears=True)
         peer.link.mailbox.close()

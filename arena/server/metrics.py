@@ -27,6 +27,7 @@ class Metrics:
         self._latency_sum = 0.0
         self._retired: collections.Counter[str] = collections.Counter()  # deleted robots
         self._retired_estops = 0
+        self._retired_superseded = 0
 
     def observe_latency(self, seconds: float) -> None:
         """Time from a message's arrival to its answer."""
@@ -37,6 +38,7 @@ class Metrics:
         """Keep a deleted robot's counts in the totals."""
         self._retired.update(robot.command_counts)
         self._retired_estops += robot.estop_count
+        self._retired_superseded += robot.targets_superseded
 
     def render(
         self,
@@ -67,6 +69,13 @@ class Metrics:
         ]
         for result, count in sorted(commands.items()):
             lines.append(f'arena_commands_total{{result="{result}"}} {count}')
+        superseded = self._retired_superseded + sum(r.targets_superseded for r in robots)
+        lines += [
+            "# HELP arena_targets_superseded_total Targets replaced by a newer one before a"
+            " slave took it (a slave slower than its master gets the newest only).",
+            "# TYPE arena_targets_superseded_total counter",
+            f"arena_targets_superseded_total {superseded}",
+        ]
         lines += [
             "# HELP arena_estops_total Emergency stops.",
             "# TYPE arena_estops_total counter",

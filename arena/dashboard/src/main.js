@@ -29,7 +29,8 @@ async function refresh() {
     const status = await call("GET", "/");
     $("server-status").textContent =
       `${status.robots} robot${status.robots === 1 ? "" : "s"}, ` +
-      `recording ${status.recording.active ? "on" : "off"}${status.auth ? ", keys on" : ""}`;
+      `recording ${status.recording.error ? "FAILING" : status.recording.active ? "on" : "off"}` +
+      `${status.auth ? ", keys on" : ""}`;
     robots = await call("GET", "/api/robots");
   } catch (error) {
     $("server-status").textContent = `${error.code}: ${error.message}`;

@@ -37,11 +37,19 @@ export class RecordingsPanel {
       return;
     }
     const recorder = listing.recorder;
-    $("recorder-status").textContent = recorder.active
-      ? `Recording to ${recorder.file || "(next message starts a file)"}: ${recorder.messages} messages` +
-        (recorder.dropped ? `, ${recorder.dropped} dropped` : "") +
-        (recorder.error ? ` (${recorder.error})` : "")
-      : "Not recording.";
+    const status = $("recorder-status");
+    status.classList.toggle("failing", Boolean(recorder.active && recorder.error));
+    if (recorder.active && recorder.error) {
+      // The disk refuses: control goes on, but nothing is being recorded. Say so plainly.
+      const retry = recorder.retry_in ? `; retrying in ${Math.ceil(recorder.retry_in)} s` : "";
+      status.textContent =
+        `Recording stopped: ${recorder.error}${retry} (${recorder.dropped} messages lost).`;
+    } else {
+      status.textContent = recorder.active
+        ? `Recording to ${recorder.file || "(next message starts a file)"}: ${recorder.messages} messages` +
+          (recorder.dropped ? `, ${recorder.dropped} dropped` : "")
+        : "Not recording.";
+    }
     $("record-start").disabled = recorder.active;
     $("record-stop").disabled = !recorder.active;
     const list = $("recording-list");
