@@ -132,12 +132,16 @@ def slider(page: Page, joint: str) -> Any:
 
 
 def click_slider_at(page: Page, joint: str, fraction: float) -> float:
-    """Click the slider's track like a hand would; returns the value the slider took."""
+    """Click the slider's track like a hand would; returns the value the click gave it (the
+    one the page commands). Read from the click's own `input` event: once the hand lets go the
+    slider shows the robot's value again, which may still be on its way there."""
     handle = slider(page, joint)
+    handle.evaluate("el => el.addEventListener('input', () => { el.dataset.clicked = el.value; })")
     box = handle.bounding_box()
     assert box is not None
     page.mouse.click(box["x"] + box["width"] * fraction, box["y"] + box["height"] / 2)
-    return float(handle.input_value())
+    expect(handle).to_have_attribute("data-clicked", re.compile(r"."))
+    return float(handle.get_attribute("data-clicked") or "nan")
 
 
 def real_value(server: LiveServer, robot: str, joint: str) -> float:
@@ -168,7 +172,9 @@ def test_create_a_robot_attach_a_mock_slave_and_drive_it_with_a_slider(
     wanted = click_slider_at(page, "Rotation", 0.8)
     assert wanted > 20  # the right part of the track is well away from zero
     # The mock slave's measured value follows the slider, on the page and on the server.
-    expect(page.locator('td[data-virtual="Rotation"]')).to_have_text(f"{wanted:.1f}")
+    expect(page.locator('td[data-virtual="Rotation"]')).to_have_text(
+        f"{wanted:.1f}", timeout=WAIT_MS
+    )
     expect(page.locator('td[data-real="Rotation"]')).to_have_text(f"{wanted:.1f}", timeout=WAIT_MS)
     assert real_value(server, "bench-arm", "Rotation") == pytest.approx(wanted, abs=0.05)
     # The 3D view is drawn (software WebGL) and its ghost (the real pose) caught up too.
