@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import math
 import socket
 import threading
 
@@ -40,6 +41,19 @@ def test_bench_scenarios_run_against_a_real_server() -> None:
         "fleet_p99_us",
     ):
         assert results[key] > 0, key
+
+
+def test_the_flood_scenario_measures_an_estop_while_a_viewer_floods_pings() -> None:
+    async def flooded() -> dict[str, float]:
+        async with bench.running_server(record=False) as server:
+            return await bench.flood(server, trials=5)
+
+    results = asyncio.run(flooded())
+    # Answered at all (a server the flood froze reads infinity), and memory stayed bounded
+    # (the server used to grow by gigabytes within seconds).
+    assert 0 < results["flood_estop_p99_ms"] < math.inf
+    assert 0 < results["flood_estop_quiet_p99_ms"] < math.inf
+    assert results["flood_server_rss_growth_mib"] < 200
 
 
 def test_soak_reports_start_against_end_and_losses() -> None:
