@@ -19,7 +19,9 @@ import trio
 from trio_websocket import WebSocketConnection, open_websocket_url
 
 from arena.bench import BENCH_TYPE, bench_types
+from arena.protocol.errors import ArenaError, ErrorCode
 from arena.robot.model import TYPES_PATH_ENV
+from arena.server.config import ServerConfig
 from tests.conftest import RunningServer
 from tests.raw_websocket import OP_TEXT, RawWebSocket
 from tests.test_faults import targets_in, whole_arm
@@ -229,3 +231,15 @@ async def test_a_websockets_master_with_max_queue_1_that_never_reads(
 
     seen = await trio.to_thread.run_sync(asyncio.run, scenario())
     assert in_order(seen)
+
+
+async def test_the_queue_limit_per_peer_comes_from_the_config(start_server: StartServer) -> None:
+    server = await start_server(demo=True, ws_queue_bytes=4096)
+    async with open_websocket_url(server.ws_url + "/ws/robots/demo-arm/state") as viewer:
+        await viewer.get_message()
+        (connection,) = server.app.connections
+        assert connection.ws.high_water == 4096
+    for bad in (0, 100, 1 << 40):
+        with pytest.raises(ArenaError) as refused:
+            ServerConfig(ws_queue_bytes=bad).check()
+        assert refused.value.code is ErrorCode.INVALID_CONFIG

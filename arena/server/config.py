@@ -36,6 +36,10 @@ class ServerConfig:
     calibration_dir: str = "calibration"  # one calibration file per robot (or per name)
     recording_max_bytes: int = 256 << 20
     recording_max_seconds: float = 3600.0
+    recording_retry_max: float = 30.0  # a failing disk is retried after 1 s, doubling to this
+    #: Bytes queued for one WebSocket peer before states keep only the newest and acks are
+    #: counted as missed (a peer that stopped reading costs at most about this much).
+    ws_queue_bytes: int = 16 * 1024
     #: Web pages (scheme://host:port) besides the server's own that may change anything.
     allowed_origins: tuple[str, ...] = field(default=())
     #: Names besides localhost and loopback addresses that a loopback server answers to.
@@ -58,6 +62,12 @@ class ServerConfig:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "TLS needs both --certfile and --keyfile.")
         if self.heartbeat_interval <= 0 or self.heartbeat_timeout <= 0:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "Heartbeat settings must be positive.")
+        if not 1024 <= self.ws_queue_bytes <= 64 << 20:
+            raise ArenaError(
+                ErrorCode.INVALID_CONFIG, "ws_queue_bytes must be from 1 KiB to 64 MiB."
+            )
+        if self.recording_retry_max < 1.0:
+            raise ArenaError(ErrorCode.INVALID_CONFIG, "recording_retry_max must be 1 s or more.")
 
 
 def _is_loopback(host: str) -> bool:

@@ -110,10 +110,19 @@ def _http_error(status: str, message: str, code: ErrorCode = ErrorCode.INVALID_M
 class ArenaListener:
     """Serves an ASGI app (hypercorn) with Arena's WebSocket routes in front of it."""
 
-    def __init__(self, app: Any, config: HypercornConfig, router: Router, max_message: int) -> None:
+    def __init__(
+        self,
+        app: Any,
+        config: HypercornConfig,
+        router: Router,
+        max_message: int,
+        *,
+        queue_bytes: int = 16 * 1024,
+    ) -> None:
         self.config = config
         self.router = router
         self.max_message = max_message
+        self.queue_bytes = queue_bytes
         self._app = wrap_app(app, config.wsgi_max_body_size, "asgi")
         self._lifespan_state: dict[str, Any] = {}
         self._context = WorkerContext(None)
@@ -234,7 +243,11 @@ class ArenaListener:
                 b"Connection: Upgrade\r\nSec-WebSocket-Accept: " + key.encode("ascii") + b"\r\n\r\n"
             )
             websocket = WebSocket(
-                stream, request, max_message=self.max_message, poller=self._poller
+                stream,
+                request,
+                max_message=self.max_message,
+                high_water=self.queue_bytes,
+                poller=self._poller,
             )
             if rest:
                 websocket.feed(rest)

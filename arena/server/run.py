@@ -67,6 +67,7 @@ async def run_server(
         max_bytes=config.recording_max_bytes,
         max_seconds=config.recording_max_seconds,
         active=config.record,
+        retry_max=config.recording_retry_max,
     )
     async with trio.open_nursery() as recording_nursery:
         await recording_nursery.start(recorder.run)
@@ -89,7 +90,13 @@ async def _serve(
         log.info("shutting down")
         app.shutting_down.set()
 
-    listener = ArenaListener(app, hypercorn_config(config), router(app), MAX_WEBSOCKET_MESSAGE)
+    listener = ArenaListener(
+        app,
+        hypercorn_config(config),
+        router(app),
+        MAX_WEBSOCKET_MESSAGE,
+        queue_bytes=config.ws_queue_bytes,
+    )
     async with trio.open_nursery() as nursery:
         if handle_signals:
             nursery.start_soon(_stop_on_signals, stop)
