@@ -32,6 +32,7 @@ def test_bench_scenarios_run_against_a_real_server() -> None:
     assert results["fleet_commands_unacknowledged"] == 0
     for key in (
         "relay_p50_us",
+        "relay_deaf_p99_us",
         "throughput_accepted_per_s",
         "estop_one_p50_ms",
         "estop_one_answered_p99_ms",

@@ -26,10 +26,14 @@ def masked_frame(text: str) -> bytes:
 class BlockingWebSocket:
     """One connection: `send_raw` frames, `receive` text messages (blocking)."""
 
-    def __init__(self, url: str, timeout: float = 30.0) -> None:
+    def __init__(self, url: str, timeout: float = 30.0, receive_buffer: int | None = None) -> None:
         target = urlsplit(url)
         host, port = target.hostname or "127.0.0.1", target.port or 80
-        self.sock = socket.create_connection((host, port), timeout=timeout)
+        self.sock = socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET)
+        self.sock.settimeout(timeout)
+        if receive_buffer is not None:  # a client that stops reading pushes back sooner
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, receive_buffer)
+        self.sock.connect((host, port))
         self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         path = target.path + (f"?{target.query}" if target.query else "")
         key = base64.b64encode(os.urandom(16)).decode()

@@ -27,12 +27,18 @@ async def relay(server: Server, count: int = 5000) -> dict[str, float]:
     """Master send -> slave receipt of execute_command, one command at a time (lean client)."""
     async with httpx.AsyncClient(base_url=server.url) as http:
         await _robot(http, "relay")
-    return await asyncio.to_thread(_without_client_gc, _lean_relay, server.ws, count)
+        await _robot(http, "relay-deaf")
+    results = await asyncio.to_thread(_without_client_gc, _lean_relay, server.ws, count)
+    # The same with a master that never reads what it is sent (a teleoperation producer
+    # whose library stopped reading): its commands must flow as a reading master's do.
+    results.update(await asyncio.to_thread(_without_client_gc, _lean_relay, server.ws, count, True))
+    return results
 
 
-def _lean_relay(ws: str, count: int) -> dict[str, float]:
-    slave = BlockingWebSocket(ws + "/ws/slave/relay")
-    master = BlockingWebSocket(ws + "/ws/master/relay")
+def _lean_relay(ws: str, count: int, deaf: bool = False) -> dict[str, float]:
+    robot, name = ("relay-deaf", "relay_deaf") if deaf else ("relay", "relay")
+    slave = BlockingWebSocket(ws + f"/ws/slave/{robot}")
+    master = BlockingWebSocket(ws + f"/ws/master/{robot}", receive_buffer=4096 if deaf else None)
     frames = [masked_frame(_command(i + 1)) for i in range(count + 100)]
     latencies = []
     try:
@@ -40,15 +46,15 @@ def _lean_relay(ws: str, count: int) -> dict[str, float]:
             latency = _time_to(_EXECUTE, slave, master, frame)
             if i >= 100:  # warm-up excluded
                 latencies.append(latency)
-            while _ACK not in master.receive():
+            while not deaf and _ACK not in master.receive():
                 pass
     finally:
         master.close()
         slave.close()
     return {
-        "relay_p50_us": _percentile(latencies, 0.5) * 1e6,
-        "relay_p99_us": _percentile(latencies, 0.99) * 1e6,
-        "relay_max_us": max(latencies) * 1e6,
+        f"{name}_p50_us": _percentile(latencies, 0.5) * 1e6,
+        f"{name}_p99_us": _percentile(latencies, 0.99) * 1e6,
+        f"{name}_max_us": max(latencies) * 1e6,
     }
 
 
