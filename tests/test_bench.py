@@ -127,3 +127,19 @@ def test_the_lean_http_client_goes_on_after_the_server_closes_the_connection() -
         http.close()
         server.join(5)
         listener.close()
+
+
+def test_the_ordinary_client_relay_runs_against_any_server_of_the_contract(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # Against Arena itself here (the floor needs packages of its own: `arena bench versus`).
+    async def against_arena() -> dict[str, float]:
+        async with bench.running_server() as server:
+            return await bench.ordinary_relay(server, "ordinary", one_at_a_time=100, burst=3000)
+
+    results = asyncio.run(against_arena())
+    assert results["p50_us"] > 0 and results["throughput_per_s"] > 0
+    assert results["cpu_us_per_command"] > 0  # the server's process tree did the work
+    monkeypatch.delenv("ARENA_FLOOR_PYTHON", raising=False)
+    with pytest.raises(RuntimeError, match="ARENA_FLOOR_PYTHON"):
+        asyncio.run(bench.versus_floor(rounds=1))

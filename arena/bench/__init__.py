@@ -25,6 +25,9 @@ Scenarios:
               own process) at 1 Mbaud: the highest cycle rate, and the CPU at 500 Hz
   flood       one robot's REST e-stop alone and while a viewer floods the server with pings and
               never reads; the server's memory growth during the flood
+  versus      (only when named) Arena against the floor relay with the `websockets` client,
+              alternating rounds: relay p50/p99, burst throughput, server CPU a command, ratios
+              (needs ARENA_FLOOR_PYTHON; see arena/bench/versus.py)
   soak        (only when named) the fleet held for 10 minutes: latency and memory of the first
               minute against the last, commands unacknowledged, recording messages dropped
 """
@@ -44,6 +47,7 @@ from arena.bench.fleet import FleetRun, drive_fleet, fleet, soak
 from arena.bench.hardware import teleop_latency, usb_control_rate
 from arena.bench.inprocess import core_rate, replay_rate
 from arena.bench.relay import relay, relay_with_websockets, throughput
+from arena.bench.versus import ordinary_relay, versus_floor
 
 
 async def _with_server(scenario: Callable[[Server], Any], record: bool = True) -> Any:
@@ -64,7 +68,7 @@ SCENARIOS = (
     "teleop",
 )
 #: Long scenarios, run only when named.
-LONG_SCENARIOS = ("soak",)
+LONG_SCENARIOS = ("soak", "versus")
 
 
 def run_benchmarks(
@@ -132,6 +136,8 @@ def run_benchmarks(
                 )
             )
         )
+    if "versus" in chosen:
+        results.update(asyncio.run(versus_floor(rounds=repeats)))
     if "usb" in chosen:
         results.update(median_of([usb_control_rate() for _ in range(repeats)]))
     if "teleop" in chosen:
@@ -159,6 +165,7 @@ __all__ = [
     "estop",
     "fleet",
     "flood",
+    "ordinary_relay",
     "relay",
     "relay_with_websockets",
     "replay_rate",
@@ -168,4 +175,5 @@ __all__ = [
     "teleop_latency",
     "throughput",
     "usb_control_rate",
+    "versus_floor",
 ]

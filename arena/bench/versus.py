@@ -1,0 +1,148 @@
+"""Arena against another server, as ordinary clients see them: the relay subset of the contract
+(`POST /api/robots`, `/ws/master/{id}`, `/ws/slave/{id}`) driven by Python's `websockets`.
+
+Each round runs 2,000 commands one at a time (master send -> the slave's `execute_command`),
+then 10,000 as fast as the master sends them (until the slave has the last one). When the
+bench started the server itself, its CPU (the whole process tree) over both phases is divided
+by the 12,000 commands. Rounds alternate between the servers; the figures are medians, and the
+ratios to the floor come from one run.
+
+The floor is `shared/bench/floor_relay.py` (aiohttp on uvloop with orjson: parse and forward,
+nothing else), run with a Python that has those packages: `ARENA_FLOOR_PYTHON=PATH` (and
+`ARENA_FLOOR_SCRIPT=PATH` if the script is not at `../shared/bench/floor_relay.py`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import os
+import socket
+import statistics
+import subprocess
+import time
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+import httpx
+
+from arena.bench.common import BENCH_TYPE, Server, _percentile, running_server
+
+FLOOR_PYTHON_ENV = "ARENA_FLOOR_PYTHON"
+FLOOR_SCRIPT_ENV = "ARENA_FLOOR_SCRIPT"
+_DEFAULT_FLOOR = Path(__file__).resolve().parents[3] / "shared" / "bench" / "floor_relay.py"
+
+
+def _command(i: int) -> str:
+    # Never the value before: a command that changes nothing sends the slave no target.
+    joints = [{"name": "Rotation", "value": round((i % 200 + 1) * 0.1, 1)}]
+    return json.dumps({"type": "command", "data": {"joints": joints}})
+
+
+async def ordinary_relay(
+    server: Server, robot_id: str, one_at_a_time: int = 2000, burst: int = 10_000
+) -> dict[str, float]:
+    """Relay latency, burst throughput and (for a server the bench started) CPU a command."""
+    import websockets
+
+    async with httpx.AsyncClient(base_url=server.url) as http:
+        created = await http.post("/api/robots", json={"robot_type": BENCH_TYPE, "id": robot_id})
+        created.raise_for_status()
+    arrived: asyncio.Queue[str] = asyncio.Queue()
+    async with (
+        websockets.connect(compression=None, uri=f"{server.ws}/ws/slave/{robot_id}") as slave,
+        websockets.connect(compression=None, uri=f"{server.ws}/ws/master/{robot_id}") as master,
+    ):
+
+        async def read_slave() -> None:
+            async for raw in slave:
+                text = raw if isinstance(raw, str) else raw.decode()
+                if '"execute_command"' in text:
+                    arrived.put_nowait(text)
+
+        async def drain_master() -> None:  # acks and joint states, read as a client would
+            async for _ in master:
+                pass
+
+        readers = [asyncio.create_task(read_slave()), asyncio.create_task(drain_master())]
+        cpu_before = server.cpu_seconds()
+        latencies = []
+        for i in range(one_at_a_time):
+            sent = time.perf_counter()
+            await master.send(_command(i))
+            await arrived.get()
+            latencies.append(time.perf_counter() - sent)
+        last = json.dumps(
+            {"type": "command", "data": {"joints": [{"name": "Rotation", "value": 33.3}]}}
+        )
+        started = time.perf_counter()
+        for i in range(burst - 1):
+            await master.send(_command(i))
+        await master.send(last)
+        while '"value":33.3' not in (await arrived.get()).replace(" ", ""):
+            pass
+        seconds = time.perf_counter() - started
+        cpu = server.cpu_seconds() - cpu_before
+        for reader in readers:
+            reader.cancel()
+    return {
+        "p50_us": _percentile(latencies, 0.5) * 1e6,
+        "p99_us": _percentile(latencies, 0.99) * 1e6,
+        "throughput_per_s": burst / seconds,
+        "cpu_us_per_command": cpu / (one_at_a_time + burst) * 1e6,
+    }
+
+
+def _free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
+
+
+@asynccontextmanager
+async def running_floor(python: str, script: Path) -> AsyncIterator[Server]:
+    """The floor relay on 127.0.0.1, stopped on exit."""
+    port = _free_port()
+    process = subprocess.Popen([python, str(script), str(port)], stderr=subprocess.DEVNULL)
+    url = f"http://127.0.0.1:{port}"
+    try:
+        async with httpx.AsyncClient(base_url=url) as http:
+            for _ in range(200):
+                with contextlib.suppress(httpx.TransportError):
+                    if (await http.get("/")).status_code == 200:
+                        break
+                await asyncio.sleep(0.05)
+            else:
+                raise RuntimeError("the floor relay did not start")
+        yield Server(process, url)
+    finally:
+        process.terminate()
+        process.wait(timeout=10)
+
+
+async def versus_floor(rounds: int = 3, **sizes: int) -> dict[str, float]:
+    """Arena and the floor in alternating rounds: medians, and Arena's ratios to the floor."""
+    python = os.environ.get(FLOOR_PYTHON_ENV)
+    script = Path(os.environ.get(FLOOR_SCRIPT_ENV, str(_DEFAULT_FLOOR)))
+    if not python or not script.exists():
+        raise RuntimeError(
+            f"versus needs {FLOOR_PYTHON_ENV} (a Python with aiohttp, uvloop and orjson) and the "
+            f"floor script ({FLOOR_SCRIPT_ENV}, default {_DEFAULT_FLOOR})"
+        )
+    runs: dict[str, list[dict[str, float]]] = {"arena": [], "floor": []}
+    for n in range(rounds):
+        async with running_server() as arena:
+            runs["arena"].append(await ordinary_relay(arena, f"versus-{n}", **sizes))
+        async with running_floor(python, script) as floor:
+            runs["floor"].append(await ordinary_relay(floor, f"versus-{n}", **sizes))
+    results: dict[str, float] = {}
+    for name, measured in runs.items():
+        for key in measured[0]:
+            results[f"versus_{name}_{key}"] = statistics.median(m[key] for m in measured)
+    for key in runs["arena"][0]:
+        results[f"versus_ratio_{key}"] = (
+            results[f"versus_arena_{key}"] / results[f"versus_floor_{key}"]
+        )
+    return results
