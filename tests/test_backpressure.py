@@ -92,22 +92,25 @@ def queued_bytes(server: RunningServer) -> int:
 
 
 async def read_until_missed(peer: RawWebSocket) -> tuple[dict[str, Any], list[dict[str, Any]]]:
-    """Read again: the `missed` message and every message after it until the socket is idle."""
-    with trio.fail_after(10):
+    """Read again: the `missed` message, then what follows it up to the newest joint_states
+    (the one whose Rotation is the last command's)."""
+    with trio.fail_after(30):
         while True:
             frame = await peer.receive_frame()
             assert frame is not None
-            message = json.loads(frame.payload)
-            if message["type"] == "missed":
+            missed = json.loads(frame.payload)
+            if missed["type"] == "missed":
                 break
-    after: list[dict[str, Any]] = []
-    while True:
-        with trio.move_on_after(0.2):
+        after: list[dict[str, Any]] = []
+        while not (
+            after
+            and after[-1]["type"] == "joint_states"
+            and rotation(after[-1]) == value(COMMANDS - 1)
+        ):
             frame = await peer.receive_frame()
             assert frame is not None
             after.append(json.loads(frame.payload))
-            continue
-        return message, after
+    return missed, after
 
 
 def rotation(joint_states: dict[str, Any]) -> float:
@@ -221,7 +224,7 @@ async def test_a_websockets_master_with_max_queue_1_that_never_reads(
                             arrived.notify_all()
 
             reader = asyncio.create_task(read_slave())
-            async with asyncio.timeout(30):
+            async with asyncio.timeout(120):  # only a server that stalls reaches it
                 for i in range(COMMANDS):
                     await master.send(whole_arm(value(i)))
                     async with arrived:
