@@ -69,8 +69,7 @@ class McapFileWriter:
         self._channels: dict[str, int] = {}
         self._robots_written: set[str] = set()
         self.messages = 0
-        self._messages_at_open = 0  # `messages` when the current file was opened
-        self._flushed_in_file = 0  # messages of the current file handed to the OS
+        self._flushed = False  # the current file has had a flush (a message is on disk)
 
     def write(self, items: list[Item], *, flush: bool = True) -> None:
         """Append records, opening or rotating files as needed, then (with `flush`) close the
@@ -98,7 +97,7 @@ class McapFileWriter:
         if self._writer is not None:
             self._writer.flush()
             assert self._stream is not None
-            self._flushed_in_file = self.messages - self._messages_at_open
+            self._flushed = True
             if (
                 self._stream.tell() > self.max_bytes
                 or time.monotonic() - self._opened_at > self.max_seconds
@@ -120,7 +119,7 @@ class McapFileWriter:
         if self._stream is not None:
             with contextlib.suppress(OSError):
                 self._stream.close()
-        if self.path is not None and not self._flushed_in_file:
+        if self.path is not None and not self._flushed:
             with contextlib.suppress(OSError):
                 self.path.unlink()
             if self.path in self.files:
@@ -137,8 +136,7 @@ class McapFileWriter:
             self._stream = open(path, "wb")  # noqa: SIM115 - closed in close()
             self.path = path  # before the first write, so that `abandon` can remove it
             self.files.append(path)
-            self._messages_at_open = self.messages
-            self._flushed_in_file = 0
+            self._flushed = False
             writer = ChunkedWriter(self._stream, chunk_size=self.chunk_size)
             writer.start(profile=PROFILE, library="arena")
             writer.add_metadata("arena", self.metadata)

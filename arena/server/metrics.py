@@ -13,6 +13,16 @@ from arena.robot.actor import Robot
 LATENCY_BUCKETS = (0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.1, 1.0)
 
 
+def _family(name: str, kind: str, text: str, samples: float | dict[str, float]) -> list[str]:
+    """One metric family: its HELP and TYPE lines, then one value or a value per label set."""
+    lines = [f"# HELP {name} {text}", f"# TYPE {name} {kind}"]
+    if isinstance(samples, dict):
+        lines += [f"{name}{{{labels}}} {value}" for labels, value in samples.items()]
+    else:
+        lines.append(f"{name} {samples}")
+    return lines
+
+
 class Metrics:
     """Counters the server keeps at its edges; robot counters are read from the actors."""
 
@@ -54,79 +64,91 @@ class Metrics:
         for robot in robots:
             commands.update(robot.command_counts)
             estops += robot.estop_count
-        lines = [
-            "# HELP arena_robots Robots that exist now.",
-            "# TYPE arena_robots gauge",
-            f"arena_robots {len(robots)}",
-            "# HELP arena_connections Open WebSocket connections by role.",
-            "# TYPE arena_connections gauge",
-        ]
-        for role in ("master", "slave", "viewer"):
-            lines.append(f'arena_connections{{role="{role}"}} {self.connections[role]}')
-        lines += [
-            "# HELP arena_commands_total Commands answered, by result (accepted or refusal code).",
-            "# TYPE arena_commands_total counter",
-        ]
-        for result, count in sorted(commands.items()):
-            lines.append(f'arena_commands_total{{result="{result}"}} {count}')
         superseded = self._retired_superseded + sum(r.targets_superseded for r in robots)
-        lines += [
-            "# HELP arena_targets_superseded_total Targets replaced by a newer one before a"
-            " slave took it (a slave slower than its master gets the newest only).",
-            "# TYPE arena_targets_superseded_total counter",
-            f"arena_targets_superseded_total {superseded}",
+        lines = [
+            *_family("arena_robots", "gauge", "Robots that exist now.", len(robots)),
+            *_family(
+                "arena_connections",
+                "gauge",
+                "Open WebSocket connections by role.",
+                {f'role="{r}"': self.connections[r] for r in ("master", "slave", "viewer")},
+            ),
+            *_family(
+                "arena_commands_total",
+                "counter",
+                "Commands answered, by result (accepted or refusal code).",
+                {f'result="{result}"': n for result, n in sorted(commands.items())},
+            ),
+            *_family(
+                "arena_targets_superseded_total",
+                "counter",
+                "Targets replaced by a newer one before a slave took it"
+                " (a slave slower than its master gets the newest only).",
+                superseded,
+            ),
+            *_family("arena_estops_total", "counter", "Emergency stops.", estops),
+            *_family(
+                "arena_messages_total",
+                "counter",
+                "WebSocket messages received, by role.",
+                {f'role="{role}"': n for role, n in sorted(self.messages.items())},
+            ),
+            *_family(
+                "arena_ws_dropped_total",
+                "counter",
+                "Messages not sent to a peer that stopped reading"
+                " (superseded states, dropped acks), by kind.",
+                {f'kind="{kind}"': n for kind, n in sorted(self.dropped.items())},
+            ),
+            *_family(
+                "arena_ws_queued_bytes",
+                "gauge",
+                "Bytes queued for WebSocket peers, over all connections.",
+                queued_bytes,
+            ),
+            *_family(
+                "arena_message_errors_total",
+                "counter",
+                "Messages and requests refused at the edge.",
+                {f'code="{code}"': n for code, n in sorted(self.message_errors.items())},
+            ),
+            *_family(
+                "arena_http_requests_total",
+                "counter",
+                "HTTP requests by status class.",
+                {f'status="{status}"': n for status, n in sorted(self.requests.items())},
+            ),
         ]
-        lines += [
-            "# HELP arena_estops_total Emergency stops.",
-            "# TYPE arena_estops_total counter",
-            f"arena_estops_total {estops}",
-            "# HELP arena_messages_total WebSocket messages received, by role.",
-            "# TYPE arena_messages_total counter",
-        ]
-        for role, count in sorted(self.messages.items()):
-            lines.append(f'arena_messages_total{{role="{role}"}} {count}')
-        lines += [
-            "# HELP arena_ws_dropped_total Messages not sent to a peer that stopped reading"
-            " (superseded states, dropped acks), by kind.",
-            "# TYPE arena_ws_dropped_total counter",
-        ]
-        for kind, count in sorted(self.dropped.items()):
-            lines.append(f'arena_ws_dropped_total{{kind="{kind}"}} {count}')
-        lines += [
-            "# HELP arena_ws_queued_bytes Bytes queued for WebSocket peers, over all connections.",
-            "# TYPE arena_ws_queued_bytes gauge",
-            f"arena_ws_queued_bytes {queued_bytes}",
-        ]
-        lines += [
-            "# HELP arena_message_errors_total Messages and requests refused at the edge.",
-            "# TYPE arena_message_errors_total counter",
-        ]
-        for code, count in sorted(self.message_errors.items()):
-            lines.append(f'arena_message_errors_total{{code="{code}"}} {count}')
-        lines += [
-            "# HELP arena_http_requests_total HTTP requests by status class.",
-            "# TYPE arena_http_requests_total counter",
-        ]
-        for status, count in sorted(self.requests.items()):
-            lines.append(f'arena_http_requests_total{{status="{status}"}} {count}')
         if recording is not None:
-            failing = recording["error"] is not None
+            active = bool(recording["active"])
             lines += [
-                "# HELP arena_recording_active Recording is switched on.",
-                "# TYPE arena_recording_active gauge",
-                f"arena_recording_active {int(bool(recording['active']))}",
-                "# HELP arena_recording_failing Recording is on but the disk refuses it.",
-                "# TYPE arena_recording_failing gauge",
-                f"arena_recording_failing {int(failing)}",
-                "# HELP arena_recording_messages_total Messages written to recordings.",
-                "# TYPE arena_recording_messages_total counter",
-                f"arena_recording_messages_total {recording['messages']}",
-                "# HELP arena_recording_dropped_total Messages lost (full queues, disk errors).",
-                "# TYPE arena_recording_dropped_total counter",
-                f"arena_recording_dropped_total {recording['dropped']}",
-                "# HELP arena_recording_errors_total Failed attempts to write to the disk.",
-                "# TYPE arena_recording_errors_total counter",
-                f"arena_recording_errors_total {recording['errors']}",
+                *_family(
+                    "arena_recording_active", "gauge", "Recording is switched on.", int(active)
+                ),
+                *_family(
+                    "arena_recording_failing",
+                    "gauge",
+                    "Recording is on but the disk refuses it.",
+                    int(active and recording["error"] is not None),
+                ),
+                *_family(
+                    "arena_recording_messages_total",
+                    "counter",
+                    "Messages written to recordings.",
+                    recording["messages"],
+                ),
+                *_family(
+                    "arena_recording_dropped_total",
+                    "counter",
+                    "Messages lost (full queues, disk errors).",
+                    recording["dropped"],
+                ),
+                *_family(
+                    "arena_recording_errors_total",
+                    "counter",
+                    "Failed attempts to write to the disk.",
+                    recording["errors"],
+                ),
             ]
         lines += [
             "# HELP arena_message_latency_seconds From a message's arrival to its answer.",

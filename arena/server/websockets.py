@@ -166,21 +166,21 @@ class Connection:
         base = kind.partition(":")[0] if kind else ""
         if base in _LATEST_KINDS:
             assert kind is not None
-            if self._held.pop(kind, None) is not None:
-                self._missed[base] += 1
-                self.app.metrics.dropped[base] += 1
+            missed = self._held.pop(kind, None) is not None  # superseded by this one
             self._held[kind] = text
         elif base in _DROPPED_KINDS:
-            self._missed[base] += 1
-            self.app.metrics.dropped[base] += 1
+            missed = True
         else:  # rare and small (a detach notice): queued whatever the backlog
             self.ws.send_nowait(text)
             return
+        if missed:
+            self._missed[base] += 1
+            self.app.metrics.dropped[base] += 1
         self._behind.set()
 
     def _catch_up(self) -> None:
         """If the peer has room again: the `missed` counts, then the newest states."""
-        if self.ws.backlogged:
+        if self.ws.backlogged or not (self._held or self._missed):
             return
         texts = []
         if self._missed:

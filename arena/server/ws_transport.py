@@ -196,7 +196,7 @@ class WebSocket:
     def _pong(self, payload: bytes) -> None:
         """Answer a ping; while the peer is behind, only the newest ping is answered
         (RFC 6455 5.5.3 allows answering just the most recent one)."""
-        if self._outbox_bytes <= self.high_water:
+        if not self.backlogged:
             self._queue(ws_frames.encode_frame(OP_PONG, payload))
             return
         if self._owed_pong is not None:
@@ -253,10 +253,10 @@ class WebSocket:
 
     async def send(self, *texts: str) -> None:
         """Send text messages, first waiting while the peer is backlogged (for writer tasks
-        whose messages must not be dropped, such as a slave's targets)."""
+        whose messages must not be dropped, such as a slave's targets). Unlike most trio
+        calls it yields only when it has to wait."""
         await self.wait_for_room()
         self.offer(*texts)
-        await trio.lowlevel.checkpoint()
 
     async def wait_for_room(self) -> None:
         """Until the peer is no longer backlogged (or the connection is closing)."""

@@ -29,7 +29,7 @@ async function refresh() {
     const status = await call("GET", "/");
     $("server-status").textContent =
       `${status.robots} robot${status.robots === 1 ? "" : "s"}, ` +
-      `recording ${status.recording.error ? "FAILING" : status.recording.active ? "on" : "off"}` +
+      `recording ${status.recording.active ? (status.recording.error ? "FAILING" : "on") : "off"}` +
       `${status.auth ? ", keys on" : ""}`;
     robots = await call("GET", "/api/robots");
   } catch (error) {
