@@ -111,6 +111,20 @@ def main(argv: list[str] | None = None) -> int:
         help="do not record to MCAP (recording can be started over REST)",
     )
     serve.add_argument("--recordings-dir", help="where recordings go (default recordings/)")
+    serve.add_argument(
+        "--no-record-foxglove",
+        action="store_false",
+        dest="record_foxglove",
+        default=None,
+        help="leave Foxglove's view (transforms, 3D model, log) out of recordings",
+    )
+    serve.add_argument(
+        "--foxglove-port",
+        type=int,
+        default=None,
+        metavar="PORT",
+        help="serve every robot live to Foxglove on ws://HOST:PORT (0: any port)",
+    )
     inspect = commands.add_parser("inspect", help="summarize a recording")
     inspect.add_argument("file")
     inspect.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -159,6 +173,19 @@ def main(argv: list[str] | None = None) -> int:
     calibrate.add_argument(
         "--write-homing", action="store_true", help="also store the offsets in the servos"
     )
+    layout = commands.add_parser(
+        "foxglove-layout", help="a Foxglove layout: the 3D twins, a plot per joint, the log"
+    )
+    layout.add_argument("-o", "--output", required=True, help="layout file to write (- : stdout)")
+    layout.add_argument(
+        "--robot",
+        action="append",
+        default=[],
+        dest="robots",
+        help="a robot id to show (repeatable; default: those of --recording, else demo-arm)",
+    )
+    layout.add_argument("--recording", help="show the robots of this recording")
+    layout.add_argument("--robot-type", default=None, help="whose joints to plot (so-arm100)")
     schemas = commands.add_parser("schemas", help="write the JSON Schemas of the wire messages")
     schemas.add_argument("--out", default="specs/schemas", help="folder to write them into")
     bench = commands.add_parser("bench", help="run the benchmarks and print medians")
@@ -198,6 +225,14 @@ def main(argv: list[str] | None = None) -> int:
             except ArenaError as error:
                 print(f"arena {args.command}: {error.message}", file=sys.stderr)
                 return 2
+        if args.command == "foxglove-layout":
+            from arena.protocol.errors import ArenaError
+
+            try:
+                return _foxglove_layout(args)
+            except ArenaError as error:
+                print(f"arena {args.command}: {error.message}", file=sys.stderr)
+                return 2
         if args.command == "schemas":
             from pathlib import Path
 
@@ -221,6 +256,37 @@ def main(argv: list[str] | None = None) -> int:
             )
     except KeyboardInterrupt:
         return 130
+    return 0
+
+
+def _foxglove_layout(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from arena.recording.foxglove import layout
+    from arena.robot.model import load_robot_model
+
+    robots: list[str] = list(args.robots)
+    robot_type = args.robot_type
+    if args.recording:
+        from arena.recording.mcap_file import read_recording
+
+        recording = read_recording(args.recording)
+        recorded = {
+            name.removeprefix("robot/"): meta
+            for name, meta in recording.metadata.items()
+            if name.startswith("robot/")
+        }
+        robots = robots or sorted(recorded)
+        robot_type = robot_type or next(
+            (meta.get("robot_type") for meta in recorded.values()), None
+        )
+    model = load_robot_model(robot_type or "so-arm100")
+    text = layout(robots or ["demo-arm"], model.joint_names)
+    if args.output == "-":
+        print(text)
+    else:
+        Path(args.output).write_text(text + "\n", encoding="utf-8")
+        print(args.output)
     return 0
 
 
@@ -334,6 +400,8 @@ def _serve(args: argparse.Namespace) -> int:
             args.config,
             record=args.record,
             recordings_dir=args.recordings_dir,
+            record_foxglove=args.record_foxglove,
+            foxglove_port=args.foxglove_port,
             host=args.host,
             port=args.port,
             demo=args.demo,

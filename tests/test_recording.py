@@ -104,12 +104,16 @@ async def test_round_trip_through_the_mcap_reader(
         "/robots/arm/peer",
     } <= topics
     assert summary.statistics.message_count == len(messages) > 100
-    assert all(schema.encoding == "jsonschema" for schema in summary.schemas.values())
-    assert all(channel.message_encoding == "json" for channel in summary.channels.values())
+    for channel in summary.channels.values():  # Arena's records JSON, Foxglove's protobuf
+        schema = summary.schemas[channel.schema_id]
+        foxglove_view = channel.topic.endswith(("/tf", "/scene", "/log"))
+        assert schema.encoding == ("protobuf" if foxglove_view else "jsonschema")
+        assert channel.message_encoding == ("protobuf" if foxglove_view else "json")
     assert metadata["arena"]["server"] == "arena"
     assert '<robot name="so-arm100">' in metadata["robot/arm"]["urdf"]
     recording = read_recording(session_file)
-    assert not recording.truncated and len(recording.messages) == len(messages)
+    assert not recording.truncated
+    assert len(recording.messages) + len(recording.views) == len(messages)
 
 
 async def test_every_message_fits_its_schema_in_specs(
@@ -232,8 +236,14 @@ def test_truncated_files_are_read_and_recovered(
     complete = trio.run(record_session, tmp_path, clock=MockClock(autojump_threshold=0))
     whole = read_recording(complete)
     data = complete.read_bytes()
+    with open(complete, "rb") as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary is not None
+    # cut in the middle of a chunk two thirds of the way in (the first holds the 3D model)
+    chunks = sorted(summary.chunk_indexes, key=lambda index: index.chunk_start_offset)
+    middle = chunks[len(chunks) * 2 // 3]
     cut = tmp_path / "cut.mcap"
-    cut.write_bytes(data[: len(data) * 2 // 3])
+    cut.write_bytes(data[: middle.chunk_start_offset + middle.chunk_length // 2])
     partial = read_recording(cut)
     assert partial.truncated and 0 < len(partial.messages) < len(whole.messages)
     assert partial.messages == whole.messages[: len(partial.messages)]
@@ -247,8 +257,8 @@ def test_truncated_files_are_read_and_recovered(
     assert cli.main(["recover", str(cut), "-o", str(tmp_path / "fixed.mcap")]) == 0
     with open(tmp_path / "fixed.mcap", "rb") as stream:
         fixed = list(make_reader(stream).iter_messages())
-    assert len(fixed) == len(partial.messages)
-    assert write_recording(partial, tmp_path / "again.mcap") == len(partial.messages)
+    assert len(fixed) == len(partial.messages) + len(partial.views)
+    assert partial.views and write_recording(partial, tmp_path / "again.mcap") == len(fixed)
 
 
 def test_recording_names_cannot_escape_the_folder(tmp_path: Path) -> None:
@@ -331,7 +341,8 @@ async def test_losing_both_processes_loses_at_most_the_last_flush(tmp_path: Path
     fixed = tmp_path / "fixed.mcap"
     assert cli.main(["recover", str(path), "-o", str(fixed)]) == 0
     with open(fixed, "rb") as stream:
-        assert len(list(make_reader(stream).iter_messages())) == len(recording.messages)
+        written = len(list(make_reader(stream).iter_messages()))
+    assert written == len(recording.messages) + len(recording.views)
 
 
 def test_plot_draws_every_joint(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -373,11 +384,13 @@ def test_files_rotate_by_size_and_each_stands_alone(tmp_path: Path) -> None:
             writer.write(batch)
     finally:
         writer.shutdown()
-    assert len(writer.files) == len(batches) and writer.messages == 500
+    # each file brings the robot's 3D model along (one scene message)
+    assert len(writer.files) == len(batches) and writer.messages == 500 + len(batches)
     for path, batch in zip(writer.files, batches, strict=True):
         with open(path, "rb") as stream:
             reader = make_reader(stream)
-            assert len(list(reader.iter_messages())) == len(batch)
+            topics = [channel.topic for _, channel, _ in reader.iter_messages()]
+            assert len(topics) == len(batch) + 1 and topics.count("/robots/arm/scene") == 1
             assert {"arena", "robot/arm"} <= {m.name for m in reader.iter_metadata()}
         assert [m.log_time for m in read_recording(path).messages] == [i[3] for i in batch]
 

@@ -11,7 +11,7 @@ import datetime
 import json
 import struct
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
@@ -23,7 +23,7 @@ from mcap.stream_reader import StreamReader
 
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording.mcap_writer import ChunkedWriter
-from arena.recording.records import schema_of, split_topic, topic
+from arena.recording.records import RECORD_TYPES, is_view_topic, schema_of, split_topic, topic
 
 SUFFIX = ".mcap"
 PROFILE = "arena"
@@ -47,6 +47,8 @@ class FileSeries:
     metadata: dict[str, str]  # written into every file
     max_bytes: int = 256 << 20
     max_seconds: float = 3600.0
+    #: Foxglove's view beside the records: transforms, the 3D model and a log (`foxglove.py`).
+    foxglove: bool = True
 
 
 class McapFileWriter:
@@ -60,6 +62,9 @@ class McapFileWriter:
         self.max_seconds = series.max_seconds
         self.chunk_size = chunk_size
         self.robots: dict[str, dict[str, str]] = {}  # robot id -> metadata, set by the recorder
+        #: What a robot's first records in a file bring along (its 3D model), given its id
+        #: and the log time.
+        self.first_in_file: Callable[[str, int], list[Item]] | None = None
         self.path: Path | None = None
         self.files: list[Path] = []
         self._stream: IO[bytes] | None = None
@@ -82,8 +87,11 @@ class McapFileWriter:
             for robot_id, kind, data, log_time in items:
                 writer = self._current()
                 if robot_id not in self._robots_written and robot_id in self.robots:
-                    writer.add_metadata(f"robot/{robot_id}", self.robots[robot_id])
                     self._robots_written.add(robot_id)
+                    writer.add_metadata(f"robot/{robot_id}", self.robots[robot_id])
+                    for _, extra, payload, at in self._introduce(robot_id, log_time):
+                        writer.add_message(self._channel(writer, robot_id, extra), at, payload)
+                        self.messages += 1
                 writer.add_message(self._channel(writer, robot_id, kind), log_time, data)
                 self.messages += 1
             if flush:
@@ -147,19 +155,32 @@ class McapFileWriter:
             self._robots_written.clear()
         return self._writer
 
+    def _introduce(self, robot_id: str, log_time: int) -> list[Item]:
+        return [] if self.first_in_file is None else self.first_in_file(robot_id, log_time)
+
     def _channel(self, writer: ChunkedWriter, robot_id: str, kind: str) -> int:
         name = topic(robot_id, kind)
         channel = self._channels.get(name)
         if channel is None:
+            schema_name, schema_encoding, schema_data, encoding = channel_format(kind)
             schema = self._schemas.get(kind)
             if schema is None:
-                schema = writer.register_schema(
-                    kind, "jsonschema", json.dumps(schema_of(kind)).encode()
-                )
+                schema = writer.register_schema(schema_name, schema_encoding, schema_data)
                 self._schemas[kind] = schema
-            channel = writer.register_channel(name, "json", schema)
+            channel = writer.register_channel(name, encoding, schema)
             self._channels[name] = channel
         return channel
+
+
+def channel_format(kind: str) -> tuple[str, str, bytes, str]:
+    """(schema name, schema encoding, schema, message encoding) of a topic kind: Arena's
+    records are JSON with JSON Schemas; Foxglove's kinds are protobuf with Foxglove's schemas."""
+    if kind in RECORD_TYPES:
+        return kind, "jsonschema", json.dumps(schema_of(kind)).encode(), "json"
+    from arena.recording import foxglove  # only a writer that records transforms needs it
+
+    name, encoding, data = foxglove.schema(kind)
+    return name, encoding, data, encoding
 
 
 @dataclass
@@ -173,6 +194,17 @@ class RecordedMessage:
     data: dict[str, Any]
 
 
+@dataclass(frozen=True, slots=True)
+class RawMessage:
+    """A message kept as bytes (Foxglove's view of a robot): enough to write it again."""
+
+    topic: str
+    schema: tuple[str, str, bytes]  # name, encoding, data
+    encoding: str
+    log_time: int
+    data: bytes
+
+
 @dataclass
 class Recording:
     """Everything in a file: metadata, schemas by topic, messages, and whether it was cut."""
@@ -181,6 +213,8 @@ class Recording:
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     schemas: dict[str, dict[str, Any]] = field(default_factory=dict)
     messages: list[RecordedMessage] = field(default_factory=list)
+    #: Foxglove's topics of each robot (transforms, model, log), undecoded.
+    views: list[RawMessage] = field(default_factory=list)
     truncated: bool = False
     foreign_topics: int = 0
 
@@ -232,6 +266,9 @@ def _read_into(recording: Recording, records: Iterator[Any]) -> bool:
             elif isinstance(record, Message):
                 channel = channels.get(record.channel_id)
                 parsed = split_topic(channel.topic) if channel else None
+                if channel is not None and parsed is None and is_view_topic(channel.topic):
+                    recording.views.append(_raw(channel, schemas.get(channel.schema_id), record))
+                    continue
                 if channel is None or parsed is None:
                     recording.foreign_topics += 1
                     continue
@@ -254,6 +291,13 @@ def _read_into(recording: Recording, records: Iterator[Any]) -> bool:
     return complete
 
 
+def _raw(channel: Channel, schema: Schema | None, message: Message) -> RawMessage:
+    found = ("", "", b"") if schema is None else (schema.name, schema.encoding, schema.data)
+    return RawMessage(
+        channel.topic, found, channel.message_encoding, message.log_time, bytes(message.data)
+    )
+
+
 def write_recording(recording: Recording, path: Path) -> int:
     """Write everything read from `recording` as a complete, indexed MCAP file at `path`."""
     with open(path, "wb") as stream:
@@ -263,6 +307,16 @@ def write_recording(recording: Recording, path: Path) -> int:
             writer.add_metadata(name, values)
         schema_ids: dict[str, int] = {}
         channel_ids: dict[str, int] = {}
+        for view in recording.views:
+            channel = channel_ids.get(view.topic)
+            if channel is None:
+                schema = schema_ids.get(view.schema[0])
+                if schema is None:
+                    schema = writer.register_schema(*view.schema)
+                    schema_ids[view.schema[0]] = schema
+                channel = writer.register_channel(view.topic, view.encoding, schema)
+                channel_ids[view.topic] = channel
+            writer.add_message(channel, view.log_time, view.data)
         for message in recording.messages:
             channel = channel_ids.get(message.topic)
             if channel is None:
@@ -276,4 +330,4 @@ def write_recording(recording: Recording, path: Path) -> int:
             data = json.dumps(message.data, separators=(",", ":")).encode()
             writer.add_message(channel, message.log_time, data)
         writer.finish()
-    return len(recording.messages)
+    return len(recording.messages) + len(recording.views)

@@ -98,10 +98,11 @@ class Recorder:
         active: bool = True,
         retry_initial: float = 1.0,
         retry_max: float = 30.0,
+        foxglove: bool = True,
     ) -> None:
         base = {"server": "arena", "version": arena.__version__}
         self.writer = McapWriterProcess(
-            FileSeries(folder, {**base, **(metadata or {})}, max_bytes, max_seconds)
+            FileSeries(folder, {**base, **(metadata or {})}, max_bytes, max_seconds, foxglove)
         )
         self.flush_interval = flush_interval
         self.batch_interval = min(batch_interval, flush_interval)
@@ -165,12 +166,12 @@ class Recorder:
 
     async def stop(self) -> Path | None:
         """Pause recording and finish the current file; returns its path."""
-        path = self.writer.path
         batch = await self._collect()  # what happened up to now still goes in
         self.active = False
         await self._write(batch)
-        await trio.to_thread.run_sync(self.writer.close)
-        return path
+        # The file is known only now: a batch in flight when `stop` was called may be the one
+        # that opened it (`close` waits for it).
+        return await trio.to_thread.run_sync(self.writer.close)
 
     async def _collect(self) -> _Batch:
         """Drain every followed robot's queue and pack the events (none while paused)."""

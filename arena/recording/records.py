@@ -101,6 +101,16 @@ def topic(robot_id: str, kind: str) -> str:
     return f"/robots/{robot_id}/{kind}"
 
 
+#: Topic kinds that show a robot in Foxglove (`foxglove.py`), recorded beside the records.
+VIEW_KINDS = ("tf", "scene", "log")
+
+
+def is_view_topic(name: str) -> bool:
+    """True for a robot's Foxglove topic (`/robots/{id}/tf` and the like)."""
+    parts = name.split("/")
+    return len(parts) == 4 and parts[:2] == ["", "robots"] and parts[3] in VIEW_KINDS
+
+
 def split_topic(name: str) -> tuple[str, str] | None:
     """(robot_id, kind) of a topic, or None if it is not one of ours."""
     parts = name.split("/")

@@ -33,12 +33,15 @@ import subprocess
 import sys
 import threading
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 import msgspec
 
 from arena.recording.mcap_file import FileSeries, Item, McapFileWriter
 from arena.recording.records import EVENT_TYPES, record_of
+
+if TYPE_CHECKING:
+    from arena.recording.foxglove import Twins
 
 _LENGTH = struct.Struct(">Q")
 #: How long the child may take to finish its file at shutdown before it is killed.
@@ -52,13 +55,17 @@ _event_decoders = {kind: msgspec.msgpack.Decoder(event) for kind, event in EVENT
 _json = msgspec.json.Encoder()
 
 
-def items_of_events(slices: list[bytes]) -> list[Item]:
-    """The records of packed event slices, in log-time order."""
+def items_of_events(slices: list[bytes], twins: Twins | None = None) -> list[Item]:
+    """The records of packed event slices (and with `twins`, Foxglove's view of them), in
+    log-time order."""
     items: list[Item] = []
     for packed in slices:
         for robot_id, kind, raw, log_time in _unpack_slice(packed):
-            _, record = record_of(_event_decoders[kind].decode(raw))
+            event = _event_decoders[kind].decode(raw)
+            _, record = record_of(event)
             items.append((robot_id, kind, _json.encode(record), log_time))
+            if twins is not None:
+                items.extend(twins.items(robot_id, event, log_time))
     items.sort(key=lambda item: item[3])
     return items
 
@@ -123,11 +130,14 @@ class McapWriterProcess:
             self._request((kind, payload, new, flush))
             self._robots_sent.update(new)
 
-    def close(self) -> None:
-        """Finish the current file; the child stays for the next one."""
+    def close(self) -> Path | None:
+        """Finish the current file (after any write in flight); the child stays for the next
+        one. Returns the file finished, if there was one."""
         with self._lock:
+            path = self.path
             if self._process is not None:
                 self._request(("close", None, None, True))
+            return path
 
     def shutdown(self) -> None:
         """Finish the current file and end the child."""
@@ -193,7 +203,14 @@ class McapWriterProcess:
 
 def serve(requests: IO[bytes], replies: IO[bytes]) -> None:
     """The child's loop: one `McapFileWriter`, driven by frames until end of input."""
-    writer = McapFileWriter(receive_frame(requests))
+    series: FileSeries = receive_frame(requests)
+    writer = McapFileWriter(series)
+    twins = None
+    if series.foxglove:
+        from arena.recording.foxglove import Twins  # the SDK loads only when it is used
+
+        twins = Twins(writer.robots)
+        writer.first_in_file = twins.introduce
     try:
         while True:
             try:
@@ -204,7 +221,10 @@ def serve(requests: IO[bytes], replies: IO[bytes]) -> None:
             try:
                 if kind in ("write", "events"):
                     writer.robots.update(robots)
-                    unpacked = _unpack_items(items) if kind == "write" else items_of_events(items)
+                    if kind == "write":
+                        unpacked = _unpack_items(items)
+                    else:
+                        unpacked = items_of_events(items, twins)
                     writer.write(unpacked, flush=flush)
                 else:
                     writer.close()

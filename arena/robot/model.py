@@ -54,6 +54,12 @@ class JointSpec:
     upper: float
     max_velocity: float
     neutral: float  # URDF radians that 0 degrees on the wire stands for
+    urdf_joint: str = ""  # the URDF joint it drives, when its name differs from `name`
+
+    @property
+    def urdf_name(self) -> str:
+        """The name of this joint in the URDF."""
+        return self.urdf_joint or self.name
 
     def to_urdf(self, degrees: float) -> float:
         """Wire degrees to URDF radians."""
@@ -203,7 +209,8 @@ def _safety_policy(section: dict[str, Any]) -> SafetyPolicy:
 
 def _joint_spec(entry: dict[str, Any], urdf: dict[str, _UrdfJoint], bad: Any) -> JointSpec:
     name = str(entry.get("name", ""))
-    source = urdf.get(str(entry.get("urdf_joint", name)))
+    urdf_joint = str(entry.get("urdf_joint", name))
+    source = urdf.get(urdf_joint)
     if source is None:
         raise bad(f"joint {name!r} is not a revolute joint with limits in the URDF")
     neutral = float(entry.get("neutral", (source.lower + source.upper) / 2))
@@ -226,4 +233,5 @@ def _joint_spec(entry: dict[str, Any], urdf: dict[str, _UrdfJoint], bad: Any) ->
         upper=soft_upper,
         max_velocity=max_velocity,
         neutral=neutral,
+        urdf_joint="" if urdf_joint == name else urdf_joint,
     )

@@ -149,6 +149,9 @@ def _register_routes(app: ArenaApp) -> None:
             "estops": sum(r.estop_count for r in robots),
             "auth": app.arena_config.auth_enabled,
             "recording": app.recorder.status(),
+            "foxglove": None
+            if app.foxglove is None
+            else {"port": app.foxglove.port, "dropped": app.foxglove.dropped},
             "links": {
                 "robots": "/api/robots",
                 "robot_types": "/api/robot-types",

@@ -4,7 +4,7 @@ and never each other."""
 
 from __future__ import annotations
 
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import msgspec
 import trio
@@ -19,6 +19,9 @@ from arena.robot.manager import RobotManager
 from arena.server.config import ServerConfig
 from arena.server.metrics import Metrics
 from arena.server.origin import OriginPolicy
+
+if TYPE_CHECKING:
+    from arena.server.foxglove_bridge import FoxgloveBridge  # imports the SDK
 
 #: HTTP status for each error code (anything missing is 400).
 STATUS_FOR: dict[ErrorCode, int] = {
@@ -125,6 +128,8 @@ class ArenaApp(QuartTrio):
     connections: set[OpenConnection]
     #: Which pages and host names may reach the server (see `origin`).
     origin_policy: OriginPolicy
+    #: The live Foxglove server, with `--foxglove-port`.
+    foxglove: FoxgloveBridge | None = None
 
 
 def error_response(code: ErrorCode, message: str) -> tuple[dict[str, Any], int]:

@@ -37,6 +37,10 @@ class ServerConfig:
     recording_max_bytes: int = 256 << 20
     recording_max_seconds: float = 3600.0
     recording_retry_max: float = 30.0  # a failing disk is retried after 1 s, doubling to this
+    #: Record Foxglove's view too: each robot's transforms, 3D model and log.
+    record_foxglove: bool = True
+    #: Serve the robots live over Foxglove's WebSocket protocol on this port (0: any).
+    foxglove_port: int | None = None
     #: Bytes queued for one WebSocket peer before states keep only the newest and acks are
     #: counted as missed (a peer that stopped reading costs at most about this much).
     ws_queue_bytes: int = 16 * 1024
@@ -65,6 +69,14 @@ class ServerConfig:
         if not 1024 <= self.ws_queue_bytes <= 64 << 20:
             raise ArenaError(
                 ErrorCode.INVALID_CONFIG, "ws_queue_bytes must be from 1 KiB to 64 MiB."
+            )
+        if self.foxglove_port is not None and not (
+            _is_loopback(self.host) or (self.insecure and not self.api_keys)
+        ):
+            raise ArenaError(
+                ErrorCode.INVALID_CONFIG,
+                "Foxglove's protocol has no API keys: --foxglove-port serves only on a loopback "
+                "host (or with --insecure and no keys).",
             )
         if self.recording_retry_max < 1.0:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "recording_retry_max must be 1 s or more.")

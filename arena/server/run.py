@@ -68,12 +68,20 @@ async def run_server(
         max_seconds=config.recording_max_seconds,
         active=config.record,
         retry_max=config.recording_retry_max,
+        foxglove=config.record_foxglove,
     )
     async with trio.open_nursery() as recording_nursery:
         await recording_nursery.start(recorder.run)
         async with open_manager() as manager:
             manager.on_create.append(recorder.follow)
             app = create_app(manager, config, recorder)
+            if config.foxglove_port is not None:
+                from arena.server.foxglove_bridge import FoxgloveBridge  # loads the SDK
+
+                app.foxglove = FoxgloveBridge(config.host, config.foxglove_port)
+                manager.on_create.append(app.foxglove.follow)
+                port = await recording_nursery.start(app.foxglove.run)
+                log.info("Foxglove: ws://%s:%d", config.host, port)
             if config.demo:
                 await _create_demo_robot(app)
             if freeze_startup_objects:

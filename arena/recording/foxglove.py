@@ -1,0 +1,358 @@
+"""Foxglove's view of a robot: its 3D model, the commanded and measured poses, and a log.
+
+One `Twin` per robot turns robot events into Foxglove messages (protobuf, encoded by the
+official `foxglove-sdk`, with the schemas it ships):
+  /robots/{id}/tf     `foxglove.FrameTransforms`: two trees, `{id}/virtual/<link>` from the
+                      targets sent to slaves and `{id}/real/<link>` from the joint states the
+                      slaves report, each under `world`
+  /robots/{id}/scene  `foxglove.SceneUpdate`: the URDF's meshes on the real tree (embedded STL)
+                      and a skeleton on the virtual one; sent once per file and per viewer
+  /robots/{id}/log    `foxglove.Log`: e-stops, resets, faults, refused commands and peers
+The recording process and the live Foxglove server both use it, so a file and a live session
+look the same.
+"""
+
+from __future__ import annotations
+
+import sys
+import xml.etree.ElementTree as ElementTree
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from foxglove.messages import (
+    Color,
+    FrameTransform,
+    FrameTransforms,
+    LinePrimitive,
+    LinePrimitiveLineType,
+    Log,
+    LogLevel,
+    ModelPrimitive,
+    Point3,
+    Pose,
+    Quaternion,
+    SceneEntity,
+    SceneUpdate,
+    Timestamp,
+    Vector3,
+)
+
+from arena.protocol.errors import ArenaError
+from arena.robot.events import (
+    CommandHandled,
+    FaultReported,
+    JointStatesReceived,
+    PeerChanged,
+    RobotEvent,
+    StateChanged,
+    TargetsSent,
+)
+from arena.robot.kinematics import Kinematics, from_rpy, parse_triple
+from arena.robot.kinematics import Pose as KinematicPose
+from arena.robot.model import RobotModel, load_robot_model
+from arena.robot.safety import Mode
+
+#: Topic kind -> the Foxglove message type on it.
+MESSAGE_TYPES: dict[str, Any] = {"tf": FrameTransforms, "scene": SceneUpdate, "log": Log}
+#: The frame both trees of every robot hang from (the 3D panel's display frame).
+WORLD = "world"
+TREES = ("virtual", "real")
+
+_MESH_COLOR = Color(r=0.93, g=0.55, b=0.18, a=1.0)
+_SKELETON_COLOR = Color(r=0.2, g=0.55, b=1.0, a=0.9)
+_LEVEL_OF_SEVERITY = {
+    "info": LogLevel.Info,
+    "warning": LogLevel.Warning,
+    "error": LogLevel.Error,
+    "critical": LogLevel.Fatal,
+}
+
+
+def schema(kind: str) -> tuple[str, str, bytes]:
+    """(name, encoding, data) of the schema of a Foxglove topic kind."""
+    found = MESSAGE_TYPES[kind].get_schema()
+    return found.name, found.encoding, bytes(found.data)
+
+
+def timestamp(ns: int) -> Timestamp:
+    """A Foxglove timestamp from nanoseconds since the epoch."""
+    return Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
+
+
+@dataclass(frozen=True, slots=True)
+class Visual:
+    """One mesh of a link: where it sits on the link, its file and scale."""
+
+    link: str
+    origin: KinematicPose
+    path: Path
+    scale: tuple[float, float, float]
+
+
+class Twin:
+    """Foxglove messages of one robot. Not thread-safe: one owner (the recording process's
+    loop, or the live bridge's thread)."""
+
+    def __init__(self, robot_id: str, model: RobotModel) -> None:
+        self.robot_id = robot_id
+        self.model = model
+        self.kinematics = Kinematics.from_urdf(model.urdf_path)
+        self._joints = {spec.name: spec for spec in model.joints}
+        # URDF radians of the joints last heard of, per tree (a partial update keeps the rest)
+        self._values: dict[str, dict[str, float]] = {tree: {} for tree in TREES}
+        self._scene: bytes | None = None
+
+    def frame(self, tree: str, link: str) -> str:
+        """The frame id of a link in one tree."""
+        return f"{self.robot_id}/{tree}/{link}"
+
+    def transforms(self, tree: str, joints: Mapping[str, float], ns: int) -> bytes:
+        """The whole tree at joint values `joints` (wire degrees; missing joints keep their
+        last value), as an encoded `FrameTransforms`."""
+        values = self._values[tree]
+        for name, degrees in joints.items():
+            spec = self._joints.get(name)
+            if spec is not None:
+                values[spec.urdf_name] = spec.to_urdf(degrees)
+        stamp = timestamp(ns)
+        root = self.frame(tree, self.kinematics.root)
+        transforms = [_frame_transform(stamp, WORLD, root, ((0.0, 0.0, 0.0, 1.0), (0, 0, 0)))]
+        for joint, pose in self.kinematics.joint_transforms(values):
+            parent, child = self.frame(tree, joint.parent), self.frame(tree, joint.child)
+            transforms.append(_frame_transform(stamp, parent, child, pose))
+        return bytes(FrameTransforms(transforms=transforms).encode())
+
+    def scene(self, ns: int) -> bytes:
+        """The 3D model as an encoded `SceneUpdate`: meshes that follow the real tree's links
+        and a skeleton (joint to joint) that follows the virtual one."""
+        if self._scene is None:
+            self._scene = self._build_scene(ns)
+        return self._scene
+
+    def _build_scene(self, ns: int) -> bytes:
+        stamp = timestamp(ns)
+        meshes: dict[str, list[ModelPrimitive]] = {}
+        for visual in visuals(self.model.urdf_path):
+            meshes.setdefault(visual.link, []).append(
+                ModelPrimitive(
+                    pose=_pose(visual.origin),
+                    scale=Vector3(x=visual.scale[0], y=visual.scale[1], z=visual.scale[2]),
+                    color=_MESH_COLOR,
+                    override_color=True,
+                    media_type="model/stl",
+                    data=visual.path.read_bytes(),
+                )
+            )
+        bones: dict[str, list[Point3]] = {}
+        for joint in self.kinematics.joints:
+            x, y, z = joint.origin[1]
+            bones.setdefault(joint.parent, []).extend([Point3(), Point3(x=x, y=y, z=z)])
+        entities = []
+        for link in self.kinematics.links:
+            real, virtual = self.frame("real", link), self.frame("virtual", link)
+            if link in meshes:
+                entities.append(
+                    SceneEntity(
+                        timestamp=stamp, frame_id=real, id=real, frame_locked=True,
+                        models=meshes[link],
+                    )
+                )  # fmt: skip
+            if link in bones:
+                line = LinePrimitive(
+                    type=LinePrimitiveLineType.LineList,
+                    thickness=6.0,
+                    scale_invariant=True,
+                    points=bones[link],
+                    color=_SKELETON_COLOR,
+                )
+                entities.append(
+                    SceneEntity(
+                        timestamp=stamp, frame_id=virtual, id=virtual, frame_locked=True,
+                        lines=[line],
+                    )
+                )  # fmt: skip
+        return bytes(SceneUpdate(entities=entities).encode())
+
+    def log(self, event: RobotEvent, ns: int) -> bytes | None:
+        """The log line of an event worth a place on the timeline, encoded, or None."""
+        said = _log_line(event)
+        if said is None:
+            return None
+        level, text = said
+        return bytes(
+            Log(timestamp=timestamp(ns), level=level, message=text, name=self.robot_id).encode()
+        )
+
+    def messages(self, event: RobotEvent, ns: int) -> list[tuple[str, bytes]]:
+        """(kind, encoded message) for everything an event shows in Foxglove."""
+        if isinstance(event, TargetsSent):
+            return [("tf", self.transforms("virtual", event.joints, ns))]
+        if isinstance(event, JointStatesReceived):
+            return [("tf", self.transforms("real", event.joints, ns))]
+        line = self.log(event, ns)
+        return [] if line is None else [("log", line)]
+
+
+def _log_line(event: RobotEvent) -> tuple[LogLevel, str] | None:
+    if isinstance(event, StateChanged):
+        if event.mode is Mode.ESTOPPED:
+            return LogLevel.Error, f"E-STOP: {event.estop_reason or event.cause}"
+        return LogLevel.Info, f"state {event.mode} (owner {event.owner or 'none'}): {event.cause}"
+    if isinstance(event, FaultReported):
+        joint = f" on {event.joint}" if event.joint else ""
+        level = _LEVEL_OF_SEVERITY.get(str(event.severity), LogLevel.Warning)
+        return level, f"fault {event.code} from {event.peer_id}{joint}: {event.message}"
+    if isinstance(event, CommandHandled):
+        if event.result.accepted:
+            return None
+        return (
+            LogLevel.Warning,
+            f"refused {event.result.code} ({event.source}): {event.result.message}",
+        )
+    if isinstance(event, PeerChanged):
+        trouble = ("lost", "refused", "disconnected")
+        level = LogLevel.Warning if event.change in trouble else LogLevel.Info
+        reason = f": {event.reason}" if event.reason else ""
+        return level, f"{event.role} {event.peer_id} ({event.kind}) {event.change}{reason}"
+    return None
+
+
+def _frame_transform(stamp: Timestamp, parent: str, child: str, pose: KinematicPose) -> Any:
+    (qx, qy, qz, qw), (x, y, z) = pose
+    return FrameTransform(
+        timestamp=stamp,
+        parent_frame_id=parent,
+        child_frame_id=child,
+        translation=Vector3(x=x, y=y, z=z),
+        rotation=Quaternion(x=qx, y=qy, z=qz, w=qw),
+    )
+
+
+def _pose(pose: KinematicPose) -> Pose:
+    (qx, qy, qz, qw), (x, y, z) = pose
+    return Pose(position=Vector3(x=x, y=y, z=z), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw))
+
+
+def visuals(urdf_path: Path) -> list[Visual]:
+    """The mesh visuals of a URDF's links; meshes are found beside the URDF (`package://`
+    prefixes are dropped), and a mesh that is missing is left out."""
+    found: list[Visual] = []
+    root = ElementTree.parse(urdf_path).getroot()
+    for link in root.iter("link"):
+        for visual in link.iter("visual"):
+            mesh = visual.find("geometry/mesh")
+            if mesh is None or not mesh.get("filename"):
+                continue
+            name = str(mesh.get("filename"))
+            if name.startswith("package://"):
+                name = name.removeprefix("package://").split("/", 1)[-1]
+            path = (urdf_path.parent / name).resolve()
+            if not path.is_file():
+                continue
+            origin = visual.find("origin")
+            xyz = parse_triple(None if origin is None else origin.get("xyz"), (0.0, 0.0, 0.0))
+            rpy = parse_triple(None if origin is None else origin.get("rpy"), (0.0, 0.0, 0.0))
+            found.append(
+                Visual(
+                    link=link.get("name", ""),
+                    origin=(from_rpy(*rpy), xyz),
+                    path=path,
+                    scale=parse_triple(mesh.get("scale"), (1.0, 1.0, 1.0)),
+                )
+            )
+    return found
+
+
+#: One message to write: (robot id, kind, encoded message, log time in ns), as `mcap_file`.
+ViewItem = tuple[str, str, bytes, int]
+
+
+class Twins:
+    """The twin of every robot a recording names, made on first use from its robot type.
+
+    `robots` is the recording's robot metadata (id -> {"robot_type": ...}); a robot whose type
+    cannot be loaded here is recorded without Foxglove's view (and said once on stderr).
+    """
+
+    def __init__(self, robots: Mapping[str, Mapping[str, str]]) -> None:
+        self.robots = robots
+        self._twins: dict[str, Twin | None] = {}
+
+    def twin(self, robot_id: str) -> Twin | None:
+        """The robot's twin, or None if it has none."""
+        if robot_id not in self._twins:
+            self._twins[robot_id] = self._make(robot_id)
+        return self._twins[robot_id]
+
+    def _make(self, robot_id: str) -> Twin | None:
+        robot_type = self.robots.get(robot_id, {}).get("robot_type")
+        if robot_type is None:
+            return None
+        try:
+            return Twin(robot_id, load_robot_model(robot_type))
+        except (ArenaError, OSError, ValueError, ElementTree.ParseError) as exc:
+            print(f"arena: no 3D view of {robot_id!r} in recordings: {exc}", file=sys.stderr)
+            return None
+
+    def items(self, robot_id: str, event: RobotEvent, log_time: int) -> list[ViewItem]:
+        """What an event shows in Foxglove, as items to write."""
+        twin = self.twin(robot_id)
+        if twin is None:
+            return []
+        return [(robot_id, kind, data, log_time) for kind, data in twin.messages(event, log_time)]
+
+    def introduce(self, robot_id: str, log_time: int) -> list[ViewItem]:
+        """The robot's 3D model, for the first of its records in a file."""
+        twin = self.twin(robot_id)
+        return [] if twin is None else [(robot_id, "scene", twin.scene(log_time), log_time)]
+
+
+def layout(robot_ids: list[str], joint_names: tuple[str, ...]) -> str:
+    """A Foxglove layout (JSON) for these robots: the 3D panel with every twin, a plot per
+    joint of the commanded target against the measured value, and the log."""
+    import foxglove.layouts as fl  # only this command needs the layout builder
+
+    scenes = {
+        topic_name: fl.BaseRendererSceneUpdateTopicSettings(visible=True)
+        for topic_name in (f"/robots/{robot_id}/scene" for robot_id in robot_ids)
+    }
+    three_d = fl.ThreeDeePanel(
+        title="Twins: meshes measured, blue skeleton commanded",
+        config=fl.ThreeDeeConfig(follow_tf=WORLD, topics=scenes),  # type: ignore[arg-type]
+    )
+    plots = [
+        fl.SplitItem(
+            content=fl.PlotPanel(
+                title=joint,
+                config=fl.PlotConfig(
+                    paths=[
+                        series
+                        for robot_id in robot_ids
+                        for series in (
+                            fl.PlotSeries(
+                                value=f"/robots/{robot_id}/targets.joints.{joint}",
+                                label=f"{robot_id} commanded",
+                            ),
+                            fl.PlotSeries(
+                                value=f"/robots/{robot_id}/joint_states.joints.{joint}",
+                                label=f"{robot_id} measured",
+                            ),
+                        )
+                    ],
+                    show_legend=True,
+                ),
+            )
+        )
+        for joint in joint_names
+    ]
+    logs = fl.SplitItem(content=fl.LogPanel(title="E-stops, faults, refusals, peers"))
+    content = fl.SplitContainer(
+        direction="row",
+        items=[
+            fl.SplitItem(proportion=2, content=three_d),
+            fl.SplitItem(content=fl.SplitContainer(direction="column", items=[*plots, logs])),
+        ],
+    )
+    return str(fl.Layout(content=content).to_json())

@@ -1,0 +1,309 @@
+"""Foxglove: forward kinematics, the view in every recording, the live server and the layout.
+
+Every Foxglove message is decoded with the protobuf schema that the `foxglove-sdk` package
+ships for its type (and that the file or the live server advertised: they must be the same).
+"""
+
+from __future__ import annotations
+
+import base64
+import json
+import math
+import random
+import struct
+from collections.abc import AsyncIterator, Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+import foxglove.messages
+import numpy as np
+import pytest
+import trio
+import yourdfpy
+from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+from mcap.reader import make_reader
+from trio.testing import MockClock
+from trio_websocket import WebSocketConnection, open_websocket_url
+
+from arena import cli
+from arena.protocol.errors import ArenaError, ErrorCode
+from arena.recording.foxglove import visuals
+from arena.recording.mcap_file import read_recording, write_recording
+from arena.robot.kinematics import Kinematics, to_matrix
+from arena.robot.model import load_robot_model
+from arena.server.config import ServerConfig
+from arena.session import record_scenario
+from tests.conftest import RunningServer
+from tests.test_recording import session_scenario
+
+MODEL = load_robot_model("so-arm100")
+SPECS = {joint.name: joint for joint in MODEL.joints}
+SDK_TYPES = {"foxglove.FrameTransforms", "foxglove.SceneUpdate", "foxglove.Log"}
+
+
+def shipped_schema(name: str) -> bytes:
+    """The FileDescriptorSet that foxglove-sdk ships for a message type."""
+    return bytes(getattr(foxglove.messages, name.removeprefix("foxglove.")).get_schema().data)
+
+
+_classes: dict[str, Any] = {}
+
+
+def decode(name: str, payload: bytes) -> Any:
+    """A message decoded with the SDK's own schema; it must re-encode to the same bytes (no
+    unknown or misplaced fields)."""
+    if name not in _classes:
+        files = descriptor_pb2.FileDescriptorSet.FromString(shipped_schema(name))
+        pool = descriptor_pool.DescriptorPool()
+        for file in files.file:
+            pool.Add(file)
+        _classes[name] = message_factory.GetMessageClass(pool.FindMessageTypeByName(name))
+    message = _classes[name].FromString(payload)
+    assert message.SerializeToString() == payload
+    return message
+
+
+def test_forward_kinematics_matches_yourdfpy() -> None:
+    kinematics = Kinematics.from_urdf(MODEL.urdf_path)
+    reference = yourdfpy.URDF.load(str(MODEL.urdf_path), load_meshes=False)
+    rng = random.Random(7)
+    for _ in range(200):
+        values = {joint.name: rng.uniform(-math.pi, math.pi) for joint in kinematics.joints}
+        reference.update_cfg(values)
+        poses = kinematics.link_poses(values)
+        assert set(poses) == set(reference.link_map)
+        for link, pose in poses.items():
+            expected = reference.get_transform(link, kinematics.root)
+            assert np.abs(np.array(to_matrix(pose)) - expected).max() < 1e-6
+
+
+def test_kinematics_of_prismatic_fixed_and_malformed_trees() -> None:
+    urdf = """<robot name="r"><link name="a"/><link name="b"/><link name="c"/>
+      <joint name="slide" type="prismatic"><parent link="a"/><child link="b"/>
+        <origin xyz="0 0 1" rpy="0 0 1.5707963267948966"/><axis xyz="1 0 0"/></joint>
+      <joint name="bolt" type="fixed"><parent link="b"/><child link="c"/>
+        <origin xyz="1 0 0"/></joint></robot>"""
+    poses = Kinematics.from_urdf(urdf).link_poses({"slide": 0.5})
+    # the slide moves along b's x, which the origin's yaw turned to a's y
+    assert np.allclose(poses["b"][1], (0.0, 0.5, 1.0))
+    assert np.allclose(poses["c"][1], (0.0, 1.5, 1.0))
+    cycle = '<robot name="r"><link name="a"/><link name="b"/></robot>'
+    with pytest.raises(ValueError, match="one root"):
+        Kinematics.from_urdf(cycle)
+
+
+@pytest.fixture
+async def foxglove_file(autojump_clock: MockClock, tmp_path: Path) -> AsyncIterator[Path]:
+    (path,) = await record_scenario(tmp_path, session_scenario)
+    yield path
+
+
+def read_views(path: Path) -> list[tuple[str, str, Any, int]]:
+    """(topic, schema name, decoded message, log time) of every Foxglove message in a file;
+    each channel's schema must be the one the SDK ships."""
+    found = []
+    with open(path, "rb") as stream:
+        for schema, channel, message in make_reader(stream).iter_messages():
+            if schema is None or schema.encoding != "protobuf":
+                continue
+            assert schema.name in SDK_TYPES and channel.message_encoding == "protobuf"
+            assert schema.data == shipped_schema(schema.name)
+            decoded = decode(schema.name, message.data)
+            found.append((channel.topic, schema.name, decoded, message.log_time))
+    return found
+
+
+async def test_recordings_carry_transforms_model_and_log(
+    autojump_clock: MockClock, foxglove_file: Path
+) -> None:
+    views = read_views(foxglove_file)
+    recording = read_recording(foxglove_file)
+    topics = {view[0] for view in views}
+    assert topics == {"/robots/arm/tf", "/robots/arm/scene", "/robots/arm/log"}
+    assert recording.foreign_topics == 0  # Foxglove's topics are Arena's own
+
+    # one transform message per targets and per joint states record, at the same log time
+    records = [m for m in recording.messages if m.kind in ("targets", "joint_states")]
+    transforms = [view for view in views if view[0] == "/robots/arm/tf"]
+    assert len(transforms) == len(records) > 100
+    kinematics = Kinematics.from_urdf(MODEL.urdf_path)
+    for record, (_, _, message, log_time) in zip(records, transforms, strict=True):
+        assert log_time == record.log_time
+        tree = "virtual" if record.kind == "targets" else "real"
+        frames = {(t.parent_frame_id, t.child_frame_id): t for t in message.transforms}
+        assert ("world", f"arm/{tree}/base") in frames
+        values = {SPECS[n].urdf_name: SPECS[n].to_urdf(v) for n, v in record.data["joints"].items()}
+        for joint, (rotation, translation) in kinematics.joint_transforms(values):
+            sent = frames[(f"arm/{tree}/{joint.parent}", f"arm/{tree}/{joint.child}")]
+            assert sent.timestamp.seconds * 10**9 + sent.timestamp.nanos == log_time
+            got = (sent.rotation.x, sent.rotation.y, sent.rotation.z, sent.rotation.w)
+            assert np.allclose(got, rotation, atol=1e-9)
+            moved = (sent.translation.x, sent.translation.y, sent.translation.z)
+            assert np.allclose(moved, translation)
+
+    # the model: every link's meshes, embedded, on the real tree; a skeleton on the virtual one
+    (scene,) = [view[2] for view in views if view[0] == "/robots/arm/scene"]
+    meshes = {e.frame_id: e.models for e in scene.entities if e.models}
+    expected: dict[str, list[bytes]] = {}
+    for visual in visuals(MODEL.urdf_path):
+        expected.setdefault(f"arm/real/{visual.link}", []).append(visual.path.read_bytes())
+    assert {frame: [m.data for m in models] for frame, models in meshes.items()} == expected
+    assert all(m.media_type == "model/stl" for models in meshes.values() for m in models)
+    skeleton = {e.frame_id for e in scene.entities if e.lines}
+    assert skeleton == {f"arm/virtual/{j.parent}" for j in kinematics.joints}
+    assert all(e.frame_locked for e in scene.entities)
+
+    # the log: the e-stop as an error, the refused command as a warning, the reset
+    lines = [(view[2].level, view[2].message) for view in views if view[0] == "/robots/arm/log"]
+    error, warning = (
+        foxglove.messages.LogLevel.Error.value,
+        foxglove.messages.LogLevel.Warning.value,
+    )
+    assert (error, "E-STOP: test stop") in lines
+    assert any(level == warning and "refused ESTOPPED" in text for level, text in lines)
+    assert any("state idle" in text and "Reset" in text for _, text in lines)
+
+
+async def test_recover_keeps_the_view_and_it_can_be_left_out(
+    autojump_clock: MockClock, foxglove_file: Path, tmp_path: Path
+) -> None:
+    copy = tmp_path / "copy.mcap"
+    write_recording(read_recording(foxglove_file), copy)
+    assert [(v[0], v[3]) for v in read_views(copy)] == [
+        (v[0], v[3]) for v in read_views(foxglove_file)
+    ]
+    (plain,) = await record_scenario(tmp_path / "plain", session_scenario, foxglove=False)
+    assert read_views(plain) == []
+    assert len(read_recording(plain).messages) == len(read_recording(foxglove_file).messages)
+
+
+async def test_layout_shows_the_recorded_robots(
+    autojump_clock: MockClock, foxglove_file: Path, tmp_path: Path
+) -> None:
+    output = tmp_path / "layout.json"
+    assert cli.main(["foxglove-layout", "--recording", str(foxglove_file), "-o", str(output)]) == 0
+    layout = json.loads(output.read_text())
+    panels: list[dict[str, Any]] = []
+
+    def walk(node: dict[str, Any]) -> None:
+        if node.get("type") == "panel":
+            panels.append(node)
+        for item in node.get("items", []):
+            walk(item["content"])
+
+    walk(layout["content"])
+    kinds = [panel["panelType"] for panel in panels]
+    assert kinds.count("ThreeDee") == 1 and kinds.count("Log") == 1
+    assert kinds.count("Plot") == len(MODEL.joints)
+    recorded = {m.topic for m in read_recording(foxglove_file).messages}
+    three_d = next(p for p in panels if p["panelType"] == "ThreeDee")
+    assert set(three_d["config"]["topics"]) == {"/robots/arm/scene"}
+    for panel in panels:
+        for series in panel["config"].get("paths", []):
+            topic, _, path = series["value"].partition(".")
+            assert topic in recorded and path.startswith("joints.")
+
+
+def test_the_live_server_stays_on_loopback() -> None:
+    with pytest.raises(ArenaError) as refused:
+        ServerConfig(host="0.0.0.0", api_keys=("k",), foxglove_port=0).check()
+    assert refused.value.code == ErrorCode.INVALID_CONFIG and "loopback" in refused.value.message
+    ServerConfig(host="::1", foxglove_port=0).check()
+
+
+async def advertised(ws: WebSocketConnection, wanted: set[str]) -> dict[str, dict[str, Any]]:
+    """Read the server's JSON messages until every wanted topic is advertised."""
+    channels: dict[str, dict[str, Any]] = {}
+    while not wanted <= set(channels):
+        message = await ws.get_message()
+        assert isinstance(message, str)
+        parsed = json.loads(message)
+        if parsed["op"] == "advertise":
+            channels.update({c["topic"]: c for c in parsed["channels"]})
+    return channels
+
+
+async def next_data(ws: WebSocketConnection, subscriptions: dict[int, str]) -> tuple[str, bytes]:
+    """The next message data frame: (its channel's topic, payload)."""
+    while True:
+        message = await ws.get_message()
+        if isinstance(message, bytes) and message[0] == 0x01:
+            (subscription,) = struct.unpack_from("<I", message, 1)
+            return subscriptions[subscription], message[13:]
+
+
+async def test_live_foxglove_clients_see_twins_joints_and_stops(
+    start_server: Callable[..., Awaitable[RunningServer]],
+) -> None:
+    server = await start_server(demo=True, foxglove_port=0)
+    assert server.app.foxglove is not None
+    port = server.app.foxglove.port
+    topics = {f"/robots/demo-arm/{kind}" for kind in ("tf", "scene", "log", "joint_states")}
+    url = f"ws://127.0.0.1:{port}"
+    with trio.fail_after(60):  # only a broken bridge waits that long
+        await watch_live(server, url, topics)
+
+
+async def watch_live(server: RunningServer, url: str, topics: set[str]) -> None:
+    """Subscribe as Foxglove does; see the model, the arm move and the e-stop."""
+    assert server.app.foxglove is not None
+    async with open_websocket_url(
+        url, subprotocols=["foxglove.sdk.v1"], max_message_size=64 << 20
+    ) as ws:
+        assert ws.subprotocol == "foxglove.sdk.v1"
+        channels = await advertised(ws, topics)
+        for name, channel in channels.items():
+            if channel["encoding"] == "protobuf":
+                assert channel["schemaName"] in SDK_TYPES
+                assert base64.b64decode(channel["schema"]) == shipped_schema(channel["schemaName"])
+            else:
+                assert name.endswith(("/targets", "/joint_states"))
+                assert channel["encoding"] == "json"
+        subscriptions = {number: topic for number, topic in enumerate(sorted(topics))}
+        await ws.send_message(
+            json.dumps(
+                {
+                    "op": "subscribe",
+                    "subscriptions": [
+                        {"id": number, "channelId": channels[topic]["id"]}
+                        for number, topic in subscriptions.items()
+                    ],
+                }
+            )
+        )
+        # a new subscriber gets the 3D model
+        while (got := await next_data(ws, subscriptions))[0] != "/robots/demo-arm/scene":
+            pass
+        scene = decode("foxglove.SceneUpdate", got[1])
+        assert {e.frame_id for e in scene.entities if e.models} >= {"demo-arm/real/base"}
+
+        async with server.client() as http:
+            moved = await http.put(
+                "/api/robots/demo-arm/joints", json={"joints": [{"name": "Rotation", "value": 30}]}
+            )
+            assert moved.status_code == 200
+            # the real tree follows until Rotation reports 30 degrees
+            rotation = MODEL.joint("Rotation")
+            assert rotation is not None
+            kinematics = Kinematics.from_urdf(MODEL.urdf_path)
+            (joint,) = [j for j in kinematics.joints if j.name == rotation.urdf_name]
+            expected = joint.transform(rotation.to_urdf(30.0))[0]
+            reached = False
+            while not reached:
+                name, payload = await next_data(ws, subscriptions)
+                if name != "/robots/demo-arm/tf":
+                    continue
+                message = decode("foxglove.FrameTransforms", payload)
+                for t in message.transforms:
+                    if t.child_frame_id == f"demo-arm/real/{joint.child}":
+                        got_q = (t.rotation.x, t.rotation.y, t.rotation.z, t.rotation.w)
+                        reached = bool(np.allclose(got_q, expected, atol=1e-6))
+            stopped = await http.post("/api/robots/demo-arm/estop", json={"reason": "fox test"})
+            assert stopped.status_code == 200
+        while True:
+            name, payload = await next_data(ws, subscriptions)
+            if name == "/robots/demo-arm/log":
+                line = decode("foxglove.Log", payload)
+                if line.message == "E-STOP: fox test":
+                    break
+        assert server.app.foxglove.dropped == 0
