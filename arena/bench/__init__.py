@@ -16,7 +16,9 @@ Scenarios:
   estop       POST /api/robots/{id}/estop -> the slave's estop notice (and -> the HTTP answer,
               which comes after the notice); a master's estop message -> the notice;
               POST /api/estop -> the last robot's notice
-  recording   throughput with recording on against off (ratio)
+  recording   throughput with recording on against off, and with Foxglove's view in the
+              recording against without (ratios); what the recording process can write, in
+              events a second, with and without that view (in this process)
   replay      commands/s of a replay at maximum speed (in process)
   core        RobotCore.command calls/s (pure decision code)
   teleop      leader arm -> follower: a leader register change to the follower's goal write,
@@ -45,13 +47,15 @@ from arena.bench.common import BENCH_TYPE, Server, bench_types, running_server
 from arena.bench.estop import estop, flood
 from arena.bench.fleet import FleetRun, drive_fleet, fleet, soak
 from arena.bench.hardware import teleop_latency, usb_control_rate
-from arena.bench.inprocess import core_rate, replay_rate
+from arena.bench.inprocess import core_rate, replay_rate, writer_rate
 from arena.bench.relay import relay, relay_with_websockets, throughput
 from arena.bench.versus import ordinary_relay, versus_floor
 
 
-async def _with_server(scenario: Callable[[Server], Any], record: bool = True) -> Any:
-    async with running_server(record=record) as server:
+async def _with_server(
+    scenario: Callable[[Server], Any], record: bool = True, *options: str
+) -> Any:
+    async with running_server(record, *options) as server:
         return await scenario(server)
 
 
@@ -110,6 +114,17 @@ def run_benchmarks(
             results["recording_cost_ratio"] = (
                 on["throughput_accepted_per_s"] / off["throughput_accepted_per_s"]
             )
+            plain = median_of(
+                [
+                    asyncio.run(_with_server(throughput, True, "--no-record-foxglove"))
+                    for _ in range(repeats)
+                ]
+            )
+            results["throughput_no_foxglove_per_s"] = plain["throughput_accepted_per_s"]
+            results["foxglove_cost_ratio"] = (
+                on["throughput_accepted_per_s"] / plain["throughput_accepted_per_s"]
+            )
+            results.update(median_of([writer_rate() for _ in range(repeats)]))
     if "estop" in chosen:
         results.update(asyncio.run(_with_server(estop)))
     if "flood" in chosen:

@@ -101,8 +101,9 @@ class Server:
 
 
 @asynccontextmanager
-async def running_server(record: bool = True) -> AsyncIterator[Server]:
-    """`arena serve` on 127.0.0.1 with a port the system chose, stopped on exit."""
+async def running_server(record: bool = True, *options: str) -> AsyncIterator[Server]:
+    """`arena serve` on 127.0.0.1 with a port the system chose (and any more `options`),
+    stopped on exit."""
     with tempfile.TemporaryDirectory() as scratch:
         folder = Path(scratch)
         env = {
@@ -122,6 +123,7 @@ async def running_server(record: bool = True) -> AsyncIterator[Server]:
         ]
         if not record:
             args.append("--no-record")
+        args.extend(options)
         process = subprocess.Popen(args, env=env, stderr=subprocess.PIPE)
         assert process.stderr is not None
         url = None

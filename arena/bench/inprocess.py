@@ -79,3 +79,50 @@ def core_rate(count: int = 20_000) -> dict[str, float]:
     for i, command in enumerate(commands):
         core.command(None, command, i * 0.01)
     return {"core_commands_per_s": count / (time.perf_counter() - start)}
+
+
+def writer_rate(events: int = 30_000) -> dict[str, float]:
+    """What the recording process can write, in events a second, with and without Foxglove's
+    view (the same work the child does: records made, transforms computed, chunks compressed,
+    file written). A fleet of 100 robots at 50 Hz asks for ~15,000 events a second."""
+    from arena.recording.foxglove import Twins
+    from arena.recording.mcap_file import FileSeries, McapFileWriter
+    from arena.recording.writer_process import items_of_events, pack_events
+    from arena.robot.events import JointStatesReceived, TargetsSent
+    from arena.robot.model import load_robot_model
+
+    names = load_robot_model("so-arm100").joint_names
+    robots = {"arm": {"robot_type": "so-arm100"}}
+    slices = []
+    for start in range(0, events, 32):
+        part = []
+        for i in range(start, min(start + 32, events)):
+            joints = {name: (i % 90) * 0.5 for name in names}
+            event = (
+                TargetsSent("arm", joints, i * 0.01, 0.0)
+                if i % 2
+                else JointStatesReceived("arm", "slave", joints, i * 0.01, 0.0)
+            )
+            part.append(("arm", "targets" if i % 2 else "joint_states", event, i * 10_000_000))
+        slices.append(pack_events(part))
+
+    def rate(foxglove: bool) -> float:
+        with tempfile.TemporaryDirectory() as scratch:
+            writer = McapFileWriter(FileSeries(Path(scratch), {}, foxglove=foxglove))
+            writer.robots.update(robots)
+            twins = Twins(writer.robots) if foxglove else None
+            if twins is not None:
+                writer.first_in_file = twins.introduce
+                twins.twin("arm")  # the model loads once, before the clock starts
+            start = time.perf_counter()
+            for begin in range(0, len(slices), 16):  # batches as the recorder sends them
+                writer.write(items_of_events(slices[begin : begin + 16], twins), flush=False)
+            writer.close()
+            return events / (time.perf_counter() - start)
+
+    plain, viewed = rate(False), rate(True)
+    return {
+        "writer_events_per_s": plain,
+        "writer_foxglove_events_per_s": viewed,
+        "writer_foxglove_ratio": viewed / plain,
+    }

@@ -14,6 +14,7 @@ look the same.
 
 from __future__ import annotations
 
+import functools
 import sys
 import xml.etree.ElementTree as ElementTree
 from collections.abc import Mapping
@@ -102,7 +103,6 @@ class Twin:
         self._joints = {spec.name: spec for spec in model.joints}
         # URDF radians of the joints last heard of, per tree (a partial update keeps the rest)
         self._values: dict[str, dict[str, float]] = {tree: {} for tree in TREES}
-        self._scene: bytes | None = None
 
     def frame(self, tree: str, link: str) -> str:
         """The frame id of a link in one tree."""
@@ -126,12 +126,8 @@ class Twin:
 
     def scene(self, ns: int) -> bytes:
         """The 3D model as an encoded `SceneUpdate`: meshes that follow the real tree's links
-        and a skeleton (joint to joint) that follows the virtual one."""
-        if self._scene is None:
-            self._scene = self._build_scene(ns)
-        return self._scene
-
-    def _build_scene(self, ns: int) -> bytes:
+        and a skeleton (joint to joint) that follows the virtual one. Made when asked (once
+        per file, or per new viewer), not kept: a few MB per robot."""
         stamp = timestamp(ns)
         meshes: dict[str, list[ModelPrimitive]] = {}
         for visual in visuals(self.model.urdf_path):
@@ -142,7 +138,7 @@ class Twin:
                     color=_MESH_COLOR,
                     override_color=True,
                     media_type="model/stl",
-                    data=visual.path.read_bytes(),
+                    data=_mesh(visual.path),
                 )
             )
         bones: dict[str, list[Point3]] = {}
@@ -193,6 +189,12 @@ class Twin:
             return [("tf", self.transforms("real", event.joints, ns))]
         line = self.log(event, ns)
         return [] if line is None else [("log", line)]
+
+
+@functools.lru_cache(maxsize=64)
+def _mesh(path: Path) -> bytes:
+    """A mesh file's bytes, read once for every robot of its type."""
+    return path.read_bytes()
 
 
 def _log_line(event: RobotEvent) -> tuple[LogLevel, str] | None:
@@ -272,12 +274,18 @@ ViewItem = tuple[str, str, bytes, int]
 class Twins:
     """The twin of every robot a recording names, made on first use from its robot type.
 
-    `robots` is the recording's robot metadata (id -> {"robot_type": ...}); a robot whose type
-    cannot be loaded here is recorded without Foxglove's view (and said once on stderr).
+    `robots` is the recording's robot metadata (id -> {"robot_type": ...}); `models` holds the
+    robots' models where the recorder sent them (else the type is loaded by name). A robot
+    whose type cannot be loaded is recorded without Foxglove's view (said once on stderr).
     """
 
-    def __init__(self, robots: Mapping[str, Mapping[str, str]]) -> None:
+    def __init__(
+        self,
+        robots: Mapping[str, Mapping[str, str]],
+        models: Mapping[str, RobotModel] | None = None,
+    ) -> None:
         self.robots = robots
+        self.models = {} if models is None else models
         self._twins: dict[str, Twin | None] = {}
 
     def twin(self, robot_id: str) -> Twin | None:
@@ -287,11 +295,12 @@ class Twins:
         return self._twins[robot_id]
 
     def _make(self, robot_id: str) -> Twin | None:
+        model = self.models.get(robot_id)
         robot_type = self.robots.get(robot_id, {}).get("robot_type")
-        if robot_type is None:
+        if model is None and robot_type is None:
             return None
         try:
-            return Twin(robot_id, load_robot_model(robot_type))
+            return Twin(robot_id, model or load_robot_model(str(robot_type)))
         except (ArenaError, OSError, ValueError, ElementTree.ParseError) as exc:
             print(f"arena: no 3D view of {robot_id!r} in recordings: {exc}", file=sys.stderr)
             return None

@@ -148,6 +148,7 @@ class Recorder:
     def follow(self, robot: Robot) -> None:
         """Record this robot from now on (its type and URDF go into the file's metadata)."""
         urdf = robot.model.urdf_path.read_text(encoding="utf-8")
+        self.writer.models[robot.robot_id] = robot.model
         self.writer.robots[robot.robot_id] = {
             "robot_type": robot.model.robot_type,
             "name": robot.name,

@@ -12,7 +12,9 @@ pickle), one request and one reply at a time:
   first frame      the `FileSeries`, no reply
   ("write", items, robots, flush)   append records (`items` packed with msgpack, which costs
                                     the parent a third of what pickle does); `robots` holds
-                                    metadata of robots new to the child; `flush` closes the
+                                    (metadata, model or None) of robots new to the child (the
+                                    model, for Foxglove's view, spares the child loading the
+                                    robot type, yourdfpy and all); `flush` closes the
                                     chunk and hands it to the OS
   ("events", slices, robots, flush)  the same from robot events: `slices` are msgpack lists of
                                     (robot id, kind, event, log time); the child makes the
@@ -39,6 +41,7 @@ import msgspec
 
 from arena.recording.mcap_file import FileSeries, Item, McapFileWriter
 from arena.recording.records import EVENT_TYPES, record_of
+from arena.robot.model import RobotModel
 
 if TYPE_CHECKING:
     from arena.recording.foxglove import Twins
@@ -101,6 +104,7 @@ class McapWriterProcess:
         self.series = series
         self.folder = series.folder
         self.robots: dict[str, dict[str, str]] = {}  # robot id -> metadata, set by the recorder
+        self.models: dict[str, RobotModel] = {}  # robot id -> model, set by the recorder
         self.path: Path | None = None
         self.files: list[Path] = []
         self.messages = 0
@@ -126,7 +130,11 @@ class McapWriterProcess:
 
     def _append(self, kind: str, payload: object, flush: bool) -> None:
         with self._lock:
-            new = {r: meta for r, meta in self.robots.items() if r not in self._robots_sent}
+            new = {
+                r: (meta, self.models.get(r))
+                for r, meta in self.robots.items()
+                if r not in self._robots_sent
+            }
             self._request((kind, payload, new, flush))
             self._robots_sent.update(new)
 
@@ -206,10 +214,11 @@ def serve(requests: IO[bytes], replies: IO[bytes]) -> None:
     series: FileSeries = receive_frame(requests)
     writer = McapFileWriter(series)
     twins = None
+    models: dict[str, RobotModel] = {}
     if series.foxglove:
         from arena.recording.foxglove import Twins  # the SDK loads only when it is used
 
-        twins = Twins(writer.robots)
+        twins = Twins(writer.robots, models)
         writer.first_in_file = twins.introduce
     try:
         while True:
@@ -220,7 +229,10 @@ def serve(requests: IO[bytes], replies: IO[bytes]) -> None:
             error = None
             try:
                 if kind in ("write", "events"):
-                    writer.robots.update(robots)
+                    for robot_id, (metadata, model) in robots.items():
+                        writer.robots[robot_id] = metadata
+                        if model is not None:
+                            models[robot_id] = model
                     if kind == "write":
                         unpacked = _unpack_items(items)
                     else:
