@@ -25,7 +25,7 @@ from arena.robot.motion import Command
 from arena.server.websockets import _burst_continues, _RobotEventForwarder, _slave_writer
 from arena.server.ws_frames import encode_frame
 from tests.conftest import RunningServer
-from tests.raw_websocket import OP_TEXT, RawWebSocket
+from tests.raw_websocket import OP_CLOSE, OP_TEXT, RawWebSocket
 
 StartServer = Callable[..., Awaitable[RunningServer]]
 
@@ -705,3 +705,20 @@ async def test_a_looping_sequence_of_no_duration_is_refused_over_the_wire(
         assert error["data"]["code"] == "INVALID_VALUE" and "duration" in error["data"]["message"]
         # Nothing plays; the master still commands.
         assert (await command(master, {"Rotation": 3}))["data"]["status"] == "accepted"
+
+
+async def test_after_the_close_handshake_the_server_closes_the_connection_first(
+    server: RunningServer, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # RFC 6455 7.1.1: the server closes TCP first. A client that waits for that (as the
+    # `websockets` library does) must not wait out the server's close timeout, which is made
+    # endless here: only a server that waits for the client's end of stream would hang.
+    monkeypatch.setattr("arena.server.listener.CLOSE_TIMEOUT", 10_000.0)
+    viewer = await RawWebSocket.connect(server.url, "/ws/robots/demo-arm/state")
+    await viewer.send_frame(OP_CLOSE, (1000).to_bytes(2, "big"))
+    with trio.fail_after(30):
+        while (frame := await viewer.receive_frame()) is not None and frame.opcode != OP_CLOSE:
+            pass  # the state sent on connect, then the echoed close
+        assert frame is not None and frame.close_code == 1000
+        assert await viewer.receive_frame() is None  # and then the end of the stream
+    await viewer.aclose()

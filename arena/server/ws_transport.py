@@ -352,6 +352,12 @@ class WebSocket:
             with contextlib.suppress(WebSocketClosed):
                 while not self._failed:
                     await self.receive()
+            if not self._failed:
+                # The peer's close frame (or the end of its stream) is in: the server closes
+                # the TCP connection first (RFC 6455 7.1.1). Waiting for the peer's end of
+                # stream here kept every client that waits for ours (`websockets` does) for
+                # the whole timeout.
+                return
             with contextlib.suppress(trio.BrokenResourceError, trio.ClosedResourceError):
                 while not self.broken and await self._stream.receive_some(RECEIVE_BYTES):
                     pass
