@@ -186,6 +186,31 @@ def main(argv: list[str] | None = None) -> int:
     )
     layout.add_argument("--recording", help="show the robots of this recording")
     layout.add_argument("--robot-type", default=None, help="whose joints to plot (so-arm100)")
+    stop = commands.add_parser(
+        "estop-test", help="stop a robot every way it can be stopped, and time each stop"
+    )
+    stop.add_argument("--url", help="the server, e.g. http://127.0.0.1:8080")
+    stop.add_argument("--robot", help="the robot to stop (it must have a slave that moves)")
+    stop.add_argument("--trials", type=int, default=5, help="trials per stop path (5)")
+    stop.add_argument(
+        "--paths",
+        help="comma-separated stop paths (default: all; heartbeat only if the server drops a "
+        "silent master within 10 s): rest, global, master-message, master-cut, heartbeat, "
+        "slave-error, group",
+    )
+    stop.add_argument("--api-key", help="an API key, if the server has keys")
+    stop.add_argument("--settle", type=float, default=1.0, help="seconds watched after a stop")
+    stop.add_argument(
+        "--threshold", type=float, default=0.5, help="degrees within which a joint is at rest"
+    )
+    stop.add_argument("--json", help="write every figure and trial to this file")
+    stop.add_argument(
+        "--plot", help="draw position against time around each stop (needs matplotlib)"
+    )
+    stop.add_argument("--limits", help="a TOML file of limits; a breach exits with 1")
+    stop.add_argument(
+        "--offline", metavar="FILE", help="check a recording's e-stops instead of a server"
+    )
     schemas = commands.add_parser("schemas", help="write the JSON Schemas of the wire messages")
     schemas.add_argument("--out", default="specs/schemas", help="folder to write them into")
     bench = commands.add_parser("bench", help="run the benchmarks and print medians")
@@ -225,6 +250,8 @@ def main(argv: list[str] | None = None) -> int:
             except ArenaError as error:
                 print(f"arena {args.command}: {error.message}", file=sys.stderr)
                 return 2
+        if args.command == "estop-test":
+            return _estop_test(args)
         if args.command == "foxglove-layout":
             from arena.protocol.errors import ArenaError
 
@@ -257,6 +284,75 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         return 130
     return 0
+
+
+def _estop_test(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from arena.estop_test import report
+    from arena.estop_test.analysis import Trial, load_limits, recorded_stops
+
+    try:
+        limits = load_limits(Path(args.limits)) if args.limits else {}
+    except (OSError, ValueError) as exc:
+        print(f"arena estop-test: limits {args.limits}: {exc}", file=sys.stderr)
+        return 2
+    results: dict[str, list[Trial]]
+    if args.offline:
+        from arena.protocol.errors import ArenaError
+        from arena.recording.mcap_file import read_recording
+
+        try:
+            recording = read_recording(args.offline)
+        except ArenaError as error:
+            print(f"arena estop-test: {error.message}", file=sys.stderr)
+            return 2
+        found = recorded_stops(
+            recording.messages, threshold=args.threshold, window=max(args.settle, 0.5)
+        )
+        results = {trial.path: [trial] for trials in found.values() for trial in trials}
+        if not results:
+            print(f"arena estop-test: no e-stop in {args.offline}")
+    else:
+        import httpx
+
+        from arena.estop_test.live import EStopTestError, Settings, run
+
+        if not args.url or not args.robot:
+            print("arena estop-test: give --url and --robot (or --offline FILE)", file=sys.stderr)
+            return 2
+        settings = Settings(
+            url=args.url,
+            robot=args.robot,
+            trials=args.trials,
+            paths=tuple(p.strip() for p in (args.paths or "").split(",") if p.strip()),
+            api_key=args.api_key,
+            settle=args.settle,
+            threshold=args.threshold,
+        )
+        try:
+            results, notes = run(settings)
+        except (EStopTestError, OSError, httpx.HTTPError) as exc:
+            print(f"arena estop-test: {exc}", file=sys.stderr)
+            return 2
+        for note in notes:
+            print(f"note: {note}")
+    print(report.table(results))
+    breaches = report.check(results, limits)
+    for breach in breaches:
+        print(f"BREACH {breach}")
+    if args.json:
+        report.write_json(Path(args.json), report.as_json(results, breaches))
+    if args.plot and results:
+        try:
+            print(report.plot(results, Path(args.plot)))
+        except ImportError:
+            print(
+                "arena estop-test: --plot needs matplotlib (pip install 'arena[plot]')",
+                file=sys.stderr,
+            )
+            return 2
+    return 1 if breaches else 0
 
 
 def _foxglove_layout(args: argparse.Namespace) -> int:

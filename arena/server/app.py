@@ -148,6 +148,7 @@ def _register_routes(app: ArenaApp) -> None:
             "commands": _sum_counters(r.command_counts for r in robots),
             "estops": sum(r.estop_count for r in robots),
             "auth": app.arena_config.auth_enabled,
+            "heartbeat_timeout": app.arena_config.heartbeat_timeout,
             "recording": app.recorder.status(),
             "foxglove": None
             if app.foxglove is None

@@ -1,0 +1,233 @@
+"""`arena estop-test`: the analysis on made-up evidence, the live test against a real server
+(mock slave and the simulated servo bus, both stop policies), and the check of a recording."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Awaitable, Callable, Iterator
+from pathlib import Path
+
+import pytest
+import trio
+from trio.testing import MockClock
+
+from arena import cli
+from arena.estop_test.analysis import (
+    Trial,
+    breaches,
+    joint_stops,
+    load_limits,
+    percentile,
+    recorded_stops,
+    stop_trial,
+    summarize,
+)
+from arena.estop_test.live import PATHS, Settings, run
+from arena.feetech.sim_pty import PtySimBus
+from arena.recording.mcap_file import RecordedMessage, read_recording
+from arena.session import record_scenario
+from tests.conftest import RunningServer
+from tests.hardware import running_sim, servo_torque
+from tests.test_recording import session_scenario
+
+StartServer = Callable[..., Awaitable[RunningServer]]
+
+
+def decelerating(trigger: float = 1.0) -> list[tuple[float, dict[str, float]]]:
+    """A joint at 10 deg moving up at 100 deg/s until 0.05 s after the trigger, then braking
+    over 0.05 s with a 0.3 deg overshoot that settles back; another joint that never moves."""
+    samples = [(trigger - 0.02, {"a": 8.0, "b": 1.0}), (trigger, {"a": 10.0, "b": 1.0})]
+    samples += [
+        (trigger + 0.02, {"a": 12.0, "b": 1.0}),
+        (trigger + 0.05, {"a": 15.0, "b": 1.0}),
+        (trigger + 0.08, {"a": 15.8, "b": 1.0}),
+        (trigger + 0.10, {"a": 15.5, "b": 1.0}),
+        (trigger + 0.12, {"a": 15.45, "b": 1.0}),
+    ]
+    return samples
+
+
+def test_stopping_time_and_distance_from_joint_samples() -> None:
+    stops = joint_stops(decelerating(), 1.0, threshold=0.1, until=2.0)
+    # a: last outside 0.1 deg of the final 15.45 is 15.8 at +0.08; at rest from +0.10
+    assert stops["a"].time_ms == pytest.approx(100.0)
+    assert stops["a"].distance_deg == pytest.approx(5.8)  # overshoot counts
+    assert stops["a"].at_rest
+    assert stops["b"].time_ms == 0.0 and stops["b"].distance_deg == 0.0
+    # watched too briefly after rest: still counts as moving
+    assert not joint_stops(decelerating(), 1.0, threshold=0.1, until=1.15)["a"].at_rest
+
+
+def test_a_trial_says_what_went_out_and_moved_after_the_stop() -> None:
+    trial = stop_trial(
+        "rest",
+        1.0,
+        estopped=1.004,
+        notice=1.003,
+        targets=[0.98, 0.99, 1.001, 1.002],
+        samples=decelerating(),
+        threshold=0.1,
+        until=2.0,
+    )
+    assert trial.estopped_ms == pytest.approx(4.0)
+    assert trial.stop_notice_ms == pytest.approx(3.0)
+    assert trial.last_target_ms == pytest.approx(2.0)
+    assert trial.sent_after_stop == 0 and not trial.moved_after_stop and trial.error is None
+    assert trial.stopping_time_ms == pytest.approx(100.0)
+    assert trial.trace[-1] == (pytest.approx(1.0), {"a": 15.45, "b": 1.0})  # held to the end
+    late = stop_trial(
+        "rest",
+        1.0,
+        estopped=1.004,
+        notice=1.003,
+        targets=[1.002, 1.5],
+        samples=decelerating(),
+        threshold=0.1,
+        until=2.0,
+    )
+    assert late.sent_after_stop == 1 and late.moved_after_stop
+    never = stop_trial(
+        "heartbeat", 1.0, estopped=None, notice=None, targets=[], samples=[], threshold=0.1,
+        until=2.0,
+    )  # fmt: skip
+    assert never.error is not None and "never" in never.error
+
+
+def test_percentiles_limits_and_breaches(tmp_path: Path) -> None:
+    assert percentile([5.0, 1.0, 3.0, 2.0, 4.0], 50) == 3.0
+    assert percentile([float(v) for v in range(1, 101)], 99) == 99.0
+    trials = [Trial("rest", estopped_ms=v, stop_notice_ms=v - 0.5) for v in (2.0, 3.0, 9.0)]
+    assert summarize(trials)["estopped_ms"] == {"p50": 3.0, "p99": 9.0, "max": 9.0}
+    limits_file = tmp_path / "limits.toml"
+    limits_file.write_text(
+        '["*"]\n"estopped_ms.p99" = 10\n"stop_notice_ms.max" = 100\n'
+        '[rest]\n"estopped_ms.p50" = 2.5\n'
+    )
+    limits = load_limits(limits_file)
+    found = breaches("rest", trials, limits)
+    assert [(b.what, b.value, b.limit) for b in found] == [("estopped_ms.p50", 3.0, 2.5)]
+    assert breaches("global", trials, limits) == []  # only the "*" limits, all met
+    trials.append(Trial("rest", estopped_ms=1.0, sent_after_stop=2))
+    assert any(b.what == "moved_after_stop" for b in breaches("global", trials, {}))
+    for bad in ('[rest]\n"speed.p50" = 1\n', '[rest]\n"estopped_ms.p42" = 1\n', "x = 1\n"):
+        limits_file.write_text(bad)
+        with pytest.raises(ValueError):
+            load_limits(limits_file)
+
+
+async def test_every_stop_path_against_the_mock_slave(
+    start_server: StartServer, tmp_path: Path
+) -> None:
+    server = await start_server(demo=True, heartbeat_timeout=0.5, heartbeat_interval=0.2)
+    settings = Settings(url=server.url, robot="demo-arm", trials=1, settle=0.4, lead=0.3)
+    results, notes = await trio.to_thread.run_sync(run, settings)
+    assert list(results) == list(PATHS) and notes == []  # heartbeat too: the server is quick
+    for path, trials in results.items():
+        for trial in trials:
+            assert trial.error is None, (path, trial.error)
+            assert trial.estopped_ms is not None and trial.stop_notice_ms is not None
+            assert trial.sent_after_stop == 0 and not trial.moved_after_stop, path
+            assert set(trial.joints) >= {"Rotation"}
+    # a silent master is dropped only after the server's heartbeat timeout (0.5 s)
+    (silent,) = results["heartbeat"]
+    assert silent.estopped_ms is not None and silent.estopped_ms > 400
+    async with server.client() as http:
+        assert (await http.get("/api/groups")).json()["groups"] == []  # its group is gone
+        status = (await http.get("/api/robots/demo-arm/status")).json()
+        assert status["state"] != "estopped"  # left reset
+
+
+async def test_the_command_line_writes_json_and_fails_on_a_breach(
+    start_server: StartServer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    server = await start_server(demo=True)
+    limits = tmp_path / "limits.toml"
+    limits.write_text('["*"]\n"estopped_ms.max" = 0.001\n')  # nothing stops that fast
+    output = tmp_path / "stops.json"
+    args = ["estop-test", "--url", server.url, "--robot", "demo-arm", "--trials", "2"]
+    args += ["--paths", "rest,master-message", "--settle", "0.3", "--json", str(output)]
+    code = await trio.to_thread.run_sync(cli.main, [*args, "--limits", str(limits)])
+    printed = capsys.readouterr().out
+    assert code == 1 and "BREACH rest: estopped_ms.max" in printed
+    assert "note: heartbeat left out" not in printed  # only when every path is asked for
+    report = json.loads(output.read_text())
+    assert set(report["paths"]) == {"rest", "master-message"} and not report["passed"]
+    for entry in report["paths"].values():
+        assert len(entry["trials"]) == 2 and entry["moved_after_stop"] is False
+        assert set(entry["summary"]["estopped_ms"]) == {"p50", "p99", "max"}
+    wrong = await trio.to_thread.run_sync(
+        cli.main, ["estop-test", "--url", server.url, "--robot", "nobody"]
+    )
+    assert wrong == 2 and "nobody" in capsys.readouterr().err
+
+
+@pytest.fixture
+def sim(tmp_path: Path) -> Iterator[PtySimBus]:
+    yield from running_sim(tmp_path)
+
+
+@pytest.mark.parametrize("policy", ["hold", "torque-off"])
+async def test_both_stop_policies_on_the_simulated_bus(
+    start_server: StartServer, sim: PtySimBus, policy: str
+) -> None:
+    server = await start_server()
+    async with server.client() as http:
+        made = await http.post("/api/robots", json={"id": "arm", "robot_type": "so-arm100"})
+        assert made.status_code == 201
+        slave = {"type": "usb-slave", "port": str(sim.link), "estop": policy}
+        assert (await http.post("/api/robots/arm/slaves", json=slave)).status_code == 201
+    torque_after_stop: list[dict[int, int]] = []
+
+    def test_and_look() -> tuple[dict[str, list[Trial]], list[str]]:
+        settings = Settings(
+            url=server.url, robot="arm", trials=2, paths=("master-message",), settle=0.5
+        )
+        return run(settings)
+
+    results, _ = await trio.to_thread.run_sync(test_and_look)
+    (trials,) = results.values()
+    for trial in trials:
+        assert trial.error is None and not trial.moved_after_stop
+        # the servos' own positions came back from the bus and were seen coming to rest
+        assert trial.joints["Rotation"].at_rest and trial.stopping_distance_deg is not None
+    async with server.client() as http:
+        await http.post("/api/robots/arm/estop", json={"reason": "look at the servos"})
+        reply = await http.get("/api/robots/arm/status")
+        assert reply.json()["state"] == "estopped"
+    deadline = trio.current_time() + 30  # the slave applies the policy on its next bus job
+    while trio.current_time() < deadline:
+        torque_after_stop.append(servo_torque(sim))
+        if set(torque_after_stop[-1].values()) == ({0} if policy == "torque-off" else {1}):
+            break
+        await trio.sleep(0.02)
+    assert set(torque_after_stop[-1].values()) == ({0} if policy == "torque-off" else {1})
+
+
+async def test_a_recording_is_checked_for_motion_after_each_stop(
+    autojump_clock: MockClock, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (path,) = await record_scenario(tmp_path, session_scenario)
+    recording = read_recording(path)
+    found = recorded_stops(recording.messages, threshold=0.5)
+    (stops,) = found.values()
+    (stop,) = stops
+    assert stop.path == "arm: test stop" and stop.estopped_ms == 0.0
+    assert stop.sent_after_stop == 0 and not stop.moved_after_stop
+    assert cli.main(["estop-test", "--offline", str(path)]) == 0
+    assert "arm: test stop" in capsys.readouterr().out
+    # the same stop with a target slipped in after it is caught
+    estop = next(
+        m for m in recording.messages if m.kind == "state" and m.data["mode"] == "estopped"
+    )
+    t = float(estop.data["t"]) + 0.1
+    forged = RecordedMessage(
+        f"/robots/{estop.robot_id}/targets",
+        estop.robot_id,
+        "targets",
+        estop.log_time + 100_000_000,
+        {"t": t, "joints": {"Rotation": 1.0}},
+    )
+    index = recording.messages.index(estop) + 1
+    messages = [*recording.messages[:index], forged, *recording.messages[index:]]
+    (caught,) = recorded_stops(messages, threshold=0.5)["arm"]
+    assert caught.sent_after_stop == 1 and caught.moved_after_stop
