@@ -27,9 +27,9 @@ from trio_websocket import WebSocketConnection, open_websocket_url
 
 from arena import cli
 from arena.protocol.errors import ArenaError, ErrorCode
-from arena.recording.foxglove import visuals
 from arena.recording.mcap_file import read_recording, write_recording
 from arena.robot.kinematics import Kinematics, to_matrix
+from arena.robot.meshes import visuals
 from arena.robot.model import load_robot_model
 from arena.server.config import ServerConfig
 from arena.session import record_scenario

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import gc
+import math
 import tempfile
 import time
 from pathlib import Path
@@ -79,6 +80,47 @@ def core_rate(count: int = 20_000) -> dict[str, float]:
     for i, command in enumerate(commands):
         core.command(None, command, i * 0.01)
     return {"core_commands_per_s": count / (time.perf_counter() - start)}
+
+
+def guard_cost(count: int = 20_000) -> dict[str, float]:
+    """The collision guard's cost per command: a teleoperation stream (every joint on its own
+    slow sine, 100 commands a second) through `RobotCore.command` with the guard and without,
+    p50 / p99 of each call in microseconds."""
+    from arena.robot.core import RobotCore
+    from arena.robot.model import load_robot_model
+    from arena.robot.motion import Command
+
+    model = load_robot_model("so-arm100")
+    policy = dataclasses.replace(model.safety, command_rate=1e12, command_burst=10**9)
+    names = model.joint_names
+    commands = [
+        Command.of({n: 12.0 * math.sin(i * 0.01 * (k + 1) * 0.7) for k, n in enumerate(names)})
+        for i in range(count)
+    ]
+
+    def timed(guarded: bool) -> list[float]:
+        core = RobotCore(model, 0.0, policy)
+        if not guarded:
+            core.guard = None
+        costs = []
+        for i, command in enumerate(commands):
+            start = time.perf_counter_ns()
+            result, _ = core.command(None, command, i * 0.01)
+            costs.append((time.perf_counter_ns() - start) / 1000.0)
+            assert result.accepted, result.message
+        return sorted(costs)
+
+    with_guard, without = timed(True), timed(False)
+
+    def at(costs: list[float], q: float) -> float:
+        return costs[min(len(costs) - 1, int(q * len(costs)))]
+
+    return {
+        "guard_command_p50_us": at(with_guard, 0.5),
+        "guard_command_p99_us": at(with_guard, 0.99),
+        "unguarded_command_p50_us": at(without, 0.5),
+        "unguarded_command_p99_us": at(without, 0.99),
+    }
 
 
 def writer_rate(events: int = 30_000) -> dict[str, float]:

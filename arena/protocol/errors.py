@@ -17,6 +17,7 @@ class ErrorCode(enum.StrEnum):
     NOT_OWNER = "NOT_OWNER"
     ESTOPPED = "ESTOPPED"
     RATE_LIMITED = "RATE_LIMITED"
+    COLLISION = "COLLISION"  # the move would bring links together or into the workspace's walls
     TAKEN_OVER = "TAKEN_OVER"
     MASTER_LOST = "MASTER_LOST"
     SLAVE_LOST = "SLAVE_LOST"

@@ -18,7 +18,6 @@ import functools
 import sys
 import xml.etree.ElementTree as ElementTree
 from collections.abc import Mapping
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -50,8 +49,9 @@ from arena.robot.events import (
     StateChanged,
     TargetsSent,
 )
-from arena.robot.kinematics import Kinematics, from_rpy, parse_triple
+from arena.robot.kinematics import Kinematics
 from arena.robot.kinematics import Pose as KinematicPose
+from arena.robot.meshes import visuals
 from arena.robot.model import RobotModel, load_robot_model
 from arena.robot.safety import Mode
 
@@ -80,16 +80,6 @@ def schema(kind: str) -> tuple[str, str, bytes]:
 def timestamp(ns: int) -> Timestamp:
     """A Foxglove timestamp from nanoseconds since the epoch."""
     return Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
-
-
-@dataclass(frozen=True, slots=True)
-class Visual:
-    """One mesh of a link: where it sits on the link, its file and scale."""
-
-    link: str
-    origin: KinematicPose
-    path: Path
-    scale: tuple[float, float, float]
 
 
 class Twin:
@@ -235,36 +225,6 @@ def _frame_transform(stamp: Timestamp, parent: str, child: str, pose: KinematicP
 def _pose(pose: KinematicPose) -> Pose:
     (qx, qy, qz, qw), (x, y, z) = pose
     return Pose(position=Vector3(x=x, y=y, z=z), orientation=Quaternion(x=qx, y=qy, z=qz, w=qw))
-
-
-def visuals(urdf_path: Path) -> list[Visual]:
-    """The mesh visuals of a URDF's links; meshes are found beside the URDF (`package://`
-    prefixes are dropped), and a mesh that is missing is left out."""
-    found: list[Visual] = []
-    root = ElementTree.parse(urdf_path).getroot()
-    for link in root.iter("link"):
-        for visual in link.iter("visual"):
-            mesh = visual.find("geometry/mesh")
-            if mesh is None or not mesh.get("filename"):
-                continue
-            name = str(mesh.get("filename"))
-            if name.startswith("package://"):
-                name = name.removeprefix("package://").split("/", 1)[-1]
-            path = (urdf_path.parent / name).resolve()
-            if not path.is_file():
-                continue
-            origin = visual.find("origin")
-            xyz = parse_triple(None if origin is None else origin.get("xyz"), (0.0, 0.0, 0.0))
-            rpy = parse_triple(None if origin is None else origin.get("rpy"), (0.0, 0.0, 0.0))
-            found.append(
-                Visual(
-                    link=link.get("name", ""),
-                    origin=(from_rpy(*rpy), xyz),
-                    path=path,
-                    scale=parse_triple(mesh.get("scale"), (1.0, 1.0, 1.0)),
-                )
-            )
-    return found
 
 
 #: One message to write: (robot id, kind, encoded message, log time in ns), as `mcap_file`.

@@ -23,6 +23,7 @@ import trio
 
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot import safety
+from arena.robot.collision import Workspace
 from arena.robot.core import MANUAL_SOURCE, RobotCore, Step
 from arena.robot.events import (
     CommandHandled,
@@ -50,6 +51,7 @@ from arena.robot.inbox import (
     Reply,
     ShutdownMsg,
     StatesMsg,
+    WorkspaceMsg,
 )
 from arena.robot.links import MasterDriver, MasterLink, SlaveDriver, SlaveLink
 from arena.robot.mailbox import EventQueue
@@ -166,6 +168,17 @@ class Robot:
     async def reset(self) -> safety.Outcome:
         """Leave the e-stop. Causes no motion by itself."""
         return await self._event(safety.Reset())
+
+    @property
+    def workspace(self) -> Workspace:
+        """Where the arm may go (the collision guard's floor and keep-out boxes)."""
+        return self.core.workspace
+
+    async def set_workspace(self, workspace: Workspace) -> None:
+        """Change where the arm may go, from the next command on."""
+        reply: Reply[None] = Reply()
+        await self._post(WorkspaceMsg(workspace, reply))
+        await reply.wait()
 
     async def attach_master(
         self, driver: MasterDriver, *, takeover: bool | None = None, master_id: str | None = None
@@ -371,6 +384,9 @@ class Robot:
             self._on_link(message, now)
         elif isinstance(message, DriverEndedMsg):
             self._on_driver_ended(message, now)
+        elif isinstance(message, WorkspaceMsg):
+            self.core.workspace = message.workspace  # checked from the next command on
+            message.reply.set(None)
 
     # -- handlers -----------------------------------------------------------------------------
 

@@ -8,11 +8,22 @@ Property tests drive this class directly.
 
 from __future__ import annotations
 
+import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.robot import collision
 from arena.robot.model import RobotModel, SafetyPolicy
-from arena.robot.motion import Command, CommandResult, MotionLimiter, RateLimiter, resolve_command
+from arena.robot.motion import (
+    Clamp,
+    Command,
+    CommandResult,
+    MotionLimiter,
+    RateLimiter,
+    ResolvedGoal,
+    resolve_command,
+)
 from arena.robot.safety import (
     Allowed,
     DetachMaster,
@@ -55,6 +66,14 @@ class RobotCore:
             loss_policy=self.policy.loss_policy, estop_severity=self.policy.estop_severity
         )
         self.motion = MotionLimiter(model, now)
+        #: The collision guard (None for a robot type without meshes) and its workspace.
+        self.guard = collision.for_model(model)
+        self.workspace = model.workspace
+        #: Moves stopped on the way because an emitted target would have collided.
+        self.collision_stops = 0
+        self._to_urdf = tuple((j.name, j.urdf_name, j.neutral) for j in model.joints)
+        self._checked: dict[str, float] | None = None  # the last goal pose found safe
+        self._sent = self.motion.positions  # the last targets emitted (where the arm goes)
         self._rates: dict[str, RateLimiter] = {}
         self._last_master_event: MasterCommand | None = None  # reused while one master commands
 
@@ -108,17 +127,71 @@ class RobotCore:
         except ArenaError as exc:
             refusal = Refused(exc.code, exc.message)
             return CommandResult.refused(exc.code, exc.message), Step(refusal)
-        self.motion.set_goals(goals, command.duration, now)
-        targets = self.motion.advance(now)
         message = "clamped to the joint limits" if clamps else ""
+        if self.guard is not None:
+            goals, unsafe, short = self._guard(goals)
+            if unsafe is not None:
+                return CommandResult.refused(unsafe.code, unsafe.message), Step(unsafe)
+            if short:
+                clamps = [*clamps, *short]
+                message = "stopped short of a collision"
+        self.motion.set_goals(goals, command.duration, now)
+        targets = self._advance(now)
         result = CommandResult(True, None, message, tuple(clamps)) if clamps else _ACCEPTED
         return result, Step(outcome, targets)
+
+    def _urdf(self, degrees: Mapping[str, float]) -> dict[str, float]:
+        return {
+            urdf: neutral + math.radians(degrees[name]) for name, urdf, neutral in self._to_urdf
+        }
+
+    def _guard(
+        self, goals: list[ResolvedGoal]
+    ) -> tuple[list[ResolvedGoal], Refused | None, list[Clamp]]:
+        """Check the way from the current targets to the new goals: the goals (or, stopping
+        short, the last safe ones with what was cut as clamps), or a refusal."""
+        assert self.guard is not None
+        start = self._sent
+        end = self.motion.goals
+        end.update((goal.name, goal.value) for goal in goals)
+        hit, safe = self.guard.path_hit(self._urdf(start), self._urdf(end), self.workspace)
+        if hit is None:
+            self._checked = end
+            return goals, None, []
+        if self.workspace.policy != "stop-short" or safe <= 0.0:
+            names = ", ".join(goal.name for goal in goals)
+            message = f"Moving {names} there would bring {hit} together; command refused."
+            return goals, Refused(ErrorCode.COLLISION, message), []
+        short, clamps = [], []
+        for goal in goals:
+            value = start[goal.name] + (goal.value - start[goal.name]) * safe
+            short.append(ResolvedGoal(goal.name, value, goal.speed))
+            if value != goal.value:
+                clamps.append(Clamp(goal.name, goal.value, value))
+        self._checked = {**end, **{goal.name: goal.value for goal in short}}
+        return short, None, clamps
+
+    def _advance(self, now: float) -> dict[str, float] | None:
+        """The limiter's next targets, unless they would collide: then the motion stops at the
+        targets already sent (a joint-space path checked at its goal can still bend into
+        something while joints of different speeds move)."""
+        if self.guard is None:
+            return self.motion.advance(now)
+        targets = self.motion.advance(now)
+        if targets is None:
+            return None
+        if targets != self._checked and self.guard.hit(self._urdf(targets), self.workspace):
+            self.motion.stop_at(self._sent)
+            self.collision_stops += 1
+            return None
+        self._sent = targets
+        return targets
 
     def tick(self, now: float) -> dict[str, float] | None:
         """Advance interpolation; returns new targets, or None if nothing moved."""
         if self.state.mode is Mode.ESTOPPED:
             return None
-        return self.motion.advance(now)
+        return self._advance(now)
 
     def next_tick(self, now: float) -> float | None:
         """When the next control tick is due, or None while nothing is moving."""

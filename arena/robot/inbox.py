@@ -11,6 +11,7 @@ import trio
 
 from arena.protocol.errors import Severity
 from arena.robot import safety
+from arena.robot.collision import Workspace
 from arena.robot.motion import Command, CommandResult
 
 if TYPE_CHECKING:
@@ -114,6 +115,12 @@ class DriverEndedMsg:
 
 
 @dataclass(slots=True)
+class WorkspaceMsg:
+    workspace: Workspace
+    reply: Reply[None]
+
+
+@dataclass(slots=True)
 class ShutdownMsg:
     reason: str
     reply: Reply[None] | None
@@ -129,6 +136,7 @@ Msg = (
     | AliveMsg
     | LinkMsg
     | DriverEndedMsg
+    | WorkspaceMsg
     | ShutdownMsg
 )
 

@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
+from arena.robot.collision import Workspace
 
 #: Folder of the robot types shipped with Arena.
 BUILTIN_TYPES_DIR = Path(__file__).resolve().parent.parent / "robot_types"
@@ -83,6 +84,8 @@ class RobotModel:
     joints: tuple[JointSpec, ...]
     safety: SafetyPolicy
     urdf_path: Path
+    #: Where the arm may go (the collision guard's floor and keep-out boxes).
+    workspace: Workspace = field(default_factory=Workspace)
 
     _by_name: dict[str, JointSpec] = field(init=False, repr=False, compare=False)
 
@@ -154,6 +157,10 @@ def _load_from_folder(folder: Path) -> RobotModel:
     joints = tuple(_joint_spec(entry, urdf_joints, bad) for entry in config.get("joints", []))
     if not joints:
         raise bad("no [[joints]] defined")
+    try:
+        workspace = Workspace.from_json(config.get("workspace", {}))
+    except ValueError as exc:
+        raise bad(f"invalid [workspace]: {exc}") from exc
     names = [j.name for j in joints]
     every_name = [n for j in joints for n in {x.lower() for x in (j.name, *j.aliases)}]
     if len(set(every_name)) != len(every_name):
@@ -164,6 +171,7 @@ def _load_from_folder(folder: Path) -> RobotModel:
         joints=joints,
         safety=safety,
         urdf_path=urdf_path,
+        workspace=workspace,
     )
 
 

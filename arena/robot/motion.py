@@ -233,6 +233,13 @@ class MotionLimiter:
         self._moving = moving
         return self.positions if changed else None
 
+    def stop_at(self, positions: Mapping[str, float]) -> None:
+        """Stop every joint at `positions` (targets already sent): the way on was unsafe."""
+        for name, motion in self._joints.items():
+            motion.position = motion.goal = positions[name]
+            motion.profile = None
+        self._moving = False
+
     def freeze(self) -> None:
         """Stop every joint where it is: goals become the current targets."""
         for motion in self._joints.values():

@@ -20,6 +20,7 @@ from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.messages import MAX_MESSAGE_BYTES
 from arena.protocol.rest import CreateRobotBody, JointsBody, MasterBody, ReasonBody, SlaveBody
 from arena.recording.recorder import Recorder
+from arena.robot.collision import Workspace
 from arena.robot.groups import GroupRegistry
 from arena.robot.manager import RobotManager
 from arena.server import convert, dashboard, openapi
@@ -251,6 +252,21 @@ def _register_routes(app: ArenaApp) -> None:
             raise ArenaError(result.code, result.message)
         ack: dict[str, Any] = msgspec.to_builtins(convert.ack(result).data)
         return ack
+
+    @app.get("/api/robots/<robot_id>/workspace")
+    async def get_workspace(robot_id: str) -> dict[str, Any]:
+        return manager.get(robot_id).workspace.to_json()
+
+    @app.put("/api/robots/<robot_id>/workspace")
+    async def put_workspace(robot_id: str) -> dict[str, Any]:
+        robot = manager.get(robot_id)
+        body = await read_body(dict[str, Any])
+        try:
+            workspace = Workspace.from_json(body)
+        except ValueError as exc:
+            raise ArenaError(ErrorCode.INVALID_BODY, f"Invalid workspace: {exc}.") from None
+        await robot.set_workspace(workspace)
+        return workspace.to_json()
 
     @app.post("/api/robots/<robot_id>/slaves")
     async def attach_slave(robot_id: str) -> tuple[dict[str, Any], int]:

@@ -46,6 +46,7 @@ STATUS_FOR: dict[ErrorCode, int] = {
     ErrorCode.EMPTY_COMMAND: 422,
     ErrorCode.UNKNOWN_ROBOT_TYPE: 422,
     ErrorCode.RATE_LIMITED: 429,
+    ErrorCode.COLLISION: 422,
     ErrorCode.UNAUTHORIZED: 401,
     ErrorCode.FORBIDDEN: 403,
     ErrorCode.ORIGIN_NOT_ALLOWED: 403,

@@ -41,6 +41,13 @@ ROUTES: list[tuple[str, str, str, Any]] = [
     ("POST", "/api/estop", "Emergency-stop every robot", ReasonBody),
     ("GET", "/api/robots/{robot_id}/joints", "Joint values, virtual and real", None),
     ("PUT", "/api/robots/{robot_id}/joints", "Manual control (refused while mastered)", JointsBody),
+    ("GET", "/api/robots/{robot_id}/workspace", "The collision guard's workspace", None),
+    (
+        "PUT",
+        "/api/robots/{robot_id}/workspace",
+        "Change the workspace (floor, margin, keep-out boxes, policy)",
+        None,
+    ),
     ("POST", "/api/robots/{robot_id}/slaves", "Attach a slave driver", SlaveBody),
     ("DELETE", "/api/robots/{robot_id}/slaves/{slave_id}", "Detach a slave", None),
     ("POST", "/api/robots/{robot_id}/master", "Attach a master driver", MasterBody),

@@ -1,0 +1,381 @@
+"""The collision guard, pure: capsules around the links, a workspace, and distance checks.
+
+Each link with meshes gets one capsule (a segment and a radius) that holds every vertex of its
+meshes, fitted once per robot type. A pose collides when two links that are not neighbours
+come closer than the workspace's margin, or a link comes within it of the floor or a keep-out
+box. Capsules are cheap to test (segment distances, a few microseconds a pair in pure Python)
+and deterministic; a convex-hull library (python-fcl, coal) would be tighter but costs a
+native dependency and, per call from Python, more than the whole check does here.
+
+Which pairs are checked is decided once, as MoveIt's setup assistant does: neighbours in the
+tree never, nor pairs that touch in the neutral pose (their meshes overlap by design); every
+other pair always. The floor the same way: links that touch it in the neutral pose (the base
+standing on it) are not checked against it.
+
+All geometry is in metres in the root link's frame; joint values are URDF radians here (the
+robot core converts from wire degrees).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from arena.robot.kinematics import Kinematics, Pose, Vector, rotate
+
+if TYPE_CHECKING:
+    from arena.robot.model import RobotModel
+
+#: Default spacing of the poses checked along a move (radians of the joint that moves most).
+PATH_STEP = math.radians(5.0)
+
+
+@dataclass(frozen=True)
+class Capsule:
+    """A link's collision shape: the points within `radius` of the segment a-b (link frame)."""
+
+    link: str
+    a: Vector
+    b: Vector
+    radius: float
+
+    @functools.cached_property
+    def middle(self) -> Vector:
+        """The segment's middle (link frame)."""
+        return (
+            (self.a[0] + self.b[0]) / 2,
+            (self.a[1] + self.b[1]) / 2,
+            (self.a[2] + self.b[2]) / 2,
+        )
+
+    @functools.cached_property
+    def reach(self) -> float:
+        """The radius of a sphere around `middle` that holds the capsule."""
+        return math.dist(self.a, self.b) / 2 + self.radius
+
+
+@dataclass(frozen=True, slots=True)
+class Box:
+    """A keep-out box, axis-aligned in the root link's frame (metres)."""
+
+    name: str
+    low: Vector
+    high: Vector
+
+
+#: What a move that would collide does: refused, or stopped short at the last safe pose
+#: checked on its way (reported as clamped).
+POLICIES = ("refuse", "stop-short")
+
+
+@dataclass(frozen=True, slots=True)
+class Workspace:
+    """Where the arm may be: above `floor` (z in the root frame; None: no floor), outside the
+    keep-out boxes, with `margin` metres kept free around every link."""
+
+    floor: float | None = None
+    keep_out: tuple[Box, ...] = ()
+    margin: float = 0.005
+    policy: str = "refuse"
+
+    def to_json(self) -> dict[str, object]:
+        """The workspace as the REST API shows it."""
+        return {
+            "floor": self.floor,
+            "margin": self.margin,
+            "policy": self.policy,
+            "keep_out": [
+                {"name": b.name, "min": list(b.low), "max": list(b.high)} for b in self.keep_out
+            ],
+        }
+
+    @classmethod
+    def from_json(cls, data: Mapping[str, object]) -> Workspace:
+        """A workspace from `robot.toml`'s `[workspace]` or a REST body; ValueError says
+        what is wrong."""
+        unknown = set(data) - {"floor", "margin", "policy", "keep_out"}
+        if unknown:
+            raise ValueError(f"unknown workspace keys: {', '.join(sorted(unknown))}")
+        floor = data.get("floor")
+        margin = data.get("margin", 0.005)
+        policy = data.get("policy", "refuse")
+        if floor is not None and not _finite(floor):
+            raise ValueError("floor must be a number of metres (or absent: no floor)")
+        if not _finite(margin) or not 0 <= float(margin) <= 0.5:  # type: ignore[arg-type]
+            raise ValueError("margin must be from 0 to 0.5 metres")
+        if policy not in POLICIES:
+            raise ValueError(f"policy must be one of {', '.join(POLICIES)}")
+        boxes = data.get("keep_out", [])
+        if not isinstance(boxes, list) or len(boxes) > MAX_BOXES:
+            raise ValueError(f"keep_out must be a list of at most {MAX_BOXES} boxes")
+        return cls(
+            floor=None if floor is None else float(floor),  # type: ignore[arg-type]
+            keep_out=tuple(_box(number, entry) for number, entry in enumerate(boxes)),
+            margin=float(margin),  # type: ignore[arg-type]
+            policy=str(policy),
+        )
+
+
+#: Keep-out boxes a workspace may hold (each costs every check a little).
+MAX_BOXES = 16
+
+
+def _finite(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _box(number: int, entry: object) -> Box:
+    if not isinstance(entry, dict):
+        raise ValueError(f"keep_out[{number}] must be a table with min and max")
+    name = entry.get("name", f"box {number + 1}")
+    corners = []
+    for key in ("min", "max"):
+        corner = entry.get(key)
+        if not (isinstance(corner, list) and len(corner) == 3 and all(map(_finite, corner))):
+            raise ValueError(f"keep_out[{number}].{key} must be three numbers (metres)")
+        corners.append((float(corner[0]), float(corner[1]), float(corner[2])))
+    low, high = corners
+    if not all(lo < hi for lo, hi in zip(low, high, strict=True)):
+        raise ValueError(f"keep_out[{number}]: min must be below max on every axis")
+    if not isinstance(name, str) or not 0 < len(name) <= 64:
+        raise ValueError(f"keep_out[{number}].name must be a short string")
+    return Box(name, low, high)
+
+
+@dataclass(frozen=True, slots=True)
+class Hit:
+    """What a pose would hit: two links, or a link and `floor` / a keep-out box's name."""
+
+    first: str
+    second: str
+
+    def __str__(self) -> str:
+        return f"{self.first} and {self.second}"
+
+
+@dataclass(frozen=True)
+class CollisionModel:
+    """Capsules of a robot's links and the pairs worth checking."""
+
+    kinematics: Kinematics
+    capsules: tuple[Capsule, ...]
+    pairs: tuple[tuple[int, int], ...]  # indices into `capsules`
+    floor_links: tuple[int, ...]  # capsules checked against the floor
+    _links: dict[str, int] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "_links", {c.link: i for i, c in enumerate(self.capsules)})
+
+    def placed(self, values: Mapping[str, float]) -> list[tuple[Vector, Vector, float]]:
+        """Each capsule's segment ends in the root frame at joint values `values`."""
+        poses = self.kinematics.link_poses(values)
+        return [
+            (_apply(poses[c.link], c.a), _apply(poses[c.link], c.b), c.radius)
+            for c in self.capsules
+        ]
+
+    def hit(self, values: Mapping[str, float], workspace: Workspace) -> Hit | None:
+        """The first collision of the pose `values` (URDF radians), or None.
+
+        A broad phase first: each capsule's bounding sphere (its middle, half its length plus
+        its radius) rules out most pairs and the floor with one distance; only what is near
+        gets the exact segment test."""
+        poses = self.kinematics.link_poses(values)
+        capsules = self.capsules
+        middles = [_apply(poses[c.link], c.middle) for c in capsules]
+        ends: dict[int, tuple[Vector, Vector]] = {}
+
+        def segment(index: int) -> tuple[Vector, Vector]:
+            found = ends.get(index)
+            if found is None:
+                pose = poses[capsules[index].link]
+                found = ends[index] = (
+                    _apply(pose, capsules[index].a),
+                    _apply(pose, capsules[index].b),
+                )
+            return found
+
+        margin = workspace.margin
+        if workspace.floor is not None:
+            floor = workspace.floor + margin
+            for index in self.floor_links:
+                capsule = capsules[index]
+                if middles[index][2] - capsule.reach < floor:
+                    a, b = segment(index)
+                    if min(a[2], b[2]) - capsule.radius < floor:
+                        return Hit(capsule.link, "floor")
+        for box in workspace.keep_out:
+            for index, capsule in enumerate(capsules):
+                a, b = segment(index)
+                if _segment_box_distance(a, b, box) < capsule.radius + margin:
+                    return Hit(capsule.link, box.name)
+        for i, j in self.pairs:
+            first, second = capsules[i], capsules[j]
+            m1, m2 = middles[i], middles[j]
+            dx, dy, dz = m1[0] - m2[0], m1[1] - m2[1], m1[2] - m2[2]
+            limit = first.reach + second.reach + margin
+            if dx * dx + dy * dy + dz * dz >= limit * limit:
+                continue
+            a1, b1 = segment(i)
+            a2, b2 = segment(j)
+            if _segment_distance(a1, b1, a2, b2) < first.radius + second.radius + margin:
+                return Hit(first.link, second.link)
+        return None
+
+    def path_hit(
+        self,
+        start: Mapping[str, float],
+        goal: Mapping[str, float],
+        workspace: Workspace,
+        step: float = PATH_STEP,
+    ) -> tuple[Hit | None, float]:
+        """The first collision on the straight way (in joint space) from `start` to `goal`,
+        checked at least every `step` radians of the joint that moves most, goal included;
+        and the fraction of the way that is safe (1.0 with no hit)."""
+        largest = max((abs(goal[n] - start.get(n, goal[n])) for n in goal), default=0.0)
+        count = max(1, math.ceil(largest / step))
+        if count == 1:  # a small step (a stream of commands): the goal is the only new pose
+            found = self.hit(goal, workspace)
+            return found, 0.0 if found is not None else 1.0
+        for k in range(1, count + 1):
+            f = k / count
+            pose = {n: start.get(n, v) + (v - start.get(n, v)) * f for n, v in goal.items()}
+            found = self.hit(pose, workspace)
+            if found is not None:
+                return found, (k - 1) / count
+        return None, 1.0
+
+
+def _apply(pose: Pose, point: Vector) -> Vector:
+    moved = rotate(pose[0], point)
+    t = pose[1]
+    return (moved[0] + t[0], moved[1] + t[1], moved[2] + t[2])
+
+
+def _segment_distance(p1: Vector, q1: Vector, p2: Vector, q2: Vector) -> float:
+    """The distance between segments p1-q1 and p2-q2 (Ericson, Real-Time Collision
+    Detection, 5.1.9)."""
+    d1 = (q1[0] - p1[0], q1[1] - p1[1], q1[2] - p1[2])
+    d2 = (q2[0] - p2[0], q2[1] - p2[1], q2[2] - p2[2])
+    r = (p1[0] - p2[0], p1[1] - p2[1], p1[2] - p2[2])
+    a = d1[0] * d1[0] + d1[1] * d1[1] + d1[2] * d1[2]
+    e = d2[0] * d2[0] + d2[1] * d2[1] + d2[2] * d2[2]
+    f = d2[0] * r[0] + d2[1] * r[1] + d2[2] * r[2]
+    eps = 1e-12
+    if a <= eps and e <= eps:
+        s = t = 0.0
+    elif a <= eps:
+        s, t = 0.0, min(1.0, max(0.0, f / e))
+    else:
+        c = d1[0] * r[0] + d1[1] * r[1] + d1[2] * r[2]
+        if e <= eps:
+            s, t = min(1.0, max(0.0, -c / a)), 0.0
+        else:
+            b = d1[0] * d2[0] + d1[1] * d2[1] + d1[2] * d2[2]
+            denominator = a * e - b * b
+            s = min(1.0, max(0.0, (b * f - c * e) / denominator)) if denominator > eps else 0.0
+            t = (b * s + f) / e
+            if t < 0.0:
+                s, t = min(1.0, max(0.0, -c / a)), 0.0
+            elif t > 1.0:
+                s, t = min(1.0, max(0.0, (b - c) / a)), 1.0
+    dx = r[0] + d1[0] * s - d2[0] * t
+    dy = r[1] + d1[1] * s - d2[1] * t
+    dz = r[2] + d1[2] * s - d2[2] * t
+    return math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
+def _segment_box_distance(a: Vector, b: Vector, box: Box) -> float:
+    """A lower bound of the distance from segment a-b to a box: points every 1 cm along the
+    segment, each less the half spacing (so the bound never overstates it)."""
+    length = math.dist(a, b)
+    count = max(1, math.ceil(length / 0.01))
+    best = math.inf
+    for k in range(count + 1):
+        f = k / count
+        point = (a[0] + (b[0] - a[0]) * f, a[1] + (b[1] - a[1]) * f, a[2] + (b[2] - a[2]) * f)
+        gap = math.sqrt(
+            sum(
+                max(lo - p, 0.0, p - hi) ** 2
+                for p, lo, hi in zip(point, box.low, box.high, strict=True)
+            )
+        )
+        best = min(best, gap)
+    return max(0.0, best - length / count / 2)
+
+
+def for_model(model: RobotModel) -> CollisionModel | None:
+    """A robot type's collision model (cached), its pairs chosen at the wire's zero pose."""
+    return build(model.urdf_path, {j.urdf_name: j.to_urdf(0.0) for j in model.joints})
+
+
+def build(urdf_path: Path, neutral: Mapping[str, float]) -> CollisionModel | None:
+    """The collision model of a URDF from its meshes (None if no link has a mesh), with the
+    pairs chosen at `neutral` (URDF radians of the pose where the arm rests unharmed)."""
+    return _build(urdf_path, tuple(sorted(neutral.items())))
+
+
+@functools.lru_cache(maxsize=16)
+def _build(urdf_path: Path, neutral: tuple[tuple[str, float], ...]) -> CollisionModel | None:
+    kinematics = Kinematics.from_urdf(urdf_path)
+    capsules = tuple(fit_capsules(urdf_path))
+    if not capsules:
+        return None
+    trial = CollisionModel(kinematics, capsules, (), ())
+    placed = trial.placed(dict(neutral))
+    neighbours = {frozenset((j.parent, j.child)) for j in kinematics.joints}
+    pairs = []
+    for i in range(len(capsules)):
+        for j in range(i + 1, len(capsules)):
+            if frozenset((capsules[i].link, capsules[j].link)) in neighbours:
+                continue
+            (a1, b1, r1), (a2, b2, r2) = placed[i], placed[j]
+            if _segment_distance(a1, b1, a2, b2) >= r1 + r2:  # apart at rest: may meet
+                pairs.append((i, j))
+    floor_links = tuple(
+        i for i, (a, b, r) in enumerate(placed) if min(a[2], b[2]) - r >= 0.0
+    )  # a link already touching the floor's plane at rest (the base) stands on it
+    return CollisionModel(kinematics, capsules, tuple(pairs), floor_links)
+
+
+def fit_capsules(urdf_path: Path) -> list[Capsule]:
+    """One capsule per link holding every vertex of its visual meshes (STL only)."""
+    import numpy as np  # only to fit, once per robot type
+
+    from arena.robot.meshes import link_vertices
+
+    capsules = []
+    for link, vertices in link_vertices(urdf_path).items():
+        points = np.asarray(vertices, dtype=float)
+        center = points.mean(axis=0)
+        _, _, axes = np.linalg.svd(points - center, full_matrices=False)
+        axis = axes[0]
+        along = (points - center) @ axis
+        across = np.linalg.norm(points - center - np.outer(along, axis), axis=1)
+        best: tuple[float, float, float, float] | None = None
+        low, high = float(along.min()), float(along.max())
+        for shrink in np.linspace(0.0, float(across.max()), 9):
+            lo, hi = low + shrink, high - shrink
+            if lo > hi:
+                lo = hi = (low + high) / 2
+            clamped = np.clip(along, lo, hi)
+            radius = float(np.max(np.hypot(along - clamped, across)))
+            volume = math.pi * radius**2 * (hi - lo) + 4 / 3 * math.pi * radius**3
+            if best is None or volume < best[0]:
+                best = (volume, lo, hi, radius)
+        assert best is not None
+        _, lo, hi, radius = best
+        a, b = center + lo * axis, center + hi * axis
+        capsules.append(
+            Capsule(
+                link,
+                (float(a[0]), float(a[1]), float(a[2])),
+                (float(b[0]), float(b[1]), float(b[2])),
+                radius,
+            )
+        )
+    return capsules

@@ -1,0 +1,253 @@
+"""The collision guard: capsules that hold the meshes, distances, the guard in the core (refuse
+or stop short, nothing colliding ever emitted), the workspace over REST, every kind of master."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trio
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from trio.testing import MockClock
+from trio_websocket import open_websocket_url
+
+from arena.drivers.sequence_master import SequenceMaster
+from arena.drivers.sequences import demo_sequences, get_sequence, parse_sequence
+from arena.protocol.errors import ErrorCode
+from arena.recording.mcap_file import read_recording
+from arena.robot.collision import (
+    Box,
+    CollisionModel,
+    Workspace,
+    _segment_distance,
+    fit_capsules,
+    for_model,
+)
+from arena.robot.core import RobotCore
+from arena.robot.meshes import link_vertices
+from arena.robot.model import load_robot_model
+from arena.robot.motion import Command
+from arena.session import record_scenario
+from tests.conftest import RunningServer
+
+MODEL = load_robot_model("so-arm100")
+GUARD = for_model(MODEL)
+#: The arm folded down into the table it stands on.
+INTO_THE_TABLE = {"Pitch": 90.0, "Elbow": 60.0}
+
+
+def urdf(degrees: dict[str, float]) -> dict[str, float]:
+    """Wire degrees (missing joints at 0) to URDF radians."""
+    return {j.urdf_name: j.to_urdf(degrees.get(j.name, 0.0)) for j in MODEL.joints}
+
+
+def guard() -> CollisionModel:
+    assert GUARD is not None
+    return GUARD
+
+
+def test_each_capsule_holds_every_vertex_of_its_link() -> None:
+    vertices = link_vertices(MODEL.urdf_path)
+    capsules = fit_capsules(MODEL.urdf_path)
+    assert {c.link for c in capsules} == set(vertices) == set(guard().kinematics.links)
+    for capsule in capsules:
+        a, b = np.array(capsule.a), np.array(capsule.b)
+        points = vertices[capsule.link]
+        along = np.clip((points - a) @ (b - a) / max(float((b - a) @ (b - a)), 1e-18), 0, 1)
+        gaps = np.linalg.norm(points - (a + np.outer(along, b - a)), axis=1)
+        assert gaps.max() <= capsule.radius + 1e-9
+        assert capsule.radius < 0.07  # and none is a shapeless blob
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.floats(-1, 1), min_size=12, max_size=12))
+def test_segment_distance_matches_a_dense_search(c: list[float]) -> None:
+    p1, q1, p2, q2 = (tuple(c[i : i + 3]) for i in range(0, 12, 3))
+    s = np.linspace(0, 1, 201)
+    one = np.array(p1) + np.outer(s, np.subtract(q1, p1))
+    two = np.array(p2) + np.outer(s, np.subtract(q2, p2))
+    dense = np.min(np.linalg.norm(one[:, None, :] - two[None, :, :], axis=2))
+    exact = _segment_distance(p1, q1, p2, q2)  # type: ignore[arg-type]
+    # the grid can only overshoot; a segment shorter than 1e-6 m counts as a point
+    assert exact <= dense + 1e-6 and dense - exact < 0.02
+
+
+def test_the_so_arm100_stands_on_its_table() -> None:
+    assert MODEL.workspace.floor == 0.0 and MODEL.workspace.policy == "refuse"
+    workspace = MODEL.workspace
+    assert guard().hit(urdf({}), workspace) is None
+    found = guard().hit(urdf(INTO_THE_TABLE), workspace)
+    assert found is not None and found.second == "floor"
+    # the base is not checked against the table it stands on; neighbours never against each other
+    links = [c.link for c in guard().capsules]
+    assert links[guard().floor_links[0]] != "base" and all(
+        links[i] != "base" for i in guard().floor_links
+    )
+    neighbours = {frozenset((j.parent, j.child)) for j in guard().kinematics.joints}
+    assert not any(frozenset((links[i], links[j])) in neighbours for i, j in guard().pairs)
+    # folded back onto itself: the lower arm meets the base
+    assert guard().hit(urdf({"Pitch": -100.0}), Workspace()) is not None
+
+
+def drive(core: RobotCore, command: Command, now: float) -> list[dict[str, float]]:
+    """Every target the core emits for a command until the motion ends."""
+    result, step = core.command(None, command, now)
+    emitted = [step.targets] if step.targets else []
+    t = now
+    while result.accepted and (due := core.next_tick(t)) is not None:
+        t = due
+        targets = core.tick(t)
+        if targets:
+            emitted.append(targets)
+    return emitted
+
+
+def test_the_demo_sequences_and_the_seed_examples_are_never_refused() -> None:
+    core = RobotCore(MODEL, 0.0)
+    now = 0.0
+    for name in demo_sequences():
+        for keyframe in get_sequence(name).keyframes:
+            result, _ = core.command(None, keyframe.command, now)
+            assert result.accepted, (name, result.message)
+            now += 5.0
+            while (due := core.next_tick(now)) is not None:
+                now = due
+                core.tick(now)
+    for example in ({"Rotation": 45}, {"Rotation": 45, "Pitch": -30}, {"Rotation": -30}):
+        result, _ = core.command(None, Command.of(example), now)
+        assert result.accepted, (example, result.message)
+    assert core.collision_stops == 0
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    st.lists(
+        st.dictionaries(
+            st.sampled_from(MODEL.joint_names),
+            st.floats(-180, 180, allow_nan=False),
+            min_size=1,
+            max_size=6,
+        ),
+        min_size=1,
+        max_size=12,
+    ),
+    st.sampled_from(["refuse", "stop-short"]),
+)
+def test_no_colliding_target_is_ever_emitted(commands: list[dict[str, float]], policy: str) -> None:
+    core = RobotCore(MODEL, 0.0)
+    core.workspace = Workspace(floor=0.0, policy=policy)
+    now = 0.0
+    for values in commands:
+        for targets in drive(core, Command.of(values), now):
+            assert guard().hit(urdf(targets), core.workspace) is None, targets
+        now += 100.0
+
+
+def test_into_the_table_is_refused_or_stopped_short() -> None:
+    core = RobotCore(MODEL, 0.0)
+    result, step = core.command(None, Command.of(INTO_THE_TABLE), 0.0)
+    assert not result.accepted and result.code is ErrorCode.COLLISION and step.targets is None
+    assert "floor" in result.message and "Pitch" in result.message
+    core.workspace = Workspace(floor=0.0, policy="stop-short")
+    result, _ = core.command(None, Command.of(INTO_THE_TABLE), 0.0)
+    assert result.accepted and result.message == "stopped short of a collision"
+    assert {c.joint for c in result.clamped} == set(INTO_THE_TABLE)
+    for clamp in result.clamped:
+        assert 0.0 < clamp.applied < clamp.requested
+    assert core.motion.goals["Pitch"] < 90.0
+
+
+def test_a_keep_out_box_and_no_floor() -> None:
+    # a box around where the gripper is at rest: the neutral pose itself is inside it
+    placed = guard().placed(urdf({}))
+    gripper = placed[[c.link for c in guard().capsules].index("gripper")]
+    centre = [(u + v) / 2 for u, v in zip(gripper[0], gripper[1], strict=True)]
+    box = Box("camera", tuple(c - 0.01 for c in centre), tuple(c + 0.01 for c in centre))  # type: ignore[arg-type]
+    found = guard().hit(urdf({}), Workspace(keep_out=(box,)))
+    assert found is not None and found.second == "camera"
+    assert guard().hit(urdf({"Rotation": 90}), Workspace(keep_out=(box,))) is None
+
+
+@pytest.mark.parametrize(
+    ("body", "why"),
+    [
+        ({"floor": "low"}, "floor"),
+        ({"margin": 1}, "margin"),
+        ({"policy": "pray"}, "policy"),
+        ({"keep_out": [{"min": [0, 0, 0], "max": [0, 1, 1]}]}, "below max"),
+        ({"keep_out": [{"min": [0, 0], "max": [1, 1, 1]}]}, "three numbers"),
+        ({"walls": []}, "unknown"),
+    ],
+)
+def test_a_bad_workspace_is_refused_with_the_reason(body: dict[str, object], why: str) -> None:
+    with pytest.raises(ValueError, match=why):
+        Workspace.from_json(body)
+
+
+async def test_the_workspace_over_rest_and_every_master_refused_at_the_table(
+    server: RunningServer,
+) -> None:
+    async with server.client() as http:
+        shown = (await http.get("/api/robots/demo-arm/workspace")).json()
+        assert shown == {"floor": 0.0, "margin": 0.005, "policy": "refuse", "keep_out": []}
+        refused = await http.put(
+            "/api/robots/demo-arm/joints",
+            json={"joints": [{"name": n, "value": v} for n, v in INTO_THE_TABLE.items()]},
+        )
+        assert refused.status_code == 422
+        assert refused.json()["error"]["code"] == "COLLISION"
+        box = {"name": "camera", "min": [-0.3, -0.5, 0.0], "max": [0.3, -0.3, 0.4]}
+        changed = await http.put("/api/robots/demo-arm/workspace", json={"keep_out": [box]})
+        assert changed.status_code == 200 and changed.json()["floor"] is None
+        assert (await http.get("/api/robots/demo-arm/workspace")).json()["keep_out"] == [box]
+        bad = await http.put("/api/robots/demo-arm/workspace", json={"margin": -1})
+        assert bad.status_code == 422 and "margin" in bad.json()["error"]["message"]
+        # the arm stretched forward (towards -y) now reaches into the camera's box
+        into_box = await http.put(
+            "/api/robots/demo-arm/joints", json={"joints": [{"name": "Pitch", "value": 10}]}
+        )
+        assert into_box.json()["error"]["code"] == "COLLISION"
+        assert "camera" in into_box.json()["error"]["message"]
+        restored = await http.put("/api/robots/demo-arm/workspace", json={"floor": 0.0})
+        assert restored.status_code == 200
+    async with open_websocket_url(server.ws_url + "/ws/master/demo-arm") as master:
+        joints = [{"name": n, "value": v} for n, v in INTO_THE_TABLE.items()]
+        await master.send_message(json.dumps({"type": "command", "data": {"joints": joints}}))
+        while (reply := json.loads(await master.get_message()))["type"] != "ack":
+            pass
+        assert reply["data"]["status"] == "refused" and reply["data"]["code"] == "COLLISION"
+
+
+async def test_a_sequence_into_the_table_is_refused_and_recorded(
+    autojump_clock: MockClock, tmp_path: Path
+) -> None:
+    dive = parse_sequence(
+        {
+            "id": "dive",
+            "name": "Dive",
+            "totalDuration": 1000,
+            "commands": [
+                {"timestamp": 0, "joints": [{"name": "Rotation", "value": 10}]},
+                {
+                    "timestamp": 500,
+                    "joints": [{"name": n, "value": v} for n, v in INTO_THE_TABLE.items()],
+                },
+            ],
+        }
+    )
+    master = SequenceMaster([dive])
+
+    async def scenario(robot: object) -> None:
+        await robot.attach_master(master)  # type: ignore[attr-defined]
+        await trio.sleep(3.0)
+
+    (path,) = await record_scenario(tmp_path, scenario)
+    commands = [m.data for m in read_recording(path).messages if m.kind == "command"]
+    assert [c["code"] for c in commands] == [None, "COLLISION"]
+    assert not commands[1]["accepted"] and "floor" in commands[1]["message"]
+    targets = [m.data["joints"] for m in read_recording(path).messages if m.kind == "targets"]
+    assert all(math.isclose(t["Pitch"], 0.0) for t in targets)  # nothing of the dive went out
