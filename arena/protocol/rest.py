@@ -91,7 +91,16 @@ class RemoteServerBody(RemoteLinkBody, tag="remote-server", tag_field="type"):
     robot's id), as this robot's master; our real joint values go back as that robot's."""
 
 
-SlaveBody: TypeAlias = MockSlaveBody | UsbSlaveBody | WebSocketSlaveBody
+class PhysicsSlaveBody(msgspec.Struct, tag="physics-slave", tag_field="type", omit_defaults=True):
+    """The arm simulated by MuJoCo (the `physics` extra): `rate` steps a second; `estop` as a
+    usb-slave's; `realtime` false steps on the server's clock (for tests on a virtual clock)."""
+
+    rate: Annotated[float, msgspec.Meta(ge=100, le=5000)] = 500.0
+    estop: Literal["hold", "torque-off"] = "hold"
+    realtime: bool = True
+
+
+SlaveBody: TypeAlias = MockSlaveBody | UsbSlaveBody | WebSocketSlaveBody | PhysicsSlaveBody
 
 
 class CalibrationBody(msgspec.Struct, omit_defaults=True):

@@ -12,6 +12,7 @@ from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import (
     MasterBody,
     MockSlaveBody,
+    PhysicsSlaveBody,
     RemoteServerBody,
     ReplayMasterBody,
     SequenceMasterBody,
@@ -49,6 +50,17 @@ def make_slave(
         if model is None:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "A usb-slave needs the robot's model.")
         return UsbSlave(body, model, _calibration_file(calibration_dir, body.calibration, robot_id))
+    if isinstance(body, PhysicsSlaveBody):
+        try:
+            from arena.drivers.physics import PhysicsSettings, PhysicsSlave
+        except ImportError:  # pragma: no cover - the physics extra is missing
+            raise ArenaError(
+                ErrorCode.INVALID_CONFIG,
+                "A physics-slave needs MuJoCo: pip install 'arena[physics]'.",
+            ) from None
+        return PhysicsSlave(
+            PhysicsSettings(rate=body.rate, estop=body.estop, realtime=body.realtime)
+        )
     if isinstance(body, MockSlaveBody):
         return MockSlave(
             MockSlaveConfig.from_wire(

@@ -1,0 +1,281 @@
+"""The physics slave: the arm simulated by MuJoCo, with gravity, its table and servo-like joints.
+
+MuJoCo compiles the robot type's own URDF (masses, inertias and meshes included); Arena adds
+what a URDF cannot say: the table under the base (the workspace's floor), collisions between
+the links' meshes (convex hulls) and with the table, and a position actuator per joint shaped
+after the STS3215: a proportional gain that saturates at the servo's stall torque, damping,
+the gearbox's reflected inertia (armature) and friction. So the simulated joints lag behind
+their targets, sag under load and fall with their torque off, as the real ones do.
+
+`ArmSimulation` is the model and its stepping, with no threads and no trio. `PhysicsSlave`
+drives it as a slave: in real time it steps in a thread of its own at `rate` Hz and hands the
+joint values to trio through one memory channel fed with the trio token (latest wins); with
+`realtime` off it steps inside trio, `report_interval` of trio time at a go, so a test on
+MockClock runs it faster than real time and the same way every time.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import threading
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import trio
+
+from arena.protocol.errors import Severity
+from arena.robot.events import NoticeKind, SlaveNotice, SlaveTarget
+from arena.robot.links import SlaveLink
+from arena.robot.model import RobotModel
+
+#: The STS3215 at 12 V: stall torque (N m) and the gain that reaches it 0.3 rad off target.
+STALL_TORQUE = 2.94
+POSITION_GAIN = STALL_TORQUE / 0.3
+#: Reflected rotor inertia (kg m^2) and dry friction (N m) of the geared servo, and damping.
+ARMATURE = 0.01
+FRICTION = 0.05
+DAMPING = 0.3
+
+
+@dataclass(frozen=True, slots=True)
+class PhysicsSettings:
+    """How the simulation runs."""
+
+    rate: float = 500.0  # steps a second (the MuJoCo timestep is 1 / rate)
+    estop: str = "hold"  # "hold": keep the pose; "torque-off": the servos go limp
+    realtime: bool = True
+    report_interval: float = 0.01  # seconds between joint-state reports
+
+
+class ArmSimulation:
+    """A robot type's arm in MuJoCo: targets in, joint values and contacts out (wire units)."""
+
+    def __init__(self, model: RobotModel, settings: PhysicsSettings | None = None) -> None:
+        import mujoco  # only the physics slave needs it
+
+        self.settings = settings or PhysicsSettings()
+        self.robot = model
+        self._mj = mujoco
+        spec = _spec(model, self.settings)
+        self.model = spec.compile()
+        self.data = mujoco.MjData(self.model)
+        # Meshes that touch in the rest pose touch by design (the shoulder's hull on the
+        # table, say): those pairs never collide.
+        self._place_at_rest(model)
+        for first, second in self._touching():
+            spec.add_exclude(bodyname1=_spec_body(first), bodyname2=_spec_body(second))
+        self.model = spec.compile()
+        self.data = mujoco.MjData(self.model)
+        self._joints = [
+            (joint.name, self.model.joint(joint.urdf_name).qposadr[0], joint.neutral)
+            for joint in model.joints
+        ]
+        self._actuators = [self.model.actuator(joint.name).id for joint in model.joints]
+        self._gains = self.model.actuator_gainprm.copy(), self.model.actuator_biasprm.copy()
+        self.torque = True
+        self.steps = 0
+        self.set_pose(dict.fromkeys(model.joint_names, 0.0))
+
+    def _place_at_rest(self, model: RobotModel) -> None:
+        for joint in model.joints:
+            self.data.qpos[self.model.joint(joint.urdf_name).qposadr[0]] = joint.neutral
+        self._mj.mj_forward(self.model, self.data)
+
+    def set_pose(self, degrees: Mapping[str, float]) -> None:
+        """Put the arm at rest at `degrees` (targets there too)."""
+        for name, address, neutral in self._joints:
+            self.data.qpos[address] = neutral + math.radians(degrees.get(name, 0.0))
+        self.data.qvel[:] = 0.0
+        self._mj.mj_forward(self.model, self.data)
+        self.set_targets(degrees)
+
+    def set_targets(self, degrees: Mapping[str, float]) -> None:
+        """Where each actuator pulls its joint (wire degrees; joints not named keep theirs)."""
+        for (name, _, neutral), actuator in zip(self._joints, self._actuators, strict=True):
+            if name in degrees:
+                self.data.ctrl[actuator] = neutral + math.radians(degrees[name])
+
+    def hold(self) -> None:
+        """Targets where the joints are now."""
+        for (_, address, _), actuator in zip(self._joints, self._actuators, strict=True):
+            self.data.ctrl[actuator] = self.data.qpos[address]
+
+    def set_torque(self, on: bool) -> None:
+        """Servos on (position control) or limp (no actuator force at all)."""
+        gains, biases = self._gains
+        self.model.actuator_gainprm[:] = gains if on else 0.0
+        self.model.actuator_biasprm[:] = biases if on else 0.0
+        self.torque = on
+
+    def step(self, count: int = 1) -> None:
+        """Advance `count` timesteps."""
+        for _ in range(count):
+            self._mj.mj_step(self.model, self.data)
+        self.steps += count
+
+    def positions(self) -> dict[str, float]:
+        """Every joint's value in wire degrees."""
+        return {
+            name: math.degrees(self.data.qpos[address] - neutral)
+            for name, address, neutral in self._joints
+        }
+
+    def contacts(self) -> set[tuple[str, str]]:
+        """Pairs of bodies touching now ("table" for the floor)."""
+        return self._touching()
+
+    def _touching(self) -> set[tuple[str, str]]:
+        found = set()
+        for contact in self.data.contact[: self.data.ncon]:
+            names = sorted((self._body(contact.geom1), self._body(contact.geom2)))
+            found.add((names[0], names[1]))
+        return found
+
+    def _body(self, geom: int) -> str:
+        body = self.model.geom_bodyid[geom]
+        return "table" if body == 0 else str(self.model.body(body).name)
+
+
+def _spec_body(name: str) -> str:
+    return "world" if name == "table" else name
+
+
+def _spec(model: RobotModel, settings: PhysicsSettings) -> Any:
+    """The URDF as a MuJoCo spec, with the table, collisions and servo-like actuators."""
+    import mujoco
+
+    text = model.urdf_path.read_text(encoding="utf-8")
+    # Keep the visual meshes (a URDF's only geometry here) and their folders.
+    extension = '<mujoco><compiler discardvisual="false" strippath="false"/></mujoco>'
+    head, tag, rest = text.partition("<robot")
+    close = rest.index(">") + 1
+    spec = mujoco.MjSpec.from_string(head + tag + rest[:close] + extension + rest[close:])
+    spec.meshdir = str(model.urdf_path.parent)
+    spec.option.timestep = 1.0 / settings.rate
+    for geom in spec.geoms:
+        geom.contype = geom.conaffinity = 1
+    if model.workspace.floor is not None:
+        spec.worldbody.add_geom(
+            name="table",
+            type=mujoco.mjtGeom.mjGEOM_PLANE,
+            size=[2.0, 2.0, 0.01],
+            pos=[0.0, 0.0, model.workspace.floor],
+        )
+    for joint in model.joints:
+        found = spec.joint(joint.urdf_name)
+        found.armature = ARMATURE
+        found.frictionloss = FRICTION
+        found.damping = [DAMPING, 0.0, 0.0]  # MuJoCo 4: damping, then its polynomial terms
+        actuator = spec.add_actuator(
+            name=joint.name, target=joint.urdf_name, trntype=mujoco.mjtTrn.mjTRN_JOINT
+        )
+        actuator.set_to_position(kp=POSITION_GAIN, kv=0.0)
+        actuator.forcelimited = mujoco.mjtLimited.mjLIMITED_TRUE
+        actuator.forcerange = [-STALL_TORQUE, STALL_TORQUE]
+    return spec
+
+
+class PhysicsSlave:
+    """A slave that is the simulated arm: it follows targets through the physics, reports the
+    joint values it reaches, and a fault for each new contact (with the table or itself)."""
+
+    kind = "physics-slave"
+
+    def __init__(self, settings: PhysicsSettings | None = None) -> None:
+        self.settings = settings or PhysicsSettings()
+        self.simulation: ArmSimulation | None = None
+        self.contacts_reported: list[tuple[str, str]] = []
+        self._pending: list[SlaveTarget | SlaveNotice] = []
+        self._lock = threading.Lock()
+
+    async def run(self, link: SlaveLink) -> None:
+        """Simulate until detached."""
+        model = link.robot.model
+        if self.settings.realtime:  # compiling takes ~0.25 s: not on the event loop
+            simulation = await trio.to_thread.run_sync(ArmSimulation, model, self.settings)
+        else:  # on a virtual clock a thread's time would not count: build it here
+            simulation = ArmSimulation(model, self.settings)
+        self.simulation = simulation
+        await link.report_joint_states(simulation.positions())
+        async with trio.open_nursery() as nursery:
+            if self.settings.realtime:
+                nursery.start_soon(self._in_real_time, link, simulation)
+            else:
+                nursery.start_soon(self._in_trio_time, link, simulation)
+            async for message in link.messages():
+                with self._lock:
+                    self._pending.append(message)
+            nursery.cancel_scope.cancel()
+
+    def _apply_pending(self, simulation: ArmSimulation) -> None:
+        with self._lock:
+            pending, self._pending = self._pending, []
+        for message in pending:
+            if isinstance(message, SlaveTarget):
+                if simulation.torque:
+                    simulation.set_targets(message.joints)
+            elif message.kind is NoticeKind.ESTOP:
+                if self.settings.estop == "torque-off":
+                    simulation.set_torque(False)
+                else:
+                    simulation.hold()
+            elif message.kind is NoticeKind.RESET:
+                simulation.hold()
+                simulation.set_torque(True)
+            elif message.kind in (NoticeKind.HOLD, NoticeKind.SHUTDOWN):
+                simulation.hold()
+
+    async def _report(
+        self, link: SlaveLink, positions: dict[str, float], touching: set[tuple[str, str]]
+    ) -> None:
+        await link.report_joint_states(positions)
+        for pair in sorted(touching - set(self.contacts_reported)):
+            self.contacts_reported.append(pair)
+            await link.report_fault(
+                "CONTACT", f"{pair[0]} touches {pair[1]}", Severity.WARNING, None
+            )
+
+    async def _in_trio_time(self, link: SlaveLink, simulation: ArmSimulation) -> None:
+        interval = self.settings.report_interval
+        steps = max(1, round(interval * self.settings.rate))
+        while True:
+            await trio.sleep(interval)
+            self._apply_pending(simulation)
+            simulation.step(steps)
+            await self._report(link, simulation.positions(), simulation.contacts())
+
+    async def _in_real_time(self, link: SlaveLink, simulation: ArmSimulation) -> None:
+        send, receive = trio.open_memory_channel[tuple[dict[str, float], set[tuple[str, str]]]](1)
+        stop = threading.Event()
+        token = trio.lowlevel.current_trio_token()
+
+        def offer(report: tuple[dict[str, float], set[tuple[str, str]]]) -> None:
+            with contextlib.suppress(trio.WouldBlock):  # trio has the last one still: the
+                send.send_nowait(report)  # next comes in 10 ms
+
+        def step_forever() -> None:
+            period = 1.0 / self.settings.rate
+            every = max(1, round(self.settings.report_interval * self.settings.rate))
+            due = time.monotonic()
+            while not stop.is_set():
+                self._apply_pending(simulation)
+                simulation.step()
+                if simulation.steps % every == 0:
+                    report = (simulation.positions(), simulation.contacts())
+                    try:
+                        trio.from_thread.run_sync(offer, report, trio_token=token)
+                    except trio.RunFinishedError:
+                        return
+                due += period
+                time.sleep(max(0.0, due - time.monotonic()))
+
+        thread = threading.Thread(target=step_forever, name="physics", daemon=True)
+        thread.start()
+        try:
+            async for positions, touching in receive:
+                await self._report(link, positions, touching)
+        finally:
+            stop.set()

@@ -1,0 +1,106 @@
+"""The physics slave: MuJoCo's arm follows with a lag, holds against gravity, falls with its
+torque off, and says when it touches its table. On trio's MockClock (`realtime` off) the
+simulation runs faster than real time and the same way every time."""
+
+from __future__ import annotations
+
+from collections.abc import Awaitable, Callable
+
+import trio
+from trio.testing import MockClock
+
+from arena.drivers.physics import ArmSimulation, PhysicsSettings, PhysicsSlave
+from arena.protocol.rest import PhysicsSlaveBody
+from arena.robot.collision import Workspace
+from arena.robot.manager import RobotManager
+from arena.robot.model import load_robot_model
+from arena.robot.motion import Command
+from arena.server.drivers import make_slave
+from tests.conftest import RunningServer
+
+MODEL = load_robot_model("so-arm100")
+
+
+def virtual_time() -> PhysicsSettings:
+    return PhysicsSettings(realtime=False)
+
+
+async def test_it_follows_with_a_lag_and_holds_against_gravity(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await manager.create_robot("so-arm100", robot_id="sim")
+    slave = PhysicsSlave(virtual_time())
+    await robot.attach_slave(slave)
+    await trio.sleep(1.0)
+    result = await robot.command(Command.of({"Rotation": 30.0}))
+    assert result.accepted
+    await trio.sleep(0.03)
+    early = robot.snapshot()
+    rotation = next(j for j in early.joints if j.name == "Rotation")
+    assert rotation.virtual_value > 0.0  # the targets are on their way (velocity-limited)
+    assert rotation.real_value is not None  # the arm lags behind them
+    assert rotation.real_value < rotation.virtual_value - 1.0
+    await trio.sleep(2.0)
+    later = next(j for j in robot.snapshot().joints if j.name == "Rotation")
+    assert later.real_value is not None and abs(later.real_value - 30.0) < 1.0
+    # held out against gravity: the shoulder sags a little below its target, no more
+    assert (await robot.command(Command.of({"Pitch": 15.0}))).accepted
+    await trio.sleep(3.0)
+    pitch = next(j for j in robot.snapshot().joints if j.name == "Pitch")
+    assert pitch.real_value is not None and 0.05 < abs(pitch.real_value - 15.0) < 5.0
+    assert slave.contacts_reported == []
+
+
+async def test_torque_off_lets_it_fall_hold_keeps_it(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    fallen: dict[str, float] = {}
+    for policy in ("hold", "torque-off"):
+        robot = await manager.create_robot("so-arm100", robot_id=f"sim-{policy}")
+        await robot.attach_slave(PhysicsSlave(PhysicsSettings(realtime=False, estop=policy)))
+        assert (await robot.command(Command.of({"Pitch": -30.0}))).accepted  # leaning back
+        await trio.sleep(3.0)
+        before = {j.name: j.real_value or 0.0 for j in robot.snapshot().joints}
+        await robot.estop("drop test")
+        await trio.sleep(2.0)
+        after = {j.name: j.real_value or 0.0 for j in robot.snapshot().joints}
+        fallen[policy] = max(abs(after[name] - before[name]) for name in after)
+    # holding (goal = where it is) it sags by its servos' error again, a few degrees; limp, it
+    # falls all the way onto its table
+    assert fallen["hold"] < 5.0
+    assert fallen["torque-off"] > 30.0
+
+
+async def test_driven_into_its_table_it_reports_the_contact(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await manager.create_robot("so-arm100", robot_id="sim")
+    slave = PhysicsSlave(virtual_time())
+    await robot.attach_slave(slave)
+    await robot.set_workspace(Workspace(floor=None))  # the guard would refuse this move
+    faults = []
+    with robot.subscribe() as events:
+        result = await robot.command(Command.of({"Pitch": 60.0}))
+        assert result.accepted
+        await trio.sleep(4.0)
+        faults = [e for e in events.drain() if type(e).__name__ == "FaultReported"]
+    assert any(f.code == "CONTACT" and "table" in f.message for f in faults)
+    assert any("table" in pair for pair in slave.contacts_reported)
+
+
+def test_the_simulation_steps_faster_than_real_time() -> None:
+    simulation = ArmSimulation(MODEL)
+    simulation.step(500)
+    assert simulation.steps == 500 and set(simulation.positions()) == set(MODEL.joint_names)
+    assert simulation.model.opt.timestep == 1 / 500
+
+
+async def test_attached_over_rest(start_server: Callable[..., Awaitable[RunningServer]]) -> None:
+    server = await start_server()
+    async with server.client() as http:
+        await http.post("/api/robots", json={"id": "sim", "robot_type": "so-arm100"})
+        made = await http.post("/api/robots/sim/slaves", json={"type": "physics-slave"})
+        assert made.status_code == 201 and made.json()["type"] == "physics-slave"
+        bad = await http.post("/api/robots/sim/slaves", json={"type": "physics-slave", "rate": 10})
+        assert bad.status_code == 422
+    assert isinstance(make_slave(PhysicsSlaveBody(realtime=False)), PhysicsSlave)
