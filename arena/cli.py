@@ -199,6 +199,7 @@ def main(argv: list[str] | None = None) -> int:
         "slave-error, group",
     )
     stop.add_argument("--api-key", help="an API key, if the server has keys")
+    stop.add_argument("--joint", help="the joint to sweep (default: the robot's first)")
     stop.add_argument("--settle", type=float, default=1.0, help="seconds watched after a stop")
     stop.add_argument(
         "--threshold", type=float, default=0.5, help="degrees within which a joint is at rest"
@@ -329,6 +330,7 @@ def _estop_test(args: argparse.Namespace) -> int:
             api_key=args.api_key,
             settle=args.settle,
             threshold=args.threshold,
+            joint=args.joint,
         )
         try:
             results, notes = run(settings)

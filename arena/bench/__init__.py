@@ -20,6 +20,8 @@ Scenarios:
               recording against without (ratios); what the recording process can write, in
               events a second, with and without that view (in this process)
   replay      commands/s of a replay at maximum speed (in process)
+  physics     the MuJoCo twin: steps a second flat out, and the CPU of the real-time slave at
+              500 Hz (in process)
   core        RobotCore.command calls/s (pure decision code); the collision guard's cost per
               command in a teleoperation stream, p50 / p99 with and without it
   teleop      leader arm -> follower: a leader register change to the follower's goal write,
@@ -48,7 +50,7 @@ from arena.bench.common import BENCH_TYPE, Server, bench_types, running_server
 from arena.bench.estop import estop, flood
 from arena.bench.fleet import FleetRun, drive_fleet, fleet, soak
 from arena.bench.hardware import teleop_latency, usb_control_rate
-from arena.bench.inprocess import core_rate, guard_cost, replay_rate, writer_rate
+from arena.bench.inprocess import core_rate, guard_cost, physics_rate, replay_rate, writer_rate
 from arena.bench.relay import relay, relay_with_websockets, throughput
 from arena.bench.versus import ordinary_relay, versus_floor
 
@@ -69,6 +71,7 @@ SCENARIOS = (
     "recording",
     "replay",
     "core",
+    "physics",
     "usb",
     "teleop",
 )
@@ -98,6 +101,8 @@ def run_benchmarks(
     if "core" in chosen:
         results.update(median_of([core_rate() for _ in range(repeats)]))
         results.update(median_of([guard_cost() for _ in range(repeats)]))
+    if "physics" in chosen:
+        results.update(median_of([physics_rate() for _ in range(repeats)]))
     if "replay" in chosen:
         results.update(median_of([replay_rate() for _ in range(repeats)]))
     if "relay" in chosen:

@@ -123,6 +123,32 @@ def guard_cost(count: int = 20_000) -> dict[str, float]:
     }
 
 
+def physics_rate(seconds: float = 3.0) -> dict[str, float]:
+    """The physics twin: MuJoCo steps a second flat out, and the CPU the real-time slave takes
+    at its 500 Hz (stepping, reporting 100 times a second into trio), as a share of a core."""
+    import trio
+
+    from arena.drivers.physics import ArmSimulation, PhysicsSlave
+    from arena.robot.manager import open_manager
+    from arena.robot.model import load_robot_model
+
+    simulation = ArmSimulation(load_robot_model("so-arm100"))
+    start = time.perf_counter()
+    simulation.step(5000)
+    flat_out = 5000 / (time.perf_counter() - start)
+
+    async def run() -> float:
+        async with open_manager() as manager:
+            robot = await manager.create_robot("so-arm100", robot_id="twin")
+            await robot.attach_slave(PhysicsSlave())
+            await trio.sleep(1.0)  # compiled and stepping
+            cpu, wall = time.process_time(), time.perf_counter()
+            await trio.sleep(seconds)
+            return (time.process_time() - cpu) / (time.perf_counter() - wall)
+
+    return {"physics_steps_per_s": flat_out, "physics_500hz_cpu_percent": 100 * trio.run(run)}
+
+
 def writer_rate(events: int = 30_000) -> dict[str, float]:
     """What the recording process can write, in events a second, with and without Foxglove's
     view (the same work the child does: records made, transforms computed, chunks compressed,

@@ -59,6 +59,7 @@ class Settings:
     api_key: str | None = None
     settle: float = 1.0  # seconds observed after the e-stop
     threshold: float = 0.5  # degrees: a joint within this of its final value is at rest
+    joint: str | None = None  # the joint swept (default: the robot's first)
     amplitude: float = 20.0  # degrees of the sweep
     sweep_hz: float = 1.0
     lead: float = 0.5  # seconds of sweep before the trigger
@@ -159,6 +160,14 @@ class EStopTest:
         if not joints:
             raise EStopTestError(f"robot {robot!r} reports no joints")
         first = joints[0]
+        if self.settings.joint is not None:
+            named = [j for j in joints if j["name"] == self.settings.joint]
+            if not named:
+                known = ", ".join(j["name"] for j in joints)
+                raise EStopTestError(
+                    f"robot {robot!r} has no joint {self.settings.joint!r} ({known})"
+                )
+            first = named[0]
         self.joint = first["name"]
         limits = first.get("limits", {})
         lower, upper = float(limits.get("lower", -90)), float(limits.get("upper", 90))
