@@ -370,3 +370,24 @@ def test_the_page_says_when_recording_stopped_and_why(
     expect(status).to_have_class(re.compile("failing"))
     expect(page.locator("#server-status")).to_contain_text("recording FAILING", timeout=30_000)
     page.screenshot(path=str(SCREENSHOTS / "recording-failing.png"))
+
+
+def test_the_twin_draws_the_workspace_and_what_a_refused_move_would_hit(
+    start_live: Any, page: Page
+) -> None:
+    server = start_live(demo=True)
+    box = {"name": "camera", "min": [0.15, -0.1, 0.0], "max": [0.25, 0.0, 0.2]}
+    with server.http() as http:
+        placed = http.put("/api/robots/demo-arm/workspace", json={"floor": 0.0, "keep_out": [box]})
+        assert placed.status_code == 200
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    twin = page.locator("#twin")
+    expect(twin).to_have_attribute("data-workspace", "floor,camera", timeout=WAIT_MS)
+    click_slider_at(page, "Pitch", 0.97)  # the arm folded down into its table: refused
+    expect(twin).to_have_attribute("data-hit", re.compile(r"^\w+,floor$"), timeout=WAIT_MS)
+    expect(page.locator("#events")).to_contain_text("COLLISION")
+    with server.http() as http:
+        pitch = next(
+            j for j in http.get("/api/robots/demo-arm/joints").json() if j["name"] == "Pitch"
+        )
+    assert pitch["virtual_value"] < 60  # nothing of the refused move went out

@@ -11,6 +11,12 @@ const $ = (id) => document.getElementById(id);
 const SEND_INTERVAL = 50;
 const MAX_EVENTS = 30;
 
+/** The two things a COLLISION refusal names ("... would bring lower_arm and floor together"). */
+function collidingParts(message) {
+  const found = /bring (\S+) and (\S+) together/.exec(message);
+  return found ? [found[1], found[2]] : [];
+}
+
 function degrees(value) {
   return value === null || value === undefined ? "–" : value.toFixed(1);
 }
@@ -42,6 +48,7 @@ export class RobotView {
         }
         this.twin = twin;
         if (this.lastJoints) twin.show(this.lastJoints);
+        return this.showWorkspace();
       })
       .catch((error) => this.log(`3D view: ${error.message}`, true));
   }
@@ -202,11 +209,20 @@ export class RobotView {
         if (ack && ack.status === "clamped") this.log(`clamped: ${ack.message}`);
       } catch (error) {
         this.log(`${error.code}: ${error.message}`, true);
+        if (error.code === "COLLISION" && this.twin) {
+          this.twin.showHit(collidingParts(error.message));
+        }
       }
       const wait = SEND_INTERVAL - (performance.now() - started);
       if (wait > 0) await new Promise((resolve) => setTimeout(resolve, wait));
     }
     this.sending = false;
+  }
+
+  /** Draw the collision guard's workspace (floor, keep-out boxes) in the twin. */
+  async showWorkspace() {
+    const workspace = await call("GET", `/api/robots/${this.robotId}/workspace`);
+    if (this.twin && !this.closed) this.twin.showWorkspace(workspace);
   }
 
   /** Call the API for a button; errors go to the events list. */

@@ -143,6 +143,8 @@ export class Twin {
     const world = new THREE.Group();
     world.rotation.x = -Math.PI / 2; // URDF is z-up, three.js is y-up
     world.add(this.commanded.root, this.measured.root);
+    this.workspace = new THREE.Group(); // the collision guard's floor and keep-out boxes
+    world.add(this.workspace);
     this.scene.add(world);
     this.scene.add(new THREE.HemisphereLight(0xffffff, 0x404050, 2.2));
     const sun = new THREE.DirectionalLight(0xffffff, 1.5);
@@ -194,6 +196,70 @@ export class Twin {
     this.container.dataset.tip = this.commanded.tipPosition().join(",");
     this.container.dataset.ghostTip = this.measured.tipPosition().join(",");
     this.render();
+  }
+
+  /** Draw a workspace (`GET /api/robots/{id}/workspace`): the floor as a translucent plate,
+   * each keep-out box as a red translucent box with its edges. Units are metres, z up. */
+  showWorkspace(workspace) {
+    this.workspace.clear();
+    if (workspace.floor !== null && workspace.floor !== undefined) {
+      const plate = new THREE.Mesh(
+        new THREE.PlaneGeometry(0.8, 0.8),
+        new THREE.MeshBasicMaterial({
+          color: 0x6b7b8c,
+          transparent: true,
+          opacity: 0.25,
+          side: THREE.DoubleSide,
+          depthWrite: false,
+        }),
+      );
+      plate.position.z = workspace.floor - 0.0005; // just under the base, no z-fighting
+      plate.name = "floor";
+      this.workspace.add(plate);
+    }
+    for (const box of workspace.keep_out || []) {
+      const size = box.max.map((high, i) => high - box.min[i]);
+      const geometry = new THREE.BoxGeometry(...size);
+      const solid = new THREE.Mesh(
+        geometry,
+        new THREE.MeshBasicMaterial({
+          color: 0xd9534f,
+          transparent: true,
+          opacity: 0.2,
+          depthWrite: false,
+        }),
+      );
+      const edges = new THREE.EdgesGeometry(geometry);
+      solid.add(new THREE.LineSegments(edges, new THREE.LineBasicMaterial({ color: 0xd9534f })));
+      solid.position.set(...box.max.map((high, i) => (high + box.min[i]) / 2));
+      solid.name = box.name;
+      this.workspace.add(solid);
+    }
+    this.container.dataset.workspace = this.workspace.children.map((c) => c.name).join(",");
+    this.render();
+  }
+
+  /** Show what a refused command would have hit: those links (and the floor or box) in red for
+   * a few seconds. */
+  showHit(names) {
+    const red = new THREE.MeshStandardMaterial({ color: 0xd9534f, emissive: 0x661111 });
+    const restore = [];
+    for (const name of names) {
+      const link = this.commanded.linkObjects.get(name);
+      const parts = link ? link.children.filter((c) => c.isMesh) : [];
+      const obstacle = this.workspace.children.find((c) => c.name === name);
+      for (const part of obstacle ? [...parts, obstacle] : parts) {
+        restore.push([part, part.material]);
+        part.material = red;
+      }
+    }
+    this.container.dataset.hit = names.join(",");
+    this.render();
+    clearTimeout(this.hitTimer);
+    this.hitTimer = setTimeout(() => {
+      for (const [part, material] of restore) part.material = material;
+      this.render();
+    }, 3000);
   }
 
   /** Aim the camera at the arm as it first stands, from the front-right and a little above. */
