@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -251,3 +252,47 @@ async def test_a_sequence_into_the_table_is_refused_and_recorded(
     assert not commands[1]["accepted"] and "floor" in commands[1]["message"]
     targets = [m.data["joints"] for m in read_recording(path).messages if m.kind == "targets"]
     assert all(math.isclose(t["Pitch"], 0.0) for t in targets)  # nothing of the dive went out
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.lists(st.floats(-1.0, 1.0), min_size=6, max_size=6),
+    st.lists(st.floats(-0.05, 0.05), min_size=6, max_size=6),
+)
+def test_a_pose_near_a_checked_one_is_as_safe_as_the_bound_says(
+    where: list[float], step: list[float]
+) -> None:
+    # The shortcut's promise: a pose that moved less than the clearance allows is safe.
+    joints = MODEL.joints
+    start = urdf(
+        {
+            j.name: j.lower + (w + 1) / 2 * (j.upper - j.lower)
+            for j, w in zip(joints, where, strict=True)
+        }
+    )
+    hit, clearance = guard().assess(start, MODEL.workspace)
+    if hit is not None:
+        return
+    end = {j.urdf_name: start[j.urdf_name] + s for j, s in zip(joints, step, strict=True)}
+    if guard().moves_at_most(start, end) < clearance:
+        assert guard().hit(end, MODEL.workspace) is None
+
+
+def test_a_stream_of_small_steps_is_checked_now_and_then(monkeypatch: pytest.MonkeyPatch) -> None:
+    core = RobotCore(MODEL, 0.0)
+    assert core.guard is not None
+    full = 0
+    assess = CollisionModel.assess
+
+    def counted(model: CollisionModel, *args: Any) -> Any:
+        nonlocal full
+        full += 1
+        return assess(model, *args)
+
+    monkeypatch.setattr(CollisionModel, "assess", counted)
+    for i in range(200):  # a hundredth of a degree at a time, back and forth
+        result, _ = core.command(None, Command.of({"Rotation": (i % 2) * 0.01}), i * 0.01)
+        assert result.accepted
+    assert 1 <= full <= 2
+    result, _ = core.command(None, Command.of({"Rotation": 30.0}), 3.0)  # a real move: checked
+    assert result.accepted and full > 2

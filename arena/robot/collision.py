@@ -30,6 +30,10 @@ from arena.robot.kinematics import Kinematics, Pose, Vector, rotate
 if TYPE_CHECKING:
     from arena.robot.model import RobotModel
 
+#: Capsules closer than this (metres) in the zero pose touch by design (their meshes are
+#: neighbours on the arm, or the shoulder turning on its base just above the table): that pair,
+#: or that link and the floor, is not checked.
+REST_CONTACT = 0.01
 #: Default spacing of the poses checked along a move (radians of the joint that moves most).
 PATH_STEP = math.radians(5.0)
 
@@ -170,6 +174,26 @@ class CollisionModel:
     def __post_init__(self) -> None:
         object.__setattr__(self, "_links", {c.link: i for i, c in enumerate(self.capsules)})
 
+    @functools.cached_property
+    def reach(self) -> float:
+        """A bound of how far any point of a capsule lies from any joint's axis (metres): a
+        joint turned by d radians moves no point by more than `reach * d`."""
+        chain = sum(math.hypot(*joint.origin[1]) for joint in self.kinematics.joints)
+        extent = max(max(math.hypot(*c.a), math.hypot(*c.b)) + c.radius for c in self.capsules)
+        return chain + extent
+
+    def moves_at_most(self, start: Mapping[str, float], end: Mapping[str, float]) -> float:
+        """A bound of how far (metres) two points of the arm can come closer to each other, or
+        one to the workspace, between two poses (URDF radians), along the straight way between
+        them too: each point moves at most `reach` times the sum of the turns (a prismatic
+        joint's metres count once), and two points can each move that far."""
+        total = 0.0
+        for joint in self.kinematics.joints:
+            if joint.name in end:
+                turn = abs(end[joint.name] - start.get(joint.name, end[joint.name]))
+                total += turn if joint.kind == "prismatic" else self.reach * turn
+        return 2.0 * total
+
     def placed(self, values: Mapping[str, float]) -> list[tuple[Vector, Vector, float]]:
         """Each capsule's segment ends in the root frame at joint values `values`."""
         poses = self.kinematics.link_poses(values)
@@ -179,11 +203,17 @@ class CollisionModel:
         ]
 
     def hit(self, values: Mapping[str, float], workspace: Workspace) -> Hit | None:
-        """The first collision of the pose `values` (URDF radians), or None.
+        """The first collision of the pose `values` (URDF radians), or None."""
+        return self.assess(values, workspace)[0]
+
+    def assess(self, values: Mapping[str, float], workspace: Workspace) -> tuple[Hit | None, float]:
+        """The first collision of the pose `values` (URDF radians), or None with a lower
+        bound of the pose's clearance: how far (metres) any part of the arm may move before
+        anything could touch (the margin kept).
 
         A broad phase first: each capsule's bounding sphere (its middle, half its length plus
-        its radius) rules out most pairs and the floor with one distance; only what is near
-        gets the exact segment test."""
+        its radius) rules out most pairs and the floor with one distance, which also bounds
+        their clearance; only what is near gets the exact segment test."""
         poses = self.kinematics.link_poses(values)
         capsules = self.capsules
         middles = [_apply(poses[c.link], c.middle) for c in capsules]
@@ -200,31 +230,39 @@ class CollisionModel:
             return found
 
         margin = workspace.margin
+        clearance = math.inf
         if workspace.floor is not None:
             floor = workspace.floor + margin
             for index in self.floor_links:
                 capsule = capsules[index]
-                if middles[index][2] - capsule.reach < floor:
+                gap = middles[index][2] - capsule.reach - floor
+                if gap < 0.0:
                     a, b = segment(index)
-                    if min(a[2], b[2]) - capsule.radius < floor:
-                        return Hit(capsule.link, "floor")
+                    gap = min(a[2], b[2]) - capsule.radius - floor
+                    if gap < 0.0:
+                        return Hit(capsule.link, "floor"), 0.0
+                clearance = min(clearance, gap)
         for box in workspace.keep_out:
             for index, capsule in enumerate(capsules):
                 a, b = segment(index)
-                if _segment_box_distance(a, b, box) < capsule.radius + margin:
-                    return Hit(capsule.link, box.name)
+                gap = _segment_box_distance(a, b, box) - capsule.radius - margin
+                if gap < 0.0:
+                    return Hit(capsule.link, box.name), 0.0
+                clearance = min(clearance, gap)
         for i, j in self.pairs:
             first, second = capsules[i], capsules[j]
             m1, m2 = middles[i], middles[j]
             dx, dy, dz = m1[0] - m2[0], m1[1] - m2[1], m1[2] - m2[2]
-            limit = first.reach + second.reach + margin
-            if dx * dx + dy * dy + dz * dz >= limit * limit:
-                continue
-            a1, b1 = segment(i)
-            a2, b2 = segment(j)
-            if _segment_distance(a1, b1, a2, b2) < first.radius + second.radius + margin:
-                return Hit(first.link, second.link)
-        return None
+            gap = math.sqrt(dx * dx + dy * dy + dz * dz) - first.reach - second.reach - margin
+            if gap < 0.0:
+                a1, b1 = segment(i)
+                a2, b2 = segment(j)
+                distance = _segment_distance(a1, b1, a2, b2)
+                gap = distance - first.radius - second.radius - margin
+                if gap < 0.0:
+                    return Hit(first.link, second.link), 0.0
+            clearance = min(clearance, gap)
+        return None, clearance
 
     def path_hit(
         self,
@@ -232,22 +270,22 @@ class CollisionModel:
         goal: Mapping[str, float],
         workspace: Workspace,
         step: float = PATH_STEP,
-    ) -> tuple[Hit | None, float]:
+    ) -> tuple[Hit | None, float, float]:
         """The first collision on the straight way (in joint space) from `start` to `goal`,
         checked at least every `step` radians of the joint that moves most, goal included;
-        and the fraction of the way that is safe (1.0 with no hit)."""
+        the fraction of the way that is safe (1.0 with no hit); and the goal's clearance."""
         largest = max((abs(goal[n] - start.get(n, goal[n])) for n in goal), default=0.0)
         count = max(1, math.ceil(largest / step))
-        if count == 1:  # a small step (a stream of commands): the goal is the only new pose
-            found = self.hit(goal, workspace)
-            return found, 0.0 if found is not None else 1.0
-        for k in range(1, count + 1):
+        for k in range(1, count):
             f = k / count
             pose = {n: start.get(n, v) + (v - start.get(n, v)) * f for n, v in goal.items()}
             found = self.hit(pose, workspace)
             if found is not None:
-                return found, (k - 1) / count
-        return None, 1.0
+                return found, (k - 1) / count, 0.0
+        found, clearance = self.assess(goal, workspace)
+        if found is not None:
+            return found, (count - 1) / count, 0.0
+        return None, 1.0, clearance
 
 
 def _apply(pose: Pose, point: Vector) -> Vector:
@@ -334,11 +372,11 @@ def _build(urdf_path: Path, neutral: tuple[tuple[str, float], ...]) -> Collision
             if frozenset((capsules[i].link, capsules[j].link)) in neighbours:
                 continue
             (a1, b1, r1), (a2, b2, r2) = placed[i], placed[j]
-            if _segment_distance(a1, b1, a2, b2) >= r1 + r2:  # apart at rest: may meet
+            if _segment_distance(a1, b1, a2, b2) - r1 - r2 >= REST_CONTACT:  # apart at rest
                 pairs.append((i, j))
     floor_links = tuple(
-        i for i, (a, b, r) in enumerate(placed) if min(a[2], b[2]) - r >= 0.0
-    )  # a link already touching the floor's plane at rest (the base) stands on it
+        i for i, (a, b, r) in enumerate(placed) if min(a[2], b[2]) - r >= REST_CONTACT
+    )  # a link on (or within a hair of) the floor's plane at rest stands on it: the base
     return CollisionModel(kinematics, capsules, tuple(pairs), floor_links)
 
 

@@ -73,6 +73,12 @@ class RobotCore:
         self.collision_stops = 0
         self._to_urdf = tuple((j.name, j.urdf_name, j.neutral) for j in model.joints)
         self._checked: dict[str, float] | None = None  # the last goal pose found safe
+        # The last pose checked in full (URDF radians) and its clearance (metres): a pose
+        # whose joints are so close to it that no part of the arm can have moved that far is
+        # safe without a check (a stream of small steps is checked now and then, not always).
+        self._reference: dict[str, float] | None = None
+        self._clearance = 0.0
+        self._reference_workspace = self.workspace  # a changed workspace voids the reference
         self._sent = self.motion.positions  # the last targets emitted (where the arm goes)
         self._rates: dict[str, RateLimiter] = {}
         self._last_master_event: MasterCommand | None = None  # reused while one master commands
@@ -154,9 +160,14 @@ class RobotCore:
         start = self._sent
         end = self.motion.goals
         end.update((goal.name, goal.value) for goal in goals)
-        hit, safe = self.guard.path_hit(self._urdf(start), self._urdf(end), self.workspace)
+        target = self._urdf(end)
+        if self._near_reference(target):
+            self._checked = end
+            return goals, None, []
+        hit, safe, clearance = self.guard.path_hit(self._urdf(start), target, self.workspace)
         if hit is None:
             self._checked = end
+            self._remember(target, clearance)
             return goals, None, []
         if self.workspace.policy != "stop-short" or safe <= 0.0:
             names = ", ".join(goal.name for goal in goals)
@@ -180,12 +191,31 @@ class RobotCore:
         targets = self.motion.advance(now)
         if targets is None:
             return None
-        if targets != self._checked and self.guard.hit(self._urdf(targets), self.workspace):
-            self.motion.stop_at(self._sent)
-            self.collision_stops += 1
-            return None
+        if targets != self._checked:
+            pose = self._urdf(targets)
+            if not self._near_reference(pose):
+                hit, clearance = self.guard.assess(pose, self.workspace)
+                if hit is not None:
+                    self.motion.stop_at(self._sent)
+                    self.collision_stops += 1
+                    return None
+                self._remember(pose, clearance)
         self._sent = targets
         return targets
+
+    def _near_reference(self, pose: dict[str, float]) -> bool:
+        """True when no part of the arm can have moved from the reference pose as far as its
+        clearance (so `pose`, and the way to it, are safe without a check)."""
+        reference = self._reference
+        if reference is None or self.workspace is not self._reference_workspace:
+            return False
+        assert self.guard is not None
+        return self.guard.moves_at_most(reference, pose) < self._clearance
+
+    def _remember(self, pose: dict[str, float], clearance: float) -> None:
+        """Keep a pose checked in full, with its clearance, as the reference."""
+        self._reference, self._clearance = pose, clearance
+        self._reference_workspace = self.workspace
 
     def tick(self, now: float) -> dict[str, float] | None:
         """Advance interpolation; returns new targets, or None if nothing moved."""
