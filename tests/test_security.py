@@ -30,6 +30,7 @@ async def test_a_viewer_key_watches_but_cannot_command(start_server: StartServer
         for method, path in [
             ("POST", "/api/robots/demo-arm/estop"),
             ("PUT", "/api/robots/demo-arm/joints"),
+            ("PUT", "/api/robots/demo-arm/workspace"),
             ("POST", "/api/robots"),
             ("DELETE", "/api/robots/demo-arm"),
             ("POST", "/api/recordings"),
