@@ -7,6 +7,7 @@ ships for its type (and that the file or the live server advertised: they must b
 from __future__ import annotations
 
 import base64
+import itertools
 import json
 import math
 import random
@@ -94,7 +95,8 @@ def test_kinematics_of_prismatic_fixed_and_malformed_trees() -> None:
 
 @pytest.fixture
 async def foxglove_file(autojump_clock: MockClock, tmp_path: Path) -> AsyncIterator[Path]:
-    (path,) = await record_scenario(tmp_path, session_scenario)
+    """A session recorded with a transform for every targets and joint-states record."""
+    (path,) = await record_scenario(tmp_path, session_scenario, foxglove_rate=0.0)
     yield path
 
 
@@ -162,6 +164,27 @@ async def test_recordings_carry_transforms_model_and_log(
     assert (error, "E-STOP: test stop") in lines
     assert any(level == warning and "refused ESTOPPED" in text for level, text in lines)
     assert any("state idle" in text and "Reset" in text for _, text in lines)
+
+
+async def test_transforms_at_a_capped_rate_still_end_on_the_newest_pose(
+    autojump_clock: MockClock, tmp_path: Path
+) -> None:
+    (path,) = await record_scenario(tmp_path, session_scenario)  # 30 a second per tree
+    recording = read_recording(path)
+    transforms = [v for v in read_views(path) if v[0] == "/robots/arm/tf"]
+    for kind, tree in (("targets", "virtual"), ("joint_states", "real")):
+        records = {m.log_time: m for m in recording.messages if m.kind == kind}
+        sent = [
+            (log_time, message)
+            for _, _, message, log_time in transforms
+            if any(t.child_frame_id == f"arm/{tree}/base" for t in message.transforms)
+        ]
+        assert 10 < len(sent) < len(records)  # held back, not dropped altogether
+        assert all(log_time in records for log_time, _ in sent)  # each at a record's time
+        assert max(records) == sent[-1][0]  # the last pose is always there
+        # spaced at least 1/30 s, but where a batch ended and its newest pose was added
+        gaps = [b[0] - a[0] for a, b in itertools.pairwise(sent)]
+        assert sum(gap < 1e9 / 30 for gap in gaps) < len(gaps) / 2
 
 
 async def test_recover_keeps_the_view_and_it_can_be_left_out(

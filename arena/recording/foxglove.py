@@ -101,15 +101,24 @@ class Twin:
     def transforms(self, tree: str, joints: Mapping[str, float], ns: int) -> bytes:
         """The whole tree at joint values `joints` (wire degrees; missing joints keep their
         last value), as an encoded `FrameTransforms`."""
+        self.update(tree, joints)
+        return self.encode_tree(tree, ns)
+
+    def update(self, tree: str, joints: Mapping[str, float]) -> None:
+        """Note new joint values (wire degrees) of one tree without encoding anything."""
         values = self._values[tree]
         for name, degrees in joints.items():
             spec = self._joints.get(name)
             if spec is not None:
                 values[spec.urdf_name] = spec.to_urdf(degrees)
+
+    def encode_tree(self, tree: str, ns: int) -> bytes:
+        """The tree at the joint values last noted, stamped `ns`, as an encoded
+        `FrameTransforms`."""
         stamp = timestamp(ns)
         root = self.frame(tree, self.kinematics.root)
         transforms = [_frame_transform(stamp, WORLD, root, ((0.0, 0.0, 0.0, 1.0), (0, 0, 0)))]
-        for joint, pose in self.kinematics.joint_transforms(values):
+        for joint, pose in self.kinematics.joint_transforms(self._values[tree]):
             parent, child = self.frame(tree, joint.parent), self.frame(tree, joint.child)
             transforms.append(_frame_transform(stamp, parent, child, pose))
         return bytes(FrameTransforms(transforms=transforms).encode())
@@ -243,10 +252,16 @@ class Twins:
         self,
         robots: Mapping[str, Mapping[str, str]],
         models: Mapping[str, RobotModel] | None = None,
+        rate: float = 0.0,
     ) -> None:
         self.robots = robots
         self.models = {} if models is None else models
         self._twins: dict[str, Twin | None] = {}
+        #: Transforms of one tree at most `rate` a second (0: one per record); `flush` adds
+        #: the newest pose of every tree the rate held back, so a pose at rest is never stale.
+        self._spacing = int(1e9 / rate) if rate > 0 else 0
+        self._last: dict[tuple[str, str], int] = {}
+        self._held: dict[tuple[str, str], int] = {}
 
     def twin(self, robot_id: str) -> Twin | None:
         """The robot's twin, or None if it has none."""
@@ -266,11 +281,34 @@ class Twins:
             return None
 
     def items(self, robot_id: str, event: RobotEvent, log_time: int) -> list[ViewItem]:
-        """What an event shows in Foxglove, as items to write."""
+        """What an event shows in Foxglove, as items to write (transforms as the rate
+        allows; call `flush` after a batch of events)."""
         twin = self.twin(robot_id)
         if twin is None:
             return []
-        return [(robot_id, kind, data, log_time) for kind, data in twin.messages(event, log_time)]
+        if isinstance(event, TargetsSent | JointStatesReceived):
+            tree = "virtual" if isinstance(event, TargetsSent) else "real"
+            twin.update(tree, event.joints)
+            key = (robot_id, tree)
+            if log_time - self._last.get(key, -(1 << 62)) < self._spacing:
+                self._held[key] = log_time
+                return []
+            self._last[key] = log_time
+            self._held.pop(key, None)
+            return [(robot_id, "tf", twin.encode_tree(tree, log_time), log_time)]
+        line = twin.log(event, log_time)
+        return [] if line is None else [(robot_id, "log", line, log_time)]
+
+    def flush(self) -> list[ViewItem]:
+        """The transforms the rate held back: each tree's newest pose, at its own time."""
+        found = []
+        for (robot_id, tree), log_time in self._held.items():
+            twin = self._twins.get(robot_id)
+            if twin is not None:
+                found.append((robot_id, "tf", twin.encode_tree(tree, log_time), log_time))
+                self._last[(robot_id, tree)] = log_time
+        self._held.clear()
+        return found
 
     def introduce(self, robot_id: str, log_time: int) -> list[ViewItem]:
         """The robot's 3D model, for the first of its records in a file."""

@@ -49,6 +49,8 @@ class FileSeries:
     max_seconds: float = 3600.0
     #: Foxglove's view beside the records: transforms, the 3D model and a log (`foxglove.py`).
     foxglove: bool = True
+    #: Transforms of each tree at most this many a second (0: one per record).
+    foxglove_rate: float = 30.0
 
 
 class McapFileWriter:

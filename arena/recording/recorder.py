@@ -99,10 +99,18 @@ class Recorder:
         retry_initial: float = 1.0,
         retry_max: float = 30.0,
         foxglove: bool = True,
+        foxglove_rate: float = 30.0,
     ) -> None:
         base = {"server": "arena", "version": arena.__version__}
         self.writer = McapWriterProcess(
-            FileSeries(folder, {**base, **(metadata or {})}, max_bytes, max_seconds, foxglove)
+            FileSeries(
+                folder,
+                {**base, **(metadata or {})},
+                max_bytes,
+                max_seconds,
+                foxglove,
+                foxglove_rate,
+            )
         )
         self.flush_interval = flush_interval
         self.batch_interval = min(batch_interval, flush_interval)

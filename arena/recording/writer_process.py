@@ -69,6 +69,8 @@ def items_of_events(slices: list[bytes], twins: Twins | None = None) -> list[Ite
             items.append((robot_id, kind, _json.encode(record), log_time))
             if twins is not None:
                 items.extend(twins.items(robot_id, event, log_time))
+    if twins is not None:
+        items.extend(twins.flush())
     items.sort(key=lambda item: item[3])
     return items
 
@@ -218,7 +220,7 @@ def serve(requests: IO[bytes], replies: IO[bytes]) -> None:
     if series.foxglove:
         from arena.recording.foxglove import Twins  # the SDK loads only when it is used
 
-        twins = Twins(writer.robots, models)
+        twins = Twins(writer.robots, models, series.foxglove_rate)
         writer.first_in_file = twins.introduce
     try:
         while True:

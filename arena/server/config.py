@@ -39,6 +39,8 @@ class ServerConfig:
     recording_retry_max: float = 30.0  # a failing disk is retried after 1 s, doubling to this
     #: Record Foxglove's view too: each robot's transforms, 3D model and log.
     record_foxglove: bool = True
+    #: ...at most this many transforms a second per robot and tree (0: one per record).
+    record_foxglove_rate: float = 30.0
     #: Serve the robots live over Foxglove's WebSocket protocol on this port (0: any).
     foxglove_port: int | None = None
     #: Bytes queued for one WebSocket peer before states keep only the newest and acks are
@@ -77,6 +79,10 @@ class ServerConfig:
                 ErrorCode.INVALID_CONFIG,
                 "Foxglove's protocol has no API keys: --foxglove-port serves only on a loopback "
                 "host (or with --insecure and no keys).",
+            )
+        if not 0 <= self.record_foxglove_rate <= 10_000:
+            raise ArenaError(
+                ErrorCode.INVALID_CONFIG, "record_foxglove_rate must be from 0 to 10000."
             )
         if self.recording_retry_max < 1.0:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "recording_retry_max must be 1 s or more.")

@@ -69,6 +69,7 @@ async def run_server(
         active=config.record,
         retry_max=config.recording_retry_max,
         foxglove=config.record_foxglove,
+        foxglove_rate=config.record_foxglove_rate,
     )
     async with trio.open_nursery() as recording_nursery:
         await recording_nursery.start(recorder.run)
