@@ -182,18 +182,6 @@ class CollisionModel:
         extent = max(max(math.hypot(*c.a), math.hypot(*c.b)) + c.radius for c in self.capsules)
         return chain + extent
 
-    def moves_at_most(self, start: Mapping[str, float], end: Mapping[str, float]) -> float:
-        """A bound of how far (metres) two points of the arm can come closer to each other, or
-        one to the workspace, between two poses (URDF radians), along the straight way between
-        them too: each point moves at most `reach` times the sum of the turns (a prismatic
-        joint's metres count once), and two points can each move that far."""
-        total = 0.0
-        for joint in self.kinematics.joints:
-            if joint.name in end:
-                turn = abs(end[joint.name] - start.get(joint.name, end[joint.name]))
-                total += turn if joint.kind == "prismatic" else self.reach * turn
-        return 2.0 * total
-
     def placed(self, values: Mapping[str, float]) -> list[tuple[Vector, Vector, float]]:
         """Each capsule's segment ends in the root frame at joint values `values`."""
         poses = self.kinematics.link_poses(values)
@@ -206,10 +194,13 @@ class CollisionModel:
         """The first collision of the pose `values` (URDF radians), or None."""
         return self.assess(values, workspace)[0]
 
-    def assess(self, values: Mapping[str, float], workspace: Workspace) -> tuple[Hit | None, float]:
-        """The first collision of the pose `values` (URDF radians), or None with a lower
-        bound of the pose's clearance: how far (metres) any part of the arm may move before
-        anything could touch (the margin kept).
+    def assess(
+        self, values: Mapping[str, float], workspace: Workspace
+    ) -> tuple[Hit | None, tuple[float, ...]]:
+        """The first collision of the pose `values` (URDF radians), or None with the gaps
+        (metres, the margin kept) of every constraint: each link above the floor, each link
+        outside the boxes, each pair apart. Each is a lower bound of how far the parts may
+        move before they could touch. See `safe_move`.
 
         A broad phase first: each capsule's bounding sphere (its middle, half its length plus
         its radius) rules out most pairs and the floor with one distance, which also bounds
@@ -230,7 +221,8 @@ class CollisionModel:
             return found
 
         margin = workspace.margin
-        clearance = math.inf
+        count = len(capsules)
+        gaps = [math.inf] * (2 * count + len(self.pairs))  # floor, boxes, pairs (`_constraints`)
         if workspace.floor is not None:
             floor = workspace.floor + margin
             for index in self.floor_links:
@@ -240,16 +232,16 @@ class CollisionModel:
                     a, b = segment(index)
                     gap = min(a[2], b[2]) - capsule.radius - floor
                     if gap < 0.0:
-                        return Hit(capsule.link, "floor"), 0.0
-                clearance = min(clearance, gap)
+                        return Hit(capsule.link, "floor"), ()
+                gaps[index] = gap
         for box in workspace.keep_out:
             for index, capsule in enumerate(capsules):
                 a, b = segment(index)
                 gap = _segment_box_distance(a, b, box) - capsule.radius - margin
                 if gap < 0.0:
-                    return Hit(capsule.link, box.name), 0.0
-                clearance = min(clearance, gap)
-        for i, j in self.pairs:
+                    return Hit(capsule.link, box.name), ()
+                gaps[count + index] = min(gaps[count + index], gap)
+        for number, (i, j) in enumerate(self.pairs):
             first, second = capsules[i], capsules[j]
             m1, m2 = middles[i], middles[j]
             dx, dy, dz = m1[0] - m2[0], m1[1] - m2[1], m1[2] - m2[2]
@@ -260,9 +252,52 @@ class CollisionModel:
                 distance = _segment_distance(a1, b1, a2, b2)
                 gap = distance - first.radius - second.radius - margin
                 if gap < 0.0:
-                    return Hit(first.link, second.link), 0.0
-            clearance = min(clearance, gap)
-        return None, clearance
+                    return Hit(first.link, second.link), ()
+            gaps[2 * count + number] = gap
+        return None, tuple(gaps)
+
+    @functools.cached_property
+    def _affected(self) -> tuple[tuple[int, ...], ...]:
+        """Per joint, the constraints (indices into `assess`'s gaps) whose gap it can change:
+        a link's floor and boxes by every joint above the link; a pair by the joints between
+        its two links (those above both move them together)."""
+        above: dict[str, set[str]] = {self.kinematics.root: set()}
+        for joint in self.kinematics.joints:
+            above[joint.child] = above[joint.parent] | {joint.name}
+        links = [c.link for c in self.capsules]
+        moved_by = [above[link] for link in links] * 2
+        moved_by += [above[links[i]] ^ above[links[j]] for i, j in self.pairs]
+        return tuple(
+            tuple(k for k, joints in enumerate(moved_by) if joint.name in joints)
+            for joint in self.kinematics.joints
+        )
+
+    def safe_move(
+        self,
+        clearances: tuple[float, ...],
+        start: Mapping[str, float],
+        end: Mapping[str, float],
+    ) -> bool:
+        """True when a pose `end` (and the straight way to it) is safe because `start`, with
+        these gaps from `assess`, was: no two points can close a gap by more than twice
+        `reach` times the sum of the turns (a prismatic joint's metres count once), and only
+        the gaps the moving joints can change are at stake."""
+        if not clearances:
+            return False
+        total = 0.0
+        limit = math.inf
+        affected = self._affected
+        for index, joint in enumerate(self.kinematics.joints):
+            value = end.get(joint.name)
+            if value is None:
+                continue
+            turn = abs(value - start.get(joint.name, value))
+            if turn:
+                total += turn if joint.kind == "prismatic" else self.reach * turn
+                for k in affected[index]:
+                    if clearances[k] < limit:
+                        limit = clearances[k]
+        return 2.0 * total < limit
 
     def path_hit(
         self,
@@ -270,7 +305,7 @@ class CollisionModel:
         goal: Mapping[str, float],
         workspace: Workspace,
         step: float = PATH_STEP,
-    ) -> tuple[Hit | None, float, float]:
+    ) -> tuple[Hit | None, float, tuple[float, ...]]:
         """The first collision on the straight way (in joint space) from `start` to `goal`,
         checked at least every `step` radians of the joint that moves most, goal included;
         the fraction of the way that is safe (1.0 with no hit); and the goal's clearance."""
@@ -281,11 +316,11 @@ class CollisionModel:
             pose = {n: start.get(n, v) + (v - start.get(n, v)) * f for n, v in goal.items()}
             found = self.hit(pose, workspace)
             if found is not None:
-                return found, (k - 1) / count, 0.0
-        found, clearance = self.assess(goal, workspace)
+                return found, (k - 1) / count, ()
+        found, clearances = self.assess(goal, workspace)
         if found is not None:
-            return found, (count - 1) / count, 0.0
-        return None, 1.0, clearance
+            return found, (count - 1) / count, ()
+        return None, 1.0, clearances
 
 
 def _apply(pose: Pose, point: Vector) -> Vector:

@@ -77,7 +77,7 @@ class RobotCore:
         # whose joints are so close to it that no part of the arm can have moved that far is
         # safe without a check (a stream of small steps is checked now and then, not always).
         self._reference: dict[str, float] | None = None
-        self._clearance = 0.0
+        self._clearance: tuple[float, ...] = ()
         self._reference_workspace = self.workspace  # a changed workspace voids the reference
         self._sent = self.motion.positions  # the last targets emitted (where the arm goes)
         self._rates: dict[str, RateLimiter] = {}
@@ -210,9 +210,9 @@ class RobotCore:
         if reference is None or self.workspace is not self._reference_workspace:
             return False
         assert self.guard is not None
-        return self.guard.moves_at_most(reference, pose) < self._clearance
+        return self.guard.safe_move(self._clearance, reference, pose)
 
-    def _remember(self, pose: dict[str, float], clearance: float) -> None:
+    def _remember(self, pose: dict[str, float], clearance: tuple[float, ...]) -> None:
         """Keep a pose checked in full, with its clearance, as the reference."""
         self._reference, self._clearance = pose, clearance
         self._reference_workspace = self.workspace
