@@ -200,7 +200,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     stop.add_argument("--api-key", help="an API key, if the server has keys")
     stop.add_argument("--joint", help="the joint to sweep (default: the robot's first)")
-    stop.add_argument("--settle", type=float, default=1.0, help="seconds watched after a stop")
+    stop.add_argument(
+        "--settle", type=float, default=3.0, help="seconds at most for the arm to come to rest"
+    )
     stop.add_argument(
         "--threshold", type=float, default=0.5, help="degrees within which a joint is at rest"
     )

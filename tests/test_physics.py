@@ -11,42 +11,51 @@ from trio.testing import MockClock
 
 from arena.drivers.physics import ArmSimulation, PhysicsSettings, PhysicsSlave
 from arena.protocol.rest import PhysicsSlaveBody
+from arena.robot.actor import Robot
 from arena.robot.collision import Workspace
 from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
+from arena.robot.snapshot import JointSnapshot
 from arena.server.drivers import make_slave
 from tests.conftest import RunningServer
 
 MODEL = load_robot_model("so-arm100")
 
 
-def virtual_time() -> PhysicsSettings:
-    return PhysicsSettings(realtime=False)
+async def twin(
+    manager: RobotManager, robot_id: str = "sim", estop: str = "hold"
+) -> tuple[Robot, PhysicsSlave]:
+    """A robot with a physics slave stepping on trio's (virtual) clock."""
+    robot = await manager.create_robot("so-arm100", robot_id=robot_id)
+    slave = PhysicsSlave(PhysicsSettings(realtime=False, estop=estop))
+    await robot.attach_slave(slave)
+    return robot, slave
+
+
+def joint(robot: Robot, name: str) -> JointSnapshot:
+    return next(j for j in robot.snapshot().joints if j.name == name)
 
 
 async def test_it_follows_with_a_lag_and_holds_against_gravity(
     autojump_clock: MockClock, manager: RobotManager
 ) -> None:
-    robot = await manager.create_robot("so-arm100", robot_id="sim")
-    slave = PhysicsSlave(virtual_time())
-    await robot.attach_slave(slave)
+    robot, slave = await twin(manager)
     await trio.sleep(1.0)
     result = await robot.command(Command.of({"Rotation": 30.0}))
     assert result.accepted
     await trio.sleep(0.03)
-    early = robot.snapshot()
-    rotation = next(j for j in early.joints if j.name == "Rotation")
+    rotation = joint(robot, "Rotation")
     assert rotation.virtual_value > 0.0  # the targets are on their way (velocity-limited)
     assert rotation.real_value is not None  # the arm lags behind them
     assert rotation.real_value < rotation.virtual_value - 1.0
     await trio.sleep(2.0)
-    later = next(j for j in robot.snapshot().joints if j.name == "Rotation")
+    later = joint(robot, "Rotation")
     assert later.real_value is not None and abs(later.real_value - 30.0) < 1.0
     # held out against gravity: the shoulder sags a little below its target, no more
     assert (await robot.command(Command.of({"Pitch": 15.0}))).accepted
     await trio.sleep(3.0)
-    pitch = next(j for j in robot.snapshot().joints if j.name == "Pitch")
+    pitch = joint(robot, "Pitch")
     assert pitch.real_value is not None and 0.05 < abs(pitch.real_value - 15.0) < 5.0
     assert slave.contacts_reported == []
 
@@ -56,8 +65,7 @@ async def test_torque_off_lets_it_fall_hold_keeps_it(
 ) -> None:
     fallen: dict[str, float] = {}
     for policy in ("hold", "torque-off"):
-        robot = await manager.create_robot("so-arm100", robot_id=f"sim-{policy}")
-        await robot.attach_slave(PhysicsSlave(PhysicsSettings(realtime=False, estop=policy)))
+        robot, _ = await twin(manager, f"sim-{policy}", policy)
         assert (await robot.command(Command.of({"Pitch": -30.0}))).accepted  # leaning back
         await trio.sleep(3.0)
         before = {j.name: j.real_value or 0.0 for j in robot.snapshot().joints}
@@ -74,9 +82,7 @@ async def test_torque_off_lets_it_fall_hold_keeps_it(
 async def test_driven_into_its_table_it_reports_the_contact(
     autojump_clock: MockClock, manager: RobotManager
 ) -> None:
-    robot = await manager.create_robot("so-arm100", robot_id="sim")
-    slave = PhysicsSlave(virtual_time())
-    await robot.attach_slave(slave)
+    robot, slave = await twin(manager)
     await robot.set_workspace(Workspace(floor=None))  # the guard would refuse this move
     faults = []
     with robot.subscribe() as events:
@@ -88,11 +94,16 @@ async def test_driven_into_its_table_it_reports_the_contact(
     assert any("table" in pair for pair in slave.contacts_reported)
 
 
-def test_the_simulation_steps_faster_than_real_time() -> None:
-    simulation = ArmSimulation(MODEL)
-    simulation.step(500)
-    assert simulation.steps == 500 and set(simulation.positions()) == set(MODEL.joint_names)
-    assert simulation.model.opt.timestep == 1 / 500
+def test_the_step_rate_sets_the_timestep_and_an_arm_held_at_rest_stays_there() -> None:
+    simulation = ArmSimulation(MODEL, PhysicsSettings(rate=1000.0))
+    assert simulation.model.opt.timestep == 1 / 1000
+    simulation.set_pose({"Pitch": -20.0})
+    simulation.step(2000)
+    settled = simulation.positions()
+    simulation.hold()
+    simulation.step(1000)
+    assert simulation.steps == 3000
+    assert all(abs(v - settled[n]) < 5.0 for n, v in simulation.positions().items())
 
 
 async def test_attached_over_rest(start_server: Callable[..., Awaitable[RunningServer]]) -> None:

@@ -28,7 +28,7 @@ import httpx
 import websockets
 from websockets.asyncio.client import ClientConnection
 
-from arena.estop_test.analysis import Sample, Trial, stop_trial
+from arena.estop_test.analysis import STILL_FOR, Sample, Trial, joint_stops, stop_trial
 
 #: Every stop path, in the order they run.
 PATHS = (
@@ -57,7 +57,7 @@ class Settings:
     trials: int = 5
     paths: tuple[str, ...] = ()  # empty: every path (heartbeat only if the server is quick)
     api_key: str | None = None
-    settle: float = 1.0  # seconds observed after the e-stop
+    settle: float = 3.0  # seconds at most for the arm to come to rest after the stop
     threshold: float = 0.5  # degrees: a joint within this of its final value is at rest
     joint: str | None = None  # the joint swept (default: the robot's first)
     amplitude: float = 20.0  # degrees of the sweep
@@ -79,8 +79,11 @@ class _Watch:
     def mark(self) -> None:
         self.changed.set()
 
-    async def until(self, check: Callable[[], bool], timeout: float) -> bool:
-        """Wait until `check()` holds (re-checked on every message) or time runs out."""
+    async def until(
+        self, check: Callable[[], bool], timeout: float, every: float | None = None
+    ) -> bool:
+        """Wait until `check()` holds (re-checked on every message, and `every` seconds when
+        silence can make it true) or time runs out."""
         deadline = time.monotonic() + timeout
         while not check():
             left = deadline - time.monotonic()
@@ -88,7 +91,7 @@ class _Watch:
                 return False
             self.changed.clear()
             with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self.changed.wait(), left)
+                await asyncio.wait_for(self.changed.wait(), min(left, every or left))
         return True
 
 
@@ -244,9 +247,12 @@ class EStopTest:
             await watch.until(stopped, wait)
             estopped = next((t for t, m in watch.modes[modes_before:] if m == "estopped"), None)
             notice = watch.notices[notices_before] if len(watch.notices) > notices_before else None
-            settled = (estopped or trigger) + settings.settle
-            await asyncio.sleep(max(0.0, settled - time.monotonic()))
             start = trigger - settings.lead
+            await watch.until(
+                lambda: _at_rest(watch.samples, start, trigger, settings.threshold),
+                settings.settle,
+                every=0.02,
+            )
             return stop_trial(
                 path,
                 trigger,
@@ -316,6 +322,15 @@ async def _expect(request: Awaitable[httpx.Response]) -> None:
     response = await request
     if response.status_code >= 300:
         raise EStopTestError(f"{response.request.url.path}: {response.status_code} {response.text}")
+
+
+def _at_rest(samples: list[Sample], start: float, trigger: float, threshold: float) -> bool:
+    """Every joint has stayed still (within `threshold`) for `STILL_FOR` by now."""
+    now = time.monotonic()
+    recent = [sample for sample in samples if sample[0] >= start]
+    if not any(t > trigger for t, _ in recent):  # nothing has moved since the trigger
+        return now - trigger >= STILL_FOR
+    return all(stop.at_rest for stop in joint_stops(recent, trigger, threshold, now).values())
 
 
 async def _drain(connection: ClientConnection) -> None:

@@ -182,12 +182,21 @@ class Twin:
 
     def messages(self, event: RobotEvent, ns: int) -> list[tuple[str, bytes]]:
         """(kind, encoded message) for everything an event shows in Foxglove."""
-        if isinstance(event, TargetsSent):
-            return [("tf", self.transforms("virtual", event.joints, ns))]
-        if isinstance(event, JointStatesReceived):
-            return [("tf", self.transforms("real", event.joints, ns))]
+        pose = pose_of(event)
+        if pose is not None:
+            return [("tf", self.transforms(*pose, ns))]
         line = self.log(event, ns)
         return [] if line is None else [("log", line)]
+
+
+def pose_of(event: RobotEvent) -> tuple[str, Mapping[str, float]] | None:
+    """The tree a pose event moves and its joints: `virtual` for targets sent, `real` for
+    joint states; None for other events."""
+    if isinstance(event, TargetsSent):
+        return "virtual", event.joints
+    if isinstance(event, JointStatesReceived):
+        return "real", event.joints
+    return None
 
 
 @functools.lru_cache(maxsize=64)
@@ -286,9 +295,10 @@ class Twins:
         twin = self.twin(robot_id)
         if twin is None:
             return []
-        if isinstance(event, TargetsSent | JointStatesReceived):
-            tree = "virtual" if isinstance(event, TargetsSent) else "real"
-            twin.update(tree, event.joints)
+        pose = pose_of(event)
+        if pose is not None:
+            tree = pose[0]
+            twin.update(*pose)
             key = (robot_id, tree)
             if log_time - self._last.get(key, -(1 << 62)) < self._spacing:
                 self._held[key] = log_time

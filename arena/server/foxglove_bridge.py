@@ -30,7 +30,7 @@ import msgspec
 import trio
 from foxglove.websocket import ChannelView, Client, ServerListener
 
-from arena.recording.foxglove import MESSAGE_TYPES, Twin
+from arena.recording.foxglove import MESSAGE_TYPES, Twin, pose_of
 from arena.recording.mcap_file import channel_format
 from arena.recording.records import KIND_OF_EVENT, record_of, topic
 from arena.robot.actor import Robot
@@ -185,10 +185,12 @@ class _Publisher:
             kind = KIND_OF_EVENT[type(event)]
             if kind in channels and channels[kind].has_sinks():
                 channels[kind].log(_json.encode(record_of(event)[1]), log_time=ns)
-            wanted = "tf" if isinstance(event, TargetsSent | JointStatesReceived) else "log"
-            if channels[wanted].has_sinks():
+            pose = pose_of(event)
+            if channels["log" if pose is None else "tf"].has_sinks():
                 for view, data in twin.messages(event, ns):
                     channels[view].log(data, log_time=ns)
+            elif pose is not None:  # unwatched: keep the pose, for a viewer still to come
+                twin.update(*pose)
 
     def _add(self, robot_id: str, model: RobotModel) -> None:
         channels: dict[str, foxglove.Channel] = {}
