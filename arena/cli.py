@@ -7,6 +7,7 @@ import logging
 import os
 import sys
 from functools import partial
+from typing import Any
 
 import trio
 
@@ -133,10 +134,28 @@ def main(argv: list[str] | None = None) -> int:
     timeline.add_argument("--robot")
     timeline.add_argument("--from", dest="start", type=float, help="seconds from the start")
     timeline.add_argument("--to", dest="end", type=float, help="seconds from the start")
-    export = commands.add_parser("export", help="a recording as CSV or JSON lines")
-    export.add_argument("file")
-    export.add_argument("--format", choices=["csv", "jsonl"], default="jsonl")
-    export.add_argument("--topic")
+    export = commands.add_parser(
+        "export", help="a recording as CSV or JSON lines, or recordings as a LeRobot dataset"
+    )
+    export.add_argument("file", nargs="+", help="one file (csv, jsonl); one or more (lerobot)")
+    export.add_argument("--format", choices=["csv", "jsonl", "lerobot"], default="jsonl")
+    export.add_argument("--topic", help="csv, jsonl: only this topic")
+    export.add_argument("--robot", help="lerobot: the recorded robot (default: the only one)")
+    export.add_argument("-o", "--output", help="lerobot: the dataset's folder (new or empty)")
+    export.add_argument("--fps", type=int, default=30, help="lerobot: frames a second")
+    export.add_argument("--repo-id", help="lerobot: the dataset's name (default arena/ROBOT)")
+    export.add_argument("--slave", help="lerobot: whose joint states are the observation")
+    export.add_argument(
+        "--task", default="teleoperation", help="lerobot: the task of a file with no episodes"
+    )
+    import_dataset = commands.add_parser(
+        "import-dataset", help="a LeRobot dataset episode as a recording to replay"
+    )
+    import_dataset.add_argument("folder", help="the dataset's folder (holding meta/info.json)")
+    import_dataset.add_argument("--episode", type=int, default=0)
+    import_dataset.add_argument("-o", "--output", required=True, help="the MCAP file to write")
+    import_dataset.add_argument("--repo-id", help="the dataset's name (default local/FOLDER)")
+    import_dataset.add_argument("--robot", default="dataset-arm", help="robot id in the file")
     recover = commands.add_parser("recover", help="rewrite a truncated recording completely")
     recover.add_argument("file")
     recover.add_argument("-o", "--output", help="default: FILE with .recovered.mcap")
@@ -237,32 +256,19 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command == "serve":
             return _serve(args)
-        if args.command in ("inspect", "timeline", "export", "recover", "replay", "plot"):
-            from arena.protocol.errors import ArenaError
-
-            try:
-                return _recording_command(args)
-            except ArenaError as error:
-                print(f"arena {args.command}: {error.message}", file=sys.stderr)
-                return 2
-        if args.command in ("sim-bus", "calibrate"):
-            from arena.protocol.errors import ArenaError
-
-            try:
-                return _bus_command(args)
-            except ArenaError as error:
-                print(f"arena {args.command}: {error.message}", file=sys.stderr)
-                return 2
+        handlers = {
+            "sim-bus": _bus_command,
+            "calibrate": _bus_command,
+            "import-dataset": _import_dataset,
+            "foxglove-layout": _foxglove_layout,
+            **dict.fromkeys(
+                ("inspect", "timeline", "export", "recover", "replay", "plot"), _recording_tool
+            ),
+        }
+        if args.command in handlers:
+            return _reporting(args.command, handlers[args.command], args)
         if args.command == "estop-test":
             return _estop_test(args)
-        if args.command == "foxglove-layout":
-            from arena.protocol.errors import ArenaError
-
-            try:
-                return _foxglove_layout(args)
-            except ArenaError as error:
-                print(f"arena {args.command}: {error.message}", file=sys.stderr)
-                return 2
         if args.command == "schemas":
             from pathlib import Path
 
@@ -286,6 +292,78 @@ def main(argv: list[str] | None = None) -> int:
             )
     except KeyboardInterrupt:
         return 130
+    return 0
+
+
+def _reporting(command: str, handler: Any, args: argparse.Namespace) -> int:
+    """Run a command's handler; a refusal (`ArenaError`) is one line on stderr and exit 2."""
+    from arena.protocol.errors import ArenaError
+
+    try:
+        result: int = handler(args)
+    except ArenaError as error:
+        print(f"arena {command}: {error.message}", file=sys.stderr)
+        return 2
+    return result
+
+
+def _recording_tool(args: argparse.Namespace) -> int:
+    from arena.protocol.errors import ArenaError, ErrorCode
+
+    if args.command == "export" and args.format == "lerobot":
+        return _export_lerobot(args)
+    if args.command == "export":
+        if len(args.file) > 1:
+            raise ArenaError(ErrorCode.INVALID_VALUE, "csv and jsonl take one file.")
+        args.file = args.file[0]
+    return _recording_command(args)
+
+
+def _export_lerobot(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from arena.protocol.errors import ArenaError, ErrorCode
+    from arena.recording.dataset import export_lerobot
+    from arena.recording.mcap_file import read_recording
+    from arena.recording.replay import pick_robot
+
+    if not args.output:
+        raise ArenaError(ErrorCode.INVALID_VALUE, "Say where the dataset goes: -o DIR.")
+    paths = [Path(name) for name in args.file]
+    robot = args.robot or pick_robot(read_recording(paths[0]), None)
+    report = export_lerobot(
+        paths,
+        robot,
+        Path(args.output),
+        fps=args.fps,
+        repo_id=args.repo_id,
+        slave=args.slave,
+        task=args.task,
+    )
+    frames = sum(count for _, _, count in report.episodes)
+    cameras = ", ".join(report.cameras) or "none"
+    print(
+        f"{report.root}: {report.repo_id}, {len(report.episodes)} episodes, {frames} frames "
+        f"at {report.fps} fps, cameras: {cameras}"
+    )
+    for index, task, count in report.episodes:
+        print(f"  episode {index}: {count} frames, task {task!r}")
+    return 0
+
+
+def _import_dataset(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from arena.recording.dataset import import_lerobot
+
+    frames = import_lerobot(
+        Path(args.folder),
+        args.episode,
+        Path(args.output),
+        repo_id=args.repo_id,
+        robot_id=args.robot,
+    )
+    print(f"{args.output}: episode {args.episode}, {frames} commands of robot {args.robot!r}")
     return 0
 
 

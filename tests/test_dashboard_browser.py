@@ -391,3 +391,39 @@ def test_the_twin_draws_the_workspace_and_what_a_refused_move_would_hit(
             j for j in http.get("/api/robots/demo-arm/joints").json() if j["name"] == "Pitch"
         )
     assert pitch["virtual_value"] < 60  # nothing of the refused move went out
+
+
+def test_a_camera_streams_beside_the_twin_and_episodes_are_marked(
+    start_live: Any, page: Page
+) -> None:
+    server = start_live(demo=True, api_keys=("operator-key",))
+    page.goto(server.url + "/ui/")
+    page.fill("#key-input", "operator-key")
+    page.click("#key-save")
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    expect(page.locator("#robot-state")).to_have_text("idle")
+    page.fill("#camera-source", "test-pattern")
+    page.click("#add-camera")
+    # the stream (asked with the key in its query, as an <img> cannot send headers) shows
+    image = page.locator('#cameras [data-camera="front"] img')
+    expect(image).to_be_visible()
+    page.wait_for_function(
+        "() => document.querySelector('#cameras img').naturalWidth === 640", timeout=WAIT_MS
+    )
+    expect(page.locator('#cameras [data-camera="front"] figcaption')).to_contain_text("640×480")
+
+    page.fill("#episode-task", "pick up the cube")
+    page.click("#episode-start")
+    status = page.locator("#episode-status")
+    expect(status).to_contain_text("episode 0 recording")
+    expect(status).to_contain_text("pick up the cube")
+    expect(page.locator("#episode-stop")).to_be_enabled()
+    page.screenshot(path=str(SCREENSHOTS / "camera-and-episode.png"))
+    page.click("#episode-stop")
+    expect(status).to_have_text("1 kept, 0 discarded")
+    page.click("#episode-discard")
+    expect(status).to_have_text("0 kept, 1 discarded")
+    with server.http("operator-key") as http:
+        assert http.get("/api/robots/demo-arm/episodes").json()["discarded"] == 1
+    page.click('#cameras [data-camera="front"] button')
+    expect(page.locator("#cameras figure")).to_have_count(0)

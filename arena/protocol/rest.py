@@ -165,3 +165,21 @@ class GroupBody(msgspec.Struct, omit_defaults=True):
     id: GroupId
     members: Annotated[list[str], msgspec.Meta(min_length=1, max_length=256)]
     stopTogether: bool = False
+
+
+class CameraBody(msgspec.Struct, forbid_unknown_fields=True):
+    """`POST /api/robots/{id}/cameras`: a camera to attach (`source`: `test-pattern`,
+    `file:PATH`, looped, or a V4L2 device such as `/dev/video0`)."""
+
+    name: Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_-]{1,32}$")]
+    source: Annotated[str, msgspec.Meta(min_length=1, max_length=4096)]
+    fps: Annotated[int, msgspec.Meta(ge=1, le=60)] = 30
+    width: Annotated[int, msgspec.Meta(ge=16, le=1920)] = 640
+    height: Annotated[int, msgspec.Meta(ge=16, le=1080)] = 480
+
+
+class EpisodeBody(msgspec.Struct, forbid_unknown_fields=True):
+    """`POST /api/robots/{id}/episodes/start`: what the episode shows (the task a policy
+    learns from it)."""
+
+    task: Annotated[str, msgspec.Meta(min_length=1, max_length=1000)]

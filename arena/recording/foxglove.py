@@ -42,6 +42,7 @@ from foxglove.messages import (
 from arena.protocol.errors import ArenaError
 from arena.robot.events import (
     CommandHandled,
+    EpisodeChanged,
     FaultReported,
     JointStatesReceived,
     PeerChanged,
@@ -226,6 +227,8 @@ def _log_line(event: RobotEvent) -> tuple[LogLevel, str] | None:
         level = LogLevel.Warning if event.change in trouble else LogLevel.Info
         reason = f": {event.reason}" if event.reason else ""
         return level, f"{event.role} {event.peer_id} ({event.kind}) {event.change}{reason}"
+    if isinstance(event, EpisodeChanged):
+        return LogLevel.Info, f"episode {event.index} {event.change}: {event.task}"
     return None
 
 

@@ -22,6 +22,7 @@ from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.recording import images
 from arena.recording.mcap_writer import ChunkedWriter
 from arena.recording.records import RECORD_TYPES, is_view_topic, schema_of, split_topic, topic
 
@@ -165,10 +166,10 @@ class McapFileWriter:
         channel = self._channels.get(name)
         if channel is None:
             schema_name, schema_encoding, schema_data, encoding = channel_format(kind)
-            schema = self._schemas.get(kind)
+            schema = self._schemas.get(schema_name)
             if schema is None:
                 schema = writer.register_schema(schema_name, schema_encoding, schema_data)
-                self._schemas[kind] = schema
+                self._schemas[schema_name] = schema
             channel = writer.register_channel(name, encoding, schema)
             self._channels[name] = channel
         return channel
@@ -179,6 +180,9 @@ def channel_format(kind: str) -> tuple[str, str, bytes, str]:
     records are JSON with JSON Schemas; Foxglove's kinds are protobuf with Foxglove's schemas."""
     if kind in RECORD_TYPES:
         return kind, "jsonschema", json.dumps(schema_of(kind)).encode(), "json"
+    if kind.startswith(images.CAMERA_PREFIX):
+        name, encoding, data = images.schema()
+        return name, encoding, data, encoding
     from arena.recording import foxglove  # only a writer that records transforms needs it
 
     name, encoding, data = foxglove.schema(kind)

@@ -30,8 +30,11 @@ from arena.recording.mcap_file import FileSeries
 from arena.recording.records import KIND_OF_EVENT
 from arena.recording.writer_process import McapWriterProcess, pack_events
 from arena.robot.actor import Robot
-from arena.robot.events import RobotEvent
+from arena.robot.events import CameraFrame, RobotEvent
 from arena.robot.mailbox import EventQueue
+
+#: What the recorder follows: a robot's events or a camera's frames.
+Followed = RobotEvent | CameraFrame
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +50,7 @@ class _Batch:
     slices: list[bytes] = field(default_factory=list)
     events: int = 0
 
-    def add(self, part: list[tuple[str, str, RobotEvent, int]]) -> None:
+    def add(self, part: list[tuple[str, str, Followed, int]]) -> None:
         if part:
             self.slices.append(pack_events(part))
             self.events += len(part)
@@ -122,7 +125,7 @@ class Recorder:
         self._write_failures = 0  # records lost to disk errors
         self._retry = Backoff(retry_initial, retry_max)
         self._dropped_by_gone = 0  # queue overflows of robots no longer followed
-        self._followed: dict[EventQueue[RobotEvent], tuple[str, contextlib.ExitStack]] = {}
+        self._followed: dict[EventQueue[Any], tuple[str, contextlib.ExitStack]] = {}
         self._wall_offset = 0.0  # wall clock minus trio's clock, taken when `run` starts
         self._next_flush = 0.0
         self._unflushed = False  # records handed over since the last flush
@@ -166,6 +169,15 @@ class Recorder:
         queue = subscription.enter_context(robot.subscribe(maxlen=self.queue_size))
         self._followed[queue] = (robot.robot_id, subscription)
 
+    def follow_frames(
+        self, robot_id: str, frames: contextlib.AbstractContextManager[EventQueue[CameraFrame]]
+    ) -> None:
+        """Record a camera's frames (`frames` is its subscription, with its own bound) from
+        now on, until the camera closes the queue."""
+        subscription = contextlib.ExitStack()
+        queue = subscription.enter_context(frames)
+        self._followed[queue] = (robot_id, subscription)
+
     async def start(self) -> Path | None:
         """Resume recording into a new file (after `stop`); after a disk error, try again
         with the next batch instead of waiting out the backoff."""
@@ -185,7 +197,7 @@ class Recorder:
     async def _collect(self) -> _Batch:
         """Drain every followed robot's queue and pack the events (none while paused)."""
         batch = _Batch()
-        part: list[tuple[str, str, RobotEvent, int]] = []
+        part: list[tuple[str, str, Followed, int]] = []
         for queue, (robot_id, subscription) in list(self._followed.items()):
             events = queue.drain()
             if queue.closed:  # the robot is gone (and its queue now empty)

@@ -13,7 +13,9 @@ import msgspec
 
 from arena.protocol.messages import ClampInfo, JointValue
 from arena.robot.events import (
+    CameraFrame,
     CommandHandled,
+    EpisodeChanged,
     FaultReported,
     JointStatesReceived,
     PeerChanged,
@@ -85,6 +87,16 @@ class PeerRecord(msgspec.Struct, kw_only=True):
     autonomous: bool = False
 
 
+class EpisodeRecord(msgspec.Struct, kw_only=True):
+    """A data-collection episode started, stopped or discarded (`arena export` reads them)."""
+
+    t: float
+    change: str  # "start" | "stop" | "discard"
+    index: int
+    task: str
+    started: float  # `t` of the episode's start
+
+
 #: Topic kind -> record type.
 RECORD_TYPES: dict[str, type[msgspec.Struct]] = {
     "command": CommandRecord,
@@ -93,6 +105,7 @@ RECORD_TYPES: dict[str, type[msgspec.Struct]] = {
     "state": StateRecord,
     "fault": FaultRecord,
     "peer": PeerRecord,
+    "episode": EpisodeRecord,
 }
 
 
@@ -106,8 +119,11 @@ VIEW_KINDS = ("tf", "scene", "log")
 
 
 def is_view_topic(name: str) -> bool:
-    """True for a robot's Foxglove topic (`/robots/{id}/tf` and the like)."""
+    """True for a robot's Foxglove topic (`/robots/{id}/tf` and the like, and its cameras'
+    images, `/robots/{id}/cameras/{name}`): kept undecoded when a file is read."""
     parts = name.split("/")
+    if len(parts) == 5:
+        return parts[:2] == ["", "robots"] and parts[3] == "cameras" and bool(parts[4])
     return len(parts) == 4 and parts[:2] == ["", "robots"] and parts[3] in VIEW_KINDS
 
 
@@ -157,6 +173,14 @@ def record_of(event: RobotEvent) -> tuple[str, msgspec.Struct]:
             severity=str(event.severity),
             joint=event.joint,
         )
+    if isinstance(event, EpisodeChanged):
+        return "episode", EpisodeRecord(
+            t=event.time,
+            change=event.change,
+            index=event.index,
+            task=event.task,
+            started=event.started,
+        )
     return "peer", PeerRecord(
         t=event.time,
         role=event.role,
@@ -176,9 +200,14 @@ EVENT_TYPES: dict[str, type[RobotEvent]] = {
     "state": StateChanged,
     "fault": FaultReported,
     "peer": PeerChanged,
+    "episode": EpisodeChanged,
 }
-#: Robot event type -> topic kind.
-KIND_OF_EVENT: dict[type[RobotEvent], str] = {event: kind for kind, event in EVENT_TYPES.items()}
+#: What the recorder hands its writer process: robot events, and camera frames as "image".
+PACKED_TYPES: dict[str, type[msgspec.Struct]] = {**EVENT_TYPES, "image": CameraFrame}
+#: Packed type -> its kind.
+KIND_OF_EVENT: dict[type[msgspec.Struct], str] = {
+    event: kind for kind, event in PACKED_TYPES.items()
+}
 
 
 def schema_of(kind: str) -> dict[str, Any]:

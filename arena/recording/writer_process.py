@@ -35,12 +35,14 @@ import subprocess
 import sys
 import threading
 from pathlib import Path
-from typing import IO, TYPE_CHECKING, Any
+from typing import IO, TYPE_CHECKING, Any, cast
 
 import msgspec
 
+from arena.recording import images
 from arena.recording.mcap_file import FileSeries, Item, McapFileWriter
-from arena.recording.records import EVENT_TYPES, record_of
+from arena.recording.records import PACKED_TYPES, record_of
+from arena.robot.events import CameraFrame, RobotEvent
 from arena.robot.model import RobotModel
 
 if TYPE_CHECKING:
@@ -54,7 +56,7 @@ _unpack_items = msgspec.msgpack.Decoder(list[tuple[str, str, bytes, int]]).decod
 #: A slice of events as `Recorder` packs it: (robot id, kind, event, log time in ns).
 pack_events = msgspec.msgpack.Encoder().encode
 _unpack_slice = msgspec.msgpack.Decoder(list[tuple[str, str, msgspec.Raw, int]]).decode
-_event_decoders = {kind: msgspec.msgpack.Decoder(event) for kind, event in EVENT_TYPES.items()}
+_event_decoders = {kind: msgspec.msgpack.Decoder(event) for kind, event in PACKED_TYPES.items()}
 _json = msgspec.json.Encoder()
 
 
@@ -65,10 +67,15 @@ def items_of_events(slices: list[bytes], twins: Twins | None = None) -> list[Ite
     for packed in slices:
         for robot_id, kind, raw, log_time in _unpack_slice(packed):
             event = _event_decoders[kind].decode(raw)
-            _, record = record_of(event)
+            if isinstance(event, CameraFrame):
+                image = images.encode(event, log_time)
+                items.append((robot_id, images.camera_kind(event.camera), image, log_time))
+                continue
+            robot_event = cast("RobotEvent", event)
+            _, record = record_of(robot_event)
             items.append((robot_id, kind, _json.encode(record), log_time))
             if twins is not None:
-                items.extend(twins.items(robot_id, event, log_time))
+                items.extend(twins.items(robot_id, robot_event, log_time))
     if twins is not None:
         items.extend(twins.flush())
     items.sort(key=lambda item: item[3])

@@ -25,8 +25,10 @@ from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot import safety
 from arena.robot.collision import Workspace
 from arena.robot.core import MANUAL_SOURCE, RobotCore, Step
+from arena.robot.episodes import Episode, Episodes
 from arena.robot.events import (
     CommandHandled,
+    EpisodeChanged,
     FaultReported,
     JointStatesReceived,
     MasterNotice,
@@ -44,11 +46,13 @@ from arena.robot.inbox import (
     CommandMsg,
     DetachMsg,
     DriverEndedMsg,
+    EpisodeMsg,
     EventMsg,
     FaultMsg,
     LinkMsg,
     Msg,
     Reply,
+    SensorFaultMsg,
     ShutdownMsg,
     StatesMsg,
     WorkspaceMsg,
@@ -109,6 +113,8 @@ class Robot:
         self.command_counts: collections.Counter[str] = collections.Counter()
         self.estop_count = 0
         self._superseded_by_gone = 0  # targets superseded at slaves that have left
+        #: Data-collection episodes (owned by the actor: changed only through `episode`).
+        self.episodes = Episodes()
 
     # -- public API ---------------------------------------------------------------------------
 
@@ -179,6 +185,21 @@ class Robot:
         reply: Reply[None] = Reply()
         await self._post(WorkspaceMsg(workspace, reply))
         await reply.wait()
+
+    async def episode(self, action: str, task: str = "") -> Episode:
+        """Start, stop or discard a data-collection episode (`episodes.py`); refusals raise
+        `ArenaError`."""
+        reply: Reply[Episode] = Reply()
+        await self._post(EpisodeMsg(action, task, reply))
+        return await reply.wait()
+
+    def report_sensor_fault(
+        self, sensor_id: str, code: str, message: str, severity: Severity
+    ) -> None:
+        """Report a sensor's fault (a camera that failed or came back). Sensors are not part
+        of the safety envelope: the report is seen and recorded, it never stops the robot.
+        Never blocks; dropped if the inbox is full."""
+        self._post_nowait(SensorFaultMsg(sensor_id, code, message, severity), drop_if_full=True)
 
     async def attach_master(
         self, driver: MasterDriver, *, takeover: bool | None = None, master_id: str | None = None
@@ -387,6 +408,21 @@ class Robot:
         elif isinstance(message, WorkspaceMsg):
             self.core.workspace = message.workspace  # checked from the next command on
             message.reply.set(None)
+        elif isinstance(message, EpisodeMsg):
+            self._on_episode(message, now)
+        elif isinstance(message, SensorFaultMsg):
+            self._publish(
+                FaultReported(
+                    self.robot_id,
+                    message.sensor_id,
+                    message.code,
+                    message.message,
+                    message.severity,
+                    None,
+                    now,
+                    wallclock.time(),
+                )
+            )
 
     # -- handlers -----------------------------------------------------------------------------
 
@@ -476,6 +512,30 @@ class Robot:
             now,
             cause=message.code,
         )
+
+    def _on_episode(self, message: EpisodeMsg, now: float) -> None:
+        try:
+            if message.action == "start":
+                episode = self.episodes.start(message.task, now)
+            elif message.action == "stop":
+                episode = self.episodes.stop(now)
+            else:
+                episode = self.episodes.discard(now)
+        except ArenaError as refusal:
+            message.reply.fail(refusal)
+            return
+        self._publish(
+            EpisodeChanged(
+                self.robot_id,
+                message.action,
+                episode.index,
+                episode.task,
+                episode.started,
+                now,
+                wallclock.time(),
+            )
+        )
+        message.reply.set(episode)
 
     def _on_link(self, message: LinkMsg, now: float) -> None:
         peer = self._slaves.get(message.slave_id)

@@ -118,6 +118,39 @@ class PeerChanged(msgspec.Struct, frozen=True):
     autonomous: bool = False  # a master that plays a program (sequence, replay)
 
 
+class EpisodeChanged(msgspec.Struct, frozen=True):
+    """A data-collection episode started, stopped or was discarded (`episodes.py`)."""
+
+    robot_id: str
+    change: str  # "start" | "stop" | "discard"
+    index: int  # the episode's number on this robot since the server started
+    task: str
+    started: float  # trio time the episode started
+    time: float
+    wall_time: float
+
+
 RobotEvent: TypeAlias = (
-    StateChanged | CommandHandled | TargetsSent | JointStatesReceived | FaultReported | PeerChanged
+    StateChanged
+    | CommandHandled
+    | TargetsSent
+    | JointStatesReceived
+    | FaultReported
+    | PeerChanged
+    | EpisodeChanged
 )
+
+
+class CameraFrame(msgspec.Struct, frozen=True):
+    """One JPEG frame of a robot's camera (`arena/sensors`), stamped at capture on the same
+    clocks as the robot's events. Frames travel apart from `RobotEvent`s: they are large, and
+    whoever wants them subscribes to the camera."""
+
+    robot_id: str
+    camera: str
+    seq: int  # frames captured by this camera before this one
+    time: float
+    wall_time: float
+    width: int
+    height: int
+    jpeg: bytes

@@ -12,6 +12,7 @@ import trio
 from arena.protocol.errors import Severity
 from arena.robot import safety
 from arena.robot.collision import Workspace
+from arena.robot.episodes import Episode
 from arena.robot.motion import Command, CommandResult
 
 if TYPE_CHECKING:
@@ -121,6 +122,21 @@ class WorkspaceMsg:
 
 
 @dataclass(slots=True)
+class EpisodeMsg:
+    action: str  # "start" | "stop" | "discard"
+    task: str
+    reply: Reply[Episode]
+
+
+@dataclass(slots=True)
+class SensorFaultMsg:
+    sensor_id: str
+    code: str
+    message: str
+    severity: Severity
+
+
+@dataclass(slots=True)
 class ShutdownMsg:
     reason: str
     reply: Reply[None] | None
@@ -137,6 +153,8 @@ Msg = (
     | LinkMsg
     | DriverEndedMsg
     | WorkspaceMsg
+    | EpisodeMsg
+    | SensorFaultMsg
     | ShutdownMsg
 )
 

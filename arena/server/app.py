@@ -23,6 +23,7 @@ from arena.recording.recorder import Recorder
 from arena.robot.collision import Workspace
 from arena.robot.groups import GroupRegistry
 from arena.robot.manager import RobotManager
+from arena.sensors.camera import Cameras
 from arena.server import convert, dashboard, openapi
 from arena.server.auth import check_token
 from arena.server.base import ArenaApp, Hardware, error_response, read_body
@@ -36,6 +37,7 @@ from arena.server.origin import SAFE_METHODS, OriginPolicy, is_json
 from arena.server.recordings_api import blueprint as recordings_blueprint
 from arena.server.recordings_api import off_the_loop
 from arena.server.robot_types_api import blueprint as robot_types_blueprint
+from arena.server.sensors_api import blueprint as sensors_blueprint
 
 #: Paths anyone may read, keys or not: the documentation and the dashboard's files.
 PUBLIC_PATHS = frozenset({"/docs", "/openapi.json", "/ui"})
@@ -53,6 +55,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.origin_policy = OriginPolicy(config.host, config.allowed_origins, config.allowed_hosts)
     app.hardware = Hardware()
     app.groups = GroupRegistry(manager)
+    app.cameras = Cameras()
     app.shutting_down = trio.Event()
     app.started_at = time.time()
     app.config["MAX_CONTENT_LENGTH"] = MAX_MESSAGE_BYTES
@@ -61,6 +64,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.register_blueprint(groups_blueprint)
     app.register_blueprint(robot_types_blueprint)
     app.register_blueprint(dashboard_blueprint)
+    app.register_blueprint(sensors_blueprint)
     _register_errors(app)
     _register_routes(app)
     return app
@@ -88,10 +92,13 @@ def _register_errors(app: ArenaApp) -> None:
         if request.path == "/" and dashboard.is_built() and _wants_html():
             return redirect("/ui/")  # type: ignore[return-value]  # a browser: show the page
         if request.path not in PUBLIC_PATHS and not request.path.startswith(PUBLIC_PREFIXES):
+            # A page's <img> cannot send headers: a camera stream may carry its key in the
+            # query, as a WebSocket does.
+            stream = request.method == "GET" and request.path.endswith("/stream")
             check_token(
                 app,
                 request.headers.get("Authorization"),
-                None,
+                request.args.get("token") if stream else None,
                 mutating=request.method not in ("GET", "HEAD", "OPTIONS"),
             )
         return None

@@ -21,6 +21,7 @@ from arena.server.metrics import Metrics
 from arena.server.origin import OriginPolicy
 
 if TYPE_CHECKING:
+    from arena.sensors.camera import Cameras
     from arena.server.foxglove_bridge import FoxgloveBridge  # imports the SDK
 
 #: HTTP status for each error code (anything missing is 400).
@@ -66,6 +67,11 @@ STATUS_FOR: dict[ErrorCode, int] = {
     ErrorCode.REMOTE_REFUSED: 502,
     ErrorCode.UNKNOWN_GROUP: 404,
     ErrorCode.GROUP_EXISTS: 409,
+    ErrorCode.UNKNOWN_CAMERA: 404,
+    ErrorCode.CAMERA_EXISTS: 409,
+    ErrorCode.CAMERA_FAILED: 422,
+    ErrorCode.EPISODE_ACTIVE: 409,
+    ErrorCode.NO_EPISODE: 409,
 }
 
 
@@ -129,6 +135,8 @@ class ArenaApp(QuartTrio):
     connections: set[OpenConnection]
     #: Which pages and host names may reach the server (see `origin`).
     origin_policy: OriginPolicy
+    #: Every robot's cameras (`arena/sensors`).
+    cameras: Cameras
     #: The live Foxglove server, with `--foxglove-port`.
     foxglove: FoxgloveBridge | None = None
 

@@ -39,8 +39,13 @@ log = logging.getLogger(__name__)
 WebSocketHandler = Callable[[WebSocket], Awaitable[None]]
 #: Picks the handler for an upgrade request, or None to let hypercorn answer it.
 Router = Callable[[UpgradeRequest], WebSocketHandler | None]
+#: Serves a long-lived HTTP response on the raw stream (a camera's MJPEG stream).
+StreamHandler = Callable[[trio.abc.Stream], Awaitable[None]]
+StreamRouter = Callable[[UpgradeRequest], StreamHandler | None]
 
 _WS_PREFIX = b"GET /ws/"
+_STREAM_PREFIX = b"GET /api/robots/"
+_PREFIXES = (_WS_PREFIX, _STREAM_PREFIX)
 MAX_HEAD_BYTES = 16 * 1024
 HEAD_TIMEOUT = 10.0
 #: How long a closed WebSocket waits for the peer's close frame and for its last bytes to go.
@@ -67,6 +72,14 @@ class _Replay:
 
 def parse_upgrade(head: bytes) -> UpgradeRequest | None:
     """The upgrade request in an HTTP/1.1 request head, or None if it is not one."""
+    request = parse_get(head)
+    if request is None or request.headers.get("upgrade", "").lower() != "websocket":
+        return None
+    return request
+
+
+def parse_get(head: bytes) -> UpgradeRequest | None:
+    """The GET request in an HTTP/1.1 request head, or None if it is not one."""
     lines = head.decode("latin-1").split("\r\n")
     parts = lines[0].split(" ")
     if len(parts) != 3 or parts[0] != "GET" or not parts[2].startswith("HTTP/1."):
@@ -78,8 +91,6 @@ def parse_upgrade(head: bytes) -> UpgradeRequest | None:
             continue
         key = name.strip().lower()
         headers[key] = f"{headers[key]}, {value.strip()}" if key in headers else value.strip()
-    if headers.get("upgrade", "").lower() != "websocket":
-        return None
     target = urlsplit(parts[1])
     args: dict[str, str] = {}
     for key, value in parse_qsl(target.query, keep_blank_values=True):
@@ -118,9 +129,11 @@ class ArenaListener:
         max_message: int,
         *,
         queue_bytes: int = 16 * 1024,
+        stream_router: StreamRouter | None = None,
     ) -> None:
         self.config = config
         self.router = router
+        self.stream_router = stream_router
         self.max_message = max_message
         self.queue_bytes = queue_bytes
         self._app = wrap_app(app, config.wsgi_max_body_size, "asgi")
@@ -191,6 +204,15 @@ class ArenaListener:
             await trio.aclose_forcefully(stream)
             return
         end = head.find(b"\r\n\r\n")
+        if head.startswith(_STREAM_PREFIX) and end > 0 and self.stream_router is not None:
+            get = parse_get(head[:end])
+            streamer = self.stream_router(get) if get is not None else None
+            if get is not None and streamer is not None:
+                get.scheme = "https" if ssl_context is not None else "http"
+                await self._stream(stream, streamer)
+            else:
+                await self._to_hypercorn(stream, head)
+            return
         request = parse_upgrade(head[:end]) if head.startswith(_WS_PREFIX) and end > 0 else None
         if request is not None and ssl_context is not None:
             request.scheme = "https"
@@ -207,10 +229,11 @@ class ArenaListener:
         await self._websocket(stream, request, handler, head[end + 4 :])
 
     async def _read_head(self, stream: trio.abc.Stream) -> bytes:
-        """Enough bytes to tell a WebSocket upgrade (its whole head) from anything else."""
+        """Enough bytes to tell a WebSocket upgrade or a stream (its whole head) from
+        anything else."""
         data = b""
         while True:
-            if not _WS_PREFIX.startswith(data[: len(_WS_PREFIX)]):
+            if not any(prefix.startswith(data[: len(prefix)]) for prefix in _PREFIXES):
                 return data  # not for us: hypercorn reads the rest
             if len(data) >= len(_WS_PREFIX) and b"\r\n\r\n" in data:
                 return data
@@ -224,6 +247,17 @@ class ArenaListener:
     async def _to_hypercorn(self, stream: trio.abc.Stream, head: bytes) -> None:
         state = ConnectionState(self._lifespan_state.copy())
         await TCPServer(self._app, self.config, self._context, state, _Replay(stream, head))  # type: ignore[arg-type]
+
+    async def _stream(self, stream: trio.abc.Stream, handler: StreamHandler) -> None:
+        try:
+            await handler(stream)
+        except (trio.BrokenResourceError, trio.ClosedResourceError):
+            pass  # the client went away
+        except Exception:
+            log.exception("stream failed")
+        finally:
+            with trio.CancelScope(shield=True):
+                await trio.aclose_forcefully(stream)
 
     async def _websocket(
         self,

@@ -20,6 +20,7 @@ from arena.server.app import create_app
 from arena.server.base import ArenaApp
 from arena.server.config import ServerConfig
 from arena.server.listener import ArenaListener
+from arena.server.sensors_api import stream_route
 from arena.server.websockets import router
 
 log = logging.getLogger(__name__)
@@ -76,6 +77,12 @@ async def run_server(
         async with open_manager() as manager:
             manager.on_create.append(recorder.follow)
             app = create_app(manager, config, recorder)
+            app.cameras.on_attach.append(
+                lambda camera: recorder.follow_frames(
+                    camera.robot.robot_id, camera.subscribe(maxlen=2 * camera.spec.fps)
+                )
+            )
+            await recording_nursery.start(app.cameras.run)
             if config.foxglove_port is not None:
                 from arena.server.foxglove_bridge import FoxgloveBridge  # loads the SDK
 
@@ -104,6 +111,7 @@ async def _serve(
         hypercorn_config(config),
         router(app),
         MAX_WEBSOCKET_MESSAGE,
+        stream_router=stream_route(app),
         queue_bytes=config.ws_queue_bytes,
     )
     async with trio.open_nursery() as nursery:

@@ -136,6 +136,19 @@ function wireRobotControls() {
     const port = $("usb-port").value.trim();
     act("POST", `${robotPath()}/slaves`, port ? { type: "usb-slave", port } : { type: "usb-slave" });
   });
+  $("add-camera").addEventListener("click", () =>
+    act("POST", `${robotPath()}/cameras`, {
+      name: $("camera-name").value.trim(),
+      source: $("camera-source").value.trim(),
+    }),
+  );
+  $("episode-start").addEventListener("click", () =>
+    act("POST", `${robotPath()}/episodes/start`, {
+      task: $("episode-task").value.trim() || "teleoperation",
+    }),
+  );
+  $("episode-stop").addEventListener("click", () => act("POST", `${robotPath()}/episodes/stop`));
+  $("episode-discard").addEventListener("click", () => act("POST", `${robotPath()}/episodes/discard`));
   // Deleting needs a second click on the same button: no modal dialog to dismiss on a phone.
   const remove = $("delete-robot");
   remove.addEventListener("click", async () => {

@@ -1,7 +1,7 @@
 // One robot's panel: state, sliders, live virtual and real values, the 3D twin, sequences,
 // master and slaves, recent events. Everything goes through the public API.
 
-import { call, callReporting, watchRobot } from "./api.js";
+import { apiKey, call, callReporting, watchRobot } from "./api.js";
 import { Twin } from "./twin.js";
 
 const $ = (id) => document.getElementById(id);
@@ -58,6 +58,7 @@ export class RobotView {
     this.watcher.close();
     if (this.twin) this.twin.dispose();
     $("twin").replaceChildren();
+    $("cameras").replaceChildren(); // closes the streams
   }
 
   /** One table row per joint: name, slider within the model's limits, virtual, real. */
@@ -140,6 +141,60 @@ export class RobotView {
     }
     this.lastErrors = new Map(entries.map(([, peer]) => [peer.id, peer.last_error]));
     if (!entries.length) peers.innerHTML = '<li class="muted">nothing attached</li>';
+    this.refreshSensors().catch((error) => this.log(`${error.code}: ${error.message}`, true));
+  }
+
+  /** The robot's cameras (live MJPEG streams beside the twin) and its episode. */
+  async refreshSensors() {
+    const base = `/api/robots/${encodeURIComponent(this.robotId)}`;
+    const [{ cameras }, episodes] = await Promise.all([
+      call("GET", `${base}/cameras`),
+      call("GET", `${base}/episodes`),
+    ]);
+    if (this.closed) return;
+    const box = $("cameras");
+    const wanted = new Set(cameras.map((camera) => camera.name));
+    for (const figure of [...box.children]) {
+      if (!wanted.has(figure.dataset.camera)) figure.remove(); // its stream ends with it
+    }
+    for (const camera of cameras) {
+      let figure = box.querySelector(`[data-camera="${CSS.escape(camera.name)}"]`);
+      if (!figure) {
+        figure = document.createElement("figure");
+        figure.className = "camera";
+        figure.dataset.camera = camera.name;
+        const image = document.createElement("img");
+        const key = apiKey();
+        image.src = camera.stream + (key ? `?token=${encodeURIComponent(key)}` : "");
+        image.alt = `camera ${camera.name}`;
+        const caption = document.createElement("figcaption");
+        const remove = document.createElement("button");
+        remove.type = "button";
+        remove.className = "quiet";
+        remove.textContent = "Detach";
+        remove.addEventListener("click", () =>
+          this.act("DELETE", `${base}/cameras/${encodeURIComponent(camera.name)}`),
+        );
+        caption.append(document.createElement("span"), remove);
+        figure.append(image, caption);
+        box.append(figure);
+      }
+      const trouble = camera.error ? ` — ${camera.error}` : "";
+      figure.querySelector("figcaption span").textContent =
+        `${camera.name}: ${camera.width}×${camera.height} at ${camera.fps} fps, ` +
+        `${camera.frames} frames${trouble}`;
+      figure.classList.toggle("error", Boolean(camera.error));
+    }
+    const active = episodes.active;
+    const status = $("episode-status");
+    const counts = `${episodes.kept} kept, ${episodes.discarded} discarded`;
+    status.textContent = active
+      ? `episode ${active.index} recording, ${active.elapsed.toFixed(1)} s: ${active.task} (${counts})`
+      : counts;
+    status.className = active ? "episode-live" : "muted";
+    status.dataset.episode = active ? String(active.index) : "";
+    $("episode-start").disabled = Boolean(active);
+    $("episode-stop").disabled = !active;
   }
 
   onMessage(type, data) {

@@ -1,0 +1,512 @@
+"""Recordings to LeRobot datasets and back (`arena export --format lerobot`, `arena
+import-dataset`); the mapping is written down in specs/lerobot.md.
+
+The sampling is pure (`episodes_of`, `Track`, `frames_of`): one dataset frame every 1/fps of
+the recording's clock (MCAP log time), each value the newest recorded at or before that time.
+Writing and reading the dataset itself is LeRobot's own code (`LeRobotDataset.create`,
+`add_frame`, `save_episode`, `finalize`; `LeRobotDataset(repo_id, root=...)`), imported only
+here and only when asked for: it brings torch. Install it with `pip install 'arena[lerobot]'`.
+"""
+
+from __future__ import annotations
+
+import bisect
+import json
+import sys
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from arena.protocol.errors import ArenaError, ErrorCode
+from arena.recording import images
+from arena.recording.mcap_file import RecordedMessage, Recording, read_recording
+from arena.robot.model import JointSpec, RobotModel
+
+#: LeRobot's feature names for the so100 follower's joints, by the names Arena gives them
+#: (Arena's joint aliases for the so-arm100 are these names).
+FEATURE_SUFFIX = ".pos"
+#: Gripper values in LeRobot run 0 (closed) to 100 (open), over the joint's range.
+GRIPPER_RANGE = 100.0
+ROBOT_TYPES = {"so-arm100": "so100_follower"}
+DEFAULT_TASK = "teleoperation"
+
+
+def feature_names(model: RobotModel) -> list[str]:
+    """LeRobot's names of the robot's joints (`shoulder_pan.pos`, ...), in servo order."""
+    return [
+        (joint.aliases[0] if joint.aliases else joint.name) + FEATURE_SUFFIX
+        for joint in model.joints
+    ]
+
+
+def _is_gripper(joint: JointSpec) -> bool:
+    return "gripper" in joint.aliases
+
+
+def to_dataset(joint: JointSpec, degrees: float) -> float:
+    """Arena's wire degrees to LeRobot's value (`use_degrees=True`: degrees; gripper 0-100)."""
+    if _is_gripper(joint):
+        return (degrees - joint.lower) / (joint.upper - joint.lower) * GRIPPER_RANGE
+    return degrees
+
+
+def from_dataset(joint: JointSpec, value: float) -> float:
+    """LeRobot's value back to Arena's wire degrees (the inverse of `to_dataset`)."""
+    if _is_gripper(joint):
+        return joint.lower + value / GRIPPER_RANGE * (joint.upper - joint.lower)
+    return value
+
+
+# -- what a recording holds for one robot ------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Span:
+    """One episode: its index and task, and its ends in log time (ns)."""
+
+    index: int
+    task: str
+    start: int
+    end: int
+    complete: bool = True  # False when the file ended before the episode did
+
+
+def episodes_of(messages: Sequence[RecordedMessage], default_task: str) -> list[Span]:
+    """The kept episodes of one robot's messages (time-ordered). With no episode records the
+    whole recording is one episode; an episode the file cut short ends at its last message."""
+    if not messages:
+        return []
+    last = messages[-1].log_time
+    marks = [m for m in messages if m.kind == "episode"]
+    if not marks:
+        return [Span(0, default_task, messages[0].log_time, last)]
+    open_: dict[int, RecordedMessage] = {}
+    spans: dict[int, Span] = {}
+    discarded: set[int] = set()
+    for mark in marks:
+        index, change = int(mark.data["index"]), mark.data["change"]
+        if change == "start":
+            open_[index] = mark
+        elif index in open_:
+            start = open_.pop(index)
+            spans[index] = Span(index, str(start.data["task"]), start.log_time, mark.log_time)
+            if change == "discard":
+                discarded.add(index)
+        elif change == "discard":
+            discarded.add(index)  # a kept episode taken back
+    for index, start in open_.items():
+        spans[index] = Span(index, str(start.data["task"]), start.log_time, last, complete=False)
+    return [spans[i] for i in sorted(spans) if i not in discarded]
+
+
+@dataclass
+class Track:
+    """A step function of time: the newest value at or before each time."""
+
+    times: list[int] = field(default_factory=list)
+    values: list[Any] = field(default_factory=list)
+
+    def add(self, at: int, value: Any) -> None:
+        """Append a value (times must not go backwards)."""
+        self.times.append(at)
+        self.values.append(value)
+
+    def at(self, when: int) -> Any:
+        """The value at `when` (None before the first)."""
+        found = bisect.bisect_right(self.times, when) - 1
+        return self.values[found] if found >= 0 else None
+
+    @property
+    def first(self) -> int | None:
+        """When the first value came."""
+        return self.times[0] if self.times else None
+
+
+def commanded(messages: Iterable[RecordedMessage], joints: Sequence[str]) -> Track:
+    """What the master asked for, joint by joint, after each accepted command (clamped values
+    as applied); a joint no command has named yet follows the robot's own targets."""
+    current: dict[str, float] = {}
+    commanded_joints: set[str] = set()
+    track = Track()
+    for message in messages:
+        if message.kind == "targets":
+            for name, value in message.data["joints"].items():
+                if name not in commanded_joints:
+                    current[name] = float(value)
+        elif message.kind == "command" and message.data["accepted"]:
+            applied = {c["joint"]: c["applied"] for c in message.data.get("clamped") or []}
+            for goal in message.data["joints"]:
+                name = goal["name"]
+                current[name] = float(applied.get(name, goal["value"]))
+                commanded_joints.add(name)
+        else:
+            continue
+        if all(name in current for name in joints):
+            track.add(message.log_time, tuple(current[name] for name in joints))
+    return track
+
+
+def measured(messages: Iterable[RecordedMessage], joints: Sequence[str], slave: str) -> Track:
+    """The slave's reported joint values over time (once every joint has been reported)."""
+    current: dict[str, float] = {}
+    track = Track()
+    for message in messages:
+        if message.kind == "joint_states" and message.data["slave_id"] == slave:
+            current.update({k: float(v) for k, v in message.data["joints"].items()})
+            if all(name in current for name in joints):
+                track.add(message.log_time, tuple(current[name] for name in joints))
+    return track
+
+
+def busiest_slave(messages: Iterable[RecordedMessage]) -> str | None:
+    """The slave that reported joint states most often (the arm being recorded)."""
+    counts: dict[str, int] = {}
+    for message in messages:
+        if message.kind == "joint_states":
+            slave = str(message.data["slave_id"])
+            counts[slave] = counts.get(slave, 0) + 1
+    return max(counts, key=lambda s: counts[s]) if counts else None
+
+
+def frame_times(span: Span, fps: int, earliest: int) -> list[int]:
+    """Sample times of an episode: every 1/fps from its start (or from `earliest`, when the
+    data begins later) up to its end."""
+    start = max(span.start, earliest)
+    if start > span.end:
+        return []
+    step = 1e9 / fps
+    count = int((span.end - start) / step + 1e-6) + 1
+    return [start + round(k * step) for k in range(count)]
+
+
+@dataclass
+class RobotSession:
+    """One robot's recorded messages and camera frames, from one or more files."""
+
+    robot_id: str
+    model: RobotModel
+    messages: list[RecordedMessage]
+    cameras: dict[str, Track]  # camera name -> JPEG bytes over time
+    truncated: list[str]  # files cut short
+
+
+def load_session(paths: Sequence[Path], robot_id: str) -> RobotSession:
+    """Read the files (in time order) and keep what concerns `robot_id`."""
+    from arena.robot.model import load_robot_model
+
+    recordings: list[Recording] = [read_recording(path) for path in paths]
+    messages: list[RecordedMessage] = []
+    frames: dict[str, list[tuple[int, bytes]]] = {}
+    robot_type: str | None = None
+    seen: set[str] = set()
+    for recording in recordings:
+        for message in recording.messages:
+            seen.add(message.robot_id)
+            if message.robot_id == robot_id:
+                messages.append(message)
+        for view in recording.views:
+            camera = images.camera_of_topic(view.topic)
+            if camera is not None and camera[0] == robot_id:
+                frames.setdefault(camera[1], []).append((view.log_time, view.data))
+        metadata = recording.metadata.get(f"robot/{robot_id}")
+        if metadata is not None:
+            robot_type = metadata.get("robot_type", robot_type)
+    names = ", ".join(p.name for p in paths)
+    if not messages:
+        held = ", ".join(sorted(seen)) or "no robot at all"
+        raise ArenaError(
+            ErrorCode.UNKNOWN_ROBOT, f"Robot {robot_id!r} is not in {names}: it holds {held}."
+        )
+    messages.sort(key=lambda m: m.log_time)
+    cameras: dict[str, Track] = {}
+    for name, found in frames.items():
+        track = Track()
+        for at, data in sorted(found, key=lambda f: f[0]):
+            track.add(at, images.decode(data).data)
+        cameras[name] = track
+    model = load_robot_model(robot_type or "so-arm100")
+    truncated = [r.path.name for r in recordings if r.truncated]
+    return RobotSession(robot_id, model, messages, cameras, truncated)
+
+
+@dataclass
+class DatasetFrame:
+    """One dataset frame: action and state in LeRobot's units, the camera images as JPEG."""
+
+    at: int
+    action: list[float]
+    state: list[float]
+    jpegs: dict[str, bytes]
+
+
+def frames_of(session: RobotSession, span: Span, fps: int, slave: str) -> list[DatasetFrame]:
+    """The dataset frames of one episode."""
+    joints = [joint.name for joint in session.model.joints]
+    action = commanded(session.messages, joints)
+    state = measured(session.messages, joints, slave)
+    starts = [action.first, state.first, *(track.first for track in session.cameras.values())]
+    if any(start is None for start in starts):
+        return []
+    earliest = max(s for s in starts if s is not None)
+    specs = session.model.joints
+    found = []
+    for at in frame_times(span, fps, earliest):
+        found.append(
+            DatasetFrame(
+                at,
+                [to_dataset(j, v) for j, v in zip(specs, action.at(at), strict=True)],
+                [to_dataset(j, v) for j, v in zip(specs, state.at(at), strict=True)],
+                {name: track.at(at) for name, track in session.cameras.items()},
+            )
+        )
+    return found
+
+
+# -- LeRobot ---------------------------------------------------------------------------------
+
+
+def _lerobot() -> Any:
+    try:
+        from lerobot.datasets import lerobot_dataset
+    except ImportError as exc:
+        raise ArenaError(
+            ErrorCode.INVALID_CONFIG,
+            "Datasets need LeRobot: pip install 'arena[lerobot]' "
+            f"(LeRobot 0.4, which brings torch). ({exc})",
+        ) from None
+    return lerobot_dataset
+
+
+class _JpegDecoder:
+    """JPEG to RGB arrays, each distinct frame decoded once (a frame repeats when the
+    dataset's rate is above the camera's)."""
+
+    def __init__(self) -> None:
+        import av
+
+        self._codec: Any = av.CodecContext.create("mjpeg", "r")
+        self._last: tuple[bytes, Any] | None = None
+
+    def rgb(self, jpeg: bytes) -> Any:
+        if self._last is not None and self._last[0] is jpeg:
+            return self._last[1]
+        decoded = self._codec.decode(self._av_packet(jpeg))
+        image = decoded[0].to_ndarray(format="rgb24")
+        self._last = (jpeg, image)
+        return image
+
+    @staticmethod
+    def _av_packet(jpeg: bytes) -> Any:
+        import av
+
+        return av.Packet(jpeg)
+
+
+@dataclass
+class ExportReport:
+    """What an export wrote."""
+
+    root: Path
+    repo_id: str
+    fps: int
+    episodes: list[tuple[int, str, int]]  # (recorded index, task, frames)
+    cameras: list[str]
+    notes: list[str]
+
+
+def export_lerobot(
+    paths: Sequence[Path],
+    robot_id: str,
+    root: Path,
+    *,
+    fps: int = 30,
+    repo_id: str | None = None,
+    slave: str | None = None,
+    task: str = DEFAULT_TASK,
+    say: Callable[[str], None] = lambda line: print(line, file=sys.stderr),
+) -> ExportReport:
+    """Write a LeRobotDataset (v3.0, with LeRobot's own writer) of one robot's episodes."""
+    if not 1 <= fps <= 1000:
+        raise ArenaError(ErrorCode.INVALID_VALUE, "--fps must be 1 to 1000.")
+    if root.exists() and any(root.iterdir()):
+        raise ArenaError(ErrorCode.INVALID_VALUE, f"{root} exists and is not empty.")
+    session = load_session(paths, robot_id)
+    notes = [
+        f"{name} was cut short (a crash?): exported up to its last record"
+        for name in session.truncated
+    ]
+    if not session.cameras:
+        notes.append(
+            f"no camera was recorded for {robot_id!r}: the dataset has action and state only"
+        )
+    slave = slave or busiest_slave(session.messages)
+    if slave is None:
+        raise ArenaError(
+            ErrorCode.INVALID_RECORDING,
+            f"No slave of {robot_id!r} reported joint states: there is no observation.state.",
+        )
+    spans = episodes_of(session.messages, task)
+    if not spans:
+        raise ArenaError(ErrorCode.INVALID_RECORDING, f"No kept episode of {robot_id!r}.")
+    notes += [
+        f"episode {s.index} has no stop: it ends where the file does"
+        for s in spans
+        if not s.complete
+    ]
+    for line in notes:
+        say(f"note: {line}")
+    frames = [(span, frames_of(session, span, fps, slave)) for span in spans]
+    frames = [(span, found) for span, found in frames if found]
+    if not frames:
+        raise ArenaError(ErrorCode.INVALID_RECORDING, "The episodes hold no complete frame.")
+    decoder = _JpegDecoder()
+    shapes = {name: decoder.rgb(jpeg).shape for name, jpeg in frames[0][1][0].jpegs.items()}
+    names = feature_names(session.model)
+    features: dict[str, Any] = {
+        "action": {"dtype": "float32", "shape": (len(names),), "names": names},
+        "observation.state": {"dtype": "float32", "shape": (len(names),), "names": names},
+    }
+    for name, shape in shapes.items():
+        features[f"observation.images.{name}"] = {
+            "dtype": "video",
+            "shape": tuple(shape),
+            "names": ["height", "width", "channels"],
+        }
+    lerobot = _lerobot()
+    import numpy as np
+
+    repo_id = repo_id or f"arena/{robot_id}"
+    dataset = lerobot.LeRobotDataset.create(
+        repo_id,
+        fps,
+        features,
+        root=root,
+        robot_type=ROBOT_TYPES.get(session.model.robot_type, session.model.robot_type),
+        use_videos=True,
+        streaming_encoding=bool(shapes),
+    )
+    written = []
+    try:
+        for span, found in frames:
+            for frame in found:
+                values: dict[str, Any] = {
+                    "action": np.asarray(frame.action, dtype=np.float32),
+                    "observation.state": np.asarray(frame.state, dtype=np.float32),
+                    "task": span.task,
+                }
+                for name, jpeg in frame.jpegs.items():
+                    values[f"observation.images.{name}"] = decoder.rgb(jpeg)
+                dataset.add_frame(values)
+            dataset.save_episode()
+            written.append((span.index, span.task, len(found)))
+    finally:
+        dataset.finalize()
+    info = {"source": [p.name for p in paths], "robot": robot_id, "slave": slave}
+    (root / "meta" / "arena.json").write_text(json.dumps(info, indent=2), encoding="utf-8")
+    return ExportReport(root, repo_id, fps, written, sorted(shapes), notes)
+
+
+def import_lerobot(
+    root: Path,
+    episode: int,
+    out: Path,
+    *,
+    repo_id: str | None = None,
+    robot_id: str = "dataset-arm",
+    robot_type: str = "so-arm100",
+) -> int:
+    """Turn one episode of a LeRobot dataset into a recording `arena replay` plays: its
+    actions become accepted commands at their timestamps, its states the joint states of a
+    slave `dataset`. Returns the number of frames."""
+    from arena.recording.mcap_file import write_recording
+    from arena.robot.model import load_robot_model
+
+    lerobot = _lerobot()
+    meta_path = root / "meta" / "info.json"
+    if not meta_path.is_file():
+        raise ArenaError(
+            ErrorCode.INVALID_RECORDING, f"{root} is not a LeRobot dataset (no meta/info.json)."
+        )
+    repo_id = repo_id or f"local/{root.name}"
+    try:
+        dataset = lerobot.LeRobotDataset(
+            repo_id, root=root, episodes=[episode], video_backend="pyav"
+        )
+    except (IndexError, KeyError, ValueError) as exc:
+        raise ArenaError(
+            ErrorCode.INVALID_VALUE, f"Cannot read episode {episode} of {root}: {exc}"
+        ) from None
+    table = dataset.hf_dataset.with_format(None)
+    rows = [row for row in table if int(row["episode_index"]) == episode]
+    if not rows:
+        raise ArenaError(ErrorCode.INVALID_VALUE, f"{root} has no episode {episode}.")
+    model = load_robot_model(robot_type)
+    names = feature_names(model)
+    action_names = list(dataset.meta.features["action"]["names"] or names)
+    state_names = list((dataset.meta.features.get("observation.state") or {}).get("names") or [])
+    if sorted(action_names) != sorted(names):
+        raise ArenaError(
+            ErrorCode.INVALID_VALUE,
+            f"The dataset's actions are {action_names}; a {robot_type} needs {names}.",
+        )
+    specs = {name: joint for name, joint in zip(names, model.joints, strict=True)}
+    tasks = dataset.meta.tasks
+    task_of = {
+        int(index): str(task) for task, index in zip(tasks.index, tasks["task_index"], strict=True)
+    }
+    recording = Recording(out)
+    recording.metadata["arena"] = {
+        "server": "arena",
+        "source": f"lerobot:{root}",
+        "episode": str(episode),
+    }
+    recording.metadata[f"robot/{robot_id}"] = {
+        "robot_type": robot_type,
+        "name": f"{root.name} episode {episode}",
+        "urdf": model.urdf_path.read_text(encoding="utf-8"),
+    }
+    base = time.time_ns()
+    task = task_of.get(int(rows[0]["task_index"]), DEFAULT_TASK)
+
+    def add(kind: str, at: float, data: dict[str, Any]) -> None:
+        recording.messages.append(
+            RecordedMessage(
+                f"/robots/{robot_id}/{kind}", robot_id, kind, base + round(at * 1e9), data
+            )
+        )
+
+    add("episode", 0.0, {"t": 0.0, "change": "start", "index": 0, "task": task, "started": 0.0})
+    for row in rows:
+        at = float(row["timestamp"])
+        joints = [
+            {"name": specs[name].name, "value": from_dataset(specs[name], float(value))}
+            for name, value in zip(action_names, row["action"], strict=True)
+        ]
+        add(
+            "command",
+            at,
+            {
+                "t": at,
+                "source": "dataset",
+                "joints": joints,
+                "duration": None,
+                "label": "dataset",
+                "accepted": True,
+                "code": None,
+                "message": "",
+                "clamped": [],
+            },
+        )
+        if state_names and "observation.state" in row:
+            state = {
+                specs[name].name: from_dataset(specs[name], float(value))
+                for name, value in zip(state_names, row["observation.state"], strict=True)
+                if name in specs
+            }
+            add("joint_states", at, {"t": at, "slave_id": "dataset", "joints": state})
+    end = float(rows[-1]["timestamp"])
+    add("episode", end, {"t": end, "change": "stop", "index": 0, "task": task, "started": 0.0})
+    write_recording(recording, out)
+    return len(rows)

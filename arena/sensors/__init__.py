@@ -1,0 +1,1 @@
+"""Sensors attached to robots: cameras (capture threads, frames as recorded and streamed)."""

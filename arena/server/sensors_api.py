@@ -1,0 +1,209 @@
+"""REST for cameras and episodes, and the cameras' live MJPEG streams.
+
+The stream (`GET /api/robots/{id}/cameras/{name}/stream`) is served by the listener itself,
+like the WebSockets, not by hypercorn: each part is written with a deadline, so a client that
+stops reading loses its stream after `STREAM_SEND_TIMEOUT` instead of holding a slot for ever,
+and it always gets the newest frame (latest wins; a slow client skips frames).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import msgspec
+import trio
+from quart import Blueprint, Response, current_app, request
+
+from arena.protocol.errors import ArenaError, ErrorCode
+from arena.protocol.rest import CameraBody, EpisodeBody
+from arena.robot.episodes import Episode
+from arena.sensors.camera import Camera, CameraSpec
+from arena.server.auth import check_token
+from arena.server.base import STATUS_FOR, ArenaApp, read_body
+from arena.server.ws_transport import UpgradeRequest
+
+blueprint = Blueprint("sensors", __name__)
+
+#: Live streams one camera serves at once.
+MAX_STREAMS_PER_CAMERA = 8
+#: A part not taken by the client within this long ends its stream.
+STREAM_SEND_TIMEOUT = 5.0
+BOUNDARY = "arenaframe"
+
+
+def _app() -> ArenaApp:
+    return current_app  # type: ignore[return-value]
+
+
+@blueprint.get("/api/robots/<robot_id>/cameras")
+async def list_cameras(robot_id: str) -> dict[str, Any]:
+    """The robot's cameras with their counters."""
+    app = _app()
+    app.manager.get(robot_id)
+    return {"cameras": [camera.as_dict() for camera in app.cameras.of(robot_id)]}
+
+
+@blueprint.post("/api/robots/<robot_id>/cameras")
+async def attach_camera(robot_id: str) -> tuple[dict[str, Any], int]:
+    """Attach a camera; its source is opened first, so a wrong device fails here."""
+    app = _app()
+    robot = app.manager.get(robot_id)
+    body: CameraBody = await read_body(CameraBody)
+    spec = CameraSpec(body.name, body.source, body.fps, body.width, body.height)
+    camera = await app.cameras.attach(robot, spec)
+    return camera.as_dict(), 201
+
+
+@blueprint.get("/api/robots/<robot_id>/cameras/<name>")
+async def read_camera(robot_id: str, name: str) -> dict[str, Any]:
+    """One camera."""
+    return _app().cameras.get(robot_id, name).as_dict()
+
+
+@blueprint.delete("/api/robots/<robot_id>/cameras/<name>")
+async def detach_camera(robot_id: str, name: str) -> dict[str, Any]:
+    """Stop a camera and forget it (what it recorded stays recorded)."""
+    app = _app()
+    await app.cameras.detach(robot_id, name)
+    return {"detached": name}
+
+
+@blueprint.get("/api/robots/<robot_id>/cameras/<name>/frame")
+async def camera_frame(robot_id: str, name: str) -> Response:
+    """The newest frame as one JPEG."""
+    camera = _app().cameras.get(robot_id, name)
+    with trio.move_on_after(2.0):
+        frame = await camera.next_frame(-1)
+        response = Response(frame.jpeg, mimetype="image/jpeg")
+        response.headers["Cache-Control"] = "no-store"
+        response.headers["X-Frame-Seq"] = str(frame.seq)
+        return response
+    raise ArenaError(ErrorCode.CAMERA_FAILED, f"Camera {name!r} has no frame yet.")
+
+
+@blueprint.get("/api/robots/<robot_id>/cameras/<name>/stream")
+async def stream_elsewhere(robot_id: str, name: str) -> Response:
+    """The stream asked on a connection that served other requests before (a browser reuses
+    its connections): the listener serves streams only as a connection's first request, so
+    send the client to the same address on a fresh connection."""
+    _app().cameras.get(robot_id, name)
+    response = Response("", status=307)
+    response.headers["Location"] = request.full_path if request.query_string else request.path
+    response.headers["Connection"] = "close"
+    return response
+
+
+def _episode(episode: Episode) -> dict[str, Any]:
+    return {
+        "index": episode.index,
+        "task": episode.task,
+        "duration": None if episode.ended is None else round(episode.ended - episode.started, 3),
+        "discarded": episode.discarded,
+    }
+
+
+@blueprint.get("/api/robots/<robot_id>/episodes")
+async def episodes(robot_id: str) -> dict[str, Any]:
+    """The running episode, the last one, and how many were kept and discarded."""
+    robot = _app().manager.get(robot_id)
+    return robot.episodes.as_dict(trio.current_time())
+
+
+@blueprint.post("/api/robots/<robot_id>/episodes/start")
+async def start_episode(robot_id: str) -> tuple[dict[str, Any], int]:
+    """Start an episode with its task (marked in the recording)."""
+    robot = _app().manager.get(robot_id)
+    body: EpisodeBody = await read_body(EpisodeBody)
+    return _episode(await robot.episode("start", body.task)), 201
+
+
+@blueprint.post("/api/robots/<robot_id>/episodes/stop")
+async def stop_episode(robot_id: str) -> dict[str, Any]:
+    """End the running episode and keep it."""
+    robot = _app().manager.get(robot_id)
+    return _episode(await robot.episode("stop"))
+
+
+@blueprint.post("/api/robots/<robot_id>/episodes/discard")
+async def discard_episode(robot_id: str) -> dict[str, Any]:
+    """End the running episode without keeping it (or take back the last one kept)."""
+    robot = _app().manager.get(robot_id)
+    return _episode(await robot.episode("discard"))
+
+
+# -- the MJPEG stream, served by the listener --------------------------------------------------
+
+
+def stream_route(app: ArenaApp) -> Any:
+    """The listener's route for camera streams: a handler for the stream's path, else None."""
+
+    def route(request: UpgradeRequest) -> Any:
+        parts = request.path.split("/")
+        if not (
+            len(parts) == 7
+            and parts[1:3] == ["api", "robots"]
+            and parts[4] == "cameras"
+            and parts[6] == "stream"
+        ):
+            return None
+        return lambda stream: _serve_stream(app, request, parts[3], parts[5], stream)
+
+    return route
+
+
+def _http_error(error: ArenaError) -> bytes:
+    status = STATUS_FOR.get(error.code, 400)
+    body = msgspec.json.encode({"error": {"code": str(error.code), "message": error.message}})
+    head = (
+        f"HTTP/1.1 {status} {'Error' if status >= 400 else 'OK'}\r\n"
+        f"Content-Type: application/json\r\nContent-Length: {len(body)}\r\n"
+        "Connection: close\r\n\r\n"
+    )
+    return head.encode("latin-1") + body
+
+
+async def _serve_stream(
+    app: ArenaApp, request: UpgradeRequest, robot_id: str, name: str, stream: trio.abc.Stream
+) -> None:
+    headers = request.headers
+    try:
+        app.origin_policy.check("GET", headers.get("origin"), headers.get("host"), request.scheme)
+        check_token(app, headers.get("authorization"), request.args.get("token"), mutating=False)
+        camera = app.cameras.get(robot_id, name)
+        if camera.streams >= MAX_STREAMS_PER_CAMERA:
+            raise ArenaError(
+                ErrorCode.OVERLOADED,
+                f"Camera {name!r} serves {MAX_STREAMS_PER_CAMERA} streams already.",
+            )
+    except ArenaError as refusal:
+        await stream.send_all(_http_error(refusal))
+        return
+    camera.streams += 1
+    try:
+        await _send_frames(camera, stream)
+    finally:
+        camera.streams -= 1
+
+
+async def _send_frames(camera: Camera, stream: trio.abc.Stream) -> None:
+    await stream.send_all(
+        b"HTTP/1.1 200 OK\r\nContent-Type: multipart/x-mixed-replace; boundary="
+        + BOUNDARY.encode()
+        + b"\r\nCache-Control: no-store\r\nConnection: close\r\n\r\n"
+    )
+    seq = -1
+    while True:
+        try:
+            frame = await camera.next_frame(seq)
+        except trio.EndOfChannel:  # the camera was detached
+            return
+        seq = frame.seq
+        part = (
+            f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: {len(frame.jpeg)}\r\n"
+            f"X-Frame-Seq: {frame.seq}\r\nX-Timestamp: {frame.wall_time:.6f}\r\n\r\n"
+        ).encode("latin-1")
+        with trio.move_on_after(STREAM_SEND_TIMEOUT) as late:
+            await stream.send_all(part + frame.jpeg + b"\r\n")
+        if late.cancelled_caught:
+            camera.streams_dropped += 1
+            return
