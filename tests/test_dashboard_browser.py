@@ -410,7 +410,8 @@ def test_a_camera_streams_beside_the_twin_and_episodes_are_marked(
     page.wait_for_function(
         "() => document.querySelector('#cameras img').naturalWidth === 640", timeout=WAIT_MS
     )
-    expect(page.locator('#cameras [data-camera="front"] figcaption')).to_contain_text("640\u00d7480")
+    caption = page.locator('#cameras [data-camera="front"] figcaption')
+    expect(caption).to_contain_text("640\u00d7480")
 
     page.fill("#episode-task", "pick up the cube")
     page.click("#episode-start")
