@@ -10,6 +10,7 @@ import threading
 import pytest
 
 from arena import bench
+from arena.bench.camera import camera
 from arena.bench.client import BlockingHttp
 
 
@@ -55,6 +56,18 @@ def test_the_flood_scenario_measures_an_estop_while_a_viewer_floods_pings() -> N
     assert 0 < results["flood_estop_p99_ms"] < math.inf
     assert 0 < results["flood_estop_quiet_p99_ms"] < math.inf
     assert results["flood_server_rss_growth_mib"] < 200
+
+
+def test_the_camera_scenario_counts_what_a_stream_client_got() -> None:
+    async def with_camera() -> dict[str, float]:
+        async with bench.running_server() as server:
+            return await camera(server, seconds=0.5)
+
+    results = asyncio.run(with_camera())
+    assert results["camera_stream_parts"] > 0
+    assert results["camera_frames"] >= results["camera_stream_parts"]
+    assert 0 < results["camera_to_client_p50_ms"] <= results["camera_to_client_p99_ms"]
+    assert results["camera_recording_dropped"] == 0
 
 
 def test_soak_reports_start_against_end_and_losses() -> None:

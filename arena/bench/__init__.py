@@ -22,6 +22,8 @@ Scenarios:
   replay      commands/s of a replay at maximum speed (in process)
   physics     the MuJoCo twin: steps a second flat out, and the CPU of the real-time slave at
               500 Hz (in process)
+  camera      one 640x480 camera at 30 fps with one MJPEG stream client: the server's CPU
+              with it against without, capture-to-client latency p50/p99, frames dropped
   core        RobotCore.command calls/s (pure decision code); the collision guard's cost per
               command in a teleoperation stream, p50 / p99 with and without it
   teleop      leader arm -> follower: a leader register change to the follower's goal write,
@@ -46,6 +48,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from arena.bench.camera import camera
 from arena.bench.common import BENCH_TYPE, Server, bench_types, running_server
 from arena.bench.estop import estop, flood
 from arena.bench.fleet import FleetRun, drive_fleet, fleet, soak
@@ -72,6 +75,7 @@ SCENARIOS = (
     "replay",
     "core",
     "physics",
+    "camera",
     "usb",
     "teleop",
 )
@@ -136,6 +140,8 @@ def run_benchmarks(
         results.update(asyncio.run(_with_server(estop)))
     if "flood" in chosen:
         results.update(asyncio.run(_with_server(flood)))
+    if "camera" in chosen:
+        results.update(median_of([asyncio.run(_with_server(camera)) for _ in range(repeats)]))
     if "fleet" in chosen:
         results.update(asyncio.run(_with_server(lambda server: fleet(server, robots=fleet_robots))))
         # Half the rate as well: where the latency stands before one core is full.
