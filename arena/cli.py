@@ -126,6 +126,26 @@ def main(argv: list[str] | None = None) -> int:
         metavar="PORT",
         help="serve every robot live to Foxglove on ws://HOST:PORT (0: any port)",
     )
+    fleet = serve.add_argument_group("fleet (specs/fleet.md)")
+    fleet.add_argument("--node", help="this server's name in a fleet (joins it over Zenoh)")
+    fleet.add_argument("--fleet", help="the fleet's name (default: default)")
+    fleet.add_argument(
+        "--fleet-listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
+    )
+    fleet.add_argument(
+        "--fleet-connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="a node or router to connect to, e.g. tcp/10.0.0.2:7447 (repeatable)",
+    )
+    fleet.add_argument(
+        "--fleet-scout", action="store_true", default=None, help="find nodes by multicast"
+    )
     inspect = commands.add_parser("inspect", help="summarize a recording")
     inspect.add_argument("file")
     inspect.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -590,6 +610,11 @@ def _serve(args: argparse.Namespace) -> int:
             keyfile=args.keyfile,
             allowed_origins=tuple(args.allowed_origins),
             allowed_hosts=tuple(args.allowed_hosts),
+            node=args.node,
+            fleet=args.fleet,
+            fleet_listen=tuple(args.fleet_listen) or None,
+            fleet_connect=tuple(args.fleet_connect) or None,
+            fleet_scout=args.fleet_scout,
         )
         config.check()
     except ArenaError as error:

@@ -508,6 +508,19 @@ class _Endpoints(Generic[T]):
         """Recordings and the recorder's status."""
         return self._call("GET", "/api/recordings")
 
+    def fleet_nodes(self) -> T:
+        """The nodes of this server's fleet (`--node`): name, alive, version, robots."""
+        return self._call("GET", "/api/fleet/nodes")
+
+    def fleet_robots(self) -> T:
+        """Every robot of every node of the fleet, with its node and state; each one can be
+        opened (REST or WebSocket) through this server whichever node owns it."""
+        return self._call("GET", "/api/fleet/robots")
+
+    def fleet_estop(self, reason: str | None = None) -> T:
+        """E-stop every robot of every node; each node's acknowledgment and time."""
+        return self._call("POST", "/api/fleet/estop", {"reason": reason} if reason else {})
+
 
 def _unreachable(url: httpx.URL, error: Exception) -> ArenaClientError:
     return ArenaClientError("UNREACHABLE", f"cannot reach {url}: {error or type(error).__name__}")

@@ -78,6 +78,9 @@ class ErrorCode(enum.StrEnum):
     CAMERA_FAILED = "CAMERA_FAILED"
     EPISODE_ACTIVE = "EPISODE_ACTIVE"
     NO_EPISODE = "NO_EPISODE"
+    # Fleets
+    ROBOT_ELSEWHERE = "ROBOT_ELSEWHERE"  # another node of the fleet owns that robot id
+    NODE_LOST = "NODE_LOST"  # the node that owns the robot left the fleet or did not answer
     INVALID_RECORDING = "INVALID_RECORDING"
     UNKNOWN_RECORDING = "UNKNOWN_RECORDING"
     RECORDING_FAILED = "RECORDING_FAILED"

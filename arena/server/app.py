@@ -31,6 +31,7 @@ from arena.server.calibration_api import blueprint as calibration_blueprint
 from arena.server.config import ServerConfig
 from arena.server.dashboard import blueprint as dashboard_blueprint
 from arena.server.drivers import make_master, make_slave
+from arena.server.fleet_api import blueprint as fleet_blueprint
 from arena.server.groups_api import blueprint as groups_blueprint
 from arena.server.metrics import Metrics
 from arena.server.origin import SAFE_METHODS, OriginPolicy, is_json
@@ -65,6 +66,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.register_blueprint(robot_types_blueprint)
     app.register_blueprint(dashboard_blueprint)
     app.register_blueprint(sensors_blueprint)
+    app.register_blueprint(fleet_blueprint)
     _register_errors(app)
     _register_routes(app)
     return app
@@ -91,6 +93,9 @@ def _register_errors(app: ArenaApp) -> None:
             )
         if request.path == "/" and dashboard.is_built() and _wants_html():
             return redirect("/ui/")  # type: ignore[return-value]  # a browser: show the page
+        forwarded = request.headers.get("X-Arena-Fleet-Forwarded")
+        if app.fleet_secret and forwarded == app.fleet_secret:
+            return None  # forwarded by a node of the fleet, which checked the key
         if request.path not in PUBLIC_PATHS and not request.path.startswith(PUBLIC_PREFIXES):
             # A page's <img> cannot send headers: a camera stream may carry its key in the
             # query, as a WebSocket does.
@@ -161,6 +166,9 @@ def _register_routes(app: ArenaApp) -> None:
             "foxglove": None
             if app.foxglove is None
             else {"port": app.foxglove.port, "dropped": app.foxglove.dropped},
+            "fleet": None
+            if app.fleet is None
+            else {"fleet": app.fleet.fleet, "node": app.fleet.name, "dropped": app.fleet.dropped},
             "links": {
                 "robots": "/api/robots",
                 "robot_types": "/api/robot-types",
@@ -178,6 +186,14 @@ def _register_routes(app: ArenaApp) -> None:
     @app.post("/api/robots")
     async def create_robot() -> tuple[dict[str, Any], int]:
         body = await read_body(CreateRobotBody)
+        if app.fleet is not None and body.id is not None:
+            owner = await app.fleet.owner_elsewhere(body.id)
+            if owner is not None:
+                raise ArenaError(
+                    ErrorCode.ROBOT_ELSEWHERE,
+                    f"Robot id {body.id!r} is taken in fleet {app.fleet.fleet!r}: node "
+                    f"{owner!r} owns it.",
+                )
         robot = await manager.create_robot(body.robot_type, body.name, body.id)
         return convert.robot_summary(robot), 201
 

@@ -21,6 +21,7 @@ from arena.server.metrics import Metrics
 from arena.server.origin import OriginPolicy
 
 if TYPE_CHECKING:
+    from arena.fleet.node import FleetNode
     from arena.sensors.camera import Cameras
     from arena.server.foxglove_bridge import FoxgloveBridge  # imports the SDK
 
@@ -72,6 +73,8 @@ STATUS_FOR: dict[ErrorCode, int] = {
     ErrorCode.CAMERA_FAILED: 422,
     ErrorCode.EPISODE_ACTIVE: 409,
     ErrorCode.NO_EPISODE: 409,
+    ErrorCode.ROBOT_ELSEWHERE: 409,
+    ErrorCode.NODE_LOST: 503,
 }
 
 
@@ -137,6 +140,12 @@ class ArenaApp(QuartTrio):
     origin_policy: OriginPolicy
     #: Every robot's cameras (`arena/sensors`).
     cameras: Cameras
+    #: This node's membership of a fleet, with `--node`.
+    fleet: FleetNode | None = None
+    #: Marks REST calls another node of the fleet forwarded (known only in this process).
+    fleet_secret: str = ""
+    #: The server's own URL once it listens (told to the fleet).
+    own_url: str | None = None
     #: The live Foxglove server, with `--foxglove-port`.
     foxglove: FoxgloveBridge | None = None
 

@@ -7,9 +7,12 @@ import os
 import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from arena.protocol.errors import ArenaError, ErrorCode
+
+if TYPE_CHECKING:
+    from arena.fleet.node import FleetSettings
 
 API_KEYS_ENV = "ARENA_API_KEYS"
 
@@ -50,6 +53,14 @@ class ServerConfig:
     allowed_origins: tuple[str, ...] = field(default=())
     #: Names besides localhost and loopback addresses that a loopback server answers to.
     allowed_hosts: tuple[str, ...] = field(default=())
+    #: This server's name in a fleet (specs/fleet.md); None: a server on its own.
+    node: str | None = None
+    fleet: str = "default"
+    #: Zenoh endpoints to listen on and to connect to (a router is one more endpoint).
+    fleet_listen: tuple[str, ...] = field(default=())
+    fleet_connect: tuple[str, ...] = field(default=())
+    fleet_scout: bool = False  # multicast scouting; off: explicit endpoints only
+    fleet_lease_ms: int = 1000  # a node silent this long is gone
 
     @property
     def auth_enabled(self) -> bool:
@@ -84,8 +95,24 @@ class ServerConfig:
             raise ArenaError(
                 ErrorCode.INVALID_CONFIG, "record_foxglove_rate must be from 0 to 10000."
             )
+        if self.node is not None:
+            self.fleet_settings().check()
         if self.recording_retry_max < 1.0:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "recording_retry_max must be 1 s or more.")
+
+    def fleet_settings(self) -> FleetSettings:
+        """How this node joins its fleet (only with `node`)."""
+        from arena.fleet.node import FleetSettings
+
+        assert self.node is not None
+        return FleetSettings(
+            self.node,
+            self.fleet,
+            self.fleet_listen,
+            self.fleet_connect,
+            self.fleet_scout,
+            self.fleet_lease_ms,
+        )
 
 
 def _is_loopback(host: str) -> bool:
@@ -112,7 +139,14 @@ def load_config(path: str | None, **overrides: Any) -> ServerConfig:
                 ErrorCode.INVALID_CONFIG,
                 f"Unknown settings in {path}: {', '.join(sorted(unknown))}.",
             )
-        for key in ("api_keys", "viewer_keys", "allowed_origins", "allowed_hosts"):
+        for key in (
+            "api_keys",
+            "viewer_keys",
+            "allowed_origins",
+            "allowed_hosts",
+            "fleet_listen",
+            "fleet_connect",
+        ):
             if key in data:
                 data[key] = tuple(data[key])
         config = replace(config, **data)

@@ -62,9 +62,12 @@ async def run_server(
     """
     config.check()
     stop = trio.Event() if stop is None else stop
+    metadata = {"config": json.dumps(_public_settings(config))}
+    if config.node is not None:  # each file names the node and fleet it was recorded on
+        metadata.update(node=config.node, fleet=config.fleet)
     recorder = Recorder(
         Path(config.recordings_dir),
-        {"config": json.dumps(_public_settings(config))},
+        metadata,
         max_bytes=config.recording_max_bytes,
         max_seconds=config.recording_max_seconds,
         active=config.record,
@@ -83,6 +86,13 @@ async def run_server(
                 )
             )
             await recording_nursery.start(app.cameras.run)
+            if config.node is not None:
+                from arena.fleet.node import FleetNode  # imports zenoh only for a fleet
+                from arena.server.fleet_api import install
+
+                fleet = FleetNode(config.fleet_settings())
+                await recording_nursery.start(fleet.run)
+                install(app, fleet)
             if config.foxglove_port is not None:
                 from arena.server.foxglove_bridge import FoxgloveBridge  # loads the SDK
 
@@ -125,6 +135,7 @@ async def _serve(
         urls: list[str] = await nursery.start(serve_then_stop)
         for url in urls:
             log.info("Arena listening on %s", url)
+        app.own_url = urls[0]
         task_status.started((app, urls))
         await stop.wait()
         # The WebSockets close themselves with 1001 at once; whatever HTTP requests are

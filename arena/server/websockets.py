@@ -66,6 +66,7 @@ _CLOSE_FOR = {
     ErrorCode.ESTOPPED: 4423,
     ErrorCode.TAKEN_OVER: 4409,
     ErrorCode.MASTER_LOST: 4408,
+    ErrorCode.NODE_LOST: 4503,
 }
 
 
@@ -85,9 +86,23 @@ def router(app: ArenaApp) -> Callable[[UpgradeRequest], WebSocketHandler | None]
         host = request.headers.get("host")
         app.origin_policy.check_host(host)
         app.origin_policy.check_origin(request.headers.get("origin"), host, request.scheme)
+        node = _remote_node(app, robot_id)
+        if node is not None:  # another node of the fleet owns it: carried there
+            from arena.server.fleet_api import proxy
+
+            return lambda ws: proxy(Connection(app, ws, role), robot_id, node)
         return lambda ws: handler(Connection(app, ws, role), robot_id)
 
     return route
+
+
+def _remote_node(app: ArenaApp, robot_id: str) -> str | None:
+    """The other node of the fleet that owns `robot_id`, if it is not here."""
+    fleet = app.fleet
+    if fleet is None or robot_id in {robot.robot_id for robot in app.manager.robots()}:
+        return None
+    node = fleet.robot_nodes.get(robot_id)
+    return None if node == fleet.name else node
 
 
 class Encoded(NamedTuple):
@@ -263,8 +278,11 @@ class Connection:
             nursery.start_soon(main)
 
 
-async def _authorized(connection: Connection) -> bool:
-    """Check the key; a refusal is sent and the answer is False."""
+async def authorized(connection: Connection) -> bool:
+    """Check the key; a refusal is sent and the answer is False. A connection carried from
+    another node of the fleet was checked there (`trusted`)."""
+    if getattr(connection.ws, "trusted", False):
+        return True
     try:
         check_token(
             connection.app,
@@ -280,7 +298,7 @@ async def _authorized(connection: Connection) -> bool:
 
 async def _accept(connection: Connection, robot_id: str) -> Robot | None:
     """Check the key and find the robot; a refusal is sent and the answer is None."""
-    if not await _authorized(connection):
+    if not await authorized(connection):
         return None
     try:
         return connection.app.manager.get(robot_id)
@@ -494,7 +512,7 @@ class _GroupMembers:
 async def _group_master_socket(connection: Connection, group_id: str) -> None:
     """A master of a group: it claims every member; each command goes to each member, and
     the ack tells how each answered. Members keep their own safety state."""
-    if not await _authorized(connection):
+    if not await authorized(connection):
         return
     app = connection.app
     links: dict[str, MasterLink] = {}
@@ -839,3 +857,8 @@ _ENDPOINTS: dict[str, Callable[[Connection, str], Awaitable[None]]] = {
     "viewer": state_socket,
 }
 _PEER_ENDPOINTS = ("master", "slave")
+
+
+async def serve_role(connection: Connection, robot_id: str) -> None:
+    """Serve a connection of its role (master, slave or viewer) for a robot of this node."""
+    await _ENDPOINTS[connection.role](connection, robot_id)

@@ -32,6 +32,15 @@ async function refresh() {
       `recording ${status.recording.active ? (status.recording.error ? "FAILING" : "on") : "off"}` +
       `${status.auth ? ", keys on" : ""}`;
     robots = await call("GET", "/api/robots");
+    if (status.fleet) {
+      // In a fleet: every node's robots, each opened through this server whichever owns it.
+      const local = new Set(robots.map((robot) => robot.id));
+      const fleet = await call("GET", "/api/fleet/robots");
+      for (const robot of fleet.robots) {
+        if (local.has(robot.id)) robots.find((r) => r.id === robot.id).node = robot.node;
+        else robots.push({ ...robot, remote: true });
+      }
+    }
   } catch (error) {
     $("server-status").textContent = `${error.code}: ${error.message}`;
     if (error instanceof ApiError && error.status === 401 && !apiKey()) $("key-dialog").showModal();
@@ -39,7 +48,11 @@ async function refresh() {
   }
   showRobotList();
   const id = selectedId();
-  const summary = robots.find((robot) => robot.id === id);
+  let summary = robots.find((robot) => robot.id === id);
+  if (summary && summary.remote) {
+    // another node's robot: its details come through this server (the fleet forwards them)
+    summary = summary.state === "offline" ? null : await call("GET", `/api/robots/${encodeURIComponent(id)}`);
+  }
   if (!summary) {
     if (view) closeView();
   } else if (!view || view.robotId !== id) {
@@ -75,6 +88,13 @@ function showRobotList() {
     state.textContent = robot.master ? `${robot.state} by ${robot.master.id}` : robot.state;
     if (robot.estop_reason) state.title = robot.estop_reason;
     item.append(link, state);
+    if (robot.node) {
+      const node = document.createElement("span");
+      node.className = "muted";
+      node.dataset.node = robot.node;
+      node.textContent = `@${robot.node}`;
+      item.append(node);
+    }
     list.append(item);
   }
   if (!robots.length) list.innerHTML = '<li class="muted">no robots yet</li>';

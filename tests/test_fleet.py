@@ -1,0 +1,332 @@
+"""Fleets: several Arena nodes joined over Zenoh on 127.0.0.1, explicit endpoints, no multicast.
+
+Nodes are real servers (port 0 for HTTP and for Zenoh); one test runs a node as its own
+process and kills it. Waits are for events (a listing that shows what it must), bounded only
+so that a broken test ends.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from collections.abc import Awaitable, Callable
+from functools import partial
+from pathlib import Path
+from typing import Any
+
+import pytest
+import trio
+from trio_websocket import ConnectionClosed, open_websocket_url
+
+from arena.fleet.node import FleetSettings
+from arena.protocol.errors import ArenaError
+from arena.recording.mcap_file import read_recording
+from tests.conftest import RunningServer
+
+pytest.importorskip("zenoh")
+
+Start = Callable[..., Awaitable[RunningServer]]
+
+
+async def eventually(check: Callable[[], Awaitable[bool]], limit: float = 20.0) -> None:
+    """Wait until `check` holds (asked every 50 ms); the limit only ends a broken test."""
+    with trio.fail_after(limit):
+        while not await check():
+            await trio.sleep(0.05)
+
+
+async def start_fleet(start_server: Start, names: list[str], **first: Any) -> list[RunningServer]:
+    """Nodes `names`, each listening on a port of its own choosing; the others connect to the
+    first and find each other through it (Zenoh's gossip). Returns once every node sees every
+    other."""
+    hub = await start_server(node=names[0], fleet_listen=("tcp/127.0.0.1:0",), **first)
+    locators = tuple(await hub.app.fleet.locators())
+    assert locators and locators[0].startswith("tcp/127.0.0.1:")
+    nodes = [hub]
+    for name in names[1:]:
+        nodes.append(
+            await start_server(node=name, fleet_listen=("tcp/127.0.0.1:0",), fleet_connect=locators)
+        )
+
+    async def all_see_all() -> bool:
+        return all(
+            {n for n, v in node.app.fleet.nodes.items() if v.alive} >= set(names) for node in nodes
+        )
+
+    await eventually(all_see_all)
+    return nodes
+
+
+async def robot_states(server: RunningServer) -> dict[str, tuple[str, str]]:
+    async with server.client() as http:
+        listing = (await http.get("/api/fleet/robots")).json()
+    return {r["id"]: (r["node"], r["state"]) for r in listing["robots"]}
+
+
+def test_fleet_settings_are_checked() -> None:
+    FleetSettings("a", "lab", ("tcp/127.0.0.1:7447",)).check()
+    for bad in (
+        FleetSettings("a b"),
+        FleetSettings("a", "lab/1"),
+        FleetSettings("a", connect=("127.0.0.1:7447",)),
+        FleetSettings("a", lease_ms=10),
+    ):
+        with pytest.raises(ArenaError):
+            bad.check()
+
+
+async def test_three_nodes_list_each_other_and_refuse_a_taken_id(start_server: Start) -> None:
+    a, b, c = await start_fleet(start_server, ["a", "b", "c"], demo=True)
+    async with b.client() as http:
+        assert (await http.post("/api/robots", json={"id": "arm-b"})).status_code == 201
+    async with c.client() as http:
+        assert (await http.post("/api/robots", json={"id": "arm-c"})).status_code == 201
+        nodes = (await http.get("/api/fleet/nodes")).json()
+        assert nodes["node"] == "c"
+        listed = {n["name"]: n for n in nodes["nodes"]}
+        assert set(listed) == {"a", "b", "c"}
+        assert all(n["alive"] and n["version"] for n in listed.values())
+        assert listed["a"]["robots"] == ["demo-arm"] and listed["b"]["robots"] == ["arm-b"]
+        assert listed["a"]["locators"] and listed["a"]["http"] == a.url
+        # an id another node holds is refused, with a code of its own
+        taken = await http.post("/api/robots", json={"id": "arm-b"})
+        assert taken.status_code == 409
+        assert taken.json()["error"]["code"] == "ROBOT_ELSEWHERE"
+        assert "'b'" in taken.json()["error"]["message"]
+        status = (await http.get("/")).json()
+        assert status["fleet"]["node"] == "c" and status["fleet"]["fleet"] == "default"
+    assert await robot_states(a) == {
+        "demo-arm": ("a", "idle"),
+        "arm-b": ("b", "idle"),
+        "arm-c": ("c", "idle"),
+    }
+    # REST for another node's robot, through any node: its rules, its answer
+    async with c.client() as http:
+        remote = await http.get("/api/robots/demo-arm")
+        assert remote.status_code == 200 and remote.headers["x-arena-node"] == "a"
+        assert remote.json()["slaves"][0]["id"] == "demo-mock-slave"
+        moved = await http.put(
+            "/api/robots/demo-arm/joints", json={"joints": [{"name": "Rotation", "value": 12}]}
+        )
+        assert moved.json()["status"] == "accepted"
+        assert (await http.get("/api/robots/nowhere")).status_code == 404
+    assert a.app.manager.get("demo-arm").snapshot().joint("Rotation").goal == 12
+    # each node's recording names its node and fleet
+    async with a.client() as http:
+        name = (await http.post("/api/recordings/current/stop")).json()["stopped"]
+    recording = read_recording(Path(a.app.recorder.folder) / name)
+    assert (recording.metadata["arena"]["node"], recording.metadata["arena"]["fleet"]) == (
+        "a",
+        "default",
+    )
+    # the command that came through node c is in the recording of the robot's node
+    (moved_record,) = [m for m in recording.messages if m.kind == "command"]
+    assert moved_record.data["joints"][0]["value"] == 12
+
+
+def command(value: float) -> str:
+    return json.dumps(
+        {"type": "command", "data": {"joints": [{"name": "Rotation", "value": value}]}}
+    )
+
+
+async def next_of(ws: Any, kind: str) -> dict[str, Any]:
+    """The next message of `kind`."""
+    while True:
+        message = json.loads(await ws.get_message())
+        if message["type"] == kind:
+            return message
+
+
+async def test_a_master_on_one_node_drives_a_slave_on_another_and_takeover_crosses(
+    start_server: Start,
+) -> None:
+    a, b, c = await start_fleet(start_server, ["a", "b", "c"])
+    async with a.client() as http:
+        assert (await http.post("/api/robots", json={"id": "arm"})).status_code == 201
+    await eventually(_known([b, c], "arm"))
+    async with (
+        open_websocket_url(a.ws_url + "/ws/slave/arm?id=real-arm") as slave,
+        open_websocket_url(b.ws_url + "/ws/master/arm?id=operator") as master,
+    ):
+        await master.send_message(command(10))
+        ack = await next_of(master, "ack")
+        assert ack["data"]["status"] == "accepted"
+        execute = await next_of(slave, "execute_command")
+        assert {j["name"]: j["value"] for j in execute["data"]["joints"]}["Rotation"] == 10
+        await slave.send_message(
+            json.dumps({"type": "joint_states", "data": [{"name": "Rotation", "value": 10}]})
+        )
+        # the robot's own node holds the master; every node says so, and a viewer through a
+        # third node sees the state and the joints the slave reported
+        assert a.app.manager.get("arm").snapshot().owner == "operator"
+        async with open_websocket_url(c.ws_url + "/ws/robots/arm/state") as viewer:
+            state = await next_of(viewer, "state")
+            assert (state["data"]["mode"], state["data"]["owner"]) == ("mastered", "operator")
+            joints = await next_of(viewer, "joint_states")
+            real = {j["name"]: j["real_value"] for j in joints["data"]}
+            assert real["Rotation"] == 10
+        async with c.client() as http:
+            assert (await http.get("/api/robots/arm/status")).json()["state"] == "mastered"
+        # a second master through a third node is refused by the robot's rules...
+        async with open_websocket_url(c.ws_url + "/ws/master/arm?id=other") as second:
+            refusal = await next_of(second, "error")
+            assert refusal["data"]["code"] == "MASTER_ACTIVE"
+            with pytest.raises(ConnectionClosed) as closed:
+                await second.get_message()
+            assert closed.value.reason.code == 4409
+        # ...unless it takes over, and the first master is told
+        async with open_websocket_url(c.ws_url + "/ws/master/arm?id=boss&takeover=true") as boss:
+            await boss.send_message(command(-5))
+            assert (await next_of(boss, "ack"))["data"]["status"] == "accepted"
+            told = await next_of(master, "detached")
+            assert told["data"]["code"] == "TAKEN_OVER"
+            with pytest.raises(ConnectionClosed) as ended:
+                await master.get_message()
+            assert ended.value.reason.code == 4409
+            assert a.app.manager.get("arm").snapshot().owner == "boss"
+
+
+def _known(servers: list[RunningServer], robot_id: str) -> Callable[[], Awaitable[bool]]:
+    """A check: every one of `servers` knows which node owns `robot_id`."""
+
+    async def check() -> bool:
+        return all(s.app.fleet.robot_nodes.get(robot_id) is not None for s in servers)
+
+    return check
+
+
+async def test_a_fleet_estop_reaches_every_node_and_every_dashboard_sees_it(
+    start_server: Start,
+) -> None:
+    nodes = await start_fleet(start_server, ["a", "b", "c"])
+    for node in nodes:
+        async with node.client() as http:
+            for i in range(3):
+                robot = {"id": f"{node.app.fleet.name}-{i}"}
+                assert (await http.post("/api/robots", json=robot)).status_code == 201
+    heard: list[tuple[str, str, str]] = []
+    nodes[0].app.fleet.on_remote_state.append(
+        lambda node, robot, state: heard.append((node, robot, state["mode"]))
+    )
+    async with nodes[1].client() as http:
+        answer = (await http.post("/api/fleet/estop", json={"reason": "drill"})).json()
+    assert answer["complete"] and answer["missing"] == []
+    assert {ack["node"]: sorted(ack["robots"]) for ack in answer["acks"]} == {
+        name: [f"{name}-0", f"{name}-1", f"{name}-2"] for name in ("a", "b", "c")
+    }
+    assert all(0 < ack["ms"] < 1000 for ack in answer["acks"])
+    for node in nodes:
+        assert all(str(r.snapshot().mode) == "estopped" for r in node.app.manager.robots())
+    # node a heard the others' e-stops as they were published
+    await eventually(_heard_all(heard))
+    states = await robot_states(nodes[2])
+    assert {state for _, state in states.values()} == {"estopped"}
+
+
+def _heard_all(heard: list[tuple[str, str, str]]) -> Callable[[], Awaitable[bool]]:
+    """A check: the e-stops of the six robots of nodes b and c were heard."""
+
+    async def check() -> bool:
+        stopped = {(node, robot) for node, robot, mode in heard if mode == "estopped"}
+        return len(stopped) == 6
+
+    return check
+
+
+def spawn_node(name: str, connect: str, folder: Path) -> subprocess.Popen[bytes]:
+    """`arena serve --node NAME --demo` as a process of its own, connected to `connect`."""
+    return subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "arena.cli",
+            "serve",
+            "--port",
+            "0",
+            "--demo",
+            "--node",
+            name,
+            "--fleet-connect",
+            connect,
+            "--fleet-listen",
+            "tcp/127.0.0.1:0",
+            "--recordings-dir",
+            str(folder),
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        env={**os.environ, "LOG_LEVEL": "WARNING"},
+    )
+
+
+async def test_a_killed_node_goes_offline_its_masters_are_told_and_it_comes_back(
+    start_server: Start, tmp_path: Path
+) -> None:
+    (hub,) = await start_fleet(start_server, ["hub"])
+    (locator,) = await hub.app.fleet.locators()
+
+    async def demo_is(state: str) -> bool:
+        return (await robot_states(hub)).get("demo-arm") == ("far", state)
+
+    process = spawn_node("far", locator, tmp_path / "far")
+    try:
+        await eventually(partial(demo_is, "idle"), limit=60)
+        async with open_websocket_url(hub.ws_url + "/ws/master/demo-arm") as master:
+            await master.send_message(command(3))
+            assert (await next_of(master, "ack"))["data"]["status"] == "accepted"
+            process.send_signal(signal.SIGKILL)  # no goodbye: the lease must tell
+            process.wait()
+            with trio.fail_after(5):  # the lease is 1 s: seen within 2
+                told = await next_of(master, "error")
+            assert told["data"]["code"] == "NODE_LOST"
+            with pytest.raises(ConnectionClosed) as closed:
+                await master.get_message()
+            assert closed.value.reason.code == 4503
+        assert await demo_is("offline")
+        async with hub.client() as http:
+            nodes = {
+                n["name"]: n["alive"] for n in (await http.get("/api/fleet/nodes")).json()["nodes"]
+            }
+            assert nodes == {"hub": True, "far": False}
+            gone = await http.get("/api/robots/demo-arm")
+            assert gone.status_code == 404  # not routed to a node that is gone
+        process = spawn_node("far", locator, tmp_path / "far-again")
+        await eventually(partial(demo_is, "idle"), limit=60)
+        async with hub.client() as http:
+            back = await http.get("/api/robots/demo-arm")
+            assert back.status_code == 200 and back.headers["x-arena-node"] == "far"
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait()
+
+
+async def test_without_node_no_zenoh_is_loaded(tmp_path: Path) -> None:
+    code = (
+        "import sys, trio\n"
+        "from arena.server.config import ServerConfig\n"
+        "from arena.server.run import run_server\n"
+        "async def main():\n"
+        "    stop = trio.Event()\n"
+        "    async with trio.open_nursery() as n:\n"
+        f"        await n.start(lambda task_status: run_server(ServerConfig(port=0, "
+        f"recordings_dir={str(tmp_path)!r}), stop=stop, task_status=task_status))\n"
+        "        stop.set()\n"
+        "trio.run(main)\n"
+        "print('zenoh' in sys.modules)\n"
+    )
+    result = await trio.run_process(
+        [sys.executable, "-c", code], capture_stdout=True, capture_stderr=True
+    )
+    assert result.stdout.decode().strip().endswith("False")
+
+
+async def test_the_fleet_api_says_when_there_is_no_fleet(server: RunningServer) -> None:
+    async with server.client() as http:
+        answer = await http.get("/api/fleet/nodes")
+        assert answer.status_code == 404 and "--node" in answer.json()["error"]["message"]
+        assert (await http.get("/")).json()["fleet"] is None
