@@ -13,7 +13,7 @@ UI_SOURCES := $(UI)/build.mjs $(UI)/index.html $(UI)/style.css $(wildcard $(UI)/
 CHROMIUM := /usr/bin/chromium
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: install ui browser run demo test lint bench clean
+.PHONY: install ui browser run fleet demo test lint bench clean
 
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -37,6 +37,18 @@ browser:
 
 run: install ui
 	$(BIN)/arena serve --demo
+
+# NODES fleet nodes on this machine, one per core (specs/fleet.md): n0 on :8080 with the demo
+# robot, nK on :808K; Zenoh on tcp/127.0.0.1:7447+K. Ctrl-C stops them all.
+NODES ?= 2
+fleet: install ui
+	@trap 'kill 0' EXIT; \
+	for k in $$(seq 1 $$(($(NODES) - 1))); do \
+		$(BIN)/arena serve --node n$$k --port $$((8080 + k)) --recordings-dir recordings/n$$k \
+			--fleet-listen tcp/127.0.0.1:$$((7447 + k)) --fleet-connect tcp/127.0.0.1:7447 & \
+	done; \
+	$(BIN)/arena serve --node n0 --port 8080 --demo --recordings-dir recordings/n0 \
+		--fleet-listen tcp/127.0.0.1:7447
 
 test: install ui browser
 	$(BIN)/python -m pytest -q

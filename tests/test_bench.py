@@ -70,6 +70,17 @@ def test_the_camera_scenario_counts_what_a_stream_client_got() -> None:
     assert results["camera_recording_dropped"] == 0
 
 
+def test_the_nodes_scenarios_run_on_a_fleet_of_processes() -> None:
+    pytest.importorskip("zenoh")
+    from arena.bench.nodes import nodes_estop, nodes_relay
+
+    relayed = asyncio.run(nodes_relay(count=20))
+    assert relayed["nodes_relay_same_p50_us"] > 0 and relayed["nodes_relay_cross_p50_us"] > 0
+    stopped = asyncio.run(nodes_estop(nodes=2, robots=2, trials=2))
+    assert stopped["nodes_estop_robots"] == 4 and stopped["nodes_estop_missing_nodes"] == 0
+    assert 0 < stopped["nodes_estop_last_notice_ms"] < math.inf
+
+
 def test_soak_reports_start_against_end_and_losses() -> None:
     async def short_soak() -> dict[str, float]:
         async with bench.running_server() as server:

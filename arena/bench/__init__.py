@@ -35,6 +35,9 @@ Scenarios:
   versus      (only when named) Arena against the floor relay with the `websockets` client,
               alternating rounds: relay p50/p99, burst throughput, server CPU a command, ratios
               (needs ARENA_FLOOR_PYTHON; see arena/bench/versus.py)
+  nodes       (only when named) a fleet of `arena serve --node` processes over Zenoh: relay
+              across nodes against within one, a fleet e-stop of 3 nodes x 100 robots to the
+              last slave's notice, 100 robots at 50 Hz on two nodes against one
   soak        (only when named) the fleet held for 10 minutes: latency and memory of the first
               minute against the last, commands unacknowledged, recording messages dropped
 """
@@ -80,7 +83,7 @@ SCENARIOS = (
     "teleop",
 )
 #: Long scenarios, run only when named.
-LONG_SCENARIOS = ("soak", "versus")
+LONG_SCENARIOS = ("soak", "versus", "nodes")
 
 
 def run_benchmarks(
@@ -164,6 +167,12 @@ def run_benchmarks(
                 )
             )
         )
+    if "nodes" in chosen:
+        from arena.bench.nodes import nodes_estop, nodes_fleet, nodes_relay  # needs zenoh
+
+        results.update(median_of([asyncio.run(nodes_relay()) for _ in range(repeats)]))
+        results.update(median_of([asyncio.run(nodes_estop()) for _ in range(repeats)]))
+        results.update(asyncio.run(nodes_fleet(robots=fleet_robots)))
     if "versus" in chosen:
         results.update(asyncio.run(versus_floor(rounds=repeats)))
     if "usb" in chosen:

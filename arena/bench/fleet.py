@@ -134,7 +134,7 @@ async def drive_fleet(
 
 
 async def fleet(
-    server: Server,
+    server: Server | list[Server],
     robots: int = 100,
     rate: float = 50.0,
     seconds: float = 10.0,
@@ -142,25 +142,28 @@ async def fleet(
 ) -> dict[str, float]:
     """`robots` robots, each with a master at `rate` Hz and a slave, for `seconds` (lean
     client: one selector loop in a thread, its masters' schedules spread over the period and
-    its slaves' heartbeats over `heartbeat_period`)."""
-    async with httpx.AsyncClient(base_url=server.url) as http:
-        for n in range(robots):
+    its slaves' heartbeats over `heartbeat_period`). Given several servers (the nodes of a
+    fleet), robot n lives on server n mod k and its clients go to that node directly; CPU and
+    memory are the sum of them all."""
+    servers = server if isinstance(server, list) else [server]
+    for n in range(robots):
+        async with httpx.AsyncClient(base_url=servers[n % len(servers)].url) as http:
             await _robot(http, f"fleet-{n}")
     return await asyncio.to_thread(
-        _without_client_gc, _lean_fleet, server, robots, rate, seconds, heartbeat_period
+        _without_client_gc, _lean_fleet, servers, robots, rate, seconds, heartbeat_period
     )
 
 
 def _lean_fleet(
-    server: Server, robots: int, rate: float, seconds: float, heartbeat_period: float
+    servers: list[Server], robots: int, rate: float, seconds: float, heartbeat_period: float
 ) -> dict[str, float]:
     import heapq
     import selectors
 
     pairs = [
         (
-            BlockingWebSocket(server.ws + f"/ws/slave/fleet-{n}"),
-            BlockingWebSocket(server.ws + f"/ws/master/fleet-{n}"),
+            BlockingWebSocket(servers[n % len(servers)].ws + f"/ws/slave/fleet-{n}"),
+            BlockingWebSocket(servers[n % len(servers)].ws + f"/ws/master/fleet-{n}"),
         )
         for n in range(robots)
     ]
@@ -197,7 +200,7 @@ def _lean_fleet(
     # 100 robots and 5 s.
     heartbeat_spacing = heartbeat_period / robots
     next_heartbeat = start + heartbeat_spacing
-    cpu_start = server.cpu_seconds()
+    cpu_start = sum(server.cpu_seconds() for server in servers)
 
     def handle(timeout: float) -> None:
         nonlocal acked, refused
@@ -229,7 +232,7 @@ def _lean_fleet(
                 pairs[heartbeats % robots][0].send_raw(heartbeat)
                 heartbeats += 1
                 next_heartbeat = start + heartbeat_spacing * (heartbeats + 1)
-        cpu_used = server.cpu_seconds() - cpu_start
+        cpu_used = sum(server.cpu_seconds() for server in servers) - cpu_start
         elapsed = time.perf_counter() - start
         settle = time.perf_counter() + 10  # the last acknowledgments: late is not lost
         while acked < sent and time.perf_counter() < settle:
@@ -242,7 +245,7 @@ def _lean_fleet(
         "fleet_p50_us": _percentile(latencies, 0.5) * 1e6,
         "fleet_p99_us": _percentile(latencies, 0.99) * 1e6,
         "fleet_server_cpu_percent": 100 * cpu_used / elapsed,
-        "fleet_server_rss_mib": server.rss_mib(),
+        "fleet_server_rss_mib": sum(server.rss_mib() for server in servers),
         "fleet_commands_sent": sent,
         "fleet_commands_unacknowledged": sent - acked,
         "fleet_commands_refused": refused,

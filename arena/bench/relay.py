@@ -35,10 +35,20 @@ async def relay(server: Server, count: int = 5000) -> dict[str, float]:
     return results
 
 
-def _lean_relay(ws: str, count: int, deaf: bool = False) -> dict[str, float]:
+def _lean_relay(
+    ws: str,
+    count: int,
+    deaf: bool = False,
+    master_ws: str | None = None,
+    robot_id: str | None = None,
+) -> dict[str, float]:
+    """The relay; `master_ws` puts the master on another server (a node of the fleet)."""
     robot, name = ("relay-deaf", "relay_deaf") if deaf else ("relay", "relay")
+    robot = robot_id or robot
     slave = BlockingWebSocket(ws + f"/ws/slave/{robot}")
-    master = BlockingWebSocket(ws + f"/ws/master/{robot}", receive_buffer=4096 if deaf else None)
+    master = BlockingWebSocket(
+        (master_ws or ws) + f"/ws/master/{robot}", receive_buffer=4096 if deaf else None
+    )
     frames = [masked_frame(_command(i + 1)) for i in range(count + 100)]
     latencies = []
     try:
