@@ -146,6 +146,11 @@ def main(argv: list[str] | None = None) -> int:
     fleet.add_argument(
         "--fleet-scout", action="store_true", default=None, help="find nodes by multicast"
     )
+    fleet.add_argument(
+        "--fleet-zenoh-config",
+        metavar="FILE",
+        help="a Zenoh configuration (JSON5) to start from: TLS, access control",
+    )
     inspect = commands.add_parser("inspect", help="summarize a recording")
     inspect.add_argument("file")
     inspect.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -615,6 +620,7 @@ def _serve(args: argparse.Namespace) -> int:
             fleet_listen=tuple(args.fleet_listen) or None,
             fleet_connect=tuple(args.fleet_connect) or None,
             fleet_scout=args.fleet_scout,
+            fleet_zenoh_config=args.fleet_zenoh_config,
         )
         config.check()
     except ArenaError as error:

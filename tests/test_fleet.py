@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -330,3 +331,91 @@ async def test_the_fleet_api_says_when_there_is_no_fleet(server: RunningServer) 
         answer = await http.get("/api/fleet/nodes")
         assert answer.status_code == 404 and "--node" in answer.json()["error"]["message"]
         assert (await http.get("/")).json()["fleet"] is None
+
+
+def make_certificates(folder: Path) -> Path:
+    """A CA and a certificate for localhost signed by it (openssl); a Zenoh config using them."""
+
+    def openssl(*args: str) -> None:
+        subprocess.run(["openssl", *args], cwd=folder, check=True, capture_output=True)
+
+    openssl(
+        "req",
+        "-x509",
+        "-newkey",
+        "rsa:2048",
+        "-nodes",
+        "-keyout",
+        "ca.key",
+        "-out",
+        "ca.pem",
+        "-days",
+        "2",
+        "-subj",
+        "/CN=arena-test-ca",
+    )
+    openssl(
+        "req",
+        "-newkey",
+        "rsa:2048",
+        "-nodes",
+        "-keyout",
+        "node.key",
+        "-out",
+        "node.csr",
+        "-subj",
+        "/CN=localhost",
+    )
+    (folder / "ext.cnf").write_text("subjectAltName=DNS:localhost\nbasicConstraints=CA:FALSE\n")
+    openssl(
+        "x509",
+        "-req",
+        "-in",
+        "node.csr",
+        "-CA",
+        "ca.pem",
+        "-CAkey",
+        "ca.key",
+        "-CAcreateserial",
+        "-out",
+        "node.pem",
+        "-days",
+        "2",
+        "-extfile",
+        "ext.cnf",
+    )
+    config = folder / "zenoh.json5"
+    tls = {
+        "root_ca_certificate": str(folder / "ca.pem"),
+        "listen_private_key": str(folder / "node.key"),
+        "listen_certificate": str(folder / "node.pem"),
+    }
+    config.write_text(json.dumps({"transport": {"link": {"tls": tls}}}))
+    return config
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command")
+async def test_nodes_join_over_tls_and_a_node_without_the_ca_cannot(
+    start_server: Start, tmp_path: Path
+) -> None:
+    config = make_certificates(tmp_path)
+    secure = {"fleet_zenoh_config": str(config)}
+    hub = await start_server(node="hub", fleet_listen=("tls/localhost:0",), demo=True, **secure)
+    (locator,) = await hub.app.fleet.locators()
+    assert locator.startswith("tls/localhost:")
+    # a node that does not trust the fleet's CA never gets in; one started just after it that
+    # does is in at once (the stranger had as long, and more)
+    other = tmp_path / "other"
+    other.mkdir()
+    stranger = await start_server(
+        node="stranger",
+        fleet_connect=(locator,),
+        fleet_zenoh_config=str(make_certificates(other)),
+        recordings_dir=str(tmp_path / "stranger"),
+    )
+    member = await start_server(node="member", fleet_connect=(locator,), **secure)
+    await eventually(_known([member], "demo-arm"))
+    assert (await robot_states(member))["demo-arm"] == ("hub", "idle")
+    assert await robot_states(stranger) == {}
+    assert set(stranger.app.fleet.nodes) == {"stranger"}
+    assert "stranger" not in hub.app.fleet.nodes

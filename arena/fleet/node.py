@@ -51,6 +51,9 @@ class FleetSettings:
     connect: tuple[str, ...] = ()
     scout: bool = False  # multicast scouting (off: explicit endpoints only)
     lease_ms: int = 1000  # a node silent this long is gone
+    #: A Zenoh configuration file (JSON5) to start from: TLS certificates, access control,
+    #: anything Zenoh offers. The settings above are applied on top of it.
+    zenoh_config_file: str | None = None
 
     def check(self) -> None:
         """Refuse names that cannot be key chunks, and a node that cannot be reached."""
@@ -74,7 +77,16 @@ class FleetSettings:
         """The Zenoh configuration: peer mode, these endpoints, scouting as asked."""
         import zenoh
 
-        config = zenoh.Config()
+        if self.zenoh_config_file:
+            try:
+                config = zenoh.Config.from_file(self.zenoh_config_file)
+            except (OSError, zenoh.ZError) as exc:
+                raise ArenaError(
+                    ErrorCode.INVALID_CONFIG,
+                    f"Cannot read the Zenoh configuration {self.zenoh_config_file}: {exc}",
+                ) from None
+        else:
+            config = zenoh.Config()
         config.insert_json5("mode", '"peer"')
         config.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
         config.insert_json5("connect/endpoints", json.dumps(list(self.connect)))

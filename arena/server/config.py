@@ -61,6 +61,8 @@ class ServerConfig:
     fleet_connect: tuple[str, ...] = field(default=())
     fleet_scout: bool = False  # multicast scouting; off: explicit endpoints only
     fleet_lease_ms: int = 1000  # a node silent this long is gone
+    #: A Zenoh configuration file to start from (TLS, access control); ours goes on top.
+    fleet_zenoh_config: str | None = None
 
     @property
     def auth_enabled(self) -> bool:
@@ -112,6 +114,7 @@ class ServerConfig:
             self.fleet_connect,
             self.fleet_scout,
             self.fleet_lease_ms,
+            self.fleet_zenoh_config,
         )
 
 

@@ -85,7 +85,8 @@ async def fleet_robots() -> dict[str, Any]:
     robots = []
     for view in sorted(fleet.nodes.values(), key=lambda v: v.name):
         for robot in view.robots:
-            entry = {**robot, "node": view.name}
+            # `url`: the owner's own address, for a client that wants to go there directly
+            entry = {**robot, "node": view.name, "url": view.http}
             if not view.alive:
                 entry["state"] = "offline"
             robots.append(entry)
