@@ -32,9 +32,11 @@ from arena.recording.mcap_file import read_recording, write_recording
 from arena.robot.kinematics import Kinematics, to_matrix
 from arena.robot.meshes import visuals
 from arena.robot.model import load_robot_model
+from arena.sensors.sources import read_pattern_counter
 from arena.server.config import ServerConfig
 from arena.session import record_scenario
 from tests.conftest import RunningServer
+from tests.test_cameras import jpeg_rgb
 from tests.test_recording import session_scenario
 
 MODEL = load_robot_model("so-arm100")
@@ -330,3 +332,33 @@ async def watch_live(server: RunningServer, url: str, topics: set[str]) -> None:
                 if line.message == "E-STOP: fox test":
                     break
         assert server.app.foxglove.dropped == 0
+
+
+async def test_live_foxglove_shows_each_camera_as_compressed_images(
+    start_server: Callable[..., Awaitable[RunningServer]],
+) -> None:
+    server = await start_server(demo=True, foxglove_port=0)
+    assert server.app.foxglove is not None
+    async with server.client() as http:
+        camera = {"name": "front", "source": "test-pattern", "width": 160, "height": 120}
+        assert (await http.post("/api/robots/demo-arm/cameras", json=camera)).status_code == 201
+    topic = "/robots/demo-arm/cameras/front"
+    url = f"ws://127.0.0.1:{server.app.foxglove.port}"
+    with trio.fail_after(60):  # only a broken bridge waits that long
+        async with open_websocket_url(
+            url, subprotocols=["foxglove.sdk.v1"], max_message_size=64 << 20
+        ) as ws:
+            channels = await advertised(ws, {topic})
+            assert channels[topic]["schemaName"] == "foxglove.CompressedImage"
+            assert base64.b64decode(channels[topic]["schema"]) == shipped_schema(
+                "foxglove.CompressedImage"
+            )
+            subscribe = {"id": 7, "channelId": channels[topic]["id"]}
+            await ws.send_message(json.dumps({"op": "subscribe", "subscriptions": [subscribe]}))
+            counters = []
+            while len(counters) < 3:
+                _, payload = await next_data(ws, {7: topic})
+                image = decode("foxglove.CompressedImage", payload)
+                assert (image.format, image.frame_id) == ("jpeg", "demo-arm/cameras/front")
+                counters.append(read_pattern_counter(jpeg_rgb(image.data)))
+            assert counters == sorted(counters) and len(set(counters)) == 3

@@ -66,7 +66,8 @@ class JpegEncoder:
 def pattern_image(seq: int, width: int, height: int) -> Image:
     """A frame that changes every frame: a moving colour ramp, with `seq` written along the top
     edge as `PATTERN_BITS` black or white squares (most significant first), so a test can read
-    which frame it is looking at even after JPEG and video compression (modulo 2**16)."""
+    which frame it is looking at even after JPEG and video compression (modulo 2**16; a frame
+    narrower than 256 pixels holds width // 16 bits)."""
     x = (np.arange(width, dtype=np.uint16) + (seq * 4) % 256) % 256
     y = np.arange(height, dtype=np.uint16) % 256
     image = np.empty((height, width, 3), np.uint8)
@@ -74,8 +75,9 @@ def pattern_image(seq: int, width: int, height: int) -> Image:
     image[:, :, 1] = y[:, None]
     image[:, :, 2] = (seq * 8) % 256
     image[: PATTERN_BIT * 2, :] = 128
-    for bit in range(min(PATTERN_BITS, width // PATTERN_BIT)):
-        on = (seq >> (PATTERN_BITS - 1 - bit)) & 1
+    bits = min(PATTERN_BITS, width // PATTERN_BIT)  # a narrow frame keeps the low bits
+    for bit in range(bits):
+        on = (seq >> (bits - 1 - bit)) & 1
         x0 = bit * PATTERN_BIT
         image[:PATTERN_BIT, x0 : x0 + PATTERN_BIT] = 255 if on else 0
     return image

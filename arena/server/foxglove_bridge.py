@@ -30,11 +30,12 @@ import msgspec
 import trio
 from foxglove.websocket import ChannelView, Client, ServerListener
 
+from arena.recording import images
 from arena.recording.foxglove import MESSAGE_TYPES, Twin, pose_of
 from arena.recording.mcap_file import channel_format
 from arena.recording.records import KIND_OF_EVENT, record_of, topic
 from arena.robot.actor import Robot
-from arena.robot.events import JointStatesReceived, RobotEvent, TargetsSent
+from arena.robot.events import CameraFrame, JointStatesReceived, RobotEvent, TargetsSent
 from arena.robot.mailbox import EventQueue
 from arena.robot.model import RobotModel
 
@@ -54,6 +55,8 @@ class _Batch:
     robots: dict[str, RobotModel] = field(default_factory=dict)  # new robots
     gone: list[str] = field(default_factory=list)
     events: list[tuple[str, RobotEvent]] = field(default_factory=list)
+    frames: list[CameraFrame] = field(default_factory=list)  # the newest of each camera
+    cameras_gone: list[tuple[str, str]] = field(default_factory=list)
 
 
 class FoxgloveBridge:
@@ -69,6 +72,9 @@ class FoxgloveBridge:
         self.dropped = 0
         self._queue: queue.Queue[_Batch | str | None] = queue.Queue(QUEUE_BATCHES)
         self._followed: dict[EventQueue[RobotEvent], tuple[str, contextlib.ExitStack]] = {}
+        self._cameras: dict[
+            EventQueue[CameraFrame], tuple[tuple[str, str], contextlib.ExitStack]
+        ] = {}
         self._pending = _Batch()
 
     def follow(self, robot: Robot) -> None:
@@ -77,6 +83,17 @@ class FoxgloveBridge:
         events = subscription.enter_context(robot.subscribe(maxlen=4096))
         self._followed[events] = (robot.robot_id, subscription)
         self._pending.robots[robot.robot_id] = robot.model
+
+    def follow_frames(
+        self,
+        robot_id: str,
+        camera: str,
+        frames: contextlib.AbstractContextManager[EventQueue[CameraFrame]],
+    ) -> None:
+        """Publish a camera's frames from now on (its subscription; only the newest of each
+        batch goes out)."""
+        subscription = contextlib.ExitStack()
+        self._cameras[subscription.enter_context(frames)] = ((robot_id, camera), subscription)
 
     async def run(self, *, task_status: Any = trio.TASK_STATUS_IGNORED) -> None:
         """Serve until cancelled; then stop the Foxglove server and the publisher thread."""
@@ -105,6 +122,9 @@ class FoxgloveBridge:
             for _, subscription in self._followed.values():
                 subscription.close()
             self._followed.clear()
+            for _, subscription in self._cameras.values():
+                subscription.close()
+            self._cameras.clear()
             with contextlib.suppress(queue.Full):
                 self._queue.put_nowait(None)  # the thread ends after what it holds
             server.stop()
@@ -123,10 +143,20 @@ class FoxgloveBridge:
                 del self._followed[events]
                 subscription.close()
                 batch.gone.append(robot_id)
+        for frames, (key, frame_subscription) in list(self._cameras.items()):
+            taken = frames.drain()
+            if taken:
+                batch.frames.append(taken[-1])
+            if frames.closed:
+                del self._cameras[frames]
+                frame_subscription.close()
+                batch.cameras_gone.append(key)
         return batch
 
     def _offer(self, item: _Batch | str) -> None:
-        if isinstance(item, _Batch) and not (item.robots or item.gone or item.events):
+        if isinstance(item, _Batch) and not (
+            item.robots or item.gone or item.events or item.frames or item.cameras_gone
+        ):
             return
         try:
             self._queue.put_nowait(item)
@@ -135,6 +165,7 @@ class FoxgloveBridge:
             if isinstance(item, _Batch):  # robots new or gone must not be lost with it
                 self._pending.robots.update(item.robots)
                 self._pending.gone.extend(item.gone)
+                self._pending.cameras_gone.extend(item.cameras_gone)
 
 
 class _Listener(ServerListener):
@@ -156,6 +187,7 @@ class _Publisher:
         self._twins: dict[str, Twin] = {}
         self._channels: dict[str, dict[str, foxglove.Channel]] = {}
         self._scene_topics: dict[str, str] = {}
+        self._cameras: dict[tuple[str, str], foxglove.Channel] = {}
 
     def serve(self, batches: queue.Queue[_Batch | str | None]) -> None:
         while (item := batches.get()) is not None:
@@ -169,8 +201,19 @@ class _Publisher:
         for channels in self._channels.values():
             for channel in channels.values():
                 channel.close()
+        for channel in self._cameras.values():
+            channel.close()
 
     def _publish(self, batch: _Batch) -> None:
+        for key in batch.cameras_gone:
+            gone = self._cameras.pop(key, None)
+            if gone is not None:
+                gone.close()
+        for frame in batch.frames:
+            channel = self._camera_channel(frame.robot_id, frame.camera)
+            if channel.has_sinks():  # JPEG bytes as they are: no work for an unwatched camera
+                ns = int(frame.wall_time * 1e9)
+                channel.log(images.encode(frame, ns), log_time=ns)
         for robot_id in batch.gone:
             self._twins.pop(robot_id, None)
             for channel in self._channels.pop(robot_id, {}).values():
@@ -205,6 +248,20 @@ class _Publisher:
         self._twins[robot_id] = Twin(robot_id, model)
         self._channels[robot_id] = channels
         self._scene_topics[topic(robot_id, "scene")] = robot_id
+
+    def _camera_channel(self, robot_id: str, camera: str) -> foxglove.Channel:
+        channel = self._cameras.get((robot_id, camera))
+        if channel is None:
+            kind = images.camera_kind(camera)
+            name, schema_encoding, data, encoding = channel_format(kind)
+            channel = foxglove.Channel(
+                topic(robot_id, kind),
+                schema=foxglove.Schema(name=name, encoding=schema_encoding, data=data),
+                message_encoding=encoding,
+                context=self.context,
+            )
+            self._cameras[(robot_id, camera)] = channel
+        return channel
 
     def _send_scene(self, robot_id: str | None) -> None:
         twin = self._twins.get(robot_id or "")

@@ -98,6 +98,12 @@ async def run_server(
 
                 app.foxglove = FoxgloveBridge(config.host, config.foxglove_port)
                 manager.on_create.append(app.foxglove.follow)
+                bridge = app.foxglove
+                app.cameras.on_attach.append(
+                    lambda camera: bridge.follow_frames(
+                        camera.robot.robot_id, camera.spec.name, camera.subscribe(maxlen=2)
+                    )
+                )
                 port = await recording_nursery.start(app.foxglove.run)
                 log.info("Foxglove: ws://%s:%d", config.host, port)
             if config.demo:
