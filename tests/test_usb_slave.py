@@ -11,7 +11,7 @@ import trio
 from arena.feetech import registers as reg
 from arena.feetech.calibration import Calibration
 from arena.feetech.sim_pty import PtySimBus
-from arena.protocol.errors import ErrorCode, Severity
+from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot.events import FaultReported, JointStatesReceived, PeerChanged
 from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
@@ -49,6 +49,28 @@ async def test_connect_holds_the_arm_where_it_is_before_torque(
     assert real == pytest.approx((1600 - 2048) * 360 / 4096)
     await robot.detach_slave(robot.snapshot().slaves[0].peer_id)
     await eventually(lambda: not any(servo_torque(sim).values()), what="torque off on detach")
+
+
+async def test_a_ping_lost_at_connect_is_asked_again_but_a_missing_servo_refuses(
+    manager: RobotManager, sim: PtySimBus
+) -> None:
+    from arena.feetech.worker import PING_ATTEMPTS
+
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    with sim.paused() as bus:
+        bus.servo(3).faults.drop = PING_ATTEMPTS - 1  # lost replies, then it answers
+    await robot.attach_slave(usb_slave(sim, MODEL))
+    await eventually(lambda: all(servo_torque(sim).values()), what="torque on")
+    with sim.paused() as bus:
+        assert bus.servo(3).faults.drop == 0  # every lost reply was a ping asked again
+    await robot.detach_slave(robot.snapshot().slaves[0].peer_id)
+    await eventually(lambda: not any(servo_torque(sim).values()), what="torque off on detach")
+    with sim.paused() as bus:
+        bus.servo(3).faults.drop = PING_ATTEMPTS  # as many as the attempts: missing
+    refused_driver = usb_slave(sim, MODEL)
+    with pytest.raises(ArenaError) as refused:
+        await refused_driver.prepare()  # what attaching over REST waits for
+    assert refused.value.code is ErrorCode.SERVO_TIMEOUT and "Servo 3" in refused.value.message
 
 
 async def test_follows_targets_and_reports_real_values(

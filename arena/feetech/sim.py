@@ -28,6 +28,7 @@ class ServoFaults:
     """Faults a test can inject into one servo."""
 
     silent: bool = False  # answers nothing
+    drop: int = 0  # answers nothing to this many more packets, then answers again
     corrupt: bool = False  # answers with a bad checksum
     late: float = 0.0  # seconds its answers are held back
     error_bits: int = 0  # always set in its status packets
@@ -265,6 +266,9 @@ class SimBus:
     def _status(self, servo: SimServo, data: bytes) -> Reply:
         faults = servo.faults
         if faults.silent:
+            return Reply(b"", 0.0)
+        if faults.drop > 0:
+            faults.drop -= 1
             return Reply(b"", 0.0)
         frame = encode(servo.servo_id, servo.error_byte, data)
         if faults.corrupt:
