@@ -25,10 +25,22 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from arena.robot.kinematics import Kinematics, Pose, Vector, rotate
+from arena.robot.kinematics import (
+    IDENTITY,
+    Kinematics,
+    Pose,
+    Quaternion,
+    Vector,
+    quaternion_multiply,
+    rotate,
+)
 
 if TYPE_CHECKING:
     from arena.robot.model import RobotModel
+
+#: A joint whose axis is within this (the sine of its angle) of the vertical counts as turning
+#: about the vertical: its sweep moves points up or down by that fraction only.
+LEVEL_TILT = 1e-3
 
 #: Capsules closer than this (metres) in the zero pose touch by design (their meshes are
 #: neighbours on the arm, or the shoulder turning on its base just above the table): that pair,
@@ -272,6 +284,31 @@ class CollisionModel:
             for joint in self.kinematics.joints
         )
 
+    @functools.cached_property
+    def _floor_factors(self) -> tuple[float, ...]:
+        """Per joint, how much of a turn's sweep can move a point up or down: the sine of its
+        axis's tilt from the vertical (the root frame's z) for a revolute joint that only ever
+        turns about an (almost) vertical axis, else 1. A turn about a vertical axis leaves
+        every height, so every floor gap, as it was; the first joint of an arm usually is one.
+        A joint is such a turn when its axis is vertical at rest and every moving joint above
+        it is such a turn too (those keep the axes below them as they were to the vertical)."""
+        frames: dict[str, Quaternion] = {self.kinematics.root: IDENTITY[0]}
+        tilted: set[str] = set()  # links that a joint above can tilt
+        factors = []
+        for joint in self.kinematics.joints:
+            orientation = quaternion_multiply(frames[joint.parent], joint.origin[0])
+            frames[joint.child] = orientation
+            axis = rotate(orientation, joint.axis)
+            norm = math.sqrt(axis[0] ** 2 + axis[1] ** 2 + axis[2] ** 2) or 1.0
+            tilt = math.hypot(axis[0], axis[1]) / norm
+            level = joint.kind in ("revolute", "continuous") and tilt < LEVEL_TILT
+            if joint.parent in tilted or (joint.kind != "fixed" and not level):
+                tilted.add(joint.child)
+                factors.append(1.0)
+            else:
+                factors.append(tilt if level else 1.0)
+        return tuple(factors)
+
     def safe_move(
         self,
         clearances: tuple[float, ...],
@@ -284,20 +321,25 @@ class CollisionModel:
         the gaps the moving joints can change are at stake."""
         if not clearances:
             return False
-        total = 0.0
-        limit = math.inf
-        affected = self._affected
+        total = floor_total = 0.0  # how far any point may have moved; up or down
+        limit = floor_limit = math.inf  # the smallest gap at stake; of a floor gap
+        floors = len(self.capsules)  # the first gaps are each link's above the floor
+        affected, factors = self._affected, self._floor_factors
         for index, joint in enumerate(self.kinematics.joints):
             value = end.get(joint.name)
             if value is None:
                 continue
             turn = abs(value - start.get(joint.name, value))
             if turn:
-                total += turn if joint.kind == "prismatic" else self.reach * turn
+                sweep = turn if joint.kind == "prismatic" else self.reach * turn
+                total += sweep
+                floor_total += sweep * factors[index]
                 for k in affected[index]:
-                    if clearances[k] < limit:
+                    if k < floors:
+                        floor_limit = min(floor_limit, clearances[k])
+                    elif clearances[k] < limit:
                         limit = clearances[k]
-        return 2.0 * total < limit
+        return 2.0 * total < limit and 2.0 * floor_total < floor_limit
 
     def path_hit(
         self,

@@ -56,6 +56,10 @@ class Step:
     effects: tuple[Effect, ...] = field(default=())
 
 
+#: Poses checked in full that later poses are compared with (see `_references`).
+REFERENCES = 2
+
+
 class RobotCore:
     """Pure decision state of one robot. All methods take `now` (trio time, seconds)."""
 
@@ -73,12 +77,13 @@ class RobotCore:
         self.collision_stops = 0
         self._to_urdf = tuple((j.name, j.urdf_name, j.neutral) for j in model.joints)
         self._checked: dict[str, float] | None = None  # the last goal pose found safe
-        # The last pose checked in full (URDF radians) and its clearance (metres): a pose
-        # whose joints are so close to it that no part of the arm can have moved that far is
-        # safe without a check (a stream of small steps is checked now and then, not always).
-        self._reference: dict[str, float] | None = None
-        self._clearance: tuple[float, ...] = ()
-        self._reference_workspace = self.workspace  # a changed workspace voids the reference
+        # The last poses checked in full (URDF radians) with their clearances (metres), newest
+        # first: a pose whose joints are so close to one that no part of the arm can have
+        # moved that far is safe without a check (a stream of small steps is checked now and
+        # then, not always). Two: while the motion limiter lags behind a fast master, the goals
+        # and the targets on their way are two streams, each near its own last check.
+        self._references: list[tuple[dict[str, float], tuple[float, ...]]] = []
+        self._reference_workspace = self.workspace  # a changed workspace voids the references
         self._sent = self.motion.positions  # the last targets emitted (where the arm goes)
         self._rates: dict[str, RateLimiter] = {}
         self._last_master_event: MasterCommand | None = None  # reused while one master commands
@@ -204,18 +209,24 @@ class RobotCore:
         return targets
 
     def _near_reference(self, pose: dict[str, float]) -> bool:
-        """True when no part of the arm can have moved from the reference pose as far as its
-        clearance (so `pose`, and the way to it, are safe without a check)."""
-        reference = self._reference
-        if reference is None or self.workspace is not self._reference_workspace:
+        """True when no part of the arm can have moved from a pose checked in full as far as
+        its clearance (so `pose`, and the way to it, are safe without a check)."""
+        if self.workspace is not self._reference_workspace:
+            self._references.clear()
             return False
-        assert self.guard is not None
-        return self.guard.safe_move(self._clearance, reference, pose)
+        guard = self.guard
+        assert guard is not None
+        return any(
+            guard.safe_move(clearance, reference, pose) for reference, clearance in self._references
+        )
 
     def _remember(self, pose: dict[str, float], clearance: tuple[float, ...]) -> None:
-        """Keep a pose checked in full, with its clearance, as the reference."""
-        self._reference, self._clearance = pose, clearance
-        self._reference_workspace = self.workspace
+        """Keep a pose checked in full, with its clearance, as a reference."""
+        if self.workspace is not self._reference_workspace:
+            self._references.clear()
+            self._reference_workspace = self.workspace
+        self._references.insert(0, (pose, clearance))
+        del self._references[REFERENCES:]
 
     def tick(self, now: float) -> dict[str, float] | None:
         """Advance interpolation; returns new targets, or None if nothing moved."""
