@@ -173,6 +173,17 @@ class Hit:
         return f"{self.first} and {self.second}"
 
 
+@dataclass(frozen=True, slots=True)
+class Reference:
+    """A pose checked in full (`CollisionModel.reference`): its joint values in the model's
+    joint order, and per joint the smallest gap (and floor gap) its turns can change."""
+
+    values: tuple[float, ...]
+    limits: tuple[float, ...]
+    floor_limits: tuple[float, ...]
+    checked: bool  # False for a pose whose gaps are unknown: nothing is near it
+
+
 @dataclass(frozen=True)
 class CollisionModel:
     """Capsules of a robot's links and the pairs worth checking."""
@@ -309,37 +320,73 @@ class CollisionModel:
                 factors.append(tilt if level else 1.0)
         return tuple(factors)
 
+    def reference(self, pose: Mapping[str, float], clearances: tuple[float, ...]) -> Reference:
+        """A pose checked in full, with its gaps from `assess`, made ready for `near`: per
+        joint, the smallest gap its turns can change (floor gaps apart)."""
+        gap = clearances.__getitem__
+        limits, floor_limits = [], []
+        for floor, others in self._affected_split:
+            limits.append(min(map(gap, others), default=math.inf))
+            floor_limits.append(min(map(gap, floor), default=math.inf))
+        return Reference(
+            tuple(pose.get(joint.name, 0.0) for joint in self.kinematics.joints),
+            tuple(limits),
+            tuple(floor_limits),
+            bool(clearances),
+        )
+
+    @functools.cached_property
+    def _affected_split(self) -> tuple[tuple[tuple[int, ...], tuple[int, ...]], ...]:
+        """`_affected` per joint, split into floor gaps (the first, one per link) and the rest."""
+        floors = len(self.capsules)
+        return tuple(
+            (tuple(k for k in ks if k < floors), tuple(k for k in ks if k >= floors))
+            for ks in self._affected
+        )
+
+    @functools.cached_property
+    def _sweeps(self) -> tuple[tuple[str, float, float], ...]:
+        """Per joint: its name, how far a unit of its motion can move a point (`reach` per
+        radian, 1 per metre), and the floor's share of that (`_floor_factors`)."""
+        reach = self.reach
+        return tuple(
+            (joint.name, 1.0 if joint.kind == "prismatic" else reach, factor)
+            for joint, factor in zip(self.kinematics.joints, self._floor_factors, strict=True)
+        )
+
+    def near(self, reference: Reference, end: Mapping[str, float]) -> bool:
+        """True when a pose `end` (and the straight way to it) is safe because `reference`
+        was: no two points can close a gap by more than twice `reach` times the sum of the
+        turns (a prismatic joint's metres count once), and only the gaps the moving joints
+        can change are at stake (the floor's only by the share of each sweep that goes up or
+        down)."""
+        if not reference.checked:
+            return False
+        total = floor_total = 0.0  # how far any point may have moved; up or down
+        limit = floor_limit = math.inf  # the smallest gap at stake; of a floor gap
+        for index, (name, unit, factor) in enumerate(self._sweeps):
+            value = end.get(name)
+            if value is None:
+                continue
+            turn = value - reference.values[index]
+            if turn:
+                sweep = abs(turn) * unit
+                total += sweep
+                floor_total += sweep * factor
+                if reference.limits[index] < limit:
+                    limit = reference.limits[index]
+                if reference.floor_limits[index] < floor_limit:
+                    floor_limit = reference.floor_limits[index]
+        return 2.0 * total < limit and 2.0 * floor_total < floor_limit
+
     def safe_move(
         self,
         clearances: tuple[float, ...],
         start: Mapping[str, float],
         end: Mapping[str, float],
     ) -> bool:
-        """True when a pose `end` (and the straight way to it) is safe because `start`, with
-        these gaps from `assess`, was: no two points can close a gap by more than twice
-        `reach` times the sum of the turns (a prismatic joint's metres count once), and only
-        the gaps the moving joints can change are at stake."""
-        if not clearances:
-            return False
-        total = floor_total = 0.0  # how far any point may have moved; up or down
-        limit = floor_limit = math.inf  # the smallest gap at stake; of a floor gap
-        floors = len(self.capsules)  # the first gaps are each link's above the floor
-        affected, factors = self._affected, self._floor_factors
-        for index, joint in enumerate(self.kinematics.joints):
-            value = end.get(joint.name)
-            if value is None:
-                continue
-            turn = abs(value - start.get(joint.name, value))
-            if turn:
-                sweep = turn if joint.kind == "prismatic" else self.reach * turn
-                total += sweep
-                floor_total += sweep * factors[index]
-                for k in affected[index]:
-                    if k < floors:
-                        floor_limit = min(floor_limit, clearances[k])
-                    elif clearances[k] < limit:
-                        limit = clearances[k]
-        return 2.0 * total < limit and 2.0 * floor_total < floor_limit
+        """`near` from `start` with these gaps from `assess` (see `reference`)."""
+        return self.near(self.reference(start, clearances), end)
 
     def path_hit(
         self,

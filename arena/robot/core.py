@@ -82,7 +82,7 @@ class RobotCore:
         # moved that far is safe without a check (a stream of small steps is checked now and
         # then, not always). Two: while the motion limiter lags behind a fast master, the goals
         # and the targets on their way are two streams, each near its own last check.
-        self._references: list[tuple[dict[str, float], tuple[float, ...]]] = []
+        self._references: list[collision.Reference] = []
         self._reference_workspace = self.workspace  # a changed workspace voids the references
         self._sent = self.motion.positions  # the last targets emitted (where the arm goes)
         self._rates: dict[str, RateLimiter] = {}
@@ -216,16 +216,15 @@ class RobotCore:
             return False
         guard = self.guard
         assert guard is not None
-        return any(
-            guard.safe_move(clearance, reference, pose) for reference, clearance in self._references
-        )
+        return any(guard.near(reference, pose) for reference in self._references)
 
     def _remember(self, pose: dict[str, float], clearance: tuple[float, ...]) -> None:
         """Keep a pose checked in full, with its clearance, as a reference."""
         if self.workspace is not self._reference_workspace:
             self._references.clear()
             self._reference_workspace = self.workspace
-        self._references.insert(0, (pose, clearance))
+        assert self.guard is not None
+        self._references.insert(0, self.guard.reference(pose, clearance))
         del self._references[REFERENCES:]
 
     def tick(self, now: float) -> dict[str, float] | None:
