@@ -428,3 +428,26 @@ def test_a_camera_streams_beside_the_twin_and_episodes_are_marked(
         assert http.get("/api/robots/demo-arm/episodes").json()["discarded"] == 1
     page.click('#cameras [data-camera="front"] button')
     expect(page.locator("#cameras figure")).to_have_count(0)
+
+
+def test_the_dashboard_of_one_node_lists_and_drives_a_robot_of_another(
+    start_live: Any, page: Page
+) -> None:
+    pytest.importorskip("zenoh")
+    hub = start_live(demo=True, node="hub", fleet_listen=("tcp/127.0.0.1:0",))
+    with hub.http() as http:
+        nodes = http.get("/api/fleet/nodes").json()["nodes"]
+    (locator,) = next(node for node in nodes if node["name"] == "hub")["locators"]
+    edge = start_live(node="edge", fleet_listen=("tcp/127.0.0.1:0",), fleet_connect=(locator,))
+    page.goto(edge.url + "/ui/")
+    listed = page.locator('#robot-list li[data-robot="demo-arm"]')
+    expect(listed).to_contain_text("@hub", timeout=WAIT_MS)  # the robot of the other node
+    listed.locator("a").click()
+    # its details come through the edge node, its state over a WebSocket carried to the hub
+    expect(page.locator("#robot-title")).to_have_text("Demo arm (demo-arm)")
+    expect(page.locator("#watch-status")).to_have_text("live")
+    expect(page.locator("#robot-state")).to_have_text("idle")
+    expect(page.locator("#peers li").first).to_contain_text("demo-mock-slave")
+    wanted = click_slider_at(page, "Rotation", 0.75)
+    expect(page.locator('td[data-real="Rotation"]')).to_have_text(f"{wanted:.1f}", timeout=WAIT_MS)
+    assert real_value(hub, "demo-arm", "Rotation") == pytest.approx(wanted, abs=0.05)
