@@ -74,7 +74,13 @@ async def session_file(start_server: Callable[..., Any]) -> AsyncIterator[Path]:
         await wait_until(lambda: camera.frames > 0)
         url = server.ws_url + "/ws/master/demo-arm?acks=false&joint_states=false"
         async with open_websocket_url(url) as master:
-            await drive(master, 0.3)  # every stream has data before the first episode
+            # every stream has data before the first episode: a frame (above), a command, and
+            # the slave's report of the pose it asked for
+            first = pose(0.0)
+            await master.send_message(json.dumps({"type": "command", "data": {"joints": first}}))
+            robot = server.app.manager.get("demo-arm")
+            jaw = next(goal["value"] for goal in first if goal["name"] == "Jaw")
+            await wait_until(lambda: robot.snapshot().joint("Jaw").real_value == jaw)
             for task, keep in (("pick up the cube", True), ("wave", False), ("stack", True)):
                 started = await http.post(f"{base}/episodes/start", json={"task": task})
                 assert started.status_code == 201
