@@ -22,7 +22,7 @@ from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
 
 from arena.protocol.errors import ErrorCode, Severity
 from arena.recording import images
-from arena.recording.mcap_file import read_recording
+from arena.recording.mcap_file import read_recording, write_recording
 from arena.robot.events import FaultReported
 from arena.robot.manager import RobotManager
 from arena.robot.safety import Mode
@@ -31,6 +31,7 @@ from arena.sensors.camera import Cameras, CameraSpec
 from arena.sensors.sources import JpegEncoder, pattern_image, read_pattern_counter
 from arena.server import sensors_api
 from tests.conftest import RunningServer
+from tests.hardware import eventually
 
 TEST_CAMERA = {"name": "front", "source": "test-pattern", "fps": 30, "width": 320, "height": 240}
 
@@ -40,13 +41,6 @@ def jpeg_rgb(jpeg: bytes) -> np.ndarray:
     codec = av.CodecContext.create("mjpeg", "r")
     (frame,) = codec.decode(av.Packet(jpeg))
     return frame.to_ndarray(format="rgb24")
-
-
-async def wait_until(condition: Callable[[], bool], limit: float = 30.0) -> None:
-    """Wait for `condition` (checked every 10 ms); the limit only ends a broken test."""
-    with trio.fail_after(limit):
-        while not condition():
-            await trio.sleep(0.01)
 
 
 def test_pattern_frames_carry_their_number_through_jpeg() -> None:
@@ -135,7 +129,7 @@ async def test_rest_cameras_attach_list_frame_and_detach(
         looped = await http.post(base, json={"name": "clip", "source": f"file:{video}", "fps": 60})
         assert looped.status_code == 201, looped.text
         clip = server.app.cameras.get("demo-arm", "clip")
-        await wait_until(lambda: clip.frames > 30)
+        await eventually(lambda: clip.frames > 30)
         assert clip.error is None
         # refusals: a taken name, a bad body, a source that cannot open, an unknown robot
         taken = await http.post(base, json=TEST_CAMERA)
@@ -228,7 +222,7 @@ async def test_mjpeg_stream_serves_newest_frames_and_drops_a_reader_that_stalls(
         assert read_pattern_counter(jpeg_rgb(part["jpeg"])) == int(part["x-frame-seq"])
     assert camera.streams == 1
     await stream.aclose()
-    await wait_until(lambda: camera.streams == 0)
+    await eventually(lambda: camera.streams == 0)
 
     # an unknown camera, and a foreign Host (DNS rebinding), are refused with the error shape
     for target, host_header, status in (
@@ -259,8 +253,8 @@ async def test_mjpeg_stream_serves_newest_frames_and_drops_a_reader_that_stalls(
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
     sock.connect((host, int(port)))
     sock.sendall(request.encode())
-    await wait_until(lambda: camera.streams_dropped == 1, limit=60)
-    await wait_until(lambda: camera.streams == 0)
+    await eventually(lambda: camera.streams_dropped == 1, timeout=60, what="the stall noticed")
+    await eventually(lambda: camera.streams == 0)
     sock.close()
 
 
@@ -315,7 +309,7 @@ async def test_a_failing_camera_is_reported_and_retried_without_stopping_the_arm
             assert recovered.severity is Severity.INFO
             assert robot.snapshot().mode is Mode.IDLE  # a camera never stops the arm
             frames_then = camera.frames
-            await wait_until(lambda: camera.frames > frames_then + 3)
+            await eventually(lambda: camera.frames > frames_then + 3)
             assert camera.failures == 1 and camera.error is None
             await cameras.detach("arm", "wrist")
             assert camera.closed
@@ -329,14 +323,14 @@ async def test_camera_frames_are_recorded_as_compressed_images(
     async with server.client() as http:
         assert (await http.post("/api/robots/demo-arm/cameras", json=TEST_CAMERA)).is_success
         camera = server.app.cameras.get("demo-arm", "front")
-        await wait_until(lambda: camera.frames >= 10)
+        await eventually(lambda: camera.frames >= 10)
         before = time.time_ns()
         moved = await http.put(
             "/api/robots/demo-arm/joints", json={"joints": [{"name": "Rotation", "value": 5}]}
         )
         assert moved.is_success, moved.text
         after = time.time_ns()
-        await wait_until(lambda: camera.frames >= 20)
+        await eventually(lambda: camera.frames >= 20)
         assert (await http.delete("/api/robots/demo-arm/cameras/front")).is_success
         captured = camera.frames
         stopped = (await http.post("/api/recordings/current/stop")).json()["stopped"]
@@ -356,6 +350,11 @@ async def test_camera_frames_are_recorded_as_compressed_images(
     assert frames[0].log_time < before and frames[-1].log_time > after
     earlier = [f for f in frames if f.log_time < command.log_time]
     assert 10 <= len(earlier) < len(frames)
+    # `arena recover` (a recording read and written again) keeps every frame as it was
+    rewritten = tmp_path / "rewritten.mcap"
+    write_recording(recording, rewritten)
+    again = [v for v in read_recording(rewritten).views if v.topic == frames[0].topic]
+    assert [(f.log_time, f.data) for f in again] == [(f.log_time, f.data) for f in frames]
 
 
 async def test_episodes_start_stop_discard_and_are_recorded(server: RunningServer) -> None:

@@ -28,7 +28,8 @@ from arena.robot.model import load_robot_model
 from arena.sensors.sources import read_pattern_counter
 from arena.session import record_scenario
 from tests.conftest import RecordingSlave, RunningServer
-from tests.test_cameras import TEST_CAMERA, jpeg_rgb, wait_until
+from tests.hardware import eventually
+from tests.test_cameras import TEST_CAMERA, jpeg_rgb
 from tests.test_recording import session_scenario
 
 lerobot_dataset = pytest.importorskip("lerobot.datasets.lerobot_dataset")
@@ -71,7 +72,7 @@ async def session_file(start_server: Callable[..., Any]) -> AsyncIterator[Path]:
     async with server.client() as http:
         assert (await http.post(f"{base}/cameras", json=TEST_CAMERA)).status_code == 201
         camera = server.app.cameras.get("demo-arm", "front")
-        await wait_until(lambda: camera.frames > 0)
+        await eventually(lambda: camera.frames > 0)
         url = server.ws_url + "/ws/master/demo-arm?acks=false&joint_states=false"
         async with open_websocket_url(url) as master:
             # every stream has data before the first episode: a frame (above), a command, and
@@ -80,7 +81,7 @@ async def session_file(start_server: Callable[..., Any]) -> AsyncIterator[Path]:
             await master.send_message(json.dumps({"type": "command", "data": {"joints": first}}))
             robot = server.app.manager.get("demo-arm")
             jaw = next(goal["value"] for goal in first if goal["name"] == "Jaw")
-            await wait_until(lambda: robot.snapshot().joint("Jaw").real_value == jaw)
+            await eventually(lambda: robot.snapshot().joint("Jaw").real_value == jaw)
             for task, keep in (("pick up the cube", True), ("wave", False), ("stack", True)):
                 started = await http.post(f"{base}/episodes/start", json={"task": task})
                 assert started.status_code == 201

@@ -108,7 +108,13 @@ class NodeView:
     robots: list[dict[str, Any]] = field(default_factory=list)  # last known
     locators: list[str] = field(default_factory=list)
     http: str | None = None  # the node's own URL, for clients that want to go direct
-    changed: float = 0.0  # trio time of the last change of `alive`
+
+    def update(self, info: dict[str, Any]) -> None:
+        """Take what the node said of itself (its `info` answer)."""
+        self.version = info.get("version")
+        self.robots = list(info.get("robots", []))
+        self.locators = list(info.get("locators", []))
+        self.http = info.get("http")
 
 
 class Tunnel:
@@ -288,7 +294,6 @@ class FleetNode:
         alive = str(sample.kind).endswith("PUT")
         view = self.nodes.setdefault(name, NodeView(name, alive))
         view.alive = alive
-        view.changed = trio.current_time()
         if alive:
             log.info("fleet: node %s is here", name)
             return self._refresh(name)
@@ -408,10 +413,7 @@ class FleetNode:
         """Ask a node about itself (and remember the answer)."""
         answer = await self.ask(node, "info")
         view = self.nodes.setdefault(node, NodeView(node, True))
-        view.version = answer.get("version")
-        view.robots = list(answer.get("robots", []))
-        view.locators = list(answer.get("locators", []))
-        view.http = answer.get("http")
+        view.update(answer)
         return view
 
     async def refresh_all(self) -> None:
@@ -420,11 +422,7 @@ class FleetNode:
         for name, (answer, _) in answers.items():
             if "ok" not in answer:
                 continue
-            view = self.nodes.setdefault(name, NodeView(name, True))
-            view.version = answer["ok"].get("version")
-            view.robots = list(answer["ok"].get("robots", []))
-            view.locators = list(answer["ok"].get("locators", []))
-            view.http = answer["ok"].get("http")
+            self.nodes.setdefault(name, NodeView(name, True)).update(answer["ok"])
 
     async def locators(self) -> list[str]:
         """Where this node listens (the ports it was given, or chose for port 0)."""

@@ -22,6 +22,7 @@ from typing import Any
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording import images
 from arena.recording.mcap_file import RecordedMessage, Recording, read_recording
+from arena.recording.records import camera_of_topic
 from arena.robot.model import JointSpec, RobotModel
 
 #: LeRobot's feature names for the so100 follower's joints, by the names Arena gives them
@@ -207,7 +208,7 @@ def load_session(paths: Sequence[Path], robot_id: str) -> RobotSession:
             if message.robot_id == robot_id:
                 messages.append(message)
         for view in recording.views:
-            camera = images.camera_of_topic(view.topic)
+            camera = camera_of_topic(view.topic)
             if camera is not None and camera[0] == robot_id:
                 frames.setdefault(camera[1], []).append((view.log_time, view.data))
         metadata = recording.metadata.get(f"robot/{robot_id}")
@@ -286,22 +287,17 @@ class _JpegDecoder:
     def __init__(self) -> None:
         import av
 
+        self._av = av
         self._codec: Any = av.CodecContext.create("mjpeg", "r")
         self._last: tuple[bytes, Any] | None = None
 
     def rgb(self, jpeg: bytes) -> Any:
         if self._last is not None and self._last[0] is jpeg:
             return self._last[1]
-        decoded = self._codec.decode(self._av_packet(jpeg))
-        image = decoded[0].to_ndarray(format="rgb24")
+        (frame,) = self._codec.decode(self._av.Packet(jpeg))
+        image = frame.to_ndarray(format="rgb24")
         self._last = (jpeg, image)
         return image
-
-    @staticmethod
-    def _av_packet(jpeg: bytes) -> Any:
-        import av
-
-        return av.Packet(jpeg)
 
 
 @dataclass

@@ -13,21 +13,6 @@ from foxglove.messages import CompressedImage, Timestamp
 
 from arena.robot.events import CameraFrame
 
-CAMERA_PREFIX = "cameras/"
-
-
-def camera_kind(name: str) -> str:
-    """The topic kind of a camera (its topic is `/robots/{id}/cameras/{name}`)."""
-    return CAMERA_PREFIX + name
-
-
-def camera_of_topic(topic: str) -> tuple[str, str] | None:
-    """(robot id, camera name) of a camera topic, or None."""
-    parts = topic.split("/")
-    if len(parts) == 5 and parts[:2] == ["", "robots"] and parts[3] == "cameras" and parts[4]:
-        return parts[2], parts[4]
-    return None
-
 
 def schema() -> tuple[str, str, bytes]:
     """(name, encoding, data) of Foxglove's CompressedImage schema."""

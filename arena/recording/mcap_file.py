@@ -24,7 +24,14 @@ from mcap.stream_reader import StreamReader
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording import images
 from arena.recording.mcap_writer import ChunkedWriter
-from arena.recording.records import RECORD_TYPES, is_view_topic, schema_of, split_topic, topic
+from arena.recording.records import (
+    CAMERA_PREFIX,
+    RECORD_TYPES,
+    is_view_topic,
+    schema_of,
+    split_topic,
+    topic,
+)
 
 SUFFIX = ".mcap"
 PROFILE = "arena"
@@ -180,7 +187,7 @@ def channel_format(kind: str) -> tuple[str, str, bytes, str]:
     records are JSON with JSON Schemas; Foxglove's kinds are protobuf with Foxglove's schemas."""
     if kind in RECORD_TYPES:
         return kind, "jsonschema", json.dumps(schema_of(kind)).encode(), "json"
-    if kind.startswith(images.CAMERA_PREFIX):
+    if kind.startswith(CAMERA_PREFIX):
         name, encoding, data = images.schema()
         return name, encoding, data, encoding
     from arena.recording import foxglove  # only a writer that records transforms needs it

@@ -118,13 +118,29 @@ def topic(robot_id: str, kind: str) -> str:
 VIEW_KINDS = ("tf", "scene", "log")
 
 
+#: Topic kinds of cameras start so: a camera's topic is `/robots/{id}/cameras/{name}`.
+CAMERA_PREFIX = "cameras/"
+
+
+def camera_kind(name: str) -> str:
+    """The topic kind of a camera."""
+    return CAMERA_PREFIX + name
+
+
+def camera_of_topic(name: str) -> tuple[str, str] | None:
+    """(robot id, camera name) of a camera topic, or None."""
+    parts = name.split("/")
+    if len(parts) == 5 and parts[:2] == ["", "robots"] and parts[3] == "cameras" and parts[4]:
+        return parts[2], parts[4]
+    return None
+
+
 def is_view_topic(name: str) -> bool:
     """True for a robot's Foxglove topic (`/robots/{id}/tf` and the like, and its cameras'
-    images, `/robots/{id}/cameras/{name}`): kept undecoded when a file is read."""
+    images): kept undecoded when a file is read."""
     parts = name.split("/")
-    if len(parts) == 5:
-        return parts[:2] == ["", "robots"] and parts[3] == "cameras" and bool(parts[4])
-    return len(parts) == 4 and parts[:2] == ["", "robots"] and parts[3] in VIEW_KINDS
+    in_view = len(parts) == 4 and parts[:2] == ["", "robots"] and parts[3] in VIEW_KINDS
+    return in_view or camera_of_topic(name) is not None
 
 
 def split_topic(name: str) -> tuple[str, str] | None:

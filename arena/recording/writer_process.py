@@ -41,7 +41,7 @@ import msgspec
 
 from arena.recording import images
 from arena.recording.mcap_file import FileSeries, Item, McapFileWriter
-from arena.recording.records import PACKED_TYPES, record_of
+from arena.recording.records import PACKED_TYPES, camera_kind, record_of
 from arena.robot.events import CameraFrame, RobotEvent
 from arena.robot.model import RobotModel
 
@@ -69,7 +69,7 @@ def items_of_events(slices: list[bytes], twins: Twins | None = None) -> list[Ite
             event = _event_decoders[kind].decode(raw)
             if isinstance(event, CameraFrame):
                 image = images.encode(event, log_time)
-                items.append((robot_id, images.camera_kind(event.camera), image, log_time))
+                items.append((robot_id, camera_kind(event.camera), image, log_time))
                 continue
             robot_event = cast("RobotEvent", event)
             _, record = record_of(robot_event)

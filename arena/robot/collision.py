@@ -280,20 +280,24 @@ class CollisionModel:
         return None, tuple(gaps)
 
     @functools.cached_property
-    def _affected(self) -> tuple[tuple[int, ...], ...]:
-        """Per joint, the constraints (indices into `assess`'s gaps) whose gap it can change:
-        a link's floor and boxes by every joint above the link; a pair by the joints between
-        its two links (those above both move them together)."""
+    def _affected(self) -> tuple[tuple[tuple[int, ...], tuple[int, ...]], ...]:
+        """Per joint, the constraints (indices into `assess`'s gaps) whose gap it can change,
+        as (floor gaps, the others): a link's floor and boxes by every joint above the link; a
+        pair by the joints between its two links (those above both move them together)."""
         above: dict[str, set[str]] = {self.kinematics.root: set()}
         for joint in self.kinematics.joints:
             above[joint.child] = above[joint.parent] | {joint.name}
         links = [c.link for c in self.capsules]
         moved_by = [above[link] for link in links] * 2
         moved_by += [above[links[i]] ^ above[links[j]] for i, j in self.pairs]
-        return tuple(
-            tuple(k for k, joints in enumerate(moved_by) if joint.name in joints)
-            for joint in self.kinematics.joints
-        )
+        floors = len(links)  # the first gaps are each link's above the floor
+        affected = []
+        for joint in self.kinematics.joints:
+            changed = [k for k, joints in enumerate(moved_by) if joint.name in joints]
+            affected.append(
+                (tuple(k for k in changed if k < floors), tuple(k for k in changed if k >= floors))
+            )
+        return tuple(affected)
 
     @functools.cached_property
     def _floor_factors(self) -> tuple[float, ...]:
@@ -325,7 +329,7 @@ class CollisionModel:
         joint, the smallest gap its turns can change (floor gaps apart)."""
         gap = clearances.__getitem__
         limits, floor_limits = [], []
-        for floor, others in self._affected_split:
+        for floor, others in self._affected:
             limits.append(min(map(gap, others), default=math.inf))
             floor_limits.append(min(map(gap, floor), default=math.inf))
         return Reference(
@@ -333,15 +337,6 @@ class CollisionModel:
             tuple(limits),
             tuple(floor_limits),
             bool(clearances),
-        )
-
-    @functools.cached_property
-    def _affected_split(self) -> tuple[tuple[tuple[int, ...], tuple[int, ...]], ...]:
-        """`_affected` per joint, split into floor gaps (the first, one per link) and the rest."""
-        floors = len(self.capsules)
-        return tuple(
-            (tuple(k for k in ks if k < floors), tuple(k for k in ks if k >= floors))
-            for ks in self._affected
         )
 
     @functools.cached_property

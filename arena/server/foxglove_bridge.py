@@ -33,7 +33,7 @@ from foxglove.websocket import ChannelView, Client, ServerListener
 from arena.recording import images
 from arena.recording.foxglove import MESSAGE_TYPES, Twin, pose_of
 from arena.recording.mcap_file import channel_format
-from arena.recording.records import KIND_OF_EVENT, record_of, topic
+from arena.recording.records import KIND_OF_EVENT, camera_kind, record_of, topic
 from arena.robot.actor import Robot
 from arena.robot.events import CameraFrame, JointStatesReceived, RobotEvent, TargetsSent
 from arena.robot.mailbox import EventQueue
@@ -252,7 +252,7 @@ class _Publisher:
     def _camera_channel(self, robot_id: str, camera: str) -> foxglove.Channel:
         channel = self._cameras.get((robot_id, camera))
         if channel is None:
-            kind = images.camera_kind(camera)
+            kind = camera_kind(camera)
             name, schema_encoding, data, encoding = channel_format(kind)
             channel = foxglove.Channel(
                 topic(robot_id, kind),

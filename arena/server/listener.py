@@ -109,7 +109,8 @@ def _handshake_problem(request: UpgradeRequest) -> str | None:
     return None
 
 
-def _http_error(status: str, message: str, code: ErrorCode = ErrorCode.INVALID_MESSAGE) -> bytes:
+def http_error(status: str, message: str, code: ErrorCode = ErrorCode.INVALID_MESSAGE) -> bytes:
+    """A whole HTTP/1.1 error response in Arena's error shape, closing the connection."""
     body = msgspec.json.encode({"error": {"code": str(code), "message": message}})
     head = (
         f"HTTP/1.1 {status}\r\nContent-Type: application/json\r\n"
@@ -220,7 +221,7 @@ class ArenaListener:
             handler = self.router(request) if request is not None else None
         except ArenaError as refusal:  # a page or host name the server does not answer to
             with contextlib.suppress(trio.BrokenResourceError, trio.ClosedResourceError):
-                await stream.send_all(_http_error("403 Forbidden", refusal.message, refusal.code))
+                await stream.send_all(http_error("403 Forbidden", refusal.message, refusal.code))
             await trio.aclose_forcefully(stream)
             return
         if request is None or handler is None:
@@ -269,7 +270,7 @@ class ArenaListener:
         try:
             problem = _handshake_problem(request)
             if problem is not None:
-                await stream.send_all(_http_error("400 Bad Request", problem))
+                await stream.send_all(http_error("400 Bad Request", problem))
                 return
             key = ws_frames.accept_key(request.headers["sec-websocket-key"])
             await stream.send_all(

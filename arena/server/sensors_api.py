@@ -10,7 +10,6 @@ from __future__ import annotations
 
 from typing import Any
 
-import msgspec
 import trio
 from quart import Blueprint, Response, current_app, request
 
@@ -20,6 +19,7 @@ from arena.robot.episodes import Episode
 from arena.sensors.camera import Camera, CameraSpec
 from arena.server.auth import check_token
 from arena.server.base import STATUS_FOR, ArenaApp, read_body
+from arena.server.listener import http_error
 from arena.server.ws_transport import UpgradeRequest
 
 blueprint = Blueprint("sensors", __name__)
@@ -151,17 +151,6 @@ def stream_route(app: ArenaApp) -> Any:
     return route
 
 
-def _http_error(error: ArenaError) -> bytes:
-    status = STATUS_FOR.get(error.code, 400)
-    body = msgspec.json.encode({"error": {"code": str(error.code), "message": error.message}})
-    head = (
-        f"HTTP/1.1 {status} {'Error' if status >= 400 else 'OK'}\r\n"
-        f"Content-Type: application/json\r\nContent-Length: {len(body)}\r\n"
-        "Connection: close\r\n\r\n"
-    )
-    return head.encode("latin-1") + body
-
-
 async def _serve_stream(
     app: ArenaApp, request: UpgradeRequest, robot_id: str, name: str, stream: trio.abc.Stream
 ) -> None:
@@ -176,7 +165,8 @@ async def _serve_stream(
                 f"Camera {name!r} serves {MAX_STREAMS_PER_CAMERA} streams already.",
             )
     except ArenaError as refusal:
-        await stream.send_all(_http_error(refusal))
+        status = STATUS_FOR.get(refusal.code, 400)
+        await stream.send_all(http_error(f"{status} Refused", refusal.message, refusal.code))
         return
     camera.streams += 1
     try:
