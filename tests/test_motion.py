@@ -110,6 +110,32 @@ def test_a_large_step_is_spread_at_the_velocity_limit() -> None:
     assert now == pytest.approx((90.0 - V * BURST) / V, abs=core.tick_interval)
 
 
+def test_in_a_burst_a_trailing_joint_moves_on_the_ticks_and_a_resting_one_at_once() -> None:
+    core = unlimited_core()
+    _, step = core.command(None, Command.of({"Rotation": 90.0}), 0.0, in_burst=True)
+    assert step.targets is not None  # at rest before: its first step goes out at once
+    assert step.targets["Rotation"] == pytest.approx(V * BURST)
+    # Rotation trails now: more commands of the burst change its goal but emit nothing ...
+    for k in range(1, 5):
+        _, step = core.command(None, Command.of({"Rotation": 90.0 - k}), k * 1e-4, in_burst=True)
+        assert step.targets is None
+    # ... except for a joint they find at rest, which moves at once (Rotation stays put).
+    _, step = core.command(None, Command.of({"Pitch": 1.0}), 6e-4, in_burst=True)
+    assert step.targets is not None
+    assert step.targets["Pitch"] == 1.0
+    assert step.targets["Rotation"] == pytest.approx(V * BURST)
+    # The tick takes Rotation on, toward the newest goal, inside the velocity budget.
+    due = core.next_tick(6e-4)
+    assert due is not None
+    targets = core.tick(due)
+    assert targets is not None
+    assert V * BURST < targets["Rotation"] <= V * BURST + V * due + 1e-9
+    # Outside a burst a command moves the trailing joint at once.
+    _, step = core.command(None, Command.of({"Rotation": 80.0}), due + 1e-3)
+    assert step.targets is not None
+    assert step.targets["Rotation"] > targets["Rotation"]
+
+
 def test_duration_moves_follow_a_smooth_curve_and_arrive_on_time() -> None:
     core = unlimited_core()
     core.command(None, Command.of({"Rotation": 20.0}, duration=2.0), 0.0)
@@ -209,7 +235,13 @@ GOALS = st.lists(
 )
 SOURCES = st.sampled_from([None, "alice", "bob"])
 OPS = st.one_of(
-    st.tuples(st.just("command"), SOURCES, GOALS, st.one_of(st.none(), st.floats(0, 1.5))),
+    st.tuples(
+        st.just("command"),
+        SOURCES,
+        GOALS,
+        st.one_of(st.none(), st.floats(0, 1.5)),
+        st.booleans(),  # one of a master's burst
+    ),
     st.tuples(st.just("attach"), st.sampled_from(["alice", "bob"]), st.booleans()),
     st.tuples(st.just("detach"), st.sampled_from(["alice", "bob"])),
     st.tuples(st.just("lost"), st.sampled_from(["alice", "bob"])),
@@ -248,10 +280,12 @@ def test_random_operations_keep_targets_safe(ops: list[tuple]) -> None:  # type:
         estopped = core.state.mode is sm.Mode.ESTOPPED
         kind = op[0]
         if kind == "command":
-            _, source, goals, duration = op
+            _, source, goals, duration, in_burst = op
             owner_before = core.state.owner
             goals_before = core.motion.goals
-            result, step = core.command(source, Command(tuple(goals), duration), now)
+            result, step = core.command(
+                source, Command(tuple(goals), duration), now, in_burst=in_burst
+            )
             if source is not None and source != owner_before:
                 assert not result.accepted and step.targets is None
                 assert core.motion.goals == goals_before, "a non-owner changed a target"

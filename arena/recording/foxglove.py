@@ -92,8 +92,10 @@ class Twin:
         self.model = model
         self.kinematics = Kinematics.from_urdf(model.urdf_path)
         self._joints = {spec.name: spec for spec in model.joints}
-        # URDF radians of the joints last heard of, per tree (a partial update keeps the rest)
-        self._values: dict[str, dict[str, float]] = {tree: {} for tree in TREES}
+        # Wire degrees of the joints last heard of, per tree (a partial update keeps the
+        # rest), turned into URDF radians only when a tree is encoded: most updates are held
+        # back by the rate, and a command stream makes thousands a second.
+        self._degrees: dict[str, dict[str, float]] = {tree: {} for tree in TREES}
 
     def frame(self, tree: str, link: str) -> str:
         """The frame id of a link in one tree."""
@@ -107,11 +109,7 @@ class Twin:
 
     def update(self, tree: str, joints: Mapping[str, float]) -> None:
         """Note new joint values (wire degrees) of one tree without encoding anything."""
-        values = self._values[tree]
-        for name, degrees in joints.items():
-            spec = self._joints.get(name)
-            if spec is not None:
-                values[spec.urdf_name] = spec.to_urdf(degrees)
+        self._degrees[tree].update(joints)
 
     def encode_tree(self, tree: str, ns: int) -> bytes:
         """The tree at the joint values last noted, stamped `ns`, as an encoded
@@ -119,7 +117,12 @@ class Twin:
         stamp = timestamp(ns)
         root = self.frame(tree, self.kinematics.root)
         transforms = [_frame_transform(stamp, WORLD, root, ((0.0, 0.0, 0.0, 1.0), (0, 0, 0)))]
-        for joint, pose in self.kinematics.joint_transforms(self._values[tree]):
+        values = {}
+        for name, degrees in self._degrees[tree].items():
+            spec = self._joints.get(name)
+            if spec is not None:
+                values[spec.urdf_name] = spec.to_urdf(degrees)
+        for joint, pose in self.kinematics.joint_transforms(values):
             parent, child = self.frame(tree, joint.parent), self.frame(tree, joint.child)
             transforms.append(_frame_transform(stamp, parent, child, pose))
         return bytes(FrameTransforms(transforms=transforms).encode())

@@ -43,6 +43,10 @@ MAGIC = b"\x89MCAP0\r\n"
 #: A message record's head: opcode, length, channel id, sequence, log time, publish time.
 _MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 _MESSAGE_FIXED = _MESSAGE_HEAD.size - 9  # the body's fixed part (the record length excludes 9)
+_MESSAGE = int(Opcode.MESSAGE)
+#: zstd's level 1: chunks of JSON records come out ~5 % larger than at the default level 3,
+#: for half the time (the recording process's largest single cost at ~0.1 us a record).
+_compress = zstandard.ZstdCompressor(level=1).compress
 
 
 class _Record(Protocol):
@@ -108,7 +112,7 @@ class ChunkedWriter:
         elif log_time > self._chunk_end:
             self._chunk_end = log_time
         chunk += _MESSAGE_HEAD.pack(
-            Opcode.MESSAGE, _MESSAGE_FIXED + len(data), channel_id, 0, log_time, log_time
+            _MESSAGE, _MESSAGE_FIXED + len(data), channel_id, 0, log_time, log_time
         )
         chunk += data
         self._counts[channel_id] += 1
@@ -121,7 +125,7 @@ class ChunkedWriter:
             return
         data = bytes(self._chunk)
         self._chunk.clear()
-        compressed = zstandard.compress(data)
+        compressed = _compress(data)
         chunk = Chunk(
             message_start_time=self._chunk_start,
             message_end_time=self._chunk_end,

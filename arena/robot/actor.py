@@ -15,7 +15,7 @@ import itertools
 import logging
 import math
 import time as wallclock
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -101,7 +101,10 @@ class Robot:
         self._send, self._receive = trio.open_memory_channel[Msg](inbox_size)
         self._master: _Peer | None = None
         self._slaves: dict[str, _Peer] = {}
-        self._observers: set[EventQueue[RobotEvent]] = set()
+        # Each observer's queue with the event types it takes (None: every one), and per
+        # event type the queues that take it (made on first use, forgotten when one changes).
+        self._observers: dict[EventQueue[RobotEvent], frozenset[type] | None] = {}
+        self._routes: dict[type, tuple[EventQueue[RobotEvent], ...]] = {}
         self._real: dict[str, float] = {}
         self._ids = itertools.count(1)
         self._next_tick: float | None = None
@@ -129,13 +132,18 @@ class Robot:
         )
         return self._superseded_by_gone + current
 
-    async def command(self, command: Command, master_id: str | None = None) -> CommandResult:
-        """Send a command (from master `master_id`, or manual control if None)."""
+    async def command(
+        self, command: Command, master_id: str | None = None, *, in_burst: bool = False
+    ) -> CommandResult:
+        """Send a command (from master `master_id`, or manual control if None); `in_burst`:
+        more of the master's commands are already in hand (see `RobotCore.command`)."""
         reply: Reply[CommandResult] = Reply()
-        await self._post(CommandMsg(master_id, command, reply))
+        await self._post(CommandMsg(master_id, command, reply, in_burst))
         return await reply.wait()
 
-    def command_now(self, command: Command, master_id: str | None = None) -> CommandResult | None:
+    def command_now(
+        self, command: Command, master_id: str | None = None, *, in_burst: bool = False
+    ) -> CommandResult | None:
         """Decide `command` in the caller's task, if the actor is idle; else None (use `command`).
 
         Idle means blocked on an empty inbox with no timer due: a posted command would be the
@@ -145,7 +153,7 @@ class Robot:
         now = self._idle_now()
         if now is None:
             return None
-        result = self._on_command(CommandMsg(master_id, command, None), now)
+        result = self._on_command(CommandMsg(master_id, command, None, in_burst), now)
         self._rearm_idle_wait()
         return result
 
@@ -261,21 +269,26 @@ class Robot:
         await self._detach("slave", slave_id, lost=False, reason=reason)
 
     @contextlib.contextmanager
-    def subscribe(self, maxlen: int = 1024) -> Iterator[EventQueue[RobotEvent]]:
-        """Observe this robot's events: `with robot.subscribe() as events: ...`.
+    def subscribe(
+        self, maxlen: int = 1024, kinds: Iterable[type[RobotEvent]] | None = None
+    ) -> Iterator[EventQueue[RobotEvent]]:
+        """Observe this robot's events (only those of the types `kinds`, if given): `with
+        robot.subscribe() as events: ...`.
 
         A slow observer loses its oldest events (counted in `events.dropped`); it never slows
         the robot. The queue ends (`trio.EndOfChannel`) when the robot stops, at once if it
         has stopped already.
         """
         queue: EventQueue[RobotEvent] = EventQueue(maxlen)
-        self._observers.add(queue)
+        self._observers[queue] = None if kinds is None else frozenset(kinds)
+        self._routes.clear()
         if self.stopped.is_set():
             queue.close()
         try:
             yield queue
         finally:
-            self._observers.discard(queue)
+            del self._observers[queue]
+            self._routes.clear()
             queue.close()
 
     def snapshot(self) -> RobotSnapshot:
@@ -453,7 +466,9 @@ class Robot:
     def _on_command(self, message: CommandMsg, now: float) -> CommandResult:
         if message.source is not None:
             self._touch(message.source, now)
-        result, step = self.core.command(message.source, message.command, now)
+        result, step = self.core.command(
+            message.source, message.command, now, in_burst=message.in_burst
+        )
         self.command_counts["accepted" if result.accepted else str(result.code)] += 1
         self._publish(
             CommandHandled(
@@ -882,7 +897,13 @@ class Robot:
             slave.last_seen = now
 
     def _publish(self, event: RobotEvent) -> None:
-        for queue in self._observers:
+        queues = self._routes.get(type(event))
+        if queues is None:
+            kind = type(event)
+            queues = self._routes[kind] = tuple(
+                queue for queue, kinds in self._observers.items() if kinds is None or kind in kinds
+            )
+        for queue in queues:
             queue.put(event)
 
     # -- plumbing -----------------------------------------------------------------------------

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -333,45 +333,53 @@ class CollisionModel:
             limits.append(min(map(gap, others), default=math.inf))
             floor_limits.append(min(map(gap, floor), default=math.inf))
         return Reference(
-            tuple(pose.get(joint.name, 0.0) for joint in self.kinematics.joints),
+            self.values_of(pose),
             tuple(limits),
             tuple(floor_limits),
             bool(clearances),
         )
 
+    def values_of(self, pose: Mapping[str, float]) -> tuple[float, ...]:
+        """A pose's joint values in the order `near` takes them (a missing joint is 0)."""
+        return tuple(pose.get(joint.name, 0.0) for joint in self.kinematics.joints)
+
     @functools.cached_property
-    def _sweeps(self) -> tuple[tuple[str, float, float], ...]:
-        """Per joint: its name, how far a unit of its motion can move a point (`reach` per
-        radian, 1 per metre), and the floor's share of that (`_floor_factors`)."""
+    def _sweeps(self) -> tuple[tuple[float, float], ...]:
+        """Per joint: how far a unit of its motion can move a point (`reach` per radian, 1
+        per metre), and the floor's share of that (`_floor_factors`)."""
         reach = self.reach
         return tuple(
-            (joint.name, 1.0 if joint.kind == "prismatic" else reach, factor)
+            (1.0 if joint.kind == "prismatic" else reach, factor)
             for joint, factor in zip(self.kinematics.joints, self._floor_factors, strict=True)
         )
 
-    def near(self, reference: Reference, end: Mapping[str, float]) -> bool:
-        """True when a pose `end` (and the straight way to it) is safe because `reference`
-        was: no two points can close a gap by more than twice `reach` times the sum of the
-        turns (a prismatic joint's metres count once), and only the gaps the moving joints
-        can change are at stake (the floor's only by the share of each sweep that goes up or
-        down)."""
+    def near(self, reference: Reference, end: Sequence[float]) -> bool:
+        """True when a pose `end` (joint values as `values_of` orders them), and the straight
+        way to it, is safe because `reference` was: no two points can close a gap by more
+        than twice `reach` times the sum of the turns (a prismatic joint's metres count
+        once), and only the gaps the moving joints can change are at stake (the floor's only
+        by the share of each sweep that goes up or down). Called for every command and target
+        while an arm moves, so it is one pass over plain tuples."""
         if not reference.checked:
             return False
         total = floor_total = 0.0  # how far any point may have moved; up or down
         limit = floor_limit = math.inf  # the smallest gap at stake; of a floor gap
-        for index, (name, unit, factor) in enumerate(self._sweeps):
-            value = end.get(name)
-            if value is None:
-                continue
-            turn = value - reference.values[index]
-            if turn:
-                sweep = abs(turn) * unit
+        for value, start, (unit, factor), gap, floor_gap in zip(
+            end,
+            reference.values,
+            self._sweeps,
+            reference.limits,
+            reference.floor_limits,
+            strict=True,
+        ):
+            if value != start:
+                sweep = abs(value - start) * unit
                 total += sweep
                 floor_total += sweep * factor
-                if reference.limits[index] < limit:
-                    limit = reference.limits[index]
-                if reference.floor_limits[index] < floor_limit:
-                    floor_limit = reference.floor_limits[index]
+                if gap < limit:
+                    limit = gap
+                if floor_gap < floor_limit:
+                    floor_limit = floor_gap
         return 2.0 * total < limit and 2.0 * floor_total < floor_limit
 
     def safe_move(
@@ -381,7 +389,7 @@ class CollisionModel:
         end: Mapping[str, float],
     ) -> bool:
         """`near` from `start` with these gaps from `assess` (see `reference`)."""
-        return self.near(self.reference(start, clearances), end)
+        return self.near(self.reference(start, clearances), self.values_of(end))
 
     def path_hit(
         self,

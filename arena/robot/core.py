@@ -56,6 +56,8 @@ class Step:
     effects: tuple[Effect, ...] = field(default=())
 
 
+_RADIANS = math.pi / 180.0  # as math.radians scales
+
 #: Poses checked in full that later poses are compared with (see `_references`).
 REFERENCES = 2
 
@@ -76,6 +78,14 @@ class RobotCore:
         #: Moves stopped on the way because an emitted target would have collided.
         self.collision_stops = 0
         self._to_urdf = tuple((j.name, j.urdf_name, j.neutral) for j in model.joints)
+        # Per joint of the guard's kinematics: where its value is in a pose listed in the
+        # model's joint order (wire degrees), its neutral and the scale to radians (0 for a
+        # joint the model does not drive, which stays at 0).
+        position = {j.urdf_name: (k, j.neutral) for k, j in enumerate(model.joints)}
+        self._to_guard = tuple(
+            (*position[joint.name], _RADIANS) if joint.name in position else (0, 0.0, 0.0)
+            for joint in (self.guard.kinematics.joints if self.guard is not None else ())
+        )
         self._checked: dict[str, float] | None = None  # the last goal pose found safe
         # The last poses checked in full (URDF radians) with their clearances (metres), newest
         # first: a pose whose joints are so close to one that no part of the arm can have
@@ -111,9 +121,15 @@ class RobotCore:
         self._rates.pop(master_id, None)
 
     def command(
-        self, source: str | None, command: Command, now: float
+        self, source: str | None, command: Command, now: float, *, in_burst: bool = False
     ) -> tuple[CommandResult, Step]:
-        """A command from master `source` (None: manual control). Returns the answer and step."""
+        """A command from master `source` (None: manual control). Returns the answer and step.
+
+        `in_burst`: more of this master's commands are already in hand. The joints at rest
+        still move at once, but a joint still on its way to an earlier goal is left to the
+        control ticks (`MotionLimiter.advance`'s `fresh`): a master flooding commands faster
+        than the arm may move would otherwise cause a sliver of motion per command, each
+        checked, recorded and offered to the slaves, which get only the newest anyway."""
         last = self._last_master_event
         if source is None:
             event: Event = _MANUAL
@@ -147,7 +163,7 @@ class RobotCore:
                 clamps = [*clamps, *short]
                 message = "stopped short of a collision"
         self.motion.set_goals(goals, command.duration, now)
-        targets = self._advance(now)
+        targets = self._advance(now, fresh=in_burst)
         result = CommandResult(True, None, message, tuple(clamps)) if clamps else _ACCEPTED
         return result, Step(outcome, targets)
 
@@ -155,6 +171,12 @@ class RobotCore:
         return {
             urdf: neutral + math.radians(degrees[name]) for name, urdf, neutral in self._to_urdf
         }
+
+    def _pose(self, degrees: Mapping[str, float]) -> tuple[float, ...]:
+        """A pose as the guard's `near` takes it, from every joint's wire degrees in the
+        model's order (as the limiter's `goals` and `positions` list them)."""
+        values = list(degrees.values())
+        return tuple(neutral + values[k] * scale for k, neutral, scale in self._to_guard)
 
     def _guard(
         self, goals: list[ResolvedGoal]
@@ -165,10 +187,10 @@ class RobotCore:
         start = self._sent
         end = self.motion.goals
         end.update((goal.name, goal.value) for goal in goals)
-        target = self._urdf(end)
-        if self._near_reference(target):
+        if self._near_reference(self._pose(end)):
             self._checked = end
             return goals, None, []
+        target = self._urdf(end)
         hit, safe, clearance = self.guard.path_hit(self._urdf(start), target, self.workspace)
         if hit is None:
             self._checked = end
@@ -187,36 +209,35 @@ class RobotCore:
         self._checked = {**end, **{goal.name: goal.value for goal in short}}
         return short, None, clamps
 
-    def _advance(self, now: float) -> dict[str, float] | None:
-        """The limiter's next targets, unless they would collide: then the motion stops at the
-        targets already sent (a joint-space path checked at its goal can still bend into
-        something while joints of different speeds move)."""
+    def _advance(self, now: float, *, fresh: bool = False) -> dict[str, float] | None:
+        """The limiter's next targets (`fresh`: a command's own step, see `MotionLimiter`),
+        unless they would collide: then the motion stops at the targets already sent (a
+        joint-space path checked at its goal can still bend into something while joints of
+        different speeds move)."""
         if self.guard is None:
-            return self.motion.advance(now)
-        targets = self.motion.advance(now)
+            return self.motion.advance(now, fresh=fresh)
+        targets = self.motion.advance(now, fresh=fresh)
         if targets is None:
             return None
-        if targets != self._checked:
+        if targets != self._checked and not self._near_reference(self._pose(targets)):
             pose = self._urdf(targets)
-            if not self._near_reference(pose):
-                hit, clearance = self.guard.assess(pose, self.workspace)
-                if hit is not None:
-                    self.motion.stop_at(self._sent)
-                    self.collision_stops += 1
-                    return None
-                self._remember(pose, clearance)
+            hit, clearance = self.guard.assess(pose, self.workspace)
+            if hit is not None:
+                self.motion.stop_at(self._sent)
+                self.collision_stops += 1
+                return None
+            self._remember(pose, clearance)
         self._sent = targets
         return targets
 
-    def _near_reference(self, pose: dict[str, float]) -> bool:
-        """True when no part of the arm can have moved from a pose checked in full as far as
-        its clearance (so `pose`, and the way to it, are safe without a check)."""
+    def _near_reference(self, pose: tuple[float, ...]) -> bool:
+        """True when no part of the arm can have moved from a pose checked in full (`_pose`)
+        as far as its clearance (so `pose`, and the way to it, are safe without a check)."""
         if self.workspace is not self._reference_workspace:
             self._references.clear()
             return False
-        guard = self.guard
-        assert guard is not None
-        return any(guard.near(reference, pose) for reference in self._references)
+        near = self.guard.near  # type: ignore[union-attr]  # only called with a guard
+        return any(near(reference, pose) for reference in self._references)
 
     def _remember(self, pose: dict[str, float], clearance: tuple[float, ...]) -> None:
         """Keep a pose checked in full, with its clearance, as a reference."""

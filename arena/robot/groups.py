@@ -102,7 +102,7 @@ class GroupRegistry:
             robot = self.manager.get(robot_id)
         except ArenaError:  # deleted before this watcher started
             return
-        with robot.subscribe(maxlen=64) as events:
+        with robot.subscribe(maxlen=64, kinds=[StateChanged]) as events:
             while True:
                 try:
                     event = await events.get()

@@ -52,6 +52,7 @@ class CommandMsg:
     source: str | None
     command: Command
     reply: Reply[CommandResult] | None
+    in_burst: bool = False  # more commands of its master are in hand (see `RobotCore.command`)
 
 
 @dataclass(slots=True)

@@ -65,17 +65,18 @@ class MasterLink:
         self.notices: EventQueue[MasterNotice] = EventQueue(256)
         self.detached = trio.Event()
 
-    async def command(self, command: Command) -> CommandResult:
-        """Send a command as this master and wait for the answer."""
+    async def command(self, command: Command, *, in_burst: bool = False) -> CommandResult:
+        """Send a command as this master and wait for the answer (`in_burst`: more of this
+        master's commands are in hand, see `RobotCore.command`)."""
         if self.detached.is_set():
             return DETACHED_LINK
-        return await self.robot.command(command, master_id=self.master_id)
+        return await self.robot.command(command, master_id=self.master_id, in_burst=in_burst)
 
-    def command_now(self, command: Command) -> CommandResult | None:
+    def command_now(self, command: Command, *, in_burst: bool = False) -> CommandResult | None:
         """The answer at once when the robot is idle (see `Robot.command_now`), else None."""
         if self.detached.is_set():
             return DETACHED_LINK
-        return self.robot.command_now(command, master_id=self.master_id)
+        return self.robot.command_now(command, master_id=self.master_id, in_burst=in_burst)
 
     def alive(self) -> None:
         """Heartbeat: the peer is still there."""

@@ -7,8 +7,7 @@ notices, which are never coalesced); `EventQueue` keeps a bounded backlog and dr
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from typing import Generic, TypeVar
 
 import trio
@@ -34,21 +33,33 @@ class _Parked:
         if self._lot and not self._holding:  # someone is waiting
             self._lot.unpark_all()
 
-    @contextmanager
-    def holding_wakes(self) -> Iterator[None]:
+    def holding_wakes(self) -> _Holding:
         """Puts inside this block do not wake the reader; leaving it wakes them once if
         anything is still queued. For a caller that will take the items itself: the reader's
-        task is then not woken only to find nothing."""
-        self._holding = True
-        try:
-            yield
-        finally:
-            self._holding = False
-            if self._has_items():
-                self._wake()
+        task is then not woken only to find nothing. (A class, not a generator: it is
+        entered for every command.)"""
+        return _Holding(self)
 
     def _has_items(self) -> bool:
         raise NotImplementedError
+
+
+class _Holding:
+    """`_Parked.holding_wakes`."""
+
+    __slots__ = ("_parked",)
+
+    def __init__(self, parked: _Parked) -> None:
+        self._parked = parked
+
+    def __enter__(self) -> None:
+        self._parked._holding = True
+
+    def __exit__(self, *exc_info: object) -> None:
+        parked = self._parked
+        parked._holding = False
+        if parked._has_items():
+            parked._wake()
 
 
 class LatestMailbox(_Parked, Generic[T, N]):

@@ -7,6 +7,13 @@ for any two targets it emits at times t1 <= t2:
 
 where v is the joint's velocity limit (or the lower `speed` a command asked for). A small step
 inside that budget goes out at once; a larger one is spread over the following control ticks.
+A command in the middle of a master's burst (`advance(now, fresh=True)`) moves at once only
+the joints it finds at rest; a joint still on its way to an earlier goal (trailing a master
+faster than it may move) is left to the ticks. Emitting a sliver of motion per command while
+a joint trails gave a master streaming 10,000 commands a second as many targets (each checked
+by the collision guard, recorded and offered to the slaves, which keep only the newest) for no
+motion the ticks would not give. Outside a burst every command moves every joint it can at
+once: the slave hears of it without waiting for a tick.
 Time is an argument everywhere (seconds, any monotonic origin): nothing here reads a clock.
 """
 
@@ -173,6 +180,8 @@ class MotionLimiter:
             for j in model.joints
         }
         self._moving: bool | None = False  # None: not known since the goals last changed
+        # Joints the last `set_goals` aimed that were at rest: what a command moves at once.
+        self._fresh: list[_JointMotion] = []
 
     @property
     def positions(self) -> dict[str, float]:
@@ -194,9 +203,13 @@ class MotionLimiter:
         return self._moving
 
     def set_goals(self, goals: Iterable[ResolvedGoal], duration: float | None, now: float) -> None:
-        """Aim joints at new goals; with `duration`, follow a smooth curve over that time."""
+        """Aim joints at new goals; with `duration`, follow a smooth curve over that time.
+        `advance(now, fresh=True)` then moves the joints that were at rest."""
+        fresh = self._fresh = []
         for goal in goals:
             motion = self._joints[goal.name]
+            if motion.position == motion.goal and motion.profile is None:
+                fresh.append(motion)
             motion.refill(now)  # what was earned so far, at the old speed
             motion.goal = goal.value
             motion.speed = goal.speed
@@ -205,13 +218,14 @@ class MotionLimiter:
             motion.profile = (motion.position, now, duration) if duration else None
         self._moving = None
 
-    def advance(self, now: float) -> dict[str, float] | None:
-        """Move every joint as far toward its goal as its budget allows.
+    def advance(self, now: float, *, fresh: bool = False) -> dict[str, float] | None:
+        """Move every joint as far toward its goal as its budget allows (with `fresh`, only
+        the joints the last `set_goals` found at rest: a command's own step).
 
         Returns the full target vector if any joint moved, else None.
         """
         changed = moving = False
-        for motion in self._joints.values():
+        for motion in self._fresh if fresh else self._joints.values():
             desired = motion.desired(now)
             delta = desired - motion.position
             if delta != 0.0:
@@ -230,7 +244,7 @@ class MotionLimiter:
                     moving = True
             elif motion.position != motion.goal:
                 moving = True
-        self._moving = moving
+        self._moving = None if fresh else moving  # `fresh` saw only some joints
         return self.positions if changed else None
 
     def stop_at(self, positions: Mapping[str, float]) -> None:

@@ -168,7 +168,7 @@ def _follow(fleet: FleetNode, robot: Robot) -> None:
 
     async def publish() -> None:
         try:
-            with robot.subscribe(maxlen=256) as events:
+            with robot.subscribe(maxlen=256, kinds=[StateChanged]) as events:
                 async for event in events:
                     if isinstance(event, StateChanged):
                         fleet.publish_state(

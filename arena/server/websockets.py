@@ -333,6 +333,10 @@ async def _heartbeats(connection: Connection) -> None:
         await connection.send(wire.HeartbeatMessage(timestamp=wire.now_iso()))
 
 
+#: The events a `_RobotEventForwarder` makes messages of (its queue takes no others).
+_FORWARDED = (StateChanged, JointStatesReceived, TargetsSent)
+
+
 class _RobotEventForwarder:
     """State changes at once; joint states once per `joint_states_interval` on average.
 
@@ -395,6 +399,8 @@ class _RobotEventForwarder:
 
     def take_due(self) -> list[Outgoing]:
         """What is ready to go now, taken from the queue (the task then finds it empty)."""
+        if not (self.events or self.pending):  # most commands of a burst: nothing new to say
+            return []
         messages = self._messages(self.events.drain())
         if self._waiting is not None:  # joint states held back: the task sends them when due
             deadline = self._deadline()
@@ -463,7 +469,7 @@ async def master_socket(connection: Connection, robot_id: str) -> None:
     app.metrics.connections["master"] += 1
     try:
         await connection.send(convert.state(robot.snapshot()))
-        with robot.subscribe(maxlen=256) as events:
+        with robot.subscribe(maxlen=256, kinds=_FORWARDED) as events:
             player = _SequencePlayer()
             forwarder = _RobotEventForwarder(connection, robot, events)
             if connection.wants_joint_states:
@@ -537,7 +543,10 @@ async def _group_master_socket(connection: Connection, group_id: str) -> None:
     members = _GroupMembers(connection, dict(links))
     try:
         with contextlib.ExitStack() as stack:
-            queues = [stack.enter_context(robot.subscribe(maxlen=256)) for robot in robots]
+            queues = [
+                stack.enter_context(robot.subscribe(maxlen=256, kinds=_FORWARDED))
+                for robot in robots
+            ]
             for robot in robots:
                 await connection.send(convert.state(robot.snapshot()))
 
@@ -693,10 +702,11 @@ async def _handle_master_message(
         data = message.data
         command = convert.command_from_wire(data.joints, data.duration, data.metadata)
         # The command counts as a heartbeat (the robot notes the time of each).
+        in_burst = _burst_continues.get()
         with forwarder.handling_command():
-            result = link.command_now(command)
+            result = link.command_now(command, in_burst=in_burst)
             if result is None:
-                result = await link.command(command)
+                result = await link.command(command, in_burst=in_burst)
             # The joint states the command caused ride along: one write instead of two.
             due = forwarder.take_due()
         if connection.wants_acks or not result.accepted:
@@ -821,7 +831,7 @@ async def state_socket(connection: Connection, robot_id: str) -> None:
     app = connection.app
     app.metrics.connections["viewer"] += 1
     try:
-        with robot.subscribe(maxlen=256) as events:
+        with robot.subscribe(maxlen=256, kinds=_FORWARDED) as events:
             await connection.send(convert.state(robot.snapshot()))
             if connection.wants_joint_states:
                 await connection.send(convert.joint_states(robot))
