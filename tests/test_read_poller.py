@@ -44,7 +44,7 @@ async def connection(listener: trio.socket.SocketType) -> AsyncIterator[SocketPa
 
 @pytest.fixture
 async def poller(nursery: trio.Nursery) -> ReadPoller:
-    poller = ReadPoller()
+    poller = ReadPoller(shared_from=0)  # every reader waits on the poller's epoll
     nursery.start_soon(poller.run)
     await trio.testing.wait_all_tasks_blocked()
     return poller
@@ -142,10 +142,45 @@ async def test_a_socket_number_reused_after_a_close_is_watched_again(
         sock.close()
 
 
+async def _read_when_ready(poller: ReadPoller, sock: trio.socket.SocketType) -> bytes:
+    """Wait and read as the transport does: a wake-up that finds nothing waits again."""
+    with trio.fail_after(60):  # virtual time: fails at once if the reader is never woken
+        while True:
+            await poller.wait_readable(sock)
+            try:
+                return os.read(sock.fileno(), 100)
+            except BlockingIOError:
+                continue
+
+
+async def test_readers_wait_on_trio_until_enough_sockets_share_the_poller(
+    nursery: trio.Nursery,
+    listener: trio.socket.SocketType,
+    autojump_clock: trio.testing.MockClock,
+) -> None:
+    poller = ReadPoller(shared_from=2)
+    nursery.start_soon(poller.run)
+    (server, client), (other, _) = await _connected(listener), await _connected(listener)
+    poller.attach(server)
+    assert await _waits_forever(poller, server)
+    assert not poller._sockets  # one socket: trio's own wait, nothing registered here
+    await client.send(b"alone")
+    assert await _read_when_ready(poller, server) == b"alone"
+    poller.attach(other)  # two: both wait on the poller from now on
+    assert await _waits_forever(poller, server)
+    assert server.fileno() in poller._sockets
+    await client.send(b"shared")
+    assert await _read_when_ready(poller, server) == b"shared"
+    poller.forget(other)  # back to one: trio's wait again, with the edge the poller kept
+    await client.send(b"alone again")
+    assert await _read_when_ready(poller, server) == b"alone again"
+    assert await _waits_forever(poller, server)
+
+
 async def test_once_the_poller_stops_readers_wait_on_trio(
     listener: trio.socket.SocketType, autojump_clock: trio.testing.MockClock
 ) -> None:
-    poller = ReadPoller()
+    poller = ReadPoller(shared_from=0)
     server, client = await _connected(listener)
     woke = trio.Event()
 

@@ -153,6 +153,8 @@ def split_topic(name: str) -> tuple[str, str] | None:
 
 def record_of(event: RobotEvent) -> tuple[str, msgspec.Struct]:
     """The (kind, record) for a robot event."""
+    if isinstance(event, TargetsSent):  # the most frequent first
+        return "targets", TargetsRecord(t=event.time, joints=event.joints)
     if isinstance(event, CommandHandled):
         command, result = event.command, event.result
         return "command", CommandRecord(
@@ -166,8 +168,6 @@ def record_of(event: RobotEvent) -> tuple[str, msgspec.Struct]:
             message=result.message,
             clamped=[ClampInfo(c.joint, c.requested, c.applied) for c in result.clamped],
         )
-    if isinstance(event, TargetsSent):
-        return "targets", TargetsRecord(t=event.time, joints=event.joints)
     if isinstance(event, JointStatesReceived):
         return "joint_states", JointStatesRecord(
             t=event.time, slave_id=event.slave_id, joints=event.joints

@@ -28,6 +28,7 @@ file behind.
 from __future__ import annotations
 
 import contextlib
+import operator
 import os
 import pickle
 import struct
@@ -58,6 +59,7 @@ pack_events = msgspec.msgpack.Encoder().encode
 _unpack_slice = msgspec.msgpack.Decoder(list[tuple[str, str, msgspec.Raw, int]]).decode
 _event_decoders = {kind: msgspec.msgpack.Decoder(event) for kind, event in PACKED_TYPES.items()}
 _json = msgspec.json.Encoder()
+_LOG_TIME = operator.itemgetter(3)
 
 
 def items_of_events(slices: list[bytes], twins: Twins | None = None) -> list[Item]:
@@ -78,7 +80,7 @@ def items_of_events(slices: list[bytes], twins: Twins | None = None) -> list[Ite
                 items.extend(twins.items(robot_id, robot_event, log_time))
     if twins is not None:
         items.extend(twins.flush())
-    items.sort(key=lambda item: item[3])
+    items.sort(key=_LOG_TIME)
     return items
 
 

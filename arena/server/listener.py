@@ -284,6 +284,8 @@ class ArenaListener:
                 high_water=self.queue_bytes,
                 poller=self._poller,
             )
+            if self._poller is not None and isinstance(stream, trio.SocketStream):
+                self._poller.attach(stream.socket)
             if rest:
                 websocket.feed(rest)
             async with trio.open_nursery() as nursery:
