@@ -39,6 +39,7 @@ from arena.robot.events import (
 from arena.robot.links import MasterLink, SlaveLink
 from arena.robot.mailbox import EventQueue
 from arena.robot.manager import estop_together
+from arena.robot.motion import CommandResult
 from arena.server import convert
 from arena.server.auth import check_token
 from arena.server.base import ArenaApp
@@ -114,6 +115,22 @@ class Encoded(NamedTuple):
 
 
 Outgoing = msgspec.Struct | Encoded
+
+_accepted_ack = ("", Encoded("ack", ""))  # (timestamp, the plain acceptance encoded)
+
+
+def _ack(result: CommandResult) -> Outgoing:
+    """The ack of a command; a plain acceptance is encoded once per millisecond (the
+    timestamp's resolution), since a burst of commands gets many in one."""
+    global _accepted_ack
+    if not result.accepted or result.clamped:
+        return convert.ack(result)
+    stamp = wire.now_iso()
+    if stamp != _accepted_ack[0]:
+        message = wire.AckMessage(timestamp=stamp, data=wire.AckData("accepted"))
+        _accepted_ack = (stamp, Encoded("ack", wire.encode(message)))
+    return _accepted_ack[1]
+
 
 #: Kinds of which a peer that is behind gets only the newest, once it reads again.
 _LATEST_KINDS = frozenset({"state", "joint_states"})
@@ -710,7 +727,7 @@ async def _handle_master_message(
             # The joint states the command caused ride along: one write instead of two.
             due = forwarder.take_due()
         if connection.wants_acks or not result.accepted:
-            await connection.send(convert.ack(result), *due)
+            await connection.send(_ack(result), *due)
         elif due:
             await connection.send(*due)
         return
