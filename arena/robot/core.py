@@ -172,11 +172,11 @@ class RobotCore:
             urdf: neutral + math.radians(degrees[name]) for name, urdf, neutral in self._to_urdf
         }
 
-    def _pose(self, degrees: Mapping[str, float]) -> tuple[float, ...]:
+    def _pose(self, degrees: Mapping[str, float]) -> list[float]:
         """A pose as the guard's `near` takes it, from every joint's wire degrees in the
         model's order (as the limiter's `goals` and `positions` list them)."""
         values = list(degrees.values())
-        return tuple(neutral + values[k] * scale for k, neutral, scale in self._to_guard)
+        return [neutral + values[k] * scale for k, neutral, scale in self._to_guard]
 
     def _guard(
         self, goals: list[ResolvedGoal]
@@ -230,14 +230,17 @@ class RobotCore:
         self._sent = targets
         return targets
 
-    def _near_reference(self, pose: tuple[float, ...]) -> bool:
+    def _near_reference(self, pose: list[float]) -> bool:
         """True when no part of the arm can have moved from a pose checked in full (`_pose`)
         as far as its clearance (so `pose`, and the way to it, are safe without a check)."""
         if self.workspace is not self._reference_workspace:
             self._references.clear()
             return False
         near = self.guard.near  # type: ignore[union-attr]  # only called with a guard
-        return any(near(reference, pose) for reference in self._references)
+        for reference in self._references:  # noqa: SIM110 (a generator costs more, per command)
+            if near(reference, pose):
+                return True
+        return False
 
     def _remember(self, pose: dict[str, float], clearance: tuple[float, ...]) -> None:
         """Keep a pose checked in full, with its clearance, as a reference."""
