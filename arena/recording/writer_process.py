@@ -35,6 +35,7 @@ import struct
 import subprocess
 import sys
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any, cast
 
@@ -62,11 +63,15 @@ _json = msgspec.json.Encoder()
 _LOG_TIME = operator.itemgetter(3)
 
 
-def items_of_events(slices: list[bytes], twins: Twins | None = None) -> list[Item]:
+def items_of_events(
+    slices: list[bytes], twins: Twins | None = None, pause: Callable[[], object] | None = None
+) -> list[Item]:
     """The records of packed event slices (and with `twins`, Foxglove's view of them), in
-    log-time order."""
+    log-time order; `pause` is called after each slice."""
     items: list[Item] = []
     for packed in slices:
+        if pause is not None:
+            pause()
         for robot_id, kind, raw, log_time in _unpack_slice(packed):
             event = _event_decoders[kind].decode(raw)
             if isinstance(event, CameraFrame):
@@ -247,8 +252,12 @@ def serve(requests: IO[bytes], replies: IO[bytes]) -> None:
                     if kind == "write":
                         unpacked = _unpack_items(items)
                     else:
-                        unpacked = items_of_events(items, twins)
-                    writer.write(unpacked, flush=flush)
+                        unpacked = items_of_events(items, twins, _PAUSE)
+                    for start in range(0, len(unpacked), _WRITE_PIECE):
+                        writer.write(unpacked[start : start + _WRITE_PIECE], flush=False)
+                        _PAUSE()
+                    if flush:
+                        writer.flush()
                 else:
                     writer.close()
             except OSError as exc:
@@ -258,6 +267,16 @@ def serve(requests: IO[bytes], replies: IO[bytes]) -> None:
     finally:
         with contextlib.suppress(OSError):
             writer.close()
+
+
+#: Records written between pauses (`_PAUSE`).
+_WRITE_PIECE = 256
+#: The child gives up its CPU now and then (after each slice of events, each piece of
+#: records): on the development VM an idle-priority process was not always preempted when
+#: the server's client woke on its CPU, and a batch's 2-3 ms of work showed as spikes of that
+#: size in the relay's latency, one every batch in some runs. A yield every ~100 us of work
+#: lets whatever waits run.
+_PAUSE: Callable[[], object] = getattr(os, "sched_yield", lambda: None)
 
 
 def _yield_to_everything_else() -> None:
