@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
+import itertools
 import json
 import os
 from collections.abc import Awaitable, Callable
@@ -18,9 +20,10 @@ from trio_websocket import ConnectionClosed, WebSocketConnection, open_websocket
 
 from arena.protocol import messages as wire
 from arena.robot.actor import Robot
-from arena.robot.events import RobotEvent
+from arena.robot.events import CommandHandled, RobotEvent, TargetsSent
 from arena.robot.mailbox import EventQueue
 from arena.robot.manager import RobotManager
+from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
 from arena.server.websockets import _burst_continues, _RobotEventForwarder, _slave_writer
 from arena.server.ws_frames import encode_frame
@@ -529,6 +532,63 @@ async def test_a_slave_gets_each_lone_command_at_once_and_the_newest_of_a_burst(
         seen = await rotations_until(burst[-1])
         assert len(seen) < len(burst) and seen == sorted(seen)
         await master.aclose()
+
+
+async def test_a_burst_faster_than_the_arm_is_acked_and_recorded_whole_with_targets_on_the_ticks(
+    server: RunningServer,
+) -> None:
+    # 300 commands in one write, 0.3 degree apart: far beyond what Rotation may move in the
+    # time. Every one is acknowledged and recorded; the trailing joint moves on the control
+    # ticks (not once per command), and the slave ends at the last goal.
+    model = load_robot_model("so-arm100")
+    robot = await server.app.manager.create_robot(
+        "so-arm100",
+        robot_id="fast",
+        policy=dataclasses.replace(model.safety, command_rate=1e9, command_burst=10**9),
+    )
+    goals = [round(0.3 * n, 1) for n in range(1, 301)]  # to 90 degrees, inside the limits
+    with robot.subscribe(maxlen=10_000) as events:
+        async with open_websocket_url(server.ws_url + "/ws/slave/fast?id=ws-slave") as slave:
+            master = await RawWebSocket.connect(server.url, "/ws/master/fast")
+            frames = [
+                encode_frame(
+                    OP_TEXT,
+                    json.dumps(
+                        {"type": "command", "data": {"joints": [{"name": "Rotation", "value": v}]}}
+                    ).encode(),
+                    mask=os.urandom(4),
+                )
+                for v in goals
+            ]
+            await master.stream.send_all(b"".join(frames))  # one write: a burst
+            acks = 0
+            with trio.fail_after(30):
+                while acks < len(goals):
+                    frame = await master.receive_frame()
+                    assert frame is not None
+                    doc = json.loads(frame.payload)
+                    if doc["type"] == "ack":
+                        assert doc["data"]["status"] == "accepted"
+                        acks += 1
+                while True:  # the slave is taken to the last goal at the velocity limit
+                    doc = await receive(slave, "execute_command")
+                    rotation = {j["name"]: j["value"] for j in doc["data"]["joints"]}["Rotation"]
+                    if rotation == goals[-1]:
+                        break
+            await master.aclose()
+        seen: list[RobotEvent] = []
+        while len(events):
+            seen.append(events.get_nowait())
+    commanded = [e for e in seen if isinstance(e, CommandHandled)]
+    targets = [e for e in seen if isinstance(e, TargetsSent)]
+    assert [e.command.joints[0].value for e in commanded] == goals
+    assert len(targets) < len(goals) / 2  # ~one per tick, not one per command
+    assert targets[-1].joints["Rotation"] == goals[-1]
+    speed = model.joint("Rotation").max_velocity  # type: ignore[union-attr]
+    budget = speed * model.safety.velocity_burst
+    for before, after in itertools.pairwise(targets):
+        moved = abs(after.joints["Rotation"] - before.joints["Rotation"])
+        assert moved <= speed * (after.time - before.time) + budget + 1e-9
 
 
 async def test_the_slave_writer_lets_the_robot_write_lone_targets_itself(
