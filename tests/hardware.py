@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+import inspect
+from collections.abc import Awaitable, Callable, Iterator
 from pathlib import Path
 
 import trio
@@ -42,14 +43,19 @@ def usb_slave(
 
 
 async def eventually(
-    check: Callable[[], bool], timeout: float = 30.0, what: str = "condition"
+    check: Callable[[], bool | Awaitable[bool]], timeout: float = 30.0, what: str = "condition"
 ) -> None:
-    """Wait (real time) until `check()` holds; fail the test after `timeout` seconds (a
-    deadline only a broken feature reaches, never a slow machine)."""
+    """Wait until `check()` holds (it may be async, such as a question to a server); fail the
+    test after `timeout` seconds (a deadline only a broken feature reaches, never a slow
+    machine)."""
     with trio.move_on_after(timeout):
-        while not check():
+        while True:
+            held = check()
+            if inspect.isawaitable(held):
+                held = await held
+            if held:
+                return
             await trio.sleep(0.01)
-        return
     raise AssertionError(f"timed out waiting for {what}")
 
 

@@ -15,6 +15,7 @@ from arena.drivers.sequences import get_sequence, parse_sequence
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot.actor import Robot
 from arena.robot.events import (
+    CommandHandled,
     FaultReported,
     JointStatesReceived,
     NoticeKind,
@@ -22,6 +23,7 @@ from arena.robot.events import (
     SlaveNotice,
     SlaveTarget,
     StateChanged,
+    TargetsSent,
 )
 from arena.robot.inbox import DriverEndedMsg
 from arena.robot.links import MasterLink
@@ -160,6 +162,29 @@ async def test_joint_states_update_real_values(
     snapshot = robot.snapshot()
     assert snapshot.joint("Rotation").real_value == 12.5
     assert snapshot.joint("Elbow").real_value is None
+
+
+async def test_an_observer_of_some_kinds_gets_only_those_and_the_others_get_all(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    link = await robot.connect_slave("s1")
+    with robot.subscribe() as everything, robot.subscribe(kinds=[StateChanged]) as states:
+        assert (await robot.command(Command.of({"Rotation": 1.0}))).accepted
+        await link.report_joint_states({"Rotation": 1.0})
+        await robot.estop("test")
+        await trio.sleep(0.01)
+        every = {type(everything.get_nowait()) for _ in range(len(everything))}
+        only = [states.get_nowait() for _ in range(len(states))]
+    assert {CommandHandled, TargetsSent, JointStatesReceived, StateChanged} <= every
+    assert only and all(isinstance(event, StateChanged) for event in only)
+    assert only[-1].mode is Mode.ESTOPPED
+    # The routing follows subscribers that come and go.
+    with robot.subscribe(kinds=[CommandHandled]) as commands:
+        await robot.reset()
+        assert (await robot.command(Command.of({"Rotation": 2.0}))).accepted
+        await trio.sleep(0.01)
+        assert len(commands) == 1 and isinstance(commands.get_nowait(), CommandHandled)
 
 
 async def test_manual_commands_are_rate_limited(

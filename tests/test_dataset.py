@@ -25,6 +25,7 @@ from arena.recording.mcap_file import read_recording
 from arena.recording.replay import ReplayMaster, recorded_commands
 from arena.robot.manager import open_manager
 from arena.robot.model import load_robot_model
+from arena.robot.motion import Command
 from arena.sensors.sources import read_pattern_counter
 from arena.session import record_scenario
 from tests.conftest import RecordingSlave, RunningServer
@@ -202,6 +203,14 @@ async def test_import_then_replay_under_mock_clock_gives_the_dataset_actions(
     marks = [m.data["task"] for m in recording.messages if m.kind == "episode"]
     assert marks == ["stack", "stack"]
 
+    def at_pose(slave: RecordingSlave, command: Command) -> Callable[[], bool]:
+        """A check: the slave's newest target is the command's pose."""
+        goals = {goal.name: goal.value for goal in command.joints}
+        return lambda: (
+            bool(slave.targets)
+            and all(slave.targets[-1][1][name] == value for name, value in goals.items())
+        )
+
     async def replay() -> list[dict[str, float]]:
         slave = RecordingSlave()
         async with trio.open_nursery() as nursery:
@@ -209,12 +218,11 @@ async def test_import_then_replay_under_mock_clock_gives_the_dataset_actions(
                 robot = await manager.create_robot("so-arm100", robot_id="dataset-arm")
                 await robot.attach_slave(slave)
                 await robot.command(commands[0].command)  # from the episode's first pose
-                await trio.sleep(1.0)
+                await eventually(at_pose(slave, commands[0].command), what="the first pose")
                 master = ReplayMaster(commands)
                 await robot.attach_master(master)
-                while robot.snapshot().master is not None:
-                    await trio.sleep(0.05)
-                await trio.sleep(1.0)
+                await eventually(lambda: robot.snapshot().master is None, what="the replay")
+                await eventually(at_pose(slave, commands[-1].command), what="the last pose")
             nursery.cancel_scope.cancel()
         return [joints for _, joints in slave.targets]
 

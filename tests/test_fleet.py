@@ -26,17 +26,11 @@ from arena.fleet.node import FleetSettings
 from arena.protocol.errors import ArenaError
 from arena.recording.mcap_file import read_recording
 from tests.conftest import RunningServer
+from tests.hardware import eventually
 
 pytest.importorskip("zenoh")
 
 Start = Callable[..., Awaitable[RunningServer]]
-
-
-async def eventually(check: Callable[[], Awaitable[bool]], limit: float = 20.0) -> None:
-    """Wait until `check` holds (asked every 50 ms); the limit only ends a broken test."""
-    with trio.fail_after(limit):
-        while not await check():
-            await trio.sleep(0.05)
 
 
 async def start_fleet(start_server: Start, names: list[str], **first: Any) -> list[RunningServer]:
@@ -275,7 +269,7 @@ async def test_a_killed_node_goes_offline_its_masters_are_told_and_it_comes_back
 
     process = spawn_node("far", locator, tmp_path / "far")
     try:
-        await eventually(partial(demo_is, "idle"), limit=60)
+        await eventually(partial(demo_is, "idle"), timeout=60)
         async with open_websocket_url(hub.ws_url + "/ws/master/demo-arm") as master:
             await master.send_message(command(3))
             assert (await next_of(master, "ack"))["data"]["status"] == "accepted"
@@ -296,7 +290,7 @@ async def test_a_killed_node_goes_offline_its_masters_are_told_and_it_comes_back
             gone = await http.get("/api/robots/demo-arm")
             assert gone.status_code == 404  # not routed to a node that is gone
         process = spawn_node("far", locator, tmp_path / "far-again")
-        await eventually(partial(demo_is, "idle"), limit=60)
+        await eventually(partial(demo_is, "idle"), timeout=60)
         async with hub.client() as http:
             back = await http.get("/api/robots/demo-arm")
             assert back.status_code == 200 and back.headers["x-arena-node"] == "far"

@@ -359,7 +359,7 @@ class CollisionModel:
         than twice `reach` times the sum of the turns (a prismatic joint's metres count
         once), and only the gaps the moving joints can change are at stake (the floor's only
         by the share of each sweep that goes up or down). Called for every command and target
-        while an arm moves, so it is one pass over plain tuples."""
+        while an arm moves, so it is one pass over plain sequences."""
         if not reference.checked:
             return False
         total = floor_total = 0.0  # how far any point may have moved; up or down
