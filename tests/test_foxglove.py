@@ -11,6 +11,7 @@ import itertools
 import json
 import math
 import random
+import re
 import struct
 from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
@@ -248,13 +249,48 @@ async def advertised(ws: WebSocketConnection, wanted: set[str]) -> dict[str, dic
     return channels
 
 
-async def next_data(ws: WebSocketConnection, subscriptions: dict[int, str]) -> tuple[str, bytes]:
-    """The next message data frame: (its channel's topic, payload)."""
-    while True:
-        message = await ws.get_message()
-        if isinstance(message, bytes) and message[0] == 0x01:
-            (subscription,) = struct.unpack_from("<I", message, 1)
-            return subscriptions[subscription], message[13:]
+class Subscriptions:
+    """A Foxglove client's subscriptions, and the data they bring.
+
+    foxglove-sdk (0.30, and its main branch) sends a channel's advertisement before it records
+    the channel as known to the client, so a subscription sent the moment the advertisement
+    arrives can be refused; the server says so in a status message ("Unknown channel ID: N").
+    A refused subscription is sent again, as a client that reads its status messages would.
+    """
+
+    def __init__(self, ws: WebSocketConnection) -> None:
+        self.ws = ws
+        self.topics: dict[int, str] = {}  # subscription id -> topic
+        self._requests: dict[int, dict[str, int]] = {}  # channel id -> its subscribe request
+
+    async def add(self, channels: dict[str, dict[str, Any]]) -> None:
+        """Subscribe to these advertised channels (topic -> advertisement)."""
+        requests = []
+        for topic, channel in channels.items():
+            number = len(self.topics) + 1
+            self.topics[number] = topic
+            request = self._requests[channel["id"]] = {"id": number, "channelId": channel["id"]}
+            requests.append(request)
+        await self.ws.send_message(json.dumps({"op": "subscribe", "subscriptions": requests}))
+
+    async def next_data(self) -> tuple[str, bytes]:
+        """The next message of a subscription: (its topic, payload)."""
+        while True:
+            message = await self.ws.get_message()
+            if isinstance(message, bytes):
+                if message[0] == 0x01:
+                    (number,) = struct.unpack_from("<I", message, 1)
+                    return self.topics[number], message[13:]
+                continue
+            parsed = json.loads(message)
+            refused = parsed["op"] == "status" and re.fullmatch(
+                r"Unknown channel ID: (\d+)", parsed["message"]
+            )
+            if refused and int(refused.group(1)) in self._requests:
+                request = self._requests[int(refused.group(1))]
+                await self.ws.send_message(
+                    json.dumps({"op": "subscribe", "subscriptions": [request]})
+                )
 
 
 async def test_live_foxglove_clients_see_twins_joints_and_stops(
@@ -284,20 +320,10 @@ async def watch_live(server: RunningServer, url: str, topics: set[str]) -> None:
             else:
                 assert name.endswith(("/targets", "/joint_states"))
                 assert channel["encoding"] == "json"
-        subscriptions = {number: topic for number, topic in enumerate(sorted(topics))}
-        await ws.send_message(
-            json.dumps(
-                {
-                    "op": "subscribe",
-                    "subscriptions": [
-                        {"id": number, "channelId": channels[topic]["id"]}
-                        for number, topic in subscriptions.items()
-                    ],
-                }
-            )
-        )
+        subscriptions = Subscriptions(ws)
+        await subscriptions.add({name: channels[name] for name in topics})
         # a new subscriber gets the 3D model
-        while (got := await next_data(ws, subscriptions))[0] != "/robots/demo-arm/scene":
+        while (got := await subscriptions.next_data())[0] != "/robots/demo-arm/scene":
             pass
         scene = decode("foxglove.SceneUpdate", got[1])
         assert {e.frame_id for e in scene.entities if e.models} >= {"demo-arm/real/base"}
@@ -315,7 +341,7 @@ async def watch_live(server: RunningServer, url: str, topics: set[str]) -> None:
             expected = joint.transform(rotation.to_urdf(30.0))[0]
             reached = False
             while not reached:
-                name, payload = await next_data(ws, subscriptions)
+                name, payload = await subscriptions.next_data()
                 if name != "/robots/demo-arm/tf":
                     continue
                 message = decode("foxglove.FrameTransforms", payload)
@@ -326,7 +352,7 @@ async def watch_live(server: RunningServer, url: str, topics: set[str]) -> None:
             stopped = await http.post("/api/robots/demo-arm/estop", json={"reason": "fox test"})
             assert stopped.status_code == 200
         while True:
-            name, payload = await next_data(ws, subscriptions)
+            name, payload = await subscriptions.next_data()
             if name == "/robots/demo-arm/log":
                 line = decode("foxglove.Log", payload)
                 if line.message == "E-STOP: fox test":
@@ -353,11 +379,11 @@ async def test_live_foxglove_shows_each_camera_as_compressed_images(
             assert base64.b64decode(channels[topic]["schema"]) == shipped_schema(
                 "foxglove.CompressedImage"
             )
-            subscribe = {"id": 7, "channelId": channels[topic]["id"]}
-            await ws.send_message(json.dumps({"op": "subscribe", "subscriptions": [subscribe]}))
+            subscriptions = Subscriptions(ws)
+            await subscriptions.add({topic: channels[topic]})
             counters = []
             while len(counters) < 3:
-                _, payload = await next_data(ws, {7: topic})
+                _, payload = await subscriptions.next_data()
                 image = decode("foxglove.CompressedImage", payload)
                 assert (image.format, image.frame_id) == ("jpeg", "demo-arm/cameras/front")
                 counters.append(read_pattern_counter(jpeg_rgb(image.data)))

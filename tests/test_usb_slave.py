@@ -229,16 +229,18 @@ async def test_follows_a_sequence_closely(manager: RobotManager, sim: PtySimBus)
     from arena.drivers.sequence_master import SequenceMaster
     from arena.drivers.sequences import parse_sequence
 
+    # Each pose is held a second after its 0.4 s move: the servos (simulated behind a pty, on
+    # real time) must get there, however busy the machine, before the next move begins.
     sequence = parse_sequence(
         {
             "id": "short",
             "name": "short",
             "commands": [
                 {"timestamp": 0, "duration": 400, "joints": [{"name": "Elbow", "value": -20}]},
-                {"timestamp": 500, "duration": 400, "joints": [{"name": "Elbow", "value": 15}]},
-                {"timestamp": 1000, "duration": 400, "joints": [{"name": "Elbow", "value": 0}]},
+                {"timestamp": 1400, "duration": 400, "joints": [{"name": "Elbow", "value": 15}]},
+                {"timestamp": 2800, "duration": 400, "joints": [{"name": "Elbow", "value": 0}]},
             ],
-            "total_duration": 1500,
+            "total_duration": 3200,
         }
     )
     robot = await manager.create_robot("so-arm100", robot_id="arm")
