@@ -7,6 +7,7 @@ import dataclasses
 import itertools
 import json
 import os
+import struct
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from types import SimpleNamespace
@@ -26,7 +27,7 @@ from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
 from arena.server.websockets import _burst_continues, _RobotEventForwarder, _slave_writer
-from arena.server.ws_frames import encode_frame
+from arena.server.ws_frames import OP_BINARY, OP_PING, OP_PONG, encode_frame
 from tests.conftest import RunningServer
 from tests.raw_websocket import OP_CLOSE, OP_TEXT, RawWebSocket
 
@@ -501,6 +502,24 @@ async def test_deleting_a_robot_closes_its_sockets(server: RunningServer) -> Non
         assert await closed_with(master) in (1000, 4404)
 
 
+async def unlimited_robot(server: RunningServer, robot_id: str) -> Robot:
+    """A so-arm100 whose per-master rate limit is lifted (bursts here go beyond it)."""
+    model = load_robot_model("so-arm100")
+    policy = dataclasses.replace(model.safety, command_rate=1e9, command_burst=10**9)
+    robot: Robot = await server.app.manager.create_robot(
+        "so-arm100", robot_id=robot_id, policy=policy
+    )
+    return robot
+
+
+def masked_command(value: float) -> bytes:
+    """A client's frame of a command moving Rotation to `value`."""
+    text = json.dumps(
+        {"type": "command", "data": {"joints": [{"name": "Rotation", "value": value}]}}
+    )
+    return encode_frame(OP_TEXT, text.encode(), mask=os.urandom(4))
+
+
 async def test_a_slave_gets_each_lone_command_at_once_and_the_newest_of_a_burst(
     server: RunningServer,
 ) -> None:
@@ -516,19 +535,13 @@ async def test_a_slave_gets_each_lone_command_at_once_and_the_newest_of_a_burst(
                 seen += [j["value"] for j in doc["data"]["joints"] if j["name"] == "Rotation"]
             return seen
 
-        def frame(value: float) -> bytes:
-            text = json.dumps(
-                {"type": "command", "data": {"joints": [{"name": "Rotation", "value": value}]}}
-            )
-            return encode_frame(OP_TEXT, text.encode(), mask=os.urandom(4))
-
         lone = [0.01, 0.02, 0.03]  # moves done in one step: one target each
         for value in lone:
-            await master.stream.send_all(frame(value))
+            await master.stream.send_all(masked_command(value))
             assert await rotations_until(value) == [value]
         await trio.sleep(0.2)  # the robot's rate limit refills its burst of ten
         burst = [0.01 * n for n in range(4, 14)]
-        await master.stream.send_all(b"".join(frame(v) for v in burst))  # one write
+        await master.stream.send_all(b"".join(masked_command(v) for v in burst))  # one write
         seen = await rotations_until(burst[-1])
         assert len(seen) < len(burst) and seen == sorted(seen)
         await master.aclose()
@@ -541,26 +554,12 @@ async def test_a_burst_faster_than_the_arm_is_acked_and_recorded_whole_with_targ
     # time. Every one is acknowledged and recorded; the trailing joint moves on the control
     # ticks (not once per command), and the slave ends at the last goal.
     model = load_robot_model("so-arm100")
-    robot = await server.app.manager.create_robot(
-        "so-arm100",
-        robot_id="fast",
-        policy=dataclasses.replace(model.safety, command_rate=1e9, command_burst=10**9),
-    )
+    robot = await unlimited_robot(server, "fast")
     goals = [round(0.3 * n, 1) for n in range(1, 301)]  # to 90 degrees, inside the limits
     with robot.subscribe(maxlen=10_000) as events:
         async with open_websocket_url(server.ws_url + "/ws/slave/fast?id=ws-slave") as slave:
             master = await RawWebSocket.connect(server.url, "/ws/master/fast")
-            frames = [
-                encode_frame(
-                    OP_TEXT,
-                    json.dumps(
-                        {"type": "command", "data": {"joints": [{"name": "Rotation", "value": v}]}}
-                    ).encode(),
-                    mask=os.urandom(4),
-                )
-                for v in goals
-            ]
-            await master.stream.send_all(b"".join(frames))  # one write: a burst
+            await master.stream.send_all(b"".join(map(masked_command, goals)))  # a burst
             acks = 0
             with trio.fail_after(30):
                 while acks < len(goals):
@@ -589,6 +588,61 @@ async def test_a_burst_faster_than_the_arm_is_acked_and_recorded_whole_with_targ
     for before, after in itertools.pairwise(targets):
         moved = abs(after.joints["Rotation"] - before.joints["Rotation"])
         assert moved <= speed * (after.time - before.time) + budget + 1e-9
+
+
+async def test_a_burst_of_commands_and_other_messages_is_answered_in_order(
+    server: RunningServer,
+) -> None:
+    # Frames in hand together are taken at once and each run of commands among them is
+    # decided in one pass: every message still gets its own answer, in the order sent, the
+    # commands between bad messages all count, and a close among them comes after the answers
+    # to what was sent before it.
+    robot = await unlimited_robot(server, "mixed")
+
+    def masked(opcode: int, payload: bytes) -> bytes:
+        return encode_frame(opcode, payload, mask=os.urandom(4))
+
+    frames, expected, goals = [], [], []
+    for n, (raw, code) in enumerate(BAD_MESSAGES):
+        goals.append(float(n + 1))
+        frames.append(masked_command(goals[-1]))
+        expected.append("accepted")
+        bad = raw if isinstance(raw, bytes) else raw.encode()
+        frames.append(masked(OP_BINARY if isinstance(raw, bytes) else OP_TEXT, bad))
+        expected.append(code)
+    frames.append(masked(OP_PING, b"still there?"))
+    frames.append(masked(OP_TEXT, b'{"type": "heartbeat"}'))
+    expected.append("heartbeat")
+    goals.append(40.0)
+    frames.append(masked_command(goals[-1]))
+    expected.append("accepted")
+    frames.append(masked(OP_CLOSE, struct.pack("!H", 1000)))
+    with robot.subscribe(maxlen=1000) as events:
+        master = await RawWebSocket.connect(server.url, "/ws/master/mixed")
+        await master.stream.send_all(b"".join(frames))  # one write
+        answers, pongs = [], []
+        with trio.fail_after(30):
+            while (frame := await master.receive_frame()) is not None:
+                if frame.opcode == OP_CLOSE:
+                    break
+                if frame.opcode == OP_PONG:
+                    pongs.append(frame.payload)
+                    continue
+                doc = json.loads(frame.payload)
+                if doc["type"] in ("ack", "error"):
+                    answers.append(doc["data"].get("code") or doc["data"]["status"])
+                elif doc["type"] == "heartbeat":
+                    answers.append("heartbeat")
+        await master.aclose()
+        commanded = []
+        while len(events):
+            event = events.get_nowait()
+            if isinstance(event, CommandHandled):
+                commanded.append(event.command.joints[0].value)
+    assert frame is not None and frame.close_code == 1000
+    assert answers == expected
+    assert pongs == [b"still there?"]
+    assert commanded == goals
 
 
 async def test_the_slave_writer_lets_the_robot_write_lone_targets_itself(

@@ -24,7 +24,7 @@ from arena.server.ws_frames import (
     FrameParser,
     ProtocolViolation,
 )
-from arena.server.ws_transport import UpgradeRequest, WebSocket
+from arena.server.ws_transport import UpgradeRequest, WebSocket, WebSocketClosed
 from tests.conftest import RunningServer
 from tests.raw_websocket import RawWebSocket
 
@@ -201,6 +201,45 @@ async def test_control_frames_count_toward_the_readers_fair_share() -> None:
         assert await ws.receive() == "after the pings"
         nursery.cancel_scope.cancel()
     assert turns >= 1000 // 32 - 1, turns
+
+
+async def test_frames_in_hand_are_taken_without_waiting_up_to_the_fair_share() -> None:
+    # A reader takes the rest of a burst at once (and answers it in one write), but no more
+    # frames in a row than it may before letting other tasks run.
+    left, _right = trio.testing.memory_stream_pair()
+    ws = WebSocket(left, UpgradeRequest("/"), max_message=1024)
+    ws.feed(b"".join(client_frame(OP_TEXT, str(n).encode()) for n in range(40)))
+    taken = [await ws.receive()]
+    while (message := ws.next_in_hand()) is not None:
+        taken.append(message)
+    assert taken == [str(n) for n in range(32)]
+    assert await ws.receive() == "32"  # after a checkpoint
+    assert ws.next_in_hand() == "33"
+
+
+async def test_a_close_in_hand_is_answered_after_what_came_before_it() -> None:
+    # The close frame that answers the peer's close (or a violation) goes out only with the
+    # reader's next receive, after the answers to the frames taken before it.
+    left, _right = trio.testing.memory_stream_pair()
+    ws = WebSocket(left, UpgradeRequest("/"), max_message=1024)
+    ws.feed(client_frame(OP_TEXT, b"before"))
+    ws.feed(client_frame(OP_CLOSE, struct.pack("!H", 1000)))
+    ws.feed(client_frame(OP_TEXT, b"after the close"))
+    assert await ws.receive() == "before"
+    assert ws.next_in_hand() is None
+    assert not ws.close_sent  # the reader still answers "before"
+    with pytest.raises(WebSocketClosed) as closed:
+        await ws.receive()
+    assert closed.value.code == 1000 and ws.close_sent
+
+    ws = WebSocket(left, UpgradeRequest("/"), max_message=1024)
+    ws.feed(client_frame(OP_TEXT, b"before"))
+    ws.feed(client_frame(OP_TEXT, b"x" * 2000))  # over the cap: a violation
+    assert await ws.receive() == "before"
+    assert ws.next_in_hand() is None and not ws.close_sent
+    with pytest.raises(WebSocketClosed) as closed:
+        await ws.receive()
+    assert closed.value.code == ws_frames.CLOSE_TOO_BIG and ws.close_sent
 
 
 async def test_a_fragmented_command_is_one_command(server: RunningServer) -> None:

@@ -252,6 +252,10 @@ def is_forwarded(app: ArenaApp, value: str | None) -> bool:
 # -- WebSockets for robots of other nodes -----------------------------------------------------
 
 
+#: Tunnel frames `TunnelSocket.next_in_hand` looks through for a message.
+_IN_HAND = 32
+
+
 class TunnelSocket:
     """The robot's node's end of a tunnel, as the WebSocket handlers see a socket. The
     client's node checked the key: `trusted`."""
@@ -271,14 +275,35 @@ class TunnelSocket:
                 data = await self.tunnel.inbox.receive()
             except (trio.EndOfChannel, trio.ClosedResourceError):
                 raise WebSocketClosed(1006, "tunnel closed") from None
-            if data[:1] == b"t":
-                return data[1:].decode("utf-8")
-            if not data:
-                raise WebSocketClosed(1006, "the client's node is gone")
-            if data[:1] == b"c":
-                close = json.loads(data[1:] or b"{}")
-                self.close_sent = True
-                raise WebSocketClosed(int(close.get("code", 1000)), str(close.get("reason", "")))
+            message = self._message(data)
+            if message is not None:
+                return message
+
+    def next_in_hand(self) -> str | None:
+        """The next message if one is in the inbox already (as `WebSocket.next_in_hand`)."""
+        for _ in range(_IN_HAND):
+            try:
+                data = self.tunnel.inbox.receive_nowait()
+            except trio.WouldBlock:
+                return None
+            except (trio.EndOfChannel, trio.ClosedResourceError):
+                raise WebSocketClosed(1006, "tunnel closed") from None
+            message = self._message(data)
+            if message is not None:
+                return message
+        return None
+
+    def _message(self, data: bytes) -> str | None:
+        """A text message, None for anything else; the end of the tunnel raises."""
+        if data[:1] == b"t":
+            return data[1:].decode("utf-8")
+        if not data:
+            raise WebSocketClosed(1006, "the client's node is gone")
+        if data[:1] == b"c":
+            close = json.loads(data[1:] or b"{}")
+            self.close_sent = True
+            raise WebSocketClosed(int(close.get("code", 1000)), str(close.get("reason", "")))
+        return None
 
     def holds_more(self) -> bool:
         return self.tunnel.inbox.statistics().current_buffer_used > 0

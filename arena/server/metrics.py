@@ -39,10 +39,10 @@ class Metrics:
         self._retired_estops = 0
         self._retired_superseded = 0
 
-    def observe_latency(self, seconds: float) -> None:
-        """Time from a message's arrival to its answer."""
-        self._latency_counts[bisect.bisect_left(LATENCY_BUCKETS, seconds)] += 1
-        self._latency_sum += seconds
+    def observe_latency(self, seconds: float, count: int = 1) -> None:
+        """Time from a message's arrival to its answer (`count` messages answered together)."""
+        self._latency_counts[bisect.bisect_left(LATENCY_BUCKETS, seconds)] += count
+        self._latency_sum += seconds * count
 
     def retire(self, robot: Robot) -> None:
         """Keep a deleted robot's counts in the totals."""

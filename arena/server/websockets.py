@@ -247,10 +247,14 @@ class Connection:
         self._note_closed()
         return True
 
+    def error(self, code: ErrorCode | str, message: str) -> Encoded:
+        """An `error` message to send, counted."""
+        self.app.metrics.message_errors[str(code)] += 1
+        return Encoded("error", wire.error_message(code, message))
+
     async def send_error(self, code: ErrorCode | str, message: str) -> None:
         """Send an `error` message and count it."""
-        self.app.metrics.message_errors[str(code)] += 1
-        await self.send(Encoded("error", wire.error_message(code, message)))
+        await self.send(self.error(code, message))
 
     async def close(self, code: int, reason: str = "") -> None:
         """Close once."""
@@ -324,6 +328,9 @@ async def _accept(connection: Connection, robot_id: str) -> Robot | None:
         return None
 
 
+_BINARY_REFUSAL = "Send JSON text frames, not binary frames."
+
+
 def _flag(value: str | None) -> bool:
     return value is not None and value.lower() in ("1", "true", "yes", "on")
 
@@ -338,9 +345,7 @@ async def _receive_text(connection: Connection) -> str | None:
         connection.app.metrics.messages[connection.role] += 1
         if isinstance(frame, str):
             return frame
-        await connection.send_error(
-            ErrorCode.BINARY_NOT_SUPPORTED, "Send JSON text frames, not binary frames."
-        )
+        await connection.send_error(ErrorCode.BINARY_NOT_SUPPORTED, _BINARY_REFUSAL)
 
 
 async def _heartbeats(connection: Connection) -> None:
@@ -496,13 +501,7 @@ async def master_socket(connection: Connection, robot_id: str) -> None:
                 nursery.start_soon(forwarder.run)
                 nursery.start_soon(_forward_master_notices, connection, link)
                 nursery.start_soon(_heartbeats, connection)
-                await _read_loop(
-                    connection,
-                    wire.decode_master,
-                    partial(
-                        _handle_master_message, connection, robot, link, forwarder, player, nursery
-                    ),
-                )
+                await _master_reader(connection, robot, link, forwarder, player, nursery)
 
             await connection.run(body)
     finally:
@@ -706,31 +705,126 @@ async def _read_loop(
         connection.app.metrics.observe_latency(time.perf_counter() - started)
 
 
-async def _handle_master_message(
+def _in_hand(connection: Connection, first: str) -> tuple[list[str | bytes], bool]:
+    """`first` and the frames in hand after it (the rest of a burst, up to the transport's
+    fairness bound); True when the peer's close came among them."""
+    frames: list[str | bytes] = [first]
+    closed = False
+    try:
+        while (frame := connection.ws.next_in_hand()) is not None:
+            frames.append(frame)
+    except WebSocketClosed:
+        closed = True
+    connection.app.metrics.messages[connection.role] += len(frames) - 1
+    return frames, closed
+
+
+async def _master_reader(
     connection: Connection,
     robot: Robot,
     link: MasterLink,
     forwarder: _RobotEventForwarder,
     player: _SequencePlayer,
     nursery: trio.Nursery,
+) -> None:
+    """A master's messages until it leaves; errors are answered, not fatal.
+
+    The frames of a burst that are in hand together are taken at once, and each run of
+    commands among them is decided in one pass (`_decide_commands`). Every command is still
+    decided, recorded and acknowledged on its own and in order; what a run shares is the
+    forwarder's hold and one write of the answers.
+    """
+    handle = partial(_handle_master_message, connection, robot, link, player, nursery)
+    while True:
+        raw = await _receive_text(connection)
+        if raw is None:
+            return
+        started = time.perf_counter()
+        frames, closed = _in_hand(connection, raw)
+        run: list[wire.CommandData] = []
+        for frame in frames:
+            message: wire.MasterMessage | ArenaError
+            if isinstance(frame, bytes):
+                message = ArenaError(ErrorCode.BINARY_NOT_SUPPORTED, _BINARY_REFUSAL)
+            else:
+                try:
+                    message = wire.decode_master(frame)
+                except ArenaError as error:
+                    message = error
+            if isinstance(message, wire.CommandMessage):
+                run.append(message.data)
+                continue
+            if run and not await _decide_commands(connection, link, forwarder, run, True):
+                return
+            run = []
+            if isinstance(message, ArenaError):
+                await connection.send_error(message.code, message.message)
+                continue
+            _burst_continues.set(False)
+            try:
+                await handle(message)
+            except ArenaError as error:
+                if error.code is ErrorCode.ROBOT_STOPPED:
+                    await connection.close(CLOSE_NORMAL, "robot deleted")
+                    return
+                await connection.send_error(error.code, error.message)
+        if run and not await _decide_commands(
+            connection, link, forwarder, run, connection.ws.holds_more()
+        ):
+            return
+        connection.app.metrics.observe_latency(time.perf_counter() - started, len(frames))
+        if closed:
+            return
+
+
+async def _decide_commands(
+    connection: Connection,
+    link: MasterLink,
+    forwarder: _RobotEventForwarder,
+    run: list[wire.CommandData],
+    burst_goes_on: bool,
+) -> bool:
+    """Decide commands in order and send their answers in one write; False (and the socket
+    closed) if the robot is gone. `burst_goes_on`: more frames follow the last of them."""
+    out: list[Outgoing] = []
+    last = len(run) - 1
+    stopped = False
+    with forwarder.handling_command():
+        for index, data in enumerate(run):
+            in_burst = burst_goes_on or index < last
+            _burst_continues.set(in_burst)
+            command = convert.command_from_wire(data.joints, data.duration, data.metadata)
+            try:
+                # The command counts as a heartbeat (the robot notes the time of each).
+                result = link.command_now(command, in_burst=in_burst)
+                if result is None:
+                    result = await link.command(command, in_burst=in_burst)
+            except ArenaError as error:
+                if error.code is ErrorCode.ROBOT_STOPPED:
+                    stopped = True
+                    break
+                out.append(connection.error(error.code, error.message))
+                continue
+            if connection.wants_acks or not result.accepted:
+                out.append(_ack(result))
+        # The joint states the commands caused ride along: one write instead of two.
+        out.extend(forwarder.take_due())
+    if out:
+        await connection.send(*out)
+    if stopped:
+        await connection.close(CLOSE_NORMAL, "robot deleted")
+    return not stopped
+
+
+async def _handle_master_message(
+    connection: Connection,
+    robot: Robot,
+    link: MasterLink,
+    player: _SequencePlayer,
+    nursery: trio.Nursery,
     message: wire.MasterMessage,
 ) -> None:
-    if isinstance(message, wire.CommandMessage):
-        data = message.data
-        command = convert.command_from_wire(data.joints, data.duration, data.metadata)
-        # The command counts as a heartbeat (the robot notes the time of each).
-        in_burst = _burst_continues.get()
-        with forwarder.handling_command():
-            result = link.command_now(command, in_burst=in_burst)
-            if result is None:
-                result = await link.command(command, in_burst=in_burst)
-            # The joint states the command caused ride along: one write instead of two.
-            due = forwarder.take_due()
-        if connection.wants_acks or not result.accepted:
-            await connection.send(_ack(result), *due)
-        elif due:
-            await connection.send(*due)
-        return
+    """Any message of a master but a command (those go to `_decide_commands`)."""
     link.alive()
     if isinstance(message, wire.SequenceMessage):
         sequence = convert.sequence_from_wire(message.data)

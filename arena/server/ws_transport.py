@@ -43,6 +43,13 @@ RECEIVE_BYTES = 65536
 _FAIRNESS_BATCH = 32
 
 
+class _Handled:
+    """What `WebSocket._take` returns for a frame it dealt with itself (a ping, a close)."""
+
+
+_HANDLED = _Handled()
+
+
 @dataclass
 class UpgradeRequest:
     """What the client asked for in its opening handshake."""
@@ -106,6 +113,7 @@ class WebSocket:
         self.closed_by_peer: WebSocketClosed | None = None
         self.broken = False
         self._failed = False
+        self._owed_close: tuple[int, str] | None = None  # (code, reason) of the close to send
 
     # -- receiving ------------------------------------------------------------------------------
 
@@ -123,36 +131,62 @@ class WebSocket:
             if self._received_in_a_row >= _FAIRNESS_BATCH:  # control frames count too
                 self._received_in_a_row = 0
                 await trio.lowlevel.checkpoint()
-            if self.closed_by_peer is not None:
-                raise self.closed_by_peer
-            try:
-                message = self._parser.next()
-            except ProtocolViolation as violation:
-                self._fail(violation.code, violation.reason)
-                raise self.closed_by_peer from None  # type: ignore[misc]
+            message = self._take()
             if message is None:
                 await self._receive_more()
-                continue
-            self._received_in_a_row += 1
-            if message.opcode == OP_TEXT:
-                try:
-                    return message.payload.decode("utf-8")
-                except UnicodeDecodeError:
-                    self._fail(ws_frames.CLOSE_INVALID_DATA, "Text frames must be UTF-8.")
-                    continue
-            if message.opcode == OP_BINARY:
-                return message.payload
-            if message.opcode == OP_PING:
-                self._pong(message.payload)
-            elif message.opcode == OP_CLOSE:
-                try:
-                    code, reason = ws_frames.parse_close(message.payload)
-                except ProtocolViolation as violation:
-                    self._fail(violation.code, violation.reason)
-                    continue
+            elif not isinstance(message, _Handled):
+                return message
+
+    def next_in_hand(self) -> str | bytes | None:
+        """The next data message if its bytes are in hand already, else None. Never waits,
+        so a reader can take the rest of a burst at once and answer it in one write.
+
+        None too once the reader has taken as many frames in a row as it may before letting
+        other tasks run, and once the peer's close (or a violation) is found: the close frame
+        that answers it waits for the reader's next `receive`, so that it follows the answers
+        to everything sent before it."""
+        while self._received_in_a_row < _FAIRNESS_BATCH and self.closed_by_peer is None:
+            message = self._take()
+            if not isinstance(message, _Handled):
+                return message
+        return None
+
+    def _take(self) -> str | bytes | _Handled | None:
+        """One frame in hand: a data message, `_HANDLED` (a control frame answered, or the
+        peer's close or a violation noted), or None if no whole frame is in hand. Once the
+        peer has closed, sends the close frame owed to it and raises `WebSocketClosed`."""
+        if self.closed_by_peer is not None:
+            if self._owed_close is not None:
+                self._send_close(*self._owed_close)
+                self._owed_close = None
+            raise self.closed_by_peer
+        try:
+            message = self._parser.next()
+        except ProtocolViolation as violation:
+            self._fail(violation.code, violation.reason)
+            return _HANDLED
+        if message is None:
+            return None
+        self._received_in_a_row += 1
+        if message.opcode == OP_TEXT:
+            try:
+                return message.payload.decode("utf-8")
+            except UnicodeDecodeError:
+                self._fail(ws_frames.CLOSE_INVALID_DATA, "Text frames must be UTF-8.")
+        elif message.opcode == OP_BINARY:
+            return message.payload
+        elif message.opcode == OP_PING:
+            self._pong(message.payload)
+        elif message.opcode == OP_CLOSE:
+            try:
+                code, reason = ws_frames.parse_close(message.payload)
+            except ProtocolViolation as violation:
+                self._fail(violation.code, violation.reason)
+            else:
                 # Echo the close (RFC 6455 5.5.1), with the code unless the peer gave none.
-                self._send_close(1000 if code == 1005 else code, "")
+                self._owed_close = (1000 if code == 1005 else code, "")
                 self.closed_by_peer = WebSocketClosed(code, reason)
+        return _HANDLED
 
     async def _receive_more(self) -> None:
         try:
@@ -204,7 +238,9 @@ class WebSocket:
         self._owed_pong = payload
 
     def _fail(self, code: int, reason: str) -> None:
-        self._send_close(code, reason)
+        """The peer broke the protocol: the close frame saying so goes out with the reader's
+        next `receive` (see `next_in_hand`), and nothing more is read."""
+        self._owed_close = (code, reason)
         self.closed_by_peer = WebSocketClosed(code, reason)
         self._failed = True
 
