@@ -63,9 +63,20 @@ class UpgradeRequest:
     scheme: str = "http"
 
 
+_last_frame = ("", b"")  # the text last framed and its frame
+
+
+def _frame(text: str) -> bytes:
+    """A text frame; the same text object as last time (the acks of a burst, encoded once a
+    millisecond) is framed once."""
+    global _last_frame
+    if text is not _last_frame[0]:
+        _last_frame = (text, ws_frames.encode_frame(OP_TEXT, text.encode("utf-8")))
+    return _last_frame[1]
+
+
 def _frames(texts: tuple[str, ...]) -> bytes:
-    frames = [ws_frames.encode_frame(OP_TEXT, text.encode("utf-8")) for text in texts]
-    return frames[0] if len(frames) == 1 else b"".join(frames)
+    return _frame(texts[0]) if len(texts) == 1 else b"".join(map(_frame, texts))
 
 
 class WebSocketClosed(Exception):
@@ -283,8 +294,7 @@ class WebSocket:
         if self._socket is not None and self._idle():
             self._write_socket(self._socket, _frames(texts))
         else:  # busy, or a stream (TLS) that only the writer task writes to
-            for text in texts:
-                self.send_nowait(text)
+            self._queue(_frames(texts))
         return True
 
     async def send(self, *texts: str) -> None:
