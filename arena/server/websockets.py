@@ -710,12 +710,13 @@ def _in_hand(connection: Connection, first: str) -> tuple[list[str | bytes], boo
     fairness bound); True when the peer's close came among them."""
     frames: list[str | bytes] = [first]
     closed = False
-    try:
-        while (frame := connection.ws.next_in_hand()) is not None:
-            frames.append(frame)
-    except WebSocketClosed:
-        closed = True
-    connection.app.metrics.messages[connection.role] += len(frames) - 1
+    if connection.ws.holds_more():  # (one at a time, nothing is)
+        try:
+            while (frame := connection.ws.next_in_hand()) is not None:
+                frames.append(frame)
+        except WebSocketClosed:
+            closed = True
+        connection.app.metrics.messages[connection.role] += len(frames) - 1
     return frames, closed
 
 
