@@ -16,15 +16,18 @@ import sys
 from collections.abc import Awaitable, Callable
 from functools import partial
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
 import trio
 from trio_websocket import ConnectionClosed, open_websocket_url
 
-from arena.fleet.node import FleetSettings
+from arena.fleet.node import FleetSettings, Tunnel
 from arena.protocol.errors import ArenaError
 from arena.recording.mcap_file import read_recording
+from arena.server.fleet_api import TunnelSocket
+from arena.server.ws_transport import UpgradeRequest, WebSocketClosed
 from tests.conftest import RunningServer
 from tests.hardware import eventually
 
@@ -413,3 +416,20 @@ async def test_nodes_join_over_tls_and_a_node_without_the_ca_cannot(
     assert await robot_states(stranger) == {}
     assert set(stranger.app.fleet.nodes) == {"stranger"}
     assert "stranger" not in hub.app.fleet.nodes
+
+
+async def test_a_tunnel_socket_hands_over_the_messages_in_hand_and_its_close() -> None:
+    # A master carried from another node reads a burst whole as a local one does: the
+    # messages already in the tunnel's inbox, without waiting; the end of the tunnel ends it.
+    tunnel = Tunnel(SimpleNamespace(tunnels={}), "tunnel-1", "key", "node-b")  # type: ignore[arg-type]
+    socket = TunnelSocket(tunnel, UpgradeRequest("/ws/master/arm"))
+    for data in (b"tfirst", b"?what the tunnel does not know", b"tsecond"):
+        tunnel.deliver(data)
+    assert await socket.receive() == "first"
+    assert socket.holds_more()
+    assert socket.next_in_hand() == "second"
+    assert socket.next_in_hand() is None and not socket.holds_more()
+    tunnel.deliver(b'c{"code": 4000, "reason": "bye"}')
+    with pytest.raises(WebSocketClosed) as closed:
+        socket.next_in_hand()
+    assert closed.value.code == 4000 and socket.close_sent
