@@ -84,6 +84,8 @@ class McapFileWriter:
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self._robots_written: set[str] = set()
+        #: (robot id, kind) -> channel id in the current file (the topic's name not made again)
+        self._channel_ids: dict[tuple[str, str], int] = {}
         self.messages = 0
         self._flushed = False  # the current file has had a flush (a message is on disk)
 
@@ -95,16 +97,21 @@ class McapFileWriter:
         raised: the next call starts a fresh file.
         """
         try:
+            writer = self._current() if items else None
+            channels = self._channel_ids
             for robot_id, kind, data, log_time in items:
-                writer = self._current()
+                assert writer is not None
                 if robot_id not in self._robots_written and robot_id in self.robots:
                     self._robots_written.add(robot_id)
                     writer.add_metadata(f"robot/{robot_id}", self.robots[robot_id])
                     for _, extra, payload, at in self._introduce(robot_id, log_time):
                         writer.add_message(self._channel(writer, robot_id, extra), at, payload)
                         self.messages += 1
-                writer.add_message(self._channel(writer, robot_id, kind), log_time, data)
-                self.messages += 1
+                channel = channels.get((robot_id, kind))
+                if channel is None:
+                    channel = channels[robot_id, kind] = self._channel(writer, robot_id, kind)
+                writer.add_message(channel, log_time, data)
+            self.messages += len(items)
             if flush:
                 self.flush()
         except OSError:
@@ -163,6 +170,7 @@ class McapFileWriter:
             self._opened_at = time.monotonic()
             self._schemas.clear()
             self._channels.clear()
+            self._channel_ids.clear()
             self._robots_written.clear()
         return self._writer
 
