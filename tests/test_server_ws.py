@@ -26,7 +26,7 @@ from arena.robot.mailbox import EventQueue
 from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
-from arena.server.websockets import _burst_continues, _RobotEventForwarder, _slave_writer
+from arena.server.websockets import _RobotEventForwarder, _slave_writer
 from arena.server.ws_frames import OP_BINARY, OP_PING, OP_PONG, encode_frame
 from tests.conftest import RunningServer
 from tests.raw_websocket import OP_CLOSE, OP_TEXT, RawWebSocket
@@ -672,15 +672,18 @@ async def test_the_slave_writer_lets_the_robot_write_lone_targets_itself(
         await trio.testing.wait_all_tasks_blocked()
         assert robot.command_now(Command.of({"Rotation": 0.01})) is not None
         assert direct == ["ExecuteCommandMessage"] and by_task == []  # written before any switch
-        token = _burst_continues.set(True)
-        robot.command_now(Command.of({"Rotation": 0.02}))
-        _burst_continues.reset(token)
+        robot.command_now(Command.of({"Rotation": 0.02}), in_burst=True)
         assert direct == ["ExecuteCommandMessage"]
         await trio.testing.wait_all_tasks_blocked()
         assert by_task == ["ExecuteCommandMessage"]
+        # The same when the actor decides it (the target carries the burst with it).
+        await robot.command(Command.of({"Rotation": 0.03}), in_burst=True)
+        await trio.testing.wait_all_tasks_blocked()
+        assert direct == ["ExecuteCommandMessage"] and by_task == ["ExecuteCommandMessage"] * 2
         await link.detach("done")
         await trio.testing.wait_all_tasks_blocked()
-    assert ended.is_set() and by_task == ["ExecuteCommandMessage", "StopNotice", "close 1000"]
+    assert ended.is_set()
+    assert by_task == ["ExecuteCommandMessage"] * 2 + ["StopNotice", "close 1000"]
 
 
 async def test_a_reader_takes_the_due_joint_states_so_the_forwarder_sends_no_copy(

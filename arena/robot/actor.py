@@ -480,7 +480,7 @@ class Robot:
                 wallclock.time(),
             )
         )
-        self._send_targets(step.targets, now)
+        self._send_targets(step.targets, now, more_follow=message.in_burst)
         if message.reply is not None:
             message.reply.set(result)
         return result
@@ -794,9 +794,11 @@ class Robot:
         if self._next_tick is None:
             self._next_tick = self.core.next_tick(now)
 
-    def _send_targets(self, targets: dict[str, float] | None, now: float) -> None:
+    def _send_targets(
+        self, targets: dict[str, float] | None, now: float, *, more_follow: bool = False
+    ) -> None:
         if targets is not None:
-            target = SlaveTarget(targets, now)
+            target = SlaveTarget(targets, now, more_follow)
             for slave in self._slaves.values():
                 assert isinstance(slave.link, SlaveLink)
                 slave.link.mailbox.put_target(target)

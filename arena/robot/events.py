@@ -18,10 +18,15 @@ from arena.robot.safety import Mode
 
 
 class SlaveTarget(msgspec.Struct, frozen=True):
-    """Where every joint should be now (wire degrees), with the speed cap per joint (deg/s)."""
+    """Where every joint should be now (wire degrees), with the speed cap per joint (deg/s).
+
+    `more_follow`: the command behind it came in a master's burst, with more of its commands
+    in hand, so a newer target follows at once; a slave's writer may leave this one to be
+    replaced (slaves get the newest target) rather than write it now."""
 
     joints: dict[str, float]
     time: float
+    more_follow: bool = False
 
 
 class NoticeKind(enum.StrEnum):

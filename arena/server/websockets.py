@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import collections
 import contextlib
-import contextvars
 import itertools
 import logging
 import math
@@ -49,13 +48,6 @@ from arena.server.ws_transport import UpgradeRequest, WebSocket, WebSocketClosed
 T = TypeVar("T")
 log = logging.getLogger(__name__)
 _ids = itertools.count(1)
-
-#: Set in a reader's task while it holds further frames of the same burst. A robot deciding a
-#: command in that task then leaves its slaves' targets to their writer tasks, which send the
-#: newest once per burst, instead of writing every one to the socket at once.
-_burst_continues: contextvars.ContextVar[bool] = contextvars.ContextVar(
-    "burst_continues", default=False
-)
 
 #: Close codes: 1000 normal, 1001 going away, 4000 + an HTTP-like status for refusals.
 CLOSE_NORMAL, CLOSE_GOING_AWAY = 1000, 1001
@@ -694,7 +686,6 @@ async def _read_loop(
         if raw is None:
             return
         started = time.perf_counter()
-        _burst_continues.set(connection.ws.holds_more())
         try:
             await handle(decode(raw))
         except ArenaError as error:
@@ -761,7 +752,6 @@ async def _master_reader(
             if isinstance(message, ArenaError):
                 await connection.send_error(message.code, message.message)
                 continue
-            _burst_continues.set(False)
             try:
                 await handle(message)
             except ArenaError as error:
@@ -793,7 +783,6 @@ async def _decide_commands(
     with forwarder.handling_command():
         for index, data in enumerate(run):
             in_burst = burst_goes_on or index < last
-            _burst_continues.set(in_burst)
             command = convert.command_from_wire(data.joints, data.duration, data.metadata)
             try:
                 # The command counts as a heartbeat (the robot notes the time of each).
@@ -888,11 +877,11 @@ async def slave_socket(connection: Connection, robot_id: str) -> None:
 async def _slave_writer(connection: Connection, link: SlaveLink, ended: trio.Event) -> None:
     def deliver_now(message: SlaveTarget | SlaveNotice) -> bool:
         # The robot writes to an idle socket itself; the end (shutdown) stays with this task,
-        # and so do targets in the middle of a master's burst (they are coalesced).
+        # and so do targets in the middle of a master's burst (the newest replaces them).
         if isinstance(message, SlaveNotice):
             if message.kind is NoticeKind.SHUTDOWN:
                 return False
-        elif _burst_continues.get():
+        elif message.more_follow:
             return False
         return connection.send_now(convert.to_slave(message))
 
