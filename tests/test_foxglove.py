@@ -7,6 +7,7 @@ ships for its type (and that the file or the live server advertised: they must b
 from __future__ import annotations
 
 import base64
+import io
 import itertools
 import json
 import math
@@ -20,6 +21,7 @@ from typing import Any
 import foxglove.messages
 import numpy as np
 import pytest
+import trimesh
 import trio
 import yourdfpy
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
@@ -29,9 +31,10 @@ from trio_websocket import WebSocketConnection, open_websocket_url
 
 from arena import cli
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.recording import glb
 from arena.recording.mcap_file import read_recording, write_recording
 from arena.robot.kinematics import Kinematics, to_matrix
-from arena.robot.meshes import visuals
+from arena.robot.meshes import stl_vertices, visuals
 from arena.robot.model import load_robot_model
 from arena.sensors.sources import read_pattern_counter
 from arena.server.config import ServerConfig
@@ -65,6 +68,30 @@ def decode(name: str, payload: bytes) -> Any:
     message = _classes[name].FromString(payload)
     assert message.SerializeToString() == payload
     return message
+
+
+def glb_triangles(data: bytes) -> Any:
+    """The corners of a GLB's triangles, read by trimesh (three rows a triangle)."""
+    scene = trimesh.load(io.BytesIO(data), file_type="glb", process=False)
+    (mesh,) = scene.geometry.values()
+    return mesh.vertices[mesh.faces].reshape(-1, 3)
+
+
+def foxglove_turn(points: Any) -> Any:
+    """What Foxglove does to a glTF model: a quarter turn about X, from Y-up to Z-up
+    (`rotateX(pi / 2)` in its model cache), as float32 like the STL it came from."""
+    return np.column_stack((points[:, 0], -points[:, 2], points[:, 1])).astype("<f4")
+
+
+def test_a_mesh_as_glb_keeps_every_triangle_and_indexes_past_65535_corners() -> None:
+    rng = np.random.default_rng(7)
+    corners = rng.random((3 * 30_000, 3)).astype("<f4")  # 90,000 distinct corners
+    shown = foxglove_turn(glb_triangles(glb.from_triangles(corners)))
+    assert np.array_equal(shown, corners)
+    small = glb.from_triangles(corners[:9])
+    assert len(small) % 4 == 0 and small[:4] == b"glTF"
+    with pytest.raises(ValueError):
+        glb.from_triangles(corners[:4])  # not whole triangles
 
 
 def test_forward_kinematics_matches_yourdfpy() -> None:
@@ -149,11 +176,15 @@ async def test_recordings_carry_transforms_model_and_log(
     # the model: every link's meshes, embedded, on the real tree; a skeleton on the virtual one
     (scene,) = [view[2] for view in views if view[0] == "/robots/arm/scene"]
     meshes = {e.frame_id: e.models for e in scene.entities if e.models}
-    expected: dict[str, list[bytes]] = {}
+    expected: dict[str, list[Any]] = {}
     for visual in visuals(MODEL.urdf_path):
-        expected.setdefault(f"arm/real/{visual.link}", []).append(visual.path.read_bytes())
-    assert {frame: [m.data for m in models] for frame, models in meshes.items()} == expected
-    assert all(m.media_type == "model/stl" for models in meshes.values() for m in models)
+        expected.setdefault(f"arm/real/{visual.link}", []).append(stl_vertices(visual.path))
+    assert meshes.keys() == expected.keys()
+    for frame, models in meshes.items():
+        assert all(m.media_type == "model/gltf-binary" for m in models)
+        shown = [foxglove_turn(glb_triangles(m.data)) for m in models]
+        assert len(shown) == len(expected[frame])
+        assert all(np.array_equal(a, b) for a, b in zip(shown, expected[frame], strict=True))
     skeleton = {e.frame_id for e in scene.entities if e.lines}
     assert skeleton == {f"arm/virtual/{j.parent}" for j in kinematics.joints}
     assert all(e.frame_locked for e in scene.entities)
@@ -224,6 +255,7 @@ async def test_layout_shows_the_recorded_robots(
     recorded = {m.topic for m in read_recording(foxglove_file).messages}
     three_d = next(p for p in panels if p["panelType"] == "ThreeDee")
     assert set(three_d["config"]["topics"]) == {"/robots/arm/scene"}
+    assert three_d["config"]["scene"]["meshUpAxis"] == "z_up"  # URDF meshes are Z-up
     for panel in panels:
         for series in panel["config"].get("paths", []):
             topic, _, path = series["value"].partition(".")

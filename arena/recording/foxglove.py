@@ -5,8 +5,9 @@ official `foxglove-sdk`, with the schemas it ships):
   /robots/{id}/tf     `foxglove.FrameTransforms`: two trees, `{id}/virtual/<link>` from the
                       targets sent to slaves and `{id}/real/<link>` from the joint states the
                       slaves report, each under `world`
-  /robots/{id}/scene  `foxglove.SceneUpdate`: the URDF's meshes on the real tree (embedded STL)
-                      and a skeleton on the virtual one; sent once per file and per viewer
+  /robots/{id}/scene  `foxglove.SceneUpdate`: the URDF's meshes on the real tree (embedded as
+                      glTF, `glb.py`) and a skeleton on the virtual one; sent once per file
+                      and per viewer
   /robots/{id}/log    `foxglove.Log`: e-stops, resets, faults, refused commands and peers
 The recording process and the live Foxglove server both use it, so a file and a live session
 look the same.
@@ -40,6 +41,7 @@ from foxglove.messages import (
 )
 
 from arena.protocol.errors import ArenaError
+from arena.recording import glb
 from arena.robot.events import (
     CommandHandled,
     EpisodeChanged,
@@ -52,7 +54,7 @@ from arena.robot.events import (
 )
 from arena.robot.kinematics import Kinematics
 from arena.robot.kinematics import Pose as KinematicPose
-from arena.robot.meshes import visuals
+from arena.robot.meshes import stl_vertices, visuals
 from arena.robot.model import RobotModel, load_robot_model
 from arena.robot.safety import Mode
 
@@ -134,14 +136,15 @@ class Twin:
         stamp = timestamp(ns)
         meshes: dict[str, list[ModelPrimitive]] = {}
         for visual in visuals(self.model.urdf_path):
+            media_type, data = _model(visual.path)
             meshes.setdefault(visual.link, []).append(
                 ModelPrimitive(
                     pose=_pose(visual.origin),
                     scale=Vector3(x=visual.scale[0], y=visual.scale[1], z=visual.scale[2]),
                     color=_MESH_COLOR,
                     override_color=True,
-                    media_type="model/stl",
-                    data=_mesh(visual.path),
+                    media_type=media_type,
+                    data=data,
                 )
             )
         bones: dict[str, list[Point3]] = {}
@@ -204,9 +207,16 @@ def pose_of(event: RobotEvent) -> tuple[str, Mapping[str, float]] | None:
 
 
 @functools.lru_cache(maxsize=64)
-def _mesh(path: Path) -> bytes:
-    """A mesh file's bytes, read once for every robot of its type."""
-    return path.read_bytes()
+def _model(path: Path) -> tuple[str, bytes]:
+    """A mesh file as embedded in a scene, (media type, data), made once for every robot of
+    its type: a binary STL as glTF (`glb`: a quarter of the bytes, shown right whatever the
+    viewer's mesh up axis), anything else as it is."""
+    if path.suffix.lower() == ".stl":
+        try:
+            return "model/gltf-binary", glb.from_triangles(stl_vertices(path))
+        except ValueError:  # an ASCII STL, or none at all
+            pass
+    return "model/stl", path.read_bytes()
 
 
 def _log_line(event: RobotEvent) -> tuple[LogLevel, str] | None:
@@ -345,7 +355,13 @@ def layout(robot_ids: list[str], joint_names: tuple[str, ...]) -> str:
     }
     three_d = fl.ThreeDeePanel(
         title="Twins: meshes measured, blue skeleton commanded",
-        config=fl.ThreeDeeConfig(follow_tf=WORLD, topics=scenes),  # type: ignore[arg-type]
+        config=fl.ThreeDeeConfig(
+            follow_tf=WORLD,
+            topics=scenes,  # type: ignore[arg-type]
+            # URDF meshes are Z-up; the glTF Arena embeds shows right with either setting,
+            # and this keeps a mesh embedded as it is (an ASCII STL) right too.
+            scene=fl.BaseRendererSceneSettings(mesh_up_axis="z_up"),
+        ),
     )
     plots = [
         fl.SplitItem(
