@@ -7,6 +7,7 @@ ships for its type (and that the file or the live server advertised: they must b
 from __future__ import annotations
 
 import base64
+import hashlib
 import io
 import itertools
 import json
@@ -92,6 +93,30 @@ def test_a_mesh_as_glb_keeps_every_triangle_and_indexes_past_65535_corners() -> 
     assert len(small) % 4 == 0 and small[:4] == b"glTF"
     with pytest.raises(ValueError):
         glb.from_triangles(corners[:4])  # not whole triangles
+
+
+def test_robot_types_ship_their_meshes_as_glb_made_from_the_very_stl() -> None:
+    # A server converts nothing for the robot types Arena ships: each binary STL has its GLB
+    # beside it, and it must be what converting that STL gives (else: regenerate with
+    # `python -m arena.recording.glb arena/robot_types/*/meshes/*.stl`).
+    stls = sorted(Path(MODEL.urdf_path).parents[1].glob("*/meshes/*.stl"))
+    assert stls
+    for stl in stls:
+        source = hashlib.sha256(stl.read_bytes()).hexdigest()
+        shipped = stl.with_suffix(".glb").read_bytes()
+        assert glb.source_of(shipped) == source, stl.name
+        assert shipped == glb.from_triangles(stl_vertices(stl), source), stl.name
+
+
+def test_a_glb_made_from_other_bytes_is_not_used(tmp_path: Path) -> None:
+    stl = tmp_path / "part.stl"
+    stl.write_bytes(visuals(MODEL.urdf_path)[0].path.read_bytes())
+    stale = glb.from_triangles(np.zeros((3, 3)), "0" * 64)  # made from another STL
+    stl.with_suffix(".glb").write_bytes(stale)
+    made = glb.for_stl(stl)
+    assert made != stale and glb.source_of(made) == hashlib.sha256(stl.read_bytes()).hexdigest()
+    assert np.array_equal(foxglove_turn(glb_triangles(made)), stl_vertices(stl).astype("<f4"))
+    assert glb.source_of(b"not a glb at all") is None
 
 
 def test_forward_kinematics_matches_yourdfpy() -> None:

@@ -54,7 +54,7 @@ from arena.robot.events import (
 )
 from arena.robot.kinematics import Kinematics
 from arena.robot.kinematics import Pose as KinematicPose
-from arena.robot.meshes import stl_vertices, visuals
+from arena.robot.meshes import visuals
 from arena.robot.model import RobotModel, load_robot_model
 from arena.robot.safety import Mode
 
@@ -213,8 +213,8 @@ def _model(path: Path) -> tuple[str, bytes]:
     viewer's mesh up axis), anything else as it is."""
     if path.suffix.lower() == ".stl":
         try:
-            return "model/gltf-binary", glb.from_triangles(stl_vertices(path))
-        except ValueError:  # an ASCII STL, or none at all
+            return "model/gltf-binary", glb.for_stl(path)
+        except ValueError:  # an ASCII STL
             pass
     return "model/stl", path.read_bytes()
 

@@ -11,12 +11,21 @@ URDF meshes are Z-up; glTF is Y-up by definition, and Foxglove turns glTF models
 Z-up (a quarter turn about X) whatever its "mesh up axis" setting, which applies only to
 formats without an up axis such as STL. So the corners are stored turned the other way, and the
 model shows as the URDF means it with any setting.
+
+Converting takes numpy and ~30 ms for the so-arm100, which a short-lived server (each round of
+`arena bench versus` is one) paid in its first recorded second. So a robot type ships its
+meshes converted beside the STL files (`python -m arena.recording.glb FILE.stl ...` writes
+them), each naming the SHA-256 of the STL it was made from; `for_stl` uses such a file only
+while that still matches, and converts otherwise.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import struct
+import sys
+from pathlib import Path
 from typing import Any
 
 _MAGIC = 0x46546C67  # "glTF"
@@ -26,9 +35,39 @@ _FLOAT, _UNSIGNED_SHORT, _UNSIGNED_INT = 5126, 5123, 5125
 _ARRAY_BUFFER, _ELEMENT_ARRAY_BUFFER = 34962, 34963
 
 
-def from_triangles(corners: Any) -> bytes:
+def for_stl(path: Path) -> bytes:
+    """A binary STL file as GLB: the converted file beside it if it was made from these very
+    bytes, else converted now (`ValueError` if the file is not a binary STL)."""
+    from arena.robot.meshes import stl_vertices
+
+    source = hashlib.sha256(path.read_bytes()).hexdigest()
+    built = path.with_suffix(".glb")
+    if built.is_file():
+        data = built.read_bytes()
+        if source_of(data) == source:
+            return data
+    return from_triangles(stl_vertices(path), source)
+
+
+def source_of(data: bytes) -> str | None:
+    """The SHA-256 of the STL a GLB was made from, as `from_triangles` records it."""
+    if len(data) < 20 or struct.unpack_from("<I", data)[0] != _MAGIC:
+        return None
+    length, kind = struct.unpack_from("<II", data, 12)
+    if kind != _JSON_CHUNK:
+        return None
+    try:
+        document = json.loads(data[20 : 20 + length])
+        source = document["asset"]["extras"]["source"]
+    except (ValueError, KeyError, TypeError):
+        return None
+    return source if isinstance(source, str) else None
+
+
+def from_triangles(corners: Any, source: str | None = None) -> bytes:
     """A GLB of a triangle soup: `corners` is an (3n, 3) array of Z-up points (each row a
-    corner, three rows a triangle, counter-clockwise seen from outside, as STL has them)."""
+    corner, three rows a triangle, counter-clockwise seen from outside, as STL has them);
+    `source` (the STL's SHA-256) is kept in the asset's extras."""
     import numpy as np
 
     points = np.ascontiguousarray(np.asarray(corners, dtype="<f4").reshape(-1, 3))
@@ -47,7 +86,7 @@ def from_triangles(corners: Any) -> bytes:
     indices_bytes = indices.tobytes()
     indices_bytes += b"\0" * (-len(indices_bytes) % 4)
     document = {
-        "asset": {"version": "2.0", "generator": "arena"},
+        "asset": {"version": "2.0", "generator": "arena", "extras": {"source": source}},
         "scene": 0,
         "scenes": [{"nodes": [0]}],
         "nodes": [{"mesh": 0}],
@@ -97,3 +136,16 @@ def from_triangles(corners: Any) -> bytes:
             binary,
         )
     )
+
+
+def main(argv: list[str]) -> int:
+    """Write each binary STL named as GLB beside it (robot types ship them so)."""
+    for name in argv:
+        path = Path(name)
+        path.with_suffix(".glb").write_bytes(for_stl(path))
+        print(path.with_suffix(".glb"))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
