@@ -12,7 +12,7 @@ import pytest
 import trio
 import trio.testing
 
-from arena.server import ws_frames
+from arena.server import ws_frames, ws_transport
 from arena.server.read_poller import ReadPoller
 from arena.server.ws_frames import (
     OP_BINARY,
@@ -201,6 +201,19 @@ async def test_control_frames_count_toward_the_readers_fair_share() -> None:
         assert await ws.receive() == "after the pings"
         nursery.cancel_scope.cancel()
     assert turns >= 1000 // 32 - 1, turns
+
+
+def test_text_frames_are_made_right_even_when_the_same_text_repeats_or_is_empty() -> None:
+    # Sent texts are framed with a one-entry cache (the acks of a burst share one text).
+    texts = ("", "ack", "ack", "")
+    data = ws_transport._frames(texts)
+    payloads = []
+    while data:
+        opcode, payload, used = ws_frames.split_unmasked(data)  # type: ignore[misc]
+        assert opcode == OP_TEXT
+        payloads.append(payload)
+        data = data[used:]
+    assert payloads == [text.encode() for text in texts]
 
 
 async def test_frames_in_hand_are_taken_without_waiting_up_to_the_fair_share() -> None:

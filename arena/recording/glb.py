@@ -73,8 +73,8 @@ def from_triangles(corners: Any, source: str | None = None) -> bytes:
     points = np.ascontiguousarray(np.asarray(corners, dtype="<f4").reshape(-1, 3))
     if len(points) == 0 or len(points) % 3:
         raise ValueError("a mesh needs whole triangles")
-    # Each distinct corner once (exact float equality, as an STL repeats them), in first-seen
-    # order is not needed: glTF indexes whatever order the vertices come in.
+    # Each distinct corner once (exact float equality, as an STL repeats them), in sorted
+    # byte order: glTF indexes vertices in any order, and this one is the same on every run.
     keys = points.view(np.dtype((np.void, 12))).ravel()
     _, first, index = np.unique(keys, return_index=True, return_inverse=True)
     vertices = points[first]

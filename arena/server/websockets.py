@@ -689,11 +689,19 @@ async def _read_loop(
         try:
             await handle(decode(raw))
         except ArenaError as error:
-            if error.code is ErrorCode.ROBOT_STOPPED:
-                await connection.close(CLOSE_NORMAL, "robot deleted")
+            if not await _answer_error(connection, error):
                 return
-            await connection.send_error(error.code, error.message)
         connection.app.metrics.observe_latency(time.perf_counter() - started)
+
+
+async def _answer_error(connection: Connection, error: ArenaError) -> bool:
+    """Answer a message's error with an `error` message; False (and the socket closed) when
+    it is that the robot is gone."""
+    if error.code is ErrorCode.ROBOT_STOPPED:
+        await connection.close(CLOSE_NORMAL, "robot deleted")
+        return False
+    await connection.send_error(error.code, error.message)
+    return True
 
 
 def _in_hand(connection: Connection, first: str) -> tuple[list[str | bytes], bool]:
@@ -755,10 +763,8 @@ async def _master_reader(
             try:
                 await handle(message)
             except ArenaError as error:
-                if error.code is ErrorCode.ROBOT_STOPPED:
-                    await connection.close(CLOSE_NORMAL, "robot deleted")
+                if not await _answer_error(connection, error):
                     return
-                await connection.send_error(error.code, error.message)
         if run and not await _decide_commands(
             connection, link, forwarder, run, connection.ws.holds_more()
         ):

@@ -63,7 +63,9 @@ class UpgradeRequest:
     scheme: str = "http"
 
 
-_last_frame = ("", b"")  # the text last framed and its frame
+#: The text last framed (None before any: "" is interned, so it cannot stand for none) and
+#: its frame.
+_last_frame: tuple[str | None, bytes] = (None, b"")
 
 
 def _frame(text: str) -> bytes:
