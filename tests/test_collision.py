@@ -47,6 +47,24 @@ def urdf(degrees: dict[str, float]) -> dict[str, float]:
     return {j.urdf_name: j.to_urdf(degrees.get(j.name, 0.0)) for j in MODEL.joints}
 
 
+def within_limits(where: list[float]) -> dict[str, float]:
+    """Wire degrees of every joint, each from -1 (its lower limit) to 1 (its upper)."""
+    return {
+        j.name: j.lower + (w + 1) / 2 * (j.upper - j.lower)
+        for j, w in zip(MODEL.joints, where, strict=True)
+    }
+
+
+def a_pose() -> st.SearchStrategy[list[float]]:
+    """Where each joint is, from -1 to 1 (see `within_limits`)."""
+    return st.lists(st.floats(-1.0, 1.0), min_size=6, max_size=6)
+
+
+def a_step(largest: float) -> st.SearchStrategy[list[float]]:
+    """How far each joint moves."""
+    return st.lists(st.floats(-largest, largest), min_size=6, max_size=6)
+
+
 def guard() -> CollisionModel:
     assert GUARD is not None
     return GUARD
@@ -256,21 +274,13 @@ async def test_a_sequence_into_the_table_is_refused_and_recorded(
 
 
 @settings(max_examples=300, deadline=None)
-@given(
-    st.lists(st.floats(-1.0, 1.0), min_size=6, max_size=6),
-    st.lists(st.floats(-0.05, 0.05), min_size=6, max_size=6),
-)
+@given(a_pose(), a_step(0.05))
 def test_a_pose_near_a_checked_one_is_as_safe_as_the_bound_says(
     where: list[float], step: list[float]
 ) -> None:
     # The shortcut's promise: a pose that moved less than the clearance allows is safe.
     joints = MODEL.joints
-    start = urdf(
-        {
-            j.name: j.lower + (w + 1) / 2 * (j.upper - j.lower)
-            for j, w in zip(joints, where, strict=True)
-        }
-    )
+    start = urdf(within_limits(where))
     hit, clearances = guard().assess(start, MODEL.workspace)
     if hit is not None:
         return
@@ -279,6 +289,39 @@ def test_a_pose_near_a_checked_one_is_as_safe_as_the_bound_says(
     end = {n: v if k % 2 == int(where[0] > 0) else start[n] for k, (n, v) in enumerate(end.items())}
     if guard().safe_move(clearances, start, end):
         assert guard().hit(end, MODEL.workspace) is None
+
+
+@settings(max_examples=300, deadline=None)
+@given(a_pose(), a_step(3.0))
+def test_a_reference_kept_in_wire_degrees_says_what_it_says_in_radians(
+    where: list[float], step: list[float]
+) -> None:
+    # The core keeps its references in the limiter's order and wire degrees (so a command's
+    # pose is compared unconverted): each answer must be the guard's own, in URDF radians.
+    model = guard()
+    start = within_limits(where)
+    hit, clearances = model.assess(urdf(start), MODEL.workspace)
+    if hit is not None:
+        return
+    place = {joint.name: k for k, joint in enumerate(model.kinematics.joints)}
+    index = tuple(place.get(j.urdf_name) for j in MODEL.joints)
+    reference = model.reference(urdf(start), clearances)
+    in_degrees = reference.in_order(tuple(start.values()), index, math.pi / 180)
+    end = {
+        name: value + s if k % 3 != int(where[0] > 0) else value
+        for k, ((name, value), s) in enumerate(zip(start.items(), step, strict=True))
+    }
+    near = CollisionModel.near(in_degrees, end.values())
+    as_radians = model.safe_move(clearances, urdf(start), urdf(end))
+    moved = [j.name for j in MODEL.joints if end[j.name] != start[j.name]]
+    if moved == [
+        j.name for j in MODEL.joints if urdf(end)[j.urdf_name] != urdf(start)[j.urdf_name]
+    ]:
+        assert near == as_radians
+    else:  # a step too small to change the radians: degrees see it move, which is stricter
+        assert as_radians or not near
+    if near:
+        assert model.hit(urdf(end), MODEL.workspace) is None
 
 
 def count_full_checks(monkeypatch: pytest.MonkeyPatch) -> list[int]:
@@ -325,12 +368,7 @@ def test_turning_about_the_vertical_moves_no_floor_gap_beyond_its_bound(
     assert factors[rotation.urdf_name] < 1e-4
     assert all(f == 1.0 for name, f in factors.items() if name != rotation.urdf_name)
     low_floor = Workspace(floor=-1.0)  # every link far above it: every floor gap is measured
-    start = urdf(
-        {
-            j.name: j.lower + (w + 1) / 2 * (j.upper - j.lower)
-            for j, w in zip(MODEL.joints, where, strict=True)
-        }
-    )
+    start = urdf(within_limits(where))
     end = {**start, rotation.urdf_name: start[rotation.urdf_name] + turn}
     _, before = model.assess(start, low_floor)
     _, after = model.assess(end, low_floor)

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -175,13 +175,37 @@ class Hit:
 
 @dataclass(frozen=True, slots=True)
 class Reference:
-    """A pose checked in full (`CollisionModel.reference`): its joint values in the model's
-    joint order, and per joint the smallest gap (and floor gap) its turns can change."""
+    """A pose checked in full (`CollisionModel.reference`): its joint values (in the
+    kinematics' joint order and URDF units, unless `in_order` re-expressed them), and per
+    joint the smallest gap (and floor gap) its motion can change and how far a unit of that
+    motion can move a point (and move it up or down)."""
 
     values: tuple[float, ...]
     limits: tuple[float, ...]
     floor_limits: tuple[float, ...]
     checked: bool  # False for a pose whose gaps are unknown: nothing is near it
+    sweeps: tuple[tuple[float, float], ...] = ()  # (unit, floor factor), see `_sweeps`
+
+    def in_order(
+        self, values: tuple[float, ...], index: tuple[int | None, ...], scale: float
+    ) -> Reference:
+        """The same reference for poses listed another way: joint k of the new order is the
+        kinematics' joint `index[k]` (None: a joint the guard does not know, which changes no
+        gap) with its value in units of which one is `scale` URDF units (degrees: pi/180),
+        and `values` is the checked pose so listed. A joint of the kinematics left out must
+        never move (it stays where the check saw it)."""
+        limits, floor_limits, sweeps = [], [], []
+        for k in index:
+            if k is None:
+                limits.append(math.inf)
+                floor_limits.append(math.inf)
+                sweeps.append((0.0, 0.0))
+            else:
+                limits.append(self.limits[k])
+                floor_limits.append(self.floor_limits[k])
+                unit, factor = self.sweeps[k]
+                sweeps.append((unit * scale, factor))
+        return Reference(values, tuple(limits), tuple(floor_limits), self.checked, tuple(sweeps))
 
 
 @dataclass(frozen=True)
@@ -333,10 +357,7 @@ class CollisionModel:
             limits.append(min(map(gap, others), default=math.inf))
             floor_limits.append(min(map(gap, floor), default=math.inf))
         return Reference(
-            self.values_of(pose),
-            tuple(limits),
-            tuple(floor_limits),
-            bool(clearances),
+            self.values_of(pose), tuple(limits), tuple(floor_limits), bool(clearances), self._sweeps
         )
 
     def values_of(self, pose: Mapping[str, float]) -> tuple[float, ...]:
@@ -353,8 +374,9 @@ class CollisionModel:
             for joint, factor in zip(self.kinematics.joints, self._floor_factors, strict=True)
         )
 
-    def near(self, reference: Reference, end: Sequence[float]) -> bool:
-        """True when a pose `end` (joint values as `values_of` orders them), and the straight
+    @staticmethod
+    def near(reference: Reference, end: Iterable[float]) -> bool:
+        """True when a pose `end` (joint values as `reference` lists them), and the straight
         way to it, is safe because `reference` was: no two points can close a gap by more
         than twice `reach` times the sum of the turns (a prismatic joint's metres count
         once), and only the gaps the moving joints can change are at stake (the floor's only
@@ -367,7 +389,7 @@ class CollisionModel:
         for value, start, (unit, factor), gap, floor_gap in zip(
             end,
             reference.values,
-            self._sweeps,
+            reference.sweeps,
             reference.limits,
             reference.floor_limits,
             strict=True,

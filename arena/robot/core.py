@@ -78,20 +78,18 @@ class RobotCore:
         #: Moves stopped on the way because an emitted target would have collided.
         self.collision_stops = 0
         self._to_urdf = tuple((j.name, j.urdf_name, j.neutral) for j in model.joints)
-        # Per joint of the guard's kinematics: where its value is in a pose listed in the
-        # model's joint order (wire degrees), its neutral and the scale to radians (0 for a
-        # joint the model does not drive, which stays at 0).
-        position = {j.urdf_name: (k, j.neutral) for k, j in enumerate(model.joints)}
-        self._to_guard = tuple(
-            (*position[joint.name], _RADIANS) if joint.name in position else (0, 0.0, 0.0)
-            for joint in (self.guard.kinematics.joints if self.guard is not None else ())
-        )
+        # Per joint of the model, its place in the guard's kinematics (None if not there): the
+        # references are kept in the model's order and wire degrees, as the limiter lists its
+        # goals and positions, so a pose is compared with them as it is, unconverted.
+        kinematics = self.guard.kinematics.joints if self.guard is not None else ()
+        place = {joint.name: k for k, joint in enumerate(kinematics)}
+        self._guard_index = tuple(place.get(j.urdf_name) for j in model.joints)
         self._checked: dict[str, float] | None = None  # the last goal pose found safe
-        # The last poses checked in full (URDF radians) with their clearances (metres), newest
-        # first: a pose whose joints are so close to one that no part of the arm can have
-        # moved that far is safe without a check (a stream of small steps is checked now and
-        # then, not always). Two: while the motion limiter lags behind a fast master, the goals
-        # and the targets on their way are two streams, each near its own last check.
+        # The last poses checked in full with their clearances (metres), newest first: a pose
+        # whose joints are so close to one that no part of the arm can have moved that far
+        # is safe without a check (a stream of small steps is checked now and then, not
+        # always). Two: while the motion limiter lags behind a fast master, the goals and the
+        # targets on their way are two streams, each near its own last check.
         self._references: list[collision.Reference] = []
         self._reference_workspace = self.workspace  # a changed workspace voids the references
         self._sent = self.motion.positions  # the last targets emitted (where the arm goes)
@@ -172,12 +170,6 @@ class RobotCore:
             urdf: neutral + math.radians(degrees[name]) for name, urdf, neutral in self._to_urdf
         }
 
-    def _pose(self, degrees: Mapping[str, float]) -> list[float]:
-        """A pose as the guard's `near` takes it, from every joint's wire degrees in the
-        model's order (as the limiter's `goals` and `positions` list them)."""
-        values = list(degrees.values())
-        return [neutral + values[k] * scale for k, neutral, scale in self._to_guard]
-
     def _guard(
         self, goals: list[ResolvedGoal]
     ) -> tuple[list[ResolvedGoal], Refused | None, list[Clamp]]:
@@ -187,14 +179,14 @@ class RobotCore:
         start = self._sent
         end = self.motion.goals
         end.update((goal.name, goal.value) for goal in goals)
-        if self._near_reference(self._pose(end)):
+        if self._near_reference(end):
             self._checked = end
             return goals, None, []
         target = self._urdf(end)
         hit, safe, clearance = self.guard.path_hit(self._urdf(start), target, self.workspace)
         if hit is None:
             self._checked = end
-            self._remember(target, clearance)
+            self._remember(end, target, clearance)
             return goals, None, []
         if self.workspace.policy != "stop-short" or safe <= 0.0:
             names = ", ".join(goal.name for goal in goals)
@@ -219,36 +211,43 @@ class RobotCore:
         targets = self.motion.advance(now, fresh=fresh)
         if targets is None:
             return None
-        if targets != self._checked and not self._near_reference(self._pose(targets)):
+        if targets != self._checked and not self._near_reference(targets):
             pose = self._urdf(targets)
             hit, clearance = self.guard.assess(pose, self.workspace)
             if hit is not None:
                 self.motion.stop_at(self._sent)
                 self.collision_stops += 1
                 return None
-            self._remember(pose, clearance)
+            self._remember(targets, pose, clearance)
         self._sent = targets
         return targets
 
-    def _near_reference(self, pose: list[float]) -> bool:
-        """True when no part of the arm can have moved from a pose checked in full (`_pose`)
-        as far as its clearance (so `pose`, and the way to it, are safe without a check)."""
+    def _near_reference(self, degrees: dict[str, float]) -> bool:
+        """True when no part of the arm can have moved from a pose checked in full as far as
+        its clearance (so `degrees`, every joint's in the model's order, and the way to it
+        are safe without a check)."""
         if self.workspace is not self._reference_workspace:
             self._references.clear()
             return False
-        near = self.guard.near  # type: ignore[union-attr]  # only called with a guard
+        pose = degrees.values()
+        near = collision.CollisionModel.near
         for reference in self._references:  # noqa: SIM110 (a generator costs more, per command)
             if near(reference, pose):
                 return True
         return False
 
-    def _remember(self, pose: dict[str, float], clearance: tuple[float, ...]) -> None:
-        """Keep a pose checked in full, with its clearance, as a reference."""
+    def _remember(
+        self, degrees: dict[str, float], urdf: dict[str, float], clearance: tuple[float, ...]
+    ) -> None:
+        """Keep a pose checked in full (`degrees` as the limiter lists them; `urdf` as the
+        guard took it), with its clearance, as a reference."""
         if self.workspace is not self._reference_workspace:
             self._references.clear()
             self._reference_workspace = self.workspace
         assert self.guard is not None
-        self._references.insert(0, self.guard.reference(pose, clearance))
+        reference = self.guard.reference(urdf, clearance)
+        values = tuple(degrees.values())
+        self._references.insert(0, reference.in_order(values, self._guard_index, _RADIANS))
         del self._references[REFERENCES:]
 
     def tick(self, now: float) -> dict[str, float] | None:
