@@ -324,6 +324,40 @@ def test_a_reference_kept_in_wire_degrees_says_what_it_says_in_radians(
         assert model.hit(urdf(end), MODEL.workspace) is None
 
 
+@settings(max_examples=300, deadline=None)
+@given(a_pose(), a_step(1.0))
+def test_no_gap_closes_by_more_than_the_turns_that_change_it_times_their_reach(
+    where: list[float], step: list[float]
+) -> None:
+    # What `near` rests on, measured on the arm's capsules (segment to segment, exactly): a
+    # pair's distance shrinks by at most the turns of the joints between its two links, each
+    # times its reach, and no joint above both changes it.
+    model = guard()
+    start = urdf(within_limits(where))
+    end = {
+        name: value + s if k % 2 == int(where[1] > 0) or s > 0.5 else value
+        for k, ((name, value), s) in enumerate(zip(start.items(), step, strict=True))
+    }
+    before, after = model.placed(start), model.placed(end)
+    above: dict[str, set[str]] = {model.kinematics.root: set()}
+    for joint in model.kinematics.joints:
+        above[joint.child] = above[joint.parent] | {joint.name}
+    names = (joint.name for joint in model.kinematics.joints)
+    reach = dict(zip(names, model.reaches, strict=True))
+    for i, j in model.pairs:
+        between = above[model.capsules[i].link] ^ above[model.capsules[j].link]
+        sweep = sum(reach[name] * abs(end[name] - start[name]) for name in between)
+        first = _segment_distance(*before[i][:2], *before[j][:2])
+        second = _segment_distance(*after[i][:2], *after[j][:2])
+        assert second >= first - sweep - 1e-9
+    # and a link sinks toward the floor by at most the turns above it, each times its reach
+    # and the share of its sweep that goes up or down
+    factor = dict(zip(reach, model._floor_factors, strict=True))
+    for (a, b, radius), (a2, b2, _), capsule in zip(before, after, model.capsules, strict=True):
+        sweep = sum(reach[n] * factor[n] * abs(end[n] - start[n]) for n in above[capsule.link])
+        assert min(a2[2], b2[2]) - radius >= min(a[2], b[2]) - radius - sweep - 1e-9
+
+
 def count_full_checks(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     """Counts the guard's full checks from now on (in the one item of the list)."""
     full = [0]
@@ -374,7 +408,8 @@ def test_turning_about_the_vertical_moves_no_floor_gap_beyond_its_bound(
     _, after = model.assess(end, low_floor)
     if not before or not after:
         return  # links touching: no gaps to compare
-    bound = 2 * model.reach * abs(turn) * factors[rotation.urdf_name] + 1e-9
+    reach = model.reaches[[j.name for j in model.kinematics.joints].index(rotation.urdf_name)]
+    bound = reach * abs(turn) * factors[rotation.urdf_name] + 1e-9
     for k in model.floor_links:
         assert abs(after[k] - before[k]) <= bound
 

@@ -222,12 +222,26 @@ class CollisionModel:
         object.__setattr__(self, "_links", {c.link: i for i, c in enumerate(self.capsules)})
 
     @functools.cached_property
-    def reach(self) -> float:
-        """A bound of how far any point of a capsule lies from any joint's axis (metres): a
-        joint turned by d radians moves no point by more than `reach * d`."""
-        chain = sum(math.hypot(*joint.origin[1]) for joint in self.kinematics.joints)
-        extent = max(max(math.hypot(*c.a), math.hypot(*c.b)) + c.radius for c in self.capsules)
-        return chain + extent
+    def reaches(self) -> tuple[float, ...]:
+        """Per joint, a bound of how far any point of a capsule it moves lies from its axis
+        (metres): turned by d radians, it moves no point by more than its reach times d. A
+        point of a link below the joint is reached through the origins of the joints between
+        them (each as long as its offset) and then lies inside the link's capsule."""
+        extent = {c.link: max(math.hypot(*c.a), math.hypot(*c.b)) + c.radius for c in self.capsules}
+        depth = {self.kinematics.root: 0.0}  # the offsets summed from the root to each link
+        children: dict[str, list[str]] = {}
+        for joint in self.kinematics.joints:  # parents come first
+            depth[joint.child] = depth[joint.parent] + math.hypot(*joint.origin[1])
+            children.setdefault(joint.parent, []).append(joint.child)
+
+        def deepest(top: str) -> float:
+            """The largest depth plus extent of `top` and the links under it."""
+            own = depth[top] + extent[top] if top in extent else 0.0
+            return max([own, *(deepest(child) for child in children.get(top, ()))])
+
+        return tuple(
+            max(0.0, deepest(joint.child) - depth[joint.child]) for joint in self.kinematics.joints
+        )
 
     def placed(self, values: Mapping[str, float]) -> list[tuple[Vector, Vector, float]]:
         """Each capsule's segment ends in the root frame at joint values `values`."""
@@ -307,7 +321,13 @@ class CollisionModel:
     def _affected(self) -> tuple[tuple[tuple[int, ...], tuple[int, ...]], ...]:
         """Per joint, the constraints (indices into `assess`'s gaps) whose gap it can change,
         as (floor gaps, the others): a link's floor and boxes by every joint above the link; a
-        pair by the joints between its two links (those above both move them together)."""
+        pair by the joints between its two links (those above both move them together).
+
+        So a gap closes by at most `reach` times the turns of the joints that change it. Seen
+        from the lowest link above both of a pair's links, each joint between them moves one
+        of the two and not the other, and turning it by d moves no point by more than
+        `reach * d` (the arc, longer than the chord); a link's floor and box gaps are moved
+        by the joints above it alone. `near` relies on this; a test checks it on the arm."""
         above: dict[str, set[str]] = {self.kinematics.root: set()}
         for joint in self.kinematics.joints:
             above[joint.child] = above[joint.parent] | {joint.name}
@@ -366,22 +386,24 @@ class CollisionModel:
 
     @functools.cached_property
     def _sweeps(self) -> tuple[tuple[float, float], ...]:
-        """Per joint: how far a unit of its motion can move a point (`reach` per radian, 1
+        """Per joint: how far a unit of its motion can move a point (its reach per radian, 1
         per metre), and the floor's share of that (`_floor_factors`)."""
-        reach = self.reach
         return tuple(
             (1.0 if joint.kind == "prismatic" else reach, factor)
-            for joint, factor in zip(self.kinematics.joints, self._floor_factors, strict=True)
+            for joint, reach, factor in zip(
+                self.kinematics.joints, self.reaches, self._floor_factors, strict=True
+            )
         )
 
     @staticmethod
     def near(reference: Reference, end: Iterable[float]) -> bool:
         """True when a pose `end` (joint values as `reference` lists them), and the straight
-        way to it, is safe because `reference` was: no two points can close a gap by more
-        than twice `reach` times the sum of the turns (a prismatic joint's metres count
-        once), and only the gaps the moving joints can change are at stake (the floor's only
-        by the share of each sweep that goes up or down). Called for every command and target
-        while an arm moves, so it is one pass over plain sequences."""
+        way to it, is safe because `reference` was, by the bound `_affected` rests on: a gap
+        closes by at most `reach` times the sum of the turns of the joints that change it (a
+        prismatic joint's metres count once), and only the gaps the moving joints can change
+        are at stake (the floor's only by the share of each sweep that goes up or down).
+        Called for every command and target while an arm moves, so it is one pass over plain
+        sequences."""
         if not reference.checked:
             return False
         total = floor_total = 0.0  # how far any point may have moved; up or down
@@ -402,7 +424,7 @@ class CollisionModel:
                     limit = gap
                 if floor_gap < floor_limit:
                     floor_limit = floor_gap
-        return 2.0 * total < limit and 2.0 * floor_total < floor_limit
+        return total < limit and floor_total < floor_limit
 
     def safe_move(
         self,
