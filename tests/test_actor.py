@@ -26,7 +26,7 @@ from arena.robot.events import (
     TargetsSent,
 )
 from arena.robot.inbox import DriverEndedMsg
-from arena.robot.links import MasterLink
+from arena.robot.links import DETACHED_LINK, MasterLink
 from arena.robot.mailbox import EventQueue, LatestMailbox
 from arena.robot.manager import RobotManager
 from arena.robot.model import LossPolicy, load_robot_model
@@ -94,6 +94,45 @@ async def test_a_command_decided_in_the_callers_task_still_gets_its_motion_ticks
         await trio.sleep(0.05)
         assert trio.current_time() - started < 10, "the motion stopped advancing"
     assert trio.current_time() - started > 0.1  # it was limited, so ticks carried it
+
+
+async def test_a_run_of_commands_is_decided_at_once_each_on_its_own(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    # A burst's commands in hand together: one call decides them all, each with its own
+    # answer and event, in order; the slave's targets say a newer one follows, but the last's.
+    robot = await new_robot(manager)
+    alice = await robot.connect_master("alice")
+    slave = await robot.connect_slave("s1")
+    await trio.testing.wait_all_tasks_blocked()
+    run = [
+        Command.of({"Rotation": 1.0}),
+        Command.of({"Nose": 2.0}),  # no such joint: refused, alone
+        Command.of({"Rotation": 500.0}),  # clamped to the limit
+        Command.of({"Rotation": 3.0}),
+    ]
+    with robot.subscribe(kinds=[CommandHandled]) as handled:
+        results = alice.command_run_now(run)
+        assert results is not None
+        assert [r.accepted for r in results] == [True, False, True, True]
+        assert results[1].code is ErrorCode.UNKNOWN_JOINT and results[2].clamped
+        events = [handled.get_nowait() for _ in range(len(handled))]
+    assert [e.command for e in events] == run  # type: ignore[attr-defined]
+    assert [e.result for e in events] == results  # type: ignore[attr-defined]
+    assert robot.snapshot().joint("Rotation").goal == 3.0
+    newest = await slave.receive()
+    assert isinstance(newest, SlaveTarget) and not newest.more_follow
+    # With more of the burst still to come, even the last one's target says so.
+    await trio.sleep(5.0)  # the arm arrives (the ticks' targets: taken next)
+    assert isinstance(await slave.receive(), SlaveTarget)
+    await trio.testing.wait_all_tasks_blocked()
+    results = alice.command_run_now([Command.of({"Rotation": 2.0})], burst_goes_on=True)
+    assert results is not None and results[0].accepted
+    newest = await slave.receive()
+    assert isinstance(newest, SlaveTarget) and newest.more_follow
+    # A detached link refuses each (a busy actor: see the due timer below).
+    await alice.detach()
+    assert alice.command_run_now(run) == [DETACHED_LINK] * 4
 
 
 async def test_a_due_timer_goes_before_a_command_decided_at_once(

@@ -150,12 +150,26 @@ class Robot:
         actor's very next step, so deciding it here gives the same answer in the same order,
         without two task switches. The network edge tries this first.
         """
+        results = self.command_run_now([command], master_id, burst_goes_on=in_burst)
+        return None if results is None else results[0]
+
+    def command_run_now(
+        self, commands: list[Command], master_id: str | None = None, *, burst_goes_on: bool = False
+    ) -> list[CommandResult] | None:
+        """Decide a run of commands sent together, in the caller's task, if the actor is idle
+        (see `command_now`); else None. Each is decided, recorded and answered on its own and
+        in order, all but the last as in a burst (the last too if `burst_goes_on`); what they
+        share is the time they are decided at, as they arrived together."""
         now = self._idle_now()
         if now is None:
             return None
-        result = self._on_command(CommandMsg(master_id, command, None, in_burst), now)
+        last = len(commands) - 1
+        results = [
+            self._on_command(CommandMsg(master_id, command, None, burst_goes_on or k < last), now)
+            for k, command in enumerate(commands)
+        ]
         self._rearm_idle_wait()
-        return result
+        return results
 
     async def estop(self, reason: str = "emergency stop") -> safety.Outcome:
         """Emergency stop: nothing moves until `reset`.

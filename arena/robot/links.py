@@ -78,6 +78,17 @@ class MasterLink:
             return DETACHED_LINK
         return self.robot.command_now(command, master_id=self.master_id, in_burst=in_burst)
 
+    def command_run_now(
+        self, commands: list[Command], *, burst_goes_on: bool = False
+    ) -> list[CommandResult] | None:
+        """A run of commands decided at once when the robot is idle (see
+        `Robot.command_run_now`), else None."""
+        if self.detached.is_set():
+            return [DETACHED_LINK] * len(commands)
+        return self.robot.command_run_now(
+            commands, master_id=self.master_id, burst_goes_on=burst_goes_on
+        )
+
     def alive(self) -> None:
         """Heartbeat: the peer is still there."""
         if not self.detached.is_set():

@@ -784,25 +784,29 @@ async def _decide_commands(
     """Decide commands in order and send their answers in one write; False (and the socket
     closed) if the robot is gone. `burst_goes_on`: more frames follow the last of them."""
     out: list[Outgoing] = []
-    last = len(run) - 1
     stopped = False
+    commands = [convert.command_from_wire(d.joints, d.duration, d.metadata) for d in run]
     with forwarder.handling_command():
-        for index, data in enumerate(run):
-            in_burst = burst_goes_on or index < last
-            command = convert.command_from_wire(data.joints, data.duration, data.metadata)
-            try:
-                # The command counts as a heartbeat (the robot notes the time of each).
-                result = link.command_now(command, in_burst=in_burst)
-                if result is None:
-                    result = await link.command(command, in_burst=in_burst)
-            except ArenaError as error:
-                if error.code is ErrorCode.ROBOT_STOPPED:
-                    stopped = True
-                    break
-                out.append(connection.error(error.code, error.message))
-                continue
-            if connection.wants_acks or not result.accepted:
-                out.append(_ack(result))
+        # Each command counts as a heartbeat (the robot notes the time of each).
+        results = link.command_run_now(commands, burst_goes_on=burst_goes_on)
+        if results is None:  # the actor is busy: each through its inbox, in turn
+            results = []
+            last = len(commands) - 1
+            for index, command in enumerate(commands):
+                try:
+                    in_burst = burst_goes_on or index < last
+                    results.append(await link.command(command, in_burst=in_burst))
+                except ArenaError as error:
+                    if error.code is ErrorCode.ROBOT_STOPPED:
+                        stopped = True
+                        break
+                    out.append(connection.error(error.code, error.message))
+                    continue
+                if connection.wants_acks or not results[-1].accepted:
+                    out.append(_ack(results[-1]))
+        else:
+            wants_acks = connection.wants_acks
+            out.extend(_ack(result) for result in results if wants_acks or not result.accepted)
         # The joint states the commands caused ride along: one write instead of two.
         out.extend(forwarder.take_due())
     if out:
