@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import itertools
 import json
@@ -26,7 +27,7 @@ from arena.robot.mailbox import EventQueue
 from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
-from arena.server.websockets import _RobotEventForwarder, _slave_writer
+from arena.server.websockets import Encoded, _decide_commands, _RobotEventForwarder, _slave_writer
 from arena.server.ws_frames import OP_BINARY, OP_PING, OP_PONG, encode_frame
 from tests.conftest import RunningServer
 from tests.raw_websocket import OP_CLOSE, OP_TEXT, RawWebSocket
@@ -706,6 +707,45 @@ async def test_a_reader_takes_the_due_joint_states_so_the_forwarder_sends_no_cop
         await robot.estop("test")
         due = forwarder.take_due()
         assert isinstance(due[0], wire.StateMessage) and due[0].data.mode == "estopped"
+
+
+async def test_a_run_that_finds_the_actor_busy_posts_one_command_and_decides_the_rest_at_once(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    # A motion tick due makes the actor busy: a command of the run waits in the actor's
+    # inbox, and once the actor is idle again the rest are decided at once.
+    robot = await manager.create_robot("so-arm100", robot_id="busy")
+    link = await robot.connect_master("alice")
+    assert (await link.command(Command.of({"Rotation": 90.0}))).accepted  # a long move
+    await trio.testing.wait_all_tasks_blocked()
+    autojump_clock.jump(robot.core.tick_interval)  # its next tick is due; no task has run
+    assert link.command_run_now([Command.of({"Rotation": 1.0})]) is None
+    posted = []
+    through_inbox = link.command
+
+    async def command(*args: Any, **kwargs: Any) -> Any:
+        posted.append(args[0])
+        return await through_inbox(*args, **kwargs)
+
+    link.command = command  # type: ignore[method-assign]
+    sent: list[Any] = []
+
+    async def send(*messages: Any) -> None:
+        sent.extend(messages)
+
+    connection = cast(Any, SimpleNamespace(send=send, wants_acks=True))
+    forwarder = cast(Any, SimpleNamespace(handling_command=contextlib.nullcontext, take_due=list))
+    values = [10.0, 20.0, 30.0, 40.0, 50.0, 60.0]
+    run = [wire.CommandData([wire.JointValue("Rotation", v)]) for v in values]
+    with robot.subscribe(kinds=[CommandHandled]) as handled:
+        assert await _decide_commands(connection, link, forwarder, run, False)
+        decided = [handled.get_nowait() for _ in range(len(handled))]
+    assert [e.command.joints[0].value for e in decided] == values  # type: ignore[attr-defined]
+    # The first waited (the second may too: the actor still had its due tick to run), then
+    # the actor was idle and the rest were decided at once.
+    assert [g.joints[0].value for g in posted] in ([10.0], [10.0, 20.0])
+    assert len(sent) == len(values)
+    assert all(isinstance(m, Encoded) and m.kind == "ack" for m in sent)
 
 
 def _forwarder_on(robot: Robot, events: EventQueue[RobotEvent]) -> tuple[Any, list[Any]]:

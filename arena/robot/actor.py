@@ -165,7 +165,7 @@ class Robot:
             return None
         last = len(commands) - 1
         results = [
-            self._on_command(CommandMsg(master_id, command, None, burst_goes_on or k < last), now)
+            self._decide(master_id, command, burst_goes_on or k < last, now)
             for k, command in enumerate(commands)
         ]
         self._rearm_idle_wait()
@@ -477,26 +477,25 @@ class Robot:
         else:
             self._post_nowait(AliveMsg(peer_id), drop_if_full=True)
 
-    def _on_command(self, message: CommandMsg, now: float) -> CommandResult:
-        if message.source is not None:
-            self._touch(message.source, now)
-        result, step = self.core.command(
-            message.source, message.command, now, in_burst=message.in_burst
-        )
+    def _on_command(self, message: CommandMsg, now: float) -> None:
+        result = self._decide(message.source, message.command, message.in_burst, now)
+        if message.reply is not None:
+            message.reply.set(result)
+
+    def _decide(
+        self, source: str | None, command: Command, in_burst: bool, now: float
+    ) -> CommandResult:
+        """A command decided, counted, published and its targets sent."""
+        if source is not None:
+            self._touch(source, now)
+        result, step = self.core.command(source, command, now, in_burst=in_burst)
         self.command_counts["accepted" if result.accepted else str(result.code)] += 1
         self._publish(
             CommandHandled(
-                self.robot_id,
-                message.source or MANUAL_SOURCE,
-                message.command,
-                result,
-                now,
-                wallclock.time(),
+                self.robot_id, source or MANUAL_SOURCE, command, result, now, wallclock.time()
             )
         )
-        self._send_targets(step.targets, now, more_follow=message.in_burst)
-        if message.reply is not None:
-            message.reply.set(result)
+        self._send_targets(step.targets, now, more_follow=in_burst)
         return result
 
     def _on_states(self, message: StatesMsg, now: float) -> None:

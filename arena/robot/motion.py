@@ -275,10 +275,14 @@ class RateLimiter:
 
     def allow(self, now: float) -> bool:
         """Take one token if there is one."""
-        elapsed = max(0.0, now - self._last)
-        self._last = max(self._last, now)
-        self._tokens = min(self.burst, self._tokens + elapsed * self.rate)
-        if self._tokens >= 1.0:
-            self._tokens -= 1.0
+        tokens = self._tokens
+        if now > self._last:  # (no min or max: this runs for every command)
+            tokens += (now - self._last) * self.rate
+            if tokens > self.burst:
+                tokens = self.burst
+            self._last = now
+        if tokens >= 1.0:
+            self._tokens = tokens - 1.0
             return True
+        self._tokens = tokens
         return False

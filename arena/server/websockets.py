@@ -786,27 +786,30 @@ async def _decide_commands(
     out: list[Outgoing] = []
     stopped = False
     commands = [convert.command_from_wire(d.joints, d.duration, d.metadata) for d in run]
+    wants_acks = connection.wants_acks
     with forwarder.handling_command():
         # Each command counts as a heartbeat (the robot notes the time of each).
-        results = link.command_run_now(commands, burst_goes_on=burst_goes_on)
-        if results is None:  # the actor is busy: each through its inbox, in turn
-            results = []
-            last = len(commands) - 1
-            for index, command in enumerate(commands):
-                try:
-                    in_burst = burst_goes_on or index < last
-                    results.append(await link.command(command, in_burst=in_burst))
-                except ArenaError as error:
-                    if error.code is ErrorCode.ROBOT_STOPPED:
-                        stopped = True
-                        break
-                    out.append(connection.error(error.code, error.message))
-                    continue
-                if connection.wants_acks or not results[-1].accepted:
-                    out.append(_ack(results[-1]))
-        else:
-            wants_acks = connection.wants_acks
-            out.extend(_ack(result) for result in results if wants_acks or not result.accepted)
+        index, last = 0, len(commands) - 1
+        while index <= last:
+            rest = commands[index:] if index else commands
+            results = link.command_run_now(rest, burst_goes_on=burst_goes_on)
+            if results is not None:
+                out.extend(_ack(result) for result in results if wants_acks or not result.accepted)
+                break
+            # The actor is busy (most often a motion tick is due): this command goes through
+            # its inbox, after which the actor is idle again for the rest.
+            try:
+                in_burst = burst_goes_on or index < last
+                result = await link.command(commands[index], in_burst=in_burst)
+            except ArenaError as error:
+                if error.code is ErrorCode.ROBOT_STOPPED:
+                    stopped = True
+                    break
+                out.append(connection.error(error.code, error.message))
+            else:
+                if wants_acks or not result.accepted:
+                    out.append(_ack(result))
+            index += 1
         # The joint states the commands caused ride along: one write instead of two.
         out.extend(forwarder.take_due())
     if out:
