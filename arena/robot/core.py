@@ -95,6 +95,8 @@ class RobotCore:
         self._sent = self.motion.positions  # the last targets emitted (where the arm goes)
         self._rates: dict[str, RateLimiter] = {}
         self._last_master_event: MasterCommand | None = None  # reused while one master commands
+        # The last command's (state, event, outcome) of the safety machine (see `command`).
+        self._last_transition: tuple[SafetyState, Event, Outcome] | None = None
 
     @property
     def tick_interval(self) -> float:
@@ -135,7 +137,14 @@ class RobotCore:
             event = last  # immutable: a command from the same master allocates less
         else:
             event = self._last_master_event = MasterCommand(source)
-        outcome = transition(self.state, event)
+        # The machine is pure: the same state (an immutable object, replaced on every change)
+        # and event give the same outcome, so a master's stream reuses the last one.
+        state, memo = self.state, self._last_transition
+        if memo is not None and memo[0] is state and memo[1] is event:
+            outcome = memo[2]
+        else:
+            outcome = transition(state, event)
+            self._last_transition = (state, event, outcome)
         if isinstance(outcome, Refused):
             return CommandResult.refused(outcome.code, outcome.message), Step(outcome)
         key = MANUAL_SOURCE if source is None else source
@@ -178,7 +187,8 @@ class RobotCore:
         assert self.guard is not None
         start = self._sent
         end = self.motion.goals
-        end.update((goal.name, goal.value) for goal in goals)
+        for goal in goals:
+            end[goal.name] = goal.value
         if self._near_reference(end):
             self._checked = end
             return goals, None, []

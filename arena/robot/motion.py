@@ -179,6 +179,8 @@ class MotionLimiter:
             j.name: _JointMotion(j.clamp(start.get(j.name, 0.0)), j.max_velocity, self._burst, now)
             for j in model.joints
         }
+        # Every joint's goal, kept as the joints' change: the guard copies it for each command.
+        self._goals = {name: m.goal for name, m in self._joints.items()}
         self._moving: bool | None = False  # None: not known since the goals last changed
         # Joints the last `set_goals` aimed that were at rest: what a command moves at once.
         self._fresh: list[_JointMotion] = []
@@ -191,7 +193,7 @@ class MotionLimiter:
     @property
     def goals(self) -> dict[str, float]:
         """Where every joint is heading."""
-        return {name: m.goal for name, m in self._joints.items()}
+        return self._goals.copy()
 
     @property
     def moving(self) -> bool:
@@ -211,7 +213,7 @@ class MotionLimiter:
             if motion.position == motion.goal and motion.profile is None:
                 fresh.append(motion)
             motion.refill(now)  # what was earned so far, at the old speed
-            motion.goal = goal.value
+            motion.goal = self._goals[goal.name] = goal.value
             motion.speed = goal.speed
             motion.cap = goal.speed * self._burst
             motion.tokens = min(motion.tokens, motion.cap)
@@ -226,7 +228,8 @@ class MotionLimiter:
         """
         changed = moving = False
         for motion in self._fresh if fresh else self._joints.values():
-            desired = motion.desired(now)
+            # (`desired` inlined for a move without a curve: this runs per joint and command)
+            desired = motion.goal if motion.profile is None else motion.desired(now)
             delta = desired - motion.position
             if delta != 0.0:
                 motion.refill(now)
@@ -250,14 +253,14 @@ class MotionLimiter:
     def stop_at(self, positions: Mapping[str, float]) -> None:
         """Stop every joint at `positions` (targets already sent): the way on was unsafe."""
         for name, motion in self._joints.items():
-            motion.position = motion.goal = positions[name]
+            motion.position = motion.goal = self._goals[name] = positions[name]
             motion.profile = None
         self._moving = False
 
     def freeze(self) -> None:
         """Stop every joint where it is: goals become the current targets."""
-        for motion in self._joints.values():
-            motion.goal = motion.position
+        for name, motion in self._joints.items():
+            motion.goal = self._goals[name] = motion.position
             motion.profile = None
         self._moving = False
 
