@@ -184,7 +184,8 @@ class Reference:
     limits: tuple[float, ...]
     floor_limits: tuple[float, ...]
     checked: bool  # False for a pose whose gaps are unknown: nothing is near it
-    sweeps: tuple[tuple[float, float], ...] = ()  # (unit, floor factor), see `_sweeps`
+    units: tuple[float, ...] = ()  # how far a unit of a joint's motion moves a point
+    floor_units: tuple[float, ...] = ()  # ... up or down (see `_floor_factors`)
 
     def in_order(
         self, values: tuple[float, ...], index: tuple[int | None, ...], scale: float
@@ -194,18 +195,20 @@ class Reference:
         gap) with its value in units of which one is `scale` URDF units (degrees: pi/180),
         and `values` is the checked pose so listed. A joint of the kinematics left out must
         never move (it stays where the check saw it)."""
-        limits, floor_limits, sweeps = [], [], []
-        for k in index:
-            if k is None:
-                limits.append(math.inf)
-                floor_limits.append(math.inf)
-                sweeps.append((0.0, 0.0))
-            else:
-                limits.append(self.limits[k])
-                floor_limits.append(self.floor_limits[k])
-                unit, factor = self.sweeps[k]
-                sweeps.append((unit * scale, factor))
-        return Reference(values, tuple(limits), tuple(floor_limits), self.checked, tuple(sweeps))
+
+        def pick(
+            numbers: tuple[float, ...], missing: float, times: float = 1.0
+        ) -> tuple[float, ...]:
+            return tuple(missing if k is None else numbers[k] * times for k in index)
+
+        return Reference(
+            values,
+            pick(self.limits, math.inf),
+            pick(self.floor_limits, math.inf),
+            self.checked,
+            pick(self.units, 0.0, scale),
+            pick(self.floor_units, 0.0, scale),
+        )
 
 
 @dataclass(frozen=True)
@@ -376,8 +379,14 @@ class CollisionModel:
         for floor, others in self._affected:
             limits.append(min(map(gap, others), default=math.inf))
             floor_limits.append(min(map(gap, floor), default=math.inf))
+        units, floor_units = self._sweeps
         return Reference(
-            self.values_of(pose), tuple(limits), tuple(floor_limits), bool(clearances), self._sweeps
+            self.values_of(pose),
+            tuple(limits),
+            tuple(floor_limits),
+            bool(clearances),
+            units,
+            floor_units,
         )
 
     def values_of(self, pose: Mapping[str, float]) -> tuple[float, ...]:
@@ -385,15 +394,14 @@ class CollisionModel:
         return tuple(pose.get(joint.name, 0.0) for joint in self.kinematics.joints)
 
     @functools.cached_property
-    def _sweeps(self) -> tuple[tuple[float, float], ...]:
+    def _sweeps(self) -> tuple[tuple[float, ...], tuple[float, ...]]:
         """Per joint: how far a unit of its motion can move a point (its reach per radian, 1
-        per metre), and the floor's share of that (`_floor_factors`)."""
-        return tuple(
-            (1.0 if joint.kind == "prismatic" else reach, factor)
-            for joint, reach, factor in zip(
-                self.kinematics.joints, self.reaches, self._floor_factors, strict=True
-            )
+        per metre), and how far up or down (times `_floor_factors`)."""
+        units = tuple(
+            1.0 if joint.kind == "prismatic" else reach
+            for joint, reach in zip(self.kinematics.joints, self.reaches, strict=True)
         )
+        return units, tuple(u * f for u, f in zip(units, self._floor_factors, strict=True))
 
     @staticmethod
     def near(reference: Reference, end: Iterable[float]) -> bool:
@@ -402,28 +410,24 @@ class CollisionModel:
         closes by at most `reach` times the sum of the turns of the joints that change it (a
         prismatic joint's metres count once), and only the gaps the moving joints can change
         are at stake (the floor's only by the share of each sweep that goes up or down).
-        Called for every command and target while an arm moves, so it is one pass over plain
-        sequences."""
+        `end` lists every joint. Called for every command and target while an arm moves, so
+        it is one pass that looks further only at the joints that moved (most do not)."""
         if not reference.checked:
             return False
+        values, units, floor_units = reference.values, reference.units, reference.floor_units
         total = floor_total = 0.0  # how far any point may have moved; up or down
         limit = floor_limit = math.inf  # the smallest gap at stake; of a floor gap
-        for value, start, (unit, factor), gap, floor_gap in zip(
-            end,
-            reference.values,
-            reference.sweeps,
-            reference.limits,
-            reference.floor_limits,
-            strict=True,
-        ):
-            if value != start:
-                sweep = abs(value - start) * unit
-                total += sweep
-                floor_total += sweep * factor
+        for k, value in enumerate(end):
+            if value != values[k]:
+                sweep = abs(value - values[k])
+                total += sweep * units[k]
+                floor_total += sweep * floor_units[k]
+                gap = reference.limits[k]
                 if gap < limit:
                     limit = gap
-                if floor_gap < floor_limit:
-                    floor_limit = floor_gap
+                gap = reference.floor_limits[k]
+                if gap < floor_limit:
+                    floor_limit = gap
         return total < limit and floor_total < floor_limit
 
     def safe_move(
