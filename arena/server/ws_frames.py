@@ -17,6 +17,7 @@ OP_CONTINUATION, OP_TEXT, OP_BINARY = 0x0, 0x1, 0x2
 OP_CLOSE, OP_PING, OP_PONG = 0x8, 0x9, 0xA
 _DATA_OPCODES = (OP_CONTINUATION, OP_TEXT, OP_BINARY)
 _CONTROL_OPCODES = (OP_CLOSE, OP_PING, OP_PONG)
+_WHOLE_TEXT = 0x80 | OP_TEXT  # the first byte of an unfragmented text frame
 
 #: Close codes the transport itself uses (RFC 6455 7.4.1).
 CLOSE_PROTOCOL_ERROR, CLOSE_INVALID_DATA, CLOSE_TOO_BIG = 1002, 1007, 1009
@@ -117,7 +118,7 @@ def parse_close(payload: bytes) -> tuple[int, str]:
         raise ProtocolViolation(CLOSE_INVALID_DATA, "The close reason is not UTF-8.") from None
 
 
-def _unmask(payload: bytes, mask: bytes) -> bytes:
+def _unmask(payload: bytes | bytearray, mask: bytes | bytearray) -> bytes:
     # XOR as one big integer: a handful of C calls, whatever the length.
     size = len(payload)
     if not size:
@@ -157,6 +158,23 @@ class FrameParser:
 
         Raises `ProtocolViolation` for anything RFC 6455 says fails the connection.
         """
+        # The usual frame first: a whole, masked text message of under 126 bytes, outside a
+        # fragmented one. Its checks are the general path's, for that one header.
+        buffer, start = self._buffer, self._position
+        if (
+            len(buffer) - start >= 6
+            and buffer[start] == _WHOLE_TEXT
+            and (second := buffer[start + 1]) & 0x80
+            and (size := second & 0x7F) < 126
+            and self._fragment_opcode is None
+            and size <= self.max_message
+        ):
+            end = start + 6 + size
+            if end <= len(buffer):
+                self._position = end
+                return Message(
+                    OP_TEXT, _unmask(buffer[start + 6 : end], buffer[start + 2 : start + 6])
+                )
         while True:
             frame = self._next_frame()
             if frame is None:
@@ -220,7 +238,7 @@ class FrameParser:
             )
         if available < header + size:
             return None
-        mask = bytes(buffer[start + header - 4 : start + header])
-        payload = _unmask(bytes(buffer[start + header : start + header + size]), mask)
+        mask = buffer[start + header - 4 : start + header]
+        payload = _unmask(buffer[start + header : start + header + size], mask)
         self._position = start + header + size
         return fin, opcode, payload
