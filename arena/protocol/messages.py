@@ -31,7 +31,8 @@ class _Msg(msgspec.Struct, tag_field="type", omit_defaults=True, kw_only=True):
 # --- shared pieces ----------------------------------------------------------------------------
 
 
-class JointValue(msgspec.Struct, omit_defaults=True):
+# Immutable: the robot core takes a command's joints as they were decoded (its `JointGoal`).
+class JointValue(msgspec.Struct, omit_defaults=True, frozen=True):
     """A joint and its value in degrees; `speed` caps its velocity (deg/s)."""
 
     name: str

@@ -160,7 +160,7 @@ def record_of(event: RobotEvent) -> tuple[str, msgspec.Struct]:
         return "command", CommandRecord(
             t=event.time,
             source=event.source,
-            joints=[JointValue(g.name, g.value, g.speed) for g in command.joints],
+            joints=list(command.joints),
             duration=None if command.duration is None else command.duration * 1000.0,
             label=command.source,
             accepted=result.accepted,

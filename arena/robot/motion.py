@@ -25,15 +25,13 @@ from collections.abc import Iterable, Mapping
 import msgspec
 
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.protocol.messages import JointValue
 from arena.robot.model import RobotModel
 
-
-class JointGoal(msgspec.Struct, frozen=True):
-    """One joint's requested value in wire degrees, with an optional speed cap in deg/s."""
-
-    name: str
-    value: float
-    speed: float | None = None
+#: One joint's requested value in wire degrees, with an optional speed cap in deg/s: the
+#: wire's own type, so a command off the wire (or out of a recording) keeps its joints as
+#: they were decoded.
+JointGoal = JointValue
 
 
 class Command(msgspec.Struct, frozen=True):

@@ -10,7 +10,7 @@ from arena.drivers.sequences import Sequence, parse_sequence
 from arena.protocol import messages as wire
 from arena.robot.actor import Robot
 from arena.robot.events import NoticeKind, SlaveNotice, SlaveTarget
-from arena.robot.motion import Command, CommandResult, JointGoal
+from arena.robot.motion import Command, CommandResult
 from arena.robot.snapshot import PeerSnapshot, RobotSnapshot
 
 
@@ -20,7 +20,7 @@ def command_from_wire(
     """A wire command (degrees, milliseconds) as a core `Command` (degrees, seconds)."""
     source = metadata.get("source") if metadata else None
     return Command(
-        tuple(JointGoal(j.name, j.value, j.speed) for j in joints),
+        tuple(joints),  # the wire's joint values are the core's goals (immutable)
         None if duration_ms is None else duration_ms / 1000.0,
         str(source) if source is not None else None,
     )
