@@ -730,7 +730,8 @@ async def test_a_run_that_finds_the_actor_busy_posts_one_command_and_decides_the
     link.command = command  # type: ignore[method-assign]
     sent: list[Any] = []
 
-    async def send(*messages: Any) -> None:
+    async def send(*messages: Any, whole: bool = False) -> None:
+        assert whole  # the answers to a run go out at once
         sent.extend(messages)
 
     connection = cast(Any, SimpleNamespace(send=send, wants_acks=True))

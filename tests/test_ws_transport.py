@@ -37,6 +37,17 @@ def client_frame(
     return bytes([frame[0] | rsv]) + frame[1:]
 
 
+def text_payloads(data: bytes) -> list[bytes]:
+    """The payloads of the server's (unmasked) text frames in `data`."""
+    payloads = []
+    while data:
+        opcode, payload, used = ws_frames.split_unmasked(data)  # type: ignore[misc]
+        assert opcode == OP_TEXT
+        payloads.append(payload)
+        data = data[used:]
+    return payloads
+
+
 def parse_all(parser: FrameParser, data: bytes) -> list[ws_frames.Message]:
     parser.feed(data)
     messages = []
@@ -206,14 +217,7 @@ async def test_control_frames_count_toward_the_readers_fair_share() -> None:
 def test_text_frames_are_made_right_even_when_the_same_text_repeats_or_is_empty() -> None:
     # Sent texts are framed with a one-entry cache (the acks of a burst share one text).
     texts = ("", "ack", "ack", "")
-    data = ws_transport._frames(texts)
-    payloads = []
-    while data:
-        opcode, payload, used = ws_frames.split_unmasked(data)  # type: ignore[misc]
-        assert opcode == OP_TEXT
-        payloads.append(payload)
-        data = data[used:]
-    assert payloads == [text.encode() for text in texts]
+    assert text_payloads(ws_transport._frames(texts)) == [text.encode() for text in texts]
 
 
 async def test_frames_in_hand_are_taken_without_waiting_up_to_the_fair_share() -> None:
@@ -228,6 +232,25 @@ async def test_frames_in_hand_are_taken_without_waiting_up_to_the_fair_share() -
     assert taken == [str(n) for n in range(32)]
     assert await ws.receive() == "32"  # after a checkpoint
     assert ws.next_in_hand() == "33"
+
+
+async def test_the_answers_to_frames_taken_together_go_out_at_once_even_with_more_in_hand() -> None:
+    # A reader answering what it took together writes it itself (no hop to the writer task);
+    # a single answer while more frames wait in hand is kept to go out with theirs.
+    mine, theirs = trio.socket.socketpair()
+    ws = WebSocket(trio.SocketStream(mine), UpgradeRequest("/"), max_message=1024)
+    ws.feed(b"".join(client_frame(OP_TEXT, str(n).encode()) for n in range(3)))
+    assert await ws.receive() == "0" and ws.holds_more()
+    assert ws.offer("one answer")
+    assert ws.queued_bytes > 0  # kept, with frames still in hand
+    ws2 = WebSocket(trio.SocketStream(mine), UpgradeRequest("/"), max_message=1024)
+    ws2.feed(b"".join(client_frame(OP_TEXT, str(n).encode()) for n in range(3)))
+    assert await ws2.receive() == "0" and ws2.holds_more()
+    assert ws2.offer("all", "answers", whole=True)
+    assert ws2.queued_bytes == 0
+    assert text_payloads(await theirs.recv(1024)) == [b"all", b"answers"]
+    mine.close()
+    theirs.close()
 
 
 async def test_a_close_in_hand_is_answered_after_what_came_before_it() -> None:

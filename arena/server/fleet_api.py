@@ -308,8 +308,8 @@ class TunnelSocket:
     def holds_more(self) -> bool:
         return self.tunnel.inbox.statistics().current_buffer_used > 0
 
-    def offer(self, *texts: str) -> bool:
-        for text in texts:
+    def offer(self, *texts: str, whole: bool = False) -> bool:
+        for text in texts:  # (each goes into the tunnel at once, `whole` or not)
             self.tunnel.send(b"t" + text.encode("utf-8"))
         return True
 

@@ -168,12 +168,13 @@ class Connection:
         self._missed: collections.Counter[str] = collections.Counter()
         self._behind = trio.Event()  # set while something is held or missed
 
-    async def send(self, *messages: Outgoing) -> None:
-        """Send messages in one write (a struct is encoded as JSON); never waits."""
+    async def send(self, *messages: Outgoing, whole: bool = False) -> None:
+        """Send messages in one write (a struct is encoded as JSON); never waits. `whole`:
+        they answer every frame the reader took together (see `WebSocket.offer`)."""
         if self._held or self._missed:
             self._catch_up()
         texts = [m.text if isinstance(m, Encoded) else wire.encode(m) for m in messages]
-        if not (self._held or self._missed) and self.ws.offer(*texts):
+        if not (self._held or self._missed) and self.ws.offer(*texts, whole=whole):
             self._note_closed()
             return
         for message, text in zip(messages, texts, strict=True):
@@ -813,7 +814,7 @@ async def _decide_commands(
         # The joint states the commands caused ride along: one write instead of two.
         out.extend(forwarder.take_due())
     if out:
-        await connection.send(*out)
+        await connection.send(*out, whole=True)
     if stopped:
         await connection.close(CLOSE_NORMAL, "robot deleted")
     return not stopped

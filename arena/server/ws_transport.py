@@ -285,15 +285,17 @@ class WebSocket:
         """The peer has let more than `high_water` bytes pile up."""
         return self._outbox_bytes > self.high_water and not self.close_sent
 
-    def offer(self, *texts: str) -> bool:
+    def offer(self, *texts: str, whole: bool = False) -> bool:
         """Send text messages unless the peer is backlogged (then False, nothing queued).
 
         Never waits: a reader answering a burst of messages keeps the whole burst for one
-        write, and a peer that stops reading never stalls the reader.
+        write, and a peer that stops reading never stalls the reader. `whole`: these answer
+        all the frames the reader took together, so they go out at once (nothing else being
+        queued) even with more frames in hand, without a hop to the writer task.
         """
         if self.backlogged:
             return False
-        if self._socket is not None and self._idle():
+        if self._socket is not None and (self._writable() if whole else self._idle()):
             self._write_socket(self._socket, _frames(texts))
         else:  # busy, or a stream (TLS) that only the writer task writes to
             self._queue(_frames(texts))
@@ -318,7 +320,11 @@ class WebSocket:
 
     def _idle(self) -> bool:
         """Nothing queued or being written, and no more frames in hand to answer first."""
-        return not (self._sending or self._outbox or self.close_sent or self._parser.has_data())
+        return self._writable() and not self._parser.has_data()
+
+    def _writable(self) -> bool:
+        """Nothing queued or being written (a write now keeps the order)."""
+        return not (self._sending or self._outbox or self.close_sent)
 
     def _write_socket(self, sock: trio.socket.SocketType, frame: bytes) -> None:
         try:
