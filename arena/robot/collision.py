@@ -184,8 +184,8 @@ class Reference:
     limits: tuple[float, ...]
     floor_limits: tuple[float, ...]
     checked: bool  # False for a pose whose gaps are unknown: nothing is near it
-    units: tuple[float, ...] = ()  # how far a unit of a joint's motion moves a point
-    floor_units: tuple[float, ...] = ()  # ... up or down (see `_floor_factors`)
+    units: tuple[float, ...]  # how far a unit of a joint's motion moves a point
+    floor_units: tuple[float, ...]  # ... up or down (see `_floor_factors`)
 
     def in_order(
         self, values: tuple[float, ...], index: tuple[int | None, ...], scale: float
