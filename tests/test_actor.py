@@ -123,8 +123,8 @@ async def test_a_run_of_commands_is_decided_at_once_each_on_its_own(
     newest = await slave.receive()
     assert isinstance(newest, SlaveTarget) and not newest.more_follow
     # With more of the burst still to come, even the last one's target says so.
-    await trio.sleep(5.0)  # the arm arrives (the ticks' targets: taken next)
-    assert isinstance(await slave.receive(), SlaveTarget)
+    while robot.snapshot().joint("Rotation").virtual_value != 3.0:  # the arm arrives
+        await slave.receive()  # the ticks' targets, each at its tick (mock clock)
     await trio.testing.wait_all_tasks_blocked()
     results = alice.command_run_now([Command.of({"Rotation": 2.0})], burst_goes_on=True)
     assert results is not None and results[0].accepted

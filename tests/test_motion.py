@@ -318,3 +318,34 @@ def test_random_operations_keep_targets_safe(ops: list[tuple]) -> None:  # type:
             for joint in MODEL.joints:
                 bound = joint.max_velocity * (t2 - t1 + BURST) + 1e-6
                 assert abs(second[joint.name] - first[joint.name]) <= bound
+
+
+@settings(max_examples=100, deadline=None)
+@given(
+    st.lists(
+        st.tuples(
+            st.sampled_from(["aim", "advance", "stop_at", "freeze"]),
+            st.sampled_from([j.name for j in MODEL.joints]),
+            st.floats(-50.0, 50.0),
+        ),
+        max_size=30,
+    )
+)
+def test_the_limiters_goals_are_always_where_its_joints_are_heading(
+    steps: list[tuple[str, str, float]],
+) -> None:
+    # `goals` is kept as the joints change (the guard copies it for every command): whatever
+    # moves the joints, it must say what each joint's own goal says.
+    limiter = MotionLimiter(MODEL, 0.0)
+    now = 0.0
+    for action, name, value in steps:
+        now += 0.01
+        if action == "aim":
+            limiter.set_goals(resolve_command(MODEL, Command.of({name: value}))[0], None, now)
+        elif action == "advance":
+            limiter.advance(now)
+        elif action == "stop_at":
+            limiter.stop_at(limiter.positions)
+        else:
+            limiter.freeze()
+        assert limiter.goals == {n: m.goal for n, m in limiter._joints.items()}

@@ -74,9 +74,8 @@ class MasterLink:
 
     def command_now(self, command: Command, *, in_burst: bool = False) -> CommandResult | None:
         """The answer at once when the robot is idle (see `Robot.command_now`), else None."""
-        if self.detached.is_set():
-            return DETACHED_LINK
-        return self.robot.command_now(command, master_id=self.master_id, in_burst=in_burst)
+        results = self.command_run_now([command], burst_goes_on=in_burst)
+        return None if results is None else results[0]
 
     def command_run_now(
         self, commands: list[Command], *, burst_goes_on: bool = False
