@@ -35,7 +35,7 @@ from arena.recording.analysis import export, summarize, timeline
 from arena.recording.mcap_file import FileSeries, read_recording, write_recording
 from arena.recording.mcap_writer import ChunkedWriter
 from arena.recording.recorder import Backoff, Recorder, check_name
-from arena.recording.records import KIND_OF_EVENT, record_of
+from arena.recording.records import record_of
 from arena.recording.replay import ReplayMaster, TimedCommand, recorded_commands
 from arena.recording.writer_process import McapWriterProcess, items_of_events, pack_events
 from arena.robot.actor import Robot
@@ -650,13 +650,20 @@ def test_events_packed_for_the_writer_process_become_the_same_records() -> None:
         FaultReported("b", "s1", "OVERHEAT", "hot", Severity.CRITICAL, "Elbow", 2.0, 2.5),
         PeerChanged("a", "master", "m1", "websocket", "detached", "left", 2.1, 2.6, True),
     ]
-    packed = [(e.robot_id, KIND_OF_EVENT[type(e)], e, 1000 - n) for n, e in enumerate(events)]
-    items = items_of_events([pack_events(packed[:3]), pack_events(packed[3:])])
-    expected = [
-        (robot_id, record_of(e)[0], msgspec.json.encode(record_of(e)[1]), log_time)
-        for robot_id, _, e, log_time in reversed(packed)  # the child writes in time order
-    ]
+    # Slices of two robots whose events interleave in time: the child writes in time order.
+    slices = [pack_events("a", 1000.0, events[:3]), pack_events("b", 999.0, events[3:])]
+    items = items_of_events(slices)
+    expected = sorted(
+        (
+            (robot_id, record_of(e)[0], msgspec.json.encode(record_of(e)[1]), log_time)
+            for robot_id, offset, part in (("a", 1000.0, events[:3]), ("b", 999.0, events[3:]))
+            for e in part
+            for log_time in [int((e.time + offset) * 1e9)]
+        ),
+        key=lambda item: item[3],
+    )
     assert items == expected
+    assert [item[0] for item in items] == ["b"] * 4 + ["a"] * 3  # b's clock runs a second behind
 
 
 def test_the_recorders_retries_back_off_from_one_second_to_thirty() -> None:

@@ -32,7 +32,7 @@ class _Msg(msgspec.Struct, tag_field="type", omit_defaults=True, kw_only=True):
 
 
 # Immutable: the robot core takes a command's joints as they were decoded (its `JointGoal`).
-class JointValue(msgspec.Struct, omit_defaults=True, frozen=True):
+class JointValue(msgspec.Struct, omit_defaults=True, frozen=True, gc=False):
     """A joint and its value in degrees; `speed` caps its velocity (deg/s)."""
 
     name: str

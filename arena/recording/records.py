@@ -218,11 +218,9 @@ EVENT_TYPES: dict[str, type[RobotEvent]] = {
     "peer": PeerChanged,
     "episode": EpisodeChanged,
 }
-#: What the recorder hands its writer process: robot events, and camera frames as "image".
-PACKED_TYPES: dict[str, type[msgspec.Struct]] = {**EVENT_TYPES, "image": CameraFrame}
-#: Packed type -> its kind.
+#: Observed type -> its topic kind (camera frames are "image"; their topics are per camera).
 KIND_OF_EVENT: dict[type[msgspec.Struct], str] = {
-    event: kind for kind, event in PACKED_TYPES.items()
+    event: kind for kind, event in {**EVENT_TYPES, "image": CameraFrame}.items()
 }
 
 

@@ -16,9 +16,10 @@ pickle), one request and one reply at a time:
                                     model, for Foxglove's view, spares the child loading the
                                     robot type, yourdfpy and all); `flush` closes the
                                     chunk and hands it to the OS
-  ("events", slices, robots, flush)  the same from robot events: `slices` are msgpack lists of
-                                    (robot id, kind, event, log time); the child makes the
-                                    records (`records.record_of`) and writes them in time order
+  ("events", slices, robots, flush)  the same from robot events: each of `slices` is one
+                                    robot's events as msgpack (`pack_events`); the child
+                                    makes the records (`records.record_of`) and writes them
+                                    in time order
   ("close", None, None, True)       finish the current file
 and each reply is (error or None, current path or None, messages written, every file opened).
 End of input makes the child finish its file and exit: a killed server still leaves a complete
@@ -35,16 +36,16 @@ import struct
 import subprocess
 import sys
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import IO, TYPE_CHECKING, Any, cast
+from typing import IO, TYPE_CHECKING, Any
 
 import msgspec
 
 from arena.recording import images
 from arena.recording.mcap_file import FileSeries, Item, McapFileWriter
-from arena.recording.records import PACKED_TYPES, camera_kind, record_of
-from arena.robot.events import CameraFrame, RobotEvent
+from arena.recording.records import camera_kind, record_of
+from arena.robot.events import CameraFrame, Observed, RobotEvent
 from arena.robot.model import RobotModel
 
 if TYPE_CHECKING:
@@ -55,34 +56,43 @@ _LENGTH = struct.Struct(">Q")
 SHUTDOWN_TIMEOUT = 10.0
 _pack_items = msgspec.msgpack.Encoder().encode
 _unpack_items = msgspec.msgpack.Decoder(list[tuple[str, str, bytes, int]]).decode
-#: A slice of events as `Recorder` packs it: (robot id, kind, event, log time in ns).
-pack_events = msgspec.msgpack.Encoder().encode
-_unpack_slice = msgspec.msgpack.Decoder(list[tuple[str, str, msgspec.Raw, int]]).decode
-_event_decoders = {kind: msgspec.msgpack.Decoder(event) for kind, event in PACKED_TYPES.items()}
+_pack_slice = msgspec.msgpack.Encoder().encode
+_unpack_slice = msgspec.msgpack.Decoder(tuple[str, float, list[RobotEvent | CameraFrame]]).decode
 _json = msgspec.json.Encoder()
 _LOG_TIME = operator.itemgetter(3)
+#: Events handled between two pauses (`pause` in `items_of_events`).
+_PAUSE_EVERY = 32
+
+
+def pack_events(robot_id: str, wall_offset: float, events: Sequence[Observed]) -> bytes:
+    """A slice of one robot's events for the writer process, packed in one call (the events
+    are tagged structs). `wall_offset` is the wall clock minus trio's clock: an event's MCAP
+    log time is `int((event.time + wall_offset) * 1e9)`, wall-clock ns."""
+    return _pack_slice((robot_id, wall_offset, events))
 
 
 def items_of_events(
     slices: list[bytes], twins: Twins | None = None, pause: Callable[[], object] | None = None
 ) -> list[Item]:
     """The records of packed event slices (and with `twins`, Foxglove's view of them), in
-    log-time order; `pause` is called after each slice."""
+    log-time order; `pause` is called every few events."""
     items: list[Item] = []
+    append = items.append
     for packed in slices:
-        if pause is not None:
-            pause()
-        for robot_id, kind, raw, log_time in _unpack_slice(packed):
-            event = _event_decoders[kind].decode(raw)
-            if isinstance(event, CameraFrame):
-                image = images.encode(event, log_time)
-                items.append((robot_id, camera_kind(event.camera), image, log_time))
-                continue
-            robot_event = cast("RobotEvent", event)
-            _, record = record_of(robot_event)
-            items.append((robot_id, kind, _json.encode(record), log_time))
-            if twins is not None:
-                items.extend(twins.items(robot_id, robot_event, log_time))
+        robot_id, wall_offset, events = _unpack_slice(packed)
+        for start in range(0, len(events), _PAUSE_EVERY):
+            if pause is not None:
+                pause()
+            for event in events[start : start + _PAUSE_EVERY]:
+                at = int((event.time + wall_offset) * 1e9)
+                if isinstance(event, CameraFrame):
+                    image = images.encode(event, at)
+                    append((robot_id, camera_kind(event.camera), image, at))
+                    continue
+                kind, record = record_of(event)
+                append((robot_id, kind, _json.encode(record), at))
+                if twins is not None:
+                    items.extend(twins.items(robot_id, event, at))
     if twins is not None:
         items.extend(twins.flush())
     items.sort(key=_LOG_TIME)

@@ -34,7 +34,7 @@ from arena.robot.model import RobotModel
 JointGoal = JointValue
 
 
-class Command(msgspec.Struct, frozen=True):
+class Command(msgspec.Struct, frozen=True, gc=False):
     """A request to move some joints; `duration` (seconds) asks for a smooth move over that time."""
 
     joints: tuple[JointGoal, ...]
@@ -47,7 +47,7 @@ class Command(msgspec.Struct, frozen=True):
         return cls(tuple(JointGoal(n, v) for n, v in values.items()), duration)
 
 
-class Clamp(msgspec.Struct, frozen=True):
+class Clamp(msgspec.Struct, frozen=True, gc=False):
     """A requested value that was outside the limits and what was applied instead."""
 
     joint: str
@@ -55,7 +55,7 @@ class Clamp(msgspec.Struct, frozen=True):
     applied: float
 
 
-class CommandResult(msgspec.Struct, frozen=True):
+class CommandResult(msgspec.Struct, frozen=True, gc=False):
     """The answer to a command: accepted (maybe clamped) or refused with a code."""
 
     accepted: bool
@@ -69,7 +69,7 @@ class CommandResult(msgspec.Struct, frozen=True):
         return cls(False, code, message)
 
 
-class ResolvedGoal(msgspec.Struct, frozen=True):
+class ResolvedGoal(msgspec.Struct, frozen=True, gc=False):
     """A validated goal: protocol joint name, value inside the limits, effective speed."""
 
     name: str
