@@ -21,6 +21,7 @@ class _Parked:
 
     def __init__(self) -> None:
         self._lot = trio.lowlevel.ParkingLot()
+        self._waiting = 0  # readers parked in `_lot` (an int: asking the lot is a call)
         self.closed = False
         self._holding = False
 
@@ -30,8 +31,15 @@ class _Parked:
         self._lot.unpark_all()
 
     def _wake(self) -> None:
-        if self._lot and not self._holding:  # someone is waiting
+        if self._waiting and not self._holding:
             self._lot.unpark_all()
+
+    async def _park(self) -> None:
+        self._waiting += 1
+        try:
+            await self._lot.park()
+        finally:
+            self._waiting -= 1
 
     def holding_wakes(self) -> _Holding:
         """Puts inside this block do not wake the reader; leaving it wakes them once if
@@ -103,7 +111,7 @@ class LatestMailbox(_Parked, Generic[T, N]):
         # flight, and the item cannot overtake one that came before it.
         return (
             self.deliver_now is not None
-            and bool(self._lot)
+            and self._waiting > 0
             and not self._has_items()
             and not self.closed
             and self.deliver_now(item)
@@ -119,7 +127,7 @@ class LatestMailbox(_Parked, Generic[T, N]):
                 return target
             if self.closed:
                 raise trio.EndOfChannel
-            await self._lot.park()
+            await self._park()
 
     def _has_items(self) -> bool:
         return self._target is not None or bool(self._notices)
@@ -135,10 +143,12 @@ class EventQueue(_Parked, Generic[T]):
 
     def put(self, item: T) -> None:
         """Append without ever blocking."""
-        if len(self._items) == self._items.maxlen:
+        items = self._items
+        if len(items) == items.maxlen:
             self.dropped += 1
-        self._items.append(item)
-        self._wake()
+        items.append(item)
+        if self._waiting and not self._holding:  # `_wake`, inline: every event comes here
+            self._lot.unpark_all()
 
     def _has_items(self) -> bool:
         return bool(self._items)
@@ -162,7 +172,7 @@ class EventQueue(_Parked, Generic[T]):
                 return self._items.popleft()
             if self.closed:
                 raise trio.EndOfChannel
-            await self._lot.park()
+            await self._park()
 
     def __aiter__(self) -> EventQueue[T]:
         return self

@@ -102,7 +102,10 @@ def resolve_command(model: RobotModel, command: Command) -> tuple[list[ResolvedG
         if spec.name in seen:
             raise ArenaError(ErrorCode.INVALID_VALUE, f"Joint {spec.name!r} is named twice.")
         seen.add(spec.name)
-        if not _is_finite_number(goal.value):
+        requested = goal.value
+        if not (
+            math.isfinite(requested) if type(requested) is float else _is_finite_number(requested)
+        ):
             raise ArenaError(
                 ErrorCode.INVALID_VALUE,
                 f"Joint {spec.name!r}: value must be a finite number of degrees.",
@@ -115,9 +118,10 @@ def resolve_command(model: RobotModel, command: Command) -> tuple[list[ResolvedG
                     f"Joint {spec.name!r}: speed must be a positive number (deg/s).",
                 )
             speed = min(speed, float(goal.speed))
-        value = spec.clamp(float(goal.value))
-        if value != goal.value:
-            clamps.append(Clamp(spec.name, float(goal.value), value))
+        requested = float(requested)
+        value = min(spec.upper, max(spec.lower, requested))  # `spec.clamp`, inline: per command
+        if value != requested:
+            clamps.append(Clamp(spec.name, requested, value))
         goals.append(ResolvedGoal(spec.name, value, speed))
     return goals, clamps
 

@@ -428,16 +428,18 @@ class _RobotEventForwarder:
 
     def _messages(self, batch: list[RobotEvent]) -> list[Outgoing]:
         out: list[Outgoing] = []
-        if any(isinstance(e, StateChanged) for e in batch):
+        changed = moved = False
+        for event in batch:  # (a loop: two `any` generators cost more, per command)
+            kind = type(event)
+            changed = changed or kind is StateChanged
+            moved = moved or kind is TargetsSent or kind is JointStatesReceived
+        if changed:
             state = convert.state(self.robot.snapshot())
             if self.name_robot:  # the newest of each member's is kept for a peer behind
                 out.append(Encoded(f"state:{self.robot.robot_id}", wire.encode(state)))
             else:
                 out.append(state)
-        self.pending = self.pending or (
-            self.connection.wants_joint_states
-            and any(isinstance(e, JointStatesReceived | TargetsSent) for e in batch)
-        )
+        self.pending = self.pending or (moved and self.connection.wants_joint_states)
         now = trio.current_time()
         if self.pending and now >= self.next_send:
             states = self.joint_states.message()
@@ -795,7 +797,9 @@ async def _decide_commands(
             rest = commands[index:] if index else commands
             results = link.command_run_now(rest, burst_goes_on=burst_goes_on)
             if results is not None:
-                out.extend(_ack(result) for result in results if wants_acks or not result.accepted)
+                out.extend(
+                    [_ack(result) for result in results if wants_acks or not result.accepted]
+                )
                 break
             # The actor is busy (most often a motion tick is due): this command goes through
             # its inbox, after which the actor is idle again for the rest.
