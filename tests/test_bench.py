@@ -5,6 +5,8 @@ from __future__ import annotations
 import asyncio
 import math
 import socket
+import subprocess
+import sys
 import threading
 
 import pytest
@@ -12,6 +14,7 @@ import pytest
 from arena import bench
 from arena.bench.camera import camera
 from arena.bench.client import BlockingHttp
+from arena.bench.common import process_cpu_seconds
 
 
 def test_bench_scenarios_run_against_a_real_server() -> None:
@@ -167,3 +170,26 @@ def test_the_ordinary_client_relay_runs_against_any_server_of_the_contract(
     monkeypatch.delenv("ARENA_FLOOR_PYTHON", raising=False)
     with pytest.raises(RuntimeError, match="ARENA_FLOOR_PYTHON"):
         asyncio.run(bench.versus_floor(rounds=1))
+
+
+def test_a_servers_cpu_time_is_read_to_well_under_a_clock_tick() -> None:
+    # A child spins until it has used 0.2 s of CPU, says how much exactly, and waits.
+    spin = (
+        "import sys, time\n"
+        "while time.process_time() < 0.2: pass\n"
+        "print(time.process_time(), flush=True)\n"
+        "sys.stdin.read()\n"
+    )
+    child = subprocess.Popen(
+        [sys.executable, "-c", spin], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+    )
+    try:
+        assert child.stdout is not None
+        used = float(child.stdout.readline())
+        measured = process_cpu_seconds(child.pid)
+        # Not a whole number of 10 ms ticks, and within a few ms of what the child counted
+        # (it prints, then blocks: a little more CPU, never less).
+        assert used <= measured < used + 0.005
+    finally:
+        child.communicate("")
+    assert process_cpu_seconds(child.pid) == 0.0  # gone (and reaped): nothing to count
