@@ -99,18 +99,17 @@ class McapFileWriter:
         try:
             writer = self._current() if items else None
             channels = self._channel_ids
+            messages: list[tuple[int, int, bytes]] = []
             for robot_id, kind, data, log_time in items:
-                assert writer is not None
-                if robot_id not in self._robots_written and robot_id in self.robots:
-                    self._robots_written.add(robot_id)
-                    writer.add_metadata(f"robot/{robot_id}", self.robots[robot_id])
-                    for _, extra, payload, at in self._introduce(robot_id, log_time):
-                        writer.add_message(self._channel(writer, robot_id, extra), at, payload)
-                        self.messages += 1
                 channel = channels.get((robot_id, kind))
-                if channel is None:
-                    channel = channels[robot_id, kind] = self._channel(writer, robot_id, kind)
-                writer.add_message(channel, log_time, data)
+                if channel is None:  # a robot's first record of a kind in this file
+                    assert writer is not None
+                    writer.add_messages(messages)  # what came before goes first
+                    messages = []
+                    channel = self._first_of_kind(writer, robot_id, kind, log_time)
+                messages.append((channel, log_time, data))
+            if writer is not None:
+                writer.add_messages(messages)
             self.messages += len(items)
             if flush:
                 self.flush()
@@ -173,6 +172,18 @@ class McapFileWriter:
             self._channel_ids.clear()
             self._robots_written.clear()
         return self._writer
+
+    def _first_of_kind(self, writer: ChunkedWriter, robot_id: str, kind: str, log_time: int) -> int:
+        """The channel of a robot's kind of record, new in this file; a robot's first record
+        in the file brings its metadata and introduction (its 3D model) before it."""
+        if robot_id not in self._robots_written and robot_id in self.robots:
+            self._robots_written.add(robot_id)
+            writer.add_metadata(f"robot/{robot_id}", self.robots[robot_id])
+            for _, extra, payload, at in self._introduce(robot_id, log_time):
+                writer.add_message(self._channel(writer, robot_id, extra), at, payload)
+                self.messages += 1
+        channel = self._channel_ids[robot_id, kind] = self._channel(writer, robot_id, kind)
+        return channel
 
     def _introduce(self, robot_id: str, log_time: int) -> list[Item]:
         return [] if self.first_in_file is None else self.first_in_file(robot_id, log_time)

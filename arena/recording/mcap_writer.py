@@ -19,7 +19,7 @@ from __future__ import annotations
 import struct
 import zlib
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from typing import IO, Protocol
 
 import zstandard
@@ -104,20 +104,24 @@ class ChunkedWriter:
 
     def add_message(self, channel_id: int, log_time: int, data: bytes) -> None:
         """A message (its publish time is its log time); the chunk closes once it is full."""
-        chunk = self._chunk
-        if not chunk:
-            self._chunk_start = self._chunk_end = log_time
-        elif log_time < self._chunk_start:
-            self._chunk_start = log_time
-        elif log_time > self._chunk_end:
-            self._chunk_end = log_time
-        chunk += _MESSAGE_HEAD.pack(
-            _MESSAGE, _MESSAGE_FIXED + len(data), channel_id, 0, log_time, log_time
-        )
-        chunk += data
-        self._counts[channel_id] += 1
-        if len(chunk) >= self.chunk_size:
-            self.close_chunk()
+        self.add_messages(((channel_id, log_time, data),))
+
+    def add_messages(self, messages: Iterable[tuple[int, int, bytes]]) -> None:
+        """Messages as (channel id, log time, data), in one loop: the recording process
+        writes every record through it, and a call per record cost as much as the record."""
+        chunk, counts, pack, size = self._chunk, self._counts, _MESSAGE_HEAD.pack, self.chunk_size
+        for channel_id, log_time, data in messages:
+            if not chunk:
+                self._chunk_start = self._chunk_end = log_time
+            elif log_time < self._chunk_start:
+                self._chunk_start = log_time
+            elif log_time > self._chunk_end:
+                self._chunk_end = log_time
+            chunk += pack(_MESSAGE, _MESSAGE_FIXED + len(data), channel_id, 0, log_time, log_time)
+            chunk += data
+            counts[channel_id] += 1
+            if len(chunk) >= size:
+                self.close_chunk()  # (empties `chunk` in place)
 
     def close_chunk(self) -> None:
         """Compress the open chunk and write it (nothing if it holds no message)."""
