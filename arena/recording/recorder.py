@@ -196,6 +196,7 @@ class Recorder:
     async def _collect(self) -> _Batch:
         """Drain every followed robot's queue and pack the events (none while paused)."""
         batch = _Batch()
+        packed = 0  # events packed since the last checkpoint
         for queue, (robot_id, subscription) in list(self._followed.items()):
             events = queue.drain()
             if queue.closed:  # the robot is gone (and its queue now empty)
@@ -207,8 +208,12 @@ class Recorder:
             # Log times follow trio's clock from one wall-clock anchor: monotonic within a
             # file (no NTP jumps), and virtual time stays consistent in tests.
             for start in range(0, len(events), _PACK_SLICE):
-                batch.add(robot_id, self._wall_offset, events[start : start + _PACK_SLICE])
-                await trio.lowlevel.checkpoint()
+                part = events[start : start + _PACK_SLICE]
+                batch.add(robot_id, self._wall_offset, part)
+                packed += len(part)
+                if packed >= _PACK_SLICE:  # (a fleet's robots have a few events each)
+                    packed = 0
+                    await trio.lowlevel.checkpoint()
         return batch
 
     async def _write_forever(self) -> None:
