@@ -650,7 +650,8 @@ def test_events_packed_for_the_writer_process_become_the_same_records() -> None:
         FaultReported("b", "s1", "OVERHEAT", "hot", Severity.CRITICAL, "Elbow", 2.0, 2.5),
         PeerChanged("a", "master", "m1", "websocket", "detached", "left", 2.1, 2.6, True),
     ]
-    # Slices of two robots whose events interleave in time: the child writes in time order.
+    # Slices of two robots whose clocks differ by a second: the child writes all of them in
+    # time order, across the slices.
     slices = [pack_events("a", 1000.0, events[:3]), pack_events("b", 999.0, events[3:])]
     items = items_of_events(slices)
     expected = sorted(
