@@ -599,6 +599,21 @@ async def test_a_mailbox_hands_items_straight_to_an_idle_consumer_in_order() -> 
         nursery.cancel_scope.cancel()
 
 
+async def test_a_mailbox_hands_nothing_on_once_its_reader_stopped_waiting() -> None:
+    box: LatestMailbox[str, str] = LatestMailbox()
+    handed: list[str] = []
+    box.deliver_now = lambda item: handed.append(item) is None  # (always accepts)
+    async with trio.open_nursery() as nursery:
+        nursery.start_soon(box.get)
+        await trio.testing.wait_all_tasks_blocked()
+        box.put_target("t1")  # the reader waits: straight through
+        assert handed == ["t1"]
+        nursery.cancel_scope.cancel()  # the reader gives up waiting (its connection closes)
+    box.put_target("t2")  # no one waits now: kept for whoever reads next
+    assert handed == ["t1"]
+    assert await box.get() == "t2"
+
+
 async def test_observers_see_state_changes_and_peers(
     autojump_clock: MockClock, manager: RobotManager
 ) -> None:
