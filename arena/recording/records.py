@@ -7,7 +7,6 @@ The JSON Schemas of these structs are the MCAP schemas (encoding `jsonschema`).
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from typing import Any
 
 import msgspec
@@ -152,60 +151,55 @@ def split_topic(name: str) -> tuple[str, str] | None:
     return None
 
 
-def _targets(event: TargetsSent) -> TargetsRecord:
-    return TargetsRecord(t=event.time, joints=event.joints)
-
-
-def _command(event: CommandHandled) -> CommandRecord:
-    command, result = event.command, event.result
-    return CommandRecord(
-        t=event.time,
-        source=event.source,
-        joints=list(command.joints),
-        duration=None if command.duration is None else command.duration * 1000.0,
-        label=command.source,
-        accepted=result.accepted,
-        code=None if result.code is None else str(result.code),
-        message=result.message,
-        clamped=[ClampInfo(c.joint, c.requested, c.applied) for c in result.clamped]
-        if result.clamped
-        else [],
-    )
-
-
-def _joint_states(event: JointStatesReceived) -> JointStatesRecord:
-    return JointStatesRecord(t=event.time, slave_id=event.slave_id, joints=event.joints)
-
-
-def _state(event: StateChanged) -> StateRecord:
-    return StateRecord(
-        t=event.time,
-        mode=str(event.mode),
-        owner=event.owner,
-        estop_reason=event.estop_reason,
-        cause=event.cause,
-    )
-
-
-def _fault(event: FaultReported) -> FaultRecord:
-    return FaultRecord(
-        t=event.time,
-        peer_id=event.peer_id,
-        code=event.code,
-        message=event.message,
-        severity=str(event.severity),
-        joint=event.joint,
-    )
-
-
-def _episode(event: EpisodeChanged) -> EpisodeRecord:
-    return EpisodeRecord(
-        t=event.time, change=event.change, index=event.index, task=event.task, started=event.started
-    )
-
-
-def _peer(event: PeerChanged) -> PeerRecord:
-    return PeerRecord(
+def record_of(event: RobotEvent) -> tuple[str, msgspec.Struct]:
+    """The (kind, record) for a robot event."""
+    # The most frequent first: every command makes one; targets follow most commands sent one
+    # at a time, and few of a burst's.
+    if isinstance(event, CommandHandled):
+        command, result = event.command, event.result
+        return "command", CommandRecord(
+            t=event.time,
+            source=event.source,
+            joints=list(command.joints),
+            duration=None if command.duration is None else command.duration * 1000.0,
+            label=command.source,
+            accepted=result.accepted,
+            code=None if result.code is None else str(result.code),
+            message=result.message,
+            clamped=[ClampInfo(c.joint, c.requested, c.applied) for c in result.clamped],
+        )
+    if isinstance(event, TargetsSent):
+        return "targets", TargetsRecord(t=event.time, joints=event.joints)
+    if isinstance(event, JointStatesReceived):
+        return "joint_states", JointStatesRecord(
+            t=event.time, slave_id=event.slave_id, joints=event.joints
+        )
+    if isinstance(event, StateChanged):
+        return "state", StateRecord(
+            t=event.time,
+            mode=str(event.mode),
+            owner=event.owner,
+            estop_reason=event.estop_reason,
+            cause=event.cause,
+        )
+    if isinstance(event, FaultReported):
+        return "fault", FaultRecord(
+            t=event.time,
+            peer_id=event.peer_id,
+            code=event.code,
+            message=event.message,
+            severity=str(event.severity),
+            joint=event.joint,
+        )
+    if isinstance(event, EpisodeChanged):
+        return "episode", EpisodeRecord(
+            t=event.time,
+            change=event.change,
+            index=event.index,
+            task=event.task,
+            started=event.started,
+        )
+    return "peer", PeerRecord(
         t=event.time,
         role=event.role,
         peer_id=event.peer_id,
@@ -214,24 +208,6 @@ def _peer(event: PeerChanged) -> PeerRecord:
         reason=event.reason,
         autonomous=event.autonomous,
     )
-
-
-#: How each event type's record is made.
-_MAKERS: dict[type[RobotEvent], Callable[[Any], msgspec.Struct]] = {
-    TargetsSent: _targets,
-    CommandHandled: _command,
-    JointStatesReceived: _joint_states,
-    StateChanged: _state,
-    FaultReported: _fault,
-    EpisodeChanged: _episode,
-    PeerChanged: _peer,
-}
-
-
-def record_of(event: RobotEvent) -> tuple[str, msgspec.Struct]:
-    """The (kind, record) for a robot event."""
-    kind, make = _RECORDERS[type(event)]  # one lookup: this runs for every event recorded
-    return kind, make(event)
 
 
 #: Topic kind -> the robot event it records (what `record_of` maps).
@@ -244,8 +220,6 @@ EVENT_TYPES: dict[str, type[RobotEvent]] = {
     "peer": PeerChanged,
     "episode": EpisodeChanged,
 }
-#: Event type -> (its topic kind, how its record is made).
-_RECORDERS = {event: (kind, _MAKERS[event]) for kind, event in EVENT_TYPES.items()}
 #: Observed type -> its topic kind (camera frames are "image"; their topics are per camera).
 KIND_OF_EVENT: dict[type[msgspec.Struct], str] = {
     event: kind for kind, event in {**EVENT_TYPES, "image": CameraFrame}.items()

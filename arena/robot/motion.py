@@ -103,9 +103,7 @@ def resolve_command(model: RobotModel, command: Command) -> tuple[list[ResolvedG
             raise ArenaError(ErrorCode.INVALID_VALUE, f"Joint {spec.name!r} is named twice.")
         seen.add(spec.name)
         requested = goal.value
-        if not (
-            math.isfinite(requested) if type(requested) is float else _is_finite_number(requested)
-        ):
+        if not _is_finite_number(requested):
             raise ArenaError(
                 ErrorCode.INVALID_VALUE,
                 f"Joint {spec.name!r}: value must be a finite number of degrees.",
@@ -119,7 +117,7 @@ def resolve_command(model: RobotModel, command: Command) -> tuple[list[ResolvedG
                 )
             speed = min(speed, float(goal.speed))
         requested = float(requested)
-        value = min(spec.upper, max(spec.lower, requested))  # `spec.clamp`, inline: per command
+        value = spec.clamp(requested)
         if value != requested:
             clamps.append(Clamp(spec.name, requested, value))
         goals.append(ResolvedGoal(spec.name, value, speed))
@@ -127,6 +125,8 @@ def resolve_command(model: RobotModel, command: Command) -> tuple[list[ResolvedG
 
 
 def _is_finite_number(value: object) -> bool:
+    if type(value) is float:  # what the wire decodes to: one check, per command
+        return math.isfinite(value)
     return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
 
 
