@@ -33,6 +33,7 @@ from trio_websocket import WebSocketConnection, open_websocket_url
 from arena import cli
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording import glb
+from arena.recording.foxglove import Twin
 from arena.recording.mcap_file import read_recording, write_recording
 from arena.robot.kinematics import Kinematics, to_matrix
 from arena.robot.meshes import stl_vertices, visuals
@@ -146,6 +147,55 @@ def test_kinematics_of_prismatic_fixed_and_malformed_trees() -> None:
     cycle = '<robot name="r"><link name="a"/><link name="b"/></robot>'
     with pytest.raises(ValueError, match="one root"):
         Kinematics.from_urdf(cycle)
+
+
+def sdk_tree(twin: Twin, tree: str, degrees: dict[str, float], ns: int) -> bytes:
+    """A tree as foxglove-sdk's own `FrameTransforms` encodes it."""
+    fm = foxglove.messages
+    stamp = fm.Timestamp(ns // 1_000_000_000, ns % 1_000_000_000)
+
+    def transform(parent: str, child: str, pose: Any) -> Any:
+        (qx, qy, qz, qw), (x, y, z) = pose
+        return fm.FrameTransform(
+            timestamp=stamp,
+            parent_frame_id=parent,
+            child_frame_id=child,
+            translation=fm.Vector3(x=x, y=y, z=z),
+            rotation=fm.Quaternion(x=qx, y=qy, z=qz, w=qw),
+        )
+
+    kinematics = twin.kinematics
+    root = twin.frame(tree, kinematics.root)
+    found = [transform("world", root, ((0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0)))]
+    values = {SPECS[name].urdf_name: SPECS[name].to_urdf(v) for name, v in degrees.items()}
+    for joint, pose in kinematics.joint_transforms(values):
+        found.append(transform(twin.frame(tree, joint.parent), twin.frame(tree, joint.child), pose))
+    return bytes(fm.FrameTransforms(transforms=found).encode())
+
+
+def test_transforms_are_encoded_byte_for_byte_as_the_sdk_encodes_them() -> None:
+    """Arena writes `FrameTransforms` itself (keeping a still joint's fields): the bytes must
+    be the SDK's, whichever joints move, stand still, sit at zero (either sign) or were never
+    heard of, at any time stamp."""
+    twin = Twin("arm", MODEL)
+    rng = random.Random(11)
+    heard: dict[str, dict[str, float]] = {"virtual": {}, "real": {}}
+    stamps = [0, 1, 999_999_999, 1_000_000_000, 1_700_000_000_123_456_789, (1 << 32) - 1]
+    for step in range(600):
+        tree = rng.choice(["virtual", "real"])
+        moved = {
+            name: rng.choice([0.0, -0.0, 90.0, rng.uniform(-180.0, 180.0)])
+            for name in SPECS
+            if rng.random() < 0.3
+        }
+        twin.update(tree, moved)
+        heard[tree].update(moved)
+        ns = stamps[step % len(stamps)] if step % 3 else rng.randrange(1 << 62)
+        ns %= (1 << 32) * 1_000_000_000  # the SDK's Timestamp holds 32-bit seconds
+        ours = twin.encode_tree(tree, ns)
+        assert ours == sdk_tree(twin, tree, heard[tree], ns), (step, moved)
+        decoded = decode("foxglove.FrameTransforms", ours)
+        assert len(decoded.transforms) == len(twin.kinematics.joints) + 1
 
 
 @pytest.fixture
