@@ -396,8 +396,6 @@ class Twins:
     def items(self, robot_id: str, event: RobotEvent, log_time: int) -> list[ViewItem]:
         """What an event shows in Foxglove, as items to write (transforms as the rate
         allows; call `flush` after a batch of events)."""
-        if type(event) is CommandHandled and event.result.accepted:
-            return []  # most events of all, and nothing to show (see `_log_line`)
         twin = self.twin(robot_id)
         if twin is None:
             return []
