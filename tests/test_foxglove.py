@@ -177,11 +177,13 @@ def test_transforms_are_encoded_byte_for_byte_as_the_sdk_encodes_them() -> None:
     """Arena writes `FrameTransforms` itself (keeping a still joint's fields): the bytes must
     be the SDK's, whichever joints move, stand still, sit at zero (either sign) or were never
     heard of, at any time stamp."""
-    twin = Twin("arm", MODEL)
+    # (a long id makes each transform longer than 127 bytes: a two-byte length)
+    twins = [Twin("arm", MODEL), Twin("a-robot-with-a-rather-long-name-" + "x" * 40, MODEL)]
     rng = random.Random(11)
-    heard: dict[str, dict[str, float]] = {"virtual": {}, "real": {}}
+    heard: dict[tuple[str, str], dict[str, float]] = {}
     stamps = [0, 1, 999_999_999, 1_000_000_000, 1_700_000_000_123_456_789, (1 << 32) - 1]
-    for step in range(600):
+    for step in range(1200):
+        twin = twins[step % 2]
         tree = rng.choice(["virtual", "real"])
         moved = {
             name: rng.choice([0.0, -0.0, 90.0, rng.uniform(-180.0, 180.0)])
@@ -189,11 +191,11 @@ def test_transforms_are_encoded_byte_for_byte_as_the_sdk_encodes_them() -> None:
             if rng.random() < 0.3
         }
         twin.update(tree, moved)
-        heard[tree].update(moved)
+        heard.setdefault((twin.robot_id, tree), {}).update(moved)
         ns = stamps[step % len(stamps)] if step % 3 else rng.randrange(1 << 62)
         ns %= (1 << 32) * 1_000_000_000  # the SDK's Timestamp holds 32-bit seconds
         ours = twin.encode_tree(tree, ns)
-        assert ours == sdk_tree(twin, tree, heard[tree], ns), (step, moved)
+        assert ours == sdk_tree(twin, tree, heard[twin.robot_id, tree], ns), (step, moved)
         decoded = decode("foxglove.FrameTransforms", ours)
         assert len(decoded.transforms) == len(twin.kinematics.joints) + 1
 
