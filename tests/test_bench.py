@@ -167,6 +167,10 @@ def test_the_ordinary_client_relay_runs_against_any_server_of_the_contract(
     results = asyncio.run(against_arena())
     assert results["p50_us"] > 0 and results["throughput_per_s"] > 0
     assert results["cpu_us_per_command"] > 0  # the server's process tree did the work
+    one, burst = results["cpu_one_at_a_time_us_per_command"], results["cpu_burst_us_per_command"]
+    assert one > 0 and burst > 0  # each phase costs the server something ...
+    whole = (one * 100 + burst * 3000) / 3100  # ... and the phases add up to the whole
+    assert whole == pytest.approx(results["cpu_us_per_command"], rel=1e-9)
     monkeypatch.delenv("ARENA_FLOOR_PYTHON", raising=False)
     with pytest.raises(RuntimeError, match="ARENA_FLOOR_PYTHON"):
         asyncio.run(bench.versus_floor(rounds=1))

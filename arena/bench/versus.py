@@ -5,7 +5,7 @@ Each round runs 2,000 commands one at a time (master send -> the slave's `execut
 then 10,000 as fast as the master sends them (until the slave has the last one: a small step
 of a joint at rest, which no server holds back). When the bench started the server itself,
 its CPU (the whole process tree) over both phases and the half second after them (for the
-work the commands left behind) is divided by the 12,000 commands. Rounds alternate between
+work the commands left behind) is divided by the 12,000 commands, and given by phase too. Rounds alternate between
 the servers; the figures are medians, and the ratios to the floor come from one run.
 
 The floor is `shared/bench/floor_relay.py` (aiohttp on uvloop with orjson: parse and forward,
@@ -86,6 +86,7 @@ async def ordinary_relay(
             await master.send(_command(i))
             await arrived.get()
             latencies.append(time.perf_counter() - sent)
+        cpu_one = server.cpu_seconds() - cpu_before
         started = time.perf_counter()
         for i in range(burst - 1):
             await master.send(_command(i))
@@ -104,6 +105,10 @@ async def ordinary_relay(
         "p99_us": _percentile(latencies, 0.99) * 1e6,
         "throughput_per_s": burst / seconds,
         "cpu_us_per_command": cpu / (one_at_a_time + burst) * 1e6,
+        # The same split by phase: one at a time, where every command is a wake-up, and the
+        # burst with what it left behind.
+        "cpu_one_at_a_time_us_per_command": cpu_one / one_at_a_time * 1e6,
+        "cpu_burst_us_per_command": (cpu - cpu_one) / burst * 1e6,
     }
 
 
