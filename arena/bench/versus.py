@@ -5,8 +5,9 @@ Each round runs 2,000 commands one at a time (master send -> the slave's `execut
 then 10,000 as fast as the master sends them (until the slave has the last one: a small step
 of a joint at rest, which no server holds back). When the bench started the server itself,
 its CPU (the whole process tree) over both phases and the half second after them (for the
-work the commands left behind) is divided by the 12,000 commands, and given by phase too. Rounds alternate between
-the servers; the figures are medians, and the ratios to the floor come from one run.
+work the commands left behind) is divided by the 12,000 commands, and given by phase too.
+Rounds alternate between the servers; the figures are medians, and the ratios to the floor
+come from one run.
 
 The floor is `shared/bench/floor_relay.py` (aiohttp on uvloop with orjson: parse and forward,
 nothing else), run with a Python that has those packages: `ARENA_FLOOR_PYTHON=PATH` (and
