@@ -53,7 +53,7 @@ from arena.robot.events import (
     StateChanged,
     TargetsSent,
 )
-from arena.robot.kinematics import Kinematics, UrdfJoint
+from arena.robot.kinematics import IDENTITY, Kinematics, UrdfJoint
 from arena.robot.kinematics import Pose as KinematicPose
 from arena.robot.meshes import visuals
 from arena.robot.model import JointSpec, RobotModel, load_robot_model
@@ -131,7 +131,7 @@ class Twin:
             noted = None if spec is None else degrees.get(spec.name)
             if slot.fields is None or noted != slot.noted:
                 value = 0.0 if spec is None or noted is None else spec.to_urdf(noted)
-                rotation, translation = _IDENTITY if joint is None else joint.transform(value)
+                rotation, translation = IDENTITY if joint is None else joint.transform(value)
                 if translation is not slot.translation:  # (a revolute joint's never changes)
                     slot.translation = translation
                     slot.frames_and_translation = slot.frames + _vector(4, translation)
@@ -245,6 +245,12 @@ def _model(path: Path) -> tuple[str, bytes]:
     return "model/stl", path.read_bytes()
 
 
+def shows(event: RobotEvent) -> bool:
+    """Whether an event can show in Foxglove: all but an accepted command, the most frequent
+    event of all (callers skip those without asking a twin)."""
+    return not (type(event) is CommandHandled and event.result.accepted)
+
+
 def _log_line(event: RobotEvent) -> tuple[LogLevel, str] | None:
     if isinstance(event, StateChanged):
         if event.mode is Mode.ESTOPPED:
@@ -255,7 +261,7 @@ def _log_line(event: RobotEvent) -> tuple[LogLevel, str] | None:
         level = _LEVEL_OF_SEVERITY.get(str(event.severity), LogLevel.Warning)
         return level, f"fault {event.code} from {event.peer_id}{joint}: {event.message}"
     if isinstance(event, CommandHandled):
-        if event.result.accepted:
+        if not shows(event):
             return None
         return (
             LogLevel.Warning,
@@ -275,7 +281,6 @@ def _log_line(event: RobotEvent) -> tuple[LogLevel, str] | None:
 # a tree of seven transforms: ~3 us at rest, ~4 with one joint moving, ~10 with all of them.
 # Protobuf's wire format as the SDK writes it: fields in order, message fields always present,
 # zero numbers and empty strings left out.
-_IDENTITY: KinematicPose = ((0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0))
 
 
 def _varint(value: int) -> bytes:
@@ -360,6 +365,10 @@ class Twins:
     robots' models where the recorder sent them (else the type is loaded by name). A robot
     whose type cannot be loaded is recorded without Foxglove's view (said once on stderr).
     """
+
+    #: `shows`, for the recording process, which holds Twins without importing this module
+    #: (the SDK loads only when the view is recorded).
+    shows = staticmethod(shows)
 
     def __init__(
         self,

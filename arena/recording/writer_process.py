@@ -45,7 +45,7 @@ import msgspec
 from arena.recording import images
 from arena.recording.mcap_file import FileSeries, Item, McapFileWriter
 from arena.recording.records import camera_kind, record_of
-from arena.robot.events import CameraFrame, CommandHandled, Observed, RobotEvent
+from arena.robot.events import CameraFrame, Observed, RobotEvent
 from arena.robot.model import RobotModel
 
 if TYPE_CHECKING:
@@ -91,10 +91,7 @@ def items_of_events(
                     continue
                 kind, record = record_of(event)
                 append((robot_id, kind, _json.encode(record), at))
-                # An accepted command, the most frequent event, shows nothing in Foxglove.
-                if twins is not None and not (
-                    type(event) is CommandHandled and event.result.accepted
-                ):
+                if twins is not None and twins.shows(event):
                     items.extend(twins.items(robot_id, event, at))
     if twins is not None:
         items.extend(twins.flush())
