@@ -33,6 +33,11 @@ SCHEMA_TYPES: dict[str, Any] = {
     "rest-master": rest.MasterBody,
     "rest-reason": rest.ReasonBody,
     "rest-replay": rest.ReplayBody,
+    "rest-workspace": rest.WorkspaceBody,
+    "rest-calibration": rest.CalibrationBody,
+    "rest-camera": rest.CameraBody,
+    "rest-episode": rest.EpisodeBody,
+    "rest-group": rest.GroupBody,
 }
 
 

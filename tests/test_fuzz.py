@@ -27,6 +27,7 @@ EDGE_CODES = {
     ErrorCode.INVALID_JSON,
     ErrorCode.INVALID_MESSAGE,
     ErrorCode.UNKNOWN_MESSAGE_TYPE,
+    ErrorCode.UNKNOWN_FIELD,
     ErrorCode.MESSAGE_TOO_LARGE,
 }
 

@@ -39,6 +39,7 @@ class ErrorCode(enum.StrEnum):
     MESSAGE_TOO_LARGE = "MESSAGE_TOO_LARGE"
     BINARY_NOT_SUPPORTED = "BINARY_NOT_SUPPORTED"
     INVALID_BODY = "INVALID_BODY"
+    UNKNOWN_FIELD = "UNKNOWN_FIELD"  # a body or message carries a field its type does not have
     NOT_FOUND = "NOT_FOUND"
     METHOD_NOT_ALLOWED = "METHOD_NOT_ALLOWED"
     UNAUTHORIZED = "UNAUTHORIZED"

@@ -1,11 +1,13 @@
 """The wire messages, as typed structs: decode and validate at the edge, encode on the way out.
 
 The shapes follow the LeRobot Arena contract (`type`, `timestamp`, `data`). Unknown fields are
-ignored so that existing clients keep working; missing or mistyped fields are errors. Joint
+refused (UNKNOWN_FIELD, naming the field and the allowed ones: a misspelled field must not be
+dropped without a word); missing or mistyped fields are errors. Joint
 values are degrees, durations and sequence timestamps are milliseconds, speeds are deg/s.
 
 `decode_master`, `decode_slave` return a message or raise `ArenaError` with one of
-INVALID_JSON, UNKNOWN_MESSAGE_TYPE, INVALID_MESSAGE, MESSAGE_TOO_LARGE. No I/O here.
+INVALID_JSON, UNKNOWN_MESSAGE_TYPE, UNKNOWN_FIELD, INVALID_MESSAGE, MESSAGE_TOO_LARGE. No I/O
+here.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from typing import Any, Literal, TypeAlias
 import msgspec
 
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
+from arena.protocol.validation import refusal
 
 #: Largest accepted WebSocket frame or request body, in bytes.
 MAX_MESSAGE_BYTES = 64 * 1024
@@ -32,7 +35,9 @@ class _Msg(msgspec.Struct, tag_field="type", omit_defaults=True, kw_only=True):
 
 
 # Immutable: the robot core takes a command's joints as they were decoded (its `JointGoal`).
-class JointValue(msgspec.Struct, omit_defaults=True, frozen=True, gc=False):
+class JointValue(
+    msgspec.Struct, omit_defaults=True, frozen=True, gc=False, forbid_unknown_fields=True
+):
     """A joint and its value in degrees; `speed` caps its velocity (deg/s)."""
 
     name: str
@@ -40,7 +45,7 @@ class JointValue(msgspec.Struct, omit_defaults=True, frozen=True, gc=False):
     speed: float | None = None
 
 
-class CommandData(msgspec.Struct, omit_defaults=True):
+class CommandData(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     """The body of a command."""
 
     joints: list[JointValue]
@@ -49,7 +54,7 @@ class CommandData(msgspec.Struct, omit_defaults=True):
     metadata: dict[str, Any] | None = None
 
 
-class SequenceStep(msgspec.Struct, omit_defaults=True):
+class SequenceStep(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     """One command of a sequence, `timestamp` ms after the start."""
 
     joints: list[JointValue]
@@ -57,7 +62,7 @@ class SequenceStep(msgspec.Struct, omit_defaults=True):
     duration: float | None = None
 
 
-class SequenceData(msgspec.Struct, omit_defaults=True):
+class SequenceData(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     """A movement sequence."""
 
     commands: list[SequenceStep]
@@ -67,7 +72,7 @@ class SequenceData(msgspec.Struct, omit_defaults=True):
     loop: bool = False
 
 
-class ReasonData(msgspec.Struct, omit_defaults=True):
+class ReasonData(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     """Why something happened."""
 
     reason: str | None = None
@@ -76,29 +81,29 @@ class ReasonData(msgspec.Struct, omit_defaults=True):
 # --- master -> server -------------------------------------------------------------------------
 
 
-class CommandMessage(_Msg, tag="command"):
+class CommandMessage(_Msg, tag="command", forbid_unknown_fields=True):
     """Move joints."""
 
     data: CommandData
 
 
-class SequenceMessage(_Msg, tag="sequence"):
+class SequenceMessage(_Msg, tag="sequence", forbid_unknown_fields=True):
     """Play a sequence of commands with its timing."""
 
     data: SequenceData
 
 
-class HeartbeatMessage(_Msg, tag="heartbeat"):
+class HeartbeatMessage(_Msg, tag="heartbeat", forbid_unknown_fields=True):
     """I am still here."""
 
 
-class EStopMessage(_Msg, tag="estop"):
+class EStopMessage(_Msg, tag="estop", forbid_unknown_fields=True):
     """Emergency stop."""
 
     data: ReasonData | None = None
 
 
-class ResetMessage(_Msg, tag="reset"):
+class ResetMessage(_Msg, tag="reset", forbid_unknown_fields=True):
     """Leave the e-stop."""
 
 
@@ -110,7 +115,7 @@ MasterMessage: TypeAlias = (
 # --- slave -> server --------------------------------------------------------------------------
 
 
-class StatusData(msgspec.Struct, omit_defaults=True):
+class StatusData(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     """A slave's connection status."""
 
     isConnected: bool = True
@@ -118,13 +123,13 @@ class StatusData(msgspec.Struct, omit_defaults=True):
     error: str | None = None
 
 
-class StatusUpdateMessage(_Msg, tag="status_update"):
+class StatusUpdateMessage(_Msg, tag="status_update", forbid_unknown_fields=True):
     """A slave reports its status."""
 
     data: StatusData
 
 
-class JointStateEntry(msgspec.Struct, omit_defaults=True):
+class JointStateEntry(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     """A joint's measured value: `real_value`, or `value` from simpler slaves."""
 
     name: str
@@ -136,13 +141,13 @@ class JointStateEntry(msgspec.Struct, omit_defaults=True):
     limits: dict[str, Any] | None = None
 
 
-class JointStatesMessage(_Msg, tag="joint_states"):
+class JointStatesMessage(_Msg, tag="joint_states", forbid_unknown_fields=True):
     """Measured joint values."""
 
     data: list[JointStateEntry]
 
 
-class ErrorData(msgspec.Struct, omit_defaults=True):
+class ErrorData(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     """A fault: code, sentence, joint, severity."""
 
     code: str
@@ -151,7 +156,7 @@ class ErrorData(msgspec.Struct, omit_defaults=True):
     severity: Severity = Severity.ERROR
 
 
-class ErrorMessage(_Msg, tag="error"):
+class ErrorMessage(_Msg, tag="error", forbid_unknown_fields=True):
     """A fault report (from a slave) or an error answer (from the server)."""
 
     data: ErrorData
@@ -345,12 +350,9 @@ def _decode(decoder: msgspec.json.Decoder[Any], raw: str | bytes) -> Any:
     try:
         return decoder.decode(raw)
     except msgspec.ValidationError as exc:
-        text = str(exc)
-        if text.endswith("at `$.type`") or "missing required field `type`" in text:
-            raise ArenaError(
-                ErrorCode.UNKNOWN_MESSAGE_TYPE, f"Unknown or missing message type: {text}"
-            ) from None
-        raise ArenaError(ErrorCode.INVALID_MESSAGE, f"Invalid message: {text}") from None
+        raise refusal(
+            decoder.type, raw, exc, what="message", code=ErrorCode.INVALID_MESSAGE
+        ) from None
     except msgspec.DecodeError as exc:
         raise ArenaError(ErrorCode.INVALID_JSON, f"Not valid JSON: {exc}") from None
     except RecursionError:  # msgspec's own depth guard

@@ -9,7 +9,7 @@ import msgspec
 from arena.protocol.messages import JointValue
 
 
-class CreateRobotBody(msgspec.Struct, omit_defaults=True):
+class CreateRobotBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     """`POST /api/robots`: a robot type, a display name and, optionally, the id to use."""
 
     robot_type: str = "so-arm100"
@@ -17,20 +17,26 @@ class CreateRobotBody(msgspec.Struct, omit_defaults=True):
     id: str | None = None
 
 
-class JointsBody(msgspec.Struct, omit_defaults=True):
+class JointsBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     """`PUT /api/robots/{id}/joints`: manual control. `duration` is in milliseconds."""
 
     joints: list[JointValue]
     duration: float | None = None
 
 
-class ReasonBody(msgspec.Struct, omit_defaults=True):
+class ReasonBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     """An optional reason (e-stop)."""
 
     reason: str | None = None
 
 
-class MockSlaveBody(msgspec.Struct, tag="mock-slave", tag_field="type", omit_defaults=True):
+class MockSlaveBody(
+    msgspec.Struct,
+    tag="mock-slave",
+    tag_field="type",
+    omit_defaults=True,
+    forbid_unknown_fields=True,
+):
     """A simulated arm. Delays in milliseconds."""
 
     simulateLatency: float = 0.0
@@ -44,7 +50,13 @@ class MockSlaveBody(msgspec.Struct, tag="mock-slave", tag_field="type", omit_def
 CalibrationName = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$")]
 
 
-class UsbSlaveBody(msgspec.Struct, tag="usb-slave", tag_field="type", omit_defaults=True):
+class UsbSlaveBody(
+    msgspec.Struct,
+    tag="usb-slave",
+    tag_field="type",
+    omit_defaults=True,
+    forbid_unknown_fields=True,
+):
     """An arm on a Feetech servo bus. No `port`: find the adapter by USB id.
 
     `estop`: what the servos do on an e-stop, `hold` (torque kept, goal = present) or
@@ -64,7 +76,7 @@ ServerUrl = Annotated[str, msgspec.Meta(pattern=r"^(ws|wss|http|https)://[^\s/?#
 RemoteRobotId = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.:-]{1,64}$")]
 
 
-class RemoteLinkBody(msgspec.Struct, omit_defaults=True):
+class RemoteLinkBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     """What both remote drivers share: where, which robot, the key, heartbeats, backoff.
 
     `heartbeat`: seconds between heartbeats; `reconnectInitial`/`reconnectMax`: the first and
@@ -91,7 +103,13 @@ class RemoteServerBody(RemoteLinkBody, tag="remote-server", tag_field="type"):
     robot's id), as this robot's master; our real joint values go back as that robot's."""
 
 
-class PhysicsSlaveBody(msgspec.Struct, tag="physics-slave", tag_field="type", omit_defaults=True):
+class PhysicsSlaveBody(
+    msgspec.Struct,
+    tag="physics-slave",
+    tag_field="type",
+    omit_defaults=True,
+    forbid_unknown_fields=True,
+):
     """The arm simulated by MuJoCo (the `physics` extra): `rate` steps a second; `estop` as a
     usb-slave's; `realtime` false steps on the server's clock (for tests on a virtual clock)."""
 
@@ -103,7 +121,7 @@ class PhysicsSlaveBody(msgspec.Struct, tag="physics-slave", tag_field="type", om
 SlaveBody: TypeAlias = MockSlaveBody | UsbSlaveBody | WebSocketSlaveBody | PhysicsSlaveBody
 
 
-class CalibrationBody(msgspec.Struct, omit_defaults=True):
+class CalibrationBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     """Calibration steps. `slave`: which hardware slave (when the robot has several);
     `rest` (start only): the pose the arm is put in, degrees by joint (default: the twin's);
     `writeHoming` (finish only): also store the offsets in the servos."""
@@ -113,7 +131,13 @@ class CalibrationBody(msgspec.Struct, omit_defaults=True):
     writeHoming: bool = False
 
 
-class SequenceMasterBody(msgspec.Struct, tag="mock-sequence", tag_field="type", omit_defaults=True):
+class SequenceMasterBody(
+    msgspec.Struct,
+    tag="mock-sequence",
+    tag_field="type",
+    omit_defaults=True,
+    forbid_unknown_fields=True,
+):
     """The demo-sequence master: which sequences (default: all), loop, auto start, takeover."""
 
     sequences: list[str] | None = None
@@ -122,22 +146,29 @@ class SequenceMasterBody(msgspec.Struct, tag="mock-sequence", tag_field="type", 
     takeover: bool = True
 
 
-class ReplayBody(msgspec.Struct, omit_defaults=True):
-    """`POST /api/robots/{id}/replay`: which file and robot, speed, loop, window (seconds)."""
+class ReplayBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """`POST /api/robots/{id}/replay`: which file and robot, speed, loop, window (seconds
+    from the robot's first recorded command)."""
 
     recording: str
     source_robot: str | None = None
-    speed: float = 1.0
+    speed: Annotated[float, msgspec.Meta(ge=0.01, le=1000)] = 1.0
     loop: bool = False
-    start: float | None = None
-    end: float | None = None
+    start: Annotated[float, msgspec.Meta(ge=0)] | None = None
+    end: Annotated[float, msgspec.Meta(gt=0)] | None = None
 
 
 class ReplayMasterBody(ReplayBody, tag="replay", tag_field="type"):
     """The `replay` master config: a `ReplayBody` with its type."""
 
 
-class UsbMasterBody(msgspec.Struct, tag="usb-master", tag_field="type", omit_defaults=True):
+class UsbMasterBody(
+    msgspec.Struct,
+    tag="usb-master",
+    tag_field="type",
+    omit_defaults=True,
+    forbid_unknown_fields=True,
+):
     """A leader arm on a Feetech servo bus, moved by hand (torque stays off).
 
     `rate`: Hz at which it is read; `deadband`: degrees a joint must move before a new command
@@ -158,13 +189,35 @@ MasterBody: TypeAlias = SequenceMasterBody | ReplayMasterBody | UsbMasterBody | 
 GroupId = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.-]{1,64}$")]
 
 
-class GroupBody(msgspec.Struct, omit_defaults=True):
+class GroupBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     """`POST /api/groups`: a group one master can drive. `stopTogether`: an e-stop of any
     member e-stops them all."""
 
     id: GroupId
     members: Annotated[list[str], msgspec.Meta(min_length=1, max_length=256)]
     stopTogether: bool = False
+
+
+#: Three coordinates in metres.
+Point = Annotated[list[float], msgspec.Meta(min_length=3, max_length=3)]
+
+
+class BoxBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """A keep-out box: its corners in metres (the base link's frame, z up) and a name."""
+
+    min: Point
+    max: Point
+    name: str | msgspec.UnsetType = msgspec.UNSET
+
+
+class WorkspaceBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """`PUT /api/robots/{id}/workspace`: the collision guard's floor (null: none), margin,
+    policy and keep-out boxes. What is left out takes its default (specs/collision.md)."""
+
+    floor: float | msgspec.UnsetType | None = msgspec.UNSET
+    margin: float | msgspec.UnsetType = msgspec.UNSET
+    policy: str | msgspec.UnsetType = msgspec.UNSET  # checked by the workspace: one list
+    keep_out: list[BoxBody] | msgspec.UnsetType = msgspec.UNSET
 
 
 class CameraBody(msgspec.Struct, forbid_unknown_fields=True):

@@ -37,20 +37,21 @@ def recorded_robots(recording: Recording) -> list[str]:
     return list(dict.fromkeys(m.robot_id for m in recording.messages))
 
 
-def pick_robot(recording: Recording, robot_id: str | None) -> str:
-    """`robot_id`, or the only robot in the recording; a clear error otherwise."""
+def pick_robot(recording: Recording, robot_id: str | None, named: str = "--robot") -> str:
+    """`robot_id`, or the only robot in the recording; a clear error otherwise, naming the
+    option or field (`named`) by which the robot is chosen."""
     robots = recorded_robots(recording)
     if robot_id is None:
         if len(robots) == 1:
             return robots[0]
         raise ArenaError(
             ErrorCode.INVALID_VALUE,
-            f"{recording.path.name} holds robots {robots}; say which to replay.",
+            f"{recording.path.name} holds robots {robots}: say which with {named}.",
         )
     if robot_id not in robots:
         raise ArenaError(
             ErrorCode.UNKNOWN_ROBOT,
-            f"{recording.path.name} has no robot {robot_id!r}; it has {robots}.",
+            f"{recording.path.name} has no robot {robot_id!r} ({named}); it has {robots}.",
         )
     return robot_id
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import time
 from collections import Counter
 from collections.abc import Iterable
@@ -18,7 +19,14 @@ from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import demo_sequences, get_sequence
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.messages import MAX_MESSAGE_BYTES
-from arena.protocol.rest import CreateRobotBody, JointsBody, MasterBody, ReasonBody, SlaveBody
+from arena.protocol.rest import (
+    CreateRobotBody,
+    JointsBody,
+    MasterBody,
+    ReasonBody,
+    SlaveBody,
+    WorkspaceBody,
+)
 from arena.recording.recorder import Recorder
 from arena.robot.collision import Workspace
 from arena.robot.groups import GroupRegistry
@@ -26,7 +34,14 @@ from arena.robot.manager import RobotManager
 from arena.sensors.camera import Cameras
 from arena.server import convert, dashboard, openapi
 from arena.server.auth import check_token
-from arena.server.base import ArenaApp, Hardware, error_response, read_body
+from arena.server.base import (
+    ArenaApp,
+    Hardware,
+    error_response,
+    read_body,
+    refuse_any_body,
+    too_large,
+)
 from arena.server.calibration_api import blueprint as calibration_blueprint
 from arena.server.config import ServerConfig
 from arena.server.dashboard import blueprint as dashboard_blueprint
@@ -108,6 +123,15 @@ def _register_errors(app: ArenaApp) -> None:
             )
         return None
 
+    @app.before_request
+    async def refuse_unread_body() -> None:
+        rule = request.url_rule
+        if request.method in SAFE_METHODS or rule is None or not _has_body():
+            return
+        route = (request.method, _RULE_PARAMETER.sub(r"{\1}", rule.rule))
+        if route in _BODILESS:
+            await refuse_any_body(" ".join(route))
+
     @app.after_request
     async def count(response: Response) -> Response:
         app.metrics.requests[f"{response.status_code // 100}xx"] += 1
@@ -121,10 +145,12 @@ def _register_errors(app: ArenaApp) -> None:
     @app.errorhandler(HTTPException)
     async def http_error(error: HTTPException) -> tuple[dict[str, Any], int]:
         status = error.code or 500
+        if status == 413:  # the framework's sentence does not say the limit
+            refused = too_large(request.content_length)
+            return error_response(refused.code, refused.message)
         code = {
             404: ErrorCode.NOT_FOUND,
             405: ErrorCode.METHOD_NOT_ALLOWED,
-            413: ErrorCode.MESSAGE_TOO_LARGE,
         }.get(status, ErrorCode.INVALID_BODY)
         body, _ = error_response(code, error.description or error.name)
         return body, status
@@ -135,6 +161,16 @@ def _register_errors(app: ArenaApp) -> None:
         return error_response(
             ErrorCode.INTERNAL_ERROR, "Something went wrong inside Arena; the log has the details."
         )
+
+
+#: `<robot_id>`, `<path:name>` in a route's rule: `{robot_id}`, `{name}` as OpenAPI writes them.
+_RULE_PARAMETER = re.compile(r"<(?:\w+:)?(\w+)>")
+#: The state-changing routes that read no body (OpenAPI's table says which take one).
+_BODILESS = frozenset(
+    (method, path)
+    for method, path, _, body in openapi.ROUTES
+    if body is None and method not in SAFE_METHODS
+)
 
 
 def _has_body() -> bool:
@@ -283,9 +319,9 @@ def _register_routes(app: ArenaApp) -> None:
     @app.put("/api/robots/<robot_id>/workspace")
     async def put_workspace(robot_id: str) -> dict[str, Any]:
         robot = manager.get(robot_id)
-        body = await read_body(dict[str, Any])
+        body = await read_body(WorkspaceBody)
         try:
-            workspace = Workspace.from_json(body)
+            workspace = Workspace.from_json(msgspec.to_builtins(body))
         except ValueError as exc:
             raise ArenaError(ErrorCode.INVALID_BODY, f"Invalid workspace: {exc}.") from None
         await robot.set_workspace(workspace)

@@ -13,6 +13,7 @@ from quart_trio import QuartTrio
 
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.messages import MAX_MESSAGE_BYTES
+from arena.protocol.validation import refusal
 from arena.recording.recorder import Recorder
 from arena.robot.groups import GroupRegistry
 from arena.robot.manager import RobotManager
@@ -42,6 +43,7 @@ STATUS_FOR: dict[ErrorCode, int] = {
     ErrorCode.MESSAGE_TOO_LARGE: 413,
     ErrorCode.INVALID_JSON: 422,
     ErrorCode.INVALID_BODY: 422,
+    ErrorCode.UNKNOWN_FIELD: 400,
     ErrorCode.INVALID_VALUE: 422,
     ErrorCode.INVALID_CONFIG: 422,
     ErrorCode.UNKNOWN_JOINT: 422,
@@ -155,19 +157,53 @@ def error_response(code: ErrorCode, message: str) -> tuple[dict[str, Any], int]:
     return {"error": {"code": str(code), "message": message}}, STATUS_FOR.get(code, 400)
 
 
+def too_large(size: int | None) -> ArenaError:
+    """A body over the limit, said as the WebSocket says it of a message (`size`: its bytes,
+    when the request declared them)."""
+    body = "The request body" if size is None else f"A request body of {size} bytes"
+    return ArenaError(
+        ErrorCode.MESSAGE_TOO_LARGE,
+        f"{body} is over the {MAX_MESSAGE_BYTES}-byte limit (64 KiB): send less at a time.",
+    )
+
+
+async def refuse_any_body(route: str) -> None:
+    """For a route that reads no body: a body with fields is refused, never ignored (an empty
+    one, `{}` or `null` passes: clients send those for "nothing")."""
+    raw = await request.get_data(cache=True)
+    if len(raw) > MAX_MESSAGE_BYTES:
+        raise too_large(len(raw))
+    if not raw.strip():
+        return
+    try:
+        value = msgspec.json.decode(raw)
+    except (msgspec.DecodeError, RecursionError):
+        raise ArenaError(
+            ErrorCode.INVALID_JSON, f"{route} takes no body; this one is not JSON."
+        ) from None
+    if value is None or value == {}:
+        return
+    if isinstance(value, dict):
+        names = ", ".join(repr(str(k)) for k in list(value)[:5])
+        raise ArenaError(
+            ErrorCode.UNKNOWN_FIELD,
+            f"{route} takes no body, so {names} would be ignored: send none.",
+        )
+    raise ArenaError(ErrorCode.INVALID_BODY, f"{route} takes no body: send none.")
+
+
 async def read_body(kind: Any, *, optional: bool = False) -> Any:
-    """Decode and validate the JSON body as `kind`, or raise `ArenaError(INVALID_BODY)`."""
+    """Decode and validate the JSON body as `kind`, or raise `ArenaError`: INVALID_BODY,
+    UNKNOWN_FIELD (a field `kind` does not have), INVALID_JSON or MESSAGE_TOO_LARGE."""
     raw = await request.get_data(cache=False)
     if len(raw) > MAX_MESSAGE_BYTES:
-        raise ArenaError(
-            ErrorCode.MESSAGE_TOO_LARGE, f"Body over the {MAX_MESSAGE_BYTES}-byte limit."
-        )
+        raise too_large(len(raw))
     if not raw.strip() and optional:
         raw = b"{}"
     try:
         return msgspec.json.decode(raw, type=kind)
     except msgspec.ValidationError as exc:
-        raise ArenaError(ErrorCode.INVALID_BODY, f"Invalid request body: {exc}") from None
+        raise refusal(kind, raw, exc, what="body", code=ErrorCode.INVALID_BODY) from None
     except msgspec.DecodeError as exc:
         raise ArenaError(ErrorCode.INVALID_JSON, f"The body is not valid JSON: {exc}") from None
     except RecursionError:  # msgspec's own depth guard (found by the fuzz tests)

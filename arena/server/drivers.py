@@ -3,6 +3,8 @@ the server because it composes every driver package with the recordings (replay)
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from arena.drivers.mock_slave import MockSlave, MockSlaveConfig
@@ -81,6 +83,35 @@ def make_slave(
     raise ArenaError(ErrorCode.INVALID_CONFIG, f"Unsupported slave type {type(body).__name__}.")
 
 
+@contextmanager
+def _about(field: str) -> Iterator[None]:
+    """Errors raised inside name the body's `field` they are about."""
+    try:
+        yield
+    except ArenaError as error:
+        raise ArenaError(error.code, f"`{field}`: {error.message}") from None
+
+
+def _replay(body: ReplayMasterBody, recordings: Path) -> ReplayMaster:
+    """A replay of `body.recording`; every refusal names the field it is about."""
+    if body.start is not None and body.end is not None and body.end <= body.start:
+        raise ArenaError(
+            ErrorCode.INVALID_VALUE, f"`end` ({body.end} s) must be after `start` ({body.start} s)."
+        )
+    with _about("recording"):
+        recording = read_recording(existing_recording(recordings, body.recording))
+    source = pick_robot(recording, body.source_robot, named="`source_robot`")
+    with _about("source_robot"):
+        commands = recorded_commands(recording, source, body.start, body.end)
+    if not commands:
+        raise ArenaError(
+            ErrorCode.INVALID_VALUE,
+            f"`start`/`end`: {body.recording} holds no command of {source!r} from "
+            f"{body.start or 0} s to {'the end' if body.end is None else f'{body.end} s'}.",
+        )
+    return ReplayMaster(commands, speed=body.speed, loop=body.loop, name=body.recording)
+
+
 def make_master(
     body: MasterBody,
     recordings: Path | None = None,
@@ -100,10 +131,7 @@ def make_master(
     if isinstance(body, ReplayMasterBody):
         if recordings is None:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "This server keeps no recordings.")
-        recording = read_recording(existing_recording(recordings, body.recording))
-        source = pick_robot(recording, body.source_robot)
-        commands = recorded_commands(recording, source, body.start, body.end)
-        return ReplayMaster(commands, speed=body.speed, loop=body.loop, name=body.recording)
+        return _replay(body, recordings)
     if isinstance(body, SequenceMasterBody):
         ids = body.sequences if body.sequences else list(demo_sequences())
         master = SequenceMaster(

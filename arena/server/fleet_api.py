@@ -97,8 +97,8 @@ async def fleet_robots() -> dict[str, Any]:
 async def fleet_estop() -> dict[str, Any]:
     """E-stop every robot of every live node; each node's acknowledgment with its time, and
     the live nodes that did not answer within 100 ms."""
+    body: ReasonBody = await read_body(ReasonBody, optional=True)  # the body's faults first
     fleet = _fleet()
-    body: ReasonBody = await read_body(ReasonBody, optional=True)
     reason = body.reason or f"fleet e-stop from node {fleet.name}"
     answers = await fleet.ask_all("estop", {"reason": reason}, timeout=ESTOP_TIMEOUT)
     acks = [

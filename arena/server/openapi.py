@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import typing
 from typing import Any
 
 import msgspec
@@ -16,9 +17,18 @@ from arena.protocol.rest import (
     GroupBody,
     JointsBody,
     MasterBody,
+    MockSlaveBody,
+    PhysicsSlaveBody,
     ReasonBody,
+    RemoteServerBody,
     ReplayBody,
+    ReplayMasterBody,
+    SequenceMasterBody,
     SlaveBody,
+    UsbMasterBody,
+    UsbSlaveBody,
+    WebSocketSlaveBody,
+    WorkspaceBody,
 )
 from arena.server.base import ArenaApp
 
@@ -48,7 +58,7 @@ ROUTES: list[tuple[str, str, str, Any]] = [
         "PUT",
         "/api/robots/{robot_id}/workspace",
         "Change the workspace (floor, margin, keep-out boxes, policy)",
-        None,
+        WorkspaceBody,
     ),
     ("POST", "/api/robots/{robot_id}/slaves", "Attach a slave driver", SlaveBody),
     ("DELETE", "/api/robots/{robot_id}/slaves/{slave_id}", "Detach a slave", None),
@@ -132,6 +142,73 @@ ROUTES: list[tuple[str, str, str, Any]] = [
     ("GET", "/docs", "Interactive API documentation", None),
 ]
 
+#: Answers other than 200 OK on success (a test holds them to what each route returns).
+SUCCESS: dict[tuple[str, str], int] = {
+    ("POST", "/api/robots"): 201,
+    ("POST", "/api/robots/{robot_id}/slaves"): 201,
+    ("POST", "/api/robots/{robot_id}/master"): 201,
+    ("POST", "/api/recordings"): 201,
+    ("POST", "/api/robots/{robot_id}/replay"): 201,
+    ("POST", "/api/robots/{robot_id}/cameras"): 201,
+    ("POST", "/api/robots/{robot_id}/episodes/start"): 201,
+    ("POST", "/api/groups"): 201,
+    ("GET", "/ui"): 302,
+    # Asked on a reused connection; as a connection's first request the listener serves it
+    # itself, 200 with the stream.
+    ("GET", "/api/robots/{robot_id}/cameras/{name}/stream"): 307,
+}
+
+#: What `/docs` fills in for each request body (of a union: for each of its types). A test
+#: sends each to its route and checks that the route's validation accepts it.
+EXAMPLES: dict[type, dict[str, Any]] = {
+    CreateRobotBody: {"robot_type": "so-arm100", "name": "My Robot", "id": "my-robot"},
+    ReasonBody: {"reason": "operator pressed stop"},
+    JointsBody: {
+        "joints": [
+            {"name": "Rotation", "value": 45},
+            {"name": "Pitch", "value": -30, "speed": 100},
+        ],
+        "duration": 1000,
+    },
+    WorkspaceBody: {
+        "floor": 0.0,
+        "margin": 0.005,
+        "policy": "refuse",
+        "keep_out": [{"name": "camera", "min": [0.3, 0.3, 0.0], "max": [0.4, 0.4, 0.2]}],
+    },
+    MockSlaveBody: {"type": "mock-slave", "simulateLatency": 50, "responseDelay": 20},
+    UsbSlaveBody: {"type": "usb-slave", "port": "/dev/ttyUSB0", "estop": "hold", "rate": 250},
+    PhysicsSlaveBody: {"type": "physics-slave", "estop": "hold"},
+    WebSocketSlaveBody: {
+        "type": "websocket-slave",
+        "url": "ws://robot-proxy:8080",
+        "robotId": "remote-arm-1",
+    },
+    SequenceMasterBody: {"type": "mock-sequence", "sequences": ["gentle-wave"], "loop": True},
+    ReplayMasterBody: {"type": "replay", "recording": "session.mcap", "speed": 2.0},
+    UsbMasterBody: {"type": "usb-master", "port": "/dev/ttyUSB1", "deadband": 0.5},
+    RemoteServerBody: {
+        "type": "remote-server",
+        "url": "ws://localhost:8080",
+        "robotId": "my-robot",
+    },
+    ReplayBody: {"recording": "session.mcap", "source_robot": "demo-arm", "speed": 1.0},
+    CalibrationBody: {"slave": "slave-1"},
+    CameraBody: {"name": "wrist", "source": "test-pattern", "fps": 15, "width": 320, "height": 240},
+    EpisodeBody: {"task": "pick up the red cube"},
+    GroupBody: {"id": "pair", "members": ["demo-arm"], "stopTogether": True},
+}
+
+
+def examples(body: Any) -> dict[str, dict[str, Any]]:
+    """The examples of a request body type, by name (a union's: by each member's `type`)."""
+    members = typing.get_args(body) or (body,)
+    return {
+        str(member.__struct_config__.tag or "example"): {"value": EXAMPLES[member]}
+        for member in members
+    }
+
+
 #: WebSocket message types, documented as schemas (OpenAPI has no WebSocket operations).
 WEBSOCKET_TYPES: list[Any] = [
     wire.MasterMessage,
@@ -144,6 +221,13 @@ WEBSOCKET_TYPES: list[Any] = [
     wire.MissedMessage,
     wire.MemberLeftMessage,
 ]
+
+_STATUS_TEXT = {
+    200: "OK",
+    201: "Created",
+    302: "Found: go to /ui/",
+    307: "Ask again on a new connection",
+}
 
 _ERROR_SCHEMA = {
     "type": "object",
@@ -168,7 +252,9 @@ def document(app: ArenaApp | None = None) -> dict[str, Any]:
         operation: dict[str, Any] = {
             "summary": summary,
             "responses": {
-                "200": {"description": "OK"},
+                str(SUCCESS.get((method, path), 200)): {
+                    "description": _STATUS_TEXT[SUCCESS.get((method, path), 200)]
+                },
                 "default": {
                     "description": "Error",
                     "content": {
@@ -187,7 +273,12 @@ def document(app: ArenaApp | None = None) -> dict[str, Any]:
         if body is not None:
             operation["requestBody"] = {
                 "required": body is not ReasonBody,
-                "content": {"application/json": {"schema": body_schema[id(body)]}},
+                "content": {
+                    "application/json": {
+                        "schema": body_schema[id(body)],
+                        "examples": examples(body),
+                    }
+                },
             }
         paths.setdefault(path, {})[method.lower()] = operation
     components["Error"] = _ERROR_SCHEMA
@@ -240,7 +331,9 @@ async function main() {
         box.appendChild(input); return [p.name, input];
       });
       let body = null;
-      if (op.requestBody) { body = document.createElement('textarea'); body.value = '{}';
+      if (op.requestBody) { body = document.createElement('textarea');
+        const shown = Object.values(op.requestBody.content['application/json'].examples || {});
+        body.value = shown.length ? JSON.stringify(shown[0].value, null, 1) : '{}';
         box.appendChild(body); }
       const button = document.createElement('button'); button.textContent = 'Try it';
       const out = document.createElement('pre'); out.hidden = true;
