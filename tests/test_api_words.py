@@ -24,6 +24,8 @@ from arena.protocol.messages import MAX_MESSAGE_BYTES, decode_master, decode_sla
 from arena.protocol.rest import MasterBody, SlaveBody
 from arena.protocol.validation import nearest
 from arena.server import openapi
+from arena.server.base import STATUS_FOR
+from arena.server.websockets import _CLOSE_FOR
 from tests.conftest import RunningServer
 from tests.test_server_ws import command, receive
 
@@ -445,3 +447,92 @@ async def test_every_request_body_has_examples_its_route_accepts(server: Running
                     assert code not in VALIDATION_CODES, (path, value, response.text)
                 sent += 1
     assert sent >= 20
+
+
+# --- 6. the error table is the code's ---------------------------------------------------------
+
+
+def error_table() -> dict[str, tuple[int | None, int | None]]:
+    """specs/api.md's error table: code -> (HTTP status, WebSocket close code)."""
+    text = (ROOT / "specs" / "api.md").read_text(encoding="utf-8")
+    section = text.split("## Errors", 1)[1].split("\n## ", 1)[0]
+    rows = [line for line in section.splitlines() if line.startswith("| ")][1:]  # no header
+    table: dict[str, tuple[int | None, int | None]] = {}
+
+    def numbers(cell: str, count: int) -> list[int | None]:
+        if "(" in cell:  # "(HTTP 403 to the handshake)": no close code
+            cell = ""
+        found = [int(n) for n in re.findall(r"\d{3,4}", cell)]
+        if not found:
+            return [None] * count
+        return found if len(found) == count else found * count
+
+    for row in rows:
+        cells = [cell.strip() for cell in row.strip("|").split("|")]
+        codes = re.findall(r"[A-Z][A-Z0-9_]+", cells[0])
+        pairs = zip(
+            codes, numbers(cells[1], len(codes)), numbers(cells[2], len(codes)), strict=True
+        )
+        for code, status, close in pairs:
+            assert code not in table, f"{code} is in the table twice"
+            table[code] = (status, close)
+    return table
+
+
+def test_the_error_table_holds_every_code_both_ways() -> None:
+    table = error_table()
+    codes = {str(code) for code in ErrorCode}
+    assert sorted(codes - set(table)) == [], "codes the server sends that the table lacks"
+    assert sorted(set(table) - codes) == [], "codes in the table that the server never sends"
+    for code in ErrorCode:
+        status, close = table[str(code)]
+        if code in STATUS_FOR:
+            assert status == STATUS_FOR[code], code
+        elif status is not None:
+            assert status == 400, code  # the status of any code without its own
+        assert close == _CLOSE_FOR.get(code), code
+
+
+#: Calls whose first argument is an error code that leaves the server.
+_CODE_TAKERS = {
+    "ArenaError",
+    "report_fault",
+    "report_sensor_fault",
+    "send_error",
+    "error_message",
+    "error_response",
+}
+
+
+def test_every_code_the_server_sends_is_an_error_code() -> None:
+    """No code is sent as a bare string (which the table could not be held to), and every
+    `ErrorCode` is sent somewhere."""
+    bare: list[str] = []
+    used: set[str] = set()
+    for path in sorted((ROOT / "arena").rglob("*.py")):
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        # A code as a key of a table (its HTTP status, its close code) is not a code sent.
+        keys = {
+            id(key) for node in ast.walk(tree) if isinstance(node, ast.Dict) for key in node.keys
+        }
+        for node in ast.walk(tree):
+            if (
+                isinstance(node, ast.Attribute)
+                and isinstance(node.value, ast.Name)
+                and node.value.id == "ErrorCode"
+                and id(node) not in keys
+            ):
+                used.add(node.attr)
+            if not isinstance(node, ast.Call):
+                continue
+            name = getattr(node.func, "id", getattr(node.func, "attr", ""))
+            if name not in _CODE_TAKERS:
+                continue
+            arguments = [a for a in node.args if not isinstance(a, ast.Starred)]
+            first = arguments[0] if arguments else None
+            if name == "report_sensor_fault" and len(arguments) > 1:
+                first = arguments[1]
+            if isinstance(first, ast.Constant) and isinstance(first.value, str):
+                bare.append(f"{path.relative_to(ROOT)}:{node.lineno} {first.value}")
+    assert bare == []
+    assert sorted({code.name for code in ErrorCode} - used) == []

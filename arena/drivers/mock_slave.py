@@ -88,4 +88,6 @@ class MockSlave:
         severity = list(Severity)[choice]
         self.injected_faults.append(severity)
         joint = rng.choice(sorted(self.positions)) if self.positions else None
-        await link.report_fault("SIMULATED_FAULT", f"injected {severity} fault", severity, joint)
+        await link.report_fault(
+            ErrorCode.SIMULATED_FAULT, f"injected {severity} fault", severity, joint
+        )

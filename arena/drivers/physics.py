@@ -26,7 +26,7 @@ from typing import Any
 
 import trio
 
-from arena.protocol.errors import Severity
+from arena.protocol.errors import ErrorCode, Severity
 from arena.robot.events import NoticeKind, SlaveNotice, SlaveTarget
 from arena.robot.links import SlaveLink
 from arena.robot.model import RobotModel
@@ -235,7 +235,7 @@ class PhysicsSlave:
         for pair in sorted(touching - set(self.contacts_reported)):
             self.contacts_reported.append(pair)
             await link.report_fault(
-                "CONTACT", f"{pair[0]} touches {pair[1]}", Severity.WARNING, None
+                ErrorCode.CONTACT, f"{pair[0]} touches {pair[1]}", Severity.WARNING, None
             )
 
     async def _in_trio_time(self, link: SlaveLink, simulation: ArmSimulation) -> None:

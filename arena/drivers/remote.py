@@ -180,7 +180,7 @@ class _Upstream(MasterSession):
             data = message.get("data") or {}
             if data.get("mode") == "estopped":
                 await self.link.report_fault(
-                    "REMOTE_ESTOPPED",
+                    ErrorCode.REMOTE_ESTOPPED,
                     f"the robot on {self.url} is e-stopped: {data.get('estop_reason')}",
                     Severity.WARNING,
                 )

@@ -21,8 +21,10 @@ class ErrorCode(enum.StrEnum):
     TAKEN_OVER = "TAKEN_OVER"
     MASTER_LOST = "MASTER_LOST"
     SLAVE_LOST = "SLAVE_LOST"
-    SLAVE_FAULT = "SLAVE_FAULT"
     DRIVER_FAILED = "DRIVER_FAILED"
+    SLAVE_STATUS = "SLAVE_STATUS"  # a WebSocket slave's status_update says it is not connected
+    SIMULATED_FAULT = "SIMULATED_FAULT"  # injected by a mock-slave with simulateErrors
+    CONTACT = "CONTACT"  # the physics twin's links touch something
     OVERLOADED = "OVERLOADED"
     # Registry
     UNKNOWN_ROBOT = "UNKNOWN_ROBOT"
@@ -68,23 +70,23 @@ class ErrorCode(enum.StrEnum):
     # Links to other Arena servers
     REMOTE_UNREACHABLE = "REMOTE_UNREACHABLE"
     REMOTE_REFUSED = "REMOTE_REFUSED"
-    REMOTE_LOST = "REMOTE_LOST"
+    REMOTE_ESTOPPED = "REMOTE_ESTOPPED"  # the robot behind a websocket-slave is e-stopped
     # Groups
     UNKNOWN_GROUP = "UNKNOWN_GROUP"
     GROUP_EXISTS = "GROUP_EXISTS"
-    # Recordings
     # Cameras and episodes
     UNKNOWN_CAMERA = "UNKNOWN_CAMERA"
     CAMERA_EXISTS = "CAMERA_EXISTS"
     CAMERA_FAILED = "CAMERA_FAILED"
+    CAMERA_RECOVERED = "CAMERA_RECOVERED"
     EPISODE_ACTIVE = "EPISODE_ACTIVE"
     NO_EPISODE = "NO_EPISODE"
     # Fleets
     ROBOT_ELSEWHERE = "ROBOT_ELSEWHERE"  # another node of the fleet owns that robot id
     NODE_LOST = "NODE_LOST"  # the node that owns the robot left the fleet or did not answer
+    # Recordings
     INVALID_RECORDING = "INVALID_RECORDING"
     UNKNOWN_RECORDING = "UNKNOWN_RECORDING"
-    RECORDING_FAILED = "RECORDING_FAILED"
 
 
 class ArenaError(Exception):

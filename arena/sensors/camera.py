@@ -239,14 +239,14 @@ class Camera:
         self.error = message
         if first and not self.closed:
             self.robot.report_sensor_fault(
-                self.sensor_id, "CAMERA_FAILED", f"{message} (retrying)", Severity.WARNING
+                self.sensor_id, ErrorCode.CAMERA_FAILED, f"{message} (retrying)", Severity.WARNING
             )
 
     def _recovered(self) -> None:
         if self.error is not None and not self.closed:
             self.error = None
             self.robot.report_sensor_fault(
-                self.sensor_id, "CAMERA_RECOVERED", "capturing again", Severity.INFO
+                self.sensor_id, ErrorCode.CAMERA_RECOVERED, "capturing again", Severity.INFO
             )
 
 

@@ -934,7 +934,7 @@ async def _handle_slave_message(
     elif isinstance(message, wire.StatusUpdateMessage):
         link.alive()
         if not message.data.isConnected or message.data.error:
-            await link.report_fault("SLAVE_STATUS", message.data.error or "disconnected")
+            await link.report_fault(ErrorCode.SLAVE_STATUS, message.data.error or "disconnected")
     else:
         link.alive()
 
