@@ -299,6 +299,17 @@ def test_every_websocket_message_type_refuses_an_unknown_field() -> None:
     assert "did you mean 'command'" in caught.value.message  # type: ignore[attr-defined]
 
 
+def test_an_answer_repeats_at_most_a_short_piece_of_what_was_sent() -> None:
+    for message in (
+        {"type": "command", "data": {"joints": []}, "x" * 50_000: 1},
+        {"type": "y" * 50_000},
+        {"type": "estop", "data": {"reason": "r", "z" * 50_000: 1}},
+    ):
+        with pytest.raises(Exception) as caught:
+            decode_master(json.dumps(message))
+        assert len(caught.value.message) < 300  # type: ignore[attr-defined]
+
+
 def test_the_nearest_name() -> None:
     assert nearest("robot_id", ["robot_type", "name", "id"]) == "id"
     assert nearest("baud_rate", ["port", "baudRate"]) == "baudRate"

@@ -75,7 +75,7 @@ def refusal(
     except (msgspec.DecodeError, RecursionError):
         value = None
     if match := _UNKNOWN_FIELD.match(detail):
-        sentence = _unknown_field(kind, value, at, match["name"], what)
+        sentence = _unknown_field(kind, value, at, _short(match["name"]), what)
         return ArenaError(ErrorCode.UNKNOWN_FIELD, sentence)
     missing = _MISSING_FIELD.match(detail)
     bad = _BAD_VALUE.match(detail)
@@ -84,7 +84,7 @@ def refusal(
         union_at, field, given = at, missing["name"], None
     else:
         union_at, _, field = at.rpartition(".")
-        given = bad["value"] if bad else None
+        given = _short(bad["value"]) if bad else None
     tags = _tags_at(kind, value, union_at) if (missing or bad) and union_at else None
     if tags is not None and tags[0] == field:
         sentence = _tag_sentence(field, tags[1], given, _place(union_at, what))
@@ -96,7 +96,7 @@ def refusal(
     choices = _choices(_info_at(kind, value, at)) if bad else []
     if bad and choices:
         return ArenaError(
-            code, f"Invalid {_name(at)}: {bad['value']} is not one of {', '.join(choices)}."
+            code, f"Invalid {_name(at)}: {_short(bad['value'])} is not one of {', '.join(choices)}."
         )
     if at == "$":
         return ArenaError(code, f"Invalid {what}: {detail}.")
@@ -120,6 +120,11 @@ def _tag_sentence(field: str, tags: list[str], given: str | None, place: str) ->
     hint = nearest(given.strip("'\""), tags)
     guess = f" (did you mean {hint!r}?)" if hint else ""
     return f"Unknown {field} {given}{place}{guess}: it is one of {', '.join(tags)}."
+
+
+def _short(text: str) -> str:
+    """What a client sent, as an answer repeats it: a hostile one's 60 kB name is cut."""
+    return text if len(text) <= 64 else f"{text[:60]}..."
 
 
 def _name(at: str) -> str:
