@@ -97,8 +97,18 @@ async def test_a_slave_cannot_command_and_a_master_reaches_only_its_robot(
         assert (await http.get("/api/robots/demo-arm/joints")).json() == before_arm
         await http.post("/api/robots/demo-arm/reset")  # that slave leaving e-stopped the arm
         async with open_websocket_url(server.ws_url + "/ws/master/demo-arm") as master:
-            # Naming another robot in the message changes nothing: the socket is bound to one.
-            ack = await command(master, {"Rotation": 7}, robot_id="other", robotId="other")
+            # Naming another robot in the message is refused (no field is ignored), and the
+            # socket stays bound to its one robot.
+            await master.send_message(
+                json.dumps(
+                    {
+                        "type": "command",
+                        "data": {"joints": [{"name": "Rotation", "value": 7}], "robotId": "other"},
+                    }
+                )
+            )
+            assert (await receive(master, "error"))["data"]["code"] == "UNKNOWN_FIELD"
+            ack = await command(master, {"Rotation": 7})
             assert ack["data"]["status"] == "accepted"
         assert (await http.get("/api/robots/other/joints")).json() == before_other
 
