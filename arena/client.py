@@ -389,6 +389,8 @@ class MasterSession(_Watching):
         self.errors: deque[dict[str, Any]] = deque(maxlen=64)
         #: The `released` data once the robot was released.
         self.released: dict[str, Any] | None = None
+        #: The newest `detached` data (taken over, e-stopped sequence, ...), if any.
+        self.detached: dict[str, Any] | None = None
         self._pending: deque[_Pending] = deque()
 
     @classmethod
@@ -405,15 +407,16 @@ class MasterSession(_Watching):
     ) -> AsyncIterator[Self]:
         """Run a session to `/ws/master/{robot_id}` for the `async with` block, connected.
 
-        When the block ends normally the robot is released (unless `release` is False);
-        when it ends with an exception the session just goes, and the loss policy applies.
+        When the block ends normally the robot is released (unless `release` is False, or the
+        robot let this master go already: `detached`); when it ends with an exception the
+        session just goes, and the loss policy applies.
         """
         query = {"takeover": "1" if takeover else "", "id": master_id or ""}
         session = cls(ws_url(base_url, f"/ws/master/{quote(robot_id)}", **query), **options)
         async with _running(session):
             yield session
             # Reached only when the block ended without an exception.
-            if release and session.released is None:
+            if release and session.released is None and session.detached is None:
                 if session.connected:
                     await session.release()
                 else:
@@ -507,6 +510,7 @@ class MasterSession(_Watching):
                 self._pending.popleft().settle(error=_refusal(message))
         elif kind == "detached":
             self.errors.append(message)
+            self.detached = message.get("data") or {}
             self._fail_all(_refusal(message))
         elif kind == "missed":  # answers dropped while this client did not read: the oldest
             data = message.get("data") or {}
@@ -517,6 +521,9 @@ class MasterSession(_Watching):
                     error=ArenaClientError("MISSED", "the answer was dropped: read faster")
                 )
         await super().on_message(message)
+
+    async def on_connect(self) -> None:
+        self.detached = None  # master again, on a new connection
 
     async def on_disconnect(self, reason: str) -> None:
         self._fail_all(Disconnected(f"the link dropped before the answer came ({reason})"))

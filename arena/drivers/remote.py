@@ -176,6 +176,7 @@ class _Upstream(MasterSession):
             self.sent += 1
 
     async def on_connect(self) -> None:
+        await super().on_connect()
         self.accept_after = trio.current_time()
         if self.was_down and self.link is not None:
             self.was_down = False
