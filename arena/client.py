@@ -608,9 +608,13 @@ async def _running(session: Session, connect_timeout: float = 10.0) -> AsyncIter
                     nursery.cancel_scope.cancel()
             nursery.cancel_scope.cancel()
     except BaseExceptionGroup as group:
-        if len(group.exceptions) == 1:
-            raise group.exceptions[0] from None
-        raise
+        if len(group.exceptions) != 1:
+            raise
+        single: BaseException | None = group.exceptions[0]
+    else:
+        single = None
+    if single is not None:
+        raise single  # (outside the handler: its own cause and context, as they were)
     if not connected:
         raise ClientTimeout(
             f"{session.url}: not connected within {connect_timeout} s ({session.last_error})"
