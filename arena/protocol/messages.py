@@ -107,7 +107,7 @@ class ResetMessage(_Msg, tag="reset", forbid_unknown_fields=True):
     """Leave the e-stop."""
 
 
-class ReleaseMessage(_Msg, tag="release"):
+class ReleaseMessage(_Msg, tag="release", forbid_unknown_fields=True):
     """I am done: hand the robot back, holding where it is (no e-stop). Answered `released`,
     then the server closes the socket (1000)."""
 
