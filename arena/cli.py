@@ -239,7 +239,8 @@ def main(argv: list[str] | None = None) -> int:
     stop.add_argument(
         "--paths",
         help="comma-separated stop paths (default: all; heartbeat only if the server drops a "
-        "silent master within 10 s): rest, global, master-message, master-cut, heartbeat, "
+        "silent master within 10 s, global, which stops every robot of the server, only if the "
+        "robot is its only one): rest, global, master-message, master-cut, heartbeat, "
         "slave-error, group",
     )
     stop.add_argument("--api-key", help="an API key, if the server has keys")
@@ -404,6 +405,7 @@ def _estop_test(args: argparse.Namespace) -> int:
         print(f"arena estop-test: limits {args.limits}: {exc}", file=sys.stderr)
         return 2
     results: dict[str, list[Trial]]
+    notes: list[str] = []
     if args.offline:
         from arena.protocol.errors import ArenaError
         from arena.recording.mcap_file import read_recording
@@ -449,7 +451,7 @@ def _estop_test(args: argparse.Namespace) -> int:
     for breach in breaches:
         print(f"BREACH {breach}")
     if args.json:
-        report.write_json(Path(args.json), report.as_json(results, breaches))
+        report.write_json(Path(args.json), report.as_json(results, breaches, notes))
     if args.plot and results:
         try:
             print(report.plot(results, Path(args.plot)))

@@ -8,12 +8,19 @@ script runs its session code with `trio.run(main)`; see the README's agent examp
     async def main() -> None:
         async with MasterSession.open("http://127.0.0.1:8080", "arm-1") as master:
             ack = await master.command({"Rotation": 30})
+
+Every call ends: what the server refuses raises `Refused` (with its `code` and `message`), a
+wait that runs out raises `ClientTimeout`, a dropped link `Disconnected`; all three are
+`ArenaClientError`s. A master session that ends normally releases the robot (it holds where
+it is, `idle`); one that ends with an exception leaves without a word, and the server applies
+its loss policy (an e-stop by default).
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import math
 import random
 from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable, Iterator, Mapping
@@ -50,11 +57,23 @@ class ArenaClientError(Exception):
         self.status = status
 
 
+class Refused(ArenaClientError):
+    """The server refused a request: a command acknowledged as `refused`, or an `error` (or
+    `detached`) message in answer. `code` and `message` are the server's."""
+
+
 class Disconnected(ArenaClientError):
     """The session's WebSocket is down (it is reconnecting)."""
 
     def __init__(self, message: str = "not connected") -> None:
         super().__init__("DISCONNECTED", message)
+
+
+class ClientTimeout(ArenaClientError, TimeoutError):
+    """No answer came within the call's `timeout` (code `TIMEOUT`)."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__("TIMEOUT", message)
 
 
 @dataclass(frozen=True)
@@ -95,9 +114,25 @@ def now_iso() -> str:
     return wire_now()
 
 
+def finite_joints(joints: Mapping[str, Any]) -> dict[str, float]:
+    """`joints` as {name: float}; `ValueError` naming the joint whose value is not a finite
+    number (NaN, infinity, None, a string, a bool): such a command never leaves the client."""
+    checked: dict[str, float] = {}
+    for name, value in joints.items():
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, int | float)
+            or not math.isfinite(value)
+        ):
+            raise ValueError(f"joint {name!r}: {value!r} is not a finite number of degrees")
+        checked[name] = float(value)
+    return checked
+
+
 def command_message(joints: Mapping[str, float], **data: Any) -> dict[str, Any]:
-    """A master `command` in the seed's format."""
-    entries = [{"name": name, "value": value} for name, value in joints.items()]
+    """A master `command` in the seed's format; values not finite raise `ValueError`."""
+    checked = finite_joints(joints)
+    entries = [{"name": name, "value": value} for name, value in checked.items()]
     return {"type": "command", "timestamp": now_iso(), "data": {"joints": entries, **data}}
 
 
@@ -113,9 +148,10 @@ def joint_states_message(joints: Mapping[str, float]) -> dict[str, Any]:
 class Session:
     """One Arena WebSocket endpoint held open: reconnection with backoff, heartbeats.
 
-    `run()` loops until cancelled: connect, call `on_connect`, hand every message (a dict) to
-    `on_message`, and after a drop call `on_disconnect(reason)` and wait out the backoff. The
-    backoff starts over after a connection that lasted `stable_after` seconds.
+    `run()` loops until cancelled (or the session is `finished`): connect, call `on_connect`,
+    hand every message (a dict) to `on_message`, and after a drop call `on_disconnect(reason)`
+    and wait out the backoff. The backoff starts over after a connection that lasted
+    `stable_after` seconds. `timeout` (seconds) bounds every wait of a call: a send, an answer.
     """
 
     def __init__(
@@ -127,15 +163,21 @@ class Session:
         heartbeat: float = 30.0,
         stable_after: float = 5.0,
         rng: random.Random | None = None,
+        timeout: float = 5.0,
     ) -> None:
+        if not timeout > 0:
+            raise ValueError("timeout must be positive")
         self.url = url
         self.api_key = api_key
         self.backoff = backoff or Backoff()
         self.heartbeat = heartbeat
         self.stable_after = stable_after
         self.rng = rng or random.Random()
+        self.timeout = timeout
         self.connects = 0
         self.last_error: str | None = None
+        #: Set once the session is over for good (a released master): no reconnection.
+        self.finished = False
         self._ws: WebSocketConnection | None = None
         self._up = trio.Event()
         self._opened_at: float | None = None
@@ -151,14 +193,19 @@ class Session:
             await self._up.wait()
 
     async def send(self, message: Mapping[str, Any]) -> None:
-        """Send a message now; `Disconnected` while the link is down."""
+        """Send a message now; `Disconnected` while the link is down, `ClientTimeout` if the
+        server does not take it within `timeout`, `ValueError` for a NaN or an infinity."""
         ws = self._ws
         if ws is None:
             raise Disconnected(self.last_error or "not connected")
+        text = json.dumps(message, allow_nan=False)  # NaN is not JSON: refused here
         try:
-            await ws.send_message(json.dumps(message))
+            with trio.fail_after(self.timeout):
+                await ws.send_message(text)
         except ConnectionClosed as closed:
             raise Disconnected(f"closed while sending ({closed.reason})") from None
+        except trio.TooSlowError:
+            raise ClientTimeout(f"the server took nothing for {self.timeout} s") from None
 
     async def try_send(self, message: Mapping[str, Any]) -> bool:
         """Send if the link is up (whether it was); while it is down nothing is kept for
@@ -187,6 +234,8 @@ class Session:
             self.last_error = reason
             with trio.CancelScope(shield=True):
                 await self.on_disconnect(reason)
+            if self.finished:
+                return
             opened = self._opened_at
             if opened is not None and trio.current_time() - opened >= self.stable_after:
                 delays = self.backoff.delays(self.rng)  # a good connection: start over
@@ -262,11 +311,15 @@ class _Watching(Session):
         self.joints: dict[str, dict[str, Any]] = {}
         self._changed = trio.Event()
 
-    async def wait_for(self, check: Callable[[Self], bool], timeout: float = 5.0) -> None:
-        """Until `check(self)` holds (checked after every message that changes something)."""
-        with trio.fail_after(timeout):
+    async def wait_for(self, check: Callable[[Self], bool], timeout: float | None = None) -> None:
+        """Until `check(self)` holds (checked after every message that changes something);
+        `ClientTimeout` after `timeout` (default: the session's)."""
+        limit = self.timeout if timeout is None else timeout
+        with trio.move_on_after(limit) as waited:
             while not check(self):
                 await self._changed.wait()
+        if waited.cancelled_caught:
+            raise ClientTimeout(f"what was waited for did not happen within {limit} s")
 
     def real(self, joint: str) -> float | None:
         """The newest real value of `joint`."""
@@ -283,17 +336,62 @@ class _Watching(Session):
         self._changed = trio.Event()
 
 
+class _Pending:
+    """A request waiting for its answer: a message of type `expects` (`ack`, `released`), or
+    an `error` (which answers the oldest request, as the server answers in order)."""
+
+    __slots__ = ("answer", "done", "error", "expects")
+
+    def __init__(self, expects: str) -> None:
+        self.expects = expects
+        self.answer: dict[str, Any] = {}
+        self.error: ArenaClientError | None = None
+        self.done = trio.Event()
+
+    def settle(
+        self, answer: dict[str, Any] | None = None, error: ArenaClientError | None = None
+    ) -> None:
+        """The answer came (or the error that ends the wait)."""
+        if answer is not None:
+            self.answer = answer
+        self.error = error
+        self.done.set()
+
+
+def _refusal(message: Mapping[str, Any]) -> Refused:
+    """The `Refused` of an error, a detach or a refused ack (a group's names each member's)."""
+    data = message.get("data") or {}
+    members = data.get("members")
+    if not data.get("code") and isinstance(members, dict) and members:
+        codes = {str(answer.get("code")) for answer in members.values()}
+        text = "; ".join(f"{robot}: {answer.get('message')}" for robot, answer in members.items())
+        return Refused(codes.pop() if len(codes) == 1 else "REFUSED", text)
+    return Refused(str(data.get("code") or "REFUSED"), str(data.get("message") or ""))
+
+
 class MasterSession(_Watching):
     """A master of one robot (or group): commands with their acknowledgments, state, joints.
 
-    While the link is down `command` raises `Disconnected`; the server applies its loss policy
-    (an e-stop by default), so a reconnected master finds the robot e-stopped until a reset.
+    Every call ends: a refused command raises `Refused` (the server's code and message), a
+    value that is not a finite number `ValueError` before anything is sent, a wait longer than
+    `timeout` `ClientTimeout`, and a link that is down `Disconnected`. While the link is down
+    the server applies its loss policy (an e-stop by default), so a reconnected master finds
+    the robot e-stopped until a reset. `release()` hands the robot back (it holds where it is,
+    `idle`); `open` releases on a normal end of its block, never after an exception.
     """
+
+    #: Requests awaiting an answer at most (beyond, the oldest are failed): a server that
+    #: stops answering cannot make the session grow.
+    MAX_PENDING = 1024
 
     def __init__(self, url: str, **options: Any) -> None:
         super().__init__(url, **options)
         self.errors: deque[dict[str, Any]] = deque(maxlen=64)
-        self._acks: deque[trio.MemorySendChannel[dict[str, Any]]] = deque()
+        #: The `released` data once the robot was released.
+        self.released: dict[str, Any] | None = None
+        #: The newest `detached` data (taken over, e-stopped sequence, ...), if any.
+        self.detached: dict[str, Any] | None = None
+        self._pending: deque[_Pending] = deque()
 
     @classmethod
     @asynccontextmanager
@@ -304,30 +402,55 @@ class MasterSession(_Watching):
         *,
         takeover: bool = False,
         master_id: str | None = None,
+        release: bool = True,
         **options: Any,
     ) -> AsyncIterator[Self]:
-        """Run a session to `/ws/master/{robot_id}` for the `async with` block, connected."""
+        """Run a session to `/ws/master/{robot_id}` for the `async with` block, connected.
+
+        When the block ends normally the robot is released (unless `release` is False, or the
+        robot let this master go already: `detached`); when it ends with an exception the
+        session just goes, and the loss policy applies.
+        """
         query = {"takeover": "1" if takeover else "", "id": master_id or ""}
         session = cls(ws_url(base_url, f"/ws/master/{quote(robot_id)}", **query), **options)
         async with _running(session):
             yield session
+            # Reached only when the block ended without an exception.
+            if release and session.released is None and session.detached is None:
+                if session.connected:
+                    await session.release()
+                else:
+                    log.warning(
+                        "%s: not released: the link is down (%s)", session.url, session.last_error
+                    )
 
     async def command(
-        self, joints: Mapping[str, float], timeout: float = 5.0, **data: Any
+        self, joints: Mapping[str, float], timeout: float | None = None, **data: Any
     ) -> dict[str, Any]:
-        """Send a command and return its acknowledgment (`data.status`: accepted, clamped or
-        refused, with a `code`)."""
-        send, receive = trio.open_memory_channel[dict[str, Any]](1)
-        self._acks.append(send)
-        try:
-            await self.send(command_message(joints, **data))
-            with trio.fail_after(timeout):
-                return await receive.receive()
-        except trio.EndOfChannel:
-            raise Disconnected("the link dropped before the acknowledgment came") from None
-        finally:
-            if send in self._acks:
-                self._acks.remove(send)
+        """Send a command and return its acknowledgment (`data.status`: accepted or clamped,
+        with what was clamped). A refusal raises `Refused` with the server's code."""
+        ack = await self._request(command_message(joints, **data), "ack", timeout)
+        if (ack.get("data") or {}).get("status") == "refused":
+            raise _refusal(ack)
+        return ack
+
+    async def play(self, sequence: Mapping[str, Any], timeout: float | None = None) -> None:
+        """Play a sequence (`{"commands": [{"timestamp", "joints"}], ...}`) as this master;
+        returns once the server accepted it."""
+        message = {"type": "sequence", "timestamp": now_iso(), "data": dict(sequence)}
+        ack = await self._request(message, "ack", timeout)
+        if (ack.get("data") or {}).get("status") == "refused":
+            raise _refusal(ack)
+
+    async def release(self, timeout: float | None = None) -> dict[str, Any]:
+        """Hand the robot back: it holds where it is and goes `idle` (it stays `estopped` if
+        it was), no e-stop. Returns the `released` data; the server then closes the socket,
+        and the session does not reconnect."""
+        answer = await self._request(
+            {"type": "release", "timestamp": now_iso()}, "released", timeout
+        )
+        data: dict[str, Any] = answer.get("data") or {}
+        return data
 
     async def estop(self, reason: str = "") -> None:
         """E-stop the robot."""
@@ -337,19 +460,73 @@ class MasterSession(_Watching):
         """Clear the robot's e-stop."""
         await self.send({"type": "reset", "timestamp": now_iso()})
 
+    async def _request(
+        self, message: Mapping[str, Any], expects: str, timeout: float | None
+    ) -> dict[str, Any]:
+        limit = self.timeout if timeout is None else timeout
+        pending = _Pending(expects)
+        self._pending.append(pending)
+        while len(self._pending) > self.MAX_PENDING:
+            self._pending.popleft().settle(error=ClientTimeout("too many requests unanswered"))
+        try:
+            await self.send(message)
+        except BaseException:
+            if pending in self._pending:
+                self._pending.remove(pending)  # never sent: nothing answers it
+            raise
+        # A request that times out stays in line: its late answer is still its own.
+        with trio.move_on_after(limit) as waited:
+            await pending.done.wait()
+        if waited.cancelled_caught:
+            raise ClientTimeout(f"no {expects} from the server within {limit} s")
+        if pending.error is not None:
+            raise pending.error
+        return pending.answer
+
+    def _answered(self, message: dict[str, Any], kind: str) -> None:
+        """`message` answers the oldest request that expects a `kind`."""
+        for pending in self._pending:
+            if pending.expects == kind:
+                self._pending.remove(pending)
+                pending.settle(message)
+                return
+
+    def _fail_all(self, error: ArenaClientError) -> None:
+        while self._pending:
+            self._pending.popleft().settle(error=error)
+
     async def on_message(self, message: dict[str, Any]) -> None:
         kind = message.get("type")
         if kind == "ack":
-            if self._acks:
-                await self._acks.popleft().send(message)
+            self._answered(message, "ack")
             return
-        if kind in ("error", "detached"):
+        if kind == "released":
+            self.released = message.get("data") or {}
+            self.finished = True  # the server closes now: no reconnection
+            self._answered(message, "released")
+        elif kind == "error":
             self.errors.append(message)
+            if self._pending:  # the server answers in order: the oldest request's answer
+                self._pending.popleft().settle(error=_refusal(message))
+        elif kind == "detached":
+            self.errors.append(message)
+            self.detached = message.get("data") or {}
+            self._fail_all(_refusal(message))
+        elif kind == "missed":  # answers dropped while this client did not read: the oldest
+            data = message.get("data") or {}
+            for _ in range(int(data.get("ack") or 0) + int(data.get("error") or 0)):
+                if not self._pending:
+                    break
+                self._pending.popleft().settle(
+                    error=ArenaClientError("MISSED", "the answer was dropped: read faster")
+                )
         await super().on_message(message)
 
+    async def on_connect(self) -> None:
+        self.detached = None  # master again, on a new connection
+
     async def on_disconnect(self, reason: str) -> None:
-        while self._acks:  # commands in flight never get an ack now
-            await self._acks.popleft().aclose()
+        self._fail_all(Disconnected(f"the link dropped before the answer came ({reason})"))
 
 
 class SlaveSession(Session):
@@ -412,14 +589,36 @@ class ViewerSession(_Watching):
 
 @asynccontextmanager
 async def _running(session: Session, connect_timeout: float = 10.0) -> AsyncIterator[None]:
-    async with trio.open_nursery() as nursery:
-        nursery.start_soon(session.run)
-        with trio.fail_after(connect_timeout):
-            await session.wait_connected()
-        try:
-            yield
-        finally:
+    """Run `session` for the block, once connected (`ClientTimeout` if it cannot connect).
+
+    The block's own exception comes out as it is, not in an exception group: the session's
+    task never raises, so the block is the only thing in the nursery that can.
+    """
+    connected = True
+    try:
+        async with trio.open_nursery() as nursery:
+            nursery.start_soon(session.run)
+            with trio.move_on_after(connect_timeout):
+                await session.wait_connected()
+            connected = session.connected
+            if connected:
+                try:
+                    yield
+                finally:
+                    nursery.cancel_scope.cancel()
             nursery.cancel_scope.cancel()
+    except BaseExceptionGroup as group:
+        if len(group.exceptions) != 1:
+            raise
+        single: BaseException | None = group.exceptions[0]
+    else:
+        single = None
+    if single is not None:
+        raise single  # (outside the handler: its own cause and context, as they were)
+    if not connected:
+        raise ClientTimeout(
+            f"{session.url}: not connected within {connect_timeout} s ({session.last_error})"
+        )
 
 
 # --- REST -------------------------------------------------------------------------------------

@@ -24,6 +24,7 @@ SCHEMA_TYPES: dict[str, Any] = {
     "execute-command": wire.ExecuteCommandMessage,
     "slave-notice": wire.EStopNotice | wire.ResetNotice | wire.HoldNotice | wire.StopNotice,
     "detached": wire.DetachedMessage,
+    "released": wire.ReleasedMessage,
     "missed": wire.MissedMessage,
     "member-left": wire.MemberLeftMessage,
     "heartbeat": wire.HeartbeatMessage,

@@ -232,3 +232,31 @@ async def test_a_recording_is_checked_for_motion_after_each_stop(
     messages = [*recording.messages[:index], forged, *recording.messages[index:]]
     (caught,) = recorded_stops(messages, threshold=0.5)["arm"]
     assert caught.sent_after_stop == 1 and caught.moved_after_stop
+
+
+async def test_only_the_robot_under_test_is_stopped_unless_global_is_named(
+    start_server: StartServer, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    server = await start_server(demo=True)
+    async with server.client() as http:
+        assert (await http.post("/api/robots", json={"id": "bystander"})).status_code == 201
+        slave = await http.post("/api/robots/bystander/slaves", json={"type": "mock-slave"})
+        assert slave.status_code == 201
+    bystander = server.app.manager.get("bystander")
+    output = tmp_path / "stops.json"
+    args = ["estop-test", "--url", server.url, "--robot", "demo-arm", "--trials", "1"]
+    args += ["--settle", "30", "--json", str(output)]
+    assert await trio.to_thread.run_sync(cli.main, args) == 0
+    printed = capsys.readouterr().out
+    assert "note: global skipped" in printed
+    assert "1 besides 'demo-arm' (bystander)" in printed
+    report = json.loads(output.read_text())
+    assert "global" not in report["paths"] and {"rest", "group"} <= set(report["paths"])
+    assert any(note.startswith("global skipped") for note in report["notes"])
+    assert bystander.estop_count == 0 and str(bystander.snapshot().mode) == "idle"
+    # Named, it runs, and it does what it says: every robot stops.
+    results, notes = await trio.to_thread.run_sync(
+        run, Settings(url=server.url, robot="demo-arm", trials=1, paths=("global",), settle=30.0)
+    )
+    assert list(results) == ["global"] and results["global"][0].error is None and notes == []
+    assert bystander.estop_count == 1

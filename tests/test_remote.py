@@ -10,7 +10,7 @@ from collections.abc import Awaitable, Callable
 import pytest
 import trio
 
-from arena.client import AsyncArena, Backoff, MasterSession, Session
+from arena.client import AsyncArena, Backoff, MasterSession, Refused, Session
 from tests.conftest import RunningServer
 
 StartServer = Callable[..., Awaitable[RunningServer]]
@@ -77,8 +77,9 @@ async def test_estop_travels_down_the_chain_and_reset_brings_it_back(
         await rest_a.estop("avatar", "operator pressed stop")
         await until(lambda: str(b.app.manager.get("physical").snapshot().mode) == "estopped")
         assert str(r.app.manager.get("relay-arm").snapshot().mode) == "estopped"
-        refused = await operator.command({"Rotation": 9})
-        assert refused["data"]["code"] == "ESTOPPED"
+        with pytest.raises(Refused) as refused:
+            await operator.command({"Rotation": 9})
+        assert refused.value.code == "ESTOPPED"
         await rest_a.reset("avatar")
         # The reset travels too, because the e-stops below were raised by the chain itself.
         await until(lambda: str(b.app.manager.get("physical").snapshot().mode) != "estopped")
@@ -179,3 +180,21 @@ async def test_reconnection_backoff_grows_with_jitter_and_is_bounded(
         assert base * 0.8 <= gap <= base * 1.2
     assert max(gaps) <= 4.0 * 1.2
     assert len(set(gaps)) == len(gaps)  # jittered: no two waits alike
+
+
+async def test_detaching_the_websocket_slave_releases_the_robot_over_there(
+    start_server: StartServer,
+) -> None:
+    a, r, b = await relay_chain(start_server)
+    relay = r.app.manager.get("relay-arm")
+    async with MasterSession.open(a.url, "avatar") as operator:
+        await operator.command({"Rotation": 6})
+        await until(lambda: real(b, "physical", "Rotation") == 6)
+    async with AsyncArena(a.url) as rest_a:
+        (slave,) = (await rest_a.robot("avatar"))["slaves"]
+        await rest_a._call("DELETE", f"/api/robots/avatar/slaves/{slave['id']}")
+    # A normal end: the relay's robot is handed back, holding, not lost (e-stopped).
+    await until(lambda: relay.snapshot().master is None)
+    assert str(relay.snapshot().mode) == "idle" and relay.estop_count == 0
+    await trio.sleep(0.2)
+    assert str(b.app.manager.get("physical").snapshot().mode) != "estopped"

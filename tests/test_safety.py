@@ -52,12 +52,14 @@ def test_second_master_is_refused_without_takeover() -> None:
 
 
 def test_takeover_detaches_the_previous_master_and_tells_it_why() -> None:
-    outcome = sm.transition(MASTERED, sm.MasterAttach("bob", takeover=True))
+    attach = sm.MasterAttach("bob", takeover=True, kind="replay", description="replay of 'x.mcap'")
+    outcome = sm.transition(MASTERED, attach)
     assert isinstance(outcome, sm.Allowed)
     assert outcome.state.owner == "bob"
     (effect,) = outcome.effects
-    assert effect == sm.DetachMaster("alice", ErrorCode.TAKEN_OVER, effect.message)
-    assert "bob" in effect.message
+    # who took over, by label and by kind, in the words and in `by`
+    assert effect == sm.DetachMaster("alice", ErrorCode.TAKEN_OVER, effect.message, attach)
+    assert "'bob'" in effect.message and "replay of 'x.mcap'" in effect.message
 
 
 def test_a_second_connection_under_the_owners_id_is_another_master() -> None:

@@ -24,7 +24,7 @@ from typing import Any
 import httpx
 import trio
 
-from arena.client import Backoff, MasterSession, SlaveSession, ws_url
+from arena.client import ArenaClientError, Backoff, MasterSession, SlaveSession, ws_url
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.protocol.rest import RemoteLinkBody, RemoteServerBody, WebSocketSlaveBody
 from arena.robot.events import JointStatesReceived, NoticeKind, SlaveTarget
@@ -106,23 +106,56 @@ class WebSocketSlave:
             )
 
     async def run(self, link: SlaveLink) -> None:
-        """Forward targets and notices until detached."""
+        """Forward targets and notices until detached.
+
+        Detached (or our robot going away) is a normal end: the robot over there is released,
+        holding where it is, rather than lost. A failure just drops the link, and the other
+        server's loss policy applies. The session's task is shielded so that the release can
+        still go out through it once this driver is cancelled.
+        """
         self.session.link = link
-        interval = 1.0 / link.robot.model.safety.command_rate
+        session_scope = trio.CancelScope(shield=True)
+
+        async def hold_session() -> None:
+            with session_scope:
+                await self.session.run()
+
         async with trio.open_nursery() as nursery:
-            nursery.start_soon(self.session.run)
-            async for message in link.messages():
-                if isinstance(message, SlaveTarget):
-                    if message.time >= self.session.accept_after:
-                        await self.session.forward(message.joints)
-                        # Within the rate limit (the other side has the same robot type):
-                        # targets that come meanwhile merge, the newest wins.
-                        await trio.sleep(interval)
-                elif message.kind is NoticeKind.ESTOP:
-                    await self.session.try_send({"type": "estop", "data": {"reason": "upstream"}})
-                elif message.kind is NoticeKind.RESET:
-                    await self.session.try_send({"type": "reset"})
-            nursery.cancel_scope.cancel()
+            nursery.start_soon(hold_session)
+            try:
+                await self._forward(link)
+            except trio.Cancelled:
+                with trio.CancelScope(shield=True):  # (bounded: the session's timeouts)
+                    await self._release()
+                raise
+            else:  # the detach notice came first: the cancellation follows at once
+                with trio.CancelScope(shield=True):
+                    await self._release()
+            finally:
+                session_scope.cancel()
+
+    async def _forward(self, link: SlaveLink) -> None:
+        interval = 1.0 / link.robot.model.safety.command_rate
+        async for message in link.messages():
+            if isinstance(message, SlaveTarget):
+                if message.time >= self.session.accept_after:
+                    await self.session.forward(message.joints)
+                    # Within the rate limit (the other side has the same robot type):
+                    # targets that come meanwhile merge, the newest wins.
+                    await trio.sleep(interval)
+            elif message.kind is NoticeKind.ESTOP:
+                await self.session.try_send({"type": "estop", "data": {"reason": "upstream"}})
+            elif message.kind is NoticeKind.RESET:
+                await self.session.try_send({"type": "reset"})
+
+    async def _release(self) -> None:
+        """Release the robot over there, if the link is up (bounded by the session's timeout)."""
+        if not self.session.connected:
+            return
+        try:
+            await self.session.release()
+        except ArenaClientError as error:
+            log.warning("websocket-slave %s: not released: %s", self.session.url, error)
 
 
 class _Upstream(MasterSession):
@@ -143,6 +176,7 @@ class _Upstream(MasterSession):
             self.sent += 1
 
     async def on_connect(self) -> None:
+        await super().on_connect()
         self.accept_after = trio.current_time()
         if self.was_down and self.link is not None:
             self.was_down = False
@@ -151,11 +185,14 @@ class _Upstream(MasterSession):
     async def on_disconnect(self, reason: str) -> None:
         await super().on_disconnect(reason)
         self.accept_after = math.inf
+        if self.finished:
+            return  # released: the session is over, our slave is going away
         if self.link is not None and not self.was_down:
             self.was_down = True
             await self.link.connection_lost(f"{self.url}: {reason}")
 
     async def on_message(self, message: dict[str, Any]) -> None:
+        await super().on_message(message)  # answers to requests (the release)
         if self.link is None:
             return
         kind = message.get("type")
@@ -211,6 +248,11 @@ class RemoteServerMaster:
             ws_url(config.url, f"/ws/slave/{self.remote_id}", id=f"remote-{robot_id}"),
             **_session_options(config, rng),
         )
+
+    @property
+    def description(self) -> str:
+        """What it is, in words (told to a master it takes over from)."""
+        return f"remote server {self.config.url} (robot {self.remote_id!r})"
 
     async def prepare(self) -> None:
         """The remote robot exists and the key is good."""

@@ -26,7 +26,8 @@ class SequenceMaster:
     """Plays `sequences` in order, once or forever (`loop`).
 
     With `auto_start` off it claims the robot and waits for `start()`. Attaching it takes the
-    robot over. It is autonomous: an e-stop ends it for good, and it never resumes by itself.
+    robot over (the seed's "automatic master takeover"; `POST .../master` turns that off unless
+    asked). It is autonomous: an e-stop ends it for good, and it never resumes by itself.
     """
 
     kind = "mock-sequence"
@@ -45,6 +46,12 @@ class SequenceMaster:
             self._started.set()
         self.playing: str | None = None
         self.refusals = Refusals()
+
+    @property
+    def description(self) -> str:
+        """What it plays, in words (told to a master it takes over from)."""
+        names = ", ".join(repr(sequence.id) for sequence in self.sequences)
+        return f"sequence {names}" if len(self.sequences) == 1 else f"sequences {names}"
 
     def start(self) -> None:
         """Begin playing (for a master created with `auto_start=False`)."""

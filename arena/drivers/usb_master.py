@@ -66,6 +66,11 @@ class UsbMaster(ServoArm):
         self.sent = 0
         self.refusals = Refusals()
 
+    @property
+    def description(self) -> str:
+        """What it is, in words (told to a master it takes over from)."""
+        return f"leader arm on {self.config.port or 'the USB adapter'}"
+
     async def run(self, link: MasterLink) -> None:
         """Mirror the leader onto the robot until detached, e-stopped or the bus is lost."""
         await self.prepare()

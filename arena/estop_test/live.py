@@ -33,7 +33,7 @@ from arena.estop_test.analysis import STILL_FOR, Sample, Trial, joint_stops, sto
 #: Every stop path, in the order they run.
 PATHS = (
     "rest",  # POST /api/robots/{id}/estop
-    "global",  # POST /api/estop
+    "global",  # POST /api/estop: every robot of the server (see `_prepare`)
     "master-message",  # the master's {"type": "estop"}
     "master-cut",  # the master's TCP connection dropped without a close frame
     "heartbeat",  # the master goes silent until the server's heartbeat_timeout
@@ -182,6 +182,19 @@ class EStopTest:
         unknown = sorted(set(paths) - set(PATHS))
         if unknown:
             raise EStopTestError(f"unknown stop paths {unknown}; known: {', '.join(PATHS)}")
+        if "global" in paths and "global" not in self.settings.paths:
+            # POST /api/estop stops every robot of the server: only when this is its only
+            # robot, or when asked for by name.
+            listed = (await self.http.get("/api/robots")).json()
+            others = sorted(str(r["id"]) for r in listed if r.get("id") != robot)
+            if others:
+                paths.remove("global")
+                shown = ", ".join(others[:5]) + (", ..." if len(others) > 5 else "")
+                self.notes.append(
+                    f"global skipped: POST /api/estop would e-stop every robot on the server, "
+                    f"and it has {len(others)} besides {robot!r} ({shown}); name it in --paths "
+                    "to include it"
+                )
         wait = self.heartbeat_timeout
         if not self.settings.paths and (wait is None or wait > HEARTBEAT_DEFAULT_MAX):
             paths.remove("heartbeat")

@@ -29,10 +29,13 @@ def table(results: Mapping[str, Sequence[Trial]]) -> str:
     return "\n".join(lines)
 
 
-def as_json(results: Mapping[str, Sequence[Trial]], found: Sequence[Breach]) -> dict[str, Any]:
-    """Everything: per path its summary, whether anything moved after a stop, each trial; and
-    the limits broken."""
+def as_json(
+    results: Mapping[str, Sequence[Trial]], found: Sequence[Breach], notes: Sequence[str] = ()
+) -> dict[str, Any]:
+    """Everything: per path its summary, whether anything moved after a stop, each trial; the
+    limits broken; and notes on the paths left out, and why."""
     return {
+        "notes": list(notes),
         "paths": {
             path: {
                 "summary": summarize(trials),

@@ -107,8 +107,18 @@ class ResetMessage(_Msg, tag="reset", forbid_unknown_fields=True):
     """Leave the e-stop."""
 
 
+class ReleaseMessage(_Msg, tag="release", forbid_unknown_fields=True):
+    """I am done: hand the robot back, holding where it is (no e-stop). Answered `released`,
+    then the server closes the socket (1000)."""
+
+
 MasterMessage: TypeAlias = (
-    CommandMessage | SequenceMessage | HeartbeatMessage | EStopMessage | ResetMessage
+    CommandMessage
+    | SequenceMessage
+    | HeartbeatMessage
+    | EStopMessage
+    | ResetMessage
+    | ReleaseMessage
 )
 
 
@@ -273,17 +283,44 @@ class StopNotice(_Msg, tag="stop"):
     data: NoticeData | None = None
 
 
-class DetachedData(msgspec.Struct):
-    """Why a master lost the robot."""
+class TakenBy(msgspec.Struct, omit_defaults=True):
+    """The master that took a robot over: its label (`id`), its kind (`websocket`,
+    `mock-sequence`, `replay`, `remote-server`, `usb-master`, ...) and what it is in words
+    (`sequence 'gentle-wave'`, `replay of 'x.mcap'`)."""
+
+    id: str
+    kind: str
+    description: str = ""
+
+
+class DetachedData(msgspec.Struct, omit_defaults=True):
+    """Why a master lost the robot; `by`: who took it over (with TAKEN_OVER)."""
 
     code: str
     message: str
+    by: TakenBy | None = None
 
 
 class DetachedMessage(_Msg, tag="detached"):
     """This master no longer owns the robot."""
 
     data: DetachedData | None = None
+
+
+class ReleasedData(msgspec.Struct, omit_defaults=True):
+    """A master's release done: the robot's mode now (`idle`, or `estopped` if it was
+    e-stopped). To a group master: the group's id, `mode` `estopped` if any member is, and
+    each member's mode in `members`."""
+
+    robot_id: str
+    mode: str
+    members: dict[str, str] | None = None
+
+
+class ReleasedMessage(_Msg, tag="released"):
+    """The answer to `release`: the master no longer holds the robot; the socket closes."""
+
+    data: ReleasedData
 
 
 class MemberLeftData(msgspec.Struct):

@@ -100,7 +100,10 @@ class WebSocketSlaveBody(RemoteLinkBody, tag="websocket-slave", tag_field="type"
 
 class RemoteServerBody(RemoteLinkBody, tag="remote-server", tag_field="type"):
     """Take the commands another Arena server issues for its robot `robotId` (default: this
-    robot's id), as this robot's master; our real joint values go back as that robot's."""
+    robot's id), as this robot's master; our real joint values go back as that robot's.
+    `takeover`: displace this robot's master (else MASTER_ACTIVE while it has one)."""
+
+    takeover: bool = False
 
 
 class PhysicsSlaveBody(
@@ -138,17 +141,19 @@ class SequenceMasterBody(
     omit_defaults=True,
     forbid_unknown_fields=True,
 ):
-    """The demo-sequence master: which sequences (default: all), loop, auto start, takeover."""
+    """The demo-sequence master: which sequences (default: all), loop, auto start, and
+    `takeover` (displace the robot's master; else MASTER_ACTIVE while it has one)."""
 
     sequences: list[str] | None = None
     loop: bool = False
     autoStart: bool = True
-    takeover: bool = True
+    takeover: bool = False
 
 
 class ReplayBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     """`POST /api/robots/{id}/replay`: which file and robot, speed, loop, window (seconds
-    from the robot's first recorded command)."""
+    from the robot's first recorded command), `takeover` (displace the robot's master; else
+    MASTER_ACTIVE while it has one)."""
 
     recording: str
     source_robot: str | None = None
@@ -156,6 +161,7 @@ class ReplayBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True)
     loop: bool = False
     start: Annotated[float, msgspec.Meta(ge=0)] | None = None
     end: Annotated[float, msgspec.Meta(gt=0)] | None = None
+    takeover: bool = False
 
 
 class ReplayMasterBody(ReplayBody, tag="replay", tag_field="type"):
@@ -172,7 +178,8 @@ class UsbMasterBody(
     """A leader arm on a Feetech servo bus, moved by hand (torque stays off).
 
     `rate`: Hz at which it is read; `deadband`: degrees a joint must move before a new command
-    goes out; `calibration`: the leader's calibration name (default: `<robot id>-leader`).
+    goes out; `calibration`: the leader's calibration name (default: `<robot id>-leader`);
+    `takeover`: displace the robot's master (else MASTER_ACTIVE while it has one).
     """
 
     port: str | None = None
@@ -180,6 +187,7 @@ class UsbMasterBody(
     rate: Annotated[float, msgspec.Meta(gt=0, le=2000)] = 250.0
     deadband: Annotated[float, msgspec.Meta(ge=0, le=10)] = 0.5
     calibration: CalibrationName | None = None
+    takeover: bool = False
 
 
 MasterBody: TypeAlias = SequenceMasterBody | ReplayMasterBody | UsbMasterBody | RemoteServerBody

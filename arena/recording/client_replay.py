@@ -1,4 +1,9 @@
-"""`arena replay`: play a recording into a running server as a WebSocket master."""
+"""`arena replay`: play a recording into a running server as a WebSocket master.
+
+A replay that ran to its end releases the robot (it holds where it is, `idle`); one that was
+stopped (e-stopped, taken over, refused) or failed just goes, and the server's loss policy
+applies to what is left of it.
+"""
 
 from __future__ import annotations
 
@@ -11,6 +16,9 @@ from trio_websocket import ConnectionClosed, open_websocket_url
 
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording.replay import TimedCommand
+
+#: Seconds to wait for the answer to the release at the end.
+RELEASE_TIMEOUT = 5.0
 
 
 def _message(command: TimedCommand, speed: float) -> str:
@@ -41,20 +49,32 @@ async def replay_to_server(
     loop: bool = False,
     out: TextIO = sys.stderr,
 ) -> tuple[int, int]:
-    """Send `commands` with their timing to a master WebSocket; returns (sent, refused)."""
+    """Send `commands` with their timing to a master WebSocket; returns (sent, refused).
+
+    Raises `ArenaError` (`NOT_OWNER`) if the release at the end was not answered `released`.
+    """
     if not 0.01 <= speed <= 1000:
         raise ArenaError(ErrorCode.INVALID_VALUE, "speed must be between 0.01 and 1000.")
     sent = refused = 0
+    released: dict[str, object] | None = None
+    releasing = False
     async with open_websocket_url(url) as ws:
         stopped = trio.Event()
+        answered = trio.Event()  # the release's answer (or the end of the link)
 
         async def read_answers() -> None:
-            nonlocal refused
+            nonlocal refused, released
             try:
                 while True:
                     answer = json.loads(await ws.get_message())
                     kind = answer.get("type")
-                    if kind == "ack" and answer["data"]["status"] == "refused":
+                    if kind == "released":
+                        released = answer.get("data") or {}
+                        answered.set()
+                    elif kind == "error" and releasing:
+                        out.write(f"\nserver: {answer.get('data', {}).get('message')}\n")
+                        answered.set()
+                    elif kind == "ack" and answer["data"]["status"] == "refused":
                         refused += 1
                         if answer["data"]["code"] in ("ESTOPPED", "NOT_OWNER"):
                             stopped.set()
@@ -70,6 +90,7 @@ async def replay_to_server(
                         stopped.set()
             except ConnectionClosed:
                 stopped.set()
+                answered.set()
 
         async with trio.open_nursery() as nursery:
             nursery.start_soon(read_answers)
@@ -84,7 +105,15 @@ async def replay_to_server(
                     _progress(out, index + 1, len(commands), refused)
                 if not loop:
                     break
-            await trio.sleep(0.2)  # let the last answers arrive
+            releasing = not stopped.is_set()
+            if releasing:  # played to the end: hand the robot back
+                await ws.send_message(json.dumps({"type": "release"}))
+                with trio.move_on_after(RELEASE_TIMEOUT):
+                    await answered.wait()
+            else:
+                await trio.sleep(0.2)  # let the last answers arrive
             nursery.cancel_scope.cancel()
     out.write("\n")
+    if releasing and released is None:
+        raise ArenaError(ErrorCode.NOT_OWNER, "The server did not answer the release.")
     return sent, refused

@@ -95,7 +95,7 @@ class ReplayMaster:
 
     kind = "replay"
     autonomous = True
-    takes_over = True
+    takes_over = False  # only when asked (`takeover`)
 
     def __init__(
         self,
@@ -116,6 +116,11 @@ class ReplayMaster:
         self.sent = 0
         self.refused = 0
         self.on_progress: Callable[[int, int], None] | None = None
+
+    @property
+    def description(self) -> str:
+        """What it replays, in words (told to a master it takes over from)."""
+        return f"replay of {self.name!r}"
 
     async def run(self, link: MasterLink) -> None:
         """Issue every command at its (scaled) time; loop if asked."""
@@ -169,6 +174,8 @@ async def redrive_session(recording: Recording, source: str, robot: Robot) -> No
             elif peer in links and not links[peer].detached.is_set():
                 if data["change"] == "lost":
                     await links[peer].lost(str(data["reason"]))
+                elif data["change"] == "released":
+                    await links[peer].release(str(data["reason"]))
                 else:
                     finished = data["reason"] == "driver finished"  # see Robot._on_driver_ended
                     await links[peer].detach(str(data["reason"]), finish_motion=finished)
@@ -189,5 +196,10 @@ def _is_input(message: RecordedMessage) -> bool:
     if message.kind == "command":
         return True
     if message.kind == "peer":
-        return data["role"] == "master" and data["change"] in ("attached", "detached", "lost")
+        return data["role"] == "master" and data["change"] in (
+            "attached",
+            "detached",
+            "released",
+            "lost",
+        )
     return message.kind == "state" and data["cause"] in ("EStop", "Reset")

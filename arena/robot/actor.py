@@ -38,6 +38,7 @@ from arena.robot.events import (
     SlaveNotice,
     SlaveTarget,
     StateChanged,
+    TakenBy,
     TargetsSent,
 )
 from arena.robot.inbox import (
@@ -232,8 +233,9 @@ class Robot:
         """
         if takeover is None:
             takeover = driver.takes_over
+        description = str(getattr(driver, "description", "") or "")
         link: MasterLink = await self._attach(
-            "master", master_id, driver.kind, driver, driver.autonomous, takeover, None
+            "master", master_id, driver.kind, driver, driver.autonomous, takeover, None, description
         )
         return link.master_id
 
@@ -245,10 +247,12 @@ class Robot:
         takeover: bool = False,
         heartbeat_timeout: float | None = None,
         autonomous: bool = False,
+        description: str = "",
     ) -> MasterLink:
-        """Claim the robot for a master that runs elsewhere (a network connection)."""
+        """Claim the robot for a master that runs elsewhere (a network connection);
+        `description` says what it is to a master it takes over from."""
         link: MasterLink = await self._attach(
-            "master", master_id, kind, None, autonomous, takeover, heartbeat_timeout
+            "master", master_id, kind, None, autonomous, takeover, heartbeat_timeout, description
         )
         return link
 
@@ -601,7 +605,13 @@ class Robot:
         if message.role == "master":
             link = MasterLink(self, peer_id)
             outcome = self._apply(
-                safety.MasterAttach(peer_id, message.autonomous, message.takeover),
+                safety.MasterAttach(
+                    peer_id,
+                    message.autonomous,
+                    message.takeover,
+                    message.kind,
+                    message.description,
+                ),
                 now,
                 cause="master attach",
             )
@@ -673,12 +683,9 @@ class Robot:
                 else safety.MasterDetach(peer.peer_id, message.hold)
             )
             self._apply(event, now, cause=message.reason)
+            change = "lost" if message.lost else "released" if message.released else "detached"
             self._drop_master(
-                peer,
-                ErrorCode.MASTER_LOST if message.lost else None,
-                message.reason,
-                "lost" if message.lost else "detached",
-                now,
+                peer, ErrorCode.MASTER_LOST if message.lost else None, message.reason, change, now
             )
         else:
             slave = self._slaves.get(message.peer_id or "")
@@ -794,7 +801,15 @@ class Robot:
         for effect in step.effects:
             if isinstance(effect, safety.DetachMaster):
                 if self._master is not None and self._master.peer_id == effect.master_id:
-                    self._drop_master(self._master, effect.code, effect.message, "detached", now)
+                    by = effect.by
+                    self._drop_master(
+                        self._master,
+                        effect.code,
+                        effect.message,
+                        "detached",
+                        now,
+                        None if by is None else TakenBy(by.master_id, by.kind, by.description),
+                    )
             elif isinstance(effect, safety.StopMotion):
                 self.estop_count += 1
                 log.warning("robot %s: e-stop (%s)", self.robot_id, effect.reason)
@@ -842,7 +857,13 @@ class Robot:
             self._master.link.notices.put(MasterNotice("state", None, cause, state.mode))
 
     def _drop_master(
-        self, peer: _Peer, code: ErrorCode | None, reason: str, change: str, now: float
+        self,
+        peer: _Peer,
+        code: ErrorCode | None,
+        reason: str,
+        change: str,
+        now: float,
+        by: TakenBy | None = None,
     ) -> None:
         if self._master is not peer:
             return
@@ -850,7 +871,7 @@ class Robot:
         self.core.forget_master(peer.peer_id)
         assert isinstance(peer.link, MasterLink)
         if code is not None:
-            peer.link.notices.put(MasterNotice("detached", code, reason))
+            peer.link.notices.put(MasterNotice("detached", code, reason, by=by))
         peer.link.detached.set()
         peer.link.notices.close()
         if peer.scope is not None:
@@ -945,10 +966,21 @@ class Robot:
         autonomous: bool,
         takeover: bool,
         heartbeat_timeout: float | None,
+        description: str = "",
     ) -> Any:
         reply: Reply[Any] = Reply()
         await self._post(
-            AttachMsg(role, peer_id, kind, driver, autonomous, takeover, heartbeat_timeout, reply)
+            AttachMsg(
+                role,
+                peer_id,
+                kind,
+                driver,
+                autonomous,
+                takeover,
+                heartbeat_timeout,
+                reply,
+                description,
+            )
         )
         try:
             return await reply.wait()
@@ -968,11 +1000,18 @@ class Robot:
             raise
 
     async def _detach(
-        self, role: str, peer_id: str | None, *, lost: bool, reason: str, hold: bool = True
+        self,
+        role: str,
+        peer_id: str | None,
+        *,
+        lost: bool,
+        reason: str,
+        hold: bool = True,
+        released: bool = False,
     ) -> None:
         reply: Reply[None] = Reply()
         try:
-            await self._post(DetachMsg(role, peer_id, lost, reason, reply, hold))
+            await self._post(DetachMsg(role, peer_id, lost, reason, reply, hold, released))
             await reply.wait()
         except ArenaError as exc:
             if exc.code is not ErrorCode.ROBOT_STOPPED:

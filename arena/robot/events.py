@@ -50,13 +50,23 @@ class SlaveNotice(msgspec.Struct, frozen=True, gc=False):
     reason: str = ""
 
 
+class TakenBy(msgspec.Struct, frozen=True, gc=False):
+    """The master that took a robot over: its id, kind and what it is in words."""
+
+    master_id: str
+    kind: str
+    description: str
+
+
 class MasterNotice(msgspec.Struct, frozen=True, gc=False):
-    """Something a master should know: it was detached, or the robot changed state."""
+    """Something a master should know: it was detached (`by`: who took over), or the robot
+    changed state."""
 
     kind: str  # "detached" | "state"
     code: ErrorCode | None = None
     message: str = ""
     mode: Mode | None = None
+    by: TakenBy | None = None
 
 
 class Observed(msgspec.Struct, frozen=True, gc=False, tag_field="event", tag=True):
@@ -126,7 +136,9 @@ class PeerChanged(Observed, frozen=True, gc=False):
     role: str  # "master" | "slave"
     peer_id: str
     kind: str  # driver kind, e.g. "mock-slave"
-    change: str  # "attached" | "detached" | "lost" | "refused" | "disconnected" | "reconnected"
+    # "attached" | "detached" | "released" (a master's own `release`) | "lost" | "refused" |
+    # "disconnected" | "reconnected"
+    change: str
     reason: str
     time: float
     wall_time: float

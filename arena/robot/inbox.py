@@ -71,6 +71,7 @@ class AttachMsg:
     takeover: bool
     heartbeat_timeout: float | None
     reply: Reply[Any]
+    description: str = ""  # what the master is, in words (told to a master it displaces)
 
 
 @dataclass(slots=True)
@@ -81,6 +82,7 @@ class DetachMsg:
     reason: str
     reply: Reply[None] | None
     hold: bool = True
+    released: bool = False  # the master's own release (recorded as "released")
 
 
 @dataclass(slots=True)

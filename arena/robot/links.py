@@ -28,7 +28,11 @@ if TYPE_CHECKING:
 
 
 class MasterDriver(Protocol):
-    """A command source run by the robot (a sequence player, a replay, a remote link)."""
+    """A command source run by the robot (a sequence player, a replay, a remote link).
+
+    It may also have a `description` (what it is in words, "sequence 'gentle-wave'"), which
+    a master it takes over from is told.
+    """
 
     kind: str
     autonomous: bool  # plays a program: ends for good on e-stop
@@ -98,6 +102,13 @@ class MasterLink:
         if not self.detached.is_set():
             await self.robot._detach(
                 "master", self.master_id, lost=False, reason=reason, hold=not finish_motion
+            )
+
+    async def release(self, reason: str = "released by the master") -> None:
+        """The master is done: hand the robot back, holding where it is (no e-stop)."""
+        if not self.detached.is_set():
+            await self.robot._detach(
+                "master", self.master_id, lost=False, reason=reason, released=True
             )
 
     async def lost(self, reason: str = "connection lost") -> None:

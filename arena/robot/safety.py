@@ -45,11 +45,15 @@ class SafetyState:
 
 @dataclass(frozen=True, slots=True)
 class MasterAttach:
-    """A master asks to own the robot; `takeover` displaces the current one."""
+    """A master asks to own the robot; `takeover` displaces the current one. `kind` and
+    `description` say what it is (`mock-sequence`, "sequence 'gentle-wave'"): a master it
+    displaces is told."""
 
     master_id: str
     autonomous: bool = False
     takeover: bool = False
+    kind: str = ""
+    description: str = ""
 
 
 @dataclass(frozen=True, slots=True)
@@ -176,11 +180,12 @@ _APPLY_COMMAND = (ApplyCommand(),)
 
 @dataclass(frozen=True, slots=True)
 class DetachMaster:
-    """End a master's ownership and tell it why."""
+    """End a master's ownership and tell it why (`by`: the attach that took over)."""
 
     master_id: str
     code: ErrorCode
     message: str
+    by: MasterAttach | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -298,12 +303,19 @@ def _refuse_or_take_over(state: SafetyState, event: MasterAttach) -> Refused | D
             ErrorCode.MASTER_ACTIVE,
             f"Robot is controlled by master {state.owner!r}; ask for takeover to replace it.",
         )
+    what = f" ({event.description})" if event.description else ""
     return DetachMaster(
-        state.owner, ErrorCode.TAKEN_OVER, f"Master {event.master_id!r} took over the robot."
+        state.owner,
+        ErrorCode.TAKEN_OVER,
+        f"Master {event.master_id!r}{what} took over the robot.",
+        event,
     )
 
 
-@_rule("takeover: previous master detached (TAKEN_OVER), even under the same id; else refused")
+@_rule(
+    "takeover: previous master detached (TAKEN_OVER, told who took over), even under the same "
+    "id; else refused"
+)
 def _claim_or_takeover(state: SafetyState, event: Event) -> Outcome:
     assert isinstance(event, MasterAttach)
     answer = _refuse_or_take_over(state, event)

@@ -45,7 +45,7 @@ from arena.server.base import (
 from arena.server.calibration_api import blueprint as calibration_blueprint
 from arena.server.config import ServerConfig
 from arena.server.dashboard import blueprint as dashboard_blueprint
-from arena.server.drivers import make_master, make_slave
+from arena.server.drivers import attach_rest_master, make_master, make_slave
 from arena.server.fleet_api import blueprint as fleet_blueprint
 from arena.server.groups_api import blueprint as groups_blueprint
 from arena.server.metrics import Metrics
@@ -367,11 +367,13 @@ def _register_routes(app: ArenaApp) -> None:
             holder = robot.snapshot().master
             if holder is not None and not driver.takes_over:
                 raise ArenaError(  # say so before opening any hardware
-                    ErrorCode.MASTER_ACTIVE, f"Master {holder.peer_id!r} already drives this robot."
+                    ErrorCode.MASTER_ACTIVE,
+                    f"Master {holder.peer_id!r} already drives this robot. "
+                    'Send "takeover": true in the body to replace it.',
                 )
             await prepare()  # hardware: port problems are the caller's error, now
         try:
-            master_id = await robot.attach_master(driver)
+            master_id = await attach_rest_master(robot, driver)
         except BaseException:
             close = getattr(driver, "close", None)
             if close is not None:

@@ -26,8 +26,22 @@ from arena.protocol.rest import (
 from arena.recording.mcap_file import read_recording
 from arena.recording.recorder import existing_recording
 from arena.recording.replay import ReplayMaster, pick_robot, recorded_commands
+from arena.robot.actor import Robot
 from arena.robot.links import MasterDriver, SlaveDriver
 from arena.robot.model import RobotModel
+
+
+async def attach_rest_master(robot: Robot, driver: MasterDriver) -> str:
+    """Attach a master asked for over REST; a refusal because the robot has a master says
+    which field asks for takeover."""
+    try:
+        return await robot.attach_master(driver)
+    except ArenaError as error:
+        if error.code is ErrorCode.MASTER_ACTIVE:
+            raise ArenaError(
+                error.code, f'{error.message} Send "takeover": true in the body to do so.'
+            ) from None
+        raise
 
 
 def _calibration_file(folder: Path | None, name: str | None, robot_id: str) -> Path:
@@ -120,7 +134,20 @@ def make_master(
     robot_id: str = "robot",
 ) -> MasterDriver:
     """Build a master driver from its config (`recordings`: where replay finds its files;
-    a leader arm's calibration is `calibration_dir/<name>.json`, default `<robot_id>-leader`)."""
+    a leader arm's calibration is `calibration_dir/<name>.json`, default `<robot_id>-leader`).
+    It takes over from the robot's master only if the config asks (`takeover`)."""
+    driver = _master(body, recordings, model, calibration_dir, robot_id)
+    driver.takes_over = body.takeover
+    return driver
+
+
+def _master(
+    body: MasterBody,
+    recordings: Path | None,
+    model: RobotModel | None,
+    calibration_dir: Path | None,
+    robot_id: str,
+) -> MasterDriver:
     if isinstance(body, UsbMasterBody):
         from arena.drivers.usb_master import UsbMaster
 
@@ -134,11 +161,9 @@ def make_master(
         return _replay(body, recordings)
     if isinstance(body, SequenceMasterBody):
         ids = body.sequences if body.sequences else list(demo_sequences())
-        master = SequenceMaster(
+        return SequenceMaster(
             [get_sequence(i) for i in ids], loop=body.loop, auto_start=body.autoStart
         )
-        master.takes_over = body.takeover
-        return master
     if isinstance(body, RemoteServerBody):
         from arena.drivers.remote import RemoteServerMaster
 

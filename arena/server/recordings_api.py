@@ -16,7 +16,7 @@ from arena.recording.analysis import joint_series, summarize, thin
 from arena.recording.mcap_file import SUFFIX, read_recording
 from arena.recording.recorder import check_name, existing_recording
 from arena.server.base import ArenaApp, read_body
-from arena.server.drivers import make_master
+from arena.server.drivers import attach_rest_master, make_master
 
 blueprint = Blueprint("recordings", __name__)
 T = TypeVar("T")
@@ -153,5 +153,5 @@ async def replay(robot_id: str) -> tuple[dict[str, Any], int]:
     body: ReplayBody = await read_body(ReplayBody)
     config = ReplayMasterBody(**msgspec.structs.asdict(body))
     driver = await off_the_loop(make_master, config, app.recorder.folder)
-    master_id = await robot.attach_master(driver)
+    master_id = await attach_rest_master(robot, driver)
     return {"robot": robot_id, "master": master_id, "recording": body.recording}, 201

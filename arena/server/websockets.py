@@ -35,7 +35,7 @@ from arena.robot.events import (
     StateChanged,
     TargetsSent,
 )
-from arena.robot.links import MasterLink, SlaveLink
+from arena.robot.links import DETACHED_LINK, MasterLink, SlaveLink
 from arena.robot.mailbox import EventQueue
 from arena.robot.manager import estop_together
 from arena.robot.motion import CommandResult
@@ -479,6 +479,7 @@ async def master_socket(connection: Connection, robot_id: str) -> None:
             kind="websocket",
             takeover=_flag(connection.args.get("takeover")),
             heartbeat_timeout=app.arena_config.heartbeat_timeout,
+            description="WebSocket client",
         )
     except ArenaError as error:
         await connection.refuse(error)
@@ -494,7 +495,7 @@ async def master_socket(connection: Connection, robot_id: str) -> None:
 
             async def body(nursery: trio.Nursery) -> None:
                 nursery.start_soon(forwarder.run)
-                nursery.start_soon(_forward_master_notices, connection, link)
+                nursery.start_soon(_forward_master_notices, connection, link, player)
                 nursery.start_soon(_heartbeats, connection)
                 await _master_reader(connection, robot, link, forwarder, player, nursery)
 
@@ -509,9 +510,10 @@ class _GroupMembers:
     the group master's hands (it is told in a `member_left` message); the rest stay claimed,
     and its e-stop still stops every one of them. When none is left, the socket closes."""
 
-    def __init__(self, connection: Connection, links: dict[str, MasterLink]) -> None:
+    def __init__(self, connection: Connection, links: dict[str, MasterLink], group_id: str) -> None:
         self.connection = connection
         self.links = links
+        self.group_id = group_id
 
     async def leave(self, robot_id: str, reason: str = "robot deleted") -> None:
         """`robot_id` is gone: forget it and say so (once)."""
@@ -543,6 +545,7 @@ async def _group_master_socket(connection: Connection, group_id: str) -> None:
                 kind="websocket-group",
                 takeover=_flag(connection.args.get("takeover")),
                 heartbeat_timeout=app.arena_config.heartbeat_timeout,
+                description=f"master of the group {group_id!r}",
             )
     except ArenaError as error:
         with trio.CancelScope(shield=True):
@@ -551,7 +554,7 @@ async def _group_master_socket(connection: Connection, group_id: str) -> None:
         await connection.refuse(error)
         return
     app.metrics.connections["master"] += 1
-    members = _GroupMembers(connection, dict(links))
+    members = _GroupMembers(connection, dict(links), group_id)
     try:
         with contextlib.ExitStack() as stack:
             queues = [
@@ -628,9 +631,18 @@ async def _handle_group_message(members: _GroupMembers, message: wire.MasterMess
                     await link.robot.reset()
     elif isinstance(message, wire.HeartbeatMessage):
         await connection.send(wire.HeartbeatMessage(timestamp=wire.now_iso()))
+    elif isinstance(message, wire.ReleaseMessage):
+        modes: dict[str, str] = {}
+        for robot_id, link in list(members.links.items()):
+            with contextlib.suppress(ArenaError):  # deleted meanwhile: nothing to release
+                await link.release()
+                modes[robot_id] = str(link.robot.snapshot().mode)
+        mode = "estopped" if "estopped" in modes.values() else "idle"
+        await _send_released(connection, wire.ReleasedData(members.group_id, mode, modes))
     else:
         await connection.send_error(
-            ErrorCode.INVALID_MESSAGE, "A group master sends commands, e-stops, resets, heartbeats."
+            ErrorCode.INVALID_MESSAGE,
+            "A group master sends commands, e-stops, resets, heartbeats, release.",
         )
 
 
@@ -645,10 +657,12 @@ async def _release_master(app: ArenaApp, link: MasterLink) -> None:
 
 
 class _SequencePlayer:
-    """The sequence a WebSocket master asked for, played under that master's ownership."""
+    """The sequence a WebSocket master asked for, played under that master's ownership;
+    `releasing`: the master said `release` (its link ends without a word from the robot)."""
 
     def __init__(self) -> None:
         self.scope: trio.CancelScope | None = None
+        self.releasing = False
 
     def stop(self) -> None:
         if self.scope is not None:
@@ -661,23 +675,35 @@ class _SequencePlayer:
             await master.run(link)
 
 
-async def _forward_master_notices(connection: Connection, link: MasterLink) -> None:
+async def _forward_master_notices(
+    connection: Connection, link: MasterLink, player: _SequencePlayer
+) -> None:
     async for notice in link.notices:
         if notice.kind == "detached":
             await _send_detached(connection, notice)
             return
+    if player.releasing:
+        return  # the reader answers the release and closes
     # The robot closed the link (deleted, or detached without a word).
     await connection.close(CLOSE_NORMAL, "robot link closed")
 
 
 async def _send_detached(connection: Connection, notice: MasterNotice) -> None:
     code = notice.code or ErrorCode.MASTER_LOST
+    by = notice.by
+    taken_by = None if by is None else wire.TakenBy(by.master_id, by.kind, by.description)
     await connection.send(  # queued even to a peer that is behind: it is the last word
         wire.DetachedMessage(
-            timestamp=wire.now_iso(), data=wire.DetachedData(str(code), notice.message)
+            timestamp=wire.now_iso(), data=wire.DetachedData(str(code), notice.message, taken_by)
         )
     )
     await connection.close(_CLOSE_FOR.get(code, CLOSE_NORMAL), notice.message)
+
+
+async def _send_released(connection: Connection, data: wire.ReleasedData) -> None:
+    """Answer a `release` (queued even to a peer that is behind) and close normally."""
+    await connection.send(wire.ReleasedMessage(timestamp=wire.now_iso(), data=data))
+    await connection.close(CLOSE_NORMAL, "released")
 
 
 async def _read_loop(
@@ -850,6 +876,14 @@ async def _handle_master_message(
         await robot.reset()
     elif isinstance(message, wire.HeartbeatMessage):
         await connection.send(wire.HeartbeatMessage(timestamp=wire.now_iso()))
+    elif isinstance(message, wire.ReleaseMessage):
+        if link.detached.is_set():  # taken over or stopped meanwhile: its notice says why
+            raise ArenaError(ErrorCode.NOT_OWNER, DETACHED_LINK.message)
+        player.stop()
+        player.releasing = True
+        await link.release()
+        snapshot = robot.snapshot()
+        await _send_released(connection, wire.ReleasedData(robot.robot_id, str(snapshot.mode)))
 
 
 # --- slaves -----------------------------------------------------------------------------------
