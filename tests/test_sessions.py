@@ -284,30 +284,38 @@ async def test_a_server_that_never_answers_times_out_on_trios_clock(
 
 
 @pytest.mark.parametrize(
-    ("path", "body", "kind", "description"),
+    ("path", "body", "kind", "description", "by_default"),
     [
         (
             "/api/robots/demo-arm/master",
             {"type": "mock-sequence", "sequences": ["tiny-flex"]},
             "mock-sequence",
             "sequence 'tiny-flex'",
+            True,  # the seed's demo sequences: "automatic master takeover"
         ),
         (
             "/api/robots/demo-arm/master",
             {"type": "replay", "recording": "golden.mcap"},
             "replay",
             "replay of 'golden.mcap'",
+            False,
         ),
         (
             "/api/robots/demo-arm/replay",
             {"recording": "golden.mcap"},
             "replay",
             "replay of 'golden.mcap'",
+            False,
         ),
     ],
 )
 async def test_rest_masters_take_over_only_when_asked_and_say_who_they_are(
-    server: RunningServer, path: str, body: dict[str, Any], kind: str, description: str
+    server: RunningServer,
+    path: str,
+    body: dict[str, Any],
+    kind: str,
+    description: str,
+    by_default: bool,
 ) -> None:
     folder = Path(server.app.recorder.folder)
     folder.mkdir(parents=True, exist_ok=True)  # (made with the first file otherwise)
@@ -316,12 +324,14 @@ async def test_rest_masters_take_over_only_when_asked_and_say_who_they_are(
     url = server.ws_url + "/ws/master/demo-arm?id=alice"
     async with open_websocket_url(url) as alice, server.client() as http:
         await until_type(alice, "state")
-        refused = await http.post(path, json=body)
+        # A path that takes over by default refuses when told not to; the others refuse unless
+        # they ask.
+        refused = await http.post(path, json={**body, "takeover": False} if by_default else body)
         assert refused.status_code == 409, refused.text
         error = refused.json()["error"]
         assert error["code"] == "MASTER_ACTIVE" and '"takeover": true' in error["message"]
         assert robot.snapshot().owner == "alice"  # nothing changed
-        taken = await http.post(path, json={**body, "takeover": True})
+        taken = await http.post(path, json=body if by_default else {**body, "takeover": True})
         assert taken.status_code == 201, taken.text
         told = await until_type(alice, "detached")
     new_id = taken.json().get("id") or taken.json()["master"]

@@ -142,12 +142,13 @@ class SequenceMasterBody(
     forbid_unknown_fields=True,
 ):
     """The demo-sequence master: which sequences (default: all), loop, auto start, and
-    `takeover` (displace the robot's master; else MASTER_ACTIVE while it has one)."""
+    `takeover`: it displaces the robot's master unless told `false` (the seed's demo sequences
+    take over by themselves), then MASTER_ACTIVE while the robot has one."""
 
     sequences: list[str] | None = None
     loop: bool = False
     autoStart: bool = True
-    takeover: bool = False
+    takeover: bool = True
 
 
 class ReplayBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
