@@ -291,6 +291,8 @@ def test_recordings_list_download_plot_replay_and_start_stop(
     expect(plot).to_have_attribute("data-recording", "gentle-wave.mcap")
     assert int(plot.get_attribute("data-points") or 0) > 20
     expect(page.locator("#plot-legend")).to_contain_text("Rotation")
+    page.get_by_role("button", name="Close").click()
+    expect(plot).to_be_hidden()
 
     golden.get_by_role("button", name="Replay").click()
     expect(page.locator("#robot-state")).to_have_text("mastered")
@@ -451,3 +453,24 @@ def test_the_dashboard_of_one_node_lists_and_drives_a_robot_of_another(
     wanted = click_slider_at(page, "Rotation", 0.75)
     expect(page.locator('td[data-real="Rotation"]')).to_have_text(f"{wanted:.1f}", timeout=WAIT_MS)
     assert real_value(hub, "demo-arm", "Rotation") == pytest.approx(wanted, abs=0.05)
+
+
+def test_a_plot_opens_large_enough_to_read(start_live: Any, page: Page, tmp_path: Path) -> None:
+    folder = tmp_path / "recordings"
+    folder.mkdir()
+    shutil.copy(GOLDEN / "gentle-wave.mcap", folder)
+    server = start_live(demo=True, recordings_dir=str(folder))
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    golden = page.locator('#recording-list li[data-recording="gentle-wave.mcap"]')
+    golden.get_by_role("button", name="Plot").click()
+    plot = page.locator("#plot")
+    expect(plot).to_have_attribute("data-recording", "gentle-wave.mcap")
+    box = plot.bounding_box()
+    assert box is not None and box["width"] >= 800 and box["height"] >= 360
+    # Drawn at the size it shows (not a small drawing stretched or shrunk), with axes labelled.
+    assert plot.evaluate("c => c.width / c.getBoundingClientRect().width") >= 1
+    ticks = (plot.get_attribute("data-ticks") or "").split(";")
+    assert len(ticks) == 2 and all(len(axis.split(",")) >= 4 for axis in ticks), ticks
+    page.screenshot(path=str(SCREENSHOTS / "plot-open.png"))
+    page.keyboard.press("Escape")
+    expect(plot).to_be_hidden()

@@ -1,11 +1,12 @@
 // The recordings panel: the recorder's state, start and stop, the files with download,
-// replay onto the selected robot, and a small plot of a recording's joints.
+// replay onto the selected robot, and a plot of a recording's joints (in a dialog over the
+// page, as wide as the screen allows, with labelled axes).
 
 import { call, callReporting, download } from "./api.js";
 
 const $ = (id) => document.getElementById(id);
 const COLORS = ["#e8a33d", "#3d8be8", "#46c37b", "#e5484d", "#b07be8", "#3dd6e8", "#e87bd0"];
-const COLOR_NAMES = ["orange", "blue", "green", "red", "violet", "cyan", "pink"];
+const FONT_PX = 13; // the plot's labels, as large as the page's small text
 
 function size(bytes) {
   return bytes > 1e6 ? `${(bytes / 1e6).toFixed(1)} MB` : `${Math.ceil(bytes / 1e3)} kB`;
@@ -20,6 +21,10 @@ export class RecordingsPanel {
     $("record-stop").addEventListener("click", () =>
       this.act("POST", "/api/recordings/current/stop"),
     );
+    this.series = null; // what the plot shows, drawn again when its size changes
+    new ResizeObserver(() => {
+      if (this.series && $("plot-dialog").open) drawSeries($("plot"), this.series);
+    }).observe($("plot"));
   }
 
   async act(method, path, body) {
@@ -114,29 +119,67 @@ export class RecordingsPanel {
       series = await callReporting(this.report, "GET", path);
       if (!series) return;
     }
+    $("plot-title").textContent = `${series.recording}: robot ${series.robot}`;
+    const dialog = $("plot-dialog");
+    if (!dialog.open) dialog.showModal(); // opened first: the canvas takes its shown size
     const canvas = $("plot");
-    canvas.hidden = false;
+    this.series = series;
     drawSeries(canvas, series);
     canvas.dataset.recording = series.recording;
     canvas.dataset.points = String(
       series.joints.reduce((sum, joint) => sum + joint.virtual.length + joint.real.length, 0),
     );
-    $("plot-legend").textContent =
-      `${series.recording}, robot ${series.robot} (solid: virtual, dashed: real` +
-      `${series.estops.length ? ", red: e-stop" : ""}): ` +
-      series.joints.map((joint, i) => `${joint.name} ${COLOR_NAMES[i % COLORS.length]}`).join(", ");
+    const legend = $("plot-legend");
+    legend.replaceChildren(
+      ...series.joints.map((joint, index) => legendEntry(joint.name, COLORS[index % COLORS.length])),
+    );
+    legend.append(
+      `solid: virtual (commanded), dashed: real (measured)${series.estops.length ? ", red line: e-stop" : ""}`,
+    );
   }
 }
 
+function legendEntry(text, color) {
+  const entry = document.createElement("span");
+  const swatch = document.createElement("span");
+  swatch.className = "swatch";
+  swatch.style.borderColor = swatch.style.background = color;
+  entry.append(swatch, text);
+  return entry;
+}
+
+/** About `count` round steps (1, 2 or 5 times a power of ten) from `low` to `high`. */
+export function ticks(low, high, count) {
+  const rough = (high - low) / count;
+  const power = 10 ** Math.floor(Math.log10(rough));
+  const step = [1, 2, 5, 10].map((m) => m * power).find((s) => s >= rough) || 10 * power;
+  const first = Math.ceil(low / step - 1e-9) * step;
+  const found = [];
+  for (let at = first; at <= high + step * 1e-9; at += step) found.push(Number(at.toFixed(6)));
+  return found;
+}
+
+/** Draw `series` on `canvas` at the size the canvas shows (CSS pixels, sharp on any screen). */
 function drawSeries(canvas, series) {
+  const shown = canvas.getBoundingClientRect();
+  const ratio = window.devicePixelRatio || 1;
+  canvas.width = Math.ceil(shown.width * ratio);
+  canvas.height = Math.ceil(shown.height * ratio);
   const context = canvas.getContext("2d");
-  const { width, height } = canvas;
-  const pad = 28;
+  context.setTransform(ratio, 0, 0, ratio, 0, 0);
+  const width = shown.width;
+  const height = shown.height;
+  const left = 56; // room for the degree labels and the axis's name
+  const right = 16;
+  const top = 16;
+  const bottom = 44; // room for the time labels and the axis's name
   context.clearRect(0, 0, width, height);
+  context.font = `${FONT_PX}px system-ui, sans-serif`;
   const points = series.joints.flatMap((joint) => [...joint.virtual, ...joint.real]);
   if (!points.length) {
     context.fillStyle = "#9aa3b2";
-    context.fillText("No joint data for this robot in the recording.", pad, height / 2);
+    context.fillText("No joint data for this robot in the recording.", left, height / 2);
+    canvas.dataset.ticks = "";
     return;
   }
   const times = points.map((p) => p[0]);
@@ -145,20 +188,48 @@ function drawSeries(canvas, series) {
   const t1 = Math.max(...times, t0 + 1e-3);
   const v0 = Math.min(...values, -1);
   const v1 = Math.max(...values, 1);
-  const x = (t) => pad + ((t - t0) / (t1 - t0)) * (width - 2 * pad);
-  const y = (v) => height - pad - ((v - v0) / (v1 - v0)) * (height - 2 * pad);
-  context.strokeStyle = "#333a46";
-  context.strokeRect(pad, pad, width - 2 * pad, height - 2 * pad);
+  const x = (t) => left + ((t - t0) / (t1 - t0)) * (width - left - right);
+  const y = (v) => height - bottom - ((v - v0) / (v1 - v0)) * (height - top - bottom);
+  // Grid and labels: seconds from the recording's first point, degrees.
+  const xTicks = ticks(0, t1 - t0, Math.max(4, Math.floor(width / 110)));
+  const yTicks = ticks(v0, v1, Math.max(4, Math.floor(height / 60)));
+  context.lineWidth = 1;
+  context.strokeStyle = "#2a303b";
   context.fillStyle = "#9aa3b2";
-  context.font = "11px sans-serif";
-  context.fillText(`${v1.toFixed(0)}°`, 2, pad + 4);
-  context.fillText(`${v0.toFixed(0)}°`, 2, height - pad);
-  context.fillText(`${(t1 - t0).toFixed(1)} s`, width - pad - 24, height - 8);
+  context.textAlign = "center";
+  context.textBaseline = "top";
+  for (const at of xTicks) {
+    context.beginPath();
+    context.moveTo(x(t0 + at), top);
+    context.lineTo(x(t0 + at), height - bottom);
+    context.stroke();
+    context.fillText(`${at}`, x(t0 + at), height - bottom + 5);
+  }
+  context.fillText("time (s)", left + (width - left - right) / 2, height - FONT_PX - 6);
+  context.textAlign = "right";
+  context.textBaseline = "middle";
+  for (const at of yTicks) {
+    context.beginPath();
+    context.moveTo(left, y(at));
+    context.lineTo(width - right, y(at));
+    context.stroke();
+    context.fillText(`${at}°`, left - 6, y(at));
+  }
+  context.save();
+  context.translate(14, top + (height - top - bottom) / 2);
+  context.rotate(-Math.PI / 2);
+  context.textAlign = "center";
+  context.fillText("degrees", 0, 0);
+  context.restore();
+  context.strokeStyle = "#4a5262";
+  context.strokeRect(left, top, width - left - right, height - top - bottom);
+  canvas.dataset.ticks = `${xTicks.join(",")};${yTicks.join(",")}`;
+  context.lineWidth = 1.5;
   context.strokeStyle = "#e5484d";
   for (const at of series.estops) {
     context.beginPath();
-    context.moveTo(x(at), pad);
-    context.lineTo(x(at), height - pad);
+    context.moveTo(x(at), top);
+    context.lineTo(x(at), height - bottom);
     context.stroke();
   }
   series.joints.forEach((joint, index) => {
