@@ -455,6 +455,73 @@ def test_the_dashboard_of_one_node_lists_and_drives_a_robot_of_another(
     assert real_value(hub, "demo-arm", "Rotation") == pytest.approx(wanted, abs=0.05)
 
 
+# Pixels of the 3D view with the hue of `swatch` (a legend entry's colour): the hue within
+# 12 degrees, saturated and not dark, so that the lit solid arm counts whatever its shading.
+COUNT_HUE = """swatch => {
+    const [r0, g0, b0] = getComputedStyle(document.querySelector(swatch))
+        .borderTopColor.match(/\\d+/g).map(Number);
+    const hsv = (r, g, b) => {
+        const max = Math.max(r, g, b), min = Math.min(r, g, b), span = max - min;
+        if (!span) return [0, 0, max / 255];
+        let hue = max === r ? (g - b) / span : max === g ? 2 + (b - r) / span : 4 + (r - g) / span;
+        return [(hue * 60 + 360) % 360, span / max, max / 255];
+    };
+    const [want] = hsv(r0, g0, b0);
+    const source = document.querySelector("#twin canvas");
+    if (!source) return 0; // not drawn yet
+    const copy = document.createElement("canvas");
+    copy.width = source.width;
+    copy.height = source.height;
+    const context = copy.getContext("2d");
+    context.drawImage(source, 0, 0);
+    const pixels = context.getImageData(0, 0, copy.width, copy.height).data;
+    let count = 0;
+    for (let i = 0; i < pixels.length; i += 4) {
+        const [hue, saturation, value] = hsv(pixels[i], pixels[i + 1], pixels[i + 2]);
+        const off = Math.min(Math.abs(hue - want), 360 - Math.abs(hue - want));
+        if (off <= 12 && saturation > 0.35 && value > 0.3) count++;
+    }
+    return count;
+}"""
+COMMANDED = '#twin-legend [data-part="commanded"] .swatch'
+MEASURED = '#twin-legend [data-part="measured"] .swatch'
+
+
+def hue_pixels(page: Page, swatch: str) -> int:
+    return int(page.evaluate(COUNT_HUE, swatch))
+
+
+def test_the_twin_tells_the_measured_arm_from_the_commanded_one(
+    start_live: Any, page: Page
+) -> None:
+    server = start_live()
+    with server.http() as http:
+        body = {"robot_type": "so-arm100", "name": "Bare", "id": "bare"}
+        assert http.post("/api/robots", json=body).status_code == 201
+    page.goto(server.url + "/ui/#/robots/bare")
+    legend = page.locator("#twin-legend")
+    expect(legend.locator('[data-part="commanded"]')).to_contain_text("commanded")
+    # No slave: nothing is measured, and no ghost stands at a pose nobody measured.
+    expect(legend.locator('[data-part="measured"]')).to_contain_text("measured: no slave")
+    page.wait_for_function(f"() => ({COUNT_HUE})({COMMANDED!r}) > 2000", timeout=WAIT_MS)
+    assert hue_pixels(page, MEASURED) == 0
+
+    # A mock slave: it stands where it was commanded, the two arms in one place, and still the
+    # measured one shows, in its own colour, over the commanded one.
+    page.click("#add-mock")
+    expect(legend.locator('[data-part="measured"]')).not_to_contain_text("no slave")
+    twin = page.locator("#twin")
+    expect(twin).to_have_attribute("data-ghost-tip", twin.get_attribute("data-tip") or "")
+    page.wait_for_function(f"() => ({COUNT_HUE})({MEASURED!r}) > 500", timeout=WAIT_MS)
+    assert hue_pixels(page, COMMANDED) > 2000
+
+    # The slave goes: the robot keeps its last real values, but no ghost stands for them.
+    page.locator("#peers li").first.get_by_role("button", name="Detach").click()
+    expect(legend.locator('[data-part="measured"]')).to_contain_text("measured: no slave")
+    page.wait_for_function(f"() => ({COUNT_HUE})({MEASURED!r}) === 0", timeout=WAIT_MS)
+    assert hue_pixels(page, COMMANDED) > 2000
+
+
 def test_a_plot_opens_large_enough_to_read(start_live: Any, page: Page, tmp_path: Path) -> None:
     folder = tmp_path / "recordings"
     folder.mkdir()

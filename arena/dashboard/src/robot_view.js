@@ -2,7 +2,7 @@
 // master and slaves, recent events. Everything goes through the public API.
 
 import { apiKey, call, callReporting, watchRobot } from "./api.js";
-import { Twin } from "./twin.js";
+import { COMMANDED_COLOR, cssColor, MEASURED_COLOR, Twin } from "./twin.js";
 
 const $ = (id) => document.getElementById(id);
 
@@ -21,6 +21,15 @@ function degrees(value) {
   return value === null || value === undefined ? "–" : value.toFixed(1);
 }
 
+/** Colour the twin legend's swatches as the twin draws the arms. */
+function colourLegend() {
+  const solid = document.querySelector('#twin-legend [data-part="commanded"] .swatch');
+  solid.style.borderColor = solid.style.background = cssColor(COMMANDED_COLOR);
+  const ghost = document.querySelector('#twin-legend [data-part="measured"] .swatch');
+  ghost.style.borderColor = cssColor(MEASURED_COLOR);
+  ghost.style.background = cssColor(MEASURED_COLOR, 0.15);
+}
+
 export class RobotView {
   constructor(summary, { onChanged }) {
     this.robotId = summary.id;
@@ -31,6 +40,7 @@ export class RobotView {
     this.pending = new Map(); // joint -> value not yet sent
     this.sending = false;
     this.closed = false;
+    colourLegend();
     this.buildJoints(summary.joints);
     this.applySummary(summary);
     this.watcher = watchRobot(
@@ -47,6 +57,7 @@ export class RobotView {
           return;
         }
         this.twin = twin;
+        twin.setMeasuring(this.summary.slaves.length > 0);
         if (this.lastJoints) twin.show(this.lastJoints);
         return this.showWorkspace();
       })
@@ -99,6 +110,8 @@ export class RobotView {
   applySummary(summary) {
     this.summary = summary;
     $("robot-title").textContent = `${summary.name} (${summary.id})`;
+    if (this.twin) this.twin.setMeasuring(summary.slaves.length > 0);
+    this.showLegend();
     if (!this.state) {
       this.applyState({ mode: summary.state, owner: summary.owner, estop_reason: summary.estop_reason });
     }
@@ -245,6 +258,18 @@ export class RobotView {
       }
     }
     if (this.twin) this.twin.show(joints);
+    this.showLegend();
+  }
+
+  /** The legend's measured entry: whether there is a ghost, and why not. */
+  showLegend() {
+    const measured = (this.lastJoints || []).some(
+      (joint) => joint.real_value !== null && joint.real_value !== undefined,
+    );
+    let text = "measured (ghost outline)";
+    if (!this.summary.slaves.length) text = "measured: no slave";
+    else if (!measured) text = "measured: nothing yet";
+    document.querySelector('#twin-legend [data-part="measured"] .text').textContent = text;
   }
 
   /** A slider moved: send the newest values, one request at a time. */

@@ -1,10 +1,25 @@
 // The 3D twin: the robot built from its URDF and meshes (served by the robot-types API),
-// drawn twice: solid at the commanded (virtual) pose, and as a ghost at the measured (real) pose.
+// drawn twice: solid orange at the commanded (virtual) pose, and as a cyan ghost (a faint skin
+// and its outline) at the measured (real) pose. The two often stand in one place: the ghost's
+// outline is drawn over the solid arm there, so both still show.
 
 import * as THREE from "three";
 import { OrbitControls } from "three/examples/jsm/controls/OrbitControls.js";
 import { STLLoader } from "three/examples/jsm/loaders/STLLoader.js";
 import { call, fetchBytes, fetchText } from "./api.js";
+
+/** The two arms' colours; the page's legend takes them from here. */
+export const COMMANDED_COLOR = 0xe8a33d;
+export const MEASURED_COLOR = 0x3dd6e8;
+
+/** A colour of this module as CSS, with an optional opacity. */
+export function cssColor(color, alpha = 1) {
+  return `rgba(${color >> 16}, ${(color >> 8) & 255}, ${color & 255}, ${alpha})`;
+}
+
+// Edges between faces meeting at more than this (degrees) outline the ghost: its shape
+// without the mesh's every triangle.
+const OUTLINE_ANGLE = 35;
 
 /** URDF `xyz` / `rpy` attributes as three numbers (missing means zeros). */
 function triple(text) {
@@ -40,9 +55,10 @@ export function parseUrdf(text) {
   return { links, joints };
 }
 
-/** One drawable copy of the robot: its root object and a setter for joint angles (radians). */
+/** One drawable copy of the robot: its root object and a setter for joint angles (radians).
+ * With `outline` (a line material and a cache of edge geometries) each part is outlined too. */
 class RobotCopy {
-  constructor(urdf, geometries, material) {
+  constructor(urdf, geometries, material, outline = null) {
     this.root = new THREE.Group();
     this.motions = new Map();
     this.linkObjects = new Map();
@@ -54,6 +70,14 @@ class RobotCopy {
         const geometry = mesh && geometries.get(mesh.getAttribute("filename"));
         if (!geometry) continue;
         const part = new THREE.Mesh(geometry, material);
+        if (outline) {
+          let edges = outline.edges.get(geometry);
+          if (!edges) {
+            edges = new THREE.EdgesGeometry(geometry, OUTLINE_ANGLE);
+            outline.edges.set(geometry, edges);
+          }
+          part.add(new THREE.LineSegments(edges, outline.material));
+        }
         applyOrigin(part, visual.querySelector("origin"));
         const scale = mesh.getAttribute("scale");
         if (scale) part.scale.fromArray(triple(scale));
@@ -127,18 +151,30 @@ export class Twin {
     this.commanded = new RobotCopy(
       urdf,
       geometries,
-      new THREE.MeshStandardMaterial({ color: 0xe8a33d, metalness: 0.1, roughness: 0.6 }),
+      new THREE.MeshStandardMaterial({
+        color: COMMANDED_COLOR,
+        metalness: 0.1,
+        roughness: 0.6,
+        // pushed back a little in depth: where the arms coincide, the ghost's lines win
+        polygonOffset: true,
+        polygonOffsetFactor: 1,
+        polygonOffsetUnits: 1,
+      }),
     );
     this.measured = new RobotCopy(
       urdf,
       geometries,
-      new THREE.MeshStandardMaterial({
-        color: 0x3d8be8,
+      new THREE.MeshBasicMaterial({
+        color: MEASURED_COLOR,
         transparent: true,
-        opacity: 0.35,
+        opacity: 0.14,
         depthWrite: false,
       }),
+      { material: new THREE.LineBasicMaterial({ color: MEASURED_COLOR }), edges: new Map() },
     );
+    this.measured.root.visible = false; // until a slave measures something
+    this.measuring = true; // whether a slave is attached (the robot keeps its last real values)
+    this.hasReal = false;
     this.scene = new THREE.Scene();
     const world = new THREE.Group();
     world.rotation.x = -Math.PI / 2; // URDF is z-up, three.js is y-up
@@ -179,9 +215,26 @@ export class Twin {
     this.render();
   }
 
-  /** Follow a `joint_states` message: virtual values pose the solid arm, real ones the ghost. */
+  /** Whether a slave is attached to measure: without one there is no ghost (the robot's real
+   * values are then only the last ones measured). */
+  setMeasuring(measuring) {
+    this.measuring = measuring;
+    this.showGhost();
+  }
+
+  showGhost() {
+    const shown = this.measuring && this.hasReal;
+    this.container.dataset.ghost = shown ? "shown" : "hidden";
+    if (this.measured.root.visible === shown) return;
+    this.measured.root.visible = shown;
+    this.render();
+  }
+
+  /** Follow a `joint_states` message: virtual values pose the solid arm, real ones the ghost.
+   * With no real values (no slave measures) there is no ghost: it would stand where nothing is. */
   show(states) {
     const byName = new Map(this.type.joints.map((j) => [j.name, j]));
+    let measured = false;
     for (const state of states) {
       const spec = byName.get(state.name);
       if (!spec) continue;
@@ -189,8 +242,11 @@ export class Twin {
       this.commanded.setJoint(state.name, toUrdf(state.virtual_value));
       if (state.real_value !== null && state.real_value !== undefined) {
         this.measured.setJoint(state.name, toUrdf(state.real_value));
+        measured = true;
       }
     }
+    this.hasReal = measured;
+    this.showGhost();
     if (states.length && !this.framed) this.frame();
     // The tips' positions, for people reading the page and for the browser tests.
     this.container.dataset.tip = this.commanded.tipPosition().join(",");
