@@ -11,6 +11,7 @@ import re
 import shutil
 import threading
 from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -113,18 +114,30 @@ def browser() -> Iterator[Browser]:
         launched.close()
 
 
-@pytest.fixture
-def page(browser: Browser, request: pytest.FixtureRequest) -> Iterator[Page]:
-    """A fresh browser context; page errors fail the test; a screenshot is taken at the end."""
-    context = browser.new_context(viewport={"width": 1280, "height": 900}, accept_downloads=True)
+@contextmanager
+def checked_page(browser: Browser, name: str, **options: Any) -> Iterator[Page]:
+    """A page in a fresh browser context (`options` go to the context); page errors fail the
+    test; a screenshot `name`.png is taken at the end."""
+    context = browser.new_context(
+        viewport={"width": 1280, "height": 900}, accept_downloads=True, **options
+    )
     opened = context.new_page()
     errors: list[str] = []
     opened.on("pageerror", lambda error: errors.append(str(error)))
-    yield opened
-    SCREENSHOTS.mkdir(exist_ok=True)
-    opened.screenshot(path=str(SCREENSHOTS / f"{request.node.name}.png"), full_page=True)
-    context.close()
+    try:
+        yield opened
+        SCREENSHOTS.mkdir(exist_ok=True)
+        opened.screenshot(path=str(SCREENSHOTS / f"{name}.png"), full_page=True)
+    finally:
+        context.close()
     assert errors == [], f"the page threw: {errors}"
+
+
+@pytest.fixture
+def page(browser: Browser, request: pytest.FixtureRequest) -> Iterator[Page]:
+    """A fresh page, checked as `checked_page` does."""
+    with checked_page(browser, request.node.name) as opened:
+        yield opened
 
 
 def slider(page: Page, joint: str) -> Any:
@@ -157,6 +170,7 @@ def test_create_a_robot_attach_a_mock_slave_and_drive_it_with_a_slider(
     page.goto(server.url + "/ui/")
     page.fill("#create-name", "Bench arm")
     page.fill("#create-id", "bench-arm")
+    page.select_option("#create-slave", "")  # no slave: this test attaches one itself
     page.click("#create-robot button[type=submit]")
     expect(page).to_have_url(re.compile(r"#/robots/bench-arm$"))
     expect(page.locator("#robot-title")).to_have_text("Bench arm (bench-arm)")
@@ -455,6 +469,79 @@ def test_the_dashboard_of_one_node_lists_and_drives_a_robot_of_another(
     assert real_value(hub, "demo-arm", "Rotation") == pytest.approx(wanted, abs=0.05)
 
 
+@pytest.mark.parametrize("demo", [False, True], ids=["fresh-server", "with-the-demo-robot"])
+def test_robot_creation_and_control(
+    start_live: Any, browser: Browser, request: pytest.FixtureRequest, demo: bool
+) -> None:
+    """The seed's own integration test ("Integration Tests" in its README), in Python's
+    Playwright: its four lines, then what they must mean on the server."""
+    server = start_live(demo=demo)
+    with checked_page(browser, request.node.name, base_url=server.url) as page:
+        page.goto("/")
+        page.click('[data-testid="create-robot"]')
+        page.click('[data-testid="connect-demo-sequences"]')
+        expect(page.locator('[data-testid="robot-status"]')).to_contain_text("Master + Slaves")
+
+        # `/` took the browser to the dashboard; the new robot is the one on screen.
+        expect(page).to_have_url(re.compile(r"/ui/#/robots/robot-[0-9a-f]+$"))
+        robot_id = page.url.rsplit("/", 1)[1]
+        with server.http() as http:
+            robot = http.get(f"/api/robots/{robot_id}").json()
+            others = [r for r in http.get("/api/robots").json() if r["id"] != robot_id]
+        assert robot["name"] == "My Robot"
+        assert [slave["type"] for slave in robot["slaves"]] == ["mock-slave"]
+        assert robot["master"]["type"] == "mock-sequence"
+        assert robot["state"] == "mastered"
+        # The demo robot the page showed first was left alone.
+        assert [(r["id"], r["master"]) for r in others] == ([("demo-arm", None)] if demo else [])
+        # Its 3D view shows the slave's measured pose, and the master line what plays.
+        expect(page.locator("#twin-legend")).to_contain_text("measured")
+        expect(page.locator("#twin-legend")).not_to_contain_text("no slave")
+        expect(page.locator("#master-line")).to_contain_text("demo sequences")
+
+
+def test_the_only_robot_opens_at_once_and_ids_tell_robots_apart(
+    start_live: Any, page: Page
+) -> None:
+    server = start_live()
+    with server.http() as http:
+        for robot_id in ("first", "second", "third"):
+            body = {"robot_type": "so-arm100", "name": "My Robot", "id": robot_id}
+            assert http.post("/api/robots", json=body).status_code == 201
+            if robot_id == "first":
+                # The server's only robot: the page opens it, ready to stop.
+                page.goto(server.url + "/ui/")
+                expect(page.locator("#robot-title")).to_have_text("My Robot (first)")
+                expect(page).to_have_url(re.compile(r"/ui/#/robots/first$"))
+                expect(page.locator("#estop")).to_be_enabled()
+    # Three robots of one name: each shows its id beside its name.
+    page.goto(server.url + "/ui/#")
+    items = page.locator("#robot-list li")
+    for robot_id in ("first", "second", "third"):
+        expect(page.locator(f'#robot-list li[data-robot="{robot_id}"]')).to_contain_text(
+            f"My Robot {robot_id}"
+        )
+    expect(items).to_have_count(3)
+    # None of three is chosen for you: the page says to choose.
+    expect(page.locator("#notice")).to_contain_text("Choose a robot")
+    expect(page.locator("#robot-panel")).to_be_hidden()
+    expect(page.locator("#estop")).to_be_disabled()
+
+
+def test_the_demo_robot_opens_at_once_among_others(start_live: Any, page: Page) -> None:
+    server = start_live(demo=True)
+    with server.http() as http:
+        for _ in range(2):
+            body = {"robot_type": "so-arm100", "name": "My Robot"}
+            assert http.post("/api/robots", json=body).status_code == 201
+    page.goto(server.url + "/ui/")
+    expect(page.locator("#robot-title")).to_have_text("Demo arm (demo-arm)")
+    expect(page.locator("#estop")).to_be_enabled()
+    expect(page.locator("#robot-list li")).to_have_count(3)
+    texts = page.locator("#robot-list li a").all_inner_texts()
+    assert len(set(texts)) == 3, texts  # the two "My Robot" differ by their ids
+
+
 # Pixels of the 3D view with the hue of `swatch` (a legend entry's colour): the hue within
 # 12 degrees, saturated and not dark, so that the lit solid arm counts whatever its shading.
 COUNT_HUE = """swatch => {
@@ -520,6 +607,26 @@ def test_the_twin_tells_the_measured_arm_from_the_commanded_one(
     expect(legend.locator('[data-part="measured"]')).to_contain_text("measured: no slave")
     page.wait_for_function(f"() => ({COUNT_HUE})({MEASURED!r}) === 0", timeout=WAIT_MS)
     assert hue_pixels(page, COMMANDED) > 2000
+
+
+def test_the_page_says_which_sequence_plays(start_live: Any, page: Page) -> None:
+    server = start_live(demo=True)
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    page.select_option("#sequence", "small-scan")
+    page.click("#play")
+    line = page.locator("#master-line")
+    expect(line).to_contain_text("Playing Small Scanning Pattern (small-scan, 8 s)")
+    expect(page.locator('[data-testid="robot-status"]')).to_contain_text("Master + Slaves")
+    # Reloaded, the page still knows what plays.
+    page.reload()
+    expect(line).to_contain_text("Playing Small Scanning Pattern")
+    page.click('[data-testid="connect-demo-sequences"]')
+    expect(line).to_contain_text(
+        "Playing the demo sequences in a loop (gentle-wave, small-scan, tiny-flex)"
+    )
+    page.click("#stop-sequence")
+    expect(line).to_have_text("No master: the sliders drive the robot.")
+    expect(page.locator('[data-testid="robot-status"]')).to_have_text("Slaves, no master")
 
 
 def test_a_plot_opens_large_enough_to_read(start_live: Any, page: Page, tmp_path: Path) -> None:

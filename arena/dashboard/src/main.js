@@ -2,14 +2,21 @@
 // stop buttons, the API key, and the periodic refresh of what the sockets do not push.
 
 import { ApiError, apiKey, call, callReporting, setApiKey } from "./api.js";
+import { forgetRobot, rememberPlaying, setServerUptime } from "./playing.js";
 import { RecordingsPanel } from "./recordings.js";
 import { RobotView } from "./robot_view.js";
 
 const $ = (id) => document.getElementById(id);
 const REFRESH_MS = 1000;
+const DEMO_ROBOT = "demo-arm"; // `arena serve --demo`'s robot: the one to show among several
+const DEFAULT_NAME = "My Robot"; // the seed's name for a robot nobody named
+const CHOOSE = "Choose a robot from the list.";
 
 let view = null; // the RobotView of the selected robot
 let robots = [];
+let sequences = []; // the server's demo sequences, as `GET /api/sequences` lists them
+let creating = false; // a robot is being created: no other is opened meanwhile
+let refreshes = 0; // counts refreshes: an older one that ends late changes nothing
 
 function selectedId() {
   const match = location.hash.match(/^#\/robots\/(.+)$/);
@@ -25,8 +32,10 @@ function report(text, isError = false) {
 const recordings = new RecordingsPanel({ selectedRobot: selectedId, report });
 
 async function refresh() {
+  const mine = ++refreshes;
   try {
     const status = await call("GET", "/");
+    setServerUptime(status.uptime_s);
     $("server-status").textContent =
       `${status.robots} robot${status.robots === 1 ? "" : "s"}, ` +
       `recording ${status.recording.active ? (status.recording.error ? "FAILING" : "on") : "off"}` +
@@ -46,12 +55,15 @@ async function refresh() {
     if (error instanceof ApiError && error.status === 401 && !apiKey()) $("key-dialog").showModal();
     return;
   }
+  if (mine !== refreshes || creating) return; // a newer refresh, or a new robot, will show
+  chooseForTheVisitor();
   showRobotList();
   const id = selectedId();
   let summary = robots.find((robot) => robot.id === id);
   if (summary && summary.remote) {
     // another node's robot: its details come through this server (the fleet forwards them)
     summary = summary.state === "offline" ? null : await call("GET", `/api/robots/${encodeURIComponent(id)}`);
+    if (mine !== refreshes || creating) return;
   }
   if (!summary) {
     if (view) closeView();
@@ -63,6 +75,21 @@ async function refresh() {
     view.applySummary(summary);
   }
   await recordings.refresh();
+}
+
+/** With no robot chosen, open the one there is, or the demo robot; among several, say so. */
+function chooseForTheVisitor() {
+  if (selectedId() !== null) {
+    if ($("notice").textContent === CHOOSE) $("notice").textContent = "";
+    return;
+  }
+  const only = robots.length === 1 ? robots[0] : robots.find((robot) => robot.id === DEMO_ROBOT);
+  if (only) {
+    // replace, not push: the back button leaves the page instead of coming back here
+    history.replaceState(null, "", `#/robots/${encodeURIComponent(only.id)}`);
+  } else if (robots.length && !view) {
+    report(CHOOSE);
+  }
 }
 
 function closeView() {
@@ -82,7 +109,10 @@ function showRobotList() {
     if (robot.id === selectedId()) item.className = "selected";
     const link = document.createElement("a");
     link.href = `#/robots/${encodeURIComponent(robot.id)}`;
-    link.textContent = robot.name;
+    const id = document.createElement("span");
+    id.className = "id";
+    id.textContent = robot.id; // names need not differ: ids do
+    link.append(`${robot.name} `, id);
     const state = document.createElement("span");
     state.className = `state ${robot.state}`;
     state.textContent = robot.master ? `${robot.state} by ${robot.master.id}` : robot.state;
@@ -134,20 +164,33 @@ function wireHeader() {
 
 function wireRobotControls() {
   const robotPath = () => `/api/robots/${encodeURIComponent(selectedId())}`;
-  $("create-robot").addEventListener("submit", async (event) => {
+  $("create-robot").addEventListener("submit", (event) => {
     event.preventDefault();
-    const body = { robot_type: $("create-type").value, name: $("create-name").value.trim() };
-    const id = $("create-id").value.trim();
-    if (id) body.id = id;
-    const robot = await act("POST", "/api/robots", body);
-    if (robot) {
-      $("create-robot").reset();
-      location.hash = `#/robots/${encodeURIComponent(robot.id)}`;
-    }
+    createRobot();
   });
-  $("play").addEventListener("click", () =>
-    act("POST", `${robotPath()}/play-sequence/${encodeURIComponent($("sequence").value)}`),
-  );
+  $("play").addEventListener("click", async () => {
+    const robot = selectedId();
+    const chosen = sequences.find((sequence) => sequence.id === $("sequence").value);
+    if (!chosen) return;
+    const path = `${robotPath()}/play-sequence/${encodeURIComponent(chosen.id)}`;
+    const answer = await callReporting(report, "POST", path);
+    if (!answer) return;
+    const text = `Playing ${chosen.name} (${chosen.id}, ${chosen.duration / 1000} s)`;
+    rememberPlaying(robot, { id: answer.master, type: "mock-sequence" }, text);
+    await refresh();
+  });
+  // The seed's "connect demo sequences": every demo sequence, looping, as the robot's master.
+  $("connect-demo").addEventListener("click", async () => {
+    const robot = selectedId();
+    const answer = await callReporting(report, "POST", `${robotPath()}/master`, {
+      type: "mock-sequence",
+      loop: true,
+    });
+    if (!answer) return;
+    const ids = sequences.map((sequence) => sequence.id).join(", ");
+    rememberPlaying(robot, answer, `Playing the demo sequences in a loop (${ids})`);
+    await refresh();
+  });
   $("stop-sequence").addEventListener("click", () => act("POST", `${robotPath()}/stop-sequence`));
   $("add-mock").addEventListener("click", () =>
     act("POST", `${robotPath()}/slaves`, { type: "mock-slave" }),
@@ -181,14 +224,44 @@ function wireRobotControls() {
       }, 4000);
       return;
     }
+    const robot = selectedId();
     const answer = await act("DELETE", robotPath());
-    if (answer) location.hash = "";
+    if (answer) {
+      forgetRobot(robot);
+      location.hash = "";
+    }
   });
+}
+
+/** Create a robot from the form (a name is optional), attach the chosen slave, open it. */
+async function createRobot() {
+  // Close the robot on screen at once: what is clicked next must be the new robot's.
+  creating = true;
+  closeView();
+  try {
+    const body = {
+      robot_type: $("create-type").value,
+      name: $("create-name").value.trim() || DEFAULT_NAME,
+    };
+    const id = $("create-id").value.trim();
+    if (id) body.id = id;
+    const slave = $("create-slave").value;
+    const robot = await callReporting(report, "POST", "/api/robots", body);
+    if (!robot) return;
+    $("create-robot").reset();
+    const path = `/api/robots/${encodeURIComponent(robot.id)}/slaves`;
+    if (slave) await callReporting(report, "POST", path, { type: slave });
+    history.pushState(null, "", `#/robots/${encodeURIComponent(robot.id)}`);
+  } finally {
+    creating = false;
+    await refresh();
+  }
 }
 
 async function fillChoices() {
   try {
-    const [types, sequences] = await Promise.all([
+    let types;
+    [types, sequences] = await Promise.all([
       call("GET", "/api/robot-types"),
       call("GET", "/api/sequences"),
     ]);

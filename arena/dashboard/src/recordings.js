@@ -3,6 +3,7 @@
 // page, as wide as the screen allows, with labelled axes).
 
 import { call, callReporting, download } from "./api.js";
+import { rememberPlaying } from "./playing.js";
 
 const $ = (id) => document.getElementById(id);
 const COLORS = ["#e8a33d", "#3d8be8", "#46c37b", "#e5484d", "#b07be8", "#3dd6e8", "#e87bd0"];
@@ -97,7 +98,10 @@ export class RecordingsPanel {
     const answer = await this.act("POST", `/api/robots/${encodeURIComponent(robot)}/replay`, {
       recording: name,
     });
-    if (answer) this.report(`replaying ${name} onto ${robot} as master ${answer.master}`);
+    if (answer) {
+      rememberPlaying(robot, { id: answer.master, type: "replay" }, `Replaying ${name}`);
+      this.report(`replaying ${name} onto ${robot} as master ${answer.master}`);
+    }
   }
 
   /** Draw every joint of one robot of the recording: virtual solid, real dashed. */

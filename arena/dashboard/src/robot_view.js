@@ -2,6 +2,7 @@
 // master and slaves, recent events. Everything goes through the public API.
 
 import { apiKey, call, callReporting, watchRobot } from "./api.js";
+import { recallPlaying } from "./playing.js";
 import { COMMANDED_COLOR, cssColor, MEASURED_COLOR, Twin } from "./twin.js";
 
 const $ = (id) => document.getElementById(id);
@@ -19,6 +20,16 @@ function collidingParts(message) {
 
 function degrees(value) {
   return value === null || value === undefined ? "–" : value.toFixed(1);
+}
+
+/** Who is attached, in the seed's words: "Master + Slaves" when both are. */
+function attachedText(summary) {
+  const master = Boolean(summary.master);
+  const slaves = summary.slaves.length > 0;
+  if (master && slaves) return "Master + Slaves";
+  if (master) return "Master, no slave";
+  if (slaves) return "Slaves, no master";
+  return "No master, no slave";
 }
 
 /** Colour the twin legend's swatches as the twin draws the arms. */
@@ -110,6 +121,12 @@ export class RobotView {
   applySummary(summary) {
     this.summary = summary;
     $("robot-title").textContent = `${summary.name} (${summary.id})`;
+    const status = $("robot-status");
+    status.textContent = attachedText(summary);
+    status.title = [
+      summary.master ? `master ${summary.master.id} (${summary.master.type})` : "no master",
+      ...summary.slaves.map((slave) => `slave ${slave.id} (${slave.type})`),
+    ].join(", ");
     if (this.twin) this.twin.setMeasuring(summary.slaves.length > 0);
     this.showLegend();
     if (!this.state) {
@@ -238,9 +255,13 @@ export class RobotView {
   showMaster() {
     const state = this.state || {};
     const master = this.summary.master;
+    const playing = master && recallPlaying(this.robotId, master);
     let text;
     if (state.mode === "estopped") text = `E-stopped: ${state.estop_reason || "no reason given"}. Reset to move again.`;
-    else if (master) text = `Held by master ${master.id} (${master.type}): the sliders are locked.`;
+    else if (playing) text = `${playing}: master ${master.id} (${master.type}); the sliders are locked.`;
+    else if (master && master.type === "mock-sequence") {
+      text = `Playing a sequence this tab did not start: master ${master.id} (${master.type}); the sliders are locked.`;
+    } else if (master) text = `Held by master ${master.id} (${master.type}): the sliders are locked.`;
     else if (state.owner) text = `Held by master ${state.owner}: the sliders are locked.`;
     else text = "No master: the sliders drive the robot.";
     $("master-line").textContent = text;
