@@ -620,10 +620,17 @@ def test_the_page_says_which_sequence_plays(start_live: Any, page: Page) -> None
     # Reloaded, the page still knows what plays.
     page.reload()
     expect(line).to_contain_text("Playing Small Scanning Pattern")
-    page.click('[data-testid="connect-demo-sequences"]')
+    # The demo sequences take over only when asked twice: the first click is refused.
+    connect = page.locator('[data-testid="connect-demo-sequences"]')
+    connect.click()
+    expect(page.locator("#events")).to_contain_text("MASTER_ACTIVE")
+    expect(connect).to_have_text("Take over with the demo sequences?")
+    expect(line).to_contain_text("Playing Small Scanning Pattern")
+    connect.click()
     expect(line).to_contain_text(
         "Playing the demo sequences in a loop (gentle-wave, small-scan, tiny-flex)"
     )
+    expect(connect).to_have_text("Connect demo sequences")
     page.click("#stop-sequence")
     expect(line).to_have_text("No master: the sliders drive the robot.")
     expect(page.locator('[data-testid="robot-status"]')).to_have_text("Slaves, no master")

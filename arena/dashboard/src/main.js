@@ -180,13 +180,36 @@ function wireRobotControls() {
     await refresh();
   });
   // The seed's "connect demo sequences": every demo sequence, looping, as the robot's master.
-  $("connect-demo").addEventListener("click", async () => {
+  // A master that holds the robot is displaced only on a second click: the first asks without
+  // taking over, and the server's MASTER_ACTIVE (naming the holder) arms the button.
+  const connect = $("connect-demo");
+  const label = connect.textContent;
+  let disarm = null;
+  connect.addEventListener("click", async () => {
     const robot = selectedId();
-    const answer = await callReporting(report, "POST", `${robotPath()}/master`, {
-      type: "mock-sequence",
-      loop: true,
-    });
-    if (!answer) return;
+    const takeover = connect.dataset.armed === robot;
+    clearTimeout(disarm);
+    delete connect.dataset.armed;
+    connect.textContent = label;
+    let answer;
+    try {
+      answer = await call("POST", `/api/robots/${encodeURIComponent(robot)}/master`, {
+        type: "mock-sequence",
+        loop: true,
+        takeover,
+      });
+    } catch (error) {
+      report(`${error.code}: ${error.message}`, true);
+      if (error.code === "MASTER_ACTIVE" && !takeover && selectedId() === robot) {
+        connect.dataset.armed = robot;
+        connect.textContent = "Take over with the demo sequences?";
+        disarm = setTimeout(() => {
+          delete connect.dataset.armed;
+          connect.textContent = label;
+        }, 4000);
+      }
+      return;
+    }
     const ids = sequences.map((sequence) => sequence.id).join(", ");
     rememberPlaying(robot, answer, `Playing the demo sequences in a loop (${ids})`);
     await refresh();
