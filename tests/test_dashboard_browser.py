@@ -653,5 +653,9 @@ def test_a_plot_opens_large_enough_to_read(start_live: Any, page: Page, tmp_path
     ticks = (plot.get_attribute("data-ticks") or "").split(";")
     assert len(ticks) == 2 and all(len(axis.split(",")) >= 4 for axis in ticks), ticks
     page.screenshot(path=str(SCREENSHOTS / "plot-open.png"))
+    # The plot covers the page, not the stop buttons: E-STOP works with it open.
+    page.click("#estop")
+    expect(page.locator("#robot-state")).to_have_text("E-STOPPED")
+    expect(plot).to_be_visible()
     page.keyboard.press("Escape")
     expect(plot).to_be_hidden()

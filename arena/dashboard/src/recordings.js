@@ -23,6 +23,9 @@ export class RecordingsPanel {
       this.act("POST", "/api/recordings/current/stop"),
     );
     this.series = null; // what the plot shows, drawn again when its size changes
+    document.addEventListener("keydown", (event) => {
+      if (event.key === "Escape" && $("plot-dialog").open) $("plot-dialog").close();
+    });
     new ResizeObserver(() => {
       if (this.series && $("plot-dialog").open) drawSeries($("plot"), this.series);
     }).observe($("plot"));
@@ -125,7 +128,10 @@ export class RecordingsPanel {
     }
     $("plot-title").textContent = `${series.recording}: robot ${series.robot}`;
     const dialog = $("plot-dialog");
-    if (!dialog.open) dialog.showModal(); // opened first: the canvas takes its shown size
+    // Not modal: E-STOP, STOP ALL and Reset must stay usable. Below the header, opened before
+    // drawing so that the canvas has its shown size.
+    dialog.style.top = `${document.querySelector("header").getBoundingClientRect().bottom + 8}px`;
+    if (!dialog.open) dialog.show();
     const canvas = $("plot");
     this.series = series;
     drawSeries(canvas, series);
