@@ -258,6 +258,7 @@ function wireRobotControls() {
 
 /** Create a robot from the form (a name is optional), attach the chosen slave, open it. */
 async function createRobot() {
+  if (creating) return; // a second click while the first is under way makes no second robot
   // Close the robot on screen at once: what is clicked next must be the new robot's.
   creating = true;
   closeView();
