@@ -659,3 +659,15 @@ def test_a_plot_opens_large_enough_to_read(start_live: Any, page: Page, tmp_path
     expect(plot).to_be_visible()
     page.keyboard.press("Escape")
     expect(plot).to_be_hidden()
+
+
+def test_a_double_click_on_create_robot_makes_one_robot(start_live: Any, page: Page) -> None:
+    server = start_live()
+    page.goto(server.url + "/ui/")
+    page.dblclick('[data-testid="create-robot"]')
+    expect(page.locator("#robot-title")).to_contain_text("My Robot (robot-")
+    expect(page.locator("#peers li").first).to_contain_text("mock-slave")
+    with server.http() as http:
+        robots = http.get("/api/robots").json()
+    assert len(robots) == 1, robots
+    expect(page.locator("#robot-list li")).to_have_count(1)
