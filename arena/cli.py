@@ -1,4 +1,11 @@
-"""The `arena` command: `arena demo` (in-process demo) and `arena bench` (benchmarks)."""
+"""The `arena` command: serve robots, read and replay recordings, work the servo bus, test.
+
+`arena serve` runs the server; `inspect`, `timeline`, `export`, `plot`, `recover`, `replay`,
+`import-dataset` and `foxglove-layout` work on recordings; `calibrate` and `sim-bus` on the
+servo bus; `estop-test` times every way a robot stops; `bench` measures; `schemas` writes the
+messages' JSON Schemas; `demo` plays the demo sequences on a simulated arm in this process.
+A refusal is one line on stderr and exit status 2.
+"""
 
 from __future__ import annotations
 
@@ -11,6 +18,7 @@ from typing import Any
 
 import trio
 
+import arena
 from arena.drivers.mock_slave import MockSlave, MockSlaveConfig
 from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import demo_sequences, get_sequence
@@ -45,8 +53,13 @@ async def run_demo(sequence_ids: list[str], loop: bool, interval: float) -> None
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the `arena` console script."""
-    parser = argparse.ArgumentParser(prog="arena", description=__doc__)
-    commands = parser.add_subparsers(dest="command", required=True)
+    parser = argparse.ArgumentParser(
+        prog="arena",
+        description=__doc__.split("\n\n")[0],
+        epilog="`arena COMMAND --help` tells more; the README is the manual.",
+    )
+    parser.add_argument("--version", action="version", version=f"arena {arena.__version__}")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     demo = commands.add_parser("demo", help="play the demo sequences on a simulated arm")
     demo.add_argument(
         "--sequence",
@@ -278,58 +291,85 @@ def main(argv: list[str] | None = None) -> int:
         level=os.environ.get("LOG_LEVEL", default_level).upper(),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
-    try:
-        if args.command == "serve":
-            return _serve(args)
-        handlers = {
-            "sim-bus": _bus_command,
-            "calibrate": _bus_command,
-            "import-dataset": _import_dataset,
-            "foxglove-layout": _foxglove_layout,
-            **dict.fromkeys(
-                ("inspect", "timeline", "export", "recover", "replay", "plot"), _recording_tool
-            ),
-        }
-        if args.command in handlers:
-            return _reporting(args.command, handlers[args.command], args)
-        if args.command == "estop-test":
-            return _estop_test(args)
-        if args.command == "schemas":
-            from pathlib import Path
+    handlers = {
+        "serve": _serve,
+        "sim-bus": _bus_command,
+        "calibrate": _bus_command,
+        "import-dataset": _import_dataset,
+        "foxglove-layout": _foxglove_layout,
+        "estop-test": _estop_test,
+        "schemas": _schemas,
+        "demo": _demo,
+        "bench": _bench,
+        **dict.fromkeys(
+            ("inspect", "timeline", "export", "recover", "replay", "plot"), _recording_tool
+        ),
+    }
+    return _reporting(args.command, handlers[args.command], args)
 
-            from arena.schemas import write_schemas
 
-            for path in write_schemas(Path(args.out)):
-                print(path)
-            return 0
-        if args.command == "demo":
-            trio.run(run_demo, args.sequence or list(demo_sequences()), args.loop, args.interval)
-        elif args.command == "bench":
-            from arena.bench import run_benchmarks
-
-            run_benchmarks(
-                args.json,
-                args.scenarios or None,
-                args.repeats,
-                args.fleet_robots,
-                args.soak_seconds,
-                args.soak_rate,
-            )
-    except KeyboardInterrupt:
-        return 130
-    return 0
+#: Exit status of a command whose reader went away (`arena inspect FILE | head`), as for a
+#: program killed by SIGPIPE.
+BROKEN_PIPE_STATUS = 128 + 13
 
 
 def _reporting(command: str, handler: Any, args: argparse.Namespace) -> int:
-    """Run a command's handler; a refusal (`ArenaError`) is one line on stderr and exit 2."""
+    """Run a command's handler. A refusal (`ArenaError`) is one line on stderr and exit 2; a
+    reader that stops reading (`| head`) ends the command quietly; Ctrl-C exits 130."""
     from arena.protocol.errors import ArenaError
 
     try:
         result: int = handler(args)
+        sys.stdout.flush()  # a closed pipe shows here, not at exit
     except ArenaError as error:
         print(f"arena {command}: {error.message}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        _drop_stdout()
+        return BROKEN_PIPE_STATUS
+    except KeyboardInterrupt:
+        return 130
     return result
+
+
+def _drop_stdout() -> None:
+    """Point stdout at /dev/null, so that the flush at exit finds no broken pipe to report."""
+    try:
+        descriptor = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # not a real file (a test's capture)
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, descriptor)
+    os.close(devnull)
+
+
+def _schemas(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from arena.schemas import write_schemas
+
+    for path in write_schemas(Path(args.out)):
+        print(path)
+    return 0
+
+
+def _demo(args: argparse.Namespace) -> int:
+    trio.run(run_demo, args.sequence or list(demo_sequences()), args.loop, args.interval)
+    return 0
+
+
+def _bench(args: argparse.Namespace) -> int:
+    from arena.bench import run_benchmarks
+
+    run_benchmarks(
+        args.json,
+        args.scenarios or None,
+        args.repeats,
+        args.fleet_robots,
+        args.soak_seconds,
+        args.soak_rate,
+    )
+    return 0
 
 
 def _recording_tool(args: argparse.Namespace) -> int:
@@ -403,6 +443,10 @@ def _estop_test(args: argparse.Namespace) -> int:
     except (OSError, ValueError) as exc:
         print(f"arena estop-test: limits {args.limits}: {exc}", file=sys.stderr)
         return 2
+    if args.plot:  # before the test, not after it
+        from arena.extras import require
+
+        require("plot", "arena estop-test --plot")
     results: dict[str, list[Trial]]
     if args.offline:
         from arena.protocol.errors import ArenaError
@@ -451,14 +495,7 @@ def _estop_test(args: argparse.Namespace) -> int:
     if args.json:
         report.write_json(Path(args.json), report.as_json(results, breaches))
     if args.plot and results:
-        try:
-            print(report.plot(results, Path(args.plot)))
-        except ImportError:
-            print(
-                "arena estop-test: --plot needs matplotlib (pip install 'arena[plot]')",
-                file=sys.stderr,
-            )
-            return 2
+        print(report.plot(results, Path(args.plot)))
     return 1 if breaches else 0
 
 
@@ -535,17 +572,36 @@ def _recording_command(args: argparse.Namespace) -> int:
             ErrorCode.INVALID_RECORDING,
             f"{args.file} holds no Arena topics (only other MCAP data).",
         )
-    if recording.truncated:
+    if recording.in_progress:
         print(
-            f"note: {Path(args.file).name} is truncated; read every complete record",
+            f"note: {Path(args.file).name} is in progress (still being written): "
+            "read up to its last complete record",
+            file=sys.stderr,
+        )
+    elif recording.truncated:
+        print(
+            f"note: {Path(args.file).name} is truncated (its writer stopped before the end): "
+            "read every complete record; `arena recover` rewrites it whole",
             file=sys.stderr,
         )
     if args.command == "inspect":
         summary = analysis.summarize(recording)
         print(json.dumps(summary, indent=2) if args.json else _format_summary(summary))
     elif args.command == "timeline":
-        print("\n".join(analysis.timeline(recording, args.robot, args.start, args.end)))
+        from arena.recording.replay import pick_robot
+
+        robot = None if args.robot is None else pick_robot(recording, args.robot)
+        print("\n".join(analysis.timeline(recording, robot, args.start, args.end)))
     elif args.command == "export":
+        topics = {m.topic for m in recording.messages}
+        if args.topic is not None and args.topic not in topics:
+            from arena.protocol.errors import ArenaError, ErrorCode
+
+            raise ArenaError(
+                ErrorCode.INVALID_VALUE,
+                f"{Path(args.file).name} has no topic {args.topic!r} (--topic); "
+                f"it has {sorted(topics)}.",
+            )
         sys.stdout.write(analysis.export(recording, args.format, args.topic))
     elif args.command == "plot":
         from arena.recording.plot import plot_recording
@@ -555,7 +611,10 @@ def _recording_command(args: argparse.Namespace) -> int:
     elif args.command == "recover":
         output = Path(args.output or str(Path(args.file).with_suffix("")) + ".recovered.mcap")
         count = write_recording(recording, output)
-        print(f"wrote {count} messages to {output}")
+        print(
+            f"wrote {count} messages to {output} ({len(recording.messages)} Arena records, "
+            f"{len(recording.views)} of Foxglove's view)"
+        )
     else:
         from arena.recording.client_replay import replay_to_server
         from arena.recording.replay import pick_robot, recorded_commands
@@ -569,10 +628,24 @@ def _recording_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def _format_summary(summary: dict[str, object]) -> str:
+#: Entries of a kind `arena inspect` lists before it only counts the rest (`--json`: all).
+LISTED = 5
+
+
+def _format_summary(summary: dict[str, Any]) -> str:
+    from arena.recording.analysis import GAP_MEANING
+
+    state = (
+        "  (in progress: still being written)"
+        if summary["in_progress"]
+        else "  (truncated: its writer stopped before the end)"
+        if summary["truncated"]
+        else ""
+    )
     lines = [
-        f"file       {summary['file']}" + ("  (truncated)" if summary["truncated"] else ""),
-        f"messages   {summary['messages']}",
+        f"file       {summary['file']}{state}",
+        f"messages   {summary['messages']} ({summary['arena_messages']} Arena records, "
+        f"{summary['view_messages']} of Foxglove's view)",
         f"duration   {summary.get('duration_s', 0)} s",
     ]
     robots = summary["robots"]
@@ -585,47 +658,47 @@ def _format_summary(summary: dict[str, object]) -> str:
     assert isinstance(topics, dict)
     for name, info in topics.items():
         lines.append(f"topic      {name:<36} {info['count']:>8} msgs  {info['rate_hz']} Hz")
+    if "gaps" in summary:
+        lines.append(f"gaps       {len(summary['gaps'])} ({GAP_MEANING})")
     for key in ("gaps", "estops", "faults"):
-        entries = summary.get(key, [])
-        assert isinstance(entries, list)
-        for entry in entries:
-            lines.append(f"{key[:-1]:<10} " + " ".join(f"{k}={v}" for k, v in entry.items()))
+        entries: list[dict[str, Any]] = summary.get(key, [])
+        if key != "gaps" and entries:
+            lines.append(f"{key:<10} {len(entries)}")
+        for entry in entries[:LISTED]:
+            lines.append(f"  {key[:-1]:<8} " + " ".join(f"{k}={v}" for k, v in entry.items()))
+        if len(entries) > LISTED:
+            lines.append(f"  ... and {len(entries) - LISTED} more (--json lists every one)")
     return "\n".join(lines)
 
 
 def _serve(args: argparse.Namespace) -> int:
-    from arena.protocol.errors import ArenaError
     from arena.server.config import load_config
     from arena.server.run import run_server
 
-    try:
-        config = load_config(
-            args.config,
-            record=args.record,
-            recordings_dir=args.recordings_dir,
-            record_foxglove=args.record_foxglove,
-            foxglove_port=args.foxglove_port,
-            host=args.host,
-            port=args.port,
-            demo=args.demo,
-            api_keys=tuple(args.api_keys),
-            viewer_keys=tuple(args.viewer_keys) or None,
-            insecure=args.insecure,
-            certfile=args.certfile,
-            keyfile=args.keyfile,
-            allowed_origins=tuple(args.allowed_origins),
-            allowed_hosts=tuple(args.allowed_hosts),
-            node=args.node,
-            fleet=args.fleet,
-            fleet_listen=tuple(args.fleet_listen) or None,
-            fleet_connect=tuple(args.fleet_connect) or None,
-            fleet_scout=args.fleet_scout,
-            fleet_zenoh_config=args.fleet_zenoh_config,
-        )
-        config.check()
-    except ArenaError as error:
-        print(f"arena serve: {error.message}", file=sys.stderr)
-        return 2
+    config = load_config(
+        args.config,
+        record=args.record,
+        recordings_dir=args.recordings_dir,
+        record_foxglove=args.record_foxglove,
+        foxglove_port=args.foxglove_port,
+        host=args.host,
+        port=args.port,
+        demo=args.demo,
+        api_keys=tuple(args.api_keys),
+        viewer_keys=tuple(args.viewer_keys) or None,
+        insecure=args.insecure,
+        certfile=args.certfile,
+        keyfile=args.keyfile,
+        allowed_origins=tuple(args.allowed_origins),
+        allowed_hosts=tuple(args.allowed_hosts),
+        node=args.node,
+        fleet=args.fleet,
+        fleet_listen=tuple(args.fleet_listen) or None,
+        fleet_connect=tuple(args.fleet_connect) or None,
+        fleet_scout=args.fleet_scout,
+        fleet_zenoh_config=args.fleet_zenoh_config,
+    )
+    config.check()
     trio.run(partial(run_server, config, handle_signals=True, freeze_startup_objects=True))
     return 0
 

@@ -2,11 +2,21 @@
 
 from __future__ import annotations
 
+import os
+import re
 import shutil
+import signal
+import socket
 import subprocess
+import sys
+import tomllib
 from pathlib import Path
 
 import pytest
+
+from arena import cli
+from arena.server import dashboard
+from tests.conftest import RunningServer
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -64,3 +74,124 @@ def test_make_run_and_fleet_take_a_port(tmp_path: Path) -> None:
     assert "--port $((9100 + k))" in fleet
     assert "--fleet-listen tcp/127.0.0.1:7600" in fleet
     assert "'.[fleet]'" in fleet  # the fleet needs Zenoh, which `make run` does not install
+
+
+# -- a missing extra says what to install --------------------------------------------------
+
+GOLDEN = ROOT / "recordings" / "golden"
+
+
+async def test_a_physics_slave_without_mujoco_answers_the_install_line(
+    server: RunningServer, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setitem(sys.modules, "mujoco", None)  # `import mujoco` fails as if not installed
+    async with server.client() as http:
+        answer = await http.post("/api/robots/demo-arm/slaves", json={"type": "physics-slave"})
+        assert answer.status_code == 501
+        error = answer.json()["error"]
+        assert error["code"] == "NOT_INSTALLED"
+        assert "pip install 'arena[physics]'" in error["message"]
+        slaves = (await http.get("/api/robots/demo-arm")).json()["slaves"]
+    assert [slave["type"] for slave in slaves] == ["mock-slave"]  # nothing was attached
+
+
+@pytest.mark.parametrize(
+    ("module", "argv", "line"),
+    [
+        ("matplotlib", ["plot", "{golden}", "-o", "{tmp}/joints.png"], "arena[plot]"),
+        (
+            "matplotlib",
+            ["estop-test", "--offline", "{golden}", "--plot", "{tmp}/stops.png"],
+            "arena[plot]",
+        ),
+        (
+            "lerobot",
+            ["export", "{golden}", "--format", "lerobot", "-o", "{tmp}/data"],
+            "arena[lerobot]",
+        ),
+        ("lerobot", ["import-dataset", "{tmp}", "-o", "{tmp}/episode.mcap"], "arena[lerobot]"),
+        ("zenoh", ["serve", "--node", "n1", "--port", "0"], "arena[fleet]"),
+        ("zenoh", ["bench", "nodes"], "arena[fleet]"),
+        ("mujoco", ["bench", "physics"], "arena[physics]"),
+    ],
+)
+def test_a_command_whose_extra_is_missing_says_what_to_install(
+    module: str,
+    argv: list[str],
+    line: str,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    monkeypatch.setitem(sys.modules, module, None)
+    recordings = tmp_path / "recordings"
+    args = [a.format(golden=GOLDEN / "gentle-wave.mcap", tmp=tmp_path) for a in argv]
+    if args[0] == "serve":
+        args += ["--recordings-dir", str(recordings)]
+    assert cli.main(args) == 2
+    out, err = capsys.readouterr()
+    assert err.count("\n") == 1, err  # one line
+    assert err.startswith(f"arena {args[0]}: ") and f"pip install '{line}'" in err, err
+    assert out == ""  # refused before any work
+    assert not recordings.exists()
+
+
+def test_every_optional_import_is_an_extra_of_the_package() -> None:
+    """The extras that arena/extras.py names exist in pyproject.toml and bring the module."""
+    from arena.extras import EXTRAS, install_line
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    optional = project["optional-dependencies"]
+    for name, extra in EXTRAS.items():
+        assert extra.extra in optional, name
+        assert install_line(name) == f"pip install 'arena[{extra.extra}]'"
+    # and no runtime dependency is one of them
+    runtime = " ".join(project["dependencies"])
+    for extra in EXTRAS.values():
+        for requirement in optional[extra.extra]:
+            assert requirement.split(">")[0].split("<")[0] not in runtime
+
+
+# -- starting: a port in use -----------------------------------------------------------------
+
+
+def test_a_port_in_use_is_one_line_exit_2_and_no_recording(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    recordings = tmp_path / "recordings"
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        status = cli.main(
+            ["serve", "--demo", "--port", str(port), "--recordings-dir", str(recordings)]
+        )
+    assert status == 2
+    assert capsys.readouterr().err == f"arena serve: port {port} is in use: pass --port\n"
+    assert not recordings.exists() or not any(recordings.iterdir())
+
+
+def test_serve_says_where_the_dashboard_and_the_docs_are(tmp_path: Path) -> None:
+    """`python -m arena serve`, a real process: the log names /ui/ (or how to build it) and
+    /docs on the port it listens on."""
+    process = subprocess.Popen(
+        [sys.executable, "-m", "arena", "serve", "--port", "0", "--no-record"],
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(ROOT), "LOG_LEVEL": "INFO"},
+    )
+    try:
+        assert process.stderr is not None
+        lines = []
+        for line in process.stderr:  # until the line that follows "listening on"
+            lines.append(line)
+            if "docs" in line or len(lines) > 50:
+                break
+        url = re.search(r"listening on (http://\S+)", "".join(lines))
+        assert url is not None, lines
+        page = f"{url.group(1)}/ui/" if dashboard.is_built() else "not built (make ui)"
+        assert f"dashboard: {page}" in lines[-1] and f"{url.group(1)}/docs" in lines[-1]
+    finally:
+        process.send_signal(signal.SIGINT)
+        process.wait(timeout=30)
