@@ -51,12 +51,13 @@ async def run_demo(sequence_ids: list[str], loop: bool, interval: float) -> None
         print("done")
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of the `arena` console script."""
+def build_parser() -> argparse.ArgumentParser:
+    """The `arena` command's arguments: one subcommand each."""
     parser = argparse.ArgumentParser(
         prog="arena",
-        description=__doc__.split("\n\n")[0],
+        description=__doc__,
         epilog="`arena COMMAND --help` tells more; the README is the manual.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument("--version", action="version", version=f"arena {arena.__version__}")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
@@ -278,14 +279,28 @@ def main(argv: list[str] | None = None) -> int:
     bench.add_argument(
         "scenarios",
         nargs="*",
-        help="which (default: all but soak): relay throughput fleet estop recording replay "
-        "core usb teleop soak",
+        help="which (default: all but the long ones): relay throughput fleet estop flood "
+        "recording replay core physics camera usb teleop; long, only when named: soak versus "
+        "nodes",
     )
     bench.add_argument("--repeats", type=int, default=3)
     bench.add_argument("--fleet-robots", type=int, default=100, help="robots in fleet and soak")
     bench.add_argument("--soak-seconds", type=float, default=600.0)
     bench.add_argument("--soak-rate", type=float, default=50.0, help="commands/s per robot")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def command_names(parser: argparse.ArgumentParser) -> list[str]:
+    """The subcommands of `parser`, in order."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return list(action.choices)
+    return []
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the `arena` console script."""
+    args = build_parser().parse_args(argv)  # argparse ignores a closed pipe itself
     default_level = "INFO" if args.command == "serve" else "WARNING"
     logging.basicConfig(
         level=os.environ.get("LOG_LEVEL", default_level).upper(),

@@ -43,7 +43,7 @@ async def replay_to_server(
 ) -> tuple[int, int]:
     """Send `commands` with their timing to a master WebSocket; returns (sent, refused)."""
     if not 0.01 <= speed <= 1000:
-        raise ArenaError(ErrorCode.INVALID_VALUE, "speed must be between 0.01 and 1000.")
+        raise ArenaError(ErrorCode.INVALID_VALUE, "--speed must be between 0.01 and 1000.")
     sent = refused = 0
     async with open_websocket_url(url) as ws:
         stopped = trio.Event()
