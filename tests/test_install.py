@@ -195,3 +195,23 @@ def test_serve_says_where_the_dashboard_and_the_docs_are(tmp_path: Path) -> None
     finally:
         process.send_signal(signal.SIGINT)
         process.wait(timeout=30)
+
+
+# -- the repository keeps no run's recordings --------------------------------------------------
+
+
+@pytest.mark.skipif(
+    shutil.which("git") is None or not (ROOT / ".git").exists(), reason="needs the git checkout"
+)
+def test_the_repository_keeps_only_the_golden_recordings() -> None:
+    def git(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True, text=True)
+
+    tracked = git("ls-files", "recordings").stdout.split()
+    assert tracked and all(
+        path == "recordings/.gitkeep" or path.startswith("recordings/golden/") for path in tracked
+    ), tracked
+    # what `arena serve` and `make fleet` leave is ignored; the golden recordings are not
+    left = ["recordings/arena-20261123-154220-498.mcap", "recordings/n0/arena-1.mcap"]
+    assert git("check-ignore", *left).stdout.split() == left
+    assert git("check-ignore", "recordings/golden/new.mcap").returncode == 1
