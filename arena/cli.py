@@ -51,6 +51,14 @@ async def run_demo(sequence_ids: list[str], loop: bool, interval: float) -> None
         print("done")
 
 
+#: `arena bench`'s scenarios (arena/bench: SCENARIOS, then LONG_SCENARIOS), named here so that
+#: reading the arguments does not import the benchmarks.
+BENCH_SCENARIOS = (
+    *("relay", "throughput", "fleet", "estop", "flood", "recording", "replay", "core"),
+    *("physics", "camera", "usb", "teleop", "soak", "versus", "nodes"),
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The `arena` command's arguments: one subcommand each."""
     parser = argparse.ArgumentParser(
@@ -216,7 +224,9 @@ def build_parser() -> argparse.ArgumentParser:
     sim_bus.add_argument(
         "--link", default="/tmp/arena-sim-bus", help="path of the port (a symlink to the pty)"
     )
-    sim_bus.add_argument("--ids", default="1,2,3,4,5,6", help="servo ids, comma-separated")
+    sim_bus.add_argument(
+        "--ids", type=_servo_ids, default="1,2,3,4,5,6", help="servo ids, comma-separated"
+    )
     sim_bus.add_argument(
         "--wire-time", action="store_true", help="answer as slowly as a real wire at --baud"
     )
@@ -279,6 +289,8 @@ def build_parser() -> argparse.ArgumentParser:
     bench.add_argument(
         "scenarios",
         nargs="*",
+        choices=BENCH_SCENARIOS,
+        metavar="SCENARIO",
         help="which (default: all but the long ones): relay throughput fleet estop flood "
         "recording replay core physics camera usb teleop; long, only when named: soak versus "
         "nodes",
@@ -498,8 +510,11 @@ def _estop_test(args: argparse.Namespace) -> int:
         )
         try:
             results, notes = run(settings)
-        except (EStopTestError, OSError, httpx.HTTPError) as exc:
+        except EStopTestError as exc:
             print(f"arena estop-test: {exc}", file=sys.stderr)
+            return 2
+        except (OSError, httpx.HTTPError) as exc:
+            print(f"arena estop-test: cannot reach --url {args.url}: {exc}", file=sys.stderr)
             return 2
         for note in notes:
             print(f"note: {note}")
@@ -545,19 +560,35 @@ def _foxglove_layout(args: argparse.Namespace) -> int:
     return 0
 
 
+def _servo_ids(text: str) -> tuple[int, ...]:
+    """`--ids 1,2,3`: servo ids 0-253."""
+    try:
+        ids = tuple(int(part) for part in text.split(",") if part.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not servo ids such as 1,2,3") from None
+    if not ids or not all(0 <= i <= 253 for i in ids):
+        raise argparse.ArgumentTypeError(f"{text!r}: servo ids are 0 to 253")
+    return ids
+
+
 def _bus_command(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from arena.feetech import terminal
     from arena.feetech.bus import ServoBus, find_adapter
+    from arena.protocol.errors import ArenaError
     from arena.robot.model import load_robot_model
 
     if args.command == "sim-bus":
-        ids = tuple(int(part) for part in args.ids.split(",") if part.strip())
+        ids = args.ids
         terminal.serve_sim_bus(Path(args.link), ids, args.wire_time, args.baud)
         return 0
     model = load_robot_model(args.robot_type)
-    bus = ServoBus(args.port or find_adapter(), args.baud)
+    try:
+        port = args.port or find_adapter()
+    except ArenaError as error:
+        raise ArenaError(error.code, f"{error.message} (--port PATH)") from None
+    bus = ServoBus(port, args.baud)
     bus.open()
     try:
         terminal.calibrate_interactively(
@@ -636,9 +667,19 @@ def _recording_command(args: argparse.Namespace) -> int:
 
         source = pick_robot(recording, args.robot)
         commands = recorded_commands(recording, source, args.start, args.end)
-        sent, refused = trio.run(
-            partial(replay_to_server, args.to, commands, speed=args.speed, loop=args.loop)
-        )
+        from trio_websocket import HandshakeError
+
+        from arena.protocol.errors import ArenaError, ErrorCode
+
+        try:
+            sent, refused = trio.run(
+                partial(replay_to_server, args.to, commands, speed=args.speed, loop=args.loop)
+            )
+        except (OSError, HandshakeError) as exc:
+            raise ArenaError(
+                ErrorCode.REMOTE_UNREACHABLE,
+                f"cannot reach --to {args.to}: {exc.__cause__ or exc or type(exc).__name__}",
+            ) from None
         print(f"sent {sent} commands, {refused} refused")
     return 0
 

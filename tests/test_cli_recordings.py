@@ -7,6 +7,7 @@ import json
 import os
 import re
 import signal
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -229,6 +230,8 @@ def two_robots(tmp_path: Path) -> Path:
         (["export", "{file}", "--topic", "/robots/left/nothing"], "--topic"),
         (["replay", "{golden}", "--speed", "0", "--to", "ws://127.0.0.1:9/x"], "--speed"),
         (["estop-test", "--robot", "arm"], "--url"),
+        (["estop-test", "--url", "http://127.0.0.1:{closed}", "--robot", "arm"], "--url"),
+        (["replay", "{golden}", "--to", "ws://127.0.0.1:{closed}/ws/master/arm"], "--to"),
     ],
 )
 def test_command_line_errors_name_the_flag(
@@ -241,7 +244,10 @@ def test_command_line_errors_name_the_flag(
     if "lerobot" in argv:
         pytest.importorskip("lerobot")  # asked for first: without it, the refusal is that
     golden = GOLDEN / "gentle-wave.mcap"
-    args = [a.format(file=two_robots, tmp=tmp_path, golden=golden) for a in argv]
+    with socket.socket() as probe:  # a port nothing listens on
+        probe.bind(("127.0.0.1", 0))
+        closed = probe.getsockname()[1]
+    args = [a.format(file=two_robots, tmp=tmp_path, golden=golden, closed=closed) for a in argv]
     status, _, err = run(args, capsys)
     assert status == 2
     assert err.count("\n") == 1 and err.startswith(f"arena {args[0]}: "), err
@@ -297,10 +303,25 @@ def test_help_names_every_command_and_only_those(capsys: pytest.CaptureFixture[s
 def test_bench_help_lists_every_scenario(capsys: pytest.CaptureFixture[str]) -> None:
     from arena.bench import LONG_SCENARIOS, SCENARIOS
 
+    assert (*SCENARIOS, *LONG_SCENARIOS) == cli.BENCH_SCENARIOS
     with pytest.raises(SystemExit):
         cli.main(["bench", "--help"])
     words = set(re.findall(r"[a-z]+", capsys.readouterr().out))
     assert set(SCENARIOS) | set(LONG_SCENARIOS) <= words
+
+
+@pytest.mark.parametrize(
+    ("argv", "flag"),
+    [(["sim-bus", "--ids", "1,x"], "--ids"), (["bench", "sock"], "SCENARIO")],
+)
+def test_bad_arguments_are_refused_by_name(
+    argv: list[str], flag: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as done:
+        cli.main(argv)
+    assert done.value.code == 2
+    err = capsys.readouterr().err
+    assert flag in err and "Traceback" not in err, err
 
 
 def test_version_and_python_dash_m() -> None:
