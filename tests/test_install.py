@@ -155,19 +155,20 @@ def test_every_optional_import_is_an_extra_of_the_package() -> None:
 # -- starting: a port in use -----------------------------------------------------------------
 
 
+@pytest.mark.parametrize("flag", ["--port", "--foxglove-port"])
 def test_a_port_in_use_is_one_line_exit_2_and_no_recording(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    flag: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     recordings = tmp_path / "recordings"
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
         taken.listen()
         port = taken.getsockname()[1]
-        status = cli.main(
-            ["serve", "--demo", "--port", str(port), "--recordings-dir", str(recordings)]
-        )
+        ports = {"--port": "0", "--foxglove-port": "0", flag: str(port)}
+        argv = ["serve", "--demo", "--recordings-dir", str(recordings)]
+        status = cli.main([*argv, *(a for pair in ports.items() for a in pair)])
     assert status == 2
-    assert capsys.readouterr().err == f"arena serve: port {port} is in use: pass --port\n"
+    assert capsys.readouterr().err == f"arena serve: port {port} is in use: pass {flag}\n"
     assert not recordings.exists() or not any(recordings.iterdir())
 
 

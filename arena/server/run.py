@@ -8,6 +8,7 @@ import gc
 import json
 import logging
 import signal
+import socket
 from pathlib import Path
 from typing import Any
 
@@ -51,15 +52,28 @@ def hypercorn_config(config: ServerConfig) -> HypercornConfig:
 def bind(config: ServerConfig) -> Sockets:
     """The listening sockets, bound before anything else starts: a port in use is one
     sentence (`ArenaError(INVALID_CONFIG)`), and no recording is begun for a server that
-    cannot listen."""
+    cannot listen. Foxglove's port is tried too (its server binds it later, in its thread)."""
+    if config.foxglove_port:
+        family = socket.AF_INET6 if ":" in config.host else socket.AF_INET
+        with socket.socket(family) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                probe.bind((config.host, config.foxglove_port))
+            except OSError as exc:
+                port = config.foxglove_port
+                raise _cannot_listen(exc, config.host, port, "--foxglove-port") from None
     try:
         return hypercorn_config(config).create_sockets()
     except OSError as exc:
-        if exc.errno == errno.EADDRINUSE:
-            reason = f"port {config.port} is in use: pass --port"
-        else:
-            reason = f"cannot listen on {config.host} port {config.port}: {exc.strerror or exc}"
-        raise ArenaError(ErrorCode.INVALID_CONFIG, reason) from None
+        raise _cannot_listen(exc, config.host, config.port, "--port") from None
+
+
+def _cannot_listen(exc: OSError, host: str, port: int, flag: str) -> ArenaError:
+    if exc.errno == errno.EADDRINUSE:
+        reason = f"port {port} is in use: pass {flag}"
+    else:
+        reason = f"cannot listen on {host} port {port} ({flag}): {exc.strerror or exc}"
+    return ArenaError(ErrorCode.INVALID_CONFIG, reason)
 
 
 def _close(sockets: Sockets) -> None:
