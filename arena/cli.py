@@ -513,8 +513,11 @@ def _estop_test(args: argparse.Namespace) -> int:
         except EStopTestError as exc:
             print(f"arena estop-test: {exc}", file=sys.stderr)
             return 2
-        except (OSError, httpx.HTTPError) as exc:
+        except (OSError, httpx.TransportError) as exc:
             print(f"arena estop-test: cannot reach --url {args.url}: {exc}", file=sys.stderr)
+            return 2
+        except httpx.HTTPError as exc:
+            print(f"arena estop-test: {exc}", file=sys.stderr)
             return 2
         for note in notes:
             print(f"note: {note}")
@@ -580,8 +583,7 @@ def _bus_command(args: argparse.Namespace) -> int:
     from arena.robot.model import load_robot_model
 
     if args.command == "sim-bus":
-        ids = args.ids
-        terminal.serve_sim_bus(Path(args.link), ids, args.wire_time, args.baud)
+        terminal.serve_sim_bus(Path(args.link), args.ids, args.wire_time, args.baud)
         return 0
     model = load_robot_model(args.robot_type)
     try:
@@ -662,23 +664,22 @@ def _recording_command(args: argparse.Namespace) -> int:
             f"{len(recording.views)} of Foxglove's view)"
         )
     else:
+        from trio_websocket import HandshakeError
+
+        from arena.protocol.errors import ArenaError, ErrorCode
         from arena.recording.client_replay import replay_to_server
         from arena.recording.replay import pick_robot, recorded_commands
 
         source = pick_robot(recording, args.robot)
         commands = recorded_commands(recording, source, args.start, args.end)
-        from trio_websocket import HandshakeError
-
-        from arena.protocol.errors import ArenaError, ErrorCode
-
         try:
             sent, refused = trio.run(
                 partial(replay_to_server, args.to, commands, speed=args.speed, loop=args.loop)
             )
         except (OSError, HandshakeError) as exc:
+            reason = str(exc.__cause__ or exc) or type(exc).__name__
             raise ArenaError(
-                ErrorCode.REMOTE_UNREACHABLE,
-                f"cannot reach --to {args.to}: {exc.__cause__ or exc or type(exc).__name__}",
+                ErrorCode.REMOTE_UNREACHABLE, f"cannot reach --to {args.to}: {reason}"
             ) from None
         print(f"sent {sent} commands, {refused} refused")
     return 0

@@ -99,8 +99,8 @@ def test_inspect_counts_only_real_gaps_and_summarises_them(
     def at(seconds: float) -> int:
         return start + int(seconds * SECOND)
 
-    def peer(seconds: float, change: str) -> None:
-        data = {"t": seconds, "role": "slave", "peer_id": "s1", "kind": "mock-slave"}
+    def peer(seconds: float, change: str, slave: str = "s1") -> None:
+        data = {"t": seconds, "role": "slave", "peer_id": slave, "kind": "mock-slave"}
         records.append(("arm", "peer", {**data, "change": change, "reason": ""}, at(seconds)))
 
     def burst(begin: float, seconds: float, answered: bool) -> None:
@@ -113,11 +113,13 @@ def test_inspect_counts_only_real_gaps_and_summarises_them(
                 records.append(("arm", "joint_states", data, at(t + 0.01)))
 
     peer(0.0, "attached")
+    peer(0.0, "attached", "display")  # a slave that shows targets and never reports
     for begin in (1.0, 70.0, 150.0, 230.0):  # moves, each followed by a minute at rest
         burst(begin, 2.0, answered=True)
     burst(290.0, 3.0, answered=False)  # the slave went quiet while the arm was driven
     burst(293.0, 1.0, answered=True)
     peer(300.0, "detached")
+    burst(301.0, 5.0, answered=False)  # no slave: nothing to answer
     path = write_records(tmp_path, records)
 
     status, out, _ = run(["inspect", str(path)], capsys)

@@ -96,8 +96,9 @@ def find_gaps(messages: list[RecordedMessage], origin: int) -> list[dict[str, An
     state for more than `GAP_SECONDS` (the slave, its link or the recording lost it).
 
     A robot at rest is silent on every topic: that is no gap. A slave is expected to answer
-    from its first joint state or its attachment until it is detached or lost; an e-stop
-    forgives what it left unanswered. A gap still open at the end of the file ends there.
+    from its first joint state (one that never reports, a display, is not) until it is
+    detached or lost; an e-stop forgives what it left unanswered. A gap still open at the end
+    of the file ends there.
     """
     gaps: list[dict[str, Any]] = []
     # robot -> slave -> log time of the first target it has not answered yet (None: none)
@@ -126,12 +127,14 @@ def find_gaps(messages: list[RecordedMessage], origin: int) -> list[dict[str, An
                     slaves[slave] = at
         elif message.kind == "joint_states":
             answered(robot, data["slave_id"], at, "joint state")
-        elif message.kind == "peer" and data["role"] == "slave":
-            if data["change"] == "attached":
-                slaves.setdefault(data["peer_id"], None)
-            elif data["change"] in ("detached", "lost"):
-                answered(robot, data["peer_id"], at, data["change"])
-                del slaves[data["peer_id"]]
+        elif (
+            message.kind == "peer"
+            and data["role"] == "slave"
+            and data["change"] in ("detached", "lost")
+            and data["peer_id"] in slaves
+        ):
+            answered(robot, data["peer_id"], at, data["change"])
+            del slaves[data["peer_id"]]
         elif message.kind == "state" and data["mode"] == "estopped":
             slaves.update(dict.fromkeys(slaves))
     end = max((m.log_time for m in messages), default=origin)
