@@ -163,8 +163,10 @@ class McapFileWriter:
                 path = path.with_name(path.stem + "-1" + SUFFIX)
             self._stream = open(path, "wb")  # noqa: SIM115 - closed in close()
             # Readers tell a file being written from a cut one by this lock; the kernel lets it
-            # go when the file is closed or its process dies.
-            fcntl.flock(self._stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            # go when the file is closed or its process dies. A file system without locks
+            # records all the same (its unfinished files then read as truncated).
+            with contextlib.suppress(OSError):
+                fcntl.flock(self._stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
             self.path = path  # before the first write, so that `abandon` can remove it
             self.files.append(path)
             self._flushed = False
