@@ -1,8 +1,16 @@
-# Every target works on a fresh machine with Python 3.11 and pip: `install` builds .venv first.
+# Every target works on a fresh machine with Python 3.11 and pip: each builds .venv first.
+# `make run` installs only what serving needs (the runtime packages); `make test` and `make lint`
+# add everything else (`.[dev]`: the extras, LeRobot with torch, the test tools). Each install
+# has its own stamp, so `make test` after `make run` adds the rest to the same .venv.
 PYTHON ?= python3
-VENV := .venv
+VENV ?= .venv
 BIN := $(VENV)/bin
-STAMP := $(VENV)/.installed
+RUNTIME := $(VENV)/.installed-runtime
+DEV := $(VENV)/.installed-dev
+FLEET := $(VENV)/.installed-fleet
+# `make run PORT=9000`; `make fleet PORT=9000` puts node k on PORT+k (Zenoh on ZENOH_PORT+k).
+PORT ?= 8080
+ZENOH_PORT ?= 7447
 
 # The dashboard: built with the machine's Node.js and npm (packages from the npm registry).
 UI := arena/dashboard
@@ -13,15 +21,27 @@ UI_SOURCES := $(UI)/build.mjs $(UI)/index.html $(UI)/style.css $(wildcard $(UI)/
 CHROMIUM := /usr/bin/chromium
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: install ui browser run fleet demo test lint bench clean
+.PHONY: install install-dev ui browser run fleet demo test lint bench clean
 
-$(STAMP): pyproject.toml
+$(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[dev]'
-	touch $(STAMP)
 
-install: $(STAMP)
+$(RUNTIME): pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e .
+	touch $(RUNTIME)
+
+$(DEV): pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	touch $(DEV) $(RUNTIME) $(FLEET)
+
+$(FLEET): $(RUNTIME)
+	$(BIN)/python -m pip install --quiet -e '.[fleet]'
+	touch $(FLEET)
+
+install: $(RUNTIME)
+
+install-dev: $(DEV)
 
 $(UI_MODULES): $(UI)/package.json $(UI)/package-lock.json
 	cd $(UI) && npm ci --no-audit --no-fund --loglevel=error
@@ -36,30 +56,31 @@ browser:
 		DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq chromium >/dev/null; }
 
 run: install ui
-	$(BIN)/arena serve --demo
+	$(BIN)/arena serve --demo --port $(PORT)
 
-# NODES fleet nodes on this machine, one per core (specs/fleet.md): n0 on :8080 with the demo
-# robot, nK on :808K; Zenoh on tcp/127.0.0.1:7447+K. Ctrl-C stops them all.
+# NODES fleet nodes on this machine, one per core (specs/fleet.md): n0 on PORT (8080) with the
+# demo robot, nK on PORT+K; Zenoh on tcp/127.0.0.1:ZENOH_PORT+K. Ctrl-C stops them all.
 NODES ?= 2
-fleet: install ui
+fleet: $(FLEET) ui
 	@trap 'kill 0' EXIT; \
 	for k in $$(seq 1 $$(($(NODES) - 1))); do \
-		$(BIN)/arena serve --node n$$k --port $$((8080 + k)) --recordings-dir recordings/n$$k \
-			--fleet-listen tcp/127.0.0.1:$$((7447 + k)) --fleet-connect tcp/127.0.0.1:7447 & \
+		$(BIN)/arena serve --node n$$k --port $$(($(PORT) + k)) --recordings-dir recordings/n$$k \
+			--fleet-listen tcp/127.0.0.1:$$(($(ZENOH_PORT) + k)) \
+			--fleet-connect tcp/127.0.0.1:$(ZENOH_PORT) & \
 	done; \
-	$(BIN)/arena serve --node n0 --port 8080 --demo --recordings-dir recordings/n0 \
-		--fleet-listen tcp/127.0.0.1:7447
+	$(BIN)/arena serve --node n0 --port $(PORT) --demo --recordings-dir recordings/n0 \
+		--fleet-listen tcp/127.0.0.1:$(ZENOH_PORT)
 
-test: install ui browser
+test: install-dev ui browser
 	$(BIN)/python -m pytest -q
 
-lint: install
+lint: install-dev
 	$(BIN)/ruff check arena tests
 	$(BIN)/ruff format --check arena tests
 	$(BIN)/mypy
 	$(BIN)/deptry .
 
-bench: install
+bench: install-dev
 	$(BIN)/arena bench
 
 clean:

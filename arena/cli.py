@@ -1,4 +1,11 @@
-"""The `arena` command: `arena demo` (in-process demo) and `arena bench` (benchmarks)."""
+"""The `arena` command: serve robots, read and replay recordings, work the servo bus, test.
+
+`arena serve` runs the server; `inspect`, `timeline`, `export`, `plot`, `recover`, `replay`,
+`import-dataset` and `foxglove-layout` work on recordings; `calibrate` and `sim-bus` on the
+servo bus; `estop-test` times every way a robot stops; `bench` measures; `schemas` writes the
+messages' JSON Schemas; `demo` plays the demo sequences on a simulated arm in this process.
+A refusal is one line on stderr and exit status 2.
+"""
 
 from __future__ import annotations
 
@@ -11,6 +18,7 @@ from typing import Any
 
 import trio
 
+import arena
 from arena.drivers.mock_slave import MockSlave, MockSlaveConfig
 from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import demo_sequences, get_sequence
@@ -43,10 +51,24 @@ async def run_demo(sequence_ids: list[str], loop: bool, interval: float) -> None
         print("done")
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point of the `arena` console script."""
-    parser = argparse.ArgumentParser(prog="arena", description=__doc__)
-    commands = parser.add_subparsers(dest="command", required=True)
+#: `arena bench`'s scenarios (arena/bench: SCENARIOS, then LONG_SCENARIOS), named here so that
+#: reading the arguments does not import the benchmarks.
+BENCH_SCENARIOS = (
+    *("relay", "throughput", "fleet", "estop", "flood", "recording", "replay", "core"),
+    *("physics", "camera", "usb", "teleop", "soak", "versus", "nodes"),
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The `arena` command's arguments: one subcommand each."""
+    parser = argparse.ArgumentParser(
+        prog="arena",
+        description=__doc__,
+        epilog="`arena COMMAND --help` tells more; the README is the manual.",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument("--version", action="version", version=f"arena {arena.__version__}")
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     demo = commands.add_parser("demo", help="play the demo sequences on a simulated arm")
     demo.add_argument(
         "--sequence",
@@ -202,7 +224,9 @@ def main(argv: list[str] | None = None) -> int:
     sim_bus.add_argument(
         "--link", default="/tmp/arena-sim-bus", help="path of the port (a symlink to the pty)"
     )
-    sim_bus.add_argument("--ids", default="1,2,3,4,5,6", help="servo ids, comma-separated")
+    sim_bus.add_argument(
+        "--ids", type=_servo_ids, default="1,2,3,4,5,6", help="servo ids, comma-separated"
+    )
     sim_bus.add_argument(
         "--wire-time", action="store_true", help="answer as slowly as a real wire at --baud"
     )
@@ -266,71 +290,114 @@ def main(argv: list[str] | None = None) -> int:
     bench.add_argument(
         "scenarios",
         nargs="*",
-        help="which (default: all but soak): relay throughput fleet estop recording replay "
-        "core usb teleop soak",
+        choices=BENCH_SCENARIOS,
+        metavar="SCENARIO",
+        help="which (default: all but the long ones): relay throughput fleet estop flood "
+        "recording replay core physics camera usb teleop; long, only when named: soak versus "
+        "nodes",
     )
     bench.add_argument("--repeats", type=int, default=3)
     bench.add_argument("--fleet-robots", type=int, default=100, help="robots in fleet and soak")
     bench.add_argument("--soak-seconds", type=float, default=600.0)
     bench.add_argument("--soak-rate", type=float, default=50.0, help="commands/s per robot")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def command_names(parser: argparse.ArgumentParser) -> list[str]:
+    """The subcommands of `parser`, in order."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return list(action.choices)
+    return []
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of the `arena` console script."""
+    args = build_parser().parse_args(argv)  # argparse ignores a closed pipe itself
     default_level = "INFO" if args.command == "serve" else "WARNING"
     logging.basicConfig(
         level=os.environ.get("LOG_LEVEL", default_level).upper(),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
-    try:
-        if args.command == "serve":
-            return _serve(args)
-        handlers = {
-            "sim-bus": _bus_command,
-            "calibrate": _bus_command,
-            "import-dataset": _import_dataset,
-            "foxglove-layout": _foxglove_layout,
-            **dict.fromkeys(
-                ("inspect", "timeline", "export", "recover", "replay", "plot"), _recording_tool
-            ),
-        }
-        if args.command in handlers:
-            return _reporting(args.command, handlers[args.command], args)
-        if args.command == "estop-test":
-            return _estop_test(args)
-        if args.command == "schemas":
-            from pathlib import Path
+    handlers = {
+        "serve": _serve,
+        "sim-bus": _bus_command,
+        "calibrate": _bus_command,
+        "import-dataset": _import_dataset,
+        "foxglove-layout": _foxglove_layout,
+        "estop-test": _estop_test,
+        "schemas": _schemas,
+        "demo": _demo,
+        "bench": _bench,
+        **dict.fromkeys(
+            ("inspect", "timeline", "export", "recover", "replay", "plot"), _recording_tool
+        ),
+    }
+    return _reporting(args.command, handlers[args.command], args)
 
-            from arena.schemas import write_schemas
 
-            for path in write_schemas(Path(args.out)):
-                print(path)
-            return 0
-        if args.command == "demo":
-            trio.run(run_demo, args.sequence or list(demo_sequences()), args.loop, args.interval)
-        elif args.command == "bench":
-            from arena.bench import run_benchmarks
-
-            run_benchmarks(
-                args.json,
-                args.scenarios or None,
-                args.repeats,
-                args.fleet_robots,
-                args.soak_seconds,
-                args.soak_rate,
-            )
-    except KeyboardInterrupt:
-        return 130
-    return 0
+#: Exit status of a command whose reader went away (`arena inspect FILE | head`), as for a
+#: program killed by SIGPIPE.
+BROKEN_PIPE_STATUS = 128 + 13
 
 
 def _reporting(command: str, handler: Any, args: argparse.Namespace) -> int:
-    """Run a command's handler; a refusal (`ArenaError`) is one line on stderr and exit 2."""
+    """Run a command's handler. A refusal (`ArenaError`) is one line on stderr and exit 2; a
+    reader that stops reading (`| head`) ends the command quietly; Ctrl-C exits 130."""
     from arena.protocol.errors import ArenaError
 
     try:
         result: int = handler(args)
+        sys.stdout.flush()  # a closed pipe shows here, not at exit
     except ArenaError as error:
         print(f"arena {command}: {error.message}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        _drop_stdout()
+        return BROKEN_PIPE_STATUS
+    except KeyboardInterrupt:
+        return 130
     return result
+
+
+def _drop_stdout() -> None:
+    """Point stdout at /dev/null, so that the flush at exit finds no broken pipe to report."""
+    try:
+        descriptor = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # not a real file (a test's capture)
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, descriptor)
+    os.close(devnull)
+
+
+def _schemas(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from arena.schemas import write_schemas
+
+    for path in write_schemas(Path(args.out)):
+        print(path)
+    return 0
+
+
+def _demo(args: argparse.Namespace) -> int:
+    trio.run(run_demo, args.sequence or list(demo_sequences()), args.loop, args.interval)
+    return 0
+
+
+def _bench(args: argparse.Namespace) -> int:
+    from arena.bench import run_benchmarks
+
+    run_benchmarks(
+        args.json,
+        args.scenarios or None,
+        args.repeats,
+        args.fleet_robots,
+        args.soak_seconds,
+        args.soak_rate,
+    )
+    return 0
 
 
 def _recording_tool(args: argparse.Namespace) -> int:
@@ -404,6 +471,10 @@ def _estop_test(args: argparse.Namespace) -> int:
     except (OSError, ValueError) as exc:
         print(f"arena estop-test: limits {args.limits}: {exc}", file=sys.stderr)
         return 2
+    if args.plot:  # before the test, not after it
+        from arena.extras import require
+
+        require("plot", "arena estop-test --plot")
     results: dict[str, list[Trial]]
     notes: list[str] = []
     if args.offline:
@@ -441,7 +512,13 @@ def _estop_test(args: argparse.Namespace) -> int:
         )
         try:
             results, notes = run(settings)
-        except (EStopTestError, OSError, httpx.HTTPError) as exc:
+        except EStopTestError as exc:
+            print(f"arena estop-test: {exc}", file=sys.stderr)
+            return 2
+        except (OSError, httpx.TransportError) as exc:
+            print(f"arena estop-test: cannot reach --url {args.url}: {exc}", file=sys.stderr)
+            return 2
+        except httpx.HTTPError as exc:
             print(f"arena estop-test: {exc}", file=sys.stderr)
             return 2
         for note in notes:
@@ -453,14 +530,7 @@ def _estop_test(args: argparse.Namespace) -> int:
     if args.json:
         report.write_json(Path(args.json), report.as_json(results, breaches, notes))
     if args.plot and results:
-        try:
-            print(report.plot(results, Path(args.plot)))
-        except ImportError:
-            print(
-                "arena estop-test: --plot needs matplotlib (pip install 'arena[plot]')",
-                file=sys.stderr,
-            )
-            return 2
+        print(report.plot(results, Path(args.plot)))
     return 1 if breaches else 0
 
 
@@ -495,19 +565,34 @@ def _foxglove_layout(args: argparse.Namespace) -> int:
     return 0
 
 
+def _servo_ids(text: str) -> tuple[int, ...]:
+    """`--ids 1,2,3`: servo ids 0-253."""
+    try:
+        ids = tuple(int(part) for part in text.split(",") if part.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not servo ids such as 1,2,3") from None
+    if not ids or not all(0 <= i <= 253 for i in ids):
+        raise argparse.ArgumentTypeError(f"{text!r}: servo ids are 0 to 253")
+    return ids
+
+
 def _bus_command(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from arena.feetech import terminal
     from arena.feetech.bus import ServoBus, find_adapter
+    from arena.protocol.errors import ArenaError
     from arena.robot.model import load_robot_model
 
     if args.command == "sim-bus":
-        ids = tuple(int(part) for part in args.ids.split(",") if part.strip())
-        terminal.serve_sim_bus(Path(args.link), ids, args.wire_time, args.baud)
+        terminal.serve_sim_bus(Path(args.link), args.ids, args.wire_time, args.baud)
         return 0
     model = load_robot_model(args.robot_type)
-    bus = ServoBus(args.port or find_adapter(), args.baud)
+    try:
+        port = args.port or find_adapter()
+    except ArenaError as error:
+        raise ArenaError(error.code, f"{error.message} (--port PATH)") from None
+    bus = ServoBus(port, args.baud)
     bus.open()
     try:
         terminal.calibrate_interactively(
@@ -537,17 +622,36 @@ def _recording_command(args: argparse.Namespace) -> int:
             ErrorCode.INVALID_RECORDING,
             f"{args.file} holds no Arena topics (only other MCAP data).",
         )
-    if recording.truncated:
+    if recording.in_progress:
         print(
-            f"note: {Path(args.file).name} is truncated; read every complete record",
+            f"note: {Path(args.file).name} is in progress (still being written): "
+            "read up to its last complete record",
+            file=sys.stderr,
+        )
+    elif recording.truncated:
+        print(
+            f"note: {Path(args.file).name} is truncated (its writer stopped before the end): "
+            "read every complete record; `arena recover` rewrites it whole",
             file=sys.stderr,
         )
     if args.command == "inspect":
         summary = analysis.summarize(recording)
         print(json.dumps(summary, indent=2) if args.json else _format_summary(summary))
     elif args.command == "timeline":
-        print("\n".join(analysis.timeline(recording, args.robot, args.start, args.end)))
+        from arena.recording.replay import pick_robot
+
+        robot = None if args.robot is None else pick_robot(recording, args.robot)
+        print("\n".join(analysis.timeline(recording, robot, args.start, args.end)))
     elif args.command == "export":
+        topics = {m.topic for m in recording.messages}
+        if args.topic is not None and args.topic not in topics:
+            from arena.protocol.errors import ArenaError, ErrorCode
+
+            raise ArenaError(
+                ErrorCode.INVALID_VALUE,
+                f"{Path(args.file).name} has no topic {args.topic!r} (--topic); "
+                f"it has {sorted(topics)}.",
+            )
         sys.stdout.write(analysis.export(recording, args.format, args.topic))
     elif args.command == "plot":
         from arena.recording.plot import plot_recording
@@ -557,24 +661,50 @@ def _recording_command(args: argparse.Namespace) -> int:
     elif args.command == "recover":
         output = Path(args.output or str(Path(args.file).with_suffix("")) + ".recovered.mcap")
         count = write_recording(recording, output)
-        print(f"wrote {count} messages to {output}")
+        print(
+            f"wrote {count} messages to {output} ({len(recording.messages)} Arena records, "
+            f"{len(recording.views)} of Foxglove's view)"
+        )
     else:
+        from trio_websocket import HandshakeError
+
+        from arena.protocol.errors import ArenaError, ErrorCode
         from arena.recording.client_replay import replay_to_server
         from arena.recording.replay import pick_robot, recorded_commands
 
         source = pick_robot(recording, args.robot)
         commands = recorded_commands(recording, source, args.start, args.end)
-        sent, refused = trio.run(
-            partial(replay_to_server, args.to, commands, speed=args.speed, loop=args.loop)
-        )
+        try:
+            sent, refused = trio.run(
+                partial(replay_to_server, args.to, commands, speed=args.speed, loop=args.loop)
+            )
+        except (OSError, HandshakeError) as exc:
+            reason = str(exc.__cause__ or exc) or type(exc).__name__
+            raise ArenaError(
+                ErrorCode.REMOTE_UNREACHABLE, f"cannot reach --to {args.to}: {reason}"
+            ) from None
         print(f"sent {sent} commands, {refused} refused")
     return 0
 
 
-def _format_summary(summary: dict[str, object]) -> str:
+#: Entries of a kind `arena inspect` lists before it only counts the rest (`--json`: all).
+LISTED = 5
+
+
+def _format_summary(summary: dict[str, Any]) -> str:
+    from arena.recording.analysis import GAP_MEANING
+
+    state = (
+        "  (in progress: still being written)"
+        if summary["in_progress"]
+        else "  (truncated: its writer stopped before the end)"
+        if summary["truncated"]
+        else ""
+    )
     lines = [
-        f"file       {summary['file']}" + ("  (truncated)" if summary["truncated"] else ""),
-        f"messages   {summary['messages']}",
+        f"file       {summary['file']}{state}",
+        f"messages   {summary['messages']} ({summary['arena_messages']} Arena records, "
+        f"{summary['view_messages']} of Foxglove's view)",
         f"duration   {summary.get('duration_s', 0)} s",
     ]
     robots = summary["robots"]
@@ -587,47 +717,47 @@ def _format_summary(summary: dict[str, object]) -> str:
     assert isinstance(topics, dict)
     for name, info in topics.items():
         lines.append(f"topic      {name:<36} {info['count']:>8} msgs  {info['rate_hz']} Hz")
+    if "gaps" in summary:
+        lines.append(f"gaps       {len(summary['gaps'])} ({GAP_MEANING})")
     for key in ("gaps", "estops", "faults"):
-        entries = summary.get(key, [])
-        assert isinstance(entries, list)
-        for entry in entries:
-            lines.append(f"{key[:-1]:<10} " + " ".join(f"{k}={v}" for k, v in entry.items()))
+        entries: list[dict[str, Any]] = summary.get(key, [])
+        if key != "gaps" and entries:
+            lines.append(f"{key:<10} {len(entries)}")
+        for entry in entries[:LISTED]:
+            lines.append(f"  {key[:-1]:<8} " + " ".join(f"{k}={v}" for k, v in entry.items()))
+        if len(entries) > LISTED:
+            lines.append(f"  ... and {len(entries) - LISTED} more (--json lists every one)")
     return "\n".join(lines)
 
 
 def _serve(args: argparse.Namespace) -> int:
-    from arena.protocol.errors import ArenaError
     from arena.server.config import load_config
     from arena.server.run import run_server
 
-    try:
-        config = load_config(
-            args.config,
-            record=args.record,
-            recordings_dir=args.recordings_dir,
-            record_foxglove=args.record_foxglove,
-            foxglove_port=args.foxglove_port,
-            host=args.host,
-            port=args.port,
-            demo=args.demo,
-            api_keys=tuple(args.api_keys),
-            viewer_keys=tuple(args.viewer_keys) or None,
-            insecure=args.insecure,
-            certfile=args.certfile,
-            keyfile=args.keyfile,
-            allowed_origins=tuple(args.allowed_origins),
-            allowed_hosts=tuple(args.allowed_hosts),
-            node=args.node,
-            fleet=args.fleet,
-            fleet_listen=tuple(args.fleet_listen) or None,
-            fleet_connect=tuple(args.fleet_connect) or None,
-            fleet_scout=args.fleet_scout,
-            fleet_zenoh_config=args.fleet_zenoh_config,
-        )
-        config.check()
-    except ArenaError as error:
-        print(f"arena serve: {error.message}", file=sys.stderr)
-        return 2
+    config = load_config(
+        args.config,
+        record=args.record,
+        recordings_dir=args.recordings_dir,
+        record_foxglove=args.record_foxglove,
+        foxglove_port=args.foxglove_port,
+        host=args.host,
+        port=args.port,
+        demo=args.demo,
+        api_keys=tuple(args.api_keys),
+        viewer_keys=tuple(args.viewer_keys) or None,
+        insecure=args.insecure,
+        certfile=args.certfile,
+        keyfile=args.keyfile,
+        allowed_origins=tuple(args.allowed_origins),
+        allowed_hosts=tuple(args.allowed_hosts),
+        node=args.node,
+        fleet=args.fleet,
+        fleet_listen=tuple(args.fleet_listen) or None,
+        fleet_connect=tuple(args.fleet_connect) or None,
+        fleet_scout=args.fleet_scout,
+        fleet_zenoh_config=args.fleet_zenoh_config,
+    )
+    config.check()
     trio.run(partial(run_server, config, handle_signals=True, freeze_startup_objects=True))
     return 0
 

@@ -251,7 +251,7 @@ async def test_export_says_what_is_missing(
     # a robot that is not in the file
     assert cli.main([*args, "--robot", "nobody", "-o", str(tmp_path / "a")]) == 2
     err = capsys.readouterr().err
-    assert "'nobody' is not in" in err and "it holds arm" in err
+    assert "'nobody' (--robot) is not in" in err and "it holds arm" in err
     # no camera: a dataset of action and state, and a note that says so
     assert cli.main([*args, "--robot", "arm", "-o", str(tmp_path / "b")]) == 0
     assert "no camera was recorded for 'arm'" in capsys.readouterr().err

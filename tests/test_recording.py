@@ -352,24 +352,6 @@ def test_plot_draws_every_joint(tmp_path: Path, capsys: pytest.CaptureFixture[st
     assert output.read_bytes().startswith(b"\x89PNG") and output.stat().st_size > 10_000
 
 
-def test_plot_says_how_to_install_matplotlib(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
-) -> None:
-    import builtins
-
-    real_import = builtins.__import__
-
-    def no_matplotlib(name: str, *args: object, **kwargs: object) -> object:
-        if name.startswith("matplotlib"):
-            raise ImportError(name)
-        return real_import(name, *args, **kwargs)  # type: ignore[arg-type]
-
-    monkeypatch.setattr(builtins, "__import__", no_matplotlib)
-    golden = Path(__file__).resolve().parent.parent / "recordings" / "golden"
-    assert cli.main(["plot", str(golden / "gentle-wave.mcap"), "-o", str(tmp_path / "x.png")]) == 2
-    assert "pip install" in capsys.readouterr().err
-
-
 def test_files_rotate_by_size_and_each_stands_alone(tmp_path: Path) -> None:
     # The writer process rotates between batches, once a file has passed max_bytes.
     golden = read_recording(GOLDEN / "gentle-wave.mcap")

@@ -100,6 +100,12 @@ def run_benchmarks(
     if unknown:
         known = ", ".join((*SCENARIOS, *LONG_SCENARIOS))
         raise ValueError(f"unknown scenarios: {', '.join(unknown)} (known: {known})")
+    from arena.extras import require
+
+    if "physics" in chosen:
+        require("physics", "arena bench physics")
+    if "nodes" in chosen:
+        require("fleet", "arena bench nodes")
     results: dict[str, Any] = {}
 
     def median_of(runs: list[dict[str, float]]) -> dict[str, float]:

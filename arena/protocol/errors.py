@@ -50,6 +50,7 @@ class ErrorCode(enum.StrEnum):
     HOST_NOT_ALLOWED = "HOST_NOT_ALLOWED"
     UNSUPPORTED_MEDIA_TYPE = "UNSUPPORTED_MEDIA_TYPE"
     INTERNAL_ERROR = "INTERNAL_ERROR"
+    NOT_INSTALLED = "NOT_INSTALLED"  # the feature's extra is not installed (arena/extras.py)
     # Servo bus hardware
     PORT_NOT_FOUND = "PORT_NOT_FOUND"
     PORT_BUSY = "PORT_BUSY"

@@ -1,10 +1,9 @@
-"""Offline debugging: summaries, timelines and exports of a recording (truncated ones too)."""
+"""Offline debugging: summaries, timelines and exports of a recording (cut or unfinished too)."""
 
 from __future__ import annotations
 
 import csv
 import io
-import itertools
 import json
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -13,8 +12,10 @@ from typing import Any
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording.mcap_file import RecordedMessage, Recording
 
-#: Silences longer than this (seconds) on a topic are reported as gaps.
+#: A slave that leaves its robot's targets unanswered longer than this (seconds) is a gap.
 GAP_SECONDS = 1.0
+#: What a gap is, in the words `arena inspect` prints.
+GAP_MEANING = f"a slave left targets unanswered for over {GAP_SECONDS:g} s"
 
 
 def _seconds(message: RecordedMessage, origin: int) -> float:
@@ -22,12 +23,19 @@ def _seconds(message: RecordedMessage, origin: int) -> float:
 
 
 def summarize(recording: Recording) -> dict[str, Any]:
-    """Robots, time span, per-topic counts and rates, gaps, e-stops, faults, tracking error."""
+    """Robots, time span, per-topic counts and rates, gaps, e-stops, faults, tracking error.
+
+    `messages` counts every message of the file, Arena's records and Foxglove's view
+    (`arena_messages`, `view_messages`), as `arena recover` writes them.
+    """
     messages = recording.messages
     summary: dict[str, Any] = {
         "file": recording.path.name,
         "truncated": recording.truncated,
-        "messages": len(messages),
+        "in_progress": recording.in_progress,
+        "messages": recording.message_count,
+        "arena_messages": len(messages),
+        "view_messages": len(recording.views),
         "robots": {},
     }
     if not messages:
@@ -36,29 +44,20 @@ def summarize(recording: Recording) -> dict[str, Any]:
     end = max(m.log_time for m in messages)
     summary["start_ns"], summary["end_ns"] = origin, end
     summary["duration_s"] = round((end - origin) / 1e9, 6)
-    by_topic: dict[str, list[RecordedMessage]] = defaultdict(list)
+    by_topic: dict[str, list[int]] = defaultdict(list)
     for message in messages:
-        by_topic[message.topic].append(message)
+        by_topic[message.topic].append(message.log_time)
+    for view in recording.views:
+        by_topic[view.topic].append(view.log_time)
     topics = {}
-    gaps = []
-    for name, group in sorted(by_topic.items()):
-        span = (group[-1].log_time - group[0].log_time) / 1e9
+    for name, times in sorted(by_topic.items()):
+        span = (max(times) - min(times)) / 1e9
         topics[name] = {
-            "count": len(group),
-            "rate_hz": round((len(group) - 1) / span, 3) if span > 0 else None,
+            "count": len(times),
+            "rate_hz": round((len(times) - 1) / span, 3) if span > 0 else None,
         }
-        for before, after in itertools.pairwise(group):
-            silence = (after.log_time - before.log_time) / 1e9
-            if silence > GAP_SECONDS:
-                gaps.append(
-                    {
-                        "topic": name,
-                        "from_s": round(_seconds(before, origin), 3),
-                        "seconds": round(silence, 3),
-                    }
-                )
     summary["topics"] = topics
-    summary["gaps"] = gaps
+    summary["gaps"] = find_gaps(messages, origin)
     summary["estops"] = [
         {
             "robot": m.robot_id,
@@ -90,6 +89,59 @@ def summarize(recording: Recording) -> dict[str, Any]:
             "tracking_error_deg": tracking_errors(messages, robot_id),
         }
     return summary
+
+
+def find_gaps(messages: list[RecordedMessage], origin: int) -> list[dict[str, Any]]:
+    """The real gaps: each time a robot sent its slaves targets and a slave reported no joint
+    state for more than `GAP_SECONDS` (the slave, its link or the recording lost it).
+
+    A robot at rest is silent on every topic: that is no gap. A slave is expected to answer
+    from its first joint state (one that never reports, a display, is not) until it is
+    detached or lost; an e-stop forgives what it left unanswered. A gap still open at the end
+    of the file ends there.
+    """
+    gaps: list[dict[str, Any]] = []
+    # robot -> slave -> log time of the first target it has not answered yet (None: none)
+    waiting: dict[str, dict[str, int | None]] = defaultdict(dict)
+
+    def answered(robot: str, slave: str, at: int, until: str) -> None:
+        since = waiting[robot].get(slave)
+        if since is not None and (at - since) / 1e9 > GAP_SECONDS:
+            gaps.append(
+                {
+                    "robot": robot,
+                    "slave": slave,
+                    "from_s": round((since - origin) / 1e9, 3),
+                    "seconds": round((at - since) / 1e9, 3),
+                    "until": until,
+                }
+            )
+        waiting[robot][slave] = None
+
+    for message in messages:
+        robot, data, at = message.robot_id, message.data, message.log_time
+        slaves = waiting[robot]
+        if message.kind == "targets":
+            for slave, since in slaves.items():
+                if since is None:
+                    slaves[slave] = at
+        elif message.kind == "joint_states":
+            answered(robot, data["slave_id"], at, "joint state")
+        elif (
+            message.kind == "peer"
+            and data["role"] == "slave"
+            and data["change"] in ("detached", "lost")
+            and data["peer_id"] in slaves
+        ):
+            answered(robot, data["peer_id"], at, data["change"])
+            del slaves[data["peer_id"]]
+        elif message.kind == "state" and data["mode"] == "estopped":
+            slaves.update(dict.fromkeys(slaves))
+    end = max((m.log_time for m in messages), default=origin)
+    for robot, slaves in waiting.items():
+        for slave in list(slaves):
+            answered(robot, slave, end, "end of file")
+    return sorted(gaps, key=lambda gap: gap["from_s"])
 
 
 @dataclass
@@ -180,6 +232,10 @@ def _describe(message: RecordedMessage) -> str:
     if message.kind == "command":
         joints = " ".join(f"{j['name']}={j['value']:g}" for j in data["joints"])
         verdict = "accepted" if data["accepted"] else f"refused {data['code']}"
+        if data["accepted"] and data.get("clamped"):
+            verdict = "clamped " + ", ".join(
+                f"{c['joint']} {c['requested']:g} -> {c['applied']:g}" for c in data["clamped"]
+            )
         duration = f" over {data['duration']:g} ms" if data.get("duration") else ""
         return f"from {data['source']}: {joints}{duration} -> {verdict}"
     if message.kind in ("targets", "joint_states"):

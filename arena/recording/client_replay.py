@@ -54,7 +54,7 @@ async def replay_to_server(
     Raises `ArenaError` (`NOT_OWNER`) if the release at the end was not answered `released`.
     """
     if not 0.01 <= speed <= 1000:
-        raise ArenaError(ErrorCode.INVALID_VALUE, "speed must be between 0.01 and 1000.")
+        raise ArenaError(ErrorCode.INVALID_VALUE, "--speed must be between 0.01 and 1000.")
     sent = refused = 0
     released: dict[str, object] | None = None
     releasing = False

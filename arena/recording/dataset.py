@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from arena.extras import install_line, require
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording import images
 from arena.recording.mcap_file import RecordedMessage, Recording, read_recording
@@ -190,7 +191,7 @@ class RobotSession:
     model: RobotModel
     messages: list[RecordedMessage]
     cameras: dict[str, Track]  # camera name -> JPEG bytes over time
-    truncated: list[str]  # files cut short
+    truncated: list[str]  # files cut short, or still being written: why, by name
 
 
 def load_session(paths: Sequence[Path], robot_id: str) -> RobotSession:
@@ -218,7 +219,8 @@ def load_session(paths: Sequence[Path], robot_id: str) -> RobotSession:
     if not messages:
         held = ", ".join(sorted(seen)) or "no robot at all"
         raise ArenaError(
-            ErrorCode.UNKNOWN_ROBOT, f"Robot {robot_id!r} is not in {names}: it holds {held}."
+            ErrorCode.UNKNOWN_ROBOT,
+            f"Robot {robot_id!r} (--robot) is not in {names}: it holds {held}.",
         )
     messages.sort(key=lambda m: m.log_time)
     cameras: dict[str, Track] = {}
@@ -228,7 +230,12 @@ def load_session(paths: Sequence[Path], robot_id: str) -> RobotSession:
             track.add(at, images.decode(data).data)
         cameras[name] = track
     model = load_robot_model(robot_type or "so-arm100")
-    truncated = [r.path.name for r in recordings if r.truncated]
+    truncated = [
+        f"{r.path.name} "
+        + ("is still being written" if r.in_progress else "was cut short (a crash?)")
+        for r in recordings
+        if r.truncated or r.in_progress
+    ]
     return RobotSession(robot_id, model, messages, cameras, truncated)
 
 
@@ -269,13 +276,13 @@ def frames_of(session: RobotSession, span: Span, fps: int, slave: str) -> list[D
 
 
 def _lerobot() -> Any:
+    require("lerobot", "A LeRobot dataset")
     try:
         from lerobot.datasets import lerobot_dataset
-    except ImportError as exc:
+    except ImportError as exc:  # a LeRobot other than 0.4
         raise ArenaError(
-            ErrorCode.INVALID_CONFIG,
-            "Datasets need LeRobot: pip install 'arena[lerobot]' "
-            f"(LeRobot 0.4, which brings torch). ({exc})",
+            ErrorCode.NOT_INSTALLED,
+            f"LeRobot datasets need LeRobot 0.4: {install_line('lerobot')} ({exc})",
         ) from None
     return lerobot_dataset
 
@@ -324,15 +331,13 @@ def export_lerobot(
     say: Callable[[str], None] = lambda line: print(line, file=sys.stderr),
 ) -> ExportReport:
     """Write a LeRobotDataset (v3.0, with LeRobot's own writer) of one robot's episodes."""
+    lerobot = _lerobot()  # before any work: a missing LeRobot is said first
     if not 1 <= fps <= 1000:
         raise ArenaError(ErrorCode.INVALID_VALUE, "--fps must be 1 to 1000.")
     if root.exists() and any(root.iterdir()):
-        raise ArenaError(ErrorCode.INVALID_VALUE, f"{root} exists and is not empty.")
+        raise ArenaError(ErrorCode.INVALID_VALUE, f"{root} (-o) exists and is not empty.")
     session = load_session(paths, robot_id)
-    notes = [
-        f"{name} was cut short (a crash?): exported up to its last record"
-        for name in session.truncated
-    ]
+    notes = [f"{why}: exported up to its last record" for why in session.truncated]
     if not session.cameras:
         notes.append(
             f"no camera was recorded for {robot_id!r}: the dataset has action and state only"
@@ -370,7 +375,6 @@ def export_lerobot(
             "shape": tuple(shape),
             "names": ["height", "width", "channels"],
         }
-    lerobot = _lerobot()
     import numpy as np
 
     repo_id = repo_id or f"arena/{robot_id}"
@@ -437,7 +441,7 @@ def import_lerobot(
     table = dataset.hf_dataset.with_format(None)
     rows = [row for row in table if int(row["episode_index"]) == episode]
     if not rows:
-        raise ArenaError(ErrorCode.INVALID_VALUE, f"{root} has no episode {episode}.")
+        raise ArenaError(ErrorCode.INVALID_VALUE, f"{root} has no episode {episode} (--episode).")
     model = load_robot_model(robot_type)
     names = feature_names(model)
     action_names = list(dataset.meta.features["action"]["names"] or names)

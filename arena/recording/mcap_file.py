@@ -1,13 +1,16 @@
 """MCAP files, synchronously: the writer (run in a worker thread) and a forgiving reader.
 
 The writer keeps chunks small and is flushed often, so a process killed mid-recording loses at
-most the last flush interval; the reader reads every complete record of such a file.
+most the last flush interval; the reader reads every complete record of such a file. While a
+file is written its writer holds an exclusive `flock` on it: a file without its footer is *in
+progress* while that lock is held and *truncated* (its writer gone) once it is not.
 """
 
 from __future__ import annotations
 
 import contextlib
 import datetime
+import fcntl
 import functools
 import json
 import struct
@@ -159,6 +162,11 @@ class McapFileWriter:
             while path.exists():  # two files within a millisecond: keep both
                 path = path.with_name(path.stem + "-1" + SUFFIX)
             self._stream = open(path, "wb")  # noqa: SIM115 - closed in close()
+            # Readers tell a file being written from a cut one by this lock; the kernel lets it
+            # go when the file is closed or its process dies. A file system without locks
+            # records all the same (its unfinished files then read as truncated).
+            with contextlib.suppress(OSError):
+                fcntl.flock(self._stream.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
             self.path = path  # before the first write, so that `abandon` can remove it
             self.files.append(path)
             self._flushed = False
@@ -250,12 +258,21 @@ class Recording:
     messages: list[RecordedMessage] = field(default_factory=list)
     #: Foxglove's topics of each robot (transforms, model, log), undecoded.
     views: list[RawMessage] = field(default_factory=list)
+    #: No footer and no writer: the file was cut off (a killed writer, a copy in progress).
     truncated: bool = False
+    #: No footer yet: its writer is still writing it (it holds the file's lock).
+    in_progress: bool = False
     foreign_topics: int = 0
+
+    @property
+    def message_count(self) -> int:
+        """Every message read: Arena's records and Foxglove's view (what `recover` writes)."""
+        return len(self.messages) + len(self.views)
 
 
 def read_recording(path: str | Path) -> Recording:
-    """Read a whole recording, also one whose writer was killed (`truncated` is then True).
+    """Read a whole recording, also one being written (`in_progress`) or whose writer was
+    killed (`truncated`).
 
     Raises `ArenaError(INVALID_RECORDING)` for a file that is not MCAP at all.
     """
@@ -271,8 +288,22 @@ def read_recording(path: str | Path) -> Recording:
                 ErrorCode.INVALID_RECORDING, f"{path.name} is not an MCAP file (bad magic)."
             )
         stream.seek(0)
-        recording.truncated = not _read_into(recording, iter_records(stream))
+        if not _read_into(recording, iter_records(stream)):
+            recording.in_progress = being_written(stream)
+            recording.truncated = not recording.in_progress
     return recording
+
+
+def being_written(stream: IO[bytes]) -> bool:
+    """True while a writer holds the lock of the file open as `stream` (see the module)."""
+    try:
+        fcntl.flock(stream.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:  # a file system without locks: no telling, call it cut
+        return False
+    fcntl.flock(stream.fileno(), fcntl.LOCK_UN)
+    return False
 
 
 #: What reading a file cut mid-record raises: mcap's own errors, a short struct or length,
@@ -365,4 +396,4 @@ def write_recording(recording: Recording, path: Path) -> int:
             data = json.dumps(message.data, separators=(",", ":")).encode()
             writer.add_message(channel, message.log_time, data)
         writer.finish()
-    return len(recording.messages) + len(recording.views)
+    return recording.message_count

@@ -4,22 +4,16 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from arena.protocol.errors import ArenaError, ErrorCode
+from arena.extras import require
 from arena.recording.analysis import joint_series
 from arena.recording.mcap_file import Recording
-
-INSTALL_HINT = "Plotting needs matplotlib: pip install 'arena[plot]' (or pip install matplotlib)."
 
 
 def plot_recording(recording: Recording, robot_id: str, output: Path) -> Path:
     """Draw one subplot per joint into `output` (PNG, SVG or PDF by suffix)."""
-    try:
-        import matplotlib
+    require("plot", "arena plot").use("Agg")  # no display needed
+    import matplotlib.pyplot as plt
 
-        matplotlib.use("Agg")  # no display needed
-        import matplotlib.pyplot as plt
-    except ImportError as exc:
-        raise ArenaError(ErrorCode.INVALID_CONFIG, INSTALL_HINT) from exc
     series = joint_series(recording, robot_id)
     joints = series.joints
     figure, axes = plt.subplots(

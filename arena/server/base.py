@@ -58,6 +58,7 @@ STATUS_FOR: dict[ErrorCode, int] = {
     ErrorCode.UNSUPPORTED_MEDIA_TYPE: 415,
     ErrorCode.OVERLOADED: 503,
     ErrorCode.INTERNAL_ERROR: 500,
+    ErrorCode.NOT_INSTALLED: 501,
     ErrorCode.NO_HARDWARE: 404,
     ErrorCode.PORT_NOT_FOUND: 404,
     ErrorCode.PORT_BUSY: 409,

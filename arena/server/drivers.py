@@ -67,13 +67,10 @@ def make_slave(
             raise ArenaError(ErrorCode.INVALID_CONFIG, "A usb-slave needs the robot's model.")
         return UsbSlave(body, model, _calibration_file(calibration_dir, body.calibration, robot_id))
     if isinstance(body, PhysicsSlaveBody):
-        try:
-            from arena.drivers.physics import PhysicsSettings, PhysicsSlave
-        except ImportError:  # pragma: no cover - the physics extra is missing
-            raise ArenaError(
-                ErrorCode.INVALID_CONFIG,
-                "A physics-slave needs MuJoCo: pip install 'arena[physics]'.",
-            ) from None
+        from arena.drivers.physics import PhysicsSettings, PhysicsSlave
+        from arena.extras import require
+
+        require("physics", "A physics-slave")  # here, not when the driver starts: a 501, no 201
         return PhysicsSlave(
             PhysicsSettings(rate=body.rate, estop=body.estop, realtime=body.realtime)
         )

@@ -23,6 +23,7 @@ from urllib.parse import parse_qsl, unquote, urlsplit
 import msgspec
 import trio
 from hypercorn.config import Config as HypercornConfig
+from hypercorn.config import Sockets
 from hypercorn.trio.lifespan import Lifespan
 from hypercorn.trio.tcp_server import TCPServer
 from hypercorn.trio.worker_context import WorkerContext
@@ -131,8 +132,11 @@ class ArenaListener:
         *,
         queue_bytes: int = 16 * 1024,
         stream_router: StreamRouter | None = None,
+        sockets: Sockets | None = None,
     ) -> None:
         self.config = config
+        #: Sockets bound beforehand (`run.bind`); None: bind them in `serve`.
+        self.sockets = sockets
         self.router = router
         self.stream_router = stream_router
         self.max_message = max_message
@@ -157,7 +161,7 @@ class ArenaListener:
                 lifespan_nursery.start_soon(self._poller.run)
             ssl_context = self.config.create_ssl_context()
             scheme = "https" if ssl_context else "http"
-            sockets = self.config.create_sockets()
+            sockets = self.sockets or self.config.create_sockets()
             listeners, urls = [], []
             for sock in [*sockets.secure_sockets, *sockets.insecure_sockets]:
                 sock.listen(self.config.backlog)

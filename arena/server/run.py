@@ -3,19 +3,24 @@
 from __future__ import annotations
 
 import dataclasses
+import errno
 import gc
 import json
 import logging
 import signal
+import socket
 from pathlib import Path
 from typing import Any
 
 import trio
 from hypercorn.config import Config as HypercornConfig
+from hypercorn.config import Sockets
 
 from arena.drivers.mock_slave import MockSlave, MockSlaveConfig
+from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording.recorder import Recorder
 from arena.robot.manager import open_manager
+from arena.server import dashboard
 from arena.server.app import create_app
 from arena.server.base import ArenaApp
 from arena.server.config import ServerConfig
@@ -44,6 +49,38 @@ def hypercorn_config(config: ServerConfig) -> HypercornConfig:
     return hc
 
 
+def bind(config: ServerConfig) -> Sockets:
+    """The listening sockets, bound before anything else starts: a port in use is one
+    sentence (`ArenaError(INVALID_CONFIG)`), and no recording is begun for a server that
+    cannot listen. Foxglove's port is tried too (its server binds it later, in its thread)."""
+    if config.foxglove_port:
+        family = socket.AF_INET6 if ":" in config.host else socket.AF_INET
+        with socket.socket(family) as probe:
+            probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                probe.bind((config.host, config.foxglove_port))
+            except OSError as exc:
+                port = config.foxglove_port
+                raise _cannot_listen(exc, config.host, port, "--foxglove-port") from None
+    try:
+        return hypercorn_config(config).create_sockets()
+    except OSError as exc:
+        raise _cannot_listen(exc, config.host, config.port, "--port") from None
+
+
+def _cannot_listen(exc: OSError, host: str, port: int, flag: str) -> ArenaError:
+    if exc.errno == errno.EADDRINUSE:
+        reason = f"port {port} is in use: pass {flag}"
+    else:
+        reason = f"cannot listen on {host} port {port} ({flag}): {exc.strerror or exc}"
+    return ArenaError(ErrorCode.INVALID_CONFIG, reason)
+
+
+def _close(sockets: Sockets) -> None:
+    for sock in [*sockets.secure_sockets, *sockets.insecure_sockets, *sockets.quic_sockets]:
+        sock.close()
+
+
 async def run_server(
     config: ServerConfig,
     *,
@@ -61,6 +98,25 @@ async def run_server(
     URLs carry the ports the system chose.
     """
     config.check()
+    if config.node is not None:
+        from arena.extras import require
+
+        require("fleet", "A fleet node (--node)")
+    sockets = bind(config)
+    try:
+        await _run(config, sockets, stop, handle_signals, freeze_startup_objects, task_status)
+    finally:
+        _close(sockets)  # those never listened on (the listener closes the others)
+
+
+async def _run(
+    config: ServerConfig,
+    sockets: Sockets,
+    stop: trio.Event | None,
+    handle_signals: bool,
+    freeze_startup_objects: bool,
+    task_status: Any,
+) -> None:
     stop = trio.Event() if stop is None else stop
     metadata = {"config": json.dumps(_public_settings(config))}
     if config.node is not None:  # each file names the node and fleet it was recorded on
@@ -110,12 +166,17 @@ async def run_server(
                 await _create_demo_robot(app)
             if freeze_startup_objects:
                 tune_garbage_collector()
-            await _serve(app, config, stop, handle_signals, task_status)
+            await _serve(app, config, sockets, stop, handle_signals, task_status)
         recording_nursery.cancel_scope.cancel()  # robots are stopped: finish the file
 
 
 async def _serve(
-    app: ArenaApp, config: ServerConfig, stop: trio.Event, handle_signals: bool, task_status: Any
+    app: ArenaApp,
+    config: ServerConfig,
+    sockets: Sockets,
+    stop: trio.Event,
+    handle_signals: bool,
+    task_status: Any,
 ) -> None:
     async def shutdown_trigger() -> None:
         await stop.wait()
@@ -129,6 +190,7 @@ async def _serve(
         MAX_WEBSOCKET_MESSAGE,
         stream_router=stream_route(app),
         queue_bytes=config.ws_queue_bytes,
+        sockets=sockets,
     )
     async with trio.open_nursery() as nursery:
         if handle_signals:
@@ -141,6 +203,8 @@ async def _serve(
         urls: list[str] = await nursery.start(serve_then_stop)
         for url in urls:
             log.info("Arena listening on %s", url)
+        page = f"{urls[0]}/ui/" if dashboard.is_built() else "not built (make ui)"
+        log.info("dashboard: %s   REST API, to try: %s/docs", page, urls[0])
         app.own_url = urls[0]
         task_status.started((app, urls))
         await stop.wait()
