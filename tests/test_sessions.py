@@ -23,6 +23,7 @@ from arena.robot.actor import Robot
 from arena.robot.motion import Command
 from arena.session import behaviour, record_scenario, replay_session
 from tests.conftest import RunningServer
+from tests.hardware import eventually
 
 StartServer = Callable[..., Awaitable[RunningServer]]
 README = Path(__file__).resolve().parent.parent / "README.md"
@@ -92,10 +93,11 @@ async def test_release_holds_where_the_arm_is_and_a_socket_closed_without_it_sti
     robot = server.app.manager.get("demo-arm")
     url = server.ws_url + "/ws/master/demo-arm?id=agent"
     async with open_websocket_url(url) as ws:
-        command = {"joints": [{"name": "Rotation", "value": 40}], "duration": 5000}
+        # A move long enough that no machine finishes it before the release below.
+        command = {"joints": [{"name": "Rotation", "value": 40}], "duration": 60_000}
         await ws.send_message(json.dumps({"type": "command", "data": command}))
         assert (await until_type(ws, "ack"))["data"]["status"] == "accepted"
-        await trio.sleep(0.3)  # mid-way through a 5 s move
+        await eventually(lambda: (robot.snapshot().joint("Rotation").real_value or 0) > 1)
         await ws.send_message(json.dumps({"type": "release"}))
         answer = await until_type(ws, "released")
         assert answer["data"] == {"robot_id": "demo-arm", "mode": "idle"}
@@ -108,7 +110,7 @@ async def test_release_holds_where_the_arm_is_and_a_socket_closed_without_it_sti
                 except Exception as closed:
                     assert closed.reason.code == 1000  # type: ignore[attr-defined]
                     break
-    await trio.sleep(0.3)
+    await master_connections_closed(server)
     after = robot.snapshot()
     assert (str(after.mode), after.owner) == ("idle", None)
     assert after.joint("Rotation").goal == held.goal
@@ -188,9 +190,15 @@ async def test_arena_replay_releases_the_robot_at_its_end(
     assert await trio.to_thread.run_sync(cli.main, args) == 0
     assert "0 refused" in capsys.readouterr().out
     robot = server.app.manager.get("demo-arm")
-    await trio.sleep(0.3)  # (a loss would show within this)
+    await master_connections_closed(server)  # a loss would show by then
     snapshot = robot.snapshot()
     assert (str(snapshot.mode), snapshot.master, robot.estop_count) == ("idle", None, 0)
+
+
+async def master_connections_closed(server: RunningServer) -> None:
+    """Wait until the server has finished with every master WebSocket (a master lost shows by
+    then: the server tells the robot before it counts the connection closed)."""
+    await eventually(lambda: server.app.metrics.connections["master"] == 0, what="masters closed")
 
 
 # --- a client that never hangs --------------------------------------------------------------

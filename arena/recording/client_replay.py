@@ -47,14 +47,16 @@ async def replay_to_server(
     *,
     speed: float = 1.0,
     loop: bool = False,
-    out: TextIO = sys.stderr,
+    out: TextIO | None = None,
 ) -> tuple[int, int]:
     """Send `commands` with their timing to a master WebSocket; returns (sent, refused).
+    Progress goes to `out` (default: the `sys.stderr` of the moment of the call).
 
     Raises `ArenaError` (`NOT_OWNER`) if the release at the end was not answered `released`.
     """
     if not 0.01 <= speed <= 1000:
         raise ArenaError(ErrorCode.INVALID_VALUE, "--speed must be between 0.01 and 1000.")
+    out = sys.stderr if out is None else out
     sent = refused = 0
     released: dict[str, object] | None = None
     releasing = False

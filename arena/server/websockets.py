@@ -501,8 +501,10 @@ async def master_socket(connection: Connection, robot_id: str) -> None:
 
             await connection.run(body)
     finally:
-        app.metrics.connections["master"] -= 1
-        await _release_master(app, link)
+        try:
+            await _release_master(app, link)
+        finally:  # counted closed once the robot has heard (tests wait on it)
+            app.metrics.connections["master"] -= 1
 
 
 class _GroupMembers:
