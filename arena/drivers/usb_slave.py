@@ -61,6 +61,7 @@ class UsbSlave(ServoArm):
     """See the module docstring. `open_bus` replaces the serial bus (tests, benchmarks)."""
 
     kind = "usb-slave"
+    measures = True  # a real arm, wherever it rests: it joins before it follows
 
     def __init__(
         self,
@@ -80,6 +81,8 @@ class UsbSlave(ServoArm):
             open_bus,
         )
         self.config = config
+        #: deg/s of its way to the robot's pose when it joins (None: the robot type's).
+        self.join_speed = config.joinSpeed
         self.joint_of = {sid: name for name, sid in self.servo_ids.items()}
         self.session: CalibrationSession | None = None
         self.frozen = False  # e-stopped: targets are ignored until the reset
