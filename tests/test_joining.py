@@ -231,11 +231,18 @@ async def test_a_twin_never_waits_and_a_measuring_slave_joining_while_estopped_w
         assert robot.snapshot().slaves[1].joining
         assert robot.snapshot().mode is Mode.ESTOPPED
         await robot.reset()
+        await trio.sleep(5)
+        assert arm.targets == []  # leaving the e-stop moves nothing
+        attached = peer_change("attached")
+        assert [event for event in events.drain() if not attached(event)] == []
+        # The next accepted command starts its way (and moves the robot as it asks).
+        assert (await master.command(Command.of({"Rotation": 2.0}))).accepted
         joining = await next_event(events, peer_change("joining"))
         joined = await next_event(events, peer_change("joined"))
         await trio.sleep(0.1)  # (virtual) the slave takes its last target
     assert joined.time - joining.time == pytest.approx(40.0 / MODEL.safety.join_speed, abs=0.02)
     assert arm.targets[-1][1]["Elbow"] == 30.0
+    assert arm.targets[-1][1]["Rotation"] == 2.0
 
 
 class MeasuringSlave(RecordingSlave):

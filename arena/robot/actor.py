@@ -503,6 +503,8 @@ class Robot:
             )
         )
         self._send_targets(step.targets, now, more_follow=in_burst)
+        if step.joins:
+            self._carry_out_joins(step.joins, now)
         return result
 
     def _on_states(self, message: StatesMsg, now: float) -> None:

@@ -69,6 +69,9 @@ class _Join:
     speed: float  # deg/s of its way to the robot's pose
     measured: dict[str, float] = field(default_factory=dict)  # its newest values, by joint
     ramp: JoinRamp | None = None  # its own targets once on its way; None: waiting
+    # An e-stop came since it attached: its way starts with the next accepted command, not
+    # by itself (leaving an e-stop moves nothing).
+    held: bool = False
     adopted: bool = False  # the robot took its pose while e-stopped (once is enough)
 
 
@@ -155,7 +158,7 @@ class RobotCore:
                 self._rates.pop(effect.master_id, None)
             elif isinstance(effect, ResumeSlaves):
                 for slave_id, join in list(self._joins.items()):
-                    joins += self._decide(slave_id, join, now)
+                    joins += self._decide(slave_id, join, now)  # held: moves nothing
         return Step(outcome, None, outcome.effects, tuple(joins))
 
     # -- slaves that join ---------------------------------------------------------------------
@@ -165,7 +168,9 @@ class RobotCore:
     # a robot that no master drives and no other measuring slave holds takes that pose as its
     # own (the twins move to it, the arm does not); otherwise the slave gets targets of its
     # own, from its measured pose toward the robot's targets at the joining speed, until it
-    # is there. An e-stop pauses a join; the reset resumes it from the pose measured then.
+    # is there. An e-stop stops a join where it is; after the reset the slave's way starts
+    # again from the pose it measures then, with the next accepted command (a reset moves
+    # nothing). Rules and reasons: specs/robot-model.md, "Slaves that join".
 
     def slave_attached(
         self, slave_id: str, *, measures: bool, join_speed: float | None = None
@@ -201,9 +206,19 @@ class RobotCore:
         join.measured.update(joints)
         if join.ramp is not None or len(join.measured) < len(self.model.joints):
             return []
-        if self.state.mode is Mode.ESTOPPED and join.adopted:
-            return []  # decided again at the reset
+        if join.adopted:
+            return []  # decided already (while e-stopped: again at the reset)
         return self._decide(slave_id, join, now)
+
+    def _release_held(self, now: float) -> list[JoinChange]:
+        """An accepted command: the joins an e-stop held start their way (the robot's pose
+        is the command's business now: no adoption here)."""
+        changes = []
+        for slave_id, join in list(self._joins.items()):
+            if join.held and join.ramp is None and len(join.measured) == len(self.model.joints):
+                join.held = False
+                changes += self._start_way(slave_id, join, now)
+        return changes
 
     def advance_joins(self, now: float) -> list[JoinChange]:
         """The joining slaves' next targets (a control tick); those that arrive join."""
@@ -223,7 +238,7 @@ class RobotCore:
         return changes
 
     def _wait(self, slave_id: str, speed: float) -> None:
-        self._joins[slave_id] = _Join(speed)
+        self._joins[slave_id] = _Join(speed, held=self.state.mode is Mode.ESTOPPED)
         self.joining.add(slave_id)
 
     def _follow(self, slave_id: str, join: _Join) -> None:
@@ -234,10 +249,11 @@ class RobotCore:
     def _pause_joins(self) -> None:
         for join in self._joins.values():
             join.ramp = None
+            join.held = True
             join.adopted = False
 
     def _decide(self, slave_id: str, join: _Join, now: float) -> list[JoinChange]:
-        """A waiting slave with a complete report: adopt its pose or start its way."""
+        """A waiting slave with a complete report: adopt its pose, and start its way."""
         if join.ramp is not None or len(join.measured) < len(self.model.joints):
             return []
         changes = []
@@ -250,19 +266,25 @@ class RobotCore:
             self._sent = pose  # where the arm is: the guard checks the way on from here
             self._checked = None
             join.adopted = True
+            quiet = stopped or join.held  # no target may go out now
             reason = "the robot takes the pose this slave measures"
-            changes.append(JoinChange(slave_id, "adopted", reason, None, None if stopped else pose))
-        if stopped:
-            return changes  # nothing moves until the reset, which decides again
-        join.ramp = JoinRamp(self.model, join.measured, join.speed, now)
-        goal = self.motion.positions
-        if join.ramp.arrived(goal):
-            self._follow(slave_id, join)
-            changes.append(JoinChange(slave_id, "joined", "at the robot's pose"))
-        else:
-            reason = f"from the pose it measures to the robot's, at {join.speed:g} deg/s"
-            changes.append(JoinChange(slave_id, "joining", reason))
+            changes.append(JoinChange(slave_id, "adopted", reason, None, None if quiet else pose))
+        if not stopped:  # (stopped: the reset decides again)
+            changes += self._start_way(slave_id, join, now)
         return changes
+
+    def _start_way(self, slave_id: str, join: _Join, now: float) -> list[JoinChange]:
+        """The slave follows if it is at the robot's pose; else its way starts (unless an
+        e-stop holds it)."""
+        ramp = JoinRamp(self.model, join.measured, join.speed, now)
+        if ramp.arrived(self.motion.positions):
+            self._follow(slave_id, join)
+            return [JoinChange(slave_id, "joined", "at the robot's pose")]
+        if join.held:
+            return []  # its way starts with the next accepted command
+        join.ramp = ramp
+        reason = f"from the pose it measures to the robot's, at {join.speed:g} deg/s"
+        return [JoinChange(slave_id, "joining", reason)]
 
     def forget_master(self, master_id: str) -> None:
         """Drop per-master bookkeeping once a master is gone for good."""
@@ -320,6 +342,8 @@ class RobotCore:
         self.motion.set_goals(goals, command.duration, now)
         targets = self._advance(now, fresh=in_burst)
         result = CommandResult(True, None, message, tuple(clamps)) if clamps else _ACCEPTED
+        if self.joining:  # (rare: one check per command otherwise)
+            return result, Step(outcome, targets, (), tuple(self._release_held(now)))
         return result, Step(outcome, targets)
 
     def _urdf(self, degrees: Mapping[str, float]) -> dict[str, float]:
