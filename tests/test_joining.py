@@ -258,3 +258,36 @@ class MeasuringSlave(RecordingSlave):
         assert isinstance(link, SlaveLink)
         await link.report_joint_states(self.resting)
         await super().run(link)
+
+
+async def test_the_first_arm_sets_the_pose_and_the_next_one_joins_it(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    speed = MODEL.safety.join_speed
+    jaw_limit = MODEL.joint("Jaw").upper  # 63.03 degrees
+    first = MeasuringSlave({"Pitch": 48.5, "Elbow": -48.0, "Jaw": 70.0})  # Jaw: beyond 63
+    with robot.subscribe(kinds=[PeerChanged]) as events:
+        await robot.attach_slave(first)
+        await next_event(events, peer_change("adopted"))
+        # The robot takes the pose inside the limits; the jaw is brought in, slowly.
+        snapshot = robot.snapshot()
+        assert snapshot.joint("Pitch").virtual_value == 48.5
+        assert snapshot.joint("Jaw").virtual_value == jaw_limit
+        joining = await next_event(events, peer_change("joining"))
+        joined = await next_event(events, peer_change("joined"))
+        assert joined.time - joining.time == pytest.approx((70.0 - jaw_limit) / speed, abs=0.02)
+        jaw = [targets["Jaw"] for _, targets in first.targets]
+        assert jaw == sorted(jaw, reverse=True) and jaw[0] < 70.0 and jaw[-1] == jaw_limit
+        assert {targets["Pitch"] for _, targets in first.targets} == {48.5}
+        sent_to_first = len(first.targets)
+        # A second arm elsewhere: the robot has a pose already (the first arm holds it).
+        second = MeasuringSlave({"Pitch": 18.5, "Elbow": -48.0})
+        await robot.attach_slave(second)
+        joining = await next_event(events, peer_change("joining"))
+        joined = await next_event(events, peer_change("joined"))
+        await trio.sleep(0.1)
+    assert joined.time - joining.time == pytest.approx(jaw_limit / speed, abs=0.02)  # the jaw
+    assert second.targets[-1][1] == {j.name: j.virtual_value for j in robot.snapshot().joints}
+    assert len(first.targets) == sent_to_first  # the first arm was not moved meanwhile
+    assert robot.snapshot().joint("Pitch").virtual_value == 48.5
