@@ -15,8 +15,8 @@ from arena.robot.core import RobotCore
 from arena.robot.model import RobotModel, load_robot_model
 from arena.robot.motion import (
     Command,
-    JointGoal,
     JoinRamp,
+    JointGoal,
     MotionLimiter,
     RateLimiter,
     min_jerk,
