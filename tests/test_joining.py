@@ -31,6 +31,9 @@ from tests.hardware import running_sim, usb_slave
 MODEL = load_robot_model("so-arm100")
 STEPS_PER_DEGREE = 4096 / 360
 REST = {"Pitch": 48.5, "Elbow": -48.0}  # where the arm of the defect rested
+#: Seconds of trio time a test without hardware may wait for an event: on MockClock a wait
+#: that nothing will end reaches it at once (a fail, not a hang).
+VIRTUAL = 60.0
 
 
 @pytest.fixture
@@ -224,7 +227,7 @@ async def test_a_twin_never_waits_and_a_measuring_slave_joining_while_estopped_w
     assert twin.targets and twin.targets[-1][1]["Elbow"] == 30.0
     await robot.estop("test")
     arm = MeasuringSlave({"Elbow": -10.0})
-    with robot.subscribe(kinds=[PeerChanged, TargetsSent]) as events:
+    with robot.subscribe(kinds=[PeerChanged, TargetsSent]) as events, trio.fail_after(VIRTUAL):
         await robot.attach_slave(arm)
         await trio.sleep(5)
         assert arm.targets == []  # stopped: nothing moves, not even to join
@@ -267,7 +270,7 @@ async def test_the_first_arm_sets_the_pose_and_the_next_one_joins_it(
     speed = MODEL.safety.join_speed
     jaw_limit = MODEL.joint("Jaw").upper  # 63.03 degrees
     first = MeasuringSlave({"Pitch": 48.5, "Elbow": -48.0, "Jaw": 70.0})  # Jaw: beyond 63
-    with robot.subscribe(kinds=[PeerChanged]) as events:
+    with robot.subscribe(kinds=[PeerChanged]) as events, trio.fail_after(VIRTUAL):
         await robot.attach_slave(first)
         await next_event(events, peer_change("adopted"))
         # The robot takes the pose inside the limits; the jaw is brought in, slowly.
@@ -277,6 +280,7 @@ async def test_the_first_arm_sets_the_pose_and_the_next_one_joins_it(
         joining = await next_event(events, peer_change("joining"))
         joined = await next_event(events, peer_change("joined"))
         assert joined.time - joining.time == pytest.approx((70.0 - jaw_limit) / speed, abs=0.02)
+        await trio.sleep(0.1)  # the slave takes its last target
         jaw = [targets["Jaw"] for _, targets in first.targets]
         assert jaw == sorted(jaw, reverse=True) and jaw[0] < 70.0 and jaw[-1] == jaw_limit
         assert {targets["Pitch"] for _, targets in first.targets} == {48.5}
@@ -291,3 +295,54 @@ async def test_the_first_arm_sets_the_pose_and_the_next_one_joins_it(
     assert second.targets[-1][1] == {j.name: j.virtual_value for j in robot.snapshot().joints}
     assert len(first.targets) == sent_to_first  # the first arm was not moved meanwhile
     assert robot.snapshot().joint("Pitch").virtual_value == 48.5
+
+
+async def test_an_estop_stops_a_join_and_the_next_command_resumes_it_from_where_the_arm_is(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    speed = MODEL.safety.join_speed
+    master = await robot.connect_master("operator")
+    assert (await master.command(Command.of({"Elbow": 30.0}))).accepted
+    await trio.sleep(1)
+    arm = MeasuringSlave({"Elbow": -30.0})
+    with robot.subscribe(kinds=[PeerChanged]) as events, trio.fail_after(VIRTUAL):
+        await robot.attach_slave(arm)
+        started = await next_event(events, peer_change("joining"))
+        await trio.sleep(1.0)  # a quarter of its way (60 degrees at 15 deg/s take 4 s)
+        await robot.estop("test")
+        await trio.sleep(0.1)
+        stopped_at = arm.targets[-1]
+        assert stopped_at[1]["Elbow"] == pytest.approx(-30.0 + speed * 1.0, abs=speed * 0.02)
+        await trio.sleep(5)
+        await robot.reset()
+        await trio.sleep(5)
+        assert arm.targets[-1] == stopped_at  # nothing moved while stopped, nor at the reset
+        assert robot.snapshot().slaves[0].joining
+        assert (await master.command(Command.of({"Rotation": 1.0}))).accepted
+        resumed = await next_event(events, peer_change("joining"))
+        joined = await next_event(events, peer_change("joined"))
+        await trio.sleep(0.1)
+    after = [(time, targets) for time, targets in arm.targets if time > stopped_at[0]]
+    first_time, first = after[0]
+    assert abs(first["Elbow"] - stopped_at[1]["Elbow"]) <= speed * (first_time - resumed.time)
+    left = 30.0 - stopped_at[1]["Elbow"]
+    assert joined.time - resumed.time == pytest.approx(left / speed, abs=0.02)
+    assert started.time < stopped_at[0] < resumed.time
+    assert arm.targets[-1][1]["Elbow"] == 30.0 and arm.targets[-1][1]["Rotation"] == 1.0
+
+
+async def test_an_arm_that_leaves_holds_nothing_and_the_next_one_sets_the_pose_again(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    first = MeasuringSlave({"Pitch": 20.0})
+    with robot.subscribe(kinds=[PeerChanged]) as events, trio.fail_after(VIRTUAL):
+        first_id = await robot.attach_slave(first)
+        await next_event(events, peer_change("joined"))
+        await robot.detach_slave(first_id)
+        second = MeasuringSlave({"Pitch": -40.0})
+        await robot.attach_slave(second)
+        await next_event(events, peer_change("adopted"))
+        await next_event(events, peer_change("joined"))
+    assert robot.snapshot().joint("Pitch").virtual_value == -40.0

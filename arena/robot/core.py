@@ -222,7 +222,7 @@ class RobotCore:
 
     def advance_joins(self, now: float) -> list[JoinChange]:
         """The joining slaves' next targets (a control tick); those that arrive join."""
-        if not self.joining or self.state.mode is Mode.ESTOPPED:
+        if not self.joining:  # (while e-stopped no join has a way: `_pause_joins`)
             return []
         goal = self.motion.positions
         changes = []
