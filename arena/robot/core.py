@@ -188,13 +188,13 @@ class RobotCore:
 
     def slave_rejoins(self, slave_id: str) -> None:
         """A measuring slave's arm was out of reach (its bus was lost) and answers again: it
-        may have been moved meanwhile, so it joins again, from its next report."""
+        may have been moved meanwhile, so it joins again, from its next report, as at its
+        attach."""
         speed = self._measuring.pop(slave_id, None)
+        if speed is None and (join := self._joins.get(slave_id)) is not None:
+            speed = join.speed  # it was joining: it starts again
         if speed is not None:
             self._wait(slave_id, speed)
-        elif (join := self._joins.get(slave_id)) is not None:
-            join.ramp = None
-            join.measured.clear()
 
     def slave_measured(
         self, slave_id: str, joints: Mapping[str, float], now: float
