@@ -346,3 +346,24 @@ async def test_an_arm_that_leaves_holds_nothing_and_the_next_one_sets_the_pose_a
         await next_event(events, peer_change("adopted"))
         await next_event(events, peer_change("joined"))
     assert robot.snapshot().joint("Pitch").virtual_value == -40.0
+
+
+async def test_a_command_under_way_when_the_arm_reports_goes_on_for_its_joints_only(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    assert (await robot.command(Command.of({"Rotation": 40.0}, duration=2.0))).accepted
+    await trio.sleep(0.5)  # on its way (virtually: no arm yet)
+    arm = MeasuringSlave({"Pitch": 30.0, "Rotation": -10.0})
+    with robot.subscribe(kinds=[PeerChanged]) as events, trio.fail_after(VIRTUAL):
+        await robot.attach_slave(arm)
+        await next_event(events, peer_change("joined"))
+        snapshot = robot.snapshot()
+        # Where the arm is, with Rotation's goal kept: the command asked for that joint.
+        assert snapshot.joint("Pitch").virtual_value == snapshot.joint("Pitch").goal == 30.0
+        assert snapshot.joint("Rotation").virtual_value == -10.0
+        assert snapshot.joint("Rotation").goal == 40.0
+        await trio.sleep(2)
+    rotation = [targets["Rotation"] for _, targets in arm.targets]
+    assert rotation == sorted(rotation) and rotation[-1] == 40.0
+    assert {targets["Pitch"] for _, targets in arm.targets} == {30.0}  # never commanded

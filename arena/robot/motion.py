@@ -261,14 +261,18 @@ class MotionLimiter:
         self._moving = False
 
     def adopt(self, pose: Mapping[str, float]) -> dict[str, float]:
-        """Take `pose` (every joint, clamped to its limits) as where each joint is and is
-        heading: the robot learns where its arm is; nothing is asked to move. Returns the
-        pose taken."""
+        """Take `pose` (every joint, clamped to its limits) as where each joint is: the robot
+        learns where its arm is. A joint at rest stays there (its goal becomes that value);
+        a joint that a command is moving goes on to its goal from there, velocity-limited
+        (the command asked for that joint to move; a curve it was on is dropped). Returns
+        the pose taken."""
         for name, motion in self._joints.items():
             value = self._clamps[name](float(pose[name]))
-            motion.position = motion.goal = self._goals[name] = value
+            if motion.position == motion.goal and motion.profile is None:
+                motion.goal = self._goals[name] = value
+            motion.position = value
             motion.profile = None
-        self._moving = False
+        self._moving = None
         return self.positions
 
     def freeze(self) -> None:
