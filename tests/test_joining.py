@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import threading
+import time
 from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 
@@ -18,6 +19,7 @@ import trio
 from trio.testing import MockClock
 
 from arena.feetech import registers as reg
+from arena.feetech.sim import SimBus
 from arena.feetech.sim_pty import PtySimBus
 from arena.robot.events import JointStatesReceived, PeerChanged, RobotEvent, TargetsSent
 from arena.robot.mailbox import EventQueue
@@ -86,6 +88,27 @@ def watchdog(seconds: float = 30.0) -> Iterator[None]:
             timer.cancel()
     if scope.cancelled_caught:
         raise AssertionError(f"no progress in {seconds} s of real time")
+
+
+async def sim_reaches(sim: PtySimBus, condition: Callable[[SimBus], bool]) -> None:
+    """Wait until the simulated bus satisfies `condition` (it runs in a thread of its own: a
+    job that wrote to it has returned once its bytes left, maybe before the bus took them).
+    Polled in a thread, so that no trio deadline is involved; 30 s of real time at most."""
+
+    def poll() -> bool:
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline:
+            with sim.paused() as bus:
+                if condition(bus):
+                    return True
+            time.sleep(0.001)
+        return False
+
+    assert await trio.to_thread.run_sync(poll), "the simulated bus never got there"
+
+
+def torque_off(bus: SimBus) -> bool:
+    return not any(servo.peek(reg.TORQUE_ENABLE) for servo in bus.servos.values())
 
 
 async def next_event(
@@ -191,11 +214,11 @@ async def test_an_arm_joining_a_mastered_robot_is_brought_to_its_pose_at_the_joi
     assert handed and handed[-1][1] == target  # it arrived
     budget = speed * STEPS_PER_DEGREE
     previous_time, previous = joining.time, resting
-    for time, goals in handed:
+    for at, goals in handed:
         for sid, goal in goals.items():
-            allowed = budget * (time - previous_time) + 1  # + 1: rounding to whole steps
-            assert abs(goal - previous[sid]) <= allowed, (sid, time, goal, previous[sid])
-        previous_time, previous = time, goals
+            allowed = budget * (at - previous_time) + 1  # + 1: rounding to whole steps
+            assert abs(goal - previous[sid]) <= allowed, (sid, at, goal, previous[sid])
+        previous_time, previous = at, goals
     # Elbow's 88 degrees at 20 deg/s take 4.4 s (of trio time).
     assert joined.time - joining.time == pytest.approx(88.0 / speed, abs=0.02)
     # The bus wrote nothing else: the goals it held the arm with at connect, then these.
@@ -367,3 +390,57 @@ async def test_a_command_under_way_when_the_arm_reports_goes_on_for_its_joints_o
     rotation = [targets["Rotation"] for _, targets in arm.targets]
     assert rotation == sorted(rotation) and rotation[-1] == 40.0
     assert {targets["Pitch"] for _, targets in arm.targets} == {30.0}  # never commanded
+
+
+async def test_an_arm_calibrated_anew_joins_again_where_it_was_left(
+    autojump_clock: MockClock, manager: RobotManager, sim: PtySimBus
+) -> None:
+    rest_the_arm(sim, {})
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    driver = usb_slave(sim, MODEL)
+    with robot.subscribe(kinds=[PeerChanged, JointStatesReceived]) as events, watchdog():
+        await robot.attach_slave(driver)
+        await next_event(events, peer_change("joined"))
+        await driver.calibration_start({})  # torque off: posed like the twin (0 degrees)
+        await sim_reaches(sim, torque_off)
+        posed = rest_the_arm(sim, dict.fromkeys(MODEL.joint_names, 20.0))
+        await driver.calibration_capture()  # raw steps(20) now read 0 degrees
+        # The range capture: the person moves the elbow, and leaves it there.
+        with sim.paused() as bus:
+            bus.servo(3).move_by_hand(posed[3] + 500)
+        await next_event(
+            events,
+            lambda e: isinstance(e, JointStatesReceived) and e.joints["Elbow"] > 40.0,
+        )
+        await driver.calibration_finish()
+        await next_event(events, peer_change("adopted"))
+        elbow = robot.snapshot().joint("Elbow")
+        assert elbow.virtual_value == pytest.approx(500 / STEPS_PER_DEGREE)
+        assert elbow.goal == elbow.virtual_value
+        with sim.paused() as bus:
+            bus.write_log = []
+        assert (await robot.command(Command.of({"Rotation": 10.0}))).accepted
+        await next_event(
+            events,
+            lambda e: isinstance(e, JointStatesReceived) and abs(e.joints["Rotation"] - 10) < 0.1,
+        )
+    written = goals_written(sim)
+    assert set(written[3]) == {posed[3] + 500}  # the elbow stays where it was left
+    assert written[1][-1] == posed[1] + round(10 * STEPS_PER_DEGREE)
+
+
+async def test_an_arm_moved_by_hand_in_a_cancelled_calibration_joins_again(
+    autojump_clock: MockClock, manager: RobotManager, sim: PtySimBus
+) -> None:
+    rest_the_arm(sim, {})
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    driver = usb_slave(sim, MODEL)
+    with robot.subscribe(kinds=[PeerChanged]) as events, watchdog():
+        await robot.attach_slave(driver)
+        await next_event(events, peer_change("joined"))
+        await driver.calibration_start({})  # torque off
+        await sim_reaches(sim, torque_off)
+        posed = rest_the_arm(sim, {"Pitch": -35.0})  # moved by hand, then given up
+        await driver.calibration_cancel()
+        await next_event(events, peer_change("adopted"))
+    assert robot.snapshot().joint("Pitch").virtual_value == pytest.approx(degrees(posed[2]))

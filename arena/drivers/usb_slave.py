@@ -88,6 +88,7 @@ class UsbSlave(ServoArm):
         self.frozen = False  # e-stopped: targets are ignored until the reset
         self.telemetry: Reading | None = None
         self.running = False
+        self.link: SlaveLink | None = None  # while it runs
         self._accept_after = 0.0  # targets sent before this trio time are stale (bus was away)
 
     async def run(self, link: SlaveLink) -> None:
@@ -95,6 +96,7 @@ class UsbSlave(ServoArm):
         await self.prepare()
         assert self.worker is not None
         self.running = True
+        self.link = link
         try:
             if not self.calibrated:
                 await link.report_fault(
@@ -109,6 +111,7 @@ class UsbSlave(ServoArm):
                 nursery.cancel_scope.cancel()
         finally:
             self.running = False
+            self.link = None
             await self.close()
 
     # -- targets and notices ------------------------------------------------------------------
@@ -222,6 +225,7 @@ class UsbSlave(ServoArm):
         self.calibrated = True
         self.session = None
         await self._job(lambda bus: self._hold(bus, torque=not self._torque_stays_off()))
+        await self._rejoin("calibrated: its pose is measured anew")
         return calibration
 
     async def calibration_cancel(self) -> None:
@@ -230,6 +234,7 @@ class UsbSlave(ServoArm):
         self.calibration = session.previous
         self.session = None
         await self._job(lambda bus: self._hold(bus, torque=not self._torque_stays_off()))
+        await self._rejoin("calibration cancelled: the arm was moved by hand")
 
     def calibration_status(self) -> dict[str, Any]:
         """The calibration in use and the session, for the REST API."""
@@ -249,6 +254,12 @@ class UsbSlave(ServoArm):
                 },
             },
         }
+
+    async def _rejoin(self, reason: str) -> None:
+        # The arm is where a person left it (and maybe read through a new calibration): the
+        # robot's targets must not pull it back at full speed.
+        if self.link is not None:
+            await self.link.rejoin(reason)
 
     def _torque_stays_off(self) -> bool:
         return self.frozen and self.config.estop == "torque-off"

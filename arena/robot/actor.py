@@ -52,6 +52,7 @@ from arena.robot.inbox import (
     FaultMsg,
     LinkMsg,
     Msg,
+    RejoinMsg,
     Reply,
     SensorFaultMsg,
     ShutdownMsg,
@@ -437,6 +438,15 @@ class Robot:
             self._touch(message.peer_id, now)
         elif isinstance(message, LinkMsg):
             self._on_link(message, now)
+        elif isinstance(message, RejoinMsg):
+            if message.slave_id in self._slaves:
+                log.info(
+                    "robot %s: slave %s joins again (%s)",
+                    self.robot_id,
+                    message.slave_id,
+                    message.reason,
+                )
+                self.core.slave_rejoins(message.slave_id)
         elif isinstance(message, DriverEndedMsg):
             self._on_driver_ended(message, now)
         elif isinstance(message, WorkspaceMsg):

@@ -113,6 +113,12 @@ class LinkMsg:
 
 
 @dataclass(slots=True)
+class RejoinMsg:
+    slave_id: str
+    reason: str
+
+
+@dataclass(slots=True)
 class DriverEndedMsg:
     peer: _Peer
     error: BaseException | None
@@ -154,6 +160,7 @@ Msg = (
     | FaultMsg
     | AliveMsg
     | LinkMsg
+    | RejoinMsg
     | DriverEndedMsg
     | WorkspaceMsg
     | EpisodeMsg
