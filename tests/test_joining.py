@@ -405,12 +405,23 @@ async def test_an_arm_calibrated_anew_joins_again_where_it_was_left(
         await sim_reaches(sim, torque_off)
         posed = rest_the_arm(sim, dict.fromkeys(MODEL.joint_names, 20.0))
         await driver.calibration_capture()  # raw steps(20) now read 0 degrees
-        # The range capture: the person moves the elbow, and leaves it there.
+        # The range capture: the person moves Rotation through 35 degrees and back, and the
+        # elbow to 44 degrees, where it leaves it.
         with sim.paused() as bus:
+            bus.servo(1).move_by_hand(posed[1] + 400)
             bus.servo(3).move_by_hand(posed[3] + 500)
         await next_event(
             events,
-            lambda e: isinstance(e, JointStatesReceived) and e.joints["Elbow"] > 40.0,
+            lambda e: (
+                isinstance(e, JointStatesReceived)
+                and e.joints["Rotation"] > 30.0
+                and e.joints["Elbow"] > 40.0
+            ),
+        )
+        with sim.paused() as bus:
+            bus.servo(1).move_by_hand(posed[1])
+        await next_event(
+            events, lambda e: isinstance(e, JointStatesReceived) and e.joints["Rotation"] < 1.0
         )
         await driver.calibration_finish()
         await next_event(events, peer_change("adopted"))
@@ -444,3 +455,31 @@ async def test_an_arm_moved_by_hand_in_a_cancelled_calibration_joins_again(
         await driver.calibration_cancel()
         await next_event(events, peer_change("adopted"))
     assert robot.snapshot().joint("Pitch").virtual_value == pytest.approx(degrees(posed[2]))
+
+
+async def test_an_arm_moved_while_its_torque_was_off_for_an_estop_is_not_pulled_back(
+    autojump_clock: MockClock, manager: RobotManager, sim: PtySimBus
+) -> None:
+    rest_the_arm(sim, {})
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    with robot.subscribe(kinds=[PeerChanged, JointStatesReceived]) as events, watchdog():
+        await robot.attach_slave(usb_slave(sim, MODEL, estop="torque-off"))
+        await next_event(events, peer_change("joined"))
+        await robot.estop("test")
+        await sim_reaches(sim, torque_off)
+        moved = rest_the_arm(sim, {"Elbow": 45.0})  # someone moves the limp arm aside
+        await next_event(events, peer_change("adopted"))
+        # The robot's pose follows the limp arm (no target goes out while stopped).
+        await next_event(
+            events,
+            lambda e: isinstance(e, JointStatesReceived) and abs(e.joints["Elbow"] - 45) < 0.1,
+        )
+        assert robot.snapshot().joint("Elbow").virtual_value == pytest.approx(degrees(moved[3]))
+        await robot.reset()
+        assert robot.snapshot().joint("Elbow").virtual_value == pytest.approx(degrees(moved[3]))
+        assert (await robot.command(Command.of({"Rotation": 10.0}))).accepted
+        await next_event(
+            events,
+            lambda e: isinstance(e, JointStatesReceived) and abs(e.joints["Rotation"] - 10) < 0.1,
+        )
+    assert set(goals_written(sim)[3]) == {moved[3]}  # the elbow stays where it was put

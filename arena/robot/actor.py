@@ -439,14 +439,7 @@ class Robot:
         elif isinstance(message, LinkMsg):
             self._on_link(message, now)
         elif isinstance(message, RejoinMsg):
-            if message.slave_id in self._slaves:
-                log.info(
-                    "robot %s: slave %s joins again (%s)",
-                    self.robot_id,
-                    message.slave_id,
-                    message.reason,
-                )
-                self.core.slave_rejoins(message.slave_id)
+            self._on_rejoin(message, now)
         elif isinstance(message, DriverEndedMsg):
             self._on_driver_ended(message, now)
         elif isinstance(message, WorkspaceMsg):
@@ -617,6 +610,20 @@ class Robot:
             self._apply(safety.SlaveLost(peer.peer_id, message.reason), now, cause=message.reason)
         else:
             self.core.slave_rejoins(peer.peer_id)  # its arm may have been moved meanwhile
+
+    def _on_rejoin(self, message: RejoinMsg, now: float) -> None:
+        peer = self._slaves.get(message.slave_id)
+        if peer is None:
+            return
+        log.info("robot %s: slave %s joins again (%s)", self.robot_id, peer.peer_id, message.reason)
+        self.core.slave_rejoins(peer.peer_id)
+        if message.joints:
+            joints = {
+                spec.name: float(value)
+                for name, value in message.joints.items()
+                if (spec := self.model.joint(name)) is not None and math.isfinite(value)
+            }
+            self._carry_out_joins(self.core.slave_measured(peer.peer_id, joints, now), now)
 
     def _on_attach(self, message: AttachMsg, now: float) -> None:
         peer_id = message.peer_id or f"{message.role}-{next(self._ids)}"

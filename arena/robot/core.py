@@ -206,8 +206,10 @@ class RobotCore:
         join.measured.update(joints)
         if join.ramp is not None or len(join.measured) < len(self.model.joints):
             return []
-        if join.adopted:
-            return []  # decided already (while e-stopped: again at the reset)
+        if join.adopted:  # decided already; while e-stopped, again at the reset
+            if self.state.mode is Mode.ESTOPPED and self.state.owner is None:
+                self._take_pose(join)  # a limp arm moved by hand: the robot's pose follows
+            return []
         return self._decide(slave_id, join, now)
 
     def _release_held(self, now: float) -> list[JoinChange]:
@@ -259,12 +261,12 @@ class RobotCore:
         changes = []
         stopped = self.state.mode is Mode.ESTOPPED
         holds = self._measuring or any(
-            other.ramp is not None for other in self._joins.values() if other is not join
+            other.ramp is not None or other.adopted
+            for other in self._joins.values()
+            if other is not join
         )
         if self.state.owner is None and not holds:
-            pose = self.motion.adopt(join.measured)
-            self._sent = pose  # where the arm is: the guard checks the way on from here
-            self._checked = None
+            pose = self._take_pose(join)
             join.adopted = True
             quiet = stopped or join.held  # no target may go out now
             reason = "the robot takes the pose this slave measures"
@@ -272,6 +274,13 @@ class RobotCore:
         if not stopped:  # (stopped: the reset decides again)
             changes += self._start_way(slave_id, join, now)
         return changes
+
+    def _take_pose(self, join: _Join) -> dict[str, float]:
+        """The robot takes the pose `join` measures (`MotionLimiter.adopt`)."""
+        pose = self.motion.adopt(join.measured)
+        self._sent = pose  # where the arm is: the guard checks the way on from here
+        self._checked = None
+        return pose
 
     def _start_way(self, slave_id: str, join: _Join, now: float) -> list[JoinChange]:
         """The slave follows if it is at the robot's pose; else its way starts (unless an

@@ -116,6 +116,7 @@ class LinkMsg:
 class RejoinMsg:
     slave_id: str
     reason: str
+    joints: dict[str, float] | None  # where the arm is now, if the slave knows
 
 
 @dataclass(slots=True)
