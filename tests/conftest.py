@@ -30,6 +30,7 @@ class RecordingSlave:
     """A slave driver that keeps every target and notice it takes, with trio times."""
 
     kind: str = "recording-slave"
+    measures: bool = False  # reports what it is told: a twin
     targets: list[tuple[float, dict[str, float]]] = field(default_factory=list)
     notices: list[tuple[float, SlaveNotice]] = field(default_factory=list)
     fail_after: int | None = None  # raise after this many targets (a crashing driver)

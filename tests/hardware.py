@@ -15,6 +15,7 @@ from arena.feetech.health import HealthLimits
 from arena.feetech.sim_pty import PtySimBus
 from arena.feetech.worker import WorkerSettings
 from arena.protocol.rest import UsbSlaveBody
+from arena.robot.actor import Robot
 from arena.robot.model import RobotModel
 
 # Generous reply timeout: a loaded CI machine must not turn into a "silent servo".
@@ -57,6 +58,14 @@ async def eventually(
                 return
             await trio.sleep(0.01)
     raise AssertionError(f"timed out waiting for {what}")
+
+
+async def wait_joined(robot: Robot) -> None:
+    """Wait until every slave of `robot` follows its targets (an arm joins on its first
+    report: a command sent before may find the robot taking the arm's pose)."""
+    await eventually(
+        lambda: not any(slave.joining for slave in robot.snapshot().slaves), what="the join"
+    )
 
 
 def servo_goals(sim: PtySimBus) -> dict[int, int]:

@@ -167,6 +167,8 @@ def test_a_new_robot_type_is_a_folder(tmp_path: Path, monkeypatch: pytest.Monkey
     assert tilt.max_velocity == 30.0
     assert model.safety.loss_policy is LossPolicy.HOLD
     assert model.safety.command_rate == 20.0
+    assert model.safety.join_speed == 15.0  # the default when a type does not say
+    assert load_robot_model("so-arm100").safety.join_speed == 15.0
 
 
 @pytest.mark.parametrize(
@@ -187,6 +189,16 @@ def test_a_new_robot_type_is_a_folder(tmp_path: Path, monkeypatch: pytest.Monkey
             TWO_JOINT_URDF,
             TWO_JOINT_CONFIG.replace('loss_policy = "hold"', 'loss_policy = "pray"'),
             "[safety]",
+        ),
+        (
+            TWO_JOINT_URDF,
+            TWO_JOINT_CONFIG.replace("command_rate = 20", "command_rate = 20\njoin_speed = 0"),
+            "join_speed",
+        ),
+        (
+            TWO_JOINT_URDF,
+            TWO_JOINT_CONFIG.replace("command_rate = 20", "command_rate = 20\njoin_speed = 200"),
+            "join_speed",
         ),
         (
             TWO_JOINT_URDF,

@@ -15,6 +15,7 @@ from arena.robot.core import RobotCore
 from arena.robot.model import RobotModel, load_robot_model
 from arena.robot.motion import (
     Command,
+    JoinRamp,
     JointGoal,
     MotionLimiter,
     RateLimiter,
@@ -349,3 +350,50 @@ def test_the_limiters_goals_are_always_where_its_joints_are_heading(
         else:
             limiter.freeze()
         assert limiter.goals == {n: m.goal for n, m in limiter._joints.items()}
+
+
+# --- joining ----------------------------------------------------------------------------------
+
+DEGREES = st.floats(-90.0, 90.0, allow_nan=False)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    start=st.lists(DEGREES, min_size=6, max_size=6),
+    steps=st.lists(
+        st.tuples(st.floats(0.0, 0.5), st.lists(DEGREES, min_size=6, max_size=6)),
+        min_size=1,
+        max_size=30,
+    ),
+    speed=st.floats(0.5, 90.0),
+)
+def test_a_join_never_outruns_its_speed_and_arrives(
+    start: list[float], steps: list[tuple[float, list[float]]], speed: float
+) -> None:
+    """Whatever the robot's targets do meanwhile, a joining slave's targets move at most
+    `speed * dt` per joint from its measured start, and reach a robot pose that stays put."""
+    names = MODEL.joint_names
+    ramp = JoinRamp(MODEL, dict(zip(names, start, strict=True)), speed, 0.0)
+    now, last = 0.0, dict(zip(names, start, strict=True))
+    for dt, goal in steps:
+        now += dt
+        targets = ramp.advance(dict(zip(names, goal, strict=True)), now)
+        if targets is None:
+            continue
+        for name in names:
+            assert abs(targets[name] - last[name]) <= speed * dt + 1e-9
+        last = targets
+    final = dict(zip(names, steps[-1][1], strict=True))
+    needed = max(abs(final[name] - last[name]) for name in names) / speed
+    assert ramp.arrived(final) == (needed == 0.0)
+    ramp.advance(final, now + needed + 1e-6)  # (1 us: the rounding of `needed`)
+    assert ramp.arrived(final)
+
+
+def test_a_join_moves_no_joint_faster_than_its_own_velocity_limit() -> None:
+    slow = dataclasses.replace(MODEL.joints[0], max_velocity=5.0)
+    model = dataclasses.replace(MODEL, joints=(slow, *MODEL.joints[1:]))
+    ramp = JoinRamp(model, dict.fromkeys(MODEL.joint_names, 0.0), 20.0, 0.0)
+    targets = ramp.advance(dict.fromkeys(MODEL.joint_names, 50.0), 1.0)
+    assert targets is not None
+    assert targets["Rotation"] == 5.0 and targets["Pitch"] == 20.0

@@ -215,6 +215,11 @@ BAD_REQUESTS: list[tuple[str, str, Any, int, str]] = [
     ),
     ("PUT", "/api/robots/demo-arm/joints", b"x" * 70_000, 413, "MESSAGE_TOO_LARGE"),
     ("POST", "/api/robots/demo-arm/slaves", {"type": "warp-drive"}, 422, "INVALID_BODY"),
+    # A joining speed is slow and positive (no port is opened for a refused body).
+    *(
+        ("POST", "/api/robots/demo-arm/slaves", {"type": "usb-slave", "joinSpeed": v}, 422, code)
+        for v, code in ((0, "INVALID_BODY"), (500, "INVALID_BODY"), ("fast", "INVALID_BODY"))
+    ),
     (
         "POST",
         "/api/robots/demo-arm/slaves",

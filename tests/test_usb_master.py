@@ -27,6 +27,7 @@ from tests.hardware import (
     servo_goals,
     servo_torque,
     usb_slave,
+    wait_joined,
 )
 
 MODEL = load_robot_model("so-arm100")
@@ -73,6 +74,7 @@ async def teleop(
         usb_slave(follower, MODEL, calibrated_at(FOLLOWER_REST, tmp_path / "arm.json"))
     )
     await eventually(lambda: all(servo_torque(follower).values()), what="follower torque")
+    await wait_joined(robot)  # the robot has the follower's pose before the leader commands
     master = leader_arm(leader, calibrated_at(LEADER_REST, tmp_path / "arm-leader.json"))
     await master.prepare()  # as the server does: the bus is up before the master claims
     await robot.attach_master(master)

@@ -51,6 +51,7 @@ class MockSlave:
     """A simulated arm: real value = target value, `latency + response_delay` later."""
 
     kind = "mock-slave"
+    measures = False  # a twin: where it is, it was told to be
 
     def __init__(self, config: MockSlaveConfig | None = None) -> None:
         self.config = config or MockSlaveConfig()

@@ -183,6 +183,7 @@ class PhysicsSlave:
     joint values it reaches, and a fault for each new contact (with the table or itself)."""
 
     kind = "physics-slave"
+    measures = False  # a twin: it goes where it is told, from where it was told
 
     def __init__(self, settings: PhysicsSettings | None = None) -> None:
         self.settings = settings or PhysicsSettings()

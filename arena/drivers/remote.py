@@ -81,6 +81,10 @@ class WebSocketSlave:
     """See the module docstring. `rng` makes the backoff's jitter repeatable (tests)."""
 
     kind = "websocket-slave"
+    # Not yet a slave that joins: the robot over there may have no measured pose to report
+    # (a relay, a robot with no slave), and a join would then wait for ever. Its own
+    # measuring slaves join it over there; see specs/robot-model.md for what is left.
+    measures = False
 
     def __init__(self, config: WebSocketSlaveBody, rng: random.Random | None = None) -> None:
         if config.robotId is None:

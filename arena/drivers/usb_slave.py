@@ -14,7 +14,7 @@ import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import trio
 
@@ -45,6 +45,7 @@ from arena.robot.links import SlaveLink
 from arena.robot.model import RobotModel
 
 log = logging.getLogger(__name__)
+T = TypeVar("T")
 
 
 @dataclass
@@ -61,6 +62,7 @@ class UsbSlave(ServoArm):
     """See the module docstring. `open_bus` replaces the serial bus (tests, benchmarks)."""
 
     kind = "usb-slave"
+    measures = True  # a real arm, wherever it rests: it joins before it follows
 
     def __init__(
         self,
@@ -80,11 +82,14 @@ class UsbSlave(ServoArm):
             open_bus,
         )
         self.config = config
+        #: deg/s of its way to the robot's pose when it joins (None: the robot type's).
+        self.join_speed = config.joinSpeed
         self.joint_of = {sid: name for name, sid in self.servo_ids.items()}
         self.session: CalibrationSession | None = None
         self.frozen = False  # e-stopped: targets are ignored until the reset
         self.telemetry: Reading | None = None
         self.running = False
+        self.link: SlaveLink | None = None  # while it runs
         self._accept_after = 0.0  # targets sent before this trio time are stale (bus was away)
 
     async def run(self, link: SlaveLink) -> None:
@@ -92,6 +97,7 @@ class UsbSlave(ServoArm):
         await self.prepare()
         assert self.worker is not None
         self.running = True
+        self.link = link
         try:
             if not self.calibrated:
                 await link.report_fault(
@@ -106,6 +112,7 @@ class UsbSlave(ServoArm):
                 nursery.cancel_scope.cancel()
         finally:
             self.running = False
+            self.link = None
             await self.close()
 
     # -- targets and notices ------------------------------------------------------------------
@@ -124,8 +131,11 @@ class UsbSlave(ServoArm):
         torque_off = self.config.estop == "torque-off"
         if kind is NoticeKind.ESTOP:
             self.frozen = True
+            held = None
             if self.session is None:
-                await self._safe_job(lambda bus: self._hold(bus, torque=not torque_off))
+                held = await self._safe_job(lambda bus: self._hold(bus, torque=not torque_off))
+            if torque_off:  # limp: it may sag or be moved by hand before the reset
+                await self._rejoin("torque off for the e-stop: the arm may be moved", held)
         elif kind is NoticeKind.HOLD:
             if self.session is None:
                 await self._safe_job(lambda bus: self._hold(bus, torque=True))
@@ -134,20 +144,23 @@ class UsbSlave(ServoArm):
             if torque_off and self.session is None:
                 await self._safe_job(lambda bus: self._hold(bus, torque=True))
 
-    def _hold(self, bus: ServoBus, *, torque: bool) -> None:
+    def _hold(self, bus: ServoBus, *, torque: bool) -> dict[int, int]:
         # Runs in the worker thread: goals not yet written are dropped, then hold where it is.
+        # Returns where that is (raw steps by servo id).
         assert self.worker is not None
         self.worker.clear_goals()
         self.worker.torque_wanted = torque
-        hold_here(bus, self.worker.servo_ids, torque=torque, speed=self.settings.speed_limit)
+        return hold_here(bus, self.worker.servo_ids, torque=torque, speed=self.settings.speed_limit)
 
-    async def _safe_job(self, job: Callable[[ServoBus], object]) -> None:
+    async def _safe_job(self, job: Callable[[ServoBus], T]) -> T | None:
+        """`job` on the bus; None if the bus is down (the worker applies `torque_wanted`
+        when it reconnects)."""
         assert self.worker is not None
         try:
-            await wait_future(self.worker.submit(job))
+            return await wait_future(self.worker.submit(job))
         except ArenaError as exc:
-            # The bus is down: the worker applies torque_wanted when it reconnects.
             log.warning("usb-slave on %s: %s", self.port, exc.message)
+            return None
 
     # -- what the bus reports -----------------------------------------------------------------
 
@@ -218,7 +231,8 @@ class UsbSlave(ServoArm):
         self.calibration = calibration
         self.calibrated = True
         self.session = None
-        await self._job(lambda bus: self._hold(bus, torque=not self._torque_stays_off()))
+        held = await self._job(lambda bus: self._hold(bus, torque=not self._torque_stays_off()))
+        await self._rejoin("calibrated: its pose is measured anew", held)
         return calibration
 
     async def calibration_cancel(self) -> None:
@@ -226,7 +240,8 @@ class UsbSlave(ServoArm):
         session = self._session(None)
         self.calibration = session.previous
         self.session = None
-        await self._job(lambda bus: self._hold(bus, torque=not self._torque_stays_off()))
+        held = await self._job(lambda bus: self._hold(bus, torque=not self._torque_stays_off()))
+        await self._rejoin("calibration cancelled: the arm was moved by hand", held)
 
     def calibration_status(self) -> dict[str, Any]:
         """The calibration in use and the session, for the REST API."""
@@ -246,6 +261,14 @@ class UsbSlave(ServoArm):
                 },
             },
         }
+
+    async def _rejoin(self, reason: str, held: dict[int, int] | None) -> None:
+        # The arm is where a person left it (and maybe read through a new calibration): the
+        # robot's targets must not pull it back at full speed. `held`: the raw pose the hold
+        # just read, so that the join starts from it (a reading already on its way is older).
+        if self.link is not None:
+            pose = None if held is None else self.calibration.to_degrees(held)
+            await self.link.rejoin(reason, pose)
 
     def _torque_stays_off(self) -> bool:
         return self.frozen and self.config.estop == "torque-off"

@@ -46,6 +46,9 @@ class MockSlaveBody(
     seed: int = 0
 
 
+#: The fastest joining speed (deg/s) a slave or a robot type may ask for: joining is slow.
+MAX_JOIN_SPEED = 90.0
+
 #: A calibration file's name: letters, digits, `_-.`, not starting with a dot (no paths).
 CalibrationName = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$")]
 
@@ -61,6 +64,8 @@ class UsbSlaveBody(
 
     `estop`: what the servos do on an e-stop, `hold` (torque kept, goal = present) or
     `torque-off`. `calibration`: the calibration's name (default: the robot's id).
+    `joinSpeed`: deg/s at which the arm is brought to the robot's pose when it joins a robot
+    that is elsewhere (default: the robot type's `join_speed`).
     """
 
     port: str | None = None
@@ -68,6 +73,7 @@ class UsbSlaveBody(
     rate: Annotated[float, msgspec.Meta(gt=0, le=2000)] = 250.0
     estop: Literal["hold", "torque-off"] = "hold"
     calibration: CalibrationName | None = None
+    joinSpeed: Annotated[float, msgspec.Meta(gt=0, le=MAX_JOIN_SPEED)] | None = None
 
 
 #: Where another Arena server listens: ws(s):// or http(s)://, host and port.

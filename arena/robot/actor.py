@@ -24,7 +24,7 @@ import trio
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot import safety
 from arena.robot.collision import Workspace
-from arena.robot.core import MANUAL_SOURCE, RobotCore, Step
+from arena.robot.core import MANUAL_SOURCE, JoinChange, RobotCore, Step
 from arena.robot.episodes import Episode, Episodes
 from arena.robot.events import (
     CommandHandled,
@@ -52,6 +52,7 @@ from arena.robot.inbox import (
     FaultMsg,
     LinkMsg,
     Msg,
+    RejoinMsg,
     Reply,
     SensorFaultMsg,
     ShutdownMsg,
@@ -263,7 +264,9 @@ class Robot:
         await self._detach("master", master_id, lost=False, reason=reason)
 
     async def attach_slave(self, driver: SlaveDriver, slave_id: str | None = None) -> str:
-        """Run `driver` as a slave of this robot; returns its id."""
+        """Run `driver` as a slave of this robot; returns its id. A driver whose `measures`
+        is true (the default) joins before it is sent the robot's targets, at its
+        `join_speed` if it has one (`RobotCore.slave_attached`)."""
         link: SlaveLink = await self._attach(
             "slave", slave_id, driver.kind, driver, False, False, None
         )
@@ -328,7 +331,8 @@ class Robot:
             for j in self.model.joints
         )
         master = self._peer_snapshot(self._master) if self._master else None
-        slaves = tuple(self._peer_snapshot(p) for p in self._slaves.values())
+        joining = self.core.joining
+        slaves = tuple(self._peer_snapshot(p, p.peer_id in joining) for p in self._slaves.values())
         return RobotSnapshot(
             self.robot_id,
             self.name,
@@ -434,6 +438,8 @@ class Robot:
             self._touch(message.peer_id, now)
         elif isinstance(message, LinkMsg):
             self._on_link(message, now)
+        elif isinstance(message, RejoinMsg):
+            self._on_rejoin(message, now)
         elif isinstance(message, DriverEndedMsg):
             self._on_driver_ended(message, now)
         elif isinstance(message, WorkspaceMsg):
@@ -500,6 +506,8 @@ class Robot:
             )
         )
         self._send_targets(step.targets, now, more_follow=in_burst)
+        if step.joins:
+            self._carry_out_joins(step.joins, now)
         return result
 
     def _on_states(self, message: StatesMsg, now: float) -> None:
@@ -519,6 +527,8 @@ class Robot:
         self._publish(
             JointStatesReceived(self.robot_id, message.slave_id, joints, now, wallclock.time())
         )
+        if message.slave_id in self.core.joining:
+            self._carry_out_joins(self.core.slave_measured(message.slave_id, joints, now), now)
 
     def _on_fault(self, message: FaultMsg, now: float) -> None:
         peer = self._slaves.get(message.peer_id)
@@ -598,6 +608,22 @@ class Robot:
         if not message.connected:
             peer.last_error = f"{ErrorCode.SLAVE_LOST}: {message.reason}"
             self._apply(safety.SlaveLost(peer.peer_id, message.reason), now, cause=message.reason)
+        else:
+            self.core.slave_rejoins(peer.peer_id)  # its arm may have been moved meanwhile
+
+    def _on_rejoin(self, message: RejoinMsg, now: float) -> None:
+        peer = self._slaves.get(message.slave_id)
+        if peer is None:
+            return
+        log.info("robot %s: slave %s joins again (%s)", self.robot_id, peer.peer_id, message.reason)
+        self.core.slave_rejoins(peer.peer_id)
+        if message.joints:
+            joints = {
+                spec.name: float(value)
+                for name, value in message.joints.items()
+                if (spec := self.model.joint(name)) is not None and math.isfinite(value)
+            }
+            self._carry_out_joins(self.core.slave_measured(peer.peer_id, joints, now), now)
 
     def _on_attach(self, message: AttachMsg, now: float) -> None:
         peer_id = message.peer_id or f"{message.role}-{next(self._ids)}"
@@ -641,6 +667,12 @@ class Robot:
                 return
             link = SlaveLink(self, peer_id)
             self._apply(safety.SlaveAttach(peer_id), now, cause="slave attach")
+            driver = message.driver
+            self.core.slave_attached(
+                peer_id,
+                measures=driver is not None and getattr(driver, "measures", True),
+                join_speed=getattr(driver, "join_speed", None),
+            )
         scope = trio.CancelScope() if message.driver is not None else None
         peer = _Peer(
             peer_id, message.role, message.kind, link, scope, message.heartbeat_timeout, now
@@ -755,6 +787,7 @@ class Robot:
         if self._next_tick is not None and now >= self._next_tick:
             self._next_tick = None
             self._send_targets(self.core.tick(now), now)
+            self._carry_out_joins(self.core.advance_joins(now), now)
         for peer in self._peers():
             timeout = peer.heartbeat_timeout
             if timeout is not None and now >= peer.last_seen + timeout:
@@ -798,6 +831,7 @@ class Robot:
 
     def _carry_out(self, step: Step, now: float) -> None:
         self._send_targets(step.targets, now)
+        self._carry_out_joins(step.joins, now)
         for effect in step.effects:
             if isinstance(effect, safety.DetachMaster):
                 if self._master is not None and self._master.peer_id == effect.master_id:
@@ -827,10 +861,47 @@ class Robot:
     ) -> None:
         if targets is not None:
             target = SlaveTarget(targets, now, more_follow)
+            joining = self.core.joining  # they get targets of their own (`_carry_out_joins`)
             for slave in self._slaves.values():
                 assert isinstance(slave.link, SlaveLink)
-                slave.link.mailbox.put_target(target)
+                if not joining or slave.peer_id not in joining:
+                    slave.link.mailbox.put_target(target)
             self._publish(TargetsSent(self.robot_id, targets, now, wallclock.time()))
+        if self._next_tick is None:
+            self._next_tick = self.core.next_tick(now)
+
+    def _carry_out_joins(self, changes: Iterable[JoinChange], now: float) -> None:
+        """Send joining slaves their own targets, the robot's an adopted pose; report each
+        change of a join as a `PeerChanged` (recorded)."""
+        for change in changes:
+            if change.robot_targets is not None:
+                self._send_targets(change.robot_targets, now)
+            peer = self._slaves.get(change.slave_id)
+            if peer is None:
+                continue
+            assert isinstance(peer.link, SlaveLink)
+            if change.targets is not None:
+                peer.link.mailbox.put_target(SlaveTarget(change.targets, now))
+            if change.change is not None:
+                log.info(
+                    "robot %s: slave %s %s (%s)",
+                    self.robot_id,
+                    peer.peer_id,
+                    change.change,
+                    change.reason,
+                )
+                self._publish(
+                    PeerChanged(
+                        self.robot_id,
+                        "slave",
+                        peer.peer_id,
+                        peer.kind,
+                        change.change,
+                        change.reason,
+                        now,
+                        wallclock.time(),
+                    )
+                )
         if self._next_tick is None:
             self._next_tick = self.core.next_tick(now)
 
@@ -894,6 +965,7 @@ class Robot:
         if self._slaves.get(peer.peer_id) is not peer:
             return
         del self._slaves[peer.peer_id]
+        self.core.slave_detached(peer.peer_id)
         assert isinstance(peer.link, SlaveLink)
         self._superseded_by_gone += peer.link.mailbox.coalesced
         assert isinstance(peer.link, SlaveLink)
@@ -1063,5 +1135,7 @@ class Robot:
                 reply.fail(error)
 
     @staticmethod
-    def _peer_snapshot(peer: _Peer) -> PeerSnapshot:
-        return PeerSnapshot(peer.peer_id, peer.role, peer.kind, peer.connected, peer.last_error)
+    def _peer_snapshot(peer: _Peer, joining: bool = False) -> PeerSnapshot:
+        return PeerSnapshot(
+            peer.peer_id, peer.role, peer.kind, peer.connected, peer.last_error, joining
+        )

@@ -19,6 +19,7 @@ from arena.robot.motion import (
     Clamp,
     Command,
     CommandResult,
+    JoinRamp,
     MotionLimiter,
     RateLimiter,
     ResolvedGoal,
@@ -35,6 +36,7 @@ from arena.robot.safety import (
     Mode,
     Outcome,
     Refused,
+    ResumeSlaves,
     SafetyState,
     StopMotion,
     transition,
@@ -54,9 +56,39 @@ class Step:
     outcome: Outcome
     targets: dict[str, float] | None = None
     effects: tuple[Effect, ...] = field(default=())
+    joins: tuple[JoinChange, ...] = field(default=())
 
 
 _RADIANS = math.pi / 180.0  # as math.radians scales
+
+
+@dataclass(slots=True)
+class _Join:
+    """A measuring slave that does not follow the robot's targets yet (see `RobotCore`)."""
+
+    speed: float  # deg/s of its way to the robot's pose
+    measured: dict[str, float] = field(default_factory=dict)  # its newest values, by joint
+    ramp: JoinRamp | None = None  # its own targets once on its way; None: waiting
+    # An e-stop came since it attached: its way starts with the next accepted command, not
+    # by itself (leaving an e-stop moves nothing).
+    held: bool = False
+    adopted: bool = False  # the robot took its pose while e-stopped (once is enough)
+
+
+@dataclass(frozen=True, slots=True)
+class JoinChange:
+    """What joining did to one slave: `change` is "adopted" (the robot took this slave's
+    measured pose as its own), "joining" (the slave is on its way to the robot's pose) or
+    "joined" (it follows the robot's targets from now on); `targets` are the slave's own
+    targets to send it (None: none now), `robot_targets` the robot's, for every slave that
+    follows (an adopted pose), or None."""
+
+    slave_id: str
+    change: str | None  # None: only new targets
+    reason: str
+    targets: dict[str, float] | None = None
+    robot_targets: dict[str, float] | None = None
+
 
 #: Poses checked in full that later poses are compared with (see `_references`).
 REFERENCES = 2
@@ -97,6 +129,13 @@ class RobotCore:
         self._last_master_event: MasterCommand | None = None  # reused while one master commands
         # The last command's (state, event, outcome) of the safety machine (see `command`).
         self._last_transition: tuple[SafetyState, Event, Outcome] | None = None
+        # Slaves that measure (a real arm, which is wherever it is): those that do not follow
+        # the robot's targets yet, and those that do, with their joining speed should they
+        # have to join again. See `slave_attached`.
+        self._joins: dict[str, _Join] = {}
+        self._measuring: dict[str, float] = {}
+        #: Ids of the slaves that must not be sent the robot's targets (they are joining).
+        self.joining: set[str] = set()
 
     @property
     def tick_interval(self) -> float:
@@ -109,12 +148,152 @@ class RobotCore:
         if not isinstance(outcome, Allowed):
             return Step(outcome)
         self.state = outcome.state
+        joins: list[JoinChange] = []
         for effect in outcome.effects:
             if isinstance(effect, StopMotion | HoldPosition):
                 self.motion.freeze()
+                if isinstance(effect, StopMotion):
+                    self._pause_joins()
             elif isinstance(effect, DetachMaster):
                 self._rates.pop(effect.master_id, None)
-        return Step(outcome, None, outcome.effects)
+            elif isinstance(effect, ResumeSlaves):
+                for slave_id, join in list(self._joins.items()):
+                    joins += self._decide(slave_id, join, now)  # held: moves nothing
+        return Step(outcome, None, outcome.effects, tuple(joins))
+
+    # -- slaves that join ---------------------------------------------------------------------
+    #
+    # A slave that measures reports a real arm's pose, which no target of ours has set: it gets
+    # none of the robot's targets until it has joined. Its first complete report decides how:
+    # a robot that no master drives and no other measuring slave holds takes that pose as its
+    # own (the twins move to it, the arm does not); otherwise the slave gets targets of its
+    # own, from its measured pose toward the robot's targets at the joining speed, until it
+    # is there. An e-stop stops a join where it is; after the reset the slave's way starts
+    # again from the pose it measures then, with the next accepted command (a reset moves
+    # nothing). Rules and reasons: specs/robot-model.md, "Slaves that join".
+
+    def slave_attached(
+        self, slave_id: str, *, measures: bool, join_speed: float | None = None
+    ) -> None:
+        """A slave attached; one that `measures` joins (see above) at `join_speed` deg/s
+        (default: the robot's `join_speed`)."""
+        if measures:
+            self._wait(slave_id, self.policy.join_speed if join_speed is None else join_speed)
+
+    def slave_detached(self, slave_id: str) -> None:
+        """A slave left: it holds nothing any more."""
+        self._joins.pop(slave_id, None)
+        self._measuring.pop(slave_id, None)
+        self.joining.discard(slave_id)
+
+    def slave_rejoins(self, slave_id: str) -> None:
+        """A measuring slave's arm was out of reach (its bus was lost) and answers again: it
+        may have been moved meanwhile, so it joins again, from its next report, as at its
+        attach."""
+        speed = self._measuring.pop(slave_id, None)
+        if speed is None and (join := self._joins.get(slave_id)) is not None:
+            speed = join.speed  # it was joining: it starts again
+        if speed is not None:
+            self._wait(slave_id, speed)
+
+    def slave_measured(
+        self, slave_id: str, joints: Mapping[str, float], now: float
+    ) -> list[JoinChange]:
+        """A slave's report (protocol names, degrees): what it changes in a join, if any."""
+        join = self._joins.get(slave_id)
+        if join is None:
+            return []
+        join.measured.update(joints)
+        if join.ramp is not None or len(join.measured) < len(self.model.joints):
+            return []
+        if join.adopted:  # decided already; while e-stopped, again at the reset
+            if self.state.mode is Mode.ESTOPPED and self.state.owner is None:
+                self._take_pose(join)  # a limp arm moved by hand: the robot's pose follows
+            return []
+        return self._decide(slave_id, join, now)
+
+    def _release_held(self, now: float) -> list[JoinChange]:
+        """An accepted command: the joins an e-stop held start their way (the robot's pose
+        is the command's business now: no adoption here)."""
+        changes = []
+        for slave_id, join in list(self._joins.items()):
+            if join.held and join.ramp is None and len(join.measured) == len(self.model.joints):
+                join.held = False
+                changes += self._start_way(slave_id, join, now)
+        return changes
+
+    def advance_joins(self, now: float) -> list[JoinChange]:
+        """The joining slaves' next targets (a control tick); those that arrive join."""
+        if not self.joining:  # (while e-stopped no join has a way: `_pause_joins`)
+            return []
+        goal = self.motion.positions
+        changes = []
+        for slave_id, join in list(self._joins.items()):
+            if join.ramp is None:
+                continue
+            targets = join.ramp.advance(goal, now)
+            if join.ramp.arrived(goal):
+                self._follow(slave_id, join)
+                changes.append(JoinChange(slave_id, "joined", "at the robot's pose", targets))
+            elif targets is not None:
+                changes.append(JoinChange(slave_id, None, "", targets))
+        return changes
+
+    def _wait(self, slave_id: str, speed: float) -> None:
+        self._joins[slave_id] = _Join(speed, held=self.state.mode is Mode.ESTOPPED)
+        self.joining.add(slave_id)
+
+    def _follow(self, slave_id: str, join: _Join) -> None:
+        del self._joins[slave_id]
+        self.joining.discard(slave_id)
+        self._measuring[slave_id] = join.speed
+
+    def _pause_joins(self) -> None:
+        for join in self._joins.values():
+            join.ramp = None
+            join.held = True
+            join.adopted = False
+
+    def _decide(self, slave_id: str, join: _Join, now: float) -> list[JoinChange]:
+        """A waiting slave with a complete report: adopt its pose, and start its way."""
+        if join.ramp is not None or len(join.measured) < len(self.model.joints):
+            return []
+        changes = []
+        stopped = self.state.mode is Mode.ESTOPPED
+        holds = self._measuring or any(
+            other.ramp is not None or other.adopted
+            for other in self._joins.values()
+            if other is not join
+        )
+        if self.state.owner is None and not holds:
+            pose = self._take_pose(join)
+            join.adopted = True
+            quiet = stopped or join.held  # no target may go out now
+            reason = "the robot takes the pose this slave measures"
+            changes.append(JoinChange(slave_id, "adopted", reason, None, None if quiet else pose))
+        if not stopped:  # (stopped: the reset decides again)
+            changes += self._start_way(slave_id, join, now)
+        return changes
+
+    def _take_pose(self, join: _Join) -> dict[str, float]:
+        """The robot takes the pose `join` measures (`MotionLimiter.adopt`)."""
+        pose = self.motion.adopt(join.measured)
+        self._sent = pose  # where the arm is: the guard checks the way on from here
+        self._checked = None
+        return pose
+
+    def _start_way(self, slave_id: str, join: _Join, now: float) -> list[JoinChange]:
+        """The slave follows if it is at the robot's pose; else its way starts (unless an
+        e-stop holds it)."""
+        ramp = JoinRamp(self.model, join.measured, join.speed, now)
+        if ramp.arrived(self.motion.positions):
+            self._follow(slave_id, join)
+            return [JoinChange(slave_id, "joined", "at the robot's pose")]
+        if join.held:
+            return []  # its way starts with the next accepted command
+        join.ramp = ramp
+        reason = f"from the pose it measures to the robot's, at {join.speed:g} deg/s"
+        return [JoinChange(slave_id, "joining", reason)]
 
     def forget_master(self, master_id: str) -> None:
         """Drop per-master bookkeeping once a master is gone for good."""
@@ -172,6 +351,8 @@ class RobotCore:
         self.motion.set_goals(goals, command.duration, now)
         targets = self._advance(now, fresh=in_burst)
         result = CommandResult(True, None, message, tuple(clamps)) if clamps else _ACCEPTED
+        if self.joining:  # (rare: one check per command otherwise)
+            return result, Step(outcome, targets, (), tuple(self._release_held(now)))
         return result, Step(outcome, targets)
 
     def _urdf(self, degrees: Mapping[str, float]) -> dict[str, float]:
@@ -268,6 +449,10 @@ class RobotCore:
 
     def next_tick(self, now: float) -> float | None:
         """When the next control tick is due, or None while nothing is moving."""
-        if self.state.mode is Mode.ESTOPPED or not self.motion.moving:
+        if self.state.mode is Mode.ESTOPPED:
             return None
-        return now + self.tick_interval
+        if self.motion.moving or (
+            self.joining and any(join.ramp is not None for join in self._joins.values())
+        ):
+            return now + self.tick_interval
+        return None

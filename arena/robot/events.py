@@ -137,7 +137,8 @@ class PeerChanged(Observed, frozen=True, gc=False):
     peer_id: str
     kind: str  # driver kind, e.g. "mock-slave"
     # "attached" | "detached" | "released" (a master's own `release`) | "lost" | "refused" |
-    # "disconnected" | "reconnected"
+    # "disconnected" | "reconnected", and for a slave that measures "adopted" | "joining" |
+    # "joined" (specs/robot-model.md)
     change: str
     reason: str
     time: float

@@ -113,6 +113,13 @@ class LinkMsg:
 
 
 @dataclass(slots=True)
+class RejoinMsg:
+    slave_id: str
+    reason: str
+    joints: dict[str, float] | None  # where the arm is now, if the slave knows
+
+
+@dataclass(slots=True)
 class DriverEndedMsg:
     peer: _Peer
     error: BaseException | None
@@ -154,6 +161,7 @@ Msg = (
     | FaultMsg
     | AliveMsg
     | LinkMsg
+    | RejoinMsg
     | DriverEndedMsg
     | WorkspaceMsg
     | EpisodeMsg

@@ -18,6 +18,7 @@ from arena.robot.events import (
 from arena.robot.inbox import (
     FaultMsg,
     LinkMsg,
+    RejoinMsg,
     StatesMsg,
 )
 from arena.robot.mailbox import EventQueue, LatestMailbox
@@ -174,6 +175,15 @@ class SlaveLink:
     async def connection_restored(self, reason: str = "reconnected") -> None:
         """The hardware answers again (nothing moves until a new target arrives)."""
         await self.robot._post(LinkMsg(self.slave_id, True, reason))
+
+    async def rejoin(self, reason: str, joints: Mapping[str, float] | None = None) -> None:
+        """The arm behind this slave may be somewhere else than the robot's targets say (it
+        was calibrated anew, or moved by hand with torque off): it joins again, from `joints`
+        (degrees, read just now) or else from its next report (specs/robot-model.md, "Slaves
+        that join")."""
+        await self.robot._post(
+            RejoinMsg(self.slave_id, reason, None if joints is None else dict(joints))
+        )
 
     async def detach(self, reason: str = "slave left") -> None:
         """Leave the robot."""

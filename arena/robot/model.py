@@ -16,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
+from arena.protocol.rest import MAX_JOIN_SPEED
 from arena.robot.collision import Workspace
 
 #: Folder of the robot types shipped with Arena.
@@ -42,6 +43,8 @@ class SafetyPolicy:
     estop_severity: Severity = Severity.CRITICAL
     control_rate: float = 100.0
     velocity_burst: float = 0.05
+    #: deg/s at which a measuring slave that joins is brought to the robot's pose.
+    join_speed: float = 15.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -207,11 +210,14 @@ def _safety_policy(section: dict[str, Any]) -> SafetyPolicy:
         estop_severity=Severity(section.get("estop_severity", Severity.CRITICAL)),
         control_rate=float(section.get("control_rate", 100.0)),
         velocity_burst=float(section.get("velocity_burst", 0.05)),
+        join_speed=float(section.get("join_speed", 15.0)),
     )
     if policy.command_rate <= 0 or policy.command_burst < 1 or policy.control_rate <= 0:
         raise ValueError("command_rate, command_burst and control_rate must be positive")
     if policy.velocity_burst < 0:
         raise ValueError("velocity_burst must not be negative")
+    if not 0 < policy.join_speed <= MAX_JOIN_SPEED:
+        raise ValueError(f"join_speed must be above 0 and at most {MAX_JOIN_SPEED:g} deg/s")
     return policy
 
 

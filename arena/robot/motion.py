@@ -176,6 +176,7 @@ class MotionLimiter:
         self, model: RobotModel, now: float, initial: Mapping[str, float] | None = None
     ) -> None:
         self._burst = model.safety.velocity_burst
+        self._clamps = {j.name: j.clamp for j in model.joints}
         start = dict(initial or {})
         self._joints = {
             j.name: _JointMotion(j.clamp(start.get(j.name, 0.0)), j.max_velocity, self._burst, now)
@@ -259,6 +260,21 @@ class MotionLimiter:
             motion.profile = None
         self._moving = False
 
+    def adopt(self, pose: Mapping[str, float]) -> dict[str, float]:
+        """Take `pose` (every joint, clamped to its limits) as where each joint is: the robot
+        learns where its arm is. A joint at rest stays there (its goal becomes that value);
+        a joint that a command is moving goes on to its goal from there, velocity-limited
+        (the command asked for that joint to move; a curve it was on is dropped). Returns
+        the pose taken."""
+        for name, motion in self._joints.items():
+            value = self._clamps[name](float(pose[name]))
+            if motion.position == motion.goal and motion.profile is None:
+                motion.goal = self._goals[name] = value
+            motion.position = value
+            motion.profile = None
+        self._moving = None
+        return self.positions
+
     def freeze(self) -> None:
         """Stop every joint where it is: goals become the current targets."""
         for name, motion in self._joints.items():
@@ -291,3 +307,43 @@ class RateLimiter:
             return True
         self._tokens = tokens
         return False
+
+
+class JoinRamp:
+    """A measuring slave's own targets while it joins: from where its arm is toward the robot's
+    targets, each joint at no more than `speed` deg/s (or its own lower velocity limit).
+
+    For any two targets it gives at times t1 <= t2 (the first compared with the measured
+    start), per joint: |x2 - x1| <= speed * (t2 - t1). No burst allowance: a joining arm is
+    the one place where the robot does not know that the way is clear, so it never jumps.
+    """
+
+    __slots__ = ("_last", "_speeds", "positions")
+
+    def __init__(
+        self, model: RobotModel, start: Mapping[str, float], speed: float, now: float
+    ) -> None:
+        self.positions = {j.name: float(start[j.name]) for j in model.joints}
+        self._speeds = {j.name: min(speed, j.max_velocity) for j in model.joints}
+        self._last = now
+
+    def advance(self, goal: Mapping[str, float], now: float) -> dict[str, float] | None:
+        """Step every joint toward `goal` (the robot's targets now) by what the time since
+        the last step allows. Returns the new targets, or None if nothing moved."""
+        elapsed = max(0.0, now - self._last)
+        self._last = now
+        changed = False
+        for name, position in self.positions.items():
+            delta = goal[name] - position
+            if delta == 0.0:
+                continue
+            step = self._speeds[name] * elapsed
+            self.positions[name] = (
+                goal[name] if abs(delta) <= step else position + math.copysign(step, delta)
+            )
+            changed = changed or step > 0.0
+        return dict(self.positions) if changed else None
+
+    def arrived(self, goal: Mapping[str, float]) -> bool:
+        """Whether every joint is at `goal`."""
+        return all(goal[name] == position for name, position in self.positions.items())

@@ -30,6 +30,7 @@ class PeerSnapshot:
     kind: str
     connected: bool = True
     last_error: str | None = None
+    joining: bool = False  # a slave not yet following the robot's targets (it joins)
 
 
 @dataclass(frozen=True, slots=True)

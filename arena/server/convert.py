@@ -110,6 +110,7 @@ def _peer(peer: PeerSnapshot | None) -> dict[str, Any] | None:
         "type": peer.kind,
         "connected": peer.connected,
         "last_error": peer.last_error,
+        "joining": peer.joining,
     }
 
 
