@@ -12,6 +12,7 @@ import os
 import re
 import signal
 import sys
+import threading
 import time
 from collections.abc import AsyncIterator, Callable
 from functools import partial
@@ -503,6 +504,46 @@ async def test_the_recorder_counts_overflow_and_writes_robots_in_time_order(
         if channel.topic.endswith("/command")
     ]
     assert refused == [(f"/robots/{r}/command", float(n)) for n in range(10, 30) for r in "ab"]
+
+
+async def test_a_stop_during_a_batch_in_flight_keeps_that_batch_in_the_stopped_file(
+    tmp_path: Path,
+) -> None:
+    # The periodic batch has drained the queues and its thread is on its way to the writer
+    # when `stop` comes: the stopped file must still hold what happened before the stop.
+    recorder = Recorder(tmp_path, flush_interval=0.05, batch_interval=0.05)
+    in_flight = threading.Event()
+    go_on = threading.Event()
+    write_events = recorder.writer.write_events
+
+    def held(slices: list[bytes], *, flush: bool = True) -> None:
+        if slices:  # the batch with the command: wait here, before the writer's lock
+            in_flight.set()
+            go_on.wait(30)
+        write_events(slices, flush=flush)
+
+    async with trio.open_nursery() as nursery:
+        await nursery.start(recorder.run)
+        async with open_manager() as manager:
+            manager.on_create.append(recorder.follow)
+            robot = await manager.create_robot("so-arm100", robot_id="arm")
+            recorder.writer.write_events = held  # type: ignore[method-assign]
+            await robot.command(Command.of({"Rotation": 5.0}))
+            await trio.to_thread.run_sync(in_flight.wait, 30)
+            async with trio.open_nursery() as stopping:
+                stopped: list[Path | None] = []
+
+                async def stop() -> None:
+                    stopped.append(await recorder.stop())
+
+                stopping.start_soon(stop)
+                await trio.sleep(0.2)  # time for a stop that does not wait to close the file
+                go_on.set()
+        nursery.cancel_scope.cancel()
+    (path,) = stopped
+    assert path is not None
+    commands = [m.data for m in read_recording(path).messages if m.kind == "command"]
+    assert [c["joints"][0]["value"] for c in commands] == [5.0]
 
 
 async def test_records_reach_the_disk_within_a_flush_interval_when_the_robot_goes_quiet(

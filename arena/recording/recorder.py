@@ -128,6 +128,7 @@ class Recorder:
         self._wall_offset = 0.0  # wall clock minus trio's clock, taken when `run` starts
         self._next_flush = 0.0
         self._unflushed = False  # records handed over since the last flush
+        self._writing = trio.Lock()  # one batch from collection to the writer at a time
 
     @property
     def folder(self) -> Path:
@@ -186,12 +187,14 @@ class Recorder:
 
     async def stop(self) -> Path | None:
         """Pause recording and finish the current file; returns its path."""
-        batch = await self._collect()  # what happened up to now still goes in
-        self.active = False
-        await self._write(batch)
-        # The file is known only now: a batch in flight when `stop` was called may be the one
-        # that opened it (`close` waits for it).
-        return await trio.to_thread.run_sync(self.writer.close)
+        # After the batch in flight, if any: its thread could otherwise reach the writer after
+        # `close` and put what happened before the stop into the next file.
+        async with self._writing:
+            batch = await self._collect()  # what happened up to now still goes in
+            self.active = False
+            await self._write(batch)
+            # The file is known only now: the batch in flight may be the one that opened it.
+            return await trio.to_thread.run_sync(self.writer.close)
 
     async def _collect(self) -> _Batch:
         """Drain every followed robot's queue and pack the events (none while paused)."""
@@ -223,7 +226,8 @@ class Recorder:
             await self._write_pending(flush=trio.current_time() >= self._next_flush)
 
     async def _write_pending(self, flush: bool = True) -> None:
-        await self._write(await self._collect(), flush)
+        async with self._writing:
+            await self._write(await self._collect(), flush)
 
     async def _write(self, batch: _Batch, flush: bool = True) -> None:
         if not batch.events and not (flush and self._unflushed):
