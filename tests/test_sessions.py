@@ -4,6 +4,7 @@ may take a robot over (and the displaced master told who did). Real servers on p
 from __future__ import annotations
 
 import base64
+import contextlib
 import hashlib
 import json
 import re
@@ -380,3 +381,60 @@ async def test_a_websocket_takeover_names_the_person_who_took_over(server: Runni
         "description": "WebSocket client",
     }
     assert "'carol'" in told["data"]["message"]
+
+
+# --- what the master is, in the robot's details ----------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("start", "kind", "description"),
+    [
+        (
+            ("/api/robots/demo-arm/master", {"type": "mock-sequence", "loop": True}),
+            "mock-sequence",
+            "sequences 'gentle-wave', 'small-scan', 'tiny-flex' in a loop",
+        ),
+        (
+            ("/api/robots/demo-arm/replay", {"recording": "golden.mcap", "loop": True}),
+            "replay",
+            "replay of 'golden.mcap' in a loop",
+        ),
+        (None, "websocket", "WebSocket client"),
+    ],
+    ids=["sequences", "replay", "websocket"],
+)
+async def test_the_robot_details_and_its_viewers_say_what_the_master_is(
+    server: RunningServer,
+    start: tuple[str, dict[str, Any]] | None,
+    kind: str,
+    description: str,
+) -> None:
+    folder = Path(server.app.recorder.folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "golden.mcap").write_bytes(GOLDEN.read_bytes())
+    viewer_url = server.ws_url + "/ws/robots/demo-arm/state"
+    async with (
+        open_websocket_url(viewer_url) as viewer,
+        server.client() as http,
+        contextlib.AsyncExitStack() as held,
+    ):
+        assert (await until_type(viewer, "state"))["data"]["master"] is None
+        if start is None:  # a person's WebSocket, held open while the details are read
+            url = server.ws_url + "/ws/master/demo-arm?id=alice"
+            await held.enter_async_context(open_websocket_url(url))
+            master_id = "alice"
+        else:  # looping, so that it still plays when the details are read
+            answer = await http.post(start[0], json=start[1])
+            assert answer.status_code in (200, 201), answer.text
+            master_id = answer.json().get("id") or answer.json()["master"]
+        expected = {"id": master_id, "kind": kind, "description": description}
+        assert (await until_type(viewer, "state"))["data"]["master"] == expected
+        shown = [
+            (await http.get("/api/robots/demo-arm")).json()["master"],
+            (await http.get("/api/robots/demo-arm/status")).json()["master"],
+            *[r["master"] for r in (await http.get("/api/robots")).json() if r["id"] == "demo-arm"],
+        ]
+    assert len(shown) == 3
+    for entry in shown:
+        assert {key: entry[key] for key in expected} == expected
+        assert entry["type"] == kind and entry["connected"] is True

@@ -49,9 +49,11 @@ class SequenceMaster:
 
     @property
     def description(self) -> str:
-        """What it plays, in words (told to a master it takes over from)."""
+        """What it plays, in words (told to a master it takes over from, shown with the
+        robot's master)."""
         names = ", ".join(repr(sequence.id) for sequence in self.sequences)
-        return f"sequence {names}" if len(self.sequences) == 1 else f"sequences {names}"
+        what = f"sequence {names}" if len(self.sequences) == 1 else f"sequences {names}"
+        return f"{what} in a loop" if self.loop else what
 
     def start(self) -> None:
         """Begin playing (for a master created with `auto_start=False`)."""

@@ -226,13 +226,24 @@ class JointStatesOut(_Msg, tag="joint_states"):
     data: list[JointStateOut] = msgspec.field(default_factory=list)
 
 
+class MasterInfo(msgspec.Struct):
+    """A robot's master: its label (`id`, the state's `owner`), its kind (`websocket`,
+    `mock-sequence`, `replay`, ...) and what it is in words (`sequence 'gentle-wave'`,
+    `replay of 'x.mcap'`, `WebSocket client`), as `TakenBy` names one."""
+
+    id: str
+    kind: str
+    description: str
+
+
 class StateData(msgspec.Struct):
-    """A robot's safety state."""
+    """A robot's safety state, and its master (null when it has none)."""
 
     robot_id: str
     mode: str
     owner: str | None
     estop_reason: str | None
+    master: MasterInfo | None
 
 
 class StateMessage(_Msg, tag="state"):

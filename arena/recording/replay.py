@@ -119,8 +119,9 @@ class ReplayMaster:
 
     @property
     def description(self) -> str:
-        """What it replays, in words (told to a master it takes over from)."""
-        return f"replay of {self.name!r}"
+        """What it replays, in words (told to a master it takes over from, shown with the
+        robot's master)."""
+        return f"replay of {self.name!r}" + (" in a loop" if self.loop else "")
 
     async def run(self, link: MasterLink) -> None:
         """Issue every command at its (scaled) time; loop if asked."""

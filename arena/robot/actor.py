@@ -80,6 +80,7 @@ class _Peer:
     last_error: str | None = None
     real: dict[str, float] = field(default_factory=dict)
     connected: bool = True
+    description: str = ""  # what a master is, in words ("sequence 'gentle-wave'")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -677,6 +678,7 @@ class Robot:
         peer = _Peer(
             peer_id, message.role, message.kind, link, scope, message.heartbeat_timeout, now
         )
+        peer.description = message.description
         if message.role == "master":
             self._master = peer
         else:
@@ -1137,5 +1139,11 @@ class Robot:
     @staticmethod
     def _peer_snapshot(peer: _Peer, joining: bool = False) -> PeerSnapshot:
         return PeerSnapshot(
-            peer.peer_id, peer.role, peer.kind, peer.connected, peer.last_error, joining
+            peer.peer_id,
+            peer.role,
+            peer.kind,
+            peer.connected,
+            peer.last_error,
+            joining,
+            peer.description,
         )

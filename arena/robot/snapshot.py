@@ -31,6 +31,7 @@ class PeerSnapshot:
     connected: bool = True
     last_error: str | None = None
     joining: bool = False  # a slave not yet following the robot's targets (it joins)
+    description: str = ""  # a master's, in words ("replay of 'x.mcap'")
 
 
 @dataclass(frozen=True, slots=True)

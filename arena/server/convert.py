@@ -75,11 +75,19 @@ class JointStatesView:
 
 
 def state(snapshot: RobotSnapshot) -> wire.StateMessage:
-    """The robot's safety state."""
+    """The robot's safety state, and what its master is."""
+    master = snapshot.master
+    info = (
+        None if master is None else wire.MasterInfo(master.peer_id, master.kind, master.description)
+    )
     return wire.StateMessage(
         timestamp=wire.now_iso(),
         data=wire.StateData(
-            snapshot.robot_id, str(snapshot.mode), snapshot.owner, snapshot.estop_reason
+            snapshot.robot_id,
+            str(snapshot.mode),
+            snapshot.owner,
+            snapshot.estop_reason,
+            info,
         ),
     )
 
@@ -102,9 +110,7 @@ def to_slave(message: SlaveTarget | SlaveNotice) -> msgspec.Struct:
     return _NOTICES[message.kind](timestamp=wire.now_iso(), data=wire.NoticeData(message.reason))
 
 
-def _peer(peer: PeerSnapshot | None) -> dict[str, Any] | None:
-    if peer is None:
-        return None
+def _peer(peer: PeerSnapshot) -> dict[str, Any]:
     return {
         "id": peer.peer_id,
         "type": peer.kind,
@@ -112,6 +118,14 @@ def _peer(peer: PeerSnapshot | None) -> dict[str, Any] | None:
         "last_error": peer.last_error,
         "joining": peer.joining,
     }
+
+
+def _master(peer: PeerSnapshot | None) -> dict[str, Any] | None:
+    """A master as a peer, with its `kind` and `description` as `TAKEN_OVER`'s `by` names
+    them (`kind` is its `type`): a client shows what plays without having started it."""
+    if peer is None:
+        return None
+    return _peer(peer) | {"kind": peer.kind, "description": peer.description}
 
 
 def robot_summary(robot: Robot) -> dict[str, Any]:
@@ -124,7 +138,7 @@ def robot_summary(robot: Robot) -> dict[str, Any]:
         "state": str(snapshot.mode),
         "owner": snapshot.owner,
         "estop_reason": snapshot.estop_reason,
-        "master": _peer(snapshot.master),
+        "master": _master(snapshot.master),
         "slaves": [_peer(s) for s in snapshot.slaves],
         "joints": msgspec.to_builtins(joint_states(robot).data),
     }
@@ -137,7 +151,7 @@ def robot_status(robot: Robot) -> dict[str, Any]:
         "id": snapshot.robot_id,
         "state": str(snapshot.mode),
         "has_master": snapshot.master is not None,
-        "master": _peer(snapshot.master),
+        "master": _master(snapshot.master),
         "slave_count": len(snapshot.slaves),
         "slaves": [_peer(s) for s in snapshot.slaves],
         "estop_reason": snapshot.estop_reason,
