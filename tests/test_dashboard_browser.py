@@ -6,6 +6,7 @@ server on 127.0.0.1. Each test leaves a screenshot in tests/screenshots/.
 
 from __future__ import annotations
 
+import json
 import queue
 import re
 import shutil
@@ -20,6 +21,7 @@ from typing import Any
 import httpx
 import pytest
 import trio
+import websockets.sync.client
 
 from arena.server import dashboard
 from arena.server.config import ServerConfig
@@ -118,9 +120,8 @@ def browser() -> Iterator[Browser]:
 def checked_page(browser: Browser, name: str, **options: Any) -> Iterator[Page]:
     """A page in a fresh browser context (`options` go to the context); page errors fail the
     test; a screenshot `name`.png is taken at the end."""
-    context = browser.new_context(
-        viewport={"width": 1280, "height": 900}, accept_downloads=True, **options
-    )
+    options = {"viewport": {"width": 1280, "height": 900}, **options}
+    context = browser.new_context(accept_downloads=True, **options)
     opened = context.new_page()
     errors: list[str] = []
     opened.on("pageerror", lambda error: errors.append(str(error)))
@@ -497,7 +498,9 @@ def test_robot_creation_and_control(
         # Its 3D view shows the slave's measured pose, and the master line what plays.
         expect(page.locator("#twin-legend")).to_contain_text("measured")
         expect(page.locator("#twin-legend")).not_to_contain_text("no slave")
-        expect(page.locator("#master-line")).to_contain_text("demo sequences")
+        expect(page.locator("#master-line")).to_contain_text(
+            "Playing sequences 'gentle-wave', 'small-scan', 'tiny-flex' in a loop"
+        )
 
 
 def test_the_only_robot_opens_at_once_and_ids_tell_robots_apart(
@@ -615,25 +618,97 @@ def test_the_page_says_which_sequence_plays(start_live: Any, page: Page) -> None
     page.select_option("#sequence", "small-scan")
     page.click("#play")
     line = page.locator("#master-line")
-    expect(line).to_contain_text("Playing Small Scanning Pattern (small-scan, 8 s)")
+    expect(line).to_contain_text("Playing sequence 'small-scan' (master 'master-")
+    expect(line).to_contain_text(", mock-sequence): the sliders are locked.")
     expect(page.locator('[data-testid="robot-status"]')).to_contain_text("Master + Slaves")
-    # Reloaded, the page still knows what plays.
+    # Reloaded, the page still knows what plays: the server says.
     page.reload()
-    expect(line).to_contain_text("Playing Small Scanning Pattern")
-    # The demo sequences take over only when asked twice: the first click is refused.
+    expect(line).to_contain_text("Playing sequence 'small-scan'")
+    # The demo sequences take over only when asked twice: the first click is refused, and the
+    # page says who holds the robot.
     connect = page.locator('[data-testid="connect-demo-sequences"]')
     connect.click()
-    expect(page.locator("#events")).to_contain_text("MASTER_ACTIVE")
+    events = page.locator("#events")
+    expect(events).to_contain_text("MASTER_ACTIVE")
+    expect(events).to_contain_text("It is held by sequence 'small-scan' (master 'master-")
     expect(connect).to_have_text("Take over with the demo sequences?")
-    expect(line).to_contain_text("Playing Small Scanning Pattern")
+    expect(line).to_contain_text("Playing sequence 'small-scan'")
     connect.click()
     expect(line).to_contain_text(
-        "Playing the demo sequences in a loop (gentle-wave, small-scan, tiny-flex)"
+        "Playing sequences 'gentle-wave', 'small-scan', 'tiny-flex' in a loop"
     )
     expect(connect).to_have_text("Connect demo sequences")
     page.click("#stop-sequence")
     expect(line).to_have_text("No master: the sliders drive the robot.")
     expect(page.locator('[data-testid="robot-status"]')).to_have_text("Slaves, no master")
+
+
+def test_the_page_says_what_plays_when_another_client_started_it(
+    start_live: Any, page: Page, tmp_path: Path
+) -> None:
+    folder = tmp_path / "recordings"
+    folder.mkdir()
+    shutil.copy(GOLDEN / "gentle-wave.mcap", folder)
+    server = start_live(demo=True, recordings_dir=str(folder))
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    line = page.locator("#master-line")
+    expect(line).to_have_text("No master: the sliders drive the robot.")
+    with server.http() as http:  # another client, not this page
+        body = {"type": "mock-sequence", "sequences": ["tiny-flex"], "loop": True}
+        sequence = http.post("/api/robots/demo-arm/master", json=body).json()["id"]
+        expect(line).to_have_text(
+            f"Playing sequence 'tiny-flex' in a loop (master '{sequence}', mock-sequence): "
+            "the sliders are locked."
+        )
+        body = {"recording": "gentle-wave.mcap", "loop": True, "takeover": True}
+        replay = http.post("/api/robots/demo-arm/replay", json=body).json()["master"]
+        expect(line).to_have_text(
+            f"Playing replay of 'gentle-wave.mcap' in a loop (master '{replay}', replay): "
+            "the sliders are locked."
+        )
+    ws_url = server.url.replace("http://", "ws://") + "/ws/master/demo-arm?id=alice&takeover=1"
+    with websockets.sync.client.connect(ws_url):
+        expect(line).to_have_text(
+            "Held by WebSocket client (master 'alice', websocket): the sliders are locked."
+        )
+        expect(page.locator("#robot-status")).to_have_attribute(
+            "title", re.compile(r"^WebSocket client \(master 'alice', websocket\)")
+        )
+    # Its socket closed without a release: the robot e-stops, and the page says why.
+    expect(line).to_contain_text("E-stopped: master 'alice' lost")
+
+
+def test_a_replay_onto_a_held_robot_takes_over_on_a_second_click(
+    start_live: Any, page: Page, tmp_path: Path
+) -> None:
+    folder = tmp_path / "recordings"
+    folder.mkdir()
+    shutil.copy(GOLDEN / "gentle-wave.mcap", folder)
+    server = start_live(demo=True, recordings_dir=str(folder))
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    line = page.locator("#master-line")
+    ws_url = server.url.replace("http://", "ws://") + "/ws/master/demo-arm?id=alice"
+    with websockets.sync.client.connect(ws_url) as alice:
+        expect(line).to_contain_text("Held by WebSocket client (master 'alice'")
+        golden = page.locator('#recording-list li[data-recording="gentle-wave.mcap"]')
+        replay = golden.locator("button[data-replay]")
+        expect(replay).to_have_text("Replay")
+        # The first click is refused: the page says why and who holds the robot.
+        replay.click()
+        events = page.locator("#events")
+        expect(events).to_contain_text("MASTER_ACTIVE")
+        expect(events).to_contain_text("It is held by WebSocket client (master 'alice', websocket)")
+        expect(replay).to_have_text("Take over with this replay?")
+        expect(line).to_contain_text("Held by WebSocket client (master 'alice'")
+        # The second takes over; alice is told who did.
+        replay.click()
+        expect(line).to_contain_text("Playing replay of 'gentle-wave.mcap' (master '")
+        expect(replay).to_have_text("Replay")
+        told = json.loads(alice.recv(timeout=WAIT_MS / 1000))
+        while told["type"] != "detached":
+            told = json.loads(alice.recv(timeout=WAIT_MS / 1000))
+    assert told["data"]["code"] == "TAKEN_OVER"
+    assert told["data"]["by"]["description"] == "replay of 'gentle-wave.mcap'"
 
 
 def test_a_plot_opens_large_enough_to_read(start_live: Any, page: Page, tmp_path: Path) -> None:
@@ -671,3 +746,4 @@ def test_a_double_click_on_create_robot_makes_one_robot(start_live: Any, page: P
         robots = http.get("/api/robots").json()
     assert len(robots) == 1, robots
     expect(page.locator("#robot-list li")).to_have_count(1)
+

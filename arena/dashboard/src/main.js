@@ -2,9 +2,9 @@
 // stop buttons, the API key, and the periodic refresh of what the sockets do not push.
 
 import { ApiError, apiKey, call, callReporting, setApiKey } from "./api.js";
-import { forgetRobot, rememberPlaying, setServerUptime } from "./playing.js";
 import { RecordingsPanel } from "./recordings.js";
-import { RobotView } from "./robot_view.js";
+import { masterText, RobotView } from "./robot_view.js";
+import { SecondClickTakeover } from "./takeover.js";
 
 const $ = (id) => document.getElementById(id);
 const REFRESH_MS = 1000;
@@ -14,7 +14,6 @@ const CHOOSE = "Choose a robot from the list.";
 
 let view = null; // the RobotView of the selected robot
 let robots = [];
-let sequences = []; // the server's demo sequences, as `GET /api/sequences` lists them
 let creating = false; // a robot is being created: no other is opened meanwhile
 let refreshes = 0; // counts refreshes: an older one that ends late changes nothing
 
@@ -29,13 +28,28 @@ function report(text, isError = false) {
   $("notice").className = isError ? "error" : "muted";
 }
 
-const recordings = new RecordingsPanel({ selectedRobot: selectedId, report });
+// Connect demo sequences and Replay take a robot over from its master on a second click;
+// one thing is armed at a time.
+const CONNECT_LABEL = "Connect demo sequences";
+const takeover = new SecondClickTakeover(() => {
+  const armed = takeover.isArmed(selectedId());
+  $("connect-demo").textContent = armed ? "Take over with the demo sequences?" : CONNECT_LABEL;
+  $("connect-demo").classList.toggle("armed", armed);
+  recordings.showArmed();
+});
+
+/** Who holds the selected robot, in words (as `masterText` says it), as far as known. */
+function holder() {
+  const master = view && view.robotId === selectedId() ? view.master() : null;
+  return master ? masterText(master) : "";
+}
+
+const recordings = new RecordingsPanel({ selectedRobot: selectedId, report, takeover, holder });
 
 async function refresh() {
   const mine = ++refreshes;
   try {
     const status = await call("GET", "/");
-    setServerUptime(status.uptime_s);
     $("server-status").textContent =
       `${status.robots} robot${status.robots === 1 ? "" : "s"}, ` +
       `recording ${status.recording.active ? (status.recording.error ? "FAILING" : "on") : "off"}` +
@@ -116,7 +130,7 @@ function showRobotList() {
     const state = document.createElement("span");
     state.className = `state ${robot.state}`;
     state.textContent = robot.master ? `${robot.state} by ${robot.master.id}` : robot.state;
-    if (robot.estop_reason) state.title = robot.estop_reason;
+    state.title = robot.estop_reason || (robot.master ? masterText(robot.master) : "");
     item.append(link, state);
     if (robot.node) {
       const node = document.createElement("span");
@@ -169,50 +183,25 @@ function wireRobotControls() {
     createRobot();
   });
   $("play").addEventListener("click", async () => {
-    const robot = selectedId();
-    const chosen = sequences.find((sequence) => sequence.id === $("sequence").value);
+    const chosen = $("sequence").value;
     if (!chosen) return;
-    const path = `${robotPath()}/play-sequence/${encodeURIComponent(chosen.id)}`;
-    const answer = await callReporting(report, "POST", path);
-    if (!answer) return;
-    const text = `Playing ${chosen.name} (${chosen.id}, ${chosen.duration / 1000} s)`;
-    rememberPlaying(robot, { id: answer.master, type: "mock-sequence" }, text);
-    await refresh();
+    await act("POST", `${robotPath()}/play-sequence/${encodeURIComponent(chosen)}`);
   });
-  // The seed's "connect demo sequences": every demo sequence, looping, as the robot's master.
-  // A master that holds the robot is displaced only on a second click: the first asks without
-  // taking over, and the server's MASTER_ACTIVE (naming the holder) arms the button.
-  const connect = $("connect-demo");
-  const label = connect.textContent;
-  let disarm = null;
-  connect.addEventListener("click", async () => {
+  // The seed's "connect demo sequences": every demo sequence, looping, as the robot's master;
+  // it takes over from a master that holds the robot only on a second click.
+  $("connect-demo").addEventListener("click", async () => {
     const robot = selectedId();
-    const takeover = connect.dataset.armed === robot;
-    clearTimeout(disarm);
-    delete connect.dataset.armed;
-    connect.textContent = label;
-    let answer;
-    try {
-      answer = await call("POST", `/api/robots/${encodeURIComponent(robot)}/master`, {
-        type: "mock-sequence",
-        loop: true,
-        takeover,
-      });
-    } catch (error) {
-      report(`${error.code}: ${error.message}`, true);
-      if (error.code === "MASTER_ACTIVE" && !takeover && selectedId() === robot) {
-        connect.dataset.armed = robot;
-        connect.textContent = "Take over with the demo sequences?";
-        disarm = setTimeout(() => {
-          delete connect.dataset.armed;
-          connect.textContent = label;
-        }, 4000);
-      }
-      return;
-    }
-    const ids = sequences.map((sequence) => sequence.id).join(", ");
-    rememberPlaying(robot, answer, `Playing the demo sequences in a loop (${ids})`);
-    await refresh();
+    const answer = await takeover.request(
+      robot,
+      (asked) =>
+        call("POST", `/api/robots/${encodeURIComponent(robot)}/master`, {
+          type: "mock-sequence",
+          loop: true,
+          takeover: asked,
+        }),
+      { report, holder, stillWanted: () => selectedId() === robot },
+    );
+    if (answer) await refresh();
   });
   $("stop-sequence").addEventListener("click", () => act("POST", `${robotPath()}/stop-sequence`));
   $("add-mock").addEventListener("click", () =>
@@ -247,12 +236,8 @@ function wireRobotControls() {
       }, 4000);
       return;
     }
-    const robot = selectedId();
     const answer = await act("DELETE", robotPath());
-    if (answer) {
-      forgetRobot(robot);
-      location.hash = "";
-    }
+    if (answer) location.hash = "";
   });
 }
 
@@ -284,8 +269,7 @@ async function createRobot() {
 
 async function fillChoices() {
   try {
-    let types;
-    [types, sequences] = await Promise.all([
+    const [types, sequences] = await Promise.all([
       call("GET", "/api/robot-types"),
       call("GET", "/api/sequences"),
     ]);
@@ -307,6 +291,9 @@ async function fillChoices() {
 
 wireHeader();
 wireRobotControls();
-window.addEventListener("hashchange", refresh);
+window.addEventListener("hashchange", () => {
+  takeover.disarm(); // armed for the robot that was on screen
+  refresh();
+});
 fillChoices().then(refresh);
 setInterval(refresh, REFRESH_MS);

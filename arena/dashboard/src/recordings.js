@@ -3,7 +3,6 @@
 // page, as wide as the screen allows, with labelled axes).
 
 import { call, callReporting, download } from "./api.js";
-import { rememberPlaying } from "./playing.js";
 
 const $ = (id) => document.getElementById(id);
 const COLORS = ["#e8a33d", "#3d8be8", "#46c37b", "#e5484d", "#b07be8", "#3dd6e8", "#e87bd0"];
@@ -14,10 +13,14 @@ function size(bytes) {
 }
 
 export class RecordingsPanel {
-  /** `selectedRobot()` names the robot a replay goes to; `report(text, isError)` logs. */
-  constructor({ selectedRobot, report }) {
+  /** `selectedRobot()` names the robot a replay goes to; `report(text, isError)` logs; a
+   * replay onto a robot with a master takes over on a second click (`takeover`, a
+   * SecondClickTakeover; `holder()` says who holds the selected robot). */
+  constructor({ selectedRobot, report, takeover, holder }) {
     this.selectedRobot = selectedRobot;
     this.report = report;
+    this.takeover = takeover;
+    this.holder = holder;
     $("record-start").addEventListener("click", () => this.act("POST", "/api/recordings"));
     $("record-stop").addEventListener("click", () =>
       this.act("POST", "/api/recordings/current/stop"),
@@ -75,12 +78,32 @@ export class RecordingsPanel {
             (error) => this.report(`${error.code}: ${error.message}`, true),
           ),
         ),
-        this.button("Replay", () => this.replay(file.name)),
+        this.replayButton(file.name),
         this.button("Plot", () => this.plot(file.name)),
       );
       list.append(item);
     }
     if (!listing.recordings.length) list.innerHTML = '<li class="muted">no recordings yet</li>';
+    this.showArmed();
+  }
+
+  replayButton(name) {
+    const button = this.button("Replay", () => this.replay(name));
+    button.dataset.replay = name;
+    return button;
+  }
+
+  /** Label each Replay button: the one refused a moment ago offers to take over. */
+  showArmed() {
+    for (const button of document.querySelectorAll("#recording-list button[data-replay]")) {
+      const armed = this.takeover.isArmed(this.replayKey(button.dataset.replay));
+      button.textContent = armed ? "Take over with this replay?" : "Replay";
+      button.classList.toggle("armed", armed);
+    }
+  }
+
+  replayKey(name) {
+    return JSON.stringify([this.selectedRobot(), name]);
   }
 
   button(text, onClick) {
@@ -92,19 +115,26 @@ export class RecordingsPanel {
     return button;
   }
 
+  /** Replay `name` onto the selected robot; over a master only on a second click. */
   async replay(name) {
     const robot = this.selectedRobot();
     if (!robot) {
       this.report("Choose a robot to replay onto first.", true);
       return;
     }
-    const answer = await this.act("POST", `/api/robots/${encodeURIComponent(robot)}/replay`, {
-      recording: name,
-    });
-    if (answer) {
-      rememberPlaying(robot, { id: answer.master, type: "replay" }, `Replaying ${name}`);
-      this.report(`replaying ${name} onto ${robot} as master ${answer.master}`);
-    }
+    const key = this.replayKey(name);
+    const answer = await this.takeover.request(
+      key,
+      (takeover) =>
+        call("POST", `/api/robots/${encodeURIComponent(robot)}/replay`, {
+          recording: name,
+          takeover,
+        }),
+      { report: this.report, holder: this.holder, stillWanted: () => this.replayKey(name) === key },
+    );
+    if (!answer) return;
+    this.report(`replaying ${name} onto ${robot} as master ${answer.master}`);
+    await this.refresh();
   }
 
   /** Draw every joint of one robot of the recording: virtual solid, real dashed. */

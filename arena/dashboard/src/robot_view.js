@@ -2,7 +2,6 @@
 // master and slaves, recent events. Everything goes through the public API.
 
 import { apiKey, call, callReporting, watchRobot } from "./api.js";
-import { recallPlaying } from "./playing.js";
 import { COMMANDED_COLOR, cssColor, MEASURED_COLOR, Twin } from "./twin.js";
 
 const $ = (id) => document.getElementById(id);
@@ -11,6 +10,8 @@ const $ = (id) => document.getElementById(id);
 // command rate limit, and smooth enough for a hand on a slider.
 const SEND_INTERVAL = 50;
 const MAX_EVENTS = 30;
+// Masters that play something by themselves (the master line says "Playing ...").
+const PLAYERS = new Set(["mock-sequence", "replay"]);
 
 /** The two things a COLLISION refusal names ("... would bring lower_arm and floor together"). */
 function collidingParts(message) {
@@ -30,6 +31,15 @@ function attachedText(summary) {
   if (master) return "Master, no slave";
   if (slaves) return "Slaves, no master";
   return "No master, no slave";
+}
+
+/** What a master is, in the server's words: "sequence 'gentle-wave' (master 'master-3',
+ * mock-sequence)"; without a description, "master 'alice' (websocket)". */
+export function masterText(master) {
+  const kind = master.kind || master.type;
+  return master.description
+    ? `${master.description} (master '${master.id}', ${kind})`
+    : `master '${master.id}' (${kind})`;
 }
 
 /** Colour the twin legend's swatches as the twin draws the arms. */
@@ -124,13 +134,18 @@ export class RobotView {
     const status = $("robot-status");
     status.textContent = attachedText(summary);
     status.title = [
-      summary.master ? `master ${summary.master.id} (${summary.master.type})` : "no master",
+      summary.master ? masterText(summary.master) : "no master",
       ...summary.slaves.map((slave) => `slave ${slave.id} (${slave.type})`),
     ].join(", ");
     if (this.twin) this.twin.setMeasuring(summary.slaves.length > 0);
     this.showLegend();
     if (!this.state) {
-      this.applyState({ mode: summary.state, owner: summary.owner, estop_reason: summary.estop_reason });
+      this.applyState({
+        mode: summary.state,
+        owner: summary.owner,
+        estop_reason: summary.estop_reason,
+        master: summary.master,
+      });
     }
     this.showMaster();
     const peers = $("peers");
@@ -147,6 +162,7 @@ export class RobotView {
       tag.textContent = peer.connected ? "connected" : "disconnected";
       const label = document.createElement("span");
       label.textContent = `${role}: ${peer.id} (${peer.type})`;
+      if (peer.description) label.title = peer.description;
       const detach = document.createElement("button");
       detach.type = "button";
       detach.textContent = "Detach";
@@ -252,19 +268,27 @@ export class RobotView {
     this.showMaster();
   }
 
+  /** The robot's master ({id, kind, description}) or null: as the newest pushed state says
+   * (every change of master pushes one), else as the robot's details do. */
+  master() {
+    const pushed = this.state && this.state.master;
+    return pushed !== undefined ? pushed : this.summary.master;
+  }
+
+  /** The master line: what plays or who holds the robot, in the server's words. */
   showMaster() {
     const state = this.state || {};
-    const master = this.summary.master;
-    const playing = master && recallPlaying(this.robotId, master);
+    const master = this.master();
+    const line = $("master-line");
     let text;
     if (state.mode === "estopped") text = `E-stopped: ${state.estop_reason || "no reason given"}. Reset to move again.`;
-    else if (playing) text = `${playing}: master ${master.id} (${master.type}); the sliders are locked.`;
-    else if (master && master.type === "mock-sequence") {
-      text = `Playing a sequence this tab did not start: master ${master.id} (${master.type}); the sliders are locked.`;
-    } else if (master) text = `Held by master ${master.id} (${master.type}): the sliders are locked.`;
-    else if (state.owner) text = `Held by master ${state.owner}: the sliders are locked.`;
+    else if (master && PLAYERS.has(master.kind)) {
+      text = `Playing ${masterText(master)}: the sliders are locked.`;
+    } else if (master) text = `Held by ${masterText(master)}: the sliders are locked.`;
+    else if (state.owner) text = `Held by master '${state.owner}': the sliders are locked.`;
     else text = "No master: the sliders drive the robot.";
-    $("master-line").textContent = text;
+    line.textContent = text;
+    line.dataset.masterKind = master ? master.kind || master.type : "";
   }
 
   showJoints(joints) {
