@@ -55,6 +55,46 @@ export function parseUrdf(text) {
   return { links, joints };
 }
 
+/** The distance from `object`'s origin to the furthest vertex of its meshes (matrices
+ * up to date). Vertices, not bounding boxes: a box's corners lie well beyond a slanted part. */
+function furthestVertex(object) {
+  const inverse = object.matrixWorld.clone().invert();
+  const point = new THREE.Vector3();
+  let furthest = 0;
+  object.traverse((part) => {
+    if (!part.isMesh) return;
+    const toObject = inverse.clone().multiply(part.matrixWorld);
+    const positions = part.geometry.attributes.position;
+    for (let i = 0; i < positions.count; i++) {
+      point.fromBufferAttribute(positions, i).applyMatrix4(toObject);
+      furthest = Math.max(furthest, point.length());
+    }
+  });
+  return furthest;
+}
+
+/** Points on the surface of what an arm of `reach` can reach (three.js axes, y up, its base
+ * at the origin): the sphere of its reach, cut at the floor (`floor` height, -reach for none),
+ * with the circle where the floor cuts it. */
+function reachable(reach, floor) {
+  const points = [];
+  const count = 400;
+  for (let i = 0; i < count; i++) {
+    // spread evenly over the sphere (a Fibonacci spiral)
+    const y = 1 - (2 * (i + 0.5)) / count;
+    const around = Math.sqrt(1 - y * y);
+    const angle = i * Math.PI * (3 - Math.sqrt(5));
+    const point = new THREE.Vector3(around * Math.cos(angle), y, around * Math.sin(angle));
+    if (point.y * reach >= floor) points.push(point.multiplyScalar(reach));
+  }
+  const rim = Math.sqrt(Math.max(reach * reach - floor * floor, 0));
+  for (let i = 0; i < 48; i++) {
+    const angle = (i / 48) * 2 * Math.PI;
+    points.push(new THREE.Vector3(rim * Math.cos(angle), floor, rim * Math.sin(angle)));
+  }
+  return points;
+}
+
 /** One drawable copy of the robot: its root object and a setter for joint angles (radians).
  * With `outline` (a line material and a cache of edge geometries) each part is outlined too. */
 class RobotCopy {
@@ -85,6 +125,13 @@ class RobotCopy {
       }
       this.linkObjects.set(object.name, object);
     }
+    // How far each link's parts reach from its frame's origin (its own parts only: taken
+    // before the child links hang on it), for the arm's reach below.
+    const partsReach = new Map();
+    for (const [name, object] of this.linkObjects) {
+      object.updateMatrixWorld(true);
+      partsReach.set(name, furthestVertex(object));
+    }
     const children = new Set(urdf.joints.map((j) => j.child));
     for (const joint of urdf.joints) {
       const frame = new THREE.Group();
@@ -98,6 +145,18 @@ class RobotCopy {
     for (const [name, object] of this.linkObjects) {
       if (!children.has(name)) this.root.add(object);
     }
+    // The arm's reach: no part of it, in any pose, is further than this from its base. Each
+    // link's frame is at most the sum of the joint offsets above it away (a prismatic joint
+    // would add its travel; these arms have none), and its parts reach further by their own.
+    const frameReach = (name) => {
+      const joint = urdf.joints.find((j) => j.child === name);
+      if (!joint) return 0;
+      const offset = new THREE.Vector3(...triple(joint.origin?.getAttribute("xyz"))).length();
+      return frameReach(joint.parent) + offset;
+    };
+    this.reach = Math.max(
+      ...[...this.linkObjects.keys()].map((name) => frameReach(name) + partsReach.get(name)),
+    );
     // The deepest link: its world position tells where the arm's tip is.
     this.tip = this.linkObjects.get(urdf.joints.length ? urdf.joints.at(-1).child : urdf.links[0]);
   }
@@ -194,9 +253,9 @@ export class Twin {
       this.renderer.setPixelRatio(Math.min(window.devicePixelRatio, 2));
       container.append(this.renderer.domElement);
       this.controls = new OrbitControls(this.camera, this.renderer.domElement);
-      this.controls.target.set(0, 0.15, 0);
-      this.controls.update();
       this.controls.addEventListener("change", () => this.render());
+      // Once a hand turns or zooms the view, the view is the hand's: it is never re-aimed.
+      this.controls.addEventListener("start", () => (this.userAimed = true));
       new ResizeObserver(() => this.resize()).observe(container);
       this.resize();
     } catch {
@@ -212,6 +271,7 @@ export class Twin {
     this.renderer.setSize(width, height);
     this.camera.aspect = width / height;
     this.camera.updateProjectionMatrix();
+    if (!this.userAimed) this.frame(); // a narrower view needs a longer step back
     this.render();
   }
 
@@ -247,10 +307,10 @@ export class Twin {
     }
     this.hasReal = measured;
     this.showGhost();
-    if (states.length && !this.framed) this.frame();
     // The tips' positions, for people reading the page and for the browser tests.
     this.container.dataset.tip = this.commanded.tipPosition().join(",");
     this.container.dataset.ghostTip = this.measured.tipPosition().join(",");
+    this.container.dataset.inView = this.armInView();
     this.render();
   }
 
@@ -258,6 +318,8 @@ export class Twin {
    * each keep-out box as a red translucent box with its edges. Units are metres, z up. */
   showWorkspace(workspace) {
     this.workspace.clear();
+    this.floor = workspace.floor; // the arm reaches nothing below it: the view need not either
+    if (!this.userAimed) this.frame();
     if (workspace.floor !== null && workspace.floor !== undefined) {
       const plate = new THREE.Mesh(
         new THREE.PlaneGeometry(0.8, 0.8),
@@ -318,18 +380,67 @@ export class Twin {
     }, 3000);
   }
 
-  /** Aim the camera at the arm as it first stands, from the front-right and a little above. */
+  /** Aim the camera at where the arm can reach, from the front-right and a little above, far
+   * enough back that all of it is in view: the sphere of the arm's reach around its base, cut
+   * at the floor once the workspace is known. The arm stays in view in every pose; a hand
+   * that turns the view keeps its distance (and is never re-aimed). */
   frame() {
-    this.framed = true;
     if (!this.controls) return;
     this.scene.updateMatrixWorld(true);
-    const box = new THREE.Box3().setFromObject(this.commanded.root);
-    if (box.isEmpty()) return;
-    const center = box.getCenter(new THREE.Vector3());
-    const size = Math.max(box.getSize(new THREE.Vector3()).length(), 0.2);
-    this.controls.target.copy(center);
-    this.camera.position.copy(center).add(new THREE.Vector3(0.7, 0.5, 0.9).multiplyScalar(size));
+    const base = this.commanded.root.getWorldPosition(new THREE.Vector3());
+    const reach = Math.max(this.commanded.reach, 0.1);
+    const floor = Number.isFinite(this.floor) ? Math.min(Math.max(this.floor, -reach), reach / 2) : -reach;
+    const points = reachable(reach, floor).map((point) => point.add(base));
+    const back = new THREE.Vector3(0.7, 0.5, 0.9).normalize(); // from the target to the camera
+    // The target: a point above the base, at the height that lets the camera come closest.
+    let best = null;
+    for (let step = 0; step <= 8; step++) {
+      const target = base.clone().setY(base.y + floor + ((reach - floor) * step) / 16);
+      const distance = this.distanceToShow(points, target, back);
+      if (!best || distance < best.distance) best = { target, distance };
+    }
+    const distance = best.distance * 1.05; // the samples lie a little inside the surface
+    this.controls.target.copy(best.target);
+    this.camera.position.copy(best.target).addScaledVector(back, distance);
+    this.camera.far = Math.max(10, distance * 4);
+    this.camera.updateProjectionMatrix();
     this.controls.update();
+  }
+
+  /** How far back along `back` from `target` the camera must stand to have every one of
+   * `points` in view. A point is in view when its offset across the view is within its depth
+   * times the half-view's tangent, its depth being distance - (point - target)·back. */
+  distanceToShow(points, target, back) {
+    this.camera.position.copy(target).add(back);
+    this.camera.lookAt(target);
+    const right = new THREE.Vector3(1, 0, 0).applyQuaternion(this.camera.quaternion);
+    const up = new THREE.Vector3(0, 1, 0).applyQuaternion(this.camera.quaternion);
+    const tanHeight = Math.tan(THREE.MathUtils.degToRad(this.camera.fov / 2));
+    const tanWidth = tanHeight * this.camera.aspect;
+    const offset = new THREE.Vector3();
+    let distance = 0;
+    for (const point of points) {
+      offset.subVectors(point, target);
+      const across = Math.max(
+        Math.abs(offset.dot(right)) / tanWidth,
+        Math.abs(offset.dot(up)) / tanHeight,
+      );
+      distance = Math.max(distance, offset.dot(back) + across);
+    }
+    return distance;
+  }
+
+  /** How far the solid arm's furthest joint or tip is from the view's centre: 0 at the centre,
+   * 1 at the view's edge (more: outside). For the browser tests and anyone reading the page. */
+  armInView() {
+    this.commanded.root.updateMatrixWorld(true);
+    this.camera.updateMatrixWorld(true);
+    let furthest = 0;
+    for (const link of this.commanded.linkObjects.values()) {
+      const at = link.getWorldPosition(new THREE.Vector3()).project(this.camera);
+      furthest = Math.max(furthest, Math.abs(at.x), Math.abs(at.y));
+    }
+    return furthest.toFixed(3);
   }
 
   render() {
@@ -338,6 +449,8 @@ export class Twin {
     requestAnimationFrame(() => {
       this.pending = false;
       this.renderer.render(this.scene, this.camera);
+      // Where the view is from, for the browser tests (a hand's orbit is kept).
+      this.container.dataset.camera = this.camera.position.toArray().map((v) => v.toFixed(3)).join(",");
     });
   }
 
