@@ -279,16 +279,15 @@ export class RobotView {
   showMaster() {
     const state = this.state || {};
     const master = this.master();
-    const line = $("master-line");
+    const kind = master ? master.kind || master.type : ""; // (`type`: a server of before kinds)
     let text;
     if (state.mode === "estopped") text = `E-stopped: ${state.estop_reason || "no reason given"}. Reset to move again.`;
-    else if (master && PLAYERS.has(master.kind)) {
+    else if (master && PLAYERS.has(kind)) {
       text = `Playing ${masterText(master)}: the sliders are locked.`;
     } else if (master) text = `Held by ${masterText(master)}: the sliders are locked.`;
     else if (state.owner) text = `Held by master '${state.owner}': the sliders are locked.`;
     else text = "No master: the sliders drive the robot.";
-    line.textContent = text;
-    line.dataset.masterKind = master ? master.kind || master.type : "";
+    $("master-line").textContent = text;
   }
 
   showJoints(joints) {
