@@ -94,25 +94,44 @@ async def fleet_robots() -> dict[str, Any]:
 
 
 @blueprint.post("/api/fleet/estop")
-async def fleet_estop() -> dict[str, Any]:
-    """E-stop every robot of every live node; each node's acknowledgment with its time, and
-    the live nodes that did not answer within 100 ms."""
+async def fleet_estop() -> tuple[dict[str, Any], int]:
+    """E-stop every robot of every live node. Complete (200) only when every live node said
+    its robots are stopped; otherwise 503 ESTOP_INCOMPLETE, naming the nodes that answered
+    with a failure (and why) and those that did not answer within 100 ms."""
     body: ReasonBody = await read_body(ReasonBody, optional=True)  # the body's faults first
     fleet = _fleet()
     reason = body.reason or f"fleet e-stop from node {fleet.name}"
     answers = await fleet.ask_all("estop", {"reason": reason}, timeout=ESTOP_TIMEOUT)
-    acks = [
-        {
-            "node": node,
-            "robots": answer.get("ok", {}).get("robots", []),
-            "ms": round(seconds * 1000, 3),
-            **({"error": answer["error"]} if "error" in answer else {}),
-        }
-        for node, (answer, seconds) in sorted(answers.items())
-    ]
+    acks, failed = [], []
+    for node, (answer, seconds) in sorted(answers.items()):
+        if "ok" in answer:
+            robots = answer["ok"].get("robots", [])
+            acks.append({"node": node, "robots": robots, "ms": round(seconds * 1000, 3)})
+        else:
+            error = answer.get("error") or {}
+            failed.append(
+                {
+                    "node": node,
+                    "code": str(error.get("code", ErrorCode.INTERNAL_ERROR)),
+                    "message": str(error.get("message", "no reason given")),
+                }
+            )
     live = {name for name, view in fleet.nodes.items() if view.alive}
     missing = sorted(live - set(answers))
-    return {"reason": reason, "acks": acks, "missing": missing, "complete": not missing}
+    result: dict[str, Any] = {
+        "reason": reason,
+        "acks": acks,
+        "failed": failed,
+        "missing": missing,
+        "complete": not missing and not failed,
+    }
+    if result["complete"]:
+        return result, 200
+    said = [f"node {f['node']!r} failed ({f['code']}: {f['message']})" for f in failed]
+    said += [f"node {node!r} did not answer within 100 ms" for node in missing]
+    message = "The fleet e-stop is incomplete: " + "; ".join(said) + "."
+    result["error"] = {"code": str(ErrorCode.ESTOP_INCOMPLETE), "message": message}
+    return result, 503
 
 
 # -- the node's services ---------------------------------------------------------------------
@@ -203,7 +222,7 @@ async def _forward_remote_robot() -> Response | None:
     robot_id = parts[3]
     if robot_id in {robot.robot_id for robot in app.manager.robots()}:
         return None
-    node = fleet.robot_nodes.get(robot_id)
+    node = fleet.owner_of(robot_id)  # NODE_LOST for a robot of a node that is gone
     if node is None or node == fleet.name:
         return None
     raw = await request.get_data(cache=True, as_text=False)
