@@ -16,6 +16,7 @@ from arena import bench
 from arena.bench.camera import camera
 from arena.bench.client import BlockingHttp
 from arena.bench.common import process_cpu_seconds
+from tests.conftest import need
 
 
 def test_bench_scenarios_run_against_a_real_server() -> None:
@@ -75,7 +76,7 @@ def test_the_camera_scenario_counts_what_a_stream_client_got() -> None:
 
 
 def test_the_nodes_scenarios_run_on_a_fleet_of_processes() -> None:
-    pytest.importorskip("zenoh")
+    need("zenoh", "fleet")
     from arena.bench.nodes import nodes_estop, nodes_relay
 
     relayed = asyncio.run(nodes_relay(count=20))

@@ -28,10 +28,10 @@ from arena.protocol.errors import ArenaError
 from arena.recording.mcap_file import read_recording
 from arena.server.fleet_api import TunnelSocket
 from arena.server.ws_transport import UpgradeRequest, WebSocketClosed
-from tests.conftest import RunningServer
+from tests.conftest import RunningServer, need
 from tests.hardware import eventually
 
-pytest.importorskip("zenoh")
+need("zenoh", "fleet")
 
 Start = Callable[..., Awaitable[RunningServer]]
 
