@@ -128,7 +128,8 @@ async def fleet_estop() -> tuple[dict[str, Any], int]:
     if result["complete"]:
         return result, 200
     said = [f"node {f['node']!r} failed ({f['code']}: {f['message']})" for f in failed]
-    said += [f"node {node!r} did not answer within 100 ms" for node in missing]
+    within = f"{ESTOP_TIMEOUT * 1000:g} ms"
+    said += [f"node {node!r} did not answer within {within}" for node in missing]
     message = "The fleet e-stop is incomplete: " + "; ".join(said) + "."
     result["error"] = {"code": str(ErrorCode.ESTOP_INCOMPLETE), "message": message}
     return result, 503
