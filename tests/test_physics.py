@@ -1,6 +1,7 @@
 """The physics slave: MuJoCo's arm follows with a lag, holds against gravity, falls with its
-torque off, and says when it touches its table. On trio's MockClock (`realtime` off) the
-simulation runs faster than real time and the same way every time."""
+torque off, and says when it touches its table. On trio's MockClock the simulation runs
+faster than real time and the same way every time: stepped inside trio (`realtime` off) on an
+autojumping clock, or in its worker thread (the default) on a clock the test moves."""
 
 from __future__ import annotations
 
