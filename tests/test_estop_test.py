@@ -14,6 +14,7 @@ from trio.testing import MockClock
 from trio_websocket import open_websocket_url
 
 from arena import cli
+from arena.estop_test import live
 from arena.estop_test.analysis import (
     Trial,
     breaches,
@@ -326,6 +327,10 @@ async def test_the_tool_catches_motion_after_a_stop_and_exits_1(
     slave = runaway_slave if fault == "a slave that keeps moving" else still_slave
     if fault == "a server that keeps sending":
         lenient_after_an_estop(monkeypatch)
+        # The arm never moves, so the tool watches only until it has seen it still for
+        # STILL_FOR (0.2 s); a whole second here, so that even a slow machine's master gets
+        # its commands out in it.
+        monkeypatch.setattr(live, "STILL_FOR", 1.0)
     output = tmp_path / "stops.json"
     args = ["estop-test", "--url", server.url, "--robot", "arm", "--trials", "1"]
     args += ["--paths", "rest", "--settle", "1", "--json", str(output)]
