@@ -26,7 +26,7 @@ from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import ReasonBody
 from arena.robot.actor import Robot
 from arena.robot.events import StateChanged
-from arena.server.base import ArenaApp, read_body
+from arena.server.base import ArenaApp, error_response, read_body
 from arena.server.ws_transport import UpgradeRequest, WebSocketClosed
 
 log = logging.getLogger(__name__)
@@ -94,7 +94,7 @@ async def fleet_robots() -> dict[str, Any]:
 
 
 @blueprint.post("/api/fleet/estop")
-async def fleet_estop() -> tuple[dict[str, Any], int]:
+async def fleet_estop() -> dict[str, Any]:
     """E-stop every robot of every live node. Complete (200) only when every live node said
     its robots are stopped; otherwise 503 ESTOP_INCOMPLETE, naming the nodes that answered
     with a failure (and why) and those that did not answer within 100 ms."""
@@ -126,13 +126,29 @@ async def fleet_estop() -> tuple[dict[str, Any], int]:
         "complete": not missing and not failed,
     }
     if result["complete"]:
-        return result, 200
+        return result
     said = [f"node {f['node']!r} failed ({f['code']}: {f['message']})" for f in failed]
     within = f"{ESTOP_TIMEOUT * 1000:g} ms"
     said += [f"node {node!r} did not answer within {within}" for node in missing]
     message = "The fleet e-stop is incomplete: " + "; ".join(said) + "."
-    result["error"] = {"code": str(ErrorCode.ESTOP_INCOMPLETE), "message": message}
-    return result, 503
+    raise EstopIncomplete(result, message)
+
+
+class EstopIncomplete(ArenaError):
+    """A fleet e-stop that not every live node acknowledged: ESTOP_INCOMPLETE, with the
+    answer (`acks`, `failed`, `missing`) beside the error, so a script sees who stopped."""
+
+    def __init__(self, answer: dict[str, Any], message: str) -> None:
+        super().__init__(ErrorCode.ESTOP_INCOMPLETE, message)
+        self.answer = answer
+
+
+@blueprint.errorhandler(EstopIncomplete)
+async def estop_incomplete(error: EstopIncomplete) -> tuple[dict[str, Any], int]:
+    """The error's shape and status (503), and the e-stop's answer with it."""
+    _app().metrics.message_errors[str(error.code)] += 1
+    body, status = error_response(error.code, error.message)
+    return {**error.answer, **body}, status
 
 
 # -- the node's services ---------------------------------------------------------------------
