@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Awaitable, Callable, Iterator
 from pathlib import Path
 
@@ -274,7 +273,9 @@ def joint_states(pose: dict[str, float]) -> str:
 
 async def runaway_slave(url: str) -> None:
     """A WebSocket slave that follows its targets until it is told to stop, then keeps
-    moving (a joint swinging 5 degrees either way): an arm whose stop does not work."""
+    moving (a joint shaking 3 degrees either way, every report 6 degrees from the last, so
+    that no two are ever within the tool's threshold of each other): an arm whose stop does
+    not work."""
     async with open_websocket_url(url) as ws:
         pose = {"Rotation": 0.0}
         await ws.send_message(joint_states(pose))
@@ -286,7 +287,7 @@ async def runaway_slave(url: str) -> None:
             elif message["type"] == "estop":
                 break
         for k in range(100_000):  # until the test ends: every 20 ms, never still
-            swing = {name: value + 5.0 * math.sin(k / 5) for name, value in pose.items()}
+            swing = {name: value + (3.0 if k % 2 else -3.0) for name, value in pose.items()}
             await ws.send_message(joint_states(swing))
             await trio.sleep(0.02)
 
