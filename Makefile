@@ -72,7 +72,7 @@ fleet: $(FLEET) ui
 		--fleet-listen tcp/127.0.0.1:$(ZENOH_PORT)
 
 test: install-dev ui browser
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -rs
 
 lint: install-dev
 	$(BIN)/ruff check arena tests

@@ -717,7 +717,8 @@ class _Endpoints(Generic[T]):
         return self._call("GET", "/api/fleet/robots")
 
     def fleet_estop(self, reason: str | None = None) -> T:
-        """E-stop every robot of every node; each node's acknowledgment and time."""
+        """E-stop every robot of every node; each node's acknowledgment and time. Raises
+        `ArenaClientError` ESTOP_INCOMPLETE (503) naming any node that failed or did not answer."""
         return self._call("POST", "/api/fleet/estop", {"reason": reason} if reason else {})
 
 

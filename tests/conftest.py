@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+import importlib
+import inspect
+import os
+import subprocess
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from types import ModuleType
+from typing import Any, NoReturn
 
 import httpx
 import pytest
@@ -16,6 +21,52 @@ from arena.robot.links import SlaveLink
 from arena.robot.manager import RobotManager, open_manager
 from arena.server.config import ServerConfig
 from arena.server.run import run_server
+
+#: In CI (`CI=true`) every optional extra and the shared reference data are there by design:
+#: a test that cannot run there fails instead of skipping (a broken install tests nothing).
+IN_CI = os.environ.get("CI", "").strip().lower() in ("true", "1", "yes")
+REPOSITORY = Path(__file__).absolute().parent.parent
+
+
+def missing(reason: str) -> NoReturn:
+    """Call where a test (or, at module level, a test file) cannot run for want of something
+    outside the code: skipped with `reason` (`make test` lists skips with theirs), failed in
+    CI."""
+    caller = next(f for f in inspect.stack() if f.filename != __file__)
+    where = f"{Path(caller.filename).name}:{caller.lineno}"
+    if IN_CI:
+        pytest.fail(f"{where}: in CI, nothing may be missing: {reason}", pytrace=False)
+    pytest.skip(f"{where}: {reason}", allow_module_level=True)
+
+
+def need(module: str, extra: str) -> ModuleType:
+    """Import `module` of the optional extra `extra` for a test: see `missing`."""
+    try:
+        return importlib.import_module(module)
+    except ImportError as exc:
+        missing(f"needs {module} ({exc}): pip install 'arena[{extra}]'")
+
+
+def shared_dir() -> Path | None:
+    """The `shared/` folder beside the repository (reference data, the benchmark's floor):
+    `ARENA_SHARED` if set, else beside this checkout (as it was reached, and with symlinks
+    resolved), else beside the main checkout of a git worktree."""
+    candidates = []
+    if os.environ.get("ARENA_SHARED"):
+        candidates.append(Path(os.environ["ARENA_SHARED"]))
+    candidates += [REPOSITORY.parent / "shared", REPOSITORY.resolve().parent / "shared"]
+    try:
+        common = subprocess.run(
+            ["git", "rev-parse", "--path-format=absolute", "--git-common-dir"],
+            cwd=REPOSITORY,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+        candidates.append(Path(common).parent.parent / "shared")  # main/.git -> shared
+    except (OSError, subprocess.CalledProcessError):
+        pass
+    return next((path for path in candidates if path.is_dir()), None)
 
 
 @pytest.fixture

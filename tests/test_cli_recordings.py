@@ -21,6 +21,7 @@ from trio.testing import MockClock
 from arena import cli
 from arena.recording.mcap_file import FileSeries, McapFileWriter, read_recording
 from arena.recording.writer_process import McapWriterProcess
+from tests.conftest import need
 from tests.test_recording import GOLDEN, record_session
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -244,7 +245,7 @@ def test_command_line_errors_name_the_flag(
     capsys: pytest.CaptureFixture[str],
 ) -> None:
     if "lerobot" in argv:
-        pytest.importorskip("lerobot")  # asked for first: without it, the refusal is that
+        need("lerobot", "lerobot")  # asked for first: without it, the refusal is that
     golden = GOLDEN / "gentle-wave.mcap"
     with socket.socket() as probe:  # a port nothing listens on
         probe.bind(("127.0.0.1", 0))

@@ -455,3 +455,45 @@ def test_a_master_faster_than_the_arm_is_not_checked_twice_a_command(
         if i % 100 == 0:
             core.tick(now)  # the control ticks in between
     assert full[0] < commands // 10
+
+
+def creep(core: RobotCore, direction: dict[str, float], step: float) -> list[dict[str, float]]:
+    """Commands the core `step` degrees at a time along `direction` (per joint, -1 to 1),
+    each move run to its end, until a command is refused or a joint reaches its limit:
+    every goal accepted and every target emitted, in wire degrees."""
+    seen = []
+    pose = dict(core.motion.goals)
+    now = 0.0
+    for _ in range(int(400 / step)):
+        pose = {name: pose[name] + step * direction.get(name, 0.0) for name in pose}
+        result, _ = core.command(None, Command.of(pose), now)
+        if not result.accepted or result.clamped:
+            break
+        seen.append(dict(core.motion.goals))
+        while (due := core.next_tick(now)) is not None:  # the move's control ticks
+            now = due
+            if targets := core.tick(now):
+                seen.append(targets)
+        now += 100.0
+    return seen
+
+
+@pytest.mark.parametrize("step", [0.5, 0.1])
+@pytest.mark.parametrize(
+    "direction",
+    [{"Pitch": 1.0, "Elbow": 1.0}, {"Elbow": 1.0}, {"Pitch": 1.0}, {"Pitch": 1.0, "Elbow": -1.0}],
+)
+def test_small_steps_toward_the_table_never_get_a_target_into_it(
+    direction: dict[str, float], step: float
+) -> None:
+    # Small steps are what the shortcut (`near`) answers without a full check, and they come
+    # ever closer to its limit as the arm nears the table: each goal and target that got out
+    # is checked by the exact test.
+    core = RobotCore(MODEL, 0.0)
+    seen = creep(core, direction, step)
+    assert len(seen) > 10  # the arm did move before it was stopped
+    for pose in seen:
+        assert guard().hit(urdf(pose), core.workspace) is None, pose
+    # and it was stopped: the last pose that got out is close to the table
+    _, clearances = guard().assess(urdf(seen[-1]), core.workspace)
+    assert min(clearances[k] for k in guard().floor_links) < 0.02

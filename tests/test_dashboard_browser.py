@@ -26,12 +26,17 @@ import websockets.sync.client
 from arena.server import dashboard
 from arena.server.config import ServerConfig
 from arena.server.run import run_server
+from tests.conftest import missing, need
 from tests.golden import GOLDEN
 
-playwright_api = pytest.importorskip("playwright.sync_api")
+playwright_api = need("playwright.sync_api", "dev")
 from playwright.sync_api import Browser, Page, expect  # noqa: E402
 
 CHROMIUM = Path("/usr/bin/chromium")
+if not CHROMIUM.exists():
+    missing("needs Debian's chromium: run `make test`")
+if not dashboard.is_built():
+    missing("the page is not built: run `make test`")
 SCREENSHOTS = Path(__file__).resolve().parent / "screenshots"
 # Flags for a headless, offline, root-run chromium; software WebGL for the 3D view.
 CHROMIUM_ARGS = [
@@ -45,11 +50,6 @@ CHROMIUM_ARGS = [
     "--enable-unsafe-swiftshader",
 ]
 WAIT_MS = 15_000
-
-pytestmark = [
-    pytest.mark.skipif(not CHROMIUM.exists(), reason="needs Debian's chromium: run `make test`"),
-    pytest.mark.skipif(not dashboard.is_built(), reason="the page is not built: run `make test`"),
-]
 
 
 @dataclass
@@ -450,7 +450,7 @@ def test_a_camera_streams_beside_the_twin_and_episodes_are_marked(
 def test_the_dashboard_of_one_node_lists_and_drives_a_robot_of_another(
     start_live: Any, page: Page
 ) -> None:
-    pytest.importorskip("zenoh")
+    need("zenoh", "fleet")
     hub = start_live(demo=True, node="hub", fleet_listen=("tcp/127.0.0.1:0",))
     with hub.http() as http:
         nodes = http.get("/api/fleet/nodes").json()["nodes"]

@@ -28,12 +28,12 @@ from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
 from arena.sensors.sources import read_pattern_counter
 from arena.session import record_scenario
-from tests.conftest import RecordingSlave, RunningServer
+from tests.conftest import RecordingSlave, RunningServer, need
 from tests.hardware import eventually
 from tests.test_cameras import TEST_CAMERA, jpeg_rgb
 from tests.test_recording import session_scenario
 
-lerobot_dataset = pytest.importorskip("lerobot.datasets.lerobot_dataset")
+lerobot_dataset = need("lerobot.datasets.lerobot_dataset", "lerobot")
 
 MODEL = load_robot_model("so-arm100")
 JOINTS = [joint.name for joint in MODEL.joints]

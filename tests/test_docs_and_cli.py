@@ -60,3 +60,31 @@ async def test_readme_agent_example_drives_the_demo_robot(
     assert all(line.split()[0] in ("accepted", "clamped") for line in lines), lines
     # The mock arm followed: by the last step the agent saw a real Rotation above zero.
     assert float(lines[-1].split()[1]) > 0
+
+
+def test_a_missing_extra_is_skipped_with_its_reason_and_fails_in_ci(tmp_path: Path) -> None:
+    # What `make test` shows (-rs) and what CI (CI=true) does when an extra is missing.
+    import os
+    import subprocess
+    import sys
+
+    (tmp_path / "test_extra.py").write_text(
+        "from tests.conftest import need\n"
+        "need('arena_no_such_extra', 'fleet')\n"
+        "def test_it() -> None:\n"
+        "    pass\n"
+    )
+    repository = Path(__file__).resolve().parent.parent
+    base = {k: v for k, v in os.environ.items() if k != "CI"}
+    base["PYTHONPATH"] = str(repository)
+    command = [sys.executable, "-m", "pytest", "-q", "-rs", "-p", "no:cacheprovider"]
+    command += ["-p", "no:trio", "test_extra.py"]
+    for ci in (None, "true"):
+        env = base if ci is None else {**base, "CI": ci}
+        run = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True)
+        said = run.stdout + run.stderr
+        if ci is None:
+            assert run.returncode in (0, 5) and "1 skipped" in said, said  # 5: none ran
+            assert "SKIPPED" in said and "pip install 'arena[fleet]'" in said
+        else:
+            assert run.returncode != 0 and "in CI, nothing may be missing" in said, said

@@ -10,8 +10,10 @@ from pathlib import Path
 import pytest
 import trio
 from trio.testing import MockClock
+from trio_websocket import open_websocket_url
 
 from arena import cli
+from arena.estop_test import live
 from arena.estop_test.analysis import (
     Trial,
     breaches,
@@ -25,6 +27,8 @@ from arena.estop_test.analysis import (
 from arena.estop_test.live import PATHS, Settings, run
 from arena.feetech.sim_pty import PtySimBus
 from arena.recording.mcap_file import RecordedMessage, read_recording
+from arena.robot import core
+from arena.robot.safety import Allowed, Event, MasterCommand, Mode, Outcome, SafetyState
 from arena.session import record_scenario
 from tests.conftest import RunningServer
 from tests.hardware import running_sim, servo_torque
@@ -260,3 +264,87 @@ async def test_only_the_robot_under_test_is_stopped_unless_global_is_named(
     )
     assert list(results) == ["global"] and results["global"][0].error is None and notes == []
     assert bystander.estop_count == 1
+
+
+def joint_states(pose: dict[str, float]) -> str:
+    data = [{"name": name, "value": round(value, 3)} for name, value in pose.items()]
+    return json.dumps({"type": "joint_states", "data": data})
+
+
+async def runaway_slave(url: str) -> None:
+    """A WebSocket slave that follows its targets until it is told to stop, then keeps
+    moving (a joint shaking 3 degrees either way, every report 6 degrees from the last, so
+    that no two are ever within the tool's threshold of each other): an arm whose stop does
+    not work."""
+    async with open_websocket_url(url) as ws:
+        pose = {"Rotation": 0.0}
+        await ws.send_message(joint_states(pose))
+        while True:
+            message = json.loads(await ws.get_message())
+            if message["type"] == "execute_command":
+                pose = {j["name"]: j["value"] for j in message["data"]["joints"]}
+                await ws.send_message(joint_states(pose))
+            elif message["type"] == "estop":
+                break
+        for k in range(100_000):  # until the test ends: every 20 ms, never still
+            swing = {name: value + (3.0 if k % 2 else -3.0) for name, value in pose.items()}
+            await ws.send_message(joint_states(swing))
+            await trio.sleep(0.02)
+
+
+async def still_slave(url: str) -> None:
+    """A WebSocket slave that says where it is once and never moves."""
+    async with open_websocket_url(url) as ws:
+        await ws.send_message(joint_states({"Rotation": 0.0}))
+        while True:
+            await ws.get_message()
+
+
+def lenient_after_an_estop(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The server made to misbehave: an e-stopped robot goes on taking its master's commands
+    (and sending their targets to its slaves)."""
+    strict = core.transition
+
+    def transition(state: SafetyState, event: Event) -> Outcome:
+        if isinstance(event, MasterCommand) and state.mode is Mode.ESTOPPED:
+            return Allowed(state)
+        return strict(state, event)
+
+    monkeypatch.setattr(core, "transition", transition)
+
+
+@pytest.mark.parametrize("fault", ["a slave that keeps moving", "a server that keeps sending"])
+async def test_the_tool_catches_motion_after_a_stop_and_exits_1(
+    start_server: StartServer,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+    fault: str,
+) -> None:
+    server = await start_server()
+    async with server.client() as http:
+        made = await http.post("/api/robots", json={"id": "arm", "robot_type": "so-arm100"})
+        assert made.status_code == 201
+    slave = runaway_slave if fault == "a slave that keeps moving" else still_slave
+    if fault == "a server that keeps sending":
+        lenient_after_an_estop(monkeypatch)
+        # The arm never moves, so the tool watches only until it has seen it still for
+        # STILL_FOR (0.2 s); a whole second here, so that even a slow machine's master gets
+        # its commands out in it.
+        monkeypatch.setattr(live, "STILL_FOR", 1.0)
+    output = tmp_path / "stops.json"
+    args = ["estop-test", "--url", server.url, "--robot", "arm", "--trials", "1"]
+    args += ["--paths", "rest", "--settle", "1", "--json", str(output)]
+    async with trio.open_nursery() as nursery:
+        nursery.start_soon(slave, server.ws_url + "/ws/slave/arm?id=arm-under-test")
+        code = await trio.to_thread.run_sync(cli.main, args)
+        nursery.cancel_scope.cancel()
+    printed = capsys.readouterr().out
+    assert code == 1 and "BREACH rest: moved_after_stop: in 1 of 1 trials" in printed
+    (trial,) = json.loads(output.read_text())["paths"]["rest"]["trials"]
+    assert trial["moved_after_stop"] and trial["error"] is None
+    if fault == "a slave that keeps moving":  # seen in the joints it reports
+        assert trial["sent_after_stop"] == 0 and not trial["joints"]["Rotation"]["at_rest"]
+    else:  # seen in the targets the tool's own slave got after its stop notice
+        assert trial["sent_after_stop"] > 0
+        assert all(joint["at_rest"] for joint in trial["joints"].values())

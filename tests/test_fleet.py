@@ -26,12 +26,13 @@ from trio_websocket import ConnectionClosed, open_websocket_url
 from arena.fleet.node import FleetSettings, Tunnel
 from arena.protocol.errors import ArenaError
 from arena.recording.mcap_file import read_recording
+from arena.server import fleet_api
 from arena.server.fleet_api import TunnelSocket
 from arena.server.ws_transport import UpgradeRequest, WebSocketClosed
-from tests.conftest import RunningServer
+from tests.conftest import RunningServer, need
 from tests.hardware import eventually
 
-pytest.importorskip("zenoh")
+need("zenoh", "fleet")
 
 Start = Callable[..., Awaitable[RunningServer]]
 
@@ -235,6 +236,119 @@ def _heard_all(heard: list[tuple[str, str, str]]) -> Callable[[], Awaitable[bool
     return check
 
 
+async def robots_on(fleet: list[RunningServer], count: int) -> None:
+    """`count` robots on each node, named `<node>-<k>`, known to every node."""
+    for node in fleet:
+        async with node.client() as http:
+            for k in range(count):
+                robot = {"id": f"{node.app.fleet.name}-{k}"}
+                assert (await http.post("/api/robots", json=robot)).status_code == 201
+    for node in fleet:
+        await eventually(_known(fleet, f"{node.app.fleet.name}-0"))
+
+
+def stopped_on(node: RunningServer) -> set[str]:
+    """The robots of `node` that are e-stopped."""
+    return {r.robot_id for r in node.app.manager.robots() if str(r.snapshot().mode) == "estopped"}
+
+
+async def test_a_fleet_estop_with_a_node_whose_estop_failed_is_incomplete_and_names_it(
+    start_server: Start, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    a, b, c = fleet = await start_fleet(start_server, ["a", "b", "c"])
+    await robots_on(fleet, 2)
+
+    async def bus_gone(reason: str) -> None:
+        raise RuntimeError("bus gone")
+
+    monkeypatch.setattr(b.app.manager, "estop_all", bus_gone)
+    monkeypatch.setattr(fleet_api, "ESTOP_TIMEOUT", 10.0)  # a and c answer, however slow
+    async with a.client() as http:
+        answer = await http.post("/api/fleet/estop", json={"reason": "drill"})
+    body = answer.json()
+    assert answer.status_code == 503 and body["complete"] is False
+    assert body["failed"] == [{"node": "b", "code": "INTERNAL_ERROR", "message": "bus gone"}]
+    assert [ack["node"] for ack in body["acks"]] == ["a", "c"] and body["missing"] == []
+    assert body["error"]["code"] == "ESTOP_INCOMPLETE"
+    assert "'b'" in body["error"]["message"] and "bus gone" in body["error"]["message"]
+    assert stopped_on(a) == {"a-0", "a-1"} and stopped_on(c) == {"c-0", "c-1"}
+    assert stopped_on(b) == set()  # what the answer says: b's robots are not known stopped
+
+
+async def test_a_fleet_estop_names_the_node_that_did_not_answer_in_time(
+    start_server: Start, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    _, b, c = fleet = await start_fleet(start_server, ["a", "b", "c"])
+    await robots_on(fleet, 1)
+    # node b's e-stop is held until the asker has its answer: b cannot be in time, however
+    # long the wait (2 s here, so that a and c are in time on any machine; 100 ms in service)
+    monkeypatch.setattr(fleet_api, "ESTOP_TIMEOUT", 2.0)
+    release = trio.Event()
+    estop = b.app.fleet.services["estop"]
+
+    async def held(payload: bytes) -> Any:
+        await release.wait()
+        return await estop(payload)
+
+    b.app.fleet.services["estop"] = held
+    async with c.client() as http:
+        answer = await http.post("/api/fleet/estop", json={"reason": "drill"})
+    release.set()
+    body = answer.json()
+    assert answer.status_code == 503 and body["complete"] is False
+    assert body["missing"] == ["b"] and body["failed"] == []
+    assert [ack["node"] for ack in body["acks"]] == ["a", "c"]
+    assert "'b' did not answer within 2000 ms" in body["error"]["message"]
+    # b's stop was only late: once let go, it happens
+    await eventually(_estopped(b, {"b-0"}))
+
+
+def _estopped(node: RunningServer, robots: set[str]) -> Callable[[], Awaitable[bool]]:
+    """A check: these robots of `node` are e-stopped."""
+
+    async def check() -> bool:
+        return stopped_on(node) == robots
+
+    return check
+
+
+async def test_a_robot_of_a_node_that_left_answers_node_lost_naming_it(
+    start_server: Start,
+) -> None:
+    hub, far = await start_fleet(start_server, ["hub", "far"])
+    async with far.client() as http:
+        assert (await http.post("/api/robots", json={"id": "arm"})).status_code == 201
+    await eventually(_known([hub], "arm"))
+    assert (await robot_states(hub))["arm"] == ("far", "idle")
+    far.stop.set()  # the node leaves (its session closes: its tokens go at once)
+    await far.done.wait()
+
+    async def far_is_gone() -> bool:
+        view = hub.app.fleet.nodes.get("far")
+        return view is not None and not view.alive
+
+    await eventually(far_is_gone)
+    assert (await robot_states(hub))["arm"] == ("far", "offline")
+    async with hub.client() as http:
+        for path in ("/api/robots/arm", "/api/robots/arm/status"):
+            gone = await http.get(path)
+            assert gone.status_code == 503, path
+            error = gone.json()["error"]
+            assert error["code"] == "NODE_LOST" and "'far'" in error["message"]
+        moved = await http.put(
+            "/api/robots/arm/joints", json={"joints": [{"name": "Rotation", "value": 5}]}
+        )
+        assert moved.status_code == 503 and moved.json()["error"]["code"] == "NODE_LOST"
+        # a robot no node ever had is still not found
+        assert (await http.get("/api/robots/nowhere")).status_code == 404
+    async with open_websocket_url(hub.ws_url + "/ws/master/arm") as master:
+        told = await next_of(master, "error")
+        assert told["data"]["code"] == "NODE_LOST" and "'far'" in told["data"]["message"]
+        with pytest.raises(ConnectionClosed) as closed:
+            await master.get_message()
+        assert closed.value.reason.code == 4503
+
+
 def spawn_node(name: str, connect: str, folder: Path) -> subprocess.Popen[bytes]:
     """`arena serve --node NAME --demo` as a process of its own, connected to `connect`."""
     return subprocess.Popen(
@@ -291,7 +405,8 @@ async def test_a_killed_node_goes_offline_its_masters_are_told_and_it_comes_back
             }
             assert nodes == {"hub": True, "far": False}
             gone = await http.get("/api/robots/demo-arm")
-            assert gone.status_code == 404  # not routed to a node that is gone
+            assert gone.status_code == 503  # not routed to a node that is gone: it says so
+            assert gone.json()["error"]["code"] == "NODE_LOST"
         process = spawn_node("far", locator, tmp_path / "far-again")
         await eventually(partial(demo_is, "idle"), timeout=60)
         async with hub.client() as http:

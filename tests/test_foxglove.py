@@ -14,7 +14,9 @@ import json
 import math
 import random
 import re
+import socket
 import struct
+import sys
 from collections.abc import AsyncIterator, Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -344,6 +346,55 @@ def test_the_live_server_stays_on_loopback() -> None:
         ServerConfig(host="0.0.0.0", api_keys=("k",), foxglove_port=0).check()
     assert refused.value.code == ErrorCode.INVALID_CONFIG and "loopback" in refused.value.message
     ServerConfig(host="::1", foxglove_port=0).check()
+
+
+def listening_addresses(port: int) -> set[str]:
+    """The local addresses of the TCP sockets listening on `port` (Linux: /proc/net/tcp and
+    tcp6), as the kernel holds them (hex, e.g. 0100007F for 127.0.0.1)."""
+    found = set()
+    for table in (Path("/proc/net/tcp"), Path("/proc/net/tcp6")):
+        if not table.exists():
+            continue
+        for line in table.read_text().splitlines()[1:]:
+            fields = line.split()
+            address, _, hex_port = fields[1].partition(":")
+            if fields[3] == "0A" and int(hex_port, 16) == port:  # 0A: LISTEN
+                found.add(address)
+    return found
+
+
+def outward_address() -> str | None:
+    """An address of this machine that is not loopback, if it has one (a UDP socket's
+    connect sends nothing: it only picks the route)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.connect(("198.51.100.1", 9))  # TEST-NET-2: any route out will do
+        except OSError:
+            return None
+        address = str(probe.getsockname()[0])
+    return None if address.startswith("127.") else address
+
+
+async def test_the_live_server_binds_loopback_alone(
+    start_server: Callable[..., Awaitable[RunningServer]],
+) -> None:
+    server = await start_server(foxglove_port=0)
+    assert server.app.foxglove is not None
+    port = server.app.foxglove.port
+    # it answers on loopback...
+    url = f"ws://127.0.0.1:{port}"
+    async with open_websocket_url(url, subprotocols=["foxglove.sdk.v1"]) as ws:
+        assert ws.subprotocol == "foxglove.sdk.v1"
+    # ...and listens there alone: the kernel's table, and a connection to this machine's
+    # outward address refused
+    if sys.platform == "linux":
+        assert listening_addresses(port) == {"0100007F"}  # 127.0.0.1, and no wildcard
+    outward = outward_address()
+    if outward is not None:
+        with pytest.raises(OSError):
+            stream = await trio.open_tcp_stream(outward, port)
+            await stream.aclose()
+    assert sys.platform == "linux" or outward is not None, "nothing here could tell"
 
 
 async def advertised(ws: WebSocketConnection, wanted: set[str]) -> dict[str, dict[str, Any]]:

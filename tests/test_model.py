@@ -19,11 +19,11 @@ from arena.robot.model import (
     list_robot_types,
     load_robot_model,
 )
+from tests.conftest import missing, shared_dir
 
 SPECS = Path(__file__).resolve().parent.parent / "specs"
-REFERENCE_URDF = (
-    Path(__file__).resolve().parents[2] / "shared/robots/so-arm100/so100-reference.urdf"
-)
+#: The reference URDF, in the `shared/` folder beside the repository (see `shared_dir`).
+REFERENCE_URDF = Path("robots/so-arm100/so100-reference.urdf")
 
 
 def test_so_arm100_joints_servo_ids_and_aliases() -> None:
@@ -68,9 +68,10 @@ def test_degrees_and_radians_round_trip(degrees: float) -> None:
 
 
 def test_urdf_limits_match_the_reference_urdf() -> None:
-    if not REFERENCE_URDF.exists():
-        pytest.skip("shared/ reference data not beside the repository")
-    text = REFERENCE_URDF.read_text()
+    shared = shared_dir()
+    if shared is None or not (shared / REFERENCE_URDF).exists():
+        missing(f"shared/{REFERENCE_URDF} is not beside the repository (or at ARENA_SHARED)")
+    text = (shared / REFERENCE_URDF).read_text()
     model = load_robot_model("so-arm100")
     for joint in model.joints:
         block = text.split(f'<joint name="{joint.aliases[0]}"', 1)[1]

@@ -1,18 +1,22 @@
 """The physics slave: MuJoCo's arm follows with a lag, holds against gravity, falls with its
-torque off, and says when it touches its table. On trio's MockClock (`realtime` off) the
-simulation runs faster than real time and the same way every time."""
+torque off, and says when it touches its table. On trio's MockClock the simulation runs
+faster than real time and the same way every time: stepped inside trio (`realtime` off) on an
+autojumping clock, or in its worker thread (the default) on a clock the test moves."""
 
 from __future__ import annotations
 
-from collections.abc import Awaitable, Callable
+import contextlib
+import threading
+from collections.abc import Awaitable, Callable, Iterator
 
 import trio
-from trio.testing import MockClock
+from trio.testing import MockClock, wait_all_tasks_blocked
 
 from arena.drivers.physics import ArmSimulation, PhysicsSettings, PhysicsSlave
 from arena.protocol.rest import PhysicsSlaveBody
 from arena.robot.actor import Robot
 from arena.robot.collision import Workspace
+from arena.robot.events import JointStatesReceived
 from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
@@ -115,3 +119,51 @@ async def test_attached_over_rest(start_server: Callable[..., Awaitable[RunningS
         bad = await http.post("/api/robots/sim/slaves", json={"type": "physics-slave", "rate": 10})
         assert bad.status_code == 422
     assert isinstance(make_slave(PhysicsSlaveBody(realtime=False)), PhysicsSlave)
+
+
+@contextlib.contextmanager
+def watchdog(seconds: float) -> Iterator[None]:
+    """Fail the block if it has not ended after `seconds` of real time: on a clock that only
+    the test moves, a twin that never reports would otherwise hang the test. (A bound only a
+    broken twin reaches; it decides nothing else.)"""
+    token = trio.lowlevel.current_trio_token()
+    scope = trio.CancelScope()
+    ended = threading.Event()
+
+    def watch() -> None:
+        if not ended.wait(seconds):
+            with contextlib.suppress(trio.RunFinishedError):
+                trio.from_thread.run_sync(scope.cancel, trio_token=token)
+
+    threading.Thread(target=watch, daemon=True).start()
+    try:
+        with scope:
+            yield
+    finally:
+        ended.set()
+    assert not scope.cancelled_caught, "the real-time twin stopped reporting"
+
+
+async def test_the_real_time_twin_steps_as_trio_clock_moves_and_follows(
+    mock_clock: MockClock, manager: RobotManager
+) -> None:
+    # The default, real-time twin (each interval's steps in a worker thread), on a clock only
+    # this test moves: it steps its interval's worth (5 steps of 2 ms) each time the clock
+    # passes 10 ms, none while the clock stands, and the arm follows the command.
+    robot = await manager.create_robot("so-arm100", robot_id="sim")
+    slave = PhysicsSlave()
+    assert slave.settings.realtime and slave.settings.report_interval == 0.01
+    with watchdog(30.0), robot.subscribe(kinds=[JointStatesReceived]) as reports:
+        await robot.attach_slave(slave)
+        await reports.get()  # compiled (in its thread) and at rest
+        await wait_all_tasks_blocked()  # its loop waits for the clock
+        assert slave.simulation is not None and slave.simulation.steps == 0
+        assert (await robot.command(Command.of({"Rotation": 30.0}))).accepted
+        for interval in range(1, 201):  # two seconds, 10 ms (and a hair) at a time
+            mock_clock.jump(0.01 + 1e-9)
+            await reports.get()
+            assert slave.simulation.steps == 5 * interval
+        await wait_all_tasks_blocked()
+        assert slave.simulation.steps == 1000 and len(reports) == 0  # the clock stands: so does it
+    rotation = joint(robot, "Rotation")
+    assert rotation.real_value is not None and abs(rotation.real_value - 30.0) < 1.0

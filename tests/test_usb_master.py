@@ -6,18 +6,18 @@ from collections.abc import Awaitable, Callable, Iterator
 from pathlib import Path
 
 import pytest
-import trio
 
 from arena.drivers.usb_master import UsbMaster
 from arena.feetech import registers as reg
 from arena.feetech.calibration import Calibration, calibrate_rest
 from arena.feetech.health import HealthLimits
 from arena.feetech.sim_pty import PtySimBus
-from arena.feetech.worker import WorkerSettings
+from arena.feetech.worker import Reading, WorkerSettings
 from arena.protocol.rest import UsbMasterBody
 from arena.robot.actor import Robot
 from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
+from arena.robot.motion import Command
 from arena.robot.safety import Mode
 from tests.conftest import RunningServer
 from tests.hardware import (
@@ -95,16 +95,43 @@ async def test_the_follower_mirrors_the_leader(
     await eventually(lambda: servo_goals(follower) == expected, what="the move mirrored")
 
 
+class ActedOn:
+    """The raw readings a leader arm's driver has acted on, in order (its `_pose` wrapped):
+    what it saw, to wait for instead of for time."""
+
+    def __init__(self, master: UsbMaster) -> None:
+        self.raw: list[dict[int, int]] = []
+        pose = master._pose
+
+        def seen(reading: Reading) -> dict[str, float]:
+            self.raw.append(dict(reading.positions))
+            return pose(reading)
+
+        master._pose = seen  # type: ignore[method-assign]
+
+    async def past(self, servo: int, value: int) -> None:
+        """Wait until the driver has acted on a reading of `servo` at `value` and taken the
+        next reading: it is done with that one (and sent whatever it was going to)."""
+        start = len(self.raw)
+
+        def done() -> bool:
+            hits = [k for k in range(start, len(self.raw)) if self.raw[k].get(servo) == value]
+            return bool(hits) and len(self.raw) > hits[0] + 1
+
+        await eventually(done, what=f"servo {servo} at {value} acted on")
+
+
 async def test_a_leader_at_rest_sends_nothing(
     manager: RobotManager, leader: PtySimBus, follower: PtySimBus, tmp_path: Path
 ) -> None:
     _, master = await teleop(manager, leader, follower, tmp_path)
+    acted = ActedOn(master)
     await eventually(lambda: master.sent >= 1, what="the first command")
-    await trio.sleep(0.2)
+    await acted.past(2, LEADER_REST[2])  # the rest pose mirrored, and done with
     before = master.sent
     for jitter in (2, -3, 1, 0, 3):  # a hand resting on the leader: under half a degree
         pose(leader, {2: LEADER_REST[2] + jitter})
-        await trio.sleep(0.05)
+        await acted.past(2, LEADER_REST[2] + jitter)
     assert master.sent == before
     pose(leader, {2: LEADER_REST[2] + 40})  # 3.5 degrees: a real move
     await eventually(lambda: master.sent == before + 1, what="one command for the move")
@@ -118,11 +145,14 @@ async def test_estop_freezes_the_follower_for_good(
     await robot.estop("test")
     assert robot.snapshot().master is None  # an e-stop ends the leader's command
     pose(leader, {3: LEADER_REST[3] + 400})
-    await trio.sleep(0.3)
-    assert servo_goals(follower)[3] == FOLLOWER_REST[3]
     await robot.reset()
-    await trio.sleep(0.3)
+    # A move of another joint by hand goes out after the leader's: once the follower has it,
+    # the leader's would have been there too. (A leader still in command would also have the
+    # hand's move refused.)
+    assert (await robot.command(Command.of({"Wrist_Roll": 10.0}))).accepted
+    await eventually(lambda: servo_goals(follower)[5] != FOLLOWER_REST[5], what="the hand's move")
     assert servo_goals(follower)[3] == FOLLOWER_REST[3]  # and it does not resume by itself
+    assert robot.snapshot().master is None
 
 
 async def test_unplugging_the_leader_estops_the_robot(

@@ -8,18 +8,15 @@ the gearbox's reflected inertia (armature) and friction. So the simulated joints
 their targets, sag under load and fall with their torque off, as the real ones do.
 
 `ArmSimulation` is the model and its stepping, with no threads and no trio. `PhysicsSlave`
-drives it as a slave: in real time it steps in a thread of its own at `rate` Hz and hands the
-joint values to trio through one memory channel fed with the trio token (latest wins); with
-`realtime` off it steps inside trio, `report_interval` of trio time at a go, so a test on
-MockClock runs it faster than real time and the same way every time.
+drives it as a slave, paced by trio's clock, `report_interval` of steps at a go: in real time
+(the default) each batch runs in a worker thread, off the event loop; with `realtime` off it
+runs inside trio. Either way a test on MockClock runs it faster than real time.
 """
 
 from __future__ import annotations
 
-import contextlib
 import math
 import threading
-import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -38,6 +35,9 @@ POSITION_GAIN = STALL_TORQUE / 0.3
 ARMATURE = 0.01
 FRICTION = 0.05
 DAMPING = 0.3
+#: How far (seconds) the real-time simulation may fall behind the clock before it lets the
+#: rest go rather than catch up.
+MAX_LAG = 0.25
 
 
 @dataclass(frozen=True, slots=True)
@@ -249,34 +249,25 @@ class PhysicsSlave:
             await self._report(link, simulation.positions(), simulation.contacts())
 
     async def _in_real_time(self, link: SlaveLink, simulation: ArmSimulation) -> None:
-        send, receive = trio.open_memory_channel[tuple[dict[str, float], set[tuple[str, str]]]](1)
-        stop = threading.Event()
-        token = trio.lowlevel.current_trio_token()
+        """Paced by trio's clock: every `report_interval`, that interval's steps run in a
+        worker thread (off the event loop), then the report. When it falls behind (a slow
+        step, a busy loop) it catches up, so the simulated time keeps to the clock's; more
+        than `MAX_LAG` behind, it lets the rest go. On MockClock it runs as it does for real."""
+        interval = self.settings.report_interval
+        steps = max(1, round(interval * self.settings.rate))
+        due = trio.current_time()
+        while True:
+            due = max(due + interval, trio.current_time() - MAX_LAG)
+            await trio.sleep_until(due)
+            positions, touching = await trio.to_thread.run_sync(self._steps, simulation, steps)
+            await self._report(link, positions, touching)
 
-        def offer(report: tuple[dict[str, float], set[tuple[str, str]]]) -> None:
-            with contextlib.suppress(trio.WouldBlock):  # trio has the last one still: the
-                send.send_nowait(report)  # next comes in 10 ms
-
-        def step_forever() -> None:
-            period = 1.0 / self.settings.rate
-            every = max(1, round(self.settings.report_interval * self.settings.rate))
-            due = time.monotonic()
-            while not stop.is_set():
-                self._apply_pending(simulation)
-                simulation.step()
-                if simulation.steps % every == 0:
-                    report = (simulation.positions(), simulation.contacts())
-                    try:
-                        trio.from_thread.run_sync(offer, report, trio_token=token)
-                    except trio.RunFinishedError:
-                        return
-                due += period
-                time.sleep(max(0.0, due - time.monotonic()))
-
-        thread = threading.Thread(target=step_forever, name="physics", daemon=True)
-        thread.start()
-        try:
-            async for positions, touching in receive:
-                await self._report(link, positions, touching)
-        finally:
-            stop.set()
+    def _steps(
+        self, simulation: ArmSimulation, count: int
+    ) -> tuple[dict[str, float], set[tuple[str, str]]]:
+        """In the worker thread: `count` steps, the targets and notices that came meanwhile
+        applied before each; the joint values and contacts after them."""
+        for _ in range(count):
+            self._apply_pending(simulation)
+            simulation.step()
+        return simulation.positions(), simulation.contacts()

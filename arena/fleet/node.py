@@ -439,6 +439,23 @@ class FleetNode:
 
         return await trio.to_thread.run_sync(read)
 
+    def owner_of(self, robot_id: str) -> str | None:
+        """The node of the fleet that owns `robot_id` (this one's name for its own), None if
+        no node ever said it had it. NODE_LOST when the node that had it is gone and no live
+        node has it now: its robots are listed `offline`, and a call for one says so (rather
+        than "no such robot") and which node to bring back."""
+        node = self.robot_nodes.get(robot_id)
+        if node is not None:
+            return node
+        for view in self.nodes.values():
+            if not view.alive and any(robot.get("id") == robot_id for robot in view.robots):
+                raise ArenaError(
+                    ErrorCode.NODE_LOST,
+                    f"Robot {robot_id!r} is on node {view.name!r}, which has left the fleet: "
+                    "it is back when that node is.",
+                )
+        return None
+
     # -- this node's robots --------------------------------------------------------------------
 
     def robot_added(self, robot_id: str) -> None:

@@ -85,6 +85,7 @@ class ErrorCode(enum.StrEnum):
     # Fleets
     ROBOT_ELSEWHERE = "ROBOT_ELSEWHERE"  # another node of the fleet owns that robot id
     NODE_LOST = "NODE_LOST"  # the node that owns the robot left the fleet or did not answer
+    ESTOP_INCOMPLETE = "ESTOP_INCOMPLETE"  # a node's e-stop failed or it did not answer
     # Recordings
     INVALID_RECORDING = "INVALID_RECORDING"
     UNKNOWN_RECORDING = "UNKNOWN_RECORDING"

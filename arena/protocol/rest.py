@@ -120,7 +120,8 @@ class PhysicsSlaveBody(
     forbid_unknown_fields=True,
 ):
     """The arm simulated by MuJoCo (the `physics` extra): `rate` steps a second; `estop` as a
-    usb-slave's; `realtime` false steps on the server's clock (for tests on a virtual clock)."""
+    usb-slave's; `realtime` false steps inside the event loop instead of a worker thread (for
+    tests on an autojumping virtual clock)."""
 
     rate: Annotated[float, msgspec.Meta(ge=100, le=5000)] = 500.0
     estop: Literal["hold", "torque-off"] = "hold"

@@ -78,6 +78,7 @@ STATUS_FOR: dict[ErrorCode, int] = {
     ErrorCode.NO_EPISODE: 409,
     ErrorCode.ROBOT_ELSEWHERE: 409,
     ErrorCode.NODE_LOST: 503,
+    ErrorCode.ESTOP_INCOMPLETE: 503,
 }
 
 

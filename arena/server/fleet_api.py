@@ -26,7 +26,7 @@ from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import ReasonBody
 from arena.robot.actor import Robot
 from arena.robot.events import StateChanged
-from arena.server.base import ArenaApp, read_body
+from arena.server.base import ArenaApp, error_response, read_body
 from arena.server.ws_transport import UpgradeRequest, WebSocketClosed
 
 log = logging.getLogger(__name__)
@@ -95,24 +95,60 @@ async def fleet_robots() -> dict[str, Any]:
 
 @blueprint.post("/api/fleet/estop")
 async def fleet_estop() -> dict[str, Any]:
-    """E-stop every robot of every live node; each node's acknowledgment with its time, and
-    the live nodes that did not answer within 100 ms."""
+    """E-stop every robot of every live node. Complete (200) only when every live node said
+    its robots are stopped; otherwise 503 ESTOP_INCOMPLETE, naming the nodes that answered
+    with a failure (and why) and those that did not answer within 100 ms."""
     body: ReasonBody = await read_body(ReasonBody, optional=True)  # the body's faults first
     fleet = _fleet()
     reason = body.reason or f"fleet e-stop from node {fleet.name}"
     answers = await fleet.ask_all("estop", {"reason": reason}, timeout=ESTOP_TIMEOUT)
-    acks = [
-        {
-            "node": node,
-            "robots": answer.get("ok", {}).get("robots", []),
-            "ms": round(seconds * 1000, 3),
-            **({"error": answer["error"]} if "error" in answer else {}),
-        }
-        for node, (answer, seconds) in sorted(answers.items())
-    ]
+    acks, failed = [], []
+    for node, (answer, seconds) in sorted(answers.items()):
+        if "ok" in answer:
+            robots = answer["ok"].get("robots", [])
+            acks.append({"node": node, "robots": robots, "ms": round(seconds * 1000, 3)})
+        else:
+            error = answer.get("error") or {}
+            failed.append(
+                {
+                    "node": node,
+                    "code": str(error.get("code", ErrorCode.INTERNAL_ERROR)),
+                    "message": str(error.get("message", "no reason given")),
+                }
+            )
     live = {name for name, view in fleet.nodes.items() if view.alive}
     missing = sorted(live - set(answers))
-    return {"reason": reason, "acks": acks, "missing": missing, "complete": not missing}
+    result: dict[str, Any] = {
+        "reason": reason,
+        "acks": acks,
+        "failed": failed,
+        "missing": missing,
+        "complete": not missing and not failed,
+    }
+    if result["complete"]:
+        return result
+    said = [f"node {f['node']!r} failed ({f['code']}: {f['message']})" for f in failed]
+    within = f"{ESTOP_TIMEOUT * 1000:g} ms"
+    said += [f"node {node!r} did not answer within {within}" for node in missing]
+    message = "The fleet e-stop is incomplete: " + "; ".join(said) + "."
+    raise EstopIncomplete(result, message)
+
+
+class EstopIncomplete(ArenaError):
+    """A fleet e-stop that not every live node acknowledged: ESTOP_INCOMPLETE, with the
+    answer (`acks`, `failed`, `missing`) beside the error, so a script sees who stopped."""
+
+    def __init__(self, answer: dict[str, Any], message: str) -> None:
+        super().__init__(ErrorCode.ESTOP_INCOMPLETE, message)
+        self.answer = answer
+
+
+@blueprint.errorhandler(EstopIncomplete)
+async def estop_incomplete(error: EstopIncomplete) -> tuple[dict[str, Any], int]:
+    """The error's shape and status (503), and the e-stop's answer with it."""
+    _app().metrics.message_errors[str(error.code)] += 1
+    body, status = error_response(error.code, error.message)
+    return {**error.answer, **body}, status
 
 
 # -- the node's services ---------------------------------------------------------------------
@@ -203,7 +239,7 @@ async def _forward_remote_robot() -> Response | None:
     robot_id = parts[3]
     if robot_id in {robot.robot_id for robot in app.manager.robots()}:
         return None
-    node = fleet.robot_nodes.get(robot_id)
+    node = fleet.owner_of(robot_id)  # NODE_LOST for a robot of a node that is gone
     if node is None or node == fleet.name:
         return None
     raw = await request.get_data(cache=True, as_text=False)

@@ -79,7 +79,10 @@ def router(app: ArenaApp) -> Callable[[UpgradeRequest], WebSocketHandler | None]
         host = request.headers.get("host")
         app.origin_policy.check_host(host)
         app.origin_policy.check_origin(request.headers.get("origin"), host, request.scheme)
-        node = _remote_node(app, robot_id)
+        try:
+            node = _remote_node(app, robot_id)
+        except ArenaError as error:  # its node is gone (NODE_LOST): the client is told so
+            return partial(_refused, app, role, error)
         if node is not None:  # another node of the fleet owns it: carried there
             from arena.server.fleet_api import proxy
 
@@ -89,12 +92,21 @@ def router(app: ArenaApp) -> Callable[[UpgradeRequest], WebSocketHandler | None]
     return route
 
 
+async def _refused(app: ArenaApp, role: str, error: ArenaError, ws: WebSocket) -> None:
+    """A connection refused before it reaches a robot (its key checked first): the error,
+    then the close."""
+    connection = Connection(app, ws, role)
+    if await authorized(connection):
+        await connection.refuse(error)
+
+
 def _remote_node(app: ArenaApp, robot_id: str) -> str | None:
-    """The other node of the fleet that owns `robot_id`, if it is not here."""
+    """The other node of the fleet that owns `robot_id`, if it is not here (`owner_of`:
+    NODE_LOST if its node is gone)."""
     fleet = app.fleet
     if fleet is None or robot_id in {robot.robot_id for robot in app.manager.robots()}:
         return None
-    node = fleet.robot_nodes.get(robot_id)
+    node = fleet.owner_of(robot_id)
     return None if node == fleet.name else node
 
 
