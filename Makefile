@@ -19,9 +19,10 @@ UI_MODULES := $(UI)/node_modules/.package-lock.json
 UI_SOURCES := $(UI)/build.mjs $(UI)/index.html $(UI)/style.css $(wildcard $(UI)/src/*.js)
 # The browser tests drive Debian's chromium (Playwright cannot download its own browser here).
 CHROMIUM := /usr/bin/chromium
+comma := ,
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: install install-dev ui browser run fleet demo test lint bench clean
+.PHONY: install install-dev ui browser run fleet demo test lint bench mutants clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -75,13 +76,19 @@ test: install-dev ui browser
 	$(BIN)/python -m pytest -q -rs
 
 lint: install-dev
-	$(BIN)/ruff check arena tests
-	$(BIN)/ruff format --check arena tests
+	$(BIN)/ruff check arena tests tools
+	$(BIN)/ruff format --check arena tests tools
 	$(BIN)/mypy
 	$(BIN)/deptry .
 
 bench: install-dev
 	$(BIN)/arena bench
 
+# Mutation testing of the safety-critical modules (specs/mutation.md). Not part of `test`: it
+# takes long. MUTATE=safety,motion runs some modules only (names in tools/mutants.py).
+MUTATE ?=
+mutants: install-dev
+	nice -n 19 $(BIN)/python tools/mutants.py $(subst $(comma), ,$(MUTATE))
+
 clean:
-	rm -rf $(VENV) .pytest_cache .mypy_cache .ruff_cache .hypothesis $(UI)/node_modules $(UI)/dist
+	rm -rf $(VENV) mutants .pytest_cache .mypy_cache .ruff_cache .hypothesis $(UI)/node_modules $(UI)/dist

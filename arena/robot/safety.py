@@ -240,17 +240,9 @@ Rule: TypeAlias = Callable[[SafetyState, Event], Outcome]
 
 
 # ---------------------------------------------------------------------------------------------
-# Rules. Each has a one-line summary: the text of its cell in the spec table.
-
-_SUMMARIES: dict[Rule, str] = {}
-
-
-def _rule(summary: str) -> Callable[[Rule], Rule]:
-    def register(fn: Rule) -> Rule:
-        _SUMMARIES[fn] = summary
-        return fn
-
-    return register
+# Rules. Each one's docstring is its summary: the text of its cell in the spec table. (A
+# docstring, not a registering decorator, so that `make mutants` can mutate the rules: mutmut
+# leaves decorated functions alone.)
 
 
 def _estop_state(state: SafetyState, reason: str) -> tuple[SafetyState, tuple[Effect, ...]]:
@@ -279,8 +271,8 @@ def _apply_loss_policy(state: SafetyState, why: str) -> Outcome:
     return Allowed(new, effects)
 
 
-@_rule("allowed: becomes owner -> mastered")
 def _claim(state: SafetyState, event: Event) -> Outcome:
+    """allowed: becomes owner -> mastered"""
     assert isinstance(event, MasterAttach)
     return Allowed(
         replace(state, mode=Mode.MASTERED, owner=event.master_id, owner_autonomous=event.autonomous)
@@ -312,11 +304,10 @@ def _refuse_or_take_over(state: SafetyState, event: MasterAttach) -> Refused | D
     )
 
 
-@_rule(
-    "takeover: previous master detached (TAKEN_OVER, told who took over), even under the same "
-    "id; else refused"
-)
 def _claim_or_takeover(state: SafetyState, event: Event) -> Outcome:
+    """takeover: previous master detached (TAKEN_OVER, told who took over), even under the same id;
+    else refused
+    """
     assert isinstance(event, MasterAttach)
     answer = _refuse_or_take_over(state, event)
     if isinstance(answer, Refused):
@@ -326,11 +317,10 @@ def _claim_or_takeover(state: SafetyState, event: Event) -> Outcome:
     )
 
 
-@_rule(
-    "live master: becomes owner, stays estopped (takeover needed if owned, even under the "
-    "same id); autonomous: refused ESTOPPED"
-)
 def _claim_while_estopped(state: SafetyState, event: Event) -> Outcome:
+    """live master: becomes owner, stays estopped (takeover needed if owned, even under the same
+    id); autonomous: refused ESTOPPED
+    """
     assert isinstance(event, MasterAttach)
     if event.autonomous:
         return Refused(
@@ -344,15 +334,15 @@ def _claim_while_estopped(state: SafetyState, event: Event) -> Outcome:
     return Allowed(replace(state, owner=event.master_id, owner_autonomous=False), (answer,))
 
 
-@_rule("ignored: no master")
 def _no_master(state: SafetyState, event: Event) -> Outcome:
+    """ignored: no master"""
     return Ignored("the robot has no master")
 
 
-@_rule(
-    "owner: allowed -> idle (hold position if asked, else the last move completes); others: ignored"
-)
 def _release(state: SafetyState, event: Event) -> Outcome:
+    """owner: allowed -> idle (hold position if asked, else the last move completes); others:
+    ignored
+    """
     assert isinstance(event, MasterDetach)
     if event.master_id != state.owner:
         return Ignored("not the owner")
@@ -360,8 +350,8 @@ def _release(state: SafetyState, event: Event) -> Outcome:
     return Allowed(replace(state, mode=Mode.IDLE, owner=None, owner_autonomous=False), effects)
 
 
-@_rule("owner: allowed, ownership ends, stays estopped; others: ignored")
 def _release_while_estopped(state: SafetyState, event: Event) -> Outcome:
+    """owner: allowed, ownership ends, stays estopped; others: ignored"""
     assert isinstance(event, MasterDetach | MasterLost | HeartbeatTimeout)
     peer = event.peer_id if isinstance(event, HeartbeatTimeout) else event.master_id
     if peer != state.owner:
@@ -369,10 +359,9 @@ def _release_while_estopped(state: SafetyState, event: Event) -> Outcome:
     return Allowed(replace(state, owner=None, owner_autonomous=False))
 
 
-@_rule(
-    "owner: loss policy (estop: e-stop -> estopped; hold: hold position -> idle); others: ignored"
-)
 def _lose_master(state: SafetyState, event: Event) -> Outcome:
+    """owner: loss policy (estop: e-stop -> estopped; hold: hold position -> idle); others: ignored
+    """
     assert isinstance(event, MasterLost | HeartbeatTimeout)
     if isinstance(event, HeartbeatTimeout):
         peer, why = event.peer_id, "heartbeat timeout"
@@ -383,16 +372,16 @@ def _lose_master(state: SafetyState, event: Event) -> Outcome:
     return _apply_loss_policy(state, f"master {peer!r} lost: {why}")
 
 
-@_rule("refused NOT_OWNER")
 def _command_without_master(state: SafetyState, event: Event) -> Outcome:
+    """refused NOT_OWNER"""
     assert isinstance(event, MasterCommand)
     return Refused(
         ErrorCode.NOT_OWNER, f"{event.source!r} is not this robot's master; attach as master first."
     )
 
 
-@_rule("owner: allowed, apply; others: refused NOT_OWNER")
 def _owner_command(state: SafetyState, event: Event) -> Outcome:
+    """owner: allowed, apply; others: refused NOT_OWNER"""
     assert isinstance(event, MasterCommand)
     if event.source != state.owner:
         return Refused(
@@ -402,56 +391,56 @@ def _owner_command(state: SafetyState, event: Event) -> Outcome:
     return Allowed(state, _APPLY_COMMAND)
 
 
-@_rule("refused ESTOPPED")
 def _refuse_estopped(state: SafetyState, event: Event) -> Outcome:
+    """refused ESTOPPED"""
     return Refused(
         ErrorCode.ESTOPPED, f"Robot is e-stopped ({state.estop_reason}); reset it first."
     )
 
 
-@_rule("allowed, apply")
 def _manual_command(state: SafetyState, event: Event) -> Outcome:
+    """allowed, apply"""
     return Allowed(state, _APPLY_COMMAND)
 
 
-@_rule("refused MASTER_ACTIVE")
 def _manual_refused(state: SafetyState, event: Event) -> Outcome:
+    """refused MASTER_ACTIVE"""
     return Refused(
         ErrorCode.MASTER_ACTIVE,
         f"Manual control is off while master {state.owner!r} controls the robot.",
     )
 
 
-@_rule("allowed: stop motion, autonomous master detached -> estopped")
 def _estop(state: SafetyState, event: Event) -> Outcome:
+    """allowed: stop motion, autonomous master detached -> estopped"""
     assert isinstance(event, EStop)
     new, effects = _estop_state(state, event.reason)
     return Allowed(new, effects)
 
 
-@_rule("ignored: already estopped")
 def _already_estopped(state: SafetyState, event: Event) -> Outcome:
+    """ignored: already estopped"""
     return Ignored("already e-stopped")
 
 
-@_rule("allowed: slaves resumed, no motion -> mastered if owner else idle")
 def _reset(state: SafetyState, event: Event) -> Outcome:
+    """allowed: slaves resumed, no motion -> mastered if owner else idle"""
     mode = Mode.MASTERED if state.owner is not None else Mode.IDLE
     return Allowed(replace(state, mode=mode, estop_reason=None), (ResumeSlaves(),))
 
 
-@_rule("ignored: not estopped")
 def _not_estopped(state: SafetyState, event: Event) -> Outcome:
+    """ignored: not estopped"""
     return Ignored("not e-stopped")
 
 
-@_rule("allowed")
 def _slave_membership(state: SafetyState, event: Event) -> Outcome:
+    """allowed"""
     return Allowed(state)
 
 
-@_rule("severity >= estop_severity: e-stop -> estopped; else allowed")
 def _slave_error(state: SafetyState, event: Event) -> Outcome:
+    """severity >= estop_severity: e-stop -> estopped; else allowed"""
     assert isinstance(event, SlaveError)
     if event.severity.rank < state.estop_severity.rank:
         return Allowed(state)
@@ -460,13 +449,13 @@ def _slave_error(state: SafetyState, event: Event) -> Outcome:
     return Allowed(new, effects)
 
 
-@_rule("allowed: stays estopped")
 def _slave_error_while_estopped(state: SafetyState, event: Event) -> Outcome:
+    """allowed: stays estopped"""
     return Allowed(state)
 
 
-@_rule("loss policy (estop: e-stop -> estopped; hold: hold position)")
 def _lose_slave(state: SafetyState, event: Event) -> Outcome:
+    """loss policy (estop: e-stop -> estopped; hold: hold position)"""
     assert isinstance(event, SlaveLost)
     why = f"slave {event.slave_id!r} lost: {event.reason}"
     if state.loss_policy is LossPolicy.HOLD:
@@ -526,4 +515,9 @@ def transition(state: SafetyState, event: Event) -> Outcome:
 
 def describe_table() -> dict[tuple[str, str], str]:
     """The table as text: (mode, event name) -> rule summary, as in the spec document."""
-    return {(mode.value, event.__name__): _SUMMARIES[rule] for (mode, event), rule in TABLE.items()}
+    return {(mode.value, event.__name__): _summary(rule) for (mode, event), rule in TABLE.items()}
+
+
+def _summary(rule: Rule) -> str:
+    """A rule's docstring on one line."""
+    return " ".join((rule.__doc__ or "").split())

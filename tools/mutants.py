@@ -1,0 +1,193 @@
+"""`make mutants`: mutation testing of the modules whose failure hurts a person or an arm.
+
+Runs mutmut (configured in pyproject.toml, `[tool.mutmut]`) one module at a time, smallest
+first, one mutant at a time, each against only the tests that called the mutated function.
+Then prints, per module, the mutants made, killed, survived and left as equivalent. The
+equivalent mutants are the ones listed in specs/mutation.md with the reason each cannot be
+told apart from the original; a listed mutant is matched by its function and the line it
+changes (not by mutmut's number, which moves when the function changes), so an entry that no
+longer matches any survivor is reported as stale.
+
+    python tools/mutants.py                 # every module
+    python tools/mutants.py safety motion   # some of them (names as in MODULES)
+    python tools/mutants.py --report        # figures of the last runs, running nothing
+
+Survivors are written, with their diffs, to mutants/survivors-<module>.txt.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+SPEC = ROOT / "specs" / "mutation.md"
+
+#: The modules under mutation, smallest first so that figures come early.
+MODULES: dict[str, str] = {
+    "safety": "arena/robot/safety.py",
+    "motion": "arena/robot/motion.py",
+    "groups": "arena/robot/groups.py",
+    "links": "arena/robot/links.py",
+    "core": "arena/robot/core.py",
+    "usb_slave": "arena/drivers/usb_slave.py",
+    "servo_arm": "arena/drivers/servo_arm.py",
+    "worker": "arena/feetech/worker.py",
+    "collision": "arena/robot/collision.py",
+    "fleet_node": "arena/fleet/node.py",
+}
+
+KILLED = {1, 3}  # a test failed (3: pytest's internal error, which mutmut counts as a kill)
+TIMEOUT = {36, -24, 24, 152, 255}  # the tests hung: the mutant is caught, by the time limit
+SURVIVED = {0}
+NO_TESTS = {5, 33}  # no selected test calls the function: a survivor by another name
+
+
+@dataclass
+class Figures:
+    """What the last run of one module found."""
+
+    made: int = 0
+    killed: int = 0
+    timeout: int = 0
+    equivalent: int = 0
+    survived: list[str] = field(default_factory=list)
+    not_run: int = 0
+
+    @property
+    def score(self) -> float:
+        """Killed (timeouts included) or shown equivalent, as a share of all mutants made."""
+        if not self.made:
+            return 0.0
+        return (self.killed + self.timeout + self.equivalent) / self.made
+
+
+def equivalents() -> set[tuple[str, str, str]]:
+    """(function, original line, mutated line) of every mutant specs/mutation.md calls equivalent.
+
+    The table's rows look like ``| safety | `_rule` | `a < b` | `a <= b` | why |``.
+    """
+    found: set[tuple[str, str, str]] = set()
+    cell = re.compile(r"(?<!\\)\|")
+    for line in SPEC.read_text(encoding="utf-8").splitlines():
+        if not line.startswith("| ") or "`" not in line:
+            continue
+        cells = [c.strip().replace("\\|", "|") for c in cell.split(line)[1:-1]]
+        if len(cells) < 5 or cells[0] not in MODULES:
+            continue
+        function, original, mutated = (c.strip("`") for c in cells[1:4])
+        found.add((function, _squash(original), _squash(mutated)))
+    return found
+
+
+def _squash(code: str) -> str:
+    return " ".join(code.split())
+
+
+def function_of(mutant: str) -> str:
+    """`arena.robot.safety.x_transition__mutmut_3` -> `transition`; methods -> `Class.method`."""
+    name = mutant.rsplit(".", 1)[-1].rsplit("__mutmut_", 1)[0]
+    name = name.removeprefix("x_").removeprefix("x\u01c1")
+    return name.replace("\u01c1", ".")
+
+
+def changed_lines(mutant: str) -> tuple[str, str]:
+    """The original and the mutated lines of one mutant, each squashed to one line."""
+    out = subprocess.run(
+        [_mutmut(), "show", mutant], cwd=ROOT, capture_output=True, text=True, check=True
+    ).stdout
+    lines = out.splitlines()
+    minus = [ln[1:] for ln in lines if ln.startswith("-") and not ln.startswith("---")]
+    plus = [ln[1:] for ln in lines if ln.startswith("+") and not ln.startswith("+++")]
+    return _squash(" ".join(minus)), _squash(" ".join(plus))
+
+
+def _mutmut() -> str:
+    return str(Path(sys.executable).parent / "mutmut")
+
+
+def run(module: str) -> None:
+    """Mutate one module and test its mutants, one at a time."""
+    dotted = MODULES[module].removesuffix(".py").replace("/", ".")
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
+    print(f"== {module}: mutmut run {dotted}.*", flush=True)
+    subprocess.run(
+        [_mutmut(), "run", "--max-children", "1", f"{dotted}.*"],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        check=False,
+    )
+
+
+def figures(
+    module: str, known: set[tuple[str, str, str]], used: set[tuple[str, str, str]]
+) -> Figures:
+    """Count the last results of one module and write its survivors down."""
+    meta = ROOT / "mutants" / (MODULES[module] + ".meta")
+    result = Figures()
+    if not meta.exists():
+        return result
+    codes: dict[str, int | None] = json.loads(meta.read_text())["exit_code_by_key"]
+    report: list[str] = []
+    for mutant, code in sorted(codes.items()):
+        result.made += 1
+        if code in KILLED:
+            result.killed += 1
+        elif code in TIMEOUT:
+            result.timeout += 1
+        elif code is None:
+            result.not_run += 1
+        else:
+            original, mutated = changed_lines(mutant)
+            key = (function_of(mutant), original, mutated)
+            if code in SURVIVED and key in known:
+                result.equivalent += 1
+                used.add(key)
+                continue
+            result.survived.append(mutant)
+            why = "no test calls it" if code in NO_TESTS else f"exit code {code}"
+            report.append(f"{mutant} ({why})\n  - {original}\n  + {mutated}\n")
+    (ROOT / "mutants" / f"survivors-{module}.txt").write_text("\n".join(report))
+    return result
+
+
+def main(argv: list[str]) -> int:
+    """Run the modules asked (all by default), then print the figures of every module run."""
+    report_only = "--report" in argv
+    names = [a for a in argv if not a.startswith("--")] or list(MODULES)
+    unknown = [n for n in names if n not in MODULES]
+    if unknown:
+        print(f"unknown module(s) {unknown}; known: {', '.join(MODULES)}", file=sys.stderr)
+        return 2
+    if not report_only:
+        for name in names:
+            run(name)
+    known = equivalents()
+    used: set[tuple[str, str, str]] = set()
+    print(
+        f"{'module':<11} {'made':>5} {'killed':>6} {'timeout':>7} {'equiv':>5} {'survived':>8}"
+        f" {'not run':>7} {'score':>6}"
+    )
+    for name in names:
+        f = figures(name, known, used)
+        print(
+            f"{name:<11} {f.made:>5} {f.killed:>6} {f.timeout:>7} {f.equivalent:>5}"
+            f" {len(f.survived):>8} {f.not_run:>7} {f.score:>6.1%}"
+        )
+    stale = {k for k in known if k[0] and k not in used}
+    if stale and not report_only and names == list(MODULES):
+        print("\nEquivalent entries in specs/mutation.md that match no survivor (stale):")
+        for function, original, mutated in sorted(stale):
+            print(f"  {function}: {original!r} -> {mutated!r}")
+    print("\nSurvivors and their diffs: mutants/survivors-<module>.txt")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
