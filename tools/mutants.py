@@ -70,7 +70,9 @@ class Figures:
 def equivalents() -> set[tuple[str, str, str]]:
     """(function, original line, mutated line) of every mutant specs/mutation.md calls equivalent.
 
-    The table's rows look like ``| safety | `_rule` | `a < b` | `a <= b` | why |``.
+    The table's rows look like ``| safety | `_rule` | `a < b` | `a <= b` | why |``. The mutant
+    may be ``*`` (every mutant of that line) or ``(case)`` (a mutant that changes only the
+    letter case of that line).
     """
     found: set[tuple[str, str, str]] = set()
     cell = re.compile(r"(?<!\\)\|")
@@ -83,6 +85,18 @@ def equivalents() -> set[tuple[str, str, str]]:
         function, original, mutated = (c.strip("`") for c in cells[1:4])
         found.add((function, _squash(original), _squash(mutated)))
     return found
+
+
+def matching(key: tuple[str, str, str], known: set[tuple[str, str, str]]) -> tuple[str, str, str]:
+    """The entry of `known` that covers the survivor `key`, or `key` itself if it is not known."""
+    function, original, mutated = key
+    for entry in (key, (function, original, "*"), (function, original, "(case)")):
+        if entry not in known:
+            continue
+        if entry[2] == "(case)" and mutated.lower() != original.lower():
+            continue
+        return entry
+    return key
 
 
 def _squash(code: str) -> str:
@@ -145,10 +159,10 @@ def figures(
             result.not_run += 1
         else:
             original, mutated = changed_lines(mutant)
-            key = (function_of(mutant), original, mutated)
-            if code in SURVIVED and key in known:
+            entry = matching((function_of(mutant), original, mutated), known)
+            if code in SURVIVED and entry in known:
                 result.equivalent += 1
-                used.add(key)
+                used.add(entry)
                 continue
             result.survived.append(mutant)
             why = "no test calls it" if code in NO_TESTS else f"exit code {code}"

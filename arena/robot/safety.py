@@ -519,5 +519,5 @@ def describe_table() -> dict[tuple[str, str], str]:
 
 
 def _summary(rule: Rule) -> str:
-    """A rule's docstring on one line."""
-    return " ".join((rule.__doc__ or "").split())
+    """A rule's docstring on one line (a rule without one reads "None": the spec test fails)."""
+    return " ".join(str(rule.__doc__).split())
