@@ -199,6 +199,55 @@ def test_losing_a_slave_applies_the_loss_policy() -> None:
     assert held.effects == (sm.HoldPosition(),)
 
 
+def _is_sentence(text: object) -> bool:
+    """A message for a person: a non-empty sentence that ends with a full stop."""
+    return isinstance(text, str) and len(text) > 1 and text.endswith(".")
+
+
+STATES = [
+    IDLE,
+    MASTERED,
+    MASTERED_BY_SEQUENCE,
+    ESTOPPED,
+    replace(ESTOPPED, owner="alice"),
+]
+REQUESTS = [
+    sm.MasterAttach("bob"),
+    sm.MasterAttach("alice"),
+    sm.MasterAttach("bob", autonomous=True),
+    sm.MasterCommand("bob"),
+    sm.MasterCommand("alice"),
+    sm.ManualCommand(),
+]
+
+
+def test_every_refusal_tells_the_sender_why_and_names_who_is_in_the_way() -> None:
+    codes = set()
+    for state in STATES:
+        for event in REQUESTS:
+            outcome = sm.transition(state, event)
+            if not isinstance(outcome, sm.Refused):
+                continue
+            codes.add(outcome.code)
+            assert _is_sentence(outcome.message), (state, event, outcome)
+            if outcome.code is ErrorCode.NOT_OWNER:
+                assert isinstance(event, sm.MasterCommand)
+                assert repr(event.source) in outcome.message
+            if outcome.code is ErrorCode.MASTER_ACTIVE:
+                assert repr(state.owner) in outcome.message
+            if outcome.code is ErrorCode.ESTOPPED:
+                assert "e-stopped" in outcome.message
+    assert codes == {ErrorCode.NOT_OWNER, ErrorCode.MASTER_ACTIVE, ErrorCode.ESTOPPED}
+
+
+def test_a_master_detached_by_an_estop_is_told_the_reason() -> None:
+    outcome = sm.transition(MASTERED_BY_SEQUENCE, sm.EStop("operator pressed stop"))
+    assert isinstance(outcome, sm.Allowed)
+    (detach,) = [e for e in outcome.effects if isinstance(e, sm.DetachMaster)]
+    assert detach.master_id == "seq"
+    assert _is_sentence(detach.message) and "operator pressed stop" in detach.message
+
+
 # --- random sequences -------------------------------------------------------------------------
 
 PEERS = st.sampled_from(["alice", "bob", "seq"])
