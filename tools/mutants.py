@@ -33,6 +33,7 @@ MODULES: dict[str, str] = {
     "safety": "arena/robot/safety.py",
     "motion": "arena/robot/motion.py",
     "groups": "arena/robot/groups.py",
+    "manager": "arena/robot/manager.py",
     "links": "arena/robot/links.py",
     "core": "arena/robot/core.py",
     "usb_slave": "arena/drivers/usb_slave.py",
@@ -130,13 +131,20 @@ def run(module: str) -> None:
     dotted = MODULES[module].removesuffix(".py").replace("/", ".")
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
     print(f"== {module}: mutmut run {dotted}.*", flush=True)
-    subprocess.run(
-        [_mutmut(), "run", "--max-children", "1", f"{dotted}.*"],
-        cwd=ROOT,
-        env=env,
-        stdout=subprocess.DEVNULL,
-        check=False,
-    )
+    log = ROOT / "mutants" / f"run-{module}.log"
+    log.parent.mkdir(exist_ok=True)
+    with log.open("w") as out:
+        done = subprocess.run(
+            [_mutmut(), "run", "--max-children", "1", f"{dotted}.*"],
+            cwd=ROOT,
+            env=env,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            check=False,
+        )
+    if done.returncode != 0:
+        tail = log.read_text(errors="replace")[-2000:]
+        print(f"mutmut stopped with exit code {done.returncode}; the end of {log}:\n{tail}")
 
 
 def figures(
