@@ -248,6 +248,28 @@ def test_a_master_detached_by_an_estop_is_told_the_reason() -> None:
     assert _is_sentence(detach.message) and "operator pressed stop" in detach.message
 
 
+def test_a_live_master_taking_over_while_estopped_stays_live() -> None:
+    # Taking over from a live master while e-stopped gives a live master: after the reset, the
+    # next e-stop keeps it (only programs end for good).
+    taken = sm.transition(replace(ESTOPPED, owner="alice"), sm.MasterAttach("bob", takeover=True))
+    assert isinstance(taken, sm.Allowed) and taken.state.owner == "bob"
+    reset = sm.transition(taken.state, sm.Reset())
+    assert isinstance(reset, sm.Allowed) and reset.state.owner == "bob"
+    stopped = sm.transition(reset.state, sm.EStop("again"))
+    assert isinstance(stopped, sm.Allowed)
+    assert stopped.state.owner == "bob"
+    assert not any(isinstance(e, sm.DetachMaster) for e in stopped.effects)
+
+
+@pytest.mark.parametrize("state", [IDLE, MASTERED])
+def test_losing_a_slave_stops_motion_and_says_which_and_why(state: sm.SafetyState) -> None:
+    outcome = sm.transition(state, sm.SlaveLost("arm", "unplugged"))
+    assert isinstance(outcome, sm.Allowed)
+    (stop,) = [e for e in outcome.effects if isinstance(e, sm.StopMotion)]
+    assert "'arm'" in stop.reason and "unplugged" in stop.reason
+    assert outcome.state.estop_reason == stop.reason
+
+
 # --- random sequences -------------------------------------------------------------------------
 
 PEERS = st.sampled_from(["alice", "bob", "seq"])
