@@ -17,6 +17,7 @@ Survivors are written, with their diffs, to mutants/survivors-<module>.txt.
 
 from __future__ import annotations
 
+import fnmatch
 import json
 import os
 import re
@@ -28,20 +29,56 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parent.parent
 SPEC = ROOT / "specs" / "mutation.md"
 
-#: The modules under mutation, smallest first so that figures come early.
-MODULES: dict[str, str] = {
-    "safety": "arena/robot/safety.py",
-    "motion": "arena/robot/motion.py",
-    "groups": "arena/robot/groups.py",
-    "manager": "arena/robot/manager.py",
-    "links": "arena/robot/links.py",
-    "core": "arena/robot/core.py",
-    "usb_slave": "arena/drivers/usb_slave.py",
-    "servo_arm": "arena/drivers/servo_arm.py",
-    "worker": "arena/feetech/worker.py",
-    "collision": "arena/robot/collision.py",
-    "fleet_node": "arena/fleet/node.py",
+#: The modules under mutation, smallest first so that figures come early: the file, and the
+#: functions whose mutants count (none listed: every function of the file). `Class.method` names
+#: a method.
+MODULES: dict[str, tuple[str, tuple[str, ...]]] = {
+    "safety": ("arena/robot/safety.py", ()),
+    "motion": ("arena/robot/motion.py", ()),
+    "groups": ("arena/robot/groups.py", ()),
+    "manager": ("arena/robot/manager.py", ()),
+    "servo_arm": ("arena/drivers/servo_arm.py", ()),
+    "usb_slave": (
+        "arena/drivers/usb_slave.py",
+        ("UsbSlave._follow", "UsbSlave._on_notice", "UsbSlave._hold", "UsbSlave._safe_job"),
+    ),
+    "worker": (
+        "arena/feetech/worker.py",
+        (
+            "BusWorker.stop",
+            "BusWorker.clear_goals",
+            "BusWorker._lose",
+            "BusWorker._shutdown",
+            "read_positions",
+            "set_torque",
+            "hold_here",
+        ),
+    ),
+    "fleet_node": ("arena/fleet/node.py", ("FleetNode.ask", "FleetNode.ask_all")),
+    "links": ("arena/robot/links.py", ()),
+    "core": ("arena/robot/core.py", ()),
+    "collision": ("arena/robot/collision.py", ()),
 }
+
+
+def patterns(module: str, suffix: str = "*") -> list[str]:
+    """mutmut's names for the mutants of one module (globs). `mutmut run` is given them with a
+    bare `*` (it matches them against function names too, to choose the clean tests), the
+    figures with `__mutmut_*` (the mutants of exactly these functions)."""
+    path, functions = MODULES[module]
+    dotted = path.removesuffix(".py").replace("/", ".")
+    if not functions:
+        return [f"{dotted}.*"]
+    return [f"{dotted}.x{_mangle(f)}{suffix}" for f in functions]
+
+
+def _mangle(function: str) -> str:
+    """`f` -> `_f`; `Class.method` -> `\u01c1Class\u01c1method` (mutmut's names for them)."""
+    if "." in function:
+        cls, method = function.split(".")
+        return f"\u01c1{cls}\u01c1{method}"
+    return f"_{function}"
+
 
 KILLED = {1, 3}  # a test failed (3: pytest's internal error, which mutmut counts as a kill)
 TIMEOUT = {36, -24, 24, 152, 255}  # the tests hung: the mutant is caught, by the time limit
@@ -128,14 +165,13 @@ def _mutmut() -> str:
 
 def run(module: str) -> None:
     """Mutate one module and test its mutants, one at a time."""
-    dotted = MODULES[module].removesuffix(".py").replace("/", ".")
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    print(f"== {module}: mutmut run {dotted}.*", flush=True)
+    print(f"== {module}: mutmut run {' '.join(patterns(module))}", flush=True)
     log = ROOT / "mutants" / f"run-{module}.log"
     log.parent.mkdir(exist_ok=True)
     with log.open("w") as out:
         done = subprocess.run(
-            [_mutmut(), "run", "--max-children", "1", f"{dotted}.*"],
+            [_mutmut(), "run", "--max-children", "1", *patterns(module)],
             cwd=ROOT,
             env=env,
             stdout=out,
@@ -151,13 +187,16 @@ def figures(
     module: str, known: set[tuple[str, str, str]], used: set[tuple[str, str, str]]
 ) -> Figures:
     """Count the last results of one module and write its survivors down."""
-    meta = ROOT / "mutants" / (MODULES[module] + ".meta")
+    meta = ROOT / "mutants" / (MODULES[module][0] + ".meta")
     result = Figures()
     if not meta.exists():
         return result
     codes: dict[str, int | None] = json.loads(meta.read_text())["exit_code_by_key"]
     report: list[str] = []
+    wanted = patterns(module, "__mutmut_*")
     for mutant, code in sorted(codes.items()):
+        if not any(fnmatch.fnmatchcase(mutant, p) for p in wanted):
+            continue
         result.made += 1
         if code in KILLED:
             result.killed += 1
