@@ -270,6 +270,20 @@ def test_losing_a_slave_stops_motion_and_says_which_and_why(state: sm.SafetyStat
     assert outcome.state.estop_reason == stop.reason
 
 
+def test_a_critical_slave_fault_stops_motion_and_says_which_and_why() -> None:
+    outcome = sm.transition(MASTERED, sm.SlaveError("arm", Severity.CRITICAL, "overheat"))
+    assert isinstance(outcome, sm.Allowed)
+    (stop,) = [e for e in outcome.effects if isinstance(e, sm.StopMotion)]
+    assert "'arm'" in stop.reason and "overheat" in stop.reason
+    assert outcome.state.estop_reason == stop.reason
+
+
+def test_a_program_that_detaches_leaves_no_program_behind() -> None:
+    outcome = sm.transition(MASTERED_BY_SEQUENCE, sm.MasterDetach("seq"))
+    assert isinstance(outcome, sm.Allowed)
+    assert outcome.state.owner is None and not outcome.state.owner_autonomous
+
+
 # --- random sequences -------------------------------------------------------------------------
 
 PEERS = st.sampled_from(["alice", "bob", "seq"])
