@@ -163,15 +163,32 @@ def _mutmut() -> str:
     return str(Path(sys.executable).parent / "mutmut")
 
 
-def run(module: str) -> None:
-    """Mutate one module and test its mutants, one at a time."""
+def survivors(module: str) -> list[str]:
+    """The mutants of one module that no test killed in its last run."""
+    meta = ROOT / "mutants" / (MODULES[module][0] + ".meta")
+    if not meta.exists():
+        return []
+    codes: dict[str, int | None] = json.loads(meta.read_text())["exit_code_by_key"]
+    wanted = patterns(module, "__mutmut_*")
+    return sorted(
+        m
+        for m, code in codes.items()
+        if code in SURVIVED | NO_TESTS and any(fnmatch.fnmatchcase(m, p) for p in wanted)
+    )
+
+
+def run(module: str, names: list[str] | None = None) -> None:
+    """Mutate one module and test its mutants (or only `names`), one at a time. mutmut keeps
+    a result until the function changes, so new tests reach old survivors only when these
+    are named again (`--retest`)."""
     env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    print(f"== {module}: mutmut run {' '.join(patterns(module))}", flush=True)
+    names = names or patterns(module)
+    print(f"== {module}: mutmut run {' '.join(names) if len(names) < 4 else '...'}", flush=True)
     log = ROOT / "mutants" / f"run-{module}.log"
     log.parent.mkdir(exist_ok=True)
     with log.open("w") as out:
         done = subprocess.run(
-            [_mutmut(), "run", "--max-children", "1", *patterns(module)],
+            [_mutmut(), "run", "--max-children", "1", *names],
             cwd=ROOT,
             env=env,
             stdout=out,
@@ -221,6 +238,7 @@ def figures(
 def main(argv: list[str]) -> int:
     """Run the modules asked (all by default), then print the figures of every module run."""
     report_only = "--report" in argv
+    retest = "--retest" in argv
     names = [a for a in argv if not a.startswith("--")] or list(MODULES)
     unknown = [n for n in names if n not in MODULES]
     if unknown:
@@ -228,7 +246,10 @@ def main(argv: list[str]) -> int:
         return 2
     if not report_only:
         for name in names:
-            run(name)
+            if not retest:
+                run(name)
+            elif again := survivors(name):
+                run(name, again)
     known = equivalents()
     used: set[tuple[str, str, str]] = set()
     print(
