@@ -164,7 +164,8 @@ def _mutmut() -> str:
 
 
 def survivors(module: str) -> list[str]:
-    """The mutants of one module that no test killed in its last run."""
+    """The mutants of one module that no test killed in its last run (timeouts too: a loaded
+    machine can make a slow test look hung)."""
     meta = ROOT / "mutants" / (MODULES[module][0] + ".meta")
     if not meta.exists():
         return []
@@ -173,7 +174,7 @@ def survivors(module: str) -> list[str]:
     return sorted(
         m
         for m, code in codes.items()
-        if code in SURVIVED | NO_TESTS and any(fnmatch.fnmatchcase(m, p) for p in wanted)
+        if code in SURVIVED | NO_TESTS | TIMEOUT and any(fnmatch.fnmatchcase(m, p) for p in wanted)
     )
 
 
