@@ -360,7 +360,8 @@ def _release_while_estopped(state: SafetyState, event: Event) -> Outcome:
 
 
 def _lose_master(state: SafetyState, event: Event) -> Outcome:
-    """owner: loss policy (estop: e-stop -> estopped; hold: hold position -> idle); others: ignored"""
+    """owner: loss policy (estop: e-stop -> estopped; hold: hold position -> idle);
+    others: ignored"""
     assert isinstance(event, MasterLost | HeartbeatTimeout)
     if isinstance(event, HeartbeatTimeout):
         peer, why = event.peer_id, "heartbeat timeout"
