@@ -284,6 +284,21 @@ def test_a_program_that_detaches_leaves_no_program_behind() -> None:
     assert outcome.state.owner is None and not outcome.state.owner_autonomous
 
 
+def test_a_second_connection_under_the_owners_id_is_told_so() -> None:
+    same = sm.transition(MASTERED, sm.MasterAttach("alice"))
+    other = sm.transition(MASTERED, sm.MasterAttach("bob"))
+    assert isinstance(same, sm.Refused) and isinstance(other, sm.Refused)
+    assert "connected already" in same.message
+    assert "connected already" not in other.message
+
+
+def test_a_heartbeat_timeout_is_named_in_the_estop_reason() -> None:
+    outcome = sm.transition(MASTERED, sm.HeartbeatTimeout("alice"))
+    assert isinstance(outcome, sm.Allowed)
+    assert "'alice'" in (outcome.state.estop_reason or "")
+    assert (outcome.state.estop_reason or "").endswith(": heartbeat timeout")
+
+
 # --- random sequences -------------------------------------------------------------------------
 
 PEERS = st.sampled_from(["alice", "bob", "seq"])
