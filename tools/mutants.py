@@ -218,16 +218,17 @@ def figures(
         result.made += 1
         if code in KILLED:
             result.killed += 1
-        elif code in TIMEOUT:
-            result.timeout += 1
         elif code is None:
             result.not_run += 1
         else:
             original, mutated = changed_lines(mutant)
             entry = matching((function_of(mutant), original, mutated), known)
-            if code in SURVIVED and entry in known:
+            if entry in known:  # shown equivalent, whatever a (timed out) run said
                 result.equivalent += 1
                 used.add(entry)
+                continue
+            if code in TIMEOUT:
+                result.timeout += 1
                 continue
             result.survived.append(mutant)
             why = "no test calls it" if code in NO_TESTS else f"exit code {code}"
