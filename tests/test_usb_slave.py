@@ -320,3 +320,19 @@ async def test_late_replies_time_out_and_readings_stay_right(
     for joints in readings:
         for name, value in joints.items():
             assert value == pytest.approx(expected[name], abs=0.1), name
+
+
+async def test_a_stop_while_the_bus_is_away_is_kept_when_it_returns(
+    manager: RobotManager, sim: PtySimBus
+) -> None:
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    await robot.attach_slave(usb_slave(sim, MODEL, estop="torque-off"))
+    await eventually(lambda: all(servo_torque(sim).values()), what="torque on")
+    sim.unplug()  # the loss e-stops the robot while the slave cannot reach its servos
+    await eventually(lambda: not robot.snapshot().slaves[0].connected, what="loss")
+    assert robot.snapshot().mode is Mode.ESTOPPED
+    sim.plug()
+    await eventually(lambda: robot.snapshot().slaves[0].connected, what="reconnection")
+    assert set(servo_torque(sim).values()) == {0}  # torque-off: it comes back released
+    await robot.reset()
+    await eventually(lambda: all(servo_torque(sim).values()), what="torque back after reset")
