@@ -331,11 +331,13 @@ async def test_a_stop_while_the_bus_is_away_is_kept_when_it_returns(
     manager: RobotManager, sim: PtySimBus
 ) -> None:
     robot = await manager.create_robot("so-arm100", robot_id="arm")
-    await robot.attach_slave(usb_slave(sim, MODEL, estop="torque-off"))
+    driver = usb_slave(sim, MODEL, estop="torque-off")
+    await robot.attach_slave(driver)
     await eventually(lambda: all(servo_torque(sim).values()), what="torque on")
     sim.unplug()  # the loss e-stops the robot while the slave cannot reach its servos
     await eventually(lambda: not robot.snapshot().slaves[0].connected, what="loss")
     assert robot.snapshot().mode is Mode.ESTOPPED
+    await eventually(lambda: driver.frozen, what="the slave told to stop, with its bus away")
     sim.plug()
     await eventually(lambda: robot.snapshot().slaves[0].connected, what="reconnection")
     assert set(servo_torque(sim).values()) == {0}  # torque-off: it comes back released
