@@ -30,7 +30,7 @@ from arena.feetech.sim import SimBus
 BITS_PER_BYTE = 10  # 8N1: start bit, 8 data bits, stop bit
 #: A `servo_bus()` reply still owed after its timeout by this much (seconds) times out anyway:
 #: the simulator is stuck, and a test must fail rather than hang.
-OWED_PATIENCE = 10.0
+OWED_PATIENCE = 30.0
 
 
 class PtySimBus:
