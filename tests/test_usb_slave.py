@@ -146,8 +146,15 @@ async def test_silent_servo_times_out_then_the_bus_is_lost_and_recovers(
         assert not slave.connected
         with sim.paused() as bus:
             bus.servo(3).faults.silent = False
-        await eventually(lambda: robot.snapshot().slaves[0].connected, what="reconnection")
-        got = events.drain()
+        got: list[object] = []
+
+        def measured_again() -> bool:
+            # "adopted" follows "reconnected" once a reading came back: wait for it, not for time
+            got.extend(events.drain())
+            changes = [e.change for e in got if isinstance(e, PeerChanged)]
+            return "reconnected" in changes and changes[-1] == "adopted"
+
+        await eventually(measured_again, what="reconnection, the pose measured again")
     faults = [e for e in got if isinstance(e, FaultReported)]
     timeout = next(f for f in faults if f.code == ErrorCode.SERVO_TIMEOUT)
     assert timeout.joint == "Elbow"
