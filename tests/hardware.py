@@ -5,12 +5,14 @@ from __future__ import annotations
 import inspect
 from collections.abc import Awaitable, Callable, Iterator
 from pathlib import Path
+from unittest import mock
 
 import trio
 
+from arena.drivers import servo_arm
 from arena.drivers.usb_slave import UsbSlave
 from arena.feetech import registers as reg
-from arena.feetech.bus import ServoBus
+from arena.feetech.bus import DEFAULT_TIMEOUT_MARGIN, ServoBus
 from arena.feetech.health import HealthLimits
 from arena.feetech.sim_pty import PtySimBus
 from arena.feetech.worker import WorkerSettings
@@ -18,13 +20,27 @@ from arena.protocol.rest import UsbSlaveBody
 from arena.robot.actor import Robot
 from arena.robot.model import RobotModel
 
-# Generous reply timeout: a loaded CI machine must not turn into a "silent servo".
+# The reply timeout's wall-clock part. A starved simulator cannot trip it: the buses of a
+# running simulator wait for it too (`PtySimBus.servo_bus`); only servos silent on purpose time out.
 TEST_TIMEOUT_MARGIN = 0.05
+_SIMS: dict[str, PtySimBus] = {}  # the running simulators by port
 
 
 def open_test_bus(port: str) -> ServoBus:
-    """A `ServoBus` with the test timeout margin."""
-    return ServoBus(port, timeout_margin=TEST_TIMEOUT_MARGIN)
+    """A `ServoBus` with the test timeout margin, paced by the simulator on `port` if one runs."""
+    sim = _SIMS.get(port)
+    if sim is None:
+        return ServoBus(port, timeout_margin=TEST_TIMEOUT_MARGIN)
+    return sim.servo_bus(TEST_TIMEOUT_MARGIN)
+
+
+def _server_bus(port: str, baud: int = 1_000_000) -> ServoBus:
+    # What a server's arm opens (`ServoArm`'s default): the production margin, but paced by
+    # the simulator on that port, so a loaded machine does not make its servos look silent.
+    sim = _SIMS.get(port)
+    if sim is None:
+        return ServoBus(port, baud)
+    return sim.servo_bus(DEFAULT_TIMEOUT_MARGIN)
 
 
 def usb_slave(
@@ -81,10 +97,14 @@ def servo_torque(sim: PtySimBus) -> dict[int, int]:
 
 
 def running_sim(tmp_path: Path, **kwargs: object) -> Iterator[PtySimBus]:
-    """A started `PtySimBus` at `tmp_path/ttySIM0` (a fixture body)."""
+    """A started `PtySimBus` at `tmp_path/ttySIM0` (a fixture body). While it runs, the buses
+    opened on its port, by tests or by a server's arms, wait for it (see `open_test_bus`)."""
     sim = PtySimBus(tmp_path / "ttySIM0", **kwargs)  # type: ignore[arg-type]
     sim.start()
+    _SIMS[str(sim.link)] = sim
     try:
-        yield sim
+        with mock.patch.object(servo_arm, "ServoBus", _server_bus):
+            yield sim
     finally:
+        del _SIMS[str(sim.link)]
         sim.close()

@@ -123,8 +123,11 @@ async def test_every_stop_path_against_the_mock_slave(
     start_server: StartServer, tmp_path: Path
 ) -> None:
     server = await start_server(demo=True, heartbeat_timeout=0.5, heartbeat_interval=0.2)
-    # `settle` is only a bound: each trial ends once the arm is seen at rest
-    settings = Settings(url=server.url, robot="demo-arm", trials=1, settle=30.0, lead=0.3)
+    # `settle` and `timeout` are only bounds: each trial goes on once the stop is seen and the
+    # arm is at rest
+    settings = Settings(
+        url=server.url, robot="demo-arm", trials=1, settle=30.0, lead=0.3, timeout=30.0
+    )
     results, notes = await trio.to_thread.run_sync(run, settings)
     assert list(results) == list(PATHS) and notes == []  # heartbeat too: the server is quick
     for path, trials in results.items():
@@ -185,7 +188,12 @@ async def test_both_stop_policies_on_the_simulated_bus(
 
     def test_and_look() -> tuple[dict[str, list[Trial]], list[str]]:
         settings = Settings(
-            url=server.url, robot="arm", trials=2, paths=("master-message",), settle=30.0
+            url=server.url,
+            robot="arm",
+            trials=2,
+            paths=("master-message",),
+            settle=30.0,
+            timeout=30.0,
         )
         return run(settings)
 

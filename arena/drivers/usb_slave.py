@@ -133,16 +133,16 @@ class UsbSlave(ServoArm):
             self.frozen = True
             held = None
             if self.session is None:
-                held = await self._safe_job(lambda bus: self._hold(bus, torque=not torque_off))
+                held = await self._safe_hold(torque=not torque_off)
             if torque_off:  # limp: it may sag or be moved by hand before the reset
                 await self._rejoin("torque off for the e-stop: the arm may be moved", held)
         elif kind is NoticeKind.HOLD:
             if self.session is None:
-                await self._safe_job(lambda bus: self._hold(bus, torque=True))
+                await self._safe_hold(torque=True)
         elif kind is NoticeKind.RESET:
             self.frozen = False
             if torque_off and self.session is None:
-                await self._safe_job(lambda bus: self._hold(bus, torque=True))
+                await self._safe_hold(torque=True)
 
     def _hold(self, bus: ServoBus, *, torque: bool) -> dict[int, int]:
         # Runs in the worker thread: goals not yet written are dropped, then hold where it is.
@@ -152,9 +152,17 @@ class UsbSlave(ServoArm):
         self.worker.torque_wanted = torque
         return hold_here(bus, self.worker.servo_ids, torque=torque, speed=self.settings.speed_limit)
 
+    async def _safe_hold(self, *, torque: bool) -> dict[int, int] | None:
+        """Hold where it is with this torque: now (the pose held), or if the bus is away, when
+        it returns (None)."""
+        assert self.worker is not None
+        # Set before the job: if the bus is away the job is refused, and the worker applies
+        # torque_wanted when it reconnects (an e-stop's torque-off must not come back on).
+        self.worker.torque_wanted = torque
+        return await self._safe_job(lambda bus: self._hold(bus, torque=torque))
+
     async def _safe_job(self, job: Callable[[ServoBus], T]) -> T | None:
-        """`job` on the bus; None if the bus is down (the worker applies `torque_wanted`
-        when it reconnects)."""
+        """`job` on the bus; None if the bus is down."""
         assert self.worker is not None
         try:
             return await wait_future(self.worker.submit(job))

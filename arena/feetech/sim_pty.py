@@ -3,6 +3,12 @@
 The bus runs in its own thread. Its port is the pty's slave side, reached through a stable
 symlink (`link`) that survives `unplug()` / `plug()`: a test can make the bus disappear and
 come back under the same path, as a USB adapter does.
+
+The bus is a thread of the test's own process: on a loaded machine it can be kept off the CPU
+for longer than a driver waits for a reply, and a healthy servo would look silent. `servo_bus()`
+gives a `ServoBus` whose reply timeout also waits until the simulator has dealt with every byte
+sent to it and every reply byte it wrote has arrived: only a servo silent or late on purpose
+(`ServoFaults`) times out, however slow the machine.
 """
 
 from __future__ import annotations
@@ -15,11 +21,16 @@ import time
 import tty
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
+from arena.feetech.bus import ServoBus, _ArenaPort
 from arena.feetech.packets import Corrupt, PacketParser
 from arena.feetech.sim import SimBus
 
 BITS_PER_BYTE = 10  # 8N1: start bit, 8 data bits, stop bit
+#: A `servo_bus()` reply still owed after its timeout by this much (seconds) times out anyway:
+#: the simulator is stuck, and a test must fail rather than hang.
+OWED_PATIENCE = 30.0
 
 
 class PtySimBus:
@@ -43,6 +54,11 @@ class PtySimBus:
         self.baud = baud
         self.lock = threading.Lock()  # held while the bus handles a packet: tests poke safely
         self.requests = 0
+        # Bytes on the present pty (see `servo_bus`): sent by its clients, dealt with by the
+        # bus (answered, or left unanswered on purpose), and written back as replies.
+        self.sent = 0
+        self.taken = 0
+        self.given = 0
         self._master: int | None = None
         self._slave: int | None = None
         self._wake_r, self._wake_w = os.pipe()
@@ -86,6 +102,7 @@ class PtySimBus:
             tty.setraw(master)
             tty.setraw(slave)  # pyserial sets it raw too; this covers the moment before
             self._master, self._slave = master, slave
+            self.sent = self.taken = self.given = 0
             with contextlib.suppress(FileNotFoundError):
                 self.link.unlink()
             self.link.parent.mkdir(parents=True, exist_ok=True)
@@ -102,6 +119,13 @@ class PtySimBus:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+    def servo_bus(self, timeout_margin: float) -> ServoBus:
+        """A `ServoBus` on this port whose reply timeout waits for the simulator too (see the
+        module docstring); `timeout_margin` as `ServoBus` takes it."""
+        bus = ServoBus(str(self.link), self.baud, timeout_margin=timeout_margin)
+        bus._port = _PacedPort(str(self.link), timeout_margin, self)
+        return bus
 
     @contextlib.contextmanager
     def paused(self) -> Iterator[SimBus]:
@@ -131,6 +155,7 @@ class PtySimBus:
             except OSError:
                 continue  # unplugged under us
             started = time.monotonic()
+            taken = False
             for frame in parser.feed(data):
                 if isinstance(frame, Corrupt):
                     with self.lock:
@@ -141,14 +166,63 @@ class PtySimBus:
                 self.requests += 1
                 out = b"".join(reply.data for reply in replies)
                 delay = max((reply.delay for reply in replies), default=0.0)
+                if delay and not taken:
+                    self.taken += len(data)  # the servo holds its reply back on purpose
+                    taken = True
                 if self.wire_time:
                     delay += (len(data) + len(out)) * BITS_PER_BYTE / self.baud
                     _sleep_until(started + delay)
                 elif delay:
                     time.sleep(delay)
                 if out:
+                    self.given += len(out)  # before the write: a reader never waits for less
                     with contextlib.suppress(OSError, TypeError):
                         os.write(master, out)
+            if not taken:
+                self.taken += len(data)
+
+
+class _PacedPort(_ArenaPort):
+    """The driver's port, with a timeout that also waits for the simulator (`servo_bus`)."""
+
+    def __init__(self, port_name: str, timeout_margin: float, sim: PtySimBus) -> None:
+        super().__init__(port_name, timeout_margin)
+        self.sim = sim
+        self.received = 0
+
+    def setupPort(self, cflag_baud: int) -> bool:
+        opened = super().setupPort(cflag_baud)
+        self.received = self.sim.given  # replies to an earlier client are not owed to this one
+        return opened
+
+    def writePort(self, packet: Any) -> int:
+        self.sim.sent += len(packet)  # before the write: the bus never takes more than sent
+        return self.ser.write(packet) or 0
+
+    def clearPort(self) -> None:
+        # Stale input is read and counted rather than dropped: every reply byte is accounted.
+        while waiting := self.ser.in_waiting:
+            self.received += len(self.ser.read(waiting))
+
+    def readPort(self, length: int) -> bytes:
+        data = super().readPort(length)
+        if not data and self._owed():
+            # Past the wall-clock deadline, and the bus has not answered yet: wait for it
+            # without spinning (a spinning reader would take the CPU the bus needs).
+            select.select([self.ser.fileno()], [], [], 0.005)
+            data = self.ser.read(length)
+        self.received += len(data)
+        return data
+
+    def isPacketTimeout(self) -> bool:
+        if self._owed() and self.getTimeSinceStart() < self.packet_timeout + OWED_PATIENCE * 1e3:
+            return False
+        timed_out: bool = super().isPacketTimeout()
+        return timed_out
+
+    def _owed(self) -> bool:
+        sim = self.sim
+        return sim.taken < sim.sent or self.received < sim.given
 
 
 def _sleep_until(deadline: float) -> None:

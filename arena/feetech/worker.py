@@ -224,22 +224,32 @@ class BusWorker:
         bus = self.open_bus()
         try:
             bus.open()
-            self._connect(bus)
+            torque = self._connect(bus)
+            with self._lock:  # from here `submit` queues jobs instead of failing them
+                self._bus = bus
+            if self.torque_wanted != torque:
+                # Changed while connecting (an e-stop's torque-off, say): its job was refused
+                # because the bus was away, so it is applied here, before anything else runs.
+                hold_here(
+                    bus, self.servo_ids, torque=self.torque_wanted, speed=self.settings.speed_limit
+                )
         except ArenaError as exc:
+            self._bus = None
+            self._fail_jobs()
             bus.close()
             if not self.first_connect.done():
                 self.first_connect.set_exception(exc)
                 self._stopping.set()  # the caller hears why; nothing to retry for
             return False
-        self._bus = bus
         self.health.reset()
         if not self.first_connect.done():
             self.first_connect.set_result(None)
         self.listener.event(Connected(again))
         return True
 
-    def _connect(self, bus: ServoBus) -> None:
-        """Check every servo, then hold each where it is, then torque (if wanted)."""
+    def _connect(self, bus: ServoBus) -> bool:
+        """Check every servo, then hold each where it is, then torque (if wanted); the torque
+        it applied."""
         for servo_id in self.servo_ids:
             model = _ping(bus, servo_id)
             if model != reg.STS3215_MODEL:
@@ -248,7 +258,9 @@ class BusWorker:
                     f"Servo {servo_id} is model {model}, not an STS3215 ({reg.STS3215_MODEL}).",
                 )
         self.clear_goals()  # goals from before the connection are stale
-        hold_here(bus, self.servo_ids, torque=self.torque_wanted, speed=self.settings.speed_limit)
+        torque = self.torque_wanted
+        hold_here(bus, self.servo_ids, torque=torque, speed=self.settings.speed_limit)
+        return torque
 
     def _lose(self, reason: str) -> None:
         if self._bus is not None:
