@@ -224,7 +224,7 @@ async def test_a_route_that_takes_no_body_refuses_one_with_fields(server: Runnin
 
 async def first_of(ws: Any, kinds: set[str]) -> dict[str, Any]:
     """The next message whose type is one of `kinds`."""
-    with trio.fail_after(5):
+    with trio.fail_after(30):
         while True:
             message: dict[str, Any] = json.loads(await ws.get_message())
             if message["type"] in kinds:

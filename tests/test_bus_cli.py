@@ -17,6 +17,7 @@ from arena.feetech import terminal
 from arena.feetech.calibration import Calibration
 from arena.feetech.sim_pty import PtySimBus
 from arena.feetech.terminal import calibrate_interactively, read_positions
+from arena.protocol.errors import ArenaError, ErrorCode
 from tests.hardware import open_test_bus, running_sim
 
 JOINTS = {"Rotation": 1, "Pitch": 2, "Elbow": 3, "Wrist_Pitch": 4, "Wrist_Roll": 5, "Jaw": 6}
@@ -131,3 +132,31 @@ def test_sim_bus_and_calibrate_commands(tmp_path: Path) -> None:
         server.wait(timeout=10)
     assert server.returncode == 0
     assert not link.exists()
+
+
+class LateBus:
+    """A bus whose servos miss the first `late` position reads (a busy computer)."""
+
+    def __init__(self, late: int) -> None:
+        self.late = late
+        self.reads = 0
+
+    def sync_read_register(self, register: reg.Register, ids: Any) -> tuple[dict[int, int], Any]:
+        from arena.feetech.bus import SyncReadResult
+
+        self.reads += 1
+        if self.reads <= self.late:
+            return {}, SyncReadResult(missing=list(ids))
+        return dict.fromkeys(ids, 2048), SyncReadResult()
+
+
+def test_calibration_reads_again_while_servos_are_late_then_says_which() -> None:
+    ids = (1, 2, 3)
+    late = LateBus(terminal.READ_ATTEMPTS - 1)
+    assert terminal.read_patiently(late, ids) == dict.fromkeys(ids, 2048)  # type: ignore[arg-type]
+    assert late.reads == terminal.READ_ATTEMPTS
+    silent = LateBus(terminal.READ_ATTEMPTS)
+    with pytest.raises(ArenaError) as error:
+        terminal.read_patiently(silent, ids)  # type: ignore[arg-type]
+    assert error.value.code is ErrorCode.SERVO_TIMEOUT and "[1, 2, 3]" in error.value.message
+    assert silent.reads == terminal.READ_ATTEMPTS

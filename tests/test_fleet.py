@@ -392,7 +392,7 @@ async def test_a_killed_node_goes_offline_its_masters_are_told_and_it_comes_back
             assert (await next_of(master, "ack"))["data"]["status"] == "accepted"
             process.send_signal(signal.SIGKILL)  # no goodbye: the lease must tell
             process.wait()
-            with trio.fail_after(5):  # the lease is 1 s: seen within 2
+            with trio.fail_after(30):  # the lease is 1 s; 30 s only if it is broken
                 told = await next_of(master, "error")
             assert told["data"]["code"] == "NODE_LOST"
             with pytest.raises(ConnectionClosed) as closed:

@@ -65,7 +65,7 @@ async def test_a_group_that_stops_together(start_server: StartServer) -> None:
     async with MasterSession.open(server.url, "line") as master:
         await master.command({"Rotation": 2})
         await arena.estop("right", "bumper hit")
-        with trio.fail_after(5):
+        with trio.fail_after(30):
             while True:
                 states = (await arena.group("line"))["states"]
                 if all(s["state"] == "estopped" for s in states.values()):
@@ -102,7 +102,7 @@ async def test_group_claims_are_whole_or_nothing_and_bad_groups_are_refused(
         async with open_websocket_url(server.ws_url + "/ws/master/line") as group_master:
             refusal = json.loads(await group_master.get_message())
             assert refusal["data"]["code"] == "MASTER_ACTIVE"
-        with trio.fail_after(5):
+        with trio.fail_after(30):
             while server.app.manager.get("left").snapshot().owner is not None:
                 await trio.sleep(0.02)
         assert str(server.app.manager.get("left").snapshot().mode) == "idle"
@@ -123,13 +123,13 @@ async def test_deleting_a_member_leaves_the_group_master_with_the_rest(
         assert left["data"] == {"robot_id": "left", "reason": "robot deleted"}
         # Still attached to the others: its e-stop stops every remaining member.
         await master.send_message(json.dumps({"type": "estop", "data": {"reason": "hand"}}))
-        with trio.fail_after(5):
+        with trio.fail_after(30):
             while {str(server.app.manager.get(r).snapshot().mode) for r in ("middle", "right")} != {
                 "estopped"
             }:
                 await receive(master, "state")
         await master.send_message(json.dumps({"type": "reset"}))
-        with trio.fail_after(5):
+        with trio.fail_after(30):
             while "estopped" in {
                 str(server.app.manager.get(r).snapshot().mode) for r in ("middle", "right")
             }:

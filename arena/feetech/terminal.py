@@ -13,6 +13,24 @@ from arena.feetech.calibration import Calibration, RangeCapture, calibrate_rest
 from arena.feetech.sim import SimBus
 from arena.feetech.sim_pty import PtySimBus
 from arena.feetech.worker import read_positions, set_torque, store_offsets_in_servos
+from arena.protocol.errors import ArenaError, ErrorCode
+
+#: Reads a calibration makes before it gives up: a person is waiting, not an arm in motion,
+#: so one late or garbled reply (a busy computer, a noisy cable) is worth asking again.
+READ_ATTEMPTS = 5
+
+
+def read_patiently(
+    bus: ServoBus, ids: tuple[int, ...], attempts: int = READ_ATTEMPTS
+) -> dict[int, int]:
+    """`read_positions`, asked again up to `attempts` times while servos do not answer."""
+    for _ in range(attempts - 1):
+        try:
+            return read_positions(bus, ids)
+        except ArenaError as error:
+            if error.code is not ErrorCode.SERVO_TIMEOUT:
+                raise
+    return read_positions(bus, ids)
 
 
 def calibrate_interactively(
@@ -39,7 +57,7 @@ def calibrate_interactively(
         "every joint in the middle of its range."
     )
     ask("     Press Enter when it is in place. ")
-    raw = read_positions(bus, ids)
+    raw = read_patiently(bus, ids)
     start = Calibration.load(out) if out.exists() else Calibration.identity(servo_ids, robot_type)
     calibration = calibrate_rest(start, raw, dict.fromkeys(servo_ids, 0.0))
     say("     Rest pose captured.")
@@ -49,7 +67,7 @@ def calibrate_interactively(
 
     def watch() -> None:  # owns the bus while the main thread waits for Enter
         while not done.is_set():
-            capture.observe(calibration.to_degrees(read_positions(bus, ids)))
+            capture.observe(calibration.to_degrees(read_patiently(bus, ids)))
             done.wait(poll_interval)
 
     watcher = threading.Thread(target=watch, name="range-capture", daemon=True)
