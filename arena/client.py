@@ -391,7 +391,14 @@ class MasterSession(_Watching):
         self.released: dict[str, Any] | None = None
         #: The newest `detached` data (taken over, e-stopped sequence, ...), if any.
         self.detached: dict[str, Any] | None = None
+        #: Why the server would not have this master (MASTER_ACTIVE, UNKNOWN_ROBOT, ...).
+        self.refusal: ArenaClientError | None = None
+        #: A refusal of the first connection ends the session (`open` sets it: its caller is
+        #: told at once); else the session asks again with its backoff, as a driver waiting
+        #: for the robot to be free does.
+        self.stop_on_refusal = False
         self._pending: deque[_Pending] = deque()
+        self._settled = trio.Event()  # accepted (a first `state`) or refused
 
     @classmethod
     @asynccontextmanager
@@ -413,6 +420,7 @@ class MasterSession(_Watching):
         """
         query = {"takeover": "1" if takeover else "", "id": master_id or ""}
         session = cls(ws_url(base_url, f"/ws/master/{quote(robot_id)}", **query), **options)
+        session.stop_on_refusal = True
         async with _running(session):
             yield session
             # Reached only when the block ended without an exception.
@@ -495,11 +503,25 @@ class MasterSession(_Watching):
         while self._pending:
             self._pending.popleft().settle(error=error)
 
+    async def wait_connected(self) -> None:
+        """Until the server has accepted this master (its first `state`); with
+        `stop_on_refusal`, raises `Refused` if it would not have it (another master holds the
+        robot, no such robot, ...)."""
+        await self._settled.wait()
+        if self.refusal is not None:
+            raise self.refusal
+
     async def on_message(self, message: dict[str, Any]) -> None:
         kind = message.get("type")
         if kind == "ack":
             self._answered(message, "ack")
             return
+        if kind == "error" and not self._settled.is_set() and self.stop_on_refusal:
+            self.refusal = _refusal(message)  # refused before it was accepted
+            self.finished = True  # asking again would get the same answer
+            self._settled.set()
+        elif kind == "state":
+            self._settled.set()
         if kind == "released":
             self.released = message.get("data") or {}
             self.finished = True  # the server closes now: no reconnection

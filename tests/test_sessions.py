@@ -218,6 +218,21 @@ async def test_a_value_that_is_no_finite_number_is_refused_before_sending(
             await master.command({"Rotation": 2}, duration=float("nan"))
 
 
+async def test_a_second_master_session_is_refused_with_the_servers_code(
+    server: RunningServer,
+) -> None:
+    async with MasterSession.open(server.url, "demo-arm") as first:
+        with pytest.raises(Refused) as second:
+            async with MasterSession.open(server.url, "demo-arm"):
+                pytest.fail("a second master was let in")
+        assert second.value.code == "MASTER_ACTIVE"
+        assert (await first.command({"Rotation": 2}))["data"]["status"] == "accepted"
+    with pytest.raises(Refused) as unknown:
+        async with MasterSession.open(server.url, "no-such-arm"):
+            pass
+    assert unknown.value.code == "UNKNOWN_ROBOT"
+
+
 async def test_refusals_and_errors_raise_with_the_servers_code(server: RunningServer) -> None:
     async with MasterSession.open(server.url, "demo-arm") as master:
         with pytest.raises(Refused) as unknown:
@@ -240,8 +255,8 @@ async def test_refusals_and_errors_raise_with_the_servers_code(server: RunningSe
 
 
 async def silent_server(nursery: trio.Nursery, received: trio.Event) -> str:
-    """A server that accepts the WebSocket handshake and then never answers anything; sets
-    `received` once the first frame after the handshake came in."""
+    """A server that accepts the WebSocket handshake and the master (its first `state`), then
+    never answers anything; sets `received` once the first frame after the handshake came in."""
 
     async def serve(stream: trio.SocketStream) -> None:
         request = b""
@@ -255,6 +270,8 @@ async def silent_server(nursery: trio.Nursery, received: trio.Event) -> str:
             b"HTTP/1.1 101 Switching Protocols\r\nUpgrade: websocket\r\n"
             b"Connection: Upgrade\r\nSec-WebSocket-Accept: " + accept + b"\r\n\r\n"
         )
+        state = json.dumps({"type": "state", "data": {}}).encode()
+        await stream.send_all(bytes([0x81, len(state)]) + state)  # a text frame, unmasked
         while await stream.receive_some(4096):  # read, never answer
             received.set()
 
