@@ -280,14 +280,21 @@ def test_a_sequence_takes_the_robot_and_moves_the_3d_twin(start_live: Any, page:
     expect(page.locator("#master-line")).to_have_text("No master: the sliders drive the robot.")
 
 
-def test_recordings_list_download_plot_replay_and_start_stop(
-    start_live: Any, page: Page, tmp_path: Path
-) -> None:
+def demo_with_golden(start_live: Any, page: Page, tmp_path: Path) -> Any:
+    """A demo server whose recordings folder holds the golden gentle-wave recording, with the
+    page open on demo-arm."""
     folder = tmp_path / "recordings"
     folder.mkdir()
     shutil.copy(GOLDEN / "gentle-wave.mcap", folder)
     server = start_live(demo=True, recordings_dir=str(folder))
     page.goto(server.url + "/ui/#/robots/demo-arm")
+    return server
+
+
+def test_recordings_list_download_plot_replay_and_start_stop(
+    start_live: Any, page: Page, tmp_path: Path
+) -> None:
+    server = demo_with_golden(start_live, page, tmp_path)
     expect(page.locator("#recorder-status")).to_contain_text("Recording")
     page.click("#record-stop")
     expect(page.locator("#recorder-status")).to_have_text("Not recording.")
@@ -298,7 +305,7 @@ def test_recordings_list_download_plot_replay_and_start_stop(
         golden.get_by_role("button", name="Download").click()
     saved = tmp_path / "downloaded.mcap"
     download.value.save_as(saved)
-    assert saved.read_bytes() == (folder / "gentle-wave.mcap").read_bytes()
+    assert saved.read_bytes() == (tmp_path / "recordings" / "gentle-wave.mcap").read_bytes()
 
     golden.get_by_role("button", name="Plot").click()
     plot = page.locator("#plot")
@@ -647,11 +654,7 @@ def test_the_page_says_which_sequence_plays(start_live: Any, page: Page) -> None
 def test_the_page_says_what_plays_when_another_client_started_it(
     start_live: Any, page: Page, tmp_path: Path
 ) -> None:
-    folder = tmp_path / "recordings"
-    folder.mkdir()
-    shutil.copy(GOLDEN / "gentle-wave.mcap", folder)
-    server = start_live(demo=True, recordings_dir=str(folder))
-    page.goto(server.url + "/ui/#/robots/demo-arm")
+    server = demo_with_golden(start_live, page, tmp_path)
     line = page.locator("#master-line")
     expect(line).to_have_text("No master: the sliders drive the robot.")
     with server.http() as http:  # another client, not this page
@@ -682,11 +685,7 @@ def test_the_page_says_what_plays_when_another_client_started_it(
 def test_a_replay_onto_a_held_robot_takes_over_on_a_second_click(
     start_live: Any, page: Page, tmp_path: Path
 ) -> None:
-    folder = tmp_path / "recordings"
-    folder.mkdir()
-    shutil.copy(GOLDEN / "gentle-wave.mcap", folder)
-    server = start_live(demo=True, recordings_dir=str(folder))
-    page.goto(server.url + "/ui/#/robots/demo-arm")
+    server = demo_with_golden(start_live, page, tmp_path)
     line = page.locator("#master-line")
     ws_url = server.url.replace("http://", "ws://") + "/ws/master/demo-arm?id=alice"
     with websockets.sync.client.connect(ws_url) as alice:
@@ -713,11 +712,7 @@ def test_a_replay_onto_a_held_robot_takes_over_on_a_second_click(
 
 
 def test_a_plot_opens_large_enough_to_read(start_live: Any, page: Page, tmp_path: Path) -> None:
-    folder = tmp_path / "recordings"
-    folder.mkdir()
-    shutil.copy(GOLDEN / "gentle-wave.mcap", folder)
-    server = start_live(demo=True, recordings_dir=str(folder))
-    page.goto(server.url + "/ui/#/robots/demo-arm")
+    demo_with_golden(start_live, page, tmp_path)
     golden = page.locator('#recording-list li[data-recording="gentle-wave.mcap"]')
     golden.get_by_role("button", name="Plot").click()
     plot = page.locator("#plot")
