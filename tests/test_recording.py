@@ -55,6 +55,7 @@ from arena.robot.motion import Clamp, Command, CommandResult, JointGoal
 from arena.robot.safety import Mode
 from arena.session import behaviour, record_scenario, replay_session
 from tests.conftest import RecordingSlave
+from tests.hardware import eventually
 
 GOLDEN = Path(__file__).resolve().parent.parent / "recordings" / "golden"
 SPEC_SCHEMAS = Path(__file__).resolve().parent.parent / "specs" / "schemas"
@@ -537,7 +538,13 @@ async def test_a_stop_during_a_batch_in_flight_keeps_that_batch_in_the_stopped_f
                     stopped.append(await recorder.stop())
 
                 stopping.start_soon(stop)
-                await trio.sleep(0.2)  # time for a stop that does not wait to close the file
+                # Until the stop waits behind the batch in flight (or, if it does not wait,
+                # has closed the file already): only then may the batch go on.
+                writing = recorder._writing
+                await eventually(
+                    lambda: bool(stopped) or writing.statistics().tasks_waiting > 0,
+                    what="the stop, waiting or done",
+                )
                 go_on.set()
         nursery.cancel_scope.cancel()
     (path,) = stopped

@@ -196,5 +196,10 @@ async def test_detaching_the_websocket_slave_releases_the_robot_over_there(
     # A normal end: the relay's robot is handed back, holding, not lost (e-stopped).
     await until(lambda: relay.snapshot().master is None)
     assert str(relay.snapshot().mode) == "idle" and relay.estop_count == 0
-    await trio.sleep(0.2)
-    assert str(b.app.manager.get("physical").snapshot().mode) != "estopped"
+    # A barrier instead of a pause: a later command through the relay follows, on the same
+    # connection, whatever the release sent over there; once it has arrived, so has that.
+    physical = b.app.manager.get("physical")
+    async with MasterSession.open(r.url, "relay-arm") as later:
+        await later.command({"Rotation": 7})
+        await until(lambda: physical.snapshot().joint("Rotation").goal == 7)
+    assert str(physical.snapshot().mode) != "estopped"
