@@ -147,8 +147,11 @@ def test_duration_moves_follow_a_smooth_curve_and_arrive_on_time() -> None:
         targets = core.tick(now)
         if targets is not None:
             seen[round(now, 2)] = targets["Rotation"]
-    assert seen[1.0] == pytest.approx(20.0 * min_jerk(0.5), abs=1e-6)
-    assert seen[0.5] == pytest.approx(20.0 * min_jerk(0.25), abs=1e-6)
+    # The curve is symmetric (halfway at half time) and slow at its ends: 5th-order min-jerk,
+    # 10f^3 - 15f^4 + 6f^5, at a quarter of the time is 0.103515625 of the way.
+    assert seen[1.0] == pytest.approx(10.0, abs=1e-6)
+    assert seen[0.5] == pytest.approx(20.0 * 0.103515625, abs=1e-6)
+    assert seen[1.5] == pytest.approx(20.0 * (1 - 0.103515625), abs=1e-6)
     assert max(seen) == pytest.approx(2.0, abs=0.011)
     assert seen[max(seen)] == 20.0
 
@@ -397,3 +400,72 @@ def test_a_join_moves_no_joint_faster_than_its_own_velocity_limit() -> None:
     targets = ramp.advance(dict.fromkeys(MODEL.joint_names, 50.0), 1.0)
     assert targets is not None
     assert targets["Rotation"] == 5.0 and targets["Pitch"] == 20.0
+
+
+@given(st.floats(min_value=-10.0, max_value=10.0))
+def test_the_smooth_curve_never_leaves_zero_to_one(fraction: float) -> None:
+    value = min_jerk(fraction)
+    assert 0.0 <= value <= 1.0
+    if fraction >= 1.0:
+        assert value == 1.0
+    if fraction <= 0.0:
+        assert value == 0.0
+
+
+def test_a_timed_move_ends_exactly_on_its_goal_and_stops_ticking() -> None:
+    # 67.2 + (-13.4 - 67.2) is -13.400000000000006 in floating point: the last target must be
+    # the goal itself, or the limiter would go on ticking toward a goal it never reaches.
+    limiter = MotionLimiter(MODEL, 0.0, {"Rotation": 67.2})
+    goals, _ = resolve_command(MODEL, Command.of({"Rotation": -13.4}))
+    limiter.set_goals(goals, 2.0, 0.0)
+    for step in range(1, 201):
+        limiter.advance(2.0 * step / 200)
+    assert limiter.positions["Rotation"] == -13.4
+    assert not limiter.moving
+
+
+def test_a_stop_leaves_nothing_moving() -> None:
+    limiter = MotionLimiter(MODEL, 0.0)
+    goals, _ = resolve_command(MODEL, Command.of({"Rotation": 90.0}))
+    limiter.set_goals(goals, None, 0.0)
+    limiter.advance(0.0)
+    assert limiter.moving
+    limiter.stop_at(limiter.positions)
+    assert not limiter.moving
+    assert limiter.advance(1.0) is None
+
+
+def test_a_pose_learned_mid_move_keeps_the_commanded_goal_and_the_move_goes_on() -> None:
+    limiter = MotionLimiter(MODEL, 0.0)
+    goals, _ = resolve_command(MODEL, Command.of({"Rotation": 90.0}))
+    limiter.set_goals(goals, None, 0.0)
+    limiter.advance(0.0)  # Rotation trails its goal at the velocity limit
+    taken = limiter.adopt({**limiter.positions, "Rotation": 5.0, "Elbow": -20.0})
+    assert taken["Rotation"] == 5.0
+    assert limiter.goals["Rotation"] == 90.0  # the command still stands
+    assert limiter.goals["Elbow"] == -20.0  # a joint at rest stays where the arm is
+    assert limiter.moving
+    now = 0.0
+    while limiter.moving and now < 5.0:
+        now += 0.01
+        limiter.advance(now)
+    assert limiter.positions["Rotation"] == 90.0
+
+
+def test_a_join_that_has_arrived_or_had_no_time_gives_no_target() -> None:
+    ramp = JoinRamp(MODEL, dict.fromkeys(MODEL.joint_names, 0.0), 15.0, 0.0)
+    goal = {**dict.fromkeys(MODEL.joint_names, 0.0), "Rotation": 3.0}
+    assert ramp.advance(goal, 0.0) is None  # no time has passed: nothing may move
+    assert ramp.advance(goal, 0.1) == {**goal, "Rotation": pytest.approx(1.5)}
+    assert ramp.advance(goal, 0.1) is None
+    assert ramp.advance(goal, 1.0) == goal
+    assert ramp.advance(goal, 2.0) is None  # arrived: nothing more to send
+
+
+def test_a_join_step_that_covers_the_rest_of_the_way_lands_on_the_goal() -> None:
+    # |-3.9 - -11.4| is exactly 7.5, yet -11.4 + 7.5 is -3.9000000000000004.
+    start = {**dict.fromkeys(MODEL.joint_names, 0.0), "Rotation": -11.4}
+    goal = {**start, "Rotation": -3.9}
+    ramp = JoinRamp(MODEL, start, 15.0, 0.0)
+    ramp.advance(goal, 0.5)
+    assert ramp.arrived(goal)
