@@ -178,7 +178,9 @@ SlaveMessage: TypeAlias = StatusUpdateMessage | JointStatesMessage | ErrorMessag
 # --- server -> clients ------------------------------------------------------------------------
 
 
-class ClampInfo(msgspec.Struct):
+# Immutable: the robot core reports its clamps in this type (its `Clamp`), so an answer, its
+# acknowledgment and its record hold the same values.
+class ClampInfo(msgspec.Struct, frozen=True, gc=False):
     """A value that was clamped to the limits."""
 
     joint: str

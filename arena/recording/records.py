@@ -3,11 +3,19 @@
 Topics are `/robots/{robot_id}/{kind}`; every record carries `t`, the robot's trio time in
 seconds (for exact relative timing in replay), while the MCAP log time is wall-clock ns.
 The JSON Schemas of these structs are the MCAP schemas (encoding `jsonschema`).
+
+A record is its event's fields (`robot/events.py` declares them, once), derived here at
+import: `RECORDED` names each event's topic kind and its record, and says where a record
+differs from its event. The formats are fixed by the files already written: `specs/schemas`
+holds them, and a test compares.
 """
 
 from __future__ import annotations
 
-from typing import Any
+import enum
+import operator
+from collections.abc import Callable
+from typing import Any, NamedTuple, get_args
 
 import msgspec
 
@@ -39,74 +47,115 @@ class CommandRecord(msgspec.Struct, kw_only=True):
     clamped: list[ClampInfo]
 
 
-class TargetsRecord(msgspec.Struct, kw_only=True):
-    """Targets sent to every slave (degrees)."""
-
-    t: float
-    joints: dict[str, float]
-
-
-class JointStatesRecord(msgspec.Struct, kw_only=True):
-    """Real joint values from one slave (degrees)."""
-
-    t: float
-    slave_id: str
-    joints: dict[str, float]
-
-
-class StateRecord(msgspec.Struct, kw_only=True):
-    """A safety state transition and its cause (e-stops and resets with their reasons)."""
-
-    t: float
-    mode: str
-    owner: str | None
-    estop_reason: str | None
-    cause: str
+def _command_record(event: CommandHandled) -> CommandRecord:
+    command, result = event.command, event.result
+    return CommandRecord(
+        t=event.time,
+        source=event.source,
+        joints=list(command.joints),
+        duration=None if command.duration is None else command.duration * 1000.0,
+        label=command.source,
+        accepted=result.accepted,
+        code=None if result.code is None else str(result.code),
+        message=result.message,
+        clamped=list(result.clamped),
+    )
 
 
-class FaultRecord(msgspec.Struct, kw_only=True):
-    """A fault reported by a slave or a driver."""
+class Recorded(NamedTuple):
+    """How one robot event is recorded: on which topic kind, and its record's name and
+    description (its JSON Schema's `title` and `description`)."""
 
-    t: float
-    peer_id: str
-    code: str
-    message: str
-    severity: str
-    joint: str | None
-
-
-class PeerRecord(msgspec.Struct, kw_only=True):
-    """A master or slave attached, detached, lost or refused."""
-
-    t: float
-    role: str
-    peer_id: str
     kind: str
-    change: str
-    reason: str
-    autonomous: bool = False
+    event: type[RobotEvent]
+    name: str
+    description: str
 
 
-class EpisodeRecord(msgspec.Struct, kw_only=True):
-    """A data-collection episode started, stopped or discarded (`arena export` reads them)."""
+#: Every robot event and its record. Each record is derived from its event's fields
+#: (`_derived`) but a command's, `CommandRecord` above, which differs on purpose: it is flat
+#: (the command's fields and its answer's beside the event's), its duration is in
+#: milliseconds as on the wire, and the command's own `source` is its `label` (the event's
+#: `source` says who sent it).
+RECORDED = (
+    Recorded("command", CommandHandled, "CommandRecord", str(CommandRecord.__doc__)),
+    Recorded("targets", TargetsSent, "TargetsRecord", "Targets sent to every slave (degrees)."),
+    Recorded(
+        "joint_states",
+        JointStatesReceived,
+        "JointStatesRecord",
+        "Real joint values from one slave (degrees).",
+    ),
+    Recorded(
+        "state",
+        StateChanged,
+        "StateRecord",
+        "A safety state transition and its cause (e-stops and resets with their reasons).",
+    ),
+    Recorded("fault", FaultReported, "FaultRecord", "A fault reported by a slave or a driver."),
+    Recorded(
+        "peer", PeerChanged, "PeerRecord", "A master or slave attached, detached, lost or refused."
+    ),
+    Recorded(
+        "episode",
+        EpisodeChanged,
+        "EpisodeRecord",
+        "A data-collection episode started, stopped or discarded (`arena export` reads them).",
+    ),
+)
 
-    t: float
-    change: str  # "start" | "stop" | "discard"
-    index: int
-    task: str
-    started: float  # `t` of the episode's start
+#: The event fields no record holds: the topic names the robot, `time` is the record's `t`
+#: (its first field), and `wall_time` is the message's MCAP log time.
+NOT_RECORDED = frozenset({"robot_id", "time", "wall_time"})
+
+#: Makes a record of an event.
+Maker = Callable[[Any], msgspec.Struct]
 
 
+def _derived(recorded: Recorded) -> tuple[type[msgspec.Struct], Maker]:
+    """The record type of an event (`t`, then the event's fields in their order but those
+    in `NOT_RECORDED`, an enum as a plain string) and how to make one: positional, through
+    one attribute getter made here, so that a record costs what a hand-written one did."""
+    fields: list[tuple[str, Any] | tuple[str, Any, Any]] = [("t", float)]
+    for field in msgspec.structs.fields(recorded.event):
+        if field.name in NOT_RECORDED:
+            continue
+        # A StrEnum member is a str, so it goes into the record as it is and encodes as its
+        # value; readers get the plain string back.
+        kind = field.type
+        if isinstance(kind, type) and issubclass(kind, enum.StrEnum):
+            kind = str
+        fields.append((field.name, kind) if field.required else (field.name, kind, field.default))
+    record = msgspec.defstruct(
+        recorded.name, fields, module=__name__, namespace={"__doc__": recorded.description}
+    )
+    names = [field[0] for field in fields[1:]]
+    if len(names) == 1:  # (an attrgetter of one name returns the value, not a tuple)
+        one = operator.attrgetter(names[0])
+        return record, lambda event: record(event.time, one(event))
+    several = operator.attrgetter(*names)
+    return record, lambda event: record(event.time, *several(event))
+
+
+def _forms() -> dict[type, tuple[str, type[msgspec.Struct], Maker]]:
+    """Event type -> (topic kind, record type, maker), for every robot event."""
+    forms: dict[type, tuple[str, type[msgspec.Struct], Maker]] = {}
+    for recorded in RECORDED:
+        if recorded.event is CommandHandled:
+            forms[CommandHandled] = (recorded.kind, CommandRecord, _command_record)
+        else:
+            forms[recorded.event] = (recorded.kind, *_derived(recorded))
+    missing = set(get_args(RobotEvent)) - set(forms)
+    if missing:  # (else a new event would fail at its first recording)
+        raise TypeError(f"robot events without a record: {sorted(t.__name__ for t in missing)}")
+    return forms
+
+
+_FORMS = _forms()
 #: Topic kind -> record type.
-RECORD_TYPES: dict[str, type[msgspec.Struct]] = {
-    "command": CommandRecord,
-    "targets": TargetsRecord,
-    "joint_states": JointStatesRecord,
-    "state": StateRecord,
-    "fault": FaultRecord,
-    "peer": PeerRecord,
-    "episode": EpisodeRecord,
-}
+RECORD_TYPES: dict[str, type[msgspec.Struct]] = {kind: t for kind, t, _ in _FORMS.values()}
+#: Event type -> (its topic kind, what makes its record).
+_MAKERS: dict[type, tuple[str, Maker]] = {e: (kind, make) for e, (kind, _, make) in _FORMS.items()}
 
 
 def topic(robot_id: str, kind: str) -> str:
@@ -153,73 +202,12 @@ def split_topic(name: str) -> tuple[str, str] | None:
 
 def record_of(event: RobotEvent) -> tuple[str, msgspec.Struct]:
     """The (kind, record) for a robot event."""
-    # The most frequent first: every command makes one; targets follow most commands sent one
-    # at a time, and few of a burst's.
-    if isinstance(event, CommandHandled):
-        command, result = event.command, event.result
-        return "command", CommandRecord(
-            t=event.time,
-            source=event.source,
-            joints=list(command.joints),
-            duration=None if command.duration is None else command.duration * 1000.0,
-            label=command.source,
-            accepted=result.accepted,
-            code=None if result.code is None else str(result.code),
-            message=result.message,
-            clamped=[ClampInfo(c.joint, c.requested, c.applied) for c in result.clamped],
-        )
-    if isinstance(event, TargetsSent):
-        return "targets", TargetsRecord(t=event.time, joints=event.joints)
-    if isinstance(event, JointStatesReceived):
-        return "joint_states", JointStatesRecord(
-            t=event.time, slave_id=event.slave_id, joints=event.joints
-        )
-    if isinstance(event, StateChanged):
-        return "state", StateRecord(
-            t=event.time,
-            mode=str(event.mode),
-            owner=event.owner,
-            estop_reason=event.estop_reason,
-            cause=event.cause,
-        )
-    if isinstance(event, FaultReported):
-        return "fault", FaultRecord(
-            t=event.time,
-            peer_id=event.peer_id,
-            code=event.code,
-            message=event.message,
-            severity=str(event.severity),
-            joint=event.joint,
-        )
-    if isinstance(event, EpisodeChanged):
-        return "episode", EpisodeRecord(
-            t=event.time,
-            change=event.change,
-            index=event.index,
-            task=event.task,
-            started=event.started,
-        )
-    return "peer", PeerRecord(
-        t=event.time,
-        role=event.role,
-        peer_id=event.peer_id,
-        kind=event.kind,
-        change=event.change,
-        reason=event.reason,
-        autonomous=event.autonomous,
-    )
+    kind, make = _MAKERS[type(event)]
+    return kind, make(event)
 
 
 #: Topic kind -> the robot event it records (what `record_of` maps).
-EVENT_TYPES: dict[str, type[RobotEvent]] = {
-    "command": CommandHandled,
-    "targets": TargetsSent,
-    "joint_states": JointStatesReceived,
-    "state": StateChanged,
-    "fault": FaultReported,
-    "peer": PeerChanged,
-    "episode": EpisodeChanged,
-}
+EVENT_TYPES: dict[str, type[RobotEvent]] = {recorded.kind: recorded.event for recorded in RECORDED}
 #: Observed type -> its topic kind (camera frames are "image"; their topics are per camera).
 KIND_OF_EVENT: dict[type[msgspec.Struct], str] = {
     event: kind for kind, event in {**EVENT_TYPES, "image": CameraFrame}.items()

@@ -25,7 +25,7 @@ from collections.abc import Iterable, Mapping
 import msgspec
 
 from arena.protocol.errors import ArenaError, ErrorCode
-from arena.protocol.messages import JointValue
+from arena.protocol.messages import ClampInfo, JointValue
 from arena.robot.model import RobotModel
 
 #: One joint's requested value in wire degrees, with an optional speed cap in deg/s: the
@@ -47,12 +47,9 @@ class Command(msgspec.Struct, frozen=True, gc=False):
         return cls(tuple(JointGoal(n, v) for n, v in values.items()), duration)
 
 
-class Clamp(msgspec.Struct, frozen=True, gc=False):
-    """A requested value that was outside the limits and what was applied instead."""
-
-    joint: str
-    requested: float
-    applied: float
+#: A requested value that was outside the limits and what was applied instead: the wire's
+#: own type, so an acknowledgment and a record carry a command's clamps as they are.
+Clamp = ClampInfo
 
 
 class CommandResult(msgspec.Struct, frozen=True, gc=False):

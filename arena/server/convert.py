@@ -36,8 +36,7 @@ def ack(result: CommandResult) -> wire.AckMessage:
     if not result.accepted:
         data = wire.AckData("refused", str(result.code), result.message)
     elif result.clamped:
-        clamps = [wire.ClampInfo(c.joint, c.requested, c.applied) for c in result.clamped]
-        data = wire.AckData("clamped", None, result.message, clamps)
+        data = wire.AckData("clamped", None, result.message, list(result.clamped))
     else:
         data = wire.AckData("accepted")
     return wire.AckMessage(timestamp=wire.now_iso(), data=data)
