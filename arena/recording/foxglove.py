@@ -19,10 +19,10 @@ import functools
 import struct
 import sys
 import xml.etree.ElementTree as ElementTree
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args
 
 from foxglove.messages import (
     Color,
@@ -223,12 +223,9 @@ class Twin:
 
 
 def pose_of(event: RobotEvent) -> tuple[str, Mapping[str, float]] | None:
-    """The tree a pose event moves and its joints: `virtual` for targets sent, `real` for
-    joint states; None for other events."""
-    if isinstance(event, TargetsSent):
-        return "virtual", event.joints
-    if isinstance(event, JointStatesReceived):
-        return "real", event.joints
+    """The tree a pose event moves (`TREE_OF`) and its joints; None for other events."""
+    if isinstance(event, (TargetsSent, JointStatesReceived)):
+        return TREE_OF[type(event)], event.joints
     return None
 
 
@@ -251,30 +248,57 @@ def shows(event: RobotEvent) -> bool:
     return not (type(event) is CommandHandled and event.result.accepted)
 
 
-def _log_line(event: RobotEvent) -> tuple[LogLevel, str] | None:
-    if isinstance(event, StateChanged):
-        if event.mode is Mode.ESTOPPED:
-            return LogLevel.Error, f"E-STOP: {event.estop_reason or event.cause}"
-        return LogLevel.Info, f"state {event.mode} (owner {event.owner or 'none'}): {event.cause}"
-    if isinstance(event, FaultReported):
-        joint = f" on {event.joint}" if event.joint else ""
-        level = _LEVEL_OF_SEVERITY.get(str(event.severity), LogLevel.Warning)
-        return level, f"fault {event.code} from {event.peer_id}{joint}: {event.message}"
-    if isinstance(event, CommandHandled):
-        if not shows(event):
-            return None
-        return (
-            LogLevel.Warning,
-            f"refused {event.result.code} ({event.source}): {event.result.message}",
-        )
-    if isinstance(event, PeerChanged):
-        trouble = ("lost", "refused", "disconnected")
-        level = LogLevel.Warning if event.change in trouble else LogLevel.Info
-        reason = f": {event.reason}" if event.reason else ""
-        return level, f"{event.role} {event.peer_id} ({event.kind}) {event.change}{reason}"
-    if isinstance(event, EpisodeChanged):
-        return LogLevel.Info, f"episode {event.index} {event.change}: {event.task}"
-    return None
+#: A log line: its level and text.
+LogLine = tuple[LogLevel, str]
+
+
+def _state_line(event: StateChanged) -> LogLine:
+    if event.mode is Mode.ESTOPPED:
+        return LogLevel.Error, f"E-STOP: {event.estop_reason or event.cause}"
+    return LogLevel.Info, f"state {event.mode} (owner {event.owner or 'none'}): {event.cause}"
+
+
+def _fault_line(event: FaultReported) -> LogLine:
+    joint = f" on {event.joint}" if event.joint else ""
+    level = _LEVEL_OF_SEVERITY.get(str(event.severity), LogLevel.Warning)
+    return level, f"fault {event.code} from {event.peer_id}{joint}: {event.message}"
+
+
+def _command_line(event: CommandHandled) -> LogLine | None:
+    if not shows(event):
+        return None
+    return LogLevel.Warning, f"refused {event.result.code} ({event.source}): {event.result.message}"
+
+
+def _peer_line(event: PeerChanged) -> LogLine:
+    trouble = ("lost", "refused", "disconnected")
+    level = LogLevel.Warning if event.change in trouble else LogLevel.Info
+    reason = f": {event.reason}" if event.reason else ""
+    return level, f"{event.role} {event.peer_id} ({event.kind}) {event.change}{reason}"
+
+
+def _episode_line(event: EpisodeChanged) -> LogLine:
+    return LogLevel.Info, f"episode {event.index} {event.change}: {event.task}"
+
+
+#: How each robot event shows in Foxglove: a pose event moves one tree of its robot's twin
+#: (`tf`): targets sent the commanded one, joint states the measured one; every other event
+#: is a line of the log (`_LOG_LINES`: its level and text, or None when it has none).
+TREE_OF: dict[type[RobotEvent], str] = {TargetsSent: "virtual", JointStatesReceived: "real"}
+_LOG_LINES: dict[type[RobotEvent], Callable[[Any], LogLine | None]] = {
+    StateChanged: _state_line,
+    FaultReported: _fault_line,
+    CommandHandled: _command_line,
+    PeerChanged: _peer_line,
+    EpisodeChanged: _episode_line,
+}
+if set(TREE_OF) | set(_LOG_LINES) != set(get_args(RobotEvent)):  # (a new event is shown)
+    raise TypeError("every robot event needs its Foxglove form: a tree or a log line")
+
+
+def _log_line(event: RobotEvent) -> LogLine | None:
+    line = _LOG_LINES.get(type(event))  # (none for a pose event)
+    return None if line is None else line(event)
 
 
 # FrameTransforms is encoded here rather than by building the SDK's objects, which cost ~14 us

@@ -26,6 +26,7 @@ from arena.robot.events import (
     EpisodeChanged,
     FaultReported,
     JointStatesReceived,
+    Observed,
     PeerChanged,
     RobotEvent,
     StateChanged,
@@ -67,14 +68,14 @@ class Recorded(NamedTuple):
     description (its JSON Schema's `title` and `description`)."""
 
     kind: str
-    event: type[RobotEvent]
+    event: type[Observed]
     name: str
     description: str
 
 
 #: Every robot event and its record. Each record is derived from its event's fields
-#: (`_derived`) but a command's, `CommandRecord` above, which differs on purpose: it is flat
-#: (the command's fields and its answer's beside the event's), its duration is in
+#: (`derive_record`) but a command's, `CommandRecord` above, which differs on purpose: it is
+#: flat (the command's fields and its answer's beside the event's), its duration is in
 #: milliseconds as on the wire, and the command's own `source` is its `label` (the event's
 #: `source` says who sent it).
 RECORDED = (
@@ -112,7 +113,7 @@ NOT_RECORDED = frozenset({"robot_id", "time", "wall_time"})
 Maker = Callable[[Any], msgspec.Struct]
 
 
-def _derived(recorded: Recorded) -> tuple[type[msgspec.Struct], Maker]:
+def derive_record(recorded: Recorded) -> tuple[type[msgspec.Struct], Maker]:
     """The record type of an event (`t`, then the event's fields in their order but those
     in `NOT_RECORDED`, an enum as a plain string) and how to make one: positional, through
     one attribute getter made here, so that a record costs what a hand-written one did."""
@@ -144,7 +145,7 @@ def _forms() -> dict[type, tuple[str, type[msgspec.Struct], Maker]]:
         if recorded.event is CommandHandled:
             forms[CommandHandled] = (recorded.kind, CommandRecord, _command_record)
         else:
-            forms[recorded.event] = (recorded.kind, *_derived(recorded))
+            forms[recorded.event] = (recorded.kind, *derive_record(recorded))
     missing = set(get_args(RobotEvent)) - set(forms)
     if missing:  # (else a new event would fail at its first recording)
         raise TypeError(f"robot events without a record: {sorted(t.__name__ for t in missing)}")
@@ -206,12 +207,9 @@ def record_of(event: RobotEvent) -> tuple[str, msgspec.Struct]:
     return kind, make(event)
 
 
-#: Topic kind -> the robot event it records (what `record_of` maps).
-EVENT_TYPES: dict[str, type[RobotEvent]] = {recorded.kind: recorded.event for recorded in RECORDED}
 #: Observed type -> its topic kind (camera frames are "image"; their topics are per camera).
-KIND_OF_EVENT: dict[type[msgspec.Struct], str] = {
-    event: kind for kind, event in {**EVENT_TYPES, "image": CameraFrame}.items()
-}
+KIND_OF_EVENT: dict[type[Observed], str] = {CameraFrame: "image"}
+KIND_OF_EVENT.update((recorded.event, recorded.kind) for recorded in RECORDED)
 
 
 def schema_of(kind: str) -> dict[str, Any]:

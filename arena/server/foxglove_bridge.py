@@ -31,7 +31,7 @@ import trio
 from foxglove.websocket import ChannelView, Client, ServerListener
 
 from arena.recording import images
-from arena.recording.foxglove import MESSAGE_TYPES, Twin, pose_of
+from arena.recording.foxglove import MESSAGE_TYPES, TREE_OF, Twin, pose_of
 from arena.recording.mcap_file import channel_format
 from arena.recording.records import KIND_OF_EVENT, camera_kind, record_of, topic
 from arena.robot.actor import Robot
@@ -43,8 +43,9 @@ log = logging.getLogger(__name__)
 
 #: Batches waiting for the publisher thread; beyond this the newest batch is dropped.
 QUEUE_BATCHES = 64
-#: Arena's JSON records that go live beside Foxglove's kinds (for plots of each joint).
-JSON_KINDS = ("targets", "joint_states")
+#: Arena's JSON records that go live beside Foxglove's kinds (for plots of each joint): those
+#: of the pose events.
+JSON_KINDS = tuple(KIND_OF_EVENT[event] for event in TREE_OF)
 _json = msgspec.json.Encoder()
 
 
