@@ -91,6 +91,8 @@ def state(snapshot: RobotSnapshot) -> wire.StateMessage:
     )
 
 
+#: A slave notice's wire message: the notice's own name (NoticeKind's value), but for a
+#: shutdown, which the wire calls `stop` (specs/api.md).
 _NOTICES: dict[
     NoticeKind, type[wire.EStopNotice | wire.ResetNotice | wire.HoldNotice | wire.StopNotice]
 ] = {
