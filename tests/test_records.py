@@ -23,8 +23,8 @@ from arena.robot.safety import Mode
 
 
 def test_every_kind_of_event_is_recorded_byte_for_byte_as_before() -> None:
-    # Written out by hand from a recording made before records were derived: old files and
-    # new ones must read alike (field order, names, enums as their values, defaults).
+    # What the hand-written records made of these events before records were derived: old
+    # files and new ones must read alike (field order, names, enums as values, defaults).
     clamp = ClampInfo("Jaw", 900.0, 100.0)
     command = Command((JointValue("Rotation", 3.0, 10.0), JointValue("Jaw", 900.0)), 0.25, "ui")
     cases: list[tuple[RobotEvent, str, str]] = [

@@ -35,7 +35,7 @@ from arena.recording.foxglove import MESSAGE_TYPES, TREE_OF, Twin, pose_of
 from arena.recording.mcap_file import channel_format
 from arena.recording.records import KIND_OF_EVENT, camera_kind, record_of, topic
 from arena.robot.actor import Robot
-from arena.robot.events import CameraFrame, JointStatesReceived, RobotEvent, TargetsSent
+from arena.robot.events import CameraFrame, RobotEvent
 from arena.robot.mailbox import EventQueue
 from arena.robot.model import RobotModel
 
@@ -135,7 +135,7 @@ class FoxgloveBridge:
         for events, (robot_id, subscription) in list(self._followed.items()):
             newest: dict[type, RobotEvent] = {}
             for event in events.drain():
-                if isinstance(event, TargetsSent | JointStatesReceived):
+                if type(event) in TREE_OF:  # a pose: the newest is all a viewer needs
                     newest[type(event)] = event
                 else:
                     batch.events.append((robot_id, event))
