@@ -4,11 +4,12 @@ Observers (the server, dashboards, the recorder) receive `RobotEvent`s; masters 
 `MasterNotice`s; slaves receive targets (`SlaveTarget`) and `SlaveNotice`s. `time` is trio time,
 `wall_time` is Unix time (for timestamps on the wire and in recordings).
 
-Each event's fields are declared here and nowhere else: its record in a recording is derived
-from them (`recording/records.py`: every field but `robot_id`, `time` and `wall_time`, a
-command's record being the one deliberate exception, named there), and so is how it shows in
-Foxglove (`recording/foxglove.py`: the tree a pose moves, or a log line). A field added here
-is recorded; `specs/schemas/record-*.json` then changes, and `tests/test_schemas.py` says so.
+Each event's fields are declared here and nowhere else. Its record in a recording is derived
+from them (`recording/records.py`: every field but `robot_id`, `time` and `wall_time`; a
+command's record is the one deliberate exception, named there), and its form in Foxglove is
+one entry of a table (`recording/foxglove.py`: the tree a pose moves, or a log line); both
+modules check at import that every `RobotEvent` has its form. A field added here is
+recorded: `specs/schemas/record-*.json` then changes, and `tests/test_schemas.py` says so.
 
 Every type here holds only immutable values (strings, numbers, enums, tuples and dicts of
 them, other such structs), so none can be part of a reference cycle: they are left out of the
