@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import trio
 
-from arena.server.ws_frames import encode_frame, split_unmasked
+from arena.protocol.ws_frames import encode_frame, split_unmasked
 
 OP_TEXT = 0x1
 OP_CLOSE = 0x8

@@ -21,6 +21,7 @@ from trio.testing import MockClock
 from trio_websocket import ConnectionClosed, WebSocketConnection, open_websocket_url
 
 from arena.protocol import messages as wire
+from arena.protocol.ws_frames import OP_BINARY, OP_PING, OP_PONG, encode_frame
 from arena.robot.actor import Robot
 from arena.robot.events import CommandHandled, RobotEvent, TargetsSent
 from arena.robot.mailbox import EventQueue
@@ -28,7 +29,6 @@ from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
 from arena.server.websockets import Encoded, _decide_commands, _RobotEventForwarder, _slave_writer
-from arena.server.ws_frames import OP_BINARY, OP_PING, OP_PONG, encode_frame
 from tests.conftest import RunningServer
 from tests.raw_websocket import OP_CLOSE, OP_TEXT, RawWebSocket
 

@@ -12,9 +12,8 @@ import pytest
 import trio
 import trio.testing
 
-from arena.server import ws_frames, ws_transport
-from arena.server.read_poller import ReadPoller
-from arena.server.ws_frames import (
+from arena.protocol import ws_frames
+from arena.protocol.ws_frames import (
     OP_BINARY,
     OP_CLOSE,
     OP_CONTINUATION,
@@ -23,8 +22,12 @@ from arena.server.ws_frames import (
     OP_TEXT,
     FrameParser,
     ProtocolViolation,
+    UpgradeRequest,
+    WebSocketClosed,
 )
-from arena.server.ws_transport import UpgradeRequest, WebSocket, WebSocketClosed
+from arena.server import ws_transport
+from arena.server.read_poller import ReadPoller
+from arena.server.ws_transport import WebSocket
 from tests.conftest import RunningServer
 from tests.raw_websocket import RawWebSocket
 

@@ -15,7 +15,7 @@ import socket
 import struct
 from urllib.parse import urlsplit
 
-from arena.server.ws_frames import OP_CLOSE, OP_TEXT, encode_frame, split_unmasked
+from arena.protocol.ws_frames import OP_CLOSE, OP_TEXT, encode_frame, split_unmasked
 
 
 def masked_frame(text: str) -> bytes:

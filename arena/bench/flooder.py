@@ -8,7 +8,7 @@ import os
 import socket
 import sys
 
-from arena.server.ws_frames import OP_PING, encode_frame
+from arena.protocol.ws_frames import OP_PING, encode_frame
 
 
 def flood(host: str, port: int, robot_id: str) -> None:

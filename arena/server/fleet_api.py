@@ -24,10 +24,10 @@ import arena
 from arena.fleet.node import ESTOP_TIMEOUT, FleetNode, Tunnel
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import ReasonBody
+from arena.protocol.ws_frames import UpgradeRequest, WebSocketClosed
 from arena.robot.actor import Robot
 from arena.robot.events import StateChanged
 from arena.server.base import ArenaApp, error_response, read_body
-from arena.server.ws_transport import UpgradeRequest, WebSocketClosed
 
 log = logging.getLogger(__name__)
 blueprint = Blueprint("fleet", __name__)

@@ -30,10 +30,11 @@ from hypercorn.trio.worker_context import WorkerContext
 from hypercorn.typing import ConnectionState
 from hypercorn.utils import repr_socket_addr, wrap_app
 
+from arena.protocol import ws_frames
 from arena.protocol.errors import ArenaError, ErrorCode
-from arena.server import ws_frames
+from arena.protocol.ws_frames import UpgradeRequest
 from arena.server.read_poller import ReadPoller
-from arena.server.ws_transport import UpgradeRequest, WebSocket
+from arena.server.ws_transport import WebSocket
 
 log = logging.getLogger(__name__)
 

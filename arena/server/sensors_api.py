@@ -15,12 +15,12 @@ from quart import Blueprint, Response, current_app, request
 
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import CameraBody, EpisodeBody
+from arena.protocol.ws_frames import UpgradeRequest
 from arena.robot.episodes import Episode
 from arena.sensors.camera import Camera, CameraSpec
 from arena.server.auth import check_token
 from arena.server.base import STATUS_FOR, ArenaApp, read_body
 from arena.server.listener import http_error
-from arena.server.ws_transport import UpgradeRequest
 
 blueprint = Blueprint("sensors", __name__)
 

@@ -24,6 +24,7 @@ import trio
 from arena.drivers.sequence_master import SequenceMaster
 from arena.protocol import messages as wire
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.protocol.ws_frames import UpgradeRequest, WebSocketClosed
 from arena.robot.actor import Robot
 from arena.robot.events import (
     JointStatesReceived,
@@ -43,7 +44,7 @@ from arena.server import convert
 from arena.server.auth import check_token
 from arena.server.base import ArenaApp
 from arena.server.listener import WebSocketHandler
-from arena.server.ws_transport import UpgradeRequest, WebSocket, WebSocketClosed
+from arena.server.ws_transport import WebSocket
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)

@@ -22,13 +22,11 @@ from __future__ import annotations
 
 import contextlib
 import os
-from dataclasses import dataclass, field
 
 import trio
 
-from arena.server import ws_frames
-from arena.server.read_poller import ReadPoller
-from arena.server.ws_frames import (
+from arena.protocol import ws_frames
+from arena.protocol.ws_frames import (
     OP_BINARY,
     OP_CLOSE,
     OP_PING,
@@ -36,7 +34,10 @@ from arena.server.ws_frames import (
     OP_TEXT,
     FrameParser,
     ProtocolViolation,
+    UpgradeRequest,
+    WebSocketClosed,
 )
+from arena.server.read_poller import ReadPoller
 
 RECEIVE_BYTES = 65536
 #: Frames received in a row before the reader lets other tasks run.
@@ -48,19 +49,6 @@ class _Handled:
 
 
 _HANDLED = _Handled()
-
-
-@dataclass
-class UpgradeRequest:
-    """What the client asked for in its opening handshake."""
-
-    path: str
-    #: Query parameters (the first value of each).
-    args: dict[str, str] = field(default_factory=dict)
-    #: Headers, names in lower case.
-    headers: dict[str, str] = field(default_factory=dict)
-    #: `https` when the connection is TLS (the page's origin would then be https too).
-    scheme: str = "http"
 
 
 #: The text last framed (None before any: "" is interned, so it cannot stand for none) and
@@ -79,15 +67,6 @@ def _frame(text: str) -> bytes:
 
 def _frames(texts: tuple[str, ...]) -> bytes:
     return _frame(texts[0]) if len(texts) == 1 else b"".join(map(_frame, texts))
-
-
-class WebSocketClosed(Exception):
-    """The connection is closed (by either side); `code` is the peer's close code if any."""
-
-    def __init__(self, code: int, reason: str = "") -> None:
-        super().__init__(f"closed with {code} {reason}".strip())
-        self.code = code
-        self.reason = reason
 
 
 class WebSocket:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import base64
 import hashlib
 import struct
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 OP_CONTINUATION, OP_TEXT, OP_BINARY = 0x0, 0x1, 0x2
 OP_CLOSE, OP_PING, OP_PONG = 0x8, 0x9, 0xA
@@ -46,6 +46,28 @@ class ProtocolViolation(Exception):
 
     def __init__(self, code: int, reason: str) -> None:
         super().__init__(reason)
+        self.code = code
+        self.reason = reason
+
+
+@dataclass
+class UpgradeRequest:
+    """What the client asked for in its opening handshake."""
+
+    path: str
+    #: Query parameters (the first value of each).
+    args: dict[str, str] = field(default_factory=dict)
+    #: Headers, names in lower case.
+    headers: dict[str, str] = field(default_factory=dict)
+    #: `https` when the connection is TLS (the page's origin would then be https too).
+    scheme: str = "http"
+
+
+class WebSocketClosed(Exception):
+    """The connection is closed (by either side); `code` is the peer's close code if any."""
+
+    def __init__(self, code: int, reason: str = "") -> None:
+        super().__init__(f"closed with {code} {reason}".strip())
         self.code = code
         self.reason = reason
 
