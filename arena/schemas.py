@@ -18,6 +18,7 @@ SCHEMA_TYPES: dict[str, Any] = {
     "master-message": wire.MasterMessage,
     "slave-message": wire.SlaveMessage,
     "ack": wire.AckMessage,
+    "group-ack": wire.GroupAckMessage,
     "error": wire.ErrorMessage,
     "joint-states": wire.JointStatesOut,
     "state": wire.StateMessage,

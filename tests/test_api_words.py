@@ -25,7 +25,7 @@ from arena.protocol.rest import MasterBody, SlaveBody
 from arena.protocol.validation import nearest
 from arena.server import openapi
 from arena.server.base import STATUS_FOR
-from arena.server.websockets import _CLOSE_FOR
+from arena.server.ws.connection import CLOSE_FOR
 from tests.conftest import RunningServer
 from tests.test_server_ws import command, receive
 
@@ -501,7 +501,7 @@ def test_the_error_table_holds_every_code_both_ways() -> None:
             assert status == STATUS_FOR[code], code
         elif status is not None:
             assert status == 400, code  # the status of any code without its own
-        assert close == _CLOSE_FOR.get(code), code
+        assert close == CLOSE_FOR.get(code), code
 
 
 #: Calls whose first argument is an error code that leaves the server.

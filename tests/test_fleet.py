@@ -24,11 +24,11 @@ import trio
 from trio_websocket import ConnectionClosed, open_websocket_url
 
 from arena.fleet.node import FleetSettings, Tunnel
+from arena.fleet.tunnel import TunnelSocket
 from arena.protocol.errors import ArenaError
 from arena.protocol.ws_frames import UpgradeRequest, WebSocketClosed
 from arena.recording.mcap_file import read_recording
 from arena.server import fleet_api
-from arena.server.fleet_api import TunnelSocket
 from tests.conftest import RunningServer, need
 from tests.hardware import eventually
 

@@ -28,7 +28,11 @@ from arena.robot.mailbox import EventQueue
 from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
-from arena.server.websockets import Encoded, _decide_commands, _RobotEventForwarder, _slave_writer
+from arena.server.ws.acks import AckCache
+from arena.server.ws.backpressure import Encoded
+from arena.server.ws.forwarder import RobotEventForwarder
+from arena.server.ws.master import decide_commands
+from arena.server.ws.slave import slave_writer
 from tests.conftest import RunningServer
 from tests.raw_websocket import OP_CLOSE, OP_TEXT, RawWebSocket
 
@@ -671,7 +675,7 @@ async def test_the_slave_writer_lets_the_robot_write_lone_targets_itself(
     connection = cast(Any, SimpleNamespace(send_now=send_now, send_in_turn=send, close=close))
     ended = trio.Event()
     async with trio.open_nursery() as nursery:
-        nursery.start_soon(_slave_writer, connection, link, ended)
+        nursery.start_soon(slave_writer, connection, link, ended)
         await trio.testing.wait_all_tasks_blocked()
         assert robot.command_now(Command.of({"Rotation": 0.01})) is not None
         assert direct == ["ExecuteCommandMessage"] and by_task == []  # written before any switch
@@ -741,7 +745,7 @@ async def test_a_run_that_finds_the_actor_busy_posts_one_command_and_decides_the
     values = [10.0, 20.0, 30.0, 40.0, 50.0, 60.0]
     run = [wire.CommandData([wire.JointValue("Rotation", v)]) for v in values]
     with robot.subscribe(kinds=[CommandHandled]) as handled:
-        assert await _decide_commands(connection, link, forwarder, run, False)
+        assert await decide_commands(connection, link, forwarder, run, False, AckCache())
         decided = [handled.get_nowait() for _ in range(len(handled))]
     assert [e.command.joints[0].value for e in decided] == values  # type: ignore[attr-defined]
     # The first waited (the second may too: the actor still had its due tick to run), then
@@ -762,7 +766,7 @@ def _forwarder_on(robot: Robot, events: EventQueue[RobotEvent]) -> tuple[Any, li
     connection = SimpleNamespace(
         app=SimpleNamespace(arena_config=config), send=send, wants_joint_states=True
     )
-    return _RobotEventForwarder(cast(Any, connection), robot, events), sent
+    return RobotEventForwarder(cast(Any, connection), robot, events), sent
 
 
 async def test_joint_states_the_reader_held_back_are_sent_by_the_task_when_due(

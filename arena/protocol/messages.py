@@ -203,6 +203,29 @@ class AckMessage(_Msg, tag="ack"):
     data: AckData | None = None
 
 
+class GroupAckData(msgspec.Struct):
+    """The answer to a group master's command: each member's ack, and the group's `status`:
+    `refused` if every member refused, `partial` if some did, else `clamped` if any member
+    clamped, else `accepted`."""
+
+    status: Literal["accepted", "clamped", "partial", "refused"]
+    members: dict[str, AckData]
+
+    @classmethod
+    def of(cls, members: dict[str, AckData]) -> GroupAckData:
+        """The group's answer made of its members' answers."""
+        statuses = {answer.status for answer in members.values()}
+        if "refused" in statuses:
+            return cls("refused" if statuses == {"refused"} else "partial", members)
+        return cls("clamped" if "clamped" in statuses else "accepted", members)
+
+
+class GroupAckMessage(_Msg, tag="ack"):
+    """Acknowledgment of a group master's command, one ack per member."""
+
+    data: GroupAckData
+
+
 class JointLimits(msgspec.Struct):
     """A joint's limits in degrees and deg/s."""
 

@@ -54,6 +54,7 @@ from arena.server.recordings_api import blueprint as recordings_blueprint
 from arena.server.recordings_api import off_the_loop
 from arena.server.robot_types_api import blueprint as robot_types_blueprint
 from arena.server.sensors_api import blueprint as sensors_blueprint
+from arena.server.ws.acks import AckCache
 
 #: Paths anyone may read, keys or not: the documentation and the dashboard's files.
 PUBLIC_PATHS = frozenset({"/docs", "/openapi.json", "/ui"})
@@ -68,6 +69,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.arena_config = config
     app.metrics = Metrics()
     app.connections = set()
+    app.acks = AckCache()
     app.origin_policy = OriginPolicy(config.host, config.allowed_origins, config.allowed_hosts)
     app.hardware = Hardware()
     app.groups = GroupRegistry(manager)

@@ -25,6 +25,7 @@ if TYPE_CHECKING:
     from arena.fleet.node import FleetNode
     from arena.sensors.camera import Cameras
     from arena.server.foxglove_bridge import FoxgloveBridge  # imports the SDK
+    from arena.server.ws.acks import AckCache
 
 #: HTTP status for each error code (anything missing is 400).
 STATUS_FOR: dict[ErrorCode, int] = {
@@ -140,6 +141,8 @@ class ArenaApp(QuartTrio):
     groups: GroupRegistry
     #: The open WebSocket connections (their queued bytes show in /metrics).
     connections: set[OpenConnection]
+    #: The masters' acks encoded (one entry, shared: the acks of a millisecond are one text).
+    acks: AckCache
     #: Which pages and host names may reach the server (see `origin`).
     origin_policy: OriginPolicy
     #: Every robot's cameras (`arena/sensors`).

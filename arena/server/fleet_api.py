@@ -1,33 +1,29 @@
-"""The fleet on the server: REST (`/api/fleet/...`), and any robot of the fleet through any node.
+"""The fleet on the server: REST (`/api/fleet/...`), the node's services, and any robot of
+the fleet through any node.
 
-A WebSocket for a robot that lives on another node is carried there through a Zenoh tunnel
-(`fleet.node.Tunnel`): this node checks the client's key, the robot's node serves the
-connection with its own handlers (`TunnelSocket` stands in for the socket), so ownership,
-takeover, e-stops, rate limits and acknowledgments are that node's, as if the client had
-connected there. A REST call for such a robot is forwarded the same way (the `http` service)
-and run by the robot's node through its own app. Frames in a tunnel: `t` + text, `c` + close
-JSON; an empty frame (local only) means the other node is gone.
+A REST call for a robot that lives on another node is forwarded there (`fleet.forward`, the
+`http` service) and run by the robot's node through its own app; a WebSocket is carried
+there through a tunnel (`fleet.tunnel`, served by `ws.fleet`).
 """
 
 from __future__ import annotations
 
-import base64
 import json
 import logging
 import secrets
 from typing import Any
 
-import trio
 from quart import Blueprint, Response, current_app, request
 
 import arena
-from arena.fleet.node import ESTOP_TIMEOUT, FleetNode, Tunnel
+from arena.fleet import forward
+from arena.fleet.node import ESTOP_TIMEOUT, FleetNode
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import ReasonBody
-from arena.protocol.ws_frames import UpgradeRequest, WebSocketClosed
 from arena.robot.actor import Robot
 from arena.robot.events import StateChanged
 from arena.server.base import ArenaApp, error_response, read_body
+from arena.server.ws.fleet import serve_tunnel
 
 log = logging.getLogger(__name__)
 blueprint = Blueprint("fleet", __name__)
@@ -35,8 +31,6 @@ blueprint = Blueprint("fleet", __name__)
 #: The header that marks a REST call forwarded by another node (its value is this process's
 #: secret, so no client can send it).
 FORWARDED = "X-Arena-Fleet-Forwarded"
-#: Request headers a forwarded call keeps.
-_KEPT_HEADERS = ("content-type", "accept")
 
 
 def _app() -> ArenaApp:
@@ -187,12 +181,13 @@ def install(app: ArenaApp, fleet: FleetNode) -> None:
         await app.manager.estop_all(reason)
         return {"node": fleet.name, "robots": [robot.robot_id for robot in robots]}
 
-    async def http(payload: bytes) -> dict[str, Any]:
-        return await _run_forwarded(app, json.loads(payload))
+    async def run(call: forward.Call) -> forward.Answer:
+        return await _run_forwarded(app, call)
 
     async def tunnel(payload: bytes) -> dict[str, Any]:
-        return await _serve_tunnel(app, fleet, json.loads(payload))
+        return serve_tunnel(app, fleet, json.loads(payload))
 
+    http = forward.http_service(run)
     fleet.services.update(info=info, estop=estop, http=http, tunnel=tunnel)
     app.manager.on_create.append(lambda robot: _follow(fleet, robot))
     app.before_request(_forward_remote_robot)
@@ -244,224 +239,28 @@ async def _forward_remote_robot() -> Response | None:
         return None
     raw = await request.get_data(cache=True, as_text=False)
     body = raw.encode() if isinstance(raw, str) else raw
-    call = {
-        "method": request.method,
-        "path": request.path,
-        "query": request.query_string.decode("latin-1"),
-        "headers": {k: v for k, v in request.headers.items() if k.lower() in _KEPT_HEADERS},
-        "body": base64.b64encode(body).decode(),
-    }
-    answer = await fleet.ask(node, "http", call, timeout=10.0)
-    response = Response(
-        base64.b64decode(answer["body"]),
-        status=answer["status"],
-        content_type=answer["content_type"],
-    )
+    query = request.query_string.decode("latin-1")
+    call = forward.request_call(request.method, request.path, query, request.headers.items(), body)
+    answer = await forward.forward(fleet, node, call)
+    response = Response(answer.body, status=answer.status, content_type=answer.content_type)
     response.headers["X-Arena-Node"] = node
     return response
 
 
-async def _run_forwarded(app: ArenaApp, call: dict[str, Any]) -> dict[str, Any]:
+async def _run_forwarded(app: ArenaApp, call: forward.Call) -> forward.Answer:
     """Run a forwarded REST call through this node's own app (its rules, its robot)."""
     client: Any = app.test_client()
-    headers = {**call.get("headers", {}), FORWARDED: app.fleet_secret}
     response = await client.open(
-        call["path"],
-        method=call["method"],
-        query_string=call.get("query") or None,
-        headers=headers,
-        data=base64.b64decode(call.get("body", "")),
+        call.path,
+        method=call.method,
+        query_string=call.query or None,
+        headers={**call.headers, FORWARDED: app.fleet_secret},
+        data=call.body,
     )
     data: bytes = await response.get_data(as_text=False)
-    return {
-        "status": response.status_code,
-        "content_type": response.content_type,
-        "body": base64.b64encode(data).decode(),
-    }
+    return forward.Answer(response.status_code, response.content_type, data)
 
 
 def is_forwarded(app: ArenaApp, value: str | None) -> bool:
     """True for a call another node of the fleet forwarded (it checked the key)."""
     return bool(app.fleet_secret) and value == app.fleet_secret
-
-
-# -- WebSockets for robots of other nodes -----------------------------------------------------
-
-
-#: Tunnel frames `TunnelSocket.next_in_hand` looks through for a message.
-_IN_HAND = 32
-
-
-class TunnelSocket:
-    """The robot's node's end of a tunnel, as the WebSocket handlers see a socket. The
-    client's node checked the key: `trusted`."""
-
-    trusted = True
-    backlogged = False
-    queued_bytes = 0
-
-    def __init__(self, tunnel: Tunnel, request: UpgradeRequest) -> None:
-        self.tunnel = tunnel
-        self.request = request
-        self.close_sent = False
-
-    async def receive(self) -> str:
-        while True:
-            try:
-                data = await self.tunnel.inbox.receive()
-            except (trio.EndOfChannel, trio.ClosedResourceError):
-                raise WebSocketClosed(1006, "tunnel closed") from None
-            message = self._message(data)
-            if message is not None:
-                return message
-
-    def next_in_hand(self) -> str | None:
-        """The next message if one is in the inbox already (as `WebSocket.next_in_hand`)."""
-        for _ in range(_IN_HAND):
-            try:
-                data = self.tunnel.inbox.receive_nowait()
-            except trio.WouldBlock:
-                return None
-            except (trio.EndOfChannel, trio.ClosedResourceError):
-                raise WebSocketClosed(1006, "tunnel closed") from None
-            message = self._message(data)
-            if message is not None:
-                return message
-        return None
-
-    def _message(self, data: bytes) -> str | None:
-        """A text message, None for anything else; the end of the tunnel raises."""
-        if data[:1] == b"t":
-            return data[1:].decode("utf-8")
-        if not data:
-            raise WebSocketClosed(1006, "the client's node is gone")
-        if data[:1] == b"c":
-            close = json.loads(data[1:] or b"{}")
-            self.close_sent = True
-            raise WebSocketClosed(int(close.get("code", 1000)), str(close.get("reason", "")))
-        return None
-
-    def holds_more(self) -> bool:
-        return self.tunnel.inbox.statistics().current_buffer_used > 0
-
-    def offer(self, *texts: str, whole: bool = False) -> bool:
-        for text in texts:  # (each goes into the tunnel at once, `whole` or not)
-            self.tunnel.send(b"t" + text.encode("utf-8"))
-        return True
-
-    async def send(self, *texts: str) -> None:
-        self.offer(*texts)
-        await trio.lowlevel.checkpoint()
-
-    def send_nowait(self, text: str) -> None:
-        self.offer(text)
-
-    def send_now(self, *texts: str) -> bool:
-        return self.offer(*texts)
-
-    def close_nowait(self, code: int, reason: str = "") -> None:
-        if not self.close_sent:
-            self.close_sent = True
-            self.tunnel.send(b"c" + json.dumps({"code": code, "reason": reason}).encode())
-
-    async def wait_drained(self) -> None:
-        await trio.sleep_forever()  # never backlogged: nothing to wait for
-
-
-async def _serve_tunnel(app: ArenaApp, fleet: FleetNode, call: dict[str, Any]) -> dict[str, Any]:
-    """Serve a client of another node: the robot must be here; the connection runs as if the
-    client had connected to this node."""
-    from arena.server.websockets import Connection, serve_role
-
-    robot_id, role = str(call["robot"]), str(call["role"])
-    app.manager.get(robot_id)  # UNKNOWN_ROBOT if it is not here (any more)
-    if role not in ("master", "slave", "viewer"):
-        raise ArenaError(ErrorCode.INVALID_VALUE, f"No such role {role!r}.")
-    tunnel = fleet.open_tunnel(str(call["origin"]), str(call["tunnel"]), serving=True)
-    path = f"/ws/robots/{robot_id}/state" if role == "viewer" else f"/ws/{role}/{robot_id}"
-    socket = TunnelSocket(tunnel, UpgradeRequest(path, dict(call.get("args", {})), {}))
-
-    async def serve() -> None:
-        try:
-            await serve_role(Connection(app, socket, role), robot_id)  # type: ignore[arg-type]
-        finally:
-            socket.close_nowait(1000, "")
-            tunnel.close()
-
-    assert fleet.nursery is not None
-    fleet.nursery.start_soon(serve)
-    return {"tunnel": tunnel.tunnel_id, "node": fleet.name}
-
-
-def _kind_of(text: str) -> str:
-    """The `type` of a message (encoded with `type` first), for latest-wins toward a slow
-    client; anything else counts as rare."""
-    if text.startswith('{"type":"'):
-        end = text.find('"', 9)
-        if end > 0:
-            return text[9:end]
-    return ""
-
-
-async def proxy(connection: Any, robot_id: str, node: str) -> None:
-    """A client of this node for a robot of `node`: carry its connection there."""
-    from arena.server.websockets import Encoded, authorized
-
-    app: ArenaApp = connection.app
-    fleet = app.fleet
-    assert fleet is not None
-    if not await authorized(connection):
-        return
-    tunnel = fleet.open_tunnel(node, serving=False)
-    args = {k: v for k, v in connection.args.items() if k != "token"}
-    call = {
-        "tunnel": tunnel.tunnel_id,
-        "origin": fleet.name,
-        "role": connection.role,
-        "robot": robot_id,
-        "args": args,
-    }
-    try:
-        await fleet.ask(node, "tunnel", call)
-    except ArenaError as error:
-        tunnel.close()
-        await connection.refuse(error)
-        return
-
-    async def body(nursery: trio.Nursery) -> None:
-        async def to_robot() -> None:
-            while True:
-                try:
-                    frame = await connection.ws.receive()
-                except WebSocketClosed as closed:
-                    tunnel.send(b"c" + json.dumps({"code": closed.code}).encode())
-                    nursery.cancel_scope.cancel()
-                    return
-                if isinstance(frame, str):
-                    tunnel.send(b"t" + frame.encode("utf-8"))
-                else:
-                    await connection.send_error(
-                        ErrorCode.BINARY_NOT_SUPPORTED, "Send JSON text frames, not binary frames."
-                    )
-
-        nursery.start_soon(to_robot)
-        async for data in tunnel.inbox:
-            if not data:
-                await connection.refuse(
-                    ArenaError(
-                        ErrorCode.NODE_LOST,
-                        f"Node {node!r}, which owns robot {robot_id!r}, left the fleet.",
-                    )
-                )
-                return
-            if data[:1] == b"c":
-                close = json.loads(data[1:] or b"{}")
-                await connection.close(int(close.get("code", 1000)), str(close.get("reason", "")))
-                return
-            text = data[1:].decode("utf-8")
-            await connection.send(Encoded(_kind_of(text), text))
-
-    try:
-        await connection.run(body)
-    finally:
-        tunnel.close()

@@ -26,7 +26,7 @@ from arena.server.base import ArenaApp
 from arena.server.config import ServerConfig
 from arena.server.listener import ArenaListener
 from arena.server.sensors_api import stream_route
-from arena.server.websockets import router
+from arena.server.ws.router import router
 
 log = logging.getLogger(__name__)
 

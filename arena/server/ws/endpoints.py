@@ -1,0 +1,30 @@
+"""The endpoints by role, for a robot (or group) of this node."""
+
+from __future__ import annotations
+
+from collections.abc import Awaitable, Callable
+
+from arena.server.ws import group_master, master, slave, viewer
+from arena.server.ws.connection import Connection
+
+
+async def serve_master(connection: Connection, robot_id: str) -> None:
+    """A master of a robot, or of a group by its id."""
+    if robot_id in connection.app.groups:
+        await group_master.serve(connection, robot_id)
+    else:
+        await master.serve(connection, robot_id)
+
+
+ENDPOINTS: dict[str, Callable[[Connection, str], Awaitable[None]]] = {
+    "master": serve_master,
+    "slave": slave.serve,
+    "viewer": viewer.serve,
+}
+#: The roles whose path is `/ws/{role}/{robot id}` (a viewer's is `/ws/robots/{id}/state`).
+PEER_ROLES = ("master", "slave")
+
+
+async def serve_role(connection: Connection, robot_id: str) -> None:
+    """Serve a connection of its role (master, slave or viewer) for a robot of this node."""
+    await ENDPOINTS[connection.role](connection, robot_id)

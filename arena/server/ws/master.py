@@ -1,0 +1,249 @@
+"""The master endpoint, `/ws/master/{robot id}`: commands in; acknowledgments, joint states
+and state changes out. (`endpoints` sends the id of a group to `group_master`.)"""
+
+from __future__ import annotations
+
+import time
+from functools import partial
+
+import trio
+
+from arena.drivers.sequence_master import SequenceMaster
+from arena.protocol import messages as wire
+from arena.protocol.errors import ArenaError, ErrorCode
+from arena.robot.actor import Robot
+from arena.robot.events import MasterNotice
+from arena.robot.links import DETACHED_LINK, MasterLink
+from arena.server import convert
+from arena.server.base import ArenaApp
+from arena.server.ws.acks import AckCache
+from arena.server.ws.backpressure import Outgoing
+from arena.server.ws.connection import (
+    BINARY_REFUSAL,
+    CLOSE_FOR,
+    CLOSE_NORMAL,
+    Connection,
+    flag,
+    peer_ids,
+)
+from arena.server.ws.forwarder import FORWARDED, QUEUE_LENGTH, RobotEventForwarder
+from arena.server.ws.sequence_player import SequencePlayer
+
+
+async def serve(connection: Connection, robot_id: str) -> None:
+    """A master: commands in, acknowledgments, joint states and state changes out."""
+    robot = await connection.accept(robot_id)
+    if robot is None:
+        return
+    app = connection.app
+    try:
+        link = await robot.connect_master(
+            connection.args.get("id") or f"ws-master-{next(peer_ids)}",
+            kind="websocket",
+            takeover=flag(connection.args.get("takeover")),
+            heartbeat_timeout=app.arena_config.heartbeat_timeout,
+            description="WebSocket client",
+        )
+    except ArenaError as error:
+        await connection.refuse(error)
+        return
+    app.metrics.connections["master"] += 1
+    try:
+        await connection.send(convert.state(robot.snapshot()))
+        with robot.subscribe(maxlen=QUEUE_LENGTH, kinds=FORWARDED) as events:
+            player = SequencePlayer()
+            forwarder = RobotEventForwarder(connection, robot, events)
+            if connection.wants_joint_states:
+                await connection.send(forwarder.joint_states.message())
+
+            async def body(nursery: trio.Nursery) -> None:
+                nursery.start_soon(forwarder.run)
+                nursery.start_soon(_forward_master_notices, connection, link, player)
+                nursery.start_soon(connection.heartbeats)
+                await _master_reader(connection, robot, link, forwarder, app.acks, player, nursery)
+
+            await connection.run(body)
+    finally:
+        try:
+            await release_master(app, link)
+        finally:  # counted closed once the robot has heard (tests wait on it)
+            app.metrics.connections["master"] -= 1
+
+
+async def release_master(app: ArenaApp, link: MasterLink) -> None:
+    """The socket of a master is gone: a shutdown detaches it, anything else loses it (the
+    robot's loss policy applies) unless the robot let it go first."""
+    with trio.CancelScope(shield=True):
+        if app.shutting_down.is_set():
+            await link.detach("server shutting down")
+        elif not link.detached.is_set():
+            await link.lost("connection closed")
+
+
+async def _forward_master_notices(
+    connection: Connection, link: MasterLink, player: SequencePlayer
+) -> None:
+    async for notice in link.notices:
+        if notice.kind == "detached":
+            await _send_detached(connection, notice)
+            return
+    if player.releasing:
+        return  # the reader answers the release and closes
+    # The robot closed the link (deleted, or detached without a word).
+    await connection.close(CLOSE_NORMAL, "robot link closed")
+
+
+async def _send_detached(connection: Connection, notice: MasterNotice) -> None:
+    code = notice.code or ErrorCode.MASTER_LOST
+    by = notice.by
+    taken_by = None if by is None else wire.TakenBy(by.master_id, by.kind, by.description)
+    await connection.send(  # queued even to a peer that is behind: it is the last word
+        wire.DetachedMessage(
+            timestamp=wire.now_iso(), data=wire.DetachedData(str(code), notice.message, taken_by)
+        )
+    )
+    await connection.close(CLOSE_FOR.get(code, CLOSE_NORMAL), notice.message)
+
+
+async def send_released(connection: Connection, data: wire.ReleasedData) -> None:
+    """Answer a `release` (queued even to a peer that is behind) and close normally."""
+    await connection.send(wire.ReleasedMessage(timestamp=wire.now_iso(), data=data))
+    await connection.close(CLOSE_NORMAL, "released")
+
+
+async def _master_reader(
+    connection: Connection,
+    robot: Robot,
+    link: MasterLink,
+    forwarder: RobotEventForwarder,
+    acks: AckCache,
+    player: SequencePlayer,
+    nursery: trio.Nursery,
+) -> None:
+    """A master's messages until it leaves; errors are answered, not fatal.
+
+    The frames of a burst that are in hand together are taken at once, and each run of
+    commands among them is decided in one pass (`decide_commands`). Every command is still
+    decided, recorded and acknowledged on its own and in order; what a run shares is the
+    forwarder's hold and one write of the answers.
+    """
+    handle = partial(_handle_master_message, connection, robot, link, player, nursery)
+    while True:
+        raw = await connection.receive_text()
+        if raw is None:
+            return
+        started = time.perf_counter()
+        frames, closed = connection.in_hand(raw)
+        run: list[wire.CommandData] = []
+        for frame in frames:
+            message: wire.MasterMessage | ArenaError
+            if isinstance(frame, bytes):
+                message = ArenaError(ErrorCode.BINARY_NOT_SUPPORTED, BINARY_REFUSAL)
+            else:
+                try:
+                    message = wire.decode_master(frame)
+                except ArenaError as error:
+                    message = error
+            if isinstance(message, wire.CommandMessage):
+                run.append(message.data)
+                continue
+            if run and not await decide_commands(connection, link, forwarder, run, True, acks):
+                return
+            run = []
+            if isinstance(message, ArenaError):
+                await connection.send_error(message.code, message.message)
+                continue
+            try:
+                await handle(message)
+            except ArenaError as error:
+                if not await connection.answer_error(error):
+                    return
+        if run and not await decide_commands(
+            connection, link, forwarder, run, connection.ws.holds_more(), acks
+        ):
+            return
+        connection.app.metrics.observe_latency(time.perf_counter() - started, len(frames))
+        if closed:
+            return
+
+
+async def decide_commands(
+    connection: Connection,
+    link: MasterLink,
+    forwarder: RobotEventForwarder,
+    run: list[wire.CommandData],
+    burst_goes_on: bool,
+    acks: AckCache,
+) -> bool:
+    """Decide commands in order and send their answers in one write; False (and the socket
+    closed) if the robot is gone. `burst_goes_on`: more frames follow the last of them."""
+    out: list[Outgoing] = []
+    stopped = False
+    commands = [convert.command_from_wire(d.joints, d.duration, d.metadata) for d in run]
+    wants_acks, ack = connection.wants_acks, acks.ack
+    with forwarder.handling_command():
+        # Each command counts as a heartbeat (the robot notes the time of each).
+        index, last = 0, len(commands) - 1
+        while index <= last:
+            rest = commands[index:] if index else commands
+            results = link.command_run_now(rest, burst_goes_on=burst_goes_on)
+            if results is not None:
+                out.extend([ack(result) for result in results if wants_acks or not result.accepted])
+                break
+            # The actor is busy (most often a motion tick is due): this command goes through
+            # its inbox, after which the actor is idle again for the rest.
+            try:
+                in_burst = burst_goes_on or index < last
+                result = await link.command(commands[index], in_burst=in_burst)
+            except ArenaError as error:
+                if error.code is ErrorCode.ROBOT_STOPPED:
+                    stopped = True
+                    break
+                out.append(connection.error(error.code, error.message))
+            else:
+                if wants_acks or not result.accepted:
+                    out.append(ack(result))
+            index += 1
+        # The joint states the commands caused ride along: one write instead of two.
+        out.extend(forwarder.take_due())
+    if out:
+        await connection.send(*out, whole=True)
+    if stopped:
+        await connection.close(CLOSE_NORMAL, "robot deleted")
+    return not stopped
+
+
+async def _handle_master_message(
+    connection: Connection,
+    robot: Robot,
+    link: MasterLink,
+    player: SequencePlayer,
+    nursery: trio.Nursery,
+    message: wire.MasterMessage,
+) -> None:
+    """Any message of a master but a command (those go to `decide_commands`)."""
+    link.alive()
+    if isinstance(message, wire.SequenceMessage):
+        sequence = convert.sequence_from_wire(message.data)
+        sequence.check_against(robot.model)
+        player.stop()
+        nursery.start_soon(player.play, link, SequenceMaster([sequence], loop=sequence.loop))
+        await connection.send(
+            wire.AckMessage(timestamp=wire.now_iso(), data=wire.AckData("accepted"))
+        )
+    elif isinstance(message, wire.EStopMessage):
+        player.stop()
+        reason = (message.data.reason if message.data else None) or "e-stop from master"
+        await robot.estop(reason)
+    elif isinstance(message, wire.ResetMessage):
+        await robot.reset()
+    elif isinstance(message, wire.HeartbeatMessage):
+        await connection.send(wire.HeartbeatMessage(timestamp=wire.now_iso()))
+    elif isinstance(message, wire.ReleaseMessage):
+        if link.detached.is_set():  # taken over or stopped meanwhile: its notice says why
+            raise ArenaError(ErrorCode.NOT_OWNER, DETACHED_LINK.message)
+        player.stop()
+        player.releasing = True
+        await link.release()
+        snapshot = robot.snapshot()
+        await send_released(connection, wire.ReleasedData(robot.robot_id, str(snapshot.mode)))
