@@ -11,6 +11,7 @@ import trio.testing
 from trio_websocket import open_websocket_url
 
 from arena.client import AsyncArena, MasterSession, Refused
+from arena.protocol import messages as wire
 from arena.robot.groups import GroupRegistry
 from arena.robot.manager import RobotManager
 from tests.conftest import RunningServer
@@ -173,3 +174,31 @@ async def test_stop_together_watchers_survive_deletion_at_any_moment(
     await trio.testing.wait_all_tasks_blocked()
     assert str(manager.get("d").snapshot().mode) == "estopped"
     registry.delete("g")
+
+
+def test_a_group_ack_says_how_the_group_answered_in_the_contracts_shape() -> None:
+    accepted = wire.AckData("accepted")
+    clamped = wire.AckData("clamped", None, "limited", [wire.ClampInfo("Rotation", 200.0, 180.0)])
+    refused = wire.AckData("refused", "ESTOPPED", "stopped")
+    cases = [
+        (accepted, accepted, "accepted"),
+        (accepted, clamped, "clamped"),
+        (clamped, refused, "partial"),
+        (refused, refused, "refused"),
+    ]
+    for first, second, expected in cases:
+        assert wire.GroupAckData.of({"a": first, "b": second}).status == expected
+    # Each member's ack data whole, as the group master always sent it.
+    data = wire.GroupAckData.of({"a": accepted, "b": refused})
+    text = wire.encode(wire.GroupAckMessage(timestamp="2026-01-01T00:00:00.000Z", data=data))
+    assert json.loads(text) == {
+        "type": "ack",
+        "timestamp": "2026-01-01T00:00:00.000Z",
+        "data": {
+            "status": "partial",
+            "members": {
+                "a": {"status": "accepted", "code": None, "message": "", "clamped": []},
+                "b": {"status": "refused", "code": "ESTOPPED", "message": "stopped", "clamped": []},
+            },
+        },
+    }

@@ -9,6 +9,7 @@ import itertools
 import json
 import os
 import struct
+import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from types import SimpleNamespace
@@ -21,13 +22,14 @@ from trio.testing import MockClock
 from trio_websocket import ConnectionClosed, WebSocketConnection, open_websocket_url
 
 from arena.protocol import messages as wire
+from arena.protocol.errors import ErrorCode
 from arena.protocol.ws_frames import OP_BINARY, OP_PING, OP_PONG, encode_frame
 from arena.robot.actor import Robot
 from arena.robot.events import CommandHandled, RobotEvent, TargetsSent
 from arena.robot.mailbox import EventQueue
 from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
-from arena.robot.motion import Command
+from arena.robot.motion import Clamp, Command, CommandResult
 from arena.server.ws.acks import AckCache
 from arena.server.ws.backpressure import Encoded
 from arena.server.ws.forwarder import RobotEventForwarder
@@ -886,3 +888,22 @@ async def test_after_the_close_handshake_the_server_closes_the_connection_first(
         assert frame is not None and frame.close_code == 1000
         assert await viewer.receive_frame() is None  # and then the end of the stream
     await viewer.aclose()
+
+
+def test_a_plain_acceptance_is_encoded_once_a_millisecond(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The acks of a burst share one text (the transport frames it once); a new millisecond,
+    # a clamp or a refusal each get their own.
+    clock = [1_800_000_000_000_000_000]
+    monkeypatch.setattr(time, "time_ns", lambda: clock[0])
+    acks = AckCache()
+    first = acks.ack(CommandResult(True))
+    assert isinstance(first, Encoded) and json.loads(first.text)["data"]["status"] == "accepted"
+    assert acks.ack(CommandResult(True)) is first
+    clamp = Clamp("Rotation", 200.0, 180.0)
+    assert isinstance(acks.ack(CommandResult(True, clamped=(clamp,))), wire.AckMessage)
+    refusal = acks.ack(CommandResult.refused(ErrorCode.ESTOPPED, "stopped"))
+    assert isinstance(refusal, wire.AckMessage) and refusal.data is not None
+    assert refusal.data.code == "ESTOPPED"
+    clock[0] += 1_000_000
+    later = acks.ack(CommandResult(True))
+    assert later is not first and json.loads(later.text)["timestamp"].endswith(".001Z")  # type: ignore[union-attr]
