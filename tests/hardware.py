@@ -19,6 +19,7 @@ from arena.feetech.worker import WorkerSettings
 from arena.protocol.rest import UsbSlaveBody
 from arena.robot.actor import Robot
 from arena.robot.model import RobotModel
+from arena.server.drivers import usb_slave_config
 
 # The reply timeout's wall-clock part. A starved simulator cannot trip it: the buses of a
 # running simulator wait for it too (`PtySimBus.servo_bus`); only servos silent on purpose time out.
@@ -56,7 +57,9 @@ def usb_slave(
     settings = WorkerSettings(
         rate=200.0, reconnect_interval=0.1, limits=HealthLimits(lost_after=lost_after)
     )
-    return UsbSlave(body, model, calibration, settings=settings, open_bus=open_test_bus)
+    return UsbSlave(
+        usb_slave_config(body), model, calibration, settings=settings, open_bus=open_test_bus
+    )
 
 
 async def eventually(

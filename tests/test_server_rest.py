@@ -229,6 +229,21 @@ BAD_REQUESTS: list[tuple[str, str, Any, int, str]] = [
     ),
     (
         "POST",
+        "/api/robots/demo-arm/slaves",
+        {"type": "mock-slave", "errorRate": 2},
+        422,
+        "INVALID_CONFIG",
+    ),
+    # (checked before any connection: the URL is never dialled)
+    (
+        "POST",
+        "/api/robots/demo-arm/slaves",
+        {"type": "websocket-slave", "url": "ws://127.0.0.1:9"},
+        422,
+        "INVALID_CONFIG",
+    ),
+    (
+        "POST",
         "/api/robots/demo-arm/master",
         {"type": "mock-sequence", "sequences": ["moon"]},
         404,

@@ -19,6 +19,7 @@ from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
 from arena.robot.safety import Mode
+from arena.server.drivers import usb_master_config
 from tests.conftest import RunningServer
 from tests.hardware import (
     eventually,
@@ -61,7 +62,9 @@ def calibrated_at(raw: dict[int, int], path: Path) -> Path:
 def leader_arm(sim: PtySimBus, calibration: Path, **config: object) -> UsbMaster:
     body = UsbMasterBody(port=str(sim.link), **config)  # type: ignore[arg-type]
     settings = WorkerSettings(rate=200.0, limits=HealthLimits(lost_after=5))
-    return UsbMaster(body, MODEL, calibration, settings=settings, open_bus=open_test_bus)
+    return UsbMaster(
+        usb_master_config(body), MODEL, calibration, settings=settings, open_bus=open_test_bus
+    )
 
 
 async def teleop(

@@ -80,11 +80,11 @@ def teleop_latency(moves: int = 200, rate: float = 100.0) -> dict[str, float]:
     usb-slave on two simulated buses with wire-time emulation, both loops at `rate`)."""
     import trio
 
+    from arena.drivers.config import UsbMasterConfig, UsbSlaveConfig
     from arena.drivers.usb_master import UsbMaster
     from arena.drivers.usb_slave import UsbSlave
     from arena.feetech import registers as reg
     from arena.feetech.sim_pty import PtySimBus
-    from arena.protocol.rest import UsbMasterBody, UsbSlaveBody
     from arena.robot.manager import open_manager
     from arena.robot.model import load_robot_model
 
@@ -96,9 +96,9 @@ def teleop_latency(moves: int = 200, rate: float = 100.0) -> dict[str, float]:
         async with open_manager() as manager:
             robot = await manager.create_robot("so-arm100", robot_id="arm")
             await robot.attach_slave(
-                UsbSlave(UsbSlaveBody(port=str(follower.link), rate=rate), model)
+                UsbSlave(UsbSlaveConfig(port=str(follower.link), rate=rate), model)
             )
-            master = UsbMaster(UsbMasterBody(port=str(leader.link), rate=rate), model)
+            master = UsbMaster(UsbMasterConfig(port=str(leader.link), rate=rate), model)
             await master.prepare()
             await robot.attach_master(master)
             await trio.sleep(0.3)

@@ -8,11 +8,10 @@ from __future__ import annotations
 
 import random
 from dataclasses import dataclass
-from typing import Any
 
 import trio
 
-from arena.protocol.errors import ArenaError, ErrorCode, Severity
+from arena.protocol.errors import ErrorCode, Severity
 from arena.robot.events import SlaveNotice
 from arena.robot.links import SlaveLink
 
@@ -26,25 +25,6 @@ class MockSlaveConfig:
     simulate_errors: bool = False
     error_rate: float = 0.1  # chance per update of an injected fault (when errors are on)
     seed: int = 0
-
-    @classmethod
-    def from_wire(cls, config: dict[str, Any]) -> MockSlaveConfig:
-        """Read the seed's camelCase config; raises `ArenaError(INVALID_CONFIG)` if malformed."""
-        try:
-            made = cls(
-                simulate_latency=float(config.get("simulateLatency", 0.0)),
-                response_delay=float(config.get("responseDelay", 0.0)),
-                simulate_errors=bool(config.get("simulateErrors", False)),
-                error_rate=float(config.get("errorRate", 0.1)),
-                seed=int(config.get("seed", 0)),
-            )
-        except (TypeError, ValueError) as exc:
-            raise ArenaError(ErrorCode.INVALID_CONFIG, f"Invalid mock-slave config: {exc}") from exc
-        if not (0 <= made.simulate_latency <= 60_000 and 0 <= made.response_delay <= 60_000):
-            raise ArenaError(ErrorCode.INVALID_CONFIG, "Delays must be between 0 and 60000 ms.")
-        if not 0 <= made.error_rate <= 1:
-            raise ArenaError(ErrorCode.INVALID_CONFIG, "errorRate must be between 0 and 1.")
-        return made
 
 
 class MockSlave:

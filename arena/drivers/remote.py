@@ -25,8 +25,8 @@ import httpx
 import trio
 
 from arena.client import ArenaClientError, Backoff, MasterSession, SlaveSession, ws_url
+from arena.drivers.config import RemoteLinkConfig
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
-from arena.protocol.rest import RemoteLinkBody, RemoteServerBody, WebSocketSlaveBody
 from arena.robot.events import JointStatesReceived, NoticeKind, SlaveTarget
 from arena.robot.links import MasterLink, SlaveLink
 from arena.robot.model import LossPolicy
@@ -43,21 +43,21 @@ def _http_base(url: str) -> str:
     return "http" + url[2:] if url.startswith("ws") else url
 
 
-def _session_options(config: RemoteLinkBody, rng: random.Random | None) -> dict[str, Any]:
+def _session_options(config: RemoteLinkConfig, rng: random.Random | None) -> dict[str, Any]:
     return {
-        "api_key": config.apiKey,
+        "api_key": config.api_key,
         "backoff": Backoff(
-            config.reconnectInitial, max(config.reconnectInitial, config.reconnectMax)
+            config.reconnect_initial, max(config.reconnect_initial, config.reconnect_max)
         ),
         "heartbeat": config.heartbeat,
         "rng": rng,
     }
 
 
-async def check_remote_robot(config: RemoteLinkBody, robot_id: str) -> dict[str, Any]:
+async def check_remote_robot(config: RemoteLinkConfig, robot_id: str) -> dict[str, Any]:
     """Ask the other server about `robot_id` over REST, so that a wrong URL, key or id is the
     attaching caller's error now rather than a link that retries forever."""
-    headers = {"Authorization": f"Bearer {config.apiKey}"} if config.apiKey else {}
+    headers = {"Authorization": f"Bearer {config.api_key}"} if config.api_key else {}
     where = f"{config.url} robot {robot_id!r}"
     try:
         async with httpx.AsyncClient(base_url=_http_base(config.url), timeout=5) as http:
@@ -86,16 +86,14 @@ class WebSocketSlave:
     # measuring slaves join it over there; see specs/robot-model.md for what is left.
     measures = False
 
-    def __init__(self, config: WebSocketSlaveBody, rng: random.Random | None = None) -> None:
-        if config.robotId is None:
-            raise ArenaError(
-                ErrorCode.INVALID_CONFIG, "A websocket-slave needs the remote robotId."
-            )
+    def __init__(self, config: RemoteLinkConfig, rng: random.Random | None = None) -> None:
+        if config.robot_id is None:  # (the server says which field of its body)
+            raise ArenaError(ErrorCode.INVALID_CONFIG, "A websocket-slave needs the remote id.")
         self.config = config
-        self.robot_id = config.robotId
+        self.robot_id = config.robot_id
         query = {"takeover": "1" if config.takeover else ""}
         self.session = _Upstream(
-            ws_url(config.url, f"/ws/master/{config.robotId}", **query),
+            ws_url(config.url, f"/ws/master/{self.robot_id}", **query),
             **_session_options(config, rng),
         )
 
@@ -244,10 +242,10 @@ class RemoteServerMaster:
     takes_over = False
 
     def __init__(
-        self, config: RemoteServerBody, robot_id: str, rng: random.Random | None = None
+        self, config: RemoteLinkConfig, robot_id: str, rng: random.Random | None = None
     ) -> None:
         self.config = config
-        self.remote_id = config.robotId or robot_id
+        self.remote_id = config.robot_id or robot_id
         self.session = _Downstream(
             ws_url(config.url, f"/ws/slave/{self.remote_id}", id=f"remote-{robot_id}"),
             **_session_options(config, rng),

@@ -18,13 +18,13 @@ from pathlib import Path
 import trio
 
 from arena.drivers.bus_bridge import BusBridge
+from arena.drivers.config import UsbMasterConfig
 from arena.drivers.refusals import Refusals
 from arena.drivers.servo_arm import ServoArm
 from arena.feetech.bus import ServoBus
 from arena.feetech.health import ServoFault
 from arena.feetech.worker import Lost, Reading, WorkerSettings
 from arena.protocol.errors import ErrorCode
-from arena.protocol.rest import UsbMasterBody
 from arena.robot.links import MasterLink
 from arena.robot.model import RobotModel
 from arena.robot.motion import Command, JointGoal
@@ -44,7 +44,7 @@ class UsbMaster(ServoArm):
 
     def __init__(
         self,
-        config: UsbMasterBody,
+        config: UsbMasterConfig,
         model: RobotModel,
         calibration_file: Path | None = None,
         *,
@@ -53,7 +53,7 @@ class UsbMaster(ServoArm):
     ) -> None:
         super().__init__(
             config.port,
-            config.baudRate,
+            config.baud_rate,
             model,
             calibration_file,
             # Torque off, always: the leader is moved by hand.

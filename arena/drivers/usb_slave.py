@@ -19,6 +19,7 @@ from typing import Any, TypeVar
 import trio
 
 from arena.drivers.bus_bridge import wait_future
+from arena.drivers.config import UsbSlaveConfig
 from arena.drivers.servo_arm import ServoArm
 from arena.feetech import registers as reg
 from arena.feetech.bus import ServoBus
@@ -39,7 +40,6 @@ from arena.feetech.worker import (
     store_offsets_in_servos,
 )
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
-from arena.protocol.rest import UsbSlaveBody
 from arena.robot.events import NoticeKind, SlaveNotice
 from arena.robot.links import SlaveLink
 from arena.robot.model import RobotModel
@@ -66,7 +66,7 @@ class UsbSlave(ServoArm):
 
     def __init__(
         self,
-        config: UsbSlaveBody,
+        config: UsbSlaveConfig,
         model: RobotModel,
         calibration_file: Path | None = None,
         *,
@@ -75,7 +75,7 @@ class UsbSlave(ServoArm):
     ) -> None:
         super().__init__(
             config.port,
-            config.baudRate,
+            config.baud_rate,
             model,
             calibration_file,
             settings or WorkerSettings(rate=config.rate, speed_limit=_speed_limit(model)),
@@ -83,7 +83,7 @@ class UsbSlave(ServoArm):
         )
         self.config = config
         #: deg/s of its way to the robot's pose when it joins (None: the robot type's).
-        self.join_speed = config.joinSpeed
+        self.join_speed = config.join_speed
         self.joint_of = {sid: name for name, sid in self.servo_ids.items()}
         self.session: CalibrationSession | None = None
         self.frozen = False  # e-stopped: targets are ignored until the reset

@@ -1,5 +1,6 @@
-"""Drivers from their wire configs: `{"type": "mock-slave", ...}` -> a driver object. It lives in
-the server because it composes every driver package with the recordings (replay)."""
+"""Drivers from their REST configs: `{"type": "mock-slave", ...}` -> a driver object. It lives in
+the server because it composes every driver package with the recordings (replay), and turns each
+validated body into the driver's own config (`drivers/config.py`): no driver sees a body."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from arena.drivers.config import RemoteLinkConfig, UsbMasterConfig, UsbSlaveConfig
 from arena.drivers.mock_slave import MockSlave, MockSlaveConfig
 from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import demo_sequences, get_sequence
@@ -15,6 +17,7 @@ from arena.protocol.rest import (
     MasterBody,
     MockSlaveBody,
     PhysicsSlaveBody,
+    RemoteLinkBody,
     RemoteServerBody,
     ReplayMasterBody,
     SequenceMasterBody,
@@ -49,6 +52,45 @@ def _calibration_file(folder: Path | None, name: str | None, robot_id: str) -> P
     return (folder or Path("calibration")) / f"{name or robot_id}.json"
 
 
+def usb_slave_config(body: UsbSlaveBody) -> UsbSlaveConfig:
+    """A usb-slave's settings from its body."""
+    return UsbSlaveConfig(body.port, body.baudRate, body.rate, body.estop, body.joinSpeed)
+
+
+def usb_master_config(body: UsbMasterBody) -> UsbMasterConfig:
+    """A usb-master's settings from its body."""
+    return UsbMasterConfig(body.port, body.baudRate, body.rate, body.deadband)
+
+
+def remote_link_config(body: RemoteLinkBody, takeover: bool) -> RemoteLinkConfig:
+    """A remote link's settings from its body (`takeover`: the body's, where it has one)."""
+    return RemoteLinkConfig(
+        url=body.url,
+        robot_id=body.robotId,
+        api_key=body.apiKey,
+        heartbeat=body.heartbeat,
+        reconnect_initial=body.reconnectInitial,
+        reconnect_max=body.reconnectMax,
+        takeover=takeover,
+    )
+
+
+def _mock_slave_config(body: MockSlaveBody) -> MockSlaveConfig:
+    """A mock slave's settings from its body; delays and the error rate checked."""
+    config = MockSlaveConfig(
+        simulate_latency=body.simulateLatency,
+        response_delay=body.responseDelay,
+        simulate_errors=body.simulateErrors,
+        error_rate=body.errorRate,
+        seed=body.seed,
+    )
+    if not (0 <= config.simulate_latency <= 60_000 and 0 <= config.response_delay <= 60_000):
+        raise ArenaError(ErrorCode.INVALID_CONFIG, "Delays must be between 0 and 60000 ms.")
+    if not 0 <= config.error_rate <= 1:
+        raise ArenaError(ErrorCode.INVALID_CONFIG, "errorRate must be between 0 and 1.")
+    return config
+
+
 def make_slave(
     body: SlaveBody,
     model: RobotModel | None = None,
@@ -65,7 +107,8 @@ def make_slave(
 
         if model is None:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "A usb-slave needs the robot's model.")
-        return UsbSlave(body, model, _calibration_file(calibration_dir, body.calibration, robot_id))
+        calibration = _calibration_file(calibration_dir, body.calibration, robot_id)
+        return UsbSlave(usb_slave_config(body), model, calibration)
     if isinstance(body, PhysicsSlaveBody):
         from arena.drivers.physics import PhysicsSettings, PhysicsSlave
         from arena.extras import require
@@ -75,21 +118,15 @@ def make_slave(
             PhysicsSettings(rate=body.rate, estop=body.estop, realtime=body.realtime)
         )
     if isinstance(body, MockSlaveBody):
-        return MockSlave(
-            MockSlaveConfig.from_wire(
-                {
-                    "simulateLatency": body.simulateLatency,
-                    "responseDelay": body.responseDelay,
-                    "simulateErrors": body.simulateErrors,
-                    "errorRate": body.errorRate,
-                    "seed": body.seed,
-                }
-            )
-        )
+        return MockSlave(_mock_slave_config(body))
     if isinstance(body, WebSocketSlaveBody):
         from arena.drivers.remote import WebSocketSlave
 
-        return WebSocketSlave(body)
+        if body.robotId is None:
+            raise ArenaError(
+                ErrorCode.INVALID_CONFIG, "A websocket-slave needs the remote robotId."
+            )
+        return WebSocketSlave(remote_link_config(body, body.takeover))
     # (the type's name only: a config may hold an API key, which must not reach any log)
     raise ArenaError(ErrorCode.INVALID_CONFIG, f"Unsupported slave type {type(body).__name__}.")
 
@@ -151,7 +188,9 @@ def _master(
         if model is None:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "A usb-master needs the robot's model.")
         name = body.calibration or f"{robot_id}-leader"
-        return UsbMaster(body, model, _calibration_file(calibration_dir, name, robot_id))
+        return UsbMaster(
+            usb_master_config(body), model, _calibration_file(calibration_dir, name, robot_id)
+        )
     if isinstance(body, ReplayMasterBody):
         if recordings is None:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "This server keeps no recordings.")
@@ -164,5 +203,5 @@ def _master(
     if isinstance(body, RemoteServerBody):
         from arena.drivers.remote import RemoteServerMaster
 
-        return RemoteServerMaster(body, robot_id)
+        return RemoteServerMaster(remote_link_config(body, body.takeover), robot_id)
     raise ArenaError(ErrorCode.INVALID_CONFIG, f"Unsupported master type {type(body).__name__}.")
