@@ -5,7 +5,7 @@ hand (the lowest latency). Otherwise it goes to an outbox that a writer task emp
 `send_all` per burst, so the answers to a burst of commands share one system call.
 
 Once a peer has let more than `high_water` bytes pile up, `offer` refuses more (the caller
-decides what to drop, see `websockets.Connection`) and `send` waits for room; a reader never
+decides what to drop, see `ws.backpressure`) and `send` waits for room; a reader never
 waits on writing. Pongs owed to a peer that does not read are kept to the newest one, and
 control frames count toward the reader's fair share like data frames, so a ping flood costs
 the flooder its own turn and bounded memory.
