@@ -11,14 +11,68 @@ for room in the writer task that sends them.
 from __future__ import annotations
 
 import collections
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 import msgspec
 import trio
 
 from arena.protocol import messages as wire
+from arena.protocol.ws_frames import UpgradeRequest
 from arena.server.metrics import Metrics
-from arena.server.ws_transport import WebSocket
+
+
+class PeerSocket(Protocol):
+    """What a connection needs of its socket: a `ws_transport.WebSocket`, or the robot's
+    node's end of a fleet tunnel (`fleet.tunnel.TunnelSocket`)."""
+
+    request: UpgradeRequest
+    close_sent: bool
+
+    @property
+    def backlogged(self) -> bool:
+        """More than the high-water mark waits for the peer."""
+        ...
+
+    @property
+    def queued_bytes(self) -> int:
+        """Bytes waiting for the peer to read."""
+        ...
+
+    async def receive(self) -> str | bytes:
+        """The next message; raises `WebSocketClosed` once the peer has closed."""
+        ...
+
+    def next_in_hand(self) -> str | bytes | None:
+        """The next message if one is in hand already."""
+        ...
+
+    def holds_more(self) -> bool:
+        """True when more frames are in hand."""
+        ...
+
+    def offer(self, *texts: str, whole: bool = False) -> bool:
+        """Send now if there is room; False (nothing sent) if not."""
+        ...
+
+    async def send(self, *texts: str) -> None:
+        """Send, waiting for room."""
+        ...
+
+    def send_nowait(self, text: str) -> None:
+        """Queue whatever the backlog."""
+        ...
+
+    def send_now(self, *texts: str) -> bool:
+        """Write at once if the socket is idle; False (nothing sent) if not."""
+        ...
+
+    def close_nowait(self, code: int, reason: str = "") -> None:
+        """Send the close frame."""
+        ...
+
+    async def wait_drained(self) -> None:
+        """Wait until the peer has read what was queued."""
+        ...
 
 
 class Encoded(NamedTuple):
@@ -50,7 +104,7 @@ class LatestWins:
     object of its own: `send` runs for every message out, and an attribute less is a lookup
     less.)"""
 
-    def __init__(self, ws: WebSocket, metrics: Metrics) -> None:
+    def __init__(self, ws: PeerSocket, metrics: Metrics) -> None:
         self.ws = ws
         self.metrics = metrics
         self._ended = trio.Event()

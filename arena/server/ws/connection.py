@@ -22,8 +22,7 @@ from arena.protocol.ws_frames import WebSocketClosed
 from arena.robot.actor import Robot
 from arena.server.auth import check_token
 from arena.server.base import ArenaApp
-from arena.server.ws.backpressure import Encoded, LatestWins
-from arena.server.ws_transport import WebSocket
+from arena.server.ws.backpressure import Encoded, LatestWins, PeerSocket
 
 T = TypeVar("T")
 
@@ -59,7 +58,7 @@ def flag(value: str | None) -> bool:
 class Connection(LatestWins):
     """One accepted WebSocket: send helpers (`LatestWins`), refusals, and the shutdown race."""
 
-    def __init__(self, app: ArenaApp, ws: WebSocket, role: str) -> None:
+    def __init__(self, app: ArenaApp, ws: PeerSocket, role: str) -> None:
         super().__init__(ws, app.metrics)
         self.app = app
         self.role = role  # master, slave or viewer

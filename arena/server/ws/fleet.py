@@ -33,7 +33,7 @@ def serve_tunnel(app: ArenaApp, fleet: FleetNode, call: dict[str, Any]) -> dict[
     app.manager.get(str(call["robot"]))  # UNKNOWN_ROBOT if it is not here (any more)
 
     async def serve(socket: tunnels.TunnelSocket, role: str, robot_id: str) -> None:
-        await serve_role(Connection(app, socket, role), robot_id)  # type: ignore[arg-type]
+        await serve_role(Connection(app, socket, role), robot_id)
 
     return tunnels.serve_tunnel(fleet, call, serve)
 
