@@ -22,9 +22,7 @@ from arena.drivers.sequences import demo_sequences, get_sequence, parse_sequence
 from arena.protocol.errors import ErrorCode
 from arena.recording.mcap_file import read_recording
 from arena.robot.collision import (
-    Box,
     CollisionModel,
-    Workspace,
     _segment_distance,
     fit_capsules,
     for_model,
@@ -33,6 +31,7 @@ from arena.robot.core import RobotCore
 from arena.robot.meshes import link_vertices
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
+from arena.robot.workspace import Box, Workspace, workspace_from_json
 from arena.session import record_scenario
 from tests.conftest import RunningServer
 
@@ -205,7 +204,7 @@ def test_a_keep_out_box_and_no_floor() -> None:
 )
 def test_a_bad_workspace_is_refused_with_the_reason(body: dict[str, object], why: str) -> None:
     with pytest.raises(ValueError, match=why):
-        Workspace.from_json(body)
+        workspace_from_json(body)
 
 
 async def test_the_workspace_over_rest_and_every_master_refused_at_the_table(

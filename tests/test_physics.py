@@ -15,12 +15,12 @@ from trio.testing import MockClock, wait_all_tasks_blocked
 from arena.drivers.physics import ArmSimulation, PhysicsSettings, PhysicsSlave
 from arena.protocol.rest import PhysicsSlaveBody
 from arena.robot.actor import Robot
-from arena.robot.collision import Workspace
 from arena.robot.events import JointStatesReceived
 from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
 from arena.robot.snapshot import JointSnapshot
+from arena.robot.workspace import Workspace
 from arena.server.drivers import make_slave
 from tests.conftest import RunningServer
 

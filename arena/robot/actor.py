@@ -23,7 +23,6 @@ import trio
 
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot import safety
-from arena.robot.collision import Workspace
 from arena.robot.core import MANUAL_SOURCE, JoinChange, RobotCore, Step
 from arena.robot.episodes import Episode, Episodes
 from arena.robot.events import (
@@ -64,6 +63,7 @@ from arena.robot.mailbox import EventQueue
 from arena.robot.model import RobotModel, SafetyPolicy
 from arena.robot.motion import Command, CommandResult
 from arena.robot.snapshot import JointSnapshot, PeerSnapshot, RobotSnapshot
+from arena.robot.workspace import Workspace
 
 log = logging.getLogger(__name__)
 

@@ -34,6 +34,7 @@ from arena.robot.kinematics import (
     quaternion_multiply,
     rotate,
 )
+from arena.robot.workspace import Box, Workspace
 
 if TYPE_CHECKING:
     from arena.robot.model import RobotModel
@@ -72,94 +73,6 @@ class Capsule:
     def reach(self) -> float:
         """The radius of a sphere around `middle` that holds the capsule."""
         return math.dist(self.a, self.b) / 2 + self.radius
-
-
-@dataclass(frozen=True, slots=True)
-class Box:
-    """A keep-out box, axis-aligned in the root link's frame (metres)."""
-
-    name: str
-    low: Vector
-    high: Vector
-
-
-#: What a move that would collide does: refused, or stopped short at the last safe pose
-#: checked on its way (reported as clamped).
-POLICIES = ("refuse", "stop-short")
-
-
-@dataclass(frozen=True, slots=True)
-class Workspace:
-    """Where the arm may be: above `floor` (z in the root frame; None: no floor), outside the
-    keep-out boxes, with `margin` metres kept free around every link."""
-
-    floor: float | None = None
-    keep_out: tuple[Box, ...] = ()
-    margin: float = 0.005
-    policy: str = "refuse"
-
-    def to_json(self) -> dict[str, object]:
-        """The workspace as the REST API shows it."""
-        return {
-            "floor": self.floor,
-            "margin": self.margin,
-            "policy": self.policy,
-            "keep_out": [
-                {"name": b.name, "min": list(b.low), "max": list(b.high)} for b in self.keep_out
-            ],
-        }
-
-    @classmethod
-    def from_json(cls, data: Mapping[str, object]) -> Workspace:
-        """A workspace from `robot.toml`'s `[workspace]` or a REST body; ValueError says
-        what is wrong."""
-        unknown = set(data) - {"floor", "margin", "policy", "keep_out"}
-        if unknown:
-            raise ValueError(f"unknown workspace keys: {', '.join(sorted(unknown))}")
-        floor = data.get("floor")
-        margin = data.get("margin", 0.005)
-        policy = data.get("policy", "refuse")
-        if floor is not None and not _finite(floor):
-            raise ValueError("floor must be a number of metres (or absent: no floor)")
-        if not _finite(margin) or not 0 <= float(margin) <= 0.5:  # type: ignore[arg-type]
-            raise ValueError("margin must be from 0 to 0.5 metres")
-        if policy not in POLICIES:
-            raise ValueError(f"policy must be one of {', '.join(POLICIES)}")
-        boxes = data.get("keep_out", [])
-        if not isinstance(boxes, list) or len(boxes) > MAX_BOXES:
-            raise ValueError(f"keep_out must be a list of at most {MAX_BOXES} boxes")
-        return cls(
-            floor=None if floor is None else float(floor),  # type: ignore[arg-type]
-            keep_out=tuple(_box(number, entry) for number, entry in enumerate(boxes)),
-            margin=float(margin),  # type: ignore[arg-type]
-            policy=str(policy),
-        )
-
-
-#: Keep-out boxes a workspace may hold (each costs every check a little).
-MAX_BOXES = 16
-
-
-def _finite(value: object) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-
-
-def _box(number: int, entry: object) -> Box:
-    if not isinstance(entry, dict):
-        raise ValueError(f"keep_out[{number}] must be a table with min and max")
-    name = entry.get("name", f"box {number + 1}")
-    corners = []
-    for key in ("min", "max"):
-        corner = entry.get(key)
-        if not (isinstance(corner, list) and len(corner) == 3 and all(map(_finite, corner))):
-            raise ValueError(f"keep_out[{number}].{key} must be three numbers (metres)")
-        corners.append((float(corner[0]), float(corner[1]), float(corner[2])))
-    low, high = corners
-    if not all(lo < hi for lo, hi in zip(low, high, strict=True)):
-        raise ValueError(f"keep_out[{number}]: min must be below max on every axis")
-    if not isinstance(name, str) or not 0 < len(name) <= 64:
-        raise ValueError(f"keep_out[{number}].name must be a short string")
-    return Box(name, low, high)
 
 
 @dataclass(frozen=True, slots=True)

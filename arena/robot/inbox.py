@@ -11,9 +11,9 @@ import trio
 
 from arena.protocol.errors import Severity
 from arena.robot import safety
-from arena.robot.collision import Workspace
 from arena.robot.episodes import Episode
 from arena.robot.motion import Command, CommandResult
+from arena.robot.workspace import Workspace
 
 if TYPE_CHECKING:
     from arena.robot.actor import _Peer

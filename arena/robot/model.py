@@ -17,7 +17,7 @@ from typing import Any
 
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.protocol.rest import MAX_JOIN_SPEED
-from arena.robot.collision import Workspace
+from arena.robot.workspace import Workspace, workspace_from_json
 
 #: Folder of the robot types shipped with Arena.
 BUILTIN_TYPES_DIR = Path(__file__).resolve().parent.parent / "robot_types"
@@ -161,7 +161,7 @@ def _load_from_folder(folder: Path) -> RobotModel:
     if not joints:
         raise bad("no [[joints]] defined")
     try:
-        workspace = Workspace.from_json(config.get("workspace", {}))
+        workspace = workspace_from_json(config.get("workspace", {}))
     except ValueError as exc:
         raise bad(f"invalid [workspace]: {exc}") from exc
     names = [j.name for j in joints]

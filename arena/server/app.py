@@ -28,9 +28,9 @@ from arena.protocol.rest import (
     WorkspaceBody,
 )
 from arena.recording.recorder import Recorder
-from arena.robot.collision import Workspace
 from arena.robot.groups import GroupRegistry
 from arena.robot.manager import RobotManager
+from arena.robot.workspace import workspace_from_json, workspace_to_json
 from arena.sensors.camera import Cameras
 from arena.server import convert, dashboard, openapi
 from arena.server.auth import check_token
@@ -316,18 +316,18 @@ def _register_routes(app: ArenaApp) -> None:
 
     @app.get("/api/robots/<robot_id>/workspace")
     async def get_workspace(robot_id: str) -> dict[str, Any]:
-        return manager.get(robot_id).workspace.to_json()
+        return workspace_to_json(manager.get(robot_id).workspace)
 
     @app.put("/api/robots/<robot_id>/workspace")
     async def put_workspace(robot_id: str) -> dict[str, Any]:
         robot = manager.get(robot_id)
         body = await read_body(WorkspaceBody)
         try:
-            workspace = Workspace.from_json(msgspec.to_builtins(body))
+            workspace = workspace_from_json(msgspec.to_builtins(body))
         except ValueError as exc:
             raise ArenaError(ErrorCode.INVALID_BODY, f"Invalid workspace: {exc}.") from None
         await robot.set_workspace(workspace)
-        return workspace.to_json()
+        return workspace_to_json(workspace)
 
     @app.post("/api/robots/<robot_id>/slaves")
     async def attach_slave(robot_id: str) -> tuple[dict[str, Any], int]:
