@@ -20,7 +20,7 @@ from arena.drivers.mock_slave import MockSlave
 from arena.recording.mcap_file import Recording, read_recording
 from arena.recording.recorder import Recorder
 from arena.recording.replay import redrive_session
-from arena.robot.actor import Robot
+from arena.robot.handle import Robot
 from arena.robot.manager import open_manager
 
 #: Decimal places kept when comparing times (virtual time is exact; this absorbs float noise).

@@ -17,7 +17,7 @@ from arena.feetech.health import HealthLimits
 from arena.feetech.sim_pty import PtySimBus
 from arena.feetech.worker import WorkerSettings
 from arena.protocol.rest import UsbSlaveBody
-from arena.robot.actor import Robot
+from arena.robot.handle import Robot
 from arena.robot.model import RobotModel
 from arena.server.drivers import usb_slave_config
 

@@ -13,7 +13,6 @@ from arena.drivers.mock_slave import MockSlave, MockSlaveConfig
 from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import get_sequence, parse_sequence
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
-from arena.robot.actor import Robot
 from arena.robot.events import (
     CommandHandled,
     FaultReported,
@@ -25,6 +24,7 @@ from arena.robot.events import (
     StateChanged,
     TargetsSent,
 )
+from arena.robot.handle import Robot
 from arena.robot.inbox import DriverEndedMsg
 from arena.robot.links import DETACHED_LINK, MasterLink
 from arena.robot.mailbox import EventQueue, LatestMailbox

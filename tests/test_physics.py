@@ -14,8 +14,8 @@ from trio.testing import MockClock, wait_all_tasks_blocked
 
 from arena.drivers.physics import ArmSimulation, PhysicsSettings, PhysicsSlave
 from arena.protocol.rest import PhysicsSlaveBody
-from arena.robot.actor import Robot
 from arena.robot.events import JointStatesReceived
+from arena.robot.handle import Robot
 from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command

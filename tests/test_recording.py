@@ -39,7 +39,6 @@ from arena.recording.recorder import Backoff, Recorder, check_name
 from arena.recording.records import record_of
 from arena.recording.replay import ReplayMaster, TimedCommand, recorded_commands
 from arena.recording.writer_process import McapWriterProcess, items_of_events, pack_events
-from arena.robot.actor import Robot
 from arena.robot.events import (
     CommandHandled,
     FaultReported,
@@ -49,6 +48,7 @@ from arena.robot.events import (
     StateChanged,
     TargetsSent,
 )
+from arena.robot.handle import Robot
 from arena.robot.manager import RobotManager, open_manager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Clamp, Command, CommandResult, JointGoal

@@ -24,8 +24,8 @@ from trio_websocket import ConnectionClosed, WebSocketConnection, open_websocket
 from arena.protocol import messages as wire
 from arena.protocol.errors import ErrorCode
 from arena.protocol.ws_frames import OP_BINARY, OP_PING, OP_PONG, encode_frame
-from arena.robot.actor import Robot
 from arena.robot.events import CommandHandled, RobotEvent, TargetsSent
+from arena.robot.handle import Robot
 from arena.robot.mailbox import EventQueue
 from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
@@ -374,13 +374,13 @@ async def test_heartbeats_keep_a_master(start_server: StartServer) -> None:
     robot = server.app.manager.get("demo-arm")
     async with open_websocket_url(server.ws_url + "/ws/master/demo-arm") as master:
         await receive(master, "joint_states")
-        assert robot._master is not None
+        assert robot._actor.peers.master is not None
         for _ in range(3):
-            before = robot._master.last_seen
+            before = robot._actor.peers.master.last_seen
             await master.send_message('{"type": "heartbeat"}')
             await receive(master, "heartbeat")
             with trio.fail_after(30):  # noted at once, or by the actor's next turn
-                while robot._master.last_seen <= before:
+                while robot._actor.peers.master.last_seen <= before:
                     await trio.sleep(0.01)
         assert (await command(master, {"Rotation": 1}))["data"]["status"] == "accepted"
 

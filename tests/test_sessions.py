@@ -20,7 +20,7 @@ from trio_websocket import open_websocket_url
 from arena import cli
 from arena.client import ClientTimeout, MasterSession, Refused
 from arena.recording.mcap_file import read_recording
-from arena.robot.actor import Robot
+from arena.robot.handle import Robot
 from arena.robot.motion import Command
 from arena.session import behaviour, record_scenario, replay_session
 from tests.conftest import RunningServer

@@ -14,7 +14,7 @@ from arena.feetech.health import HealthLimits
 from arena.feetech.sim_pty import PtySimBus
 from arena.feetech.worker import Reading, WorkerSettings
 from arena.protocol.rest import UsbMasterBody
-from arena.robot.actor import Robot
+from arena.robot.handle import Robot
 from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command

@@ -28,8 +28,8 @@ import arena
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording.mcap_file import FileSeries
 from arena.recording.writer_process import McapWriterProcess, pack_events
-from arena.robot.actor import Robot
 from arena.robot.events import CameraFrame, RobotEvent
+from arena.robot.handle import Robot
 from arena.robot.mailbox import EventQueue
 
 #: What the recorder follows: a robot's events or a camera's frames.

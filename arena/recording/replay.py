@@ -17,7 +17,7 @@ import trio
 
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording.mcap_file import RecordedMessage, Recording
-from arena.robot.actor import Robot
+from arena.robot.handle import Robot
 from arena.robot.links import MasterLink
 from arena.robot.motion import Command, JointGoal
 

@@ -37,6 +37,12 @@ class Episodes:
         self.discarded = 0
         self._next = 0
 
+    def act(self, action: str, task: str, now: float) -> Episode:
+        """`start` (with `task`), `stop` or `discard`, by the action's name."""
+        if action == "start":
+            return self.start(task, now)
+        return self.stop(now) if action == "stop" else self.discard(now)
+
     def start(self, task: str, now: float) -> Episode:
         """Start an episode; refused while one runs."""
         if self.active is not None:

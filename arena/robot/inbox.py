@@ -1,11 +1,11 @@
 """What arrives on a robot actor's inbox: one message type per kind of request, and the
-reply a caller waits on. Only the actor and the links make them."""
+reply a caller waits on. Only the robot handle, the actor and the links make them."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Generic, TypeVar
+from typing import Any, Generic, Protocol, TypeVar
 
 import trio
 
@@ -13,13 +13,20 @@ from arena.protocol.errors import Severity
 from arena.robot import safety
 from arena.robot.episodes import Episode
 from arena.robot.motion import Command, CommandResult
+from arena.robot.peers import MasterPeer, SlavePeer
 from arena.robot.workspace import Workspace
 
-if TYPE_CHECKING:
-    from arena.robot.actor import _Peer
-    from arena.robot.links import MasterDriver, SlaveDriver
-
 R = TypeVar("R")
+
+
+class Driver(Protocol):
+    """A master or slave driver as the actor runs it (`arena.robot.links.MasterDriver` and
+    `SlaveDriver` say what each is given)."""
+
+    kind: str
+
+    async def run(self, link: Any) -> None:
+        """Run until done, through `link`."""
 
 
 class Reply(Generic[R]):
@@ -63,10 +70,10 @@ class EventMsg:
 
 @dataclass(slots=True)
 class AttachMsg:
-    role: str
+    role: str  # "master" | "slave"
     peer_id: str | None
     kind: str
-    driver: MasterDriver | SlaveDriver | None
+    driver: Driver | None
     autonomous: bool
     takeover: bool
     heartbeat_timeout: float | None
@@ -76,7 +83,7 @@ class AttachMsg:
 
 @dataclass(slots=True)
 class DetachMsg:
-    role: str
+    role: str  # "master" | "slave"
     peer_id: str | None
     lost: bool
     reason: str
@@ -121,7 +128,7 @@ class RejoinMsg:
 
 @dataclass(slots=True)
 class DriverEndedMsg:
-    peer: _Peer
+    peer: MasterPeer[Any] | SlavePeer[Any]
     error: BaseException | None
 
 

@@ -1,31 +1,99 @@
 """How drivers and connections meet a robot: the driver protocols, and the links a master or
-a slave holds (commands in, notices out; targets out, joint states and faults in)."""
+a slave holds (commands in, notices out; targets out, joint states and faults in).
+
+A link sees its robot through two narrow interfaces, both met by `arena.robot.handle.Robot`:
+`RobotView`, what a driver may use of the robot (`link.robot`), and `RobotPort`, the ways in that
+the link itself uses (post a message, a heartbeat, leave). It knows nothing else of the robot.
+"""
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator, Mapping
-from typing import TYPE_CHECKING, Protocol
+from collections.abc import AsyncIterator, Iterable, Mapping
+from contextlib import AbstractContextManager
+from typing import Protocol
 
 import trio
 
 from arena.protocol.errors import ErrorCode, Severity
+from arena.robot import safety
 from arena.robot.events import (
     MasterNotice,
     NoticeKind,
+    RobotEvent,
     SlaveNotice,
     SlaveTarget,
 )
 from arena.robot.inbox import (
     FaultMsg,
     LinkMsg,
+    Msg,
     RejoinMsg,
     StatesMsg,
 )
 from arena.robot.mailbox import EventQueue, LatestMailbox
+from arena.robot.model import RobotModel
 from arena.robot.motion import Command, CommandResult
+from arena.robot.snapshot import RobotSnapshot
 
-if TYPE_CHECKING:
-    from arena.robot.actor import Robot
+
+class RobotView(Protocol):
+    """The robot as a link's driver sees it (`link.robot`)."""
+
+    robot_id: str
+    model: RobotModel
+
+    def snapshot(self) -> RobotSnapshot:
+        """The robot as it is now."""
+
+    def subscribe(
+        self, maxlen: int = 1024, kinds: Iterable[type[RobotEvent]] | None = None
+    ) -> AbstractContextManager[EventQueue[RobotEvent]]:
+        """Observe the robot's events."""
+
+    async def estop(self, reason: str = "emergency stop") -> safety.Outcome:
+        """Emergency stop."""
+
+    def estop_now(self, reason: str = "emergency stop") -> safety.Outcome | None:
+        """The e-stop applied at once if the robot is idle, else None."""
+
+    async def reset(self) -> safety.Outcome:
+        """Leave the e-stop."""
+
+
+class RobotPort(Protocol):
+    """The ways into the robot that a link uses, given to it by the robot."""
+
+    @property
+    def robot(self) -> RobotView:
+        """The robot, for the link's driver."""
+
+    async def post(self, message: Msg) -> None:
+        """Queue `message` on the actor's inbox (`ArenaError(ROBOT_STOPPED)` once stopped)."""
+
+    def alive(self, peer_id: str) -> None:
+        """A heartbeat of `peer_id`."""
+
+    async def leave(
+        self,
+        role: str,
+        peer_id: str,
+        *,
+        lost: bool,
+        reason: str,
+        hold: bool = True,
+        released: bool = False,
+    ) -> None:
+        """Detach the peer (see `arena.robot.inbox.DetachMsg`)."""
+
+    async def command(
+        self, command: Command, master_id: str | None = None, *, in_burst: bool = False
+    ) -> CommandResult:
+        """A command decided by the actor, in turn."""
+
+    def command_run_now(
+        self, commands: list[Command], master_id: str | None = None, *, burst_goes_on: bool = False
+    ) -> list[CommandResult] | None:
+        """Commands decided at once if the actor is idle, else None."""
 
 
 class MasterDriver(Protocol):
@@ -52,10 +120,6 @@ class SlaveDriver(Protocol):
         """Take targets and notices from `link`, report joint states back."""
 
 
-# ---------------------------------------------------------------------------------------------
-# Inbox messages
-
-
 class MasterLink:
     """A master's handle on the robot: send commands, read notices, leave.
 
@@ -64,8 +128,9 @@ class MasterLink:
     its leaving change nothing).
     """
 
-    def __init__(self, robot: Robot, master_id: str) -> None:
-        self.robot = robot
+    def __init__(self, port: RobotPort, master_id: str) -> None:
+        self.robot = port.robot
+        self._port = port
         self.master_id = master_id
         self.notices: EventQueue[MasterNotice] = EventQueue(256)
         self.detached = trio.Event()
@@ -75,7 +140,7 @@ class MasterLink:
         master's commands are in hand, see `RobotCore.command`)."""
         if self.detached.is_set():
             return DETACHED_LINK
-        return await self.robot.command(command, master_id=self.master_id, in_burst=in_burst)
+        return await self._port.command(command, master_id=self.master_id, in_burst=in_burst)
 
     def command_now(self, command: Command, *, in_burst: bool = False) -> CommandResult | None:
         """The answer at once when the robot is idle (see `Robot.command_now`), else None."""
@@ -89,33 +154,33 @@ class MasterLink:
         `Robot.command_run_now`), else None."""
         if self.detached.is_set():
             return [DETACHED_LINK] * len(commands)
-        return self.robot.command_run_now(
+        return self._port.command_run_now(
             commands, master_id=self.master_id, burst_goes_on=burst_goes_on
         )
 
     def alive(self) -> None:
         """Heartbeat: the peer is still there."""
         if not self.detached.is_set():
-            self.robot._alive(self.master_id)
+            self._port.alive(self.master_id)
 
     async def detach(self, reason: str = "master left", *, finish_motion: bool = False) -> None:
         """Give up ownership; motion in progress stops, unless `finish_motion`."""
         if not self.detached.is_set():
-            await self.robot._detach(
+            await self._port.leave(
                 "master", self.master_id, lost=False, reason=reason, hold=not finish_motion
             )
 
     async def release(self, reason: str = "released by the master") -> None:
         """The master is done: hand the robot back, holding where it is (no e-stop)."""
         if not self.detached.is_set():
-            await self.robot._detach(
+            await self._port.leave(
                 "master", self.master_id, lost=False, reason=reason, released=True
             )
 
     async def lost(self, reason: str = "connection lost") -> None:
         """Report that this master's connection is gone (the loss policy applies)."""
         if not self.detached.is_set():
-            await self.robot._detach("master", self.master_id, lost=True, reason=reason)
+            await self._port.leave("master", self.master_id, lost=True, reason=reason)
 
 
 DETACHED_LINK = CommandResult.refused(
@@ -126,8 +191,9 @@ DETACHED_LINK = CommandResult.refused(
 class SlaveLink:
     """A slave's handle on the robot: take targets and notices, report states and faults."""
 
-    def __init__(self, robot: Robot, slave_id: str) -> None:
-        self.robot = robot
+    def __init__(self, port: RobotPort, slave_id: str) -> None:
+        self.robot = port.robot
+        self._port = port
         self.slave_id = slave_id
         self.mailbox: LatestMailbox[SlaveTarget, SlaveNotice] = LatestMailbox()
 
@@ -152,17 +218,17 @@ class SlaveLink:
 
     async def report_joint_states(self, joints: Mapping[str, float]) -> None:
         """Real joint values in degrees (protocol names or aliases)."""
-        await self.robot._post(StatesMsg(self.slave_id, dict(joints)))
+        await self._port.post(StatesMsg(self.slave_id, dict(joints)))
 
     async def report_fault(
         self, code: str, message: str, severity: Severity = Severity.ERROR, joint: str | None = None
     ) -> None:
         """A fault; at or above the robot's e-stop severity it e-stops the robot."""
-        await self.robot._post(FaultMsg(self.slave_id, code, message, severity, joint))
+        await self._port.post(FaultMsg(self.slave_id, code, message, severity, joint))
 
     def alive(self) -> None:
         """Heartbeat: the peer is still there."""
-        self.robot._alive(self.slave_id)
+        self._port.alive(self.slave_id)
 
     async def connection_lost(self, reason: str) -> None:
         """The hardware behind this slave is gone, but the driver stays and keeps trying.
@@ -170,25 +236,25 @@ class SlaveLink:
         The loss policy applies as for a lost slave; the slave stays attached and shows as
         disconnected until `connection_restored`.
         """
-        await self.robot._post(LinkMsg(self.slave_id, False, reason))
+        await self._port.post(LinkMsg(self.slave_id, False, reason))
 
     async def connection_restored(self, reason: str = "reconnected") -> None:
         """The hardware answers again (nothing moves until a new target arrives)."""
-        await self.robot._post(LinkMsg(self.slave_id, True, reason))
+        await self._port.post(LinkMsg(self.slave_id, True, reason))
 
     async def rejoin(self, reason: str, joints: Mapping[str, float] | None = None) -> None:
         """The arm behind this slave may be somewhere else than the robot's targets say (it
         was calibrated anew, or moved by hand with torque off): it joins again, from `joints`
         (degrees, read just now) or else from its next report (specs/robot-model.md, "Slaves
         that join")."""
-        await self.robot._post(
+        await self._port.post(
             RejoinMsg(self.slave_id, reason, None if joints is None else dict(joints))
         )
 
     async def detach(self, reason: str = "slave left") -> None:
         """Leave the robot."""
-        await self.robot._detach("slave", self.slave_id, lost=False, reason=reason)
+        await self._port.leave("slave", self.slave_id, lost=False, reason=reason)
 
     async def lost(self, reason: str = "connection lost") -> None:
         """Report that this slave is gone (the loss policy applies)."""
-        await self.robot._detach("slave", self.slave_id, lost=True, reason=reason)
+        await self._port.leave("slave", self.slave_id, lost=True, reason=reason)

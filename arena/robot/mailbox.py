@@ -12,6 +12,8 @@ from typing import Generic, TypeVar
 
 import trio
 
+from arena.robot.idle import IdleTurn
+
 T = TypeVar("T")
 N = TypeVar("N")
 
@@ -77,8 +79,9 @@ class LatestMailbox(_Parked, Generic[T, N]):
     slow never acts on a target that the stop has overtaken.
 
     A consumer may offer `deliver_now`, a hand-off that never blocks (a write to a socket with
-    room): while its reader waits and nothing is queued, an item goes straight through it, so
-    no task is woken for it. It returns False to decline; the item is then queued as usual.
+    room): in its reader's idle turn (`turn`: the reader waits and nothing is queued, see
+    `arena.robot.idle`) an item goes straight through it, so no task is woken for it. It
+    returns False to decline; the item is then queued as usual.
     """
 
     def __init__(self, max_notices: int = 64) -> None:
@@ -87,6 +90,8 @@ class LatestMailbox(_Parked, Generic[T, N]):
         self._notices: deque[N] = deque(maxlen=max_notices)
         self.coalesced = 0  # targets replaced before being taken
         self.deliver_now: Callable[[T | N], bool] | None = None
+        #: Open while the reader waits with nothing queued (`arena.robot.idle`).
+        self.turn = IdleTurn()
 
     def put_target(self, target: T) -> None:
         """Offer the newest target, replacing one not yet taken."""
@@ -95,6 +100,7 @@ class LatestMailbox(_Parked, Generic[T, N]):
         if self._target is not None:
             self.coalesced += 1
         self._target = target
+        self.turn.close()
         self._wake()
 
     def put_notice(self, notice: N, *, clears: bool = False) -> None:
@@ -104,18 +110,19 @@ class LatestMailbox(_Parked, Generic[T, N]):
         if self._handed_off(notice):
             return
         self._notices.append(notice)
+        self.turn.close()
         self._wake()
 
+    def close(self) -> None:
+        """No more items will come; the reader gets `trio.EndOfChannel` once drained."""
+        self.turn.close()
+        super().close()
+
     def _handed_off(self, item: T | N) -> bool:
-        # Only while the reader waits with nothing queued: then nothing of its can be in
-        # flight, and the item cannot overtake one that came before it.
-        return (
-            self.deliver_now is not None
-            and self._waiting > 0
-            and not self._has_items()
-            and not self.closed
-            and self.deliver_now(item)
-        )
+        # Only in the reader's idle turn: then nothing of its can be in flight, and the item
+        # cannot overtake one that came before it.
+        deliver_now = self.deliver_now
+        return self.turn.is_open and deliver_now is not None and deliver_now(item)
 
     async def get(self) -> T | N:
         """The next notice if any, else the newest target; waits when there is neither."""
@@ -127,7 +134,11 @@ class LatestMailbox(_Parked, Generic[T, N]):
                 return target
             if self.closed:
                 raise trio.EndOfChannel
-            await self._park()
+            self.turn.open()  # nothing queued, not closed: the reader's next item is the next put
+            try:
+                await self._park()
+            finally:
+                self.turn.close()
 
     def _has_items(self) -> bool:
         return self._target is not None or bool(self._notices)
@@ -185,3 +196,40 @@ class EventQueue(_Parked, Generic[T]):
 
     def __len__(self) -> int:
         return len(self._items)
+
+
+class Observers(Generic[T]):
+    """The observers' queues of one robot, each with the event types it takes, and the
+    routing of an event to the queues that take its type (made on first use per type,
+    forgotten when an observer comes or goes)."""
+
+    def __init__(self) -> None:
+        self._kinds: dict[EventQueue[T], frozenset[type] | None] = {}
+        self._routes: dict[type, tuple[EventQueue[T], ...]] = {}
+
+    def add(self, queue: EventQueue[T], kinds: frozenset[type] | None) -> None:
+        """Give `queue` the events of the types `kinds` (None: every one) from now on."""
+        self._kinds[queue] = kinds
+        self._routes.clear()
+
+    def remove(self, queue: EventQueue[T]) -> None:
+        """Give `queue` nothing more, and close it."""
+        del self._kinds[queue]
+        self._routes.clear()
+        queue.close()
+
+    def close(self) -> None:
+        """No more events: every queue ends once drained."""
+        for queue in list(self._kinds):
+            queue.close()
+
+    def publish(self, event: T) -> None:
+        """Put `event` on every queue that takes its type (never blocks)."""
+        queues = self._routes.get(type(event))
+        if queues is None:
+            kind = type(event)
+            queues = self._routes[kind] = tuple(
+                queue for queue, kinds in self._kinds.items() if kinds is None or kind in kinds
+            )
+        for queue in queues:
+            queue.put(event)

@@ -15,7 +15,8 @@ from collections.abc import AsyncIterator, Awaitable, Callable, Iterable
 import trio
 
 from arena.protocol.errors import ArenaError, ErrorCode
-from arena.robot.actor import Robot
+from arena.robot.handle import Robot
+from arena.robot.links import RobotView
 from arena.robot.model import SafetyPolicy, load_robot_model
 
 log = logging.getLogger(__name__)
@@ -25,12 +26,13 @@ _ID_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 SHUTDOWN_GRACE = 1.0
 
 
-async def estop_together(robots: Iterable[Robot], reason: str) -> None:
-    """E-stop robots: the idle ones at once in this task, the busy ones together (each after
-    the message it is handling), rather than one after another. A robot that has stopped (was
-    deleted) is skipped: it moves nothing."""
+async def estop_together(robots: Iterable[RobotView], reason: str) -> None:
+    """E-stop robots: the idle ones at once in this task (in their actor's idle turn,
+    `arena.robot.idle`), the busy ones together (each after the message it is handling),
+    rather than one after another. A robot that has stopped (was deleted) is skipped: it
+    moves nothing."""
 
-    async def stop(robot: Robot) -> None:
+    async def stop(robot: RobotView) -> None:
         with contextlib.suppress(ArenaError):
             await robot.estop(reason)
 

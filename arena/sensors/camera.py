@@ -22,8 +22,8 @@ from typing import Any
 import trio
 
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
-from arena.robot.actor import Robot
 from arena.robot.events import CameraFrame
+from arena.robot.handle import Robot
 from arena.robot.mailbox import EventQueue
 from arena.sensors.sources import FrameSource, open_source, pace
 

@@ -8,8 +8,8 @@ import msgspec
 
 from arena.drivers.sequences import Sequence, parse_sequence
 from arena.protocol import messages as wire
-from arena.robot.actor import Robot
 from arena.robot.events import NoticeKind, SlaveNotice, SlaveTarget
+from arena.robot.handle import Robot
 from arena.robot.motion import Command, CommandResult
 from arena.robot.snapshot import PeerSnapshot, RobotSnapshot
 

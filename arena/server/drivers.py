@@ -29,7 +29,7 @@ from arena.protocol.rest import (
 from arena.recording.mcap_file import read_recording
 from arena.recording.recorder import existing_recording
 from arena.recording.replay import ReplayMaster, pick_robot, recorded_commands
-from arena.robot.actor import Robot
+from arena.robot.handle import Robot
 from arena.robot.links import MasterDriver, SlaveDriver
 from arena.robot.model import RobotModel
 

@@ -20,8 +20,8 @@ from arena.fleet import forward
 from arena.fleet.node import ESTOP_TIMEOUT, FleetNode
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import ReasonBody
-from arena.robot.actor import Robot
 from arena.robot.events import StateChanged
+from arena.robot.handle import Robot
 from arena.server.base import ArenaApp, error_response, read_body
 from arena.server.ws.fleet import serve_tunnel
 

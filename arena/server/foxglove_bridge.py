@@ -34,8 +34,8 @@ from arena.recording import images
 from arena.recording.foxglove import MESSAGE_TYPES, TREE_OF, Twin, pose_of
 from arena.recording.mcap_file import channel_format
 from arena.recording.records import KIND_OF_EVENT, camera_kind, record_of, topic
-from arena.robot.actor import Robot
 from arena.robot.events import CameraFrame, RobotEvent
+from arena.robot.handle import Robot
 from arena.robot.mailbox import EventQueue
 from arena.robot.model import RobotModel
 

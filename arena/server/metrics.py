@@ -7,7 +7,7 @@ import collections
 from collections.abc import Iterable
 from typing import Any
 
-from arena.robot.actor import Robot
+from arena.robot.handle import Robot
 
 #: Upper bounds (seconds) of the message latency histogram buckets.
 LATENCY_BUCKETS = (0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.1, 1.0)

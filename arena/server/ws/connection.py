@@ -19,7 +19,7 @@ import trio
 from arena.protocol import messages as wire
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.ws_frames import WebSocketClosed
-from arena.robot.actor import Robot
+from arena.robot.handle import Robot
 from arena.server.auth import check_token
 from arena.server.base import ArenaApp
 from arena.server.ws.backpressure import Encoded, LatestWins, PeerSocket

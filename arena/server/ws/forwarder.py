@@ -11,8 +11,8 @@ import msgspec
 import trio
 
 from arena.protocol import messages as wire
-from arena.robot.actor import Robot
 from arena.robot.events import JointStatesReceived, RobotEvent, StateChanged, TargetsSent
+from arena.robot.handle import Robot
 from arena.robot.mailbox import EventQueue
 from arena.server import convert
 from arena.server.ws.backpressure import Encoded, Outgoing

@@ -11,8 +11,8 @@ import trio
 from arena.drivers.sequence_master import SequenceMaster
 from arena.protocol import messages as wire
 from arena.protocol.errors import ArenaError, ErrorCode
-from arena.robot.actor import Robot
 from arena.robot.events import MasterNotice
+from arena.robot.handle import Robot
 from arena.robot.links import DETACHED_LINK, MasterLink
 from arena.server import convert
 from arena.server.base import ArenaApp

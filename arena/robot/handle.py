@@ -1,0 +1,433 @@
+"""The robot handle: the `Robot` object that everyone else holds.
+
+A `Robot` posts a message to its actor (`arena.robot.actor`) and waits for the answer; it never
+changes the robot's state itself. The one exception is the actor's idle turn (`arena.robot.idle`):
+while the actor waits on an empty inbox, a command, an e-stop or a heartbeat is decided at once in
+the caller's task, as the actor would have decided it next.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterable, Iterator, Mapping
+from typing import Any
+
+import trio
+
+from arena.protocol.errors import ArenaError, ErrorCode, Severity
+from arena.robot import safety
+from arena.robot.actor import Actor
+from arena.robot.core import RobotCore
+from arena.robot.episodes import Episode
+from arena.robot.events import RobotEvent
+from arena.robot.idle import IdleTurn
+from arena.robot.inbox import (
+    AliveMsg,
+    AttachMsg,
+    CommandMsg,
+    DetachMsg,
+    EpisodeMsg,
+    EventMsg,
+    Msg,
+    Reply,
+    SensorFaultMsg,
+    ShutdownMsg,
+    WorkspaceMsg,
+)
+from arena.robot.links import MasterDriver, MasterLink, SlaveDriver, SlaveLink
+from arena.robot.mailbox import EventQueue
+from arena.robot.model import RobotModel, SafetyPolicy
+from arena.robot.motion import Command, CommandResult
+from arena.robot.snapshot import JointSnapshot, RobotSnapshot
+from arena.robot.workspace import Workspace
+
+
+class Robot:
+    """One robot: its public handle; `run` is its actor's task."""
+
+    def __init__(
+        self,
+        robot_id: str,
+        name: str,
+        model: RobotModel,
+        policy: SafetyPolicy | None = None,
+        inbox_size: int = 1024,
+    ) -> None:
+        self.robot_id = robot_id
+        self.name = name
+        self.model = model
+        self.core = RobotCore(model, trio.current_time(), policy)
+        self._send, receive = trio.open_memory_channel[Msg](inbox_size)
+        self._turn = IdleTurn()  # the actor's idle turn (`arena.robot.idle`)
+        self._actor = Actor(robot_id, self.core, _Port(self), (self._send, receive), self._turn)
+        #: Set once the actor has ended.
+        self.stopped = self._actor.stopped
+        #: Commands answered, by outcome: "accepted" or the refusal code (for metrics).
+        self.command_counts = self._actor.command_counts
+        #: Data-collection episodes (owned by the actor: changed only through `episode`).
+        self.episodes = self._actor.episodes
+
+    # -- what the robot is ----------------------------------------------------------------------
+
+    @property
+    def estop_count(self) -> int:
+        """E-stops the robot went through."""
+        return self._actor.estop_count
+
+    @property
+    def targets_superseded(self) -> int:
+        """Targets a newer one replaced before a slave took it (latest wins toward a slave
+        slower than its master); every accepted command is still recorded."""
+        return self._actor.targets_superseded
+
+    @property
+    def workspace(self) -> Workspace:
+        """Where the arm may go (the collision guard's floor and keep-out boxes)."""
+        return self.core.workspace
+
+    def snapshot(self) -> RobotSnapshot:
+        """The robot as it is now."""
+        state = self.core.state
+        virtual = self.core.motion.positions
+        goals = self.core.motion.goals
+        real = self._actor.real
+        joints = tuple(
+            JointSnapshot(
+                j.name,
+                j.servo_id,
+                virtual[j.name],
+                real.get(j.name),
+                goals[j.name],
+                j.lower,
+                j.upper,
+                j.max_velocity,
+            )
+            for j in self.model.joints
+        )
+        peers = self._actor.peers
+        master = peers.master.snapshot() if peers.master is not None else None
+        joining = self.core.joining
+        slaves = tuple(p.snapshot(p.peer_id in joining) for p in peers.slaves.values())
+        return RobotSnapshot(
+            self.robot_id,
+            self.name,
+            self.model.robot_type,
+            state.mode,
+            state.owner,
+            state.estop_reason,
+            master,
+            slaves,
+            joints,
+        )
+
+    def joint_values(self) -> tuple[dict[str, float], Mapping[str, float]]:
+        """Virtual (commanded) and real (measured) values now, by joint name, in degrees.
+
+        Much cheaper than `snapshot` (for messages sent with every command). The real values
+        are the robot's own mapping: read it at once, never keep or change it.
+        """
+        return self.core.motion.positions, self._actor.real
+
+    @contextlib.contextmanager
+    def subscribe(
+        self, maxlen: int = 1024, kinds: Iterable[type[RobotEvent]] | None = None
+    ) -> Iterator[EventQueue[RobotEvent]]:
+        """Observe this robot's events (only those of the types `kinds`, if given): `with
+        robot.subscribe() as events: ...`.
+
+        A slow observer loses its oldest events (counted in `events.dropped`); it never slows
+        the robot. The queue ends (`trio.EndOfChannel`) when the robot stops, at once if it
+        has stopped already.
+        """
+        queue: EventQueue[RobotEvent] = EventQueue(maxlen)
+        self._actor.observers.add(queue, None if kinds is None else frozenset(kinds))
+        if self.stopped.is_set():
+            queue.close()
+        try:
+            yield queue
+        finally:
+            self._actor.observers.remove(queue)
+
+    # -- commands and safety --------------------------------------------------------------------
+
+    async def command(
+        self, command: Command, master_id: str | None = None, *, in_burst: bool = False
+    ) -> CommandResult:
+        """Send a command (from master `master_id`, or manual control if None); `in_burst`:
+        more of the master's commands are already in hand (see `RobotCore.command`)."""
+        reply: Reply[CommandResult] = Reply()
+        await self._post(CommandMsg(master_id, command, reply, in_burst))
+        return await reply.wait()
+
+    def command_now(
+        self, command: Command, master_id: str | None = None, *, in_burst: bool = False
+    ) -> CommandResult | None:
+        """Decide `command` in the caller's task, in the actor's idle turn; else None (use
+        `command`).
+
+        Idle means blocked on an empty inbox with no timer due: a posted command would be the
+        actor's very next step, so deciding it here gives the same answer in the same order,
+        without two task switches. The network edge tries this first.
+        """
+        results = self.command_run_now([command], master_id, burst_goes_on=in_burst)
+        return None if results is None else results[0]
+
+    def command_run_now(
+        self, commands: list[Command], master_id: str | None = None, *, burst_goes_on: bool = False
+    ) -> list[CommandResult] | None:
+        """Decide a run of commands sent together, in the caller's task, in the actor's idle
+        turn (see `command_now`); else None. Each is decided, recorded and answered on its own
+        and in order, all but the last as in a burst (the last too if `burst_goes_on`); what
+        they share is the time they are decided at, as they arrived together."""
+        turn = self._turn
+        now = turn.now()
+        if now is None:
+            return None
+        actor = self._actor
+        last = len(commands) - 1
+        results = [
+            actor.decide(master_id, command, burst_goes_on or k < last, now)
+            for k, command in enumerate(commands)
+        ]
+        turn.wake_by(actor.next_tick)
+        return results
+
+    async def estop(self, reason: str = "emergency stop") -> safety.Outcome:
+        """Emergency stop: nothing moves until `reset`.
+
+        An idle actor is stopped in the caller's task, before this yields (see `estop_now`).
+        """
+        outcome = self.estop_now(reason)
+        if outcome is None:
+            return await self._event(safety.EStop(reason))
+        await trio.lowlevel.checkpoint()
+        return outcome
+
+    def estop_now(self, reason: str = "emergency stop") -> safety.Outcome | None:
+        """The e-stop applied in the caller's task in the actor's idle turn (as `command_now`
+        decides a command), its slaves told at once; else None (use `estop`)."""
+        now = self._turn.now()
+        if now is None:
+            return None
+        event = safety.EStop(reason)
+        outcome = self._actor.apply(event, now, cause=type(event).__name__)
+        self._turn.wake_by(self._actor.next_tick)
+        return outcome
+
+    async def reset(self) -> safety.Outcome:
+        """Leave the e-stop. Causes no motion by itself."""
+        return await self._event(safety.Reset())
+
+    async def set_workspace(self, workspace: Workspace) -> None:
+        """Change where the arm may go, from the next command on."""
+        reply: Reply[None] = Reply()
+        await self._post(WorkspaceMsg(workspace, reply))
+        await reply.wait()
+
+    async def episode(self, action: str, task: str = "") -> Episode:
+        """Start, stop or discard a data-collection episode (`episodes.py`); refusals raise
+        `ArenaError`."""
+        reply: Reply[Episode] = Reply()
+        await self._post(EpisodeMsg(action, task, reply))
+        return await reply.wait()
+
+    def report_sensor_fault(
+        self, sensor_id: str, code: str, message: str, severity: Severity
+    ) -> None:
+        """Report a sensor's fault (a camera that failed or came back). Sensors are not part
+        of the safety envelope: the report is seen and recorded, it never stops the robot.
+        Never blocks; dropped if the inbox is full."""
+        self._post_nowait(SensorFaultMsg(sensor_id, code, message, severity), drop_if_full=True)
+
+    # -- masters and slaves ---------------------------------------------------------------------
+
+    async def attach_master(
+        self, driver: MasterDriver, *, takeover: bool | None = None, master_id: str | None = None
+    ) -> str:
+        """Run `driver` as this robot's master; returns its id. Refusals raise `ArenaError`.
+
+        `takeover` defaults to the driver's own `takes_over`.
+        """
+        if takeover is None:
+            takeover = driver.takes_over
+        description = str(getattr(driver, "description", "") or "")
+        link: MasterLink = await self._attach(
+            "master", master_id, driver.kind, driver, driver.autonomous, takeover, None, description
+        )
+        return link.master_id
+
+    async def connect_master(
+        self,
+        master_id: str | None = None,
+        *,
+        kind: str = "external",
+        takeover: bool = False,
+        heartbeat_timeout: float | None = None,
+        autonomous: bool = False,
+        description: str = "",
+    ) -> MasterLink:
+        """Claim the robot for a master that runs elsewhere (a network connection);
+        `description` says what it is to a master it takes over from."""
+        link: MasterLink = await self._attach(
+            "master", master_id, kind, None, autonomous, takeover, heartbeat_timeout, description
+        )
+        return link
+
+    async def detach_master(
+        self, master_id: str | None = None, reason: str = "detached on request"
+    ) -> None:
+        """Detach the master `master_id` (or whichever master holds the robot)."""
+        await self._leave("master", master_id, lost=False, reason=reason)
+
+    async def attach_slave(self, driver: SlaveDriver, slave_id: str | None = None) -> str:
+        """Run `driver` as a slave of this robot; returns its id. A driver whose `measures`
+        is true (the default) joins before it is sent the robot's targets, at its
+        `join_speed` if it has one (`RobotCore.slave_attached`)."""
+        link: SlaveLink = await self._attach(
+            "slave", slave_id, driver.kind, driver, False, False, None
+        )
+        return link.slave_id
+
+    async def connect_slave(
+        self,
+        slave_id: str | None = None,
+        *,
+        kind: str = "external",
+        heartbeat_timeout: float | None = None,
+    ) -> SlaveLink:
+        """Attach a slave that runs elsewhere (a network connection)."""
+        link: SlaveLink = await self._attach(
+            "slave", slave_id, kind, None, False, False, heartbeat_timeout
+        )
+        return link
+
+    async def detach_slave(self, slave_id: str, reason: str = "detached on request") -> None:
+        """Detach a slave; it is told to stop. Unknown ids raise `ArenaError(UNKNOWN_SLAVE)`."""
+        await self._leave("slave", slave_id, lost=False, reason=reason)
+
+    # -- the actor ------------------------------------------------------------------------------
+
+    async def run(self, *, task_status: Any = trio.TASK_STATUS_IGNORED) -> None:
+        """The actor's loop (`Actor.run`). Runs until `shutdown` (or cancellation)."""
+        await self._actor.run(task_status=task_status)
+
+    async def shutdown(self, reason: str = "robot deleted") -> None:
+        """Stop every driver cleanly and end the actor."""
+        reply: Reply[None] = Reply()
+        try:
+            await self._post(ShutdownMsg(reason, reply))
+            await reply.wait()
+        except ArenaError:
+            return  # already stopped
+
+    # -- posting --------------------------------------------------------------------------------
+
+    async def _attach(
+        self,
+        role: str,
+        peer_id: str | None,
+        kind: str,
+        driver: MasterDriver | SlaveDriver | None,
+        autonomous: bool,
+        takeover: bool,
+        heartbeat_timeout: float | None,
+        description: str = "",
+    ) -> Any:
+        reply: Reply[Any] = Reply()
+        await self._post(
+            AttachMsg(
+                role,
+                peer_id,
+                kind,
+                driver,
+                autonomous,
+                takeover,
+                heartbeat_timeout,
+                reply,
+                description,
+            )
+        )
+        try:
+            return await reply.wait()
+        except trio.Cancelled:
+            # The actor attaches the peer all the same: take its answer (it comes at once) and
+            # undo it, or the robot would keep a peer that nobody drives (a client that hung up
+            # during its handshake, found by the 1,000-connections test).
+            with trio.CancelScope(shield=True), trio.move_on_after(5):
+                try:
+                    link = await reply.wait()
+                except ArenaError:
+                    pass  # refused: nothing to undo
+                else:
+                    peer = link.master_id if isinstance(link, MasterLink) else link.slave_id
+                    with contextlib.suppress(ArenaError):  # gone already
+                        await self._leave(role, peer, lost=False, reason="attach cancelled")
+            raise
+
+    async def _leave(
+        self,
+        role: str,
+        peer_id: str | None,
+        *,
+        lost: bool,
+        reason: str,
+        hold: bool = True,
+        released: bool = False,
+    ) -> None:
+        reply: Reply[None] = Reply()
+        try:
+            await self._post(DetachMsg(role, peer_id, lost, reason, reply, hold, released))
+            await reply.wait()
+        except ArenaError as exc:
+            if exc.code is not ErrorCode.ROBOT_STOPPED:
+                raise  # else the robot is gone, and the peer with it
+
+    def _alive(self, peer_id: str) -> None:
+        now = self._turn.now()
+        if now is not None:
+            self._actor.peers.touch(peer_id, now)  # only moves a deadline later: no wake_by
+        else:
+            self._post_nowait(AliveMsg(peer_id), drop_if_full=True)
+
+    async def _event(self, event: safety.Event) -> safety.Outcome:
+        reply: Reply[safety.Outcome] = Reply()
+        await self._post(EventMsg(event, reply))
+        return await reply.wait()
+
+    async def _post(self, message: Msg) -> None:
+        self._turn.close()  # the actor has work: nothing may overtake this message
+        try:
+            await self._send.send(message)
+        except (trio.ClosedResourceError, trio.BrokenResourceError):
+            raise ArenaError(
+                ErrorCode.ROBOT_STOPPED, f"Robot {self.robot_id!r} has stopped."
+            ) from None
+
+    def _post_nowait(self, message: Msg, drop_if_full: bool = False) -> None:
+        self._turn.close()
+        try:
+            self._send.send_nowait(message)
+        except trio.WouldBlock:
+            if not drop_if_full:
+                raise ArenaError(
+                    ErrorCode.OVERLOADED, f"Robot {self.robot_id!r} is overloaded; slow down."
+                ) from None
+        except (trio.ClosedResourceError, trio.BrokenResourceError):
+            raise ArenaError(
+                ErrorCode.ROBOT_STOPPED, f"Robot {self.robot_id!r} has stopped."
+            ) from None
+
+
+class _Port:
+    """What the robot gives its links (`arena.robot.links.RobotPort`): the handle's ways in,
+    as its own bound methods (a command through a link costs no extra call)."""
+
+    __slots__ = ("alive", "command", "command_run_now", "leave", "post", "robot")
+
+    def __init__(self, robot: Robot) -> None:
+        self.robot = robot
+        self.post = robot._post
+        self.alive = robot._alive
+        self.leave = robot._leave
+        self.command = robot.command
+        self.command_run_now = robot.command_run_now

@@ -1,0 +1,157 @@
+"""Who is attached to one robot: its master (at most one) and its slaves, as records. Pure.
+
+This is the actor's bookkeeping of its peers, beside the safety table (`safety.py`) that decides
+who may command: no trio, no I/O, no clock (times are given). The actor carries out what it
+answers: it stops the driver of a peer that leaves, closes its link and publishes the change.
+
+Ownership is decided once, by the safety table: `SafetyState.owner` names the master that may
+command. The table here keeps that master's record (its link, its heartbeat) and lets it go by
+one rule, `Peers.settle`: a master that the safety state no longer names as owner is gone. A master
+displaced by another (a takeover, an autonomous master ended by an e-stop) goes by the safety
+table's `DetachMaster` effect, which says why.
+
+A record holds the link (`L`) through which the actor reaches its peer, whatever that is: the
+actor keeps `MasterLink`s and `SlaveLink`s here, the tests plain values.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Generic, TypeVar
+
+from arena.robot.events import PeerChanged
+from arena.robot.snapshot import PeerSnapshot
+
+L = TypeVar("L")
+M = TypeVar("M")
+S = TypeVar("S")
+
+
+@dataclass(eq=False, slots=True)
+class Peer(Generic[L]):
+    """An attached master or slave: what the robot knows of it and how it reaches it."""
+
+    role: ClassVar[str]
+    peer_id: str
+    kind: str  # its driver's kind ("mock-slave", "websocket")
+    link: L
+    heartbeat_timeout: float | None  # None: it need not send heartbeats
+    last_seen: float  # trio time the robot last heard from it
+    #: Stops the driver the robot runs for this peer (None: the peer runs elsewhere).
+    stop: Callable[[], None] | None = None
+    last_error: str | None = None
+
+    def deadline(self) -> float:
+        """When it is lost unless heard from (inf: never)."""
+        timeout = self.heartbeat_timeout
+        return math.inf if timeout is None else self.last_seen + timeout
+
+    def changed(
+        self, robot_id: str, change: str, reason: str, now: float, wall_time: float
+    ) -> PeerChanged:
+        """The event that says this peer `change`d ("attached", "lost", ...) and why."""
+        autonomous = change == "attached" and isinstance(self, MasterPeer) and self.autonomous
+        return PeerChanged(
+            robot_id, self.role, self.peer_id, self.kind, change, reason, now, wall_time, autonomous
+        )
+
+    def snapshot(self, joining: bool = False) -> PeerSnapshot:
+        """The peer as `RobotSnapshot` shows it."""
+        connected = self.connected if isinstance(self, SlavePeer) else True
+        description = self.description if isinstance(self, MasterPeer) else ""
+        return PeerSnapshot(
+            self.peer_id, self.role, self.kind, connected, self.last_error, joining, description
+        )
+
+
+@dataclass(eq=False, slots=True)
+class MasterPeer(Peer[L]):
+    """The master: the source of the robot's commands."""
+
+    role: ClassVar[str] = "master"
+    autonomous: bool = False  # plays a program (sequence, replay): ends for good on e-stop
+    description: str = ""  # what it is, in words ("sequence 'gentle-wave'")
+
+
+@dataclass(eq=False, slots=True)
+class SlavePeer(Peer[L]):
+    """A slave: it executes the robot's targets and reports joint states."""
+
+    role: ClassVar[str] = "slave"
+    connected: bool = True  # False while the hardware behind it is out of reach
+    real: dict[str, float] = field(default_factory=dict)  # its newest measured values
+
+
+class Peers(Generic[M, S]):
+    """The master and slaves of one robot (`M`, `S`: what their records hold as links)."""
+
+    def __init__(self) -> None:
+        self.master: MasterPeer[M] | None = None
+        self.slaves: dict[str, SlavePeer[S]] = {}
+        self._ids = itertools.count(1)
+
+    def new_id(self, role: str) -> str:
+        """An id for a peer that brought none ("slave-3")."""
+        return f"{role}-{next(self._ids)}"
+
+    def __iter__(self) -> Iterator[MasterPeer[M] | SlavePeer[S]]:
+        """Every peer: the slaves, then the master."""
+        yield from self.slaves.values()
+        if self.master is not None:
+            yield self.master
+
+    def add(self, peer: MasterPeer[M] | SlavePeer[S]) -> None:
+        """Record a peer that attached (a master once the safety table let it claim the robot:
+        it replaces none, a master it displaced was let go first)."""
+        if isinstance(peer, MasterPeer):
+            self.master = peer
+        else:
+            self.slaves[peer.peer_id] = peer
+
+    def holds(self, peer: Peer[Any]) -> bool:
+        """True while this very record is attached (a later peer may have its id)."""
+        return peer is self.master or self.slaves.get(peer.peer_id) is peer
+
+    def remove(self, peer: Peer[Any]) -> bool:
+        """Let `peer` go; False if it was not attached (any more), and nothing changes."""
+        if peer is self.master:
+            self.master = None
+            return True
+        if self.slaves.get(peer.peer_id) is peer:
+            del self.slaves[peer.peer_id]
+            return True
+        return False
+
+    def master_named(self, master_id: str | None) -> MasterPeer[M] | None:
+        """The master if it is `master_id` (None: whichever it is), else None."""
+        master = self.master
+        if master is None or (master_id is not None and master.peer_id != master_id):
+            return None
+        return master
+
+    def settle(self, owner: str | None) -> MasterPeer[M] | None:
+        """The master, let go, if the safety state's `owner` is no longer it; else None."""
+        master = self.master
+        if master is None or master.peer_id == owner:
+            return None
+        self.master = None
+        return master
+
+    def touch(self, peer_id: str, now: float) -> None:
+        """Heard from `peer_id` at `now` (the master if both have that id)."""
+        master = self.master
+        if master is not None and master.peer_id == peer_id:
+            master.last_seen = now
+        elif (slave := self.slaves.get(peer_id)) is not None:
+            slave.last_seen = now
+
+    def next_deadline(self) -> float:
+        """The earliest heartbeat deadline of any peer (inf: none)."""
+        return min((peer.deadline() for peer in self), default=math.inf)
+
+    def timed_out(self, now: float) -> list[MasterPeer[M] | SlavePeer[S]]:
+        """The peers whose heartbeat deadline has passed at `now`."""
+        return [peer for peer in self if now >= peer.deadline()]
