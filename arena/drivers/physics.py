@@ -15,7 +15,6 @@ runs inside trio. Either way a test on MockClock runs it faster than real time.
 
 from __future__ import annotations
 
-import math
 import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -69,9 +68,9 @@ class ArmSimulation:
             spec.add_exclude(bodyname1=_spec_body(first), bodyname2=_spec_body(second))
         self.model = spec.compile()
         self.data = mujoco.MjData(self.model)
+        # Each joint's spec (its units: `JointSpec.to_urdf`, `from_urdf`) and qpos address.
         self._joints = [
-            (joint.name, self.model.joint(joint.urdf_name).qposadr[0], joint.neutral)
-            for joint in model.joints
+            (joint, self.model.joint(joint.urdf_name).qposadr[0]) for joint in model.joints
         ]
         self._actuators = [self.model.actuator(joint.name).id for joint in model.joints]
         self._gains = self.model.actuator_gainprm.copy(), self.model.actuator_biasprm.copy()
@@ -86,21 +85,21 @@ class ArmSimulation:
 
     def set_pose(self, degrees: Mapping[str, float]) -> None:
         """Put the arm at rest at `degrees` (targets there too)."""
-        for name, address, neutral in self._joints:
-            self.data.qpos[address] = neutral + math.radians(degrees.get(name, 0.0))
+        for joint, address in self._joints:
+            self.data.qpos[address] = joint.to_urdf(degrees.get(joint.name, 0.0))
         self.data.qvel[:] = 0.0
         self._mj.mj_forward(self.model, self.data)
         self.set_targets(degrees)
 
     def set_targets(self, degrees: Mapping[str, float]) -> None:
         """Where each actuator pulls its joint (wire degrees; joints not named keep theirs)."""
-        for (name, _, neutral), actuator in zip(self._joints, self._actuators, strict=True):
-            if name in degrees:
-                self.data.ctrl[actuator] = neutral + math.radians(degrees[name])
+        for (joint, _), actuator in zip(self._joints, self._actuators, strict=True):
+            if joint.name in degrees:
+                self.data.ctrl[actuator] = joint.to_urdf(degrees[joint.name])
 
     def hold(self) -> None:
         """Targets where the joints are now."""
-        for (_, address, _), actuator in zip(self._joints, self._actuators, strict=True):
+        for (_, address), actuator in zip(self._joints, self._actuators, strict=True):
             self.data.ctrl[actuator] = self.data.qpos[address]
 
     def set_torque(self, on: bool) -> None:
@@ -119,8 +118,7 @@ class ArmSimulation:
     def positions(self) -> dict[str, float]:
         """Every joint's value in wire degrees."""
         return {
-            name: math.degrees(self.data.qpos[address] - neutral)
-            for name, address, neutral in self._joints
+            joint.name: joint.from_urdf(self.data.qpos[address]) for joint, address in self._joints
         }
 
     def contacts(self) -> set[tuple[str, str]]:

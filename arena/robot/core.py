@@ -59,7 +59,7 @@ class Step:
     joins: tuple[JoinChange, ...] = field(default=())
 
 
-_RADIANS = math.pi / 180.0  # as math.radians scales
+_RADIANS = math.radians(1.0)  # URDF radians per wire degree (the scale of `JointSpec.to_urdf`)
 
 
 @dataclass(slots=True)
@@ -109,7 +109,7 @@ class RobotCore:
         self.workspace = model.workspace
         #: Moves stopped on the way because an emitted target would have collided.
         self.collision_stops = 0
-        self._to_urdf = tuple((j.name, j.urdf_name, j.neutral) for j in model.joints)
+        self._to_urdf = tuple((j.name, j.urdf_name, j.to_urdf) for j in model.joints)
         # Per joint of the model, its place in the guard's kinematics (None if not there): the
         # references are kept in the model's order and wire degrees, as the limiter lists its
         # goals and positions, so a pose is compared with them as it is, unconverted.
@@ -356,9 +356,8 @@ class RobotCore:
         return result, Step(outcome, targets)
 
     def _urdf(self, degrees: Mapping[str, float]) -> dict[str, float]:
-        return {
-            urdf: neutral + math.radians(degrees[name]) for name, urdf, neutral in self._to_urdf
-        }
+        """Wire degrees by joint name to URDF radians by URDF joint (`JointSpec.to_urdf`)."""
+        return {urdf: to_urdf(degrees[name]) for name, urdf, to_urdf in self._to_urdf}
 
     def _guard(
         self, goals: list[ResolvedGoal]
