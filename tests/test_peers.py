@@ -1,0 +1,143 @@
+"""The actor's pure bookkeeping of its peers (`arena.robot.peers`) and its idle turn
+(`arena.robot.idle`): no robot, no actor, plain values as links."""
+
+from __future__ import annotations
+
+import math
+
+import trio
+import trio.testing
+from trio.testing import MockClock
+
+from arena.robot.events import PeerChanged
+from arena.robot.idle import IdleTurn
+from arena.robot.peers import MasterPeer, Peers, SlavePeer
+from arena.robot.snapshot import PeerSnapshot
+
+
+def master(
+    peer_id: str = "alice", timeout: float | None = None, seen: float = 0.0
+) -> MasterPeer[str]:
+    return MasterPeer(peer_id, "websocket", f"link of {peer_id}", timeout, seen)
+
+
+def slave(peer_id: str = "arm", timeout: float | None = None, seen: float = 0.0) -> SlavePeer[str]:
+    return SlavePeer(peer_id, "mock-slave", f"link of {peer_id}", timeout, seen)
+
+
+def test_the_master_goes_when_the_safety_state_no_longer_names_it_owner() -> None:
+    peers: Peers[str, str] = Peers()
+    assert peers.settle(None) is None  # no master: nothing to let go
+    alice = master("alice")
+    peers.add(alice)
+    assert peers.settle("alice") is None and peers.master is alice  # still the owner
+    assert peers.settle(None) is alice  # ownership ended (released, lost, timed out)
+    assert peers.master is None and not peers.holds(alice)
+    peers.add(alice)
+    assert peers.settle("bob") is alice and peers.master is None  # another owns the robot
+
+
+def test_a_record_is_known_by_itself_not_by_its_id() -> None:
+    # A slave that left and another under the same id: the first one's late news (its
+    # driver's end) must neither count as attached nor remove the second.
+    peers: Peers[str, str] = Peers()
+    first, second = slave("arm"), slave("arm")
+    peers.add(first)
+    assert peers.remove(first) and not peers.remove(first)
+    peers.add(second)
+    assert not peers.holds(first) and peers.holds(second)
+    assert not peers.remove(first)
+    assert peers.slaves == {"arm": second}
+    old_alice, new_alice = master("alice"), master("alice")
+    peers.add(old_alice)
+    peers.add(new_alice)  # taken over under the same id (the old one was let go)
+    assert not peers.holds(old_alice) and not peers.remove(old_alice)
+    assert peers.master is new_alice
+
+
+def test_the_master_is_found_by_its_id_or_as_whichever_holds_the_robot() -> None:
+    peers: Peers[str, str] = Peers()
+    assert peers.master_named(None) is None
+    alice = master("alice")
+    peers.add(alice)
+    assert peers.master_named(None) is alice
+    assert peers.master_named("alice") is alice
+    assert peers.master_named("bob") is None
+
+
+def test_heartbeats_set_the_deadlines_and_the_late_are_timed_out() -> None:
+    peers: Peers[str, str] = Peers()
+    assert peers.next_deadline() == math.inf and peers.timed_out(1e9) == []
+    quiet, arm, alice = slave("quiet"), slave("arm", 2.0, 10.0), master("alice", 1.0, 10.0)
+    for peer in (quiet, arm, alice):
+        peers.add(peer)
+    assert peers.next_deadline() == 11.0  # the master's
+    peers.touch("alice", 10.5)
+    assert peers.next_deadline() == 11.5
+    assert peers.timed_out(11.49) == []
+    assert peers.timed_out(11.5) == [alice]  # due at its deadline, not after it
+    assert peers.timed_out(12.0) == [arm, alice]  # slaves first, as the actor goes through them
+    peers.touch("arm", 12.0)
+    assert peers.timed_out(12.0) == [alice]
+
+
+def test_a_heartbeat_under_an_id_both_have_is_the_masters() -> None:
+    peers: Peers[str, str] = Peers()
+    twin, same = master("x", 1.0), slave("x", 1.0)
+    peers.add(twin)
+    peers.add(same)
+    peers.touch("x", 5.0)
+    assert (twin.last_seen, same.last_seen) == (5.0, 0.0)
+    peers.touch("nobody", 6.0)  # unknown: changes nothing
+    assert (twin.last_seen, same.last_seen) == (5.0, 0.0)
+
+
+def test_peers_without_an_id_get_one_of_their_own() -> None:
+    peers: Peers[str, str] = Peers()
+    ids = [peers.new_id("slave"), peers.new_id("master"), peers.new_id("slave")]
+    assert ids == ["slave-1", "master-2", "slave-3"]
+
+
+def test_a_peers_change_and_snapshot_say_what_it_is() -> None:
+    program = MasterPeer("seq", "mock-sequence", None, None, 0.0, autonomous=True, description="d")
+    attached = program.changed("arm", "attached", "", 1.0, 2.0)
+    assert attached == PeerChanged(
+        "arm", "master", "seq", "mock-sequence", "attached", "", 1.0, 2.0, True
+    )
+    # Only the attach says whether the master plays a program.
+    assert program.changed("arm", "detached", "done", 3.0, 4.0).autonomous is False
+    assert program.snapshot() == PeerSnapshot(
+        "seq", "master", "mock-sequence", True, None, False, "d"
+    )
+    arm = slave("arm")
+    arm.connected, arm.last_error = False, "slave_lost: unplugged"
+    assert arm.changed("r", "disconnected", "unplugged", 1.0, 2.0).role == "slave"
+    assert arm.snapshot(joining=True) == PeerSnapshot(
+        "arm", "slave", "mock-slave", False, "slave_lost: unplugged", True, ""
+    )
+
+
+async def test_the_idle_turn_is_taken_only_while_open_and_before_the_waiters_timer(
+    autojump_clock: MockClock,
+) -> None:
+    turn = IdleTurn()
+    assert turn.now() is None  # nobody waits
+    with trio.move_on_after(10.0) as wait:
+        turn.open(wait)
+        start = trio.current_time()
+        assert turn.now() == start
+        turn.wake_by(start + 20.0)  # later than its own timer: unchanged
+        assert wait.deadline == start + 10.0
+        turn.wake_by(start + 1.0)  # a motion started in the turn needs a tick sooner
+        assert wait.deadline == start + 1.0
+        autojump_clock.jump(1.0)
+        assert turn.now() is None  # its timer is due: the waiter goes first
+        turn.close()
+        assert turn.now() is None
+        await trio.sleep_forever()
+    mailbox_turn = IdleTurn()
+    mailbox_turn.open()  # a waiter without a timer
+    assert mailbox_turn.is_open and mailbox_turn.now() is not None
+    mailbox_turn.wake_by(0.0)  # nothing to bring forward
+    mailbox_turn.close()
+    assert not mailbox_turn.is_open and mailbox_turn.now() is None
