@@ -11,6 +11,7 @@ from trio.testing import MockClock
 
 from arena.robot.events import PeerChanged
 from arena.robot.idle import IdleTurn
+from arena.robot.mailbox import LatestMailbox
 from arena.robot.peers import MasterPeer, Peers, SlavePeer
 from arena.robot.snapshot import PeerSnapshot
 
@@ -141,3 +142,34 @@ async def test_the_idle_turn_is_taken_only_while_open_and_before_the_waiters_tim
     mailbox_turn.wake_by(0.0)  # nothing to bring forward
     mailbox_turn.close()
     assert not mailbox_turn.is_open and mailbox_turn.now() is None
+
+
+async def test_an_item_queued_for_a_reader_closes_its_turn_so_nothing_overtakes_it() -> None:
+    # The reader's hand-off declines a target (a socket with no room): it is queued and the
+    # reader woken. A newer target offered before the reader runs must not go straight
+    # through: the reader would then write the older one after it.
+    box: LatestMailbox[str, str] = LatestMailbox()
+    handed: list[str] = []
+    accept = False
+
+    def deliver_now(item: str) -> bool:
+        if accept:
+            handed.append(item)
+        return accept
+
+    box.deliver_now = deliver_now
+    taken: list[str] = []
+
+    async def reader() -> None:
+        taken.append(await box.get())
+
+    async with trio.open_nursery() as nursery:
+        nursery.start_soon(reader)
+        await trio.testing.wait_all_tasks_blocked()
+        assert box.turn.is_open  # waiting with nothing queued
+        box.put_target("t1")  # declined: queued
+        accept = True
+        box.put_target("t2")  # the reader has not run yet: replaces t1 in the box
+        box.put_notice("n1")  # queued behind, too
+        assert handed == [] and not box.turn.is_open
+    assert taken == ["n1"] and await box.get() == "t2"
