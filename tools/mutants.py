@@ -58,6 +58,8 @@ MODULES: dict[str, tuple[str, tuple[str, ...]]] = {
     "links": ("arena/robot/links.py", ()),
     "core": ("arena/robot/core.py", ()),
     "collision": ("arena/robot/collision.py", ()),
+    "workspace": ("arena/robot/workspace.py", ()),
+    "peers": ("arena/robot/peers.py", ()),
 }
 
 
