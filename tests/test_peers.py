@@ -80,6 +80,8 @@ def test_heartbeats_set_the_deadlines_and_the_late_are_timed_out() -> None:
     assert peers.timed_out(12.0) == [arm, alice]  # slaves first, as the actor goes through them
     peers.touch("arm", 12.0)
     assert peers.timed_out(12.0) == [alice]
+    peers.touch("alice", 20.0)
+    assert peers.next_deadline() == 14.0  # the slave's, now the earliest
 
 
 def test_a_heartbeat_under_an_id_both_have_is_the_masters() -> None:

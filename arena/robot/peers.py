@@ -150,7 +150,14 @@ class Peers(Generic[M, S]):
 
     def next_deadline(self) -> float:
         """The earliest heartbeat deadline of any peer (inf: none)."""
-        return min((peer.deadline() for peer in self), default=math.inf)
+        deadline = math.inf  # (a plain loop: the actor asks before every message it takes)
+        for peer in self.slaves.values():
+            if peer.heartbeat_timeout is not None:
+                deadline = min(deadline, peer.last_seen + peer.heartbeat_timeout)
+        master = self.master
+        if master is not None and master.heartbeat_timeout is not None:
+            deadline = min(deadline, master.last_seen + master.heartbeat_timeout)
+        return deadline
 
     def timed_out(self, now: float) -> list[MasterPeer[M] | SlavePeer[S]]:
         """The peers whose heartbeat deadline has passed at `now`."""
