@@ -1,17 +1,24 @@
 """The actor's pure bookkeeping of its peers (`arena.robot.peers`) and its idle turn
-(`arena.robot.idle`): no robot, no actor, plain values as links."""
+(`arena.robot.idle`), with plain values as links; then, through a robot, that the master it
+shows is always the owner its safety state names."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import trio
 import trio.testing
 from trio.testing import MockClock
 
+from arena.drivers.sequence_master import SequenceMaster
+from arena.drivers.sequences import get_sequence
 from arena.robot.events import PeerChanged
+from arena.robot.handle import Robot
 from arena.robot.idle import IdleTurn
 from arena.robot.mailbox import LatestMailbox
+from arena.robot.manager import RobotManager
+from arena.robot.model import LossPolicy, load_robot_model
 from arena.robot.peers import MasterPeer, Peers, SlavePeer
 from arena.robot.snapshot import PeerSnapshot
 
@@ -175,3 +182,47 @@ async def test_an_item_queued_for_a_reader_closes_its_turn_so_nothing_overtakes_
         box.put_notice("n1")  # queued behind, too
         assert handed == [] and not box.turn.is_open
     assert taken == ["n1"] and await box.get() == "t2"
+
+
+# --- through a robot: the record and the safety state's owner never disagree ----------------
+
+
+def owner_and_master(robot: Robot) -> tuple[str | None, str | None]:
+    snapshot = robot.snapshot()
+    return snapshot.owner, None if snapshot.master is None else snapshot.master.peer_id
+
+
+async def test_the_master_shown_is_always_the_owner_the_safety_state_names(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await manager.create_robot("so-arm100", robot_id="owned")
+    alice = await robot.connect_master("alice")
+    assert owner_and_master(robot) == ("alice", "alice")
+    bob = await robot.connect_master("bob", takeover=True)  # displaced by the table's effect
+    assert owner_and_master(robot) == ("bob", "bob") and alice.detached.is_set()
+    await robot.estop("test")  # a live master stays the owner
+    assert owner_and_master(robot) == ("bob", "bob")
+    await bob.lost("unplugged")  # ownership ends: the record goes with it
+    assert owner_and_master(robot) == (None, None) and bob.detached.is_set()
+    await robot.reset()
+    again = await robot.connect_master("bob", heartbeat_timeout=1.0)
+    assert owner_and_master(robot) == ("bob", "bob")
+    await trio.sleep(2.0)  # silent past its heartbeat timeout
+    assert owner_and_master(robot) == (None, None) and again.detached.is_set()
+    await robot.reset()
+    program = await robot.attach_master(SequenceMaster([get_sequence("gentle-wave")]))
+    assert owner_and_master(robot) == (program, program)
+    await robot.estop("test")  # ends a program: the table detaches it
+    assert owner_and_master(robot) == (None, None)
+
+
+async def test_a_lost_master_goes_under_the_hold_policy_too(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    hold = dataclasses.replace(load_robot_model("so-arm100").safety, loss_policy=LossPolicy.HOLD)
+    robot = await manager.create_robot("so-arm100", robot_id="held", policy=hold)
+    alice = await robot.connect_master("alice")
+    await alice.lost("unplugged")
+    assert owner_and_master(robot) == (None, None) and robot.snapshot().mode == "idle"
+    await robot.connect_master("bob")  # nothing left of alice holds the robot
+    assert owner_and_master(robot) == ("bob", "bob")
