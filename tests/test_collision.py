@@ -33,8 +33,8 @@ from arena.robot.core import RobotCore
 from arena.robot.meshes import link_vertices
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
-from arena.session import record_scenario
 from tests.conftest import RunningServer
+from tests.scenarios import record_scenario
 
 MODEL = load_robot_model("so-arm100")
 GUARD = for_model(MODEL)

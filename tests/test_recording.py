@@ -53,9 +53,9 @@ from arena.robot.manager import RobotManager, open_manager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Clamp, Command, CommandResult, JointGoal
 from arena.robot.safety import Mode
-from arena.session import behaviour, record_scenario, replay_session
 from tests.conftest import RecordingSlave
 from tests.hardware import eventually
+from tests.scenarios import behaviour, record_scenario, replay_session
 
 GOLDEN = Path(__file__).resolve().parent.parent / "recordings" / "golden"
 SPEC_SCHEMAS = Path(__file__).resolve().parent.parent / "specs" / "schemas"

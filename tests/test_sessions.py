@@ -22,9 +22,9 @@ from arena.client import ClientTimeout, MasterSession, Refused
 from arena.recording.mcap_file import read_recording
 from arena.robot.actor import Robot
 from arena.robot.motion import Command
-from arena.session import behaviour, record_scenario, replay_session
 from tests.conftest import RunningServer
 from tests.hardware import eventually
+from tests.scenarios import behaviour, record_scenario, replay_session
 
 StartServer = Callable[..., Awaitable[RunningServer]]
 README = Path(__file__).resolve().parent.parent / "README.md"
