@@ -12,9 +12,9 @@ import httpx
 from arena.bench.client import BlockingWebSocket, masked_frame
 from arena.bench.common import (
     Server,
-    _percentile,
-    _robot,
-    _without_client_gc,
+    create_bench_robot,
+    percentile,
+    without_client_gc,
 )
 
 
@@ -46,7 +46,7 @@ async def drive_fleet(
 
     async with httpx.AsyncClient(base_url=server.url) as http:
         for n in range(robots):
-            await _robot(http, f"fleet-{n}")
+            await create_bench_robot(http, f"fleet-{n}")
     run = FleetRun(started=time.perf_counter())
     end = run.started + seconds
 
@@ -148,9 +148,9 @@ async def fleet(
     servers = server if isinstance(server, list) else [server]
     for n in range(robots):
         async with httpx.AsyncClient(base_url=servers[n % len(servers)].url) as http:
-            await _robot(http, f"fleet-{n}")
+            await create_bench_robot(http, f"fleet-{n}")
     return await asyncio.to_thread(
-        _without_client_gc, _lean_fleet, servers, robots, rate, seconds, heartbeat_period
+        without_client_gc, _lean_fleet, servers, robots, rate, seconds, heartbeat_period
     )
 
 
@@ -242,8 +242,8 @@ def _lean_fleet(
             master.close()
             slave.close()
     return {
-        "fleet_p50_us": _percentile(latencies, 0.5) * 1e6,
-        "fleet_p99_us": _percentile(latencies, 0.99) * 1e6,
+        "fleet_p50_us": percentile(latencies, 0.5) * 1e6,
+        "fleet_p99_us": percentile(latencies, 0.99) * 1e6,
         "fleet_server_cpu_percent": 100 * cpu_used / elapsed,
         "fleet_server_rss_mib": sum(server.rss_mib() for server in servers),
         "fleet_commands_sent": sent,
@@ -280,10 +280,10 @@ async def soak(
         "soak_commands_sent": run.sent,
         "soak_commands_unacknowledged": run.sent - run.acked,
         "soak_commands_refused": run.refused,
-        "soak_first_p50_us": _percentile(first, 0.5) * 1e6,
-        "soak_first_p99_us": _percentile(first, 0.99) * 1e6,
-        "soak_last_p50_us": _percentile(last, 0.5) * 1e6,
-        "soak_last_p99_us": _percentile(last, 0.99) * 1e6,
+        "soak_first_p50_us": percentile(first, 0.5) * 1e6,
+        "soak_first_p99_us": percentile(first, 0.99) * 1e6,
+        "soak_last_p50_us": percentile(last, 0.5) * 1e6,
+        "soak_last_p99_us": percentile(last, 0.99) * 1e6,
         "soak_rss_warm_mib": warm[2],
         "soak_rss_end_mib": rss_end,
         "soak_server_cpu_percent": 100 * (cpu1 - cpu0) / (t1 - t0),
