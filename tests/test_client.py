@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import trio
 
-from arena.client import Arena, ArenaClientError, ViewerSession
+from arena.client import Arena, ArenaClientError, ViewerSession, messages
+from arena.protocol.messages import decode_master, decode_slave, encode
 from tests.conftest import RunningServer
 
 
@@ -47,3 +48,21 @@ def test_an_unreachable_server_is_an_arena_error_too() -> None:
     with Arena("http://127.0.0.1:9") as arena, pytest.raises(ArenaClientError) as raised:
         arena.robots()
     assert raised.value.code == "UNREACHABLE"
+
+
+def test_the_clients_messages_are_the_protocols_own() -> None:
+    """What a client sends is made of the protocol's structs: the server's decoders read each
+    back as it was made."""
+    command = messages.command({"Rotation": 1, "Elbow": -2.5}, duration=300, metadata={"a": 1})
+    assert decode_master(encode(command)) == command
+    for message in (messages.heartbeat(), messages.estop("why"), messages.reset()):
+        assert decode_master(encode(message)) == message
+    release = messages.release()
+    assert decode_master(encode(release)) == release
+    report = messages.joint_states({"Rotation": 1.5})
+    assert decode_slave(encode(report)) == report
+    assert messages.command_message({"Rotation": 1})["data"]["joints"] == [
+        {"name": "Rotation", "value": 1.0}
+    ]
+    with pytest.raises(ValueError, match="'Rotation'"):
+        messages.joint_states({"Rotation": float("nan")})

@@ -216,6 +216,11 @@ async def test_a_value_that_is_no_finite_number_is_refused_before_sending(
         assert (await master.command({"Rotation": 1}))["data"]["status"] == "accepted"
         with pytest.raises(ValueError):  # not in the other fields either
             await master.command({"Rotation": 2}, duration=float("nan"))
+        with pytest.raises(ValueError, match=r"metadata\.note"):
+            await master.command({"Rotation": 2}, metadata={"note": [float("inf")]})
+        with pytest.raises(ValueError, match="speed"):  # a field the protocol does not have
+            await master.command({"Rotation": 2}, speed=5)
+        assert (await master.command({"Rotation": 2}))["data"]["status"] == "accepted"
 
 
 async def test_a_second_master_session_is_refused_with_the_servers_code(
