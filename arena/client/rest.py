@@ -45,6 +45,10 @@ class Endpoints(Generic[T]):
         """Attach a slave driver (`{"type": "mock-slave"}`, `usb-slave`, `websocket-slave`)."""
         return self._call("POST", f"/api/robots/{quote(robot_id)}/slaves", dict(config))
 
+    def detach_slave(self, robot_id: str, slave_id: str) -> T:
+        """Detach one slave (a slave that just leaves counts as lost, which e-stops)."""
+        return self._call("DELETE", f"/api/robots/{quote(robot_id)}/slaves/{quote(slave_id)}")
+
     def attach_master(self, robot_id: str, config: Mapping[str, Any]) -> T:
         """Attach a master driver (`mock-sequence`, `replay`, `usb-master`, `remote-server`)."""
         return self._call("POST", f"/api/robots/{quote(robot_id)}/master", dict(config))
