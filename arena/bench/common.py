@@ -21,7 +21,16 @@ from typing import Any, TypeVar
 import httpx
 
 from arena.bench.client import BlockingWebSocket
-from arena.protocol.messages import CommandData, CommandMessage, JointValue, encode
+from arena.protocol.messages import (
+    CommandData,
+    CommandMessage,
+    EStopMessage,
+    HeartbeatMessage,
+    JointValue,
+    ReasonData,
+    ResetMessage,
+    encode,
+)
 from arena.robot.model import BUILTIN_TYPES_DIR, TYPES_PATH_ENV
 
 BENCH_TYPE = "so-arm100-bench"
@@ -176,12 +185,27 @@ ESTOP_MARK = '"type":"estop"'
 RESET_MARK = '"type":"reset"'
 
 
+# The messages the benchmarks send, made with the protocol's structs and encoder (as every
+# client's are) and without a timestamp, which the server does not need: made before a clock
+# starts, they cost the measurement nothing.
+
+
+def joints_text(joints: dict[str, float]) -> str:
+    """A master's `command` moving `joints` (degrees), as JSON text."""
+    entries = [JointValue(name, value) for name, value in joints.items()]
+    return encode(CommandMessage(data=CommandData(joints=entries)))
+
+
 def command_text(i: int) -> str:
     """The `i`th command of a relay: tiny alternating steps of two joints, always inside the
     velocity budget, so that each goes out to the slave at once."""
     value = (i % 2) * 0.001
-    joints = [JointValue("Rotation", value), JointValue("Elbow", -value)]
-    return encode(CommandMessage(data=CommandData(joints=joints)))
+    return joints_text({"Rotation": value, "Elbow": -value})
+
+
+HEARTBEAT_TEXT = encode(HeartbeatMessage())
+RESET_TEXT = encode(ResetMessage())
+ESTOP_TEXT = encode(EStopMessage(data=ReasonData(reason="bench")))
 
 
 def time_to(

@@ -16,7 +16,9 @@ import httpx
 from arena.bench.client import BlockingHttp, BlockingWebSocket, masked_frame
 from arena.bench.common import (
     ESTOP_MARK,
+    ESTOP_TEXT,
     RESET_MARK,
+    RESET_TEXT,
     Server,
     create_bench_robot,
     percentile,
@@ -134,8 +136,8 @@ def _lean_estop_over_websocket(server: Server, trials: int, warm_up: int = 10) -
     """A master's `estop` message to the slave's notice: the e-stop that skips HTTP."""
     slave = BlockingWebSocket(server.ws + "/ws/slave/stop-ws")
     master = BlockingWebSocket(server.ws + "/ws/master/stop-ws")
-    stop = masked_frame('{"type": "estop", "data": {"reason": "bench"}}')
-    reset = masked_frame('{"type": "reset"}')
+    stop = masked_frame(ESTOP_TEXT)
+    reset = masked_frame(RESET_TEXT)
     noticed = []
     try:
         for trial in range(warm_up + trials):

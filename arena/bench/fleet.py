@@ -11,8 +11,10 @@ import httpx
 
 from arena.bench.client import BlockingWebSocket, masked_frame
 from arena.bench.common import (
+    HEARTBEAT_TEXT,
     Server,
     create_bench_robot,
+    joints_text,
     percentile,
     without_client_gc,
 )
@@ -91,7 +93,7 @@ async def drive_fleet(
             async def heartbeats() -> None:  # a silent slave is dropped (and e-stops)
                 while True:
                     await asyncio.sleep(10)
-                    await slave.send('{"type": "heartbeat"}')
+                    await slave.send(HEARTBEAT_TEXT)
 
             tasks = [
                 asyncio.create_task(count_acks()),
@@ -105,14 +107,7 @@ async def drive_fleet(
                 value = round((i % 2) * 0.001 + n * 1e-6, 9)
                 sent_at[value] = time.perf_counter()
                 counts["sent"] += 1
-                await master.send(
-                    json.dumps(
-                        {
-                            "type": "command",
-                            "data": {"joints": [{"name": "Rotation", "value": value}]},
-                        }
-                    )
-                )
+                await master.send(joints_text({"Rotation": value}))
                 # A fixed schedule (no drift); a late generator skips, it never bursts.
                 next_at = max(next_at + 1 / rate, time.perf_counter())
                 await asyncio.sleep(next_at - time.perf_counter())
@@ -174,18 +169,8 @@ def _lean_fleet(
             selector.register(ws.sock, selectors.EVENT_READ, (n, ws, is_slave))
     # Two alternating values per robot, unique across robots: the slave's value names the send.
     values = [(round(n * 1e-6, 9), round(0.001 + n * 1e-6, 9)) for n in range(robots)]
-    frames = [
-        tuple(
-            masked_frame(
-                json.dumps(
-                    {"type": "command", "data": {"joints": [{"name": "Rotation", "value": v}]}}
-                )
-            )
-            for v in pair
-        )
-        for pair in values
-    ]
-    heartbeat = masked_frame('{"type": "heartbeat"}')
+    frames = [tuple(masked_frame(joints_text({"Rotation": v})) for v in pair) for pair in values]
+    heartbeat = masked_frame(HEARTBEAT_TEXT)
     heartbeats = 0
     sent_at: list[dict[float, float]] = [{} for _ in range(robots)]
     latencies: list[float] = []
