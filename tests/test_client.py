@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import trio
 
-from arena.client import Arena, ArenaClientError, ViewerSession, messages
+from arena.client import Arena, ArenaClientError, ViewerSession, handshake, messages
 from arena.protocol.messages import decode_master, decode_slave, encode
 from tests.conftest import RunningServer
 
@@ -66,3 +66,18 @@ def test_the_clients_messages_are_the_protocols_own() -> None:
     ]
     with pytest.raises(ValueError, match="'Rotation'"):
         messages.joint_states({"Rotation": float("nan")})
+
+
+def test_the_raw_clients_handshake_is_checked_both_ways() -> None:
+    """The handshake the lean and raw clients share: a request a server reads, answers told
+    apart (101 or a refusal), the first frames kept."""
+    request = handshake.upgrade_request("127.0.0.1", 8080, "/ws/slave/arm?id=a", key="k==")
+    lines = request.decode().split("\r\n")
+    assert lines[0] == "GET /ws/slave/arm?id=a HTTP/1.1" and "Host: 127.0.0.1:8080" in lines
+    assert "Sec-WebSocket-Key: k==" in lines and request.endswith(b"\r\n\r\n")
+    assert handshake.split_answer(b"HTTP/1.1 101 Switching Protocols\r\nUpgrade: w") is None
+    head, rest = handshake.split_answer(b"HTTP/1.1 101 OK\r\nA: b\r\n\r\n\x81\x00") or ((), b"")
+    assert head == b"HTTP/1.1 101 OK\r\nA: b" and rest == b"\x81\x00"
+    assert handshake.refusal(head) is None
+    assert handshake.refusal(b"HTTP/1.1 403 Forbidden\r\nX: 101") == "HTTP/1.1 403 Forbidden"
+    assert handshake.refusal(b"") == "no answer"
