@@ -17,7 +17,8 @@ its loss policy (an e-stop by default).
 
 The modules: `errors` (the exceptions), `messages` (URLs and the messages a client sends, made
 with the protocol's own structs), `session` (one WebSocket held open: `Session`, `Backoff`),
-`master`, `slave` and `viewer` (the three endpoints), `rest` (`Arena`, `AsyncArena`).
+`master`, `slave` and `viewer` (the three endpoints), `rest` (`Arena`, `AsyncArena`), and
+`handshake` (the WebSocket opening handshake without I/O, for clients that own their socket).
 """
 
 from arena.client.errors import ArenaClientError, ClientTimeout, Disconnected, Refused
