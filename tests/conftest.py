@@ -47,6 +47,28 @@ def need(module: str, extra: str) -> ModuleType:
         missing(f"needs {module} ({exc}): pip install 'arena[{extra}]'")
 
 
+async def eventually(
+    check: Callable[[], bool | Awaitable[bool]], timeout: float = 30.0, what: str = "condition"
+) -> None:
+    """Wait until `check()` holds (it may be async, such as a question to a server); fail the
+    test after `timeout` seconds (a deadline only a broken feature reaches, never a slow
+    machine). The one waiting helper of the tests.
+
+    It polls on trio's clock (`trio.sleep`), so under `MockClock(autojump_threshold=0)` it
+    takes no real time and its deadline is virtual. Wait for an event instead where there is
+    one to wait for (`trio.Event`, a session's `wait_for`, the next message).
+    """
+    with trio.move_on_after(timeout):
+        while True:
+            held = check()
+            if inspect.isawaitable(held):
+                held = await held
+            if held:
+                return
+            await trio.sleep(0.01)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
 def shared_dir() -> Path | None:
     """The `shared/` folder beside the repository (reference data, the benchmark's floor):
     `ARENA_SHARED` if set, else beside this checkout (as it was reached, and with symlinks

@@ -14,7 +14,7 @@ from trio.testing import MockClock
 from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import get_sequence
 from arena.robot.motion import Command
-from arena.session import record_scenario
+from tests.scenarios import record_scenario
 
 GOLDEN = Path(__file__).resolve().parent.parent / "recordings" / "golden"
 

@@ -2,12 +2,9 @@
 
 from __future__ import annotations
 
-import inspect
-from collections.abc import Awaitable, Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 from unittest import mock
-
-import trio
 
 from arena.drivers import servo_arm
 from arena.drivers.usb_slave import UsbSlave
@@ -20,6 +17,7 @@ from arena.protocol.rest import UsbSlaveBody
 from arena.robot.handle import Robot
 from arena.robot.model import RobotModel
 from arena.server.drivers import usb_slave_config
+from tests.conftest import eventually
 
 # The reply timeout's wall-clock part. A starved simulator cannot trip it: the buses of a
 # running simulator wait for it too (`PtySimBus.servo_bus`); only servos silent on purpose time out.
@@ -60,23 +58,6 @@ def usb_slave(
     return UsbSlave(
         usb_slave_config(body), model, calibration, settings=settings, open_bus=open_test_bus
     )
-
-
-async def eventually(
-    check: Callable[[], bool | Awaitable[bool]], timeout: float = 30.0, what: str = "condition"
-) -> None:
-    """Wait until `check()` holds (it may be async, such as a question to a server); fail the
-    test after `timeout` seconds (a deadline only a broken feature reaches, never a slow
-    machine)."""
-    with trio.move_on_after(timeout):
-        while True:
-            held = check()
-            if inspect.isawaitable(held):
-                held = await held
-            if held:
-                return
-            await trio.sleep(0.01)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 async def wait_joined(robot: Robot) -> None:

@@ -1,7 +1,9 @@
 """A bare WebSocket client on a TCP socket, for what polite clients never do.
 
 It can stop reading (a slow consumer with a tiny receive buffer), cut the connection without a
-close frame, and send frames no library would send (text that is not UTF-8).
+close frame, and send frames no library would send (text that is not UTF-8). That is why it
+stays raw beside `arena.client`, whose sessions never misbehave so; it uses their handshake
+(`arena.client.handshake`) and the protocol's frame codec (`ws_frames`).
 """
 
 from __future__ import annotations
@@ -13,10 +15,10 @@ from dataclasses import dataclass, field
 
 import trio
 
-from arena.protocol.ws_frames import encode_frame, split_unmasked
+from arena.client.handshake import refusal, split_answer, upgrade_request
+from arena.protocol.ws_frames import OP_CLOSE, OP_TEXT, encode_frame, split_unmasked
 
-OP_TEXT = 0x1
-OP_CLOSE = 0x8
+__all__ = ["OP_CLOSE", "OP_TEXT", "Frame", "RawWebSocket"]
 
 
 @dataclass
@@ -54,18 +56,14 @@ class RawWebSocket:
             sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, receive_buffer)
         await sock.connect((host, int(port)))
         connection = cls(trio.SocketStream(sock))
-        request = (
-            f"GET {path} HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\n"
-            "Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
-            "Sec-WebSocket-Version: 13\r\n\r\n"
-        )
-        await connection.stream.send_all(request.encode())
-        while b"\r\n\r\n" not in connection.buffer:
+        await connection.stream.send_all(upgrade_request(host, int(port), path))
+        while (answer := split_answer(bytes(connection.buffer))) is None:
             if not await connection._fill():
                 break
-        head, _, rest = bytes(connection.buffer).partition(b"\r\n\r\n")
-        if not head.startswith(b"HTTP/1.1 101"):
-            raise ConnectionError(f"upgrade refused: {head[:80]!r}")
+        head, rest = answer or (bytes(connection.buffer), b"")
+        refused = refusal(head)
+        if refused is not None:
+            raise ConnectionError(f"upgrade refused: {refused[:80]!r}")
         connection.buffer = bytearray(rest)
         return connection
 

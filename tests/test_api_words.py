@@ -26,7 +26,7 @@ from arena.protocol.validation import nearest
 from arena.server import openapi
 from arena.server.base import STATUS_FOR
 from arena.server.ws.connection import CLOSE_FOR
-from tests.conftest import RunningServer
+from tests.conftest import RunningServer, eventually
 from tests.test_server_ws import command, receive
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -329,9 +329,11 @@ async def test_replay_refusals_name_the_field(server: RunningServer) -> None:
                 f"/api/robots/{robot}/joints", json={"joints": [{"name": "Rotation", "value": 9}]}
             )
             assert moved.status_code == 200
-        with trio.fail_after(30):  # the recorder's next batch opens the file
-            while not (await http.get("/api/recordings")).json()["recorder"]["file"]:
-                await trio.sleep(0.02)
+
+        async def file_open() -> bool:  # the recorder's next batch opens the file
+            return bool((await http.get("/api/recordings")).json()["recorder"]["file"])
+
+        await eventually(file_open, what="the recording's file")
         name = (await http.post("/api/recordings/current/stop")).json()["stopped"]
         assert name
         cases: list[tuple[dict[str, Any], str, list[str]]] = [

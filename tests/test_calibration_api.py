@@ -15,8 +15,8 @@ from arena.feetech.bus import PortInfo, find_adapter, port_error
 from arena.feetech.calibration import Calibration
 from arena.feetech.sim_pty import PtySimBus
 from arena.protocol.errors import ArenaError, ErrorCode
-from tests.conftest import RunningServer
-from tests.hardware import eventually, running_sim, servo_goals, servo_torque
+from tests.conftest import RunningServer, eventually
+from tests.hardware import running_sim, servo_goals, servo_torque
 
 StartServer = Callable[..., Awaitable[RunningServer]]
 

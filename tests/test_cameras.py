@@ -30,8 +30,7 @@ from arena.sensors import camera as camera_module
 from arena.sensors.camera import Cameras, CameraSpec
 from arena.sensors.sources import JpegEncoder, pattern_image, read_pattern_counter
 from arena.server import sensors_api
-from tests.conftest import RunningServer
-from tests.hardware import eventually
+from tests.conftest import RunningServer, eventually
 
 TEST_CAMERA = {"name": "front", "source": "test-pattern", "fps": 30, "width": 320, "height": 240}
 

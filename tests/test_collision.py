@@ -32,8 +32,8 @@ from arena.robot.meshes import link_vertices
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
 from arena.robot.workspace import Box, Workspace, workspace_from_json
-from arena.session import record_scenario
 from tests.conftest import RunningServer
+from tests.scenarios import record_scenario
 
 MODEL = load_robot_model("so-arm100")
 GUARD = for_model(MODEL)

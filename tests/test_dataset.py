@@ -27,9 +27,8 @@ from arena.robot.manager import open_manager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
 from arena.sensors.sources import read_pattern_counter
-from arena.session import record_scenario
-from tests.conftest import RecordingSlave, RunningServer, need
-from tests.hardware import eventually
+from tests.conftest import RecordingSlave, RunningServer, eventually, need
+from tests.scenarios import record_scenario
 from tests.test_cameras import TEST_CAMERA, jpeg_rgb
 from tests.test_recording import session_scenario
 

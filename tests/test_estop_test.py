@@ -29,9 +29,9 @@ from arena.feetech.sim_pty import PtySimBus
 from arena.recording.mcap_file import RecordedMessage, read_recording
 from arena.robot import core
 from arena.robot.safety import Allowed, Event, MasterCommand, Mode, Outcome, SafetyState
-from arena.session import record_scenario
 from tests.conftest import RunningServer
 from tests.hardware import running_sim, servo_torque
+from tests.scenarios import record_scenario
 from tests.test_recording import session_scenario
 
 StartServer = Callable[..., Awaitable[RunningServer]]

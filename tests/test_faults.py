@@ -17,7 +17,7 @@ from arena.recording.mcap_file import Recording, read_recording
 from arena.robot.model import TYPES_PATH_ENV
 from arena.server import drivers as server_drivers
 from arena.server import recordings_api
-from tests.conftest import RunningServer
+from tests.conftest import RunningServer, eventually
 from tests.raw_websocket import OP_TEXT, Frame, RawWebSocket
 from tests.test_server_ws import command, receive
 
@@ -241,9 +241,7 @@ async def test_a_flapping_master(server: RunningServer) -> None:
         else:
             assert reply["data"]["code"] == "ESTOPPED", reply
         await master.aclose()
-        with trio.fail_after(30):
-            while robot.snapshot().owner is not None:
-                await trio.sleep(0.01)
+        await eventually(lambda: robot.snapshot().owner is None, what="the master's loss")
     snapshot = robot.snapshot()
     assert str(snapshot.mode) == "estopped"
     assert {j.name: round(j.goal or 0, 1) for j in snapshot.joints} == {

@@ -29,8 +29,7 @@ from arena.protocol.errors import ArenaError
 from arena.protocol.ws_frames import UpgradeRequest, WebSocketClosed
 from arena.recording.mcap_file import read_recording
 from arena.server import fleet_api
-from tests.conftest import RunningServer, need
-from tests.hardware import eventually
+from tests.conftest import RunningServer, eventually, need
 
 need("zenoh", "fleet")
 

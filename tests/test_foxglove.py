@@ -42,8 +42,8 @@ from arena.robot.meshes import stl_vertices, visuals
 from arena.robot.model import load_robot_model
 from arena.sensors.sources import read_pattern_counter
 from arena.server.config import ServerConfig
-from arena.session import record_scenario
 from tests.conftest import RunningServer
+from tests.scenarios import record_scenario
 from tests.test_cameras import jpeg_rgb
 from tests.test_recording import session_scenario
 

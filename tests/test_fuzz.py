@@ -19,7 +19,7 @@ from trio_websocket import ConnectionClosed, open_websocket_url
 
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.messages import decode_master, decode_slave
-from tests.conftest import RunningServer
+from tests.conftest import RunningServer, eventually
 from tests.raw_websocket import OP_TEXT, RawWebSocket
 from tests.test_server_ws import command, receive
 
@@ -234,9 +234,7 @@ async def test_a_frame_over_the_socket_cap_closes_it_and_the_master_is_lost(
         assert closed.value.reason.code == 1009  # MESSAGE_TOO_BIG
     robot = server.app.manager.get("demo-arm")
     # The connection is gone, so the master is lost (the loss policy applies).
-    with trio.fail_after(30):
-        while robot.snapshot().master is not None:
-            await trio.sleep(0.05)
+    await eventually(lambda: robot.snapshot().master is None, what="the master's loss")
     async with server.client() as http:
         status = (await http.get("/api/robots/demo-arm")).json()
     assert status["state"] == "estopped" and "lost" in status["estop_reason"]
@@ -268,9 +266,7 @@ async def test_text_that_is_not_utf8_fails_the_connection(server: RunningServer,
     assert frame.payload[2:] == b"Text frames must be UTF-8."
     await raw.aclose()
     robot = server.app.manager.get("demo-arm")
-    with trio.fail_after(30):
-        while robot.snapshot().owner is not None:
-            await trio.sleep(0.02)
+    await eventually(lambda: robot.snapshot().owner is None, what="the peer's leaving")
     if role == "viewer":
         assert intent(server) == before
     else:

@@ -8,8 +8,8 @@ import pytest
 from trio.testing import MockClock
 
 from arena.recording.mcap_file import read_recording
-from arena.session import behaviour, replay_session
 from tests.golden import GOLDEN, SCENARIOS
+from tests.scenarios import behaviour, replay_session
 
 
 @pytest.mark.parametrize("name", sorted(SCENARIOS))

@@ -14,7 +14,7 @@ from arena.client import AsyncArena, MasterSession, Refused
 from arena.protocol import messages as wire
 from arena.robot.groups import GroupRegistry
 from arena.robot.manager import RobotManager
-from tests.conftest import RunningServer
+from tests.conftest import RunningServer, eventually
 from tests.test_server_ws import receive
 
 StartServer = Callable[..., Awaitable[RunningServer]]
@@ -103,9 +103,7 @@ async def test_group_claims_are_whole_or_nothing_and_bad_groups_are_refused(
         async with open_websocket_url(server.ws_url + "/ws/master/line") as group_master:
             refusal = json.loads(await group_master.get_message())
             assert refusal["data"]["code"] == "MASTER_ACTIVE"
-        with trio.fail_after(30):
-            while server.app.manager.get("left").snapshot().owner is not None:
-                await trio.sleep(0.02)
+        await eventually(lambda: server.app.manager.get("left").snapshot().owner is None)
         assert str(server.app.manager.get("left").snapshot().mode) == "idle"
     await arena.delete_group("line")
     assert (await arena.groups())["groups"] == []

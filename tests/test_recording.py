@@ -14,7 +14,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from functools import partial
 from pathlib import Path
 from typing import IO, Any
@@ -53,9 +53,8 @@ from arena.robot.manager import RobotManager, open_manager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Clamp, Command, CommandResult, JointGoal
 from arena.robot.safety import Mode
-from arena.session import behaviour, record_scenario, replay_session
-from tests.conftest import RecordingSlave
-from tests.hardware import eventually
+from tests.conftest import RecordingSlave, eventually
+from tests.scenarios import behaviour, record_scenario, replay_session
 
 GOLDEN = Path(__file__).resolve().parent.parent / "recordings" / "golden"
 SPEC_SCHEMAS = Path(__file__).resolve().parent.parent / "specs" / "schemas"
@@ -587,21 +586,16 @@ async def test_records_reach_the_disk_within_a_flush_interval_when_the_robot_goe
     real_write = recorder._write
     recorder._write = write  # type: ignore[method-assign]
 
-    async def until(condition: Callable[[], bool]) -> None:
-        with trio.fail_after(30):
-            while not condition():
-                await trio.sleep(0.01)
-
     async with trio.open_nursery() as nursery:
         await nursery.start(recorder.run)
         async with open_manager() as manager:
             manager.on_create.append(recorder.follow)
             robot = await manager.create_robot("so-arm100", robot_id="quiet")
             await robot.command(Command.of({"Rotation": 0.01}))
-            await until(lambda: any(on_disk == 1 for _, _, on_disk in handed))
+            await eventually(lambda: any(on_disk == 1 for _, _, on_disk in handed))
             first = len(handed)
             await robot.command(Command.of({"Rotation": 0.02}))
-            await until(lambda: any(on_disk == 2 for _, _, on_disk in handed))
+            await eventually(lambda: any(on_disk == 2 for _, _, on_disk in handed))
         nursery.cancel_scope.cancel()
     # The batch holding the first command was flushed at once (the first flush is due).
     flushed_first = next(i for i, (_, _, on_disk) in enumerate(handed) if on_disk == 1)

@@ -11,7 +11,7 @@ import pytest
 import trio
 
 from arena.client import AsyncArena, Backoff, MasterSession, Refused, Session
-from tests.conftest import RunningServer
+from tests.conftest import RunningServer, eventually
 
 StartServer = Callable[..., Awaitable[RunningServer]]
 FAST = {"reconnectInitial": 0.05, "reconnectMax": 0.2}
@@ -44,12 +44,6 @@ def real(server: RunningServer, robot_id: str, joint: str) -> float | None:
     return server.app.manager.get(robot_id).snapshot().joint(joint).real_value
 
 
-async def until(check: Callable[[], bool], timeout: float = 10.0) -> None:
-    with trio.fail_after(timeout):
-        while not check():
-            await trio.sleep(0.02)
-
-
 async def test_an_operator_drives_an_arm_on_another_server_through_a_relay(
     start_server: StartServer,
 ) -> None:
@@ -58,8 +52,9 @@ async def test_an_operator_drives_an_arm_on_another_server_through_a_relay(
         ack = await operator.command({"Rotation": 12, "Elbow": -8})
         assert ack["data"]["status"] in ("accepted", "clamped"), ack
         # B's simulated arm gets there, and the operator sees B's real values on A.
-        await until(lambda: b.app.manager.get("physical").snapshot().joint("Rotation").goal == 12)
-        await until(lambda: abs((real(a, "avatar", "Rotation") or 0) - 12) < 0.01)
+        physical = b.app.manager.get("physical")
+        await eventually(lambda: physical.snapshot().joint("Rotation").goal == 12)
+        await eventually(lambda: abs((real(a, "avatar", "Rotation") or 0) - 12) < 0.01)
         await operator.wait_for(lambda m: abs((m.real("Elbow") or 0) + 8) < 0.01)
     # Each server shows who holds what.
     relay_robot = r.app.manager.get("relay-arm").snapshot()
@@ -73,19 +68,19 @@ async def test_estop_travels_down_the_chain_and_reset_brings_it_back(
     a, r, b = await relay_chain(start_server)
     async with MasterSession.open(a.url, "avatar") as operator, AsyncArena(a.url) as rest_a:
         await operator.command({"Rotation": 5})
-        await until(lambda: real(b, "physical", "Rotation") == 5)
+        await eventually(lambda: real(b, "physical", "Rotation") == 5)
         await rest_a.estop("avatar", "operator pressed stop")
-        await until(lambda: str(b.app.manager.get("physical").snapshot().mode) == "estopped")
+        await eventually(lambda: str(b.app.manager.get("physical").snapshot().mode) == "estopped")
         assert str(r.app.manager.get("relay-arm").snapshot().mode) == "estopped"
         with pytest.raises(Refused) as refused:
             await operator.command({"Rotation": 9})
         assert refused.value.code == "ESTOPPED"
         await rest_a.reset("avatar")
         # The reset travels too, because the e-stops below were raised by the chain itself.
-        await until(lambda: str(b.app.manager.get("physical").snapshot().mode) != "estopped")
-        await until(lambda: str(r.app.manager.get("relay-arm").snapshot().mode) != "estopped")
+        await eventually(lambda: str(b.app.manager.get("physical").snapshot().mode) != "estopped")
+        await eventually(lambda: str(r.app.manager.get("relay-arm").snapshot().mode) != "estopped")
         assert (await operator.command({"Rotation": 9}))["data"]["status"] == "accepted"
-        await until(lambda: real(b, "physical", "Rotation") == 9)
+        await eventually(lambda: real(b, "physical", "Rotation") == 9)
 
 
 async def test_the_relay_stops_and_restarts_mid_motion(start_server: StartServer) -> None:
@@ -93,14 +88,14 @@ async def test_the_relay_stops_and_restarts_mid_motion(start_server: StartServer
     port = int(r.url.rsplit(":", 1)[1])
     async with MasterSession.open(a.url, "avatar") as operator:
         await operator.command({"Rotation": 3})
-        await until(lambda: real(b, "physical", "Rotation") == 3)
+        await eventually(lambda: real(b, "physical", "Rotation") == 3)
         await operator.command({"Rotation": 25})  # a long move: the relay goes mid-way
         r.stop.set()
         with trio.fail_after(10):
             await r.done.wait()
         # Both ends apply their own loss policy at once: e-stop.
-        await until(lambda: str(a.app.manager.get("avatar").snapshot().mode) == "estopped")
-        await until(lambda: str(b.app.manager.get("physical").snapshot().mode) == "estopped")
+        await eventually(lambda: str(a.app.manager.get("avatar").snapshot().mode) == "estopped")
+        await eventually(lambda: str(b.app.manager.get("physical").snapshot().mode) == "estopped")
         frozen = b.app.manager.get("physical").snapshot().joint("Rotation").goal
         avatar = a.app.manager.get("avatar").snapshot()
         assert not avatar.slaves[0].connected  # shown as disconnected, still attached
@@ -110,9 +105,9 @@ async def test_the_relay_stops_and_restarts_mid_motion(start_server: StartServer
             await relay.create_robot("relay-arm")
         # Both links attached to the new relay robot: an attempt that came before the robot
         # existed (refused with 4404, one more e-stop) is over before the resets below.
-        await until(lambda: a.app.manager.get("avatar").snapshot().slaves[0].connected)
-        await until(lambda: len(r2.app.manager.get("relay-arm").snapshot().slaves) == 1)
-        await until(lambda: r2.app.manager.get("relay-arm").snapshot().master is not None)
+        await eventually(lambda: a.app.manager.get("avatar").snapshot().slaves[0].connected)
+        await eventually(lambda: len(r2.app.manager.get("relay-arm").snapshot().slaves) == 1)
+        await eventually(lambda: r2.app.manager.get("relay-arm").snapshot().master is not None)
         await trio.sleep(0.3)
         # Nothing queued during the outage ran: B has not moved since it stopped.
         assert b.app.manager.get("physical").snapshot().joint("Rotation").goal == frozen
@@ -123,7 +118,7 @@ async def test_the_relay_stops_and_restarts_mid_motion(start_server: StartServer
             "accepted",
             "clamped",
         )
-        await until(lambda: real(b, "physical", "Rotation") == 7)
+        await eventually(lambda: real(b, "physical", "Rotation") == 7)
 
 
 async def test_attaching_to_a_wrong_remote_is_refused_at_once(
@@ -154,7 +149,7 @@ async def test_attaching_to_a_wrong_remote_is_refused_at_once(
             "apiKey": "relay-key",
         }
         assert (await http.post("/api/robots/avatar/slaves", json=good)).status_code == 201
-    await until(lambda: r.app.manager.get("relay-arm").snapshot().master is not None)
+    await eventually(lambda: r.app.manager.get("relay-arm").snapshot().master is not None)
 
 
 @pytest.mark.parametrize("seed", [1, 2])
@@ -189,17 +184,17 @@ async def test_detaching_the_websocket_slave_releases_the_robot_over_there(
     relay = r.app.manager.get("relay-arm")
     async with MasterSession.open(a.url, "avatar") as operator:
         await operator.command({"Rotation": 6})
-        await until(lambda: real(b, "physical", "Rotation") == 6)
+        await eventually(lambda: real(b, "physical", "Rotation") == 6)
     async with AsyncArena(a.url) as rest_a:
         (slave,) = (await rest_a.robot("avatar"))["slaves"]
         await rest_a._call("DELETE", f"/api/robots/avatar/slaves/{slave['id']}")
     # A normal end: the relay's robot is handed back, holding, not lost (e-stopped).
-    await until(lambda: relay.snapshot().master is None)
+    await eventually(lambda: relay.snapshot().master is None)
     assert str(relay.snapshot().mode) == "idle" and relay.estop_count == 0
     # A barrier instead of a pause: a later command through the relay follows, on the same
     # connection, whatever the release sent over there; once it has arrived, so has that.
     physical = b.app.manager.get("physical")
     async with MasterSession.open(r.url, "relay-arm") as later:
         await later.command({"Rotation": 7})
-        await until(lambda: physical.snapshot().joint("Rotation").goal == 7)
+        await eventually(lambda: physical.snapshot().joint("Rotation").goal == 7)
     assert str(physical.snapshot().mode) != "estopped"

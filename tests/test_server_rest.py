@@ -15,16 +15,10 @@ import trio
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.robot.model import BUILTIN_TYPES_DIR, TYPES_PATH_ENV
 from arena.server.config import ServerConfig, load_config
-from tests.conftest import RunningServer
+from tests.conftest import RunningServer, eventually
 
 StartServer = Callable[..., Awaitable[RunningServer]]
 JSON = {"Content-Type": "application/json"}
-
-
-async def wait_for(predicate: Callable[[], Awaitable[bool]], timeout: float = 5.0) -> None:
-    with trio.fail_after(timeout):
-        while not await predicate():
-            await trio.sleep(0.01)
 
 
 async def test_the_seed_curl_table(server: RunningServer) -> None:
@@ -66,7 +60,7 @@ async def test_the_seed_curl_table(server: RunningServer) -> None:
             joints = (await http.get("/api/robots/demo-arm/joints")).json()
             return any(j["real_value"] not in (None, 0.0) for j in joints)
 
-        await wait_for(moved)
+        await eventually(moved)
         stopped = (await http.post("/api/robots/demo-arm/stop-sequence")).json()
         assert stopped["stopped"] is True
         assert (await http.get("/api/robots/demo-arm/status")).json()["state"] == "idle"
@@ -98,7 +92,7 @@ async def test_estop_reset_and_manual_control(server: RunningServer) -> None:
             joints = {j["name"]: j for j in (await http.get("/api/robots/demo-arm/joints")).json()}
             return joints["Rotation"]["real_value"] == 45 and joints["Pitch"]["real_value"] == -30
 
-        await wait_for(followed)
+        await eventually(followed)
         stopped = await http.post("/api/robots/demo-arm/estop", json={"reason": "test button"})
         assert stopped.json()["state"] == "estopped"
         assert stopped.json()["estop_reason"] == "test button"
@@ -459,7 +453,7 @@ async def test_recordings_over_rest(server: RunningServer) -> None:
             joints = (await http.get("/api/robots/demo-arm/joints")).json()
             return joints[0]["real_value"] == 20
 
-        await wait_for(replayed)
+        await eventually(replayed)
         for bad in ("..%2F..%2Fetc%2Fpasswd", "nope.mcap", ".hidden.mcap"):
             response = await http.get(f"/api/recordings/{bad}")
             assert response.status_code == 404, bad
@@ -475,8 +469,7 @@ async def test_no_record_starts_idle(start_server: StartServer) -> None:
             "/api/robots/demo-arm/joints", json={"joints": [{"name": "Rotation", "value": 20}]}
         )
         recorder = server.app.recorder
-        with trio.fail_after(30):  # the recorder has taken (and, paused, dropped) the events
-            while any(len(queue) for queue in recorder._followed):
-                await trio.sleep(0.02)
+        # the recorder has taken (and, paused, dropped) the events
+        await eventually(lambda: not any(len(queue) for queue in recorder._followed))
         listing = (await http.get("/api/recordings")).json()
         assert listing["recorder"]["active"] is False and listing["recordings"] == []

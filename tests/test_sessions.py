@@ -22,9 +22,8 @@ from arena.client import ClientTimeout, MasterSession, Refused
 from arena.recording.mcap_file import read_recording
 from arena.robot.handle import Robot
 from arena.robot.motion import Command
-from arena.session import behaviour, record_scenario, replay_session
-from tests.conftest import RunningServer
-from tests.hardware import eventually
+from tests.conftest import RunningServer, eventually
+from tests.scenarios import behaviour, record_scenario, replay_session
 
 StartServer = Callable[..., Awaitable[RunningServer]]
 README = Path(__file__).resolve().parent.parent / "README.md"
@@ -118,9 +117,7 @@ async def test_release_holds_where_the_arm_is_and_a_socket_closed_without_it_sti
     # Without a release, losing the master is what it was: an e-stop.
     async with open_websocket_url(url) as ws:
         await until_type(ws, "state")
-    with trio.fail_after(10):
-        while str(robot.snapshot().mode) != "estopped":
-            await trio.sleep(0.01)
+    await eventually(lambda: str(robot.snapshot().mode) == "estopped", what="the e-stop")
     assert "master 'agent' lost" in (robot.snapshot().estop_reason or "")
 
 
@@ -151,9 +148,7 @@ async def test_a_session_that_ends_with_an_exception_does_not_release(
             await master.command({"Rotation": 5})
             raise KeyError("the agent's bug")
     robot = server.app.manager.get("demo-arm")
-    with trio.fail_after(10):
-        while str(robot.snapshot().mode) != "estopped":
-            await trio.sleep(0.01)
+    await eventually(lambda: str(robot.snapshot().mode) == "estopped", what="the e-stop")
     assert "crashing" in (robot.snapshot().estop_reason or "")
 
 
@@ -216,6 +211,11 @@ async def test_a_value_that_is_no_finite_number_is_refused_before_sending(
         assert (await master.command({"Rotation": 1}))["data"]["status"] == "accepted"
         with pytest.raises(ValueError):  # not in the other fields either
             await master.command({"Rotation": 2}, duration=float("nan"))
+        with pytest.raises(ValueError, match=r"metadata\.note"):
+            await master.command({"Rotation": 2}, metadata={"note": [float("inf")]})
+        with pytest.raises(ValueError, match="speed"):  # a field the protocol does not have
+            await master.command({"Rotation": 2}, speed=5)
+        assert (await master.command({"Rotation": 2}))["data"]["status"] == "accepted"
 
 
 async def test_a_second_master_session_is_refused_with_the_servers_code(

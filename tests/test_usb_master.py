@@ -20,9 +20,8 @@ from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
 from arena.robot.safety import Mode
 from arena.server.drivers import usb_master_config
-from tests.conftest import RunningServer
+from tests.conftest import RunningServer, eventually
 from tests.hardware import (
-    eventually,
     open_test_bus,
     running_sim,
     servo_goals,

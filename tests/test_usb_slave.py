@@ -17,8 +17,8 @@ from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
 from arena.robot.safety import Mode
+from tests.conftest import eventually
 from tests.hardware import (
-    eventually,
     running_sim,
     servo_goals,
     servo_torque,

@@ -28,7 +28,7 @@ from arena.protocol.ws_frames import (
 from arena.server import ws_transport
 from arena.server.read_poller import ReadPoller
 from arena.server.ws_transport import WebSocket
-from tests.conftest import RunningServer
+from tests.conftest import RunningServer, eventually
 from tests.raw_websocket import RawWebSocket
 
 
@@ -344,9 +344,7 @@ async def test_the_servers_websocket_reads_wait_on_its_poller_which_forgets_them
             pass
     assert waited, "the master's reads never waited on the poller"
     await raw.aclose()
-    with trio.fail_after(30):
-        while not forgotten:
-            await trio.sleep(0.01)
+    await eventually(lambda: bool(forgotten), what="the poller forgetting the socket")
     assert set(waited) == set(forgotten)
 
 
@@ -360,9 +358,7 @@ async def test_a_client_close_is_echoed_and_a_master_leaves(server: RunningServe
         assert frame is not None and frame.close_code == 1000
         assert await raw.receive_frame() is None  # then the server closes the TCP connection
     robot = server.app.manager.get("demo-arm")
-    with trio.fail_after(30):
-        while robot.snapshot().master is not None:
-            await trio.sleep(0.02)
+    await eventually(lambda: robot.snapshot().master is None, what="the master's leaving")
     await raw.aclose()
 
 

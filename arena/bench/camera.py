@@ -15,7 +15,7 @@ import time
 
 import httpx
 
-from arena.bench.common import Server, _percentile, _robot
+from arena.bench.common import Server, create_bench_robot, percentile
 
 CAMERA = {"name": "bench", "source": "test-pattern", "fps": 30, "width": 640, "height": 480}
 
@@ -55,7 +55,7 @@ async def camera(server: Server, seconds: float = 10.0) -> dict[str, float]:
     """CPU of one camera (capture, JPEG, recording, one stream), capture-to-client latency,
     and frames lost on the way."""
     async with httpx.AsyncClient(base_url=server.url, timeout=30) as http:
-        await _robot(http, "cam-arm")
+        await create_bench_robot(http, "cam-arm")
         await asyncio.sleep(1.0)
         idle = await _cpu_over(server, seconds)
         created = await http.post("/api/robots/cam-arm/cameras", json=CAMERA)
@@ -71,8 +71,8 @@ async def camera(server: Server, seconds: float = 10.0) -> dict[str, float]:
     return {
         "camera_cpu_percent": busy - idle,
         "camera_idle_server_cpu_percent": idle,
-        "camera_to_client_p50_ms": _percentile(latencies, 0.5) * 1000,
-        "camera_to_client_p99_ms": _percentile(latencies, 0.99) * 1000,
+        "camera_to_client_p50_ms": percentile(latencies, 0.5) * 1000,
+        "camera_to_client_p99_ms": percentile(latencies, 0.99) * 1000,
         "camera_stream_parts": float(parts),
         "camera_stream_skipped": float(skipped),
         "camera_frames": float(stats["frames"]),

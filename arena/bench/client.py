@@ -4,17 +4,21 @@ A Python WebSocket library spends about as long per message as the server under 
 `websockets` client adds some 100 us to a relay round). This client sends pre-masked frames
 with one `sendall` and parses replies with a few slices, so what the figures show is the
 server and the loopback. Text frames only, no fragmentation, no extensions: enough for Arena.
+
+So it stays apart from `arena.client`'s sessions (trio, JSON parsing, acks matched to requests)
+and is built of the pieces they share: the handshake (`arena.client.handshake`), the frame codec
+(`ws_frames`) and the protocol's messages (`bench.common`).
 """
 
 from __future__ import annotations
 
-import base64
 import contextlib
 import os
 import socket
 import struct
 from urllib.parse import urlsplit
 
+from arena.client.handshake import refusal, split_answer, upgrade_request
 from arena.protocol.ws_frames import OP_CLOSE, OP_TEXT, encode_frame, split_unmasked
 
 
@@ -36,23 +40,17 @@ class BlockingWebSocket:
         self.sock.connect((host, port))
         self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         path = target.path + (f"?{target.query}" if target.query else "")
-        key = base64.b64encode(os.urandom(16)).decode()
-        self.sock.sendall(
-            (
-                f"GET {path} HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\n"
-                f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\n"
-                "Sec-WebSocket-Version: 13\r\n\r\n"
-            ).encode()
-        )
+        self.sock.sendall(upgrade_request(host, port, path))
         buffer = b""
-        while b"\r\n\r\n" not in buffer:
+        while (answer := split_answer(buffer)) is None:
             chunk = self.sock.recv(4096)
             if not chunk:
                 raise ConnectionError("the server closed during the handshake")
             buffer += chunk
-        head, _, self._buffer = buffer.partition(b"\r\n\r\n")
-        if b" 101 " not in head.split(b"\r\n", 1)[0]:
-            raise ConnectionError(head.split(b"\r\n", 1)[0].decode(errors="replace"))
+        head, self._buffer = answer
+        refused = refusal(head)
+        if refused is not None:
+            raise ConnectionError(refused)
 
     def send_raw(self, frames: bytes) -> None:
         """Send frames made with `masked_frame` (one or many, joined)."""

@@ -6,7 +6,6 @@ import asyncio
 import contextlib
 import dataclasses
 import gc
-import json
 import os
 import re
 import shutil
@@ -22,6 +21,16 @@ from typing import Any, TypeVar
 import httpx
 
 from arena.bench.client import BlockingWebSocket
+from arena.protocol.messages import (
+    CommandData,
+    CommandMessage,
+    EStopMessage,
+    HeartbeatMessage,
+    JointValue,
+    ReasonData,
+    ResetMessage,
+    encode,
+)
 from arena.robot.model import BUILTIN_TYPES_DIR, TYPES_PATH_ENV
 
 BENCH_TYPE = "so-arm100-bench"
@@ -29,7 +38,7 @@ BENCH_TYPE = "so-arm100-bench"
 T = TypeVar("T")
 
 
-def _without_client_gc(run: Callable[..., T], *args: Any) -> T:
+def without_client_gc(run: Callable[..., T], *args: Any) -> T:
     """Run a lean client with this process's objects frozen out of the garbage collector.
 
     A full collection here (httpx, asyncio, websockets and their imports) takes ~20 ms; it
@@ -43,7 +52,8 @@ def _without_client_gc(run: Callable[..., T], *args: Any) -> T:
         gc.unfreeze()
 
 
-def _percentile(values: list[float], q: float) -> float:
+def percentile(values: list[float], q: float) -> float:
+    """The `q` quantile (0-1) of `values` by rank, no interpolation; NaN for no values."""
     ordered = sorted(values)
     return ordered[min(len(ordered) - 1, int(q * len(ordered)))] if ordered else float("nan")
 
@@ -161,31 +171,44 @@ async def running_server(record: bool = True, *options: str) -> AsyncIterator[Se
             process.wait(timeout=10)
 
 
-async def _robot(http: httpx.AsyncClient, robot_id: str) -> None:
+async def create_bench_robot(http: httpx.AsyncClient, robot_id: str) -> None:
+    """Create robot `robot_id` of the benchmark type (BENCH_TYPE) over REST."""
     response = await http.post("/api/robots", json={"robot_type": BENCH_TYPE, "id": robot_id})
     response.raise_for_status()
 
 
-_EXECUTE = '"type":"execute_command"'
-_ACK = '"type":"ack"'
-_ESTOP = '"type":"estop"'
-_RESET = '"type":"reset"'
+#: What identifies a message of each type in the server's compact JSON: the lean client
+#: looks for these in the text instead of parsing every message it times.
+EXECUTE_MARK = '"type":"execute_command"'
+ACK_MARK = '"type":"ack"'
+ESTOP_MARK = '"type":"estop"'
+RESET_MARK = '"type":"reset"'
 
 
-def _command(i: int) -> str:
-    # Tiny alternating steps: always inside the velocity budget, so each goes out at once.
+# The messages the benchmarks send, made with the protocol's structs and encoder (as every
+# client's are) and without a timestamp, which the server does not need: made before a clock
+# starts, they cost the measurement nothing.
+
+
+def joints_text(joints: dict[str, float]) -> str:
+    """A master's `command` moving `joints` (degrees), as JSON text."""
+    entries = [JointValue(name, value) for name, value in joints.items()]
+    return encode(CommandMessage(data=CommandData(joints=entries)))
+
+
+def command_text(i: int) -> str:
+    """The `i`th command of a relay: tiny alternating steps of two joints, always inside the
+    velocity budget, so that each goes out to the slave at once."""
     value = (i % 2) * 0.001
-    return json.dumps(
-        {
-            "type": "command",
-            "data": {
-                "joints": [{"name": "Rotation", "value": value}, {"name": "Elbow", "value": -value}]
-            },
-        }
-    )
+    return joints_text({"Rotation": value, "Elbow": -value})
 
 
-def _time_to(
+HEARTBEAT_TEXT = encode(HeartbeatMessage())
+RESET_TEXT = encode(ResetMessage())
+ESTOP_TEXT = encode(EStopMessage(data=ReasonData(reason="bench")))
+
+
+def time_to(
     marker: str, receiver: BlockingWebSocket, sender: BlockingWebSocket, frame: bytes
 ) -> float:
     """Seconds from sending `frame` to `receiver`'s first message containing `marker`."""

@@ -15,13 +15,15 @@ import httpx
 
 from arena.bench.client import BlockingHttp, BlockingWebSocket, masked_frame
 from arena.bench.common import (
-    _ESTOP,
-    _RESET,
+    ESTOP_MARK,
+    ESTOP_TEXT,
+    RESET_MARK,
+    RESET_TEXT,
     Server,
-    _percentile,
-    _robot,
-    _time_to,
-    _without_client_gc,
+    create_bench_robot,
+    percentile,
+    time_to,
+    without_client_gc,
 )
 
 
@@ -35,13 +37,15 @@ async def estop(server: Server, trials: int = 200, robots: int = 100) -> dict[st
     import websockets
 
     async with httpx.AsyncClient(base_url=server.url) as http:
-        await _robot(http, "stop-one")
-        results = await asyncio.to_thread(_without_client_gc, _lean_estop_one, server, trials)
-        await _robot(http, "stop-ws")
+        await create_bench_robot(http, "stop-one")
+        results = await asyncio.to_thread(without_client_gc, _lean_estop_one, server, trials)
+        await create_bench_robot(http, "stop-ws")
         results.update(
-            await asyncio.to_thread(_without_client_gc, _lean_estop_over_websocket, server, trials)
+            await asyncio.to_thread(without_client_gc, _lean_estop_over_websocket, server, trials)
         )
-        await _robot(http, "stop-httpx")  # its own robot: a slave that leaves e-stops "stop-one"
+        await create_bench_robot(
+            http, "stop-httpx"
+        )  # its own robot: a slave that leaves e-stops "stop-one"
         one, answered = [], []
         async with websockets.connect(
             compression=None, uri=server.ws + "/ws/slave/stop-httpx"
@@ -58,11 +62,11 @@ async def estop(server: Server, trials: int = 200, robots: int = 100) -> dict[st
                 await http.post("/api/robots/stop-httpx/reset")
                 while json.loads(await slave.recv())["type"] != "reset":
                     pass
-        results["estop_one_httpx_p50_ms"] = _percentile(one, 0.5) * 1e3
-        results["estop_one_httpx_p99_ms"] = _percentile(one, 0.99) * 1e3
-        results["estop_one_httpx_answered_p99_ms"] = _percentile(answered, 0.99) * 1e3
+        results["estop_one_httpx_p50_ms"] = percentile(one, 0.5) * 1e3
+        results["estop_one_httpx_p99_ms"] = percentile(one, 0.99) * 1e3
+        results["estop_one_httpx_answered_p99_ms"] = percentile(answered, 0.99) * 1e3
         for n in range(robots):
-            await _robot(http, f"stop-{n}")
+            await create_bench_robot(http, f"stop-{n}")
         slaves = [
             await websockets.connect(compression=None, uri=server.ws + f"/ws/slave/stop-{n}")
             for n in range(robots)
@@ -103,7 +107,7 @@ def _lean_estop_one(
         for trial in range(warm_up + trials):
             start = time.perf_counter()
             http.send(stop)
-            while _ESTOP not in slave.receive():
+            while ESTOP_MARK not in slave.receive():
                 pass
             notice = time.perf_counter() - start
             status, body = http.answer()
@@ -116,15 +120,15 @@ def _lean_estop_one(
             status, body = http.answer()
             if status != 200:
                 raise RuntimeError(f"reset answered {status}: {body!r}")
-            while _RESET not in slave.receive():
+            while RESET_MARK not in slave.receive():
                 pass
     finally:
         http.close()
         slave.close()
     return {
-        "estop_one_p50_ms": _percentile(noticed, 0.5) * 1e3,
-        "estop_one_p99_ms": _percentile(noticed, 0.99) * 1e3,
-        "estop_one_answered_p99_ms": _percentile(answered, 0.99) * 1e3,
+        "estop_one_p50_ms": percentile(noticed, 0.5) * 1e3,
+        "estop_one_p99_ms": percentile(noticed, 0.99) * 1e3,
+        "estop_one_answered_p99_ms": percentile(answered, 0.99) * 1e3,
     }
 
 
@@ -132,21 +136,21 @@ def _lean_estop_over_websocket(server: Server, trials: int, warm_up: int = 10) -
     """A master's `estop` message to the slave's notice: the e-stop that skips HTTP."""
     slave = BlockingWebSocket(server.ws + "/ws/slave/stop-ws")
     master = BlockingWebSocket(server.ws + "/ws/master/stop-ws")
-    stop = masked_frame('{"type": "estop", "data": {"reason": "bench"}}')
-    reset = masked_frame('{"type": "reset"}')
+    stop = masked_frame(ESTOP_TEXT)
+    reset = masked_frame(RESET_TEXT)
     noticed = []
     try:
         for trial in range(warm_up + trials):
-            notice = _time_to(_ESTOP, slave, master, stop)
+            notice = time_to(ESTOP_MARK, slave, master, stop)
             if trial >= warm_up:
                 noticed.append(notice)
-            _time_to(_RESET, slave, master, reset)
+            time_to(RESET_MARK, slave, master, reset)
     finally:
         master.close()
         slave.close()
     return {
-        "estop_one_websocket_p50_ms": _percentile(noticed, 0.5) * 1e3,
-        "estop_one_websocket_p99_ms": _percentile(noticed, 0.99) * 1e3,
+        "estop_one_websocket_p50_ms": percentile(noticed, 0.5) * 1e3,
+        "estop_one_websocket_p99_ms": percentile(noticed, 0.99) * 1e3,
     }
 
 
@@ -160,9 +164,9 @@ async def flood(server: Server, trials: int = 300) -> dict[str, float]:
     pings it never reads the pongs of; the server's memory before and after the flood."""
     async with httpx.AsyncClient(base_url=server.url) as http:
         for robot_id in ("stop-quiet", "stop-flooded", "flood-target"):
-            await _robot(http, robot_id)
+            await create_bench_robot(http, robot_id)
     quiet = await asyncio.to_thread(
-        _without_client_gc, _lean_estop_one, server, trials, 10, "stop-quiet"
+        without_client_gc, _lean_estop_one, server, trials, 10, "stop-quiet"
     )
     rss_before = server.rss_mib()
     host, port = server.url.split("//")[1].rsplit(":", 1)
@@ -173,7 +177,7 @@ async def flood(server: Server, trials: int = 300) -> dict[str, float]:
         await asyncio.sleep(1.0)  # the flood under way
         try:
             flooded = await asyncio.to_thread(
-                _without_client_gc, _lean_estop_one, server, trials, 10, "stop-flooded"
+                without_client_gc, _lean_estop_one, server, trials, 10, "stop-flooded"
             )
         except (TimeoutError, OSError):  # a server the flood froze: no answer in 30 s
             flooded = dict.fromkeys(

@@ -11,10 +11,12 @@ import httpx
 
 from arena.bench.client import BlockingWebSocket, masked_frame
 from arena.bench.common import (
+    HEARTBEAT_TEXT,
     Server,
-    _percentile,
-    _robot,
-    _without_client_gc,
+    create_bench_robot,
+    joints_text,
+    percentile,
+    without_client_gc,
 )
 
 
@@ -46,7 +48,7 @@ async def drive_fleet(
 
     async with httpx.AsyncClient(base_url=server.url) as http:
         for n in range(robots):
-            await _robot(http, f"fleet-{n}")
+            await create_bench_robot(http, f"fleet-{n}")
     run = FleetRun(started=time.perf_counter())
     end = run.started + seconds
 
@@ -91,7 +93,7 @@ async def drive_fleet(
             async def heartbeats() -> None:  # a silent slave is dropped (and e-stops)
                 while True:
                     await asyncio.sleep(10)
-                    await slave.send('{"type": "heartbeat"}')
+                    await slave.send(HEARTBEAT_TEXT)
 
             tasks = [
                 asyncio.create_task(count_acks()),
@@ -105,14 +107,7 @@ async def drive_fleet(
                 value = round((i % 2) * 0.001 + n * 1e-6, 9)
                 sent_at[value] = time.perf_counter()
                 counts["sent"] += 1
-                await master.send(
-                    json.dumps(
-                        {
-                            "type": "command",
-                            "data": {"joints": [{"name": "Rotation", "value": value}]},
-                        }
-                    )
-                )
+                await master.send(joints_text({"Rotation": value}))
                 # A fixed schedule (no drift); a late generator skips, it never bursts.
                 next_at = max(next_at + 1 / rate, time.perf_counter())
                 await asyncio.sleep(next_at - time.perf_counter())
@@ -148,9 +143,9 @@ async def fleet(
     servers = server if isinstance(server, list) else [server]
     for n in range(robots):
         async with httpx.AsyncClient(base_url=servers[n % len(servers)].url) as http:
-            await _robot(http, f"fleet-{n}")
+            await create_bench_robot(http, f"fleet-{n}")
     return await asyncio.to_thread(
-        _without_client_gc, _lean_fleet, servers, robots, rate, seconds, heartbeat_period
+        without_client_gc, _lean_fleet, servers, robots, rate, seconds, heartbeat_period
     )
 
 
@@ -174,18 +169,8 @@ def _lean_fleet(
             selector.register(ws.sock, selectors.EVENT_READ, (n, ws, is_slave))
     # Two alternating values per robot, unique across robots: the slave's value names the send.
     values = [(round(n * 1e-6, 9), round(0.001 + n * 1e-6, 9)) for n in range(robots)]
-    frames = [
-        tuple(
-            masked_frame(
-                json.dumps(
-                    {"type": "command", "data": {"joints": [{"name": "Rotation", "value": v}]}}
-                )
-            )
-            for v in pair
-        )
-        for pair in values
-    ]
-    heartbeat = masked_frame('{"type": "heartbeat"}')
+    frames = [tuple(masked_frame(joints_text({"Rotation": v})) for v in pair) for pair in values]
+    heartbeat = masked_frame(HEARTBEAT_TEXT)
     heartbeats = 0
     sent_at: list[dict[float, float]] = [{} for _ in range(robots)]
     latencies: list[float] = []
@@ -242,8 +227,8 @@ def _lean_fleet(
             master.close()
             slave.close()
     return {
-        "fleet_p50_us": _percentile(latencies, 0.5) * 1e6,
-        "fleet_p99_us": _percentile(latencies, 0.99) * 1e6,
+        "fleet_p50_us": percentile(latencies, 0.5) * 1e6,
+        "fleet_p99_us": percentile(latencies, 0.99) * 1e6,
         "fleet_server_cpu_percent": 100 * cpu_used / elapsed,
         "fleet_server_rss_mib": sum(server.rss_mib() for server in servers),
         "fleet_commands_sent": sent,
@@ -280,10 +265,10 @@ async def soak(
         "soak_commands_sent": run.sent,
         "soak_commands_unacknowledged": run.sent - run.acked,
         "soak_commands_refused": run.refused,
-        "soak_first_p50_us": _percentile(first, 0.5) * 1e6,
-        "soak_first_p99_us": _percentile(first, 0.99) * 1e6,
-        "soak_last_p50_us": _percentile(last, 0.5) * 1e6,
-        "soak_last_p99_us": _percentile(last, 0.99) * 1e6,
+        "soak_first_p50_us": percentile(first, 0.5) * 1e6,
+        "soak_first_p99_us": percentile(first, 0.99) * 1e6,
+        "soak_last_p50_us": percentile(last, 0.5) * 1e6,
+        "soak_last_p99_us": percentile(last, 0.99) * 1e6,
         "soak_rss_warm_mib": warm[2],
         "soak_rss_end_mib": rss_end,
         "soak_server_cpu_percent": 100 * (cpu1 - cpu0) / (t1 - t0),

@@ -9,7 +9,7 @@ import time
 from pathlib import Path
 
 from arena.bench.common import (
-    _percentile,
+    percentile,
 )
 
 
@@ -130,7 +130,7 @@ def teleop_latency(moves: int = 200, rate: float = 100.0) -> dict[str, float]:
     latencies.sort()
     tag = f"{rate:.0f}hz"
     return {
-        f"teleop_{tag}_p50_ms": 1000 * _percentile(latencies, 0.5),
-        f"teleop_{tag}_p99_ms": 1000 * _percentile(latencies, 0.99),
+        f"teleop_{tag}_p50_ms": 1000 * percentile(latencies, 0.5),
+        f"teleop_{tag}_p99_ms": 1000 * percentile(latencies, 0.99),
         f"teleop_{tag}_missed": float(moves - len(latencies)),
     }

@@ -22,9 +22,9 @@ from typing import Any
 import httpx
 
 from arena.bench.client import BlockingWebSocket
-from arena.bench.common import Server, _robot, _without_client_gc, running_server
+from arena.bench.common import Server, create_bench_robot, running_server, without_client_gc
 from arena.bench.fleet import fleet
-from arena.bench.relay import _lean_relay
+from arena.bench.relay import lean_relay
 
 _LISTEN = ("--fleet-listen", "tcp/127.0.0.1:0")
 
@@ -78,12 +78,12 @@ async def nodes_relay(count: int = 2000) -> dict[str, float]:
     """Cross-node relay against same-node relay, one run."""
     async with running_fleet(2) as (home, away):
         async with httpx.AsyncClient(base_url=home.url) as http:
-            await _robot(http, "relay")
-            await _robot(http, "relay-far")
+            await create_bench_robot(http, "relay")
+            await create_bench_robot(http, "relay-far")
         await _known_everywhere([away], {"relay-far"})
-        same = await asyncio.to_thread(_without_client_gc, _lean_relay, home.ws, count)
+        same = await asyncio.to_thread(without_client_gc, lean_relay, home.ws, count)
         cross = await asyncio.to_thread(
-            _without_client_gc, _lean_relay, home.ws, count, False, away.ws, "relay-far"
+            without_client_gc, lean_relay, home.ws, count, False, away.ws, "relay-far"
         )
     return {
         "nodes_relay_same_p50_us": same["relay_p50_us"],
@@ -103,7 +103,7 @@ async def nodes_estop(nodes: int = 3, robots: int = 100, trials: int = 5) -> dic
             async with httpx.AsyncClient(base_url=server.url) as http:
                 for n in range(robots):
                     robot_id = f"stop-{index}-{n}"
-                    await _robot(http, robot_id)
+                    await create_bench_robot(http, robot_id)
                     ids.append((server, robot_id))
         await _known_everywhere(servers[:1], {robot_id for _, robot_id in ids})
         slaves = [BlockingWebSocket(server.ws + f"/ws/slave/{rid}") for server, rid in ids]

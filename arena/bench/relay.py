@@ -12,58 +12,61 @@ import httpx
 
 from arena.bench.client import BlockingWebSocket, masked_frame
 from arena.bench.common import (
-    _ACK,
-    _EXECUTE,
+    ACK_MARK,
+    EXECUTE_MARK,
     Server,
-    _command,
-    _percentile,
-    _robot,
-    _time_to,
-    _without_client_gc,
+    command_text,
+    create_bench_robot,
+    percentile,
+    time_to,
+    without_client_gc,
 )
 
 
 async def relay(server: Server, count: int = 5000) -> dict[str, float]:
     """Master send -> slave receipt of execute_command, one command at a time (lean client)."""
     async with httpx.AsyncClient(base_url=server.url) as http:
-        await _robot(http, "relay")
-        await _robot(http, "relay-deaf")
-    results = await asyncio.to_thread(_without_client_gc, _lean_relay, server.ws, count)
+        await create_bench_robot(http, "relay")
+        await create_bench_robot(http, "relay-deaf")
+    results = await asyncio.to_thread(without_client_gc, lean_relay, server.ws, count)
     # The same with a master that never reads what it is sent (a teleoperation producer
     # whose library stopped reading): its commands must flow as a reading master's do.
-    results.update(await asyncio.to_thread(_without_client_gc, _lean_relay, server.ws, count, True))
+    results.update(await asyncio.to_thread(without_client_gc, lean_relay, server.ws, count, True))
     return results
 
 
-def _lean_relay(
+def lean_relay(
     ws: str,
     count: int,
     deaf: bool = False,
     master_ws: str | None = None,
     robot_id: str | None = None,
 ) -> dict[str, float]:
-    """The relay; `master_ws` puts the master on another server (a node of the fleet)."""
+    """Relay latency over the lean blocking client (`bench.client`), blocking in a thread:
+    `count` commands one at a time, each timed from its send to the slave's execute_command
+    (warm-up excluded); `deaf` uses a master that never reads. `master_ws` puts the master on
+    another server, `robot_id` names the robot (`bench nodes`: a node of the fleet)."""
     robot, name = ("relay-deaf", "relay_deaf") if deaf else ("relay", "relay")
     robot = robot_id or robot
     slave = BlockingWebSocket(ws + f"/ws/slave/{robot}")
     master = BlockingWebSocket(
         (master_ws or ws) + f"/ws/master/{robot}", receive_buffer=4096 if deaf else None
     )
-    frames = [masked_frame(_command(i + 1)) for i in range(count + 100)]
+    frames = [masked_frame(command_text(i + 1)) for i in range(count + 100)]
     latencies = []
     try:
         for i, frame in enumerate(frames):
-            latency = _time_to(_EXECUTE, slave, master, frame)
+            latency = time_to(EXECUTE_MARK, slave, master, frame)
             if i >= 100:  # warm-up excluded
                 latencies.append(latency)
-            while not deaf and _ACK not in master.receive():
+            while not deaf and ACK_MARK not in master.receive():
                 pass
     finally:
         master.close()
         slave.close()
     return {
-        f"{name}_p50_us": _percentile(latencies, 0.5) * 1e6,
-        f"{name}_p99_us": _percentile(latencies, 0.99) * 1e6,
+        f"{name}_p50_us": percentile(latencies, 0.5) * 1e6,
+        f"{name}_p99_us": percentile(latencies, 0.99) * 1e6,
         f"{name}_max_us": max(latencies) * 1e6,
     }
 
@@ -73,7 +76,7 @@ async def relay_with_websockets(server: Server, count: int = 5000) -> dict[str, 
     import websockets
 
     async with httpx.AsyncClient(base_url=server.url) as http:
-        await _robot(http, "relay-ws")
+        await create_bench_robot(http, "relay-ws")
     async with (
         websockets.connect(compression=None, uri=server.ws + "/ws/slave/relay-ws") as slave,
         websockets.connect(compression=None, uri=server.ws + "/ws/master/relay-ws") as master,
@@ -81,7 +84,7 @@ async def relay_with_websockets(server: Server, count: int = 5000) -> dict[str, 
         latencies = []
         for i in range(count + 100):
             sent = time.perf_counter()
-            await master.send(_command(i + 1))
+            await master.send(command_text(i + 1))
             while True:
                 message = json.loads(await slave.recv())
                 if message["type"] == "execute_command":
@@ -91,8 +94,8 @@ async def relay_with_websockets(server: Server, count: int = 5000) -> dict[str, 
             while json.loads(await master.recv())["type"] != "ack":
                 pass
     return {
-        "relay_websockets_p50_us": _percentile(latencies, 0.5) * 1e6,
-        "relay_websockets_p99_us": _percentile(latencies, 0.99) * 1e6,
+        "relay_websockets_p50_us": percentile(latencies, 0.5) * 1e6,
+        "relay_websockets_p99_us": percentile(latencies, 0.99) * 1e6,
     }
 
 
@@ -105,21 +108,21 @@ async def throughput(
     so the client costs as little as it can (lean client, see `bench_client`).
     """
     async with httpx.AsyncClient(base_url=server.url) as http:
-        await _robot(http, robot_id)
-    return await asyncio.to_thread(_without_client_gc, _lean_throughput, server.ws, robot_id, count)
+        await create_bench_robot(http, robot_id)
+    return await asyncio.to_thread(without_client_gc, _lean_throughput, server.ws, robot_id, count)
 
 
 def _lean_throughput(ws: str, robot_id: str, count: int) -> dict[str, float]:
     slave = BlockingWebSocket(ws + f"/ws/slave/{robot_id}")
     master = BlockingWebSocket(ws + f"/ws/master/{robot_id}")
-    frames = b"".join(masked_frame(_command(i + 1)) for i in range(count))
+    frames = b"".join(masked_frame(command_text(i + 1)) for i in range(count))
     reached = 0
 
     def count_slave() -> None:
         nonlocal reached
         with contextlib.suppress(OSError):  # the socket closes under it at the end
             while True:
-                if _EXECUTE in slave.receive():
+                if EXECUTE_MARK in slave.receive():
                     reached += 1
 
     counter = threading.Thread(target=count_slave, daemon=True)
@@ -131,7 +134,7 @@ def _lean_throughput(ws: str, robot_id: str, count: int) -> dict[str, float]:
     try:
         while accepted + refused < count:
             message = master.receive()
-            if _ACK in message:
+            if ACK_MARK in message:
                 if '"refused"' in message:
                     refused += 1
                 else:

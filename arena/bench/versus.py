@@ -30,7 +30,7 @@ from pathlib import Path
 
 import httpx
 
-from arena.bench.common import BENCH_TYPE, Server, _percentile, running_server
+from arena.bench.common import BENCH_TYPE, Server, percentile, running_server
 
 FLOOR_PYTHON_ENV = "ARENA_FLOOR_PYTHON"
 FLOOR_SCRIPT_ENV = "ARENA_FLOOR_SCRIPT"
@@ -102,8 +102,8 @@ async def ordinary_relay(
         for reader in readers:
             reader.cancel()
     return {
-        "p50_us": _percentile(latencies, 0.5) * 1e6,
-        "p99_us": _percentile(latencies, 0.99) * 1e6,
+        "p50_us": percentile(latencies, 0.5) * 1e6,
+        "p99_us": percentile(latencies, 0.99) * 1e6,
         "throughput_per_s": burst / seconds,
         "cpu_us_per_command": cpu / (one_at_a_time + burst) * 1e6,
         # The same split by phase: one at a time, where every command is a wake-up, and the

@@ -24,7 +24,7 @@ from typing import Any
 import httpx
 import trio
 
-from arena.client import ArenaClientError, Backoff, MasterSession, SlaveSession, ws_url
+from arena.client import ArenaClientError, Backoff, MasterSession, SlaveSession, messages, ws_url
 from arena.drivers.config import RemoteLinkConfig
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot.events import JointStatesReceived, NoticeKind, SlaveTarget
@@ -146,9 +146,9 @@ class WebSocketSlave:
                     # targets that come meanwhile merge, the newest wins.
                     await trio.sleep(interval)
             elif message.kind is NoticeKind.ESTOP:
-                await self.session.try_send({"type": "estop", "data": {"reason": "upstream"}})
+                await self.session.try_send(messages.estop("upstream"))
             elif message.kind is NoticeKind.RESET:
-                await self.session.try_send({"type": "reset"})
+                await self.session.try_send(messages.reset())
 
     async def _release(self) -> None:
         """Release the robot over there, if the link is up (bounded by the session's timeout)."""
@@ -173,8 +173,7 @@ class _Upstream(MasterSession):
 
     async def forward(self, joints: dict[str, float]) -> None:
         """Send a target as a command (if the link is up); its ack comes to `on_message`."""
-        entries = [{"name": n, "value": v} for n, v in joints.items()]
-        if await self.try_send({"type": "command", "data": {"joints": entries}}):
+        if await self.try_send(messages.command(joints)):
             self.sent += 1
 
     async def on_connect(self) -> None:
@@ -299,8 +298,8 @@ class _Downstream(SlaveSession):
             self.commands += 1
             if not result.accepted:
                 self.refused += 1
-                error = {"code": str(result.code), "message": result.message, "severity": "warning"}
-                await self.try_send({"type": "error", "data": error})
+                error = messages.error(str(result.code), result.message, Severity.WARNING)
+                await self.try_send(error)
             await trio.sleep(interval)
 
     async def on_connect(self) -> None:
@@ -360,12 +359,5 @@ class _Downstream(SlaveSession):
                     if j.real_value is not None
                 }
                 if real and self.connected:
-                    await self.try_send(
-                        {
-                            "type": "joint_states",
-                            "data": [
-                                {"name": n, "value": v, "real_value": v} for n, v in real.items()
-                            ],
-                        }
-                    )
+                    await self.try_send(messages.joint_states(real))
                 await trio.sleep(REPORT_INTERVAL)

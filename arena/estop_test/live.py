@@ -1,7 +1,11 @@
 """`arena estop-test`: stop a running robot every way it can be stopped, and time each stop.
 
-The tester is an ordinary client of the server (REST with httpx, WebSockets with `websockets`
-on asyncio). For the whole run it watches the robot as a viewer (`/ws/robots/{id}/state`: the
+The tester is an ordinary client of the server: REST through `arena.client.AsyncArena`, its
+messages made by `arena.client.messages` (the protocol's structs), WebSockets with `websockets`
+on asyncio. Not `arena.client`'s sessions for those: a trial needs every message with its
+arrival time (a session keeps the newest), a master cut without a close frame (as a pulled
+cable), and no reconnection (a session's would be a new master in the middle of a trial). For
+the whole run it watches the robot as a viewer (`/ws/robots/{id}/state`: the
 e-stopped state and the measured joints) and as an extra slave, the probe
 (`/ws/slave/{id}?id=estop-probe`: the targets every slave is sent, and the stop notice); it
 reports no joints of its own. Each trial it takes the robot as master, sweeps a joint so the
@@ -21,14 +25,16 @@ import json
 import math
 import time
 import uuid
-from collections.abc import Awaitable, Callable
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
-import httpx
 import websockets
 from websockets.asyncio.client import ClientConnection
 
+from arena.client import ArenaClientError, AsyncArena, messages, ws_url
 from arena.estop_test.analysis import STILL_FOR, Sample, Trial, joint_stops, stop_trial
+from arena.protocol.errors import Severity
+from arena.protocol.messages import encode
 
 #: Every stop path, in the order they run.
 PATHS = (
@@ -100,9 +106,7 @@ class EStopTest:
 
     def __init__(self, settings: Settings) -> None:
         self.settings = settings
-        headers = {"Authorization": f"Bearer {settings.api_key}"} if settings.api_key else {}
-        self.http = httpx.AsyncClient(base_url=settings.url, headers=headers, timeout=10.0)
-        self.ws_base = "ws" + settings.url.rstrip("/")[4:]
+        self.http = AsyncArena(settings.url, settings.api_key)
         self.watch = _Watch()
         self.joint = ""
         self.center = 0.0
@@ -111,10 +115,7 @@ class EStopTest:
         self.notes: list[str] = []
 
     def _ws_url(self, path: str, **query: str) -> str:
-        if self.settings.api_key:
-            query["token"] = self.settings.api_key
-        tail = "&".join(f"{k}={v}" for k, v in query.items())
-        return f"{self.ws_base}{path}" + (f"?{tail}" if tail else "")
+        return ws_url(self.settings.url, path, **query, token=self.settings.api_key or "")
 
     async def run(self) -> dict[str, list[Trial]]:
         """Every chosen path, `trials` times each; the trials per path."""
@@ -143,12 +144,15 @@ class EStopTest:
                         task.cancel()
                     # Detached on purpose first: a slave that just goes is a slave lost, and
                     # that e-stops the robot.
-                    await self.http.delete(f"/api/robots/{robot}/slaves/{PROBE_ID}")
+                    with contextlib.suppress(ArenaClientError):
+                        await self.http.detach_slave(robot, PROBE_ID)
                     await self._reset()
+        except ArenaClientError as error:
+            raise EStopTestError(_described(error, self.settings.url)) from None
         finally:
             if self.group is not None:
-                with contextlib.suppress(httpx.HTTPError):
-                    await self.http.delete(f"/api/groups/{self.group}")
+                with contextlib.suppress(ArenaClientError):
+                    await self.http.delete_group(self.group)
             await self.http.aclose()
 
     def _heartbeat_interval(self) -> float:
@@ -156,10 +160,13 @@ class EStopTest:
 
     async def _prepare(self) -> list[str]:
         robot = self.settings.robot
-        found = await self.http.get(f"/api/robots/{robot}")
-        if found.status_code != 200:
-            raise EStopTestError(f"robot {robot!r}: {found.status_code} {found.text}")
-        joints = found.json().get("joints", [])
+        try:
+            found = await self.http.robot(robot)
+        except ArenaClientError as error:
+            if error.code == "UNREACHABLE":
+                raise
+            raise EStopTestError(f"robot {robot!r}: {error.status} {error}") from None
+        joints = found.get("joints", [])
         if not joints:
             raise EStopTestError(f"robot {robot!r} reports no joints")
         first = joints[0]
@@ -176,7 +183,7 @@ class EStopTest:
         lower, upper = float(limits.get("lower", -90)), float(limits.get("upper", 90))
         reach = self.settings.amplitude
         self.center = min(max(0.0, lower + reach), upper - reach)
-        status = (await self.http.get("/")).json()
+        status = await self.http.status()
         self.heartbeat_timeout = status.get("heartbeat_timeout")
         paths = list(self.settings.paths or PATHS)
         unknown = sorted(set(paths) - set(PATHS))
@@ -185,7 +192,7 @@ class EStopTest:
         if "global" in paths and "global" not in self.settings.paths:
             # POST /api/estop stops every robot of the server: only when this is its only
             # robot, or when asked for by name.
-            listed = (await self.http.get("/api/robots")).json()
+            listed = await self.http.robots()
             others = sorted(str(r["id"]) for r in listed if r.get("id") != robot)
             if others:
                 paths.remove("global")
@@ -204,9 +211,10 @@ class EStopTest:
             )
         if "group" in paths:
             self.group = f"estop-test-{uuid.uuid4().hex[:8]}"
-            made = await self.http.post("/api/groups", json={"id": self.group, "members": [robot]})
-            if made.status_code != 201:
-                raise EStopTestError(f"cannot make a group: {made.status_code} {made.text}")
+            try:
+                await self.http.create_group(self.group, [robot])
+            except ArenaClientError as error:
+                raise EStopTestError(f"cannot make a group: {error.status} {error}") from None
         await self._reset()
         return paths
 
@@ -300,41 +308,45 @@ class EStopTest:
                 await asyncio.sleep(tick - (time.monotonic() - start) % tick)
 
     async def _command(self, master: ClientConnection, value: float) -> None:
-        joints = [{"name": self.joint, "value": round(value, 3)}]
-        await master.send(json.dumps({"type": "command", "data": {"joints": joints}}))
+        await master.send(encode(messages.command({self.joint: round(value, 3)})))
 
     async def _trigger(self, path: str, master: ClientConnection, probe: ClientConnection) -> None:
         robot = self.settings.robot
-        reason = {"reason": f"estop-test {path}"}
+        reason = f"estop-test {path}"
         if path == "rest":
-            await _expect(self.http.post(f"/api/robots/{robot}/estop", json=reason))
+            await self.http.estop(robot, reason)
         elif path == "global":
-            await _expect(self.http.post("/api/estop", json=reason))
-        elif path == "group":
-            await _expect(self.http.post(f"/api/groups/{self.group}/estop", json=reason))
+            await self.http.estop(None, reason)
+        elif path == "group" and self.group is not None:
+            await self.http.estop_group(self.group, reason)
         elif path == "master-message":
-            await master.send(json.dumps({"type": "estop", "data": reason}))
+            await master.send(encode(messages.estop(reason)))
         elif path == "master-cut":
             master.transport.abort()  # no close frame: as a cable pulled or a process killed
         elif path == "slave-error":
-            error = {"code": "ESTOP_TEST", "message": "estop-test", "severity": "critical"}
-            await probe.send(json.dumps({"type": "error", "data": error}))
+            error = messages.error("ESTOP_TEST", "estop-test", Severity.CRITICAL)
+            await probe.send(encode(error))
         # "heartbeat": nothing to do; the master has gone silent
 
     async def _reset(self) -> None:
-        await self.http.post(f"/api/robots/{self.settings.robot}/reset")
+        """Clear the e-stop of the robot (and of its group); a refusal changes nothing here."""
+        with contextlib.suppress(ArenaClientError):
+            await self.http.reset(self.settings.robot)
         if self.group is not None:
-            await self.http.post(f"/api/groups/{self.group}/reset")
+            with contextlib.suppress(ArenaClientError):
+                await self.http.reset_group(self.group)
 
 
 class EStopTestError(Exception):
     """The test cannot run (no such robot, a refused request)."""
 
 
-async def _expect(request: Awaitable[httpx.Response]) -> None:
-    response = await request
-    if response.status_code >= 300:
-        raise EStopTestError(f"{response.request.url.path}: {response.status_code} {response.text}")
+def _described(error: ArenaClientError, url: str) -> str:
+    """What `arena estop-test` says of a failed request."""
+    if error.code == "UNREACHABLE":
+        detail = error.message.split(": ", 1)[-1]  # the client's sentence names the URL too
+        return f"cannot reach --url {url}: {detail}"
+    return f"{error.status} {error}" if error.status else str(error)
 
 
 def _at_rest(samples: list[Sample], start: float, trigger: float, threshold: float) -> bool:
@@ -356,7 +368,7 @@ async def _drain(connection: ClientConnection) -> None:
 async def _heartbeats(connection: ClientConnection, interval: float) -> None:
     with contextlib.suppress(websockets.ConnectionClosed):
         while True:
-            await connection.send('{"type": "heartbeat"}')
+            await connection.send(encode(messages.heartbeat()))
             await asyncio.sleep(interval)
 
 

@@ -4,8 +4,8 @@ A `ServoBus` is used from one thread only: the SDK's port is not thread-safe. It
 the SDK's traps (see the so-arm100 robot notes):
 
 - stale input: `clearPort()` only flushes output, so a late reply would be taken as the answer
-  to the next request. `_ArenaPort.clearPort` drops pending input before every transmission.
-- busy-waiting: the SDK polls a non-blocking port until its timeout. `_ArenaPort.readPort`
+  to the next request. `ArenaPort.clearPort` drops pending input before every transmission.
+- busy-waiting: the SDK polls a non-blocking port until its timeout. `ArenaPort.readPort`
   sleeps in `select()` until bytes arrive or the deadline passes.
 - timeouts: the SDK waits a fixed 34 ms for any reply; ours is the wire time plus a margin.
 - one silent servo fails a whole `GroupSyncRead`: `sync_read` collects replies one by one, so
@@ -50,8 +50,9 @@ class SyncReadResult:
     corrupt: list[int] = field(default_factory=list)
 
 
-class _ArenaPort(sdk.PortHandler):  # type: ignore[misc]
-    """The SDK's port with the traps fixed (see the module docstring)."""
+class ArenaPort(sdk.PortHandler):  # type: ignore[misc]
+    """The SDK's port with the traps fixed (see the module docstring). Public for
+    `sim_pty`, whose paced port is this one waiting also for the simulator."""
 
     def __init__(self, port_name: str, timeout_margin: float) -> None:
         super().__init__(port_name)
@@ -97,7 +98,7 @@ class ServoBus:
     ) -> None:
         self.port_name = port
         self.baud = baud
-        self._port = _ArenaPort(port, timeout_margin)
+        self._port = ArenaPort(port, timeout_margin)
         self._handler: Any = None
 
     # -- port -------------------------------------------------------------------------------

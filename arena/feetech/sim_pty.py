@@ -23,7 +23,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-from arena.feetech.bus import ServoBus, _ArenaPort
+from arena.feetech.bus import ArenaPort, ServoBus
 from arena.feetech.packets import Corrupt, PacketParser
 from arena.feetech.sim import SimBus
 
@@ -182,7 +182,7 @@ class PtySimBus:
                 self.taken += len(data)
 
 
-class _PacedPort(_ArenaPort):
+class _PacedPort(ArenaPort):
     """The driver's port, with a timeout that also waits for the simulator (`servo_bus`)."""
 
     def __init__(self, port_name: str, timeout_margin: float, sim: PtySimBus) -> None:

@@ -15,6 +15,7 @@ import trio
 from trio_websocket import ConnectionClosed, open_websocket_url
 
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.protocol.messages import CommandData, CommandMessage, JointValue, ReleaseMessage, encode
 from arena.recording.replay import TimedCommand
 
 #: Seconds to wait for the answer to the release at the end.
@@ -22,16 +23,16 @@ RELEASE_TIMEOUT = 5.0
 
 
 def _message(command: TimedCommand, speed: float) -> str:
-    data: dict[str, object] = {
-        "joints": [
-            {"name": g.name, "value": g.value, **({"speed": g.speed} if g.speed else {})}
-            for g in command.command.joints
-        ],
-        "metadata": {"source": "arena replay"},
-    }
-    if command.command.duration is not None:
-        data["duration"] = command.command.duration * 1000.0 / speed
-    return json.dumps({"type": "command", "data": data})
+    """The recorded command as the master's `command` (the protocol's struct), its duration
+    (ms) scaled to `speed`."""
+    joints = [JointValue(g.name, g.value, g.speed or None) for g in command.command.joints]
+    duration = command.command.duration
+    data = CommandData(
+        joints=joints,
+        duration=None if duration is None else duration * 1000.0 / speed,
+        metadata={"source": "arena replay"},
+    )
+    return encode(CommandMessage(data=data))
 
 
 def _progress(out: TextIO, done: int, total: int, refused: int) -> None:
@@ -109,7 +110,7 @@ async def replay_to_server(
                     break
             releasing = not stopped.is_set()
             if releasing:  # played to the end: hand the robot back
-                await ws.send_message(json.dumps({"type": "release"}))
+                await ws.send_message(encode(ReleaseMessage()))
                 with trio.move_on_after(RELEASE_TIMEOUT):
                     await answered.wait()
             else:

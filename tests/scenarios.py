@@ -1,10 +1,10 @@
-"""Deterministic replay, as helpers any test can call.
+"""Recorded scenarios and deterministic replay, as helpers the tests share.
 
-`behaviour(recording, robot_id)` reduces a recording to what a robot decided: the accepted
-commands and the targets it sent, with times relative to the first input. `replay_and_compare`
-re-drives a recorded session into a fresh robot (with a mock slave) and returns both
-behaviours; under `trio.testing.MockClock` they match message for message. It sits above
-`recording` and `drivers`, using both.
+`record_scenario(folder, scenario)` runs a scenario on a fresh robot with a mock slave and
+records it; `behaviour(recording, robot_id)` reduces a recording to what a robot decided: the
+accepted commands and the targets it sent, with times relative to the first input;
+`replay_session` re-drives a recorded session into a fresh robot and returns its recording.
+Under `trio.testing.MockClock` the two behaviours match message for message.
 """
 
 from __future__ import annotations

@@ -1,0 +1,81 @@
+"""The servo bus: `sim-bus` (a simulated bus on a pty) and `calibrate` (a real arm)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from arena.cli.common import Commands
+
+
+def add(commands: Commands) -> None:
+    """Declare `sim-bus` and `calibrate`."""
+    sim_bus = commands.add_parser("sim-bus", help="a simulated STS3215 servo bus on a pty")
+    sim_bus.add_argument(
+        "--link", default="/tmp/arena-sim-bus", help="path of the port (a symlink to the pty)"
+    )
+    sim_bus.add_argument(
+        "--ids", type=servo_ids, default="1,2,3,4,5,6", help="servo ids, comma-separated"
+    )
+    sim_bus.add_argument(
+        "--wire-time", action="store_true", help="answer as slowly as a real wire at --baud"
+    )
+    sim_bus.add_argument("--baud", type=int, default=1_000_000)
+    sim_bus.set_defaults(handler=sim_bus_command)
+    calibrate = commands.add_parser("calibrate", help="calibrate an arm on a servo bus")
+    calibrate.add_argument("--port", help="serial port (default: find the adapter by USB id)")
+    calibrate.add_argument("--baud", type=int, default=1_000_000)
+    calibrate.add_argument("--robot-type", default="so-arm100")
+    calibrate.add_argument(
+        "--out", default="calibration/robot.json", help="calibration file to write"
+    )
+    calibrate.add_argument(
+        "--write-homing", action="store_true", help="also store the offsets in the servos"
+    )
+    calibrate.set_defaults(handler=calibrate_command)
+
+
+def servo_ids(text: str) -> tuple[int, ...]:
+    """`--ids 1,2,3`: servo ids 0-253."""
+    try:
+        ids = tuple(int(part) for part in text.split(",") if part.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not servo ids such as 1,2,3") from None
+    if not ids or not all(0 <= i <= 253 for i in ids):
+        raise argparse.ArgumentTypeError(f"{text!r}: servo ids are 0 to 253")
+    return ids
+
+
+def sim_bus_command(args: argparse.Namespace) -> int:
+    """`arena sim-bus`: serve the simulated bus until Ctrl-C."""
+    from arena.feetech import terminal
+
+    terminal.serve_sim_bus(Path(args.link), args.ids, args.wire_time, args.baud)
+    return 0
+
+
+def calibrate_command(args: argparse.Namespace) -> int:
+    """`arena calibrate`: the interactive calibration of an arm on a real bus."""
+    from arena.feetech import terminal
+    from arena.feetech.bus import ServoBus, find_adapter
+    from arena.protocol.errors import ArenaError
+    from arena.robot.model import load_robot_model
+
+    model = load_robot_model(args.robot_type)
+    try:
+        port = args.port or find_adapter()
+    except ArenaError as error:
+        raise ArenaError(error.code, f"{error.message} (--port PATH)") from None
+    bus = ServoBus(port, args.baud)
+    bus.open()
+    try:
+        terminal.calibrate_interactively(
+            bus,
+            {joint.name: joint.servo_id for joint in model.joints},
+            Path(args.out),
+            robot_type=args.robot_type,
+            write_homing=args.write_homing,
+        )
+    finally:
+        bus.close()
+    return 0

@@ -1,0 +1,144 @@
+"""`arena serve`: the HTTP and WebSocket server."""
+
+from __future__ import annotations
+
+import argparse
+from functools import partial
+
+from arena.cli.common import Commands
+
+
+def add(commands: Commands) -> None:
+    """Declare `serve` and its options (server, security, recording, fleet)."""
+    serve = commands.add_parser("serve", help="run the HTTP and WebSocket server")
+    serve.add_argument("--host", default=None, help="address to bind (default 127.0.0.1)")
+    serve.add_argument("--port", type=int, default=None, help="port (default 8080; 0: any)")
+    serve.add_argument(
+        "--demo",
+        action="store_true",
+        default=None,
+        help="create robot demo-arm (so-arm100) with a mock slave",
+    )
+    serve.add_argument("--config", help="a TOML file of server settings")
+    serve.add_argument(
+        "--api-key",
+        action="append",
+        default=[],
+        dest="api_keys",
+        help="an API key clients must present (repeatable)",
+    )
+    serve.add_argument(
+        "--viewer-key",
+        action="append",
+        default=[],
+        dest="viewer_keys",
+        help="a read-only key: GET requests and the state WebSocket only (repeatable)",
+    )
+    serve.add_argument(
+        "--insecure",
+        action="store_true",
+        default=None,
+        help="allow binding beyond loopback without API keys",
+    )
+    serve.add_argument(
+        "--allow-origin",
+        action="append",
+        default=[],
+        dest="allowed_origins",
+        metavar="ORIGIN",
+        help="a web page origin (scheme://host:port) that may change things (repeatable)",
+    )
+    serve.add_argument(
+        "--allow-host",
+        action="append",
+        default=[],
+        dest="allowed_hosts",
+        metavar="NAME",
+        help="a host name a loopback server answers to besides localhost (repeatable)",
+    )
+    serve.add_argument("--certfile", help="TLS certificate (PEM)")
+    serve.add_argument("--keyfile", help="TLS private key (PEM)")
+    serve.add_argument(
+        "--no-record",
+        action="store_false",
+        dest="record",
+        default=None,
+        help="do not record to MCAP (recording can be started over REST)",
+    )
+    serve.add_argument("--recordings-dir", help="where recordings go (default recordings/)")
+    serve.add_argument(
+        "--no-record-foxglove",
+        action="store_false",
+        dest="record_foxglove",
+        default=None,
+        help="leave Foxglove's view (transforms, 3D model, log) out of recordings",
+    )
+    serve.add_argument(
+        "--foxglove-port",
+        type=int,
+        default=None,
+        metavar="PORT",
+        help="serve every robot live to Foxglove on ws://HOST:PORT (0: any port)",
+    )
+    fleet = serve.add_argument_group("fleet (specs/fleet.md)")
+    fleet.add_argument("--node", help="this server's name in a fleet (joins it over Zenoh)")
+    fleet.add_argument("--fleet", help="the fleet's name (default: default)")
+    fleet.add_argument(
+        "--fleet-listen",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="Zenoh endpoint to listen on, e.g. tcp/0.0.0.0:7447 (repeatable)",
+    )
+    fleet.add_argument(
+        "--fleet-connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="a node or router to connect to, e.g. tcp/10.0.0.2:7447 (repeatable)",
+    )
+    fleet.add_argument(
+        "--fleet-scout", action="store_true", default=None, help="find nodes by multicast"
+    )
+    fleet.add_argument(
+        "--fleet-zenoh-config",
+        metavar="FILE",
+        help="a Zenoh configuration (JSON5) to start from: TLS, access control",
+    )
+    serve.set_defaults(handler=serve_command)
+
+
+def serve_command(args: argparse.Namespace) -> int:
+    """`arena serve`: the options over the `--config` file's settings, checked, then served
+    until Ctrl-C or SIGTERM."""
+    import trio
+
+    from arena.server.config import load_config
+    from arena.server.run import run_server
+
+    config = load_config(
+        args.config,
+        record=args.record,
+        recordings_dir=args.recordings_dir,
+        record_foxglove=args.record_foxglove,
+        foxglove_port=args.foxglove_port,
+        host=args.host,
+        port=args.port,
+        demo=args.demo,
+        api_keys=tuple(args.api_keys),
+        viewer_keys=tuple(args.viewer_keys) or None,
+        insecure=args.insecure,
+        certfile=args.certfile,
+        keyfile=args.keyfile,
+        allowed_origins=tuple(args.allowed_origins),
+        allowed_hosts=tuple(args.allowed_hosts),
+        node=args.node,
+        fleet=args.fleet,
+        fleet_listen=tuple(args.fleet_listen) or None,
+        fleet_connect=tuple(args.fleet_connect) or None,
+        fleet_scout=args.fleet_scout,
+        fleet_zenoh_config=args.fleet_zenoh_config,
+    )
+    config.check()
+    trio.run(partial(run_server, config, handle_signals=True, freeze_startup_objects=True))
+    return 0
