@@ -225,8 +225,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--link", default="/tmp/arena-sim-bus", help="path of the port (a symlink to the pty)"
     )
     sim_bus.add_argument(
-        "--ids", type=_servo_ids, default="1,2,3,4,5,6", help="servo ids, comma-separated"
+        "--ids",
+        type=_servo_ids,
+        default=None,
+        help="servo ids, comma-separated (default: the type's)",
     )
+    sim_bus.add_argument("--robot-type", default="so-arm100", help="whose servos to simulate")
     sim_bus.add_argument(
         "--wire-time", action="store_true", help="answer as slowly as a real wire at --baud"
     )
@@ -585,7 +589,8 @@ def _bus_command(args: argparse.Namespace) -> int:
     from arena.robot.model import load_robot_model
 
     if args.command == "sim-bus":
-        terminal.serve_sim_bus(Path(args.link), args.ids, args.wire_time, args.baud)
+        ids = args.ids or tuple(j.servo_id for j in load_robot_model(args.robot_type).joints)
+        terminal.serve_sim_bus(Path(args.link), ids, args.wire_time, args.baud)
         return 0
     model = load_robot_model(args.robot_type)
     try:
