@@ -245,6 +245,12 @@ def build_parser() -> argparse.ArgumentParser:
     calibrate.add_argument(
         "--write-homing", action="store_true", help="also store the offsets in the servos"
     )
+    calibrate.add_argument(
+        "--format",
+        choices=("arena", "lerobot"),
+        default="arena",
+        help="file format: Arena's, or LeRobot's (read by LeRobot and by Arena)",
+    )
     layout = commands.add_parser(
         "foxglove-layout", help="a Foxglove layout: the 3D twins, a plot per joint, the log"
     )
@@ -606,6 +612,7 @@ def _bus_command(args: argparse.Namespace) -> int:
             Path(args.out),
             robot_type=args.robot_type,
             write_homing=args.write_homing,
+            lerobot_model=model if args.format == "lerobot" else None,
         )
     finally:
         bus.close()

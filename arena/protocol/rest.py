@@ -50,12 +50,12 @@ class MockSlaveBody(
 MAX_JOIN_SPEED = 90.0
 
 #: A calibration: a file's name (letters, digits, `_-.`, not starting with a dot), or a LeRobot
-#: calibration file: `lerobot:ID` (found in LeRobot's folder) or a path (with `/` or `.json`).
+#: calibration file: `lerobot:ID` (found in LeRobot's folder) or a path ending in `.json`.
 CalibrationName = Annotated[
     str,
     msgspec.Meta(
         pattern=r"^([A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}|lerobot:[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}"
-        r"|[^\x00-\x1f]*(/|\.json)[^\x00-\x1f]*)$",
+        r"|[^\x00-\x1f]*\.json)$",
         max_length=1024,
     ),
 ]
