@@ -144,6 +144,11 @@ async def test_so101_driven_through_a_server_with_an_estop(
     async with server.client() as http:
         await attach_so101(http, sim, str(path))
         await eventually(lambda: _joined(http), what="the arm joined")
+        status = (await http.get("/api/robots/arm/calibration")).json()
+        assert status["calibrated"] is True and status["file"] == str(path)
+        refused = await http.post("/api/robots/arm/calibration/start")
+        assert refused.status_code == 409  # Arena never writes over the LeRobot file
+        assert str(path) in refused.json()["error"]["message"]
         move = {
             "joints": [{"name": "shoulder_pan", "value": 12.0}, {"name": "gripper", "value": 60}]
         }
