@@ -14,6 +14,7 @@ from typing import Any
 import pytest
 import trio
 
+from arena.feetech import registers as reg
 from arena.feetech.lerobot_calibration import (
     from_lerobot,
     is_lerobot_reference,
@@ -107,16 +108,28 @@ async def attach_so101(http: Any, sim: PtySimBus, calibration: str) -> None:
     assert attached.status_code == 201, attached.text
 
 
+@pytest.mark.parametrize("registers", ["written", "fresh"])
 async def test_arena_reads_the_servos_as_lerobot_does(
     start_server: StartServer,
     sim: PtySimBus,
     tmp_path: Path,
     monkeypatch: pytest.MonkeyPatch,
+    registers: str,
 ) -> None:
+    """`fresh`: the same arm, but its servos' registers back to a new servo's (no homing, whole
+    range): Arena applies the file's offsets itself and still reads what LeRobot read."""
     place_arm(sim)
     folder = tmp_path / "hf" / "robots" / "so_follower"
     expected = await trio.to_thread.run_sync(lerobot_reads, str(sim.link), folder)
     assert (folder / "arm.json").is_file()
+    if registers == "fresh":
+        with sim.paused() as bus:
+            for servo in bus.servos.values():
+                actual = servo.actual
+                servo.poke(reg.HOMING_OFFSET, 0)
+                servo.poke(reg.MIN_POSITION_LIMIT, 0)
+                servo.poke(reg.MAX_POSITION_LIMIT, 4095)
+                servo.move_by_hand(actual)  # (homing 0: present = actual) it has not moved
     monkeypatch.setenv("HF_LEROBOT_CALIBRATION", str(tmp_path / "hf"))
     server = await start_server()
     async with server.client() as http:
