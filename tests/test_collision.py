@@ -526,3 +526,18 @@ def test_a_reference_kept_in_each_joints_own_units_says_what_it_says_in_radians(
         assert CollisionModel.near(reference, end.values()) == as_radians, step
         verdicts.add(as_radians)
     assert verdicts == {True, False}  # the bound was reached on the way
+
+
+def test_the_so101_gripper_is_guarded_in_percent() -> None:
+    """Folded back, the so-101's jaw opened fully (100 %: 100 degrees above its -10) meets the
+    lower arm; read as 100 degrees from its closed pose it would miss, and pass unguarded."""
+    so101 = load_robot_model("so-101")
+    core = RobotCore(so101, 0.0)
+    folded = {"shoulder_lift": -80.0, "elbow_flex": -90.0, "wrist_flex": -75.0, "gripper": 0.0}
+    assert drive(core, Command.of(folded), 0.0)  # the arm gets there: nothing in the way
+    t = core.next_tick(0.0) or 0.0
+    result, step = core.command(None, Command.of({"gripper": 100.0}), t + 30.0)
+    assert not result.accepted and result.code is ErrorCode.COLLISION and step.targets is None
+    assert "lower_arm_link and moving_jaw_so101_v1_link" in result.message
+    result, _ = core.command(None, Command.of({"gripper": 20.0}), t + 30.0)
+    assert result.accepted
