@@ -533,7 +533,7 @@ def test_the_so101_gripper_is_guarded_in_percent() -> None:
     lower arm; read as 100 degrees from its closed pose it would miss, and pass unguarded."""
     so101 = load_robot_model("so-101")
     core = RobotCore(so101, 0.0)
-    folded = {"shoulder_lift": -80.0, "elbow_flex": -90.0, "wrist_flex": -75.0, "gripper": 0.0}
+    folded = {"shoulder_lift": -80.0, "elbow_flex": -90.0, "wrist_flex": 90.0, "gripper": 0.0}
     assert drive(core, Command.of(folded), 0.0)  # the arm gets there: nothing in the way
     t = core.next_tick(0.0) or 0.0
     result, step = core.command(None, Command.of({"gripper": 100.0}), t + 30.0)
