@@ -305,7 +305,7 @@ def test_a_reference_kept_in_wire_degrees_says_what_it_says_in_radians(
     place = {joint.name: k for k, joint in enumerate(model.kinematics.joints)}
     index = tuple(place.get(j.urdf_name) for j in MODEL.joints)
     reference = model.reference(urdf(start), clearances)
-    in_degrees = reference.in_order(tuple(start.values()), index, math.pi / 180)
+    in_degrees = reference.in_order(tuple(start.values()), index, (math.pi / 180,) * len(index))
     end = {
         name: value + s if k % 3 != int(where[0] > 0) else value
         for k, ((name, value), s) in enumerate(zip(start.items(), step, strict=True))
