@@ -54,8 +54,8 @@ def calibrate_interactively(
     With `lerobot_model` the file is written in LeRobot's format for that robot type.
     """
     ids = tuple(servo_ids.values())
-    homings = read_register_homings(bus, ids)  # (LeRobot's file holds the servo's own homing)
     set_torque(bus, ids, on=False)
+    homings = read_register_homings(bus, ids)  # (LeRobot's file holds the servo's own homing)
     say("Torque is off: the arm can be moved by hand (hold it, it will not hold itself).")
     say(
         "1/2  Put the arm in its rest pose, the pose the digital twin shows at 0 degrees: "
