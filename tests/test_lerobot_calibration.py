@@ -27,9 +27,17 @@ from arena.feetech.terminal import calibrate_interactively
 from arena.protocol.errors import ArenaError
 from arena.robot.model import load_robot_model
 from tests.conftest import RunningServer
-from tests.hardware import eventually, open_test_bus, running_sim, servo_goals, servo_torque
+from tests.hardware import (
+    TEST_TIMEOUT_MARGIN,
+    eventually,
+    open_test_bus,
+    running_sim,
+    servo_goals,
+    servo_torque,
+)
 
 lerobot_motors = pytest.importorskip("lerobot.motors")
+import scservo_sdk as scs  # noqa: E402
 from lerobot.motors import Motor, MotorCalibration, MotorNormMode  # noqa: E402
 from lerobot.motors.feetech import FeetechMotorsBus  # noqa: E402
 from lerobot.robots.so_follower import SOFollower, SOFollowerRobotConfig  # noqa: E402
@@ -57,10 +65,19 @@ def sim(tmp_path: Path) -> Iterator[PtySimBus]:
     yield from running_sim(tmp_path)
 
 
-def lerobot_follower(port: str, folder: Path) -> SOFollower:
-    """LeRobot's own SO follower (degrees mode), its calibration folder `folder`."""
-    config = SOFollowerRobotConfig(port=port, id="arm", calibration_dir=folder, use_degrees=True)
-    return SOFollower(config)
+def lerobot_follower(sim: PtySimBus, folder: Path) -> SOFollower:
+    """LeRobot's own SO follower (degrees mode) on the simulated bus, its calibration folder
+    `folder`. Its port waits for the simulator as Arena's test buses do: a loaded machine
+    cannot make its servos look silent."""
+    config = SOFollowerRobotConfig(
+        port=str(sim.link), id="arm", calibration_dir=folder, use_degrees=True
+    )
+    robot = SOFollower(config)
+    bus = robot.bus
+    bus.port_handler = sim.paced_port(TEST_TIMEOUT_MARGIN)
+    bus.sync_reader = scs.GroupSyncRead(bus.port_handler, bus.packet_handler, 0, 0)
+    bus.sync_writer = scs.GroupSyncWrite(bus.port_handler, bus.packet_handler, 0, 0)
+    return robot
 
 
 def place_arm(sim: PtySimBus) -> None:
@@ -69,10 +86,10 @@ def place_arm(sim: PtySimBus) -> None:
             bus.servo(sid).move_by_hand(present)
 
 
-def lerobot_reads(port: str, folder: Path) -> dict[str, float]:
+def lerobot_reads(sim: PtySimBus, folder: Path) -> dict[str, float]:
     """What LeRobot reads: its follower writes the calibration file and the servos' registers,
     as its `connect()` does when the user keeps the file, then observes the arm."""
-    robot = lerobot_follower(port, folder)
+    robot = lerobot_follower(sim, folder)
     robot.calibration = dict(CALIBRATION)
     robot._save_calibration()
     robot.bus.connect()
@@ -120,7 +137,7 @@ async def test_arena_reads_the_servos_as_lerobot_does(
     range): Arena applies the file's offsets itself and still reads what LeRobot read."""
     place_arm(sim)
     folder = tmp_path / "hf" / "robots" / "so_follower"
-    expected = await trio.to_thread.run_sync(lerobot_reads, str(sim.link), folder)
+    expected = await trio.to_thread.run_sync(lerobot_reads, sim, folder)
     assert (folder / "arm.json").is_file()
     if registers == "fresh":
         with sim.paused() as bus:
@@ -152,7 +169,7 @@ async def test_so101_driven_through_a_server_with_an_estop(
 ) -> None:
     place_arm(sim)
     path = tmp_path / "arm.json"
-    await trio.to_thread.run_sync(lerobot_reads, str(sim.link), tmp_path)  # writes arm.json
+    await trio.to_thread.run_sync(lerobot_reads, sim, tmp_path)  # writes arm.json
     server = await start_server()
     async with server.client() as http:
         await attach_so101(http, sim, str(path))
@@ -354,7 +371,7 @@ def test_calibrate_format_lerobot_reads_zero_at_rest_in_lerobot(
         "range_min",
         "range_max",
     }
-    robot = lerobot_follower(str(sim.link), out.parent)
+    robot = lerobot_follower(sim, out.parent)
     assert robot.calibration  # LeRobot loads the file itself
     robot.bus.connect()
     try:
