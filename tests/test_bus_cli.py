@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import threading
@@ -131,6 +132,40 @@ def test_sim_bus_and_calibrate_commands(tmp_path: Path) -> None:
         server.terminate()
         server.wait(timeout=10)
     assert server.returncode == 0
+    assert not link.exists()
+
+
+def test_sim_bus_simulates_the_servos_of_a_robot_type(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`--robot-type` takes the type's servo ids (here a type of servos 11-16, added from
+    files); an unknown type is refused before any pty is made."""
+    from arena import cli
+    from arena.robot.model import BUILTIN_TYPES_DIR
+
+    types = tmp_path / "types"
+    shutil.copytree(BUILTIN_TYPES_DIR / "so-arm100", types / "far-arm")
+    toml = types / "far-arm" / "robot.toml"
+    toml.write_text(
+        "".join(
+            f"servo_id = {int(line.split('=')[1]) + 10}\n" if line.startswith("servo_id") else line
+            for line in toml.read_text().splitlines(keepends=True)
+        )
+    )
+    link = tmp_path / "ttySIM"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1", "ARENA_ROBOT_TYPES": str(types)}
+    command = [sys.executable, "-m", "arena.cli", "sim-bus", "--link", str(link)]
+    server = subprocess.Popen(
+        [*command, "--robot-type", "far-arm"], stdout=subprocess.PIPE, text=True, env=env
+    )
+    try:
+        assert server.stdout is not None
+        assert "servos 11,12,13,14,15,16" in server.stdout.readline()
+    finally:
+        server.terminate()
+        server.wait(timeout=10)
+    assert cli.main(["sim-bus", "--link", str(link), "--robot-type", "nosuch"]) == 2
+    assert "nosuch" in capsys.readouterr().err
     assert not link.exists()
 
 

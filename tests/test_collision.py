@@ -305,7 +305,7 @@ def test_a_reference_kept_in_wire_degrees_says_what_it_says_in_radians(
     place = {joint.name: k for k, joint in enumerate(model.kinematics.joints)}
     index = tuple(place.get(j.urdf_name) for j in MODEL.joints)
     reference = model.reference(urdf(start), clearances)
-    in_degrees = reference.in_order(tuple(start.values()), index, math.pi / 180)
+    in_degrees = reference.in_order(tuple(start.values()), index, (math.pi / 180,) * len(index))
     end = {
         name: value + s if k % 3 != int(where[0] > 0) else value
         for k, ((name, value), s) in enumerate(zip(start.items(), step, strict=True))
@@ -496,3 +496,48 @@ def test_small_steps_toward_the_table_never_get_a_target_into_it(
     # and it was stopped: the last pose that got out is close to the table
     _, clearances = guard().assess(urdf(seen[-1]), core.workspace)
     assert min(clearances[k] for k in guard().floor_links) < 0.02
+
+
+def test_a_reference_kept_in_each_joints_own_units_says_what_it_says_in_radians() -> None:
+    """The so-101's gripper moves in percent (one is 1.1 degrees of jaw): a reference in wire
+    units must scale each joint by its own unit, or a gripper step would look smaller than it
+    is and a pose be taken as safe without a check."""
+    so101 = load_robot_model("so-101")
+    model = for_model(so101)
+    assert model is not None
+
+    def to_urdf(values: dict[str, float]) -> dict[str, float]:
+        return {j.urdf_name: j.to_urdf(values[j.name]) for j in so101.joints}
+
+    start = {"shoulder_pan": 0.0, "shoulder_lift": 0.0, "elbow_flex": 0.0}
+    start |= {"wrist_flex": 0.0, "wrist_roll": 0.0, "gripper": 50.0}
+    hit, clearances = model.assess(to_urdf(start), so101.workspace)
+    assert hit is None
+    place = {joint.name: k for k, joint in enumerate(model.kinematics.joints)}
+    index = tuple(place.get(j.urdf_name) for j in so101.joints)
+    scales = tuple(j.radians_per_unit for j in so101.joints)
+    reference = model.reference(to_urdf(start), clearances).in_order(
+        tuple(start.values()), index, scales
+    )
+    verdicts = set()
+    for step in range(200):  # the gripper opening further, a tenth of a percent at a time
+        end = {**start, "gripper": 50.0 + step / 10}
+        as_radians = model.safe_move(clearances, to_urdf(start), to_urdf(end))
+        assert CollisionModel.near(reference, end.values()) == as_radians, step
+        verdicts.add(as_radians)
+    assert verdicts == {True, False}  # the bound was reached on the way
+
+
+def test_the_so101_gripper_is_guarded_in_percent() -> None:
+    """Folded back, the so-101's jaw opened fully (100 %: 100 degrees above its -10) meets the
+    lower arm; read as 100 degrees from its closed pose it would miss, and pass unguarded."""
+    so101 = load_robot_model("so-101")
+    core = RobotCore(so101, 0.0)
+    folded = {"shoulder_lift": -80.0, "elbow_flex": -90.0, "wrist_flex": 90.0, "gripper": 0.0}
+    assert drive(core, Command.of(folded), 0.0)  # the arm gets there: nothing in the way
+    t = core.next_tick(0.0) or 0.0
+    result, step = core.command(None, Command.of({"gripper": 100.0}), t + 30.0)
+    assert not result.accepted and result.code is ErrorCode.COLLISION and step.targets is None
+    assert "lower_arm_link and moving_jaw_so101_v1_link" in result.message
+    result, _ = core.command(None, Command.of({"gripper": 20.0}), t + 30.0)
+    assert result.accepted

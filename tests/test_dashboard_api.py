@@ -26,8 +26,8 @@ async def test_robot_types_give_joints_urdf_and_every_mesh(server: RunningServer
         types = (await http.get("/api/robot-types")).json()
         arm = (await http.get("/api/robot-types/so-arm100")).json()
         urdf = await http.get(arm["urdf"])
-        assert [t["id"] for t in types] == ["so-arm100"]
-        assert types[0] == arm
+        assert [t["id"] for t in types] == ["so-101", "so-arm100"]
+        assert types[1] == arm
         assert [j["name"] for j in arm["joints"]] == [
             "Rotation", "Pitch", "Elbow", "Wrist_Pitch", "Wrist_Roll", "Jaw",
         ]  # fmt: skip
@@ -195,3 +195,29 @@ async def test_an_unbuilt_page_says_how_to_build_it(
     assert page.status_code == 404
     assert page.json()["error"] == {"code": "NOT_FOUND", "message": dashboard.NOT_BUILT}
     assert browser.status_code == 200 and browser.json()["name"] == "Arena"
+
+
+async def test_the_so101_type_serves_its_meshes_and_a_percent_gripper(
+    server: RunningServer,
+) -> None:
+    async with server.client() as http:
+        arm = (await http.get("/api/robot-types/so-101")).json()
+        urdf = await http.get(arm["urdf"])
+        gripper = arm["joints"][-1]
+        assert (gripper["name"], gripper["unit"], gripper["lower"], gripper["upper"]) == (
+            "gripper",
+            "percent",
+            0,
+            100,
+        )
+        # 0 % is the URDF's lower limit, 100 % its upper: -10 to 100 degrees of jaw
+        assert gripper["neutral"] == pytest.approx(-0.174533)
+        assert gripper["radians_per_unit"] * 100 == pytest.approx(1.74533 + 0.174533)
+        pan = arm["joints"][0]
+        assert (pan["unit"], pan["neutral"]) == ("deg", 0)
+        assert pan["radians_per_unit"] == pytest.approx(math.pi / 180)
+        meshes = {m.get("filename") for m in ET.fromstring(urdf.text).iter("mesh")}
+        assert len(meshes) == 13
+        for name in meshes:
+            mesh = await http.get(arm["files"] + str(name))
+            assert mesh.status_code == 200, name

@@ -15,8 +15,12 @@ def add(commands: Commands) -> None:
         "--link", default="/tmp/arena-sim-bus", help="path of the port (a symlink to the pty)"
     )
     sim_bus.add_argument(
-        "--ids", type=servo_ids, default="1,2,3,4,5,6", help="servo ids, comma-separated"
+        "--ids",
+        type=servo_ids,
+        default=None,
+        help="servo ids, comma-separated (default: the type's)",
     )
+    sim_bus.add_argument("--robot-type", default="so-arm100", help="whose servos to simulate")
     sim_bus.add_argument(
         "--wire-time", action="store_true", help="answer as slowly as a real wire at --baud"
     )
@@ -31,6 +35,12 @@ def add(commands: Commands) -> None:
     )
     calibrate.add_argument(
         "--write-homing", action="store_true", help="also store the offsets in the servos"
+    )
+    calibrate.add_argument(
+        "--format",
+        choices=("arena", "lerobot"),
+        default="arena",
+        help="file format: Arena's, or LeRobot's (read by LeRobot and by Arena)",
     )
     calibrate.set_defaults(handler=calibrate_command)
 
@@ -49,8 +59,10 @@ def servo_ids(text: str) -> tuple[int, ...]:
 def sim_bus_command(args: argparse.Namespace) -> int:
     """`arena sim-bus`: serve the simulated bus until Ctrl-C."""
     from arena.feetech import terminal
+    from arena.robot.model import load_robot_model
 
-    terminal.serve_sim_bus(Path(args.link), args.ids, args.wire_time, args.baud)
+    ids = args.ids or tuple(j.servo_id for j in load_robot_model(args.robot_type).joints)
+    terminal.serve_sim_bus(Path(args.link), ids, args.wire_time, args.baud)
     return 0
 
 
@@ -75,6 +87,7 @@ def calibrate_command(args: argparse.Namespace) -> int:
             Path(args.out),
             robot_type=args.robot_type,
             write_homing=args.write_homing,
+            lerobot_model=model if args.format == "lerobot" else None,
         )
     finally:
         bus.close()

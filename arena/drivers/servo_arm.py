@@ -8,9 +8,14 @@ from pathlib import Path
 
 import trio
 
-from arena.drivers.bus_bridge import BusBridge, start_worker
+from arena.drivers.bus_bridge import BusBridge, start_worker, wait_future
 from arena.feetech.bus import ServoBus
 from arena.feetech.calibration import Calibration
+from arena.feetech.lerobot_calibration import (
+    LeRobotCalibration,
+    load_calibration,
+    read_register_homings,
+)
 from arena.feetech.worker import BusWorker, WorkerSettings
 from arena.robot.model import RobotModel
 
@@ -48,13 +53,18 @@ class ServoArm:
         if self.worker is not None:
             return
         if self.calibration_file is not None and self.calibration_file.exists():
+            # Either format; a LeRobot file that does not fit is refused here, before any torque.
             self.calibration = await trio.to_thread.run_sync(
-                Calibration.load, self.calibration_file
+                load_calibration, self.calibration_file, self.model
             )
             self.calibrated = True
+        ids = tuple(self.servo_ids.values())
         self.port, self.worker, self.bridge = await start_worker(
-            self.requested_port, tuple(self.servo_ids.values()), self.settings, self._open_bus
+            self.requested_port, ids, self.settings, self._open_bus
         )
+        if isinstance(self.calibration, LeRobotCalibration):
+            homings = await wait_future(self.worker.submit(lambda b: read_register_homings(b, ids)))
+            self.calibration = self.calibration.with_register_homings(homings)
 
     async def close(self) -> None:
         """Torque off, port closed, thread ended (also for an arm prepared but never run)."""

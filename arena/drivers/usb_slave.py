@@ -30,6 +30,7 @@ from arena.feetech.calibration import (
     calibrate_rest,
 )
 from arena.feetech.health import ServoFault
+from arena.feetech.lerobot_calibration import LeRobotCalibration
 from arena.feetech.worker import (
     Connected,
     Lost,
@@ -205,6 +206,12 @@ class UsbSlave(ServoArm):
         """Torque off so the user can pose the arm like the twin's `rest` pose (degrees)."""
         if self.session is not None:
             raise ArenaError(ErrorCode.CALIBRATION_STATE, "A calibration is already running.")
+        if isinstance(self.calibration, LeRobotCalibration):  # Arena never writes over it
+            raise ArenaError(
+                ErrorCode.CALIBRATION_STATE,
+                f"This arm reads LeRobot's calibration {self.calibration.source}: calibrate it "
+                "with LeRobot, or attach it with an Arena calibration name to calibrate here.",
+            )
         unknown = sorted(set(rest) - set(self.servo_ids))
         if unknown:
             raise ArenaError(

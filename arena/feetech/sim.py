@@ -126,8 +126,11 @@ class SimServo:
 
     def _step(self, dt: float) -> None:
         torque = self.peek(reg.TORQUE_ENABLE) != 0
-        goal_actual = self.peek(reg.GOAL_POSITION) + self.homing
-        error = goal_actual - self.actual
+        # The servo works in its own frame (after Homing_Offset), within its position limits:
+        # a goal never makes it turn across that frame's ends.
+        goal = self.peek(reg.GOAL_POSITION)
+        goal = max(self.peek(reg.MIN_POSITION_LIMIT), min(self.peek(reg.MAX_POSITION_LIMIT), goal))
+        error = goal - (self.actual - self.homing) % reg.STEPS_PER_TURN
         wants_to_move = torque and abs(error) > 0.5
         if self.faults.stalled and wants_to_move:
             self.velocity = 0.0
@@ -149,7 +152,7 @@ class SimServo:
             wanted = self.velocity + change
         self.velocity = wanted
         step = wanted * dt
-        self.actual = goal_actual if abs(step) >= abs(error) else self.actual + step
+        self.actual += error if abs(step) >= abs(error) else step
 
     def _refresh(self) -> None:
         self.poke(reg.PRESENT_POSITION, self.present)

@@ -127,6 +127,11 @@ class PtySimBus:
         bus._port = _PacedPort(str(self.link), timeout_margin, self)
         return bus
 
+    def paced_port(self, timeout_margin: float) -> Any:
+        """An SDK port handler on this port paced as `servo_bus`'s is, for other programs'
+        clients of the bus (LeRobot's `FeetechMotorsBus` in tests)."""
+        return _PacedPort(str(self.link), timeout_margin, self)
+
     @contextlib.contextmanager
     def paused(self) -> Iterator[SimBus]:
         """Hold the bus still (no packet handled) while a test changes it."""

@@ -10,10 +10,12 @@ from pathlib import Path
 
 from arena.feetech.bus import ServoBus
 from arena.feetech.calibration import Calibration, RangeCapture, calibrate_rest
+from arena.feetech.lerobot_calibration import read_register_homings, save_lerobot
 from arena.feetech.sim import SimBus
 from arena.feetech.sim_pty import PtySimBus
 from arena.feetech.worker import read_positions, set_torque, store_offsets_in_servos
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.robot.model import RobotModel
 
 #: Reads a calibration makes before it gives up: a person is waiting, not an arm in motion,
 #: so one late or garbled reply (a busy computer, a noisy cable) is worth asking again.
@@ -40,6 +42,7 @@ def calibrate_interactively(
     *,
     robot_type: str = "so-arm100",
     write_homing: bool = False,
+    lerobot_model: RobotModel | None = None,
     ask: Callable[[str], str] = input,
     say: Callable[[str], None] = print,
     poll_interval: float = 0.05,
@@ -48,9 +51,11 @@ def calibrate_interactively(
 
     Torque goes off, the user poses the arm at rest (every joint at 0 degrees: the middle of
     its range), then moves each joint through its range while min and max are recorded.
+    With `lerobot_model` the file is written in LeRobot's format for that robot type.
     """
     ids = tuple(servo_ids.values())
     set_torque(bus, ids, on=False)
+    homings = read_register_homings(bus, ids)  # (LeRobot's file holds the servo's own homing)
     say("Torque is off: the arm can be moved by hand (hold it, it will not hold itself).")
     say(
         "1/2  Put the arm in its rest pose, the pose the digital twin shows at 0 degrees: "
@@ -58,7 +63,11 @@ def calibrate_interactively(
     )
     ask("     Press Enter when it is in place. ")
     raw = read_patiently(bus, ids)
-    start = Calibration.load(out) if out.exists() else Calibration.identity(servo_ids, robot_type)
+    start = (
+        Calibration.load(out)
+        if out.exists() and lerobot_model is None
+        else Calibration.identity(servo_ids, robot_type)
+    )
     calibration = calibrate_rest(start, raw, dict.fromkeys(servo_ids, 0.0))
     say("     Rest pose captured.")
     say("2/2  Move every joint slowly through its whole range, one after the other.")
@@ -80,8 +89,12 @@ def calibrate_interactively(
     calibration = capture.apply(calibration)
     if write_homing:
         calibration = store_offsets_in_servos(bus, calibration, ids)
+        homings = read_register_homings(bus, ids)
         say("     Offsets written to the servos' Homing_Offset registers.")
-    calibration.save(out)
+    if lerobot_model is not None:
+        save_lerobot(calibration, lerobot_model, homings, out)
+    else:
+        calibration.save(out)
     say(f"Saved {out}:")
     for name, joint in calibration.joints.items():
         span = (

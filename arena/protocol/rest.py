@@ -49,8 +49,16 @@ class MockSlaveBody(
 #: The fastest joining speed (deg/s) a slave or a robot type may ask for: joining is slow.
 MAX_JOIN_SPEED = 90.0
 
-#: A calibration file's name: letters, digits, `_-.`, not starting with a dot (no paths).
-CalibrationName = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}$")]
+#: A calibration: a file's name (letters, digits, `_-.`, not starting with a dot), or a LeRobot
+#: calibration file: `lerobot:ID` (found in LeRobot's folder) or a path ending in `.json`.
+CalibrationName = Annotated[
+    str,
+    msgspec.Meta(
+        pattern=r"^([A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}|lerobot:[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}"
+        r"|[^\x00-\x1f]*\.json)$",
+        max_length=1024,
+    ),
+]
 
 
 class UsbSlaveBody(

@@ -31,7 +31,7 @@ from arena.robot.model import JointSpec, RobotModel
 FEATURE_SUFFIX = ".pos"
 #: Gripper values in LeRobot run 0 (closed) to 100 (open), over the joint's range.
 GRIPPER_RANGE = 100.0
-ROBOT_TYPES = {"so-arm100": "so100_follower"}
+ROBOT_TYPES = {"so-arm100": "so100_follower", "so-101": "so101_follower"}
 DEFAULT_TASK = "teleoperation"
 
 

@@ -101,26 +101,29 @@ class Reference:
     floor_units: tuple[float, ...]  # ... up or down (see `_floor_factors`)
 
     def in_order(
-        self, values: tuple[float, ...], index: tuple[int | None, ...], scale: float
+        self, values: tuple[float, ...], index: tuple[int | None, ...], scales: tuple[float, ...]
     ) -> Reference:
         """The same reference for poses listed another way: joint k of the new order is the
         kinematics' joint `index[k]` (None: a joint the guard does not know, which changes no
-        gap) with its value in units of which one is `scale` URDF units (degrees: pi/180),
-        and `values` is the checked pose so listed. A joint of the kinematics left out must
-        never move (it stays where the check saw it)."""
+        gap) with its value in units of which one is `scales[k]` URDF units (degrees: pi/180;
+        a 0-100 gripper: its range / 100), and `values` is the checked pose so listed. A joint
+        of the kinematics left out must never move (it stays where the check saw it)."""
 
         def pick(
-            numbers: tuple[float, ...], missing: float, times: float = 1.0
+            numbers: tuple[float, ...], missing: float, times: bool = False
         ) -> tuple[float, ...]:
-            return tuple(missing if k is None else numbers[k] * times for k in index)
+            return tuple(
+                missing if k is None else numbers[k] * (scales[i] if times else 1.0)
+                for i, k in enumerate(index)
+            )
 
         return Reference(
             values,
             pick(self.limits, math.inf),
             pick(self.floor_limits, math.inf),
             self.checked,
-            pick(self.units, 0.0, scale),
-            pick(self.floor_units, 0.0, scale),
+            pick(self.units, 0.0, times=True),
+            pick(self.floor_units, 0.0, times=True),
         )
 
 

@@ -8,7 +8,6 @@ Property tests drive this class directly.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
@@ -57,9 +56,6 @@ class Step:
     targets: dict[str, float] | None = None
     effects: tuple[Effect, ...] = field(default=())
     joins: tuple[JoinChange, ...] = field(default=())
-
-
-_RADIANS = math.radians(1.0)  # URDF radians per wire degree (the scale of `JointSpec.to_urdf`)
 
 
 @dataclass(slots=True)
@@ -116,6 +112,7 @@ class RobotCore:
         kinematics = self.guard.kinematics.joints if self.guard is not None else ()
         place = {joint.name: k for k, joint in enumerate(kinematics)}
         self._guard_index = tuple(place.get(j.urdf_name) for j in model.joints)
+        self._guard_scales = tuple(j.radians_per_unit for j in model.joints)  # URDF per wire unit
         self._checked: dict[str, float] | None = None  # the last goal pose found safe
         # The last poses checked in full with their clearances (metres), newest first: a pose
         # whose joints are so close to one that no part of the arm can have moved that far
@@ -437,7 +434,8 @@ class RobotCore:
         assert self.guard is not None
         reference = self.guard.reference(urdf, clearance)
         values = tuple(degrees.values())
-        self._references.insert(0, reference.in_order(values, self._guard_index, _RADIANS))
+        ordered = reference.in_order(values, self._guard_index, self._guard_scales)
+        self._references.insert(0, ordered)
         del self._references[REFERENCES:]
 
     def tick(self, now: float) -> dict[str, float] | None:

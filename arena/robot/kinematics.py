@@ -125,8 +125,9 @@ class Kinematics:
             if text is not None
             else ElementTree.parse(Path(source)).getroot()
         )
-        joints = [_joint(node) for node in element.iter("joint")]
-        links = [node.get("name", "") for node in element.iter("link")]
+        # The robot's own children only: a <transmission> names joints too.
+        joints = [_joint(node) for node in element.findall("joint")]
+        links = [node.get("name", "") for node in element.findall("link")]
         children = {joint.child for joint in joints}
         roots = [link for link in links if link not in children]
         if len(roots) != 1:

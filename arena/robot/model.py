@@ -1,6 +1,7 @@
 """Robot types: a folder with a URDF and a `robot.toml`, turned into a `RobotModel`.
 
-Units: the wire speaks degrees measured from each joint's *neutral* pose; the URDF speaks
+Units: the wire speaks degrees measured from each joint's *neutral* pose (or, for a joint whose
+`unit` is `percent`, such as LeRobot's grippers, 0 to 100 across its URDF range); the URDF speaks
 radians. `JointSpec.to_urdf` and `JointSpec.from_urdf` are the only conversions between them.
 """
 
@@ -24,6 +25,8 @@ BUILTIN_TYPES_DIR = Path(__file__).resolve().parent.parent / "robot_types"
 #: Environment variable naming extra folders of robot types (os.pathsep separated).
 TYPES_PATH_ENV = "ARENA_ROBOT_TYPES"
 CONFIG_FILE = "robot.toml"
+#: A joint's `unit` when its wire value is 0..100 across its URDF range (LeRobot's grippers).
+PERCENT = "percent"
 
 
 class LossPolicy(enum.StrEnum):
@@ -59,18 +62,30 @@ class JointSpec:
     max_velocity: float
     neutral: float  # URDF radians that 0 degrees on the wire stands for
     urdf_joint: str = ""  # the URDF joint it drives, when its name differs from `name`
+    #: "deg", or "percent": 0 is the URDF's lower limit, 100 its upper (`span` radians apart).
+    unit: str = "deg"
+    span: float = 0.0  # URDF radians from lower to upper limit (percent joints)
 
     @property
     def urdf_name(self) -> str:
         """The name of this joint in the URDF."""
         return self.urdf_joint or self.name
 
+    @property
+    def radians_per_unit(self) -> float:
+        """URDF radians one wire unit (a degree, or a percent) stands for."""
+        return self.span / 100.0 if self.unit == PERCENT else math.pi / 180.0
+
     def to_urdf(self, degrees: float) -> float:
-        """Wire degrees to URDF radians."""
+        """Wire degrees (or percent) to URDF radians."""
+        if self.unit == PERCENT:
+            return self.neutral + degrees * self.span / 100.0
         return self.neutral + math.radians(degrees)
 
     def from_urdf(self, radians: float) -> float:
-        """URDF radians to wire degrees."""
+        """URDF radians to wire degrees (or percent)."""
+        if self.unit == PERCENT:
+            return (radians - self.neutral) * 100.0 / self.span
         return math.degrees(radians - self.neutral)
 
     def clamp(self, degrees: float) -> float:
@@ -227,18 +242,27 @@ def _joint_spec(entry: dict[str, Any], urdf: dict[str, _UrdfJoint], bad: Any) ->
     source = urdf.get(urdf_joint)
     if source is None:
         raise bad(f"joint {name!r} is not a revolute joint with limits in the URDF")
-    neutral = float(entry.get("neutral", (source.lower + source.upper) / 2))
-    lower = math.degrees(source.lower - neutral)
-    upper = math.degrees(source.upper - neutral)
+    unit = str(entry.get("unit", "deg"))
+    if unit not in ("deg", PERCENT):
+        raise bad(f"joint {name!r}: unit must be 'deg' or {PERCENT!r}, not {unit!r}")
+    span = source.upper - source.lower
+    if unit == PERCENT:
+        # 0 % is the URDF's lower limit; velocities are in %/s.
+        neutral, lower, upper = source.lower, 0.0, 100.0
+        velocity = source.velocity * 100.0 / span
+    else:
+        neutral = float(entry.get("neutral", (source.lower + source.upper) / 2))
+        lower = math.degrees(source.lower - neutral)
+        upper = math.degrees(source.upper - neutral)
+        velocity = math.degrees(source.velocity)
     # Optional soft limits narrow (never widen) what the URDF allows.
     soft_lower = float(entry.get("lower", lower))
     soft_upper = float(entry.get("upper", upper))
     if not lower - 1e-9 <= soft_lower < soft_upper <= upper + 1e-9:
-        raise bad(f"joint {name!r}: soft limits must lie inside [{lower:.1f}, {upper:.1f}] deg")
-    velocity = math.degrees(source.velocity)
+        raise bad(f"joint {name!r}: soft limits must lie inside [{lower:.1f}, {upper:.1f}] {unit}")
     max_velocity = float(entry.get("max_velocity", velocity))
     if not 0 < max_velocity <= velocity + 1e-9:
-        raise bad(f"joint {name!r}: max_velocity must be in (0, {velocity:.1f}] deg/s")
+        raise bad(f"joint {name!r}: max_velocity must be in (0, {velocity:.1f}] {unit}/s")
     return JointSpec(
         name=name,
         servo_id=int(entry.get("servo_id", 0)),
@@ -248,4 +272,6 @@ def _joint_spec(entry: dict[str, Any], urdf: dict[str, _UrdfJoint], bad: Any) ->
         max_velocity=max_velocity,
         neutral=neutral,
         urdf_joint="" if urdf_joint == name else urdf_joint,
+        unit=unit,
+        span=span,
     )

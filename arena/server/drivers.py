@@ -12,6 +12,8 @@ from arena.drivers.config import RemoteLinkConfig, UsbMasterConfig, UsbSlaveConf
 from arena.drivers.mock_slave import MockSlave, MockSlaveConfig
 from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import demo_sequences, get_sequence
+from arena.feetech.lerobot_calibration import is_lerobot_reference
+from arena.feetech.lerobot_calibration import resolve as resolve_lerobot
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import (
     MasterBody,
@@ -47,8 +49,12 @@ async def attach_rest_master(robot: Robot, driver: MasterDriver) -> str:
         raise
 
 
-def _calibration_file(folder: Path | None, name: str | None, robot_id: str) -> Path:
-    """`folder/<name>.json` (names are checked at the edge: no paths)."""
+def _calibration_file(
+    folder: Path | None, name: str | None, robot_id: str, model: RobotModel, leader: bool = False
+) -> Path:
+    """`folder/<name>.json`, or the LeRobot file a path or `lerobot:ID` names."""
+    if name is not None and is_lerobot_reference(name):
+        return resolve_lerobot(name, model.robot_type, leader=leader)
     return (folder or Path("calibration")) / f"{name or robot_id}.json"
 
 
@@ -107,7 +113,7 @@ def make_slave(
 
         if model is None:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "A usb-slave needs the robot's model.")
-        calibration = _calibration_file(calibration_dir, body.calibration, robot_id)
+        calibration = _calibration_file(calibration_dir, body.calibration, robot_id, model)
         return UsbSlave(usb_slave_config(body), model, calibration)
     if isinstance(body, PhysicsSlaveBody):
         from arena.drivers.physics import PhysicsSettings, PhysicsSlave
@@ -189,7 +195,9 @@ def _master(
             raise ArenaError(ErrorCode.INVALID_CONFIG, "A usb-master needs the robot's model.")
         name = body.calibration or f"{robot_id}-leader"
         return UsbMaster(
-            usb_master_config(body), model, _calibration_file(calibration_dir, name, robot_id)
+            usb_master_config(body),
+            model,
+            _calibration_file(calibration_dir, name, robot_id, model, True),
         )
     if isinstance(body, ReplayMasterBody):
         if recordings is None:

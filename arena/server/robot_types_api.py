@@ -33,8 +33,10 @@ def describe_type(model: RobotModel) -> dict[str, Any]:
                 "lower": round(joint.lower, 6),
                 "upper": round(joint.upper, 6),
                 "velocity": round(joint.max_velocity, 6),
-                # wire degrees d stand for URDF radians neutral + d * pi / 180
+                # a wire value d stands for URDF radians neutral + d * radians_per_unit
                 "neutral": round(joint.neutral, 9),
+                "unit": joint.unit,
+                "radians_per_unit": round(joint.radians_per_unit, 12),
             }
             for joint in model.joints
         ],

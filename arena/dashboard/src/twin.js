@@ -298,7 +298,7 @@ export class Twin {
     for (const state of states) {
       const spec = byName.get(state.name);
       if (!spec) continue;
-      const toUrdf = (degrees) => spec.neutral + (degrees * Math.PI) / 180;
+      const toUrdf = (value) => spec.neutral + value * (spec.radians_per_unit ?? Math.PI / 180);
       this.commanded.setJoint(state.name, toUrdf(state.virtual_value));
       if (state.real_value !== null && state.real_value !== undefined) {
         this.measured.setJoint(state.name, toUrdf(state.real_value));
