@@ -95,6 +95,7 @@ def build_parser() -> argparse.ArgumentParser:
         dest="api_keys",
         help="an API key clients must present (repeatable)",
     )
+    serve.add_argument("--api-key-file", help="API keys, one a line (kept out of `ps`)")
     serve.add_argument(
         "--viewer-key",
         action="append",
@@ -736,6 +737,7 @@ def _serve(args: argparse.Namespace) -> int:
 
     config = load_config(
         args.config,
+        api_key_file=args.api_key_file,
         record=args.record,
         recordings_dir=args.recordings_dir,
         record_foxglove=args.record_foxglove,
