@@ -50,9 +50,10 @@ def serving(
     python: str = sys.executable,
     timeout: float = 60.0,
 ) -> Iterator[ServeProcess]:
-    """Run `python -m arena serve ARGV` in `cwd` until the block ends (then SIGKILL if still
-    running). Yields once it listens; raises with its log if it ends first."""
-    environment = {**os.environ, "LOG_LEVEL": "INFO", **(env or {})}
+    """Run `python -m arena serve ARGV` in `cwd` with the environment `env` (default: this
+    process's) until the block ends (then SIGKILL if still running). Yields once it listens;
+    raises with its log if it ends first."""
+    environment = {**(os.environ if env is None else env), "LOG_LEVEL": "INFO"}
     process = subprocess.Popen(
         [python, "-m", "arena", "serve", *argv],
         stderr=subprocess.PIPE,

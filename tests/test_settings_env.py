@@ -131,6 +131,7 @@ def test_a_served_process_takes_its_settings_from_the_environment_and_keys_from_
     keys = tmp_path / "keys"
     keys.write_text("k-from-file-31337\n")
     env = {
+        **os.environ,
         "PYTHONPATH": str(ROOT),
         "ARENA_PORT": "0",
         "ARENA_DEMO": "true",
