@@ -26,6 +26,7 @@ from arena.server.config import ServerConfig
 from arena.server.listener import ArenaListener
 from arena.server.sensors_api import stream_route
 from arena.server.shutdown import leave_slaves_as_set, stop_on_signals
+from arena.server.systemd import notify
 from arena.server.ws.router import router
 
 log = logging.getLogger(__name__)
@@ -185,6 +186,7 @@ async def _serve(
         await stop.wait()
         log.info("shutting down")
         app.shutting_down.set()
+        notify("STOPPING=1")
         leave_slaves_as_set(app)
 
     listener = ArenaListener(
@@ -209,6 +211,7 @@ async def _serve(
         log.info("dashboard: %s   REST API, to try: %s/docs", page, urls[0])
         app.own_url = urls[0]
         task_status.started((app, urls))
+        notify(f"READY=1\nSTATUS=listening on {' '.join(urls)}")
         await stop.wait()
         # The WebSockets close themselves with 1001 at once; whatever HTTP requests are
         # still open after the grace period are cancelled.
