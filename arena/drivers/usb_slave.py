@@ -117,8 +117,8 @@ class UsbSlave(ServoArm):
 
     def planned_stop(self) -> None:
         """The server stops as planned (SIGTERM): when this driver ends, leave the servos as
-        its `estop` setting says (`hold`: goal = present, torque on; `torque-off`: limp)
-        rather than limp whatever the setting, as a detach leaves them."""
+        its `estop` setting says (goal = present, then torque on for `hold`, off for
+        `torque-off`) rather than limp whatever the setting, as a detach leaves them."""
         if self.worker is not None:
             self.worker.torque_at_exit = self.config.estop == "hold"
 

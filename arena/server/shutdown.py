@@ -2,7 +2,7 @@
 
 The first signal stops the server as planned: new connections are refused, every WebSocket is
 closed with 1001 (going away), every robot stops, each hardware slave leaves its servos as its
-own `estop` setting says (`hold`: torque on, where they are; `torque-off`: limp), and the
+own `estop` setting says (held where they are, torque on for `hold`, off for `torque-off`), and the
 recording is finished with its index. A second signal means "now": the graceful part is cut
 short (the robots' stop and the recording's close still run, each bounded).
 """
