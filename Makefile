@@ -22,7 +22,7 @@ CHROMIUM := /usr/bin/chromium
 comma := ,
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: install install-dev ui browser run fleet demo test lint bench mutants clean
+.PHONY: install install-dev ui browser run fleet demo test lint bench mutants package clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -83,6 +83,11 @@ lint: install-dev
 
 bench: install-dev
 	$(BIN)/arena bench
+
+# The sdist and the wheel in dist/, carrying the built dashboard: `pip install dist/arena-*.whl`
+# needs no Node and no checkout (README, "Deploy").
+package: install-dev ui
+	$(BIN)/python -m build --outdir dist .
 
 # Mutation testing of the safety-critical modules (specs/mutation.md). Not part of `test`: it
 # takes long. MUTATE=safety,motion runs some modules only (names in tools/mutants.py).

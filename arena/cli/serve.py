@@ -27,6 +27,7 @@ def add(commands: Commands) -> None:
         dest="api_keys",
         help="an API key clients must present (repeatable)",
     )
+    serve.add_argument("--api-key-file", help="API keys, one a line (kept out of `ps`)")
     serve.add_argument(
         "--viewer-key",
         action="append",
@@ -118,6 +119,7 @@ def serve_command(args: argparse.Namespace) -> int:
 
     config = load_config(
         args.config,
+        api_key_file=args.api_key_file,
         record=args.record,
         recordings_dir=args.recordings_dir,
         record_foxglove=args.record_foxglove,

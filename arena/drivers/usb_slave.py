@@ -116,6 +116,13 @@ class UsbSlave(ServoArm):
             self.link = None
             await self.close()
 
+    def planned_stop(self) -> None:
+        """The server stops as planned (SIGTERM): when this driver ends, leave the servos as
+        its `estop` setting says (goal = present, then torque on for `hold`, off for
+        `torque-off`) rather than limp whatever the setting, as a detach leaves them."""
+        if self.worker is not None:
+            self.worker.torque_at_exit = self.config.estop == "hold"
+
     # -- targets and notices ------------------------------------------------------------------
 
     async def _follow(self, link: SlaveLink) -> None:

@@ -109,6 +109,10 @@ class BusWorker:
         self.stats = WorkerStats()
         self.first_connect: Future[None] = Future()
         self.torque_wanted = self.settings.torque_on_connect
+        #: How the servos are left when the thread ends. None: limp (torque off). True or
+        #: False: goal = present, then torque on or off (a planned stop, by the slave's e-stop
+        #: setting): no motion left, and nothing jumps when torque comes back.
+        self.torque_at_exit: bool | None = None
         self._bus: ServoBus | None = None
         self._lock = threading.Lock()
         self._goals: dict[int, int] | None = None
@@ -123,7 +127,8 @@ class BusWorker:
         self._thread.start()
 
     def stop(self, timeout: float = 5.0) -> None:
-        """Torque off, close the port, end the thread (blocks until it has)."""
+        """Torque off (or as `torque_at_exit` says), close the port, end the thread (blocks until
+        it has)."""
         self._stopping.set()
         if self._thread.is_alive():
             self._thread.join(timeout)
@@ -325,7 +330,11 @@ class BusWorker:
         if self._bus is None:
             return
         with contextlib.suppress(ArenaError):  # a bus that is gone hears nothing anyway
-            set_torque(self._bus, self.servo_ids, on=False)
+            if self.torque_at_exit is not None:
+                torque, speed = self.torque_at_exit, self.settings.speed_limit
+                hold_here(self._bus, self.servo_ids, torque=torque, speed=speed)
+            else:
+                set_torque(self._bus, self.servo_ids, on=False)
         self._bus.close()
         self._bus = None
 

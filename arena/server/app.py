@@ -48,6 +48,8 @@ from arena.server.dashboard import blueprint as dashboard_blueprint
 from arena.server.drivers import attach_rest_master, make_master, make_slave
 from arena.server.fleet_api import blueprint as fleet_blueprint
 from arena.server.groups_api import blueprint as groups_blueprint
+from arena.server.health import HEALTH_PATHS
+from arena.server.health import blueprint as health_blueprint
 from arena.server.metrics import Metrics
 from arena.server.origin import SAFE_METHODS, OriginPolicy, is_json
 from arena.server.recordings_api import blueprint as recordings_blueprint
@@ -56,8 +58,9 @@ from arena.server.robot_types_api import blueprint as robot_types_blueprint
 from arena.server.sensors_api import blueprint as sensors_blueprint
 from arena.server.ws.acks import AckCache
 
-#: Paths anyone may read, keys or not: the documentation and the dashboard's files.
-PUBLIC_PATHS = frozenset({"/docs", "/openapi.json", "/ui"})
+#: Paths anyone may read, keys or not: the documentation, the dashboard's files and the
+#: orchestrators' health probes.
+PUBLIC_PATHS = frozenset({"/docs", "/openapi.json", "/ui", *HEALTH_PATHS})
 PUBLIC_PREFIXES = ("/ui/",)
 
 
@@ -84,6 +87,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.register_blueprint(dashboard_blueprint)
     app.register_blueprint(sensors_blueprint)
     app.register_blueprint(fleet_blueprint)
+    app.register_blueprint(health_blueprint)
     _register_errors(app)
     _register_routes(app)
     return app

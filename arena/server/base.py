@@ -105,6 +105,10 @@ class Hardware:
         if hasattr(driver, "calibration_status"):
             self._drivers[(robot_id, slave_id)] = driver
 
+    def drivers(self) -> list[object]:
+        """Every hardware driver attached over REST (some may have been detached since)."""
+        return list(self._drivers.values())
+
     def find(self, robot_id: str, slave_id: str | None, attached: set[str]) -> tuple[str, Any]:
         """The robot's calibratable slave (`slave_id`, or the only one)."""
         for key in [k for k in self._drivers if k[1] not in attached and k[0] == robot_id]:

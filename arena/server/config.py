@@ -1,20 +1,27 @@
-"""Server settings: command-line flags, an optional TOML file and the environment."""
+"""Server settings: command-line flags, an optional TOML file and the environment
+(`settings_env`), the flags winning over the environment, which wins over the file."""
 
 from __future__ import annotations
 
 import ipaddress
 import os
 import tomllib
+import typing
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.server.settings_env import (
+    API_KEY_FILE_ENV,
+    CONFIG_ENV,
+    read_key_file,
+    settings_from_env,
+)
 
 if TYPE_CHECKING:
     from arena.fleet.node import FleetSettings
-
-API_KEYS_ENV = "ARENA_API_KEYS"
 
 
 @dataclass(frozen=True)
@@ -127,35 +134,28 @@ def _is_loopback(host: str) -> bool:
         return False
 
 
-def load_config(path: str | None, **overrides: Any) -> ServerConfig:
-    """Defaults, then the TOML file at `path`, then `$ARENA_API_KEYS`, then `overrides`."""
+def load_config(
+    path: str | None,
+    environ: Mapping[str, str] | None = None,
+    api_key_file: str | None = None,
+    **overrides: Any,
+) -> ServerConfig:
+    """Defaults, then the TOML file at `path` (or `$ARENA_CONFIG`), then the environment
+    (`ARENA_` and a setting's name in capitals; `environ`, default `os.environ`), then
+    `overrides` (the flags; None: not given). API keys add up from every source, the key file
+    (`api_key_file` or `$ARENA_API_KEY_FILE`) included."""
+    environ = os.environ if environ is None else environ
+    path = path or environ.get(CONFIG_ENV) or None
     config = ServerConfig()
     if path:
-        try:
-            data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
-        except (OSError, tomllib.TOMLDecodeError) as exc:
-            raise ArenaError(ErrorCode.INVALID_CONFIG, f"Cannot read {path}: {exc}") from exc
-        known = set(ServerConfig.__dataclass_fields__)
-        unknown = set(data) - known
-        if unknown:
-            raise ArenaError(
-                ErrorCode.INVALID_CONFIG,
-                f"Unknown settings in {path}: {', '.join(sorted(unknown))}.",
-            )
-        for key in (
-            "api_keys",
-            "viewer_keys",
-            "allowed_origins",
-            "allowed_hosts",
-            "fleet_listen",
-            "fleet_connect",
-        ):
-            if key in data:
-                data[key] = tuple(data[key])
-        config = replace(config, **data)
-    env_keys = tuple(k for k in os.environ.get(API_KEYS_ENV, "").split(",") if k.strip())
-    if env_keys:
-        config = replace(config, api_keys=config.api_keys + tuple(k.strip() for k in env_keys))
+        config = replace(config, **_read_file(path))
+    fields = typing.get_type_hints(ServerConfig)
+    from_env = settings_from_env(fields, environ)
+    env_keys = from_env.pop("api_keys", ())
+    config = replace(config, **from_env, api_keys=config.api_keys + env_keys)
+    key_file = api_key_file or environ.get(API_KEY_FILE_ENV)
+    if key_file:
+        config = replace(config, api_keys=config.api_keys + read_key_file(key_file))
     for key in ("allowed_origins", "allowed_hosts"):  # flags add to the file's list
         extra = overrides.pop(key, None) or ()
         config = replace(config, **{key: getattr(config, key) + tuple(extra)})
@@ -164,3 +164,29 @@ def load_config(path: str | None, **overrides: Any) -> ServerConfig:
     if extra_keys:
         config = replace(config, api_keys=config.api_keys + tuple(extra_keys))
     return config
+
+
+def _read_file(path: str) -> dict[str, Any]:
+    """The settings of a TOML file; unknown names and unreadable files are refused."""
+    try:
+        data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise ArenaError(ErrorCode.INVALID_CONFIG, f"Cannot read {path}: {exc}") from exc
+    known = set(ServerConfig.__dataclass_fields__)
+    unknown = set(data) - known
+    if unknown:
+        raise ArenaError(
+            ErrorCode.INVALID_CONFIG,
+            f"Unknown settings in {path}: {', '.join(sorted(unknown))}.",
+        )
+    for key in (
+        "api_keys",
+        "viewer_keys",
+        "allowed_origins",
+        "allowed_hosts",
+        "fleet_listen",
+        "fleet_connect",
+    ):
+        if key in data:
+            data[key] = tuple(data[key])
+    return data

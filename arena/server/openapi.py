@@ -138,6 +138,8 @@ ROUTES: list[tuple[str, str, str, Any]] = [
     ("GET", "/ui/", "The web dashboard", None),
     ("GET", "/ui/{name}", "A file of the web dashboard", None),
     ("GET", "/metrics", "Prometheus metrics", None),
+    ("GET", "/healthz", "Liveness: the process answers", None),
+    ("GET", "/readyz", "Readiness: listening, recording, every slave connected", None),
     ("GET", "/openapi.json", "This document", None),
     ("GET", "/docs", "Interactive API documentation", None),
 ]

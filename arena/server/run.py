@@ -7,7 +7,6 @@ import errno
 import gc
 import json
 import logging
-import signal
 import socket
 from pathlib import Path
 from typing import Any
@@ -26,6 +25,8 @@ from arena.server.base import ArenaApp
 from arena.server.config import ServerConfig
 from arena.server.listener import ArenaListener
 from arena.server.sensors_api import stream_route
+from arena.server.shutdown import leave_slaves_as_set, stop_on_signals
+from arena.server.systemd import notify
 from arena.server.ws.router import router
 
 log = logging.getLogger(__name__)
@@ -89,7 +90,8 @@ async def run_server(
     freeze_startup_objects: bool = False,
     task_status: Any = trio.TASK_STATUS_IGNORED,
 ) -> None:
-    """Serve until `stop` is set (or, with `handle_signals`, SIGINT or SIGTERM arrives).
+    """Serve until `stop` is set (or, with `handle_signals`, SIGINT or SIGTERM arrives: a
+    planned stop, see `arena.server.shutdown`; a second signal stops at once).
 
     `freeze_startup_objects` (for a server that owns its process): once the server is up, move
     every object alive into the garbage collector's permanent generation (`gc.freeze`).
@@ -103,8 +105,13 @@ async def run_server(
 
         require("fleet", "A fleet node (--node)")
     sockets = bind(config)
+    stop = trio.Event() if stop is None else stop
     try:
-        await _run(config, sockets, stop, handle_signals, freeze_startup_objects, task_status)
+        async with trio.open_nursery() as nursery:
+            if handle_signals:  # a second signal cancels the whole run: cleanups are shielded
+                nursery.start_soon(stop_on_signals, stop, nursery.cancel_scope)
+            await _run(config, sockets, stop, freeze_startup_objects, task_status)
+            nursery.cancel_scope.cancel()
     finally:
         _close(sockets)  # those never listened on (the listener closes the others)
 
@@ -112,12 +119,10 @@ async def run_server(
 async def _run(
     config: ServerConfig,
     sockets: Sockets,
-    stop: trio.Event | None,
-    handle_signals: bool,
+    stop: trio.Event,
     freeze_startup_objects: bool,
     task_status: Any,
 ) -> None:
-    stop = trio.Event() if stop is None else stop
     metadata = {"config": json.dumps(_public_settings(config))}
     if config.node is not None:  # each file names the node and fleet it was recorded on
         metadata.update(node=config.node, fleet=config.fleet)
@@ -166,7 +171,7 @@ async def _run(
                 await _create_demo_robot(app)
             if freeze_startup_objects:
                 tune_garbage_collector()
-            await _serve(app, config, sockets, stop, handle_signals, task_status)
+            await _serve(app, config, sockets, stop, task_status)
         recording_nursery.cancel_scope.cancel()  # robots are stopped: finish the file
 
 
@@ -175,13 +180,14 @@ async def _serve(
     config: ServerConfig,
     sockets: Sockets,
     stop: trio.Event,
-    handle_signals: bool,
     task_status: Any,
 ) -> None:
     async def shutdown_trigger() -> None:
         await stop.wait()
         log.info("shutting down")
         app.shutting_down.set()
+        notify("STOPPING=1")
+        leave_slaves_as_set(app)
 
     listener = ArenaListener(
         app,
@@ -193,8 +199,6 @@ async def _serve(
         sockets=sockets,
     )
     async with trio.open_nursery() as nursery:
-        if handle_signals:
-            nursery.start_soon(_stop_on_signals, stop)
 
         async def serve_then_stop(task_status: Any = trio.TASK_STATUS_IGNORED) -> None:
             await listener.serve(shutdown_trigger, task_status=task_status)
@@ -207,6 +211,7 @@ async def _serve(
         log.info("dashboard: %s   REST API, to try: %s/docs", page, urls[0])
         app.own_url = urls[0]
         task_status.started((app, urls))
+        notify(f"READY=1\nSTATUS=listening on {' '.join(urls)}")
         await stop.wait()
         # The WebSockets close themselves with 1001 at once; whatever HTTP requests are
         # still open after the grace period are cancelled.
@@ -243,11 +248,3 @@ async def _create_demo_robot(app: ArenaApp) -> None:
     await robot.attach_slave(
         MockSlave(MockSlaveConfig(simulate_latency=20, response_delay=10)), "demo-mock-slave"
     )
-
-
-async def _stop_on_signals(stop: trio.Event) -> None:
-    with trio.open_signal_receiver(signal.SIGINT, signal.SIGTERM) as signals:
-        async for signum in signals:
-            log.info("received %s", signal.Signals(signum).name)
-            stop.set()
-            return

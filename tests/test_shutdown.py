@@ -1,0 +1,145 @@
+"""SIGTERM is a planned stop: masters told, a moving arm left as its e-stop setting says, the
+recording finished whole; a second signal stops at once."""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+import trio
+from mcap.reader import make_reader
+from trio_websocket import ConnectionClosed, open_websocket_url
+
+from arena.feetech import registers as reg
+from arena.feetech.sim_pty import PtySimBus
+from arena.recording.mcap_file import read_recording
+from arena.server.base import ArenaApp
+from arena.server.config import ServerConfig
+from arena.server.run import run_server
+from tests.hardware import eventually, running_sim, servo_torque, wait_joined
+from tests.serve_process import serving
+from tests.test_server_ws import command
+
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@pytest.fixture
+def sim(tmp_path: Path) -> Iterator[PtySimBus]:
+    yield from running_sim(tmp_path)
+
+
+async def start(nursery: trio.Nursery, config: ServerConfig) -> tuple[ArenaApp, str, trio.Event]:
+    """`run_server` as `arena serve` runs it (signals handled); `done` once it has returned."""
+    done = trio.Event()
+
+    async def run(task_status: trio.TaskStatus[Any]) -> None:
+        try:
+            await run_server(config, handle_signals=True, task_status=task_status)
+        finally:
+            done.set()
+
+    app, urls = await nursery.start(run)
+    return app, urls[0], done
+
+
+def servos(sim: PtySimBus) -> dict[int, tuple[int, int, int]]:
+    """(goal, present, velocity) of every simulated servo."""
+    with sim.paused() as bus:
+        return {
+            sid: (
+                servo.peek(reg.GOAL_POSITION),
+                servo.peek(reg.PRESENT_POSITION),
+                servo.peek(reg.PRESENT_VELOCITY),
+            )
+            for sid, servo in bus.servos.items()
+        }
+
+
+@pytest.mark.parametrize(("policy", "torque"), [("hold", 1), ("torque-off", 0)])
+async def test_sigterm_stops_a_moving_arm_as_its_estop_setting_says(
+    nursery: trio.Nursery, sim: PtySimBus, tmp_path: Path, policy: str, torque: int
+) -> None:
+    recordings = tmp_path / "recordings"
+    app, url, done = await start(nursery, ServerConfig(port=0, recordings_dir=str(recordings)))
+    async with httpx.AsyncClient(base_url=url, timeout=10) as http:
+        made = await http.post("/api/robots", json={"id": "arm", "robot_type": "so-arm100"})
+        assert made.status_code == 201
+        slave = {"type": "usb-slave", "port": str(sim.link), "estop": policy}
+        assert (await http.post("/api/robots/arm/slaves", json=slave)).status_code == 201
+    await wait_joined(app.manager.get("arm"))
+    ws_url = "ws" + url[len("http") :] + "/ws/master/arm"
+    async with open_websocket_url(ws_url) as master:
+        reply = await command(master, {"Rotation": 90}, duration=4000)
+        assert reply["data"]["status"] == "accepted", reply
+        await eventually(lambda: servos(sim)[1][2] != 0, what="the arm moving")
+        os.kill(os.getpid(), signal.SIGTERM)
+        with pytest.raises(ConnectionClosed) as closed:  # told, not cut
+            while True:
+                await master.get_message()
+        assert closed.value.reason.code == 1001
+    with trio.fail_after(30):
+        await done.wait()
+    # Left as the setting says, and still: each servo's goal is where it is (no motion left).
+    assert set(servo_torque(sim).values()) == {torque}
+    await eventually(
+        lambda: all(
+            goal == present and speed == 0 for goal, present, speed in servos(sim).values()
+        ),
+        what="every servo at rest on its goal",
+    )
+    moved = {sid: values[1] for sid, values in servos(sim).items()}
+    assert moved[1] != 2048  # it had moved (Rotation 0 is step 2048)
+    (path,) = recordings.glob("*.mcap")
+    recording = read_recording(path)
+    assert not recording.truncated and not recording.in_progress
+    assert any(m.topic.endswith("/command") for m in recording.messages)
+    with path.open("rb") as stream:  # mcap's own reader finds the index
+        summary = make_reader(stream).get_summary()
+    assert summary is not None and summary.statistics is not None
+    assert summary.statistics.message_count == recording.message_count
+    with pytest.raises(httpx.ConnectError):  # nothing listens any more
+        httpx.get(url, timeout=5)
+
+
+async def test_a_second_signal_stops_at_once(nursery: trio.Nursery, tmp_path: Path) -> None:
+    # A grace of an hour: the planned stop waits for the request still being sent.
+    config = ServerConfig(
+        port=0, demo=True, recordings_dir=str(tmp_path / "rec"), shutdown_grace=3600.0
+    )
+    app, url, done = await start(nursery, config)
+    host, port = url.removeprefix("http://").rsplit(":", 1)
+    with socket.create_connection((host, int(port))) as slow:
+        slow.sendall(b"GET / HTTP/1.1\r\nHost: 127.0.0.1\r\n")  # the headers never end
+        os.kill(os.getpid(), signal.SIGTERM)
+        with trio.fail_after(30):
+            await app.shutting_down.wait()
+        assert not done.is_set()
+        os.kill(os.getpid(), signal.SIGINT)
+        with trio.fail_after(30):
+            await done.wait()
+    (path,) = (tmp_path / "rec").glob("*.mcap")
+    assert not read_recording(path).truncated  # cut short, yet closed whole
+
+
+def test_arena_serve_exits_0_on_sigterm_with_its_recording_whole(tmp_path: Path) -> None:
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    with serving(["--demo", "--port", "0"], cwd=tmp_path, env=env) as served:
+        seq = httpx.post(f"{served.url}/api/robots/demo-arm/play-sequence/gentle-wave", timeout=10)
+        assert seq.status_code == 200
+        sent = time.monotonic()
+        served.process.send_signal(signal.SIGTERM)
+        status = served.process.wait(timeout=60)
+        took = time.monotonic() - sent
+    assert status == 0, served.log
+    print(f"stopped {took:.2f} s after SIGTERM")  # the README's figure (pytest -s)
+    (path,) = (tmp_path / "recordings").glob("*.mcap")
+    recording = read_recording(path)
+    assert not recording.truncated and not recording.in_progress
+    assert any(m.topic.endswith("/command") for m in recording.messages)
