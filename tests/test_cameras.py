@@ -152,7 +152,11 @@ async def test_rest_cameras_attach_list_frame_and_detach(
         frame = await http.get(f"{base}/front/frame")
         assert frame.headers["content-type"] == "image/jpeg"
         assert jpeg_rgb(frame.content).shape == (240, 320, 3)
-        assert read_pattern_counter(jpeg_rgb(frame.content)) == int(frame.headers["x-frame-seq"])
+        # the pattern counts frames made, `seq` frames delivered: they differ by the frames the
+        # capture thread dropped while trio was busy (none on a quiet machine)
+        made, seq = read_pattern_counter(jpeg_rgb(frame.content)), int(frame.headers["x-frame-seq"])
+        front = next(c for c in (await http.get(base)).json()["cameras"] if c["name"] == "front")
+        assert seq <= made <= seq + front["dropped"]
 
         for name in ("clip", "c", "d"):
             assert (await http.delete(f"{base}/{name}")).status_code == 200

@@ -13,10 +13,13 @@ from arena.bench.common import (
 )
 
 
-def usb_control_rate(seconds: float = 3.0, rate: float = 500.0) -> dict[str, float]:
+def usb_control_rate(
+    seconds: float = 3.0, rate: float = 500.0, min_cycles: int = 0
+) -> dict[str, float]:
     """The bus worker (sync write goals + sync read positions of 6 servos per cycle) against a
     simulated bus with wire-time emulation in another process: cycles/s flat out, and the
-    worker thread's CPU share when paced at `rate`."""
+    worker thread's CPU share when paced at `rate`. Each run lasts `seconds`, and longer until
+    the worker has made `min_cycles` cycles (a loaded machine may make none in a short run)."""
     from arena.feetech.bus import ServoBus
     from arena.feetech.health import ServoFault
     from arena.feetech.worker import BusWorker, Reading, WorkerEvent, WorkerSettings
@@ -43,7 +46,9 @@ def usb_control_rate(seconds: float = 3.0, rate: float = 500.0) -> dict[str, flo
         goal = 0
         start = time.perf_counter()
         cycles0, cpu0 = worker.stats.cycles, worker.stats.thread_cpu
-        while (elapsed := time.perf_counter() - start) < seconds:
+        while (elapsed := time.perf_counter() - start) < seconds or (
+            worker.stats.cycles - cycles0 < min_cycles and elapsed < 60.0
+        ):
             goal = (goal + 7) % 400
             worker.set_goals(dict.fromkeys(ids, 1848 + goal))
             time.sleep(0.002)
