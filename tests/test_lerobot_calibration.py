@@ -199,6 +199,15 @@ async def test_so101_driven_through_a_server_with_an_estop(
         assert abs(goals[6] - (0.6 * (grip.range_max - grip.range_min) + grip.range_min)) <= 1
         stopped = await http.post("/api/robots/arm/estop", json={"reason": "test"})
         assert stopped.status_code == 200
+
+        def holding() -> bool:  # "hold" writes goal = present from the bus thread, soon after
+            with sim.paused() as bus:
+                servos = bus.servos.values()
+                return all(
+                    s.peek(reg.GOAL_POSITION) == s.peek(reg.PRESENT_POSITION) for s in servos
+                )
+
+        await eventually(holding, what="every servo held where it is")
         held = servo_goals(sim)
         refused = await http.put(
             "/api/robots/arm/joints", json={"joints": [{"name": "shoulder_pan", "value": -20}]}

@@ -281,6 +281,8 @@ async function fillChoices() {
         return option;
       }),
     );
+    // the API's default type (a create body without `robot_type`), not the first in the list
+    if (types.some((type) => type.id === "so-arm100")) $("create-type").value = "so-arm100";
     $("sequence").replaceChildren(
       ...sequences.map((sequence) => new Option(`${sequence.name} (${sequence.duration / 1000} s)`, sequence.id)),
     );
