@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import importlib
 import inspect
 import os
@@ -15,6 +16,7 @@ from typing import Any, NoReturn
 import httpx
 import pytest
 import trio
+import trio.testing
 
 from arena.robot.events import SlaveNotice, SlaveTarget
 from arena.robot.links import SlaveLink
@@ -96,6 +98,44 @@ async def manager() -> AsyncIterator[RobotManager]:
     """A robot manager. Tests take `autojump_clock` too, so that its time is virtual."""
     async with open_manager() as opened:
         yield opened
+
+
+#: Under mutation testing only: a test on the mock clock that has run this many virtual seconds
+#: has hung (a mutant that never sends the event the test waits for, while ticks and heartbeats
+#: keep the clock jumping). It fails at once instead of holding the run until mutmut's
+#: wall-clock bound. No test here needs more than a few minutes of virtual time.
+MUTANT_VIRTUAL_LIMIT = 3600.0
+
+
+class _HungTest(Exception):
+    """A test ran past MUTANT_VIRTUAL_LIMIT virtual seconds under a mutant."""
+
+
+def _bounded(test: Callable[..., Awaitable[None]]) -> Callable[..., Awaitable[None]]:
+    @functools.wraps(test)
+    async def bounded(**kwargs: Any) -> None:
+        try:
+            with trio.fail_after(MUTANT_VIRTUAL_LIMIT):
+                await test(**kwargs)
+        except trio.TooSlowError:
+            raise _HungTest(f"past {MUTANT_VIRTUAL_LIMIT} virtual s: hung under a mutant") from None
+
+    return bounded
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Under a mutant (mutmut sets MUTANT_UNDER_TEST to its name), every async test on the
+    mock clock fails past MUTANT_VIRTUAL_LIMIT virtual seconds, except those marked `real_io`
+    (the clock jumps on while they wait for a thread or a process)."""
+    if "__mutmut_" not in os.environ.get("MUTANT_UNDER_TEST", ""):
+        return
+    for item in items:
+        if not isinstance(item, pytest.Function) or "autojump_clock" not in item.fixturenames:
+            continue
+        if item.get_closest_marker("real_io"):
+            continue
+        if inspect.iscoroutinefunction(item.obj):
+            item.obj = _bounded(item.obj)
 
 
 @dataclass

@@ -241,6 +241,7 @@ async def test_the_workspace_over_rest_and_every_master_refused_at_the_table(
         assert reply["data"]["status"] == "refused" and reply["data"]["code"] == "COLLISION"
 
 
+@pytest.mark.real_io  # the recording process
 async def test_a_sequence_into_the_table_is_refused_and_recorded(
     autojump_clock: MockClock, tmp_path: Path
 ) -> None:
