@@ -22,6 +22,7 @@ from arena.server.settings_env import (
 
 if TYPE_CHECKING:
     from arena.fleet.node import FleetSettings
+    from arena.ros2.bridge import Ros2Settings
 
 
 @dataclass(frozen=True)
@@ -70,6 +71,11 @@ class ServerConfig:
     fleet_lease_ms: int = 1000  # a node silent this long is gone
     #: A Zenoh configuration file to start from (TLS, access control); ours goes on top.
     fleet_zenoh_config: str | None = None
+    #: Every robot a ROS 2 node over Zenoh (specs/ros2.md); the domain None: ROS_DOMAIN_ID.
+    ros2: bool = False
+    ros_domain: int | None = None
+    ros2_listen: tuple[str, ...] = field(default=())
+    ros2_connect: tuple[str, ...] = field(default=())
 
     @property
     def auth_enabled(self) -> bool:
@@ -106,8 +112,16 @@ class ServerConfig:
             )
         if self.node is not None:
             self.fleet_settings().check()
+        if self.ros2:
+            self.ros2_settings()
         if self.recording_retry_max < 1.0:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "recording_retry_max must be 1 s or more.")
+
+    def ros2_settings(self) -> Ros2Settings:
+        """How the robots join the ROS graph (checked; only with `ros2`)."""
+        from arena.ros2.bridge import Ros2Settings
+
+        return Ros2Settings.from_options(self.ros_domain, self.ros2_listen, self.ros2_connect)
 
     def fleet_settings(self) -> FleetSettings:
         """How this node joins its fleet (only with `node`)."""
@@ -186,6 +200,8 @@ def _read_file(path: str) -> dict[str, Any]:
         "allowed_hosts",
         "fleet_listen",
         "fleet_connect",
+        "ros2_listen",
+        "ros2_connect",
     ):
         if key in data:
             data[key] = tuple(data[key])

@@ -1,0 +1,337 @@
+"""ROS 2 over Zenoh: Arena's robots as rmw_zenoh nodes (specs/ros2.md).
+
+The peer on the other side is not Arena's code: plain eclipse-zenoh, rosbags' CDR codec and
+rmw_zenoh's documented key expressions, attachment and tokens written out here by hand. It
+connects to the server's session on 127.0.0.1 (port 0, multicast off). Waits are for samples
+and events, bounded only so that a broken test ends.
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+from collections.abc import Callable
+from typing import Any
+
+import trio
+
+from arena.robot.events import PeerChanged, StateChanged
+from arena.robot.safety import Mode
+from tests.conftest import RunningServer, need
+
+need("rosbags", "ros2")
+zenoh = need("zenoh", "ros2")
+xxhash = need("xxhash", "ros2")
+
+from rosbags.typesys import Stores, get_typestore  # noqa: E402
+
+from arena.ros2 import messages, wire  # noqa: E402
+
+TYPES = get_typestore(Stores.ROS2_JAZZY)
+#: rmw_zenoh's docs/design.md, "Topic and Service name mapping" and "Graph Cache".
+CHATTER_HASH = "RIHS01_df668c740482bbd48fb39d76a70dfd4bd59db1288021743503259e948f6b1a18"
+#: std_srvs/srv/Trigger's type hash as a ROS 2 Jazzy system publishes it.
+TRIGGER_HASH = "RIHS01_eeff2cd6fa5ad9d27cdf4dec64818317839b62f212a91e6b5304b634b2062c5f"
+STATES_KEY = "0/demo_arm/joint_states/sensor_msgs::msg::dds_::JointState_/" + TYPES.hash_rihs01(
+    "sensor_msgs/msg/JointState"
+)
+TF_KEY = "0/tf/tf2_msgs::msg::dds_::TFMessage_/" + TYPES.hash_rihs01("tf2_msgs/msg/TFMessage")
+DESCRIPTION_KEY = "0/demo_arm/robot_description/std_msgs::msg::dds_::String_/" + CHATTER_HASH
+COMMANDS = "demo_arm/forward_position_controller/commands"
+COMMANDS_KEY = f"0/{COMMANDS}/std_msgs::msg::dds_::Float64MultiArray_/" + TYPES.hash_rihs01(
+    "std_msgs/msg/Float64MultiArray"
+)
+TRAJECTORY_KEY = (
+    "0/demo_arm/joint_trajectory/trajectory_msgs::msg::dds_::JointTrajectory_/"
+    + TYPES.hash_rihs01("trajectory_msgs/msg/JointTrajectory")
+)
+ESTOP_KEY = "0/demo_arm/estop/std_srvs::srv::dds_::Trigger_/" + TRIGGER_HASH
+RESET_KEY = "0/demo_arm/reset/std_srvs::srv::dds_::Trigger_/" + TRIGGER_HASH
+
+
+def test_key_expressions_tokens_and_attachment_are_rmw_zenohs() -> None:
+    string_hash = messages.type_hash("std_msgs/msg/String")
+    assert string_hash == CHATTER_HASH
+    assert messages.type_hash(messages.TRIGGER) == TRIGGER_HASH
+    assert wire.data_key(0, "/robot1/chatter", "std_msgs/msg/String", string_hash) == (
+        "0/robot1/chatter/std_msgs::msg::dds_::String_/" + CHATTER_HASH
+    )
+    talker = wire.Entity(
+        2, "8b20917502ee955ac4476e0266340d5c", 0, 10, wire.PUBLISHER, "talker", "/",
+        "/chatter", "std_msgs/msg/String", string_hash, "::,7:,:,:,,",
+    )  # fmt: skip
+    assert talker.token() == (
+        "@ros2_lv/2/8b20917502ee955ac4476e0266340d5c/0/10/MP/%/%/talker/%chatter/"
+        f"std_msgs::msg::dds_::String_/{CHATTER_HASH}/::,7:,:,:,,"
+    )
+    node = wire.Entity(2, "aac3178e146ba6f1fc6e6a4085e77f21", 0, 0, wire.NODE, "listener")
+    assert node.token() == "@ros2_lv/2/aac3178e146ba6f1fc6e6a4085e77f21/0/0/NN/%/%/listener"
+    assert wire.token_topic(talker.token()) == ("MP", "/chatter")
+    assert talker.gid() == xxhash.xxh3_128_intdigest(talker.token().encode()).to_bytes(16, "little")
+    gid = bytes(range(16))
+    golden = bytes([7, 0, 0, 0, 0, 0, 0, 0]) + (10**18).to_bytes(8, "little") + b"\x10" + gid
+    assert wire.attachment(7, 10**18, gid) == golden
+    assert wire.read_attachment(golden) == (7, 10**18, gid)
+    for bad in (golden[:-1], golden[:16] + b"\x08" + gid):
+        try:
+            wire.read_attachment(bad)
+        except ValueError:
+            continue
+        raise AssertionError(f"accepted {bad!r}")
+
+
+def test_a_joint_state_is_cdr_that_rosbags_reads() -> None:
+    data = messages.joint_state(1_700_000_000_123_456_789, ["a", "b"], [0.5, -1.25])
+    assert data[:4] == b"\x00\x01\x00\x00"  # CDR, little-endian
+    assert data[4:12] == struct.pack("<iI", 1_700_000_000, 123_456_789)
+    decoded = TYPES.deserialize_cdr(data, "sensor_msgs/msg/JointState")
+    assert decoded.name == ["a", "b"]
+    assert list(decoded.position) == [0.5, -1.25]
+    assert (decoded.header.stamp.sec, decoded.header.stamp.nanosec) == (1_700_000_000, 123_456_789)
+
+
+def test_robot_ids_become_ros_names_by_one_rule() -> None:
+    assert wire.ros_name("demo-arm") == "demo_arm"
+    assert wire.ros_name("arm.left--2") == "arm_left_2"
+    assert wire.ros_name("3arm") == "r_3arm"
+    assert wire.ros_name("bras-é") == "bras_"
+    book = wire.NameBook()
+    assert book.take("demo-arm") == "demo_arm"
+    assert book.take("demo_arm") == "demo_arm_2"
+    assert book.take("demo.arm") == "demo_arm_3"
+    book.release("demo-arm")
+    assert book.take("demo--arm") == "demo_arm"
+
+
+class Peer:
+    """A ROS 2 peer: a Zenoh session whose callbacks hand samples to trio."""
+
+    def __init__(self, session: Any) -> None:
+        self.session = session
+        self.zid = str(session.info.zid())
+        self.token = trio.lowlevel.current_trio_token()
+
+    def channel(self) -> tuple[Callable[[Any], None], trio.MemoryReceiveChannel[Any]]:
+        send, receive = trio.open_memory_channel[Any](10_000)
+
+        def callback(sample: Any) -> None:
+            item = (
+                str(sample.key_expr),
+                str(sample.kind),
+                None if sample.payload is None else bytes(sample.payload.to_bytes()),
+            )
+            self.token.run_sync_soon(send.send_nowait, item)
+
+        return callback, receive
+
+    def publisher(self, topic: str, ros_type: str) -> tuple[Any, Any, bytes]:
+        """A publisher with its MP token, as rmw_zenoh declares them."""
+        dds = "{}::{}::dds_::{}_".format(*ros_type.split("/"))
+        token = (
+            f"@ros2_lv/0/{self.zid}/0/5/MP/%/%/commander/%{topic.replace('/', '%')}/{dds}/"
+            f"{TYPES.hash_rihs01(ros_type)}/::,10:,:,:,,"
+        )
+        gid = xxhash.xxh3_128_intdigest(token.encode()).to_bytes(16, "little")
+        key = f"0/{topic}/{dds}/{TYPES.hash_rihs01(ros_type)}"
+        return (
+            self.session.declare_publisher(key),
+            self.session.liveliness().declare_token(token),
+            gid,
+        )
+
+
+async def next_state(receive: trio.MemoryReceiveChannel[Any]) -> Any:
+    with trio.fail_after(20):
+        _, _, data = await receive.receive()
+    return TYPES.deserialize_cdr(data, "sensor_msgs/msg/JointState")
+
+
+async def states_until(receive: trio.MemoryReceiveChannel[Any], joint: str, value: float) -> Any:
+    """Joint states until `joint` is within 0.01 rad of `value`."""
+    while True:
+        state = await next_state(receive)
+        if abs(state.position[state.name.index(joint)] - value) < 0.01:
+            return state
+
+
+def call(session: Any, key: str, sequence: int) -> tuple[Any, tuple[int, int, bytes]]:
+    """A Trigger call as rmw_zenoh's client makes it (in a thread: `get` blocks)."""
+    # Trigger_Request is empty: the CDR header and rosidl's one padding byte.
+    attachment = struct.pack("<qqB16s", sequence, time.time_ns(), 16, b"C" * 16)
+    for reply in session.get(
+        key, payload=b"\x00\x01\x00\x00\x00", attachment=attachment, timeout=10.0,
+        target=zenoh.QueryTarget.ALL_COMPLETE,
+    ):  # fmt: skip
+        if reply.ok is not None:
+            body = bytes(reply.ok.payload.to_bytes())
+            answer = struct.unpack("<qqB16s", bytes(reply.ok.attachment.to_bytes()))
+            return messages.store().deserialize_cdr(body, "std_srvs/srv/Trigger_Response"), (
+                answer[0], answer[1], answer[3],
+            )  # fmt: skip
+    raise AssertionError(f"no answer on {key}")
+
+
+def float64_array(values: list[float]) -> bytes:
+    array = TYPES.types["std_msgs/msg/Float64MultiArray"]
+    layout = TYPES.types["std_msgs/msg/MultiArrayLayout"](dim=[], data_offset=0)
+    import numpy as np
+
+    message = array(layout=layout, data=np.array(values, dtype=np.float64))
+    return bytes(TYPES.serialize_cdr(message, "std_msgs/msg/Float64MultiArray"))
+
+
+def trajectory(names: list[str], points: list[tuple[float, list[float]]]) -> bytes:
+    import numpy as np
+
+    types = TYPES.types
+    header = types["std_msgs/msg/Header"](
+        stamp=types["builtin_interfaces/msg/Time"](sec=0, nanosec=0), frame_id=""
+    )
+    empty = np.array([], dtype=np.float64)
+    message = types["trajectory_msgs/msg/JointTrajectory"](
+        header=header,
+        joint_names=names,
+        points=[
+            types["trajectory_msgs/msg/JointTrajectoryPoint"](
+                positions=np.array(values, dtype=np.float64),
+                velocities=empty,
+                accelerations=empty,
+                effort=empty,
+                time_from_start=types["builtin_interfaces/msg/Duration"](
+                    sec=int(at), nanosec=round((at % 1) * 1e9)
+                ),
+            )
+            for at, values in points
+        ],
+    )
+    return bytes(TYPES.serialize_cdr(message, "trajectory_msgs/msg/JointTrajectory"))
+
+
+async def test_a_ros2_peer_sees_reads_commands_and_stops_the_robot(start_server: Any) -> None:
+    server: RunningServer = await start_server(
+        demo=True, ros2=True, ros2_listen=("tcp/127.0.0.1:0",)
+    )
+    bridge = server.app.ros2
+    locators = await bridge.locators()
+    assert locators and locators[0].startswith("tcp/127.0.0.1:")
+    config = zenoh.Config()
+    config.insert_json5("mode", '"peer"')
+    config.insert_json5("connect/endpoints", f'["{locators[0]}"]')
+    config.insert_json5("scouting/multicast/enabled", "false")
+    session = await trio.to_thread.run_sync(zenoh.open, config)
+    robot = server.app.manager.get("demo-arm")
+    joints = [j.urdf_name for j in robot.model.joints]
+    try:
+        peer = Peer(session)
+        on_token, tokens = peer.channel()
+        token_watch = session.liveliness().declare_subscriber(
+            "@ros2_lv/0/**", on_token, history=True
+        )
+        arena_zid = bridge.session_id
+        seen: set[str] = set()
+        with trio.fail_after(20):
+            while len(seen) < 8:  # the node, 3 publishers, 2 subscriptions, 2 services
+                key, kind, _ = await tokens.receive()
+                if kind.endswith("PUT") and f"/{arena_zid}/" in key:
+                    seen.add(key)
+        assert f"@ros2_lv/0/{arena_zid}/0/0/NN/%/%/demo_arm" in seen
+        suffixes = {tuple(k.split("/")[5:10]) for k in seen if "/NN/" not in k}
+        assert suffixes == {
+            ("MP", "%", "%", "demo_arm", "%demo_arm%joint_states"),
+            ("MP", "%", "%", "demo_arm", "%tf"),
+            ("MP", "%", "%", "demo_arm", "%demo_arm%robot_description"),
+            ("MS", "%", "%", "demo_arm", "%demo_arm%joint_trajectory"),
+            ("MS", "%", "%", "demo_arm", f"%{COMMANDS.replace('/', '%')}"),
+            ("SS", "%", "%", "demo_arm", "%demo_arm%estop"),
+            ("SS", "%", "%", "demo_arm", "%demo_arm%reset"),
+        }
+        assert any(
+            k.endswith(
+                f"%demo_arm%robot_description/std_msgs::msg::dds_::String_/{CHATTER_HASH}/:1:,1:,:,:,,"
+            )
+            for k in seen
+        )
+
+        # Joint states at rest (>= 10 Hz with no report), URDF names, radians, rmw's attachment.
+        on_state, states = peer.channel()
+        subscriber = session.declare_subscriber(STATES_KEY, on_state)
+        first = await next_state(states)
+        assert first.name == joints
+        real = robot.joint_values()[1]
+        expected = [j.to_urdf(real[j.name]) for j in robot.model.joints]
+        assert list(first.position) == expected
+        second = await next_state(states)
+        assert second.position.tolist() == first.position.tolist()
+
+        on_tf, tfs = peer.channel()
+        tf_subscriber = session.declare_subscriber(TF_KEY, on_tf)
+        with trio.fail_after(20):
+            _, _, data = await tfs.receive()
+        frames = TYPES.deserialize_cdr(data, "tf2_msgs/msg/TFMessage").transforms
+        assert frames and all(f.child_frame_id.startswith("demo_arm/") for f in frames)
+        assert all(f.header.frame_id.startswith("demo_arm/") for f in frames)
+
+        # The URDF for a subscriber that joins late (rmw_zenoh's transient local).
+        on_description, descriptions = peer.channel()
+        late = zenoh.ext.declare_advanced_subscriber(
+            session, DESCRIPTION_KEY, on_description,
+            history=zenoh.ext.HistoryConfig(detect_late_publishers=True),
+        )  # fmt: skip
+        with trio.fail_after(20):
+            _, _, data = await descriptions.receive()
+        urdf = TYPES.deserialize_cdr(data, "std_msgs/msg/String").data
+        assert urdf == robot.model.urdf_path.read_text(encoding="utf-8")
+
+        # Commands: refused while another master holds the robot, recorded with the code.
+        publisher, publisher_token, gid = peer.publisher(COMMANDS, "std_msgs/msg/Float64MultiArray")
+        other = await robot.connect_master("someone-else", kind="external")
+        target = [0.2 + v if k == 0 else v for k, v in enumerate(expected)]
+        with robot.subscribe(kinds=[PeerChanged, StateChanged]) as events:
+            publisher.put(
+                float64_array(target), attachment=struct.pack("<qqB16s", 1, time.time_ns(), 16, gid)
+            )
+            with trio.fail_after(20):
+                while True:
+                    event = await events.get()
+                    if isinstance(event, PeerChanged) and event.change == "refused":
+                        break
+            assert event.kind == "ros2" and robot.snapshot().owner == "someone-else"
+            await other.release()
+            publisher.put(
+                float64_array(target), attachment=struct.pack("<qqB16s", 2, time.time_ns(), 16, gid)
+            )
+            moved = await states_until(states, joints[0], target[0])
+            assert robot.snapshot().owner is not None and robot.snapshot().owner.startswith("ros2-")
+
+            # A trajectory: its points played at their times, the last one reached.
+            names = [joints[0], joints[1]]
+            start = list(moved.position[:2])
+            traj = session.declare_publisher(TRAJECTORY_KEY)
+            traj.put(
+                trajectory(
+                    names,
+                    [(0.2, [start[0] - 0.1, start[1]]), (0.5, [start[0] - 0.2, start[1] + 0.1])],
+                ),
+                attachment=struct.pack("<qqB16s", 3, time.time_ns(), 16, gid),
+            )
+            await states_until(states, joints[0], start[0] - 0.2)
+
+            # Its publisher's token goes: the master is lost, the robot e-stops.
+            publisher_token.undeclare()
+            with trio.fail_after(20):
+                while robot.snapshot().mode != Mode.ESTOPPED:
+                    await events.get()
+
+        # Services: reset, then e-stop, each answered with the caller's sequence number.
+        response, (sequence, _, client) = await trio.to_thread.run_sync(
+            call, session, RESET_KEY, 41
+        )
+        assert response.success and (sequence, client) == (41, b"C" * 16)
+        assert robot.snapshot().mode != Mode.ESTOPPED
+        response, (sequence, _, _) = await trio.to_thread.run_sync(call, session, ESTOP_KEY, 42)
+        assert response.success and sequence == 42
+        assert robot.snapshot().mode == Mode.ESTOPPED
+        for entity in (late, tf_subscriber, subscriber, token_watch, publisher, traj):
+            entity.undeclare()
+    finally:
+        await trio.to_thread.run_sync(session.close)
