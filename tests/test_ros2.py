@@ -11,11 +11,16 @@ from __future__ import annotations
 import struct
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
+import pytest
 import trio
 
+from arena.cli import main
+from arena.recording.mcap_file import read_recording
 from arena.robot.events import PeerChanged, StateChanged
+from arena.robot.model import load_robot_model
 from arena.robot.safety import Mode
 from tests.conftest import RunningServer, need
 
@@ -335,3 +340,69 @@ async def test_a_ros2_peer_sees_reads_commands_and_stops_the_robot(start_server:
             entity.undeclare()
     finally:
         await trio.to_thread.run_sync(session.close)
+
+
+GOLDEN = Path(__file__).resolve().parent.parent / "recordings" / "golden" / "gentle-wave.mcap"
+
+
+def test_a_recording_exports_as_a_ros2_bag_that_rosbags_reads(tmp_path: Path) -> None:
+    from mcap.reader import make_reader
+    from rosbags.rosbag2 import Reader
+
+    out = tmp_path / "wave.mcap"
+    assert main(["export", str(GOLDEN), "--format", "ros2", "-o", str(out)]) == 0
+    recording = read_recording(GOLDEN)
+    reports = [m for m in recording.messages if m.kind == "joint_states"]
+    accepted = [m for m in recording.messages if m.kind == "command" and m.data["accepted"]]
+    model = load_robot_model("so-arm100")
+    with Reader(out) as bag:
+        counts = {c.topic: (c.msgtype, c.msgcount) for c in bag.connections}
+        assert counts == {
+            "/arm/robot_description": ("std_msgs/msg/String", 1),
+            "/arm/joint_states": ("sensor_msgs/msg/JointState", len(reports)),
+            "/tf": ("tf2_msgs/msg/TFMessage", len(reports)),
+            "/arm/joint_trajectory": ("trajectory_msgs/msg/JointTrajectory", len(accepted)),
+        }
+        states = [
+            (stamp, TYPES.deserialize_cdr(data, "sensor_msgs/msg/JointState"))
+            for connection, stamp, data in bag.messages()
+            if connection.topic == "/arm/joint_states"
+        ]
+        commands = [
+            TYPES.deserialize_cdr(data, connection.msgtype)
+            for connection, _, data in bag.messages()
+            if connection.topic == "/arm/joint_trajectory"
+        ]
+    last_report, (stamp, last) = reports[-1], states[-1]
+    assert stamp == last_report.log_time
+    assert last.name == [j.urdf_name for j in model.joints]
+    for joint, value in zip(model.joints, last.position, strict=True):
+        assert value == pytest.approx(joint.to_urdf(last_report.data["joints"][joint.name]))
+    first = accepted[0].data
+    point = commands[0].points[0]
+    assert (
+        point.time_from_start.sec + point.time_from_start.nanosec / 1e9 == first["duration"] / 1000
+    )
+    assert list(point.positions) == pytest.approx(
+        [model.joint(j["name"]).to_urdf(j["value"]) for j in first["joints"]]  # type: ignore[union-attr]
+    )
+    with open(out, "rb") as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary is not None
+    assert {s.encoding for s in summary.schemas.values()} == {"ros2msg"}
+    assert {c.message_encoding for c in summary.channels.values()} == {"cdr"}
+
+
+def test_a_ros2_export_refuses_to_overwrite_or_to_guess_its_output(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "taken.mcap"
+    out.write_bytes(b"mine")
+    assert main(["export", str(GOLDEN), "--format", "ros2", "-o", str(out)]) == 2
+    assert "exists already" in capsys.readouterr().err
+    assert out.read_bytes() == b"mine"
+    assert main(["export", str(GOLDEN), "--format", "ros2"]) == 2
+    assert "needs -o" in capsys.readouterr().err
+    assert main(["export", str(GOLDEN), "--format", "ros2", "-o", str(tmp_path / "x.bag")]) == 2
+    assert ".mcap" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["taken.mcap"]

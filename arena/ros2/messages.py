@@ -180,3 +180,21 @@ def _decode(data: bytes, ros_type: str) -> Any:
         return store().deserialize_cdr(data, ros_type)
     except Exception as exc:  # rosbags raises what its parser meets: all mean "not this type"
         raise ValueError(f"not a {ros_type} in CDR ({type(exc).__name__})") from None
+
+
+def trajectory(ns: int, names: Sequence[str], positions: Sequence[float], at: float) -> bytes:
+    """A `trajectory_msgs/msg/JointTrajectory` of one point due `at` seconds from its start."""
+    types = store().types
+    empty = np.array([], dtype=np.float64)
+    whole = int(at)
+    point = types["trajectory_msgs/msg/JointTrajectoryPoint"](
+        positions=np.array(positions, dtype=np.float64),
+        velocities=empty,
+        accelerations=empty,
+        effort=empty,
+        time_from_start=types["builtin_interfaces/msg/Duration"](
+            sec=whole, nanosec=round((at - whole) * 1e9)
+        ),
+    )
+    message = types[TRAJECTORY](header=_header(ns), joint_names=list(names), points=[point])
+    return bytes(store().serialize_cdr(message, TRAJECTORY))
