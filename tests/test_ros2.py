@@ -19,7 +19,7 @@ import trio
 
 from arena.cli import main
 from arena.recording.mcap_file import read_recording
-from arena.robot.events import PeerChanged, StateChanged
+from arena.robot.events import CommandHandled, PeerChanged, StateChanged
 from arena.robot.model import load_robot_model
 from arena.robot.safety import Mode
 from tests.conftest import RunningServer, need
@@ -151,6 +151,15 @@ async def next_state(receive: trio.MemoryReceiveChannel[Any]) -> Any:
     return TYPES.deserialize_cdr(data, "sensor_msgs/msg/JointState")
 
 
+async def next_event(events: Any, kind: type[Any]) -> Any:
+    """The robot's next event of type `kind`."""
+    with trio.fail_after(20):
+        while True:
+            event = await events.get()
+            if isinstance(event, kind):
+                return event
+
+
 async def states_until(receive: trio.MemoryReceiveChannel[Any], joint: str, value: float) -> Any:
     """Joint states until `joint` is within 0.01 rad of `value`."""
     while True:
@@ -265,8 +274,9 @@ async def test_a_ros2_peer_sees_reads_commands_and_stops_the_robot(start_server:
         real = robot.joint_values()[1]
         expected = [j.to_urdf(real[j.name]) for j in robot.model.joints]
         assert list(first.position) == expected
-        second = await next_state(states)
+        second = await next_state(states)  # no report at rest: the same measurement again
         assert second.position.tolist() == first.position.tolist()
+        assert second.header.stamp == first.header.stamp
 
         on_tf, tfs = peer.channel()
         tf_subscriber = session.declare_subscriber(TF_KEY, on_tf)
@@ -287,38 +297,50 @@ async def test_a_ros2_peer_sees_reads_commands_and_stops_the_robot(start_server:
         urdf = TYPES.deserialize_cdr(data, "std_msgs/msg/String").data
         assert urdf == robot.model.urdf_path.read_text(encoding="utf-8")
 
-        # Commands: refused while another master holds the robot, recorded with the code.
+        # Commands: refused while another master holds the robot (the refusal an event the
+        # recorder keeps, as any master's).
         publisher, publisher_token, gid = peer.publisher(COMMANDS, "std_msgs/msg/Float64MultiArray")
+
+        def attached(sequence: int) -> bytes:
+            return struct.pack("<qqB16s", sequence, time.time_ns(), 16, gid)
+
         other = await robot.connect_master("someone-else", kind="external")
         target = [0.2 + v if k == 0 else v for k, v in enumerate(expected)]
-        with robot.subscribe(kinds=[PeerChanged, StateChanged]) as events:
-            publisher.put(
-                float64_array(target), attachment=struct.pack("<qqB16s", 1, time.time_ns(), 16, gid)
-            )
-            with trio.fail_after(20):
-                while True:
-                    event = await events.get()
-                    if isinstance(event, PeerChanged) and event.change == "refused":
-                        break
-            assert event.kind == "ros2" and robot.snapshot().owner == "someone-else"
+        kinds = [PeerChanged, StateChanged, CommandHandled]
+        with robot.subscribe(kinds=kinds) as events:
+            publisher.put(float64_array(target), attachment=attached(1))
+            refusal = await next_event(events, PeerChanged)
+            assert (refusal.kind, refusal.change) == ("ros2", "refused") and refusal.reason
+            assert robot.snapshot().owner == "someone-else"
             await other.release()
-            publisher.put(
-                float64_array(target), attachment=struct.pack("<qqB16s", 2, time.time_ns(), 16, gid)
+            # Bad input changes nothing: not CDR, a value short, no attachment (no owner).
+            publisher.put(b"\x00\x01\x00\x00garbage", attachment=attached(2))
+            publisher.put(float64_array(target[:-1]), attachment=attached(3))
+            publisher.put(float64_array(target))
+            publisher.put(float64_array(target), attachment=attached(4))
+            handled = await next_event(events, CommandHandled)
+            owner = robot.snapshot().owner
+            assert owner is not None and owner.startswith("ros2-") and handled.source == owner
+            assert handled.result.accepted and handled.command.duration is None
+            assert [g.value for g in handled.command.joints] == pytest.approx(
+                [j.from_urdf(v) for j, v in zip(robot.model.joints, target, strict=True)]
             )
             moved = await states_until(states, joints[0], target[0])
-            assert robot.snapshot().owner is not None and robot.snapshot().owner.startswith("ros2-")
 
-            # A trajectory: its points played at their times, the last one reached.
+            # A trajectory: each point a command due at its time, lasting until the next.
             names = [joints[0], joints[1]]
             start = list(moved.position[:2])
+            points = [(0.2, [start[0] - 0.1, start[1]]), (0.5, [start[0] - 0.2, start[1] + 0.1])]
             traj = session.declare_publisher(TRAJECTORY_KEY)
-            traj.put(
-                trajectory(
-                    names,
-                    [(0.2, [start[0] - 0.1, start[1]]), (0.5, [start[0] - 0.2, start[1] + 0.1])],
-                ),
-                attachment=struct.pack("<qqB16s", 3, time.time_ns(), 16, gid),
-            )
+            traj.put(trajectory(names, points), attachment=attached(5))
+            specs = [robot.model.joint(robot.model.joints[k].name) for k in (0, 1)]
+            for duration, (_, values) in zip((0.2, 0.3), points, strict=True):
+                handled = await next_event(events, CommandHandled)
+                assert handled.source == owner and handled.result.accepted
+                assert handled.command.duration == pytest.approx(duration)
+                assert [g.value for g in handled.command.joints] == pytest.approx(
+                    [j.from_urdf(v) for j, v in zip(specs, values, strict=True)]  # type: ignore[union-attr]
+                )
             await states_until(states, joints[0], start[0] - 0.2)
 
             # Its publisher's token goes: the master is lost, the robot e-stops.
