@@ -428,3 +428,41 @@ def test_a_ros2_export_refuses_to_overwrite_or_to_guess_its_output(
     assert main(["export", str(GOLDEN), "--format", "ros2", "-o", str(tmp_path / "x.bag")]) == 2
     assert ".mcap" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["taken.mcap"]
+
+
+def test_ros2_settings_take_the_domain_from_the_environment_and_check_it(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from arena.protocol.errors import ArenaError
+    from arena.ros2.bridge import Ros2Settings
+    from arena.server.config import ServerConfig, load_config
+
+    monkeypatch.setenv("ROS_DOMAIN_ID", "7")
+    assert ServerConfig(ros2=True).ros2_settings().domain == 7
+    assert ServerConfig(ros2=True, ros_domain=3).ros2_settings().domain == 3
+    assert load_config(None, {"ARENA_ROS_DOMAIN": "5", "ARENA_ROS2": "true"}).ros2_settings() == (
+        Ros2Settings(5)
+    )
+    monkeypatch.setenv("ROS_DOMAIN_ID", "lab")
+    for config, words in (
+        (ServerConfig(ros2=True), "ROS_DOMAIN_ID is not a number"),
+        (ServerConfig(ros2=True, ros_domain=233), "0-232"),
+        (ServerConfig(ros2=True, ros_domain=0, ros2_connect=("localhost:7447",)), "endpoint"),
+    ):
+        with pytest.raises(ArenaError, match=words):
+            config.check()
+    monkeypatch.delenv("ROS_DOMAIN_ID")
+    assert ServerConfig(ros2=True).ros2_settings().domain == 0
+    # With no endpoint, where rmw_zenoh's nodes find their router.
+    defaults = json_of(Ros2Settings().zenoh_config(), "connect/endpoints")
+    assert defaults == ["tcp/localhost:7447"]
+    assert (
+        json_of(Ros2Settings(listen=("tcp/127.0.0.1:0",)).zenoh_config(), "connect/endpoints") == []
+    )
+    assert json_of(Ros2Settings().zenoh_config(), "scouting/multicast/enabled") is False
+
+
+def json_of(config: Any, key: str) -> Any:
+    import json
+
+    return json.loads(config.get_json(key))
