@@ -13,8 +13,6 @@ import struct
 from collections.abc import Iterable
 from dataclasses import dataclass
 
-import xxhash
-
 #: The hermetic prefix of every liveliness token.
 ADMIN_SPACE = "@ros2_lv"
 #: Entity kinds in a token.
@@ -91,6 +89,8 @@ class Entity:
 
 def entity_gid(token: str) -> bytes:
     """The GID of the entity whose liveliness token is `token`."""
+    import xxhash  # the `ros2` extra's: imported where used, so settings check without it
+
     return xxhash.xxh3_128_intdigest(token.encode()).to_bytes(GID_SIZE, "little")
 
 
