@@ -358,6 +358,14 @@ async def test_a_ros2_peer_sees_reads_commands_and_stops_the_robot(start_server:
         response, (sequence, _, _) = await trio.to_thread.run_sync(call, session, ESTOP_KEY, 42)
         assert response.success and sequence == 42
         assert robot.snapshot().mode == Mode.ESTOPPED
+
+        # A robot deleted leaves the graph: its node's token goes.
+        await server.app.manager.delete("demo-arm")
+        node_token = f"@ros2_lv/0/{arena_zid}/0/0/NN/%/%/demo_arm"
+        with trio.fail_after(20):
+            while (await tokens.receive())[:2] != (node_token, "SampleKind.DELETE"):
+                pass
+        assert "demo-arm" not in bridge.nodes
         for entity in (late, tf_subscriber, subscriber, token_watch, publisher, traj):
             entity.undeclare()
     finally:

@@ -17,6 +17,7 @@ import contextlib
 import logging
 import time
 from collections.abc import Awaitable, Callable
+from functools import partial
 from typing import TYPE_CHECKING, Any, Protocol
 
 import trio
@@ -51,6 +52,10 @@ log = logging.getLogger(__name__)
 
 #: Seconds between joint states while no report comes (10 Hz at rest).
 REPEAT = 0.1
+#: Service calls of one node answered at once; more are answered "busy" at once.
+MAX_CALLS = 8
+#: Seconds between two warnings of one node (the others are counted, then said).
+WARN_EVERY = 1.0
 
 
 class RobotNode:
@@ -71,6 +76,15 @@ class RobotNode:
         self._publishers: dict[str, tuple[Any, bytes]] = {}  # topic -> (publisher, gid)
         self._sequence = 0
         self._playing: trio.CancelScope | None = None
+        # The newest command not yet handled (latest wins: a command stream never queues up).
+        self._pending: tuple[Callable[[Any], Awaitable[None]], Any] | None = None
+        self._wake = trio.Event()
+        #: Commands a newer one replaced before they were handled.
+        self.superseded = 0
+        self._calls = 0  # service calls being answered
+        self._nursery: trio.Nursery | None = None
+        self._warned_at = -WARN_EVERY
+        self._unsaid = 0
 
     # -- the graph -------------------------------------------------------------------------------
 
@@ -137,23 +151,25 @@ class RobotNode:
         urdf = self.robot.model.urdf_path.read_text(encoding="utf-8")
         cached.put(messages.string(urdf), attachment=self._attachment(described.gid()))
         for suffix, ros_type, handler in (
-            ("joint_trajectory", messages.TRAJECTORY, self._on_trajectory),
-            ("forward_position_controller/commands", messages.FLOAT64_ARRAY, self._on_positions),
+            ("joint_trajectory", messages.TRAJECTORY, self._trajectory),
+            ("forward_position_controller/commands", messages.FLOAT64_ARRAY, self._positions),
         ):
             entity = self._entity(wire.SUBSCRIPTION, self.topic(suffix), ros_type)
             self._entities.append(
-                session.declare_subscriber(self._key(entity), bridge.from_zenoh(handler))
+                session.declare_subscriber(
+                    self._key(entity), bridge.from_zenoh(partial(self._take, handler))
+                )
             )
             self._declare(entity)
         services: tuple[tuple[str, Callable[[Any], Awaitable[None]]], ...] = (
-            ("estop", self._on_estop),
-            ("reset", self._on_reset),
+            ("estop", self._estop),
+            ("reset", self._reset),
         )
         for suffix, serve in services:
             entity = self._entity(wire.SERVICE, self.topic(suffix), messages.TRIGGER)
             self._entities.append(
                 session.declare_queryable(
-                    self._key(entity), bridge.from_zenoh(serve), complete=True
+                    self._key(entity), bridge.from_zenoh(partial(self._call, serve)), complete=True
                 )
             )
             self._declare(entity)
@@ -173,29 +189,35 @@ class RobotNode:
     # -- publishing --------------------------------------------------------------------------------
 
     async def run(self) -> None:
-        """Publish the measured joints until the robot stops, then leave the graph."""
+        """Serve the node until the robot stops, then leave the graph."""
         self.declare()
-        robot = self.robot
         try:
-            with robot.subscribe(maxlen=256, kinds=[JointStatesReceived]) as events:
-                degrees = dict(robot.joint_values()[1])
-                stamp = time.time_ns()
-                while True:
-                    if degrees:
-                        self.publish(degrees, stamp)
-                    with trio.move_on_after(REPEAT):
-                        try:
-                            event = await events.get()
-                        except trio.EndOfChannel:
-                            return
-                        for later in [event, *events.drain()]:
-                            assert isinstance(later, JointStatesReceived)
-                            degrees.update(later.joints)
-                            stamp = int(later.wall_time * 1e9)
+            async with trio.open_nursery() as nursery:
+                self._nursery = nursery
+                nursery.start_soon(self._commands)
+                await self._publishing()
+                nursery.cancel_scope.cancel()
         finally:
-            if self._playing is not None:
-                self._playing.cancel()
             self.undeclare()
+
+    async def _publishing(self) -> None:
+        """Publish the measured joints until the robot stops."""
+        robot = self.robot
+        with robot.subscribe(maxlen=256, kinds=[JointStatesReceived]) as events:
+            degrees = dict(robot.joint_values()[1])
+            stamp = time.time_ns()
+            while True:
+                if degrees:
+                    self.publish(degrees, stamp)
+                with trio.move_on_after(REPEAT):
+                    try:
+                        event = await events.get()
+                    except trio.EndOfChannel:
+                        return
+                    for later in [event, *events.drain()]:
+                        assert isinstance(later, JointStatesReceived)
+                        degrees.update(later.joints)
+                        stamp = int(later.wall_time * 1e9)
 
     def publish(self, degrees: dict[str, float], stamp: int) -> None:
         """Joint states and /tf for joints at `degrees` (wire units by joint name)."""
@@ -221,6 +243,38 @@ class RobotNode:
 
     # -- commands ----------------------------------------------------------------------------------
 
+    def _take(self, handler: Callable[[Any], Awaitable[None]], sample: Any) -> None:
+        """In trio, from a subscription: keep the newest command for `_commands` (one that
+        waited is replaced and counted, as latest wins toward a robot)."""
+        if self._pending is not None:
+            self.superseded += 1
+        self._pending = (handler, sample)
+        self._wake.set()
+
+    async def _commands(self) -> None:
+        """Handle the commands, one at a time, the newest first."""
+        while True:
+            await self._wake.wait()
+            self._wake = trio.Event()
+            if self._pending is None:
+                continue
+            handler, sample = self._pending
+            self._pending = None
+            await handler(sample)
+            del sample
+
+    def warn(self, text: str, *args: Any) -> None:
+        """Log a warning about what a ROS peer sent, at most one a `WARN_EVERY` (a flood of
+        bad commands is said as a count, never as a flood of lines)."""
+        now = trio.current_time()
+        if now - self._warned_at < WARN_EVERY:
+            self._unsaid += 1
+            return
+        if self._unsaid:
+            text += f" (and {self._unsaid} more since the last warning)"
+        self._warned_at, self._unsaid = now, 0
+        log.warning("ros2: %s: " + text, self.robot.robot_id, *args)
+
     def commands_from(self, gid: bytes) -> bool:
         """True if the publisher `gid` has commanded this robot."""
         return gid in self.masters
@@ -243,7 +297,7 @@ class RobotNode:
         try:
             gid = wire.read_attachment(bytes(sample.attachment.to_bytes()))[2]
         except (AttributeError, ValueError) as exc:
-            log.warning("ros2: %s: a command without rmw_zenoh's attachment: %s", topic, exc)
+            self.warn("%s: a command without rmw_zenoh's attachment: %s", topic, exc)
             return None
         link = self.masters.get(gid)
         if link is not None and not link.detached.is_set():
@@ -255,8 +309,10 @@ class RobotNode:
                 description=f"ROS 2 publisher on {topic}",
             )
         except ArenaError as error:
-            log.warning("ros2: %s: %s refused: %s", self.robot.robot_id, topic, error.message)
+            self.warn("%s refused: %s", topic, error.message)
             return None
+        # One robot has one master: links of publishers that lost it are let go.
+        self.masters = {g: m for g, m in self.masters.items() if not m.detached.is_set()}
         self.masters[gid] = link
         return link
 
@@ -265,77 +321,101 @@ class RobotNode:
         for name, value in urdf.items():
             joint = self.by_urdf.get(name)
             if joint is None:
-                log.warning("ros2: %s: no joint %r (joints: %s)", topic, name, list(self.by_urdf))
+                self.warn("%s: no joint %r (joints: %s)", topic, name, list(self.by_urdf))
                 return None
             values[joint.name] = joint.from_urdf(value)
         return values
 
-    async def _on_positions(self, sample: Any) -> None:
+    async def _positions(self, sample: Any) -> None:
         topic = self.topic("forward_position_controller/commands")
         try:
             values = messages.read_positions(bytes(sample.payload.to_bytes()))
         except ValueError as exc:
-            log.warning("ros2: %s: %s", topic, exc)
+            self.warn("%s: %s", topic, exc)
             return
         joints = self.robot.model.joints
         if len(values) != len(joints):
-            log.warning("ros2: %s: %d values for %d joints", topic, len(values), len(joints))
+            self.warn("%s: %d values for %d joints", topic, len(values), len(joints))
+            return
+        degrees = self._degrees(
+            {j.urdf_name: v for j, v in zip(joints, values, strict=True)}, topic
+        )
+        if degrees is None:
             return
         link = await self._master(sample, topic)
         if link is None:
             return
         if self._playing is not None:  # the newest command wins over a trajectory
             self._playing.cancel()
-        degrees = self._degrees(
-            {j.urdf_name: v for j, v in zip(joints, values, strict=True)}, topic
-        )
-        if degrees is not None:
-            self._refused(await link.command(Command.of(degrees)), topic)
+        self._refused(await link.command(Command.of(degrees)), topic)
 
-    async def _on_trajectory(self, sample: Any) -> None:
+    async def _trajectory(self, sample: Any) -> None:
         topic = self.topic("joint_trajectory")
         try:
             points = messages.read_trajectory(bytes(sample.payload.to_bytes()))
         except ValueError as exc:
-            log.warning("ros2: %s: %s", topic, exc)
+            self.warn("%s: %s", topic, exc)
             return
         goals = [self._degrees(point.positions, topic) for point in points]
         if any(goal is None for goal in goals):
             return
         link = await self._master(sample, topic)
-        if link is None:
+        if link is None or self._nursery is None:
             return
         if self._playing is not None:  # a new trajectory replaces the one playing
             self._playing.cancel()
-        scope = self._playing = trio.CancelScope()
+        self._playing = trio.CancelScope()
+        plan = [(p.at, g) for p, g in zip(points, goals, strict=True) if g is not None]
+        self._nursery.start_soon(self._play, link, plan, self._playing)
+
+    async def _play(
+        self, link: MasterLink, plan: list[tuple[float, dict[str, float]]], scope: trio.CancelScope
+    ) -> None:
+        """Each point is a command sent when the point before it is due, lasting until its
+        own time: the arm is at each point at its `time_from_start`."""
+        topic = self.topic("joint_trajectory")
         with scope:
             start, previous = trio.current_time(), 0.0
-            for point, goal in zip(points, goals, strict=True):
-                assert goal is not None
+            for at, goal in plan:
                 await trio.sleep_until(start + previous)
-                duration = point.at - previous
+                duration = at - previous
                 result = await link.command(Command.of(goal, duration if duration > 0 else None))
                 if self._refused(result, topic):
                     break
-                previous = point.at
+                previous = at
         if self._playing is scope:
             self._playing = None
 
     def _refused(self, result: Any, topic: str) -> bool:
         if result.accepted:
             return False
-        log.warning("ros2: %s: command refused (%s): %s", topic, result.code, result.message)
+        self.warn("%s: command refused (%s): %s", topic, result.code, result.message)
         return True
 
     # -- services ----------------------------------------------------------------------------------
 
-    async def _on_estop(self, query: Any) -> None:
+    def _call(self, serve: Callable[[Any], Awaitable[None]], query: Any) -> Awaitable[None] | None:
+        """In trio, from a queryable: the call answered in a task of its own, or "busy" at
+        once when `MAX_CALLS` are being answered already."""
+        if self._calls >= MAX_CALLS:
+            self._answer(query, False, "busy: too many calls at once, try again")
+            return None
+        self._calls += 1
+        return self._counted(serve(query))
+
+    async def _counted(self, call: Awaitable[None]) -> None:
+        try:
+            await call
+        finally:
+            self._calls -= 1
+
+    async def _estop(self, query: Any) -> None:
         await self.robot.estop(f"ROS 2 service {self.topic('estop')}")
         mode = self.robot.snapshot().mode
         done = mode == Mode.ESTOPPED
         self._answer(query, done, "e-stopped" if done else f"not e-stopped: {mode}")
 
-    async def _on_reset(self, query: Any) -> None:
+    async def _reset(self, query: Any) -> None:
         outcome = await self.robot.reset()
         mode = self.robot.snapshot().mode
         done = mode != Mode.ESTOPPED
