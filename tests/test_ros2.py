@@ -456,11 +456,16 @@ def test_ros2_settings_take_the_domain_from_the_environment_and_check_it(
         (ServerConfig(ros2=True), "ROS_DOMAIN_ID is not a number"),
         (ServerConfig(ros2=True, ros_domain=233), "0-232"),
         (ServerConfig(ros2=True, ros_domain=0, ros2_connect=("localhost:7447",)), "endpoint"),
+        (ServerConfig(ros2=True, ros_domain=0, ros2_listen=("tcp/0.0.0.0:7447",)), "--insecure"),
+        (ServerConfig(ros2=True, ros_domain=0, ros2_connect=("tcp/10.0.0.2:7447",)), "10.0.0.2"),
     ):
         with pytest.raises(ArenaError, match=words):
             config.check()
     monkeypatch.delenv("ROS_DOMAIN_ID")
     assert ServerConfig(ros2=True).ros2_settings().domain == 0
+    for endpoint in ("tcp/127.0.0.1:0", "tcp/[::1]:7447", "tcp/localhost:7447"):
+        ServerConfig(ros2=True, ros2_listen=(endpoint,)).check()
+    ServerConfig(ros2=True, ros2_listen=("tcp/0.0.0.0:7447",), insecure=True).check()
     # With no endpoint, where rmw_zenoh's nodes find their router.
     defaults = json_of(Ros2Settings().zenoh_config(), "connect/endpoints")
     assert defaults == ["tcp/localhost:7447"]

@@ -78,6 +78,11 @@ class Ros2Settings:
                     f"{DEFAULT_ROUTER}).",
                 )
 
+    def endpoints(self) -> tuple[str, ...]:
+        """Where the session listens and connects (the router by default)."""
+        connect = self.connect or (() if self.listen else (DEFAULT_ROUTER,))
+        return (*self.listen, *connect)
+
     def zenoh_config(self) -> Any:
         """rmw_zenoh's session defaults: a peer, multicast scouting off, gossip on."""
         import zenoh

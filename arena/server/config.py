@@ -113,7 +113,14 @@ class ServerConfig:
         if self.node is not None:
             self.fleet_settings().check()
         if self.ros2:
-            self.ros2_settings()
+            settings = self.ros2_settings()
+            exposed = [e for e in settings.endpoints() if not _is_loopback(_endpoint_host(e))]
+            if exposed and not self.insecure:
+                raise ArenaError(
+                    ErrorCode.INVALID_CONFIG,
+                    f"ROS 2 has no API keys: anyone who reaches {exposed[0]} could command the "
+                    "robots. --ros2 uses loopback endpoints only, unless --insecure.",
+                )
         if self.recording_retry_max < 1.0:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "recording_retry_max must be 1 s or more.")
 
@@ -137,6 +144,12 @@ class ServerConfig:
             self.fleet_lease_ms,
             self.fleet_zenoh_config,
         )
+
+
+def _endpoint_host(endpoint: str) -> str:
+    """The host of a Zenoh endpoint (`tcp/127.0.0.1:7447` -> `127.0.0.1`)."""
+    address = endpoint.partition("/")[2].partition("#")[0]
+    return address.rpartition(":")[0] or address
 
 
 def _is_loopback(host: str) -> bool:
