@@ -27,6 +27,7 @@ class Extra:
 EXTRAS = {
     "physics": Extra("mujoco", "MuJoCo", "physics"),
     "fleet": Extra("zenoh", "Zenoh (eclipse-zenoh)", "fleet"),
+    "ros2": Extra("rosbags", "rosbags (with eclipse-zenoh)", "ros2"),
     "plot": Extra("matplotlib", "matplotlib", "plot"),
     "lerobot": Extra("lerobot", "LeRobot (0.4, which brings torch)", "lerobot"),
 }

@@ -271,7 +271,7 @@ async def test_export_says_what_is_missing(
     assert cli.main([*args, "--robot", "arm", "-o", str(tmp_path / "b")]) == 2
     assert "is not empty" in capsys.readouterr().err
     assert cli.main(["export", str(plain), str(plain)]) == 2
-    assert "csv and jsonl take one file" in capsys.readouterr().err
+    assert "csv, jsonl and ros2 take one file" in capsys.readouterr().err
     # import: not a dataset, no such episode
     assert cli.main(["import-dataset", str(tmp_path), "-o", str(tmp_path / "x.mcap")]) == 2
     assert "not a LeRobot dataset" in capsys.readouterr().err

@@ -113,6 +113,12 @@ async def test_a_physics_slave_without_mujoco_answers_the_install_line(
         ("zenoh", ["serve", "--node", "n1", "--port", "0"], "arena[fleet]"),
         ("zenoh", ["bench", "nodes"], "arena[fleet]"),
         ("mujoco", ["bench", "physics"], "arena[physics]"),
+        ("rosbags", ["serve", "--ros2", "--port", "0"], "arena[ros2]"),
+        (
+            "rosbags",
+            ["export", "{golden}", "--format", "ros2", "-o", "{tmp}/b.mcap"],
+            "arena[ros2]",
+        ),
     ],
 )
 def test_a_command_whose_extra_is_missing_says_what_to_install(

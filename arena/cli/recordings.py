@@ -31,13 +31,16 @@ def add(commands: Commands) -> None:
     timeline.add_argument("--to", dest="end", type=float, help="seconds from the start")
     timeline.set_defaults(handler=timeline_command)
     export = commands.add_parser(
-        "export", help="a recording as CSV or JSON lines, or recordings as a LeRobot dataset"
+        "export",
+        help="a recording as CSV, JSON lines or a ROS 2 bag, or recordings as a LeRobot dataset",
     )
     export.add_argument("file", nargs="+", help="one file (csv, jsonl); one or more (lerobot)")
-    export.add_argument("--format", choices=["csv", "jsonl", "lerobot"], default="jsonl")
+    export.add_argument("--format", choices=["csv", "jsonl", "lerobot", "ros2"], default="jsonl")
     export.add_argument("--topic", help="csv, jsonl: only this topic")
     export.add_argument("--robot", help="lerobot: the recorded robot (default: the only one)")
-    export.add_argument("-o", "--output", help="lerobot: the dataset's folder (new or empty)")
+    export.add_argument(
+        "-o", "--output", help="lerobot: the dataset's folder (new or empty); ros2: a new .mcap"
+    )
     export.add_argument("--fps", type=int, default=30, help="lerobot: frames a second")
     export.add_argument("--repo-id", help="lerobot: the dataset's name (default arena/ROBOT)")
     export.add_argument("--slave", help="lerobot: whose joint states are the observation")
@@ -125,8 +128,10 @@ def export_command(args: argparse.Namespace) -> int:
     if args.format == "lerobot":
         return datasets.export_lerobot(args)
     if len(args.file) > 1:
-        raise ArenaError(ErrorCode.INVALID_VALUE, "csv and jsonl take one file.")
+        raise ArenaError(ErrorCode.INVALID_VALUE, "csv, jsonl and ros2 take one file.")
     file = args.file[0]
+    if args.format == "ros2":
+        return export_ros2(file, args.output)
     recording = open_recording(file)
     topics = {m.topic for m in recording.messages}
     if args.topic is not None and args.topic not in topics:
@@ -135,6 +140,22 @@ def export_command(args: argparse.Namespace) -> int:
             f"{Path(file).name} has no topic {args.topic!r} (--topic); it has {sorted(topics)}.",
         )
     sys.stdout.write(analysis.export(recording, args.format, args.topic))
+    return 0
+
+
+def export_ros2(file: str, output: str | None) -> int:
+    """`arena export FILE --format ros2 -o OUT.mcap`: the recording as a ROS 2 bag."""
+    from arena.extras import require
+    from arena.protocol.errors import ArenaError, ErrorCode
+
+    if output is None:
+        raise ArenaError(ErrorCode.INVALID_VALUE, "--format ros2 needs -o OUT.mcap.")
+    require("ros2", "A ROS 2 bag (--format ros2)")
+    from arena.ros2.bag import export_bag
+
+    counts = export_bag(open_recording(file), Path(output))
+    for topic, count in counts.items():
+        print(f"{topic}: {count}")
     return 0
 
 

@@ -106,6 +106,19 @@ def add(commands: Commands) -> None:
         metavar="FILE",
         help="a Zenoh configuration (JSON5) to start from: TLS, access control",
     )
+    ros2 = serve.add_argument_group("ROS 2 (specs/ros2.md)")
+    ros2.add_argument(
+        "--ros2", action="store_true", default=None, help="every robot a ROS 2 node (rmw_zenoh)"
+    )
+    ros2.add_argument("--ros-domain", type=int, help="ROS domain (default: ROS_DOMAIN_ID, else 0)")
+    ros2.add_argument("--ros2-listen", action="append", default=[], metavar="ENDPOINT")
+    ros2.add_argument(
+        "--ros2-connect",
+        action="append",
+        default=[],
+        metavar="ENDPOINT",
+        help="Zenoh router or peer (default, with no endpoint: tcp/localhost:7447)",
+    )
     serve.set_defaults(handler=serve_command)
 
 
@@ -140,6 +153,10 @@ def serve_command(args: argparse.Namespace) -> int:
         fleet_connect=tuple(args.fleet_connect) or None,
         fleet_scout=args.fleet_scout,
         fleet_zenoh_config=args.fleet_zenoh_config,
+        ros2=args.ros2,
+        ros_domain=args.ros_domain,
+        ros2_listen=tuple(args.ros2_listen) or None,
+        ros2_connect=tuple(args.ros2_connect) or None,
     )
     config.check()
     trio.run(partial(run_server, config, handle_signals=True, freeze_startup_objects=True))

@@ -23,6 +23,7 @@ from arena.server.origin import OriginPolicy
 
 if TYPE_CHECKING:
     from arena.fleet.node import FleetNode
+    from arena.ros2.bridge import Ros2Bridge
     from arena.sensors.camera import Cameras
     from arena.server.foxglove_bridge import FoxgloveBridge  # imports the SDK
     from arena.server.ws.acks import AckCache
@@ -159,6 +160,8 @@ class ArenaApp(QuartTrio):
     own_url: str | None = None
     #: The live Foxglove server, with `--foxglove-port`.
     foxglove: FoxgloveBridge | None = None
+    #: Every robot a ROS 2 node, with `--ros2`.
+    ros2: Ros2Bridge | None = None
 
 
 def error_response(code: ErrorCode, message: str) -> tuple[dict[str, Any], int]:

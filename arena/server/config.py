@@ -22,6 +22,7 @@ from arena.server.settings_env import (
 
 if TYPE_CHECKING:
     from arena.fleet.node import FleetSettings
+    from arena.ros2.bridge import Ros2Settings
 
 
 @dataclass(frozen=True)
@@ -70,6 +71,11 @@ class ServerConfig:
     fleet_lease_ms: int = 1000  # a node silent this long is gone
     #: A Zenoh configuration file to start from (TLS, access control); ours goes on top.
     fleet_zenoh_config: str | None = None
+    #: Every robot a ROS 2 node over Zenoh (specs/ros2.md); the domain None: ROS_DOMAIN_ID.
+    ros2: bool = False
+    ros_domain: int | None = None
+    ros2_listen: tuple[str, ...] = field(default=())
+    ros2_connect: tuple[str, ...] = field(default=())
 
     @property
     def auth_enabled(self) -> bool:
@@ -106,8 +112,23 @@ class ServerConfig:
             )
         if self.node is not None:
             self.fleet_settings().check()
+        if self.ros2:
+            settings = self.ros2_settings()
+            exposed = [e for e in settings.endpoints() if not _is_loopback(_endpoint_host(e))]
+            if exposed and not self.insecure:
+                raise ArenaError(
+                    ErrorCode.INVALID_CONFIG,
+                    f"ROS 2 has no API keys: anyone who reaches {exposed[0]} could command the "
+                    "robots. --ros2 uses loopback endpoints only, unless --insecure.",
+                )
         if self.recording_retry_max < 1.0:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "recording_retry_max must be 1 s or more.")
+
+    def ros2_settings(self) -> Ros2Settings:
+        """How the robots join the ROS graph (checked; only with `ros2`)."""
+        from arena.ros2.bridge import Ros2Settings
+
+        return Ros2Settings.from_options(self.ros_domain, self.ros2_listen, self.ros2_connect)
 
     def fleet_settings(self) -> FleetSettings:
         """How this node joins its fleet (only with `node`)."""
@@ -123,6 +144,12 @@ class ServerConfig:
             self.fleet_lease_ms,
             self.fleet_zenoh_config,
         )
+
+
+def _endpoint_host(endpoint: str) -> str:
+    """The host of a Zenoh endpoint (`tcp/127.0.0.1:7447` -> `127.0.0.1`)."""
+    address = endpoint.partition("/")[2].partition("#")[0]
+    return address.rpartition(":")[0] or address
 
 
 def _is_loopback(host: str) -> bool:
@@ -186,6 +213,8 @@ def _read_file(path: str) -> dict[str, Any]:
         "allowed_hosts",
         "fleet_listen",
         "fleet_connect",
+        "ros2_listen",
+        "ros2_connect",
     ):
         if key in data:
             data[key] = tuple(data[key])

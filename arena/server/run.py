@@ -104,6 +104,10 @@ async def run_server(
         from arena.extras import require
 
         require("fleet", "A fleet node (--node)")
+    if config.ros2:
+        from arena.extras import require
+
+        require("ros2", "ROS 2 (--ros2)")
     sockets = bind(config)
     stop = trio.Event() if stop is None else stop
     try:
@@ -154,6 +158,12 @@ async def _run(
                 fleet = FleetNode(config.fleet_settings())
                 await recording_nursery.start(fleet.run)
                 install(app, fleet)
+            if config.ros2:
+                from arena.ros2.bridge import Ros2Bridge  # imports zenoh and rosbags
+
+                app.ros2 = Ros2Bridge(config.ros2_settings())
+                await recording_nursery.start(app.ros2.run)
+                manager.on_create.append(app.ros2.follow)
             if config.foxglove_port is not None:
                 from arena.server.foxglove_bridge import FoxgloveBridge  # loads the SDK
 
