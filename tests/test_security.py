@@ -28,7 +28,7 @@ async def test_a_viewer_key_watches_but_cannot_command(start_server: StartServer
     async with server.client() as http:
         assert (await http.get("/api/robots/demo-arm", headers=viewer)).status_code == 200
         for method, path in [
-            ("POST", "/api/robots/demo-arm/estop"),
+            ("POST", "/api/robots/demo-arm/reset"),
             ("PUT", "/api/robots/demo-arm/joints"),
             ("PUT", "/api/robots/demo-arm/workspace"),
             ("POST", "/api/robots"),
@@ -39,6 +39,11 @@ async def test_a_viewer_key_watches_but_cannot_command(start_server: StartServer
             assert (reply.status_code, reply.json()["error"]["code"]) == (403, "FORBIDDEN"), path
         assert (await http.get("/api/robots/demo-arm")).json()["error"]["code"] == "UNAUTHORIZED"
         assert (await http.get("/api/robots/demo-arm", headers=viewer)).json()["state"] == "idle"
+        # Stopping needs no more than seeing (issue 49): a viewer may e-stop, not reset.
+        stopped = await http.post("/api/robots/demo-arm/estop", headers=viewer)
+        assert (stopped.status_code, stopped.json()["state"]) == (200, "estopped")
+        admin = {"Authorization": f"Bearer {ADMIN}"}
+        assert (await http.post("/api/robots/demo-arm/reset", headers=admin)).status_code == 200
     for role in ("master", "slave"):
         async with open_websocket_url(f"{server.ws_url}/ws/{role}/demo-arm?token={VIEWER}") as ws:
             assert (await receive(ws, "error"))["data"]["code"] == "FORBIDDEN"

@@ -10,11 +10,13 @@ from arena.protocol.messages import JointValue
 
 
 class CreateRobotBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
-    """`POST /api/robots`: a robot type, a display name and, optionally, the id to use."""
+    """`POST /api/robots`: a robot type, a display name and, optionally, the id to use and
+    the tenant it belongs to (default: the caller's, `default` for API keys)."""
 
     robot_type: str = "so-arm100"
     name: str | None = None
     id: str | None = None
+    tenant: Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.-]{1,64}$")] | None = None
 
 
 class JointsBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):

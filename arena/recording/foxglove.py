@@ -44,6 +44,7 @@ from foxglove.messages import (
 from arena.protocol.errors import ArenaError
 from arena.recording import glb
 from arena.robot.events import (
+    Audited,
     CommandHandled,
     EpisodeChanged,
     FaultReported,
@@ -281,6 +282,11 @@ def _episode_line(event: EpisodeChanged) -> LogLine:
     return LogLevel.Info, f"episode {event.index} {event.change}: {event.task}"
 
 
+def _audit_line(event: Audited) -> LogLine:
+    detail = f" ({event.detail})" if event.detail else ""
+    return LogLevel.Info, f"{event.user}: {event.action}{detail}"
+
+
 #: How each robot event shows in Foxglove: a pose event moves one tree of its robot's twin
 #: (`tf`): targets sent the commanded one, joint states the measured one; every other event
 #: is a line of the log (`_LOG_LINES`: its level and text, or None when it has none).
@@ -291,6 +297,7 @@ _LOG_LINES: dict[type[RobotEvent], Callable[[Any], LogLine | None]] = {
     CommandHandled: _command_line,
     PeerChanged: _peer_line,
     EpisodeChanged: _episode_line,
+    Audited: _audit_line,
 }
 if set(TREE_OF) | set(_LOG_LINES) != set(get_args(RobotEvent)):  # (a new event is shown)
     raise TypeError("every robot event needs its Foxglove form: a tree or a log line")

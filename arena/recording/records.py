@@ -21,6 +21,7 @@ import msgspec
 
 from arena.protocol.messages import ClampInfo, JointValue
 from arena.robot.events import (
+    Audited,
     CameraFrame,
     CommandHandled,
     EpisodeChanged,
@@ -102,6 +103,12 @@ RECORDED = (
         EpisodeChanged,
         "EpisodeRecord",
         "A data-collection episode started, stopped or discarded (`arena export` reads them).",
+    ),
+    Recorded(
+        "audit",
+        Audited,
+        "AuditRecord",
+        "Who did what: a caller's action on the robot (a token's sub or which API key).",
     ),
 )
 

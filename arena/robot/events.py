@@ -165,6 +165,19 @@ class EpisodeChanged(Observed, frozen=True, gc=False):
     wall_time: float
 
 
+class Audited(Observed, frozen=True, gc=False):
+    """Who did something to the robot: `user` (a token's `sub`, or which API key: never the
+    key or the token), the `action` (a REST route, or a WebSocket's connect, e-stop or reset)
+    and its `detail` (the HTTP status, or the peer id it acts as)."""
+
+    robot_id: str
+    user: str
+    action: str
+    detail: str
+    time: float
+    wall_time: float
+
+
 RobotEvent: TypeAlias = (
     StateChanged
     | CommandHandled
@@ -173,6 +186,7 @@ RobotEvent: TypeAlias = (
     | FaultReported
     | PeerChanged
     | EpisodeChanged
+    | Audited
 )
 
 

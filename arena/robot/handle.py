@@ -9,6 +9,7 @@ the caller's task, as the actor would have decided it next.
 from __future__ import annotations
 
 import contextlib
+import time as wallclock
 from collections.abc import Iterable, Iterator, Mapping
 from typing import Any
 
@@ -19,7 +20,7 @@ from arena.robot import safety
 from arena.robot.actor import Actor
 from arena.robot.core import RobotCore
 from arena.robot.episodes import Episode
-from arena.robot.events import RobotEvent
+from arena.robot.events import Audited, RobotEvent
 from arena.robot.idle import IdleTurn
 from arena.robot.inbox import (
     AliveMsg,
@@ -230,6 +231,14 @@ class Robot:
         reply: Reply[Episode] = Reply()
         await self._post(EpisodeMsg(action, task, reply))
         return await reply.wait()
+
+    def audit(self, user: str, action: str, detail: str = "") -> None:
+        """Record who did what (`events.Audited`). It changes nothing in the robot, so it
+        goes straight to the observers, in order with what the actor publishes; never
+        blocks."""
+        self._actor.observers.publish(
+            Audited(self.robot_id, user, action, detail, trio.current_time(), wallclock.time())
+        )
 
     def report_sensor_fault(
         self, sensor_id: str, code: str, message: str, severity: Severity

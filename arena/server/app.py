@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import re
 import time
 from collections import Counter
@@ -11,7 +12,7 @@ from typing import Any
 
 import msgspec
 import trio
-from quart import Response, redirect, request
+from quart import Response, g, redirect, request
 from werkzeug.exceptions import HTTPException
 
 import arena
@@ -29,11 +30,13 @@ from arena.protocol.rest import (
 )
 from arena.recording.recorder import Recorder
 from arena.robot.groups import GroupRegistry
-from arena.robot.manager import RobotManager
+from arena.robot.handle import Robot
+from arena.robot.manager import RobotManager, estop_together
 from arena.robot.workspace import workspace_from_json, workspace_to_json
 from arena.sensors.camera import Cameras
 from arena.server import convert, dashboard, openapi
-from arena.server.auth import check_token
+from arena.server.access import AccessControl, needed_role, route_of
+from arena.server.auth import authorize, refuse
 from arena.server.base import (
     ArenaApp,
     Hardware,
@@ -48,8 +51,8 @@ from arena.server.dashboard import blueprint as dashboard_blueprint
 from arena.server.drivers import attach_rest_master, make_master, make_slave
 from arena.server.fleet_api import blueprint as fleet_blueprint
 from arena.server.groups_api import blueprint as groups_blueprint
-from arena.server.health import HEALTH_PATHS
 from arena.server.health import blueprint as health_blueprint
+from arena.server.identity import ANONYMOUS, Principal, TokenVerifier
 from arena.server.metrics import Metrics
 from arena.server.origin import SAFE_METHODS, OriginPolicy, is_json
 from arena.server.recordings_api import blueprint as recordings_blueprint
@@ -57,11 +60,6 @@ from arena.server.recordings_api import off_the_loop
 from arena.server.robot_types_api import blueprint as robot_types_blueprint
 from arena.server.sensors_api import blueprint as sensors_blueprint
 from arena.server.ws.acks import AckCache
-
-#: Paths anyone may read, keys or not: the documentation, the dashboard's files and the
-#: orchestrators' health probes.
-PUBLIC_PATHS = frozenset({"/docs", "/openapi.json", "/ui", *HEALTH_PATHS})
-PUBLIC_PREFIXES = ("/ui/",)
 
 
 def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) -> ArenaApp:
@@ -76,6 +74,15 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.origin_policy = OriginPolicy(config.host, config.allowed_origins, config.allowed_hosts)
     app.hardware = Hardware()
     app.groups = GroupRegistry(manager)
+    app.access = AccessControl(manager, app.groups)
+    if config.jwt_enabled:
+        app.tokens = TokenVerifier.from_files(
+            config.jwt_secret_file,
+            config.jwt_jwks,
+            issuer=config.jwt_issuer,
+            audience=config.jwt_audience,
+            leeway=config.jwt_leeway,
+        )
     app.cameras = Cameras()
     app.shutting_down = trio.Event()
     app.started_at = time.time()
@@ -95,7 +102,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
 
 def _register_errors(app: ArenaApp) -> None:
     @app.before_request
-    async def authorize() -> Response | None:
+    async def check_request() -> Response | None:
         app.origin_policy.check(
             request.method,
             request.headers.get("Origin"),
@@ -116,17 +123,39 @@ def _register_errors(app: ArenaApp) -> None:
             return redirect("/ui/")  # type: ignore[return-value]  # a browser: show the page
         forwarded = request.headers.get("X-Arena-Fleet-Forwarded")
         if app.fleet_secret and forwarded == app.fleet_secret:
-            return None  # forwarded by a node of the fleet, which checked the key
-        if request.path not in PUBLIC_PATHS and not request.path.startswith(PUBLIC_PREFIXES):
-            # A page's <img> cannot send headers: a camera stream may carry its key in the
-            # query, as a WebSocket does.
-            stream = request.method == "GET" and request.path.endswith("/stream")
-            check_token(
-                app,
-                request.headers.get("Authorization"),
-                request.args.get("token") if stream else None,
-                mutating=request.method not in ("GET", "HEAD", "OPTIONS"),
-            )
+            g.principal = ANONYMOUS  # forwarded by a node of the fleet, which checked the key
+            return None
+        rule = request.url_rule
+        needed = needed_role(request.method, None if rule is None else rule.rule)
+        if needed is None:
+            return None  # a public route
+        # A page's <img> cannot send headers: a camera stream may carry its key in the
+        # query, as a WebSocket does.
+        stream = request.method == "GET" and request.path.endswith("/stream")
+        route = " ".join(route_of(request.method, rule.rule)) if rule else request.path
+        principal = authorize(
+            app,
+            request.headers.get("Authorization"),
+            request.args.get("token") if stream else None,
+            needed,
+            route,
+            read_only=request.method in SAFE_METHODS,
+        )
+        g.principal = principal
+        args = request.view_args or {}
+        try:
+            if "robot_id" in args:
+                app.access.check_robot(principal, args["robot_id"])
+            if "group_id" in args:
+                app.access.check_group(principal, args["group_id"])
+        except ArenaError:
+            refuse(app, "scope")
+            raise
+        if request.method not in SAFE_METHODS:
+            g.audit = (principal.audit_name(), route, _audited_robots(app, principal))
+            if route == "DELETE /api/robots/{robot_id}":  # gone once answered: said now
+                _audit(g.audit, "requested")
+                g.audit = None
         return None
 
     @app.before_request
@@ -141,6 +170,9 @@ def _register_errors(app: ArenaApp) -> None:
     @app.after_request
     async def count(response: Response) -> Response:
         app.metrics.requests[f"{response.status_code // 100}xx"] += 1
+        audit = g.get("audit")
+        if audit is not None:
+            _audit(audit, str(response.status_code))
         return response
 
     @app.errorhandler(ArenaError)
@@ -179,6 +211,29 @@ _BODILESS = frozenset(
 )
 
 
+def _audited_robots(app: ArenaApp, principal: Principal) -> list[Robot]:
+    """The robots a state-changing request acts on (that the caller sees)."""
+    args = request.view_args or {}
+    ids: list[str] = []
+    if "robot_id" in args:
+        ids = [args["robot_id"]]
+    elif "group_id" in args and args["group_id"] in app.groups:
+        ids = list(app.groups.get(args["group_id"]).members)
+    elif request.path in ("/api/estop", "/api/fleet/estop"):
+        ids = [robot.robot_id for robot in app.manager.robots()]
+    robots = []
+    for robot_id in ids:
+        with contextlib.suppress(ArenaError):
+            robots.append(app.manager.get(robot_id))
+    return app.access.visible(principal, robots)
+
+
+def _audit(audit: tuple[str, str, list[Robot]], detail: str) -> None:
+    user, route, robots = audit
+    for robot in robots:
+        robot.audit(user, route, detail)
+
+
 def _has_body() -> bool:
     length = request.headers.get("Content-Length")
     if length is not None:
@@ -189,9 +244,12 @@ def _has_body() -> bool:
 def _register_routes(app: ArenaApp) -> None:
     manager = app.manager
 
+    def robots_seen() -> list[Robot]:
+        return app.access.visible(g.principal, manager.robots())
+
     @app.get("/")
     async def status() -> dict[str, Any]:
-        robots = manager.robots()
+        robots = robots_seen()
         return {
             "name": "Arena",
             "version": arena.__version__,
@@ -223,7 +281,7 @@ def _register_routes(app: ArenaApp) -> None:
 
     @app.get("/api/robots")
     async def list_robots() -> list[dict[str, Any]]:
-        return [convert.robot_summary(r) for r in manager.robots()]
+        return [convert.robot_summary(r, app.access.tenant_of(r.robot_id)) for r in robots_seen()]
 
     @app.post("/api/robots")
     async def create_robot() -> tuple[dict[str, Any], int]:
@@ -236,12 +294,25 @@ def _register_routes(app: ArenaApp) -> None:
                     f"Robot id {body.id!r} is taken in fleet {app.fleet.fleet!r}: node "
                     f"{owner!r} owns it.",
                 )
+        principal: Principal = g.principal
+        tenant = body.tenant or principal.tenant
+        if tenant != principal.tenant or not (body.id is None or principal.covers(body.id)):
+            refuse(app, "scope")
+            raise ArenaError(
+                ErrorCode.FORBIDDEN,
+                f"{principal.name!r} may create robots of tenant {principal.tenant!r} only"
+                + ("" if principal.robots is None else f", with ids like {principal.robots}")
+                + ".",
+            )
+        if principal.robots is not None and body.id is None:
+            raise ArenaError(ErrorCode.INVALID_BODY, 'Give the robot an "id" within your scope.')
         robot = await manager.create_robot(body.robot_type, body.name, body.id)
-        return convert.robot_summary(robot), 201
+        app.access.tenants[robot.robot_id] = tenant
+        return convert.robot_summary(robot, tenant), 201
 
     @app.get("/api/robots/<robot_id>")
     async def get_robot(robot_id: str) -> dict[str, Any]:
-        return convert.robot_summary(manager.get(robot_id))
+        return convert.robot_summary(manager.get(robot_id), app.access.tenant_of(robot_id))
 
     @app.get("/api/robots/<robot_id>/status")
     async def robot_status(robot_id: str) -> dict[str, Any]:
@@ -251,6 +322,7 @@ def _register_routes(app: ArenaApp) -> None:
     async def delete_robot(robot_id: str) -> dict[str, Any]:
         robot = manager.get(robot_id)
         await manager.delete(robot_id)
+        app.access.forget(robot_id)
         app.metrics.retire(robot)
         return {"deleted": robot_id}
 
@@ -295,8 +367,9 @@ def _register_routes(app: ArenaApp) -> None:
     @app.post("/api/estop")
     async def estop_all() -> dict[str, Any]:
         body = await read_body(ReasonBody, optional=True)
-        await manager.estop_all(body.reason or "e-stop of every robot over REST")
-        return {"estopped": [r.robot_id for r in manager.robots()]}
+        robots = robots_seen()  # every robot the caller sees, and only those
+        await estop_together(robots, body.reason or "e-stop of every robot over REST")
+        return {"estopped": [r.robot_id for r in robots]}
 
     @app.get("/api/robots/<robot_id>/joints")
     async def get_joints(robot_id: str) -> list[dict[str, Any]]:
@@ -399,7 +472,7 @@ def _register_routes(app: ArenaApp) -> None:
     async def metrics() -> Response:
         return Response(
             app.metrics.render(
-                manager.robots(),
+                robots_seen(),
                 sum(c.queued_bytes for c in app.connections),
                 app.recorder.status(),
             ),

@@ -1,4 +1,8 @@
-"""API keys: who may use the server. Keys are compared in constant time and never logged."""
+"""Who is calling, and may they: API keys and tokens checked, the role asked for compared.
+
+API keys are compared in constant time; neither keys nor tokens are ever logged or recorded.
+Every refusal is counted in `/metrics` by reason (`arena_auth_refused_total{reason}`).
+"""
 
 from __future__ import annotations
 
@@ -6,42 +10,88 @@ import hmac
 
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.server.base import ArenaApp
+from arena.server.identity import ANONYMOUS, Principal, Role, key_principal, unauthorized
+
+#: A refusal's reason in `/metrics`: none given, not valid (bad key, bad or expired token),
+#: a role too low, a robot out of scope or of another tenant.
+REASONS = ("missing", "invalid", "expired", "role", "scope")
 
 
-def check_token(
-    app: ArenaApp, authorization: str | None, token: str | None, mutating: bool = True
-) -> None:
-    """Raise UNAUTHORIZED / FORBIDDEN unless the request carries a key that allows it.
-
-    API keys allow everything; viewer keys only reads (GET, the state WebSocket).
-    """
-    settings = app.arena_config
-    keys = settings.api_keys
-    if not keys or (not mutating and settings.open_reads):
-        return
+def credential(authorization: str | None, token: str | None) -> str | None:
+    """The key or token a request carries: `Authorization: Bearer X`, else `?token=X`."""
     if authorization and authorization.lower().startswith("bearer "):
-        token = authorization[7:].strip()
-    if not token:
-        raise ArenaError(
-            ErrorCode.UNAUTHORIZED,
-            "An API key is required: send 'Authorization: Bearer KEY' "
-            "(or ?token=KEY on a WebSocket).",
+        return authorization[7:].strip() or None
+    return token or None
+
+
+def authenticate(app: ArenaApp, given: str | None, read_only: bool) -> Principal:
+    """The caller of a credential (the anonymous admin when the server has no keys or
+    tokens; an anonymous viewer for a read of an `open_reads` server: `read_only` says it
+    is one, e-stops are not); UNAUTHORIZED if it is missing or proves nothing."""
+    settings = app.arena_config
+    if not settings.auth_enabled:
+        return ANONYMOUS
+    if not given:
+        if read_only and settings.open_reads:
+            return Principal("anonymous", Role.VIEWER)
+        refuse(app, "missing")
+        raise unauthorized(
+            "An API key or token is required: send 'Authorization: Bearer KEY' "
+            "(or ?token=KEY on a WebSocket)."
         )
-    if _matches(token, keys):
+    found = _find_key(given, settings.api_keys)
+    if found:
+        return key_principal(found, viewer=False)
+    found = _find_key(given, settings.viewer_keys)
+    if found:
+        return key_principal(found, viewer=True)
+    if app.tokens is None:
+        refuse(app, "invalid")
+        raise ArenaError(ErrorCode.FORBIDDEN, "That API key is not valid here.")
+    try:
+        return app.tokens.verify(given)
+    except ArenaError as error:
+        refuse(app, "expired" if "expired" in error.message else "invalid")
+        raise
+
+
+def check_role(app: ArenaApp, principal: Principal, needed: Role, what: str) -> None:
+    """FORBIDDEN unless `principal` has `needed` (`what` is the action, for the message)."""
+    if principal.role >= needed:
         return
-    if _matches(token, settings.viewer_keys):
-        if not mutating:
-            return
-        raise ArenaError(
-            ErrorCode.FORBIDDEN, "That key may only watch: commands and changes need an API key."
-        )
-    raise ArenaError(ErrorCode.FORBIDDEN, "That API key is not valid here.")
+    refuse(app, "role")
+    raise ArenaError(
+        ErrorCode.FORBIDDEN,
+        f"{what} needs the {needed} role; {principal.name!r} is a {principal.role}.",
+    )
 
 
-def _matches(token: str, keys: tuple[str, ...]) -> bool:
-    """Compare against every key, in constant time, so timing tells nothing about any key."""
+def authorize(
+    app: ArenaApp,
+    authorization: str | None,
+    token: str | None,
+    needed: Role,
+    what: str,
+    read_only: bool = False,
+) -> Principal:
+    """The caller, if it may do `what`, which needs `needed` (and changes nothing if
+    `read_only`); else UNAUTHORIZED or FORBIDDEN."""
+    principal = authenticate(app, credential(authorization, token), read_only)
+    check_role(app, principal, needed, what)
+    return principal
+
+
+def refuse(app: ArenaApp, reason: str) -> None:
+    """Count a refusal (never with the credential's text)."""
+    app.metrics.auth_refused[reason] += 1
+
+
+def _find_key(token: str, keys: tuple[str, ...]) -> int:
+    """The position (from 1) of the key `token` is, or 0. Every key is compared, in constant
+    time, so timing tells nothing about any key."""
     given = token.encode()
-    matched = False
-    for key in keys:
-        matched |= hmac.compare_digest(given, key.encode())
-    return matched
+    found = 0
+    for index, key in enumerate(keys, 1):
+        if hmac.compare_digest(given, key.encode()):
+            found = found or index
+    return found

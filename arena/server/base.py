@@ -17,7 +17,9 @@ from arena.protocol.validation import refusal
 from arena.recording.recorder import Recorder
 from arena.robot.groups import GroupRegistry
 from arena.robot.manager import RobotManager
+from arena.server.access import AccessControl
 from arena.server.config import ServerConfig
+from arena.server.identity import TokenVerifier
 from arena.server.metrics import Metrics
 from arena.server.origin import OriginPolicy
 
@@ -148,6 +150,10 @@ class ArenaApp(QuartTrio):
     connections: set[OpenConnection]
     #: The masters' acks encoded (one entry, shared: the acks of a millisecond are one text).
     acks: AckCache
+    #: Robots' tenants, and which robots each caller sees (see `access`).
+    access: AccessControl
+    #: Verifies JSON Web Tokens, when the server takes them (see `identity`).
+    tokens: TokenVerifier | None = None
     #: Which pages and host names may reach the server (see `origin`).
     origin_policy: OriginPolicy
     #: Every robot's cameras (`arena/sensors`).

@@ -35,6 +35,13 @@ class ServerConfig:
     api_keys: tuple[str, ...] = ()
     viewer_keys: tuple[str, ...] = ()  # read-only keys (need api_keys to mean anything)
     open_reads: bool = False  # with keys configured, let GET requests through without one
+    #: JSON Web Tokens (arena/server/identity.py): a shared secret's file (HS256) and/or a
+    #: JWKS file of an identity provider's public keys (RS256, ES256).
+    jwt_secret_file: str | None = None
+    jwt_jwks: str | None = None
+    jwt_issuer: str | None = None  # tokens must carry this `iss` when set
+    jwt_audience: str | None = None  # ...and this `aud`
+    jwt_leeway: float = 30.0  # seconds of clock skew allowed on `exp`
     insecure: bool = False  # allow binding beyond loopback without keys
     certfile: str | None = None
     keyfile: str | None = None
@@ -78,18 +85,26 @@ class ServerConfig:
     ros2_connect: tuple[str, ...] = field(default=())
 
     @property
+    def jwt_enabled(self) -> bool:
+        """True when tokens can be verified."""
+        return self.jwt_secret_file is not None or self.jwt_jwks is not None
+
+    @property
     def auth_enabled(self) -> bool:
-        """True when API keys are configured."""
-        return bool(self.api_keys)
+        """True when API keys or tokens are configured (every caller must then show one)."""
+        return bool(self.api_keys) or self.jwt_enabled
 
     def check(self) -> None:
         """Refuse unsafe or inconsistent settings with a clear sentence."""
-        if not self.api_keys and not self.insecure and not _is_loopback(self.host):
+        if not self.auth_enabled and not self.insecure and not _is_loopback(self.host):
             raise ArenaError(
                 ErrorCode.INVALID_CONFIG,
                 f"Refusing to listen on {self.host} without API keys: anyone on the network "
-                "could move the robot. Give --api-key KEY, or --insecure if you mean it.",
+                "could move the robot. Give --api-key KEY (or --jwt-secret-file FILE), or "
+                "--insecure if you mean it.",
             )
+        if not 0 <= self.jwt_leeway <= 600:
+            raise ArenaError(ErrorCode.INVALID_CONFIG, "jwt_leeway must be from 0 to 600 s.")
         if bool(self.certfile) != bool(self.keyfile):
             raise ArenaError(ErrorCode.INVALID_CONFIG, "TLS needs both --certfile and --keyfile.")
         if self.heartbeat_interval <= 0 or self.heartbeat_timeout <= 0:
@@ -99,7 +114,7 @@ class ServerConfig:
                 ErrorCode.INVALID_CONFIG, "ws_queue_bytes must be from 1 KiB to 64 MiB."
             )
         if self.foxglove_port is not None and not (
-            _is_loopback(self.host) or (self.insecure and not self.api_keys)
+            _is_loopback(self.host) or (self.insecure and not self.auth_enabled)
         ):
             raise ArenaError(
                 ErrorCode.INVALID_CONFIG,

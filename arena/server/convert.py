@@ -129,12 +129,13 @@ def _master(peer: PeerSnapshot | None) -> dict[str, Any] | None:
     return _peer(peer) | {"kind": peer.kind, "description": peer.description}
 
 
-def robot_summary(robot: Robot) -> dict[str, Any]:
-    """A robot as the REST API shows it."""
+def robot_summary(robot: Robot, tenant: str = "default") -> dict[str, Any]:
+    """A robot as the REST API shows it (`tenant`: whose it is)."""
     snapshot = robot.snapshot()
     return {
         "id": snapshot.robot_id,
         "name": snapshot.name,
+        "tenant": tenant,
         "robot_type": snapshot.robot_type,
         "state": str(snapshot.mode),
         "owner": snapshot.owner,

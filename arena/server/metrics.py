@@ -31,6 +31,8 @@ class Metrics:
         self.requests: collections.Counter[str] = collections.Counter()  # by status class
         self.messages: collections.Counter[str] = collections.Counter()  # in, by role
         self.message_errors: collections.Counter[str] = collections.Counter()  # by code
+        #: Callers refused by `auth`, by reason (missing, invalid, expired, role, scope).
+        self.auth_refused: collections.Counter[str] = collections.Counter()
         #: Messages a peer that stopped reading did not get, by kind (ack, joint_states...).
         self.dropped: collections.Counter[str] = collections.Counter()
         self._latency_counts = [0] * (len(LATENCY_BUCKETS) + 1)
@@ -111,6 +113,13 @@ class Metrics:
                 "counter",
                 "Messages and requests refused at the edge.",
                 {f'code="{code}"': n for code, n in sorted(self.message_errors.items())},
+            ),
+            *_family(
+                "arena_auth_refused_total",
+                "counter",
+                "Callers refused: no credential, an invalid or expired one, a role too low, "
+                "a robot out of scope or of another tenant.",
+                {f'reason="{reason}"': n for reason, n in sorted(self.auth_refused.items())},
             ),
             *_family(
                 "arena_http_requests_total",

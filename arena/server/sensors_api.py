@@ -18,8 +18,9 @@ from arena.protocol.rest import CameraBody, EpisodeBody
 from arena.protocol.ws_frames import UpgradeRequest
 from arena.robot.episodes import Episode
 from arena.sensors.camera import Camera, CameraSpec
-from arena.server.auth import check_token
+from arena.server.auth import authorize, refuse
 from arena.server.base import STATUS_FOR, ArenaApp, read_body
+from arena.server.identity import Role
 from arena.server.listener import http_error
 
 blueprint = Blueprint("sensors", __name__)
@@ -157,7 +158,17 @@ async def _serve_stream(
     headers = request.headers
     try:
         app.origin_policy.check("GET", headers.get("origin"), headers.get("host"), request.scheme)
-        check_token(app, headers.get("authorization"), request.args.get("token"), mutating=False)
+        principal = authorize(
+            app,
+            headers.get("authorization"),
+            request.args.get("token"),
+            Role.VIEWER,
+            "A stream",
+            True,
+        )
+        if not app.access.sees(principal, robot_id):
+            refuse(app, "scope")
+            raise ArenaError(ErrorCode.UNKNOWN_ROBOT, f"No robot with id {robot_id!r}.")
         camera = app.cameras.get(robot_id, name)
         if camera.streams >= MAX_STREAMS_PER_CAMERA:
             raise ArenaError(

@@ -20,8 +20,10 @@ from arena.protocol import messages as wire
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.ws_frames import WebSocketClosed
 from arena.robot.handle import Robot
-from arena.server.auth import check_token
+from arena.server.access import WS_ROLE_FOR
+from arena.server.auth import authorize, refuse
 from arena.server.base import ArenaApp
+from arena.server.identity import ANONYMOUS, Principal
 from arena.server.ws.backpressure import Encoded, LatestWins, PeerSocket
 
 T = TypeVar("T")
@@ -68,6 +70,10 @@ class Connection(LatestWins):
         self.wants_acks = _switch(self.args, "acks")
         self.wants_joint_states = _switch(self.args, "joint_states")
         self.closed = False
+        #: Who connected (`authorized` sets it), and when on trio's clock their token
+        #: expires (None: a key, or no credential needed).
+        self.principal: Principal = ANONYMOUS
+        self.expires_at: float | None = None
 
     def error(self, code: ErrorCode | str, message: str) -> Encoded:
         """An `error` message to send, counted."""
@@ -118,34 +124,61 @@ class Connection(LatestWins):
             nursery.start_soon(on_shutdown)
             nursery.start_soon(on_closed)
             nursery.start_soon(self.catch_up_when_read)
+            if self.expires_at is not None:
+                nursery.start_soon(self._expire, self.expires_at)
             nursery.start_soon(main)
 
+    async def _expire(self, deadline: float) -> None:
+        """Close with 4401 when the token expires (its `exp`, leeway in, taken to trio's
+        clock at connect)."""
+        await trio.sleep_until(deadline)
+        self.app.metrics.auth_refused["expired"] += 1
+        await self.refuse(
+            ArenaError(ErrorCode.UNAUTHORIZED, "The token has expired: connect with a new one.")
+        )
+
     async def authorized(self) -> bool:
-        """Check the key; a refusal is sent and the answer is False. A connection carried
-        from another node of the fleet was checked there (`trusted`)."""
+        """Check the key or token and the role; a refusal is sent and the answer is False. A
+        connection carried from another node of the fleet was checked there (`trusted`)."""
         if getattr(self.ws, "trusted", False):
             return True
         try:
-            check_token(
+            self.principal = authorize(
                 self.app,
                 self.ws.request.headers.get("authorization"),
                 self.args.get("token"),
-                mutating=self.role != "viewer",
+                WS_ROLE_FOR[self.role],
+                f"The {self.role} WebSocket",
+                read_only=self.role == "viewer",
             )
         except ArenaError as error:
             await self.refuse(error)
             return False
+        expires = self.principal.expires
+        if expires is not None:  # wall clock to trio's, once
+            self.expires_at = trio.current_time() + (expires - time.time())
         return True
 
+    def sees(self, robot_id: str) -> bool:
+        """The caller may see the robot (its tenant and scope); counted when not."""
+        if self.app.access.sees(self.principal, robot_id):
+            return True
+        refuse(self.app, "scope")
+        return False
+
     async def accept(self, robot_id: str) -> Robot | None:
-        """Check the key and find the robot; a refusal is sent and the answer is None."""
+        """Check the key and find the robot; a refusal is sent and the answer is None. A
+        robot the caller may not see is refused as one that does not exist."""
         if not await self.authorized():
             return None
         try:
-            return self.app.manager.get(robot_id)
+            robot = self.app.manager.get(robot_id)
+            if not self.sees(robot_id):
+                raise ArenaError(ErrorCode.UNKNOWN_ROBOT, f"No robot with id {robot_id!r}.")
         except ArenaError as error:
             await self.refuse(error)
             return None
+        return robot
 
     async def receive_text(self) -> str | None:
         """The next text frame; binary frames are answered with an error and skipped."""

@@ -51,6 +51,8 @@ async def serve(connection: Connection, group_id: str) -> None:
     links: dict[str, MasterLink] = {}
     try:
         group = app.groups.get(group_id)
+        if not all([connection.sees(robot_id) for robot_id in group.members]):
+            raise ArenaError(ErrorCode.UNKNOWN_GROUP, f"No group {group_id!r}.")
         robots = [app.manager.get(robot_id) for robot_id in group.members]
         master_id = connection.args.get("id") or f"ws-group-master-{next(peer_ids)}"
         for robot in robots:
@@ -61,6 +63,7 @@ async def serve(connection: Connection, group_id: str) -> None:
                 heartbeat_timeout=app.arena_config.heartbeat_timeout,
                 description=f"master of the group {group_id!r}",
             )
+            robot.audit(connection.principal.audit_name(), "connect group master", master_id)
     except ArenaError as error:
         with trio.CancelScope(shield=True):
             for link in links.values():

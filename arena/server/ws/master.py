@@ -48,6 +48,8 @@ async def serve(connection: Connection, robot_id: str) -> None:
         await connection.refuse(error)
         return
     app.metrics.connections["master"] += 1
+    takeover = " (takeover)" if flag(connection.args.get("takeover")) else ""
+    robot.audit(connection.principal.audit_name(), "connect master" + takeover, link.master_id)
     try:
         await connection.send(convert.state(robot.snapshot()))
         with robot.subscribe(maxlen=QUEUE_LENGTH, kinds=FORWARDED) as events:
@@ -234,8 +236,10 @@ async def _handle_master_message(
     elif isinstance(message, wire.EStopMessage):
         player.stop()
         reason = (message.data.reason if message.data else None) or "e-stop from master"
+        robot.audit(connection.principal.audit_name(), "estop over WebSocket", link.master_id)
         await robot.estop(reason)
     elif isinstance(message, wire.ResetMessage):
+        robot.audit(connection.principal.audit_name(), "reset over WebSocket", link.master_id)
         await robot.reset()
     elif isinstance(message, wire.HeartbeatMessage):
         await connection.send(wire.HeartbeatMessage(timestamp=wire.now_iso()))

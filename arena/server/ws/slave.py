@@ -31,6 +31,7 @@ async def serve(connection: Connection, robot_id: str) -> None:
         await connection.refuse(error)
         return
     app.metrics.connections["slave"] += 1
+    robot.audit(connection.principal.audit_name(), "connect slave", link.slave_id)
     ended_by_robot = trio.Event()
     try:
 

@@ -1,0 +1,181 @@
+"""What each caller may reach: the role every REST route and WebSocket endpoint needs, and
+which robots a caller sees (its tenant and its scope).
+
+`ROLE_FOR` is the table of routes; `tests/test_access.py` checks that every route of the app
+is in it (or public), so a new route cannot be added without deciding who may call it. A
+robot outside a caller's tenant or scope is invisible in every listing and answers 404 as if
+it did not exist: a caller learns nothing of robots that are not theirs.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable
+from typing import TypeVar
+
+from arena.protocol.errors import ArenaError, ErrorCode
+from arena.robot.groups import GroupRegistry
+from arena.robot.manager import RobotManager
+from arena.server.identity import DEFAULT_TENANT, Principal, Role
+
+V, OP, A = Role.VIEWER, Role.OPERATOR, Role.ADMIN
+
+#: Routes anyone may call, keys or not: the documentation, the dashboard's files and the
+#: orchestrators' health probes.
+PUBLIC_ROUTES = frozenset(
+    {
+        ("GET", "/docs"),
+        ("GET", "/openapi.json"),
+        ("GET", "/ui"),
+        ("GET", "/ui/"),
+        ("GET", "/ui/{name}"),
+        ("GET", "/healthz"),
+        ("GET", "/readyz"),
+    }
+)
+
+#: (method, route) -> the least role that may call it. Stopping a robot needs no more than
+#: seeing it; changing what it does needs an operator; changing what it is, an admin.
+ROLE_FOR: dict[tuple[str, str], Role] = {
+    ("GET", "/"): V,
+    ("GET", "/metrics"): V,
+    ("GET", "/api/robots"): V,
+    ("POST", "/api/robots"): A,
+    ("GET", "/api/robots/{robot_id}"): V,
+    ("GET", "/api/robots/{robot_id}/status"): V,
+    ("DELETE", "/api/robots/{robot_id}"): A,
+    ("GET", "/api/sequences"): V,
+    ("POST", "/api/robots/{robot_id}/play-sequence/{sequence_id}"): OP,
+    ("POST", "/api/robots/{robot_id}/stop-sequence"): OP,
+    ("POST", "/api/robots/{robot_id}/estop"): V,
+    ("POST", "/api/robots/{robot_id}/reset"): OP,
+    ("POST", "/api/estop"): V,
+    ("GET", "/api/robots/{robot_id}/joints"): V,
+    ("PUT", "/api/robots/{robot_id}/joints"): OP,
+    ("GET", "/api/robots/{robot_id}/workspace"): V,
+    ("PUT", "/api/robots/{robot_id}/workspace"): A,
+    ("POST", "/api/robots/{robot_id}/slaves"): A,
+    ("DELETE", "/api/robots/{robot_id}/slaves/{slave_id}"): A,
+    ("POST", "/api/robots/{robot_id}/master"): OP,
+    ("DELETE", "/api/robots/{robot_id}/master"): OP,
+    ("POST", "/api/robots/{robot_id}/replay"): OP,
+    ("GET", "/api/robots/{robot_id}/calibration"): V,
+    ("POST", "/api/robots/{robot_id}/calibration/start"): A,
+    ("POST", "/api/robots/{robot_id}/calibration/capture"): A,
+    ("POST", "/api/robots/{robot_id}/calibration/finish"): A,
+    ("POST", "/api/robots/{robot_id}/calibration/cancel"): A,
+    ("GET", "/api/robots/{robot_id}/cameras"): V,
+    ("POST", "/api/robots/{robot_id}/cameras"): A,
+    ("GET", "/api/robots/{robot_id}/cameras/{name}"): V,
+    ("DELETE", "/api/robots/{robot_id}/cameras/{name}"): A,
+    ("GET", "/api/robots/{robot_id}/cameras/{name}/frame"): V,
+    ("GET", "/api/robots/{robot_id}/cameras/{name}/stream"): V,
+    ("GET", "/api/robots/{robot_id}/episodes"): V,
+    ("POST", "/api/robots/{robot_id}/episodes/start"): OP,
+    ("POST", "/api/robots/{robot_id}/episodes/stop"): OP,
+    ("POST", "/api/robots/{robot_id}/episodes/discard"): OP,
+    ("GET", "/api/groups"): V,
+    ("POST", "/api/groups"): A,
+    ("GET", "/api/groups/{group_id}"): V,
+    ("DELETE", "/api/groups/{group_id}"): A,
+    ("POST", "/api/groups/{group_id}/estop"): V,
+    ("POST", "/api/groups/{group_id}/reset"): OP,
+    ("GET", "/api/robot-types"): V,
+    ("GET", "/api/robot-types/{robot_type}"): V,
+    ("GET", "/api/robot-types/{robot_type}/urdf"): V,
+    ("GET", "/api/robot-types/{robot_type}/files/{name}"): V,
+    ("GET", "/api/recordings"): V,
+    ("POST", "/api/recordings"): A,
+    ("POST", "/api/recordings/{name}/stop"): A,
+    ("GET", "/api/recordings/{name}"): V,
+    ("GET", "/api/recordings/{name}/joints"): V,
+    ("GET", "/api/recordings/{name}/file"): V,
+    ("GET", "/api/fleet/nodes"): V,
+    ("GET", "/api/fleet/robots"): V,
+    ("POST", "/api/fleet/estop"): V,
+}
+
+#: WebSocket endpoints by role: a master commands, a slave is a driver, a viewer watches.
+WS_ROLE_FOR: dict[str, Role] = {"master": OP, "slave": A, "viewer": V}
+
+#: `<robot_id>`, `<path:name>` in a rule: `{robot_id}`, `{name}` as OpenAPI writes them.
+_RULE_PARAMETER = re.compile(r"<(?:\w+:)?(\w+)>")
+
+
+def route_of(method: str, rule: str) -> tuple[str, str]:
+    """(method, route) of a request's rule as `ROLE_FOR` names it (HEAD is GET)."""
+    method = "GET" if method.upper() in ("HEAD", "OPTIONS") else method.upper()
+    return method, _RULE_PARAMETER.sub(r"{\1}", rule)
+
+
+def needed_role(method: str, rule: str | None) -> Role | None:
+    """The role a request needs, None for a public route. A path with no route (a 404)
+    needs a viewer, so that strangers learn nothing; a route missing from the table needs
+    an admin (the test makes that never happen)."""
+    if rule is None:
+        return V
+    route = route_of(method, rule)
+    if route in PUBLIC_ROUTES:
+        return None
+    return ROLE_FOR.get(route, A)
+
+
+RobotLike = TypeVar("RobotLike")
+
+
+class AccessControl:
+    """Robots' tenants and who sees which robot and group."""
+
+    def __init__(self, manager: RobotManager, groups: GroupRegistry) -> None:
+        self.manager = manager
+        self.groups = groups
+        #: Each robot's tenant (robots not listed belong to `default`).
+        self.tenants: dict[str, str] = {}
+
+    def tenant_of(self, robot_id: str) -> str:
+        """The robot's tenant."""
+        return self.tenants.get(robot_id, DEFAULT_TENANT)
+
+    def sees(self, principal: Principal, robot_id: str) -> bool:
+        """The robot is of the caller's tenant and in its scope."""
+        if self.tenant_of(robot_id) != principal.tenant:
+            return False
+        if principal.unlimited:
+            return True
+        groups = [g.group_id for g in self.groups.all() if robot_id in g.members]
+        return principal.covers(robot_id, groups)
+
+    def sees_group(self, principal: Principal, members: Iterable[str]) -> bool:
+        """A group is seen when each of its members is."""
+        return all(self.sees(principal, robot_id) for robot_id in members)
+
+    def visible(
+        self, principal: Principal, items: Iterable[RobotLike], key: str = "robot_id"
+    ) -> list[RobotLike]:
+        """The items (robots, or anything with a robot id as `key`) the caller sees."""
+        return [item for item in items if self.sees(principal, str(getattr(item, key)))]
+
+    def check_robot(self, principal: Principal, robot_id: str) -> None:
+        """UNKNOWN_ROBOT, worded as for a robot that does not exist, unless the caller sees
+        it (a robot that does not exist is left to the route to refuse)."""
+        if not self.sees(principal, robot_id) and self._exists(robot_id):
+            raise ArenaError(ErrorCode.UNKNOWN_ROBOT, f"No robot with id {robot_id!r}.")
+
+    def check_group(self, principal: Principal, group_id: str) -> None:
+        """UNKNOWN_GROUP, as for a group that does not exist, unless the caller sees every
+        member (or it is no group: its id may be a robot's)."""
+        if group_id not in self.groups:
+            return
+        if not self.sees_group(principal, self.groups.get(group_id).members):
+            raise ArenaError(ErrorCode.UNKNOWN_GROUP, f"No group {group_id!r}.")
+
+    def _exists(self, robot_id: str) -> bool:
+        try:
+            self.manager.get(robot_id)
+        except ArenaError:
+            return False
+        return True
+
+    def forget(self, robot_id: str) -> None:
+        """The robot was deleted."""
+        self.tenants.pop(robot_id, None)
