@@ -8,6 +8,7 @@ from arena.protocol.errors import ErrorCode, Severity
 from arena.protocol.messages import ClampInfo, JointValue
 from arena.recording.records import RECORD_TYPES, Recorded, derive_record, record_of
 from arena.robot.events import (
+    Audited,
     CommandHandled,
     EpisodeChanged,
     FaultReported,
@@ -76,6 +77,12 @@ def test_every_kind_of_event_is_recorded_byte_for_byte_as_before() -> None:
             EpisodeChanged("a", "start", 3, "pick", 1.0, 13.0, 14.0),
             "episode",
             '{"t":13.0,"change":"start","index":3,"task":"pick","started":1.0}',
+        ),
+        (
+            Audited("a", "alice", "POST /api/robots/{robot_id}/estop", "200", 15.0, 16.0),
+            "audit",
+            '{"t":15.0,"user":"alice","action":"POST /api/robots/{robot_id}/estop",'
+            '"detail":"200"}',
         ),
     ]  # fmt: skip
     assert {kind for _, kind, _ in cases} == set(RECORD_TYPES)

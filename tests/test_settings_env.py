@@ -146,9 +146,9 @@ def test_a_served_process_takes_its_settings_from_the_environment_and_keys_from_
         viewer = httpx.get(robots, headers={"Authorization": "Bearer viewer-1"}, timeout=10)
         assert [robot["id"] for robot in viewer.json()] == ["demo-arm"]  # ARENA_DEMO
         refused = httpx.post(
-            f"{robots}/demo-arm/estop", headers={"Authorization": "Bearer viewer-1"}, timeout=10
+            f"{robots}/demo-arm/reset", headers={"Authorization": "Bearer viewer-1"}, timeout=10
         )
-        assert refused.status_code == 403  # a viewer key only reads
+        assert refused.status_code == 403  # a viewer key reads (and e-stops), nothing more
         stopped = httpx.post(
             f"{robots}/demo-arm/estop",
             headers={"Authorization": "Bearer k-from-file-31337"},

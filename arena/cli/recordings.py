@@ -240,12 +240,15 @@ def format_summary(summary: dict[str, Any]) -> str:
         lines.append(f"topic      {name:<36} {info['count']:>8} msgs  {info['rate_hz']} Hz")
     if "gaps" in summary:
         lines.append(f"gaps       {len(summary['gaps'])} ({GAP_MEANING})")
-    for key in ("gaps", "estops", "faults"):
+    if summary.get("users"):
+        lines.append(f"users      {', '.join(summary['users'])}")
+    for key in ("gaps", "estops", "faults", "audit"):
         entries: list[dict[str, Any]] = summary.get(key, [])
         if key != "gaps" and entries:
             lines.append(f"{key:<10} {len(entries)}")
+        label = "action" if key == "audit" else key[:-1]
         for entry in entries[:LISTED]:
-            lines.append(f"  {key[:-1]:<8} " + " ".join(f"{k}={v}" for k, v in entry.items()))
+            lines.append(f"  {label:<8} " + " ".join(f"{k}={v}" for k, v in entry.items()))
         if len(entries) > LISTED:
             lines.append(f"  ... and {len(entries) - LISTED} more (--json lists every one)")
     return "\n".join(lines)

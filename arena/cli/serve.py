@@ -35,6 +35,18 @@ def add(commands: Commands) -> None:
         dest="viewer_keys",
         help="a read-only key: GET requests and the state WebSocket only (repeatable)",
     )
+    users = serve.add_argument_group("users: JSON Web Tokens (README, Operations)")
+    users.add_argument(
+        "--jwt-secret-file", metavar="FILE", help="a shared secret (HS256), first line of FILE"
+    )
+    users.add_argument(
+        "--jwt-jwks", metavar="FILE", help="an identity provider's public keys (JWKS, RS256/ES256)"
+    )
+    users.add_argument("--jwt-issuer", help="tokens must carry this 'iss'")
+    users.add_argument("--jwt-audience", help="tokens must carry this 'aud'")
+    users.add_argument(
+        "--jwt-leeway", type=float, metavar="SECONDS", help="clock skew allowed (default 30)"
+    )
     serve.add_argument(
         "--insecure",
         action="store_true",
@@ -143,6 +155,11 @@ def serve_command(args: argparse.Namespace) -> int:
         api_keys=tuple(args.api_keys),
         viewer_keys=tuple(args.viewer_keys) or None,
         insecure=args.insecure,
+        jwt_secret_file=args.jwt_secret_file,
+        jwt_jwks=args.jwt_jwks,
+        jwt_issuer=args.jwt_issuer,
+        jwt_audience=args.jwt_audience,
+        jwt_leeway=args.jwt_leeway,
         certfile=args.certfile,
         keyfile=args.keyfile,
         allowed_origins=tuple(args.allowed_origins),

@@ -79,6 +79,19 @@ def summarize(recording: Recording) -> dict[str, Any]:
         for m in messages
         if m.kind == "fault"
     ]
+    # Who did what (issue 49): each caller's action, and the masters they connected as.
+    summary["audit"] = [
+        {
+            "robot": m.robot_id,
+            "at_s": round(_seconds(m, origin), 3),
+            "user": m.data["user"],
+            "action": m.data["action"],
+            "detail": m.data["detail"],
+        }
+        for m in messages
+        if m.kind == "audit"
+    ]
+    summary["users"] = sorted({entry["user"] for entry in summary["audit"]})
     summary["refused_commands"] = sum(
         1 for m in messages if m.kind == "command" and not m.data["accepted"]
     )
@@ -217,13 +230,19 @@ def timeline(
         return []
     origin = min(m.log_time for m in recording.messages)
     lines = []
+    users: dict[str, str] = {}  # a master's peer id -> who connected it
     for message in recording.messages:
+        if message.kind == "audit" and message.data["action"].startswith("connect"):
+            users[message.data["detail"]] = message.data["user"]
         at = _seconds(message, origin)
         if robot is not None and message.robot_id != robot:
             continue
         if (start is not None and at < start) or (end is not None and at > end):
             continue
-        lines.append(f"{at:10.3f}  {message.robot_id:<14} {message.kind:<12} {_describe(message)}")
+        said = _describe(message)
+        if message.kind == "command" and message.data["source"] in users:
+            said += f" (by {users[message.data['source']]})"
+        lines.append(f"{at:10.3f}  {message.robot_id:<14} {message.kind:<12} {said}")
     return lines
 
 
@@ -248,6 +267,9 @@ def _describe(message: RecordedMessage) -> str:
         return f"{data['mode']}{owner}{extra} <- {data['cause']}"
     if message.kind == "fault":
         return f"{data['severity']} {data['code']} from {data['peer_id']}: {data['message']}"
+    if message.kind == "audit":
+        detail = f" ({data['detail']})" if data["detail"] else ""
+        return f"{data['user']}: {data['action']}{detail}"
     return f"{data['role']} {data['peer_id']} ({data['kind']}) {data['change']} {data['reason']}"
 
 

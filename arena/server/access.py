@@ -120,6 +120,12 @@ def needed_role(method: str, rule: str | None) -> Role | None:
     return ROLE_FOR.get(route, A)
 
 
+def reads_recordings(principal: Principal) -> bool:
+    """A recording holds every robot of the server: only a caller of the default tenant whose
+    scope is every robot reads them (one confined to some robots sees none)."""
+    return principal.tenant == DEFAULT_TENANT and principal.unlimited
+
+
 RobotLike = TypeVar("RobotLike")
 
 
@@ -175,6 +181,12 @@ class AccessControl:
         except ArenaError:
             return False
         return True
+
+    def check_recordings(self, principal: Principal, name: str) -> None:
+        """UNKNOWN_RECORDING, as for a file that does not exist, unless the caller may read
+        recordings (`reads_recordings`)."""
+        if not reads_recordings(principal):
+            raise ArenaError(ErrorCode.UNKNOWN_RECORDING, f"No recording {name!r}.")
 
     def forget(self, robot_id: str) -> None:
         """The robot was deleted."""

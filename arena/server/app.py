@@ -25,6 +25,7 @@ from arena.protocol.rest import (
     JointsBody,
     MasterBody,
     ReasonBody,
+    ReplayMasterBody,
     SlaveBody,
     WorkspaceBody,
 )
@@ -432,6 +433,8 @@ def _register_routes(app: ArenaApp) -> None:
     async def attach_master(robot_id: str) -> tuple[dict[str, Any], int]:
         robot = manager.get(robot_id)
         body: MasterBody = await read_body(MasterBody)
+        if isinstance(body, ReplayMasterBody):
+            app.access.check_recordings(g.principal, body.recording)
         # A replay reads its recording: in a thread, never stalling the robots.
         driver = await off_the_loop(
             make_master,

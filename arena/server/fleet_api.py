@@ -13,7 +13,7 @@ import logging
 import secrets
 from typing import Any
 
-from quart import Blueprint, Response, current_app, request
+from quart import Blueprint, Response, current_app, g, request
 
 import arena
 from arena.fleet import forward
@@ -79,6 +79,8 @@ async def fleet_robots() -> dict[str, Any]:
     robots = []
     for view in sorted(fleet.nodes.values(), key=lambda v: v.name):
         for robot in view.robots:
+            if not _app().access.sees(g.principal, str(robot.get("id"))):
+                continue  # (another node's robots are of the default tenant here)
             # `url`: the owner's own address, for a client that wants to go there directly
             entry = {**robot, "node": view.name, "url": view.http}
             if not view.alive:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import contextlib
 from typing import Any
 
-from quart import Blueprint, current_app
+from quart import Blueprint, current_app, g
 
 from arena.protocol.errors import ArenaError
 from arena.protocol.rest import GroupBody, ReasonBody
@@ -22,7 +22,14 @@ def _app() -> ArenaApp:
 async def list_groups() -> dict[str, Any]:
     """Every group with its members' states."""
     app = _app()
-    return {"groups": [group.describe(app.manager) for group in app.groups.all()]}
+    principal = g.principal
+    return {
+        "groups": [
+            group.describe(app.manager)
+            for group in app.groups.all()
+            if app.access.sees_group(principal, group.members)
+        ]
+    }
 
 
 @blueprint.post("/api/groups")
@@ -30,6 +37,8 @@ async def create_group() -> tuple[dict[str, Any], int]:
     """Create a group of existing robots."""
     app = _app()
     body: GroupBody = await read_body(GroupBody)
+    for robot_id in body.members:  # a robot the caller does not see is as if absent
+        app.access.check_robot(g.principal, robot_id)
     group = app.groups.create(body.id, body.members, body.stopTogether)
     return group.describe(app.manager), 201
 

@@ -19,11 +19,12 @@ import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
-
-import jwt
+from typing import TYPE_CHECKING, Any
 
 from arena.protocol.errors import ArenaError, ErrorCode
+
+if TYPE_CHECKING:
+    import jwt  # PyJWT: imported where tokens are used, so a server without them starts fast
 
 #: The tenant of API keys, of robots created without one, and of tokens without the claim.
 DEFAULT_TENANT = "default"
@@ -120,6 +121,8 @@ class TokenVerifier:
                 ErrorCode.INVALID_CONFIG,
                 "The JWT secret must be 32 bytes or more (`openssl rand -hex 32` makes one).",
             )
+        import jwt
+
         self.secret = secret
         self.keys: dict[str | None, jwt.PyJWK] = {}
         if jwks is not None:
@@ -165,6 +168,8 @@ class TokenVerifier:
     def verify(self, token: str, now: float | None = None) -> Principal:
         """The caller a token names; `ArenaError(UNAUTHORIZED)` saying what is wrong with it
         (the token's text never appears in the message)."""
+        import jwt
+
         try:
             header = jwt.get_unverified_header(token)
         except jwt.DecodeError:
@@ -216,6 +221,8 @@ def _decode(
 ) -> dict[str, Any]:
     """PyJWT's decode, with `now` for tests (PyJWT reads the clock itself): the leeway is
     shifted by the difference, which is what a clock at `now` would decide."""
+    import jwt
+
     shift = 0.0 if now is None else time.time() - now
     claims: dict[str, Any] = jwt.decode(
         token,
@@ -321,4 +328,6 @@ def mint(
     if audience is not None:
         claims["aud"] = audience
     principal_of(claims)  # refuse to mint what the server would refuse
+    import jwt
+
     return jwt.encode(claims, secret, algorithm="HS256")

@@ -8,13 +8,14 @@ from typing import Any, TypeVar
 
 import msgspec
 import trio
-from quart import Blueprint, current_app, request, send_file
+from quart import Blueprint, current_app, g, request, send_file
 
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import ReplayBody, ReplayMasterBody
 from arena.recording.analysis import joint_series, summarize, thin
 from arena.recording.mcap_file import SUFFIX, read_recording
 from arena.recording.recorder import check_name, existing_recording
+from arena.server.access import reads_recordings
 from arena.server.base import ArenaApp, read_body
 from arena.server.drivers import attach_rest_master, make_master
 
@@ -27,7 +28,9 @@ def _app() -> ArenaApp:
 
 
 def _existing(name: str) -> Path:
-    return existing_recording(_app().recorder.folder, name)
+    app = _app()
+    app.access.check_recordings(g.principal, name)
+    return existing_recording(app.recorder.folder, name)
 
 
 @blueprint.get("/api/recordings")
@@ -44,7 +47,7 @@ async def list_recordings() -> dict[str, Any]:
                 "bytes": p.stat().st_size,
                 "active": current is not None and p == current,
             }
-            for p in files
+            for p in (files if reads_recordings(g.principal) else [])
         ],
     }
 
@@ -151,6 +154,7 @@ async def replay(robot_id: str) -> tuple[dict[str, Any], int]:
     app = _app()
     robot = app.manager.get(robot_id)
     body: ReplayBody = await read_body(ReplayBody)
+    app.access.check_recordings(g.principal, body.recording)
     config = ReplayMasterBody(**msgspec.structs.asdict(body))
     driver = await off_the_loop(make_master, config, app.recorder.folder)
     master_id = await attach_rest_master(robot, driver)
