@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import base64
 import json
+import re
 import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -165,6 +166,18 @@ async def test_every_route_of_the_app_has_a_role_or_is_public(start_server: Star
     assert routes - set(ROLE_FOR) - PUBLIC_ROUTES == set()
     assert set(ROLE_FOR) - routes == set()  # no stale entry either
     assert not set(ROLE_FOR) & PUBLIC_ROUTES
+
+
+def test_the_role_table_of_the_api_spec_is_the_code_s() -> None:
+    spec = (Path(__file__).resolve().parent.parent / "specs" / "api.md").read_text()
+    written: dict[tuple[str, str], Role] = {}
+    for line in spec.splitlines():
+        cells = line.split(" | ")
+        if len(cells) == 2 and cells[0].lstrip("| ") in ("viewer", "operator", "admin"):
+            role = Role.named(cells[0].lstrip("| "))
+            for route in re.findall(r"`(GET|POST|PUT|DELETE) ([^`]+)`", cells[1]):
+                written[route] = role
+    assert written == ROLE_FOR
 
 
 # -- the matrix: role x action x scope x tenant, over REST and WebSocket ----------------------

@@ -163,8 +163,8 @@ class AccessControl:
 
     def check_robot(self, principal: Principal, robot_id: str) -> None:
         """UNKNOWN_ROBOT, worded as for a robot that does not exist, unless the caller sees
-        it (a robot that does not exist is left to the route to refuse)."""
-        if not self.sees(principal, robot_id) and self._exists(robot_id):
+        it (a robot of another node of the fleet too: it is of the default tenant here)."""
+        if not self.sees(principal, robot_id):
             raise ArenaError(ErrorCode.UNKNOWN_ROBOT, f"No robot with id {robot_id!r}.")
 
     def check_group(self, principal: Principal, group_id: str) -> None:
@@ -174,13 +174,6 @@ class AccessControl:
             return
         if not self.sees_group(principal, self.groups.get(group_id).members):
             raise ArenaError(ErrorCode.UNKNOWN_GROUP, f"No group {group_id!r}.")
-
-    def _exists(self, robot_id: str) -> bool:
-        try:
-            self.manager.get(robot_id)
-        except ArenaError:
-            return False
-        return True
 
     def check_recordings(self, principal: Principal, name: str) -> None:
         """UNKNOWN_RECORDING, as for a file that does not exist, unless the caller may read

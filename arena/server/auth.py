@@ -7,10 +7,13 @@ Every refusal is counted in `/metrics` by reason (`arena_auth_refused_total{reas
 from __future__ import annotations
 
 import hmac
+import logging
 
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.server.base import ArenaApp
 from arena.server.identity import ANONYMOUS, Principal, Role, key_principal, unauthorized
+
+log = logging.getLogger(__name__)
 
 #: A refusal's reason in `/metrics`: none given, not valid (bad key, bad or expired token),
 #: a role too low, a robot out of scope or of another tenant.
@@ -59,7 +62,7 @@ def check_role(app: ArenaApp, principal: Principal, needed: Role, what: str) -> 
     """FORBIDDEN unless `principal` has `needed` (`what` is the action, for the message)."""
     if principal.role >= needed:
         return
-    refuse(app, "role")
+    refuse(app, "role", f"{principal.name!r}, a {principal.role}: {what}")
     raise ArenaError(
         ErrorCode.FORBIDDEN,
         f"{what} needs the {needed} role; {principal.name!r} is a {principal.role}.",
@@ -81,9 +84,10 @@ def authorize(
     return principal
 
 
-def refuse(app: ArenaApp, reason: str) -> None:
-    """Count a refusal (never with the credential's text)."""
+def refuse(app: ArenaApp, reason: str, detail: str = "") -> None:
+    """Count and log a refusal (never with the credential's text)."""
     app.metrics.auth_refused[reason] += 1
+    log.info("refused a caller: %s%s", reason, f" ({detail})" if detail else "")
 
 
 def _find_key(token: str, keys: tuple[str, ...]) -> int:

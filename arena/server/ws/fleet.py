@@ -10,7 +10,7 @@ import trio
 
 from arena.fleet import tunnel as tunnels
 from arena.fleet.node import FleetNode
-from arena.protocol.errors import ArenaError
+from arena.protocol.errors import ArenaError, ErrorCode
 from arena.server.base import ArenaApp
 from arena.server.ws.backpressure import Encoded
 from arena.server.ws.connection import Connection
@@ -43,6 +43,11 @@ async def proxy(connection: Connection, robot_id: str, node: str) -> None:
     fleet = connection.app.fleet
     assert fleet is not None
     if not await connection.authorized():
+        return
+    if not connection.sees(robot_id):
+        await connection.refuse(
+            ArenaError(ErrorCode.UNKNOWN_ROBOT, f"No robot with id {robot_id!r}.")
+        )
         return
     try:
         tunnel = await tunnels.open_to(fleet, node, robot_id, connection.role, connection.args)
