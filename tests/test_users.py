@@ -25,7 +25,7 @@ from arena.recording import analysis
 from arena.recording.mcap_file import read_recording
 from arena.server.access import PUBLIC_ROUTES, ROLE_FOR, route_of
 from arena.server.identity import Principal, Role, TokenVerifier, mint, parse_duration
-from tests.conftest import RunningServer
+from tests.conftest import RunningServer, eventually, need
 from tests.test_server_ws import closed_with, command, receive
 
 StartServer = Callable[..., Awaitable[RunningServer]]
@@ -396,3 +396,39 @@ async def test_the_audit_trail_is_read_back_from_the_recording(
     assert summary["users"] == ["alice", "api-key-1", "bob"]
     assert SECRET.decode() not in path.read_bytes().decode("latin-1")
     assert alice not in path.read_bytes().decode("latin-1")
+
+
+async def test_tenants_hold_across_a_fleet(start_server: StartServer, secret_file: Path) -> None:
+    need("zenoh", "fleet")
+    secured = {"jwt_secret_file": str(secret_file), "fleet_listen": ("tcp/127.0.0.1:0",)}
+    a = await start_server(node="a", **secured)
+    b = await start_server(node="b", fleet_connect=tuple(await a.app.fleet.locators()), **secured)
+    lab, acme = bearer(token("admin")), bearer(token("admin", tenant="acme"))
+    async with a.client() as http:
+        assert (await http.post("/api/robots", json={"id": "a-0"}, headers=lab)).status_code == 201
+    async with b.client() as http:
+        made = await http.post("/api/robots", json={"id": "b-acme"}, headers=acme)
+        assert made.status_code == 201
+
+    async def listed(headers: dict[str, str]) -> list[str]:
+        async with a.client() as http:
+            answer = (await http.get("/api/fleet/robots", headers=headers)).json()
+        return sorted(robot["id"] for robot in answer["robots"])
+
+    async def both_known() -> bool:
+        return await listed(lab) == ["a-0"] and await listed(acme) == ["b-acme"]
+
+    await eventually(both_known, what="each tenant listing its own robot only")
+    async with a.client() as http:
+        # Another node's robot of another tenant: as absent here as a local one.
+        hidden = await http.get("/api/robots/b-acme/status", headers=lab)
+        assert (hidden.status_code, hidden.json()["error"]["code"]) == (404, "UNKNOWN_ROBOT")
+        seen = await http.get("/api/robots/b-acme/status", headers=acme)
+        assert seen.status_code == 200
+        answer = await http.post("/api/fleet/estop", headers=bearer(token("viewer", tenant="acme")))
+    assert {ack["node"]: ack["robots"] for ack in answer.json()["acks"]} == {
+        "a": [],
+        "b": ["b-acme"],
+    }
+    assert str(a.app.manager.get("a-0").snapshot().mode) == "idle"
+    assert str(b.app.manager.get("b-acme").snapshot().mode) == "estopped"

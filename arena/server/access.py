@@ -10,7 +10,7 @@ it did not exist: a caller learns nothing of robots that are not theirs.
 from __future__ import annotations
 
 import re
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import TypeVar
 
 from arena.protocol.errors import ArenaError, ErrorCode
@@ -137,10 +137,15 @@ class AccessControl:
         self.groups = groups
         #: Each robot's tenant (robots not listed belong to `default`).
         self.tenants: dict[str, str] = {}
+        #: The tenant of a robot of another node of the fleet (`fleet_api` sets it).
+        self.tenant_elsewhere: Callable[[str], str | None] = lambda robot_id: None
 
     def tenant_of(self, robot_id: str) -> str:
-        """The robot's tenant."""
-        return self.tenants.get(robot_id, DEFAULT_TENANT)
+        """The robot's tenant (a robot of another node: as that node says)."""
+        tenant = self.tenants.get(robot_id)
+        if tenant is None:
+            tenant = self.tenant_elsewhere(robot_id)
+        return DEFAULT_TENANT if tenant is None else tenant
 
     def sees(self, principal: Principal, robot_id: str) -> bool:
         """The robot is of the caller's tenant and in its scope."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import logging
 import secrets
+from functools import partial
 from typing import Any
 
 from quart import Blueprint, Response, current_app, g, request
@@ -22,7 +23,9 @@ from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import ReasonBody
 from arena.robot.events import StateChanged
 from arena.robot.handle import Robot
+from arena.robot.manager import estop_together
 from arena.server.base import ArenaApp, error_response, read_body
+from arena.server.identity import DEFAULT_TENANT, Principal, Role
 from arena.server.ws.fleet import serve_tunnel
 
 log = logging.getLogger(__name__)
@@ -80,7 +83,7 @@ async def fleet_robots() -> dict[str, Any]:
     for view in sorted(fleet.nodes.values(), key=lambda v: v.name):
         for robot in view.robots:
             if not _app().access.sees(g.principal, str(robot.get("id"))):
-                continue  # (another node's robots are of the default tenant here)
+                continue
             # `url`: the owner's own address, for a client that wants to go there directly
             entry = {**robot, "node": view.name, "url": view.http}
             if not view.alive:
@@ -97,7 +100,10 @@ async def fleet_estop() -> dict[str, Any]:
     body: ReasonBody = await read_body(ReasonBody, optional=True)  # the body's faults first
     fleet = _fleet()
     reason = body.reason or f"fleet e-stop from node {fleet.name}"
-    answers = await fleet.ask_all("estop", {"reason": reason}, timeout=ESTOP_TIMEOUT)
+    # Each node stops the robots this caller sees there (its tenant and scope go along).
+    principal: Principal = g.principal
+    whose = {"tenant": principal.tenant, "robots": principal.robots, "groups": principal.groups}
+    answers = await fleet.ask_all("estop", {"reason": reason, **whose}, timeout=ESTOP_TIMEOUT)
     acks, failed = [], []
     for node, (answer, seconds) in sorted(answers.items()):
         if "ok" in answer:
@@ -150,12 +156,13 @@ async def estop_incomplete(error: EstopIncomplete) -> tuple[dict[str, Any], int]
 # -- the node's services ---------------------------------------------------------------------
 
 
-def robot_summary(robot: Robot) -> dict[str, Any]:
+def robot_summary(robot: Robot, tenant: str) -> dict[str, Any]:
     """What the fleet shows of one robot."""
     snapshot = robot.snapshot()
     return {
         "id": robot.robot_id,
         "name": robot.name,
+        "tenant": tenant,
         "robot_type": robot.model.robot_type,
         "state": str(snapshot.mode),
         "owner": snapshot.owner,
@@ -163,24 +170,46 @@ def robot_summary(robot: Robot) -> dict[str, Any]:
     }
 
 
+def caller_of(asked: dict[str, Any]) -> Principal:
+    """Whose fleet e-stop this is: the tenant and scope the asking node sent (a node of an
+    older version sends none: every robot, as it asked then)."""
+
+    def patterns(value: Any) -> tuple[str, ...] | None:
+        return None if not isinstance(value, list) else tuple(str(p) for p in value)
+
+    tenant = asked.get("tenant")
+    return Principal(
+        "fleet",
+        Role.VIEWER,
+        tenant if isinstance(tenant, str) else DEFAULT_TENANT,
+        patterns(asked.get("robots")),
+        patterns(asked.get("groups")),
+    )
+
+
 def install(app: ArenaApp, fleet: FleetNode) -> None:
     """Offer this node's services to the fleet and follow its robots."""
     app.fleet = fleet
     app.fleet_secret = secrets.token_hex(16)
+    app.access.tenant_elsewhere = partial(_tenant_elsewhere, fleet)
 
     async def info(_: bytes) -> dict[str, Any]:
         return {
             "name": fleet.name,
             "version": arena.__version__,
-            "robots": [robot_summary(robot) for robot in app.manager.robots()],
+            "robots": [
+                robot_summary(robot, app.access.tenant_of(robot.robot_id))
+                for robot in app.manager.robots()
+            ],
             "locators": await fleet.locators(),
             "http": app.own_url,
         }
 
     async def estop(payload: bytes) -> dict[str, Any]:
-        reason = str(json.loads(payload or b"{}").get("reason") or "fleet e-stop")
-        robots = app.manager.robots()
-        await app.manager.estop_all(reason)
+        asked = json.loads(payload or b"{}")
+        reason = str(asked.get("reason") or "fleet e-stop")
+        robots = app.access.visible(caller_of(asked), app.manager.robots())
+        await estop_together(robots, reason)
         return {"node": fleet.name, "robots": [robot.robot_id for robot in robots]}
 
     async def run(call: forward.Call) -> forward.Answer:
@@ -266,3 +295,12 @@ async def _run_forwarded(app: ArenaApp, call: forward.Call) -> forward.Answer:
 def is_forwarded(app: ArenaApp, value: str | None) -> bool:
     """True for a call another node of the fleet forwarded (it checked the key)."""
     return bool(app.fleet_secret) and value == app.fleet_secret
+
+
+def _tenant_elsewhere(fleet: FleetNode, robot_id: str) -> str | None:
+    """The tenant of a robot another node of the fleet owns, as that node said."""
+    for view in fleet.nodes.values():
+        for robot in view.robots:
+            if robot.get("id") == robot_id:
+                return str(robot.get("tenant", DEFAULT_TENANT))
+    return None
