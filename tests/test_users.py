@@ -367,6 +367,8 @@ async def test_the_audit_trail_is_read_back_from_the_recording(
             assert (await command(ws, {"Rotation": 12}))["data"]["status"] == "accepted"
             await ws.send_message(json.dumps({"type": "estop"}))
             await receive(ws, "state")
+            await ws.send_message(json.dumps({"type": "release"}))
+            await receive(ws, "released")
         bob = bearer(token("viewer", sub="bob"))
         assert (await http.post("/api/robots/arm/reset", headers=bob)).status_code == 403
         assert (await http.post("/api/robots/arm/estop", headers=bob)).status_code == 200
@@ -384,6 +386,7 @@ async def test_the_audit_trail_is_read_back_from_the_recording(
         ("api-key-1", "POST /api/robots/{robot_id}/slaves", "201"),
         ("alice", "connect master", "alice-ui"),
         ("alice", "estop over WebSocket", "alice-ui"),
+        ("alice", "release over WebSocket", "alice-ui"),
         ("bob", "POST /api/robots/{robot_id}/estop", "200"),
         ("alice", "POST /api/robots/{robot_id}/reset", "200"),
     ]  # bob's refused reset changed nothing and is only counted

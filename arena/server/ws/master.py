@@ -248,6 +248,7 @@ async def _handle_master_message(
             raise ArenaError(ErrorCode.NOT_OWNER, DETACHED_LINK.message)
         player.stop()
         player.releasing = True
+        robot.audit(connection.principal.audit_name(), "release over WebSocket", link.master_id)
         await link.release()
         snapshot = robot.snapshot()
         await send_released(connection, wire.ReleasedData(robot.robot_id, str(snapshot.mode)))
