@@ -435,3 +435,18 @@ async def test_tenants_hold_across_a_fleet(start_server: StartServer, secret_fil
     }
     assert str(a.app.manager.get("a-0").snapshot().mode) == "idle"
     assert str(b.app.manager.get("b-acme").snapshot().mode) == "estopped"
+
+
+async def test_openapi_gives_each_operation_its_role(start_server: StartServer) -> None:
+    server = await start_server()
+    async with server.client() as http:
+        document = (await http.get("/openapi.json")).json()
+    roles = {
+        (method.upper(), path): operation.get("x-arena-role")
+        for path, operations in document["paths"].items()
+        for method, operation in operations.items()
+    }
+    assert roles[("POST", "/api/robots/{robot_id}/estop")] == "viewer"
+    assert roles[("PUT", "/api/robots/{robot_id}/joints")] == "operator"
+    assert roles[("POST", "/api/robots")] == "admin"
+    assert all(roles[route] == str(role) for route, role in ROLE_FOR.items() if route in roles)

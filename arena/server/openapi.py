@@ -30,6 +30,7 @@ from arena.protocol.rest import (
     WebSocketSlaveBody,
     WorkspaceBody,
 )
+from arena.server.access import ROLE_FOR
 from arena.server.base import ArenaApp
 
 #: (method, path, summary, request body type or None). A test checks it covers every route.
@@ -265,6 +266,8 @@ def document(app: ArenaApp | None = None) -> dict[str, Any]:
                 },
             },
         }
+        if (method, path) in ROLE_FOR:  # the least role that may call it (api.md, "Users")
+            operation["x-arena-role"] = str(ROLE_FOR[(method, path)])
         parameters = [
             {"name": part[1:-1], "in": "path", "required": True, "schema": {"type": "string"}}
             for part in path.split("/")
@@ -296,7 +299,13 @@ def document(app: ArenaApp | None = None) -> dict[str, Any]:
         "paths": paths,
         "components": {
             "schemas": components,
-            "securitySchemes": {"apiKey": {"type": "http", "scheme": "bearer"}},
+            "securitySchemes": {
+                "apiKey": {
+                    "type": "http",
+                    "scheme": "bearer",
+                    "description": "An API key, or a JSON Web Token (its role in x-arena-role).",
+                }
+            },
         },
         "security": [{"apiKey": []}],
     }
