@@ -208,8 +208,12 @@ def install(app: ArenaApp, fleet: FleetNode) -> None:
     async def estop(payload: bytes) -> dict[str, Any]:
         asked = json.loads(payload or b"{}")
         reason = str(asked.get("reason") or "fleet e-stop")
-        robots = app.access.visible(caller_of(asked), app.manager.robots())
-        await estop_together(robots, reason)
+        every = app.manager.robots()
+        robots = app.access.visible(caller_of(asked), every)
+        if len(robots) == len(every):
+            await app.manager.estop_all(reason)
+        else:
+            await estop_together(robots, reason)
         return {"node": fleet.name, "robots": [robot.robot_id for robot in robots]}
 
     async def run(call: forward.Call) -> forward.Answer:
