@@ -428,7 +428,14 @@ async def test_tenants_hold_across_a_fleet(start_server: StartServer, secret_fil
         assert (hidden.status_code, hidden.json()["error"]["code"]) == (404, "UNKNOWN_ROBOT")
         seen = await http.get("/api/robots/b-acme/status", headers=acme)
         assert seen.status_code == 200
-        answer = await http.post("/api/fleet/estop", headers=bearer(token("viewer", tenant="acme")))
+        watcher = token("viewer", tenant="acme")
+        answer = await http.post("/api/fleet/estop", headers=bearer(watcher))
+    # A WebSocket carried to the robot's node: checked here, served there.
+    async with open_websocket_url(f"{a.ws_url}/ws/robots/b-acme/state?token={watcher}") as ws:
+        assert (await receive(ws, "state"))["data"]["mode"] == "estopped"
+    async with open_websocket_url(f"{a.ws_url}/ws/robots/b-acme/state?token={token()}") as ws:
+        assert (await receive(ws, "error"))["data"]["code"] == "UNKNOWN_ROBOT"
+        assert await closed_with(ws) == 4404
     assert {ack["node"]: ack["robots"] for ack in answer.json()["acks"]} == {
         "a": [],
         "b": ["b-acme"],

@@ -74,6 +74,8 @@ class Connection(LatestWins):
         #: expires (None: a key, or no credential needed).
         self.principal: Principal = ANONYMOUS
         self.expires_at: float | None = None
+        #: Carried from another node of the fleet, which checked the caller and its scope.
+        self.carried = False
 
     def error(self, code: ErrorCode | str, message: str) -> Encoded:
         """An `error` message to send, counted."""
@@ -141,6 +143,7 @@ class Connection(LatestWins):
         """Check the key or token and the role; a refusal is sent and the answer is False. A
         connection carried from another node of the fleet was checked there (`trusted`)."""
         if getattr(self.ws, "trusted", False):
+            self.carried = True
             return True
         try:
             self.principal = authorize(
@@ -161,7 +164,7 @@ class Connection(LatestWins):
 
     def sees(self, robot_id: str) -> bool:
         """The caller may see the robot (its tenant and scope); counted when not."""
-        if self.app.access.sees(self.principal, robot_id):
+        if self.carried or self.app.access.sees(self.principal, robot_id):
             return True
         refuse(self.app, "scope")
         return False
