@@ -24,6 +24,7 @@ from arena.protocol.errors import ArenaError
 from arena.recording import analysis
 from arena.recording.mcap_file import read_recording
 from arena.server.access import PUBLIC_ROUTES, ROLE_FOR, route_of
+from arena.server.config import load_config
 from arena.server.identity import Principal, Role, TokenVerifier, mint, parse_duration
 from tests.conftest import RunningServer, eventually, need
 from tests.test_server_ws import closed_with, command, receive
@@ -457,3 +458,21 @@ async def test_openapi_gives_each_operation_its_role(start_server: StartServer) 
     assert roles[("PUT", "/api/robots/{robot_id}/joints")] == "operator"
     assert roles[("POST", "/api/robots")] == "admin"
     assert all(roles[route] == str(role) for route, role in ROLE_FOR.items() if route in roles)
+
+
+def test_token_settings_come_from_flags_the_environment_and_the_file(tmp_path: Path) -> None:
+    settings = tmp_path / "arena.toml"
+    settings.write_text('jwt_issuer = "from-file"\njwt_audience = "arena"\n')
+    environ = {"ARENA_JWT_SECRET_FILE": "/run/secrets/jwt", "ARENA_JWT_LEEWAY": "5"}
+    config = load_config(str(settings), environ, jwt_issuer="from-flag")
+    assert (config.jwt_secret_file, config.jwt_leeway) == ("/run/secrets/jwt", 5.0)
+    assert (config.jwt_issuer, config.jwt_audience) == ("from-flag", "arena")
+    assert config.auth_enabled and not load_config(None, {}).auth_enabled
+    with pytest.raises(ArenaError, match="jwt_leeway"):
+        load_config(None, {"ARENA_JWT_LEEWAY": "-1"}).check()
+    # Tokens are enough to listen beyond loopback; a too-short secret is refused at start.
+    load_config(None, environ, host="0.0.0.0").check()
+    short = tmp_path / "short"
+    short.write_text("tiny\n")
+    with pytest.raises(ArenaError, match="32 bytes"):
+        TokenVerifier.from_files(str(short), None)
