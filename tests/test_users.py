@@ -256,13 +256,10 @@ async def test_rest_matrix_of_roles_scope_and_tenants(
             for r in (await http.get("/api/robots", headers=bearer(ADMIN_KEY))).json()
         }
         assert states == {"lab-1": "idle", "lab-2": "idle"}  # the key is of tenant default
-        # Recordings hold every robot: a confined caller sees none.
-        confined = await http.get(
-            "/api/recordings", headers=bearer(token("admin", robots=["lab-*"]))
-        )
-        assert confined.json()["recordings"] == []
-        everyone = await http.get("/api/recordings", headers=bearer(ADMIN_KEY))
-        assert everyone.json()["recordings"]
+        # The file being written holds robots of both tenants: no one of either reads it.
+        for caller in (ADMIN_KEY, token("admin", robots=["lab-*"]), token("admin", tenant="acme")):
+            listing = await http.get("/api/recordings", headers=bearer(caller))
+            assert listing.json()["recordings"] == []
         metrics = (await http.get("/metrics", headers=bearer(ADMIN_KEY))).text
     assert 'arena_auth_refused_total{reason="role"}' in metrics
     assert 'arena_auth_refused_total{reason="scope"}' in metrics
@@ -476,3 +473,37 @@ def test_token_settings_come_from_flags_the_environment_and_the_file(tmp_path: P
     short.write_text("tiny\n")
     with pytest.raises(ArenaError, match="32 bytes"):
         TokenVerifier.from_files(str(short), None)
+
+
+async def test_a_recording_is_read_by_whoever_sees_every_robot_in_it(
+    start_server: StartServer, secret_file: Path
+) -> None:
+    server = await start_server(api_keys=(ADMIN_KEY,), jwt_secret_file=str(secret_file))
+    acme_admin = bearer(token("admin", tenant="acme"))
+    acme = bearer(token("viewer", tenant="acme"))
+    confined = bearer(token("viewer", tenant="acme", robots=["x-*"]))
+    key = bearer(ADMIN_KEY)
+    async with server.client() as http:
+        made = await http.post("/api/robots", json={"id": "acme-1"}, headers=acme_admin)
+        assert made.status_code == 201
+        await http.post("/api/robots/acme-1/estop", headers=acme)  # something to record
+
+        async def listed(headers: dict[str, str]) -> list[str]:
+            answer = (await http.get("/api/recordings", headers=headers)).json()
+            return [entry["name"] for entry in answer["recordings"]]
+
+        await eventually(lambda: listed(acme), what="the file being written, listed to its tenant")
+        assert await listed(key) == [] and await listed(confined) == []
+        # Recording is switched for the whole server: not by a tenant's admin.
+        refused = await http.post("/api/recordings/current/stop", headers=acme_admin)
+        assert refused.status_code == 403
+        stopped = await http.post("/api/recordings/current/stop", headers=key)
+        name = stopped.json()["stopped"]
+        # Finished, its robots are read from its metadata: still acme's alone.
+        assert await listed(acme) == [name] and await listed(key) == []
+        assert (await http.get(f"/api/recordings/{name}", headers=acme)).json()["robots"]
+        for headers in (key, confined):
+            hidden = await http.get(f"/api/recordings/{name}/file", headers=headers)
+            ghost = await http.get("/api/recordings/nothing.mcap/file", headers=headers)
+            assert (hidden.status_code, ghost.status_code) == (404, 404)
+            assert hidden.json()["error"]["message"] == f"No recording called {name!r}."

@@ -121,8 +121,8 @@ def needed_role(method: str, rule: str | None) -> Role | None:
 
 
 def reads_recordings(principal: Principal) -> bool:
-    """A recording holds every robot of the server: only a caller of the default tenant whose
-    scope is every robot reads them (one confined to some robots sees none)."""
+    """The caller is of the default tenant and its scope is every robot: it may turn
+    recording on and off, and read files whose robots are not known."""
     return principal.tenant == DEFAULT_TENANT and principal.unlimited
 
 
@@ -180,12 +180,11 @@ class AccessControl:
         if not self.sees_group(principal, self.groups.get(group_id).members):
             raise ArenaError(ErrorCode.UNKNOWN_GROUP, f"No group {group_id!r}.")
 
-    def check_recordings(self, principal: Principal, name: str) -> None:
-        """UNKNOWN_RECORDING, as for a file that does not exist, unless the caller may read
-        recordings (`reads_recordings`)."""
-        if not reads_recordings(principal):
-            raise ArenaError(ErrorCode.UNKNOWN_RECORDING, f"No recording {name!r}.")
-
-    def forget(self, robot_id: str) -> None:
-        """The robot was deleted."""
-        self.tenants.pop(robot_id, None)
+    def sees_recording(self, principal: Principal, robots: frozenset[str] | None) -> bool:
+        """A recording is the caller's when it sees every robot in it (a deleted robot keeps
+        its tenant). A file whose robots are not known (no robot in its metadata, or cut
+        short where they were) is read only by a caller who sees the whole server's default
+        tenant (`reads_recordings`)."""
+        if not robots:
+            return reads_recordings(principal)
+        return all(self.sees(principal, robot_id) for robot_id in robots)

@@ -57,7 +57,7 @@ from arena.server.identity import ANONYMOUS, Principal, TokenVerifier
 from arena.server.metrics import Metrics
 from arena.server.origin import SAFE_METHODS, OriginPolicy, is_json
 from arena.server.recordings_api import blueprint as recordings_blueprint
-from arena.server.recordings_api import off_the_loop
+from arena.server.recordings_api import off_the_loop, readable_recording
 from arena.server.robot_types_api import blueprint as robot_types_blueprint
 from arena.server.sensors_api import blueprint as sensors_blueprint
 from arena.server.ws.acks import AckCache
@@ -322,8 +322,7 @@ def _register_routes(app: ArenaApp) -> None:
     @app.delete("/api/robots/<robot_id>")
     async def delete_robot(robot_id: str) -> dict[str, Any]:
         robot = manager.get(robot_id)
-        await manager.delete(robot_id)
-        app.access.forget(robot_id)
+        await manager.delete(robot_id)  # (its tenant stays: its recordings are still its)
         app.metrics.retire(robot)
         return {"deleted": robot_id}
 
@@ -434,7 +433,7 @@ def _register_routes(app: ArenaApp) -> None:
         robot = manager.get(robot_id)
         body: MasterBody = await read_body(MasterBody)
         if isinstance(body, ReplayMasterBody):
-            app.access.check_recordings(g.principal, body.recording)
+            await readable_recording(app, g.principal, body.recording)
         # A replay reads its recording: in a thread, never stalling the robots.
         driver = await off_the_loop(
             make_master,
