@@ -473,3 +473,24 @@ async def test_no_record_starts_idle(start_server: StartServer) -> None:
         await eventually(lambda: not any(len(queue) for queue in recorder._followed))
         listing = (await http.get("/api/recordings")).json()
         assert listing["recorder"]["active"] is False and listing["recordings"] == []
+
+
+async def test_a_sequence_for_another_robot_type_is_refused_before_it_plays(
+    server: RunningServer,
+) -> None:
+    # The demo sequences name the so-arm100's joints: on an so-101 every command would be
+    # refused while the answer said it played.
+    async with server.client() as http:
+        created = await http.post("/api/robots", headers=JSON, json={"robot_type": "so-101"})
+        robot = created.json()["id"]
+        played = await http.post(f"/api/robots/{robot}/play-sequence/gentle-wave")
+        assert played.status_code == 422
+        error = played.json()["error"]
+        assert error["code"] == "UNKNOWN_JOINT"
+        assert "gentle-wave" in error["message"] and "so-101" in error["message"]
+        master = await http.post(
+            f"/api/robots/{robot}/master", headers=JSON, json={"type": "mock-sequence"}
+        )
+        assert master.status_code == 422 and master.json()["error"]["code"] == "UNKNOWN_JOINT"
+        status = (await http.get(f"/api/robots/{robot}/status")).json()
+        assert status["has_master"] is False

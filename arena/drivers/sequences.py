@@ -40,9 +40,16 @@ class Sequence:
     description: str = ""
 
     def check_against(self, model: RobotModel) -> None:
-        """Raise `ArenaError` if any keyframe names an unknown joint or bad value."""
+        """Raise `ArenaError` if any keyframe names an unknown joint or bad value: a sequence
+        written for one robot type is refused before it plays on another."""
         for keyframe in self.keyframes:
-            resolve_command(model, keyframe.command)
+            try:
+                resolve_command(model, keyframe.command)
+            except ArenaError as error:
+                raise ArenaError(
+                    error.code,
+                    f"Sequence '{self.id}' does not fit a {model.robot_type}: {error.message}",
+                ) from None
 
     def summary(self) -> dict[str, Any]:
         """Id, name, description and duration (ms), as the sequence listing shows them."""

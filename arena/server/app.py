@@ -334,6 +334,7 @@ def _register_routes(app: ArenaApp) -> None:
     async def play_sequence(robot_id: str, sequence_id: str) -> dict[str, Any]:
         robot = manager.get(robot_id)
         sequence = get_sequence(sequence_id)
+        sequence.check_against(robot.model)
         master_id = await robot.attach_master(SequenceMaster([sequence]))
         return {
             "robot": robot_id,
@@ -433,7 +434,7 @@ def _register_routes(app: ArenaApp) -> None:
         robot = manager.get(robot_id)
         body: MasterBody = await read_body(MasterBody)
         if isinstance(body, ReplayMasterBody):
-            await readable_recording(app, g.principal, body.recording)
+            await readable_recording(app, g.principal, body.recording, field="recording")
         # A replay reads its recording: in a thread, never stalling the robots.
         driver = await off_the_loop(
             make_master,

@@ -205,9 +205,11 @@ def _master(
         return _replay(body, recordings)
     if isinstance(body, SequenceMasterBody):
         ids = body.sequences if body.sequences else list(demo_sequences())
-        return SequenceMaster(
-            [get_sequence(i) for i in ids], loop=body.loop, auto_start=body.autoStart
-        )
+        sequences = [get_sequence(i) for i in ids]
+        if model is not None:
+            for sequence in sequences:
+                sequence.check_against(model)
+        return SequenceMaster(sequences, loop=body.loop, auto_start=body.autoStart)
     if isinstance(body, RemoteServerBody):
         from arena.drivers.remote import RemoteServerMaster
 

@@ -63,13 +63,21 @@ def robots_of(recorder: Recorder, path: Path) -> frozenset[str] | None:
     return robots
 
 
-async def readable_recording(app: ArenaApp, principal: Principal, name: str) -> Path:
+async def readable_recording(
+    app: ArenaApp, principal: Principal, name: str, field: str = ""
+) -> Path:
     """The recording `name`, if the caller may read it (each of its robots is one it sees);
-    else UNKNOWN_RECORDING, worded as for a file that does not exist."""
-    path = existing_recording(app.recorder.folder, name)
-    robots = await off_the_loop(robots_of, app.recorder, path)
-    if not app.access.sees_recording(principal, robots):
-        raise ArenaError(ErrorCode.UNKNOWN_RECORDING, f"No recording called {name!r}.")
+    else UNKNOWN_RECORDING, worded as for a file that does not exist (and naming the body's
+    `field` it came from, if any)."""
+    try:
+        path = existing_recording(app.recorder.folder, name)
+        robots = await off_the_loop(robots_of, app.recorder, path)
+        if not app.access.sees_recording(principal, robots):
+            raise ArenaError(ErrorCode.UNKNOWN_RECORDING, f"No recording called {name!r}.")
+    except ArenaError as error:
+        if not field:
+            raise
+        raise ArenaError(error.code, f"`{field}`: {error.message}") from None
     return path
 
 
@@ -217,7 +225,7 @@ async def replay(robot_id: str) -> tuple[dict[str, Any], int]:
     app = _app()
     robot = app.manager.get(robot_id)
     body: ReplayBody = await read_body(ReplayBody)
-    await readable_recording(app, g.principal, body.recording)
+    await readable_recording(app, g.principal, body.recording, field="recording")
     config = ReplayMasterBody(**msgspec.structs.asdict(body))
     driver = await off_the_loop(make_master, config, app.recorder.folder)
     master_id = await attach_rest_master(robot, driver)

@@ -276,13 +276,14 @@ async function fillChoices() {
     $("create-robot").querySelector("button").disabled = !types.length;
     $("create-type").replaceChildren(
       ...types.map((type) => {
-        const option = new Option(type.id, type.id);
+        // the API's default type (a create body without `robot_type`) is the form's default,
+        // also after the form is reset: not the first in the list
+        const isDefault = type.id === "so-arm100";
+        const option = new Option(type.id, type.id, isDefault, isDefault);
         option.title = type.description;
         return option;
       }),
     );
-    // the API's default type (a create body without `robot_type`), not the first in the list
-    if (types.some((type) => type.id === "so-arm100")) $("create-type").value = "so-arm100";
     $("sequence").replaceChildren(
       ...sequences.map((sequence) => new Option(`${sequence.name} (${sequence.duration / 1000} s)`, sequence.id)),
     );
