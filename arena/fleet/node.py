@@ -28,6 +28,7 @@ import trio
 import arena
 from arena.fleet import keys
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.robot.handoff import Handoff
 
 log = logging.getLogger(__name__)
 
@@ -179,17 +180,19 @@ class FleetNode:
         self.on_node_lost: list[Callable[[str], None]] = []
         #: Called in trio with (node, robot id, state JSON) for another node's state changes.
         self.on_remote_state: list[Callable[[str, str, dict[str, Any]], None]] = []
-        self.dropped = 0
         self.started = trio.Event()
         #: Where the node's own tasks run (tunnels served here live in it).
         self.nursery: trio.Nursery | None = None
         self._token: trio.lowlevel.TrioToken | None = None
-        self._send, self._receive = trio.open_memory_channel[tuple[Callable[[Any], Any], Any]](
-            BRIDGE_SIZE
-        )
+        self._handoff = Handoff(BRIDGE_SIZE, "fleet")
         self._entities: list[Any] = []
         self._robot_tokens: dict[str, Any] = {}
         self._state_publishers: dict[str, Any] = {}
+
+    @property
+    def dropped(self) -> int:
+        """Items from Zenoh's threads dropped because trio had not taken the ones before."""
+        return self._handoff.dropped
 
     # -- life -----------------------------------------------------------------------------
 
@@ -198,6 +201,7 @@ class FleetNode:
         import zenoh
 
         self._token = trio.lowlevel.current_trio_token()
+        self._handoff.open()
         try:
             self.session = await trio.to_thread.run_sync(zenoh.open, self.settings.zenoh_config())
         except zenoh.ZError as exc:
@@ -209,34 +213,13 @@ class FleetNode:
                 self.nursery = nursery
                 self.started.set()
                 task_status.started()
-                async for entry in self._receive:
-                    handler, item = entry
-                    # Nothing here may keep a query alive: Zenoh finishes a query (and the
-                    # asker stops waiting) only once its last reference is gone.
-                    del entry
-                    try:
-                        result = handler(item)
-                    except Exception:
-                        log.exception("fleet: handling a message failed")
-                        continue
-                    finally:
-                        del item
-                    if isinstance(result, Awaitable):  # a query: answered in a task of its own
-                        nursery.start_soon(self._guarded, result)
-                    del result
+                await self._handoff.serve(nursery)
         finally:
             with trio.CancelScope(shield=True):
                 for tunnel in list(self.tunnels.values()):
                     tunnel.close()
                 session, self.session = self.session, None
                 await trio.to_thread.run_sync(session.close)
-
-    @staticmethod
-    async def _guarded(work: Awaitable[Any]) -> None:
-        try:
-            await work
-        except Exception:
-            log.exception("fleet: handling a message failed")
 
     def _declare(self) -> None:
         session, fleet = self.session, self.fleet
@@ -269,23 +252,7 @@ class FleetNode:
 
     def _from_zenoh(self, handler: Callable[[Any], Any]) -> Callable[[Any], None]:
         """A Zenoh callback that hands its argument to `handler` in trio."""
-
-        def callback(item: Any) -> None:
-            token = self._token
-            if token is None:
-                return
-            with contextlib.suppress(trio.RunFinishedError):
-                token.run_sync_soon(self._enqueue, (handler, item))
-
-        return callback
-
-    def _enqueue(self, entry: tuple[Callable[[Any], Any], Any]) -> None:
-        try:
-            self._send.send_nowait(entry)
-        except trio.WouldBlock:
-            self.dropped += 1
-        except trio.ClosedResourceError:
-            pass
+        return self._handoff.callback(handler)
 
     # -- what the others tell us --------------------------------------------------------------
 

@@ -11,7 +11,6 @@ What each robot's node publishes and takes is `arena.ros2.node`; the format is `
 
 from __future__ import annotations
 
-import contextlib
 import json
 import logging
 import os
@@ -22,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 import trio
 
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.robot.handoff import Handoff
 from arena.ros2 import wire
 
 if TYPE_CHECKING:
@@ -109,17 +109,18 @@ class Ros2Bridge:
         self.session_id = ""
         self.names = wire.NameBook()
         self.nodes: dict[str, RobotNode] = {}  # robot id -> its node
-        self.dropped = 0
         self.started = trio.Event()
         self._next_node = 0
         self._next_entity = 0
-        self._token: trio.lowlevel.TrioToken | None = None
         self._nursery: trio.Nursery | None = None
         self._waiting: list[Robot] = []
-        self._send, self._receive = trio.open_memory_channel[tuple[Callable[[Any], Any], Any]](
-            BRIDGE_SIZE
-        )
+        self._handoff = Handoff(BRIDGE_SIZE, "ros2")
         self._entities: list[Any] = []
+
+    @property
+    def dropped(self) -> int:
+        """Items from Zenoh's threads dropped because trio had not taken the ones before."""
+        return self._handoff.dropped
 
     # -- life ----------------------------------------------------------------------------------
 
@@ -128,7 +129,7 @@ class Ros2Bridge:
         with it)."""
         import zenoh
 
-        self._token = trio.lowlevel.current_trio_token()
+        self._handoff.open()
         try:
             self.session = await trio.to_thread.run_sync(zenoh.open, self.settings.zenoh_config())
         except zenoh.ZError as exc:
@@ -149,30 +150,11 @@ class Ros2Bridge:
                 self._waiting.clear()
                 self.started.set()
                 task_status.started()
-                async for entry in self._receive:
-                    handler, item = entry
-                    del entry  # a query is answered once its last reference goes
-                    try:
-                        result = handler(item)
-                    except Exception:
-                        log.exception("ros2: handling a message failed")
-                        continue
-                    finally:
-                        del item
-                    if isinstance(result, Awaitable):
-                        nursery.start_soon(self._guarded, result)
-                    del result
+                await self._handoff.serve(nursery)
         finally:
             with trio.CancelScope(shield=True):
                 session, self.session = self.session, None
                 await trio.to_thread.run_sync(session.close)
-
-    @staticmethod
-    async def _guarded(work: Awaitable[Any]) -> None:
-        try:
-            await work
-        except Exception:
-            log.exception("ros2: handling a message failed")
 
     def follow(self, robot: Robot) -> None:
         """Make `robot` a ROS 2 node (a `RobotManager.on_create` callback)."""
@@ -227,23 +209,7 @@ class Ros2Bridge:
 
     def from_zenoh(self, handler: Callable[[Any], Any]) -> Callable[[Any], None]:
         """A Zenoh callback that hands its argument to `handler` in trio."""
-
-        def callback(item: Any) -> None:
-            token = self._token
-            if token is None:
-                return
-            with contextlib.suppress(trio.RunFinishedError):
-                token.run_sync_soon(self._enqueue, (handler, item))
-
-        return callback
-
-    def _enqueue(self, entry: tuple[Callable[[Any], Any], Any]) -> None:
-        try:
-            self._send.send_nowait(entry)
-        except trio.WouldBlock:
-            self.dropped += 1
-        except trio.ClosedResourceError:
-            pass
+        return self._handoff.callback(handler)
 
     def _on_token(self, sample: Any) -> Awaitable[None] | None:
         """A liveliness token came or went: a commanding publisher that went is a lost
