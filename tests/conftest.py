@@ -105,37 +105,43 @@ async def manager() -> AsyncIterator[RobotManager]:
 #: keep the clock jumping). It fails at once instead of holding the run until mutmut's
 #: wall-clock bound. No test here needs more than a few minutes of virtual time.
 MUTANT_VIRTUAL_LIMIT = 3600.0
+#: The same for a test on the real clock (sockets, Zenoh, a simulated bus): none needs as long.
+MUTANT_REAL_LIMIT = 120.0
 
 
 class _HungTest(Exception):
-    """A test ran past MUTANT_VIRTUAL_LIMIT virtual seconds under a mutant."""
+    """A test ran past its bound under a mutant."""
 
 
-def _bounded(test: Callable[..., Awaitable[None]]) -> Callable[..., Awaitable[None]]:
+def _bounded(
+    test: Callable[..., Awaitable[None]], seconds: float
+) -> Callable[..., Awaitable[None]]:
     @functools.wraps(test)
     async def bounded(**kwargs: Any) -> None:
         try:
-            with trio.fail_after(MUTANT_VIRTUAL_LIMIT):
+            with trio.fail_after(seconds):
                 await test(**kwargs)
         except trio.TooSlowError:
-            raise _HungTest(f"past {MUTANT_VIRTUAL_LIMIT} virtual s: hung under a mutant") from None
+            raise _HungTest(f"past {seconds} s of its clock: hung under a mutant") from None
 
     return bounded
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
-    """Under a mutant (mutmut sets MUTANT_UNDER_TEST to its name), every async test on the
-    mock clock fails past MUTANT_VIRTUAL_LIMIT virtual seconds, except those marked `real_io`
-    (the clock jumps on while they wait for a thread or a process)."""
+    """Under a mutant (mutmut sets MUTANT_UNDER_TEST to its name), every async test fails past
+    MUTANT_VIRTUAL_LIMIT seconds of the mock clock, or MUTANT_REAL_LIMIT of the real one; tests
+    marked `real_io` wait for a thread or a process on the mock clock, which jumps on
+    meanwhile: they are left to mutmut's own bound."""
     if "__mutmut_" not in os.environ.get("MUTANT_UNDER_TEST", ""):
         return
     for item in items:
-        if not isinstance(item, pytest.Function) or "autojump_clock" not in item.fixturenames:
+        if not isinstance(item, pytest.Function) or not inspect.iscoroutinefunction(item.obj):
             continue
         if item.get_closest_marker("real_io"):
             continue
-        if inspect.iscoroutinefunction(item.obj):
-            item.obj = _bounded(item.obj)
+        virtual = {"autojump_clock", "mock_clock"} & set(item.fixturenames)
+        limit = MUTANT_VIRTUAL_LIMIT if virtual else MUTANT_REAL_LIMIT
+        item.obj = _bounded(item.obj, limit)
 
 
 @dataclass
