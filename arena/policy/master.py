@@ -13,9 +13,10 @@ autonomous: an e-stop detaches it, which cancels both tasks and stops the worker
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import trio
 
@@ -29,7 +30,7 @@ from arena.policy.features import (
     observed_state,
 )
 from arena.policy.process import PolicyProcess, WorkerError, WorkerGone
-from arena.policy.wire import Loaded, Observe
+from arena.policy.wire import Chunk, Loaded, Observe
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot.links import MasterLink
 from arena.robot.model import RobotModel
@@ -42,6 +43,19 @@ _FINAL_REFUSALS = frozenset({ErrorCode.ESTOPPED, ErrorCode.NOT_OWNER})
 
 #: The newest JPEG of each of the robot's cameras by name (None: no frame yet).
 CameraFrames = Callable[[], Mapping[str, bytes | None]]
+
+
+class Worker(Protocol):
+    """What the master needs of a policy worker (`PolicyProcess`; tests give a stand-in)."""
+
+    async def load(self, path: Path) -> Loaded:
+        """Load the policy; `WorkerError` with the reason if it cannot."""
+
+    async def act(self, observation: Observe) -> Chunk:
+        """The chunk for one observation; `WorkerGone` once the worker has ended."""
+
+    async def close(self) -> None:
+        """Stop the worker."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -82,11 +96,18 @@ class PolicyMaster:
     autonomous = True  # an e-stop ends it for good
     takes_over = False
 
-    def __init__(self, settings: PolicySettings, model: RobotModel, cameras: CameraFrames) -> None:
+    def __init__(
+        self,
+        settings: PolicySettings,
+        model: RobotModel,
+        cameras: CameraFrames,
+        start_worker: Callable[[], Awaitable[Worker]] = PolicyProcess.start,
+    ) -> None:
         self.settings = settings
         self.model = model
         self.cameras = cameras
-        self.process: PolicyProcess | None = None
+        self.start_worker = start_worker
+        self.process: Worker | None = None
         self.loaded: Loaded | None = None
         self.queue: ActionQueue | None = None
         self.counters = PolicyCounters()
@@ -117,7 +138,7 @@ class PolicyMaster:
     async def prepare(self) -> None:
         """Start the worker, load the policy and check it against the robot; POLICY_INVALID
         with the reason if the directory is not a policy or the robot cannot feed it."""
-        self.process = await PolicyProcess.start()
+        self.process = await self.start_worker()
         try:
             self.loaded = await self.process.load(self.settings.path)
             check_features(self.loaded, self.model, list(self.cameras()))
@@ -231,7 +252,7 @@ class PolicyMaster:
     # -- inference -------------------------------------------------------------------------------
 
     async def _infer(
-        self, link: MasterLink, process: PolicyProcess, queue: ActionQueue, loaded: Loaded
+        self, link: MasterLink, process: Worker, queue: ActionQueue, loaded: Loaded
     ) -> None:
         """Send an observation whenever the control loop says the queue is low."""
         period = 1.0 / self.settings.fps
