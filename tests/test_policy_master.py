@@ -14,7 +14,7 @@ import trio
 from trio.testing import MockClock
 
 from arena.policy.master import PolicyMaster, PolicySettings
-from arena.policy.process import WorkerGone
+from arena.policy.process import WorkerError, WorkerGone
 from arena.policy.wire import Chunk, Feature, Loaded, Observe
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot.events import CommandHandled, FaultReported, RobotEvent, TargetsSent
@@ -44,6 +44,7 @@ class FakeWorker:
         self.observations: list[tuple[float, Observe]] = []
         self.dead = trio.Event()
         self.closed = False
+        self.refuse: str | None = None  # answer every observation with this refusal
 
     async def load(self, path: Path) -> Loaded:
         return Loaded(
@@ -64,6 +65,8 @@ class FakeWorker:
             await self.dead.wait()
         if self.dead.is_set() or self.closed:
             raise WorkerGone("the worker has exited (code -9)")
+        if self.refuse is not None:
+            raise WorkerError(self.refuse)
         return Chunk(observation.timestep, tuple(self.actions(observation)), self.latency)
 
     def kill(self) -> None:
@@ -170,6 +173,23 @@ async def test_a_dead_worker_trips_the_watchdog_and_the_robot_is_handed_back(
     # The queue held at most a chunk (10 actions) when the worker died.
     assert faults[0].time - killed <= 12 * PERIOD
     assert robot.snapshot().master is None and worker.closed
+
+
+async def test_a_policy_that_refuses_every_observation_trips_the_watchdog_saying_why(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot, _ = await arm(manager)
+    worker = FakeWorker()
+    worker.refuse = "RuntimeError: mat1 and mat2 shapes cannot be multiplied"
+    with robot.subscribe(kinds=[CommandHandled, FaultReported]) as events:
+        master = await attach(robot, worker)
+        await trio.sleep(1.0)
+        seen = events.drain()
+    assert [type(e) for e in seen] == [FaultReported]
+    assert seen[0].code == ErrorCode.POLICY_STALLED and "mat1 and mat2" in seen[0].message
+    # Refused observations are retried once a period, never in a busy loop.
+    assert len(worker.observations) <= FPS + 1 and master.counters.sent == 0
+    assert robot.snapshot().owner == IDENTITY
 
 
 async def test_an_estop_stops_the_commands_at_once_and_the_inference(

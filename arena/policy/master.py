@@ -116,6 +116,9 @@ class PolicyMaster:
         self._failure: str | None = None  # the worker's last refusal or why it is gone
         self._worker_gone = False
         self._last_valid = True  # the last action passed the rules (a fault per run of bad ones)
+        # The watchdog waits for the worker's first answer (a chunk or a refusal): the first
+        # inference, which warms the policy up, is not a stall.
+        self._armed = False
 
     @property
     def identity(self) -> str:
@@ -176,7 +179,6 @@ class PolicyMaster:
     async def _control(self, link: MasterLink, queue: ActionQueue) -> None:
         period = 1.0 / self.settings.fps
         empty = 0
-        armed = False  # the watchdog waits for the first chunk: loading is not a stall
         tick = trio.current_time()
         while True:
             tick += period
@@ -188,14 +190,14 @@ class PolicyMaster:
             if queue.ready_for_observation():
                 self._wake.set()
             if item is None:
-                if armed or self._worker_gone:
+                if self._armed:
                     empty += 1
                 if empty == self.settings.stall_periods:
                     self._stalled(link, empty * period)
                 if empty >= self.settings.stall_periods and self._worker_gone:
                     return  # nothing more will come: hand the robot back, holding
                 continue
-            armed, empty = True, 0
+            empty = 0
             if not await self._step(link, item[1]):
                 return
 
@@ -277,6 +279,7 @@ class PolicyMaster:
                 chunk = await process.act(observation)
             except WorkerError as exc:
                 self._failure = str(exc)
+                self._armed = True
                 if isinstance(exc, WorkerGone):
                     self._worker_gone = True
                     return
@@ -284,6 +287,7 @@ class PolicyMaster:
                 self._wake.set()
                 continue
             self._failure = None
+            self._armed = True
             self.counters.inferences += 1
             self.counters.last_latency = chunk.latency
             queue.add_chunk(chunk.timestep, chunk.actions)

@@ -2,8 +2,8 @@
 
 The worker is `python -m arena.policy.worker`, a child process started with
 `trio.lowlevel.open_process` and pipes for stdin and stdout (its stderr is the parent's, for
-LeRobot's own logging). One request is in flight at a time. `close` ends it: stdin closed (the
-worker leaves its loop), then killed if it has not exited within `STOP_GRACE` seconds.
+LeRobot's own logging). One request is in flight at a time. `close` ends it: its stdin closed
+and the process killed. A worker whose parent dies sees its stdin end and exits by itself.
 """
 
 from __future__ import annotations
@@ -33,8 +33,8 @@ from arena.policy.wire import (
 
 #: Seconds a worker has to import torch and LeRobot and load the weights.
 LOAD_TIMEOUT = 180.0
-#: Seconds a stopping worker has to exit before it is killed.
-STOP_GRACE = 2.0
+#: Seconds to wait for a killed worker to be reaped.
+STOP_WAIT = 5.0
 
 
 class WorkerError(Exception):
@@ -130,13 +130,13 @@ class PolicyProcess:
         return "the worker has exited" + ("" if code is None else f" (code {code})")
 
     async def close(self) -> None:
-        """Stop the worker: its stdin closed, then killed after `STOP_GRACE` seconds."""
+        """Stop the worker at once: it holds nothing that needs a graceful end, and a worker in
+        the middle of an inference would not see its stdin close until the inference ends."""
         with trio.CancelScope(shield=True):
-            with contextlib.suppress(trio.BrokenResourceError):
+            with contextlib.suppress(trio.BrokenResourceError, trio.ClosedResourceError):
                 await self._stdin.aclose()
-            with trio.move_on_after(STOP_GRACE):
-                await self.process.wait()
             if self.process.poll() is None:
                 self.process.kill()
+            with trio.move_on_after(STOP_WAIT):
                 await self.process.wait()
             await self._stdout.aclose()

@@ -126,18 +126,17 @@ class LoadedPolicy:
         )
 
     def image(self, jpeg: bytes, shape: tuple[int, ...]) -> Any:
-        """A camera's JPEG as the (C, H, W) float tensor in [0, 1] the policy's feature asks."""
-        from io import BytesIO
-
-        from PIL import Image
+        """A camera's JPEG as the (C, H, W) float tensor in [0, 1] the policy's feature asks
+        (decoded and scaled by FFmpeg through PyAV, Arena's own JPEG codec)."""
+        import av
 
         _, height, width = shape
-        with Image.open(BytesIO(jpeg)) as picture:
-            rgb = picture.convert("RGB")
-            if rgb.size != (width, height):
-                rgb = rgb.resize((width, height), Image.Resampling.BILINEAR)
-            pixels = self.torch.frombuffer(bytearray(rgb.tobytes()), dtype=self.torch.uint8)
-        return pixels.view(height, width, 3).permute(2, 0, 1).float() / 255.0
+        codec = av.CodecContext.create("mjpeg", "r")
+        frames = codec.decode(av.Packet(jpeg))
+        if len(frames) != 1:
+            raise ValueError("a camera frame is not one JPEG image")
+        rgb = frames[0].reformat(width=width, height=height, format="rgb24").to_ndarray()
+        return self.torch.from_numpy(rgb).permute(2, 0, 1).float() / 255.0
 
     def act(self, observation: Observe) -> Chunk:
         """The action chunk for one observation, in LeRobot's units."""
@@ -150,7 +149,7 @@ class LoadedPolicy:
             elif name.startswith(IMAGE_PREFIX):
                 jpeg = observation.images.get(name.removeprefix(IMAGE_PREFIX))
                 if jpeg is None:
-                    raise PolicyDirectoryError(f"the observation has no image for {name}")
+                    raise ValueError(f"the observation has no image for {name}")
                 batch[name] = self.image(jpeg, tuple(feature.shape))
         with torch.inference_mode():
             chunk = self.policy.predict_action_chunk(self.pre(batch))
