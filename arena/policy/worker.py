@@ -131,7 +131,7 @@ class LoadedPolicy:
         import av
 
         _, height, width = shape
-        codec = av.CodecContext.create("mjpeg", "r")
+        codec: Any = av.CodecContext.create("mjpeg", "r")
         frames = codec.decode(av.Packet(jpeg))
         if len(frames) != 1:
             raise ValueError("a camera frame is not one JPEG image")
