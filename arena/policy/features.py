@@ -64,15 +64,11 @@ def _check_image(feature: Feature, cameras: Collection[str]) -> None:
         )
 
 
-def observed_state(model: RobotModel, snapshot: RobotSnapshot) -> tuple[float, ...]:
-    """`observation.state`: each joint's measured value (its target while no slave has
-    measured it) in LeRobot's units, in servo order."""
-    values = []
-    for joint in model.joints:
-        seen = snapshot.joint(joint.name)
-        value = seen.real_value if seen.real_value is not None else seen.virtual_value
-        values.append(to_dataset(joint, value))
-    return tuple(values)
+def lerobot_state(model: RobotModel, values: Sequence[float]) -> tuple[float, ...]:
+    """`observation.state`: measured values (Arena's units, servo order) in LeRobot's."""
+    return tuple(
+        to_dataset(joint, value) for joint, value in zip(model.joints, values, strict=True)
+    )
 
 
 def measured(model: RobotModel, snapshot: RobotSnapshot) -> tuple[float, ...]:

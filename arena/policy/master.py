@@ -26,15 +26,15 @@ from arena.policy.features import (
     action_targets,
     camera_images,
     check_features,
+    lerobot_state,
     measured,
-    observed_state,
 )
 from arena.policy.process import PolicyProcess, WorkerError, WorkerGone
 from arena.policy.wire import Chunk, Loaded, Observe
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot.links import MasterLink
 from arena.robot.model import RobotModel
-from arena.robot.motion import Command, JointGoal
+from arena.robot.motion import Command, CommandResult, JointGoal
 
 log = logging.getLogger(__name__)
 
@@ -43,6 +43,40 @@ _FINAL_REFUSALS = frozenset({ErrorCode.ESTOPPED, ErrorCode.NOT_OWNER})
 
 #: The newest JPEG of each of the robot's cameras by name (None: no frame yet).
 CameraFrames = Callable[[], Mapping[str, bytes | None]]
+
+
+class Arm(Protocol):
+    """The robot as a running policy sees it: a master's link here (`LinkArm`), a master's
+    session over the API on another machine (`arena.policy.remote`)."""
+
+    def measured(self) -> tuple[float, ...]:
+        """Each joint's measured value (else its target), Arena's units, in servo order."""
+
+    async def command(self, command: Command) -> CommandResult:
+        """Send one command as the master; its answer."""
+
+    def fault(self, source: str, code: ErrorCode, message: str, severity: Severity) -> None:
+        """Report a fault of the policy."""
+
+
+class LinkArm:
+    """`Arm` over a master's link to a robot of this server."""
+
+    def __init__(self, link: MasterLink, model: RobotModel) -> None:
+        self.link = link
+        self.model = model
+
+    def measured(self) -> tuple[float, ...]:
+        """See `Arm.measured`."""
+        return measured(self.model, self.link.robot.snapshot())
+
+    async def command(self, command: Command) -> CommandResult:
+        """See `Arm.command`."""
+        return await self.link.command(command)
+
+    def fault(self, source: str, code: ErrorCode, message: str, severity: Severity) -> None:
+        """Recorded and shown as a camera's faults are; never an e-stop by itself."""
+        self.link.robot.report_sensor_fault(source, code, message, severity)
 
 
 class Worker(Protocol):
@@ -164,19 +198,24 @@ class PolicyMaster:
 
     async def run(self, link: MasterLink) -> None:
         """Drive the robot until an e-stop, a detach, or the worker's end."""
+        await self.drive(LinkArm(link, self.model))
+
+    async def drive(self, arm: Arm) -> None:
+        """Drive `arm` until the robot stops the policy for good or the worker ends; the
+        worker is stopped on the way out."""
         if self.process is None or self.queue is None or self.loaded is None:
-            raise RuntimeError("PolicyMaster.run before prepare")
+            raise RuntimeError("PolicyMaster.drive before prepare")
         try:
             async with trio.open_nursery() as nursery:
-                nursery.start_soon(self._infer, link, self.process, self.queue, self.loaded)
-                await self._control(link, self.queue)
+                nursery.start_soon(self._infer, arm, self.process, self.queue, self.loaded)
+                await self._control(arm, self.queue)
                 nursery.cancel_scope.cancel()
         finally:
             await self.close()
 
     # -- the control loop ------------------------------------------------------------------------
 
-    async def _control(self, link: MasterLink, queue: ActionQueue) -> None:
+    async def _control(self, arm: Arm, queue: ActionQueue) -> None:
         period = 1.0 / self.settings.fps
         empty = 0
         tick = trio.current_time()
@@ -193,41 +232,40 @@ class PolicyMaster:
                 if self._armed:
                     empty += 1
                 if empty == self.settings.stall_periods:
-                    self._stalled(link, empty * period)
+                    self._stalled(arm, empty * period)
                 if empty >= self.settings.stall_periods and self._worker_gone:
                     return  # nothing more will come: hand the robot back, holding
                 continue
             empty = 0
-            if not await self._step(link, item[1]):
+            if not await self._step(arm, item[1]):
                 return
 
-    def _stalled(self, link: MasterLink, waited: float) -> None:
+    def _stalled(self, arm: Arm, waited: float) -> None:
         """The watchdog: no action was due for `stall_periods` periods; the robot holds."""
         self.counters.stalls += 1
         why = self._failure or "inference is slower than the policy's fps"
         self._fault(
-            link,
+            arm,
             ErrorCode.POLICY_STALLED,
             f"No action due for {waited * 1000:.0f} ms ({why}): the robot holds where it is.",
             Severity.WARNING,
         )
 
-    async def _step(self, link: MasterLink, action: tuple[float, ...]) -> bool:
+    async def _step(self, arm: Arm, action: tuple[float, ...]) -> bool:
         """One action through the policy rules, then as a command; False once the robot has
         stopped the policy for good."""
-        snapshot = link.robot.snapshot()
         names = [joint.name for joint in self.model.joints]
         check = check_step(
             names,
             action_targets(self.model, action),
-            measured(self.model, snapshot),
+            arm.measured(),
             self.settings.max_relative_target,
         )
         if check.invalid is not None:
             self.counters.invalid += 1
             if self.counters.invalid == 1 or self._last_valid:
                 self._fault(
-                    link,
+                    arm,
                     ErrorCode.POLICY_OUTPUT_INVALID,
                     f"An action was refused: {check.invalid}; nothing of it was sent.",
                     Severity.ERROR,
@@ -240,22 +278,20 @@ class PolicyMaster:
             tuple(JointGoal(name, value) for name, value in check.targets.items()),
             source=self.identity,
         )
-        result = await link.command(command)
+        result = await arm.command(command)
         if result.accepted:
             self.counters.sent += 1
             return True
         self.refusals.append((result.code, result.message))
         return result.code not in _FINAL_REFUSALS
 
-    def _fault(self, link: MasterLink, code: ErrorCode, message: str, severity: Severity) -> None:
+    def _fault(self, arm: Arm, code: ErrorCode, message: str, severity: Severity) -> None:
         log.warning("policy %s: %s: %s", self.identity, code, message)
-        link.robot.report_sensor_fault(self.identity, code, message, severity)
+        arm.fault(self.identity, code, message, severity)
 
     # -- inference -------------------------------------------------------------------------------
 
-    async def _infer(
-        self, link: MasterLink, process: Worker, queue: ActionQueue, loaded: Loaded
-    ) -> None:
+    async def _infer(self, arm: Arm, process: Worker, queue: ActionQueue, loaded: Loaded) -> None:
         """Send an observation whenever the control loop says the queue is low."""
         period = 1.0 / self.settings.fps
         self._wake.set()  # the first observation goes at once
@@ -271,7 +307,7 @@ class PolicyMaster:
             step = queue.observation_step
             observation = Observe(
                 step,
-                observed_state(self.model, link.robot.snapshot()),
+                lerobot_state(self.model, arm.measured()),
                 images,
                 self.settings.task,
             )
