@@ -10,6 +10,7 @@ from pathlib import Path
 import msgspec
 import pytest
 
+from arena.policy import process
 from arena.policy.actions import ActionQueue, check_step
 from arena.policy.features import action_targets, check_features
 from arena.policy.wire import (
@@ -168,3 +169,10 @@ def test_a_processor_step_that_names_a_class_is_never_loaded(tmp_path: Path) -> 
         folder = write_policy(tmp_path / f"bad{index}", step)  # type: ignore[arg-type]
         with pytest.raises(PolicyDirectoryError, match="registered steps"):
             check_directory(folder)
+
+
+async def test_workers_are_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(process, "MAX_WORKERS", 0)
+    with pytest.raises(ArenaError) as refused:
+        await process.PolicyProcess.start()
+    assert refused.value.code is ErrorCode.OVERLOADED and "at most 0" in refused.value.message

@@ -13,6 +13,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import ClassVar
 
 import trio
 
@@ -30,9 +31,12 @@ from arena.policy.wire import (
     encode,
     frame_length,
 )
+from arena.protocol.errors import ArenaError, ErrorCode
 
 #: Seconds a worker has to import torch and LeRobot and load the weights.
 LOAD_TIMEOUT = 180.0
+#: Workers one process runs at most (each holds a policy's weights and torch: hundreds of MB).
+MAX_WORKERS = 4
 #: Seconds to wait for a killed worker to be reaped.
 STOP_WAIT = 5.0
 
@@ -48,6 +52,9 @@ class WorkerGone(WorkerError):
 class PolicyProcess:
     """One worker process and the policy it holds."""
 
+    #: The workers started and not yet closed, all of this process's (bounded by MAX_WORKERS).
+    live: ClassVar[set[PolicyProcess]] = set()
+
     def __init__(self, process: trio.Process) -> None:
         self.process = process
         assert process.stdin is not None and process.stdout is not None
@@ -59,7 +66,14 @@ class PolicyProcess:
 
     @classmethod
     async def start(cls) -> PolicyProcess:
-        """Start a worker (it imports nothing heavy until asked to load)."""
+        """Start a worker (it imports nothing heavy until asked to load); OVERLOADED when
+        `MAX_WORKERS` run already."""
+        if len(cls.live) >= MAX_WORKERS:
+            raise ArenaError(
+                ErrorCode.OVERLOADED,
+                f"{len(cls.live)} policies run or load already (at most {MAX_WORKERS}): "
+                "detach one first.",
+            )
         env = dict(os.environ)
         # The worker imports the same `arena` as this process, wherever it was found.
         root = str(Path(arena.__file__).resolve().parent.parent)
@@ -70,7 +84,9 @@ class PolicyProcess:
             stdout=subprocess.PIPE,
             env=env,
         )
-        return cls(process)
+        worker = cls(process)
+        cls.live.add(worker)
+        return worker
 
     @property
     def pid(self) -> int:
@@ -132,6 +148,7 @@ class PolicyProcess:
     async def close(self) -> None:
         """Stop the worker at once: it holds nothing that needs a graceful end, and a worker in
         the middle of an inference would not see its stdin close until the inference ends."""
+        PolicyProcess.live.discard(self)
         with trio.CancelScope(shield=True):
             with contextlib.suppress(trio.BrokenResourceError, trio.ClosedResourceError):
                 await self._stdin.aclose()
