@@ -302,3 +302,19 @@ async def test_arena_policy_drives_a_robot_over_the_public_api_until_an_estop(
             with trio.fail_after(WAIT):
                 await done.wait()
     assert ran[0].counters.sent >= 10 and workers() == []
+
+
+async def test_without_lerobot_a_policy_master_is_not_installed(
+    start_server: Start, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == "lerobot" else real(name, *a)
+    )
+    server = await start_server(demo=True)
+    answer = await attach(server, tmp_path)
+    assert answer.status_code == 501, answer.text
+    assert "pip install 'arena[lerobot]'" in answer.json()["error"]["message"]
+    assert workers() == []

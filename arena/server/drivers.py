@@ -4,6 +4,7 @@ validated body into the driver's own config (`drivers/config.py`): no driver see
 
 from __future__ import annotations
 
+import importlib.util
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -12,6 +13,7 @@ from arena.drivers.config import RemoteLinkConfig, UsbMasterConfig, UsbSlaveConf
 from arena.drivers.mock_slave import MockSlave, MockSlaveConfig
 from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import demo_sequences, get_sequence
+from arena.extras import install_line
 from arena.feetech.lerobot_calibration import is_lerobot_reference
 from arena.feetech.lerobot_calibration import resolve as resolve_lerobot
 from arena.policy.master import CameraFrames, PolicyMaster, PolicySettings
@@ -186,6 +188,12 @@ def _policy(
 ) -> PolicyMaster:
     if model is None:
         raise ArenaError(ErrorCode.INVALID_CONFIG, "A policy master needs the robot's model.")
+    # Looked for, not imported: LeRobot and torch belong in the worker, never in the server.
+    if importlib.util.find_spec("lerobot") is None:
+        raise ArenaError(
+            ErrorCode.NOT_INSTALLED,
+            f"A policy master needs LeRobot, which is not installed: {install_line('lerobot')}",
+        )
     settings = PolicySettings(
         path=Path(body.path),
         task=body.task,
