@@ -89,6 +89,10 @@ class ErrorCode(enum.StrEnum):
     # Recordings
     INVALID_RECORDING = "INVALID_RECORDING"
     UNKNOWN_RECORDING = "UNKNOWN_RECORDING"
+    # Policies as masters (specs/policy.md)
+    POLICY_INVALID = "POLICY_INVALID"  # not a policy, or one the robot cannot feed
+    POLICY_OUTPUT_INVALID = "POLICY_OUTPUT_INVALID"  # fault: an action that is not finite
+    POLICY_STALLED = "POLICY_STALLED"  # fault (warning): no action due for two periods
 
 
 class ArenaError(Exception):

@@ -208,7 +208,36 @@ class UsbMasterBody(
     takeover: bool = False
 
 
-MasterBody: TypeAlias = SequenceMasterBody | ReplayMasterBody | UsbMasterBody | RemoteServerBody
+class PolicyMasterBody(
+    msgspec.Struct,
+    tag="policy",
+    tag_field="type",
+    omit_defaults=True,
+    forbid_unknown_fields=True,
+):
+    """A LeRobot 0.4 policy saved in the server's directory `path`, run as the master in a
+    worker process (specs/policy.md). LeRobot's names for LeRobot's settings:
+    `actions_per_chunk` (default: the policy's chunk length), `chunk_size_threshold`,
+    `aggregate_fn_name`; `max_relative_target`: the step limit in degrees (null: off);
+    `stall_periods`: control periods without an action before the watchdog trips; `takeover`:
+    displace the robot's master (else MASTER_ACTIVE while it has one)."""
+
+    path: Annotated[str, msgspec.Meta(min_length=1, max_length=4096)]
+    task: Annotated[str, msgspec.Meta(max_length=1000)] = ""
+    fps: Annotated[float, msgspec.Meta(ge=1, le=200)] = 30.0
+    actions_per_chunk: Annotated[int, msgspec.Meta(ge=1, le=10_000)] | None = None
+    chunk_size_threshold: Annotated[float, msgspec.Meta(ge=0, le=1)] = 0.5
+    aggregate_fn_name: Literal["weighted_average", "latest_only", "average", "conservative"] = (
+        "weighted_average"
+    )
+    max_relative_target: Annotated[float, msgspec.Meta(gt=0, le=360)] | None = 10.0
+    stall_periods: Annotated[int, msgspec.Meta(ge=1, le=1000)] = 2
+    takeover: bool = False
+
+
+MasterBody: TypeAlias = (
+    SequenceMasterBody | ReplayMasterBody | UsbMasterBody | RemoteServerBody | PolicyMasterBody
+)
 
 
 #: A group id: like a robot id.

@@ -59,6 +59,12 @@ class RobotView(Protocol):
     async def reset(self) -> safety.Outcome:
         """Leave the e-stop."""
 
+    def report_sensor_fault(
+        self, sensor_id: str, code: str, message: str, severity: Severity
+    ) -> None:
+        """Report a fault of something that is not a slave (a camera, a policy): seen and
+        recorded, it never stops the robot."""
+
 
 class RobotPort(Protocol):
     """The ways into the robot that a link uses, given to it by the robot."""

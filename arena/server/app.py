@@ -49,7 +49,7 @@ from arena.server.base import (
 from arena.server.calibration_api import blueprint as calibration_blueprint
 from arena.server.config import ServerConfig
 from arena.server.dashboard import blueprint as dashboard_blueprint
-from arena.server.drivers import attach_rest_master, make_master, make_slave
+from arena.server.drivers import attach_rest_master, camera_frames, make_master, make_slave
 from arena.server.fleet_api import blueprint as fleet_blueprint
 from arena.server.groups_api import blueprint as groups_blueprint
 from arena.server.health import blueprint as health_blueprint
@@ -443,6 +443,7 @@ def _register_routes(app: ArenaApp) -> None:
             robot.model,
             Path(app.arena_config.calibration_dir),
             robot_id,
+            camera_frames(app.cameras, robot_id),
         )
         prepare = getattr(driver, "prepare", None)
         if prepare is not None:

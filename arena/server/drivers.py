@@ -4,6 +4,7 @@ validated body into the driver's own config (`drivers/config.py`): no driver see
 
 from __future__ import annotations
 
+import importlib.util
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -12,13 +13,16 @@ from arena.drivers.config import RemoteLinkConfig, UsbMasterConfig, UsbSlaveConf
 from arena.drivers.mock_slave import MockSlave, MockSlaveConfig
 from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import demo_sequences, get_sequence
+from arena.extras import install_line
 from arena.feetech.lerobot_calibration import is_lerobot_reference
 from arena.feetech.lerobot_calibration import resolve as resolve_lerobot
+from arena.policy.master import CameraFrames, PolicyMaster, PolicySettings
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import (
     MasterBody,
     MockSlaveBody,
     PhysicsSlaveBody,
+    PolicyMasterBody,
     RemoteLinkBody,
     RemoteServerBody,
     ReplayMasterBody,
@@ -34,13 +38,14 @@ from arena.recording.replay import ReplayMaster, pick_robot, recorded_commands
 from arena.robot.handle import Robot
 from arena.robot.links import MasterDriver, SlaveDriver
 from arena.robot.model import RobotModel
+from arena.sensors.camera import Cameras
 
 
 async def attach_rest_master(robot: Robot, driver: MasterDriver) -> str:
     """Attach a master asked for over REST; a refusal because the robot has a master says
     which field asks for takeover."""
     try:
-        return await robot.attach_master(driver)
+        return await robot.attach_master(driver, master_id=getattr(driver, "master_id", None))
     except ArenaError as error:
         if error.code is ErrorCode.MASTER_ACTIVE:
             raise ArenaError(
@@ -166,17 +171,55 @@ def _replay(body: ReplayMasterBody, recordings: Path) -> ReplayMaster:
     return ReplayMaster(commands, speed=body.speed, loop=body.loop, name=body.recording)
 
 
+def camera_frames(cameras: Cameras, robot_id: str) -> CameraFrames:
+    """The newest JPEG of each camera of robot `robot_id`, as a policy master reads them."""
+
+    def frames() -> dict[str, bytes | None]:
+        return {
+            camera.spec.name: None if camera.latest is None else camera.latest.jpeg
+            for camera in cameras.of(robot_id)
+        }
+
+    return frames
+
+
+def _policy(
+    body: PolicyMasterBody, model: RobotModel | None, cameras: CameraFrames
+) -> PolicyMaster:
+    if model is None:
+        raise ArenaError(ErrorCode.INVALID_CONFIG, "A policy master needs the robot's model.")
+    # Looked for, not imported: LeRobot and torch belong in the worker, never in the server.
+    if importlib.util.find_spec("lerobot") is None:
+        raise ArenaError(
+            ErrorCode.NOT_INSTALLED,
+            f"A policy master needs LeRobot, which is not installed: {install_line('lerobot')}",
+        )
+    settings = PolicySettings(
+        path=Path(body.path),
+        task=body.task,
+        fps=body.fps,
+        actions_per_chunk=body.actions_per_chunk,
+        chunk_size_threshold=body.chunk_size_threshold,
+        aggregate_fn_name=body.aggregate_fn_name,
+        max_relative_target=body.max_relative_target,
+        stall_periods=body.stall_periods,
+    )
+    return PolicyMaster(settings, model, cameras)
+
+
 def make_master(
     body: MasterBody,
     recordings: Path | None = None,
     model: RobotModel | None = None,
     calibration_dir: Path | None = None,
     robot_id: str = "robot",
+    cameras: CameraFrames = dict,
 ) -> MasterDriver:
     """Build a master driver from its config (`recordings`: where replay finds its files;
-    a leader arm's calibration is `calibration_dir/<name>.json`, default `<robot_id>-leader`).
-    It takes over from the robot's master only if the config asks (`takeover`)."""
-    driver = _master(body, recordings, model, calibration_dir, robot_id)
+    a leader arm's calibration is `calibration_dir/<name>.json`, default `<robot_id>-leader`;
+    `cameras`: the robot's newest frames, for a policy). It takes over from the robot's master
+    only if the config asks (`takeover`)."""
+    driver = _master(body, recordings, model, calibration_dir, robot_id, cameras)
     driver.takes_over = body.takeover
     return driver
 
@@ -187,7 +230,10 @@ def _master(
     model: RobotModel | None,
     calibration_dir: Path | None,
     robot_id: str,
+    cameras: CameraFrames,
 ) -> MasterDriver:
+    if isinstance(body, PolicyMasterBody):
+        return _policy(body, model, cameras)
     if isinstance(body, UsbMasterBody):
         from arena.drivers.usb_master import UsbMaster
 

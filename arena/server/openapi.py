@@ -19,6 +19,7 @@ from arena.protocol.rest import (
     MasterBody,
     MockSlaveBody,
     PhysicsSlaveBody,
+    PolicyMasterBody,
     ReasonBody,
     RemoteServerBody,
     ReplayBody,
@@ -190,6 +191,12 @@ EXAMPLES: dict[type, dict[str, Any]] = {
     SequenceMasterBody: {"type": "mock-sequence", "sequences": ["gentle-wave"], "loop": True},
     ReplayMasterBody: {"type": "replay", "recording": "session.mcap", "speed": 2.0},
     UsbMasterBody: {"type": "usb-master", "port": "/dev/ttyUSB1", "deadband": 0.5},
+    PolicyMasterBody: {
+        "type": "policy",
+        "path": "outputs/train/act_cube/checkpoints/last/pretrained_model",
+        "task": "pick up the cube",
+        "fps": 30,
+    },
     RemoteServerBody: {
         "type": "remote-server",
         "url": "ws://localhost:8080",

@@ -1,0 +1,329 @@
+"""A LeRobot policy as a robot's master: observations from what Arena measures go to a worker
+process, its action chunks come back into LeRobot's async-inference queue, and one action a
+control period leaves the queue as a command, through the policy rules and then every rule a
+master's command meets (specs/policy.md).
+
+Two tasks run while the master holds the robot. The control loop ticks at `fps`: it takes the
+next action off the queue, checks it (finite values, the step limit), commands it, and trips
+the watchdog when no action was due for `stall_periods` ticks. The inference task sends an
+observation whenever the queue runs low and merges the chunk that comes back. The master is
+autonomous: an e-stop detaches it, which cancels both tasks and stops the worker.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Awaitable, Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import trio
+
+from arena.drivers.refusals import Refusals
+from arena.policy.actions import ActionQueue, check_step
+from arena.policy.features import (
+    action_targets,
+    camera_images,
+    check_features,
+    lerobot_state,
+    measured,
+)
+from arena.policy.process import PolicyProcess, WorkerError, WorkerGone
+from arena.policy.wire import Chunk, Loaded, Observe
+from arena.protocol.errors import ArenaError, ErrorCode, Severity
+from arena.robot.links import MasterLink
+from arena.robot.model import RobotModel
+from arena.robot.motion import Command, CommandResult, JointGoal
+
+log = logging.getLogger(__name__)
+
+#: Refusals after which the policy stops for good (it never resumes by itself).
+_FINAL_REFUSALS = frozenset({ErrorCode.ESTOPPED, ErrorCode.NOT_OWNER})
+
+#: The newest JPEG of each of the robot's cameras by name (None: no frame yet).
+CameraFrames = Callable[[], Mapping[str, bytes | None]]
+
+
+class Arm(Protocol):
+    """The robot as a running policy sees it: a master's link here (`LinkArm`), a master's
+    session over the API on another machine (`arena.policy.remote`)."""
+
+    def measured(self) -> tuple[float, ...]:
+        """Each joint's measured value (else its target), Arena's units, in servo order."""
+
+    async def command(self, command: Command) -> CommandResult:
+        """Send one command as the master; its answer."""
+
+    def fault(self, source: str, code: ErrorCode, message: str, severity: Severity) -> None:
+        """Report a fault of the policy."""
+
+
+class LinkArm:
+    """`Arm` over a master's link to a robot of this server."""
+
+    def __init__(self, link: MasterLink, model: RobotModel) -> None:
+        self.link = link
+        self.model = model
+
+    def measured(self) -> tuple[float, ...]:
+        """See `Arm.measured`."""
+        return measured(self.model, self.link.robot.snapshot())
+
+    async def command(self, command: Command) -> CommandResult:
+        """See `Arm.command`."""
+        return await self.link.command(command)
+
+    def fault(self, source: str, code: ErrorCode, message: str, severity: Severity) -> None:
+        """Recorded and shown as a camera's faults are; never an e-stop by itself."""
+        self.link.robot.report_sensor_fault(source, code, message, severity)
+
+
+class Worker(Protocol):
+    """What the master needs of a policy worker (`PolicyProcess`; tests give a stand-in)."""
+
+    async def load(self, path: Path) -> Loaded:
+        """Load the policy; `WorkerError` with the reason if it cannot."""
+
+    async def act(self, observation: Observe) -> Chunk:
+        """The chunk for one observation; `WorkerGone` once the worker has ended."""
+
+    async def close(self) -> None:
+        """Stop the worker."""
+
+
+@dataclass(frozen=True, slots=True)
+class PolicySettings:
+    """How a policy runs. LeRobot's names where LeRobot has the setting: `actions_per_chunk`
+    (None: the policy's chunk length), `chunk_size_threshold`, `aggregate_fn_name`,
+    `max_relative_target` (the step limit: degrees a target may lie from the measured position;
+    None: off). `stall_periods`: control periods without an action that trip the watchdog."""
+
+    path: Path
+    task: str = ""
+    fps: float = 30.0
+    actions_per_chunk: int | None = None
+    chunk_size_threshold: float = 0.5
+    aggregate_fn_name: str = "weighted_average"
+    max_relative_target: float | None = 10.0
+    stall_periods: int = 2
+
+
+@dataclass(slots=True)
+class PolicyCounters:
+    """What a running policy has done, for its report and the tests."""
+
+    inferences: int = 0
+    sent: int = 0  # commands the robot accepted
+    clamped: int = 0  # joint targets the step limit clamped
+    invalid: int = 0  # actions refused for a value that is not finite
+    stalls: int = 0  # times the watchdog tripped
+    last_latency: float = 0.0  # seconds, the worker's own measure of its last inference
+
+
+class PolicyMaster:
+    """Runs the policy in `settings.path` on a robot of `model`, with camera frames from
+    `cameras`. `prepare` starts the worker and loads and checks the policy (the REST call
+    answers only after it); `run` drives the robot; `close` stops the worker."""
+
+    kind = "policy"
+    autonomous = True  # an e-stop ends it for good
+    takes_over = False
+
+    def __init__(
+        self,
+        settings: PolicySettings,
+        model: RobotModel,
+        cameras: CameraFrames,
+        start_worker: Callable[[], Awaitable[Worker]] = PolicyProcess.start,
+    ) -> None:
+        self.settings = settings
+        self.model = model
+        self.cameras = cameras
+        self.start_worker = start_worker
+        self.process: Worker | None = None
+        self.loaded: Loaded | None = None
+        self.queue: ActionQueue | None = None
+        self.counters = PolicyCounters()
+        self.refusals = Refusals()
+        self._wake = trio.Event()
+        self._failure: str | None = None  # the worker's last refusal or why it is gone
+        self._worker_gone = False
+        self._last_valid = True  # the last action passed the rules (a fault per run of bad ones)
+        # The watchdog waits for the worker's first answer (a chunk or a refusal): the first
+        # inference, which warms the policy up, is not a stall.
+        self._armed = False
+
+    @property
+    def identity(self) -> str:
+        """`policy:<type>:<checkpoint>`, the source of its commands (once loaded)."""
+        if self.loaded is None:
+            return "policy"
+        return f"policy:{self.loaded.policy_type}:{self.loaded.checkpoint}"
+
+    @property
+    def master_id(self) -> str:
+        """The id it holds the robot under: its identity."""
+        return self.identity
+
+    @property
+    def description(self) -> str:
+        """What it is, in words: its identity and task."""
+        task = f" ({self.settings.task!r})" if self.settings.task else ""
+        return f"{self.identity}{task} at {self.settings.fps:g} fps"
+
+    async def prepare(self) -> None:
+        """Start the worker, load the policy and check it against the robot; POLICY_INVALID
+        with the reason if the directory is not a policy or the robot cannot feed it."""
+        self.process = await self.start_worker()
+        try:
+            self.loaded = await self.process.load(self.settings.path)
+            check_features(self.loaded, self.model, list(self.cameras()))
+            chunk = self.settings.actions_per_chunk or self.loaded.chunk_size
+            self.queue = ActionQueue(
+                chunk, self.settings.chunk_size_threshold, self.settings.aggregate_fn_name
+            )
+        except WorkerError as exc:
+            await self.close()
+            raise ArenaError(ErrorCode.POLICY_INVALID, f"{self.settings.path}: {exc}.") from None
+        except BaseException:
+            await self.close()
+            raise
+        log.info("policy %s loaded in %.1f s", self.identity, self.loaded.seconds)
+
+    async def close(self) -> None:
+        """Stop the worker (nothing to do if it never started)."""
+        if self.process is not None:
+            await self.process.close()
+
+    async def run(self, link: MasterLink) -> None:
+        """Drive the robot until an e-stop, a detach, or the worker's end."""
+        await self.drive(LinkArm(link, self.model))
+
+    async def drive(self, arm: Arm) -> None:
+        """Drive `arm` until the robot stops the policy for good or the worker ends; the
+        worker is stopped on the way out."""
+        if self.process is None or self.queue is None or self.loaded is None:
+            raise RuntimeError("PolicyMaster.drive before prepare")
+        try:
+            async with trio.open_nursery() as nursery:
+                nursery.start_soon(self._infer, arm, self.process, self.queue, self.loaded)
+                await self._control(arm, self.queue)
+                nursery.cancel_scope.cancel()
+        finally:
+            await self.close()
+
+    # -- the control loop ------------------------------------------------------------------------
+
+    async def _control(self, arm: Arm, queue: ActionQueue) -> None:
+        period = 1.0 / self.settings.fps
+        empty = 0
+        tick = trio.current_time()
+        while True:
+            tick += period
+            now = trio.current_time()
+            if tick < now - period:
+                tick = now  # fell behind (a busy machine): no burst of late steps
+            await trio.sleep_until(tick)
+            item = queue.next_action()
+            if queue.ready_for_observation():
+                self._wake.set()
+            if item is None:
+                if self._armed:
+                    empty += 1
+                if empty == self.settings.stall_periods:
+                    self._stalled(arm, empty * period)
+                if empty >= self.settings.stall_periods and self._worker_gone:
+                    return  # nothing more will come: hand the robot back, holding
+                continue
+            empty = 0
+            if not await self._step(arm, item[1]):
+                return
+
+    def _stalled(self, arm: Arm, waited: float) -> None:
+        """The watchdog: no action was due for `stall_periods` periods; the robot holds."""
+        self.counters.stalls += 1
+        why = self._failure or "inference is slower than the policy's fps"
+        self._fault(
+            arm,
+            ErrorCode.POLICY_STALLED,
+            f"No action due for {waited * 1000:.0f} ms ({why}): the robot holds where it is.",
+            Severity.WARNING,
+        )
+
+    async def _step(self, arm: Arm, action: tuple[float, ...]) -> bool:
+        """One action through the policy rules, then as a command; False once the robot has
+        stopped the policy for good."""
+        names = [joint.name for joint in self.model.joints]
+        check = check_step(
+            names,
+            action_targets(self.model, action),
+            arm.measured(),
+            self.settings.max_relative_target,
+        )
+        if check.invalid is not None:
+            self.counters.invalid += 1
+            if self.counters.invalid == 1 or self._last_valid:
+                self._fault(
+                    arm,
+                    ErrorCode.POLICY_OUTPUT_INVALID,
+                    f"An action was refused: {check.invalid}; nothing of it was sent.",
+                    Severity.ERROR,
+                )
+            self._last_valid = False
+            return True
+        self._last_valid = True
+        self.counters.clamped += len(check.clamped)
+        command = Command(
+            tuple(JointGoal(name, value) for name, value in check.targets.items()),
+            source=self.identity,
+        )
+        result = await arm.command(command)
+        if result.accepted:
+            self.counters.sent += 1
+            return True
+        self.refusals.append((result.code, result.message))
+        return result.code not in _FINAL_REFUSALS
+
+    def _fault(self, arm: Arm, code: ErrorCode, message: str, severity: Severity) -> None:
+        log.warning("policy %s: %s: %s", self.identity, code, message)
+        arm.fault(self.identity, code, message, severity)
+
+    # -- inference -------------------------------------------------------------------------------
+
+    async def _infer(self, arm: Arm, process: Worker, queue: ActionQueue, loaded: Loaded) -> None:
+        """Send an observation whenever the control loop says the queue is low."""
+        period = 1.0 / self.settings.fps
+        self._wake.set()  # the first observation goes at once
+        while True:
+            await self._wake.wait()
+            self._wake = trio.Event()
+            images, missing = camera_images(self.cameras(), loaded)
+            if missing:
+                self._failure = f"no frame yet from camera {', '.join(missing)}"
+                await trio.sleep(period)
+                self._wake.set()
+                continue
+            step = queue.observation_step
+            observation = Observe(
+                step,
+                lerobot_state(self.model, arm.measured()),
+                images,
+                self.settings.task,
+            )
+            try:
+                chunk = await process.act(observation)
+            except WorkerError as exc:
+                self._failure = str(exc)
+                self._armed = True
+                if isinstance(exc, WorkerGone):
+                    self._worker_gone = True
+                    return
+                await trio.sleep(period)  # the policy failed this once: try again, paced
+                self._wake.set()
+                continue
+            self._failure = None
+            self._armed = True
+            self.counters.inferences += 1
+            self.counters.last_latency = chunk.latency
+            queue.add_chunk(chunk.timestep, chunk.actions)

@@ -1,0 +1,279 @@
+"""The policy master's timing and rules on trio's MockClock, with a stand-in for the worker
+process (tests/test_policy_server.py runs the real one): commands at the policy's fps, the
+watchdog, the e-stop, the step limit, a non-finite action, a worker that dies."""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+import trio
+from trio.testing import MockClock
+
+from arena.policy.master import PolicyMaster, PolicySettings
+from arena.policy.process import WorkerError, WorkerGone
+from arena.policy.wire import Chunk, Feature, Loaded, Observe
+from arena.protocol.errors import ArenaError, ErrorCode, Severity
+from arena.robot.events import CommandHandled, FaultReported, RobotEvent, TargetsSent
+from arena.robot.handle import Robot
+from arena.robot.mailbox import EventQueue
+from arena.robot.manager import RobotManager
+from tests.conftest import RecordingSlave
+
+IDENTITY = "policy:act:0123456789ab"
+FPS = 30.0
+PERIOD = 1 / FPS
+Actions = Callable[[Observe], list[tuple[float, ...]]]
+
+
+def hold(observation: Observe) -> list[tuple[float, ...]]:
+    """Ten actions that keep every joint where it is."""
+    return [observation.state] * 10
+
+
+class FakeWorker:
+    """Answers each observation with `actions(observation)` after `latency` seconds of trio
+    time; `kill()` ends it as a dead process would."""
+
+    def __init__(self, actions: Actions = hold, latency: float = 0.05) -> None:
+        self.actions = actions
+        self.latency = latency
+        self.observations: list[tuple[float, Observe]] = []
+        self.dead = trio.Event()
+        self.closed = False
+        self.refuse: str | None = None  # answer every observation with this refusal
+
+    async def load(self, path: Path) -> Loaded:
+        return Loaded(
+            "act",
+            "0123456789ab",
+            (
+                Feature("observation.state", "STATE", (6,)),
+                Feature("observation.images.front", "VISUAL", (3, 32, 32)),
+            ),
+            (Feature("action", "ACTION", (6,)),),
+            10,
+            0.0,
+        )
+
+    async def act(self, observation: Observe) -> Chunk:
+        self.observations.append((trio.current_time(), observation))
+        with trio.move_on_after(self.latency):
+            await self.dead.wait()
+        if self.dead.is_set() or self.closed:
+            raise WorkerGone("the worker has exited (code -9)")
+        if self.refuse is not None:
+            raise WorkerError(self.refuse)
+        return Chunk(observation.timestep, tuple(self.actions(observation)), self.latency)
+
+    def kill(self) -> None:
+        self.dead.set()
+
+    async def close(self) -> None:
+        self.closed = True
+
+
+async def attach(
+    robot: Robot, worker: FakeWorker, cameras: tuple[str, ...] = ("front",), **settings: float
+) -> PolicyMaster:
+    async def start() -> FakeWorker:
+        return worker
+
+    master = PolicyMaster(
+        PolicySettings(Path("unused"), task="wave", fps=FPS, **settings),  # type: ignore[arg-type]
+        robot.model,
+        lambda: dict.fromkeys(cameras, b"jpeg"),
+        start,
+    )
+    await master.prepare()
+    await robot.attach_master(master, master_id=master.master_id)
+    return master
+
+
+async def arm(manager: RobotManager) -> tuple[Robot, RecordingSlave]:
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    slave = RecordingSlave()
+    await robot.attach_slave(slave)
+    return robot, slave
+
+
+def handled(events: EventQueue[RobotEvent]) -> list[CommandHandled]:
+    return [e for e in events.drain() if isinstance(e, CommandHandled)]
+
+
+async def test_commands_flow_at_the_policys_fps_with_its_identity(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot, _ = await arm(manager)
+    worker = FakeWorker()
+    with robot.subscribe(kinds=[CommandHandled]) as events:
+        master = await attach(robot, worker)
+        assert robot.snapshot().master is not None
+        assert robot.snapshot().master.kind == "policy"
+        assert robot.snapshot().master.peer_id == IDENTITY
+        await trio.sleep(2.0)
+        commands = handled(events)
+    # The first chunk comes 50 ms after the start, and its first action belongs to the step the
+    # observation was taken at (gone by then): one command a period after that.
+    assert 55 <= len(commands) <= 60
+    assert all(c.result.accepted for c in commands)
+    assert {c.source for c in commands} == {IDENTITY}
+    assert {c.command.source for c in commands} == {IDENTITY}
+    gaps = [b.time - a.time for a, b in itertools.pairwise(commands)]
+    assert min(gaps) == pytest.approx(PERIOD) and max(gaps) == pytest.approx(PERIOD)
+    # LeRobot's async inference: a new observation whenever half a chunk (5 of 10) is left.
+    assert master.counters.inferences >= 10
+    assert all(o.task == "wave" and o.images == {"front": b"jpeg"} for _, o in worker.observations)
+
+
+async def test_the_watchdog_holds_the_robot_after_two_empty_periods(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot, _ = await arm(manager)
+    worker = FakeWorker()
+    with robot.subscribe(kinds=[CommandHandled, FaultReported]) as events:
+        master = await attach(robot, worker)
+        await trio.sleep(0.5)
+        worker.latency = 2.0  # inference now takes 60 periods: the queue runs dry
+        await trio.sleep(1.0)
+        seen = events.drain()
+    faults = [e for e in seen if isinstance(e, FaultReported)]
+    commands = [e for e in seen if isinstance(e, CommandHandled)]
+    assert [(f.code, f.severity, f.peer_id) for f in faults] == [
+        (ErrorCode.POLICY_STALLED, Severity.WARNING, IDENTITY)
+    ]
+    # The fault comes two periods after the last command, and nothing is sent after it.
+    assert faults[0].time - commands[-1].time == pytest.approx(2 * PERIOD)
+    assert "holds where it is" in faults[0].message
+    assert master.counters.stalls == 1 and robot.snapshot().owner == IDENTITY
+    # Once a chunk comes again, the policy drives again.
+    with robot.subscribe(kinds=[CommandHandled]) as events:
+        await trio.sleep(2.0)
+        assert handled(events)
+
+
+async def test_a_dead_worker_trips_the_watchdog_and_the_robot_is_handed_back(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot, _ = await arm(manager)
+    worker = FakeWorker()
+    with robot.subscribe(kinds=[CommandHandled, FaultReported]) as events:
+        await attach(robot, worker)
+        await trio.sleep(0.5)
+        worker.kill()
+        killed = trio.current_time()
+        await trio.sleep(1.0)
+        seen = events.drain()
+    faults = [e for e in seen if isinstance(e, FaultReported)]
+    assert [f.code for f in faults] == [ErrorCode.POLICY_STALLED]
+    assert "exited" in faults[0].message
+    # The queue held at most a chunk (10 actions) when the worker died.
+    assert faults[0].time - killed <= 12 * PERIOD
+    assert robot.snapshot().master is None and worker.closed
+
+
+async def test_a_policy_that_refuses_every_observation_trips_the_watchdog_saying_why(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot, _ = await arm(manager)
+    worker = FakeWorker()
+    worker.refuse = "RuntimeError: mat1 and mat2 shapes cannot be multiplied"
+    with robot.subscribe(kinds=[CommandHandled, FaultReported]) as events:
+        master = await attach(robot, worker)
+        await trio.sleep(1.0)
+        seen = events.drain()
+    assert [type(e) for e in seen] == [FaultReported]
+    assert seen[0].code == ErrorCode.POLICY_STALLED and "mat1 and mat2" in seen[0].message
+    # Refused observations are retried once a period, never in a busy loop.
+    assert len(worker.observations) <= FPS + 1 and master.counters.sent == 0
+    assert robot.snapshot().owner == IDENTITY
+
+
+async def test_an_estop_stops_the_commands_at_once_and_the_inference(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot, slave = await arm(manager)
+    worker = FakeWorker()
+    with robot.subscribe(kinds=[CommandHandled]) as events:
+        await attach(robot, worker)
+        await trio.sleep(0.5)
+        assert handled(events)
+        await robot.estop("test")
+        stopped = trio.current_time()
+        asked = len(worker.observations)
+        await trio.sleep(1.0)
+        assert handled(events) == []
+    assert worker.closed and len(worker.observations) == asked
+    assert robot.snapshot().master is None
+    assert all(at <= stopped for at, _ in slave.targets)
+
+
+def jump(by: float) -> Actions:
+    """Ten actions that turn the base `by` degrees from where it is (a move far from the
+    floor and the arm's own links)."""
+    return lambda o: [(o.state[0] + by, *o.state[1:])] * 10
+
+
+async def test_the_step_limit_clamps_each_target_near_the_measured_position(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot, _ = await arm(manager)
+    worker = FakeWorker(jump(50.0))
+    start = {j.name: j.virtual_value for j in robot.snapshot().joints}
+    with robot.subscribe(kinds=[CommandHandled, TargetsSent]) as events:
+        master = await attach(robot, worker, max_relative_target=4.0)
+        await trio.sleep(1.0)
+        seen = events.drain()
+    virtual, commands = dict(start), 0
+    for event in seen:
+        if isinstance(event, TargetsSent):
+            virtual.update(event.joints)
+        elif isinstance(event, CommandHandled) and event.result.accepted:
+            commands += 1
+            for goal in event.command.joints:
+                assert abs(goal.value - virtual[goal.name]) <= 4.0 + 1e-9
+    assert commands > 20 and master.counters.clamped >= commands
+    # Without the limit the same policy asks for 50 degrees at once.
+    worker2 = FakeWorker(jump(50.0))
+    await robot.detach_master(IDENTITY)
+    with robot.subscribe(kinds=[CommandHandled]) as events:
+        await attach(robot, worker2, max_relative_target=None)  # type: ignore[arg-type]
+        await trio.sleep(0.2)
+        first = handled(events)[0]
+    here = {j.name: j.virtual_value for j in robot.snapshot().joints}
+    assert max(abs(g.value - here[g.name]) for g in first.command.joints) > 4.0
+
+
+async def test_an_action_that_is_not_finite_is_never_sent(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot, slave = await arm(manager)
+    worker = FakeWorker(lambda o: [(*o.state[:5], math.nan)] * 10)
+    with robot.subscribe(kinds=[CommandHandled, FaultReported]) as events:
+        master = await attach(robot, worker)
+        await trio.sleep(1.0)
+        seen = events.drain()
+    assert not [e for e in seen if isinstance(e, CommandHandled)]
+    faults = [e for e in seen if isinstance(e, FaultReported)]
+    assert [(f.code, f.severity) for f in faults] == [
+        (ErrorCode.POLICY_OUTPUT_INVALID, Severity.ERROR)
+    ]
+    assert "Jaw" in faults[0].message
+    assert master.counters.invalid >= 25 and master.counters.sent == 0
+    assert all(math.isfinite(v) for _, t in slave.targets for v in t.values())
+
+
+async def test_a_policy_the_robot_cannot_feed_is_refused_naming_the_feature(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot, _ = await arm(manager)
+    worker = FakeWorker()
+    with pytest.raises(ArenaError) as refused:
+        await attach(robot, worker, cameras=("wrist",))
+    assert refused.value.code is ErrorCode.POLICY_INVALID
+    assert "observation.images.front" in refused.value.message
+    assert "wrist" in refused.value.message
+    assert worker.closed and robot.snapshot().master is None

@@ -1,0 +1,320 @@
+"""A tiny LeRobot policy (random weights, saved by tests/tiny_policy.py in a process of its own)
+run as a robot's master through a real server, in a real worker process: commands flow at its
+fps and are recorded with its identity, an e-stop stops them and the worker, a killed worker
+trips the watchdog, NaN and huge jumps move nothing beyond the limits, and what is not a policy
+the robot can feed is refused with POLICY_INVALID.
+
+These wait for events (the robot's own, answers over HTTP), never for a time to pass."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import shutil
+import signal
+import subprocess
+import sys
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+import trio
+
+from arena.protocol.errors import ErrorCode
+from arena.recording.mcap_file import read_recording
+from arena.robot.events import (
+    CommandHandled,
+    FaultReported,
+    JointStatesReceived,
+    RobotEvent,
+    StateChanged,
+    TargetsSent,
+)
+from arena.robot.mailbox import EventQueue
+from arena.robot.safety import Mode
+from tests.conftest import REPOSITORY, RunningServer, need
+
+CAMERA = {"name": "front", "source": "test-pattern", "fps": 30, "width": 64, "height": 48}
+ROBOT = "/api/robots/demo-arm"
+#: Bounds on waits that only a broken feature reaches (loading imports torch: seconds).
+LOAD = 120.0
+WAIT = 60.0
+
+Start = Callable[..., Awaitable[RunningServer]]
+
+
+def make_policy(folder: Path, *args: str) -> Path:
+    """Save a tiny policy in `folder` (tests/tiny_policy.py's options)."""
+    subprocess.run(
+        [sys.executable, str(REPOSITORY / "tests" / "tiny_policy.py"), str(folder), *args],
+        check=True,
+        env={**os.environ, "PYTHONPATH": str(REPOSITORY)},
+        capture_output=True,
+        timeout=300,
+    )
+    return folder
+
+
+@pytest.fixture(scope="session")
+def tiny(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A tiny ACT policy: 6 joints and a 32x32 camera `front`, actions near LeRobot's 0."""
+    need("lerobot", "lerobot")
+    return make_policy(tmp_path_factory.mktemp("policy") / "act")
+
+
+def variant(tiny: Path, folder: Path, mean: float, std: float) -> Path:
+    """`tiny` with other action statistics: its unnormalizer's state file rewritten."""
+    from safetensors.numpy import load_file, save_file
+
+    shutil.copytree(tiny, folder)
+    name = next(folder.glob("policy_postprocessor_step_*_unnormalizer_processor.safetensors"))
+    tensors = load_file(str(name))
+    for key, value in tensors.items():
+        value[...] = mean if key.endswith("mean") else std
+    save_file(tensors, str(name))
+    return folder
+
+
+def checkpoint(path: Path) -> str:
+    return hashlib.sha256((path / "model.safetensors").read_bytes()).hexdigest()[:12]
+
+
+def workers() -> list[int]:
+    """This process's children that are policy workers."""
+    found = []
+    for task in Path(f"/proc/{os.getpid()}/task").iterdir():
+        for pid in (task / "children").read_text().split():
+            try:
+                command = Path(f"/proc/{pid}/cmdline").read_bytes()
+            except OSError:
+                continue
+            if b"arena.policy.worker" in command:
+                found.append(int(pid))
+    return found
+
+
+async def next_event(events: EventQueue[RobotEvent], check: Callable[[RobotEvent], bool]) -> Any:
+    with trio.fail_after(WAIT):
+        while True:
+            event = await events.get()
+            if check(event):
+                return event
+
+
+async def ready(server: RunningServer, camera: bool = True) -> Any:
+    async with server.client() as http:
+        if camera:
+            created = await http.post(f"{ROBOT}/cameras", json=CAMERA)
+            assert created.status_code == 201, created.text
+    return server.app.manager.get("demo-arm")
+
+
+async def attach(server: RunningServer, path: Path, **body: Any) -> Any:
+    async with httpx.AsyncClient(base_url=server.url, timeout=LOAD) as http:
+        return await http.post(
+            f"{ROBOT}/master", json={"type": "policy", "path": str(path), **body}
+        )
+
+
+async def test_a_policy_drives_the_arm_and_an_estop_stops_it(
+    start_server: Start, tiny: Path
+) -> None:
+    server = await start_server(demo=True)
+    robot = await ready(server)
+    identity = f"policy:act:{checkpoint(tiny)}"
+    with robot.subscribe(kinds=[CommandHandled, StateChanged]) as events:
+        answer = await attach(server, tiny, task="wave", fps=30)
+        assert answer.status_code == 201, answer.text
+        assert answer.json() == {"id": identity, "type": "policy"}
+        async with server.client() as http:
+            master = (await http.get(ROBOT)).json()["master"]
+        assert master["id"] == identity and master["type"] == "policy"
+        for _ in range(20):
+            command = await next_event(events, lambda e: isinstance(e, CommandHandled))
+            assert command.source == identity and command.result.accepted
+        (worker,) = workers()
+        async with server.client() as http:
+            assert (await http.post(f"{ROBOT}/estop", json={"reason": "test"})).status_code == 200
+        await next_event(events, lambda e: isinstance(e, StateChanged) and e.mode is Mode.ESTOPPED)
+        # The master was detached at the e-stop itself: nothing of the policy's comes after it.
+        # (Events come in the order the actor handled them.)
+        after = events.drain()
+        assert not [e for e in after if isinstance(e, CommandHandled)]
+    with trio.fail_after(WAIT):
+        while workers():
+            await trio.sleep(0.05)
+    assert not Path(f"/proc/{worker}").exists() or worker not in workers()
+    async with server.client() as http:
+        assert (await http.get(ROBOT)).json()["master"] is None
+        stopped = (await http.post("/api/recordings/current/stop")).json()["stopped"]
+    recording = read_recording(Path(server.app.recorder.folder) / stopped)
+    commands = [
+        m for m in recording.messages if m.kind == "command" and m.data.get("source") == identity
+    ]
+    assert len(commands) >= 20
+    span = (commands[-1].log_time - commands[0].log_time) / 1e9
+    assert len(commands) <= 30 * span + 2  # never faster than the policy's fps
+
+
+async def test_a_killed_worker_trips_the_watchdog(start_server: Start, tiny: Path) -> None:
+    server = await start_server(demo=True)
+    robot = await ready(server)
+    with robot.subscribe(kinds=[CommandHandled, FaultReported]) as events:
+        assert (await attach(server, tiny)).status_code == 201
+        await next_event(events, lambda e: isinstance(e, CommandHandled))
+        (worker,) = workers()
+        os.kill(worker, signal.SIGKILL)
+        fault = await next_event(events, lambda e: isinstance(e, FaultReported))
+    assert fault.code == ErrorCode.POLICY_STALLED and fault.severity == "warning"
+    assert "exited" in fault.message and "holds where it is" in fault.message
+    with trio.fail_after(WAIT):
+        while robot.snapshot().master is not None:
+            await trio.sleep(0.05)
+
+
+async def test_nan_and_huge_jumps_move_nothing_beyond_the_limits(
+    start_server: Start, tiny: Path, tmp_path: Path
+) -> None:
+    server = await start_server(demo=True)
+    robot = await ready(server)
+    nan = variant(tiny, tmp_path / "nan", math.nan, 1.0)
+    with robot.subscribe(
+        kinds=[CommandHandled, FaultReported, TargetsSent, JointStatesReceived]
+    ) as events:
+        assert (await attach(server, nan)).status_code == 201
+        fault = await next_event(events, lambda e: isinstance(e, FaultReported))
+        assert fault.code == ErrorCode.POLICY_OUTPUT_INVALID
+        assert not [e for e in events.drain() if isinstance(e, CommandHandled)]
+        async with server.client() as http:
+            assert (await http.delete(f"{ROBOT}/master")).status_code == 200
+        before = {j.name: j.virtual_value for j in robot.snapshot().joints}
+        huge = variant(tiny, tmp_path / "huge", 0.0, 1e4)
+        assert (await attach(server, huge, max_relative_target=3.0)).status_code == 201
+        # The step limit holds each target near the measured position the policy saw: one
+        # of those reported since its last command (or the last one before).
+        with trio.fail_after(WAIT):
+            await check_steps(robot, events, before, 3.0)
+
+
+async def check_steps(
+    robot: Any, events: EventQueue[RobotEvent], before: dict[str, float], limit: float
+) -> None:
+    """Follow 15 commands: each target within `limit` of a measured position the policy may
+    have seen, every target sent within the joint's limits. (A policy of huge random jumps
+    soon walks the arm to where the collision guard refuses each next step.)"""
+    measured = {name: [value] for name, value in before.items()}
+    handled = accepted = 0
+    while handled < 15:
+        event = await events.get()
+        if isinstance(event, TargetsSent):
+            for joint in robot.model.joints:
+                value = event.joints.get(joint.name, 0.0)
+                assert joint.lower - 1e-9 <= value <= joint.upper + 1e-9
+        elif isinstance(event, JointStatesReceived):
+            for name, value in event.joints.items():
+                measured[name].append(value)
+        elif isinstance(event, CommandHandled):
+            assert event.result.accepted or event.result.code == "COLLISION", event.result
+            for goal in event.command.joints:
+                near = min(abs(goal.value - value) for value in measured[goal.name])
+                assert near <= limit + 1e-6, (goal, measured[goal.name])
+            accepted += event.result.accepted
+            handled += 1
+            measured = {name: values[-1:] for name, values in measured.items()}
+    assert accepted
+
+
+async def test_what_the_robot_cannot_run_is_refused(
+    start_server: Start, tiny: Path, tmp_path: Path
+) -> None:
+    server = await start_server(demo=True)
+    await ready(server, camera=False)
+    answer = await attach(server, tiny)
+    assert answer.status_code == 422
+    error = answer.json()["error"]
+    assert error["code"] == "POLICY_INVALID"
+    assert "observation.images.front" in error["message"]
+    assert workers() == []
+    assert server.app.manager.get("demo-arm").snapshot().master is None
+
+
+@pytest.mark.parametrize(
+    ("broken", "said"),
+    [
+        ("missing", "is not a directory"),
+        ("empty", "has no config.json"),
+        ("config", "config.json is not a LeRobot policy config"),
+        ("class-step", "step 0 is not one of LeRobot's registered steps"),
+    ],
+)
+async def test_a_directory_that_is_not_a_policy_is_refused_with_the_reason(
+    start_server: Start, tmp_path: Path, broken: str, said: str
+) -> None:
+    server = await start_server(demo=True)
+    folder = tmp_path / "policy"
+    if broken != "missing":
+        folder.mkdir()
+    if broken in ("config", "class-step"):
+        for name in ("config.json", "model.safetensors", "policy_postprocessor.json"):
+            (folder / name).write_text("{}" if name != "config.json" else '{"type": "nope"}')
+        step = {"class": "os.system"} if broken == "class-step" else {"registry_name": "x"}
+        (folder / "policy_preprocessor.json").write_text(json.dumps({"steps": [step]}))
+        (folder / "policy_postprocessor.json").write_text(json.dumps({"steps": []}))
+    if broken == "config":
+        need("lerobot", "lerobot")
+    answer = await attach(server, folder)
+    assert answer.status_code == 422, answer.text
+    error = answer.json()["error"]
+    assert error["code"] == "POLICY_INVALID" and said in error["message"], error
+    assert workers() == []
+
+
+async def test_arena_policy_drives_a_robot_over_the_public_api_until_an_estop(
+    start_server: Start, tiny: Path
+) -> None:
+    from arena.policy.master import PolicySettings
+    from arena.policy.remote import run_remote
+
+    server = await start_server(demo=True)
+    robot = await ready(server)
+    identity = f"policy:act:{checkpoint(tiny)}"
+    done = trio.Event()
+    ran: list[Any] = []
+
+    async def remote() -> None:
+        ran.append(await run_remote(PolicySettings(tiny, task="wave"), server.url, "demo-arm"))
+        done.set()
+
+    with robot.subscribe(kinds=[CommandHandled]) as events:
+        async with trio.open_nursery() as nursery:
+            nursery.start_soon(remote)
+            for _ in range(10):
+                command = await next_event(events, lambda e: isinstance(e, CommandHandled))
+                assert command.source == identity and command.result.accepted
+                assert command.command.source == identity
+            assert robot.snapshot().master.peer_id == identity
+            async with server.client() as http:
+                await http.post(f"{ROBOT}/estop", json={"reason": "test"})
+            with trio.fail_after(WAIT):
+                await done.wait()
+    assert ran[0].counters.sent >= 10 and workers() == []
+
+
+async def test_without_lerobot_a_policy_master_is_not_installed(
+    start_server: Start, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(
+        importlib.util, "find_spec", lambda name, *a: None if name == "lerobot" else real(name, *a)
+    )
+    server = await start_server(demo=True)
+    answer = await attach(server, tmp_path)
+    assert answer.status_code == 501, answer.text
+    assert "pip install 'arena[lerobot]'" in answer.json()["error"]["message"]
+    assert workers() == []
