@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -92,6 +93,7 @@ class UsbSlave(ServoArm):
         self.running = False
         self.link: SlaveLink | None = None  # while it runs
         self._accept_after = 0.0  # targets sent before this trio time are stale (bus was away)
+        self._range_since = 0.0  # readings older than this (monotonic) predate the rest pose
 
     async def run(self, link: SlaveLink) -> None:
         """Follow targets and report joint states until detached; torque off at the end."""
@@ -191,8 +193,15 @@ class UsbSlave(ServoArm):
             if reading.temperatures is not None:
                 self.telemetry = reading
             degrees = self.calibration.to_degrees(reading.positions)
-            if self.session is not None and self.session.phase == "range":
-                self.session.capture.observe(degrees)
+            # (a reading read before the rest pose was captured may still be on its way: it
+            # shows the arm before it was posed, no part of its range)
+            session = self.session
+            if (
+                session is not None
+                and session.phase == "range"
+                and reading.time >= self._range_since
+            ):
+                session.capture.observe(degrees)
             await link.report_joint_states(degrees)
 
     async def _on_event(self, link: SlaveLink, event: object) -> None:
@@ -233,6 +242,7 @@ class UsbSlave(ServoArm):
         """Take the present pose as the rest pose; then the range capture runs."""
         session = self._session("posing")
         ids = tuple(self.servo_ids.values())
+        self._range_since = time.monotonic()  # the clock of `Reading.time`
         raw = await self._job(lambda bus: read_positions(bus, ids))
         self.calibration = calibrate_rest(self.calibration, raw, session.rest)
         session.phase = "range"
