@@ -180,6 +180,23 @@ def survivors(module: str) -> list[str]:
     )
 
 
+def pending(module: str) -> list[str] | None:
+    """The mutants of one module not yet tested, or None when all of them must be (no results
+    yet, or the file changed since). mutmut tests again every mutant it is given by name or
+    pattern, so a run that goes on after a stop names only these."""
+    path, _ = MODULES[module]
+    meta = ROOT / "mutants" / (path + ".meta")
+    if not meta.exists() or (ROOT / path).stat().st_mtime > meta.stat().st_mtime:
+        return None
+    codes: dict[str, int | None] = json.loads(meta.read_text())["exit_code_by_key"]
+    wanted = patterns(module, "__mutmut_*")
+    return sorted(
+        m
+        for m, code in codes.items()
+        if code is None and any(fnmatch.fnmatchcase(m, p) for p in wanted)
+    )
+
+
 def run(module: str, names: list[str] | None = None) -> None:
     """Mutate one module and test its mutants (or only `names`), one at a time. mutmut keeps
     a result until the function changes, so new tests reach old survivors only when these
@@ -250,10 +267,13 @@ def main(argv: list[str]) -> int:
         return 2
     if not report_only:
         for name in names:
-            if not retest:
+            if retest:
+                if again := survivors(name):
+                    run(name, again)
+            elif (left := pending(name)) is None:
                 run(name)
-            elif again := survivors(name):
-                run(name, again)
+            elif left:
+                run(name, left)
     known = equivalents()
     used: set[tuple[str, str, str]] = set()
     print(
