@@ -469,3 +469,14 @@ def test_a_join_step_that_covers_the_rest_of_the_way_lands_on_the_goal() -> None
     ramp = JoinRamp(MODEL, start, 15.0, 0.0)
     ramp.advance(goal, 0.5)
     assert ramp.arrived(goal)
+
+
+def test_a_timed_move_that_starts_later_follows_its_curve_from_its_own_start() -> None:
+    limiter = MotionLimiter(MODEL, 5.0)
+    goals, _ = resolve_command(MODEL, Command.of({"Rotation": 20.0}))
+    limiter.set_goals(goals, 2.0, 5.0)  # from 5 s to 7 s
+    now = 5.0
+    while now < 6.0 - 1e-9:
+        now += 0.01
+        limiter.advance(now)
+    assert limiter.positions["Rotation"] == pytest.approx(10.0, abs=1e-6)  # halfway at half time
