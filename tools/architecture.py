@@ -39,13 +39,13 @@ RANKS: dict[str, int] = {
     "drivers": 3,
     "schemas": 3,
     "fleet": 4,
-    "ros2": 4,
     "policy": 4,
     "gym": 4,
-    "server": 5,
-    "bench": 6,
-    "cli": 7,
-    "__main__": 8,
+    "ros2": 5,  # on the fleet's Zenoh pieces
+    "server": 6,
+    "bench": 7,
+    "cli": 8,
+    "__main__": 9,
 }
 
 

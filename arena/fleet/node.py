@@ -163,6 +163,22 @@ class Tunnel:
 Service = Callable[[bytes], Awaitable[Any]]
 
 
+async def session_locators(session: Any) -> list[str]:
+    """Where a Zenoh session listens (the ports it was given, or chose for port 0); [] without
+    a session. Asked of Zenoh's admin space in a thread: the call blocks."""
+    if session is None:
+        return []
+
+    def read() -> list[str]:
+        zid = str(session.info.zid())
+        for reply in session.get(f"@/{zid}/peer", timeout=1.0):
+            if reply.ok is not None:
+                return list(json.loads(reply.ok.payload.to_bytes()).get("locators", []))
+        return []
+
+    return await trio.to_thread.run_sync(read)
+
+
 class FleetNode:
     """This node's membership of the fleet. `run` holds the session."""
 
@@ -393,18 +409,7 @@ class FleetNode:
 
     async def locators(self) -> list[str]:
         """Where this node listens (the ports it was given, or chose for port 0)."""
-        session = self.session
-        if session is None:
-            return []
-
-        def read() -> list[str]:
-            zid = str(session.info.zid())
-            for reply in session.get(f"@/{zid}/peer", timeout=1.0):
-                if reply.ok is not None:
-                    return list(json.loads(reply.ok.payload.to_bytes()).get("locators", []))
-            return []
-
-        return await trio.to_thread.run_sync(read)
+        return await session_locators(self.session)
 
     def owner_of(self, robot_id: str) -> str | None:
         """The node of the fleet that owns `robot_id` (this one's name for its own), None if

@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 
 import trio
 
+from arena.fleet.node import session_locators
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.robot.handoff import Handoff
 from arena.ros2 import wire
@@ -192,18 +193,7 @@ class Ros2Bridge:
 
     async def locators(self) -> list[str]:
         """Where the session listens (the ports it was given, or chose for port 0)."""
-        session = self.session
-        if session is None:
-            return []
-
-        def read() -> list[str]:
-            zid = str(session.info.zid())
-            for reply in session.get(f"@/{zid}/peer", timeout=1.0):
-                if reply.ok is not None:
-                    return list(json.loads(reply.ok.payload.to_bytes()).get("locators", []))
-            return []
-
-        return await trio.to_thread.run_sync(read)
+        return await session_locators(self.session)
 
     # -- from Zenoh's threads -----------------------------------------------------------------
 
