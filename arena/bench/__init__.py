@@ -33,8 +33,9 @@ Scenarios:
   flood       one robot's REST e-stop alone and while a viewer floods the server with pings and
               never reads; the server's memory growth during the flood
   versus      (only when named) Arena against the floor relay with the `websockets` client,
-              alternating rounds: relay p50/p99, burst throughput, server CPU a command, ratios
-              (needs ARENA_FLOOR_PYTHON; see arena/bench/versus.py)
+              alternating rounds: relay p50/p99, burst throughput, server CPU a command, and
+              a fleet (--fleet-robots at 50 Hz): p99, CPU, robots a core; ratios (needs
+              ARENA_FLOOR_PYTHON; see arena/bench/versus.py)
   nodes       (only when named) a fleet of `arena serve --node` processes over Zenoh: relay
               across nodes against within one, a fleet e-stop of 3 nodes x 100 robots to the
               last slave's notice, 100 robots at 50 Hz on two nodes against one
@@ -180,7 +181,7 @@ def run_benchmarks(
         results.update(median_of([asyncio.run(nodes_estop()) for _ in range(repeats)]))
         results.update(asyncio.run(nodes_fleet(robots=fleet_robots)))
     if "versus" in chosen:
-        results.update(asyncio.run(versus_floor(rounds=repeats)))
+        results.update(asyncio.run(versus_floor(rounds=repeats, fleet_robots=fleet_robots)))
     if "usb" in chosen:
         results.update(median_of([usb_control_rate() for _ in range(repeats)]))
     if "teleop" in chosen:

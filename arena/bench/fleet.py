@@ -134,23 +134,30 @@ async def fleet(
     rate: float = 50.0,
     seconds: float = 10.0,
     heartbeat_period: float = 5.0,
+    acks: bool = True,
 ) -> dict[str, float]:
     """`robots` robots, each with a master at `rate` Hz and a slave, for `seconds` (lean
     client: one selector loop in a thread, its masters' schedules spread over the period and
     its slaves' heartbeats over `heartbeat_period`). Given several servers (the nodes of a
     fleet), robot n lives on server n mod k and its clients go to that node directly; CPU and
-    memory are the sum of them all."""
+    memory are the sum of them all. `acks=False` for a server that acknowledges nothing (the
+    floor relay): the run then ends without waiting for acknowledgments."""
     servers = server if isinstance(server, list) else [server]
     for n in range(robots):
         async with httpx.AsyncClient(base_url=servers[n % len(servers)].url) as http:
             await create_bench_robot(http, f"fleet-{n}")
     return await asyncio.to_thread(
-        without_client_gc, _lean_fleet, servers, robots, rate, seconds, heartbeat_period
+        without_client_gc, _lean_fleet, servers, robots, rate, seconds, heartbeat_period, acks
     )
 
 
 def _lean_fleet(
-    servers: list[Server], robots: int, rate: float, seconds: float, heartbeat_period: float
+    servers: list[Server],
+    robots: int,
+    rate: float,
+    seconds: float,
+    heartbeat_period: float,
+    acks: bool,
 ) -> dict[str, float]:
     import heapq
     import selectors
@@ -220,7 +227,7 @@ def _lean_fleet(
         cpu_used = sum(server.cpu_seconds() for server in servers) - cpu_start
         elapsed = time.perf_counter() - start
         settle = time.perf_counter() + 10  # the last acknowledgments: late is not lost
-        while acked < sent and time.perf_counter() < settle:
+        while acks and acked < sent and time.perf_counter() < settle:
             handle(0.05)
     finally:
         for slave, master in pairs:
@@ -232,7 +239,7 @@ def _lean_fleet(
         "fleet_server_cpu_percent": 100 * cpu_used / elapsed,
         "fleet_server_rss_mib": sum(server.rss_mib() for server in servers),
         "fleet_commands_sent": sent,
-        "fleet_commands_unacknowledged": sent - acked,
+        "fleet_commands_unacknowledged": sent - acked if acks else 0,
         "fleet_commands_refused": refused,
         "fleet_messages": len(latencies),
         "fleet_heartbeats_sent": heartbeats,

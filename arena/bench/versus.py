@@ -6,8 +6,12 @@ then 10,000 as fast as the master sends them (until the slave has the last one: 
 of a joint at rest, which no server holds back). When the bench started the server itself,
 its CPU (the whole process tree) over both phases and the half second after them (for the
 work the commands left behind) is divided by the 12,000 commands, and given by phase too.
-Rounds alternate between the servers; the figures are medians, and the ratios to the floor
-come from one run.
+Then a fleet (`fleet_robots` robots, each a master at 50 Hz and a slave, the lean client of
+`arena bench fleet`) runs on each server for 10 s: its p99 and the server's CPU, and from them
+the robots one core would hold at that rate (robots / the share of a core they took; a figure
+that holds only while the p99 stays inside 5 ms, which `fleet_within_5ms` says). Rounds
+alternate between the servers; the figures are medians, and the ratios to the floor come from
+one run.
 
 The floor is `shared/bench/floor_relay.py` (aiohttp on uvloop with orjson: parse and forward,
 nothing else), run with a Python that has those packages: `ARENA_FLOOR_PYTHON=PATH` (and
@@ -31,6 +35,7 @@ from pathlib import Path
 import httpx
 
 from arena.bench.common import BENCH_TYPE, Server, percentile, running_server
+from arena.bench.fleet import fleet
 
 FLOOR_PYTHON_ENV = "ARENA_FLOOR_PYTHON"
 FLOOR_SCRIPT_ENV = "ARENA_FLOOR_SCRIPT"
@@ -140,7 +145,23 @@ async def running_floor(python: str, script: Path) -> AsyncIterator[Server]:
         process.wait(timeout=10)
 
 
-async def versus_floor(rounds: int = 3, **sizes: int) -> dict[str, float]:
+#: The fleet's tail bound: a robots-a-core figure counts only while the p99 stays inside it.
+FLEET_P99_BOUND_US = 5000.0
+
+
+async def fleet_per_core(server: Server, robots: int, acks: bool) -> dict[str, float]:
+    """A fleet of `robots` at 50 Hz for 10 s: p99, the server's CPU, and robots a core."""
+    run = await fleet(server, robots=robots, rate=50.0, seconds=10.0, acks=acks)
+    share = run["fleet_server_cpu_percent"] / 100
+    return {
+        "fleet_p99_us": run["fleet_p99_us"],
+        "fleet_cpu_percent": run["fleet_server_cpu_percent"],
+        "fleet_robots_per_core": robots / share if share > 0 else 0.0,
+        "fleet_within_5ms": float(run["fleet_p99_us"] <= FLEET_P99_BOUND_US),
+    }
+
+
+async def versus_floor(rounds: int = 3, fleet_robots: int = 100, **sizes: int) -> dict[str, float]:
     """Arena and the floor in alternating rounds: medians, and Arena's ratios to the floor."""
     python = os.environ.get(FLOOR_PYTHON_ENV)
     script = Path(os.environ.get(FLOOR_SCRIPT_ENV, str(_DEFAULT_FLOOR)))
@@ -152,14 +173,22 @@ async def versus_floor(rounds: int = 3, **sizes: int) -> dict[str, float]:
     runs: dict[str, list[dict[str, float]]] = {"arena": [], "floor": []}
     for n in range(rounds):
         async with running_server() as arena:
-            runs["arena"].append(await ordinary_relay(arena, f"versus-{n}", **sizes))
+            measured = await ordinary_relay(arena, f"versus-{n}", **sizes)
+        async with running_server() as arena:
+            measured.update(await fleet_per_core(arena, fleet_robots, acks=True))
+        runs["arena"].append(measured)
         async with running_floor(python, script) as floor:
-            runs["floor"].append(await ordinary_relay(floor, f"versus-{n}", **sizes))
+            measured = await ordinary_relay(floor, f"versus-{n}", **sizes)
+            # The floor keeps one slave per robot id, so one process serves both parts.
+            measured.update(await fleet_per_core(floor, fleet_robots, acks=False))
+        runs["floor"].append(measured)
     results: dict[str, float] = {}
-    for name, measured in runs.items():
-        for key in measured[0]:
-            results[f"versus_{name}_{key}"] = statistics.median(m[key] for m in measured)
+    for name, rounds_of in runs.items():
+        for key in rounds_of[0]:
+            results[f"versus_{name}_{key}"] = statistics.median(m[key] for m in rounds_of)
     for key in runs["arena"][0]:
+        if key == "fleet_within_5ms":
+            continue
         results[f"versus_ratio_{key}"] = (
             results[f"versus_arena_{key}"] / results[f"versus_floor_{key}"]
         )
