@@ -217,3 +217,23 @@ def test_a_servers_cpu_time_is_read_to_well_under_a_clock_tick() -> None:
     finally:
         child.communicate("")
     assert process_cpu_seconds(child.pid) == 0.0  # gone (and reaped): nothing to count
+
+
+def test_the_trio_floor_relays_as_the_floor_does() -> None:
+    # The trio floor stands in for shared/bench/floor_relay.py in `arena bench versus`: the
+    # same contract subset (create, a master's command to the slave as execute_command).
+    from pathlib import Path
+
+    from arena.bench import versus
+
+    script = Path(versus.__file__).with_name("trio_floor.py")
+
+    async def one_round() -> dict[str, float]:
+        async with versus.running_floor(sys.executable, script) as floor:
+            # Bounded: a floor that forwarded nothing would leave the relay waiting for ever.
+            relay = versus.ordinary_relay(floor, "trio-floor", one_at_a_time=20, burst=200)
+            return await asyncio.wait_for(relay, 60)
+
+    results = asyncio.run(one_round())
+    assert results["p50_us"] > 0
+    assert results["throughput_per_s"] > 0
