@@ -1,5 +1,7 @@
 """REST calls for a robot of another node: carried to that node (the `http` service) and run
-there by its own app, so its rules and its robot answer, as if the client had called it."""
+there by its own app, so its rules and its robot answer, as if the client had called it. The
+caller goes along (its name, role, tenant and scope as checked by the client's node, never its
+key or token), so the robot's node checks it again against what it knows of its robots."""
 
 from __future__ import annotations
 
@@ -26,6 +28,8 @@ class Call:
     query: str
     headers: dict[str, str]
     body: bytes
+    #: Who called, as claims (`Principal.to_wire`); None from a node of an older version.
+    caller: dict[str, Any] | None = None
 
     def to_wire(self) -> dict[str, Any]:
         """As the `http` service's payload (the body in base64)."""
@@ -35,6 +39,7 @@ class Call:
             "query": self.query,
             "headers": self.headers,
             "body": base64.b64encode(self.body).decode(),
+            "caller": self.caller,
         }
 
     @classmethod
@@ -46,6 +51,7 @@ class Call:
             str(call.get("query") or ""),
             dict(call.get("headers", {})),
             base64.b64decode(call.get("body", "")),
+            call.get("caller"),
         )
 
 
@@ -72,11 +78,17 @@ class Answer:
 
 
 def request_call(
-    method: str, path: str, query: str, headers: Iterable[tuple[str, str]], body: bytes
+    method: str,
+    path: str,
+    query: str,
+    headers: Iterable[tuple[str, str]],
+    body: bytes,
+    caller: dict[str, Any] | None = None,
 ) -> Call:
-    """The call for a request, with only the headers that matter to the robot's node."""
+    """The call for a request, with only the headers that matter to the robot's node (the
+    key or token never: `caller` says who it proved to be)."""
     kept = {k: v for k, v in headers if k.lower() in KEPT_HEADERS}
-    return Call(method, path, query, kept, body)
+    return Call(method, path, query, kept, body, caller)
 
 
 async def forward(fleet: FleetNode, node: str, call: Call) -> Answer:

@@ -1,10 +1,12 @@
 """A WebSocket carried to the node that owns its robot, through a Zenoh `Tunnel`.
 
-The client's node checks the client's key and pumps its frames into the tunnel (`carry`);
-the robot's node serves the connection with its own handlers, through a `TunnelSocket` that
-stands in for the socket, so ownership, takeover, e-stops, rate limits and acknowledgments
-are that node's, as if the client had connected there. Frames in a tunnel: `t` + text,
-`c` + close JSON; an empty frame (local only) means the other node is gone.
+The client's node checks the client's key or token and pumps its frames into the tunnel
+(`carry`); the robot's node serves the connection with its own handlers, through a
+`TunnelSocket` that stands in for the socket, so ownership, takeover, e-stops, rate limits and
+acknowledgments are that node's, as if the client had connected there. The caller goes along
+(its claims, never its token), and the robot's node checks its tenant and scope again. Frames
+in a tunnel: `t` + text, `c` + close JSON; an empty frame (local only) means the other node is
+gone.
 """
 
 from __future__ import annotations
@@ -180,10 +182,16 @@ class ClientEnd(Protocol):
 
 
 async def open_to(
-    fleet: FleetNode, node: str, robot_id: str, role: str, args: dict[str, str]
+    fleet: FleetNode,
+    node: str,
+    robot_id: str,
+    role: str,
+    args: dict[str, str],
+    caller: dict[str, Any] | None = None,
 ) -> Tunnel:
     """The client's node: open a tunnel to `node` for a client of `robot_id` in `role`
-    (`args`: its query parameters, the key left out: this node checked it)."""
+    (`args`: its query parameters, the key left out: this node checked it; `caller`: who
+    the client proved to be, as claims)."""
     tunnel = fleet.open_tunnel(node, serving=False)
     call = {
         "tunnel": tunnel.tunnel_id,
@@ -191,6 +199,7 @@ async def open_to(
         "role": role,
         "robot": robot_id,
         "args": {k: v for k, v in args.items() if k != "token"},
+        "caller": caller,
     }
     try:
         await fleet.ask(node, "tunnel", call)

@@ -8,6 +8,11 @@ import msgspec
 
 from arena.protocol.messages import JointValue
 
+#: The tenant of API keys, of robots created without one, and of tokens without the claim.
+DEFAULT_TENANT = "default"
+#: A tenant is a plain name (it also names its recording files).
+TENANT_PATTERN = r"^[A-Za-z0-9_.-]{1,64}$"
+
 
 class CreateRobotBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     """`POST /api/robots`: a robot type, a display name and, optionally, the id to use and
@@ -16,7 +21,7 @@ class CreateRobotBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=
     robot_type: str = "so-arm100"
     name: str | None = None
     id: str | None = None
-    tenant: Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.-]{1,64}$")] | None = None
+    tenant: Annotated[str, msgspec.Meta(pattern=TENANT_PATTERN)] | None = None
 
 
 class JointsBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):

@@ -26,6 +26,7 @@ from mcap.records import Channel, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.protocol.rest import DEFAULT_TENANT
 from arena.recording import images
 from arena.recording.mcap_writer import ChunkedWriter
 from arena.recording.records import (
@@ -41,10 +42,12 @@ SUFFIX = ".mcap"
 PROFILE = "arena"
 
 
-def new_file_name(now: float | None = None) -> str:
-    """`arena-YYYYmmdd-HHMMSS-mmm.mcap` from the start time (UTC)."""
+def new_file_name(now: float | None = None, tenant: str | None = None) -> str:
+    """`arena-YYYYmmdd-HHMMSS-mmm.mcap` from the start time (UTC); a tenant's other than
+    the default's ends in `.TENANT.mcap`."""
     stamp = datetime.datetime.fromtimestamp(now or time.time(), datetime.UTC)
-    return f"arena-{stamp:%Y%m%d-%H%M%S}-{stamp.microsecond // 1000:03d}{SUFFIX}"
+    whose = "" if tenant in (None, DEFAULT_TENANT) else f".{tenant}"
+    return f"arena-{stamp:%Y%m%d-%H%M%S}-{stamp.microsecond // 1000:03d}{whose}{SUFFIX}"
 
 
 #: One record to write: (robot id, kind, JSON bytes, log time in ns).
@@ -63,6 +66,9 @@ class FileSeries:
     foxglove: bool = True
     #: Transforms of each tree at most this many a second (0: one per record).
     foxglove_rate: float = 30.0
+    #: Whose robots the files hold (`writer_process.TenantFiles` gives each tenant its
+    #: series); None: any robot's.
+    tenant: str | None = None
 
 
 class McapFileWriter:
@@ -72,6 +78,7 @@ class McapFileWriter:
     def __init__(self, series: FileSeries, *, chunk_size: int = 64 * 1024) -> None:
         self.folder = series.folder
         self.metadata = series.metadata
+        self.tenant = series.tenant
         self.max_bytes = series.max_bytes
         self.max_seconds = series.max_seconds
         self.chunk_size = chunk_size
@@ -158,7 +165,7 @@ class McapFileWriter:
     def _current(self) -> ChunkedWriter:
         if self._writer is None:
             self.folder.mkdir(parents=True, exist_ok=True)
-            path = self.folder / new_file_name()
+            path = self.folder / new_file_name(tenant=self.tenant)
             while path.exists():  # two files within a millisecond: keep both
                 path = path.with_name(path.stem + "-1" + SUFFIX)
             self._stream = open(path, "wb")  # noqa: SIM115 - closed in close()

@@ -26,6 +26,7 @@ import trio
 
 import arena
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.protocol.rest import DEFAULT_TENANT
 from arena.recording.mcap_file import FileSeries
 from arena.recording.writer_process import McapWriterProcess, pack_events
 from arena.robot.events import CameraFrame, RobotEvent
@@ -45,13 +46,19 @@ _PACK_SLICE = 128
 
 @dataclass
 class _Batch:
-    """Events drained since the last batch, packed in slices for the writer process."""
+    """Events drained since the last batch, packed in slices for the writer process, by
+    the tenant whose files they go to."""
 
-    slices: list[bytes] = field(default_factory=list)
+    slices: dict[str, list[bytes]] = field(default_factory=dict)
     events: int = 0
 
-    def add(self, robot_id: str, wall_offset: float, events: list[Followed]) -> None:
-        self.slices.append(pack_events(robot_id, wall_offset, events))
+    def add(self, robot_id: str, tenant: str, wall_offset: float, events: list[Followed]) -> None:
+        packed = pack_events(robot_id, wall_offset, events)
+        found = self.slices.get(tenant)
+        if found is None:
+            self.slices[tenant] = [packed]
+        else:
+            found.append(packed)
         self.events += len(events)
 
 
@@ -85,7 +92,8 @@ class Backoff:
 
 
 class Recorder:
-    """Records every robot it is given into `folder`, rotating files by size and age."""
+    """Records every robot it is given into `folder`, rotating files by size and age. Each
+    tenant's robots go into files of their own (`writer_process.TenantFiles`)."""
 
     def __init__(
         self,
@@ -124,7 +132,8 @@ class Recorder:
         self._write_failures = 0  # records lost to disk errors
         self._retry = Backoff(retry_initial, retry_max)
         self._dropped_by_gone = 0  # queue overflows of robots no longer followed
-        self._followed: dict[EventQueue[Any], tuple[str, contextlib.ExitStack]] = {}
+        #: queue -> (robot id, its tenant when followed, the subscription)
+        self._followed: dict[EventQueue[Any], tuple[str, str, contextlib.ExitStack]] = {}
         self._wall_offset = 0.0  # wall clock minus trio's clock, taken when `run` starts
         self._next_flush = 0.0
         self._unflushed = False  # records handed over since the last flush
@@ -137,8 +146,13 @@ class Recorder:
 
     @property
     def current_file(self) -> Path | None:
-        """The file being written, if any."""
+        """The file of the default tenant being written, if any."""
         return self.writer.path
+
+    @property
+    def current_files(self) -> dict[Path, str]:
+        """Every file being written, and whose (its tenant)."""
+        return self.writer.open_files
 
     async def run(self, *, task_status: Any = trio.TASK_STATUS_IGNORED) -> None:
         """Write until cancelled; then finish the open file and end the writer process."""
@@ -152,31 +166,34 @@ class Recorder:
             with trio.CancelScope(shield=True):
                 await self._write_pending()
                 await trio.to_thread.run_sync(self.writer.shutdown)
-                for _, subscription in self._followed.values():
+                for _, _, subscription in self._followed.values():
                     subscription.close()
                 self._followed.clear()
 
     def follow(self, robot: Robot) -> None:
-        """Record this robot from now on (its type and URDF go into the file's metadata)."""
+        """Record this robot from now on, into its tenant's files (its type and URDF go into
+        the file's metadata)."""
         urdf = robot.model.urdf_path.read_text(encoding="utf-8")
         self.writer.models[robot.robot_id] = robot.model
         self.writer.robots[robot.robot_id] = {
             "robot_type": robot.model.robot_type,
             "name": robot.name,
             "urdf": urdf,
+            "tenant": robot.tenant,
         }
         subscription = contextlib.ExitStack()
         queue = subscription.enter_context(robot.subscribe(maxlen=self.queue_size))
-        self._followed[queue] = (robot.robot_id, subscription)
+        self._followed[queue] = (robot.robot_id, robot.tenant, subscription)
 
     def follow_frames(
         self, robot_id: str, frames: contextlib.AbstractContextManager[EventQueue[CameraFrame]]
     ) -> None:
         """Record a camera's frames (`frames` is its subscription, with its own bound) from
-        now on, until the camera closes the queue."""
+        now on, until the camera closes the queue (into the files of the robot's tenant)."""
         subscription = contextlib.ExitStack()
         queue = subscription.enter_context(frames)
-        self._followed[queue] = (robot_id, subscription)
+        tenant = self.writer.robots.get(robot_id, {}).get("tenant", DEFAULT_TENANT)
+        self._followed[queue] = (robot_id, tenant, subscription)
 
     async def start(self) -> Path | None:
         """Resume recording into a new file (after `stop`); after a disk error, try again
@@ -200,7 +217,7 @@ class Recorder:
         """Drain every followed robot's queue and pack the events (none while paused)."""
         batch = _Batch()
         packed = 0  # events packed since the last checkpoint
-        for queue, (robot_id, subscription) in list(self._followed.items()):
+        for queue, (robot_id, tenant, subscription) in list(self._followed.items()):
             events = queue.drain()
             if queue.closed:  # the robot is gone (and its queue now empty)
                 self._dropped_by_gone += queue.dropped
@@ -212,7 +229,7 @@ class Recorder:
             # file (no NTP jumps), and virtual time stays consistent in tests.
             for start in range(0, len(events), _PACK_SLICE):
                 part = events[start : start + _PACK_SLICE]
-                batch.add(robot_id, self._wall_offset, part)
+                batch.add(robot_id, tenant, self._wall_offset, part)
                 packed += len(part)
                 if packed >= _PACK_SLICE:  # (a fleet's robots have a few events each)
                     packed = 0

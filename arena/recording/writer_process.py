@@ -16,12 +16,14 @@ pickle), one request and one reply at a time:
                                     model, for Foxglove's view, spares the child loading the
                                     robot type, yourdfpy and all); `flush` closes the
                                     chunk and hands it to the OS
-  ("events", slices, robots, flush)  the same from robot events: each of `slices` is one
-                                    robot's events as msgpack (`pack_events`); the child
-                                    makes the records (`records.record_of`) and writes them
-                                    in time order
-  ("close", None, None, True)       finish the current file
-and each reply is (error or None, current path or None, messages written, every file opened).
+  ("events", slices, robots, flush)  the same from robot events: `slices` holds, by tenant,
+                                    robots' events as msgpack (`pack_events`, one robot's a
+                                    slice); the child makes the records
+                                    (`records.record_of`) and writes them in time order,
+                                    each tenant's into its own files (`TenantFiles`)
+  ("close", None, None, True)       finish the current files
+and each reply is (error or None, the default tenant's current path or None, messages
+written, every file opened, {path: tenant} of every file being written).
 End of input makes the child finish its file and exit: a killed server still leaves a complete
 file behind.
 """
@@ -29,6 +31,7 @@ file behind.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import operator
 import os
 import pickle
@@ -42,6 +45,7 @@ from typing import IO, TYPE_CHECKING, Any
 
 import msgspec
 
+from arena.protocol.rest import DEFAULT_TENANT
 from arena.recording import images
 from arena.recording.mcap_file import FileSeries, Item, McapFileWriter
 from arena.recording.records import camera_kind, record_of
@@ -132,10 +136,14 @@ class McapWriterProcess:
         self.robots: dict[str, dict[str, str]] = {}  # robot id -> metadata, set by the recorder
         self.models: dict[str, RobotModel] = {}  # robot id -> model, set by the recorder
         self.path: Path | None = None
+        #: Every file being written, and its tenant.
+        self.open_files: dict[Path, str] = {}
         self.files: list[Path] = []
         self.messages = 0
         self._process: subprocess.Popen[bytes] | None = None
-        self._robots_sent: set[str] = set()
+        #: The metadata the child has of each robot (sent again when a robot id is made anew,
+        #: of another tenant maybe).
+        self._robots_sent: dict[str, dict[str, str]] = {}
         self._earlier_messages = 0  # written by children that have gone, and their files
         self._earlier_files: list[Path] = []
         self._lock = threading.Lock()
@@ -150,8 +158,8 @@ class McapWriterProcess:
         `McapFileWriter.write`."""
         self._append("write", _pack_items(items), flush)
 
-    def write_events(self, slices: list[bytes], *, flush: bool = True) -> None:
-        """Like `write`, from slices of events packed with `pack_events`."""
+    def write_events(self, slices: dict[str, list[bytes]], *, flush: bool = True) -> None:
+        """Like `write`, from slices of events packed with `pack_events`, by tenant."""
         self._append("events", slices, flush)
 
     def _append(self, kind: str, payload: object, flush: bool) -> None:
@@ -159,10 +167,10 @@ class McapWriterProcess:
             new = {
                 r: (meta, self.models.get(r))
                 for r, meta in self.robots.items()
-                if r not in self._robots_sent
+                if self._robots_sent.get(r) is not meta
             }
             self._request((kind, payload, new, flush))
-            self._robots_sent.update(new)
+            self._robots_sent.update((r, meta) for r, (meta, _) in new.items())
 
     def close(self) -> Path | None:
         """Finish the current file (after any write in flight); the child stays for the next
@@ -187,17 +195,19 @@ class McapWriterProcess:
                 process.kill()
                 process.wait()
             self.path = None
+            self.open_files = {}
 
     def _request(self, request: tuple[str, object, object, bool]) -> None:
         process = self._running()
         assert process.stdin is not None and process.stdout is not None
         try:
             send_frame(process.stdin, request)
-            error, path, messages, files = receive_frame(process.stdout)
+            error, path, messages, files, open_files = receive_frame(process.stdout)
         except (OSError, EOFError, pickle.PickleError) as exc:
             self._abandon_child()
             raise OSError(f"the recording process failed: {exc}") from exc
         self.path = None if path is None else Path(path)
+        self.open_files = {Path(name): tenant for name, tenant in open_files.items()}
         self.messages = self._earlier_messages + messages
         self.files = self._earlier_files + [Path(f) for f in files]
         if error is not None:
@@ -228,6 +238,7 @@ class McapWriterProcess:
     def _abandon_child(self) -> None:
         process, self._process = self._process, None
         self.path = None
+        self.open_files = {}
         self._earlier_messages = self.messages
         self._earlier_files = list(self.files)
         if process is not None:
@@ -235,17 +246,85 @@ class McapWriterProcess:
             process.wait()
 
 
-def serve(requests: IO[bytes], replies: IO[bytes]) -> None:
-    """The child's loop: one `McapFileWriter`, driven by frames until end of input."""
-    series: FileSeries = receive_frame(requests)
-    writer = McapFileWriter(series)
-    twins = None
-    models: dict[str, RobotModel] = {}
-    if series.foxglove:
-        from arena.recording.foxglove import Twins  # the SDK loads only when it is used
+class TenantFiles:
+    """The child's writers: one `McapFileWriter` (and Foxglove's view) for each tenant, made
+    with its first record. A tenant's robots are recorded into files of their own, so a file
+    can be given to a tenant whole; each file says its tenant in its `arena` metadata, and a
+    tenant's other than the default's is named `arena-...TENANT.mcap`."""
 
-        twins = Twins(writer.robots, models, series.foxglove_rate)
-        writer.first_in_file = twins.introduce
+    def __init__(self, series: FileSeries) -> None:
+        self.series = series
+        #: robot id -> metadata (with its `tenant`), shared by every tenant's writer
+        self.robots: dict[str, dict[str, str]] = {}
+        self.models: dict[str, RobotModel] = {}
+        self._lanes: dict[str, tuple[McapFileWriter, Twins | None]] = {}
+
+    def lane(self, tenant: str) -> tuple[McapFileWriter, Twins | None]:
+        """The tenant's writer and view (made on first use)."""
+        found = self._lanes.get(tenant)
+        if found is not None:
+            return found
+        metadata = {**self.series.metadata, "tenant": tenant}
+        writer = McapFileWriter(dataclasses.replace(self.series, metadata=metadata, tenant=tenant))
+        writer.robots = self.robots
+        twins = None
+        if self.series.foxglove:
+            from arena.recording.foxglove import Twins  # the SDK loads only when it is used
+
+            twins = Twins(self.robots, self.models, self.series.foxglove_rate)
+            writer.first_in_file = twins.introduce
+        self._lanes[tenant] = (writer, twins)
+        return writer, twins
+
+    def write_events(self, slices: dict[str, list[bytes]]) -> None:
+        """Records of each tenant's events, into its files."""
+        for tenant, theirs in slices.items():
+            writer, twins = self.lane(tenant)
+            _write_in_pieces(writer, items_of_events(theirs, twins, _PAUSE))
+
+    def write_items(self, items: list[Item]) -> None:
+        """Records made already, each into its robot's tenant's files."""
+        by_tenant: dict[str, list[Item]] = {}
+        for item in items:
+            tenant = self.robots.get(item[0], {}).get("tenant", DEFAULT_TENANT)
+            by_tenant.setdefault(tenant, []).append(item)
+        for tenant, theirs in by_tenant.items():
+            _write_in_pieces(self.lane(tenant)[0], theirs)
+
+    def flush(self) -> None:
+        """Every tenant's chunk in progress handed to the OS."""
+        for writer, _ in self._lanes.values():
+            writer.flush()
+
+    def close(self) -> None:
+        """Finish every tenant's current file."""
+        for writer, _ in self._lanes.values():
+            writer.close()
+
+    def reply(self, error: str | None) -> tuple[Any, ...]:
+        """The answer to a request (see the module)."""
+        default = self._lanes.get(DEFAULT_TENANT)
+        path = None if default is None or default[0].path is None else str(default[0].path)
+        writers = [writer for writer, _ in self._lanes.values()]
+        return (
+            error,
+            path,
+            sum(writer.messages for writer in writers),
+            [str(f) for writer in writers for f in writer.files],
+            {str(w.path): tenant for tenant, (w, _) in self._lanes.items() if w.path is not None},
+        )
+
+
+def _write_in_pieces(writer: McapFileWriter, items: list[Item]) -> None:
+    for start in range(0, len(items), _WRITE_PIECE):
+        writer.write(items[start : start + _WRITE_PIECE], flush=False)
+        _PAUSE()
+
+
+def serve(requests: IO[bytes], replies: IO[bytes]) -> None:
+    """The child's loop: each tenant's `McapFileWriter`, driven by frames until end of
+    input."""
+    files = TenantFiles(receive_frame(requests))
     try:
         while True:
             try:
@@ -256,27 +335,23 @@ def serve(requests: IO[bytes], replies: IO[bytes]) -> None:
             try:
                 if kind in ("write", "events"):
                     for robot_id, (metadata, model) in robots.items():
-                        writer.robots[robot_id] = metadata
+                        files.robots[robot_id] = metadata
                         if model is not None:
-                            models[robot_id] = model
+                            files.models[robot_id] = model
                     if kind == "write":
-                        unpacked = _unpack_items(items)
+                        files.write_items(_unpack_items(items))
                     else:
-                        unpacked = items_of_events(items, twins, _PAUSE)
-                    for start in range(0, len(unpacked), _WRITE_PIECE):
-                        writer.write(unpacked[start : start + _WRITE_PIECE], flush=False)
-                        _PAUSE()
+                        files.write_events(items)
                     if flush:
-                        writer.flush()
+                        files.flush()
                 else:
-                    writer.close()
+                    files.close()
             except OSError as exc:
                 error = str(exc)  # "[Errno 28] No space left on device: '...'"
-            path = None if writer.path is None else str(writer.path)
-            send_frame(replies, (error, path, writer.messages, [str(f) for f in writer.files]))
+            send_frame(replies, files.reply(error))
     finally:
         with contextlib.suppress(OSError):
-            writer.close()
+            files.close()
 
 
 #: Records written between pauses (`_PAUSE`).

@@ -16,6 +16,7 @@ from typing import Any
 import trio
 
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
+from arena.protocol.rest import DEFAULT_TENANT
 from arena.robot import safety
 from arena.robot.actor import Actor
 from arena.robot.core import RobotCore
@@ -53,10 +54,14 @@ class Robot:
         model: RobotModel,
         policy: SafetyPolicy | None = None,
         inbox_size: int = 1024,
+        tenant: str = DEFAULT_TENANT,
     ) -> None:
         self.robot_id = robot_id
         self.name = name
         self.model = model
+        #: Whose robot it is (a lab, a class): only callers of that tenant see it, and its
+        #: recorded data goes into that tenant's recording files.
+        self.tenant = tenant
         self.core = RobotCore(model, trio.current_time(), policy)
         self._send, receive = trio.open_memory_channel[Msg](inbox_size)
         self._turn = IdleTurn()  # the actor's idle turn (`arena.robot.idle`)

@@ -15,6 +15,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable, Iterable
 import trio
 
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.protocol.rest import DEFAULT_TENANT
 from arena.robot.handle import Robot
 from arena.robot.links import RobotView
 from arena.robot.model import SafetyPolicy, load_robot_model
@@ -64,8 +65,10 @@ class RobotManager:
         name: str | None = None,
         robot_id: str | None = None,
         policy: SafetyPolicy | None = None,
+        tenant: str = DEFAULT_TENANT,
     ) -> Robot:
-        """Create and start a robot. Raises `ArenaError` for a bad type, id or duplicate."""
+        """Create and start a robot of `tenant`. Raises `ArenaError` for a bad type, id or
+        duplicate."""
         model = load_robot_model(robot_type)
         if robot_id is None:
             robot_id = f"robot-{secrets.token_hex(4)}"
@@ -77,7 +80,7 @@ class RobotManager:
             )
         if robot_id in self._robots:
             raise ArenaError(ErrorCode.ROBOT_EXISTS, f"A robot with id {robot_id!r} exists.")
-        robot = Robot(robot_id, name or robot_id, model, policy)
+        robot = Robot(robot_id, name or robot_id, model, policy, tenant=tenant)
         self._robots[robot_id] = robot
         await self._nursery.start(self._supervise, robot)
         for callback in self.on_create:
@@ -91,6 +94,10 @@ class RobotManager:
         if robot is None:
             raise ArenaError(ErrorCode.UNKNOWN_ROBOT, f"No robot with id {robot_id!r}.")
         return robot
+
+    def find(self, robot_id: str) -> Robot | None:
+        """The robot `robot_id`, None if there is none."""
+        return self._robots.get(robot_id)
 
     def robots(self) -> list[Robot]:
         """Every robot, in creation order."""

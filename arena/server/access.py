@@ -11,12 +11,13 @@ from __future__ import annotations
 
 import re
 from collections.abc import Callable, Iterable
-from typing import TypeVar
+from typing import NamedTuple, TypeVar
 
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.protocol.rest import DEFAULT_TENANT
 from arena.robot.groups import GroupRegistry
 from arena.robot.manager import RobotManager
-from arena.server.identity import DEFAULT_TENANT, Principal, Role
+from arena.server.identity import Principal, Role
 
 V, OP, A = Role.VIEWER, Role.OPERATOR, Role.ADMIN
 
@@ -129,19 +130,31 @@ def reads_recordings(principal: Principal) -> bool:
 RobotLike = TypeVar("RobotLike")
 
 
+class Contents(NamedTuple):
+    """Whose a recording file is (None: not said, a file of an older version) and the
+    robots in it (None: not known)."""
+
+    tenant: str | None
+    robots: frozenset[str] | None
+
+
 class AccessControl:
     """Robots' tenants and who sees which robot and group."""
 
     def __init__(self, manager: RobotManager, groups: GroupRegistry) -> None:
         self.manager = manager
         self.groups = groups
-        #: Each robot's tenant (robots not listed belong to `default`).
+        #: The tenant of each robot deleted since the start (a live robot says its own).
         self.tenants: dict[str, str] = {}
         #: The tenant of a robot of another node of the fleet (`fleet_api` sets it).
         self.tenant_elsewhere: Callable[[str], str | None] = lambda robot_id: None
 
     def tenant_of(self, robot_id: str) -> str:
-        """The robot's tenant (a robot of another node: as that node says)."""
+        """The robot's tenant (a deleted one: as it was; a robot of another node: as that
+        node says)."""
+        robot = self.manager.find(robot_id)
+        if robot is not None:
+            return robot.tenant
         tenant = self.tenants.get(robot_id)
         if tenant is None:
             tenant = self.tenant_elsewhere(robot_id)
@@ -149,12 +162,7 @@ class AccessControl:
 
     def sees(self, principal: Principal, robot_id: str) -> bool:
         """The robot is of the caller's tenant and in its scope."""
-        if self.tenant_of(robot_id) != principal.tenant:
-            return False
-        if principal.unlimited:
-            return True
-        groups = [g.group_id for g in self.groups.all() if robot_id in g.members]
-        return principal.covers(robot_id, groups)
+        return self.tenant_of(robot_id) == principal.tenant and self.in_scope(principal, robot_id)
 
     def sees_group(self, principal: Principal, members: Iterable[str]) -> bool:
         """A group is seen when each of its members is."""
@@ -180,11 +188,27 @@ class AccessControl:
         if not self.sees_group(principal, self.groups.get(group_id).members):
             raise ArenaError(ErrorCode.UNKNOWN_GROUP, f"No group {group_id!r}.")
 
-    def sees_recording(self, principal: Principal, robots: frozenset[str] | None) -> bool:
-        """A recording is the caller's when it sees every robot in it (a deleted robot keeps
-        its tenant). A file whose robots are not known (no robot in its metadata, or cut
-        short where they were) is read only by a caller who sees the whole server's default
-        tenant (`reads_recordings`)."""
-        if not robots:
-            return reads_recordings(principal)
-        return all(self.sees(principal, robot_id) for robot_id in robots)
+    def sees_recording(self, principal: Principal, contents: Contents) -> bool:
+        """A recording is the caller's when it is of the caller's tenant and every robot in
+        it is in the caller's scope. A file of an older version (no tenant said) is the
+        caller's when it sees every robot in it now (a deleted robot keeps its tenant). A
+        file whose robots are not known (none in its metadata, or cut short where they
+        were) is read only by a caller unconfined in its tenant (the default tenant for an
+        older file: `reads_recordings`)."""
+        tenant, robots = contents
+        if tenant is None:
+            if not robots:
+                return reads_recordings(principal)
+            return all(self.sees(principal, robot_id) for robot_id in robots)
+        if tenant != principal.tenant:
+            return False
+        if principal.unlimited:
+            return True
+        return bool(robots) and all(self.in_scope(principal, r) for r in robots or ())
+
+    def in_scope(self, principal: Principal, robot_id: str) -> bool:
+        """The robot's id, or a group it is in, is in the caller's scope (tenants aside)."""
+        if principal.unlimited:
+            return True
+        groups = [g.group_id for g in self.groups.all() if robot_id in g.members]
+        return principal.covers(robot_id, groups)

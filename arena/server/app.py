@@ -37,7 +37,7 @@ from arena.robot.workspace import workspace_from_json, workspace_to_json
 from arena.sensors.camera import Cameras
 from arena.server import convert, dashboard, openapi
 from arena.server.access import AccessControl, needed_role, route_of
-from arena.server.auth import authorize, refuse
+from arena.server.auth import authorize, check_role, refuse
 from arena.server.base import (
     ArenaApp,
     Hardware,
@@ -50,14 +50,15 @@ from arena.server.calibration_api import blueprint as calibration_blueprint
 from arena.server.config import ServerConfig
 from arena.server.dashboard import blueprint as dashboard_blueprint
 from arena.server.drivers import attach_rest_master, camera_frames, make_master, make_slave
+from arena.server.fleet_api import CALLER, FORWARDED, forwarded_caller
 from arena.server.fleet_api import blueprint as fleet_blueprint
 from arena.server.groups_api import blueprint as groups_blueprint
 from arena.server.health import blueprint as health_blueprint
-from arena.server.identity import ANONYMOUS, Principal, TokenVerifier
+from arena.server.identity import Principal, TokenVerifier
 from arena.server.metrics import Metrics
 from arena.server.origin import SAFE_METHODS, OriginPolicy, is_json
 from arena.server.recordings_api import blueprint as recordings_blueprint
-from arena.server.recordings_api import off_the_loop, readable_recording
+from arena.server.recordings_api import off_the_loop, readable_recording, recorder_status
 from arena.server.robot_types_api import blueprint as robot_types_blueprint
 from arena.server.sensors_api import blueprint as sensors_blueprint
 from arena.server.ws.acks import AckCache
@@ -122,26 +123,30 @@ def _register_errors(app: ArenaApp) -> None:
             )
         if request.path == "/" and dashboard.is_built() and _wants_html():
             return redirect("/ui/")  # type: ignore[return-value]  # a browser: show the page
-        forwarded = request.headers.get("X-Arena-Fleet-Forwarded")
-        if app.fleet_secret and forwarded == app.fleet_secret:
-            g.principal = ANONYMOUS  # forwarded by a node of the fleet, which checked the key
-            return None
         rule = request.url_rule
         needed = needed_role(request.method, None if rule is None else rule.rule)
         if needed is None:
             return None  # a public route
-        # A page's <img> cannot send headers: a camera stream may carry its key in the
-        # query, as a WebSocket does.
-        stream = request.method == "GET" and request.path.endswith("/stream")
         route = " ".join(route_of(request.method, rule.rule)) if rule else request.path
-        principal = authorize(
-            app,
-            request.headers.get("Authorization"),
-            request.args.get("token") if stream else None,
-            needed,
-            route,
-            read_only=request.method in SAFE_METHODS,
+        # Forwarded by a node of the fleet, which checked the key or token: its caller is
+        # checked here again against this node's robots, and named in its records.
+        principal = forwarded_caller(
+            app, request.headers.get(FORWARDED), request.headers.get(CALLER)
         )
+        if principal is not None:
+            check_role(app, principal, needed, route)
+        else:
+            # A page's <img> cannot send headers: a camera stream may carry its key in the
+            # query, as a WebSocket does.
+            stream = request.method == "GET" and request.path.endswith("/stream")
+            principal = authorize(
+                app,
+                request.headers.get("Authorization"),
+                request.args.get("token") if stream else None,
+                needed,
+                route,
+                read_only=request.method in SAFE_METHODS,
+            )
         g.principal = principal
         args = request.view_args or {}
         try:
@@ -263,7 +268,7 @@ def _register_routes(app: ArenaApp) -> None:
             "estops": sum(r.estop_count for r in robots),
             "auth": app.arena_config.auth_enabled,
             "heartbeat_timeout": app.arena_config.heartbeat_timeout,
-            "recording": app.recorder.status(),
+            "recording": recorder_status(app, g.principal),
             "foxglove": None
             if app.foxglove is None
             else {"port": app.foxglove.port, "dropped": app.foxglove.dropped},
@@ -307,8 +312,7 @@ def _register_routes(app: ArenaApp) -> None:
             )
         if principal.robots is not None and body.id is None:
             raise ArenaError(ErrorCode.INVALID_BODY, 'Give the robot an "id" within your scope.')
-        robot = await manager.create_robot(body.robot_type, body.name, body.id)
-        app.access.tenants[robot.robot_id] = tenant
+        robot = await manager.create_robot(body.robot_type, body.name, body.id, tenant=tenant)
         return convert.robot_summary(robot, tenant), 201
 
     @app.get("/api/robots/<robot_id>")
@@ -322,7 +326,8 @@ def _register_routes(app: ArenaApp) -> None:
     @app.delete("/api/robots/<robot_id>")
     async def delete_robot(robot_id: str) -> dict[str, Any]:
         robot = manager.get(robot_id)
-        await manager.delete(robot_id)  # (its tenant stays: its recordings are still its)
+        app.access.tenants[robot_id] = robot.tenant  # (its past stays its tenant's)
+        await manager.delete(robot_id)
         app.metrics.retire(robot)
         return {"deleted": robot_id}
 

@@ -20,12 +20,13 @@ import arena
 from arena.fleet import forward
 from arena.fleet.node import ESTOP_TIMEOUT, FleetNode
 from arena.protocol.errors import ArenaError, ErrorCode
-from arena.protocol.rest import ReasonBody
+from arena.protocol.rest import DEFAULT_TENANT, ReasonBody
 from arena.robot.events import StateChanged
 from arena.robot.handle import Robot
 from arena.robot.manager import estop_together
+from arena.server.auth import refuse
 from arena.server.base import ArenaApp, error_response, read_body
-from arena.server.identity import DEFAULT_TENANT, Principal, Role
+from arena.server.identity import Principal, Role
 from arena.server.ws.fleet import serve_tunnel
 
 log = logging.getLogger(__name__)
@@ -34,6 +35,9 @@ blueprint = Blueprint("fleet", __name__)
 #: The header that marks a REST call forwarded by another node (its value is this process's
 #: secret, so no client can send it).
 FORWARDED = "X-Arena-Fleet-Forwarded"
+#: The header of a forwarded call that says who called (JSON claims, `Principal.to_wire`);
+#: read only beside `FORWARDED`.
+CALLER = "X-Arena-Fleet-Caller"
 
 
 def _app() -> ArenaApp:
@@ -54,9 +58,11 @@ def _fleet() -> FleetNode:
 
 @blueprint.get("/api/fleet/nodes")
 async def fleet_nodes() -> dict[str, Any]:
-    """Every node seen since this one started: name, alive, version, robots, endpoints."""
+    """Every node seen since this one started: name, alive, version, the robots the caller
+    sees, endpoints."""
     fleet = _fleet()
     await fleet.refresh_all()
+    access, principal = _app().access, g.principal
     return {
         "fleet": fleet.fleet,
         "node": fleet.name,
@@ -65,7 +71,9 @@ async def fleet_nodes() -> dict[str, Any]:
                 "name": view.name,
                 "alive": view.alive,
                 "version": view.version,
-                "robots": [robot["id"] for robot in view.robots],
+                "robots": [
+                    robot["id"] for robot in view.robots if access.sees(principal, str(robot["id"]))
+                ],
                 "locators": view.locators,
                 "http": view.http,
             }
@@ -269,13 +277,19 @@ async def _forward_remote_robot() -> Response | None:
     robot_id = parts[3]
     if robot_id in {robot.robot_id for robot in app.manager.robots()}:
         return None
+    principal: Principal = g.principal
+    if not app.access.sees(principal, robot_id):  # before anything that tells it exists
+        refuse(app, "scope")
+        raise ArenaError(ErrorCode.UNKNOWN_ROBOT, f"No robot with id {robot_id!r}.")
     node = fleet.owner_of(robot_id)  # NODE_LOST for a robot of a node that is gone
     if node is None or node == fleet.name:
         return None
     raw = await request.get_data(cache=True, as_text=False)
     body = raw.encode() if isinstance(raw, str) else raw
     query = request.query_string.decode("latin-1")
-    call = forward.request_call(request.method, request.path, query, request.headers.items(), body)
+    call = forward.request_call(
+        request.method, request.path, query, request.headers.items(), body, principal.to_wire()
+    )
     answer = await forward.forward(fleet, node, call)
     response = Response(answer.body, status=answer.status, content_type=answer.content_type)
     response.headers["X-Arena-Node"] = node
@@ -283,22 +297,35 @@ async def _forward_remote_robot() -> Response | None:
 
 
 async def _run_forwarded(app: ArenaApp, call: forward.Call) -> forward.Answer:
-    """Run a forwarded REST call through this node's own app (its rules, its robot)."""
+    """Run a forwarded REST call through this node's own app (its rules, its robot, and the
+    caller checked again against them)."""
     client: Any = app.test_client()
+    headers = {**call.headers, FORWARDED: app.fleet_secret}
+    if call.caller is not None:
+        headers[CALLER] = json.dumps(call.caller)
     response = await client.open(
         call.path,
         method=call.method,
         query_string=call.query or None,
-        headers={**call.headers, FORWARDED: app.fleet_secret},
+        headers=headers,
         data=call.body,
     )
     data: bytes = await response.get_data(as_text=False)
     return forward.Answer(response.status_code, response.content_type, data)
 
 
-def is_forwarded(app: ArenaApp, value: str | None) -> bool:
-    """True for a call another node of the fleet forwarded (it checked the key)."""
-    return bool(app.fleet_secret) and value == app.fleet_secret
+def forwarded_caller(app: ArenaApp, secret: str | None, caller: str | None) -> Principal | None:
+    """Who called, for a call another node of the fleet forwarded (`secret` is this
+    process's: that node checked the key or token, and `caller` says who it proved to be);
+    None for any other request. UNAUTHORIZED for a caller that cannot be read."""
+    if not app.fleet_secret or secret != app.fleet_secret:
+        return None
+    try:
+        return Principal.of_wire(None if caller is None else json.loads(caller))
+    except ValueError as exc:
+        raise ArenaError(
+            ErrorCode.UNAUTHORIZED, f"The forwarded caller is not valid: {exc}."
+        ) from None
 
 
 def _tenant_elsewhere(fleet: FleetNode, robot_id: str) -> str | None:

@@ -22,16 +22,17 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.protocol.rest import DEFAULT_TENANT, TENANT_PATTERN
 
 if TYPE_CHECKING:
     import jwt  # PyJWT: imported where tokens are used, so a server without them starts fast
 
-#: The tenant of API keys, of robots created without one, and of tokens without the claim.
-DEFAULT_TENANT = "default"
 #: The algorithms a JWKS key may sign with (a secret signs HS256 only).
 PUBLIC_KEY_ALGORITHMS = ("RS256", "ES256")
 #: Tenants, robot ids and globs are short names: bounded so a token cannot carry a novel.
 _NAME = re.compile(r"[A-Za-z0-9_.*?\[\]-]{1,64}")
+#: A tenant is a name, not a pattern (it names recording files too).
+_TENANT = re.compile(TENANT_PATTERN)
 _MOST_PATTERNS = 64
 
 
@@ -82,6 +83,26 @@ class Principal:
     def audit_name(self) -> str:
         """How records name this caller."""
         return self.name
+
+    def to_wire(self) -> dict[str, Any]:
+        """As claims, for a node of the fleet that serves this caller's call (`of_wire`)."""
+        claims: dict[str, Any] = {"sub": self.name, "role": str(self.role), "tenant": self.tenant}
+        if self.robots is not None:
+            claims["robots"] = list(self.robots)
+        if self.groups is not None:
+            claims["groups"] = list(self.groups)
+        return claims
+
+    @classmethod
+    def of_wire(cls, claims: Any) -> Principal:
+        """The caller another node of the fleet sent (`to_wire`), checked as a token's
+        claims are; a node of an older version sends none: the anonymous admin of the
+        default tenant, as it asked then. ValueError for claims of the wrong shape."""
+        if claims is None:
+            return ANONYMOUS
+        if not isinstance(claims, Mapping):
+            raise ValueError("the caller must be claims")
+        return principal_of(claims)
 
 
 #: The caller of a server without keys or tokens (a loopback server for one person).
@@ -245,7 +266,7 @@ def principal_of(claims: Mapping[str, Any], leeway: float = 0.0) -> Principal:
     if not isinstance(role, str):
         raise ValueError("'role' must be viewer, operator or admin")
     tenant = claims.get("tenant", DEFAULT_TENANT)
-    if not isinstance(tenant, str) or not _NAME.fullmatch(tenant):
+    if not isinstance(tenant, str) or not _TENANT.fullmatch(tenant):
         raise ValueError("'tenant' must be a name")
     exp = claims.get("exp")
     return Principal(

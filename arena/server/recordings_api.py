@@ -16,7 +16,7 @@ from arena.protocol.rest import ReplayBody, ReplayMasterBody
 from arena.recording.analysis import joint_series, summarize, thin
 from arena.recording.mcap_file import SUFFIX, read_recording
 from arena.recording.recorder import Recorder, check_name, existing_recording
-from arena.server.access import reads_recordings
+from arena.server.access import Contents, reads_recordings
 from arena.server.base import ArenaApp, read_body
 from arena.server.drivers import attach_rest_master, make_master
 from arena.server.identity import Principal
@@ -29,50 +29,69 @@ def _app() -> ArenaApp:
     return current_app  # type: ignore[return-value]
 
 
-#: Robots of each finished file read so far, by path, with the size and time they had.
-_ROBOTS: dict[Path, tuple[tuple[int, int], frozenset[str] | None]] = {}
+#: What each finished file read so far holds, by path, with the size and time it had.
+_CONTENTS: dict[Path, tuple[tuple[int, int], Contents]] = {}
 _MOST_REMEMBERED = 4096
 
 
-def robots_of(recorder: Recorder, path: Path) -> frozenset[str] | None:
-    """The robots a file holds (its `robot/ID` metadata; the file being written: every robot
-    the recorder follows), None when that cannot be told. Reads the file's summary, or the
-    whole file when it has none: call it off the loop."""
-    if path == recorder.current_file:
-        return frozenset(recorder.writer.robots)
+def contents_of(recorder: Recorder, path: Path) -> Contents:
+    """Whose a file is and the robots it holds: its `arena` metadata's `tenant` (None in a
+    file of an older version, which may mix tenants) and its `robot/ID` metadata (a file
+    being written: the robots of its tenant the recorder follows; None when that cannot be
+    told). Reads the file's summary, or the whole file when it has none: call it off the
+    loop."""
+    tenant = recorder.current_files.get(path)
+    if tenant is not None:
+        followed = recorder.writer.robots.items()
+        return Contents(tenant, frozenset(r for r, m in followed if m.get("tenant") == tenant))
     try:
         stat = path.stat()
     except OSError:
-        return None
+        return Contents(None, None)
     key = (stat.st_size, stat.st_mtime_ns)
-    known = _ROBOTS.get(path)
+    known = _CONTENTS.get(path)
     if known is not None and known[0] == key:
         return known[1]
     found: set[str] = set()
+    tenant = None
     try:
         with path.open("rb") as stream:
             for metadata in make_reader(stream).iter_metadata():
                 if metadata.name.startswith("robot/"):
                     found.add(metadata.name[len("robot/") :])
-    except Exception:  # cut short or not MCAP: which robots it holds is not known
-        found = set()
-    if len(_ROBOTS) >= _MOST_REMEMBERED:
-        _ROBOTS.clear()
-    robots = frozenset(found) or None
-    _ROBOTS[path] = (key, robots)
-    return robots
+                elif metadata.name == "arena":
+                    tenant = metadata.metadata.get("tenant")
+    except Exception:  # cut short or not MCAP: what it holds is not known
+        found, tenant = set(), None
+    if len(_CONTENTS) >= _MOST_REMEMBERED:
+        _CONTENTS.clear()
+    contents = Contents(tenant, frozenset(found) or None)
+    _CONTENTS[path] = (key, contents)
+    return contents
+
+
+def recorder_status(app: ArenaApp, principal: Principal) -> dict[str, Any]:
+    """What the recorder is doing, as the caller may see it: its `file` is the one being
+    written that the caller may read (its tenant's)."""
+    recorder = app.recorder
+    theirs = [
+        path.name
+        for path in recorder.current_files
+        if app.access.sees_recording(principal, contents_of(recorder, path))
+    ]
+    return {**recorder.status(), "file": theirs[0] if theirs else None}
 
 
 async def readable_recording(
     app: ArenaApp, principal: Principal, name: str, field: str = ""
 ) -> Path:
-    """The recording `name`, if the caller may read it (each of its robots is one it sees);
+    """The recording `name`, if the caller may read it (its tenant's, every robot in scope);
     else UNKNOWN_RECORDING, worded as for a file that does not exist (and naming the body's
     `field` it came from, if any)."""
     try:
         path = existing_recording(app.recorder.folder, name)
-        robots = await off_the_loop(robots_of, app.recorder, path)
-        if not app.access.sees_recording(principal, robots):
+        contents = await off_the_loop(contents_of, app.recorder, path)
+        if not app.access.sees_recording(principal, contents):
             raise ArenaError(ErrorCode.UNKNOWN_RECORDING, f"No recording called {name!r}.")
     except ArenaError as error:
         if not field:
@@ -102,20 +121,16 @@ async def list_recordings() -> dict[str, Any]:
     app = _app()
     recorder = app.recorder
     files = sorted(recorder.folder.glob(f"*{SUFFIX}"), key=lambda p: p.name, reverse=True)
-    robots = await off_the_loop(lambda: [robots_of(recorder, path) for path in files])
+    contents = await off_the_loop(lambda: [contents_of(recorder, path) for path in files])
+    principal: Principal = g.principal
     files = [
-        p for p, r in zip(files, robots, strict=True) if app.access.sees_recording(g.principal, r)
+        p for p, c in zip(files, contents, strict=True) if app.access.sees_recording(principal, c)
     ]
-    current = recorder.current_file
+    writing = recorder.current_files
     return {
-        "recorder": recorder.status(),
+        "recorder": recorder_status(app, principal),
         "recordings": [
-            {
-                "name": p.name,
-                "bytes": p.stat().st_size,
-                "active": current is not None and p == current,
-            }
-            for p in files
+            {"name": p.name, "bytes": p.stat().st_size, "active": p in writing} for p in files
         ],
     }
 

@@ -74,7 +74,8 @@ class Connection(LatestWins):
         #: expires (None: a key, or no credential needed).
         self.principal: Principal = ANONYMOUS
         self.expires_at: float | None = None
-        #: Carried from another node of the fleet, which checked the caller and its scope.
+        #: Carried from another node of the fleet, which checked the key or token (and set
+        #: `principal` to the caller it sent).
         self.carried = False
 
     def error(self, code: ErrorCode | str, message: str) -> Encoded:
@@ -141,7 +142,8 @@ class Connection(LatestWins):
 
     async def authorized(self) -> bool:
         """Check the key or token and the role; a refusal is sent and the answer is False. A
-        connection carried from another node of the fleet was checked there (`trusted`)."""
+        connection carried from another node of the fleet was checked there (`trusted`); its
+        caller's tenant and scope are checked here all the same (`sees`)."""
         if getattr(self.ws, "trusted", False):
             self.carried = True
             return True
@@ -164,7 +166,7 @@ class Connection(LatestWins):
 
     def sees(self, robot_id: str) -> bool:
         """The caller may see the robot (its tenant and scope); counted when not."""
-        if self.carried or self.app.access.sees(self.principal, robot_id):
+        if self.app.access.sees(self.principal, robot_id):
             return True
         refuse(self.app, "scope")
         return False

@@ -1,6 +1,7 @@
 """WebSockets for robots of other nodes of the fleet, over `fleet.tunnel`: the client's node
-checks the key and carries the connection (`proxy`); the robot's node serves it with its own
-endpoints (`serve_tunnel`)."""
+checks the key or token and carries the connection (`proxy`); the robot's node serves it with
+its own endpoints (`serve_tunnel`), as the caller the client's node sent, whose tenant and
+scope it checks again."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ from arena.fleet import tunnel as tunnels
 from arena.fleet.node import FleetNode
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.server.base import ArenaApp
+from arena.server.identity import Principal
 from arena.server.ws.backpressure import Encoded
 from arena.server.ws.connection import Connection
 from arena.server.ws.endpoints import serve_role
@@ -29,11 +31,19 @@ def kind_of(text: str) -> str:
 
 def serve_tunnel(app: ArenaApp, fleet: FleetNode, call: dict[str, Any]) -> dict[str, Any]:
     """Serve a client of another node: the robot must be here; the connection runs as if
-    the client had connected to this node."""
+    the client had connected to this node, as the caller that node sent."""
     app.manager.get(str(call["robot"]))  # UNKNOWN_ROBOT if it is not here (any more)
+    try:
+        caller = Principal.of_wire(call.get("caller"))
+    except ValueError as exc:
+        raise ArenaError(
+            ErrorCode.UNAUTHORIZED, f"The carried caller is not valid: {exc}."
+        ) from None
 
     async def serve(socket: tunnels.TunnelSocket, role: str, robot_id: str) -> None:
-        await serve_role(Connection(app, socket, role), robot_id)
+        connection = Connection(app, socket, role)
+        connection.principal = caller
+        await serve_role(connection, robot_id)
 
     return tunnels.serve_tunnel(fleet, call, serve)
 
@@ -50,7 +60,9 @@ async def proxy(connection: Connection, robot_id: str, node: str) -> None:
         )
         return
     try:
-        tunnel = await tunnels.open_to(fleet, node, robot_id, connection.role, connection.args)
+        tunnel = await tunnels.open_to(
+            fleet, node, robot_id, connection.role, connection.args, connection.principal.to_wire()
+        )
     except ArenaError as error:
         await connection.refuse(error)
         return

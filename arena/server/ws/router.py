@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from functools import partial
 
-from arena.protocol.errors import ArenaError
+from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.ws_frames import UpgradeRequest
 from arena.server.base import ArenaApp
 from arena.server.listener import WebSocketHandler
@@ -35,7 +35,7 @@ def router(app: ArenaApp) -> Callable[[UpgradeRequest], WebSocketHandler | None]
         try:
             node = _remote_node(app, robot_id)
         except ArenaError as error:  # its node is gone (NODE_LOST): the client is told so
-            return partial(_refused, app, role, error)
+            return partial(_refused, app, role, robot_id, error)
         if node is not None:  # another node of the fleet owns it: carried there
             return lambda ws: proxy(Connection(app, ws, role), robot_id, node)
         return lambda ws: handler(Connection(app, ws, role), robot_id)
@@ -43,12 +43,18 @@ def router(app: ArenaApp) -> Callable[[UpgradeRequest], WebSocketHandler | None]
     return route
 
 
-async def _refused(app: ArenaApp, role: str, error: ArenaError, ws: WebSocket) -> None:
-    """A connection refused before it reaches a robot (its key checked first): the error,
+async def _refused(
+    app: ArenaApp, role: str, robot_id: str, error: ArenaError, ws: WebSocket
+) -> None:
+    """A connection refused before it reaches a robot (its key checked first, then whether
+    the caller may see the robot, so that one it may not is as absent as ever): the error,
     then the close."""
     connection = Connection(app, ws, role)
-    if await connection.authorized():
-        await connection.refuse(error)
+    if not await connection.authorized():
+        return
+    if not connection.sees(robot_id):
+        error = ArenaError(ErrorCode.UNKNOWN_ROBOT, f"No robot with id {robot_id!r}.")
+    await connection.refuse(error)
 
 
 def _remote_node(app: ArenaApp, robot_id: str) -> str | None:
