@@ -6,6 +6,7 @@ from __future__ import annotations
 import base64
 import io
 import json
+import logging
 import re
 import time
 from collections.abc import Awaitable, Callable
@@ -296,30 +297,55 @@ async def test_websocket_matrix_of_roles_scope_and_tenants(
 
 
 async def test_bad_tokens_over_http_and_websocket_say_why_and_are_counted(
-    start_server: StartServer, secret_file: Path
+    start_server: StartServer, secret_file: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    server = await start_server(jwt_secret_file=str(secret_file), demo=True)
-    expired = mint(SECRET, "bob", Role.ADMIN, 60, now=time.time() - 600)
-    unsigned = jwt.encode({"sub": "m", "role": "admin", "exp": 2**31}, None, algorithm="none")
+    caplog.set_level(logging.INFO, logger="arena.server.auth")
+    server = await start_server(
+        jwt_secret_file=str(secret_file), jwt_issuer="lab-idp", jwt_audience="arena", demo=True
+    )
+    ours = {"issuer": "lab-idp", "audience": "arena"}
+    good = token("admin", **ours)
+    head, body, signature = good.split(".")
+    claims = json.loads(base64.urlsafe_b64decode(body + "=="))
+    grown = base64.urlsafe_b64encode(json.dumps({**claims, "sub": "root"}).encode())
+    other_secret = b"another-secret-of-32-bytes-or-more!!"
+    bad = {  # each refused token, and a word of what the refusal says
+        "expired": (mint(SECRET, "bob", Role.ADMIN, 60, now=time.time() - 600, **ours), "expired"),
+        "wrong issuer": (token("admin", issuer="elsewhere", audience="arena"), "lab-idp"),
+        "wrong audience": (token("admin", issuer="lab-idp", audience="other"), "'arena'"),
+        "badly signed": (jwt.encode(claims, other_secret, algorithm="HS256"), "signature"),
+        "alg none": (jwt.encode(claims, None, algorithm="none"), "not accepted"),
+        "tampered": (f"{head}.{grown.rstrip(b'=').decode()}.{signature}", "signature"),
+        "junk": ("junk", "neither"),
+    }
     async with server.client() as http:
-        for text, words in [(expired, "expired"), (unsigned, "not accepted"), ("junk", "neither")]:
+        for what, (text, words) in bad.items():
             reply = await http.post("/api/robots/demo-arm/estop", headers=bearer(text))
-            assert reply.status_code == 401 and words in reply.json()["error"]["message"]
+            said = reply.json()["error"]
+            assert (reply.status_code, said["code"]) == (401, "UNAUTHORIZED"), what
+            assert words in said["message"], (what, said)
             assert (
                 await http.get("/api/robots/demo-arm/status", headers=bearer(text))
             ).status_code == 401
+            url = f"{server.ws_url}/ws/master/demo-arm?token={text}"
+            async with open_websocket_url(url) as ws:
+                error = await receive(ws, "error")
+                assert (error["data"]["code"], await closed_with(ws)) == ("UNAUTHORIZED", 4401)
+                assert words in error["data"]["message"], what
         assert (await http.get("/api/robots")).status_code == 401
-        state = await http.get("/api/robots/demo-arm", headers=bearer(token("viewer")))
+        viewer = bearer(token("viewer", **ours))
+        state = await http.get("/api/robots/demo-arm", headers=viewer)
         assert state.json()["state"] == "idle"  # nothing a refused caller sent was done
-        metrics = (await http.get("/metrics", headers=bearer(token("viewer")))).text
-    assert 'arena_auth_refused_total{reason="expired"} 2' in metrics
-    assert 'arena_auth_refused_total{reason="invalid"} 4' in metrics
+        metrics = (await http.get("/metrics", headers=viewer)).text
+    assert 'arena_auth_refused_total{reason="expired"} 3' in metrics
+    assert 'arena_auth_refused_total{reason="invalid"} 18' in metrics
     assert 'arena_auth_refused_total{reason="missing"} 1' in metrics
-    assert expired not in metrics and "bob" not in metrics
-    async with open_websocket_url(f"{server.ws_url}/ws/master/demo-arm?token={expired}") as ws:
-        error = await receive(ws, "error")
-        assert (error["data"]["code"], await closed_with(ws)) == ("UNAUTHORIZED", 4401)
-        assert "expired" in error["data"]["message"]
+    # Each refusal logged by its reason; no token's text in the log or the metrics.
+    refusals = [r.getMessage() for r in caplog.records if "refused a caller" in r.getMessage()]
+    assert refusals.count("refused a caller: invalid") == 18 and len(refusals) == 22
+    logged = "\n".join(r.getMessage() for r in caplog.records) + metrics
+    assert not [what for what, (text, _) in bad.items() if text in logged and text != "junk"]
+    assert "bob" not in logged and signature not in logged
 
 
 async def test_a_websocket_whose_token_expires_is_closed_with_4401(
@@ -347,7 +373,10 @@ async def test_a_websocket_whose_token_expires_is_closed_with_4401(
 
 
 async def test_the_audit_trail_is_read_back_from_the_recording(
-    start_server: StartServer, secret_file: Path, tmp_path: Path
+    start_server: StartServer,
+    secret_file: Path,
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture[str],
 ) -> None:
     recordings = tmp_path / "audit"
     server = await start_server(
@@ -398,6 +427,16 @@ async def test_the_audit_trail_is_read_back_from_the_recording(
     assert summary["users"] == ["alice", "api-key-1", "bob"]
     assert SECRET.decode() not in path.read_bytes().decode("latin-1")
     assert alice not in path.read_bytes().decode("latin-1")
+    # ... and as the command line shows it.
+    capsys.readouterr()
+    assert main(["inspect", str(path)]) == 0
+    inspected = capsys.readouterr().out
+    assert "users      alice, api-key-1, bob" in inspected
+    assert "user=bob action=POST /api/robots/{robot_id}/estop detail=200" in inspected
+    assert main(["timeline", str(path), "--robot", "arm"]) == 0
+    shown = capsys.readouterr().out.splitlines()
+    assert any("alice: release over WebSocket (alice-ui)" in line for line in shown), shown
+    assert any("(by alice)" in line and "Rotation=12" in line for line in shown)
 
 
 async def test_tenants_hold_across_a_fleet(start_server: StartServer, secret_file: Path) -> None:
