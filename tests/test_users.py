@@ -296,6 +296,32 @@ async def test_websocket_matrix_of_roles_scope_and_tenants(
             await http.post("/api/robots/lab-1/reset", headers=bearer(ADMIN_KEY))
 
 
+async def test_a_token_s_groups_reach_the_robots_in_those_groups(
+    start_server: StartServer, secret_file: Path
+) -> None:
+    server = await _tenanted_server(start_server, secret_file)
+    cell = token("operator", groups=["cell-*"])
+    async with server.client() as http:
+        made = await http.post(
+            "/api/groups", json={"id": "cell-1", "members": ["lab-2"]}, headers=bearer(ADMIN_KEY)
+        )
+        assert made.status_code == 201
+        listed = (await http.get("/api/robots", headers=bearer(cell))).json()
+        assert [robot["id"] for robot in listed] == ["lab-2"]
+        groups = (await http.get("/api/groups", headers=bearer(cell))).json()["groups"]
+        assert [group["id"] for group in groups] == ["cell-1"]
+        for robot_id, status in (("lab-2", 200), ("lab-1", 404), ("acme-1", 404)):
+            reset = await http.post(f"/api/robots/{robot_id}/reset", headers=bearer(cell))
+            assert reset.status_code == status, robot_id
+        assert (await http.post("/api/groups/cell-1/estop", headers=bearer(cell))).is_success
+    for robot_id, first in (("cell-1", "state"), ("lab-2", "state"), ("lab-1", "error")):
+        async with open_websocket_url(f"{server.ws_url}/ws/master/{robot_id}?token={cell}") as ws:
+            message = json.loads(await ws.get_message())
+            assert message["type"] == first, (robot_id, message)
+            if first == "error":
+                assert (message["data"]["code"], await closed_with(ws)) == ("UNKNOWN_ROBOT", 4404)
+
+
 async def test_bad_tokens_over_http_and_websocket_say_why_and_are_counted(
     start_server: StartServer, secret_file: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
