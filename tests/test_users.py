@@ -28,7 +28,9 @@ from arena.fleet import tunnel as tunnels
 from arena.protocol.errors import ArenaError
 from arena.recording import analysis
 from arena.recording.mcap_file import read_recording
+from arena.recording.recorder import Recorder
 from arena.robot.events import Audited
+from arena.robot.manager import open_manager
 from arena.server.access import PUBLIC_ROUTES, ROLE_FOR, route_of
 from arena.server.config import load_config
 from arena.server.identity import Principal, Role, TokenVerifier, mint, parse_duration
@@ -703,3 +705,35 @@ async def test_a_robot_out_of_scope_on_a_node_that_left_is_as_absent_as_any(
         async with open_websocket_url(f"{a.ws_url}/ws/master/b-acme?token={caller}") as ws:
             error = await receive(ws, "error")
             assert (error["data"]["code"], await closed_with(ws)) == expected
+
+
+async def test_a_robot_id_made_anew_in_another_tenant_goes_to_that_tenant_s_files(
+    autojump_clock: trio.testing.MockClock, tmp_path: Path
+) -> None:
+    recorder = Recorder(tmp_path, flush_interval=1.0, batch_interval=1.0, foxglove=False)
+    async with trio.open_nursery() as nursery:
+        await nursery.start(recorder.run)
+        async with open_manager() as manager:
+            manager.on_create.append(recorder.follow)
+            first = await manager.create_robot("so-arm100", robot_id="x", tenant="acme")
+            await first.estop("acme's stop")
+            while not recorder.writer.messages:  # a batch written: the writer knows the robot
+                await trio.sleep(0.5)
+            await first.reset()
+            await first.estop("acme's last word")
+            # Deleted and made anew at once: the old robot's last events may travel in one
+            # batch with the new one's, each to its own tenant.
+            await manager.delete("x")
+            second = await manager.create_robot("so-arm100", robot_id="x")
+            await second.estop("the lab's stop")
+            await trio.sleep(1.5)
+        nursery.cancel_scope.cancel()
+    recordings = [read_recording(path) for path in recorder.writer.files]
+    files = {recording.metadata["arena"]["tenant"]: recording for recording in recordings}
+    assert sorted(files) == ["acme", "default"] and len(recordings) == 2
+    said = {"acme": {"acme's stop", "acme's last word"}, "default": {"the lab's stop"}}
+    for tenant, recording in files.items():
+        assert recording.metadata["robot/x"]["tenant"] == tenant
+        reasons = {m.data["estop_reason"] for m in recording.messages if m.kind == "state"}
+        assert reasons - {None} == said[tenant], tenant
+    assert files["acme"].path.name.endswith(".acme.mcap")

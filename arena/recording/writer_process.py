@@ -246,72 +246,90 @@ class McapWriterProcess:
             process.wait()
 
 
+@dataclasses.dataclass
+class _Lane:
+    """One tenant's writer, what it knows of the tenant's robots, and Foxglove's view."""
+
+    writer: McapFileWriter
+    models: dict[str, RobotModel]
+    twins: Twins | None
+
+
 class TenantFiles:
     """The child's writers: one `McapFileWriter` (and Foxglove's view) for each tenant, made
-    with its first record. A tenant's robots are recorded into files of their own, so a file
-    can be given to a tenant whole; each file says its tenant in its `arena` metadata, and a
-    tenant's other than the default's is named `arena-...TENANT.mcap`."""
+    when its first robot is known. A tenant's robots are recorded into files of their own, so
+    a file can be given to a tenant whole; each file says its tenant in its `arena` metadata,
+    and a tenant's other than the default's is named `arena-...TENANT.mcap`. Each tenant's
+    writer knows only its own robots' metadata: a robot id made anew in another tenant never
+    names the new robot in the old tenant's files."""
 
     def __init__(self, series: FileSeries) -> None:
         self.series = series
-        #: robot id -> metadata (with its `tenant`), shared by every tenant's writer
-        self.robots: dict[str, dict[str, str]] = {}
-        self.models: dict[str, RobotModel] = {}
-        self._lanes: dict[str, tuple[McapFileWriter, Twins | None]] = {}
+        self._lanes: dict[str, _Lane] = {}
+        self._tenant_of: dict[str, str] = {}  # robot id -> its tenant, as last told
 
-    def lane(self, tenant: str) -> tuple[McapFileWriter, Twins | None]:
-        """The tenant's writer and view (made on first use)."""
+    def know(self, robot_id: str, metadata: dict[str, str], model: RobotModel | None) -> None:
+        """A robot's metadata (with its `tenant`) and model, for its tenant's files."""
+        tenant = metadata.get("tenant", DEFAULT_TENANT)
+        lane = self.lane(tenant)
+        lane.writer.robots[robot_id] = metadata
+        if model is not None:
+            lane.models[robot_id] = model
+        self._tenant_of[robot_id] = tenant
+
+    def lane(self, tenant: str) -> _Lane:
+        """The tenant's writer and view (made on first use; a file opens with a record)."""
         found = self._lanes.get(tenant)
         if found is not None:
             return found
         metadata = {**self.series.metadata, "tenant": tenant}
         writer = McapFileWriter(dataclasses.replace(self.series, metadata=metadata, tenant=tenant))
-        writer.robots = self.robots
+        models: dict[str, RobotModel] = {}
         twins = None
         if self.series.foxglove:
             from arena.recording.foxglove import Twins  # the SDK loads only when it is used
 
-            twins = Twins(self.robots, self.models, self.series.foxglove_rate)
+            twins = Twins(writer.robots, models, self.series.foxglove_rate)
             writer.first_in_file = twins.introduce
-        self._lanes[tenant] = (writer, twins)
-        return writer, twins
+        lane = self._lanes[tenant] = _Lane(writer, models, twins)
+        return lane
 
     def write_events(self, slices: dict[str, list[bytes]]) -> None:
         """Records of each tenant's events, into its files."""
         for tenant, theirs in slices.items():
-            writer, twins = self.lane(tenant)
-            _write_in_pieces(writer, items_of_events(theirs, twins, _PAUSE))
+            lane = self.lane(tenant)
+            _write_in_pieces(lane.writer, items_of_events(theirs, lane.twins, _PAUSE))
 
     def write_items(self, items: list[Item]) -> None:
         """Records made already, each into its robot's tenant's files."""
         by_tenant: dict[str, list[Item]] = {}
         for item in items:
-            tenant = self.robots.get(item[0], {}).get("tenant", DEFAULT_TENANT)
+            tenant = self._tenant_of.get(item[0], DEFAULT_TENANT)
             by_tenant.setdefault(tenant, []).append(item)
         for tenant, theirs in by_tenant.items():
-            _write_in_pieces(self.lane(tenant)[0], theirs)
+            _write_in_pieces(self.lane(tenant).writer, theirs)
 
     def flush(self) -> None:
         """Every tenant's chunk in progress handed to the OS."""
-        for writer, _ in self._lanes.values():
-            writer.flush()
+        for lane in self._lanes.values():
+            lane.writer.flush()
 
     def close(self) -> None:
         """Finish every tenant's current file."""
-        for writer, _ in self._lanes.values():
-            writer.close()
+        for lane in self._lanes.values():
+            lane.writer.close()
 
     def reply(self, error: str | None) -> tuple[Any, ...]:
         """The answer to a request (see the module)."""
-        default = self._lanes.get(DEFAULT_TENANT)
-        path = None if default is None or default[0].path is None else str(default[0].path)
-        writers = [writer for writer, _ in self._lanes.values()]
+        writers = {tenant: lane.writer for tenant, lane in self._lanes.items()}
+        default = writers.get(DEFAULT_TENANT)
+        path = None if default is None or default.path is None else str(default.path)
         return (
             error,
             path,
-            sum(writer.messages for writer in writers),
-            [str(f) for writer in writers for f in writer.files],
-            {str(w.path): tenant for tenant, (w, _) in self._lanes.items() if w.path is not None},
+            sum(writer.messages for writer in writers.values()),
+            [str(f) for writer in writers.values() for f in writer.files],
+            {str(w.path): tenant for tenant, w in writers.items() if w.path is not None},
         )
 
 
@@ -335,9 +353,7 @@ def serve(requests: IO[bytes], replies: IO[bytes]) -> None:
             try:
                 if kind in ("write", "events"):
                     for robot_id, (metadata, model) in robots.items():
-                        files.robots[robot_id] = metadata
-                        if model is not None:
-                            files.models[robot_id] = model
+                        files.know(robot_id, metadata, model)
                     if kind == "write":
                         files.write_items(_unpack_items(items))
                     else:
