@@ -707,6 +707,30 @@ async def test_a_robot_out_of_scope_on_a_node_that_left_is_as_absent_as_any(
             assert (error["data"]["code"], await closed_with(ws)) == expected
 
 
+async def test_a_tenant_reads_its_file_being_written_in_a_folder_given_relative(
+    start_server: StartServer,
+    secret_file: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    server = await start_server(jwt_secret_file=str(secret_file), recordings_dir="recs")
+    acme = bearer(token("admin", tenant="acme"))
+    async with server.client() as http:
+        assert (await http.post("/api/robots", json={"id": "acme-1"}, headers=acme)).is_success
+        await http.post("/api/robots/acme-1/estop", headers=acme)
+
+        async def listed() -> list[dict[str, Any]]:
+            answer = (await http.get("/api/recordings", headers=acme)).json()
+            return list(answer["recordings"])
+
+        await eventually(listed, what="acme's file being written, listed")
+        [entry] = await listed()
+        assert entry["active"]
+        summary = await http.get(f"/api/recordings/{entry['name']}", headers=acme)
+        assert summary.status_code == 200 and list(summary.json()["robots"]) == ["acme-1"]
+
+
 async def test_a_robot_id_made_anew_in_another_tenant_goes_to_that_tenant_s_files(
     autojump_clock: trio.testing.MockClock, tmp_path: Path
 ) -> None:

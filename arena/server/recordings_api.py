@@ -40,7 +40,9 @@ def contents_of(recorder: Recorder, path: Path) -> Contents:
     being written: the robots of its tenant the recorder follows; None when that cannot be
     told). Reads the file's summary, or the whole file when it has none: call it off the
     loop."""
-    tenant = recorder.current_files.get(path)
+    # (`path` may be resolved, the recorder's relative to where the server started)
+    writing = {p.resolve(): whose for p, whose in recorder.current_files.items()}
+    tenant = writing.get(path.resolve())
     if tenant is not None:
         followed = recorder.writer.robots.items()
         return Contents(tenant, frozenset(r for r, m in followed if m.get("tenant") == tenant))
@@ -126,11 +128,12 @@ async def list_recordings() -> dict[str, Any]:
     files = [
         p for p, c in zip(files, contents, strict=True) if app.access.sees_recording(principal, c)
     ]
-    writing = recorder.current_files
+    writing = {path.resolve() for path in recorder.current_files}
     return {
         "recorder": recorder_status(app, principal),
         "recordings": [
-            {"name": p.name, "bytes": p.stat().st_size, "active": p in writing} for p in files
+            {"name": p.name, "bytes": p.stat().st_size, "active": p.resolve() in writing}
+            for p in files
         ],
     }
 
