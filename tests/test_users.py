@@ -675,6 +675,25 @@ async def test_a_node_serves_a_call_from_another_node_as_the_caller_it_was_sent(
         trail = [(event.user, event.action) for event in audits.drain()]
     assert trail == [("carol", "POST /api/robots/{robot_id}/reset")]
     assert {node["name"]: node["robots"] for node in nodes["nodes"]} == {"a": [], "b": ["b-lab"]}
+    # An id deleted on a (of acme) and made anew on b (of default) is b's robot's, of default.
+    acme_admin, lab = bearer(token("admin", tenant="acme")), bearer(token("admin"))
+    async with a.client() as http:
+        assert (await http.post("/api/robots", json={"id": "dup"}, headers=acme_admin)).is_success
+        assert (await http.delete("/api/robots/dup", headers=acme_admin)).is_success
+    async with b.client() as http:
+        assert (await http.post("/api/robots", json={"id": "dup"}, headers=lab)).is_success
+
+    async def a_knows_dup_on_b() -> bool:
+        async with a.client() as http:
+            answer = await http.get("/api/fleet/robots", headers=lab)
+        return any(robot["id"] == "dup" for robot in answer.json()["robots"])
+
+    await eventually(a_knows_dup_on_b, what="node a seeing b's new robot")
+    async with a.client() as http:
+        seen = await http.get("/api/robots/dup/status", headers=lab)
+        assert (seen.status_code, seen.headers.get("X-Arena-Node")) == (200, "b")
+        hidden = await http.get("/api/robots/dup/status", headers=acme_admin)
+        assert hidden.status_code == 404
 
 
 async def test_a_robot_out_of_scope_on_a_node_that_left_is_as_absent_as_any(

@@ -150,14 +150,15 @@ class AccessControl:
         self.tenant_elsewhere: Callable[[str], str | None] = lambda robot_id: None
 
     def tenant_of(self, robot_id: str) -> str:
-        """The robot's tenant (a deleted one: as it was; a robot of another node: as that
-        node says)."""
+        """The robot's tenant: a robot here says its own, a robot of another node is as that
+        node says, and a robot deleted here is as it was (after the others: its id may be
+        another node's robot now)."""
         robot = self.manager.find(robot_id)
         if robot is not None:
             return robot.tenant
-        tenant = self.tenants.get(robot_id)
+        tenant = self.tenant_elsewhere(robot_id)
         if tenant is None:
-            tenant = self.tenant_elsewhere(robot_id)
+            tenant = self.tenants.get(robot_id)
         return DEFAULT_TENANT if tenant is None else tenant
 
     def sees(self, principal: Principal, robot_id: str) -> bool:
