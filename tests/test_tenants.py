@@ -1,0 +1,322 @@
+"""Tenants (issue 49): each tenant's robots recorded into files of its own and read back by
+the mcap library; a token's tenant and scope held on every node of a fleet (a node serves a
+call from another node as the caller it was sent, and a robot out of scope on a node that left
+is as absent as any)."""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+from typing import Any
+
+import pytest
+import trio
+from mcap.reader import make_reader
+from trio_websocket import open_websocket_url
+
+from arena.fleet import forward
+from arena.fleet import tunnel as tunnels
+from arena.recording.mcap_file import read_recording
+from arena.recording.recorder import Recorder
+from arena.robot.events import Audited
+from arena.robot.manager import open_manager
+from arena.server.identity import Principal, Role
+from tests.conftest import RunningServer, eventually, need
+from tests.test_server_ws import closed_with, receive
+from tests.test_users import ADMIN_KEY, SECRET, StartServer, bearer, token
+
+
+@pytest.fixture
+def secret_file(tmp_path: Path) -> Path:
+    path = tmp_path / "jwt-secret"
+    path.write_bytes(SECRET + b"\n")
+    return path
+
+
+# -- recordings ------------------------------------------------------------------------------------
+
+
+async def test_each_tenant_is_recorded_into_files_of_its_own(
+    start_server: StartServer, secret_file: Path
+) -> None:
+    server = await start_server(api_keys=(ADMIN_KEY,), jwt_secret_file=str(secret_file))
+    key = bearer(ADMIN_KEY)
+    acme_admin = bearer(token("admin", tenant="acme"))
+    acme = bearer(token("operator", tenant="acme"))
+    confined = bearer(token("viewer", tenant="acme", robots=["x-*"]))
+    async with server.client() as http:
+        assert (await http.post("/api/robots", json={"id": "lab-1"}, headers=key)).is_success
+        made = await http.post("/api/robots", json={"id": "acme-1"}, headers=acme_admin)
+        assert made.status_code == 201
+        for robot_id, headers in (("lab-1", key), ("acme-1", acme)):  # something to record
+            await http.post(f"/api/robots/{robot_id}/estop", headers=headers)
+
+        async def listed(headers: dict[str, str]) -> list[str]:
+            answer = (await http.get("/api/recordings", headers=headers)).json()
+            assert answer["recorder"]["file"] in [None, *(e["name"] for e in answer["recordings"])]
+            return [entry["name"] for entry in answer["recordings"]]
+
+        async def both_listed() -> bool:
+            return len(await listed(key)) == 1 and len(await listed(acme)) == 1
+
+        await eventually(both_listed, what="each tenant's file being written, listed to it")
+        [ours], [theirs] = await listed(key), await listed(acme)
+        assert theirs.endswith(".acme.mcap") and ours != theirs
+        assert await listed(confined) == []
+        # Recording is switched for the whole server: not by a tenant's admin.
+        refused = await http.post("/api/recordings/current/stop", headers=acme_admin)
+        assert refused.status_code == 403
+        stopped = await http.post("/api/recordings/current/stop", headers=key)
+        assert stopped.json()["stopped"] == ours  # (the caller's file; acme's is not named)
+        # Finished, each file says its tenant: still listed to it alone.
+        assert (await listed(acme), await listed(key)) == ([theirs], [ours])
+        summary = (await http.get(f"/api/recordings/{theirs}", headers=acme)).json()
+        assert list(summary["robots"]) == ["acme-1"]
+        joints = (await http.get(f"/api/recordings/{theirs}/joints", headers=acme)).json()
+        assert joints["robots"] == ["acme-1"]
+        downloads = {}
+        for name, headers in ((theirs, acme), (ours, key)):
+            reply = await http.get(f"/api/recordings/{name}/file", headers=headers)
+            assert reply.status_code == 200
+            downloads[name] = reply.content
+        # Another tenant's file, or one beyond the caller's scope: as if it did not exist,
+        # to every reader (listing, summary, plot, download, replay).
+        for name, headers in ((theirs, key), (ours, acme), (theirs, confined)):
+            for suffix in ("", "/joints", "/file"):
+                hidden = await http.get(f"/api/recordings/{name}{suffix}", headers=headers)
+                assert (hidden.status_code, hidden.json()["error"]["message"]) == (
+                    404,
+                    f"No recording called {name!r}.",
+                )
+        replay = await http.post(
+            "/api/robots/acme-1/replay", json={"recording": ours}, headers=acme
+        )
+        assert (replay.status_code, replay.json()["error"]["code"]) == (404, "UNKNOWN_RECORDING")
+    # Read back by the mcap library: each download holds its tenant's robot and nothing else.
+    for name, robot_id, tenant in ((theirs, "acme-1", "acme"), (ours, "lab-1", "default")):
+        reader = make_reader(io.BytesIO(downloads[name]))
+        topics = {channel.topic for _, channel, _ in reader.iter_messages()}
+        assert topics and all(t.startswith(f"/robots/{robot_id}/") for t in topics), topics
+        metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+        assert {n for n in metadata if n.startswith("robot/")} == {f"robot/{robot_id}"}
+        assert metadata["arena"]["tenant"] == tenant
+        assert metadata[f"robot/{robot_id}"]["tenant"] == tenant
+
+
+async def test_a_tenant_reads_its_file_being_written_in_a_folder_given_relative(
+    start_server: StartServer,
+    secret_file: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    monkeypatch.chdir(tmp_path)
+    server = await start_server(jwt_secret_file=str(secret_file), recordings_dir="recs")
+    acme = bearer(token("admin", tenant="acme"))
+    async with server.client() as http:
+        assert (await http.post("/api/robots", json={"id": "acme-1"}, headers=acme)).is_success
+        await http.post("/api/robots/acme-1/estop", headers=acme)
+
+        async def listed() -> list[dict[str, Any]]:
+            answer = (await http.get("/api/recordings", headers=acme)).json()
+            return list(answer["recordings"])
+
+        await eventually(listed, what="acme's file being written, listed")
+        [entry] = await listed()
+        assert entry["active"]
+        summary = await http.get(f"/api/recordings/{entry['name']}", headers=acme)
+        assert summary.status_code == 200 and list(summary.json()["robots"]) == ["acme-1"]
+
+
+async def test_a_robot_id_made_anew_in_another_tenant_goes_to_that_tenant_s_files(
+    autojump_clock: trio.testing.MockClock, tmp_path: Path
+) -> None:
+    recorder = Recorder(tmp_path, flush_interval=1.0, batch_interval=1.0, foxglove=False)
+    async with trio.open_nursery() as nursery:
+        await nursery.start(recorder.run)
+        async with open_manager() as manager:
+            manager.on_create.append(recorder.follow)
+            first = await manager.create_robot("so-arm100", robot_id="x", tenant="acme")
+            await first.estop("acme's stop")
+            while not recorder.writer.messages:  # a batch written: the writer knows the robot
+                await trio.sleep(0.5)
+            await first.reset()
+            await first.estop("acme's last word")
+            # Deleted and made anew at once: the old robot's last events may travel in one
+            # batch with the new one's, each to its own tenant.
+            await manager.delete("x")
+            second = await manager.create_robot("so-arm100", robot_id="x")
+            await second.estop("the lab's stop")
+            await trio.sleep(1.5)
+        nursery.cancel_scope.cancel()
+    recordings = [read_recording(path) for path in recorder.writer.files]
+    files = {recording.metadata["arena"]["tenant"]: recording for recording in recordings}
+    assert sorted(files) == ["acme", "default"] and len(recordings) == 2
+    said = {"acme": {"acme's stop", "acme's last word"}, "default": {"the lab's stop"}}
+    for tenant, recording in files.items():
+        assert recording.metadata["robot/x"]["tenant"] == tenant
+        reasons = {m.data["estop_reason"] for m in recording.messages if m.kind == "state"}
+        assert reasons - {None} == said[tenant], tenant
+    assert files["acme"].path.name.endswith(".acme.mcap")
+
+
+# -- across a fleet --------------------------------------------------------------------------------
+
+
+async def _secured_fleet(
+    start_server: StartServer, secret_file: Path
+) -> tuple[RunningServer, RunningServer]:
+    """Nodes a and b; b owns b-acme (tenant acme) and b-lab (default)."""
+    need("zenoh", "fleet")
+    secured = {"jwt_secret_file": str(secret_file), "fleet_listen": ("tcp/127.0.0.1:0",)}
+    a = await start_server(node="a", **secured)
+    b = await start_server(node="b", fleet_connect=tuple(await a.app.fleet.locators()), **secured)
+    async with b.client() as http:
+        for robot_id, tenant in (("b-acme", "acme"), ("b-lab", "default")):
+            made = await http.post(
+                "/api/robots", json={"id": robot_id}, headers=bearer(token("admin", tenant=tenant))
+            )
+            assert made.status_code == 201
+
+    async def a_knows_both() -> bool:
+        async with a.client() as http:
+            answer = await http.get("/api/fleet/robots", headers=bearer(token("admin")))
+        known = {robot["id"] for robot in answer.json()["robots"]}
+        return "b-lab" in known and a.app.access.tenant_of("b-acme") == "acme"
+
+    await eventually(a_knows_both, what="node a knowing b's robots and their tenants")
+    return a, b
+
+
+async def test_tenants_hold_across_a_fleet(start_server: StartServer, secret_file: Path) -> None:
+    need("zenoh", "fleet")
+    secured = {"jwt_secret_file": str(secret_file), "fleet_listen": ("tcp/127.0.0.1:0",)}
+    a = await start_server(node="a", **secured)
+    b = await start_server(node="b", fleet_connect=tuple(await a.app.fleet.locators()), **secured)
+    lab, acme = bearer(token("admin")), bearer(token("admin", tenant="acme"))
+    async with a.client() as http:
+        assert (await http.post("/api/robots", json={"id": "a-0"}, headers=lab)).status_code == 201
+    async with b.client() as http:
+        made = await http.post("/api/robots", json={"id": "b-acme"}, headers=acme)
+        assert made.status_code == 201
+
+    async def listed(headers: dict[str, str]) -> list[str]:
+        async with a.client() as http:
+            answer = (await http.get("/api/fleet/robots", headers=headers)).json()
+        return sorted(robot["id"] for robot in answer["robots"])
+
+    async def both_known() -> bool:
+        return await listed(lab) == ["a-0"] and await listed(acme) == ["b-acme"]
+
+    await eventually(both_known, what="each tenant listing its own robot only")
+    async with a.client() as http:
+        # Another node's robot of another tenant: as absent here as a local one.
+        hidden = await http.get("/api/robots/b-acme/status", headers=lab)
+        assert (hidden.status_code, hidden.json()["error"]["code"]) == (404, "UNKNOWN_ROBOT")
+        seen = await http.get("/api/robots/b-acme/status", headers=acme)
+        assert seen.status_code == 200
+        watcher = token("viewer", tenant="acme")
+        answer = await http.post("/api/fleet/estop", headers=bearer(watcher))
+    # A WebSocket carried to the robot's node: checked here, served there.
+    async with open_websocket_url(f"{a.ws_url}/ws/robots/b-acme/state?token={watcher}") as ws:
+        assert (await receive(ws, "state"))["data"]["mode"] == "estopped"
+    async with open_websocket_url(f"{a.ws_url}/ws/robots/b-acme/state?token={token()}") as ws:
+        assert (await receive(ws, "error"))["data"]["code"] == "UNKNOWN_ROBOT"
+        assert await closed_with(ws) == 4404
+    assert {ack["node"]: ack["robots"] for ack in answer.json()["acks"]} == {
+        "a": [],
+        "b": ["b-acme"],
+    }
+    assert str(a.app.manager.get("a-0").snapshot().mode) == "idle"
+    assert str(b.app.manager.get("b-acme").snapshot().mode) == "estopped"
+
+
+async def test_a_node_serves_a_call_from_another_node_as_the_caller_it_was_sent(
+    start_server: StartServer, secret_file: Path
+) -> None:
+    a, b = await _secured_fleet(start_server, secret_file)
+    fleet = a.app.fleet
+    lab_admin = Principal("mallory", Role.ADMIN).to_wire()
+    acme_viewer = Principal("vic", Role.VIEWER, "acme").to_wire()
+
+    async def at_b(method: str, path: str, caller: dict[str, Any], body: Any = None) -> Any:
+        data = b"" if body is None else json.dumps(body).encode()
+        call = forward.Call(method, path, "", {"content-type": "application/json"}, data, caller)
+        answer = await forward.forward(fleet, "b", call)
+        return answer.status, json.loads(answer.body)
+
+    # Node b decides with what it knows of its robots, whatever node a decided.
+    status, body = await at_b("GET", "/api/robots/b-acme/status", lab_admin)
+    assert (status, body["error"]["code"]) == (404, "UNKNOWN_ROBOT")
+    assert (await at_b("GET", "/api/robots/b-acme/status", acme_viewer))[0] == 200
+    moved = {"joints": [{"name": "Rotation", "value": 5}]}
+    status, body = await at_b("PUT", "/api/robots/b-acme/joints", acme_viewer, moved)
+    assert (status, body["error"]["code"]) == (403, "FORBIDDEN")
+    # A WebSocket carried to b, as a caller of the other tenant: refused there as absent.
+    for caller, first in ((lab_admin, "error"), (acme_viewer, "state")):
+        tunnel = await tunnels.open_to(fleet, "b", "b-acme", "viewer", {}, caller)
+        with trio.fail_after(10):
+            message = json.loads((await tunnel.inbox.receive())[1:])
+        tunnel.close()
+        assert message["type"] == first, (caller, message)
+        if first == "error":
+            assert message["data"]["code"] == "UNKNOWN_ROBOT"
+    # Through node a's REST: the robot's node records the caller by name.
+    carol = bearer(token("operator", sub="carol", tenant="acme"))
+    with b.app.manager.get("b-acme").subscribe(kinds=[Audited]) as audits:
+        async with a.client() as http:
+            reset = await http.post("/api/robots/b-acme/reset", headers=carol)
+            assert (reset.status_code, reset.headers["X-Arena-Node"]) == (200, "b")
+            nodes = (await http.get("/api/fleet/nodes", headers=bearer(token("viewer")))).json()
+        trail = [(event.user, event.action) for event in audits.drain()]
+    assert trail == [("carol", "POST /api/robots/{robot_id}/reset")]
+    assert {node["name"]: node["robots"] for node in nodes["nodes"]} == {"a": [], "b": ["b-lab"]}
+    # An id deleted on a (of acme) and made anew on b (of default) is b's robot's, of default.
+    acme_admin, lab = bearer(token("admin", tenant="acme")), bearer(token("admin"))
+    async with a.client() as http:
+        assert (await http.post("/api/robots", json={"id": "dup"}, headers=acme_admin)).is_success
+        assert (await http.delete("/api/robots/dup", headers=acme_admin)).is_success
+    async with b.client() as http:
+        assert (await http.post("/api/robots", json={"id": "dup"}, headers=lab)).is_success
+
+    async def a_knows_dup_on_b() -> bool:
+        async with a.client() as http:
+            answer = await http.get("/api/fleet/robots", headers=lab)
+        return any(robot["id"] == "dup" for robot in answer.json()["robots"])
+
+    await eventually(a_knows_dup_on_b, what="node a seeing b's new robot")
+    async with a.client() as http:
+        seen = await http.get("/api/robots/dup/status", headers=lab)
+        assert (seen.status_code, seen.headers.get("X-Arena-Node")) == (200, "b")
+        hidden = await http.get("/api/robots/dup/status", headers=acme_admin)
+        assert hidden.status_code == 404
+
+
+async def test_a_robot_out_of_scope_on_a_node_that_left_is_as_absent_as_any(
+    start_server: StartServer, secret_file: Path
+) -> None:
+    a, b = await _secured_fleet(start_server, secret_file)
+    b.stop.set()
+    await b.done.wait()
+
+    async def b_is_gone() -> bool:
+        view = a.app.fleet.nodes.get("b")
+        return view is not None and not view.alive
+
+    await eventually(b_is_gone, what="node b seen gone")
+    lab, acme = token("admin"), token("admin", tenant="acme")
+    confined = token("admin", tenant="acme", robots=["x-*"])
+    async with a.client() as http:
+        for path in ("/api/robots/b-acme/status", "/api/robots/b-acme/no-such-route"):
+            for caller in (lab, confined):
+                hidden = await http.get(path, headers=bearer(caller))
+                assert (hidden.status_code, hidden.json()["error"]["code"]) == (
+                    404,
+                    "UNKNOWN_ROBOT",
+                ), path
+            told = await http.get(path, headers=bearer(acme))
+            assert (told.status_code, told.json()["error"]["code"]) == (503, "NODE_LOST")
+    for caller, expected in ((lab, ("UNKNOWN_ROBOT", 4404)), (acme, ("NODE_LOST", 4503))):
+        async with open_websocket_url(f"{a.ws_url}/ws/master/b-acme?token={caller}") as ws:
+            error = await receive(ws, "error")
+            assert (error["data"]["code"], await closed_with(ws)) == expected
