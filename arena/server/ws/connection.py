@@ -70,13 +70,11 @@ class Connection(LatestWins):
         self.wants_acks = _switch(self.args, "acks")
         self.wants_joint_states = _switch(self.args, "joint_states")
         self.closed = False
-        #: Who connected (`authorized` sets it), and when on trio's clock their token
-        #: expires (None: a key, or no credential needed).
+        #: Who connected (`authorized` sets it; a carried connection: the caller its node
+        #: sent), and when on trio's clock their token expires (None: a key, or no
+        #: credential needed).
         self.principal: Principal = ANONYMOUS
         self.expires_at: float | None = None
-        #: Carried from another node of the fleet, which checked the key or token (and set
-        #: `principal` to the caller it sent).
-        self.carried = False
 
     def error(self, code: ErrorCode | str, message: str) -> Encoded:
         """An `error` message to send, counted."""
@@ -144,8 +142,7 @@ class Connection(LatestWins):
         """Check the key or token and the role; a refusal is sent and the answer is False. A
         connection carried from another node of the fleet was checked there (`trusted`); its
         caller's tenant and scope are checked here all the same (`sees`)."""
-        if getattr(self.ws, "trusted", False):
-            self.carried = True
+        if getattr(self.ws, "trusted", False):  # `principal`: the caller the node sent
             return True
         try:
             self.principal = authorize(
