@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import io
 import json
+import os
+import signal
 from pathlib import Path
 from typing import Any
 
@@ -17,8 +19,9 @@ from trio_websocket import open_websocket_url
 
 from arena.fleet import forward
 from arena.fleet import tunnel as tunnels
-from arena.recording.mcap_file import read_recording
+from arena.recording.mcap_file import FileSeries, read_recording
 from arena.recording.recorder import Recorder
+from arena.recording.writer_process import McapWriterProcess
 from arena.robot.events import Audited
 from arena.robot.manager import open_manager
 from arena.server.identity import Principal, Role
@@ -158,6 +161,28 @@ async def test_a_robot_id_made_anew_in_another_tenant_goes_to_that_tenant_s_file
         reasons = {m.data["estop_reason"] for m in recording.messages if m.kind == "state"}
         assert reasons - {None} == said[tenant], tenant
     assert files["acme"].path.name.endswith(".acme.mcap")
+
+
+def test_a_writer_process_started_anew_knows_every_robot_s_tenant_from_its_first_batch(
+    tmp_path: Path,
+) -> None:
+    writer = McapWriterProcess(FileSeries(tmp_path, {}, foxglove=False))
+    writer.robots["arm"] = {"robot_type": "so-arm100", "name": "arm", "tenant": "acme"}
+    state = json.dumps({"mode": "idle", "owner": None, "estop_reason": None, "cause": "x"})
+    items = [("arm", "state", state.encode(), n) for n in range(1, 4)]
+    try:
+        writer.write(items[:1])
+        child = writer._process
+        assert child is not None
+        os.kill(child.pid, signal.SIGKILL)  # the next batch starts a new child
+        child.wait()
+        writer.write(items[1:])
+    finally:
+        writer.shutdown()
+    first, second = (read_recording(path) for path in writer.files)
+    assert second.path.name.endswith(".acme.mcap"), writer.files  # not the default tenant's
+    assert second.metadata["robot/arm"]["tenant"] == "acme"
+    assert [m.log_time for m in first.messages + second.messages] == [1, 2, 3]
 
 
 # -- across a fleet --------------------------------------------------------------------------------

@@ -164,6 +164,7 @@ class McapWriterProcess:
 
     def _append(self, kind: str, payload: object, flush: bool) -> None:
         with self._lock:
+            self._running()  # first: a child started now knows no robot, so all go with this
             new = {
                 r: (meta, self.models.get(r))
                 for r, meta in self.robots.items()
