@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -13,17 +14,25 @@ import pytest
 import trio
 from trio.testing import MockClock
 
-from arena.policy.master import PolicyMaster, PolicySettings
-from arena.policy.process import WorkerError, WorkerGone
+from arena.policy.master import PolicyMaster, PolicySettings, Shot
+from arena.policy.process import LOAD_TIMEOUT, PolicyProcess, WorkerError, WorkerGone
 from arena.policy.wire import Chunk, Feature, Loaded, Observe
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
-from arena.robot.events import CommandHandled, FaultReported, RobotEvent, TargetsSent
+from arena.robot.events import (
+    CommandHandled,
+    FaultReported,
+    PolicyInferred,
+    RobotEvent,
+    TargetsSent,
+)
 from arena.robot.handle import Robot
 from arena.robot.mailbox import EventQueue
 from arena.robot.manager import RobotManager
+from arena.robot.model import load_robot_model
 from tests.conftest import RecordingSlave
 
 IDENTITY = "policy:act:0123456789ab"
+MODEL = load_robot_model("so-arm100")
 FPS = 30.0
 PERIOD = 1 / FPS
 Actions = Callable[[Observe], list[tuple[float, ...]]]
@@ -76,6 +85,15 @@ class FakeWorker:
         self.closed = True
 
 
+#: How old each camera frame is when an observation takes it (seconds of trio time).
+FRAME_AGE = 0.02
+
+
+def frames(cameras: tuple[str, ...]) -> Callable[[], dict[str, Shot | None]]:
+    """The robot's cameras, each with a frame captured FRAME_AGE ago."""
+    return lambda: dict.fromkeys(cameras, Shot(b"jpeg", trio.current_time() - FRAME_AGE))
+
+
 async def attach(
     robot: Robot, worker: FakeWorker, cameras: tuple[str, ...] = ("front",), **settings: float
 ) -> PolicyMaster:
@@ -85,7 +103,7 @@ async def attach(
     master = PolicyMaster(
         PolicySettings(Path("unused"), task="wave", fps=FPS, **settings),  # type: ignore[arg-type]
         robot.model,
-        lambda: dict.fromkeys(cameras, b"jpeg"),
+        frames(cameras),
         start,
     )
     await master.prepare()
@@ -277,3 +295,85 @@ async def test_a_policy_the_robot_cannot_feed_is_refused_naming_the_feature(
     assert "observation.images.front" in refused.value.message
     assert "wrist" in refused.value.message
     assert worker.closed and robot.snapshot().master is None
+
+
+async def test_each_inference_is_reported_with_its_latency_chunk_and_frame_age(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot, _ = await arm(manager)
+    worker = FakeWorker(latency=0.05)
+    with robot.subscribe(kinds=[PolicyInferred, CommandHandled]) as events:
+        master = await attach(robot, worker)
+        await trio.sleep(1.0)
+        seen = events.drain()
+    inferences = [e for e in seen if isinstance(e, PolicyInferred)]
+    assert len(inferences) == master.counters.inferences >= 5
+    for event, (asked, observation) in zip(inferences, worker.observations, strict=False):
+        assert event.policy == IDENTITY and event.robot_id == "arm"
+        assert event.timestep == observation.timestep
+        assert event.chunk_size == 10 and 1 <= event.kept <= 10
+        # The round trip is the worker's 50 ms; the frame was 20 ms old when it was sent.
+        assert event.latency == pytest.approx(0.05) and event.inference == pytest.approx(0.05)
+        assert event.frame_age == pytest.approx(FRAME_AGE)
+        assert event.time == pytest.approx(asked + 0.05)
+    # Nothing had been taken when the first chunk came: all of it is kept. A later one answers
+    # an observation of the step last taken, which has passed when it comes: not kept.
+    assert inferences[0].kept == 10
+    assert all(1 <= e.kept < 10 for e in inferences[1:])
+
+
+async def test_a_worker_that_never_loads_is_refused_once_its_time_is_up(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot, _ = await arm(manager)
+    worker = FakeWorker()
+    hang = trio.Event()
+
+    async def never(path: Path) -> Loaded:
+        await hang.wait()
+        raise AssertionError("unreachable")
+
+    worker.load = never  # type: ignore[method-assign]
+    started = trio.current_time()
+    with pytest.raises(ArenaError) as refused:
+        await attach(robot, worker, load_timeout=30.0)
+    assert refused.value.code is ErrorCode.POLICY_NOT_READY
+    assert "within 30 s" in refused.value.message
+    assert trio.current_time() - started == pytest.approx(30.0)
+    assert worker.closed and robot.snapshot().master is None
+
+
+async def test_a_worker_process_that_never_answers_is_stopped_and_refused(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    """A real child process that never answers: the bound (the default, 180 s of virtual
+    time) ends the wait, and the process is killed."""
+    robot, _ = await arm(manager)
+    started: list[PolicyProcess] = []
+
+    async def start() -> PolicyProcess:
+        hangs = [sys.executable, "-c", "import time; time.sleep(600)"]
+        started.append(await PolicyProcess.start(hangs))
+        return started[0]
+
+    master = PolicyMaster(PolicySettings(Path("unused")), robot.model, frames(()), start)
+    began = trio.current_time()
+    with pytest.raises(ArenaError) as refused:
+        await master.prepare()
+    assert refused.value.code is ErrorCode.POLICY_NOT_READY
+    assert trio.current_time() - began >= LOAD_TIMEOUT
+    (process,) = started
+    assert await process.process.wait() == -9 and process not in PolicyProcess.live
+
+
+async def test_a_worker_that_exits_while_loading_is_refused_saying_so() -> None:
+    """On the real clock: the worker's exit (its pipe's end) answers long before the bound."""
+
+    async def start() -> PolicyProcess:
+        return await PolicyProcess.start([sys.executable, "-c", "raise SystemExit(3)"])
+
+    master = PolicyMaster(PolicySettings(Path("unused")), MODEL, frames(()), start)
+    with pytest.raises(ArenaError) as refused:
+        await master.prepare()
+    assert refused.value.code is ErrorCode.POLICY_NOT_READY
+    assert "exited (code 3)" in refused.value.message

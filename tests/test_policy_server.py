@@ -158,6 +158,17 @@ async def test_a_policy_drives_the_arm_and_an_estop_stops_it(
     assert len(commands) >= 20
     span = (commands[-1].log_time - commands[0].log_time) / 1e9
     assert len(commands) <= 30 * span + 2  # never faster than the policy's fps
+    # Each inference is on /robots/demo-arm/policy with its latency and chunk size.
+    inferences = [m for m in recording.messages if m.topic == "/robots/demo-arm/policy"]
+    assert len(inferences) >= 3
+    for inference in inferences:
+        data = inference.data
+        assert data["policy"] == identity and data["chunk_size"] == 10
+        assert 0 <= data["kept"] <= 10
+        assert 0 < data["inference"] <= data["latency"] < WAIT
+        assert data["frame_age"] is not None and 0 <= data["frame_age"] < WAIT
+    steps = [m.data["timestep"] for m in inferences]
+    assert steps == sorted(steps) and steps[-1] > 0
 
 
 async def test_a_killed_worker_trips_the_watchdog(start_server: Start, tiny: Path) -> None:
