@@ -24,6 +24,7 @@ import httpx
 import pytest
 import trio
 
+from arena import cli
 from arena.protocol.errors import ErrorCode
 from arena.recording.mcap_file import read_recording
 from arena.robot.events import (
@@ -121,7 +122,7 @@ async def attach(server: RunningServer, path: Path, **body: Any) -> Any:
 
 
 async def test_a_policy_drives_the_arm_and_an_estop_stops_it(
-    start_server: Start, tiny: Path
+    start_server: Start, tiny: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     server = await start_server(demo=True)
     robot = await ready(server)
@@ -169,6 +170,27 @@ async def test_a_policy_drives_the_arm_and_an_estop_stops_it(
         assert data["frame_age"] is not None and 0 <= data["frame_age"] < WAIT
     steps = [m.data["timestep"] for m in inferences]
     assert steps == sorted(steps) and steps[-1] > 0
+    check_evaluation_export(recording.path, identity, tmp_path, capsys)
+
+
+def check_evaluation_export(
+    path: Path, identity: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The policy's run exported for LeRobot is an evaluation dataset: named `eval_...` as
+    LeRobot names them, and a name that says otherwise is refused."""
+    lerobot_dataset = need("lerobot.datasets.lerobot_dataset", "lerobot")
+    args = ["export", str(path), "--format", "lerobot", "--robot", "demo-arm"]
+    assert cli.main([*args, "--repo-id", "lab/cube", "-o", str(tmp_path / "plain")]) == 2
+    said = capsys.readouterr().err
+    assert identity in said and "starts with 'eval_'" in said
+    out = tmp_path / "eval"
+    assert cli.main([*args, "-o", str(out)]) == 0, capsys.readouterr().err
+    printed = capsys.readouterr().out
+    assert "arena/eval_demo-arm" in printed and f"an evaluation of {identity}" in printed
+    dataset = lerobot_dataset.LeRobotDataset("arena/eval_demo-arm", root=out, video_backend="pyav")
+    assert dataset.num_episodes == 1 and dataset.num_frames > 0
+    assert dataset.meta.video_keys == ["observation.images.front"]
+    assert json.loads((out / "meta" / "arena.json").read_text())["policies"] == [identity]
 
 
 async def test_a_killed_worker_trips_the_watchdog(start_server: Start, tiny: Path) -> None:
