@@ -12,10 +12,12 @@ import hashlib
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -38,6 +40,7 @@ from arena.robot.events import (
 from arena.robot.mailbox import EventQueue
 from arena.robot.safety import Mode
 from tests.conftest import REPOSITORY, RunningServer, need
+from tests.serve_process import serving
 
 CAMERA = {"name": "front", "source": "test-pattern", "fps": 30, "width": 64, "height": 48}
 ROBOT = "/api/robots/demo-arm"
@@ -351,3 +354,44 @@ async def test_without_lerobot_a_policy_master_is_not_installed(
     assert answer.status_code == 501, answer.text
     assert "pip install 'arena[lerobot]'" in answer.json()["error"]["message"]
     assert workers() == []
+
+
+def native_libraries(pid: int) -> set[str]:
+    """The shared libraries process `pid` has mapped (torch's are libtorch*.so)."""
+    maps = Path(f"/proc/{pid}/maps").read_text()
+    return {Path(line.split()[-1]).name for line in maps.splitlines() if ".so" in line}
+
+
+def accepted_commands(url: str) -> int:
+    metrics = httpx.get(f"{url}/metrics", timeout=10).text
+    found = re.search(r'^arena_commands_total\{result="accepted"\} (\d+)', metrics, re.M)
+    return int(found.group(1)) if found else 0
+
+
+def test_torch_never_enters_the_servers_process(tiny: Path, tmp_path: Path) -> None:
+    """`arena serve` as a process of its own runs a policy: torch (which LeRobot imports) is
+    mapped into the worker, never into the server."""
+    env = {**os.environ, "PYTHONPATH": str(REPOSITORY)}
+    with serving(["--demo", "--port", "0", "--no-record"], cwd=tmp_path, env=env) as served:
+        url, server = served.url, served.process.pid
+        assert httpx.post(f"{url}{ROBOT}/cameras", json=CAMERA, timeout=WAIT).status_code == 201
+        before = accepted_commands(url)
+        body = {"type": "policy", "path": str(tiny)}
+        answer = httpx.post(f"{url}{ROBOT}/master", json=body, timeout=LOAD)
+        assert answer.status_code == 201, answer.text
+        deadline = time.monotonic() + WAIT  # only a broken policy master reaches it
+        while accepted_commands(url) < before + 20:
+            assert time.monotonic() < deadline, served.log
+            time.sleep(0.05)
+        children = [
+            int(pid)
+            for task in Path(f"/proc/{server}/task").iterdir()
+            for pid in (task / "children").read_text().split()
+        ]
+        (worker,) = [
+            pid
+            for pid in children
+            if b"arena.policy.worker" in Path(f"/proc/{pid}/cmdline").read_bytes()
+        ]
+        assert any(name.startswith("libtorch") for name in native_libraries(worker))
+        assert not any(name.startswith("libtorch") for name in native_libraries(server))
