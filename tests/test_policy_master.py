@@ -21,6 +21,7 @@ from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot.events import (
     CommandHandled,
     FaultReported,
+    JointStatesReceived,
     PolicyInferred,
     RobotEvent,
     TargetsSent,
@@ -377,3 +378,59 @@ async def test_a_worker_that_exits_while_loading_is_refused_saying_so() -> None:
         await master.prepare()
     assert refused.value.code is ErrorCode.POLICY_NOT_READY
     assert "exited (code 3)" in refused.value.message
+
+
+async def test_with_the_physics_twin_commands_flow_at_fps_and_an_estop_stops_them_at_once(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    """The MuJoCo arm as the slave (stepped in trio time): the policy sees its lagging joints,
+    turns the base at its fps, and an e-stop ends the commands and the targets in the same
+    step; the arm then holds where it is."""
+    from arena.drivers.physics import PhysicsSettings, PhysicsSlave
+
+    robot = await manager.create_robot("so-arm100", robot_id="sim")
+    await robot.attach_slave(PhysicsSlave(PhysicsSettings(realtime=False)))
+    await trio.sleep(0.5)  # settled on its table
+    # The base turns 3 degrees a step from where it is; the arm's joints stay at their
+    # targets (the measured ones sag under gravity: held there, the guard would refuse).
+    rest = [j.virtual_value for j in robot.snapshot().joints]  # (degrees: LeRobot's too)
+    worker = FakeWorker(lambda o: [(o.state[0] + 3.0, *rest[1:5], o.state[5])] * 10)
+    with robot.subscribe(kinds=[CommandHandled, TargetsSent, JointStatesReceived]) as events:
+        await attach(robot, worker, max_relative_target=2.0)
+        await trio.sleep(1.0)
+        moving = events.drain()
+        await robot.estop("test")
+        stopped = trio.current_time()
+        turned = joint_value(robot, "Rotation")
+        await trio.sleep(1.0)
+        after = events.drain()
+    commands = [e for e in moving if isinstance(e, CommandHandled)]
+    assert len(commands) >= 25 and {c.source for c in commands} == {IDENTITY}
+    gaps = [b.time - a.time for a, b in itertools.pairwise(commands)]
+    assert min(gaps) == pytest.approx(PERIOD) and max(gaps) == pytest.approx(PERIOD)
+    # It observed the twin's measured joints, which lag behind its targets, and each step
+    # is limited from where the arm is (a position measured since its last command, or the
+    # one before), not from where it was told to go.
+    observed = [o.state[0] for _, o in worker.observations]
+    assert observed[-1] > observed[0] + 5.0
+    seen: list[float] = [0.0]
+    for event in moving:
+        if isinstance(event, JointStatesReceived):
+            seen.append(event.joints["Rotation"])
+        elif isinstance(event, CommandHandled):
+            goal = next(g.value for g in event.command.joints if g.name == "Rotation")
+            assert min(abs(goal - value) for value in seen) <= 2.0 + 1e-9
+            seen = seen[-1:]
+    assert all(c.result.accepted for c in commands)
+    assert not [e for e in after if isinstance(e, CommandHandled | TargetsSent)]
+    assert robot.snapshot().master is None and worker.closed
+    held = [e.joints["Rotation"] for e in after if isinstance(e, JointStatesReceived)]
+    assert held and all(abs(value - turned) < 2.0 for value in held)
+    assert all(e.time <= stopped for e in moving)
+
+
+def joint_value(robot: Robot, name: str) -> float:
+    """The joint's measured value."""
+    value = next(j for j in robot.snapshot().joints if j.name == name).real_value
+    assert value is not None
+    return value

@@ -196,6 +196,53 @@ def check_evaluation_export(
     assert json.loads((out / "meta" / "arena.json").read_text())["policies"] == [identity]
 
 
+async def test_with_the_physics_twin_as_slave_commands_are_recorded_and_an_estop_ends_them(
+    start_server: Start, tiny: Path
+) -> None:
+    """The MuJoCo twin in real time as the robot's only slave: the policy's commands reach it
+    at no more than the policy's fps, recorded with their source; after the e-stop the file
+    holds no command and no target of the policy, and the twin's reports go on (it holds)."""
+    need("mujoco", "physics")
+    server = await start_server()
+    base = "/api/robots/sim"
+    async with server.client() as http:
+        made = await http.post("/api/robots", json={"robot_type": "so-arm100", "id": "sim"})
+        assert made.status_code == 201, made.text
+        slave = await http.post(f"{base}/slaves", json={"type": "physics-slave"})
+        assert slave.status_code == 201, slave.text
+        assert (await http.post(f"{base}/cameras", json=CAMERA)).status_code == 201
+    robot = server.app.manager.get("sim")
+    identity = f"policy:act:{checkpoint(tiny)}"
+    with robot.subscribe(kinds=[CommandHandled, StateChanged, JointStatesReceived]) as events:
+        async with httpx.AsyncClient(base_url=server.url, timeout=LOAD) as http:
+            body = {"type": "policy", "path": str(tiny), "fps": 20}
+            answer = await http.post(f"{base}/master", json=body)
+        assert answer.status_code == 201, answer.text
+        for _ in range(20):
+            command = await next_event(events, lambda e: isinstance(e, CommandHandled))
+            assert command.source == identity
+        async with server.client() as http:
+            assert (await http.post(f"{base}/estop", json={"reason": "test"})).status_code == 200
+        await next_event(events, lambda e: isinstance(e, StateChanged) and e.mode is Mode.ESTOPPED)
+        # the twin goes on reporting after the e-stop: it holds where it is
+        await next_event(events, lambda e: isinstance(e, JointStatesReceived))
+    async with server.client() as http:
+        stopped = (await http.post("/api/recordings/current/stop")).json()["stopped"]
+    messages = read_recording(Path(server.app.recorder.folder) / stopped).messages
+    messages = [m for m in messages if m.robot_id == "sim"]
+    estop = next(
+        i for i, m in enumerate(messages) if m.kind == "state" and m.data["mode"] == "estopped"
+    )
+    commands = [m for m in messages[:estop] if m.kind == "command"]
+    assert len(commands) >= 20 and {m.data["source"] for m in commands} == {identity}
+    assert sum(m.data["accepted"] for m in commands) >= 10
+    span = (commands[-1].log_time - commands[0].log_time) / 1e9
+    assert len(commands) <= 20 * span + 2  # never faster than the policy's fps
+    after = messages[estop + 1 :]
+    assert not [m for m in after if m.kind in ("command", "targets")]
+    assert [m for m in after if m.kind == "joint_states"]
+
+
 async def test_a_killed_worker_trips_the_watchdog(start_server: Start, tiny: Path) -> None:
     server = await start_server(demo=True)
     robot = await ready(server)
