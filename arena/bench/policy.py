@@ -3,7 +3,7 @@
 One robot on a server of its own (`arena serve`, recording on) with a mock slave and a
 640x480 test-pattern camera at 30 fps. An ACT with LeRobot's default architecture (a ResNet-18
 backbone, `dim_model` 512, chunks of 100 actions) and random weights (no pretrained backbone:
-nothing is downloaded) is saved by `python -m arena.bench.policy DIR` in a process of its own,
+nothing is downloaded) is saved by `python -m arena.bench.act DIR` in a process of its own,
 then attached over REST at 30 fps with LeRobot's async-inference defaults (50 actions a chunk,
 an observation when half are left). It takes one 240x320 image, which the worker scales from
 the camera's JPEG.
@@ -20,7 +20,6 @@ Measured:
 
 from __future__ import annotations
 
-import argparse
 import asyncio
 import contextlib
 import sys
@@ -35,45 +34,8 @@ from arena.recording.mcap_file import RecordedMessage, read_recording
 
 ROBOT = "policy-arm"
 CAMERA = {"name": "front", "source": "test-pattern", "fps": 30, "width": 640, "height": 480}
-IMAGE = (3, 240, 320)
 FPS = 30.0
-CHUNK = 100
 ACTIONS_PER_CHUNK = 50  # LeRobot's RobotClient default
-
-
-def save_act(folder: Path) -> None:
-    """Save the benchmark's ACT (random weights) with its processors in `folder` (this
-    imports torch: run it in a process of its own, `python -m arena.bench.policy DIR`)."""
-    import torch
-    from lerobot.configs.types import FeatureType, PolicyFeature
-    from lerobot.policies.act.configuration_act import ACTConfig
-    from lerobot.policies.act.modeling_act import ACTPolicy
-    from lerobot.policies.factory import make_pre_post_processors
-
-    image = "observation.images.front"
-    config = ACTConfig(
-        input_features={
-            "observation.state": PolicyFeature(FeatureType.STATE, (6,)),
-            image: PolicyFeature(FeatureType.VISUAL, IMAGE),
-        },
-        output_features={"action": PolicyFeature(FeatureType.ACTION, (6,))},
-        chunk_size=CHUNK,
-        n_action_steps=CHUNK,
-        pretrained_backbone_weights=None,
-        device="cpu",
-    )
-    torch.manual_seed(0)
-    policy = ACTPolicy(config)
-    # Actions near the robot's rest pose, a few degrees either way.
-    stats = {
-        "observation.state": {"mean": torch.zeros(6), "std": torch.full((6,), 30.0)},
-        image: {"mean": torch.full((3, 1, 1), 0.5), "std": torch.full((3, 1, 1), 0.25)},
-        "action": {"mean": torch.zeros(6), "std": torch.full((6,), 1.0)},
-    }
-    pre, post = make_pre_post_processors(config, dataset_stats=stats)
-    policy.save_pretrained(folder)
-    pre.save_pretrained(folder)
-    post.save_pretrained(folder)
 
 
 def observation_to_command(messages: Sequence[RecordedMessage], identity: str) -> list[float]:
@@ -124,7 +86,9 @@ async def policy(server: Server, seconds: float = 20.0, warmup: float = 5.0) -> 
     """The figures above, for `seconds` of each phase."""
     with tempfile.TemporaryDirectory() as scratch:
         folder = Path(scratch) / "act"
-        made = await asyncio.create_subprocess_exec(sys.executable, "-m", __name__, str(folder))
+        made = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "arena.bench.act", str(folder)
+        )
         if await made.wait() != 0:
             raise RuntimeError("the benchmark's ACT could not be saved")
         async with httpx.AsyncClient(base_url=server.url, timeout=300) as http:
@@ -165,14 +129,3 @@ async def policy(server: Server, seconds: float = 20.0, warmup: float = 5.0) -> 
         "policy_inference_p50_ms": percentile([r["inference"] for r in records], 0.5) * 1000,
         "policy_inferences": float(len(latencies)),
     }
-
-
-def main() -> None:
-    """`python -m arena.bench.policy DIR`: save the benchmark's ACT in DIR."""
-    parser = argparse.ArgumentParser()
-    parser.add_argument("dir")
-    save_act(Path(parser.parse_args().dir))
-
-
-if __name__ == "__main__":
-    main()
