@@ -434,3 +434,20 @@ def joint_value(robot: Robot, name: str) -> float:
     value = next(j for j in robot.snapshot().joints if j.name == name).real_value
     assert value is not None
     return value
+
+
+async def test_an_observation_goes_only_while_the_queue_is_low(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    """LeRobot's rule: an observation leaves when the queue holds at most half a chunk. The
+    control loop's wake-ups during an inference must not send another the moment its chunk
+    has refilled the queue."""
+    robot, _ = await arm(manager)
+    worker = FakeWorker(latency=0.05)
+    await attach(robot, worker)
+    await trio.sleep(2.0)
+    steps = [o.timestep for _, o in worker.observations]
+    # An observation at step t is answered 1.5 periods later with actions for t..t+9, of
+    # which t+2..t+9 are still to come: 8, down to half a chunk (5) at step t+4.
+    gaps = [b - a for a, b in itertools.pairwise(steps)]
+    assert len(gaps) >= 10 and all(gap >= 4 for gap in gaps), steps

@@ -364,6 +364,10 @@ class PolicyMaster:
         while True:
             await self._wake.wait()
             self._wake = trio.Event()
+            if not queue.ready_for_observation():
+                # a wake-up of the control loop's from while the last inference ran: the chunk
+                # it brought has filled the queue since (LeRobot checks the queue as it sends)
+                continue
             shots = self.cameras()
             jpegs = {name: None if shot is None else shot.jpeg for name, shot in shots.items()}
             images, missing = camera_images(jpegs, loaded)
