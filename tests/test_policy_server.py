@@ -1,8 +1,10 @@
 """A tiny LeRobot policy (random weights, saved by tests/tiny_policy.py in a process of its own)
-run as a robot's master through a real server, in a real worker process: commands flow at its
-fps and are recorded with its identity, an e-stop stops them and the worker, a killed worker
-trips the watchdog, NaN and huge jumps move nothing beyond the limits, and what is not a policy
-the robot can feed is refused with POLICY_INVALID.
+run as a robot's master through a real server, in a real worker process, with the mock and the
+physics slaves: commands flow at its fps and are recorded with its identity, each inference is
+recorded, the run exports as an evaluation dataset, an e-stop stops them and the worker, a
+killed worker trips the watchdog, NaN and huge jumps move nothing beyond the limits, what is not
+a policy the robot can feed is refused with POLICY_INVALID, and torch never enters the server's
+process.
 
 These wait for events (the robot's own, answers over HTTP), never for a time to pass."""
 
