@@ -30,6 +30,7 @@ from arena.robot.handle import Robot
 from arena.robot.mailbox import EventQueue
 from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
+from arena.robot.motion import Command, CommandResult
 from tests.conftest import RecordingSlave
 
 IDENTITY = "policy:act:0123456789ab"
@@ -451,3 +452,45 @@ async def test_an_observation_goes_only_while_the_queue_is_low(
     # which t+2..t+9 are still to come: 8, down to half a chunk (5) at step t+4.
     gaps = [b - a for a, b in itertools.pairwise(steps)]
     assert len(gaps) >= 10 and all(gap >= 4 for gap in gaps), steps
+
+
+class SlowArm:
+    """An `Arm` whose fifth command takes 1.8 periods to be answered (a busy robot)."""
+
+    def __init__(self) -> None:
+        self.started: list[float] = []
+
+    def measured(self) -> tuple[float, ...]:
+        return (0.0,) * 5 + (MODEL.joints[5].lower,)
+
+    async def command(self, command: Command) -> CommandResult:
+        self.started.append(trio.current_time())
+        if len(self.started) == 5:
+            await trio.sleep(1.8 * PERIOD)
+        return CommandResult(True)
+
+    def fault(self, source: str, code: ErrorCode, message: str, severity: Severity) -> None:
+        raise AssertionError(message)
+
+    def inferred(self, source: str, inference: object) -> None:
+        pass
+
+
+async def test_a_late_step_is_not_made_up_with_a_burst(autojump_clock: MockClock) -> None:
+    """A step that ends late is followed a full period later, as LeRobot's loop does: never
+    two commands in quick succession to catch up."""
+    master = PolicyMaster(PolicySettings(Path("unused"), fps=FPS), MODEL, frames(("front",)))
+    worker = FakeWorker()
+
+    async def start() -> FakeWorker:
+        return worker
+
+    master.start_worker = start
+    await master.prepare()
+    arm = SlowArm()
+    with trio.move_on_after(1.0):
+        await master.drive(arm)
+    gaps = [b - a for a, b in itertools.pairwise(arm.started)]
+    assert len(gaps) > 20
+    assert gaps[4] == pytest.approx(1.8 * PERIOD)  # the slow one, then at once the late step
+    assert min(gaps) == pytest.approx(PERIOD)

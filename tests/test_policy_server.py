@@ -163,7 +163,9 @@ async def test_a_policy_drives_the_arm_and_an_estop_stops_it(
     ]
     assert len(commands) >= 20
     span = (commands[-1].log_time - commands[0].log_time) / 1e9
-    assert len(commands) <= 30 * span + 2  # never faster than the policy's fps
+    # Never faster than the policy's fps. The slack: the loop keeps its schedule through a
+    # delay under half a period, and the actor handles each command a little after it left.
+    assert len(commands) <= 30 * span + 3
     # Each inference is on /robots/demo-arm/policy with its latency and chunk size.
     inferences = [m for m in recording.messages if m.topic == "/robots/demo-arm/policy"]
     assert len(inferences) >= 3
@@ -239,7 +241,7 @@ async def test_with_the_physics_twin_as_slave_commands_are_recorded_and_an_estop
     assert len(commands) >= 20 and {m.data["source"] for m in commands} == {identity}
     assert sum(m.data["accepted"] for m in commands) >= 10
     span = (commands[-1].log_time - commands[0].log_time) / 1e9
-    assert len(commands) <= 20 * span + 2  # never faster than the policy's fps
+    assert len(commands) <= 20 * span + 3  # never faster than the policy's fps (as above)
     after = messages[estop + 1 :]
     assert not [m for m in after if m.kind in ("command", "targets")]
     assert [m for m in after if m.kind == "joint_states"]

@@ -287,10 +287,13 @@ class PolicyMaster:
         tick = trio.current_time()
         while True:
             tick += period
-            now = trio.current_time()
-            if tick < now - period:
-                tick = now  # fell behind (a busy machine): no burst of late steps
             await trio.sleep_until(tick)
+            late = trio.current_time() - tick
+            if late > period / 2:
+                # Woke late (a busy machine): the next step comes a full period after this one,
+                # as in LeRobot's control loop, never as a burst that makes up for lost time.
+                # (A smaller delay keeps the schedule, so the rate does not drift below fps.)
+                tick += late
             item = queue.next_action()
             if queue.ready_for_observation():
                 self._wake.set()
