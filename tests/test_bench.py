@@ -16,6 +16,8 @@ from arena import bench
 from arena.bench.camera import camera
 from arena.bench.client import BlockingHttp
 from arena.bench.common import process_cpu_seconds
+from arena.bench.policy import observation_to_command
+from arena.recording.mcap_file import RecordedMessage
 from tests.conftest import need
 
 
@@ -237,3 +239,26 @@ def test_the_trio_floor_relays_as_the_floor_does() -> None:
     results = asyncio.run(one_round())
     assert results["p50_us"] > 0
     assert results["throughput_per_s"] > 0
+
+
+def test_observation_to_command_counts_frame_age_round_trip_and_the_wait_for_a_step() -> None:
+    def message(kind: str, **data: object) -> RecordedMessage:
+        return RecordedMessage(f"/robots/arm/{kind}", "arm", kind, 0, data)
+
+    me, other = "policy:act:0123456789ab", "policy:act:ffffffffffff"
+    messages = [
+        message("command", t=0.95, source=me, accepted=True),  # before the chunk came back
+        message("policy", t=1.0, policy=me, latency=0.1, frame_age=0.02),
+        message("command", t=1.01, source=other, accepted=True),  # another master's
+        message("command", t=1.02, source=me, accepted=False),  # refused: decided nothing
+        message("command", t=1.03, source=me, accepted=True),  # the first after it
+        message("command", t=1.06, source=me, accepted=True),
+        message("policy", t=2.0, policy=me, latency=0.2, frame_age=None),  # no camera
+        message("command", t=2.04, source=me, accepted=True),
+        message("policy", t=3.0, policy=me, latency=0.1, frame_age=0.0),  # none came after
+    ]
+    assert observation_to_command(messages, me) == [
+        pytest.approx(1.03 - 0.9 + 0.02),
+        pytest.approx(2.04 - 1.8),
+    ]
+    assert observation_to_command(messages, other) == []

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import sys
 from collections.abc import Callable
 from pathlib import Path
 
@@ -13,17 +14,27 @@ import pytest
 import trio
 from trio.testing import MockClock
 
-from arena.policy.master import PolicyMaster, PolicySettings
-from arena.policy.process import WorkerError, WorkerGone
+from arena.policy.master import PolicyMaster, PolicySettings, Shot
+from arena.policy.process import LOAD_TIMEOUT, PolicyProcess, WorkerError, WorkerGone
 from arena.policy.wire import Chunk, Feature, Loaded, Observe
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
-from arena.robot.events import CommandHandled, FaultReported, RobotEvent, TargetsSent
+from arena.robot.events import (
+    CommandHandled,
+    FaultReported,
+    JointStatesReceived,
+    PolicyInferred,
+    RobotEvent,
+    TargetsSent,
+)
 from arena.robot.handle import Robot
 from arena.robot.mailbox import EventQueue
 from arena.robot.manager import RobotManager
+from arena.robot.model import load_robot_model
+from arena.robot.motion import Command, CommandResult
 from tests.conftest import RecordingSlave
 
 IDENTITY = "policy:act:0123456789ab"
+MODEL = load_robot_model("so-arm100")
 FPS = 30.0
 PERIOD = 1 / FPS
 Actions = Callable[[Observe], list[tuple[float, ...]]]
@@ -76,6 +87,15 @@ class FakeWorker:
         self.closed = True
 
 
+#: How old each camera frame is when an observation takes it (seconds of trio time).
+FRAME_AGE = 0.02
+
+
+def frames(cameras: tuple[str, ...]) -> Callable[[], dict[str, Shot | None]]:
+    """The robot's cameras, each with a frame captured FRAME_AGE ago."""
+    return lambda: dict.fromkeys(cameras, Shot(b"jpeg", trio.current_time() - FRAME_AGE))
+
+
 async def attach(
     robot: Robot, worker: FakeWorker, cameras: tuple[str, ...] = ("front",), **settings: float
 ) -> PolicyMaster:
@@ -85,7 +105,7 @@ async def attach(
     master = PolicyMaster(
         PolicySettings(Path("unused"), task="wave", fps=FPS, **settings),  # type: ignore[arg-type]
         robot.model,
-        lambda: dict.fromkeys(cameras, b"jpeg"),
+        frames(cameras),
         start,
     )
     await master.prepare()
@@ -277,3 +297,200 @@ async def test_a_policy_the_robot_cannot_feed_is_refused_naming_the_feature(
     assert "observation.images.front" in refused.value.message
     assert "wrist" in refused.value.message
     assert worker.closed and robot.snapshot().master is None
+
+
+async def test_each_inference_is_reported_with_its_latency_chunk_and_frame_age(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot, _ = await arm(manager)
+    worker = FakeWorker(latency=0.05)
+    with robot.subscribe(kinds=[PolicyInferred, CommandHandled]) as events:
+        master = await attach(robot, worker)
+        await trio.sleep(1.0)
+        seen = events.drain()
+    inferences = [e for e in seen if isinstance(e, PolicyInferred)]
+    assert len(inferences) == master.counters.inferences >= 5
+    for event, (asked, observation) in zip(inferences, worker.observations, strict=False):
+        assert event.policy == IDENTITY and event.robot_id == "arm"
+        assert event.timestep == observation.timestep
+        assert event.chunk_size == 10 and 1 <= event.kept <= 10
+        # The round trip is the worker's 50 ms; the frame was 20 ms old when it was sent.
+        assert event.latency == pytest.approx(0.05) and event.inference == pytest.approx(0.05)
+        assert event.frame_age == pytest.approx(FRAME_AGE)
+        assert event.time == pytest.approx(asked + 0.05)
+    # Nothing had been taken when the first chunk came: all of it is kept. A later one answers
+    # an observation of the step last taken, which has passed when it comes: not kept.
+    assert inferences[0].kept == 10
+    assert all(1 <= e.kept < 10 for e in inferences[1:])
+
+
+async def test_a_worker_that_never_loads_is_refused_once_its_time_is_up(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot, _ = await arm(manager)
+    worker = FakeWorker()
+    hang = trio.Event()
+
+    async def never(path: Path) -> Loaded:
+        await hang.wait()
+        raise AssertionError("unreachable")
+
+    worker.load = never  # type: ignore[method-assign]
+    started = trio.current_time()
+    with pytest.raises(ArenaError) as refused:
+        await attach(robot, worker, load_timeout=30.0)
+    assert refused.value.code is ErrorCode.POLICY_NOT_READY
+    assert "within 30 s" in refused.value.message
+    assert trio.current_time() - started == pytest.approx(30.0)
+    assert worker.closed and robot.snapshot().master is None
+
+
+async def test_a_worker_process_that_never_answers_is_stopped_and_refused(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    """A real child process that never answers: the bound (the default, 180 s of virtual
+    time) ends the wait, and the process is killed."""
+    robot, _ = await arm(manager)
+    started: list[PolicyProcess] = []
+
+    async def start() -> PolicyProcess:
+        hangs = [sys.executable, "-c", "import time; time.sleep(600)"]
+        started.append(await PolicyProcess.start(hangs))
+        return started[0]
+
+    master = PolicyMaster(PolicySettings(Path("unused")), robot.model, frames(()), start)
+    began = trio.current_time()
+    with pytest.raises(ArenaError) as refused:
+        await master.prepare()
+    assert refused.value.code is ErrorCode.POLICY_NOT_READY
+    assert trio.current_time() - began >= LOAD_TIMEOUT
+    (process,) = started
+    assert await process.process.wait() == -9 and process not in PolicyProcess.live
+
+
+async def test_a_worker_that_exits_while_loading_is_refused_saying_so() -> None:
+    """On the real clock: the worker's exit (its pipe's end) answers long before the bound."""
+
+    async def start() -> PolicyProcess:
+        return await PolicyProcess.start([sys.executable, "-c", "raise SystemExit(3)"])
+
+    master = PolicyMaster(PolicySettings(Path("unused")), MODEL, frames(()), start)
+    with pytest.raises(ArenaError) as refused:
+        await master.prepare()
+    assert refused.value.code is ErrorCode.POLICY_NOT_READY
+    assert "exited (code 3)" in refused.value.message
+
+
+async def test_with_the_physics_twin_commands_flow_at_fps_and_an_estop_stops_them_at_once(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    """The MuJoCo arm as the slave (stepped in trio time): the policy sees its lagging joints,
+    turns the base at its fps, and an e-stop ends the commands and the targets in the same
+    step; the arm then holds where it is."""
+    from arena.drivers.physics import PhysicsSettings, PhysicsSlave
+
+    robot = await manager.create_robot("so-arm100", robot_id="sim")
+    await robot.attach_slave(PhysicsSlave(PhysicsSettings(realtime=False)))
+    await trio.sleep(0.5)  # settled on its table
+    # The base turns 3 degrees a step from where it is; the arm's joints stay at their
+    # targets (the measured ones sag under gravity: held there, the guard would refuse).
+    rest = [j.virtual_value for j in robot.snapshot().joints]  # (degrees: LeRobot's too)
+    worker = FakeWorker(lambda o: [(o.state[0] + 3.0, *rest[1:5], o.state[5])] * 10)
+    with robot.subscribe(kinds=[CommandHandled, TargetsSent, JointStatesReceived]) as events:
+        await attach(robot, worker, max_relative_target=2.0)
+        await trio.sleep(1.0)
+        moving = events.drain()
+        await robot.estop("test")
+        stopped = trio.current_time()
+        turned = joint_value(robot, "Rotation")
+        await trio.sleep(1.0)
+        after = events.drain()
+    commands = [e for e in moving if isinstance(e, CommandHandled)]
+    assert len(commands) >= 25 and {c.source for c in commands} == {IDENTITY}
+    gaps = [b.time - a.time for a, b in itertools.pairwise(commands)]
+    assert min(gaps) == pytest.approx(PERIOD) and max(gaps) == pytest.approx(PERIOD)
+    # It observed the twin's measured joints, which lag behind its targets, and each step
+    # is limited from where the arm is (a position measured since its last command, or the
+    # one before), not from where it was told to go.
+    observed = [o.state[0] for _, o in worker.observations]
+    assert observed[-1] > observed[0] + 5.0
+    seen: list[float] = [0.0]
+    for event in moving:
+        if isinstance(event, JointStatesReceived):
+            seen.append(event.joints["Rotation"])
+        elif isinstance(event, CommandHandled):
+            goal = next(g.value for g in event.command.joints if g.name == "Rotation")
+            assert min(abs(goal - value) for value in seen) <= 2.0 + 1e-9
+            seen = seen[-1:]
+    assert all(c.result.accepted for c in commands)
+    assert not [e for e in after if isinstance(e, CommandHandled | TargetsSent)]
+    assert robot.snapshot().master is None and worker.closed
+    held = [e.joints["Rotation"] for e in after if isinstance(e, JointStatesReceived)]
+    assert held and all(abs(value - turned) < 2.0 for value in held)
+    assert all(e.time <= stopped for e in moving)
+
+
+def joint_value(robot: Robot, name: str) -> float:
+    """The joint's measured value."""
+    value = next(j for j in robot.snapshot().joints if j.name == name).real_value
+    assert value is not None
+    return value
+
+
+async def test_an_observation_goes_only_while_the_queue_is_low(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    """LeRobot's rule: an observation leaves when the queue holds at most half a chunk. The
+    control loop's wake-ups during an inference must not send another the moment its chunk
+    has refilled the queue."""
+    robot, _ = await arm(manager)
+    worker = FakeWorker(latency=0.05)
+    await attach(robot, worker)
+    await trio.sleep(2.0)
+    steps = [o.timestep for _, o in worker.observations]
+    # An observation at step t is answered 1.5 periods later with actions for t..t+9, of
+    # which t+2..t+9 are still to come: 8, down to half a chunk (5) at step t+4.
+    gaps = [b - a for a, b in itertools.pairwise(steps)]
+    assert len(gaps) >= 10 and all(gap >= 4 for gap in gaps), steps
+
+
+class SlowArm:
+    """An `Arm` whose fifth command takes 1.8 periods to be answered (a busy robot)."""
+
+    def __init__(self) -> None:
+        self.started: list[float] = []
+
+    def measured(self) -> tuple[float, ...]:
+        return (0.0,) * 5 + (MODEL.joints[5].lower,)
+
+    async def command(self, command: Command) -> CommandResult:
+        self.started.append(trio.current_time())
+        if len(self.started) == 5:
+            await trio.sleep(1.8 * PERIOD)
+        return CommandResult(True)
+
+    def fault(self, source: str, code: ErrorCode, message: str, severity: Severity) -> None:
+        raise AssertionError(message)
+
+    def inferred(self, source: str, inference: object) -> None:
+        pass
+
+
+async def test_a_late_step_is_not_made_up_with_a_burst(autojump_clock: MockClock) -> None:
+    """A step that ends late is followed a full period later, as LeRobot's loop does: never
+    two commands in quick succession to catch up."""
+    master = PolicyMaster(PolicySettings(Path("unused"), fps=FPS), MODEL, frames(("front",)))
+    worker = FakeWorker()
+
+    async def start() -> FakeWorker:
+        return worker
+
+    master.start_worker = start
+    await master.prepare()
+    arm = SlowArm()
+    with trio.move_on_after(1.0):
+        await master.drive(arm)
+    gaps = [b - a for a, b in itertools.pairwise(arm.started)]
+    assert len(gaps) > 20
+    assert gaps[4] == pytest.approx(1.8 * PERIOD)  # the slow one, then at once the late step
+    assert min(gaps) == pytest.approx(PERIOD)

@@ -29,6 +29,8 @@ from arena.policy.wire import (
 )
 from arena.policy.worker import PolicyDirectoryError, check_directory
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.recording.dataset import Span, dataset_name, policies_in
+from arena.recording.mcap_file import RecordedMessage
 from arena.robot.model import load_robot_model
 
 MODEL = load_robot_model("so-arm100")
@@ -176,3 +178,33 @@ async def test_workers_are_bounded(monkeypatch: pytest.MonkeyPatch) -> None:
     with pytest.raises(ArenaError) as refused:
         await process.PolicyProcess.start()
     assert refused.value.code is ErrorCode.OVERLOADED and "at most 0" in refused.value.message
+
+
+def test_a_dataset_of_a_policys_episodes_is_named_as_an_evaluation() -> None:
+    def command(at: int, source: str, accepted: bool = True) -> RecordedMessage:
+        data = {"source": source, "accepted": accepted}
+        return RecordedMessage("/robots/arm/command", "arm", "command", at, data)
+
+    policy = "policy:act:0123456789ab"
+    messages = [
+        command(5, "policy:act:ffffffffffff"),  # before the episode: not in the dataset
+        command(10, "ui"),
+        command(20, policy),
+        command(30, "policy:act:eeeeeeeeeeee", accepted=False),  # refused: drove nothing
+        command(40, "alice"),
+    ]
+    spans = [Span(0, "wave", 10, 40)]
+    assert policies_in(messages, spans) == [policy]
+    assert policies_in(messages, [Span(0, "wave", 35, 45)]) == []
+    assert dataset_name(None, "arm", [policy]) == "arena/eval_arm"
+    assert dataset_name(None, "arm", []) == "arena/arm"
+    assert dataset_name("lab/eval_cube", "arm", [policy]) == "lab/eval_cube"
+    assert dataset_name("lab/cube", "arm", []) == "lab/cube"
+    with pytest.raises(ArenaError) as refused:
+        dataset_name("lab/cube", "arm", [policy])
+    assert refused.value.code is ErrorCode.INVALID_VALUE
+    assert policy in refused.value.message and "lab/eval_cube" not in refused.value.message
+    assert ".../eval_cube" in refused.value.message
+    with pytest.raises(ArenaError) as refused:
+        dataset_name("lab/eval_cube", "arm", [])
+    assert "no policy drove" in refused.value.message

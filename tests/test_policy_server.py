@@ -1,8 +1,10 @@
 """A tiny LeRobot policy (random weights, saved by tests/tiny_policy.py in a process of its own)
-run as a robot's master through a real server, in a real worker process: commands flow at its
-fps and are recorded with its identity, an e-stop stops them and the worker, a killed worker
-trips the watchdog, NaN and huge jumps move nothing beyond the limits, and what is not a policy
-the robot can feed is refused with POLICY_INVALID.
+run as a robot's master through a real server, in a real worker process, with the mock and the
+physics slaves: commands flow at its fps and are recorded with its identity, each inference is
+recorded, the run exports as an evaluation dataset, an e-stop stops them and the worker, a
+killed worker trips the watchdog, NaN and huge jumps move nothing beyond the limits, what is not
+a policy the robot can feed is refused with POLICY_INVALID, and torch never enters the server's
+process.
 
 These wait for events (the robot's own, answers over HTTP), never for a time to pass."""
 
@@ -12,10 +14,12 @@ import hashlib
 import json
 import math
 import os
+import re
 import shutil
 import signal
 import subprocess
 import sys
+import time
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -24,6 +28,7 @@ import httpx
 import pytest
 import trio
 
+from arena import cli
 from arena.protocol.errors import ErrorCode
 from arena.recording.mcap_file import read_recording
 from arena.robot.events import (
@@ -37,6 +42,7 @@ from arena.robot.events import (
 from arena.robot.mailbox import EventQueue
 from arena.robot.safety import Mode
 from tests.conftest import REPOSITORY, RunningServer, need
+from tests.serve_process import serving
 
 CAMERA = {"name": "front", "source": "test-pattern", "fps": 30, "width": 64, "height": 48}
 ROBOT = "/api/robots/demo-arm"
@@ -121,7 +127,7 @@ async def attach(server: RunningServer, path: Path, **body: Any) -> Any:
 
 
 async def test_a_policy_drives_the_arm_and_an_estop_stops_it(
-    start_server: Start, tiny: Path
+    start_server: Start, tiny: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     server = await start_server(demo=True)
     robot = await ready(server)
@@ -157,7 +163,88 @@ async def test_a_policy_drives_the_arm_and_an_estop_stops_it(
     ]
     assert len(commands) >= 20
     span = (commands[-1].log_time - commands[0].log_time) / 1e9
-    assert len(commands) <= 30 * span + 2  # never faster than the policy's fps
+    # Never faster than the policy's fps. The slack: the loop keeps its schedule through a
+    # delay under half a period, and the actor handles each command a little after it left.
+    assert len(commands) <= 30 * span + 3
+    # Each inference is on /robots/demo-arm/policy with its latency and chunk size.
+    inferences = [m for m in recording.messages if m.topic == "/robots/demo-arm/policy"]
+    assert len(inferences) >= 3
+    for inference in inferences:
+        data = inference.data
+        assert data["policy"] == identity and data["chunk_size"] == 10
+        assert 0 <= data["kept"] <= 10
+        assert 0 < data["inference"] <= data["latency"] < WAIT
+        assert data["frame_age"] is not None and 0 <= data["frame_age"] < WAIT
+    steps = [m.data["timestep"] for m in inferences]
+    assert steps == sorted(steps) and steps[-1] > 0
+    check_evaluation_export(recording.path, identity, tmp_path, capsys)
+
+
+def check_evaluation_export(
+    path: Path, identity: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The policy's run exported for LeRobot is an evaluation dataset: named `eval_...` as
+    LeRobot names them, and a name that says otherwise is refused."""
+    lerobot_dataset = need("lerobot.datasets.lerobot_dataset", "lerobot")
+    args = ["export", str(path), "--format", "lerobot", "--robot", "demo-arm"]
+    assert cli.main([*args, "--repo-id", "lab/cube", "-o", str(tmp_path / "plain")]) == 2
+    said = capsys.readouterr().err
+    assert identity in said and "starts with 'eval_'" in said
+    out = tmp_path / "eval"
+    assert cli.main([*args, "-o", str(out)]) == 0, capsys.readouterr().err
+    printed = capsys.readouterr().out
+    assert "arena/eval_demo-arm" in printed and f"an evaluation of {identity}" in printed
+    dataset = lerobot_dataset.LeRobotDataset("arena/eval_demo-arm", root=out, video_backend="pyav")
+    assert dataset.num_episodes == 1 and dataset.num_frames > 0
+    assert dataset.meta.video_keys == ["observation.images.front"]
+    assert json.loads((out / "meta" / "arena.json").read_text())["policies"] == [identity]
+
+
+async def test_with_the_physics_twin_as_slave_commands_are_recorded_and_an_estop_ends_them(
+    start_server: Start, tiny: Path
+) -> None:
+    """The MuJoCo twin in real time as the robot's only slave: the policy's commands reach it
+    at no more than the policy's fps, recorded with their source; after the e-stop the file
+    holds no command and no target of the policy, and the twin's reports go on (it holds)."""
+    need("mujoco", "physics")
+    server = await start_server()
+    base = "/api/robots/sim"
+    async with server.client() as http:
+        made = await http.post("/api/robots", json={"robot_type": "so-arm100", "id": "sim"})
+        assert made.status_code == 201, made.text
+        slave = await http.post(f"{base}/slaves", json={"type": "physics-slave"})
+        assert slave.status_code == 201, slave.text
+        assert (await http.post(f"{base}/cameras", json=CAMERA)).status_code == 201
+    robot = server.app.manager.get("sim")
+    identity = f"policy:act:{checkpoint(tiny)}"
+    with robot.subscribe(kinds=[CommandHandled, StateChanged, JointStatesReceived]) as events:
+        async with httpx.AsyncClient(base_url=server.url, timeout=LOAD) as http:
+            body = {"type": "policy", "path": str(tiny), "fps": 20}
+            answer = await http.post(f"{base}/master", json=body)
+        assert answer.status_code == 201, answer.text
+        for _ in range(20):
+            command = await next_event(events, lambda e: isinstance(e, CommandHandled))
+            assert command.source == identity
+        async with server.client() as http:
+            assert (await http.post(f"{base}/estop", json={"reason": "test"})).status_code == 200
+        await next_event(events, lambda e: isinstance(e, StateChanged) and e.mode is Mode.ESTOPPED)
+        # the twin goes on reporting after the e-stop: it holds where it is
+        await next_event(events, lambda e: isinstance(e, JointStatesReceived))
+    async with server.client() as http:
+        stopped = (await http.post("/api/recordings/current/stop")).json()["stopped"]
+    messages = read_recording(Path(server.app.recorder.folder) / stopped).messages
+    messages = [m for m in messages if m.robot_id == "sim"]
+    estop = next(
+        i for i, m in enumerate(messages) if m.kind == "state" and m.data["mode"] == "estopped"
+    )
+    commands = [m for m in messages[:estop] if m.kind == "command"]
+    assert len(commands) >= 20 and {m.data["source"] for m in commands} == {identity}
+    assert sum(m.data["accepted"] for m in commands) >= 10
+    span = (commands[-1].log_time - commands[0].log_time) / 1e9
+    assert len(commands) <= 20 * span + 3  # never faster than the policy's fps (as above)
+    after = messages[estop + 1 :]
+    assert not [m for m in after if m.kind in ("command", "targets")]
+    assert [m for m in after if m.kind == "joint_states"]
 
 
 async def test_a_killed_worker_trips_the_watchdog(start_server: Start, tiny: Path) -> None:
@@ -318,3 +405,44 @@ async def test_without_lerobot_a_policy_master_is_not_installed(
     assert answer.status_code == 501, answer.text
     assert "pip install 'arena[lerobot]'" in answer.json()["error"]["message"]
     assert workers() == []
+
+
+def native_libraries(pid: int) -> set[str]:
+    """The shared libraries process `pid` has mapped (torch's are libtorch*.so)."""
+    maps = Path(f"/proc/{pid}/maps").read_text()
+    return {Path(line.split()[-1]).name for line in maps.splitlines() if ".so" in line}
+
+
+def accepted_commands(url: str) -> int:
+    metrics = httpx.get(f"{url}/metrics", timeout=10).text
+    found = re.search(r'^arena_commands_total\{result="accepted"\} (\d+)', metrics, re.M)
+    return int(found.group(1)) if found else 0
+
+
+def test_torch_never_enters_the_servers_process(tiny: Path, tmp_path: Path) -> None:
+    """`arena serve` as a process of its own runs a policy: torch (which LeRobot imports) is
+    mapped into the worker, never into the server."""
+    env = {**os.environ, "PYTHONPATH": str(REPOSITORY)}
+    with serving(["--demo", "--port", "0", "--no-record"], cwd=tmp_path, env=env) as served:
+        url, server = served.url, served.process.pid
+        assert httpx.post(f"{url}{ROBOT}/cameras", json=CAMERA, timeout=WAIT).status_code == 201
+        before = accepted_commands(url)
+        body = {"type": "policy", "path": str(tiny)}
+        answer = httpx.post(f"{url}{ROBOT}/master", json=body, timeout=LOAD)
+        assert answer.status_code == 201, answer.text
+        deadline = time.monotonic() + WAIT  # only a broken policy master reaches it
+        while accepted_commands(url) < before + 20:
+            assert time.monotonic() < deadline, served.log
+            time.sleep(0.05)
+        children = [
+            int(pid)
+            for task in Path(f"/proc/{server}/task").iterdir()
+            for pid in (task / "children").read_text().split()
+        ]
+        (worker,) = [
+            pid
+            for pid in children
+            if b"arena.policy.worker" in Path(f"/proc/{pid}/cmdline").read_bytes()
+        ]
+        assert any(name.startswith("libtorch") for name in native_libraries(worker))
+        assert not any(name.startswith("libtorch") for name in native_libraries(server))

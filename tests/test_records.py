@@ -15,6 +15,7 @@ from arena.robot.events import (
     JointStatesReceived,
     Observed,
     PeerChanged,
+    PolicyInferred,
     RobotEvent,
     StateChanged,
     TargetsSent,
@@ -83,6 +84,12 @@ def test_every_kind_of_event_is_recorded_byte_for_byte_as_before() -> None:
             "audit",
             '{"t":15.0,"user":"alice","action":"POST /api/robots/{robot_id}/estop",'
             '"detail":"200"}',
+        ),
+        (
+            PolicyInferred("a", "policy:act:0123456789ab", 12, 10, 8, 0.04, 0.03, None, 17.0, 18.0),
+            "policy",
+            '{"t":17.0,"policy":"policy:act:0123456789ab","timestep":12,"chunk_size":10,"kept":8,'
+            '"latency":0.04,"inference":0.03,"frame_age":null}',
         ),
     ]  # fmt: skip
     assert {kind for _, kind, _ in cases} == set(RECORD_TYPES)

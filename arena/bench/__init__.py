@@ -41,6 +41,9 @@ Scenarios:
               last slave's notice, 100 robots at 50 Hz on two nodes against one
   soak        (only when named) the fleet held for 10 minutes: latency and memory of the first
               minute against the last, commands unacknowledged, recording messages dropped
+  policy      (only when named; needs lerobot) an ACT with random weights drives a robot at
+              30 fps: observation (camera frame age included) to command p50/p99, the server
+              CPU the policy adds, the worker's CPU (see arena/bench/policy.py)
 """
 
 from __future__ import annotations
@@ -58,6 +61,7 @@ from arena.bench.estop import estop, flood
 from arena.bench.fleet import FleetRun, drive_fleet, fleet, soak
 from arena.bench.hardware import teleop_latency, usb_control_rate
 from arena.bench.inprocess import core_rate, guard_cost, physics_rate, replay_rate, writer_rate
+from arena.bench.policy import policy
 from arena.bench.relay import relay, relay_with_websockets, throughput
 from arena.bench.versus import ordinary_relay, versus_floor
 
@@ -84,7 +88,7 @@ SCENARIOS = (
     "teleop",
 )
 #: Long scenarios, run only when named.
-LONG_SCENARIOS = ("soak", "versus", "nodes")
+LONG_SCENARIOS = ("soak", "versus", "nodes", "policy")
 
 
 def run_benchmarks(
@@ -107,6 +111,8 @@ def run_benchmarks(
         require("physics", "arena bench physics")
     if "nodes" in chosen:
         require("fleet", "arena bench nodes")
+    if "policy" in chosen:
+        require("lerobot", "arena bench policy")
     results: dict[str, Any] = {}
 
     def median_of(runs: list[dict[str, float]]) -> dict[str, float]:
@@ -182,6 +188,8 @@ def run_benchmarks(
         results.update(asyncio.run(nodes_fleet(robots=fleet_robots)))
     if "versus" in chosen:
         results.update(asyncio.run(versus_floor(rounds=repeats, fleet_robots=fleet_robots)))
+    if "policy" in chosen:
+        results.update(asyncio.run(_with_server(policy)))
     if "usb" in chosen:
         results.update(median_of([usb_control_rate() for _ in range(repeats)]))
     if "teleop" in chosen:

@@ -47,6 +47,8 @@ def export_lerobot(args: argparse.Namespace) -> int:
         f"{report.root}: {report.repo_id}, {len(report.episodes)} episodes, {frames} frames "
         f"at {report.fps} fps, cameras: {cameras}"
     )
+    if report.policies:
+        print(f"  an evaluation of {', '.join(report.policies)}")
     for index, task, count in report.episodes:
         print(f"  episode {index}: {count} frames, task {task!r}")
     return 0

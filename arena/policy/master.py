@@ -13,10 +13,11 @@ autonomous: an e-stop detaches it, which cancels both tasks and stops the worker
 from __future__ import annotations
 
 import logging
+import time as wallclock
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import NamedTuple, Protocol
 
 import trio
 
@@ -29,9 +30,10 @@ from arena.policy.features import (
     lerobot_state,
     measured,
 )
-from arena.policy.process import PolicyProcess, WorkerError, WorkerGone
+from arena.policy.process import LOAD_TIMEOUT, PolicyProcess, WorkerError, WorkerGone
 from arena.policy.wire import Chunk, Loaded, Observe
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
+from arena.robot.events import PolicyInferred
 from arena.robot.links import MasterLink
 from arena.robot.model import RobotModel
 from arena.robot.motion import Command, CommandResult, JointGoal
@@ -41,8 +43,31 @@ log = logging.getLogger(__name__)
 #: Refusals after which the policy stops for good (it never resumes by itself).
 _FINAL_REFUSALS = frozenset({ErrorCode.ESTOPPED, ErrorCode.NOT_OWNER})
 
-#: The newest JPEG of each of the robot's cameras by name (None: no frame yet).
-CameraFrames = Callable[[], Mapping[str, bytes | None]]
+
+class Shot(NamedTuple):
+    """A camera's newest frame: its JPEG and when it was captured (trio time, this process)."""
+
+    jpeg: bytes
+    captured: float
+
+
+#: The newest frame of each of the robot's cameras by name (None: no frame yet).
+CameraFrames = Callable[[], Mapping[str, Shot | None]]
+
+
+@dataclass(frozen=True, slots=True)
+class Inference:
+    """One inference as recorded on `/robots/{id}/policy` (`events.PolicyInferred`): the
+    step its observation was taken at, the chunk's actions and those kept, the round trip
+    and the worker's part of it, and the age of the oldest camera frame it carried
+    (seconds; None without a camera)."""
+
+    timestep: int
+    chunk_size: int
+    kept: int
+    latency: float
+    inference: float
+    frame_age: float | None
 
 
 class Arm(Protocol):
@@ -57,6 +82,9 @@ class Arm(Protocol):
 
     def fault(self, source: str, code: ErrorCode, message: str, severity: Severity) -> None:
         """Report a fault of the policy."""
+
+    def inferred(self, source: str, inference: Inference) -> None:
+        """Report one inference of the policy."""
 
 
 class LinkArm:
@@ -78,6 +106,24 @@ class LinkArm:
         """Recorded and shown as a camera's faults are; never an e-stop by itself."""
         self.link.robot.report_sensor_fault(source, code, message, severity)
 
+    def inferred(self, source: str, inference: Inference) -> None:
+        """Recorded on `/robots/{id}/policy`."""
+        robot = self.link.robot
+        robot.report_inference(
+            PolicyInferred(
+                robot.robot_id,
+                source,
+                inference.timestep,
+                inference.chunk_size,
+                inference.kept,
+                inference.latency,
+                inference.inference,
+                inference.frame_age,
+                trio.current_time(),
+                wallclock.time(),
+            )
+        )
+
 
 class Worker(Protocol):
     """What the master needs of a policy worker (`PolicyProcess`; tests give a stand-in)."""
@@ -97,7 +143,8 @@ class PolicySettings:
     """How a policy runs. LeRobot's names where LeRobot has the setting: `actions_per_chunk`
     (None: the policy's chunk length), `chunk_size_threshold`, `aggregate_fn_name`,
     `max_relative_target` (the step limit: degrees a target may lie from the measured position;
-    None: off). `stall_periods`: control periods without an action that trip the watchdog."""
+    None: off). `stall_periods`: control periods without an action that trip the watchdog;
+    `load_timeout`: seconds the worker has to start and load the policy."""
 
     path: Path
     task: str = ""
@@ -107,6 +154,7 @@ class PolicySettings:
     aggregate_fn_name: str = "weighted_average"
     max_relative_target: float | None = 10.0
     stall_periods: int = 2
+    load_timeout: float = LOAD_TIMEOUT
 
 
 @dataclass(slots=True)
@@ -174,7 +222,21 @@ class PolicyMaster:
 
     async def prepare(self) -> None:
         """Start the worker, load the policy and check it against the robot; POLICY_INVALID
-        with the reason if the directory is not a policy or the robot cannot feed it."""
+        with the reason if the directory is not a policy or the robot cannot feed it,
+        POLICY_NOT_READY if the worker exits or has not loaded it within `load_timeout`."""
+        with trio.move_on_after(self.settings.load_timeout) as bound:
+            await self._load()
+        if bound.cancelled_caught:
+            await self.close()
+            raise ArenaError(
+                ErrorCode.POLICY_NOT_READY,
+                f"The policy worker did not load {self.settings.path} within "
+                f"{self.settings.load_timeout:g} s; it was stopped.",
+            )
+        assert self.loaded is not None
+        log.info("policy %s loaded in %.1f s", self.identity, self.loaded.seconds)
+
+    async def _load(self) -> None:
         self.process = await self.start_worker()
         try:
             self.loaded = await self.process.load(self.settings.path)
@@ -183,13 +245,17 @@ class PolicyMaster:
             self.queue = ActionQueue(
                 chunk, self.settings.chunk_size_threshold, self.settings.aggregate_fn_name
             )
+        except WorkerGone as exc:
+            await self.close()
+            raise ArenaError(
+                ErrorCode.POLICY_NOT_READY, f"Loading {self.settings.path}: {exc}."
+            ) from None
         except WorkerError as exc:
             await self.close()
             raise ArenaError(ErrorCode.POLICY_INVALID, f"{self.settings.path}: {exc}.") from None
         except BaseException:
             await self.close()
             raise
-        log.info("policy %s loaded in %.1f s", self.identity, self.loaded.seconds)
 
     async def close(self) -> None:
         """Stop the worker (nothing to do if it never started)."""
@@ -221,10 +287,13 @@ class PolicyMaster:
         tick = trio.current_time()
         while True:
             tick += period
-            now = trio.current_time()
-            if tick < now - period:
-                tick = now  # fell behind (a busy machine): no burst of late steps
             await trio.sleep_until(tick)
+            late = trio.current_time() - tick
+            if late > period / 2:
+                # Woke late (a busy machine): the next step comes a full period after this one,
+                # as in LeRobot's control loop, never as a burst that makes up for lost time.
+                # (A smaller delay keeps the schedule, so the rate does not drift below fps.)
+                tick += late
             item = queue.next_action()
             if queue.ready_for_observation():
                 self._wake.set()
@@ -298,7 +367,13 @@ class PolicyMaster:
         while True:
             await self._wake.wait()
             self._wake = trio.Event()
-            images, missing = camera_images(self.cameras(), loaded)
+            if not queue.ready_for_observation():
+                # a wake-up of the control loop's from while the last inference ran: the chunk
+                # it brought has filled the queue since (LeRobot checks the queue as it sends)
+                continue
+            shots = self.cameras()
+            jpegs = {name: None if shot is None else shot.jpeg for name, shot in shots.items()}
+            images, missing = camera_images(jpegs, loaded)
             if missing:
                 self._failure = f"no frame yet from camera {', '.join(missing)}"
                 await trio.sleep(period)
@@ -311,6 +386,8 @@ class PolicyMaster:
                 images,
                 self.settings.task,
             )
+            sent = trio.current_time()
+            captured = [s.captured for n, s in shots.items() if s is not None and n in images]
             try:
                 chunk = await process.act(observation)
             except WorkerError as exc:
@@ -326,4 +403,13 @@ class PolicyMaster:
             self._armed = True
             self.counters.inferences += 1
             self.counters.last_latency = chunk.latency
-            queue.add_chunk(chunk.timestep, chunk.actions)
+            kept = queue.add_chunk(chunk.timestep, chunk.actions)
+            inference = Inference(
+                chunk.timestep,
+                len(chunk.actions),
+                kept,
+                trio.current_time() - sent,
+                chunk.latency,
+                sent - min(captured) if captured else None,
+            )
+            arm.inferred(self.identity, inference)

@@ -12,6 +12,7 @@ import contextlib
 import os
 import subprocess
 import sys
+from collections.abc import Sequence
 from pathlib import Path
 from typing import ClassVar
 
@@ -33,10 +34,13 @@ from arena.policy.wire import (
 )
 from arena.protocol.errors import ArenaError, ErrorCode
 
-#: Seconds a worker has to import torch and LeRobot and load the weights.
+#: Seconds a worker has to start, import torch and LeRobot and load the weights (the master's
+#: default `load_timeout`).
 LOAD_TIMEOUT = 180.0
 #: Workers one process runs at most (each holds a policy's weights and torch: hundreds of MB).
 MAX_WORKERS = 4
+#: How a worker is started: this interpreter, the worker module.
+WORKER = (sys.executable, "-m", "arena.policy.worker")
 #: Seconds to wait for a killed worker to be reaped.
 STOP_WAIT = 5.0
 
@@ -65,9 +69,9 @@ class PolicyProcess:
         self._broken = False
 
     @classmethod
-    async def start(cls) -> PolicyProcess:
+    async def start(cls, command: Sequence[str] = WORKER) -> PolicyProcess:
         """Start a worker (it imports nothing heavy until asked to load); OVERLOADED when
-        `MAX_WORKERS` run already."""
+        `MAX_WORKERS` run already. `command`: the worker's (tests start stand-ins)."""
         if len(cls.live) >= MAX_WORKERS:
             raise ArenaError(
                 ErrorCode.OVERLOADED,
@@ -79,7 +83,7 @@ class PolicyProcess:
         root = str(Path(arena.__file__).resolve().parent.parent)
         env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
         process = await trio.lowlevel.open_process(
-            [sys.executable, "-m", "arena.policy.worker"],
+            list(command),
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
             env=env,
@@ -98,12 +102,10 @@ class PolicyProcess:
         """Whether the worker has ended."""
         return self.process.poll() is not None
 
-    async def load(self, path: Path, timeout: float = LOAD_TIMEOUT) -> Loaded:
-        """Load the policy in `path`; `WorkerError` with the worker's reason if it cannot."""
-        with trio.move_on_after(timeout) as scope:
-            answer = await self._ask(Load(str(path)))
-        if scope.cancelled_caught:
-            raise WorkerError(f"the worker did not load the policy within {timeout:.0f} s")
+    async def load(self, path: Path) -> Loaded:
+        """Load the policy in `path`; `WorkerError` with the worker's reason if it cannot
+        (the caller bounds the time it takes: `PolicyMaster.prepare`)."""
+        answer = await self._ask(Load(str(path)))
         if not isinstance(answer, Loaded):
             raise WorkerError(answer.reason if isinstance(answer, Failed) else "unexpected answer")
         return answer
@@ -125,7 +127,7 @@ class PolicyProcess:
                 header = await self._read(HEADER.size)
                 answer = decode_from_worker(await self._read(frame_length(header)))
             except (trio.BrokenResourceError, trio.ClosedResourceError) as exc:
-                raise WorkerGone(self._gone()) from exc
+                raise WorkerGone(await self._gone()) from exc
             except FrameError as exc:
                 raise WorkerGone(f"the worker sent a bad frame: {exc}") from exc
             self._broken = False
@@ -135,13 +137,17 @@ class PolicyProcess:
         while len(self._buffer) < count:
             data = await self._stdout.receive_some(max(65536, count - len(self._buffer)))
             if not data:
-                raise WorkerGone(self._gone())
+                raise WorkerGone(await self._gone())
             self._buffer += data
         taken = bytes(self._buffer[:count])
         del self._buffer[:count]
         return taken
 
-    def _gone(self) -> str:
+    async def _gone(self) -> str:
+        """Why the worker's pipes ended: its exit code, once it is reaped (an exit closes the
+        pipes a moment before the process is reaped)."""
+        with trio.move_on_after(STOP_WAIT):
+            await self.process.wait()
         code = self.process.poll()
         return "the worker has exited" + ("" if code is None else f" (code {code})")
 

@@ -18,7 +18,7 @@ import trio
 
 from arena.client import AsyncArena, MasterSession
 from arena.client.errors import ArenaClientError
-from arena.policy.master import PolicyMaster, PolicySettings
+from arena.policy.master import Inference, PolicyMaster, PolicySettings, Shot
 from arena.protocol.errors import ErrorCode, Severity
 from arena.robot.model import RobotModel, load_robot_model
 from arena.robot.motion import Command, CommandResult
@@ -65,18 +65,23 @@ class SessionArm:
         self.faults.append((str(code), message))
         log.warning("%s: %s (%s): %s", source, code, severity, message)
 
+    def inferred(self, source: str, inference: Inference) -> None:
+        """Logged here at debug level (the server records only what reaches it)."""
+        log.debug("%s: %s", source, inference)
+
 
 class CameraPoller:
-    """The newest JPEG of each of the robot's cameras, fetched over REST at `fps`."""
+    """The newest JPEG of each of the robot's cameras, fetched over REST at `fps`; a frame's
+    capture time is its arrival here (the server's clock is not this machine's)."""
 
     def __init__(self, arena: AsyncArena, robot_id: str, names: list[str], fps: float) -> None:
         self.arena = arena
         self.robot_id = robot_id
         self.names = names
         self.fps = fps
-        self.frames: dict[str, bytes | None] = dict.fromkeys(names)
+        self.frames: dict[str, Shot | None] = dict.fromkeys(names)
 
-    def __call__(self) -> Mapping[str, bytes | None]:
+    def __call__(self) -> Mapping[str, Shot | None]:
         return self.frames
 
     async def run(self) -> None:
@@ -87,7 +92,7 @@ class CameraPoller:
                 path = f"/api/robots/{quote(self.robot_id)}/cameras/{quote(name)}/frame"
                 response = await self.arena.http.get(path)
                 if response.status_code == 200:
-                    self.frames[name] = response.content
+                    self.frames[name] = Shot(response.content, trio.current_time())
             await trio.sleep_until(started + 1 / self.fps)
 
 

@@ -91,6 +91,7 @@ class ErrorCode(enum.StrEnum):
     UNKNOWN_RECORDING = "UNKNOWN_RECORDING"
     # Policies as masters (specs/policy.md)
     POLICY_INVALID = "POLICY_INVALID"  # not a policy, or one the robot cannot feed
+    POLICY_NOT_READY = "POLICY_NOT_READY"  # the worker did not load it in time, or exited
     POLICY_OUTPUT_INVALID = "POLICY_OUTPUT_INVALID"  # fault: an action that is not finite
     POLICY_STALLED = "POLICY_STALLED"  # fault (warning): no action due for two periods
 

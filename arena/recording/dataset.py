@@ -33,6 +33,10 @@ FEATURE_SUFFIX = ".pos"
 GRIPPER_RANGE = 100.0
 ROBOT_TYPES = {"so-arm100": "so100_follower", "so-101": "so101_follower"}
 DEFAULT_TASK = "teleoperation"
+#: A policy master's commands have this source (`policy:<type>:<checkpoint>`, specs/policy.md).
+POLICY_SOURCE = "policy:"
+#: LeRobot names a dataset recorded with a policy driving `eval_...`, and only such a one.
+EVAL_PREFIX = "eval_"
 
 
 def feature_names(model: RobotModel) -> list[str]:
@@ -160,6 +164,42 @@ def measured(messages: Iterable[RecordedMessage], joints: Sequence[str], slave: 
             if all(name in current for name in joints):
                 track.add(message.log_time, tuple(current[name] for name in joints))
     return track
+
+
+def policies_in(messages: Iterable[RecordedMessage], spans: Sequence[Span]) -> list[str]:
+    """The policies (`policy:<type>:<checkpoint>`) whose commands the robot accepted within
+    the episodes `spans`: those whose run the dataset evaluates."""
+    found = {
+        str(message.data["source"])
+        for message in messages
+        if message.kind == "command"
+        and message.data["accepted"]
+        and str(message.data["source"]).startswith(POLICY_SOURCE)
+        and any(span.start <= message.log_time <= span.end for span in spans)
+    }
+    return sorted(found)
+
+
+def dataset_name(repo_id: str | None, robot_id: str, policies: Sequence[str]) -> str:
+    """The dataset's name: `repo_id`, else `arena/ROBOT`, or `arena/eval_ROBOT` when a policy
+    drove the episodes. As LeRobot's `lerobot-record` has it, a name starts with `eval_` if
+    and only if a policy drove: an explicit name that breaks the rule is refused."""
+    if repo_id is None:
+        return f"arena/{EVAL_PREFIX if policies else ''}{robot_id}"
+    evaluation = repo_id.rsplit("/", 1)[-1].startswith(EVAL_PREFIX)
+    if policies and not evaluation:
+        raise ArenaError(
+            ErrorCode.INVALID_VALUE,
+            f"{', '.join(policies)} drove these episodes: an evaluation dataset's name starts "
+            f"with {EVAL_PREFIX!r} (--repo-id .../{EVAL_PREFIX}{repo_id.rsplit('/', 1)[-1]}).",
+        )
+    if evaluation and not policies:
+        raise ArenaError(
+            ErrorCode.INVALID_VALUE,
+            f"--repo-id {repo_id} starts with {EVAL_PREFIX!r}, which names an evaluation "
+            "dataset, but no policy drove these episodes.",
+        )
+    return repo_id
 
 
 def busiest_slave(messages: Iterable[RecordedMessage]) -> str | None:
@@ -317,6 +357,7 @@ class ExportReport:
     episodes: list[tuple[int, str, int]]  # (recorded index, task, frames)
     cameras: list[str]
     notes: list[str]
+    policies: list[str] = field(default_factory=list)  # an evaluation of these (`eval_...`)
 
 
 def export_lerobot(
@@ -330,7 +371,8 @@ def export_lerobot(
     task: str = DEFAULT_TASK,
     say: Callable[[str], None] = lambda line: print(line, file=sys.stderr),
 ) -> ExportReport:
-    """Write a LeRobotDataset (v3.0, with LeRobot's own writer) of one robot's episodes."""
+    """Write a LeRobotDataset (v3.0, with LeRobot's own writer) of one robot's episodes;
+    an evaluation dataset (`eval_...`) when a policy drove them."""
     lerobot = _lerobot()  # before any work: a missing LeRobot is said first
     if not 1 <= fps <= 1000:
         raise ArenaError(ErrorCode.INVALID_VALUE, "--fps must be 1 to 1000.")
@@ -362,6 +404,8 @@ def export_lerobot(
     frames = [(span, found) for span, found in frames if found]
     if not frames:
         raise ArenaError(ErrorCode.INVALID_RECORDING, "The episodes hold no complete frame.")
+    policies = policies_in(session.messages, [span for span, _ in frames])
+    repo_id = dataset_name(repo_id, robot_id, policies)
     decoder = _JpegDecoder()
     shapes = {name: decoder.rgb(jpeg).shape for name, jpeg in frames[0][1][0].jpegs.items()}
     names = feature_names(session.model)
@@ -377,7 +421,6 @@ def export_lerobot(
         }
     import numpy as np
 
-    repo_id = repo_id or f"arena/{robot_id}"
     dataset = lerobot.LeRobotDataset.create(
         repo_id,
         fps,
@@ -403,9 +446,14 @@ def export_lerobot(
             written.append((span.index, span.task, len(found)))
     finally:
         dataset.finalize()
-    info = {"source": [p.name for p in paths], "robot": robot_id, "slave": slave}
+    info = {
+        "source": [p.name for p in paths],
+        "robot": robot_id,
+        "slave": slave,
+        "policies": policies,
+    }
     (root / "meta" / "arena.json").write_text(json.dumps(info, indent=2), encoding="utf-8")
-    return ExportReport(root, repo_id, fps, written, sorted(shapes), notes)
+    return ExportReport(root, repo_id, fps, written, sorted(shapes), notes, policies)
 
 
 def import_lerobot(

@@ -50,6 +50,7 @@ from arena.robot.events import (
     FaultReported,
     JointStatesReceived,
     PeerChanged,
+    PolicyInferred,
     RobotEvent,
     StateChanged,
     TargetsSent,
@@ -298,6 +299,7 @@ _LOG_LINES: dict[type[RobotEvent], Callable[[Any], LogLine | None]] = {
     PeerChanged: _peer_line,
     EpisodeChanged: _episode_line,
     Audited: _audit_line,
+    PolicyInferred: lambda _: None,  # many a second: plotted from its topic, not logged
 }
 if set(TREE_OF) | set(_LOG_LINES) != set(get_args(RobotEvent)):  # (a new event is shown)
     raise TypeError("every robot event needs its Foxglove form: a tree or a log line")

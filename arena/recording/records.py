@@ -29,6 +29,7 @@ from arena.robot.events import (
     JointStatesReceived,
     Observed,
     PeerChanged,
+    PolicyInferred,
     RobotEvent,
     StateChanged,
     TargetsSent,
@@ -109,6 +110,12 @@ RECORDED = (
         Audited,
         "AuditRecord",
         "Who did what: a caller's action on the robot (a token's sub or which API key).",
+    ),
+    Recorded(
+        "policy",
+        PolicyInferred,
+        "PolicyRecord",
+        "One inference of a policy master: its latency (seconds) and chunk size (specs/policy.md).",
     ),
 )
 

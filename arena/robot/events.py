@@ -178,6 +178,25 @@ class Audited(Observed, frozen=True, gc=False):
     wall_time: float
 
 
+class PolicyInferred(Observed, frozen=True, gc=False):
+    """One inference of a policy master (`arena/policy`): `policy` its identity, `timestep`
+    the control step its observation was taken at, `chunk_size` the actions the chunk held
+    and `kept` those not already due, `latency` seconds from the observation sent to the chunk
+    back (`inference`: the worker's own part of it), `frame_age` seconds from the capture of
+    the oldest camera frame the observation carried to its sending (None: no camera)."""
+
+    robot_id: str
+    policy: str
+    timestep: int
+    chunk_size: int
+    kept: int
+    latency: float
+    inference: float
+    frame_age: float | None
+    time: float
+    wall_time: float
+
+
 RobotEvent: TypeAlias = (
     StateChanged
     | CommandHandled
@@ -187,6 +206,7 @@ RobotEvent: TypeAlias = (
     | PeerChanged
     | EpisodeChanged
     | Audited
+    | PolicyInferred
 )
 
 

@@ -21,7 +21,7 @@ from arena.robot import safety
 from arena.robot.actor import Actor
 from arena.robot.core import RobotCore
 from arena.robot.episodes import Episode
-from arena.robot.events import Audited, RobotEvent
+from arena.robot.events import Audited, PolicyInferred, RobotEvent
 from arena.robot.idle import IdleTurn
 from arena.robot.inbox import (
     AliveMsg,
@@ -244,6 +244,11 @@ class Robot:
         self._actor.observers.publish(
             Audited(self.robot_id, user, action, detail, trio.current_time(), wallclock.time())
         )
+
+    def report_inference(self, event: PolicyInferred) -> None:
+        """Record one inference of a policy master (`events.PolicyInferred`). Like an audit
+        it changes nothing in the robot: straight to the observers; never blocks."""
+        self._actor.observers.publish(event)
 
     def report_sensor_fault(
         self, sensor_id: str, code: str, message: str, severity: Severity

@@ -19,6 +19,7 @@ from arena.robot import safety
 from arena.robot.events import (
     MasterNotice,
     NoticeKind,
+    PolicyInferred,
     RobotEvent,
     SlaveNotice,
     SlaveTarget,
@@ -64,6 +65,9 @@ class RobotView(Protocol):
     ) -> None:
         """Report a fault of something that is not a slave (a camera, a policy): seen and
         recorded, it never stops the robot."""
+
+    def report_inference(self, event: PolicyInferred) -> None:
+        """Record one inference of a policy master."""
 
 
 class RobotPort(Protocol):

@@ -38,6 +38,7 @@ STATUS_FOR: dict[ErrorCode, int] = {
     ErrorCode.UNKNOWN_RECORDING: 404,
     ErrorCode.INVALID_RECORDING: 422,
     ErrorCode.POLICY_INVALID: 422,
+    ErrorCode.POLICY_NOT_READY: 504,
     ErrorCode.NOT_FOUND: 404,
     ErrorCode.ROBOT_STOPPED: 404,
     ErrorCode.METHOD_NOT_ALLOWED: 405,

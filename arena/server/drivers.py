@@ -16,7 +16,7 @@ from arena.drivers.sequences import demo_sequences, get_sequence
 from arena.extras import install_line
 from arena.feetech.lerobot_calibration import is_lerobot_reference
 from arena.feetech.lerobot_calibration import resolve as resolve_lerobot
-from arena.policy.master import CameraFrames, PolicyMaster, PolicySettings
+from arena.policy.master import CameraFrames, PolicyMaster, PolicySettings, Shot
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import (
     MasterBody,
@@ -172,11 +172,13 @@ def _replay(body: ReplayMasterBody, recordings: Path) -> ReplayMaster:
 
 
 def camera_frames(cameras: Cameras, robot_id: str) -> CameraFrames:
-    """The newest JPEG of each camera of robot `robot_id`, as a policy master reads them."""
+    """The newest frame of each camera of robot `robot_id`, as a policy master reads them."""
 
-    def frames() -> dict[str, bytes | None]:
+    def frames() -> dict[str, Shot | None]:
         return {
-            camera.spec.name: None if camera.latest is None else camera.latest.jpeg
+            camera.spec.name: None
+            if camera.latest is None
+            else Shot(camera.latest.jpeg, camera.latest.time)
             for camera in cameras.of(robot_id)
         }
 

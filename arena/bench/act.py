@@ -1,0 +1,59 @@
+"""The ACT of `arena bench policy`, saved by `python -m arena.bench.act DIR`: LeRobot's default
+architecture with random weights and no pretrained backbone (nothing is downloaded). It imports
+torch, so it runs in a process of its own, never in the benchmark's or the server's."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+#: The one camera's image as the policy takes it (the worker scales the camera's JPEG).
+IMAGE = (3, 240, 320)
+#: Actions a chunk (ACT's default).
+CHUNK = 100
+
+
+def save_act(folder: Path) -> None:
+    """Save the benchmark's ACT (random weights) with its processors in `folder` (this
+    imports torch: run it in a process of its own, `python -m arena.bench.act DIR`)."""
+    import torch
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot.policies.act.configuration_act import ACTConfig
+    from lerobot.policies.act.modeling_act import ACTPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    image = "observation.images.front"
+    config = ACTConfig(
+        input_features={
+            "observation.state": PolicyFeature(FeatureType.STATE, (6,)),
+            image: PolicyFeature(FeatureType.VISUAL, IMAGE),
+        },
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (6,))},
+        chunk_size=CHUNK,
+        n_action_steps=CHUNK,
+        pretrained_backbone_weights=None,
+        device="cpu",
+    )
+    torch.manual_seed(0)
+    policy = ACTPolicy(config)
+    # Actions near the robot's rest pose, a few degrees either way.
+    stats = {
+        "observation.state": {"mean": torch.zeros(6), "std": torch.full((6,), 30.0)},
+        image: {"mean": torch.full((3, 1, 1), 0.5), "std": torch.full((3, 1, 1), 0.25)},
+        "action": {"mean": torch.zeros(6), "std": torch.full((6,), 1.0)},
+    }
+    pre, post = make_pre_post_processors(config, dataset_stats=stats)
+    policy.save_pretrained(folder)
+    pre.save_pretrained(folder)
+    post.save_pretrained(folder)
+
+
+def main() -> None:
+    """`python -m arena.bench.act DIR`: save the benchmark's ACT in DIR."""
+    parser = argparse.ArgumentParser()
+    parser.add_argument("dir")
+    save_act(Path(parser.parse_args().dir))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,131 @@
+"""`arena bench policy`: a LeRobot ACT as a robot's master, on this machine's CPU.
+
+One robot on a server of its own (`arena serve`, recording on) with a mock slave and a
+640x480 test-pattern camera at 30 fps. An ACT with LeRobot's default architecture (a ResNet-18
+backbone, `dim_model` 512, chunks of 100 actions) and random weights (no pretrained backbone:
+nothing is downloaded) is saved by `python -m arena.bench.act DIR` in a process of its own,
+then attached over REST at 30 fps with LeRobot's async-inference defaults (50 actions a chunk,
+an observation when half are left). It takes one 240x320 image, which the worker scales from
+the camera's JPEG.
+
+Measured:
+- the server's CPU (its recording process included, the policy's worker not) over the same
+  window with the camera and no policy, then with the policy driving: what a policy adds;
+- the worker's CPU while it drives;
+- observation to command, from the policy's own records in the recording
+  (`/robots/{id}/policy`): the age of the camera frame when the observation left, plus the
+  time from then to the first command decided after its chunk came back (`observation_to_
+  command`). Also the round trip to the worker and the worker's own inference time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import sys
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import httpx
+
+from arena.bench.common import Server, create_bench_robot, percentile, process_cpu_seconds
+from arena.recording.mcap_file import RecordedMessage, read_recording
+
+ROBOT = "policy-arm"
+CAMERA = {"name": "front", "source": "test-pattern", "fps": 30, "width": 640, "height": 480}
+FPS = 30.0
+ACTIONS_PER_CHUNK = 50  # LeRobot's RobotClient default
+
+
+def observation_to_command(messages: Sequence[RecordedMessage], identity: str) -> list[float]:
+    """Seconds from each observation's oldest camera frame to the first command of the policy
+    decided once its chunk came back (trio times of the records, one clock). An inference
+    with no command after it (the run ended) counts nothing."""
+    commands = sorted(
+        float(m.data["t"])
+        for m in messages
+        if m.kind == "command" and m.data["source"] == identity and m.data["accepted"]
+    )
+    found = []
+    for record in (m for m in messages if m.kind == "policy" and m.data["policy"] == identity):
+        back = float(record.data["t"])
+        sent = back - float(record.data["latency"])
+        after = next((t for t in commands if t >= back), None)
+        if after is not None:
+            found.append(after - sent + float(record.data["frame_age"] or 0.0))
+    return found
+
+
+def _worker_pid(server: Server) -> int | None:
+    for pid in server.pids()[1:]:
+        with contextlib.suppress(OSError):
+            if b"arena.policy.worker" in Path(f"/proc/{pid}/cmdline").read_bytes():
+                return pid
+    return None
+
+
+async def _cpu_over(server: Server, seconds: float, worker: int | None) -> tuple[float, float]:
+    """(server without the worker, worker) CPU in percent of one core over `seconds`."""
+
+    def sample() -> tuple[float, float]:
+        both = server.cpu_seconds()
+        alone = process_cpu_seconds(worker) if worker is not None else 0.0
+        return both - alone, alone
+
+    server_before, worker_before = sample()
+    await asyncio.sleep(seconds)
+    server_after, worker_after = sample()
+    return (
+        (server_after - server_before) / seconds * 100,
+        (worker_after - worker_before) / seconds * 100,
+    )
+
+
+async def policy(server: Server, seconds: float = 20.0, warmup: float = 5.0) -> dict[str, float]:
+    """The figures above, for `seconds` of each phase."""
+    with tempfile.TemporaryDirectory() as scratch:
+        folder = Path(scratch) / "act"
+        made = await asyncio.create_subprocess_exec(
+            sys.executable, "-m", "arena.bench.act", str(folder)
+        )
+        if await made.wait() != 0:
+            raise RuntimeError("the benchmark's ACT could not be saved")
+        async with httpx.AsyncClient(base_url=server.url, timeout=300) as http:
+            base = f"/api/robots/{ROBOT}"
+            await create_bench_robot(http, ROBOT)
+            (await http.post(f"{base}/slaves", json={"type": "mock-slave"})).raise_for_status()
+            (await http.post(f"{base}/cameras", json=CAMERA)).raise_for_status()
+            await asyncio.sleep(warmup)
+            idle, _ = await _cpu_over(server, seconds, None)
+            body = {
+                "type": "policy",
+                "path": str(folder),
+                "fps": FPS,
+                "actions_per_chunk": ACTIONS_PER_CHUNK,
+            }
+            attached = await http.post(f"{base}/master", json=body)
+            attached.raise_for_status()
+            identity = attached.json()["id"]
+            await asyncio.sleep(warmup)  # the first inferences warm the policy up
+            worker = _worker_pid(server)
+            busy, worker_cpu = await _cpu_over(server, seconds, worker)
+            await http.delete(f"{base}/master")
+            stopped = (await http.post("/api/recordings/current/stop")).json()["stopped"]
+            data = (await http.get(f"/api/recordings/{stopped}/file")).content
+        path = Path(scratch) / "run.mcap"
+        path.write_bytes(data)
+        messages = read_recording(path).messages
+    records = [m.data for m in messages if m.kind == "policy"][2:]  # past the warm-up
+    latencies = observation_to_command(messages, identity)[2:]
+    return {
+        "policy_server_cpu_percent": busy - idle,
+        "policy_idle_server_cpu_percent": idle,
+        "policy_worker_cpu_percent": worker_cpu,
+        "policy_observation_to_command_p50_ms": percentile(latencies, 0.5) * 1000,
+        "policy_observation_to_command_p99_ms": percentile(latencies, 0.99) * 1000,
+        "policy_frame_age_p50_ms": percentile([r["frame_age"] for r in records], 0.5) * 1000,
+        "policy_round_trip_p50_ms": percentile([r["latency"] for r in records], 0.5) * 1000,
+        "policy_inference_p50_ms": percentile([r["inference"] for r in records], 0.5) * 1000,
+        "policy_inferences": float(len(latencies)),
+    }
