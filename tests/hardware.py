@@ -9,14 +9,16 @@ from unittest import mock
 from arena.drivers import servo_arm
 from arena.drivers.usb_slave import UsbSlave
 from arena.feetech import registers as reg
-from arena.feetech.bus import DEFAULT_TIMEOUT_MARGIN, ServoBus
-from arena.feetech.health import HealthLimits
-from arena.feetech.sim_pty import PtySimBus
-from arena.feetech.worker import WorkerSettings
+from arena.feetech.bus import ServoBus
+from arena.feetech.sim import SimBus
 from arena.protocol.rest import UsbSlaveBody
 from arena.robot.handle import Robot
 from arena.robot.model import RobotModel
 from arena.server.drivers import usb_slave_config
+from arena.servo.health import HealthLimits
+from arena.servo.ports import DEFAULT_TIMEOUT_MARGIN
+from arena.servo.sim_pty import PtySimBus
+from arena.servo.worker import WorkerSettings
 from tests.conftest import eventually
 
 # The reply timeout's wall-clock part. A starved simulator cannot trip it: the buses of a
@@ -83,7 +85,8 @@ def servo_torque(sim: PtySimBus) -> dict[int, int]:
 def running_sim(tmp_path: Path, **kwargs: object) -> Iterator[PtySimBus]:
     """A started `PtySimBus` at `tmp_path/ttySIM0` (a fixture body). While it runs, the buses
     opened on its port, by tests or by a server's arms, wait for it (see `open_test_bus`)."""
-    sim = PtySimBus(tmp_path / "ttySIM0", **kwargs)  # type: ignore[arg-type]
+    bus = kwargs.pop("bus", None) or SimBus()
+    sim = PtySimBus(tmp_path / "ttySIM0", bus, **kwargs)  # type: ignore[arg-type]
     sim.start()
     _SIMS[str(sim.link)] = sim
     try:

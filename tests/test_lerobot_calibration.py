@@ -15,17 +15,18 @@ import pytest
 import trio
 
 from arena.feetech import registers as reg
-from arena.feetech.lerobot_calibration import (
+from arena.feetech.bus import FEETECH
+from arena.protocol.errors import ArenaError
+from arena.robot.model import load_robot_model
+from arena.servo.lerobot_calibration import (
     from_lerobot,
     is_lerobot_reference,
     lerobot_calibration_dir,
     resolve,
 )
-from arena.feetech.lerobot_format import LeRobotJoint, LeRobotMotor
-from arena.feetech.sim_pty import PtySimBus
-from arena.feetech.terminal import calibrate_interactively
-from arena.protocol.errors import ArenaError
-from arena.robot.model import load_robot_model
+from arena.servo.lerobot_format import LeRobotJoint, LeRobotMotor
+from arena.servo.sim_pty import PtySimBus
+from arena.servo.terminal import calibrate_interactively
 from tests.conftest import RunningServer
 from tests.hardware import (
     TEST_TIMEOUT_MARGIN,
@@ -287,17 +288,21 @@ def test_lerobot_folder_names_old_and_new(tmp_path: Path) -> None:
     old = tmp_path / "robots" / "so101_follower" / "arm.json"
     old.parent.mkdir(parents=True)
     old.write_text("{}")
-    assert resolve("lerobot:arm", "so-101", leader=False, env=env) == old
+    assert resolve("lerobot:arm", "so-101", FEETECH, leader=False, env=env) == old
     new = tmp_path / "robots" / "so_follower" / "arm.json"
     new.parent.mkdir(parents=True)
     new.write_text("{}")
-    assert resolve("lerobot:arm", "so-101", leader=False, env=env) == new  # 0.4.3 and later
+    assert (
+        resolve("lerobot:arm", "so-101", FEETECH, leader=False, env=env) == new
+    )  # 0.4.3 and later
     with pytest.raises(ArenaError, match="so100_leader"):
-        resolve("lerobot:arm", "so-arm100", leader=True, env=env)  # leaders: teleoperators/
+        resolve(
+            "lerobot:arm", "so-arm100", FEETECH, leader=True, env=env
+        )  # leaders: teleoperators/
     leader = tmp_path / "teleoperators" / "so100_leader" / "arm.json"
     leader.parent.mkdir(parents=True)
     leader.write_text("{}")
-    assert resolve("lerobot:arm", "so-arm100", leader=True, env=env) == leader
+    assert resolve("lerobot:arm", "so-arm100", FEETECH, leader=True, env=env) == leader
     assert lerobot_calibration_dir({"HF_HOME": "/h"}) == Path("/h/lerobot/calibration")
     assert (
         lerobot_calibration_dir({}) == Path("~/.cache/huggingface/lerobot/calibration").expanduser()
@@ -344,7 +349,7 @@ def test_so101_is_lerobots_arm() -> None:
     assert pan is not None and pan.to_urdf(0.0) == 0.0  # LeRobot's zero is the URDF's
     assert (pan.lower, pan.upper) == pytest.approx((-110.0, 110.0), abs=0.001)
     with pytest.raises(ArenaError, match="id 2"):
-        from_lerobot({n: {**vars(c), "id": 2} for n, c in CALIBRATION.items()}, SO101, "f")
+        from_lerobot({n: {**vars(c), "id": 2} for n, c in CALIBRATION.items()}, SO101, "f", FEETECH)
 
 
 def test_calibrate_format_lerobot_reads_zero_at_rest_in_lerobot(

@@ -12,8 +12,8 @@ import scservo_sdk as sdk
 
 from arena.feetech import registers as reg
 from arena.feetech.bus import ServoBus
-from arena.feetech.sim_pty import PtySimBus
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.servo.sim_pty import PtySimBus
 from tests.hardware import open_test_bus, running_sim
 
 
