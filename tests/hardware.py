@@ -16,6 +16,8 @@ from arena.robot.handle import Robot
 from arena.robot.model import RobotModel
 from arena.server.drivers import usb_slave_config
 from arena.servo.health import HealthLimits
+from arena.servo.interface import ServoBus as BusOfAnyFamily
+from arena.servo.interface import ServoFamily
 from arena.servo.ports import DEFAULT_TIMEOUT_MARGIN
 from arena.servo.sim_pty import PtySimBus
 from arena.servo.worker import WorkerSettings
@@ -32,15 +34,15 @@ def open_test_bus(port: str) -> ServoBus:
     sim = _SIMS.get(port)
     if sim is None:
         return ServoBus(port, timeout_margin=TEST_TIMEOUT_MARGIN)
-    return sim.servo_bus(TEST_TIMEOUT_MARGIN)
+    return sim.servo_bus(TEST_TIMEOUT_MARGIN)  # type: ignore[return-value]
 
 
-def _server_bus(port: str, baud: int = 1_000_000) -> ServoBus:
+def _server_bus(family: ServoFamily, port: str, baud: int) -> BusOfAnyFamily:
     # What a server's arm opens (`ServoArm`'s default): the production margin, but paced by
     # the simulator on that port, so a loaded machine does not make its servos look silent.
     sim = _SIMS.get(port)
     if sim is None:
-        return ServoBus(port, baud)
+        return family.open_bus(port, baud)
     return sim.servo_bus(DEFAULT_TIMEOUT_MARGIN)
 
 
@@ -90,7 +92,7 @@ def running_sim(tmp_path: Path, **kwargs: object) -> Iterator[PtySimBus]:
     sim.start()
     _SIMS[str(sim.link)] = sim
     try:
-        with mock.patch.object(servo_arm, "ServoBus", _server_bus):
+        with mock.patch.object(servo_arm, "open_family_bus", _server_bus):
             yield sim
     finally:
         del _SIMS[str(sim.link)]

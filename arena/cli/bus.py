@@ -63,6 +63,7 @@ def sim_bus_command(args: argparse.Namespace) -> int:
     from arena.drivers.servo_arm import family_of, servo_models
     from arena.robot.model import load_robot_model
     from arena.servo import terminal
+    from arena.servo.sim_pty import SimulatedBus
 
     model = load_robot_model(args.robot_type)
     family = family_of(model)
@@ -73,7 +74,7 @@ def sim_bus_command(args: argparse.Namespace) -> int:
         if args.ids:  # ids given: each servo the type's model, else its first one's
             first = next(iter(models.values()))
             models = {sid: models.get(sid, first) for sid in args.ids}
-        bus: terminal.SimulatedBus = DynamixelSimBus(models)
+        bus: SimulatedBus = DynamixelSimBus(models)
     else:
         from arena.feetech.sim import SimBus
 

@@ -49,6 +49,11 @@ def family_of(model: RobotModel) -> ServoFamily:
     return family_named(model.bus.family)
 
 
+def open_family_bus(family: ServoFamily, port: str, baud: int) -> ServoBus:
+    """A bus of `family` on `port` (not opened yet): what an arm opens by default."""
+    return family.open_bus(port, baud)
+
+
 def servo_models(model: RobotModel, family: ServoFamily) -> dict[int, tuple[int, str]]:
     """The model number (and name) each servo of the robot type must answer a ping with; a
     joint naming a model its family does not have is refused."""
@@ -90,7 +95,7 @@ class ServoArm:
         self.settings = dataclasses.replace(settings, models=servo_models(model, self.family))
         rate = baud or model.bus.baud_rate or self.family.default_baud
         family = self.family
-        self._open_bus = open_bus or (lambda name: family.open_bus(name, rate))
+        self._open_bus = open_bus or (lambda name: open_family_bus(family, name, rate))
         self.calibration = Calibration.identity(self.servo_ids, model.robot_type)
         self.calibrated = False
         self.port: str | None = None

@@ -4,8 +4,9 @@ and a motion model, as `dynamixel_sdk` and LeRobot's `DynamixelMotorsBus` see re
 `SimBus.handle(packet, now)` takes one instruction packet and returns the status packets the
 servos answer with, in order. As on the real servos: `present = actual + Homing_Offset` (many
 turns, signed 32 bits); a write to EEPROM (below address 64) while torque is on, or to a
-read-only register, is refused with an access error and changes nothing; in position mode a
-goal is held within Min/Max_Position_Limit. `arena.servo.sim_pty` puts a `SimBus` on a pty.
+read-only register, is refused with an access error and changes nothing; torque going on holds the
+servo where it is (goal = present); in position mode a goal is held within
+Min/Max_Position_Limit. `arena.servo.sim_pty` puts a `SimBus` on a pty.
 """
 
 from __future__ import annotations
@@ -112,6 +113,8 @@ class SimServo:
         for offset, byte in enumerate(data):
             if address + offset in _REGISTER_AT:
                 self.memory[address + offset] = byte
+        if not torque and self.peek(reg.TORQUE_ENABLE):
+            self.poke(reg.GOAL_POSITION, self.present)  # torque on holds where it is
         return StatusError.NONE
 
     # -- physics ------------------------------------------------------------------------------

@@ -15,7 +15,6 @@ or late on purpose (`ServoFaults`) times out, however slow the machine.
 from __future__ import annotations
 
 import contextlib
-import functools
 import os
 import select
 import threading
@@ -277,10 +276,15 @@ class _Paced:
         return sim.taken < sim.sent or self.received < sim.given
 
 
-@functools.cache
+_PACED: dict[str, type[Any]] = {}  # by the port class's qualified name
+
+
 def _paced_class(port_class: type[Any]) -> type[Any]:
-    """The family's port class, paced (`_Paced` mixed in before it)."""
-    return type(f"Paced{port_class.__name__}", (_Paced, port_class), {})
+    """The family's port class, paced (`_Paced` mixed in before it); one class per family."""
+    key = f"{port_class.__module__}.{port_class.__qualname__}"
+    if key not in _PACED:
+        _PACED[key] = type(f"Paced{port_class.__name__}", (_Paced, port_class), {})
+    return _PACED[key]
 
 
 def _sleep_until(deadline: float) -> None:
