@@ -11,6 +11,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Awaitable, Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +32,7 @@ from arena.dynamixel import registers as reg  # noqa: E402
 from arena.dynamixel.sim import SimBus  # noqa: E402
 
 StartServer = Callable[..., Awaitable[RunningServer]]
+sim_on = contextmanager(running_sim)  # a second simulated bus in one test
 NAMES = ("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper")
 STEP = 360 / 4095  # LeRobot's degrees per step
 #: A calibration as LeRobot's Koch `calibrate()` leaves it: half-turn homings (present 2047 at
@@ -353,3 +355,102 @@ def test_sim_bus_command_simulates_the_koch(tmp_path: Path) -> None:
         server.terminate()
         server.wait(timeout=10)
     assert server.returncode == 0
+
+
+async def test_a_servo_of_another_model_is_refused(
+    start_server: StartServer, tmp_path: Path
+) -> None:
+    xl430, xl330 = reg.MODELS["xl430-w250"], reg.MODELS["xl330-m288"]
+    wrong = SimBus({1: xl430, 2: xl430, 3: xl430, 4: xl330, 5: xl330, 6: xl330})
+    with sim_on(tmp_path, bus=wrong) as sim:
+        server = await start_server(calibration_dir=str(tmp_path / "cal"))
+        async with server.client() as http:
+            reply = await attach_koch(http, sim, "arm")
+            assert reply.status_code == 422, reply.text
+            error = reply.json()["error"]
+            assert error["code"] == "SERVO_WRONG_MODEL"
+            assert "Servo 3 is model 1060" in error["message"]
+            assert "XL330-M288" in error["message"]
+        assert set(peek(sim, reg.TORQUE_ENABLE).values()) == {0}
+
+
+#: The Koch leader as LeRobot's `KochLeader` calibrates it: XL330-M077 servos, the elbow's
+#: Drive_Mode inverted (drive_mode 1), homing 0 here.
+LEADER_CALIBRATION = {
+    "shoulder_pan": MotorCalibration(1, 0, 0, 0, 4095),
+    "shoulder_lift": MotorCalibration(2, 0, 0, 1000, 3000),
+    "elbow_flex": MotorCalibration(3, 1, 0, 1200, 3000),
+    "wrist_flex": MotorCalibration(4, 0, 0, 1000, 3000),
+    "wrist_roll": MotorCalibration(5, 0, 0, 0, 4095),
+    "gripper": MotorCalibration(6, 0, 0, 2000, 2800),
+}
+#: The leader's pose as its servos report it once calibrated.
+LEADER_PRESENT = {1: 2200, 2: 2100, 3: 2000, 4: 1900, 5: 2048, 6: 2400}
+
+
+def lerobot_calibrates_the_leader(sim: PtySimBus, folder: Path) -> None:
+    """LeRobot's own `KochLeader` writes its drive mode and calibration to the servos and its
+    file to `folder`."""
+    from lerobot.teleoperators.koch_leader import KochLeader, KochLeaderConfig
+
+    leader = KochLeader(KochLeaderConfig(port=str(sim.link), id="arm", calibration_dir=folder))
+    bus = leader.bus
+    bus.port_handler = sim.paced_port(TEST_TIMEOUT_MARGIN)
+    bus.sync_reader = dxl.GroupSyncRead(bus.port_handler, bus.packet_handler, 0, 0)
+    bus.sync_writer = dxl.GroupSyncWrite(bus.port_handler, bus.packet_handler, 0, 0)
+    bus.connect()  # its servos are XL330-M077s: a model check of the follower's would fail
+    try:
+        bus.disable_torque()
+        bus.write("Drive_Mode", "elbow_flex", 1)
+        bus.write_calibration(dict(LEADER_CALIBRATION))
+        leader.calibration = dict(LEADER_CALIBRATION)
+        leader._save_calibration()
+    finally:
+        bus.disconnect()
+
+
+def leader_degrees(name: str, present: int) -> float:
+    """What LeRobot reads (degrees mode) for the leader's joint `name` at `present`."""
+    cal = LEADER_CALIBRATION[name]
+    if name == "gripper":
+        return (present - cal.range_min) / (cal.range_max - cal.range_min) * 100
+    return (present - (cal.range_min + cal.range_max) / 2) * 360 / 4095
+
+
+async def test_the_koch_follower_mirrors_the_koch_leader(
+    start_server: StartServer, sim: PtySimBus, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    m077 = reg.MODELS["xl330-m077"]
+    place_arm(sim)
+    await trio.to_thread.run_sync(lerobot_reads, sim, tmp_path / "hf" / "robots" / "koch_follower")
+    with sim_on(tmp_path / "leader", bus=SimBus(dict.fromkeys(range(1, 7), m077))) as leader:
+        folder = tmp_path / "hf" / "teleoperators" / "koch_leader"
+        await trio.to_thread.run_sync(lerobot_calibrates_the_leader, leader, folder)
+        with leader.paused() as bus:
+            assert bus.servo(3).peek(reg.DRIVE_MODE) == 1
+            for sid, present in LEADER_PRESENT.items():
+                bus.servo(sid).move_by_hand(present)
+        monkeypatch.setenv("HF_LEROBOT_CALIBRATION", str(tmp_path / "hf"))
+        server = await start_server()
+        async with server.client() as http:
+            attached = await attach_koch(http, sim, "lerobot:arm")
+            assert attached.status_code == 201, attached.text
+            await eventually(lambda: _joined(http), what="the follower joined")
+            body = {"type": "usb-master", "port": str(leader.link), "calibration": "lerobot:arm"}
+            master = await http.post("/api/robots/arm/master", json=body)
+            assert master.status_code == 201, master.text
+            wanted = {
+                name: leader_degrees(name, LEADER_PRESENT[sid + 1])
+                for sid, name in enumerate(NAMES)
+            }
+
+            async def mirrored() -> bool:
+                read = await real_values(http)
+                return all(
+                    (value := read[name]) is not None and abs(value - wanted[name]) < 1
+                    for name in NAMES
+                )
+
+            await eventually(mirrored, what=f"the follower at the leader's pose {wanted}")
+        with leader.paused() as bus:  # a leader is moved by hand: never torque on
+            assert all(s.peek(reg.TORQUE_ENABLE) == 0 for s in bus.servos.values())

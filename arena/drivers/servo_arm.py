@@ -75,7 +75,8 @@ class ServoArm:
 
     `port` None finds the adapter by USB id; `baud` None is the robot type's (or its family's).
     `open_bus` replaces the serial bus (tests, benchmarks). The calibration file is read at
-    `prepare()` when it exists.
+    `prepare()` when it exists. A `leader`'s servos may be any model of the family: leader arms
+    are built of other models than their followers (the Koch leader's XL330-M077).
     """
 
     def __init__(
@@ -86,13 +87,16 @@ class ServoArm:
         calibration_file: Path | None,
         settings: WorkerSettings,
         open_bus: Callable[[str], ServoBus] | None,
+        *,
+        leader: bool = False,
     ) -> None:
         self.requested_port = port
         self.model = model
         self.family = family_of(model)
         self.calibration_file = calibration_file
         self.servo_ids = {joint.name: joint.servo_id for joint in model.joints}
-        self.settings = dataclasses.replace(settings, models=servo_models(model, self.family))
+        models = {} if leader else servo_models(model, self.family)
+        self.settings = dataclasses.replace(settings, models=models)
         rate = baud or model.bus.baud_rate or self.family.default_baud
         family = self.family
         self._open_bus = open_bus or (lambda name: open_family_bus(family, name, rate))

@@ -61,6 +61,7 @@ class UsbMaster(ServoArm):
                 settings or WorkerSettings(rate=config.rate), torque_on_connect=False
             ),
             open_bus,
+            leader=True,
         )
         self.config = config
         self.sent = 0
