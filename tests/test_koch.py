@@ -242,11 +242,15 @@ async def test_koch_driven_through_a_server_with_an_estop(
         await eventually(arrived, what="the arm at shoulder_pan 12, gripper 60")
         # The goals LeRobot itself would write for those values (its `_unnormalize`), in the
         # servo's frame (present = actual + Homing_Offset: no wrap, many turns).
-        goals = peek(sim, reg.GOAL_POSITION)
-        pan = CALIBRATION["shoulder_pan"]
-        assert abs(goals[1] - (12 * 4095 / 360 + (pan.range_min + pan.range_max) / 2)) <= 1
-        grip = CALIBRATION["gripper"]
-        assert abs(goals[6] - (0.6 * (grip.range_max - grip.range_min) + grip.range_min)) <= 1
+        pan, grip = CALIBRATION["shoulder_pan"], CALIBRATION["gripper"]
+        pan_goal = 12 * 4095 / 360 + (pan.range_min + pan.range_max) / 2
+        grip_goal = 0.6 * (grip.range_max - grip.range_min) + grip.range_min
+
+        def goals_written() -> bool:
+            goals = peek(sim, reg.GOAL_POSITION)
+            return abs(goals[1] - pan_goal) <= 1 and abs(goals[6] - grip_goal) <= 1
+
+        await eventually(goals_written, what="LeRobot's own goals for those values")
         # Profile_Velocity: the robot's velocity limit, in the servo's 0.229 rpm units.
         assert set(peek(sim, reg.PROFILE_VELOCITY).values()) == {round(180 / 6 / 0.229)}
         stopped = await http.post("/api/robots/arm/estop", json={"reason": "test"})
