@@ -459,3 +459,25 @@ async def test_the_koch_follower_mirrors_the_koch_leader(
             await eventually(mirrored, what=f"the follower at the leader's pose {wanted}")
         with leader.paused() as bus:  # a leader is moved by hand: never torque on
             assert all(s.peek(reg.TORQUE_ENABLE) == 0 for s in bus.servos.values())
+
+
+def test_offsets_stay_in_the_file_for_servos_that_count_turns() -> None:
+    from arena.dynamixel.bus import DYNAMIXEL
+    from arena.protocol.errors import ArenaError
+    from arena.servo.calibration import homing_offset_register
+
+    with pytest.raises(ArenaError, match="count turns"):
+        homing_offset_register(100, 0, DYNAMIXEL)
+
+
+def test_calibrate_refuses_at_once_what_a_koch_cannot_keep(
+    capsys: pytest.CaptureFixture[str], tmp_path: Path
+) -> None:
+    from arena import cli
+
+    out = tmp_path / "never.json"
+    for extra in (["--format", "lerobot"], ["--write-homing"]):
+        command = ["calibrate", "--robot-type", "koch", "--port", "/nonexistent", "--out", str(out)]
+        assert cli.main([*command, *extra]) == 2
+        assert "count turns" in capsys.readouterr().err
+    assert not out.exists()

@@ -87,13 +87,20 @@ def sim_bus_command(args: argparse.Namespace) -> int:
 def calibrate_command(args: argparse.Namespace) -> int:
     """`arena calibrate`: the interactive calibration of an arm on a real bus."""
     from arena.drivers.servo_arm import family_of
-    from arena.protocol.errors import ArenaError
+    from arena.protocol.errors import ArenaError, ErrorCode
     from arena.robot.model import load_robot_model
     from arena.servo import terminal
     from arena.servo.ports import find_adapter
 
     model = load_robot_model(args.robot_type)
     family = family_of(model)
+    if not family.wraps and (args.format == "lerobot" or args.write_homing):
+        # Said before the user poses anything: see specs/servo-bus.md.
+        raise ArenaError(
+            ErrorCode.INVALID_CONFIG,
+            f"{family.name} servos count turns: calibrate the {model.robot_type} with LeRobot "
+            "(Arena reads its file), or in Arena's format without --write-homing.",
+        )
     try:
         port = args.port or find_adapter(family.adapters)
     except ArenaError as error:

@@ -118,8 +118,17 @@ def homing_offset_register(offset: int, current: int, family: ServoFamily) -> in
 
     The servo reports `present = actual + sign * homing` (Feetech: sign -1, Dynamixel: +1), so
     adding `offset` to what it reports means homing = current + sign * offset. An offset that
-    would leave the register's range (Feetech: +-2047) cannot go into the servo.
+    would leave the register's range (Feetech: +-2047) cannot go into the servo, nor any into
+    a servo that counts turns (Dynamixel), whose present position would then leave one turn.
     """
+    if not family.wraps:
+        # Its present position would leave one turn (it counts turns), which Arena's own
+        # calibration does not read: the offset stays in the file.
+        raise ArenaError(
+            ErrorCode.INVALID_CONFIG,
+            f"{family.name} servos count turns: their offsets stay in the calibration file "
+            "(leave writeHoming out).",
+        )
     homing = current + family.homing_sign * offset
     if abs(homing) > family.homing_limit:
         raise ArenaError(
