@@ -314,7 +314,8 @@ async def test_an_arena_calibration_on_servos_that_count_turns_is_refused(
         assert reply.status_code == 422, reply.text
         assert "lerobot:ID" in reply.json()["error"]["message"]
         assert (await http.get("/api/robots/arm")).json()["slaves"] == []
-    assert set(peek(sim, reg.TORQUE_ENABLE).values()) == {0}
+    with sim.paused() as bus:
+        assert [s.torque_enables for s in bus.servos.values()] == [0] * 6  # never on
 
 
 # -- the codec, against the SDK's own arithmetic -----------------------------------------------

@@ -15,13 +15,13 @@ from arena.extras import require
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.robot.model import RobotModel
 from arena.servo.calibration import Calibration
-from arena.servo.interface import MAX_STEP, ServoBus, ServoFamily
+from arena.servo.interface import ServoBus, ServoFamily
 from arena.servo.lerobot_calibration import (
     LeRobotCalibration,
     load_calibration,
     read_register_homings,
 )
-from arena.servo.worker import BusWorker, WorkerSettings, read_positions
+from arena.servo.worker import BusWorker, WorkerSettings
 
 #: The servo families Arena drives, by the name a robot type's `[bus] family` gives.
 FAMILIES = ("feetech", "dynamixel")
@@ -117,31 +117,17 @@ class ServoArm:
             )
             self.calibrated = True
         ids = tuple(self.servo_ids.values())
+        lerobot = isinstance(self.calibration, LeRobotCalibration)
+        # Arena's own calibration counts steps within one turn: on servos that count turns
+        # (Dynamixel) the worker refuses, before any torque, one that reads outside it (a
+        # Homing_Offset written, turns made in extended mode), which goals would send a turn away.
+        settings = dataclasses.replace(self.settings, one_turn=not (lerobot or self.family.wraps))
         self.port, self.worker, self.bridge = await start_worker(
-            self.requested_port, ids, self.settings, self._open_bus, self.family.adapters
+            self.requested_port, ids, settings, self._open_bus, self.family.adapters
         )
         if isinstance(self.calibration, LeRobotCalibration):
             homings = await wait_future(self.worker.submit(lambda b: read_register_homings(b, ids)))
             self.calibration = self.calibration.with_register_homings(homings)
-        elif not self.family.wraps:
-            await self._check_one_turn(ids)
-
-    async def _check_one_turn(self, ids: tuple[int, ...]) -> None:
-        # Arena's own calibration counts steps within one turn. A servo that counts turns
-        # (Dynamixel) and reads outside 0..4095 (a Homing_Offset written, a turn made in
-        # extended mode) would be sent goals a turn away: refused before it moves.
-        assert self.worker is not None
-        present = await wait_future(self.worker.submit(lambda b: read_positions(b, ids)))
-        outside = {sid: step for sid, step in present.items() if not 0 <= step <= MAX_STEP}
-        if outside:
-            await self.close()
-            self.worker = None
-            raise ArenaError(
-                ErrorCode.INVALID_CONFIG,
-                f"Servo(s) {outside} read outside one turn (0..{MAX_STEP}): this arm keeps a "
-                "calibration in its servos (LeRobot's?). Attach it with that calibration file "
-                '("calibration": "lerobot:ID" or a path).',
-            )
 
     async def close(self) -> None:
         """Torque off, port closed, thread ended (also for an arm prepared but never run)."""

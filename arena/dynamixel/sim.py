@@ -55,6 +55,7 @@ class SimServo:
     velocity: float = 0.0  # steps/s, in the servo's frame
     pending: tuple[int, bytes] | None = None  # REG_WRITE waiting for ACTION
     last_update: float | None = None
+    torque_enables: int = 0  # times torque went on (tests: "before any torque")
 
     def __post_init__(self) -> None:
         volts, velocity_limit, temperature_limit, current_limit = MODEL_DEFAULTS.get(
@@ -115,6 +116,7 @@ class SimServo:
                 self.memory[address + offset] = byte
         if not torque and self.peek(reg.TORQUE_ENABLE):
             self.poke(reg.GOAL_POSITION, self.present)  # torque on holds where it is
+            self.torque_enables += 1
         return StatusError.NONE
 
     # -- physics ------------------------------------------------------------------------------

@@ -26,7 +26,7 @@ import msgspec
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.servo.calibration import Calibration, homing_offset_register
 from arena.servo.health import HealthLimits, HealthMonitor, ServoFault
-from arena.servo.interface import BusError, ServoBus
+from arena.servo.interface import MAX_STEP, BusError, ServoBus
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)
@@ -80,6 +80,9 @@ class WorkerSettings:
     limits: HealthLimits = field(default_factory=HealthLimits)
     #: The model number each servo must answer a ping with (by id), and the model's name.
     models: dict[int, tuple[int, str]] = field(default_factory=dict)
+    #: Refuse to connect (before any torque) when a servo reads outside one turn: Arena's own
+    #: calibration on servos that count turns (specs/servo-bus.md).
+    one_turn: bool = False
 
 
 @dataclass
@@ -265,6 +268,16 @@ class BusWorker:
                     f"Servo {servo_id} is model {model}, not an {expected[1]} ({expected[0]}).",
                 )
         bus.prepare(self.servo_ids)
+        if self.settings.one_turn:
+            present = read_positions(bus, self.servo_ids)
+            outside = {sid: step for sid, step in present.items() if not 0 <= step <= MAX_STEP}
+            if outside:
+                raise ArenaError(
+                    ErrorCode.INVALID_CONFIG,
+                    f"Servo(s) {outside} read outside one turn (0..{MAX_STEP}): this arm keeps "
+                    "a calibration in its servos (LeRobot's?). Attach it with that calibration "
+                    'file ("calibration": "lerobot:ID" or a path).',
+                )
         self.clear_goals()  # goals from before the connection are stale
         torque = self.torque_wanted
         hold_here(bus, self.servo_ids, torque=torque, speed=self.settings.speed_limit)
