@@ -1,13 +1,10 @@
-"""Talking to real STS3215 servos through `scservo_sdk` (feetech-servo-sdk) and pyserial.
+"""Talking to real STS3215 servos through `scservo_sdk` (feetech-servo-sdk) and pyserial: the
+Feetech family behind `arena.servo.interface` (`FEETECH`, its `ServoBus`).
 
-A `ServoBus` is used from one thread only: the SDK's port is not thread-safe. It works around
-the SDK's traps (see the so-arm100 robot notes):
+A `ServoBus` is used from one thread only: the SDK's port is not thread-safe. Its port is the
+SDK's with the traps fixed (`arena.servo.ports.PortFixes`: stale input dropped, reads that sleep
+in `select()`, a timeout of wire time plus a margin). Besides:
 
-- stale input: `clearPort()` only flushes output, so a late reply would be taken as the answer
-  to the next request. `ArenaPort.clearPort` drops pending input before every transmission.
-- busy-waiting: the SDK polls a non-blocking port until its timeout. `ArenaPort.readPort`
-  sleeps in `select()` until bytes arrive or the deadline passes.
-- timeouts: the SDK waits a fixed 34 ms for any reply; ours is the wire time plus a margin.
 - one silent servo fails a whole `GroupSyncRead`: `sync_read` collects replies one by one, so
   every servo that did answer is kept and the silent one is named.
 - byte order: `PacketHandler(0)` sets a process-wide global; `open()` sets it again.
