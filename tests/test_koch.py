@@ -17,7 +17,9 @@ from typing import Any
 
 import pytest
 import trio
+from trio.testing import MockClock
 
+from arena.robot.manager import RobotManager
 from arena.servo.sim_pty import PtySimBus
 from tests.conftest import RunningServer
 from tests.hardware import TEST_TIMEOUT_MARGIN, eventually, running_sim
@@ -482,3 +484,26 @@ def test_calibrate_refuses_at_once_what_a_koch_cannot_keep(
         assert cli.main([*command, *extra]) == 2
         assert "count turns" in capsys.readouterr().err
     assert not out.exists()
+
+
+async def test_the_koch_twin_follows_its_commands(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    """The physics twin of the koch type (MuJoCo on its URDF: Menagerie's kinematics and
+    masses, Arena's box meshes) follows a command on every joint, gripper included."""
+    pytest.importorskip("mujoco")
+    from arena.drivers.physics import PhysicsSettings, PhysicsSlave
+    from arena.robot.motion import Command
+
+    robot = await manager.create_robot("koch", robot_id="twin")
+    slave = PhysicsSlave(PhysicsSettings(realtime=False))
+    await robot.attach_slave(slave)
+    await trio.sleep(1.0)
+    goal = {"shoulder_pan": 30.0, "elbow_flex": -20.0, "wrist_roll": 45.0, "gripper": 60.0}
+    assert (await robot.command(Command.of(goal))).accepted
+    await trio.sleep(3.0)
+    real = {j.name: j.real_value for j in robot.snapshot().joints}
+    for name, value in goal.items():
+        seen = real[name]
+        assert seen is not None and abs(seen - value) < 3.0, (name, seen)
+    assert slave.contacts_reported == []
