@@ -295,7 +295,7 @@ class SimBus:
         if faults.corrupt:
             frame = frame[:-1] + bytes(((frame[-1] + 1) & 0xFF,))
         delay = faults.late + servo.peek(reg.RETURN_DELAY_TIME) * 2e-6
-        return Reply(frame, delay)
+        return Reply(frame, delay, late=faults.late > 0)
 
 
 def _word(data: bytes, at: int) -> int:

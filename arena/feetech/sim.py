@@ -269,7 +269,7 @@ class SimBus:
         if faults.corrupt:
             frame = frame[:-1] + bytes(((frame[-1] + 1) & 0xFF,))
         delay = faults.late + servo.peek(reg.RETURN_DELAY) * 2e-6
-        return Reply(frame, delay)
+        return Reply(frame, delay, late=faults.late > 0)
 
 
 _REGISTER_AT: dict[int, reg.Register] = {

@@ -47,10 +47,13 @@ class ServoFaults:
 
 @dataclass(frozen=True, slots=True)
 class Reply:
-    """A status packet and how long after the request the servo holds it back."""
+    """A status packet, how long after the request the servo holds it back, and whether that
+    is a fault (`ServoFaults.late`: a reader may time out) or its normal return delay (a
+    reader waits for it, as for any reply the simulator owes)."""
 
     data: bytes
     delay: float = 0.0
+    late: bool = False
 
 
 class FrameParser(Protocol):
@@ -212,7 +215,7 @@ class PtySimBus:
                 self.requests += 1
                 out = b"".join(reply.data for reply in replies)
                 delay = max((reply.delay for reply in replies), default=0.0)
-                if delay and not taken:
+                if any(reply.late for reply in replies) and not taken:
                     self.taken += len(data)  # the servo holds its reply back on purpose
                     taken = True
                 if self.wire_time:
