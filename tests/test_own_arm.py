@@ -7,6 +7,7 @@ from __future__ import annotations
 import struct
 from collections.abc import Awaitable, Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -173,3 +174,34 @@ def test_a_type_whose_servo_model_its_family_lacks_is_refused(types_dir: Path) -
     model = load_robot_model("pointer")
     with pytest.raises(ArenaError, match="sts3215"):
         servo_models(model, family_of(model))
+
+
+async def test_the_bus_opens_at_the_type_s_baud_rate_unless_the_body_names_one(
+    start_server: StartServer,
+    sim: PtySimBus,
+    types_dir: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from arena.drivers import servo_arm
+
+    toml = types_dir / "robot.toml"
+    toml.write_text(toml.read_text().replace("baud_rate = 1000000", "baud_rate = 57600"))
+    opened: list[tuple[str, int]] = []
+    simulated = servo_arm.open_family_bus  # (the simulator's paced bus, see tests/hardware.py)
+
+    def recording(family: Any, port: str, baud: int) -> Any:
+        opened.append((family.name, baud))
+        return simulated(family, port, baud)
+
+    monkeypatch.setattr(servo_arm, "open_family_bus", recording)
+    server = await start_server(calibration_dir=str(tmp_path / "cal"))
+    async with server.client() as http:
+        await http.post("/api/robots", json={"id": "p", "robot_type": "pointer"})
+        for body, baud in (({}, 57600), ({"baudRate": 115200}, 115200)):
+            slave = {"type": "usb-slave", "port": str(sim.link), **body}
+            attached = await http.post("/api/robots/p/slaves", json=slave)
+            assert attached.status_code == 201, attached.text
+            assert opened[-1] == ("dynamixel", baud)
+            detached = await http.delete(f"/api/robots/p/slaves/{attached.json()['id']}")
+            assert detached.status_code in (200, 204), detached.text
