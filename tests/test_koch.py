@@ -479,11 +479,59 @@ def test_calibrate_refuses_at_once_what_a_koch_cannot_keep(
     from arena import cli
 
     out = tmp_path / "never.json"
-    for extra in (["--format", "lerobot"], ["--write-homing"]):
-        command = ["calibrate", "--robot-type", "koch", "--port", "/nonexistent", "--out", str(out)]
-        assert cli.main([*command, *extra]) == 2
-        assert "count turns" in capsys.readouterr().err
+    command = ["calibrate", "--robot-type", "koch", "--port", "/nonexistent", "--out", str(out)]
+    assert cli.main([*command, "--write-homing"]) == 2
+    assert "count turns" in capsys.readouterr().err
     assert not out.exists()
+
+
+def test_calibrate_format_lerobot_reads_zero_at_rest_in_lerobots_koch(
+    sim: PtySimBus, tmp_path: Path
+) -> None:
+    """`arena calibrate --format lerobot` on a fresh Koch whose servos hold other homings;
+    LeRobot's KochFollower loads the file, writes it to the servos and reads the rest pose as
+    0 (the homing puts it at step 2048 exactly: these servos count turns)."""
+    from arena.robot.model import load_robot_model
+    from arena.servo.terminal import calibrate_interactively
+    from tests.hardware import open_test_bus
+
+    koch = load_robot_model("koch")
+    with sim.paused() as bus:
+        for sid, servo in bus.servos.items():
+            servo.poke(reg.HOMING_OFFSET, 5000 * (sid % 2) - 300)  # turns away, either side
+            servo.move_by_hand(servo.present)  # (Present_Position anew; the horn stays)
+        rest = {sid: servo.present for sid, servo in bus.servos.items()}
+    out = tmp_path / "robots" / "koch_follower" / "arm.json"
+    bus = open_test_bus(str(sim.link))
+    bus.open()
+    try:  # Enter at once: at rest, then no joint swept
+        calibrate_interactively(
+            bus,
+            {j.name: j.servo_id for j in koch.joints},
+            out,
+            robot_type="koch",
+            lerobot_model=koch,
+            ask=lambda _: "",
+            say=lambda _: None,
+        )
+    finally:
+        bus.close()
+    data = json.loads(out.read_text())
+    assert list(data) == list(NAMES)
+    for name, sid in zip(NAMES, range(1, 7), strict=True):  # rest - register + homing = 2048
+        assert rest[sid] - (5000 * (sid % 2) - 300) + data[name]["homing_offset"] == 2048
+    robot = lerobot_follower(sim, out.parent)
+    assert robot.calibration  # LeRobot loads the file itself
+    robot.bus.connect()
+    try:
+        robot.bus.disable_torque()
+        robot.bus.write_calibration(robot.calibration)
+        read = robot.get_observation()
+    finally:
+        robot.bus.disconnect()
+    for name in NAMES[:-1]:
+        assert abs(read[f"{name}.pos"]) <= STEP, (name, read)
+    assert read["gripper.pos"] == pytest.approx(0.0, abs=one_step("gripper"))
 
 
 async def test_the_koch_twin_follows_its_commands(

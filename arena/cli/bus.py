@@ -94,12 +94,12 @@ def calibrate_command(args: argparse.Namespace) -> int:
 
     model = load_robot_model(args.robot_type)
     family = family_of(model)
-    if not family.wraps and (args.format == "lerobot" or args.write_homing):
+    if not family.wraps and args.write_homing:
         # Said before the user poses anything: see specs/servo-bus.md.
         raise ArenaError(
             ErrorCode.INVALID_CONFIG,
-            f"{family.name} servos count turns: calibrate the {model.robot_type} with LeRobot "
-            "(Arena reads its file), or in Arena's format without --write-homing.",
+            f"{family.name} servos count turns: their offsets stay in the calibration file "
+            "(leave out --write-homing).",
         )
     try:
         port = args.port or find_adapter(family.adapters)

@@ -169,6 +169,7 @@ def to_lerobot(
     model: RobotModel,
     register_homings: Mapping[int, int],
     family: ServoFamily,
+    rest_present: Mapping[int, int] | None = None,
 ) -> dict[str, dict[str, int]]:
     """An Arena calibration (`arena calibrate`: the rest pose is every joint at 0) in LeRobot's
     format, keyed by LeRobot's joint names, so that LeRobot reads the rest pose as 0.
@@ -180,14 +181,14 @@ def to_lerobot(
     swept, the robot type's limits), within the servo's steps. A 0-100 joint (a gripper) rests
     at 0, its range_min, and spans its captured range or else its URDF range.
 
-    Only for servos that count within one turn (Feetech's): on a Dynamixel, which counts turns,
-    the homing would also have to say which turn the rest pose is in.
+    A servo that counts turns (Dynamixel) reads the homing unwrapped, so its homing must put
+    the rest pose at exactly step 2048, not a turn away: `rest_present`, the Present_Position
+    each servo read at rest (by id), says where that is.
     """
-    if not family.wraps:
+    if not family.wraps and rest_present is None:
         raise ArenaError(
             ErrorCode.INVALID_CONFIG,
-            f"Arena writes LeRobot's format for {family.name} servos not yet: calibrate the "
-            f"{model.robot_type} with LeRobot, whose file Arena reads.",
+            f"LeRobot's format for {family.name} servos needs the rest pose's present positions.",
         )
     out: dict[str, dict[str, int]] = {}
     for spec in model.joints:
@@ -199,11 +200,15 @@ def to_lerobot(
                 ErrorCode.INVALID_CONFIG,
                 f"Joint {spec.name} runs reversed (direction -1): LeRobot's degrees cannot.",
             )
-        # Arena reads real = present + offset; the servo reports present = actual - homing:
-        # real = actual - (homing - offset), which is LeRobot's homing_offset.
-        homing = _wrapped(
-            register_homings.get(spec.servo_id, 0) + family.homing_sign * joint.offset
-        )
+        register = register_homings.get(spec.servo_id, 0)
+        if rest_present is None or family.wraps:
+            # Arena reads real = present + offset; the servo reports present = actual - homing:
+            # real = actual - (homing - offset), which is LeRobot's homing_offset.
+            homing = _wrapped(register + family.homing_sign * joint.offset)
+        else:
+            # present = actual + homing, unwrapped: LeRobot's present at rest is
+            # rest - register + homing, which must be 2048.
+            homing = register + CENTER_STEP - rest_present[spec.servo_id]
         low, high = joint.min_degrees, joint.max_degrees
         if spec.unit == PERCENT:
             if low is None or high is None:
@@ -238,11 +243,11 @@ def save_lerobot(
     register_homings: Mapping[int, int],
     family: ServoFamily,
     path: Path,
+    rest_present: Mapping[int, int] | None = None,
 ) -> None:
     """Write `calibration` in LeRobot's format (see `to_lerobot`), atomically."""
-    text = msgspec.json.format(
-        msgspec.json.encode(to_lerobot(calibration, model, register_homings, family)), indent=4
-    )
+    data = to_lerobot(calibration, model, register_homings, family, rest_present)
+    text = msgspec.json.format(msgspec.json.encode(data), indent=4)
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_suffix(path.suffix + ".tmp")
     temporary.write_bytes(text + b"\n")

@@ -91,7 +91,7 @@ def calibrate_interactively(
         homings = read_register_homings(bus, ids)
         say("     Offsets written to the servos' Homing_Offset registers.")
     if lerobot_model is not None:
-        save_lerobot(calibration, lerobot_model, homings, bus.family, out)
+        save_lerobot(calibration, lerobot_model, homings, bus.family, out, rest_present=raw)
     else:
         calibration.save(out)
     say(f"Saved {out}:")
