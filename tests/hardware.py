@@ -9,15 +9,14 @@ from unittest import mock
 from arena.drivers import servo_arm
 from arena.drivers.usb_slave import UsbSlave
 from arena.feetech import registers as reg
-from arena.feetech.bus import ServoBus
+from arena.feetech.bus import FeetechBus
 from arena.feetech.sim import SimBus
 from arena.protocol.rest import UsbSlaveBody
 from arena.robot.handle import Robot
 from arena.robot.model import RobotModel
 from arena.server.drivers import usb_slave_config
 from arena.servo.health import HealthLimits
-from arena.servo.interface import ServoBus as BusOfAnyFamily
-from arena.servo.interface import ServoFamily
+from arena.servo.interface import ServoBus, ServoFamily
 from arena.servo.ports import DEFAULT_TIMEOUT_MARGIN
 from arena.servo.sim_pty import PtySimBus
 from arena.servo.worker import WorkerSettings
@@ -30,14 +29,15 @@ _SIMS: dict[str, PtySimBus] = {}  # the running simulators by port
 
 
 def open_test_bus(port: str) -> ServoBus:
-    """A `ServoBus` with the test timeout margin, paced by the simulator on `port` if one runs."""
+    """A bus with the test timeout margin, paced by the simulator on `port` if one runs (of
+    the simulator's family; Feetech's otherwise)."""
     sim = _SIMS.get(port)
     if sim is None:
-        return ServoBus(port, timeout_margin=TEST_TIMEOUT_MARGIN)
-    return sim.servo_bus(TEST_TIMEOUT_MARGIN)  # type: ignore[return-value]
+        return FeetechBus(port, timeout_margin=TEST_TIMEOUT_MARGIN)
+    return sim.servo_bus(TEST_TIMEOUT_MARGIN)
 
 
-def _server_bus(family: ServoFamily, port: str, baud: int) -> BusOfAnyFamily:
+def _server_bus(family: ServoFamily, port: str, baud: int) -> ServoBus:
     # What a server's arm opens (`ServoArm`'s default): the production margin, but paced by
     # the simulator on that port, so a loaded machine does not make its servos look silent.
     sim = _SIMS.get(port)

@@ -20,7 +20,7 @@ def usb_control_rate(
     simulated bus with wire-time emulation in another process: cycles/s flat out, and the
     worker thread's CPU share when paced at `rate`. Each run lasts `seconds`, and longer until
     the worker has made `min_cycles` cycles (a loaded machine may make none in a short run)."""
-    from arena.feetech.bus import ServoBus
+    from arena.feetech.bus import FeetechBus
     from arena.servo.health import ServoFault
     from arena.servo.worker import BusWorker, Reading, WorkerEvent, WorkerSettings
 
@@ -39,7 +39,7 @@ def usb_control_rate(
         listener = Count()
         ids = (1, 2, 3, 4, 5, 6)
         worker = BusWorker(
-            lambda: ServoBus(str(link)), ids, listener, WorkerSettings(rate=worker_rate)
+            lambda: FeetechBus(str(link)), ids, listener, WorkerSettings(rate=worker_rate)
         )
         worker.start()
         worker.first_connect.result(timeout=10)

@@ -1,7 +1,7 @@
 """Talking to real STS3215 servos through `scservo_sdk` (feetech-servo-sdk) and pyserial: the
-Feetech family behind `arena.servo.interface` (`FEETECH`, its `ServoBus`).
+Feetech family behind `arena.servo.interface` (`FEETECH`, its `FeetechBus`).
 
-A `ServoBus` is used from one thread only: the SDK's port is not thread-safe. Its port is the
+A `FeetechBus` is used from one thread only: the SDK's port is not thread-safe. Its port is the
 SDK's with the traps fixed (`arena.servo.ports.PortFixes`: stale input dropped, reads that sleep
 in `select()`, a timeout of wire time plus a margin). Besides:
 
@@ -33,7 +33,7 @@ class ArenaPort(PortFixes, sdk.PortHandler):  # type: ignore[misc]
     port is this one waiting also for the simulator."""
 
 
-class ServoBus:
+class FeetechBus:
     """Servos on one serial port. Not thread-safe: one thread owns it."""
 
     def __init__(
@@ -254,7 +254,7 @@ FEETECH = ServoFamily(
     homing_sign=-1,  # present = actual - Homing_Offset
     homing_limit=reg.HOMING_OFFSET_LIMIT,
     wraps=True,
-    open_bus=ServoBus,
+    open_bus=FeetechBus,
     port_class=ArenaPort,
     lerobot_folders={
         "so-101": {
