@@ -555,3 +555,29 @@ async def test_the_koch_twin_follows_its_commands(
         seen = real[name]
         assert seen is not None and abs(seen - value) < 3.0, (name, seen)
     assert slave.contacts_reported == []
+
+
+def test_hardware_errors_reach_the_health_monitor_as_faults(sim: PtySimBus) -> None:
+    """A Dynamixel says a hardware error with its status packets' alert bit; the bus reads
+    Hardware_Error_Status with the telemetry and the monitor names the fault and the servo."""
+    from arena.protocol.errors import ErrorCode, Severity
+    from arena.servo.health import HealthMonitor
+    from arena.servo.interface import FaultBit
+    from tests.hardware import open_test_bus
+
+    with sim.paused() as bus:
+        bus.servo(4).faults.error_bits = FaultBit.OVERHEAT | FaultBit.VOLTAGE
+    dynamixel = open_test_bus(str(sim.link))
+    dynamixel.open()
+    try:
+        telemetry, result = dynamixel.read_telemetry(range(1, 7))
+    finally:
+        dynamixel.close()
+    assert telemetry.voltages == {1: 12.0, 2: 12.0, 3: 5.0, 4: 5.0, 5: 5.0, 6: 5.0}
+    assert result.errors[4] == FaultBit.OVERHEAT | FaultBit.VOLTAGE
+    assert {sid for sid, bits in result.errors.items() if bits} == {4}
+    faults = HealthMonitor(range(1, 7)).on_read(result)
+    assert {(f.code, f.severity, f.servo_id) for f in faults} == {
+        (ErrorCode.SERVO_OVERHEAT, Severity.CRITICAL, 4),
+        (ErrorCode.SERVO_VOLTAGE, Severity.ERROR, 4),
+    }
