@@ -9,14 +9,17 @@ from unittest import mock
 from arena.drivers import servo_arm
 from arena.drivers.usb_slave import UsbSlave
 from arena.feetech import registers as reg
-from arena.feetech.bus import DEFAULT_TIMEOUT_MARGIN, ServoBus
-from arena.feetech.health import HealthLimits
-from arena.feetech.sim_pty import PtySimBus
-from arena.feetech.worker import WorkerSettings
+from arena.feetech.bus import FeetechBus
+from arena.feetech.sim import SimBus
 from arena.protocol.rest import UsbSlaveBody
 from arena.robot.handle import Robot
 from arena.robot.model import RobotModel
 from arena.server.drivers import usb_slave_config
+from arena.servo.health import HealthLimits
+from arena.servo.interface import ServoBus, ServoFamily
+from arena.servo.ports import DEFAULT_TIMEOUT_MARGIN
+from arena.servo.sim_pty import PtySimBus
+from arena.servo.worker import WorkerSettings
 from tests.conftest import eventually
 
 # The reply timeout's wall-clock part. A starved simulator cannot trip it: the buses of a
@@ -26,19 +29,20 @@ _SIMS: dict[str, PtySimBus] = {}  # the running simulators by port
 
 
 def open_test_bus(port: str) -> ServoBus:
-    """A `ServoBus` with the test timeout margin, paced by the simulator on `port` if one runs."""
+    """A bus with the test timeout margin, paced by the simulator on `port` if one runs (of
+    the simulator's family; Feetech's otherwise)."""
     sim = _SIMS.get(port)
     if sim is None:
-        return ServoBus(port, timeout_margin=TEST_TIMEOUT_MARGIN)
+        return FeetechBus(port, timeout_margin=TEST_TIMEOUT_MARGIN)
     return sim.servo_bus(TEST_TIMEOUT_MARGIN)
 
 
-def _server_bus(port: str, baud: int = 1_000_000) -> ServoBus:
+def _server_bus(family: ServoFamily, port: str, baud: int) -> ServoBus:
     # What a server's arm opens (`ServoArm`'s default): the production margin, but paced by
     # the simulator on that port, so a loaded machine does not make its servos look silent.
     sim = _SIMS.get(port)
     if sim is None:
-        return ServoBus(port, baud)
+        return family.open_bus(port, baud)
     return sim.servo_bus(DEFAULT_TIMEOUT_MARGIN)
 
 
@@ -83,11 +87,12 @@ def servo_torque(sim: PtySimBus) -> dict[int, int]:
 def running_sim(tmp_path: Path, **kwargs: object) -> Iterator[PtySimBus]:
     """A started `PtySimBus` at `tmp_path/ttySIM0` (a fixture body). While it runs, the buses
     opened on its port, by tests or by a server's arms, wait for it (see `open_test_bus`)."""
-    sim = PtySimBus(tmp_path / "ttySIM0", **kwargs)  # type: ignore[arg-type]
+    bus = kwargs.pop("bus", None) or SimBus()
+    sim = PtySimBus(tmp_path / "ttySIM0", bus, **kwargs)  # type: ignore[arg-type]
     sim.start()
     _SIMS[str(sim.link)] = sim
     try:
-        with mock.patch.object(servo_arm, "ServoBus", _server_bus):
+        with mock.patch.object(servo_arm, "open_family_bus", _server_bus):
             yield sim
     finally:
         del _SIMS[str(sim.link)]

@@ -14,11 +14,11 @@ from typing import Any
 import pytest
 
 from arena.feetech import registers as reg
-from arena.feetech import terminal
-from arena.feetech.calibration import Calibration
-from arena.feetech.sim_pty import PtySimBus
-from arena.feetech.terminal import calibrate_interactively, read_positions
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.servo import terminal
+from arena.servo.calibration import Calibration
+from arena.servo.sim_pty import PtySimBus
+from arena.servo.terminal import calibrate_interactively, read_positions
 from tests.hardware import open_test_bus, running_sim
 
 JOINTS = {"Rotation": 1, "Pitch": 2, "Elbow": 3, "Wrist_Pitch": 4, "Wrist_Roll": 5, "Jaw": 6}
@@ -176,8 +176,8 @@ class LateBus:
         self.late = late
         self.reads = 0
 
-    def sync_read_register(self, register: reg.Register, ids: Any) -> tuple[dict[int, int], Any]:
-        from arena.feetech.bus import SyncReadResult
+    def read_positions(self, ids: Any) -> tuple[dict[int, int], Any]:
+        from arena.servo.interface import SyncReadResult
 
         self.reads += 1
         if self.reads <= self.late:

@@ -11,10 +11,11 @@ import pytest
 import serial
 
 from arena.feetech import registers as reg
-from arena.feetech.bus import PortInfo, find_adapter, port_error
-from arena.feetech.calibration import Calibration
-from arena.feetech.sim_pty import PtySimBus
+from arena.feetech.bus import ADAPTERS
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.servo.calibration import Calibration
+from arena.servo.ports import PortInfo, find_adapter, port_error
+from arena.servo.sim_pty import PtySimBus
 from tests.conftest import RunningServer, eventually
 from tests.hardware import running_sim, servo_goals, servo_torque
 
@@ -193,11 +194,11 @@ def test_adapter_auto_detection() -> None:
     ch340 = PortInfo("/dev/ttyUSB0", 0x1A86, 0x7523)
     ch343 = PortInfo("/dev/ttyACM0", 0x1A86, 0x55D3)
     other = PortInfo("/dev/ttyS0")
-    assert find_adapter([other, ch340]) == "/dev/ttyUSB0"
-    assert find_adapter([ch343]) == "/dev/ttyACM0"
+    assert find_adapter(ADAPTERS, [other, ch340]) == "/dev/ttyUSB0"
+    assert find_adapter(ADAPTERS, [ch343]) == "/dev/ttyACM0"
     with pytest.raises(ArenaError) as none:
-        find_adapter([other])
+        find_adapter(ADAPTERS, [other])
     assert "/dev/ttyS0" in none.value.message and "1a86:7523" in none.value.message
     with pytest.raises(ArenaError) as several:
-        find_adapter([ch340, ch343])
+        find_adapter(ADAPTERS, [ch340, ch343])
     assert "/dev/ttyUSB0" in several.value.message and "/dev/ttyACM0" in several.value.message

@@ -26,8 +26,8 @@ async def test_robot_types_give_joints_urdf_and_every_mesh(server: RunningServer
         types = (await http.get("/api/robot-types")).json()
         arm = (await http.get("/api/robot-types/so-arm100")).json()
         urdf = await http.get(arm["urdf"])
-        assert [t["id"] for t in types] == ["so-101", "so-arm100"]
-        assert types[1] == arm
+        assert [t["id"] for t in types] == ["koch", "so-101", "so-arm100"]
+        assert types[2] == arm
         assert [j["name"] for j in arm["joints"]] == [
             "Rotation", "Pitch", "Elbow", "Wrist_Pitch", "Wrist_Roll", "Jaw",
         ]  # fmt: skip

@@ -25,10 +25,10 @@ from arena.estop_test.analysis import (
     summarize,
 )
 from arena.estop_test.live import PATHS, Settings, run
-from arena.feetech.sim_pty import PtySimBus
 from arena.recording.mcap_file import RecordedMessage, read_recording
 from arena.robot import core
 from arena.robot.safety import Allowed, Event, MasterCommand, Mode, Outcome, SafetyState
+from arena.servo.sim_pty import PtySimBus
 from tests.conftest import RunningServer
 from tests.hardware import running_sim, servo_torque
 from tests.scenarios import record_scenario

@@ -7,8 +7,10 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from arena.feetech import registers as reg
-from arena.feetech.bus import SyncReadResult
-from arena.feetech.calibration import (
+from arena.feetech.bus import FEETECH
+from arena.feetech.packets import Corrupt, Packet, PacketParser, checksum, encode
+from arena.protocol.errors import ArenaError, ErrorCode, Severity
+from arena.servo.calibration import (
     Calibration,
     JointCalibration,
     RangeCapture,
@@ -16,9 +18,8 @@ from arena.feetech.calibration import (
     homing_offset_register,
     offset_for,
 )
-from arena.feetech.health import HealthLimits, HealthMonitor
-from arena.feetech.packets import Corrupt, Packet, PacketParser, checksum, encode
-from arena.protocol.errors import ArenaError, ErrorCode, Severity
+from arena.servo.health import HealthLimits, HealthMonitor
+from arena.servo.interface import SyncReadResult
 
 # -- registers ---------------------------------------------------------------------------------
 
@@ -148,10 +149,10 @@ def test_calibrate_rest_and_range_capture() -> None:
 
 
 def test_homing_register_range_is_checked() -> None:
-    assert homing_offset_register(100) == -100
-    assert homing_offset_register(100, current=50) == -50
+    assert homing_offset_register(100, 0, FEETECH) == -100
+    assert homing_offset_register(100, 50, FEETECH) == -50
     with pytest.raises(ArenaError) as caught:
-        homing_offset_register(-2000, current=100)
+        homing_offset_register(-2000, 100, FEETECH)
     assert caught.value.code is ErrorCode.INVALID_CONFIG
 
 

@@ -20,13 +20,13 @@ from trio.testing import MockClock
 
 from arena.feetech import registers as reg
 from arena.feetech.sim import SimBus
-from arena.feetech.sim_pty import PtySimBus
 from arena.robot.events import JointStatesReceived, PeerChanged, RobotEvent, TargetsSent
 from arena.robot.mailbox import EventQueue
 from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
 from arena.robot.safety import Mode
+from arena.servo.sim_pty import PtySimBus
 from tests.conftest import RecordingSlave
 from tests.hardware import running_sim, usb_slave
 

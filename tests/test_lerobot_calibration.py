@@ -8,6 +8,7 @@ import itertools
 import json
 import math
 from collections.abc import Awaitable, Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -15,17 +16,18 @@ import pytest
 import trio
 
 from arena.feetech import registers as reg
-from arena.feetech.lerobot_calibration import (
+from arena.feetech.bus import FEETECH
+from arena.protocol.errors import ArenaError
+from arena.robot.model import load_robot_model
+from arena.servo.lerobot_calibration import (
     from_lerobot,
     is_lerobot_reference,
     lerobot_calibration_dir,
     resolve,
 )
-from arena.feetech.lerobot_format import LeRobotJoint, LeRobotMotor
-from arena.feetech.sim_pty import PtySimBus
-from arena.feetech.terminal import calibrate_interactively
-from arena.protocol.errors import ArenaError
-from arena.robot.model import load_robot_model
+from arena.servo.lerobot_format import LeRobotJoint, LeRobotMotor
+from arena.servo.sim_pty import PtySimBus
+from arena.servo.terminal import calibrate_interactively
 from tests.conftest import RunningServer
 from tests.hardware import (
     TEST_TIMEOUT_MARGIN,
@@ -287,17 +289,21 @@ def test_lerobot_folder_names_old_and_new(tmp_path: Path) -> None:
     old = tmp_path / "robots" / "so101_follower" / "arm.json"
     old.parent.mkdir(parents=True)
     old.write_text("{}")
-    assert resolve("lerobot:arm", "so-101", leader=False, env=env) == old
+    assert resolve("lerobot:arm", "so-101", FEETECH, leader=False, env=env) == old
     new = tmp_path / "robots" / "so_follower" / "arm.json"
     new.parent.mkdir(parents=True)
     new.write_text("{}")
-    assert resolve("lerobot:arm", "so-101", leader=False, env=env) == new  # 0.4.3 and later
+    assert (
+        resolve("lerobot:arm", "so-101", FEETECH, leader=False, env=env) == new
+    )  # 0.4.3 and later
     with pytest.raises(ArenaError, match="so100_leader"):
-        resolve("lerobot:arm", "so-arm100", leader=True, env=env)  # leaders: teleoperators/
+        resolve(
+            "lerobot:arm", "so-arm100", FEETECH, leader=True, env=env
+        )  # leaders: teleoperators/
     leader = tmp_path / "teleoperators" / "so100_leader" / "arm.json"
     leader.parent.mkdir(parents=True)
     leader.write_text("{}")
-    assert resolve("lerobot:arm", "so-arm100", leader=True, env=env) == leader
+    assert resolve("lerobot:arm", "so-arm100", FEETECH, leader=True, env=env) == leader
     assert lerobot_calibration_dir({"HF_HOME": "/h"}) == Path("/h/lerobot/calibration")
     assert (
         lerobot_calibration_dir({}) == Path("~/.cache/huggingface/lerobot/calibration").expanduser()
@@ -344,7 +350,7 @@ def test_so101_is_lerobots_arm() -> None:
     assert pan is not None and pan.to_urdf(0.0) == 0.0  # LeRobot's zero is the URDF's
     assert (pan.lower, pan.upper) == pytest.approx((-110.0, 110.0), abs=0.001)
     with pytest.raises(ArenaError, match="id 2"):
-        from_lerobot({n: {**vars(c), "id": 2} for n, c in CALIBRATION.items()}, SO101, "f")
+        from_lerobot({n: {**vars(c), "id": 2} for n, c in CALIBRATION.items()}, SO101, "f", FEETECH)
 
 
 def test_calibrate_format_lerobot_reads_zero_at_rest_in_lerobot(
@@ -395,3 +401,79 @@ def test_calibrate_format_lerobot_reads_zero_at_rest_in_lerobot(
     assert (elbow.range_max - elbow.range_min) / 2 * STEP == pytest.approx(96.83, abs=0.1)
     assert read["gripper.pos"] == pytest.approx(0.0, abs=0.1)  # rest at 0: closed
     assert math.isfinite(read["wrist_roll.pos"])
+
+
+#: The SO-101 leader as LeRobot's `SOLeader` calibrates it (its STS3215s of mixed gear ratios
+#: all answer as model 777; the ratio does not change what the encoder reads).
+LEADER_CALIBRATION = {
+    "shoulder_pan": MotorCalibration(1, 0, 120, 900, 3100),
+    "shoulder_lift": MotorCalibration(2, 0, -400, 1000, 3000),
+    "elbow_flex": MotorCalibration(3, 0, 0, 1100, 3000),
+    "wrist_flex": MotorCalibration(4, 0, 300, 1000, 3100),
+    "wrist_roll": MotorCalibration(5, 0, 0, 0, 4095),
+    "gripper": MotorCalibration(6, 0, 0, 2000, 2900),
+}
+#: The leader's pose as its servos report it once calibrated (inside the so-101's limits).
+LEADER_PRESENT = {1: 2200, 2: 1800, 3: 2150, 4: 2000, 5: 2048, 6: 2450}
+
+
+def lerobot_calibrates_the_leader(sim: PtySimBus, folder: Path) -> None:
+    """LeRobot's own `SOLeader` writes its calibration to the servos and its file to `folder`."""
+    from lerobot.teleoperators.so_leader import SOLeader, SOLeaderTeleopConfig
+
+    leader = SOLeader(SOLeaderTeleopConfig(port=str(sim.link), id="arm", calibration_dir=folder))
+    bus = leader.bus
+    bus.port_handler = sim.paced_port(TEST_TIMEOUT_MARGIN)
+    bus.sync_reader = scs.GroupSyncRead(bus.port_handler, bus.packet_handler, 0, 0)
+    bus.sync_writer = scs.GroupSyncWrite(bus.port_handler, bus.packet_handler, 0, 0)
+    bus.connect()
+    try:
+        bus.disable_torque()
+        bus.write_calibration(dict(LEADER_CALIBRATION))
+        leader.calibration = dict(LEADER_CALIBRATION)
+        leader._save_calibration()
+    finally:
+        bus.disconnect()
+
+
+def leader_value(name: str, present: int) -> float:
+    """What LeRobot reads (degrees mode; the gripper 0-100) for the leader at `present`."""
+    cal = LEADER_CALIBRATION[name]
+    if name == "gripper":
+        return (present - cal.range_min) / (cal.range_max - cal.range_min) * 100
+    return (present - (cal.range_min + cal.range_max) / 2) * 360 / 4095
+
+
+async def test_the_so101_follower_mirrors_the_so101_leader(
+    start_server: StartServer, sim: PtySimBus, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    place_arm(sim)
+    await trio.to_thread.run_sync(lerobot_reads, sim, tmp_path / "hf" / "robots" / "so_follower")
+    with contextmanager(running_sim)(tmp_path / "leader") as leader:
+        folder = tmp_path / "hf" / "teleoperators" / "so_leader"
+        await trio.to_thread.run_sync(lerobot_calibrates_the_leader, leader, folder)
+        with leader.paused() as bus:
+            for sid, present in LEADER_PRESENT.items():
+                bus.servo(sid).move_by_hand(present)
+        monkeypatch.setenv("HF_LEROBOT_CALIBRATION", str(tmp_path / "hf"))
+        server = await start_server()
+        async with server.client() as http:
+            await attach_so101(http, sim, "lerobot:arm")
+            await eventually(lambda: _joined(http), what="the follower joined")
+            body = {"type": "usb-master", "port": str(leader.link), "calibration": "lerobot:arm"}
+            master = await http.post("/api/robots/arm/master", json=body)
+            assert master.status_code == 201, master.text
+            wanted = {
+                name: leader_value(name, LEADER_PRESENT[sid + 1]) for sid, name in enumerate(NAMES)
+            }
+
+            async def mirrored() -> bool:
+                read = await real_values(http)
+                return all(
+                    (value := read[name]) is not None and abs(value - wanted[name]) < 1
+                    for name in NAMES
+                )
+
+            await eventually(mirrored, what=f"the follower at the leader's pose {wanted}")
+        with leader.paused() as bus:  # a leader is moved by hand: never torque on
+            assert all(s.peek(reg.TORQUE_ENABLE) == 0 for s in bus.servos.values())

@@ -229,3 +229,23 @@ def test_a_copied_type_folder_loads_under_its_own_name(
     model = load_robot_model("so-arm100-left")
     assert model.robot_type == "so-arm100-left"
     assert len(model.joints) == 6
+
+
+def test_the_koch_table_in_the_spec_matches_its_robot_type() -> None:
+    text = (SPECS / "robot-model.md").read_text()
+    section = text[text.index("## koch") : text.index("## Robot types")]
+    rows = [line for line in section.splitlines() if line.startswith("| ") and "|---" not in line]
+    table = {
+        cells[0]: cells for cells in ([c.strip() for c in r.strip("|").split("|")] for r in rows)
+    }
+    model = load_robot_model("koch")
+    assert model.bus.family == "dynamixel"
+    for joint in model.joints:
+        cells = table[joint.name]
+        assert int(cells[1]) == joint.servo_id
+        assert cells[2] == joint.servo_model.upper()
+        assert cells[3] == joint.unit
+        assert float(cells[4].split()[0]) == pytest.approx(joint.neutral, abs=0.001)
+        assert float(cells[5]) == pytest.approx(joint.lower, abs=0.05)
+        assert float(cells[6]) == pytest.approx(joint.upper, abs=0.05)
+        assert float(cells[7]) == pytest.approx(joint.max_velocity, abs=0.05)

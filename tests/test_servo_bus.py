@@ -1,4 +1,4 @@
-"""`ServoBus` (the real scservo_sdk underneath) against the simulated bus: the SDK's traps."""
+"""`FeetechBus` (the real scservo_sdk underneath) against the simulated bus: the SDK's traps."""
 
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ import pytest
 import scservo_sdk as sdk
 
 from arena.feetech import registers as reg
-from arena.feetech.bus import ServoBus
-from arena.feetech.sim_pty import PtySimBus
+from arena.feetech.bus import FeetechBus
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.servo.sim_pty import PtySimBus
 from tests.hardware import open_test_bus, running_sim
 
 
@@ -23,7 +23,7 @@ def sim(tmp_path: Path) -> Iterator[PtySimBus]:
 
 
 @pytest.fixture
-def bus(sim: PtySimBus) -> Iterator[ServoBus]:
+def bus(sim: PtySimBus) -> Iterator[FeetechBus]:
     opened = open_test_bus(str(sim.link))
     opened.open()
     yield opened
@@ -38,7 +38,7 @@ def wait_for_bytes(port: Any) -> None:
         time.sleep(0.005)
 
 
-def test_a_late_reply_is_not_taken_as_the_next_answer(sim: PtySimBus, bus: ServoBus) -> None:
+def test_a_late_reply_is_not_taken_as_the_next_answer(sim: PtySimBus, bus: FeetechBus) -> None:
     with sim.paused() as simulated:
         simulated.servo(2).move_by_hand(2148)
         simulated.servo(2).faults.late = 0.12
@@ -71,7 +71,7 @@ def test_the_stock_sdk_port_does_fall_into_that_trap(sim: PtySimBus) -> None:
         port.closePort()
 
 
-def test_one_silent_servo_does_not_hide_the_others(sim: PtySimBus, bus: ServoBus) -> None:
+def test_one_silent_servo_does_not_hide_the_others(sim: PtySimBus, bus: FeetechBus) -> None:
     with sim.paused() as simulated:
         simulated.servo(3).faults.silent = True
         simulated.servo(5).faults.corrupt = True
@@ -81,7 +81,7 @@ def test_one_silent_servo_does_not_hide_the_others(sim: PtySimBus, bus: ServoBus
     assert result.corrupt == [5]
 
 
-def test_reads_wait_without_burning_a_core(sim: PtySimBus, bus: ServoBus) -> None:
+def test_reads_wait_without_burning_a_core(sim: PtySimBus, bus: FeetechBus) -> None:
     with sim.paused() as simulated:
         simulated.servo(1).faults.silent = True
     started_cpu, started = time.thread_time(), time.perf_counter()
@@ -94,7 +94,7 @@ def test_reads_wait_without_burning_a_core(sim: PtySimBus, bus: ServoBus) -> Non
     assert cpu < waited / 2  # ...asleep, not polling (the stock SDK spends all of it on CPU)
 
 
-def test_writes_and_the_eeprom_lock(sim: PtySimBus, bus: ServoBus) -> None:
+def test_writes_and_the_eeprom_lock(sim: PtySimBus, bus: FeetechBus) -> None:
     bus.write(1, reg.LOCK, 0)
     bus.write(1, reg.HOMING_OFFSET, -300)
     bus.write(1, reg.LOCK, 1)

@@ -18,11 +18,11 @@ from mcap.reader import make_reader
 from trio_websocket import ConnectionClosed, open_websocket_url
 
 from arena.feetech import registers as reg
-from arena.feetech.sim_pty import PtySimBus
 from arena.recording.mcap_file import read_recording
 from arena.server.base import ArenaApp
 from arena.server.config import ServerConfig
 from arena.server.run import run_server
+from arena.servo.sim_pty import PtySimBus
 from tests.hardware import eventually, running_sim, servo_torque, wait_joined
 from tests.serve_process import serving
 from tests.test_server_ws import command

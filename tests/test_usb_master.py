@@ -9,10 +9,6 @@ import pytest
 
 from arena.drivers.usb_master import UsbMaster
 from arena.feetech import registers as reg
-from arena.feetech.calibration import Calibration, calibrate_rest
-from arena.feetech.health import HealthLimits
-from arena.feetech.sim_pty import PtySimBus
-from arena.feetech.worker import Reading, WorkerSettings
 from arena.protocol.rest import UsbMasterBody
 from arena.robot.handle import Robot
 from arena.robot.manager import RobotManager
@@ -20,6 +16,10 @@ from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
 from arena.robot.safety import Mode
 from arena.server.drivers import usb_master_config
+from arena.servo.calibration import Calibration, calibrate_rest
+from arena.servo.health import HealthLimits
+from arena.servo.sim_pty import PtySimBus
+from arena.servo.worker import Reading, WorkerSettings
 from tests.conftest import RunningServer, eventually
 from tests.hardware import (
     open_test_bus,

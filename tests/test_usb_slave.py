@@ -9,14 +9,14 @@ import pytest
 import trio
 
 from arena.feetech import registers as reg
-from arena.feetech.calibration import Calibration
-from arena.feetech.sim_pty import PtySimBus
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot.events import FaultReported, JointStatesReceived, PeerChanged
 from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
 from arena.robot.safety import Mode
+from arena.servo.calibration import Calibration
+from arena.servo.sim_pty import PtySimBus
 from tests.conftest import eventually
 from tests.hardware import (
     running_sim,
@@ -61,7 +61,7 @@ async def test_connect_holds_the_arm_where_it_is_before_torque(
 async def test_a_ping_lost_at_connect_is_asked_again_but_a_missing_servo_refuses(
     manager: RobotManager, sim: PtySimBus
 ) -> None:
-    from arena.feetech.worker import PING_ATTEMPTS
+    from arena.servo.worker import PING_ATTEMPTS
 
     robot = await manager.create_robot("so-arm100", robot_id="arm")
     with sim.paused() as bus:

@@ -32,20 +32,22 @@ RANKS: dict[str, int] = {
     "extras": 1,
     "robot": 1,
     "client": 1,
-    "feetech": 2,
+    "servo": 2,  # the servo bus interface, the bus worker, calibration: no family's own
     "sensors": 2,
     "recording": 2,
     "estop_test": 2,
-    "drivers": 3,
-    "schemas": 3,
-    "fleet": 4,
-    "policy": 4,
-    "gym": 4,
-    "ros2": 5,  # on the fleet's Zenoh pieces
-    "server": 6,
-    "bench": 7,
-    "cli": 8,
-    "__main__": 9,
+    "feetech": 3,  # the servo families, behind `servo`'s interface
+    "dynamixel": 3,
+    "drivers": 4,
+    "schemas": 4,
+    "fleet": 5,
+    "policy": 5,
+    "gym": 5,
+    "ros2": 6,  # on the fleet's Zenoh pieces
+    "server": 7,
+    "bench": 8,
+    "cli": 9,
+    "__main__": 10,
 }
 
 

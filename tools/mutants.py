@@ -43,7 +43,7 @@ MODULES: dict[str, tuple[str, tuple[str, ...]]] = {
         ("UsbSlave._follow", "UsbSlave._on_notice", "UsbSlave._hold", "UsbSlave._safe_job"),
     ),
     "worker": (
-        "arena/feetech/worker.py",
+        "arena/servo/worker.py",
         (
             "BusWorker.stop",
             "BusWorker.clear_goals",

@@ -20,9 +20,9 @@ def usb_control_rate(
     simulated bus with wire-time emulation in another process: cycles/s flat out, and the
     worker thread's CPU share when paced at `rate`. Each run lasts `seconds`, and longer until
     the worker has made `min_cycles` cycles (a loaded machine may make none in a short run)."""
-    from arena.feetech.bus import ServoBus
-    from arena.feetech.health import ServoFault
-    from arena.feetech.worker import BusWorker, Reading, WorkerEvent, WorkerSettings
+    from arena.feetech.bus import FeetechBus
+    from arena.servo.health import ServoFault
+    from arena.servo.worker import BusWorker, Reading, WorkerEvent, WorkerSettings
 
     class Count:
         def __init__(self) -> None:
@@ -39,7 +39,7 @@ def usb_control_rate(
         listener = Count()
         ids = (1, 2, 3, 4, 5, 6)
         worker = BusWorker(
-            lambda: ServoBus(str(link)), ids, listener, WorkerSettings(rate=worker_rate)
+            lambda: FeetechBus(str(link)), ids, listener, WorkerSettings(rate=worker_rate)
         )
         worker.start()
         worker.first_connect.result(timeout=10)
@@ -89,9 +89,10 @@ def teleop_latency(moves: int = 200, rate: float = 100.0) -> dict[str, float]:
     from arena.drivers.usb_master import UsbMaster
     from arena.drivers.usb_slave import UsbSlave
     from arena.feetech import registers as reg
-    from arena.feetech.sim_pty import PtySimBus
+    from arena.feetech.sim import SimBus
     from arena.robot.manager import open_manager
     from arena.robot.model import load_robot_model
+    from arena.servo.sim_pty import PtySimBus
 
     latencies: list[float] = []
 
@@ -128,8 +129,8 @@ def teleop_latency(moves: int = 200, rate: float = 100.0) -> dict[str, float]:
 
     with (
         tempfile.TemporaryDirectory() as folder,
-        PtySimBus(Path(folder) / "leader", wire_time=True) as leader,
-        PtySimBus(Path(folder) / "follower", wire_time=True) as follower,
+        PtySimBus(Path(folder) / "leader", SimBus(), wire_time=True) as leader,
+        PtySimBus(Path(folder) / "follower", SimBus(), wire_time=True) as follower,
     ):
         trio.run(run, leader, follower)
     latencies.sort()

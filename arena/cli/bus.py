@@ -10,7 +10,9 @@ from arena.cli.common import Commands
 
 def add(commands: Commands) -> None:
     """Declare `sim-bus` and `calibrate`."""
-    sim_bus = commands.add_parser("sim-bus", help="a simulated STS3215 servo bus on a pty")
+    sim_bus = commands.add_parser(
+        "sim-bus", help="a simulated servo bus (Feetech or Dynamixel, as the type's) on a pty"
+    )
     sim_bus.add_argument(
         "--link", default="/tmp/arena-sim-bus", help="path of the port (a symlink to the pty)"
     )
@@ -24,11 +26,11 @@ def add(commands: Commands) -> None:
     sim_bus.add_argument(
         "--wire-time", action="store_true", help="answer as slowly as a real wire at --baud"
     )
-    sim_bus.add_argument("--baud", type=int, default=1_000_000)
+    sim_bus.add_argument("--baud", type=int, default=None, help="(default: the type's)")
     sim_bus.set_defaults(handler=sim_bus_command)
     calibrate = commands.add_parser("calibrate", help="calibrate an arm on a servo bus")
     calibrate.add_argument("--port", help="serial port (default: find the adapter by USB id)")
-    calibrate.add_argument("--baud", type=int, default=1_000_000)
+    calibrate.add_argument("--baud", type=int, default=None, help="(default: the type's)")
     calibrate.add_argument("--robot-type", default="so-arm100")
     calibrate.add_argument(
         "--out", default="calibration/robot.json", help="calibration file to write"
@@ -58,27 +60,52 @@ def servo_ids(text: str) -> tuple[int, ...]:
 
 def sim_bus_command(args: argparse.Namespace) -> int:
     """`arena sim-bus`: serve the simulated bus until Ctrl-C."""
-    from arena.feetech import terminal
+    from arena.drivers.servo_arm import family_of, servo_models
     from arena.robot.model import load_robot_model
+    from arena.servo import terminal
+    from arena.servo.sim_pty import SimulatedBus
 
-    ids = args.ids or tuple(j.servo_id for j in load_robot_model(args.robot_type).joints)
-    terminal.serve_sim_bus(Path(args.link), ids, args.wire_time, args.baud)
+    model = load_robot_model(args.robot_type)
+    family = family_of(model)
+    if family.name == "dynamixel":
+        from arena.dynamixel.sim import SimBus as DynamixelSimBus
+
+        models = {sid: number for sid, (number, _) in servo_models(model, family).items()}
+        if args.ids:  # ids given: each servo the type's model, else its first one's
+            first = next(iter(models.values()))
+            models = {sid: models.get(sid, first) for sid in args.ids}
+        bus: SimulatedBus = DynamixelSimBus(models)
+    else:
+        from arena.feetech.sim import SimBus
+
+        bus = SimBus(args.ids or tuple(j.servo_id for j in model.joints))
+    baud = args.baud or model.bus.baud_rate or family.default_baud
+    terminal.serve_sim_bus(Path(args.link), bus, args.wire_time, baud)
     return 0
 
 
 def calibrate_command(args: argparse.Namespace) -> int:
     """`arena calibrate`: the interactive calibration of an arm on a real bus."""
-    from arena.feetech import terminal
-    from arena.feetech.bus import ServoBus, find_adapter
-    from arena.protocol.errors import ArenaError
+    from arena.drivers.servo_arm import family_of
+    from arena.protocol.errors import ArenaError, ErrorCode
     from arena.robot.model import load_robot_model
+    from arena.servo import terminal
+    from arena.servo.ports import find_adapter
 
     model = load_robot_model(args.robot_type)
+    family = family_of(model)
+    if not family.wraps and args.write_homing:
+        # Said before the user poses anything: see specs/servo-bus.md.
+        raise ArenaError(
+            ErrorCode.INVALID_CONFIG,
+            f"{family.name} servos count turns: their offsets stay in the calibration file "
+            "(leave out --write-homing).",
+        )
     try:
-        port = args.port or find_adapter()
+        port = args.port or find_adapter(family.adapters)
     except ArenaError as error:
         raise ArenaError(error.code, f"{error.message} (--port PATH)") from None
-    bus = ServoBus(port, args.baud)
+    bus = family.open_bus(port, args.baud or model.bus.baud_rate or family.default_baud)
     bus.open()
     try:
         terminal.calibrate_interactively(

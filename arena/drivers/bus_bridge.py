@@ -9,15 +9,16 @@ from __future__ import annotations
 import collections
 import contextlib
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from concurrent.futures import Future
 from typing import TypeVar
 
 import trio
 
-from arena.feetech.bus import ServoBus, check_serial_device, find_adapter
-from arena.feetech.worker import BusWorker, Reading, WorkerEvent, WorkerSettings
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.servo.interface import ServoBus
+from arena.servo.ports import check_serial_device, find_adapter
+from arena.servo.worker import BusWorker, Reading, WorkerEvent, WorkerSettings
 
 T = TypeVar("T")
 BUSY_PORT_PATIENCE = 1.0  # seconds
@@ -88,11 +89,13 @@ async def start_worker(
     servo_ids: tuple[int, ...],
     settings: WorkerSettings,
     open_bus: Callable[[str], ServoBus],
+    adapters: Mapping[tuple[int, int], str],
 ) -> tuple[str, BusWorker, BusBridge]:
-    """Find the port (by USB id when None), start a `BusWorker` on it, wait until every servo
-    answered. Errors (no adapter, missing or busy port, a silent servo) say what to do."""
+    """Find the port (by `adapters`' USB ids when None), start a `BusWorker` on it, wait until
+    every servo answered. Errors (no adapter, missing or busy port, a silent servo) say what
+    to do."""
     if port is None:
-        port = await trio.to_thread.run_sync(find_adapter)
+        port = await trio.to_thread.run_sync(find_adapter, adapters)
     check_serial_device(port)
     chosen = port
     # A driver that just let go of this port (detach, then attach again at once) may still be

@@ -13,12 +13,12 @@ EStopPolicy = Literal["hold", "torque-off"]
 
 @dataclass(frozen=True, slots=True)
 class UsbSlaveConfig:
-    """An arm on a Feetech servo bus. `port` None: the adapter is found by its USB id;
+    """An arm on a servo bus. `port` None: the adapter is found by its USB id;
     `rate`: control loop Hz; `join_speed`: deg/s at which the arm is brought to the robot's
     pose when it joins (None: the robot type's)."""
 
     port: str | None = None
-    baud_rate: int = 1_000_000
+    baud_rate: int | None = None  # None: the robot type's
     rate: float = 250.0
     estop: EStopPolicy = "hold"
     join_speed: float | None = None
@@ -26,11 +26,11 @@ class UsbSlaveConfig:
 
 @dataclass(frozen=True, slots=True)
 class UsbMasterConfig:
-    """A leader arm on a Feetech servo bus. `rate`: Hz at which it is read; `deadband`:
+    """A leader arm on a servo bus. `rate`: Hz at which it is read; `deadband`:
     degrees a joint must move before a new command goes out."""
 
     port: str | None = None
-    baud_rate: int = 1_000_000
+    baud_rate: int | None = None  # None: the robot type's
     rate: float = 250.0
     deadband: float = 0.5
 

@@ -21,13 +21,13 @@ from arena.drivers.bus_bridge import BusBridge
 from arena.drivers.config import UsbMasterConfig
 from arena.drivers.refusals import Refusals
 from arena.drivers.servo_arm import ServoArm
-from arena.feetech.bus import ServoBus
-from arena.feetech.health import ServoFault
-from arena.feetech.worker import Lost, Reading, WorkerSettings
 from arena.protocol.errors import ErrorCode
 from arena.robot.links import MasterLink
 from arena.robot.model import RobotModel
 from arena.robot.motion import Command, JointGoal
+from arena.servo.health import ServoFault
+from arena.servo.interface import ServoBus
+from arena.servo.worker import Lost, Reading, WorkerSettings
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +61,7 @@ class UsbMaster(ServoArm):
                 settings or WorkerSettings(rate=config.rate), torque_on_connect=False
             ),
             open_bus,
+            leader=True,
         )
         self.config = config
         self.sent = 0

@@ -1,4 +1,4 @@
-"""The USB slave: an so-arm100 on a Feetech servo bus follows the robot's targets.
+"""The USB slave: an arm on a servo bus (Feetech or Dynamixel) follows the robot's targets.
 
 The bus belongs to a `BusWorker` thread (the trio loop never waits on serial I/O). Targets go
 through the calibration to raw goal steps; present positions come back as degrees. E-stop:
@@ -22,17 +22,20 @@ import trio
 from arena.drivers.bus_bridge import wait_future
 from arena.drivers.config import UsbSlaveConfig
 from arena.drivers.servo_arm import ServoArm
-from arena.feetech import registers as reg
-from arena.feetech.bus import ServoBus
-from arena.feetech.calibration import (
+from arena.protocol.errors import ArenaError, ErrorCode, Severity
+from arena.robot.events import NoticeKind, SlaveNotice
+from arena.robot.links import SlaveLink
+from arena.robot.model import RobotModel
+from arena.servo.calibration import (
     DEGREES_PER_STEP,
     Calibration,
     RangeCapture,
     calibrate_rest,
 )
-from arena.feetech.health import ServoFault
-from arena.feetech.lerobot_calibration import LeRobotCalibration
-from arena.feetech.worker import (
+from arena.servo.health import ServoFault
+from arena.servo.interface import STEPS_PER_TURN, ServoBus
+from arena.servo.lerobot_calibration import LeRobotCalibration
+from arena.servo.worker import (
     Connected,
     Lost,
     Reading,
@@ -41,10 +44,6 @@ from arena.feetech.worker import (
     read_positions,
     store_offsets_in_servos,
 )
-from arena.protocol.errors import ArenaError, ErrorCode, Severity
-from arena.robot.events import NoticeKind, SlaveNotice
-from arena.robot.links import SlaveLink
-from arena.robot.model import RobotModel
 
 log = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -326,4 +325,4 @@ def _speed_limit(model: RobotModel) -> int:
     """Goal_Velocity for the servos, in steps/s: the lowest joint velocity limit, so that no
     servo outruns the robot's own limit even on a jump the limiter did not shape."""
     lowest_limit = min(joint.max_velocity for joint in model.joints)
-    return max(1, min(reg.STEPS_PER_TURN, round(lowest_limit / DEGREES_PER_STEP)))
+    return max(1, min(STEPS_PER_TURN, round(lowest_limit / DEGREES_PER_STEP)))

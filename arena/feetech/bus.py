@@ -1,13 +1,10 @@
-"""Talking to real STS3215 servos through `scservo_sdk` (feetech-servo-sdk) and pyserial.
+"""Talking to real STS3215 servos through `scservo_sdk` (feetech-servo-sdk) and pyserial: the
+Feetech family behind `arena.servo.interface` (`FEETECH`, its `FeetechBus`).
 
-A `ServoBus` is used from one thread only: the SDK's port is not thread-safe. It works around
-the SDK's traps (see the so-arm100 robot notes):
+A `FeetechBus` is used from one thread only: the SDK's port is not thread-safe. Its port is the
+SDK's with the traps fixed (`arena.servo.ports.PortFixes`: stale input dropped, reads that sleep
+in `select()`, a timeout of wire time plus a margin). Besides:
 
-- stale input: `clearPort()` only flushes output, so a late reply would be taken as the answer
-  to the next request. `ArenaPort.clearPort` drops pending input before every transmission.
-- busy-waiting: the SDK polls a non-blocking port until its timeout. `ArenaPort.readPort`
-  sleeps in `select()` until bytes arrive or the deadline passes.
-- timeouts: the SDK waits a fixed 34 ms for any reply; ours is the wire time plus a margin.
 - one silent servo fails a whole `GroupSyncRead`: `sync_read` collects replies one by one, so
   every servo that did answer is kept and the silent one is named.
 - byte order: `PacketHandler(0)` sets a process-wide global; `open()` sets it again.
@@ -15,78 +12,28 @@ the SDK's traps (see the so-arm100 robot notes):
 
 from __future__ import annotations
 
-import errno
-import os
-import select
-import stat
 import termios
-from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import scservo_sdk as sdk
 import serial
-from serial.tools import list_ports
 
 from arena.feetech import registers as reg
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.servo.interface import BusError, ServoFamily, SyncReadResult, Telemetry
+from arena.servo.ports import DEFAULT_TIMEOUT_MARGIN, PortFixes, port_error
 
 # USB ids of the serial adapters seen on SO-100 arms.
 ADAPTERS: dict[tuple[int, int], str] = {(0x1A86, 0x7523): "CH340", (0x1A86, 0x55D3): "CH343"}
-DEFAULT_TIMEOUT_MARGIN = 0.010  # seconds on top of the wire time before a reply is missing
 
 
-class BusError(ArenaError):
-    """The bus itself failed (port gone, unreadable): the driver closes it and reconnects."""
+class ArenaPort(PortFixes, sdk.PortHandler):  # type: ignore[misc]
+    """The SDK's port with the traps fixed (`PortFixes`). Public for `sim_pty`, whose paced
+    port is this one waiting also for the simulator."""
 
 
-@dataclass
-class SyncReadResult:
-    """What a sync read got back: data and error byte per servo that answered, and the rest."""
-
-    data: dict[int, bytes] = field(default_factory=dict)
-    errors: dict[int, int] = field(default_factory=dict)
-    missing: list[int] = field(default_factory=list)
-    corrupt: list[int] = field(default_factory=list)
-
-
-class ArenaPort(sdk.PortHandler):  # type: ignore[misc]
-    """The SDK's port with the traps fixed (see the module docstring). Public for
-    `sim_pty`, whose paced port is this one waiting also for the simulator."""
-
-    def __init__(self, port_name: str, timeout_margin: float) -> None:
-        super().__init__(port_name)
-        self.margin_ms = timeout_margin * 1000.0
-
-    def setupPort(self, cflag_baud: int) -> bool:
-        # exclusive: a second program on the same adapter would corrupt both conversations.
-        self.ser = serial.Serial(
-            port=self.port_name, baudrate=self.baudrate, timeout=0, exclusive=True
-        )
-        self.is_open = True
-        self.ser.reset_input_buffer()
-        self.tx_time_per_byte = (1000.0 / self.baudrate) * 10.0
-        return True
-
-    def clearPort(self) -> None:
-        self.ser.reset_input_buffer()
-
-    def setPacketTimeout(self, packet_length: int) -> None:
-        self.packet_start_time = self.getCurrentTime()
-        self.packet_timeout = self.tx_time_per_byte * packet_length + self.margin_ms
-
-    def readPort(self, length: int) -> bytes:
-        data: bytes = self.ser.read(length)
-        if data:
-            return data
-        remaining_ms = self.packet_timeout - self.getTimeSinceStart()
-        if remaining_ms > 0:
-            select.select([self.ser.fileno()], [], [], remaining_ms / 1000.0)
-            data = self.ser.read(length)
-        return data
-
-
-class ServoBus:
+class FeetechBus:
     """Servos on one serial port. Not thread-safe: one thread owns it."""
 
     def __init__(
@@ -95,10 +42,11 @@ class ServoBus:
         baud: int = 1_000_000,
         *,
         timeout_margin: float = DEFAULT_TIMEOUT_MARGIN,
+        port_handler: ArenaPort | None = None,
     ) -> None:
         self.port_name = port
         self.baud = baud
-        self._port = ArenaPort(port, timeout_margin)
+        self._port = port_handler or ArenaPort(port, timeout_margin)
         self._handler: Any = None
 
     # -- port -------------------------------------------------------------------------------
@@ -216,6 +164,59 @@ class ServoBus:
         got = self.sync_read(register.address, register.size, servo_ids)
         return {sid: register.decode(data) for sid, data in got.data.items()}, got
 
+    # -- the family-neutral interface (`arena.servo.interface.ServoBus`) ----------------------
+
+    @property
+    def family(self) -> ServoFamily:
+        """Feetech's."""
+        return FEETECH
+
+    def prepare(self, servo_ids: Sequence[int]) -> None:
+        """Nothing to do: an STS3215 follows position goals as it comes."""
+
+    def read_positions(self, servo_ids: Sequence[int]) -> tuple[dict[int, int], SyncReadResult]:
+        """Present positions of several servos in one request; and what came back."""
+        return self.sync_read_register(reg.PRESENT_POSITION, servo_ids)
+
+    def read_telemetry(self, servo_ids: Sequence[int]) -> tuple[Telemetry, SyncReadResult]:
+        """Present_Position to Present_Temperature in one request, decoded."""
+        result = self.sync_read(reg.TELEMETRY_START, reg.TELEMETRY_SIZE, servo_ids)
+
+        def field_of(register: reg.Register, data: bytes) -> int:
+            start = register.address - reg.TELEMETRY_START
+            return register.decode(data[start : start + register.size])
+
+        data = {sid: d for sid, d in result.data.items() if len(d) >= reg.TELEMETRY_SIZE}
+        telemetry = Telemetry(
+            positions={sid: field_of(reg.PRESENT_POSITION, d) for sid, d in data.items()},
+            temperatures={sid: field_of(reg.PRESENT_TEMPERATURE, d) for sid, d in data.items()},
+            loads={sid: abs(field_of(reg.PRESENT_LOAD, d)) for sid, d in data.items()},
+            voltages={sid: field_of(reg.PRESENT_VOLTAGE, d) / 10 for sid, d in data.items()},
+        )
+        return telemetry, result
+
+    def write_goals(self, goals: Mapping[int, int]) -> None:
+        """Goal_Position of several servos in one packet."""
+        self.sync_write(reg.GOAL_POSITION, goals)
+
+    def set_torque(self, servo_ids: Sequence[int], *, on: bool) -> None:
+        """Torque_Enable of every servo named."""
+        self.sync_write(reg.TORQUE_ENABLE, dict.fromkeys(servo_ids, 1 if on else 0))
+
+    def set_speed(self, servo_ids: Sequence[int], steps_per_second: int) -> None:
+        """Goal_Velocity (steps/s) of every servo named."""
+        self.sync_write(reg.GOAL_VELOCITY, dict.fromkeys(servo_ids, steps_per_second))
+
+    def read_homings(self, servo_ids: Sequence[int]) -> dict[int, int]:
+        """Each servo's Homing_Offset register."""
+        return {sid: self.read(sid, reg.HOMING_OFFSET) for sid in servo_ids}
+
+    def write_homing(self, servo_id: int, value: int) -> None:
+        """Homing_Offset into EEPROM: the lock opened for the write and closed after."""
+        self.write(servo_id, reg.LOCK, 0)
+        self.write(servo_id, reg.HOMING_OFFSET, value)
+        self.write(servo_id, reg.LOCK, 1)
+
     def _call(self, method: Any, *args: Any) -> Any:
         try:
             return method(*args)
@@ -243,80 +244,30 @@ class ServoBus:
         )
 
 
-def port_error(port: str, exc: BaseException) -> BusError:
-    """A `BusError` saying what went wrong opening `port` and what to do about it."""
-    code = getattr(exc, "errno", None)
-    text = str(exc)
-    if code == errno.ENOENT or "No such file" in text:
-        return BusError(
-            ErrorCode.PORT_NOT_FOUND,
-            f"Serial port {port} does not exist: check that the servo adapter is plugged in "
-            "(ls /dev/ttyUSB* /dev/ttyACM*) or leave the port out to find it by USB id.",
-        )
-    if code in (errno.EACCES, errno.EPERM) or "Permission denied" in text:
-        return BusError(
-            ErrorCode.PORT_PERMISSION_DENIED,
-            f"No permission to open {port}: add your user to the dialout group "
-            "(sudo usermod -aG dialout $USER, then log in again) or run with access to it.",
-        )
-    if code == errno.EBUSY or "exclusively lock" in text or "busy" in text.lower():
-        return BusError(
-            ErrorCode.PORT_BUSY,
-            f"Serial port {port} is in use by another program (another Arena server, LeRobot, "
-            "a serial monitor): close it first.",
-        )
-    return BusError(ErrorCode.PORT_DISCONNECTED, f"Cannot open serial port {port}: {text}")
-
-
-def check_serial_device(port: str) -> None:
-    """Only serial devices: a REST client must not make the server open arbitrary files."""
-    try:
-        mode = os.stat(port).st_mode
-    except OSError as exc:
-        raise port_error(port, exc) from None
-    if not stat.S_ISCHR(mode):
-        raise ArenaError(ErrorCode.INVALID_CONFIG, f"{port} is not a serial device.")
-
-
-@dataclass(frozen=True, slots=True)
-class PortInfo:
-    """A serial port as the system lists it."""
-
-    device: str
-    vid: int | None = None
-    pid: int | None = None
-    description: str = ""
-
-
-def system_ports() -> list[PortInfo]:
-    """The serial ports on this machine."""
-    return [PortInfo(p.device, p.vid, p.pid, p.description or "") for p in list_ports.comports()]
-
-
-def find_adapter(ports: Iterable[PortInfo] | None = None) -> str:
-    """The one servo adapter's port (CH340/CH343 by USB id); a clear error for none or several."""
-    seen = list(system_ports() if ports is None else ports)
-    found = [p for p in seen if (p.vid, p.pid) in ADAPTERS]
-    if len(found) == 1:
-        return found[0].device
-    listing = (
-        ", ".join(
-            f"{p.device} ({p.vid:04x}:{p.pid:04x})"
-            if p.vid is not None and p.pid is not None
-            else p.device
-            for p in seen
-        )
-        or "none"
-    )
-    kinds = " or ".join(f"{name} {v:04x}:{p:04x}" for (v, p), name in ADAPTERS.items())
-    if not found:
-        raise ArenaError(
-            ErrorCode.PORT_NOT_FOUND,
-            f"No servo adapter ({kinds}) is plugged in; serial ports seen: {listing}. "
-            "Plug it in or give the port.",
-        )
-    raise ArenaError(
-        ErrorCode.PORT_NOT_FOUND,
-        f"Several servo adapters found ({', '.join(p.device for p in found)}); "
-        "say which one with the port setting.",
-    )
+#: Feetech's STS servos (the so-arm100's and the SO-101's STS3215).
+FEETECH = ServoFamily(
+    name="feetech",
+    models={"sts3215": reg.STS3215_MODEL},
+    default_model="sts3215",
+    default_baud=1_000_000,
+    adapters=ADAPTERS,
+    homing_sign=-1,  # present = actual - Homing_Offset
+    homing_limit=reg.HOMING_OFFSET_LIMIT,
+    wraps=True,
+    open_bus=FeetechBus,
+    port_class=ArenaPort,
+    lerobot_folders={
+        "so-101": {
+            "robots": ("so_follower", "so101_follower"),
+            "teleoperators": ("so_leader", "so101_leader"),
+        },
+        "so-arm100": {
+            "robots": ("so_follower", "so100_follower"),
+            "teleoperators": ("so_leader", "so100_leader"),
+        },
+        "*": {
+            "robots": ("so_follower", "so101_follower", "so100_follower"),
+            "teleoperators": ("so_leader", "so101_leader", "so100_leader"),
+        },
+    },
+)

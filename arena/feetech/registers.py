@@ -6,12 +6,13 @@ registers are little-endian; signed registers use sign-magnitude with the sign i
 
 from __future__ import annotations
 
-import enum
 from dataclasses import dataclass
 
-STEPS_PER_TURN = 4096
-CENTER_STEP = 2048
-MAX_STEP = STEPS_PER_TURN - 1
+from arena.servo.interface import CENTER_STEP as CENTER_STEP
+from arena.servo.interface import MAX_STEP as MAX_STEP
+from arena.servo.interface import STEPS_PER_TURN as STEPS_PER_TURN
+from arena.servo.interface import FaultBit
+
 STS3215_MODEL = 777
 BROADCAST_ID = 0xFE
 HOMING_OFFSET_LIMIT = 2047  # sign bit 11: magnitude fits in 11 bits
@@ -96,14 +97,8 @@ TELEMETRY_START = PRESENT_POSITION.address
 TELEMETRY_SIZE = PRESENT_TEMPERATURE.address + 1 - TELEMETRY_START
 
 
-class ErrorBit(enum.IntFlag):
-    """Bits of a status packet's error byte."""
-
-    VOLTAGE = 1
-    ANGLE = 2
-    OVERHEAT = 4
-    OVERCURRENT = 8
-    OVERLOAD = 32
+#: Bits of a status packet's error byte: the STS3215's are the neutral fault flags, bit for bit.
+ErrorBit = FaultBit
 
 
 def encode_value(value: int, size: int, sign_bit: int | None = None) -> bytes:

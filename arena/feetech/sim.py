@@ -2,7 +2,7 @@
 
 `SimBus.handle(packet, now)` takes one instruction packet and returns the status packets the
 servos would answer with, in order. Time is passed in (seconds, any monotonic origin), so the
-motion model is deterministic under test. `arena.feetech.sim_pty` puts a `SimBus` on a pty.
+motion model is deterministic under test. `arena.servo.sim_pty` puts a `SimBus` on a pty.
 """
 
 from __future__ import annotations
@@ -11,8 +11,10 @@ import math
 from dataclasses import dataclass, field
 
 from arena.feetech import registers as reg
-from arena.feetech.packets import Instruction, Packet, encode
+from arena.feetech.bus import FEETECH
+from arena.feetech.packets import Corrupt, Instruction, Packet, PacketParser, encode
 from arena.feetech.registers import ErrorBit
+from arena.servo.sim_pty import Reply, ServoFaults
 
 MAX_SPEED = 3400.0  # steps/s at Goal_Velocity 0 (about 300 deg/s, the STS3215 at 12 V)
 ACCELERATION_UNIT = 100.0  # steps/s^2 per unit of the Acceleration register
@@ -21,18 +23,6 @@ HEATING_C_PER_S = 4.0  # under full stall
 COOLING_PER_S = 0.05  # fraction of the excess over ambient lost each second
 OVERLOAD_AFTER_S = 1.0  # stall time before the overload protection trips
 FULL_LOAD = 1000
-
-
-@dataclass
-class ServoFaults:
-    """Faults a test can inject into one servo."""
-
-    silent: bool = False  # answers nothing
-    drop: int = 0  # answers nothing to this many more packets, then answers again
-    corrupt: bool = False  # answers with a bad checksum
-    late: float = 0.0  # seconds its answers are held back
-    error_bits: int = 0  # always set in its status packets
-    stalled: bool = False  # an obstacle: it cannot move, load and heat rise
 
 
 @dataclass
@@ -178,16 +168,10 @@ class SimServo:
         return int(bits)
 
 
-@dataclass(frozen=True, slots=True)
-class Reply:
-    """A status packet and how long after the request the servo holds it back."""
-
-    data: bytes
-    delay: float = 0.0
-
-
 class SimBus:
     """Servos on one bus, answering instruction packets."""
+
+    family = FEETECH
 
     def __init__(self, servo_ids: tuple[int, ...] = (1, 2, 3, 4, 5, 6)) -> None:
         self.servos = {sid: SimServo(sid) for sid in servo_ids}
@@ -206,8 +190,16 @@ class SimBus:
         for servo in self.servos.values():
             servo.advance(now)
 
-    def handle(self, packet: Packet, now: float) -> list[Reply]:
-        """Carry out one instruction; the replies, in the order the servos send them."""
+    def parser(self) -> PacketParser:
+        """A parser for the packets sent to this bus."""
+        return PacketParser()
+
+    def handle(self, packet: Packet | Corrupt, now: float) -> list[Reply]:
+        """Carry out one instruction; the replies, in the order the servos send them. A frame
+        with a bad checksum is counted and gets no answer."""
+        if isinstance(packet, Corrupt):
+            self.corrupt_requests += 1
+            return []
         self.handled += 1
         self._now = now
         self.advance(now)
@@ -277,7 +269,7 @@ class SimBus:
         if faults.corrupt:
             frame = frame[:-1] + bytes(((frame[-1] + 1) & 0xFF,))
         delay = faults.late + servo.peek(reg.RETURN_DELAY) * 2e-6
-        return Reply(frame, delay)
+        return Reply(frame, delay, late=faults.late > 0)
 
 
 _REGISTER_AT: dict[int, reg.Register] = {

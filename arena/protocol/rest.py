@@ -75,7 +75,8 @@ class UsbSlaveBody(
     omit_defaults=True,
     forbid_unknown_fields=True,
 ):
-    """An arm on a Feetech servo bus. No `port`: find the adapter by USB id.
+    """An arm on a servo bus (its family the robot type's). No `port`: find the adapter by USB
+    id; no `baudRate`: the robot type's.
 
     `estop`: what the servos do on an e-stop, `hold` (torque kept, goal = present) or
     `torque-off`. `calibration`: the calibration's name (default: the robot's id).
@@ -84,7 +85,7 @@ class UsbSlaveBody(
     """
 
     port: str | None = None
-    baudRate: int = 1_000_000
+    baudRate: Annotated[int, msgspec.Meta(gt=0)] | None = None
     rate: Annotated[float, msgspec.Meta(gt=0, le=2000)] = 250.0
     estop: Literal["hold", "torque-off"] = "hold"
     calibration: CalibrationName | None = None
@@ -198,7 +199,8 @@ class UsbMasterBody(
     omit_defaults=True,
     forbid_unknown_fields=True,
 ):
-    """A leader arm on a Feetech servo bus, moved by hand (torque stays off).
+    """A leader arm on a servo bus (its family the robot type's), moved by hand (torque stays
+    off). No `baudRate`: the robot type's.
 
     `rate`: Hz at which it is read; `deadband`: degrees a joint must move before a new command
     goes out; `calibration`: the leader's calibration name (default: `<robot id>-leader`);
@@ -206,7 +208,7 @@ class UsbMasterBody(
     """
 
     port: str | None = None
-    baudRate: int = 1_000_000
+    baudRate: Annotated[int, msgspec.Meta(gt=0)] | None = None
     rate: Annotated[float, msgspec.Meta(gt=0, le=2000)] = 250.0
     deadband: Annotated[float, msgspec.Meta(ge=0, le=10)] = 0.5
     calibration: CalibrationName | None = None

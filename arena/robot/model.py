@@ -65,6 +65,8 @@ class JointSpec:
     #: "deg", or "percent": 0 is the URDF's lower limit, 100 its upper (`span` radians apart).
     unit: str = "deg"
     span: float = 0.0  # URDF radians from lower to upper limit (percent joints)
+    #: The servo's model name in its bus family (`[bus] family`); "" for the family's default.
+    servo_model: str = ""
 
     @property
     def urdf_name(self) -> str:
@@ -93,6 +95,15 @@ class JointSpec:
         return min(self.upper, max(self.lower, degrees))
 
 
+@dataclass(frozen=True, slots=True)
+class BusSpec:
+    """The robot type's servo bus, by name only: which family of servos (`feetech`,
+    `dynamixel`: the drivers know what they are) and its default baud rate (None: the family's)."""
+
+    family: str = "feetech"
+    baud_rate: int | None = None
+
+
 @dataclass(frozen=True)
 class RobotModel:
     """Everything Arena knows about a robot type: joints in servo order, safety, URDF."""
@@ -104,6 +115,7 @@ class RobotModel:
     urdf_path: Path
     #: Where the arm may go (the collision guard's floor and keep-out boxes).
     workspace: Workspace = field(default_factory=Workspace)
+    bus: BusSpec = field(default_factory=BusSpec)
 
     _by_name: dict[str, JointSpec] = field(init=False, repr=False, compare=False)
 
@@ -179,6 +191,10 @@ def _load_from_folder(folder: Path) -> RobotModel:
         workspace = workspace_from_json(config.get("workspace", {}))
     except ValueError as exc:
         raise bad(f"invalid [workspace]: {exc}") from exc
+    try:
+        bus = _bus_spec(config.get("bus", {}))
+    except (TypeError, ValueError) as exc:
+        raise bad(f"invalid [bus]: {exc}") from exc
     names = [j.name for j in joints]
     every_name = [n for j in joints for n in {x.lower() for x in (j.name, *j.aliases)}]
     if len(set(every_name)) != len(every_name):
@@ -190,7 +206,18 @@ def _load_from_folder(folder: Path) -> RobotModel:
         safety=safety,
         urdf_path=urdf_path,
         workspace=workspace,
+        bus=bus,
     )
+
+
+def _bus_spec(section: dict[str, Any]) -> BusSpec:
+    family = section.get("family", "feetech")
+    baud = section.get("baud_rate")
+    if not isinstance(family, str) or not family:
+        raise ValueError("family must be a name such as 'feetech' or 'dynamixel'")
+    if baud is not None and (not isinstance(baud, int) or baud <= 0):
+        raise ValueError("baud_rate must be a positive integer")
+    return BusSpec(family=family, baud_rate=baud)
 
 
 @dataclass(frozen=True, slots=True)
@@ -274,4 +301,5 @@ def _joint_spec(entry: dict[str, Any], urdf: dict[str, _UrdfJoint], bad: Any) ->
         urdf_joint="" if urdf_joint == name else urdf_joint,
         unit=unit,
         span=span,
+        servo_model=str(entry.get("servo_model", "")),
     )

@@ -13,11 +13,11 @@ from typing import Any, Protocol
 import msgspec
 from quart import Blueprint, current_app, request
 
-from arena.feetech.calibration import Calibration
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import CalibrationBody
 from arena.robot.safety import Mode
 from arena.server.base import ArenaApp, read_body
+from arena.servo.calibration import Calibration
 
 blueprint = Blueprint("calibration", __name__)
 

@@ -13,9 +13,8 @@ from arena.drivers.config import RemoteLinkConfig, UsbMasterConfig, UsbSlaveConf
 from arena.drivers.mock_slave import MockSlave, MockSlaveConfig
 from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import demo_sequences, get_sequence
+from arena.drivers.servo_arm import family_of
 from arena.extras import install_line
-from arena.feetech.lerobot_calibration import is_lerobot_reference
-from arena.feetech.lerobot_calibration import resolve as resolve_lerobot
 from arena.policy.master import CameraFrames, PolicyMaster, PolicySettings, Shot
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import (
@@ -39,6 +38,8 @@ from arena.robot.handle import Robot
 from arena.robot.links import MasterDriver, SlaveDriver
 from arena.robot.model import RobotModel
 from arena.sensors.camera import Cameras
+from arena.servo.lerobot_calibration import is_lerobot_reference
+from arena.servo.lerobot_calibration import resolve as resolve_lerobot
 
 
 async def attach_rest_master(robot: Robot, driver: MasterDriver) -> str:
@@ -59,7 +60,7 @@ def _calibration_file(
 ) -> Path:
     """`folder/<name>.json`, or the LeRobot file a path or `lerobot:ID` names."""
     if name is not None and is_lerobot_reference(name):
-        return resolve_lerobot(name, model.robot_type, leader=leader)
+        return resolve_lerobot(name, model.robot_type, family_of(model), leader=leader)
     return (folder or Path("calibration")) / f"{name or robot_id}.json"
 
 

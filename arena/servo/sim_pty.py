@@ -1,4 +1,5 @@
-"""A `SimBus` on a pseudo-terminal, so the real servo SDK can talk to it.
+"""A simulated bus (either family's `SimBus`) on a pseudo-terminal, so the real servo SDKs (and
+LeRobot's buses on them) can talk to it.
 
 The bus runs in its own thread. Its port is the pty's slave side, reached through a stable
 symlink (`link`) that survives `unplug()` / `plug()`: a test can make the bus disappear and
@@ -6,9 +7,9 @@ come back under the same path, as a USB adapter does.
 
 The bus is a thread of the test's own process: on a loaded machine it can be kept off the CPU
 for longer than a driver waits for a reply, and a healthy servo would look silent. `servo_bus()`
-gives a `ServoBus` whose reply timeout also waits until the simulator has dealt with every byte
-sent to it and every reply byte it wrote has arrived: only a servo silent or late on purpose
-(`ServoFaults`) times out, however slow the machine.
+gives a bus of the simulator's family whose reply timeout also waits until the simulator has
+dealt with every byte sent to it and every reply byte it wrote has arrived: only a servo silent
+or late on purpose (`ServoFaults`) times out, however slow the machine.
 """
 
 from __future__ import annotations
@@ -20,17 +21,60 @@ import threading
 import time
 import tty
 from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
-from arena.feetech.bus import ArenaPort, ServoBus
-from arena.feetech.packets import Corrupt, PacketParser
-from arena.feetech.sim import SimBus
+from arena.servo.interface import ServoBus, ServoFamily
 
 BITS_PER_BYTE = 10  # 8N1: start bit, 8 data bits, stop bit
 #: A `servo_bus()` reply still owed after its timeout by this much (seconds) times out anyway:
 #: the simulator is stuck, and a test must fail rather than hang.
 OWED_PATIENCE = 30.0
+
+
+@dataclass
+class ServoFaults:
+    """Faults a test can inject into one simulated servo."""
+
+    silent: bool = False  # answers nothing
+    drop: int = 0  # answers nothing to this many more packets, then answers again
+    corrupt: bool = False  # answers with a bad checksum
+    late: float = 0.0  # seconds its answers are held back
+    error_bits: int = 0  # always set in its status packets (FaultBit flags)
+    stalled: bool = False  # an obstacle: it cannot move, load and heat rise
+
+
+@dataclass(frozen=True, slots=True)
+class Reply:
+    """A status packet, how long after the request the servo holds it back, and whether that
+    is a fault (`ServoFaults.late`: a reader may time out) or its normal return delay (a
+    reader waits for it, as for any reply the simulator owes)."""
+
+    data: bytes
+    delay: float = 0.0
+    late: bool = False
+
+
+class FrameParser(Protocol):
+    """A family's incremental packet parser: bytes in, whole frames out (corrupt ones too)."""
+
+    def feed(self, data: bytes) -> list[Any]: ...
+
+    def clear(self) -> None: ...
+
+
+class SimulatedBus(Protocol):
+    """What a family's simulated bus offers `PtySimBus`."""
+
+    family: ServoFamily
+    servos: dict[int, Any]
+
+    def parser(self) -> FrameParser:
+        """A new parser for the instruction packets sent to this bus."""
+
+    def handle(self, frame: Any, now: float) -> list[Reply]:
+        """Carry out one frame (a corrupt one is counted and dropped); the replies in order."""
 
 
 class PtySimBus:
@@ -43,13 +87,13 @@ class PtySimBus:
     def __init__(
         self,
         link: Path,
-        bus: SimBus | None = None,
+        bus: SimulatedBus,
         *,
         wire_time: bool = False,
         baud: int = 1_000_000,
     ) -> None:
         self.link = link
-        self.bus = bus or SimBus()
+        self.bus = bus
         self.wire_time = wire_time
         self.baud = baud
         self.lock = threading.Lock()  # held while the bus handles a packet: tests poke safely
@@ -121,19 +165,23 @@ class PtySimBus:
         self.close()
 
     def servo_bus(self, timeout_margin: float) -> ServoBus:
-        """A `ServoBus` on this port whose reply timeout waits for the simulator too (see the
-        module docstring); `timeout_margin` as `ServoBus` takes it."""
-        bus = ServoBus(str(self.link), self.baud, timeout_margin=timeout_margin)
-        bus._port = _PacedPort(str(self.link), timeout_margin, self)
-        return bus
+        """A bus of the simulator's family on this port whose reply timeout waits for the
+        simulator too (see the module docstring); `timeout_margin` as the bus takes it."""
+        return self.bus.family.open_bus(
+            str(self.link),
+            self.baud,
+            timeout_margin=timeout_margin,
+            port_handler=self.paced_port(timeout_margin),
+        )
 
     def paced_port(self, timeout_margin: float) -> Any:
         """An SDK port handler on this port paced as `servo_bus`'s is, for other programs'
-        clients of the bus (LeRobot's `FeetechMotorsBus` in tests)."""
-        return _PacedPort(str(self.link), timeout_margin, self)
+        clients of the bus (LeRobot's `FeetechMotorsBus` and `DynamixelMotorsBus` in tests)."""
+        paced = _paced_class(self.bus.family.port_class)
+        return paced(str(self.link), timeout_margin, self)
 
     @contextlib.contextmanager
-    def paused(self) -> Iterator[SimBus]:
+    def paused(self) -> Iterator[Any]:
         """Hold the bus still (no packet handled) while a test changes it."""
         with self.lock:
             yield self.bus
@@ -141,7 +189,7 @@ class PtySimBus:
     # -- serving ------------------------------------------------------------------------------
 
     def _serve(self) -> None:
-        parser = PacketParser()
+        parser = self.bus.parser()
         while not self._stop:
             master = self._master
             watch = [self._wake_r] + ([master] if master is not None else [])
@@ -162,16 +210,12 @@ class PtySimBus:
             started = time.monotonic()
             taken = False
             for frame in parser.feed(data):
-                if isinstance(frame, Corrupt):
-                    with self.lock:
-                        self.bus.corrupt_requests += 1
-                    continue
                 with self.lock:
                     replies = self.bus.handle(frame, time.monotonic())
                 self.requests += 1
                 out = b"".join(reply.data for reply in replies)
                 delay = max((reply.delay for reply in replies), default=0.0)
-                if delay and not taken:
+                if any(reply.late for reply in replies) and not taken:
                     self.taken += len(data)  # the servo holds its reply back on purpose
                     taken = True
                 if self.wire_time:
@@ -187,16 +231,20 @@ class PtySimBus:
                 self.taken += len(data)
 
 
-class _PacedPort(ArenaPort):
-    """The driver's port, with a timeout that also waits for the simulator (`servo_bus`)."""
+class _Paced:
+    """Mixed in before a family's port class: a timeout that also waits for the simulator
+    (`servo_bus`)."""
+
+    ser: Any
+    packet_timeout: float
 
     def __init__(self, port_name: str, timeout_margin: float, sim: PtySimBus) -> None:
-        super().__init__(port_name, timeout_margin)
+        super().__init__(port_name, timeout_margin)  # type: ignore[call-arg]
         self.sim = sim
         self.received = 0
 
     def setupPort(self, cflag_baud: int) -> bool:
-        opened = super().setupPort(cflag_baud)
+        opened: bool = super().setupPort(cflag_baud)  # type: ignore[misc]
         self.received = self.sim.given  # replies to an earlier client are not owed to this one
         return opened
 
@@ -210,7 +258,7 @@ class _PacedPort(ArenaPort):
             self.received += len(self.ser.read(waiting))
 
     def readPort(self, length: int) -> bytes:
-        data = super().readPort(length)
+        data: bytes = super().readPort(length)  # type: ignore[misc]
         if not data and self._owed():
             # Past the wall-clock deadline, and the bus has not answered yet: wait for it
             # without spinning (a spinning reader would take the CPU the bus needs).
@@ -220,14 +268,26 @@ class _PacedPort(ArenaPort):
         return data
 
     def isPacketTimeout(self) -> bool:
-        if self._owed() and self.getTimeSinceStart() < self.packet_timeout + OWED_PATIENCE * 1e3:
+        since: float = self.getTimeSinceStart()  # type: ignore[attr-defined]
+        if self._owed() and since < self.packet_timeout + OWED_PATIENCE * 1e3:
             return False
-        timed_out: bool = super().isPacketTimeout()
+        timed_out: bool = super().isPacketTimeout()  # type: ignore[misc]
         return timed_out
 
     def _owed(self) -> bool:
         sim = self.sim
         return sim.taken < sim.sent or self.received < sim.given
+
+
+_PACED: dict[str, type[Any]] = {}  # by the port class's qualified name
+
+
+def _paced_class(port_class: type[Any]) -> type[Any]:
+    """The family's port class, paced (`_Paced` mixed in before it); one class per family."""
+    key = f"{port_class.__module__}.{port_class.__qualname__}"
+    if key not in _PACED:
+        _PACED[key] = type(f"Paced{port_class.__name__}", (_Paced, port_class), {})
+    return _PACED[key]
 
 
 def _sleep_until(deadline: float) -> None:

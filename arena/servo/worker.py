@@ -23,11 +23,10 @@ from typing import Protocol, TypeVar
 
 import msgspec
 
-from arena.feetech import registers as reg
-from arena.feetech.bus import BusError, ServoBus, SyncReadResult
-from arena.feetech.calibration import Calibration, homing_offset_register
-from arena.feetech.health import HealthLimits, HealthMonitor, ServoFault
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.servo.calibration import Calibration, homing_offset_register
+from arena.servo.health import HealthLimits, HealthMonitor, ServoFault
+from arena.servo.interface import MAX_STEP, BusError, ServoBus
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)
@@ -76,9 +75,14 @@ class WorkerSettings:
     rate: float = 100.0
     telemetry_rate: float = 10.0
     reconnect_interval: float = 0.5
-    speed_limit: int | None = None  # Goal_Velocity (steps/s) set at connect
+    speed_limit: int | None = None  # the servos' speed (steps/s) set at connect
     torque_on_connect: bool = True  # False for a leader arm, moved by hand
     limits: HealthLimits = field(default_factory=HealthLimits)
+    #: The model number each servo must answer a ping with (by id), and the model's name.
+    models: dict[int, tuple[int, str]] = field(default_factory=dict)
+    #: Refuse to connect (before any torque) when a servo reads outside one turn: Arena's own
+    #: calibration on servos that count turns (specs/servo-bus.md).
+    one_turn: bool = False
 
 
 @dataclass
@@ -257,10 +261,22 @@ class BusWorker:
         it applied."""
         for servo_id in self.servo_ids:
             model = _ping(bus, servo_id)
-            if model != reg.STS3215_MODEL:
+            expected = self.settings.models.get(servo_id)
+            if expected is not None and model != expected[0]:
                 raise ArenaError(
                     ErrorCode.SERVO_WRONG_MODEL,
-                    f"Servo {servo_id} is model {model}, not an STS3215 ({reg.STS3215_MODEL}).",
+                    f"Servo {servo_id} is model {model}, not an {expected[1]} ({expected[0]}).",
+                )
+        bus.prepare(self.servo_ids)
+        if self.settings.one_turn:
+            present = read_positions(bus, self.servo_ids)
+            outside = {sid: step for sid, step in present.items() if not 0 <= step <= MAX_STEP}
+            if outside:
+                raise ArenaError(
+                    ErrorCode.INVALID_CONFIG,
+                    f"Servo(s) {outside} read outside one turn (0..{MAX_STEP}): this arm keeps "
+                    "a calibration in its servos (LeRobot's?). Attach it with that calibration "
+                    'file ("calibration": "lerobot:ID" or a path).',
                 )
         self.clear_goals()  # goals from before the connection are stale
         torque = self.torque_wanted
@@ -280,18 +296,19 @@ class BusWorker:
         with self._lock:
             goals, self._goals = self._goals, None
         if goals:
-            self._bus.sync_write(reg.GOAL_POSITION, goals)
+            self._bus.write_goals(goals)
         if telemetry:
-            result = self._bus.sync_read(reg.TELEMETRY_START, reg.TELEMETRY_SIZE, self.servo_ids)
-            reading = _telemetry_reading(result)
-        else:
-            result = self._bus.sync_read(
-                reg.PRESENT_POSITION.address, reg.PRESENT_POSITION.size, self.servo_ids
-            )
+            values, result = self._bus.read_telemetry(self.servo_ids)
             reading = Reading(
-                {sid: reg.PRESENT_POSITION.decode(d) for sid, d in result.data.items()},
+                values.positions,
                 time.monotonic(),
+                temperatures=values.temperatures,
+                loads=values.loads,
+                voltages=values.voltages,
             )
+        else:
+            positions, result = self._bus.read_positions(self.servo_ids)
+            reading = Reading(positions, time.monotonic())
         faults = self.health.on_read(result)
         if reading.temperatures:
             faults += self.health.on_temperatures(reading.temperatures)
@@ -339,24 +356,9 @@ class BusWorker:
         self._bus = None
 
 
-def _telemetry_reading(result: SyncReadResult) -> Reading:
-    def field_of(register: reg.Register, data: bytes) -> int:
-        start = register.address - reg.TELEMETRY_START
-        return register.decode(data[start : start + register.size])
-
-    data = {sid: d for sid, d in result.data.items() if len(d) >= reg.TELEMETRY_SIZE}
-    return Reading(
-        {sid: field_of(reg.PRESENT_POSITION, d) for sid, d in data.items()},
-        time.monotonic(),
-        temperatures={sid: field_of(reg.PRESENT_TEMPERATURE, d) for sid, d in data.items()},
-        loads={sid: field_of(reg.PRESENT_LOAD, d) for sid, d in data.items()},
-        voltages={sid: field_of(reg.PRESENT_VOLTAGE, d) / 10 for sid, d in data.items()},
-    )
-
-
 def read_positions(bus: ServoBus, servo_ids: Sequence[int]) -> dict[int, int]:
     """Present positions of every servo; `SERVO_TIMEOUT` naming any that did not answer."""
-    positions, result = bus.sync_read_register(reg.PRESENT_POSITION, servo_ids)
+    positions, result = bus.read_positions(servo_ids)
     if result.missing or result.corrupt:
         silent = sorted(result.missing + result.corrupt)
         raise ArenaError(
@@ -367,7 +369,7 @@ def read_positions(bus: ServoBus, servo_ids: Sequence[int]) -> dict[int, int]:
 
 def set_torque(bus: ServoBus, servo_ids: Sequence[int], *, on: bool) -> None:
     """Torque on or off for every servo."""
-    bus.sync_write(reg.TORQUE_ENABLE, dict.fromkeys(servo_ids, 1 if on else 0))
+    bus.set_torque(servo_ids, on=on)
 
 
 def hold_here(
@@ -375,9 +377,9 @@ def hold_here(
 ) -> dict[int, int]:
     """Goal = present for every servo, then torque as asked: nothing jumps. Returns the pose."""
     present = read_positions(bus, servo_ids)
-    bus.sync_write(reg.GOAL_POSITION, present)
+    bus.write_goals(present)
     if speed is not None:
-        bus.sync_write(reg.GOAL_VELOCITY, dict.fromkeys(servo_ids, speed))
+        bus.set_speed(servo_ids, speed)
     set_torque(bus, servo_ids, on=torque)
     return present
 
@@ -390,17 +392,15 @@ def store_offsets_in_servos(
     The servo then reports calibrated steps itself, and the returned calibration carries zero
     offsets. Every offset is checked against the register's range before anything is written.
     """
+    ids = [j.servo_id for j in calibration.joints.values() if j.servo_id in servo_ids]
+    current = bus.read_homings(ids)
     wanted = {
-        joint.servo_id: homing_offset_register(
-            joint.offset, bus.read(joint.servo_id, reg.HOMING_OFFSET)
-        )
+        joint.servo_id: homing_offset_register(joint.offset, current[joint.servo_id], bus.family)
         for joint in calibration.joints.values()
-        if joint.servo_id in servo_ids
+        if joint.servo_id in current
     }
     for servo_id, homing in wanted.items():
-        bus.write(servo_id, reg.LOCK, 0)
-        bus.write(servo_id, reg.HOMING_OFFSET, homing)
-        bus.write(servo_id, reg.LOCK, 1)
+        bus.write_homing(servo_id, homing)
     joints = {
         name: msgspec.structs.replace(joint, offset=0) if joint.servo_id in wanted else joint
         for name, joint in calibration.joints.items()

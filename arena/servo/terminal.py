@@ -8,14 +8,13 @@ import threading
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
-from arena.feetech.bus import ServoBus
-from arena.feetech.calibration import Calibration, RangeCapture, calibrate_rest
-from arena.feetech.lerobot_calibration import read_register_homings, save_lerobot
-from arena.feetech.sim import SimBus
-from arena.feetech.sim_pty import PtySimBus
-from arena.feetech.worker import read_positions, set_torque, store_offsets_in_servos
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.robot.model import RobotModel
+from arena.servo.calibration import Calibration, RangeCapture, calibrate_rest
+from arena.servo.interface import ServoBus
+from arena.servo.lerobot_calibration import read_register_homings, save_lerobot
+from arena.servo.sim_pty import PtySimBus, SimulatedBus
+from arena.servo.worker import read_positions, set_torque, store_offsets_in_servos
 
 #: Reads a calibration makes before it gives up: a person is waiting, not an arm in motion,
 #: so one late or garbled reply (a busy computer, a noisy cable) is worth asking again.
@@ -92,7 +91,7 @@ def calibrate_interactively(
         homings = read_register_homings(bus, ids)
         say("     Offsets written to the servos' Homing_Offset registers.")
     if lerobot_model is not None:
-        save_lerobot(calibration, lerobot_model, homings, out)
+        save_lerobot(calibration, lerobot_model, homings, bus.family, out, rest_present=raw)
     else:
         calibration.save(out)
     say(f"Saved {out}:")
@@ -107,16 +106,16 @@ def calibrate_interactively(
     return calibration
 
 
-def serve_sim_bus(link: Path, servo_ids: tuple[int, ...], wire_time: bool, baud: int) -> None:
+def serve_sim_bus(link: Path, bus: SimulatedBus, wire_time: bool, baud: int) -> None:
     """Run a simulated bus at `link` until SIGINT or SIGTERM."""
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    with PtySimBus(link, SimBus(servo_ids), wire_time=wire_time, baud=baud) as sim:
+    with PtySimBus(link, bus, wire_time=wire_time, baud=baud) as sim:
         timing = f", wire time at {baud} baud" if wire_time else ""
         print(
-            f"simulated STS3215 bus: servos {','.join(map(str, servo_ids))} on {sim.link} "
-            f"-> {sim.link.resolve()}{timing}",
+            f"simulated {bus.family.name} bus: servos {','.join(map(str, bus.servos))} on "
+            f"{sim.link} -> {sim.link.resolve()}{timing}",
             flush=True,
         )
         stop.wait()

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import msgspec
 
-from arena.feetech.registers import CENTER_STEP, HOMING_OFFSET_LIMIT, STEPS_PER_TURN
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.servo.interface import CENTER_STEP, STEPS_PER_TURN, ServoFamily
 
 DEGREES_PER_STEP = 360.0 / STEPS_PER_TURN
 
@@ -113,18 +113,27 @@ def offset_for(raw: int, rest_degrees: float, direction: int = 1) -> int:
     return offset - STEPS_PER_TURN if offset >= STEPS_PER_TURN // 2 else offset
 
 
-def homing_offset_register(offset: int, current: int = 0) -> int:
+def homing_offset_register(offset: int, current: int, family: ServoFamily) -> int:
     """The Homing_Offset value that makes the servo itself apply `offset` on top of `current`.
 
-    The servo reports `present = actual - homing`, so adding `offset` to what it reports means
-    homing = current - offset. The register holds +-2047 (sign bit 11); an offset that would
-    leave that range cannot go into the servo.
+    The servo reports `present = actual + sign * homing` (Feetech: sign -1, Dynamixel: +1), so
+    adding `offset` to what it reports means homing = current + sign * offset. An offset that
+    would leave the register's range (Feetech: +-2047) cannot go into the servo, nor any into
+    a servo that counts turns (Dynamixel), whose present position would then leave one turn.
     """
-    homing = current - offset
-    if abs(homing) > HOMING_OFFSET_LIMIT:
+    if not family.wraps:
+        # Its present position would leave one turn (it counts turns), which Arena's own
+        # calibration does not read: the offset stays in the file.
         raise ArenaError(
             ErrorCode.INVALID_CONFIG,
-            f"Offset {offset} is outside the Homing_Offset register's +-{HOMING_OFFSET_LIMIT}; "
+            f"{family.name} servos count turns: their offsets stay in the calibration file "
+            "(leave writeHoming out).",
+        )
+    homing = current + family.homing_sign * offset
+    if abs(homing) > family.homing_limit:
+        raise ArenaError(
+            ErrorCode.INVALID_CONFIG,
+            f"Offset {offset} is outside the Homing_Offset register's +-{family.homing_limit}; "
             "keep it in the calibration file instead.",
         )
     return homing

@@ -9,26 +9,25 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 
-from arena.feetech.bus import SyncReadResult
-from arena.feetech.registers import ErrorBit
 from arena.protocol.errors import ErrorCode, Severity
+from arena.servo.interface import FaultBit, SyncReadResult
 
 # Status error bits -> (code, severity, what it means). Overheat, overload and over-current
 # are critical: the servo protects itself by dropping torque, so the arm is no longer held.
-ERROR_BITS: dict[ErrorBit, tuple[ErrorCode, Severity, str]] = {
-    ErrorBit.OVERHEAT: (ErrorCode.SERVO_OVERHEAT, Severity.CRITICAL, "is overheating"),
-    ErrorBit.OVERLOAD: (ErrorCode.SERVO_OVERLOAD, Severity.CRITICAL, "is overloaded"),
-    ErrorBit.OVERCURRENT: (
+ERROR_BITS: dict[FaultBit, tuple[ErrorCode, Severity, str]] = {
+    FaultBit.OVERHEAT: (ErrorCode.SERVO_OVERHEAT, Severity.CRITICAL, "is overheating"),
+    FaultBit.OVERLOAD: (ErrorCode.SERVO_OVERLOAD, Severity.CRITICAL, "is overloaded"),
+    FaultBit.OVERCURRENT: (
         ErrorCode.SERVO_OVERCURRENT,
         Severity.CRITICAL,
         "draws too much current",
     ),
-    ErrorBit.VOLTAGE: (
+    FaultBit.VOLTAGE: (
         ErrorCode.SERVO_VOLTAGE,
         Severity.ERROR,
         "has its supply voltage out of range",
     ),
-    ErrorBit.ANGLE: (ErrorCode.SERVO_ANGLE, Severity.ERROR, "reports a position sensor error"),
+    FaultBit.ANGLE: (ErrorCode.SERVO_ANGLE, Severity.ERROR, "reports a position sensor error"),
 }
 
 
@@ -100,7 +99,7 @@ class HealthMonitor:
             self._misses[servo_id] = 0
             self._active.discard((ErrorCode.SERVO_TIMEOUT, servo_id, ""))
             self._active.discard((ErrorCode.SERVO_CORRUPT, servo_id, ""))
-            bits = ErrorBit(result.errors.get(servo_id, 0))
+            bits = FaultBit(result.errors.get(servo_id, 0))
             for bit, (code, severity, what) in ERROR_BITS.items():
                 faults += self._edge(
                     bool(bits & bit), code, severity, servo_id, f"Servo {servo_id} {what}."

@@ -17,30 +17,14 @@ from typing import Any
 
 import msgspec
 
-from arena.feetech.bus import ServoBus
-from arena.feetech.calibration import DEGREES_PER_STEP, Calibration, JointCalibration
-from arena.feetech.lerobot_format import MAX_RES, LeRobotJoint, LeRobotMotor
-from arena.feetech.registers import CENTER_STEP, HOMING_OFFSET, MAX_STEP, STEPS_PER_TURN
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.robot.model import PERCENT, RobotModel
+from arena.servo.calibration import DEGREES_PER_STEP, Calibration, JointCalibration
+from arena.servo.interface import CENTER_STEP, MAX_STEP, STEPS_PER_TURN, ServoBus, ServoFamily
+from arena.servo.lerobot_format import MAX_RES, LeRobotJoint, LeRobotMotor
 
 #: The prefix of a calibration value naming a file in LeRobot's own folder by its arm id.
 LEROBOT_PREFIX = "lerobot:"
-#: LeRobot's folder names per robot type, newest first (`so_follower` since LeRobot 0.4.3).
-FOLDER_NAMES: dict[str, dict[str, tuple[str, ...]]] = {
-    "so-101": {
-        "robots": ("so_follower", "so101_follower"),
-        "teleoperators": ("so_leader", "so101_leader"),
-    },
-    "so-arm100": {
-        "robots": ("so_follower", "so100_follower"),
-        "teleoperators": ("so_leader", "so100_leader"),
-    },
-}
-_ANY_SO = {
-    "robots": ("so_follower", "so101_follower", "so100_follower"),
-    "teleoperators": ("so_leader", "so101_leader", "so100_leader"),
-}
 
 
 def is_lerobot_reference(value: str | None) -> bool:
@@ -63,11 +47,16 @@ def lerobot_calibration_dir(env: Mapping[str, str] | None = None) -> Path:
 
 
 def resolve(
-    value: str, robot_type: str, *, leader: bool, env: Mapping[str, str] | None = None
+    value: str,
+    robot_type: str,
+    family: ServoFamily,
+    *,
+    leader: bool,
+    env: Mapping[str, str] | None = None,
 ) -> Path:
     """The file a LeRobot `calibration` value means; `lerobot:ID` is looked for under every
-    folder name LeRobot has used for this robot type. A missing file is an error saying where
-    it was looked for."""
+    folder name LeRobot has used for this robot type (`family.lerobot_folders`: the type's
+    own, else the family's `*`). A missing file is an error saying where it was looked for."""
     if not value.startswith(LEROBOT_PREFIX):
         path = Path(value).expanduser()
         if path.suffix != ".json":
@@ -84,7 +73,8 @@ def resolve(
         )
     kind = "teleoperators" if leader else "robots"
     root = lerobot_calibration_dir(env) / kind
-    tried = [root / name / f"{arm_id}.json" for name in FOLDER_NAMES.get(robot_type, _ANY_SO)[kind]]
+    folders = family.lerobot_folders.get(robot_type) or family.lerobot_folders.get("*", {})
+    tried = [root / name / f"{arm_id}.json" for name in folders.get(kind, ())]
     for path in tried:
         if path.is_file():
             return path
@@ -129,9 +119,11 @@ class LeRobotCalibration(Calibration, frozen=True, kw_only=True):
         return msgspec.structs.replace(self, lerobot=joints)
 
 
-def from_lerobot(data: Any, model: RobotModel, source: str) -> LeRobotCalibration:
-    """Check LeRobot's per-motor entries against `model` and build the calibration. Every
-    refusal names the motor and the value (`INVALID_CONFIG`)."""
+def from_lerobot(
+    data: Any, model: RobotModel, source: str, family: ServoFamily
+) -> LeRobotCalibration:
+    """Check LeRobot's per-motor entries against `model` (its servos of `family`) and build the
+    calibration. Every refusal names the motor and the value (`INVALID_CONFIG`)."""
 
     def refuse(why: str) -> ArenaError:
         return ArenaError(ErrorCode.INVALID_CONFIG, f"LeRobot calibration {source}: {why}.")
@@ -150,10 +142,16 @@ def from_lerobot(data: Any, model: RobotModel, source: str) -> LeRobotCalibratio
                 f"motor {motor_name!r} has id {motor.id}, but the {model.robot_type}'s "
                 f"{joint.name} is servo {joint.servo_id}"
             )
-        problem = motor.problem()
+        problem = motor.problem(family)
         if problem is not None:
             raise refuse(f"motor {motor_name!r}: {problem}")
-        joints[joint.name] = LeRobotJoint(motor=motor, percent=joint.unit == PERCENT)
+        joints[joint.name] = LeRobotJoint(
+            motor=motor,
+            percent=joint.unit == PERCENT,
+            homing_sign=family.homing_sign,
+            wraps=family.wraps,
+            drive_mode_applies=family.wraps,  # (LeRobot's Feetech bus applies it, not Dynamixel's)
+        )
     missing = [j.name for j in model.joints if j.name not in joints]
     if missing:
         raise refuse(f"no entry for {', '.join(missing)}")
@@ -167,7 +165,11 @@ def from_lerobot(data: Any, model: RobotModel, source: str) -> LeRobotCalibratio
 
 
 def to_lerobot(
-    calibration: Calibration, model: RobotModel, register_homings: Mapping[int, int]
+    calibration: Calibration,
+    model: RobotModel,
+    register_homings: Mapping[int, int],
+    family: ServoFamily,
+    rest_present: Mapping[int, int] | None = None,
 ) -> dict[str, dict[str, int]]:
     """An Arena calibration (`arena calibrate`: the rest pose is every joint at 0) in LeRobot's
     format, keyed by LeRobot's joint names, so that LeRobot reads the rest pose as 0.
@@ -178,7 +180,16 @@ def to_lerobot(
     about the rest pose, as wide as the captured range's wider side (or, when the joint was not
     swept, the robot type's limits), within the servo's steps. A 0-100 joint (a gripper) rests
     at 0, its range_min, and spans its captured range or else its URDF range.
+
+    A servo that counts turns (Dynamixel) reads the homing unwrapped, so its homing must put
+    the rest pose at exactly step 2048, not a turn away: `rest_present`, the Present_Position
+    each servo read at rest (by id), says where that is.
     """
+    if not family.wraps and rest_present is None:
+        raise ArenaError(
+            ErrorCode.INVALID_CONFIG,
+            f"LeRobot's format for {family.name} servos needs the rest pose's present positions.",
+        )
     out: dict[str, dict[str, int]] = {}
     for spec in model.joints:
         joint = calibration.joints.get(spec.name)
@@ -189,9 +200,15 @@ def to_lerobot(
                 ErrorCode.INVALID_CONFIG,
                 f"Joint {spec.name} runs reversed (direction -1): LeRobot's degrees cannot.",
             )
-        # Arena reads real = present + offset; the servo reports present = actual - homing:
-        # real = actual - (homing - offset), which is LeRobot's homing_offset.
-        homing = _wrapped(register_homings.get(spec.servo_id, 0) - joint.offset)
+        register = register_homings.get(spec.servo_id, 0)
+        if rest_present is None or family.wraps:
+            # Arena reads real = present + offset; the servo reports present = actual - homing:
+            # real = actual - (homing - offset), which is LeRobot's homing_offset.
+            homing = _wrapped(register + family.homing_sign * joint.offset)
+        else:
+            # present = actual + homing, unwrapped: LeRobot's present at rest is
+            # rest - register + homing, which must be 2048.
+            homing = register + CENTER_STEP - rest_present[spec.servo_id]
         low, high = joint.min_degrees, joint.max_degrees
         if spec.unit == PERCENT:
             if low is None or high is None:
@@ -221,19 +238,23 @@ def _wrapped(homing: int) -> int:
 
 
 def save_lerobot(
-    calibration: Calibration, model: RobotModel, register_homings: Mapping[int, int], path: Path
+    calibration: Calibration,
+    model: RobotModel,
+    register_homings: Mapping[int, int],
+    family: ServoFamily,
+    path: Path,
+    rest_present: Mapping[int, int] | None = None,
 ) -> None:
     """Write `calibration` in LeRobot's format (see `to_lerobot`), atomically."""
-    text = msgspec.json.format(
-        msgspec.json.encode(to_lerobot(calibration, model, register_homings)), indent=4
-    )
+    data = to_lerobot(calibration, model, register_homings, family, rest_present)
+    text = msgspec.json.format(msgspec.json.encode(data), indent=4)
     path.parent.mkdir(parents=True, exist_ok=True)
     temporary = path.with_suffix(path.suffix + ".tmp")
     temporary.write_bytes(text + b"\n")
     temporary.replace(path)
 
 
-def load_calibration(path: Path, model: RobotModel) -> Calibration:
+def load_calibration(path: Path, model: RobotModel, family: ServoFamily) -> Calibration:
     """Read a calibration file in either format: Arena's (it has `joints`) or LeRobot's."""
     try:
         data = msgspec.json.decode(path.read_bytes())
@@ -245,9 +266,9 @@ def load_calibration(path: Path, model: RobotModel) -> Calibration:
         ) from None
     if isinstance(data, dict) and isinstance(data.get("joints"), dict):
         return Calibration.load(path)
-    return from_lerobot(data, model, str(path))
+    return from_lerobot(data, model, str(path), family)
 
 
 def read_register_homings(bus: ServoBus, servo_ids: tuple[int, ...]) -> dict[int, int]:
     """Each servo's Homing_Offset register (runs in the bus thread)."""
-    return {sid: bus.read(sid, HOMING_OFFSET) for sid in servo_ids}
+    return bus.read_homings(servo_ids)

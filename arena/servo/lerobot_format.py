@@ -1,19 +1,21 @@
 """LeRobot's per-motor calibration and its arithmetic, exactly as LeRobot's `MotorsBus` does it.
 
 LeRobot stores, per motor, `id`, `drive_mode`, `homing_offset`, `range_min`, `range_max` (steps).
-The servo applies the homing itself (`present = actual - Homing_Offset`); LeRobot then reads, in
+The servo applies the homing itself (Feetech: `present = actual - Homing_Offset`, within one
+turn; Dynamixel: `present = actual + Homing_Offset`, counting turns); LeRobot then reads, in
 its degrees mode, `(present - mid) * 360 / (resolution - 1)` with `mid` the middle of the range
 (no clamping, no drive mode), and for a 0-100 joint (a gripper) the present position clamped
-into the range and scaled to 0..100 (inverted when `drive_mode` is 1). Pure: no bus, no files.
+into the range and scaled to 0..100 (inverted when `drive_mode` is 1, on Feetech servos: LeRobot
+leaves a Dynamixel's direction to its Drive_Mode register). Pure: no bus, no files.
 """
 
 from __future__ import annotations
 
 import msgspec
 
-from arena.feetech.registers import HOMING_OFFSET_LIMIT, MAX_STEP, STEPS_PER_TURN
+from arena.servo.interface import MAX_STEP, STEPS_PER_TURN, ServoFamily
 
-#: LeRobot's `max_res` for the STS3215: its resolution (4096) minus one.
+#: LeRobot's `max_res` for the STS3215 and the Dynamixel X series: resolution (4096) minus one.
 MAX_RES = STEPS_PER_TURN - 1
 
 
@@ -26,13 +28,13 @@ class LeRobotMotor(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
     range_min: int
     range_max: int
 
-    def problem(self) -> str | None:
-        """Why this entry cannot describe an STS3215 (None: it can)."""
+    def problem(self, family: ServoFamily) -> str | None:
+        """Why this entry cannot describe a servo of `family` (None: it can)."""
         if self.drive_mode not in (0, 1):
             return f"drive_mode {self.drive_mode} is not 0 or 1"
-        if abs(self.homing_offset) > HOMING_OFFSET_LIMIT:
+        if abs(self.homing_offset) > family.homing_limit:
             return (
-                f"homing_offset {self.homing_offset} is outside the servo's +-{HOMING_OFFSET_LIMIT}"
+                f"homing_offset {self.homing_offset} is outside the servo's +-{family.homing_limit}"
             )
         for field, value in (("range_min", self.range_min), ("range_max", self.range_max)):
             if not 0 <= value <= MAX_STEP:
@@ -53,32 +55,39 @@ class LeRobotJoint(msgspec.Struct, frozen=True, kw_only=True):
     motor: LeRobotMotor
     percent: bool = False  # LeRobot's RANGE_0_100 (grippers), else DEGREES
     register_homing: int | None = None
+    #: The family's `homing_sign`, `wraps`, and whether LeRobot applies `drive_mode` itself.
+    homing_sign: int = -1
+    wraps: bool = True
+    drive_mode_applies: bool = True
 
     @property
     def _shift(self) -> int:
         # present (servo frame) + shift = present as the file's homing would make it
         if self.register_homing is None:
             return 0
-        return self.register_homing - self.motor.homing_offset
+        return self.homing_sign * (self.motor.homing_offset - self.register_homing)
+
+    def _frame(self, step: int) -> int:
+        return step % STEPS_PER_TURN if self.wraps else step
 
     def to_value(self, present: int) -> float:
         """The joint value LeRobot reads for a Present_Position of `present`."""
         m = self.motor
-        homed = (present + self._shift) % STEPS_PER_TURN
+        homed = self._frame(present + self._shift)
         if self.percent:
             bounded = min(m.range_max, max(m.range_min, homed))
             norm = (bounded - m.range_min) / (m.range_max - m.range_min) * 100
-            return 100 - norm if m.drive_mode else norm
+            return 100 - norm if m.drive_mode and self.drive_mode_applies else norm
         return (homed - (m.range_min + m.range_max) / 2) * 360 / MAX_RES
 
     def to_steps(self, value: float) -> int:
         """The Goal_Position (servo frame) for a joint value, kept inside the file's range."""
         m = self.motor
         if self.percent:
-            wanted = 100 - value if m.drive_mode else value
+            wanted = 100 - value if m.drive_mode and self.drive_mode_applies else value
             bounded = min(100.0, max(0.0, wanted))
             homed = bounded / 100 * (m.range_max - m.range_min) + m.range_min
         else:
             homed = value * MAX_RES / 360 + (m.range_min + m.range_max) / 2
         step = min(m.range_max, max(m.range_min, round(homed)))
-        return (step - self._shift) % STEPS_PER_TURN
+        return self._frame(step - self._shift)
