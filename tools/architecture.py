@@ -40,7 +40,7 @@ RANKS: dict[str, int] = {
     "schemas": 3,
     "fleet": 4,
     "policy": 4,
-    "gym": 4,
+    "gym": 5,  # on policy: `arena learn` runs its policy as the master
     "ros2": 5,  # on the fleet's Zenoh pieces
     "server": 6,
     "bench": 7,

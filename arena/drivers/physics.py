@@ -47,6 +47,12 @@ class PhysicsSettings:
     estop: str = "hold"  # "hold": keep the pose; "torque-off": the servos go limp
     realtime: bool = True
     report_interval: float = 0.01  # seconds between joint-state reports
+    #: No clock of its own: whoever owns the slave moves it on (`PhysicsSlave.step_to`), as a
+    #: Gymnasium environment steps its world.
+    stepped: bool = False
+    #: A red sphere (no mass, touching nothing) that marks a task's target in the scene
+    #: (`ArmSimulation.set_target`).
+    target_marker: bool = False
 
 
 class ArmSimulation:
@@ -78,6 +84,21 @@ class ArmSimulation:
         self.steps = 0
         self.set_pose(dict.fromkeys(model.joint_names, 0.0))
 
+    def set_target(self, position: tuple[float, float, float]) -> None:
+        """Put the target marker at `position` (metres, the base's frame); needs
+        `target_marker` in the settings."""
+        if not self.settings.target_marker:
+            raise ValueError("this simulation has no target marker (PhysicsSettings.target_marker)")
+        self.data.mocap_pos[0] = position
+        self._mj.mj_forward(self.model, self.data)
+
+    def target(self) -> tuple[float, float, float] | None:
+        """Where the target marker is (None without one)."""
+        if not self.settings.target_marker:
+            return None
+        x, y, z = (float(v) for v in self.data.mocap_pos[0])
+        return x, y, z
+
     def _place_at_rest(self, model: RobotModel) -> None:
         for joint in model.joints:
             self.data.qpos[self.model.joint(joint.urdf_name).qposadr[0]] = joint.neutral
@@ -90,6 +111,14 @@ class ArmSimulation:
         self.data.qvel[:] = 0.0
         self._mj.mj_forward(self.model, self.data)
         self.set_targets(degrees)
+
+    def restart(self, degrees: Mapping[str, float]) -> None:
+        """Start afresh at rest at `degrees`: MuJoCo's whole state is reset (its solver's warm
+        start too), so what follows depends on nothing before. The target marker stays."""
+        marker = self.data.mocap_pos.copy()
+        self._mj.mj_resetData(self.model, self.data)
+        self.data.mocap_pos[:] = marker
+        self.set_pose(degrees)
 
     def set_targets(self, degrees: Mapping[str, float]) -> None:
         """Where each actuator pulls its joint (wire degrees; joints not named keep theirs)."""
@@ -162,6 +191,16 @@ def _spec(model: RobotModel, settings: PhysicsSettings) -> Any:
             size=[2.0, 2.0, 0.01],
             pos=[0.0, 0.0, model.workspace.floor],
         )
+    if settings.target_marker:
+        # A mocap body: placed by hand, moved by nothing; it collides with nothing either.
+        marker = spec.worldbody.add_body(name="target", mocap=True, pos=[0.0, 0.0, -1.0])
+        marker.add_geom(
+            type=mujoco.mjtGeom.mjGEOM_SPHERE,
+            size=[0.015, 0.0, 0.0],
+            rgba=[0.9, 0.1, 0.1, 0.8],
+            contype=0,
+            conaffinity=0,
+        )
     for joint in model.joints:
         found = spec.joint(joint.urdf_name)
         found.armature = ARMATURE
@@ -189,6 +228,12 @@ class PhysicsSlave:
         self.contacts_reported: list[tuple[str, str]] = []
         self._pending: list[SlaveTarget | SlaveNotice] = []
         self._lock = threading.Lock()
+        self._link: SlaveLink | None = None
+        #: Stepped mode: messages with the step (MuJoCo's count) they came at.
+        self._arrivals: list[tuple[int, SlaveTarget | SlaveNotice]] = []
+        self._started = 0.0  # trio time of the simulation's step 0 (stepped mode)
+        #: Set once the simulation is built and has reported its first joint values.
+        self.ready = trio.Event()
 
     async def run(self, link: SlaveLink) -> None:
         """Simulate until detached."""
@@ -198,13 +243,20 @@ class PhysicsSlave:
         else:  # on a virtual clock a thread's time would not count: build it here
             simulation = ArmSimulation(model, self.settings)
         self.simulation = simulation
+        self._link, self._started = link, trio.current_time()
         await link.report_joint_states(simulation.positions())
+        self.ready.set()
         async with trio.open_nursery() as nursery:
-            if self.settings.realtime:
+            if self.settings.stepped:
+                pass  # moved on by its owner (`step_to`)
+            elif self.settings.realtime:
                 nursery.start_soon(self._in_real_time, link, simulation)
             else:
                 nursery.start_soon(self._in_trio_time, link, simulation)
             async for message in link.messages():
+                if self.settings.stepped:  # applied at the step it came at (`step_to`)
+                    self._arrivals.append((self._step_at(trio.current_time()), message))
+                    continue
                 with self._lock:
                     self._pending.append(message)
             nursery.cancel_scope.cancel()
@@ -236,6 +288,48 @@ class PhysicsSlave:
             await link.report_fault(
                 ErrorCode.CONTACT, f"{pair[0]} touches {pair[1]}", Severity.WARNING, None
             )
+
+    def _step_at(self, when: float) -> int:
+        """The simulation's step count at trio time `when` (stepped mode)."""
+        return round((when - self._started) * self.settings.rate)
+
+    async def step_to(self, when: float) -> None:
+        """Stepped mode: simulate up to trio time `when` now, then report. Each target or
+        notice takes effect at the step it came at (rounded to a step), so what the twin does
+        depends on when things happened, never on the order in which trio ran tasks that were
+        due at the same moment, nor on whether a message came just before or after this call.
+        """
+        simulation, link = self.simulation, self._link
+        if simulation is None or link is None:
+            raise RuntimeError("step_to before the simulation is ready")
+        end = self._step_at(when)
+        while True:
+            due = [item for item in self._arrivals if item[0] <= simulation.steps]
+            if due:
+                self._arrivals = self._arrivals[len(due) :]
+                with self._lock:
+                    self._pending.extend(message for _, message in due)
+                self._apply_pending(simulation)
+            upto = self._arrivals[0][0] if self._arrivals else end
+            if simulation.steps >= end:
+                break
+            simulation.step(min(upto, end) - simulation.steps)
+        await self._report(link, simulation.positions(), simulation.contacts())
+
+    async def place(self, degrees: Mapping[str, float]) -> None:
+        """Stepped mode: start the simulation afresh at rest at `degrees` (a twin's reset, where
+        a real arm would be brought there by its commands) and report."""
+        simulation, link = self.simulation, self._link
+        if simulation is None or link is None:
+            raise RuntimeError("place before the simulation is ready")
+        for _, message in self._arrivals:
+            self._pending.append(message)
+        self._arrivals.clear()
+        self._apply_pending(simulation)
+        simulation.restart(degrees)
+        # Steps count from here: the same step grid for every start, wherever the clock is.
+        self._started, simulation.steps = trio.current_time(), 0
+        await self._report(link, simulation.positions(), simulation.contacts())
 
     async def _in_trio_time(self, link: SlaveLink, simulation: ArmSimulation) -> None:
         interval = self.settings.report_interval
