@@ -30,6 +30,7 @@ EXTRAS = {
     "ros2": Extra("rosbags", "rosbags (with eclipse-zenoh)", "ros2"),
     "plot": Extra("matplotlib", "matplotlib", "plot"),
     "lerobot": Extra("lerobot", "LeRobot (0.4, which brings torch)", "lerobot"),
+    "gym": Extra("gymnasium", "Gymnasium", "gym"),
 }
 
 

@@ -11,10 +11,11 @@ e-stopped (the reason in `info["safety"]`); `truncated` at its time limit.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any, SupportsFloat
+from typing import Any, SupportsFloat, cast
 
 import gymnasium
 import numpy as np
+import numpy.typing as npt
 from gymnasium import spaces
 
 from arena.gym.task import SUCCESS_DISTANCE, Reach, Success
@@ -29,10 +30,11 @@ OBSERVATION_MARGIN = 10.0
 #: Targets lie within this distance (metres) of the base in every axis.
 REACH = 1.0
 
-Observation = dict[str, np.ndarray]
+Observation = dict[str, npt.NDArray[np.float32]]
+Action = npt.NDArray[np.float32]
 
 
-class ArenaEnv(gymnasium.Env[Observation, np.ndarray]):
+class ArenaEnv(gymnasium.Env[Observation, Action]):
     """The reach task on an Arena robot.
 
     `ArenaEnv()` runs a private Arena with the physics twin, stepped (not paced) and the same
@@ -72,7 +74,7 @@ class ArenaEnv(gymnasium.Env[Observation, np.ndarray]):
         low = np.array([to_dataset(j, j.lower) for j in joints], dtype=np.float32)
         high = np.array([to_dataset(j, j.upper) for j in joints], dtype=np.float32)
         self.action_space = spaces.Box(low, high, dtype=np.float32)
-        self.observation_space = spaces.Dict(
+        observations = spaces.Dict(
             {
                 "agent_pos": spaces.Box(
                     low - OBSERVATION_MARGIN, high + OBSERVATION_MARGIN, dtype=np.float32
@@ -80,6 +82,7 @@ class ArenaEnv(gymnasium.Env[Observation, np.ndarray]):
                 "environment_state": spaces.Box(-REACH, REACH, (3,), dtype=np.float32),
             }
         )
+        self.observation_space = cast("spaces.Space[Observation]", observations)
         self.target: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._measured: tuple[float, ...] = ()
         self._steps = 0
@@ -88,12 +91,12 @@ class ArenaEnv(gymnasium.Env[Observation, np.ndarray]):
 
     # -- units ---------------------------------------------------------------------------------
 
-    def to_action(self, joints: Sequence[float]) -> np.ndarray:
+    def to_action(self, joints: Sequence[float] | npt.NDArray[Any]) -> Action:
         """Arena's joint values (wire units, servo order) as an action of this environment."""
         values = [to_dataset(j, v) for j, v in zip(self.model.joints, joints, strict=True)]
         return np.asarray(values, dtype=np.float32)
 
-    def from_action(self, action: Sequence[float]) -> tuple[float, ...]:
+    def from_action(self, action: Sequence[float] | npt.NDArray[Any]) -> tuple[float, ...]:
         """An action of this environment as Arena's joint values."""
         return tuple(
             from_dataset(j, float(v)) for j, v in zip(self.model.joints, action, strict=True)
@@ -132,9 +135,7 @@ class ArenaEnv(gymnasium.Env[Observation, np.ndarray]):
         self._over = False
         return self._observation(), self._info()
 
-    def step(
-        self, action: np.ndarray
-    ) -> tuple[Observation, SupportsFloat, bool, bool, dict[str, Any]]:
+    def step(self, action: Action) -> tuple[Observation, SupportsFloat, bool, bool, dict[str, Any]]:
         """Send one command (the action, clipped to the joints' limits by Arena as any
         command is) and return what followed one period later."""
         if self._over:

@@ -4,6 +4,7 @@ in it (`trio.from_thread.run`), its exception raised in the caller's thread."""
 
 from __future__ import annotations
 
+import contextlib
 import threading
 from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
@@ -70,8 +71,6 @@ class TrioLoop:
         """Cancel the run and wait for its thread to end."""
         if self._token is not None and self.running and self._cancel is not None:
             cancel = self._cancel
-            try:
+            with contextlib.suppress(trio.RunFinishedError):
                 trio.from_thread.run_sync(cancel.cancel, trio_token=self._token)
-            except trio.RunFinishedError:
-                pass
         self._thread.join(CLOSE_TIMEOUT)

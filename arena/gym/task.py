@@ -10,13 +10,20 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any, TypeAlias
 
 import numpy as np
+import numpy.typing as npt
 
 from arena.robot.collision import for_model
 from arena.robot.kinematics import Kinematics, Vector, rotate
 from arena.robot.meshes import link_vertices
 from arena.robot.model import RobotModel
+
+#: Joint values: a sequence or a numpy vector (wire units, servo order).
+Joints: TypeAlias = Sequence[float] | npt.NDArray[Any]
+#: A vector of floats.
+Vec: TypeAlias = npt.NDArray[np.float64]
 
 #: The link that carries the fixed jaw, whose far end is the tip.
 TIP_LINK = "gripper"
@@ -61,23 +68,23 @@ class Reach:
         self.tip = tip_offset(self.model)
         self._collision = for_model(self.model)
 
-    def _urdf(self, joints: Sequence[float]) -> dict[str, float]:
+    def _urdf(self, joints: Joints) -> dict[str, float]:
         return {
             spec.urdf_name: spec.to_urdf(value)
             for spec, value in zip(self.model.joints, joints, strict=False)
         }
 
-    def tip_position(self, joints: Sequence[float]) -> Vector:
+    def tip_position(self, joints: Joints) -> Vector:
         """Where the gripper's tip is (metres, the base's frame) at `joints`."""
         rotation, origin = self.kinematics.link_poses(self._urdf(joints))[TIP_LINK]
         moved = rotate(rotation, self.tip)
         return origin[0] + moved[0], origin[1] + moved[1], origin[2] + moved[2]
 
-    def distance(self, joints: Sequence[float], target: Sequence[float]) -> float:
+    def distance(self, joints: Joints, target: Sequence[float]) -> float:
         """The tip's distance (metres) from `target` at `joints`."""
         return math.dist(self.tip_position(joints), target)
 
-    def clear(self, joints: Sequence[float]) -> bool:
+    def clear(self, joints: Joints) -> bool:
         """The pose keeps the collision guard's margins (table, keep-out boxes, itself)."""
         if self._collision is None:
             return True
@@ -96,7 +103,7 @@ class Reach:
             if point[2] >= floor + MIN_HEIGHT and self.clear(joints):
                 return point
 
-    def jacobian(self, joints: Sequence[float]) -> np.ndarray:
+    def jacobian(self, joints: Joints) -> Vec:
         """d tip / d joint (metres per degree) for the arm's joints, by central differences."""
         columns = []
         for index in range(ARM_JOINTS):
@@ -106,13 +113,13 @@ class Reach:
             columns.append(np.subtract(self.tip_position(plus), self.tip_position(minus)))
         return np.stack(columns, axis=1)
 
-    def ik_step(self, joints: Sequence[float], target: Sequence[float]) -> np.ndarray:
+    def ik_step(self, joints: Joints, target: Sequence[float]) -> Vec:
         """The change of the arm's joints (degrees) that moves the tip toward `target`: damped
         least squares, which stays sane near a singular pose."""
         error = np.subtract(target, self.tip_position(joints))
         jac = self.jacobian(joints)
         damping = 1e-4  # (metres per degree)^2: about a tenth of a typical column's square
-        solved: np.ndarray = jac.T @ np.linalg.solve(jac @ jac.T + damping * np.eye(3), error)
+        solved: Vec = jac.T @ np.linalg.solve(jac @ jac.T + damping * np.eye(3), error)
         return solved
 
 
@@ -136,19 +143,21 @@ class Expert:
     plan is there, a slow integral term made from where the tip really is makes up for the
     arm's sag under gravity, which the plan cannot know."""
 
-    def __init__(self, task: Reach, target: Sequence[float], start: Sequence[float]) -> None:
+    def __init__(self, task: Reach, target: Sequence[float], start: Joints) -> None:
         self.task = task
         self.target = tuple(target)
-        self.plan = np.array(start, dtype=float)
-        self.bias = np.zeros(ARM_JOINTS)
+        self.plan: Vec = np.array(start, dtype=float)
+        self.bias: Vec = np.zeros(ARM_JOINTS)
 
-    def act(self, measured: Sequence[float]) -> np.ndarray:
+    def act(self, measured: Joints) -> Vec:
         """The next action (every joint, wire units) from the measured joints."""
         step = np.clip(self.task.ik_step(self.plan, self.target), -EXPERT_STEP, EXPERT_STEP)
         self.plan[:ARM_JOINTS] += step
         if self.task.distance(self.plan, self.target) < PLAN_REACHED:
             correction = EXPERT_GAIN * self.task.ik_step(measured, self.target)
-            self.bias = np.clip(self.bias + np.clip(correction, -1.0, 1.0), -10.0, 10.0)
+            self.bias = np.asarray(
+                np.clip(self.bias + np.clip(correction, -1.0, 1.0), -10.0, 10.0), dtype=float
+            )
         action = self.plan.copy()
         action[:ARM_JOINTS] += self.bias
         for index, spec in enumerate(self.task.model.joints):

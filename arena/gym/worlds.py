@@ -8,6 +8,7 @@ Each runs trio in a thread of its own (`TrioLoop`); their methods are plain bloc
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -95,9 +96,7 @@ class TwinWorld:
         self.period = 1.0 / fps
         self.recordings = recordings
         self.clock = MockClock()  # stands still unless a step moves it (autojump off)
-        self.slave = PhysicsSlave(
-            PhysicsSettings(realtime=False, stepped=True, target_marker=True)
-        )
+        self.slave = PhysicsSlave(PhysicsSettings(realtime=False, stepped=True, target_marker=True))
         self.manager: RobotManager | None = None
         self._robot: Robot | None = None
         self._link: MasterLink | None = None
@@ -122,9 +121,7 @@ class TwinWorld:
                 if self.recordings is not None:
                     manager.on_create.append(recorder.follow)
                 self.manager = manager
-                self._robot = await manager.create_robot(
-                    self.model.robot_type, robot_id=TWIN_ROBOT
-                )
+                self._robot = await manager.create_robot(self.model.robot_type, robot_id=TWIN_ROBOT)
                 await self._robot.attach_slave(self.slave, "twin")
                 await self.slave.ready.wait()
                 self._link = await self._robot.connect_master(MASTER_ID, kind="gym")
@@ -191,7 +188,9 @@ class TwinWorld:
         # The targets are at rest: on to the episode's start time; there, put the simulated
         # arm at rest exactly (a real arm would settle there), so every episode starts alike.
         now = trio.current_time()
-        start = EPOCH + EPISODE_SPACING * max(0, math.ceil((now + SETTLE - EPOCH) / EPISODE_SPACING))
+        start = EPOCH + EPISODE_SPACING * max(
+            0, math.ceil((now + SETTLE - EPOCH) / EPISODE_SPACING)
+        )
         self.clock.jump(start - now)
         self._time = start
         await wait_all_tasks_blocked()
@@ -313,14 +312,27 @@ class ServerWorld:
                 await self.session.command(joints, metadata={"source": MASTER_ID})
             except ArenaClientError as error:
                 safety = {"code": error.code, "message": error.message}
+        before = self.session.joints
         self._tick = max(self._tick + self.period, trio.current_time() - self.period)
         await trio.sleep_until(self._tick)
+        if safety is None:
+            # The joint states the server sent after the command (it sends them at most
+            # every `joint_states_interval`): what this step did, not what was before it.
+            with trio.move_on_after(self.period):
+                await self.session.wait_for(lambda s: s.joints is not before)
         return self._measured(), safety or self._estop()
 
     def step(self, action: Sequence[float]) -> tuple[tuple[float, ...], Safety | None]:
         """See `World.step`."""
         return self.loop.call(self._step, action)
 
+    async def _release(self) -> None:
+        if self.session.connected and self.session.released is None:
+            await self.session.release()
+
     def close(self) -> None:
-        """Release the robot (it holds where it is) and stop the loop."""
+        """Release the robot (it holds where it is, no e-stop) and stop the loop."""
+        if self.loop.running:
+            with contextlib.suppress(ArenaClientError):  # gone: the loss policy has it
+                self.loop.call(self._release)
         self.loop.close()
