@@ -97,7 +97,9 @@ class PolicySettings:
     """How a policy runs. LeRobot's names where LeRobot has the setting: `actions_per_chunk`
     (None: the policy's chunk length), `chunk_size_threshold`, `aggregate_fn_name`,
     `max_relative_target` (the step limit: degrees a target may lie from the measured position;
-    None: off). `stall_periods`: control periods without an action that trip the watchdog."""
+    None: off). `stall_periods`: control periods without an action that trip the watchdog.
+    `environment_state`: `observation.environment_state` of every observation (the task's
+    state, which Arena does not measure; empty: none)."""
 
     path: Path
     task: str = ""
@@ -107,6 +109,7 @@ class PolicySettings:
     aggregate_fn_name: str = "weighted_average"
     max_relative_target: float | None = 10.0
     stall_periods: int = 2
+    environment_state: tuple[float, ...] = ()
 
 
 @dataclass(slots=True)
@@ -178,7 +181,12 @@ class PolicyMaster:
         self.process = await self.start_worker()
         try:
             self.loaded = await self.process.load(self.settings.path)
-            check_features(self.loaded, self.model, list(self.cameras()))
+            check_features(
+                self.loaded,
+                self.model,
+                list(self.cameras()),
+                len(self.settings.environment_state),
+            )
             chunk = self.settings.actions_per_chunk or self.loaded.chunk_size
             self.queue = ActionQueue(
                 chunk, self.settings.chunk_size_threshold, self.settings.aggregate_fn_name
@@ -310,6 +318,7 @@ class PolicyMaster:
                 lerobot_state(self.model, arm.measured()),
                 images,
                 self.settings.task,
+                self.settings.environment_state,
             )
             try:
                 chunk = await process.act(observation)
