@@ -44,6 +44,8 @@ EXPERT_STEP = 4.0
 EXPERT_GAIN = 0.1
 #: The plan counts as there within this distance (metres) of the target.
 PLAN_REACHED = 0.005
+#: Damped least-squares steps the inverse kinematics takes at most.
+IK_ITERATIONS = 100
 
 
 def tip_offset(model: RobotModel) -> Vector:
@@ -118,9 +120,22 @@ class Reach:
         least squares, which stays sane near a singular pose."""
         error = np.subtract(target, self.tip_position(joints))
         jac = self.jacobian(joints)
-        damping = 1e-4  # (metres per degree)^2: about a tenth of a typical column's square
+        damping = 1e-6  # (metres per degree)^2: a small fraction of a column's square
         solved: Vec = jac.T @ np.linalg.solve(jac @ jac.T + damping * np.eye(3), error)
         return solved
+
+    def solve(self, target: Sequence[float], start: Joints) -> Vec:
+        """Joints (from `start`, the arm's moved) that put the tip on `target`, as near as
+        `IK_ITERATIONS` damped steps of at most 10 degrees get; within the joints' limits."""
+        joints: Vec = np.array(start, dtype=float)
+        for _ in range(IK_ITERATIONS):
+            step = np.clip(self.ik_step(joints, target), -10.0, 10.0)
+            joints[:ARM_JOINTS] += step
+            for index, spec in enumerate(self.model.joints[:ARM_JOINTS]):
+                joints[index] = spec.clamp(float(joints[index]))
+            if self.distance(joints, target) < 1e-4:
+                break
+        return joints
 
 
 class Success:
@@ -138,21 +153,22 @@ class Success:
 
 
 class Expert:
-    """The scripted expert. It plans on the kinematics (the commanded joints step toward the
-    inverse kinematics' solution, at most `EXPERT_STEP` degrees a joint an action); once the
-    plan is there, a slow integral term made from where the tip really is makes up for the
-    arm's sag under gravity, which the plan cannot know."""
+    """The scripted expert. It solves the inverse kinematics once (`Reach.solve`), then moves
+    the commanded joints toward the solution, at most `EXPERT_STEP` degrees a joint an action;
+    once there, a slow integral term made from where the tip really is makes up for the arm's
+    sag under gravity, which the kinematics cannot know."""
 
     def __init__(self, task: Reach, target: Sequence[float], start: Joints) -> None:
         self.task = task
         self.target = tuple(target)
         self.plan: Vec = np.array(start, dtype=float)
+        self.goal = task.solve(target, start)
         self.bias: Vec = np.zeros(ARM_JOINTS)
 
     def act(self, measured: Joints) -> Vec:
         """The next action (every joint, wire units) from the measured joints."""
-        step = np.clip(self.task.ik_step(self.plan, self.target), -EXPERT_STEP, EXPERT_STEP)
-        self.plan[:ARM_JOINTS] += step
+        step = np.clip(self.goal - self.plan, -EXPERT_STEP, EXPERT_STEP)
+        self.plan += step
         if self.task.distance(self.plan, self.target) < PLAN_REACHED:
             correction = EXPERT_GAIN * self.task.ik_step(measured, self.target)
             self.bias = np.asarray(

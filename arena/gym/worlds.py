@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import AsyncIterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -45,8 +45,12 @@ SETTLE = 0.2
 EPOCH = 2.0**20
 EPISODE_SPACING = 256.0
 #: How long after a step's boundary the twin's master commands (seconds; see
-#: `TwinWorld.command`): far above a float's rounding, far below anything physical.
+#: `TwinWorld.command`): far above a float's rounding, far below anything physical. Steps
+#: take turns at one and two of it.
 COMMAND_DELAY = 1e-7
+#: How long after a step's boundary an episode's start is marked (seconds): after the first
+#: command, before the twin's next report, with room for the recording's rounding.
+MARK_DELAY = 0.001
 #: The arm is at rest when every joint is this close (degrees) to its rest value.
 REST_TOLERANCE = 0.5
 
@@ -101,6 +105,11 @@ class TwinWorld:
         self._robot: Robot | None = None
         self._link: MasterLink | None = None
         self._time = 0.0
+        self._turn = False  # which of the two command delays the next step takes
+        self._holds = 0  # `standing_still` blocks open: the clock must not move
+        self._free = trio.Event()
+        self._free.set()
+        self._jumping = False  # `_until` lets the clock jump now
         self.loop = TrioLoop(self._serve, clock=self.clock, name="arena-gym-twin")
 
     @property
@@ -131,11 +140,34 @@ class TwinWorld:
 
     async def _until(self, when: float) -> None:
         """Let the clock run to `when`, every timer due meanwhile firing in order, then stand
-        still until everything due has been done."""
+        still until everything due has been done. While a `standing_still` block is open the
+        clock waits for it first."""
+        await self._free.wait()
+        self._jumping = True
         self.clock.autojump_threshold = 0.0  # jump from timer to timer until then
-        await trio.sleep_until(when)
-        self.clock.autojump_threshold = math.inf
+        try:
+            await trio.sleep_until(when)
+        finally:
+            self._jumping = False
+            self.clock.autojump_threshold = math.inf
         await wait_all_tasks_blocked()
+
+    @contextlib.asynccontextmanager
+    async def standing_still(self) -> AsyncIterator[None]:
+        """The world's clock stands still for the block (a policy's inference, which takes
+        real time in its own process, takes none of the world's: the twin waits for it)."""
+        self._holds += 1
+        if self._holds == 1:
+            self._free = trio.Event()
+        self.clock.autojump_threshold = math.inf
+        try:
+            yield
+        finally:
+            self._holds -= 1
+            if self._holds == 0:
+                self._free.set()
+                if self._jumping:
+                    self.clock.autojump_threshold = 0.0
 
     async def advance(self, seconds: float) -> None:
         """Let `seconds` pass on the world's clock, the twin stepped every report interval."""
@@ -148,11 +180,13 @@ class TwinWorld:
         await wait_all_tasks_blocked()  # the twin's report reached the robot
 
     async def command(self, command: Command) -> CommandResult:
-        """Send `command` as the environment's master, a hair (`COMMAND_DELAY`) after the step
-        boundary: a timer the robot set for the boundary (a motion tick a whole number of
-        control periods after the last command) has always fired before it, never after."""
-        self._time += COMMAND_DELAY
-        await self._until(self._time)
+        """Send `command` as the environment's master, a hair after the step boundary: one
+        `COMMAND_DELAY` after it, then two, then one... A timer the robot set a whole number
+        of its control periods after the last command then always fires on the same side of
+        this command (before it after a short delay, after it after a long one), and the
+        twin's steps, on the boundaries' grid, never meet the robot's ticks."""
+        self._turn = not self._turn
+        await self._until(self._time + COMMAND_DELAY * (1 if self._turn else 2))
         link = self._link
         if link is None:
             raise RuntimeError("the twin is not running")
@@ -200,6 +234,19 @@ class TwinWorld:
             self.slave.simulation.set_target((x, y, z))
         await wait_all_tasks_blocked()
         return self.measured()
+
+    async def reset_now(self, target: Sequence[float]) -> tuple[float, ...]:
+        """`reset` from a task of the world's own loop."""
+        return await self._reset(target)
+
+    async def episode_now(self, action: str, task: str = "") -> int:
+        """Mark an episode (`start`, `stop`, `discard`) of the robot from a task of the world's
+        loop; its index. A start is marked `MARK_DELAY` after the step's boundary, so that the
+        export's frame k (every 1/fps from the start) holds the joints measured at step k and
+        the command sent on them (the recording's log times are good to a microsecond)."""
+        if action == "start":
+            await self._until(self._time + MARK_DELAY)
+        return (await self.robot.episode(action, task)).index
 
     def reset(self, target: Sequence[float]) -> tuple[float, ...]:
         """See `World.reset`."""

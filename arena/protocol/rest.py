@@ -234,7 +234,7 @@ class PolicyMasterBody(
     )
     max_relative_target: Annotated[float, msgspec.Meta(gt=0, le=360)] | None = 10.0
     stall_periods: Annotated[int, msgspec.Meta(ge=1, le=1000)] = 2
-    environment_state: Annotated[list[float], msgspec.Meta(max_length=64)] = []  # noqa: RUF012
+    environment_state: Annotated[list[float], msgspec.Meta(max_length=64)] = []
     takeover: bool = False
 
 
