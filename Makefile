@@ -76,8 +76,8 @@ test: install-dev ui browser
 	$(BIN)/python -m pytest -q -rs
 
 lint: install-dev
-	$(BIN)/ruff check arena tests tools
-	$(BIN)/ruff format --check arena tests tools
+	$(BIN)/ruff check arena tests tools examples
+	$(BIN)/ruff format --check arena tests tools examples
 	$(BIN)/mypy
 	$(BIN)/deptry .
 

@@ -4,7 +4,10 @@ Arena's safety ending an episode (a command into the table, an e-stop over REST)
 
 from __future__ import annotations
 
+import os
 import shutil
+import subprocess
+import sys
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
@@ -14,7 +17,7 @@ import pytest
 import trio
 
 from arena.robot.model import BUILTIN_TYPES_DIR
-from tests.conftest import RunningServer, need
+from tests.conftest import REPOSITORY, RunningServer, need
 
 gymnasium = need("gymnasium", "gym")
 need("mujoco", "physics")
@@ -171,3 +174,26 @@ async def test_an_estop_over_rest_ends_an_episode_against_a_server(start_server:
             await trio.to_thread.run_sync(lambda: env.reset(seed=1))
     finally:
         await trio.to_thread.run_sync(env.close)
+
+
+def test_stable_baselines3_trains_on_the_environment_as_it_is(tmp_path: Path) -> None:
+    need("stable_baselines3", "dev")
+    saved = tmp_path / "ppo.zip"
+    done = subprocess.run(
+        [
+            sys.executable,
+            str(REPOSITORY / "examples" / "ppo_reach.py"),
+            "--steps",
+            "2048",
+            "--save",
+            str(saved),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env={**os.environ, "PYTHONPATH": str(REPOSITORY)},
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "PPO: 2048 steps" in done.stdout, done.stdout
+    assert saved.is_file()

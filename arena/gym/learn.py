@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import trio
 
 from arena.gym.env import ArenaEnv
 from arena.gym.task import Expert, Success
@@ -115,6 +116,7 @@ class SharedWorker:
         self.process = process
         self.world = world
         self.loaded: Loaded | None = None
+        self._one_at_a_time = trio.Lock()
 
     async def load(self, path: Path) -> Loaded:
         """The policy, loaded on the first call."""
@@ -123,9 +125,12 @@ class SharedWorker:
         return self.loaded
 
     async def act(self, observation: Observe) -> Chunk:
-        """The worker's chunk, the twin's clock standing still meanwhile."""
-        async with self.world.standing_still():
-            return await self.process.act(observation)
+        """The worker's chunk, the twin's clock standing still meanwhile. A run that ends
+        waits for the answer in flight: a request abandoned half-way ends a worker's use (the
+        next run's would find the pipe out of step), and the answer takes milliseconds."""
+        with trio.CancelScope(shield=True):
+            async with self._one_at_a_time, self.world.standing_still():
+                return await self.process.act(observation)
 
     async def close(self) -> None:
         """Nothing: the worker outlives each run (`evaluate` stops it)."""
