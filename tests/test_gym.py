@@ -17,7 +17,7 @@ import pytest
 import trio
 
 from arena.robot.model import BUILTIN_TYPES_DIR
-from tests.conftest import REPOSITORY, RunningServer, need
+from tests.conftest import REPOSITORY, RunningServer, missing, need
 
 gymnasium = need("gymnasium", "gym")
 need("mujoco", "physics")
@@ -197,3 +197,36 @@ def test_stable_baselines3_trains_on_the_environment_as_it_is(tmp_path: Path) ->
     assert done.returncode == 0, done.stderr
     assert "PPO: 2048 steps" in done.stdout, done.stdout
     assert saved.is_file()
+
+
+def red(image: np.ndarray) -> np.ndarray:
+    """Where the target's red sphere shows (a mask)."""
+    r, g, b = (image[..., k].astype(int) for k in range(3))
+    return (r > 120) & (r > 2 * g) & (r > 2 * b)
+
+
+def test_pixels_show_the_twin_and_its_target() -> None:
+    try:
+        env = ArenaEnv(cameras=("front",), image_size=(96, 128))
+        first, _ = env.reset(options={"target": (0.15, -0.2, 0.15)})
+    except Exception as exc:  # no GL to render with: OSMesa is a system package
+        missing(f"MuJoCo cannot render headless ({exc}): apt-get install libosmesa6")
+    try:
+        assert env.observation_space.contains(first)
+        image = first["pixels"]["front"]
+        assert image.shape == (96, 128, 3) and image.dtype == np.uint8
+        there = red(image)
+        assert there.sum() > 5  # the target is in the scene
+        moved, _ = env.reset(options={"target": (-0.15, -0.25, 0.1)})
+        elsewhere = red(moved["pixels"]["front"])
+        assert elsewhere.sum() > 5 and not np.array_equal(there, elsewhere)
+        action = moved["agent_pos"].copy()
+        action[0] += 20.0  # the arm turns: the picture changes beyond the target
+        later = moved
+        for _ in range(10):
+            later, *_ = env.step(action)
+        difference = np.abs(later["pixels"]["front"].astype(int) - moved["pixels"]["front"])
+        changed = (difference > 30).any(axis=-1)
+        assert (changed & ~elsewhere).sum() > 20
+    finally:
+        env.close()

@@ -15,6 +15,7 @@ runs inside trio. Either way a test on MockClock runs it faster than real time.
 
 from __future__ import annotations
 
+import os
 import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -40,6 +41,17 @@ MAX_LAG = 0.25
 
 
 @dataclass(frozen=True, slots=True)
+class View:
+    """A camera looking at the scene: at `lookat` (metres, the base's frame) from `distance`
+    metres, turned `azimuth` degrees about the vertical and `elevation` degrees up or down."""
+
+    lookat: tuple[float, float, float] = (0.0, -0.2, 0.12)
+    distance: float = 0.8
+    azimuth: float = 60.0
+    elevation: float = -30.0
+
+
+@dataclass(frozen=True, slots=True)
 class PhysicsSettings:
     """How the simulation runs."""
 
@@ -59,6 +71,8 @@ class ArmSimulation:
     """A robot type's arm in MuJoCo: targets in, joint values and contacts out (wire units)."""
 
     def __init__(self, model: RobotModel, settings: PhysicsSettings | None = None) -> None:
+        if "MUJOCO_GL" not in os.environ and "DISPLAY" not in os.environ:
+            os.environ["MUJOCO_GL"] = "osmesa"  # rendering with no screen (`render`)
         import mujoco  # only the physics slave needs it
 
         self.settings = settings or PhysicsSettings()
@@ -82,7 +96,32 @@ class ArmSimulation:
         self._gains = self.model.actuator_gainprm.copy(), self.model.actuator_biasprm.copy()
         self.torque = True
         self.steps = 0
+        self._renderers: dict[tuple[int, int], Any] = {}
         self.set_pose(dict.fromkeys(model.joint_names, 0.0))
+
+    def render(self, view: View, width: int, height: int) -> Any:
+        """The scene as `view` sees it now: an (height, width, 3) uint8 RGB array. MuJoCo's
+        renderer, headless through OSMesa where there is no display (Debian's `libosmesa6`;
+        `MUJOCO_GL` chooses another). Call it from the thread that steps the simulation."""
+        renderer = self._renderers.get((width, height))
+        if renderer is None:
+            renderer = self._mj.Renderer(self.model, height=height, width=width)
+            self._renderers[(width, height)] = renderer
+        camera = self._mj.MjvCamera()
+        camera.lookat[:] = view.lookat
+        camera.distance, camera.azimuth, camera.elevation = (
+            view.distance,
+            view.azimuth,
+            view.elevation,
+        )
+        renderer.update_scene(self.data, camera=camera)
+        return renderer.render()
+
+    def close(self) -> None:
+        """Free the renderers' GL contexts."""
+        for renderer in self._renderers.values():
+            renderer.close()
+        self._renderers.clear()
 
     def set_target(self, position: tuple[float, float, float]) -> None:
         """Put the target marker at `position` (metres, the base's frame); needs
@@ -182,6 +221,8 @@ def _spec(model: RobotModel, settings: PhysicsSettings) -> Any:
     spec = mujoco.MjSpec.from_string(head + tag + rest[:close] + extension + rest[close:])
     spec.meshdir = str(model.urdf_path.parent)
     spec.option.timestep = 1.0 / settings.rate
+    # Light from above for a camera (`render`); it has no part in the physics.
+    spec.worldbody.add_light(pos=[0.0, 0.0, 1.5], dir=[0.0, 0.0, -1.0], diffuse=[0.8, 0.8, 0.8])
     for geom in spec.geoms:
         geom.contype = geom.conaffinity = 1
     if model.workspace.floor is not None:
@@ -197,7 +238,7 @@ def _spec(model: RobotModel, settings: PhysicsSettings) -> Any:
         marker.add_geom(
             type=mujoco.mjtGeom.mjGEOM_SPHERE,
             size=[0.015, 0.0, 0.0],
-            rgba=[0.9, 0.1, 0.1, 0.8],
+            rgba=[1.0, 0.0, 0.0, 1.0],
             contype=0,
             conaffinity=0,
         )

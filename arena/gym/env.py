@@ -1,8 +1,9 @@
 """`ArenaEnv`: the reach task as a Gymnasium environment, its robot driven through Arena.
 
 Observations are what LeRobot's environment wrappers take: `agent_pos` (the measured joints in
-the units and order of `observation.state`, specs/lerobot.md) and `environment_state` (the
-target, metres in the base's frame). Actions are the six joint targets in the same units.
+the units and order of `observation.state`, specs/lerobot.md), `environment_state` (the
+target, metres in the base's frame) and, with `cameras`, `pixels` (an image a camera, by name:
+the twin's MuJoCo scene rendered). Actions are the six joint targets in the same units.
 Reward is minus the tip's distance to the target (metres). An episode is `terminated` on
 success (the tip within 2 cm for 0.5 s) or when Arena refuses a command or the robot is
 e-stopped (the reason in `info["safety"]`); `truncated` at its time limit.
@@ -18,6 +19,7 @@ import numpy as np
 import numpy.typing as npt
 from gymnasium import spaces
 
+from arena.drivers.physics import View
 from arena.gym.task import SUCCESS_DISTANCE, Reach, Success
 from arena.gym.worlds import ServerWorld, TwinWorld, World
 from arena.recording.dataset import from_dataset, to_dataset
@@ -55,15 +57,21 @@ class ArenaEnv(gymnasium.Env[Observation, Action]):
         max_seconds: float = DEFAULT_EPISODE_SECONDS,
         api_key: str | None = None,
         takeover: bool = False,
+        cameras: Sequence[str] = (),
+        image_size: tuple[int, int] = (96, 96),
         world: World | None = None,
     ) -> None:
         if world is None:
             if url is not None:
                 if robot is None:
                     raise ValueError("a server's robot needs its id: ArenaEnv(url=..., robot=...)")
+                if cameras:
+                    raise ValueError("`pixels` against a server are not there yet: no cameras")
                 world = ServerWorld(url, robot, fps, api_key=api_key, takeover=takeover)
             else:
-                world = TwinWorld(robot_type, fps)
+                world = TwinWorld(robot_type, fps, cameras=dict.fromkeys(cameras, View()))
+        self.cameras = tuple(cameras)
+        self.image_size = image_size
         self.world = world
         self.model = world.model
         self.task = Reach(self.model)
@@ -82,6 +90,11 @@ class ArenaEnv(gymnasium.Env[Observation, Action]):
                 "environment_state": spaces.Box(-REACH, REACH, (3,), dtype=np.float32),
             }
         )
+        if self.cameras:
+            shape = (*image_size, 3)
+            observations["pixels"] = spaces.Dict(
+                {name: spaces.Box(0, 255, shape, dtype=np.uint8) for name in self.cameras}
+            )
         self.observation_space = cast("spaces.Space[Observation]", observations)
         self.target: tuple[float, float, float] = (0.0, 0.0, 0.0)
         self._measured: tuple[float, ...] = ()
@@ -103,10 +116,13 @@ class ArenaEnv(gymnasium.Env[Observation, Action]):
         )
 
     def _observation(self) -> Observation:
-        return {
+        observation: dict[str, Any] = {
             "agent_pos": self.to_action(self._measured),
             "environment_state": np.asarray(self.target, dtype=np.float32),
         }
+        if self.cameras:
+            observation["pixels"] = self.world.images(self.image_size)
+        return observation
 
     def _info(self) -> dict[str, Any]:
         return {

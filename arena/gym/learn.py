@@ -130,7 +130,8 @@ class SharedWorker:
         next run's would find the pipe out of step), and the answer takes milliseconds."""
         with trio.CancelScope(shield=True):
             async with self._one_at_a_time, self.world.standing_still():
-                return await self.process.act(observation)
+                chunk = await self.process.act(observation)
+        return chunk
 
     async def close(self) -> None:
         """Nothing: the worker outlives each run (`evaluate` stops it)."""

@@ -19,7 +19,7 @@ from trio.testing import MockClock, wait_all_tasks_blocked
 
 from arena.client import Arena, MasterSession
 from arena.client.errors import ArenaClientError
-from arena.drivers.physics import PhysicsSettings, PhysicsSlave
+from arena.drivers.physics import PhysicsSettings, PhysicsSlave, View
 from arena.gym.loop import TrioLoop
 from arena.robot.handle import Robot
 from arena.robot.links import MasterLink
@@ -68,6 +68,9 @@ class World(Protocol):
         """Send one command, let one period pass; the measured joints, and what refused the
         command or stopped the robot (None if nothing)."""
 
+    def images(self, size: tuple[int, int]) -> dict[str, Any]:
+        """The newest image (height, width, 3 uint8) of each of the world's cameras."""
+
     def close(self) -> None:
         """Let the robot go and stop the loop."""
 
@@ -94,8 +97,11 @@ class TwinWorld:
         robot_type: str = "so-arm100",
         fps: float = 30.0,
         recordings: Path | None = None,
+        cameras: Mapping[str, View] | None = None,
     ) -> None:
         self.model = load_robot_model(robot_type)
+        #: The twin's cameras: views of its MuJoCo scene, rendered on demand (`images`).
+        self.cameras = dict(cameras or {})
         self.fps = fps
         self.period = 1.0 / fps
         self.recordings = recordings
@@ -264,8 +270,27 @@ class TwinWorld:
         """See `World.step`."""
         return self.loop.call(self._step, action)
 
+    async def _images(self, size: tuple[int, int]) -> dict[str, Any]:
+        simulation = self.slave.simulation
+        if simulation is None:
+            raise RuntimeError("the twin is not running")
+        height, width = size
+        return {name: simulation.render(view, width, height) for name, view in self.cameras.items()}
+
+    def images(self, size: tuple[int, int]) -> dict[str, Any]:
+        """See `World.images`: each camera's view of the MuJoCo scene, rendered now (in the
+        loop's thread, which steps the simulation)."""
+        return self.loop.call(self._images, size)
+
     def close(self) -> None:
         """Stop the private Arena."""
+        if self.loop.running and self.slave.simulation is not None:
+            simulation = self.slave.simulation
+
+            async def release() -> None:
+                simulation.close()  # in the thread that made the renderers' GL contexts
+
+            self.loop.call(release)
         self.loop.close()
 
 
@@ -372,6 +397,10 @@ class ServerWorld:
     def step(self, action: Sequence[float]) -> tuple[tuple[float, ...], Safety | None]:
         """See `World.step`."""
         return self.loop.call(self._step, action)
+
+    def images(self, size: tuple[int, int]) -> dict[str, Any]:
+        """None yet against a server (see specs/learning.md): no cameras."""
+        return {}
 
     async def _release(self) -> None:
         if self.session.connected and self.session.released is None:
