@@ -270,8 +270,6 @@ class PhysicsSlave:
         self._pending: list[SlaveTarget | SlaveNotice] = []
         self._lock = threading.Lock()
         self._link: SlaveLink | None = None
-        #: Stepped mode: messages with the step (MuJoCo's count) they came at.
-        self._arrivals: list[tuple[int, SlaveTarget | SlaveNotice]] = []
         self._started = 0.0  # trio time of the simulation's step 0 (stepped mode)
         #: Set once the simulation is built and has reported its first joint values.
         self.ready = trio.Event()
@@ -295,9 +293,6 @@ class PhysicsSlave:
             else:
                 nursery.start_soon(self._in_trio_time, link, simulation)
             async for message in link.messages():
-                if self.settings.stepped:  # applied at the step it came at (`step_to`)
-                    self._arrivals.append((self._step_at(trio.current_time()), message))
-                    continue
                 with self._lock:
                     self._pending.append(message)
             nursery.cancel_scope.cancel()
@@ -330,31 +325,17 @@ class PhysicsSlave:
                 ErrorCode.CONTACT, f"{pair[0]} touches {pair[1]}", Severity.WARNING, None
             )
 
-    def _step_at(self, when: float) -> int:
-        """The simulation's step count at trio time `when` (stepped mode)."""
-        return round((when - self._started) * self.settings.rate)
-
     async def step_to(self, when: float) -> None:
-        """Stepped mode: simulate up to trio time `when` now, then report. Each target or
-        notice takes effect at the step it came at (rounded to a step), so what the twin does
-        depends on when things happened, never on the order in which trio ran tasks that were
-        due at the same moment, nor on whether a message came just before or after this call.
-        """
+        """Stepped mode: apply the targets and notices that came, simulate up to trio time
+        `when` (steps counted from the last `place`), then report. Its owner calls it every
+        `report_interval` or so, after letting everything due at `when` happen."""
         simulation, link = self.simulation, self._link
         if simulation is None or link is None:
             raise RuntimeError("step_to before the simulation is ready")
-        end = self._step_at(when)
-        while True:
-            due = [item for item in self._arrivals if item[0] <= simulation.steps]
-            if due:
-                self._arrivals = self._arrivals[len(due) :]
-                with self._lock:
-                    self._pending.extend(message for _, message in due)
-                self._apply_pending(simulation)
-            upto = self._arrivals[0][0] if self._arrivals else end
-            if simulation.steps >= end:
-                break
-            simulation.step(min(upto, end) - simulation.steps)
+        self._apply_pending(simulation)
+        count = round((when - self._started) * self.settings.rate) - simulation.steps
+        if count > 0:
+            simulation.step(count)
         await self._report(link, simulation.positions(), simulation.contacts())
 
     async def place(self, degrees: Mapping[str, float]) -> None:
@@ -363,9 +344,6 @@ class PhysicsSlave:
         simulation, link = self.simulation, self._link
         if simulation is None or link is None:
             raise RuntimeError("place before the simulation is ready")
-        for _, message in self._arrivals:
-            self._pending.append(message)
-        self._arrivals.clear()
         self._apply_pending(simulation)
         simulation.restart(degrees)
         # Steps count from here: the same step grid for every start, wherever the clock is.
