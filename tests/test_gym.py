@@ -206,12 +206,19 @@ def red(image: np.ndarray) -> np.ndarray:
 
 
 def test_pixels_show_the_twin_and_its_target() -> None:
+    from arena.drivers.physics import ArmSimulation, View
+    from arena.robot.model import load_robot_model
+
+    probe = ArmSimulation(load_robot_model("so-arm100"))
     try:
-        env = ArenaEnv(cameras=("front",), image_size=(96, 128))
-        first, _ = env.reset(options={"target": (0.15, -0.2, 0.15)})
+        probe.render(View(), 8, 8)
     except Exception as exc:  # no GL to render with: OSMesa is a system package
         missing(f"MuJoCo cannot render headless ({exc}): apt-get install libosmesa6")
+    finally:
+        probe.close()
+    env = ArenaEnv(cameras=("front",), image_size=(96, 128))
     try:
+        first, _ = env.reset(options={"target": (0.15, -0.2, 0.15)})
         assert env.observation_space.contains(first)
         image = first["pixels"]["front"]
         assert image.shape == (96, 128, 3) and image.dtype == np.uint8
