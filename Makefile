@@ -19,10 +19,12 @@ UI_MODULES := $(UI)/node_modules/.package-lock.json
 UI_SOURCES := $(UI)/build.mjs $(UI)/index.html $(UI)/style.css $(wildcard $(UI)/src/*.js)
 # The browser tests drive Debian's chromium (Playwright cannot download its own browser here).
 CHROMIUM := /usr/bin/chromium
+# The physics twin's cameras render headless through Debian's OSMesa (specs/learning.md).
+OSMESA := /usr/lib/$(shell uname -m)-linux-gnu/libOSMesa.so.8
 comma := ,
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: install install-dev ui browser run fleet demo test lint bench mutants package clean
+.PHONY: install install-dev ui browser osmesa run fleet demo test lint bench mutants package clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -56,6 +58,10 @@ browser:
 	@test -x $(CHROMIUM) || { $(SUDO) apt-get update -qq && \
 		DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq chromium >/dev/null; }
 
+osmesa:
+	@test -e $(OSMESA) || { $(SUDO) apt-get update -qq && \
+		DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq libosmesa6 >/dev/null; }
+
 run: install ui
 	$(BIN)/arena serve --demo --port $(PORT)
 
@@ -72,12 +78,12 @@ fleet: $(FLEET) ui
 	$(BIN)/arena serve --node n0 --port $(PORT) --demo --recordings-dir recordings/n0 \
 		--fleet-listen tcp/127.0.0.1:$(ZENOH_PORT)
 
-test: install-dev ui browser
+test: install-dev ui browser osmesa
 	$(BIN)/python -m pytest -q -rs
 
 lint: install-dev
-	$(BIN)/ruff check arena tests tools
-	$(BIN)/ruff format --check arena tests tools
+	$(BIN)/ruff check arena tests tools examples
+	$(BIN)/ruff format --check arena tests tools examples
 	$(BIN)/mypy
 	$(BIN)/deptry .
 

@@ -31,6 +31,7 @@ EXTRAS = {
     "plot": Extra("matplotlib", "matplotlib", "plot"),
     "lerobot": Extra("lerobot", "LeRobot (0.4, which brings torch)", "lerobot"),
     "dynamixel": Extra("dynamixel_sdk", "the Dynamixel SDK (dynamixel-sdk)", "dynamixel"),
+    "gym": Extra("gymnasium", "Gymnasium", "gym"),
 }
 
 

@@ -24,6 +24,11 @@ from arena.robot.manager import RobotManager, open_manager
 from arena.server.config import ServerConfig
 from arena.server.run import run_server
 
+# MuJoCo chooses how it renders when it is first imported: with no display, OSMesa (the physics
+# twin's cameras, tests/test_gym.py), whichever test imports it first.
+if "DISPLAY" not in os.environ:
+    os.environ.setdefault("MUJOCO_GL", "osmesa")
+
 #: In CI (`CI=true`) every optional extra and the shared reference data are there by design:
 #: a test that cannot run there fails instead of skipping (a broken install tests nothing).
 IN_CI = os.environ.get("CI", "").strip().lower() in ("true", "1", "yes")

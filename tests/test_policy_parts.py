@@ -139,6 +139,17 @@ def test_features_the_robot_cannot_supply_are_refused_by_name(
     assert refused.value.code is ErrorCode.POLICY_INVALID and named in refused.value.message
 
 
+def test_an_environment_state_given_at_attach_feeds_the_policy() -> None:
+    target = Feature("observation.environment_state", "ENV", (3,))
+    check_features(loaded(STATE, target), MODEL, [], environment=3)
+    with pytest.raises(ArenaError) as refused:
+        check_features(loaded(STATE, target), MODEL, [], environment=2)
+    assert refused.value.code is ErrorCode.POLICY_INVALID
+    assert "[3]; 2 values were given" in refused.value.message
+    observation = Observe(0, (1.0,), {}, "reach", (0.1, -0.2, 0.3))
+    assert decode_to_worker(encode(observation)[HEADER.size :]) == observation
+
+
 def test_frames_round_trip_and_refuse_anything_else() -> None:
     observation = Observe(3, (1.0, 2.0), {"front": b"\xff\xd8jpeg"}, "wave")
     frame = encode(observation)

@@ -42,7 +42,7 @@ RANKS: dict[str, int] = {
     "schemas": 4,
     "fleet": 5,
     "policy": 5,
-    "gym": 5,
+    "gym": 6,  # on policy: `arena learn` runs its policy as the master
     "ros2": 6,  # on the fleet's Zenoh pieces
     "server": 7,
     "bench": 8,

@@ -15,6 +15,7 @@ runs inside trio. Either way a test on MockClock runs it faster than real time.
 
 from __future__ import annotations
 
+import os
 import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -40,6 +41,17 @@ MAX_LAG = 0.25
 
 
 @dataclass(frozen=True, slots=True)
+class View:
+    """A camera looking at the scene: at `lookat` (metres, the base's frame) from `distance`
+    metres, turned `azimuth` degrees about the vertical and `elevation` degrees up or down."""
+
+    lookat: tuple[float, float, float] = (0.0, -0.2, 0.12)
+    distance: float = 0.8
+    azimuth: float = 60.0
+    elevation: float = -30.0
+
+
+@dataclass(frozen=True, slots=True)
 class PhysicsSettings:
     """How the simulation runs."""
 
@@ -47,12 +59,20 @@ class PhysicsSettings:
     estop: str = "hold"  # "hold": keep the pose; "torque-off": the servos go limp
     realtime: bool = True
     report_interval: float = 0.01  # seconds between joint-state reports
+    #: No clock of its own: whoever owns the slave moves it on (`PhysicsSlave.step_to`), as a
+    #: Gymnasium environment steps its world.
+    stepped: bool = False
+    #: A red sphere (no mass, touching nothing) that marks a task's target in the scene
+    #: (`ArmSimulation.set_target`).
+    target_marker: bool = False
 
 
 class ArmSimulation:
     """A robot type's arm in MuJoCo: targets in, joint values and contacts out (wire units)."""
 
     def __init__(self, model: RobotModel, settings: PhysicsSettings | None = None) -> None:
+        if "MUJOCO_GL" not in os.environ and "DISPLAY" not in os.environ:
+            os.environ["MUJOCO_GL"] = "osmesa"  # rendering with no screen (`render`)
         import mujoco  # only the physics slave needs it
 
         self.settings = settings or PhysicsSettings()
@@ -76,7 +96,47 @@ class ArmSimulation:
         self._gains = self.model.actuator_gainprm.copy(), self.model.actuator_biasprm.copy()
         self.torque = True
         self.steps = 0
+        self._renderers: dict[tuple[int, int], Any] = {}
         self.set_pose(dict.fromkeys(model.joint_names, 0.0))
+
+    def render(self, view: View, width: int, height: int) -> Any:
+        """The scene as `view` sees it now: an (height, width, 3) uint8 RGB array. MuJoCo's
+        renderer, headless through OSMesa where there is no display (Debian's `libosmesa6`;
+        `MUJOCO_GL` chooses another). Call it from the thread that steps the simulation."""
+        renderer = self._renderers.get((width, height))
+        if renderer is None:
+            renderer = self._mj.Renderer(self.model, height=height, width=width)
+            self._renderers[(width, height)] = renderer
+        camera = self._mj.MjvCamera()
+        camera.lookat[:] = view.lookat
+        camera.distance, camera.azimuth, camera.elevation = (
+            view.distance,
+            view.azimuth,
+            view.elevation,
+        )
+        renderer.update_scene(self.data, camera=camera)
+        return renderer.render()
+
+    def close(self) -> None:
+        """Free the renderers' GL contexts."""
+        for renderer in self._renderers.values():
+            renderer.close()
+        self._renderers.clear()
+
+    def set_target(self, position: tuple[float, float, float]) -> None:
+        """Put the target marker at `position` (metres, the base's frame); needs
+        `target_marker` in the settings."""
+        if not self.settings.target_marker:
+            raise ValueError("this simulation has no target marker (PhysicsSettings.target_marker)")
+        self.data.mocap_pos[0] = position
+        self._mj.mj_forward(self.model, self.data)
+
+    def target(self) -> tuple[float, float, float] | None:
+        """Where the target marker is (None without one)."""
+        if not self.settings.target_marker:
+            return None
+        x, y, z = (float(v) for v in self.data.mocap_pos[0])
+        return x, y, z
 
     def _place_at_rest(self, model: RobotModel) -> None:
         for joint in model.joints:
@@ -90,6 +150,14 @@ class ArmSimulation:
         self.data.qvel[:] = 0.0
         self._mj.mj_forward(self.model, self.data)
         self.set_targets(degrees)
+
+    def restart(self, degrees: Mapping[str, float]) -> None:
+        """Start afresh at rest at `degrees`: MuJoCo's whole state is reset (its solver's warm
+        start too), so what follows depends on nothing before. The target marker stays."""
+        marker = self.data.mocap_pos.copy()
+        self._mj.mj_resetData(self.model, self.data)
+        self.data.mocap_pos[:] = marker
+        self.set_pose(degrees)
 
     def set_targets(self, degrees: Mapping[str, float]) -> None:
         """Where each actuator pulls its joint (wire degrees; joints not named keep theirs)."""
@@ -153,6 +221,8 @@ def _spec(model: RobotModel, settings: PhysicsSettings) -> Any:
     spec = mujoco.MjSpec.from_string(head + tag + rest[:close] + extension + rest[close:])
     spec.meshdir = str(model.urdf_path.parent)
     spec.option.timestep = 1.0 / settings.rate
+    # Light from above for a camera (`render`); it has no part in the physics.
+    spec.worldbody.add_light(pos=[0.0, 0.0, 1.5], dir=[0.0, 0.0, -1.0], diffuse=[0.8, 0.8, 0.8])
     for geom in spec.geoms:
         geom.contype = geom.conaffinity = 1
     if model.workspace.floor is not None:
@@ -161,6 +231,16 @@ def _spec(model: RobotModel, settings: PhysicsSettings) -> Any:
             type=mujoco.mjtGeom.mjGEOM_PLANE,
             size=[2.0, 2.0, 0.01],
             pos=[0.0, 0.0, model.workspace.floor],
+        )
+    if settings.target_marker:
+        # A mocap body: placed by hand, moved by nothing; it collides with nothing either.
+        marker = spec.worldbody.add_body(name="target", mocap=True, pos=[0.0, 0.0, -1.0])
+        marker.add_geom(
+            type=mujoco.mjtGeom.mjGEOM_SPHERE,
+            size=[0.015, 0.0, 0.0],
+            rgba=[1.0, 0.0, 0.0, 1.0],
+            contype=0,
+            conaffinity=0,
         )
     for joint in model.joints:
         found = spec.joint(joint.urdf_name)
@@ -189,6 +269,10 @@ class PhysicsSlave:
         self.contacts_reported: list[tuple[str, str]] = []
         self._pending: list[SlaveTarget | SlaveNotice] = []
         self._lock = threading.Lock()
+        self._link: SlaveLink | None = None
+        self._started = 0.0  # trio time of the simulation's step 0 (stepped mode)
+        #: Set once the simulation is built and has reported its first joint values.
+        self.ready = trio.Event()
 
     async def run(self, link: SlaveLink) -> None:
         """Simulate until detached."""
@@ -198,9 +282,13 @@ class PhysicsSlave:
         else:  # on a virtual clock a thread's time would not count: build it here
             simulation = ArmSimulation(model, self.settings)
         self.simulation = simulation
+        self._link, self._started = link, trio.current_time()
         await link.report_joint_states(simulation.positions())
+        self.ready.set()
         async with trio.open_nursery() as nursery:
-            if self.settings.realtime:
+            if self.settings.stepped:
+                pass  # moved on by its owner (`step_to`)
+            elif self.settings.realtime:
                 nursery.start_soon(self._in_real_time, link, simulation)
             else:
                 nursery.start_soon(self._in_trio_time, link, simulation)
@@ -236,6 +324,31 @@ class PhysicsSlave:
             await link.report_fault(
                 ErrorCode.CONTACT, f"{pair[0]} touches {pair[1]}", Severity.WARNING, None
             )
+
+    async def step_to(self, when: float) -> None:
+        """Stepped mode: apply the targets and notices that came, simulate up to trio time
+        `when` (steps counted from the last `place`), then report. Its owner calls it every
+        `report_interval` or so, after letting everything due at `when` happen."""
+        simulation, link = self.simulation, self._link
+        if simulation is None or link is None:
+            raise RuntimeError("step_to before the simulation is ready")
+        self._apply_pending(simulation)
+        count = round((when - self._started) * self.settings.rate) - simulation.steps
+        if count > 0:
+            simulation.step(count)
+        await self._report(link, simulation.positions(), simulation.contacts())
+
+    async def place(self, degrees: Mapping[str, float]) -> None:
+        """Stepped mode: start the simulation afresh at rest at `degrees` (a twin's reset, where
+        a real arm would be brought there by its commands) and report."""
+        simulation, link = self.simulation, self._link
+        if simulation is None or link is None:
+            raise RuntimeError("place before the simulation is ready")
+        self._apply_pending(simulation)
+        simulation.restart(degrees)
+        # Steps count from here: the same step grid for every start, wherever the clock is.
+        self._started, simulation.steps = trio.current_time(), 0
+        await self._report(link, simulation.positions(), simulation.contacts())
 
     async def _in_trio_time(self, link: SlaveLink, simulation: ArmSimulation) -> None:
         interval = self.settings.report_interval

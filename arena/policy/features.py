@@ -13,6 +13,7 @@ from arena.robot.model import RobotModel
 from arena.robot.snapshot import RobotSnapshot
 
 STATE = "observation.state"
+ENVIRONMENT = "observation.environment_state"
 IMAGE_PREFIX = "observation.images."
 ACTION = "action"
 
@@ -21,9 +22,12 @@ def _invalid(message: str) -> ArenaError:
     return ArenaError(ErrorCode.POLICY_INVALID, message)
 
 
-def check_features(loaded: Loaded, model: RobotModel, cameras: Collection[str]) -> None:
+def check_features(
+    loaded: Loaded, model: RobotModel, cameras: Collection[str], environment: int = 0
+) -> None:
     """Refuse (POLICY_INVALID, naming the feature) a policy whose inputs the robot cannot supply
-    or whose action is not one value per joint."""
+    or whose action is not one value per joint. `environment`: the length of the
+    `observation.environment_state` its attacher gives (0: none)."""
     joints = len(model.joints)
     names = ", ".join(feature_names(model))
     for feature in loaded.inputs:
@@ -35,10 +39,17 @@ def check_features(loaded: Loaded, model: RobotModel, cameras: Collection[str]) 
                 )
         elif feature.name.startswith(IMAGE_PREFIX):
             _check_image(feature, cameras)
+        elif feature.name == ENVIRONMENT:
+            if feature.shape != (environment,):
+                raise _invalid(
+                    f"Input feature {ENVIRONMENT} has shape {list(feature.shape)}; "
+                    f"{environment} values were given (`environment_state`: the task's state, "
+                    "which Arena does not measure, given when the policy is attached)."
+                )
         else:
             raise _invalid(
                 f"Input feature {feature.name} ({feature.kind}) is not something Arena measures "
-                f"(it gives {STATE} and {IMAGE_PREFIX}<camera>)."
+                f"(it gives {STATE}, {IMAGE_PREFIX}<camera> and, given at attach, {ENVIRONMENT})."
             )
     actions = [feature for feature in loaded.outputs if feature.name == ACTION]
     if not actions or actions[0].shape != (joints,):

@@ -144,7 +144,9 @@ class PolicySettings:
     (None: the policy's chunk length), `chunk_size_threshold`, `aggregate_fn_name`,
     `max_relative_target` (the step limit: degrees a target may lie from the measured position;
     None: off). `stall_periods`: control periods without an action that trip the watchdog;
-    `load_timeout`: seconds the worker has to start and load the policy."""
+    `load_timeout`: seconds the worker has to start and load the policy.
+    `environment_state`: `observation.environment_state` of every observation (the task's
+    state, which Arena does not measure; empty: none)."""
 
     path: Path
     task: str = ""
@@ -155,6 +157,7 @@ class PolicySettings:
     max_relative_target: float | None = 10.0
     stall_periods: int = 2
     load_timeout: float = LOAD_TIMEOUT
+    environment_state: tuple[float, ...] = ()
 
 
 @dataclass(slots=True)
@@ -240,7 +243,12 @@ class PolicyMaster:
         self.process = await self.start_worker()
         try:
             self.loaded = await self.process.load(self.settings.path)
-            check_features(self.loaded, self.model, list(self.cameras()))
+            check_features(
+                self.loaded,
+                self.model,
+                list(self.cameras()),
+                len(self.settings.environment_state),
+            )
             chunk = self.settings.actions_per_chunk or self.loaded.chunk_size
             self.queue = ActionQueue(
                 chunk, self.settings.chunk_size_threshold, self.settings.aggregate_fn_name
@@ -385,6 +393,7 @@ class PolicyMaster:
                 lerobot_state(self.model, arm.measured()),
                 images,
                 self.settings.task,
+                self.settings.environment_state,
             )
             sent = trio.current_time()
             captured = [s.captured for n, s in shots.items() if s is not None and n in images]

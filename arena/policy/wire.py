@@ -47,12 +47,14 @@ class Loaded(msgspec.Struct, tag="loaded", frozen=True):
 
 class Observe(msgspec.Struct, tag="observe", frozen=True):
     """One observation: `observation.state` in LeRobot's units, JPEG frames by camera name,
-    the task. `timestep` is the control step it was taken at; the chunk answers with it."""
+    the task, and `observation.environment_state` (empty: none). `timestep` is the control
+    step it was taken at; the chunk answers with it."""
 
     timestep: int
     state: tuple[float, ...]
     images: dict[str, bytes]
     task: str
+    environment_state: tuple[float, ...] = ()
 
 
 class Chunk(msgspec.Struct, tag="chunk", frozen=True):

@@ -39,6 +39,7 @@ from arena.policy.wire import (
 #: The processor files LeRobot 0.4 saves beside a policy.
 PROCESSOR_FILES = ("policy_preprocessor.json", "policy_postprocessor.json")
 STATE = "observation.state"
+ENVIRONMENT = "observation.environment_state"
 IMAGE_PREFIX = "observation.images."
 
 
@@ -146,6 +147,10 @@ class LoadedPolicy:
         for name, feature in self.config.input_features.items():
             if name == STATE:
                 batch[name] = torch.tensor(observation.state, dtype=torch.float32)
+            elif name == ENVIRONMENT:
+                if not observation.environment_state:
+                    raise ValueError(f"the observation has no {ENVIRONMENT}")
+                batch[name] = torch.tensor(observation.environment_state, dtype=torch.float32)
             elif name.startswith(IMAGE_PREFIX):
                 jpeg = observation.images.get(name.removeprefix(IMAGE_PREFIX))
                 if jpeg is None:

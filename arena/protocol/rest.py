@@ -227,7 +227,9 @@ class PolicyMasterBody(
     `actions_per_chunk` (default: the policy's chunk length), `chunk_size_threshold`,
     `aggregate_fn_name`; `max_relative_target`: the step limit in degrees (null: off);
     `stall_periods`: control periods without an action before the watchdog trips; `takeover`:
-    displace the robot's master (else MASTER_ACTIVE while it has one)."""
+    displace the robot's master (else MASTER_ACTIVE while it has one); `environment_state`:
+    the task's state for a policy that takes `observation.environment_state` (a reach
+    target, say), the same in every observation of the run."""
 
     path: Annotated[str, msgspec.Meta(min_length=1, max_length=4096)]
     task: Annotated[str, msgspec.Meta(max_length=1000)] = ""
@@ -239,6 +241,7 @@ class PolicyMasterBody(
     )
     max_relative_target: Annotated[float, msgspec.Meta(gt=0, le=360)] | None = 10.0
     stall_periods: Annotated[int, msgspec.Meta(ge=1, le=1000)] = 2
+    environment_state: Annotated[list[float], msgspec.Meta(max_length=64)] = []
     takeover: bool = False
 
 

@@ -14,7 +14,7 @@ import bisect
 import json
 import sys
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,6 +37,8 @@ DEFAULT_TASK = "teleoperation"
 POLICY_SOURCE = "policy:"
 #: LeRobot names a dataset recorded with a policy driving `eval_...`, and only such a one.
 EVAL_PREFIX = "eval_"
+#: LeRobot's feature for the task's state (what Arena does not measure: a reach target).
+ENVIRONMENT = "observation.environment_state"
 
 
 def feature_names(model: RobotModel) -> list[str]:
@@ -370,9 +372,13 @@ def export_lerobot(
     slave: str | None = None,
     task: str = DEFAULT_TASK,
     say: Callable[[str], None] = lambda line: print(line, file=sys.stderr),
+    environment: Mapping[int, Sequence[float]] | None = None,
 ) -> ExportReport:
     """Write a LeRobotDataset (v3.0, with LeRobot's own writer) of one robot's episodes;
-    an evaluation dataset (`eval_...`) when a policy drove them."""
+    an evaluation dataset (`eval_...`) when a policy drove them. `environment`: the task's
+    state of each episode (by its recorded index), which Arena does not measure (a reach
+    target): `observation.environment_state` of its every frame; an episode it does not name
+    is left out."""
     lerobot = _lerobot()  # before any work: a missing LeRobot is said first
     if not 1 <= fps <= 1000:
         raise ArenaError(ErrorCode.INVALID_VALUE, "--fps must be 1 to 1000.")
@@ -400,6 +406,8 @@ def export_lerobot(
     ]
     for line in notes:
         say(f"note: {line}")
+    if environment is not None:
+        spans = [span for span in spans if span.index in environment]
     frames = [(span, frames_of(session, span, fps, slave)) for span in spans]
     frames = [(span, found) for span, found in frames if found]
     if not frames:
@@ -413,6 +421,13 @@ def export_lerobot(
         "action": {"dtype": "float32", "shape": (len(names),), "names": names},
         "observation.state": {"dtype": "float32", "shape": (len(names),), "names": names},
     }
+    sizes = {len(values) for values in (environment or {}).values()}
+    if len(sizes) > 1:
+        raise ArenaError(
+            ErrorCode.INVALID_VALUE, "Every episode's environment state needs one size."
+        )
+    for size in sizes:
+        features[ENVIRONMENT] = {"dtype": "float32", "shape": (size,), "names": None}
     for name, shape in shapes.items():
         features[f"observation.images.{name}"] = {
             "dtype": "video",
@@ -439,6 +454,8 @@ def export_lerobot(
                     "observation.state": np.asarray(frame.state, dtype=np.float32),
                     "task": span.task,
                 }
+                if environment is not None:
+                    values[ENVIRONMENT] = np.asarray(environment[span.index], dtype=np.float32)
                 for name, jpeg in frame.jpegs.items():
                     values[f"observation.images.{name}"] = decoder.rgb(jpeg)
                 dataset.add_frame(values)

@@ -206,6 +206,7 @@ def _policy(
         aggregate_fn_name=body.aggregate_fn_name,
         max_relative_target=body.max_relative_target,
         stall_periods=body.stall_periods,
+        environment_state=tuple(body.environment_state),
     )
     return PolicyMaster(settings, model, cameras)
 

@@ -1,0 +1,58 @@
+"""`arena learn reach -o DIR`: collect, export, train and evaluate in the physics twin
+(specs/learning.md)."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from arena.cli.common import Commands
+
+
+def add(commands: Commands) -> None:
+    """Declare `learn`."""
+    learn = commands.add_parser(
+        "learn",
+        help="the whole loop in the twin: expert episodes, a LeRobot dataset, a policy trained "
+        "on this CPU, its success rate on targets it never saw",
+    )
+    learn.add_argument("task", choices=["reach"], help="the task (reach: the gripper to a point)")
+    learn.add_argument("-o", "--out", required=True, help="the folder for everything it makes")
+    learn.add_argument("--episodes", type=int, default=50, help="expert episodes (50)")
+    learn.add_argument("--steps", type=int, default=3000, help="training steps (3000)")
+    learn.add_argument("--targets", type=int, default=20, help="held-out targets (20)")
+    learn.add_argument("--seed", type=int, default=0, help="seed of targets and training (0)")
+    learn.set_defaults(handler=learn_command)
+
+
+def learn_command(args: argparse.Namespace) -> int:
+    """Run the loop and print the success rates and where the policy is."""
+    from arena.extras import require
+    from arena.protocol.errors import ArenaError, ErrorCode
+
+    require("gym", "arena learn")
+    require("physics", "arena learn")
+    require("lerobot", "arena learn")
+    from arena.gym.learn import LearnSettings, learn_reach
+
+    if args.episodes < 1 or args.steps < 1 or args.targets < 1:
+        raise ArenaError(
+            ErrorCode.INVALID_VALUE, "--episodes, --steps and --targets must be 1 or more."
+        )
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()):
+        raise ArenaError(ErrorCode.INVALID_VALUE, f"{out} (-o) exists and is not empty.")
+    settings = LearnSettings(out, args.episodes, args.steps, args.targets, seed=args.seed)
+    report = learn_reach(settings, say=lambda line: print(line, flush=True))
+    minutes = sum(report.seconds.values()) / 60
+    print(f"success on {args.targets} held-out targets (tip within 2 cm for 0.5 s):")
+    print(f"  expert  {report.expert:6.0%}")
+    print(f"  random  {report.random:6.0%}")
+    print(f"  policy  {report.policy:6.0%}   (ACT, {report.episodes} episodes, {args.steps} steps)")
+    times = ", ".join(f"{name} {seconds:.0f} s" for name, seconds in report.seconds.items())
+    print(f"took {minutes:.1f} min ({times})")
+    print(
+        f"policy saved in {report.policy_dir} (POST /api/robots/ID/master "
+        '{"type": "policy", "path": ..., "environment_state": [x, y, z]})'
+    )
+    return 0

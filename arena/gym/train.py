@@ -1,0 +1,127 @@
+"""Train a small LeRobot ACT policy on a state-only dataset, on the CPU, with nothing downloaded
+(specs/learning.md says why ACT and why these sizes). torch and LeRobot are imported here only,
+inside the functions: `arena learn` pays for them, nothing else does.
+
+The loop is LeRobot's own recipe written small: the dataset with `delta_timestamps` giving each
+frame its chunk of actions, LeRobot's preprocessor (normalisation from the dataset's
+statistics), `ACTPolicy.forward` for the loss, AdamW. The result is saved as LeRobot saves a
+policy (`config.json`, `model.safetensors`, the processors), which a policy master loads.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def action_chunks(episodes: Any, size: int) -> tuple[Any, Any]:
+    """For each frame, the rows of the `size` actions from it on within its episode (the last
+    repeated past the episode's end) and which of them lie past it (LeRobot's
+    `action_is_pad`). `episodes`: each row's episode index, episodes in consecutive rows."""
+    count = len(episodes)
+    rows = np.arange(count)[:, None] + np.arange(size)[None, :]
+    last = np.empty(count, dtype=np.int64)
+    ends = np.flatnonzero(np.diff(episodes)) + 1  # first row of each next episode
+    for begin, end in zip(np.r_[0, ends], np.r_[ends, count], strict=True):
+        last[begin:end] = end - 1
+    padded = rows > last[:, None]
+    return np.minimum(rows, last[:, None]), padded
+
+
+@dataclass(frozen=True, slots=True)
+class TrainSettings:
+    """The policy's size and the training's length."""
+
+    steps: int = 3000
+    batch_size: int = 64
+    learning_rate: float = 1e-3
+    chunk_size: int = 10  # actions per inference (at 30 fps, a third of a second)
+    dim_model: int = 128
+    dim_feedforward: int = 512
+    n_encoder_layers: int = 2
+    seed: int = 0
+
+
+def train_act(
+    dataset: Path,
+    repo_id: str,
+    out: Path,
+    settings: TrainSettings = TrainSettings(),
+    say: Callable[[str], None] = print,
+) -> float:
+    """Train ACT on the dataset at `dataset` and save it in `out`; the last loss."""
+    import torch
+    from lerobot.configs.types import FeatureType, NormalizationMode
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
+    from lerobot.datasets.utils import dataset_to_policy_features
+    from lerobot.policies.act.configuration_act import ACTConfig
+    from lerobot.policies.act.modeling_act import ACTPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    torch.manual_seed(settings.seed)
+    # One thread: on a small shared machine more threads fight over the cores (two threads
+    # made a step of this small model 20 times slower here, not faster).
+    torch.set_num_threads(1)
+    meta = LeRobotDatasetMetadata(repo_id, root=dataset)
+    features = dataset_to_policy_features(meta.features)
+    outputs = {k: f for k, f in features.items() if f.type is FeatureType.ACTION}
+    inputs = {k: f for k, f in features.items() if k not in outputs}
+    config = ACTConfig(
+        input_features=inputs,
+        output_features=outputs,
+        chunk_size=settings.chunk_size,
+        n_action_steps=settings.chunk_size,
+        dim_model=settings.dim_model,
+        dim_feedforward=settings.dim_feedforward,
+        n_encoder_layers=settings.n_encoder_layers,
+        n_decoder_layers=1,
+        use_vae=False,  # one right answer per state here: no modes for a VAE to model
+        pretrained_backbone_weights=None,  # no images, no backbone, nothing downloaded
+        normalization_mapping={
+            "VISUAL": NormalizationMode.MEAN_STD,
+            "STATE": NormalizationMode.MEAN_STD,
+            "ENV": NormalizationMode.MEAN_STD,  # the target, in metres: scaled like the rest
+            "ACTION": NormalizationMode.MEAN_STD,
+        },
+        device="cpu",
+    )
+    policy: Any = ACTPolicy(config)
+    policy.train()
+    pre, post = make_pre_post_processors(config, dataset_stats=meta.stats)
+    table = LeRobotDataset(repo_id, root=dataset).hf_dataset.with_format("numpy")
+    columns = {name: np.asarray(table[name]) for name in (*inputs, "action", "episode_index")}
+    chunks, padded = action_chunks(columns["episode_index"], settings.chunk_size)
+    tensors = {name: torch.as_tensor(columns[name], dtype=torch.float32) for name in inputs}
+    actions = torch.as_tensor(columns["action"], dtype=torch.float32)
+    chunk_index, pad = torch.as_tensor(chunks), torch.as_tensor(padded)
+    optimizer = torch.optim.AdamW(policy.parameters(), lr=settings.learning_rate)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, settings.steps)
+    generator = torch.Generator().manual_seed(settings.seed)
+    loss_value, started = float("nan"), time.perf_counter()
+    for step in range(1, settings.steps + 1):
+        # The frames are a few thousand rows: held in memory, a batch is an index away
+        # (LeRobot's own loader reads each frame's chunk from the parquet: ~100 times slower).
+        rows = torch.randint(len(actions), (settings.batch_size,), generator=generator)
+        batch = {name: values[rows] for name, values in tensors.items()}
+        batch["action"] = actions[chunk_index[rows]]
+        batch["action_is_pad"] = pad[rows]
+        loss, _ = policy.forward(pre(batch))
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        schedule.step()
+        loss_value = float(loss.item())
+        if step % max(1, settings.steps // 10) == 0:
+            took = time.perf_counter() - started
+            say(f"  step {step}/{settings.steps}: loss {loss_value:.4f} ({took:.0f} s)")
+    policy.eval()
+    out.mkdir(parents=True, exist_ok=True)
+    policy.save_pretrained(out)
+    pre.save_pretrained(out)
+    post.save_pretrained(out)
+    return loss_value
