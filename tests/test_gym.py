@@ -137,7 +137,10 @@ async def test_check_env_passes_against_a_server(start_server: Start, fast_type:
     await robot_with_mock_slave(server, fast_type)
 
     def check() -> None:
-        env = gymnasium.make(ENV_ID, url=server.url, robot="arm")
+        # Each step waits for the joint states its command caused however late they come (a
+        # real-time loop waits one period at most): a loaded machine slows the check, never
+        # fails it.
+        env = gymnasium.make(ENV_ID, url=server.url, robot="arm", observation_wait=60.0)
         try:
             # (Its close check makes a second environment while this one holds the robot,
             # which Arena refuses: MASTER_ACTIVE. Closing is checked below.)

@@ -42,7 +42,8 @@ class ArenaEnv(gymnasium.Env[Observation, Action]):
     `ArenaEnv()` runs a private Arena with the physics twin, stepped (not paced) and the same
     every time for the same seed; `ArenaEnv(url="http://HOST:PORT", robot="ID")` drives a
     robot of a running server in real time, paced to `fps`. `max_seconds` is the episode's
-    time limit.
+    time limit. Against a server, `observation_wait` is how long a step waits at most, after
+    its tick, for the joint states its command caused (default one period).
     """
 
     metadata = {"render_modes": [], "render_fps": 30}  # noqa: RUF012 (Gymnasium's own shape)
@@ -60,6 +61,7 @@ class ArenaEnv(gymnasium.Env[Observation, Action]):
         cameras: Sequence[str] = (),
         image_size: tuple[int, int] = (96, 96),
         world: World | None = None,
+        observation_wait: float | None = None,
     ) -> None:
         if world is None:
             if url is not None:
@@ -67,7 +69,14 @@ class ArenaEnv(gymnasium.Env[Observation, Action]):
                     raise ValueError("a server's robot needs its id: ArenaEnv(url=..., robot=...)")
                 if cameras:
                     raise ValueError("`pixels` against a server are not there yet: no cameras")
-                world = ServerWorld(url, robot, fps, api_key=api_key, takeover=takeover)
+                world = ServerWorld(
+                    url,
+                    robot,
+                    fps,
+                    api_key=api_key,
+                    takeover=takeover,
+                    observation_wait=observation_wait,
+                )
             else:
                 world = TwinWorld(robot_type, fps, cameras=dict.fromkeys(cameras, View()))
         self.cameras = tuple(cameras)

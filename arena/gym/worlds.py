@@ -306,6 +306,7 @@ class ServerWorld:
         fps: float = 30.0,
         api_key: str | None = None,
         takeover: bool = False,
+        observation_wait: float | None = None,
     ) -> None:
         with Arena(url, api_key) as rest:
             details = rest.robot(robot)
@@ -313,6 +314,9 @@ class ServerWorld:
         self.url, self.robot_id, self.fps = url, robot, fps
         self.period = 1.0 / fps
         self.api_key, self.takeover = api_key, takeover
+        # A step waits this long at most, after its tick, for the joint states its command
+        # caused: one period by default (a real-time loop must not stall on a late report).
+        self.observation_wait = self.period if observation_wait is None else observation_wait
         self._session: MasterSession | None = None
         self._tick = 0.0
         self.loop = TrioLoop(self._serve, name="arena-gym-server")
@@ -390,7 +394,7 @@ class ServerWorld:
         if safety is None:
             # The joint states the server sent after the command (it sends them at most
             # every `joint_states_interval`): what this step did, not what was before it.
-            with trio.move_on_after(self.period):
+            with trio.move_on_after(self.observation_wait):
                 await self.session.wait_for(lambda s: s.joints is not before)
         return self._measured(), safety or self._estop()
 
