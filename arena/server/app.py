@@ -483,7 +483,7 @@ def _register_routes(app: ArenaApp) -> None:
             app.metrics.render(
                 robots_seen(),
                 sum(c.queued_bytes for c in app.connections),
-                app.recorder.status(),
+                recorder_status(app, g.principal),  # the caller's tenant's counts
             ),
             content_type="text/plain; version=0.0.4",
         )
