@@ -20,6 +20,8 @@ from trio_websocket import open_websocket_url
 
 from arena.fleet import forward
 from arena.fleet import tunnel as tunnels
+from arena.fleet.node import NodeView
+from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording.mcap_file import FileSeries, read_recording
 from arena.recording.recorder import Recorder
 from arena.recording.writer_process import McapWriterProcess, TenantFiles, pack_events
@@ -415,6 +417,61 @@ async def test_a_node_serves_a_call_from_another_node_as_the_caller_it_was_sent(
         assert (seen.status_code, seen.headers.get("X-Arena-Node")) == (200, "b")
         hidden = await http.get("/api/robots/dup/status", headers=acme_admin)
         assert hidden.status_code == 404
+
+
+async def test_a_node_with_credentials_refuses_a_call_that_names_no_caller(
+    start_server: StartServer, secret_file: Path
+) -> None:
+    a, b = await _secured_fleet(start_server, secret_file)
+    fleet = a.app.fleet
+    # As a node of an older version sends them: no caller. Run as anyone, it would be the
+    # unlimited admin: it is refused, and the robot stays.
+    call = forward.Call("DELETE", "/api/robots/b-lab", "", {}, b"", None)
+    answer = await forward.forward(fleet, "b", call)
+    error = json.loads(answer.body)["error"]
+    assert (answer.status, error["code"]) == (401, "UNAUTHORIZED")
+    assert "no caller" in error["message"]
+    with pytest.raises(ArenaError) as refused:
+        await tunnels.open_to(fleet, "b", "b-lab", "master", {}, None)
+    assert refused.value.code is ErrorCode.UNAUTHORIZED
+    assert b.app.manager.find("b-lab") is not None
+    assert b.app.manager.get("b-lab").snapshot().master is None
+
+
+async def test_an_open_fleet_serves_a_call_without_a_caller_as_every_call_there(
+    start_server: StartServer,
+) -> None:
+    need("zenoh", "fleet")
+    a = await start_server(node="a", fleet_listen=("tcp/127.0.0.1:0",))
+    b = await start_server(node="b", fleet_connect=tuple(await a.app.fleet.locators()))
+    async with b.client() as http:
+        assert (await http.post("/api/robots", json={"id": "b-0"})).status_code == 201
+    call = forward.Call("DELETE", "/api/robots/b-0", "", {}, b"", None)
+    answer = await forward.forward(a.app.fleet, "b", call)
+    assert answer.status == 200, answer.body
+    assert b.app.manager.find("b-0") is None
+
+
+async def test_a_reused_robot_id_has_the_tenant_its_live_owner_says(
+    start_server: StartServer, secret_file: Path
+) -> None:
+    a, _b = await _secured_fleet(start_server, secret_file)
+    fleet = a.app.fleet
+    # A node that left had a robot of acme called b-lab (listed first, as a node seen
+    # earlier would be); b, alive, owns b-lab now, of the default tenant.
+    ghost = NodeView("ghost", False, robots=[{"id": "b-lab", "tenant": "acme"}])
+    fleet.nodes = {"ghost": ghost, **fleet.nodes}
+    assert fleet.robot_nodes["b-lab"] == "b"
+    assert a.app.access.tenant_of("b-lab") == "default"
+    async with a.client() as http:
+        seen = await http.get("/api/robots/b-lab/status", headers=bearer(token("admin")))
+        assert (seen.status_code, seen.headers.get("X-Arena-Node")) == (200, "b")
+        acme = bearer(token("admin", tenant="acme"))
+        hidden = await http.get("/api/robots/b-lab/status", headers=acme)
+        assert hidden.status_code == 404
+    # No live node has it: the dead node's word is all there is.
+    ghost.robots.append({"id": "gone-1", "tenant": "acme"})
+    assert a.app.access.tenant_of("gone-1") == "acme"
 
 
 async def test_a_robot_out_of_scope_on_a_node_that_left_is_as_absent_as_any(
