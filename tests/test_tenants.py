@@ -10,6 +10,7 @@ import json
 import os
 import signal
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -27,9 +28,13 @@ from arena.recording.recorder import Recorder
 from arena.recording.writer_process import McapWriterProcess, TenantFiles, pack_events
 from arena.robot.events import Audited, StateChanged
 from arena.robot.manager import open_manager
+from arena.robot.model import load_robot_model
 from arena.robot.safety import Mode
 from arena.server.identity import Principal, Role
+from arena.servo.calibration import Calibration
+from arena.servo.sim_pty import PtySimBus
 from tests.conftest import RunningServer, eventually, need
+from tests.hardware import running_sim
 from tests.test_server_ws import closed_with, receive
 from tests.test_users import ADMIN_KEY, SECRET, StartServer, bearer, token
 
@@ -502,3 +507,40 @@ async def test_a_robot_out_of_scope_on_a_node_that_left_is_as_absent_as_any(
         async with open_websocket_url(f"{a.ws_url}/ws/master/b-acme?token={caller}") as ws:
             error = await receive(ws, "error")
             assert (error["data"]["code"], await closed_with(ws)) == expected
+
+
+# -- calibration -----------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def sim(tmp_path: Path) -> Iterator[PtySimBus]:
+    yield from running_sim(tmp_path)
+
+
+async def test_each_tenant_has_its_own_calibration_folder_and_no_other_file(
+    start_server: StartServer, secret_file: Path, sim: PtySimBus, tmp_path: Path
+) -> None:
+    root = tmp_path / "calibration"
+    server = await start_server(jwt_secret_file=str(secret_file), calibration_dir=str(root))
+    lab_file = root / "lab-arm.json"  # the default tenant's, where it always was
+    model = load_robot_model("so-arm100")
+    Calibration.identity({j.name: j.servo_id for j in model.joints}).save(lab_file)
+    before = lab_file.read_bytes()
+    acme = bearer(token("admin", tenant="acme"))
+    async with server.client() as http:
+        assert (await http.post("/api/robots", json={"id": "acme-1"}, headers=acme)).is_success
+        slaves = "/api/robots/acme-1/slaves"
+        # A file outside acme's folder: refused by path, by LeRobot id, and nothing attached.
+        for value in (str(lab_file), "lerobot:arm", "lab-arm.json"):
+            body = {"type": "usb-slave", "port": str(sim.link), "calibration": value}
+            refused = await http.post(slaves, json=body, headers=acme)
+            assert (refused.status_code, refused.json()["error"]["code"]) == (403, "FORBIDDEN")
+        assert server.app.manager.get("acme-1").snapshot().slaves == ()
+        # The default tenant's name, asked by acme: acme's own file of that name (none yet).
+        body = {"type": "usb-slave", "port": str(sim.link), "calibration": "lab-arm"}
+        attached = await http.post(slaves, json=body, headers=acme)
+        assert attached.status_code == 201, attached.text
+        status = (await http.get("/api/robots/acme-1/calibration", headers=acme)).json()
+    assert status["file"] == str(root / "acme" / "lab-arm.json")
+    assert status["calibrated"] is False
+    assert lab_file.read_bytes() == before
