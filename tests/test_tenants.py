@@ -80,7 +80,7 @@ async def test_each_tenant_is_recorded_into_files_of_its_own(
         refused = await http.post("/api/recordings/current/stop", headers=acme_admin)
         assert refused.status_code == 403
         stopped = await http.post("/api/recordings/current/stop", headers=key)
-        assert stopped.json()["stopped"] == [ours]  # (the caller's file; acme's is not named)
+        assert stopped.json()["stopped"] == ours  # (the caller's file; acme's is not named)
         # Finished, each file says its tenant: still listed to it alone.
         assert (await listed(acme), await listed(key)) == ([theirs], [ours])
         summary = (await http.get(f"/api/recordings/{theirs}", headers=acme)).json()
@@ -147,7 +147,7 @@ async def test_the_recorder_s_status_tells_each_tenant_its_own_counts_and_file_a
             # Each count is of the caller's own files: read back, they hold that many.
             written = read_recording(server.app.recorder.folder / name).message_count
             assert (status["messages"], status["dropped"], status["error"]) == (written, 0, None)
-    assert [statuses["default"][0]] == ours and statuses["acme"][0].endswith(".acme.mcap")
+    assert statuses["default"][0] == ours and statuses["acme"][0].endswith(".acme.mcap")
     assert statuses["default"][1]["messages"] != statuses["acme"][1]["messages"]
 
 

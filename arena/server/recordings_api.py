@@ -158,8 +158,9 @@ async def start_recording() -> tuple[dict[str, Any], int]:
 @blueprint.post("/api/recordings/<name>/stop")
 async def stop_recording(name: str) -> dict[str, Any]:
     """Stop recording (every tenant's: one switch for the server); `name` must be a file
-    being written that the caller may read (or `current`). `stopped` names the files the
-    stop finished that the caller may read."""
+    being written that the caller may read (or `current`). `stopped` names the file the
+    stop finished that the caller may read: the caller is of the default tenant (only the
+    whole server's admin stops), which writes one file at a time."""
     principal: Principal = g.principal
     _whole_server(principal)
     app = _app()
@@ -171,7 +172,7 @@ async def stop_recording(name: str) -> dict[str, Any]:
             raise ArenaError(ErrorCode.UNKNOWN_RECORDING, f"{name!r} is not being recorded.")
     closed = await recorder.stop()
     stopped = await off_the_loop(_files_seen, app, principal, closed)
-    return {**recorder_status(app, principal), "stopped": stopped}
+    return {**recorder_status(app, principal), "stopped": stopped[0] if stopped else None}
 
 
 #: Recordings read at once for requests: each takes memory in proportion to its file.
