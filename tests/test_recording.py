@@ -531,7 +531,7 @@ async def test_a_stop_during_a_batch_in_flight_keeps_that_batch_in_the_stopped_f
             await robot.command(Command.of({"Rotation": 5.0}))
             await trio.to_thread.run_sync(in_flight.wait, 30)
             async with trio.open_nursery() as stopping:
-                stopped: list[Path | None] = []
+                stopped: list[dict[Path, str]] = []
 
                 async def stop() -> None:
                     stopped.append(await recorder.stop())
@@ -546,8 +546,7 @@ async def test_a_stop_during_a_batch_in_flight_keeps_that_batch_in_the_stopped_f
                 )
                 go_on.set()
         nursery.cancel_scope.cancel()
-    (path,) = stopped
-    assert path is not None
+    ((path,),) = stopped
     commands = [m.data for m in read_recording(path).messages if m.kind == "command"]
     assert [c["joints"][0]["value"] for c in commands] == [5.0]
 

@@ -9,6 +9,8 @@ import io
 import json
 import os
 import signal
+import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -19,13 +21,20 @@ from trio_websocket import open_websocket_url
 
 from arena.fleet import forward
 from arena.fleet import tunnel as tunnels
+from arena.fleet.node import NodeView
+from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording.mcap_file import FileSeries, read_recording
 from arena.recording.recorder import Recorder
-from arena.recording.writer_process import McapWriterProcess
-from arena.robot.events import Audited
+from arena.recording.writer_process import McapWriterProcess, TenantFiles, pack_events
+from arena.robot.events import Audited, StateChanged
 from arena.robot.manager import open_manager
+from arena.robot.model import load_robot_model
+from arena.robot.safety import Mode
 from arena.server.identity import Principal, Role
+from arena.servo.calibration import Calibration
+from arena.servo.sim_pty import PtySimBus
 from tests.conftest import RunningServer, eventually, need
+from tests.hardware import running_sim
 from tests.test_server_ws import closed_with, receive
 from tests.test_users import ADMIN_KEY, SECRET, StartServer, bearer, token
 
@@ -107,6 +116,68 @@ async def test_each_tenant_is_recorded_into_files_of_its_own(
         assert metadata[f"robot/{robot_id}"]["tenant"] == tenant
 
 
+async def test_the_recorder_s_status_tells_each_tenant_its_own_counts_and_file_alone(
+    start_server: StartServer, secret_file: Path
+) -> None:
+    server = await start_server(api_keys=(ADMIN_KEY,), jwt_secret_file=str(secret_file))
+    key = bearer(ADMIN_KEY)
+    acme = bearer(token("admin", tenant="acme"))
+    async with server.client() as http:
+        assert (await http.post("/api/robots", json={"id": "lab-1"}, headers=key)).is_success
+        assert (await http.post("/api/robots", json={"id": "acme-1"}, headers=acme)).is_success
+        for _ in range(3):  # the lab's robot says more than acme's: counts that differ
+            await http.post("/api/robots/lab-1/estop", headers=key)
+            await http.post("/api/robots/lab-1/reset", headers=key)
+        await http.post("/api/robots/acme-1/estop", headers=acme)
+
+        async def both_writing() -> bool:
+            return len(server.app.recorder.current_files) == 2
+
+        await eventually(both_writing, what="each tenant's file being written")
+        stopped = await http.post("/api/recordings/current/stop", headers=key)
+        assert stopped.status_code == 200
+        ours = stopped.json()["stopped"]
+        statuses = {}
+        for who, headers in (("default", key), ("acme", acme)):
+            listing = (await http.get("/api/recordings", headers=headers)).json()
+            [name] = [entry["name"] for entry in listing["recordings"]]
+            status = (await http.get("/", headers=headers)).json()["recording"]
+            assert status == listing["recorder"]
+            statuses[who] = (name, status)
+            # Each count is of the caller's own files: read back, they hold that many.
+            written = read_recording(server.app.recorder.folder / name).message_count
+            assert (status["messages"], status["dropped"], status["error"]) == (written, 0, None)
+    assert statuses["default"][0] == ours and statuses["acme"][0].endswith(".acme.mcap")
+    assert statuses["default"][1]["messages"] != statuses["acme"][1]["messages"]
+
+
+async def test_a_recorder_that_cannot_write_says_why_without_naming_a_file(
+    start_server: StartServer, secret_file: Path, tmp_path: Path
+) -> None:
+    folder = tmp_path / "not-a-folder"
+    folder.write_text("a file where the recordings should go")
+    server = await start_server(jwt_secret_file=str(secret_file), recordings_dir=str(folder))
+    acme = bearer(token("admin", tenant="acme"))
+    async with server.client() as http:
+        assert (await http.post("/api/robots", json={"id": "acme-1"}, headers=acme)).is_success
+
+        async def failing() -> dict[str, Any] | None:
+            await http.post("/api/robots/acme-1/estop", headers=acme)  # something to write
+            status = (await http.get("/", headers=acme)).json()["recording"]
+            return status if status["error"] is not None else None
+
+        await eventually(failing, what="acme's recording failing")
+        status = await failing()
+        lab = (await http.get("/", headers=bearer(token("admin")))).json()
+        ready = await http.get("/readyz")
+    assert status is not None and status["errors"] >= 1 and status["dropped"] >= 1
+    for said in (status["error"], *ready.json()["reasons"]):
+        assert "not-a-folder" not in said and str(tmp_path) not in said and ".mcap" not in said
+    assert status["error"].startswith("File exists"), status["error"]
+    # The default tenant had nothing to write: nothing failed of its own.
+    assert (lab["recording"]["error"], lab["recording"]["dropped"]) == (None, 0)
+
+
 async def test_a_tenant_reads_its_file_being_written_in_a_folder_given_relative(
     start_server: StartServer,
     secret_file: Path,
@@ -141,8 +212,12 @@ async def test_a_robot_id_made_anew_in_another_tenant_goes_to_that_tenant_s_file
             manager.on_create.append(recorder.follow)
             first = await manager.create_robot("so-arm100", robot_id="x", tenant="acme")
             await first.estop("acme's stop")
-            while not recorder.writer.messages:  # a batch written: the writer knows the robot
-                await trio.sleep(0.5)
+            # A batch written: the writer knows the robot. The writer is a real process and
+            # trio's clock jumps while it works: bounded in real time, to fail, never hang.
+            deadline = time.monotonic() + 60
+            while not recorder.writer.messages:
+                assert time.monotonic() < deadline, "the writer wrote nothing in a minute"
+                await trio.to_thread.run_sync(time.sleep, 0.01)  # (no busy loop meanwhile)
             await first.reset()
             await first.estop("acme's last word")
             # Deleted and made anew at once: the old robot's last events may travel in one
@@ -183,6 +258,38 @@ def test_a_writer_process_started_anew_knows_every_robot_s_tenant_from_its_first
     assert second.path.name.endswith(".acme.mcap"), writer.files  # not the default tenant's
     assert second.metadata["robot/arm"]["tenant"] == "acme"
     assert [m.log_time for m in first.messages + second.messages] == [1, 2, 3]
+
+
+def test_one_tenant_s_disk_error_leaves_the_other_tenants_events_written(tmp_path: Path) -> None:
+    files = TenantFiles(FileSeries(tmp_path / "recordings", {}, foxglove=False))
+    tenants = {"acme-1": "acme", "lab-1": "default", "zeta-1": "zeta"}  # acme's lane first
+    for robot_id, tenant in tenants.items():
+        metadata = {"robot_type": "so-arm100", "name": robot_id, "tenant": tenant}
+        files.know(robot_id, metadata, None)
+    blocked = tmp_path / "acme-disk"
+    blocked.write_text("a file where acme's folder should be")
+    files.lane("acme").writer.folder = blocked  # acme's disk refuses (a real OS error)
+    slices = {
+        tenant: [
+            pack_events(
+                robot_id, 0.0, [StateChanged(robot_id, Mode.IDLE, None, None, "x", 1.0, 1.0)]
+            )
+        ]
+        for robot_id, tenant in tenants.items()
+    }
+    files.write_events(slices)
+    files.flush()
+    errors, _, messages, written, _ = files.reply()
+    assert list(errors) == ["acme"] and "acme-disk" not in errors["acme"], errors
+    assert errors["acme"].startswith("File exists")
+    assert messages == {"acme": 0, "default": 1, "zeta": 1}
+    files.close()
+    read = {read_recording(path).metadata["arena"]["tenant"]: path for path in written}
+    assert sorted(read) == ["default", "zeta"]
+    for tenant, path in read.items():
+        [message] = read_recording(path).messages
+        assert message.robot_id == f"{'lab' if tenant == 'default' else tenant}-1"
+    assert files.reply()[0] == {}, "an error is told once"
 
 
 # -- across a fleet --------------------------------------------------------------------------------
@@ -317,6 +424,61 @@ async def test_a_node_serves_a_call_from_another_node_as_the_caller_it_was_sent(
         assert hidden.status_code == 404
 
 
+async def test_a_node_with_credentials_refuses_a_call_that_names_no_caller(
+    start_server: StartServer, secret_file: Path
+) -> None:
+    a, b = await _secured_fleet(start_server, secret_file)
+    fleet = a.app.fleet
+    # As a node of an older version sends them: no caller. Run as anyone, it would be the
+    # unlimited admin: it is refused, and the robot stays.
+    call = forward.Call("DELETE", "/api/robots/b-lab", "", {}, b"", None)
+    answer = await forward.forward(fleet, "b", call)
+    error = json.loads(answer.body)["error"]
+    assert (answer.status, error["code"]) == (401, "UNAUTHORIZED")
+    assert "no caller" in error["message"]
+    with pytest.raises(ArenaError) as refused:
+        await tunnels.open_to(fleet, "b", "b-lab", "master", {}, None)
+    assert refused.value.code is ErrorCode.UNAUTHORIZED
+    assert b.app.manager.find("b-lab") is not None
+    assert b.app.manager.get("b-lab").snapshot().master is None
+
+
+async def test_an_open_fleet_serves_a_call_without_a_caller_as_every_call_there(
+    start_server: StartServer,
+) -> None:
+    need("zenoh", "fleet")
+    a = await start_server(node="a", fleet_listen=("tcp/127.0.0.1:0",))
+    b = await start_server(node="b", fleet_connect=tuple(await a.app.fleet.locators()))
+    async with b.client() as http:
+        assert (await http.post("/api/robots", json={"id": "b-0"})).status_code == 201
+    call = forward.Call("DELETE", "/api/robots/b-0", "", {}, b"", None)
+    answer = await forward.forward(a.app.fleet, "b", call)
+    assert answer.status == 200, answer.body
+    assert b.app.manager.find("b-0") is None
+
+
+async def test_a_reused_robot_id_has_the_tenant_its_live_owner_says(
+    start_server: StartServer, secret_file: Path
+) -> None:
+    a, _b = await _secured_fleet(start_server, secret_file)
+    fleet = a.app.fleet
+    # A node that left had a robot of acme called b-lab (listed first, as a node seen
+    # earlier would be); b, alive, owns b-lab now, of the default tenant.
+    ghost = NodeView("ghost", False, robots=[{"id": "b-lab", "tenant": "acme"}])
+    fleet.nodes = {"ghost": ghost, **fleet.nodes}
+    assert fleet.robot_nodes["b-lab"] == "b"
+    assert a.app.access.tenant_of("b-lab") == "default"
+    async with a.client() as http:
+        seen = await http.get("/api/robots/b-lab/status", headers=bearer(token("admin")))
+        assert (seen.status_code, seen.headers.get("X-Arena-Node")) == (200, "b")
+        acme = bearer(token("admin", tenant="acme"))
+        hidden = await http.get("/api/robots/b-lab/status", headers=acme)
+        assert hidden.status_code == 404
+    # No live node has it: the dead node's word is all there is.
+    ghost.robots.append({"id": "gone-1", "tenant": "acme"})
+    assert a.app.access.tenant_of("gone-1") == "acme"
+
+
 async def test_a_robot_out_of_scope_on_a_node_that_left_is_as_absent_as_any(
     start_server: StartServer, secret_file: Path
 ) -> None:
@@ -345,3 +507,40 @@ async def test_a_robot_out_of_scope_on_a_node_that_left_is_as_absent_as_any(
         async with open_websocket_url(f"{a.ws_url}/ws/master/b-acme?token={caller}") as ws:
             error = await receive(ws, "error")
             assert (error["data"]["code"], await closed_with(ws)) == expected
+
+
+# -- calibration -----------------------------------------------------------------------------------
+
+
+@pytest.fixture
+def sim(tmp_path: Path) -> Iterator[PtySimBus]:
+    yield from running_sim(tmp_path)
+
+
+async def test_each_tenant_has_its_own_calibration_folder_and_no_other_file(
+    start_server: StartServer, secret_file: Path, sim: PtySimBus, tmp_path: Path
+) -> None:
+    root = tmp_path / "calibration"
+    server = await start_server(jwt_secret_file=str(secret_file), calibration_dir=str(root))
+    lab_file = root / "lab-arm.json"  # the default tenant's, where it always was
+    model = load_robot_model("so-arm100")
+    Calibration.identity({j.name: j.servo_id for j in model.joints}).save(lab_file)
+    before = lab_file.read_bytes()
+    acme = bearer(token("admin", tenant="acme"))
+    async with server.client() as http:
+        assert (await http.post("/api/robots", json={"id": "acme-1"}, headers=acme)).is_success
+        slaves = "/api/robots/acme-1/slaves"
+        # A file outside acme's folder: refused by path, by LeRobot id, and nothing attached.
+        for value in (str(lab_file), "lerobot:arm", "lab-arm.json"):
+            body = {"type": "usb-slave", "port": str(sim.link), "calibration": value}
+            refused = await http.post(slaves, json=body, headers=acme)
+            assert (refused.status_code, refused.json()["error"]["code"]) == (403, "FORBIDDEN")
+        assert server.app.manager.get("acme-1").snapshot().slaves == ()
+        # The default tenant's name, asked by acme: acme's own file of that name (none yet).
+        body = {"type": "usb-slave", "port": str(sim.link), "calibration": "lab-arm"}
+        attached = await http.post(slaves, json=body, headers=acme)
+        assert attached.status_code == 201, attached.text
+        status = (await http.get("/api/robots/acme-1/calibration", headers=acme)).json()
+    assert status["file"] == str(root / "acme" / "lab-arm.json")
+    assert status["calibrated"] is False
+    assert lab_file.read_bytes() == before

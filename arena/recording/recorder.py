@@ -28,7 +28,7 @@ import arena
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import DEFAULT_TENANT
 from arena.recording.mcap_file import FileSeries
-from arena.recording.writer_process import McapWriterProcess, pack_events
+from arena.recording.writer_process import McapWriterProcess, WriteFailed, pack_events
 from arena.robot.events import CameraFrame, RobotEvent
 from arena.robot.handle import Robot
 from arena.robot.mailbox import EventQueue
@@ -50,16 +50,23 @@ class _Batch:
     the tenant whose files they go to."""
 
     slices: dict[str, list[bytes]] = field(default_factory=dict)
-    events: int = 0
+    #: Events, by tenant.
+    events: dict[str, int] = field(default_factory=dict)
 
     def add(self, robot_id: str, tenant: str, wall_offset: float, events: list[Followed]) -> None:
         packed = pack_events(robot_id, wall_offset, events)
         found = self.slices.get(tenant)
         if found is None:
             self.slices[tenant] = [packed]
+            self.events[tenant] = len(events)
         else:
             found.append(packed)
-        self.events += len(events)
+            self.events[tenant] += len(events)
+
+    def drop(self, tenant: str) -> int:
+        """Leave out a tenant's events; returns how many."""
+        self.slices.pop(tenant, None)
+        return self.events.pop(tenant, 0)
 
 
 class Backoff:
@@ -89,6 +96,19 @@ class Backoff:
         """An attempt worked (or someone asked to try at once): back to the start."""
         self._delay = self.initial
         self._at = -math.inf
+
+
+@dataclass
+class _TenantHealth:
+    """How writing a tenant's files goes: its last error and losses, and when to try
+    again after a failure (each tenant on its own: one tenant's full disk or quota does not
+    hold up the others)."""
+
+    retry: Backoff
+    error: str | None = None
+    errors: int = 0  # failed attempts since the server started
+    write_failures: int = 0  # records lost to disk errors
+    dropped_by_gone: int = 0  # queue overflows of robots no longer followed
 
 
 class Recorder:
@@ -126,12 +146,9 @@ class Recorder:
         self.batch_interval = min(batch_interval, flush_interval)
         self.queue_size = queue_size
         self.active = active
-        self.error: str | None = None
-        #: Disk errors since the server started (each failed attempt once).
-        self.errors = 0
-        self._write_failures = 0  # records lost to disk errors
-        self._retry = Backoff(retry_initial, retry_max)
-        self._dropped_by_gone = 0  # queue overflows of robots no longer followed
+        self._retry_initial = retry_initial
+        self._retry_max = retry_max
+        self._health: dict[str, _TenantHealth] = {}
         #: queue -> (robot id, its tenant when followed, the subscription)
         self._followed: dict[EventQueue[Any], tuple[str, str, contextlib.ExitStack]] = {}
         self._wall_offset = 0.0  # wall clock minus trio's clock, taken when `run` starts
@@ -148,6 +165,24 @@ class Recorder:
     def current_file(self) -> Path | None:
         """The file of the default tenant being written, if any."""
         return self.writer.path
+
+    def _of(self, tenant: str) -> _TenantHealth:
+        found = self._health.get(tenant)
+        if found is None:
+            backoff = Backoff(self._retry_initial, self._retry_max)
+            found = self._health[tenant] = _TenantHealth(backoff)
+        return found
+
+    @property
+    def error(self) -> str | None:
+        """Why the files of some tenant cannot be written now (a sentence naming neither a
+        file nor a tenant), None when every tenant's can."""
+        return next((h.error for h in self._health.values() if h.error is not None), None)
+
+    @property
+    def errors(self) -> int:
+        """Disk errors since the server started (each failed attempt of a tenant once)."""
+        return sum(health.errors for health in self._health.values())
 
     @property
     def current_files(self) -> dict[Path, str]:
@@ -199,11 +234,12 @@ class Recorder:
         """Resume recording into a new file (after `stop`); after a disk error, try again
         with the next batch instead of waiting out the backoff."""
         self.active = True
-        self._retry.succeeded()
+        for health in self._health.values():
+            health.retry.succeeded()
         return self.writer.path
 
-    async def stop(self) -> Path | None:
-        """Pause recording and finish the current file; returns its path."""
+    async def stop(self) -> dict[Path, str]:
+        """Pause recording and finish the current files; returns them, with their tenants."""
         # After the batch in flight, if any: its thread could otherwise reach the writer after
         # `close` and put what happened before the stop into the next file.
         async with self._writing:
@@ -220,7 +256,7 @@ class Recorder:
         for queue, (robot_id, tenant, subscription) in list(self._followed.items()):
             events = queue.drain()
             if queue.closed:  # the robot is gone (and its queue now empty)
-                self._dropped_by_gone += queue.dropped
+                self._of(tenant).dropped_by_gone += queue.dropped
                 del self._followed[queue]
                 subscription.close()
             if not self.active:
@@ -247,50 +283,75 @@ class Recorder:
             await self._write(await self._collect(), flush)
 
     async def _write(self, batch: _Batch, flush: bool = True) -> None:
+        now = trio.current_time()
+        for tenant in list(batch.events):
+            health = self._of(tenant)
+            if not health.retry.ready(now):  # its disk failed lately: not yet
+                health.write_failures += batch.drop(tenant)
         if not batch.events and not (flush and self._unflushed):
             return
-        if not self._retry.ready(trio.current_time()):  # the disk failed lately: not yet
-            self._write_failures += batch.events
-            return
+        failed: dict[str, str] = {}
         try:
             await trio.to_thread.run_sync(
                 partial(self.writer.write_events, batch.slices, flush=flush)
             )
-            self._unflushed = not flush
-            if flush:
-                self._next_flush = trio.current_time() + self.flush_interval
-            if self.error is not None:
-                log.warning("recording resumed in %s", self.writer.path)
-            self.error = None
-            self._retry.succeeded()
-        except OSError as exc:
-            # A full or read-only disk must not stop control: say so, drop the batch, and try
-            # a fresh file after the backoff.
-            if self.error is None:
-                log.error("recording failed: %s", exc)
-            self.error = str(exc)
-            self.errors += 1
-            self._write_failures += batch.events  # the writer has dropped its file
-            self._unflushed = False
-            self._retry.failed(trio.current_time())
+        except WriteFailed as exc:  # some tenants' files failed; the others' were written
+            failed = exc.by_tenant
+        except OSError as exc:  # the writer process itself: every tenant of the batch
+            failed = dict.fromkeys(batch.events or self._health or [DEFAULT_TENANT], str(exc))
+        now = trio.current_time()
+        self._unflushed = not flush
+        if flush:
+            self._next_flush = now + self.flush_interval
+        # A full or read-only disk must not stop control: say so, drop the tenant's batch,
+        # and try a fresh file after its backoff.
+        for tenant, error in failed.items():
+            health = self._of(tenant)
+            if health.error is None:
+                log.error("recording tenant %r failed: %s", tenant, error)
+            health.error = error
+            health.errors += 1
+            health.write_failures += batch.events.get(tenant, 0)  # its file was dropped
+            health.retry.failed(now)
+        for tenant in batch.events.keys() - failed.keys():
+            health = self._of(tenant)
+            if health.error is not None:
+                log.warning("recording tenant %r resumed", tenant)
+                health.error = None
+            health.retry.succeeded()
 
     @property
     def dropped(self) -> int:
-        """Records lost: events the followers could not keep plus batches a disk refused."""
-        followed = sum(queue.dropped for queue in self._followed)
-        return self._write_failures + self._dropped_by_gone + followed
+        """Records lost, of every tenant (`dropped_of`)."""
+        tenants = {tenant for _, tenant, _ in self._followed.values()} | self._health.keys()
+        return sum(self.dropped_of(tenant) for tenant in tenants)
 
-    def status(self) -> dict[str, Any]:
-        """What the recorder is doing, for the REST API."""
+    def dropped_of(self, tenant: str) -> int:
+        """A tenant's records lost: events its robots' followers could not keep plus
+        batches a disk refused."""
+        health = self._health.get(tenant)
+        followed = sum(q.dropped for q, (_, whose, _) in self._followed.items() if whose == tenant)
+        if health is None:
+            return followed
+        return health.write_failures + health.dropped_by_gone + followed
+
+    def status(self, tenant: str = DEFAULT_TENANT) -> dict[str, Any]:
+        """What the recorder is doing for one tenant's files, for the REST API: nothing of
+        another tenant's (its counts, its file's name, its errors)."""
+        health = self._health.get(tenant)
+        error = None if health is None else health.error
+        theirs = sorted(path.name for path, whose in self.current_files.items() if whose == tenant)
         return {
             "active": self.active,
-            "file": self.writer.path.name if self.writer.path else None,
+            "file": theirs[0] if theirs else None,
             "folder": str(self.folder),
-            "messages": self.writer.messages,
-            "dropped": self.dropped,
-            "error": self.error,
-            "errors": self.errors,
-            "retry_in": self._retry.wait(trio.current_time()) if self.error else None,
+            "messages": self.writer.messages_by_tenant.get(tenant, 0),
+            "dropped": self.dropped_of(tenant),
+            "error": error,
+            "errors": 0 if health is None else health.errors,
+            "retry_in": None
+            if health is None or error is None
+            else health.retry.wait(trio.current_time()),
         }
 
 

@@ -22,8 +22,10 @@ pickle), one request and one reply at a time:
                                     (`records.record_of`) and writes them in time order,
                                     each tenant's into its own files (`TenantFiles`)
   ("close", None, None, True)       finish the current files
-and each reply is (error or None, the default tenant's current path or None, messages
-written, every file opened, {path: tenant} of every file being written).
+and each reply is ({tenant: error} of the tenants whose files failed (each error a sentence
+naming no file: `describe`), the default tenant's current path or None, {tenant: messages
+written}, every file opened, {path: tenant} of every file being written). One tenant's disk
+error never stops the others' records.
 End of input makes the child finish its file and exit: a killed server still leaves a complete
 file behind.
 """
@@ -39,7 +41,7 @@ import struct
 import subprocess
 import sys
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
@@ -103,6 +105,23 @@ def items_of_events(
     return items
 
 
+def describe(error: OSError) -> str:
+    """A disk error as a sentence that names no file (a file's name says whose it is, and
+    the error may be shown to another tenant or to anyone asking `/readyz`)."""
+    if error.strerror:
+        return f"{error.strerror} (errno {error.errno})" if error.errno else error.strerror
+    return f"the recording could not be written ({type(error).__name__})"
+
+
+class WriteFailed(OSError):
+    """Some tenants' records were not written: `by_tenant` says why, for each (the
+    others' were)."""
+
+    def __init__(self, by_tenant: dict[str, str]) -> None:
+        super().__init__("; ".join(f"{t}: {e}" for t, e in sorted(by_tenant.items())))
+        self.by_tenant = by_tenant
+
+
 def send_frame(stream: IO[bytes], value: object) -> None:
     """Write one length-prefixed pickle and flush it."""
     payload = pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
@@ -139,14 +158,21 @@ class McapWriterProcess:
         #: Every file being written, and its tenant.
         self.open_files: dict[Path, str] = {}
         self.files: list[Path] = []
-        self.messages = 0
+        #: Records written, by tenant (since the server started).
+        self.messages_by_tenant: dict[str, int] = {}
         self._process: subprocess.Popen[bytes] | None = None
         #: The metadata the child has of each robot (sent again when a robot id is made anew,
         #: of another tenant maybe).
         self._robots_sent: dict[str, dict[str, str]] = {}
-        self._earlier_messages = 0  # written by children that have gone, and their files
+        #: Written by children that have gone, by tenant, and their files.
+        self._earlier_messages: dict[str, int] = {}
         self._earlier_files: list[Path] = []
         self._lock = threading.Lock()
+
+    @property
+    def messages(self) -> int:
+        """Records written, of every tenant."""
+        return sum(self.messages_by_tenant.values())
 
     def launch(self) -> None:
         """Start the child now (it takes ~0.1 s), so that the first batch does not wait for it."""
@@ -173,14 +199,14 @@ class McapWriterProcess:
             self._request((kind, payload, new, flush))
             self._robots_sent.update((r, meta) for r, (meta, _) in new.items())
 
-    def close(self) -> Path | None:
-        """Finish the current file (after any write in flight); the child stays for the next
-        one. Returns the file finished, if there was one."""
+    def close(self) -> dict[Path, str]:
+        """Finish the current files (after any write in flight); the child stays for the
+        next ones. Returns the files finished, with their tenants."""
         with self._lock:
-            path = self.path
+            files = dict(self.open_files)
             if self._process is not None:
                 self._request(("close", None, None, True))
-            return path
+            return files
 
     def shutdown(self) -> None:
         """Finish the current file and end the child."""
@@ -203,16 +229,18 @@ class McapWriterProcess:
         assert process.stdin is not None and process.stdout is not None
         try:
             send_frame(process.stdin, request)
-            error, path, messages, files, open_files = receive_frame(process.stdout)
+            errors, path, messages, files, open_files = receive_frame(process.stdout)
         except (OSError, EOFError, pickle.PickleError) as exc:
             self._abandon_child()
             raise OSError(f"the recording process failed: {exc}") from exc
         self.path = None if path is None else Path(path)
         self.open_files = {Path(name): tenant for name, tenant in open_files.items()}
-        self.messages = self._earlier_messages + messages
+        earlier = self._earlier_messages
+        tenants = earlier.keys() | messages.keys()
+        self.messages_by_tenant = {t: earlier.get(t, 0) + messages.get(t, 0) for t in tenants}
         self.files = self._earlier_files + [Path(f) for f in files]
-        if error is not None:
-            raise OSError(error)
+        if errors:
+            raise WriteFailed(errors)
 
     def _running(self) -> subprocess.Popen[bytes]:
         if self._process is not None and self._process.poll() is None:
@@ -240,7 +268,7 @@ class McapWriterProcess:
         process, self._process = self._process, None
         self.path = None
         self.open_files = {}
-        self._earlier_messages = self.messages
+        self._earlier_messages = dict(self.messages_by_tenant)
         self._earlier_files = list(self.files)
         if process is not None:
             process.kill()
@@ -268,6 +296,8 @@ class TenantFiles:
         self.series = series
         self._lanes: dict[str, _Lane] = {}
         self._tenant_of: dict[str, str] = {}  # robot id -> its tenant, as last told
+        #: Tenants whose files failed in the request being served, and why.
+        self.errors: dict[str, str] = {}
 
     def know(self, robot_id: str, metadata: dict[str, str], model: RobotModel | None) -> None:
         """A robot's metadata (with its `tenant`) and model, for its tenant's files."""
@@ -296,10 +326,21 @@ class TenantFiles:
         return lane
 
     def write_events(self, slices: dict[str, list[bytes]]) -> None:
-        """Records of each tenant's events, into its files."""
+        """Records of each tenant's events, into its files (a tenant whose disk fails loses
+        its own, said in `errors`)."""
         for tenant, theirs in slices.items():
             lane = self.lane(tenant)
-            _write_in_pieces(lane.writer, items_of_events(theirs, lane.twins, _PAUSE))
+            with self._lane_of(tenant):
+                _write_in_pieces(lane.writer, items_of_events(theirs, lane.twins, _PAUSE))
+
+    @contextlib.contextmanager
+    def _lane_of(self, tenant: str) -> Iterator[None]:
+        """Work on one tenant's files: a disk error there is that tenant's alone (the file
+        is abandoned, the others go on)."""
+        try:
+            yield
+        except OSError as exc:
+            self.errors.setdefault(tenant, describe(exc))
 
     def write_items(self, items: list[Item]) -> None:
         """Records made already, each into its robot's tenant's files."""
@@ -308,27 +349,39 @@ class TenantFiles:
             tenant = self._tenant_of.get(item[0], DEFAULT_TENANT)
             by_tenant.setdefault(tenant, []).append(item)
         for tenant, theirs in by_tenant.items():
-            _write_in_pieces(self.lane(tenant).writer, theirs)
+            with self._lane_of(tenant):
+                _write_in_pieces(self.lane(tenant).writer, theirs)
 
     def flush(self) -> None:
         """Every tenant's chunk in progress handed to the OS."""
-        for lane in self._lanes.values():
-            lane.writer.flush()
+        for tenant, lane in self._lanes.items():
+            with self._lane_of(tenant):
+                try:
+                    lane.writer.flush()
+                except OSError:
+                    lane.writer.abandon()  # (as `write` does: the next record starts anew)
+                    raise
 
     def close(self) -> None:
         """Finish every tenant's current file."""
-        for lane in self._lanes.values():
-            lane.writer.close()
+        for tenant, lane in self._lanes.items():
+            with self._lane_of(tenant):
+                try:
+                    lane.writer.close()
+                except OSError:
+                    lane.writer.abandon()
+                    raise
 
-    def reply(self, error: str | None) -> tuple[Any, ...]:
-        """The answer to a request (see the module)."""
+    def reply(self) -> tuple[Any, ...]:
+        """The answer to a request (see the module); the errors are then forgotten."""
+        errors, self.errors = self.errors, {}
         writers = {tenant: lane.writer for tenant, lane in self._lanes.items()}
         default = writers.get(DEFAULT_TENANT)
         path = None if default is None or default.path is None else str(default.path)
         return (
-            error,
+            errors,
             path,
-            sum(writer.messages for writer in writers.values()),
+            {tenant: writer.messages for tenant, writer in writers.items()},
             [str(f) for writer in writers.values() for f in writer.files],
             {str(w.path): tenant for tenant, w in writers.items() if w.path is not None},
         )
@@ -350,7 +403,6 @@ def serve(requests: IO[bytes], replies: IO[bytes]) -> None:
                 kind, items, robots, flush = receive_frame(requests)
             except EOFError:
                 return
-            error = None
             try:
                 if kind in ("write", "events"):
                     for robot_id, (metadata, model) in robots.items():
@@ -363,9 +415,11 @@ def serve(requests: IO[bytes], replies: IO[bytes]) -> None:
                         files.flush()
                 else:
                     files.close()
-            except OSError as exc:
-                error = str(exc)  # "[Errno 28] No space left on device: '...'"
-            send_frame(replies, files.reply(error))
+            except OSError as exc:  # not a tenant's own: every tenant of the request's
+                tenants = set(items) if kind == "events" else {DEFAULT_TENANT}
+                for tenant in tenants or {DEFAULT_TENANT}:
+                    files.errors.setdefault(tenant, describe(exc))
+            send_frame(replies, files.reply())
     finally:
         with contextlib.suppress(OSError):
             files.close()

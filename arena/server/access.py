@@ -127,6 +127,12 @@ def reads_recordings(principal: Principal) -> bool:
     return principal.tenant == DEFAULT_TENANT and principal.unlimited
 
 
+def server_admin(principal: Principal) -> bool:
+    """The whole server's admin: an admin of the default tenant with every robot in scope.
+    Only it may name files outside the calibration folders (a path, `lerobot:ID`)."""
+    return principal.role >= Role.ADMIN and reads_recordings(principal)
+
+
 RobotLike = TypeVar("RobotLike")
 
 

@@ -36,7 +36,7 @@ from arena.robot.manager import RobotManager, estop_together
 from arena.robot.workspace import workspace_from_json, workspace_to_json
 from arena.sensors.camera import Cameras
 from arena.server import convert, dashboard, openapi
-from arena.server.access import AccessControl, needed_role, route_of
+from arena.server.access import AccessControl, needed_role, route_of, server_admin
 from arena.server.auth import authorize, check_role, refuse
 from arena.server.base import (
     ArenaApp,
@@ -49,7 +49,13 @@ from arena.server.base import (
 from arena.server.calibration_api import blueprint as calibration_blueprint
 from arena.server.config import ServerConfig
 from arena.server.dashboard import blueprint as dashboard_blueprint
-from arena.server.drivers import attach_rest_master, camera_frames, make_master, make_slave
+from arena.server.drivers import (
+    attach_rest_master,
+    calibration_folder,
+    camera_frames,
+    make_master,
+    make_slave,
+)
 from arena.server.fleet_api import CALLER, FORWARDED, forwarded_caller
 from arena.server.fleet_api import blueprint as fleet_blueprint
 from arena.server.groups_api import blueprint as groups_blueprint
@@ -419,8 +425,9 @@ def _register_routes(app: ArenaApp) -> None:
         driver = make_slave(
             body,
             robot.model,
-            Path(app.arena_config.calibration_dir),
+            calibration_folder(Path(app.arena_config.calibration_dir), robot.tenant),
             robot_id,
+            calibration_anywhere=server_admin(g.principal),
         )
         prepare = getattr(driver, "prepare", None)
         if prepare is not None:
@@ -446,9 +453,10 @@ def _register_routes(app: ArenaApp) -> None:
             body,
             app.recorder.folder,
             robot.model,
-            Path(app.arena_config.calibration_dir),
+            calibration_folder(Path(app.arena_config.calibration_dir), robot.tenant),
             robot_id,
             camera_frames(app.cameras, robot_id),
+            server_admin(g.principal),  # the whole server's admin: any calibration file
         )
         prepare = getattr(driver, "prepare", None)
         if prepare is not None:
@@ -483,7 +491,7 @@ def _register_routes(app: ArenaApp) -> None:
             app.metrics.render(
                 robots_seen(),
                 sum(c.queued_bytes for c in app.connections),
-                app.recorder.status(),
+                recorder_status(app, g.principal),  # the caller's tenant's counts
             ),
             content_type="text/plain; version=0.0.4",
         )

@@ -18,6 +18,7 @@ from arena.extras import install_line
 from arena.policy.master import CameraFrames, PolicyMaster, PolicySettings, Shot
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import (
+    DEFAULT_TENANT,
     MasterBody,
     MockSlaveBody,
     PhysicsSlaveBody,
@@ -55,11 +56,36 @@ async def attach_rest_master(robot: Robot, driver: MasterDriver) -> str:
         raise
 
 
+def calibration_folder(root: Path, tenant: str) -> Path:
+    """A tenant's calibration files: `root/<tenant>/` (the default tenant's are `root`
+    itself, where they were before tenants). A tenant never reads another's by naming it."""
+    if tenant == DEFAULT_TENANT:
+        return root
+    if tenant.startswith("."):  # (a tenant's name may hold dots: never `..`)
+        raise ArenaError(
+            ErrorCode.INVALID_CONFIG, f"Tenant {tenant!r} cannot have a calibration folder."
+        )
+    return root / tenant
+
+
 def _calibration_file(
-    folder: Path | None, name: str | None, robot_id: str, model: RobotModel, leader: bool = False
+    folder: Path | None,
+    name: str | None,
+    robot_id: str,
+    model: RobotModel,
+    leader: bool = False,
+    anywhere: bool = False,
 ) -> Path:
-    """`folder/<name>.json`, or the LeRobot file a path or `lerobot:ID` names."""
+    """`folder/<name>.json`, or the LeRobot file a path or `lerobot:ID` names: only when
+    `anywhere` (the whole server's admin), as it reads or overwrites any file of that form."""
     if name is not None and is_lerobot_reference(name):
+        if not anywhere:
+            raise ArenaError(
+                ErrorCode.FORBIDDEN,
+                f"Calibration {name!r}: a path or `lerobot:` names a file outside this "
+                "tenant's calibration folder, which only an admin of the default tenant with "
+                "every robot in scope may; give a calibration name instead.",
+            )
         return resolve_lerobot(name, model.robot_type, family_of(model), leader=leader)
     return (folder or Path("calibration")) / f"{name or robot_id}.json"
 
@@ -108,18 +134,23 @@ def make_slave(
     model: RobotModel | None = None,
     calibration_dir: Path | None = None,
     robot_id: str = "robot",
+    *,
+    calibration_anywhere: bool = False,
 ) -> SlaveDriver:
     """Build a slave driver from its config.
 
     Hardware slaves need the robot's `model`; their calibration file is
-    `calibration_dir/<name>.json`, the name defaulting to `robot_id`.
+    `calibration_dir/<name>.json` (the robot's tenant's folder: `calibration_folder`), the
+    name defaulting to `robot_id`; a path or `lerobot:ID` only with `calibration_anywhere`.
     """
     if isinstance(body, UsbSlaveBody):
         from arena.drivers.usb_slave import UsbSlave
 
         if model is None:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "A usb-slave needs the robot's model.")
-        calibration = _calibration_file(calibration_dir, body.calibration, robot_id, model)
+        calibration = _calibration_file(
+            calibration_dir, body.calibration, robot_id, model, anywhere=calibration_anywhere
+        )
         return UsbSlave(usb_slave_config(body), model, calibration)
     if isinstance(body, PhysicsSlaveBody):
         from arena.drivers.physics import PhysicsSettings, PhysicsSlave
@@ -218,12 +249,16 @@ def make_master(
     calibration_dir: Path | None = None,
     robot_id: str = "robot",
     cameras: CameraFrames = dict,
+    calibration_anywhere: bool = False,
 ) -> MasterDriver:
     """Build a master driver from its config (`recordings`: where replay finds its files;
-    a leader arm's calibration is `calibration_dir/<name>.json`, default `<robot_id>-leader`;
-    `cameras`: the robot's newest frames, for a policy). It takes over from the robot's master
-    only if the config asks (`takeover`)."""
-    driver = _master(body, recordings, model, calibration_dir, robot_id, cameras)
+    a leader arm's calibration is `calibration_dir/<name>.json`, default `<robot_id>-leader`,
+    a path or `lerobot:ID` only with `calibration_anywhere` (as `make_slave`); `cameras`:
+    the robot's newest frames, for a policy). It takes over from the robot's master only if
+    the config asks (`takeover`)."""
+    driver = _master(
+        body, recordings, model, calibration_dir, robot_id, cameras, calibration_anywhere
+    )
     driver.takes_over = body.takeover
     return driver
 
@@ -235,6 +270,7 @@ def _master(
     calibration_dir: Path | None,
     robot_id: str,
     cameras: CameraFrames,
+    calibration_anywhere: bool,
 ) -> MasterDriver:
     if isinstance(body, PolicyMasterBody):
         return _policy(body, model, cameras)
@@ -247,7 +283,9 @@ def _master(
         return UsbMaster(
             usb_master_config(body),
             model,
-            _calibration_file(calibration_dir, name, robot_id, model, True),
+            _calibration_file(
+                calibration_dir, name, robot_id, model, True, anywhere=calibration_anywhere
+            ),
         )
     if isinstance(body, ReplayMasterBody):
         if recordings is None:

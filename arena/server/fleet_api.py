@@ -321,7 +321,8 @@ def forwarded_caller(app: ArenaApp, secret: str | None, caller: str | None) -> P
     if not app.fleet_secret or secret != app.fleet_secret:
         return None
     try:
-        return Principal.of_wire(None if caller is None else json.loads(caller))
+        claims = None if caller is None else json.loads(caller)
+        return Principal.of_wire(claims, open_server=not app.arena_config.auth_enabled)
     except ValueError as exc:
         raise ArenaError(
             ErrorCode.UNAUTHORIZED, f"The forwarded caller is not valid: {exc}."
@@ -329,8 +330,15 @@ def forwarded_caller(app: ArenaApp, secret: str | None, caller: str | None) -> P
 
 
 def _tenant_elsewhere(fleet: FleetNode, robot_id: str) -> str | None:
-    """The tenant of a robot another node of the fleet owns, as that node said."""
-    for view in fleet.nodes.values():
+    """The tenant of a robot another node of the fleet owns, as that node said: the live
+    owner's word first (an id deleted on a node that then left may be made anew on another,
+    of another tenant), a dead node's only when no live node has the robot."""
+    owner = fleet.robot_nodes.get(robot_id)
+    if owner is not None:  # (its view may not list the robot yet: not known then)
+        views = [fleet.nodes[owner]] if owner in fleet.nodes else []
+    else:
+        views = [view for view in fleet.nodes.values() if not view.alive]
+    for view in views:
         for robot in view.robots:
             if robot.get("id") == robot_id:
                 return str(robot.get("tenant", DEFAULT_TENANT))

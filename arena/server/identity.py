@@ -94,11 +94,15 @@ class Principal:
         return claims
 
     @classmethod
-    def of_wire(cls, claims: Any) -> Principal:
+    def of_wire(cls, claims: Any, *, open_server: bool) -> Principal:
         """The caller another node of the fleet sent (`to_wire`), checked as a token's
-        claims are; a node of an older version sends none: the anonymous admin of the
-        default tenant, as it asked then. ValueError for claims of the wrong shape."""
+        claims are. A call without one (a node of an older version) is refused on a node
+        with keys or tokens (`open_server` False): it would run as the unlimited admin; on
+        an open server it is the anonymous admin, as every caller there. ValueError for
+        claims of the wrong shape, or missing where they are needed."""
         if claims is None:
+            if not open_server:
+                raise ValueError("the call names no caller, and this node needs one")
             return ANONYMOUS
         if not isinstance(claims, Mapping):
             raise ValueError("the caller must be claims")

@@ -73,15 +73,21 @@ def contents_of(recorder: Recorder, path: Path) -> Contents:
 
 
 def recorder_status(app: ArenaApp, principal: Principal) -> dict[str, Any]:
-    """What the recorder is doing, as the caller may see it: its `file` is the one being
-    written that the caller may read (its tenant's)."""
+    """What the recorder is doing, as the caller may see it: the counts and error of the
+    caller's tenant's files, and `file` the one being written that the caller may read."""
     recorder = app.recorder
-    theirs = [
+    theirs = _files_seen(app, principal, recorder.current_files)
+    return {**recorder.status(principal.tenant), "file": theirs[0] if theirs else None}
+
+
+def _files_seen(app: ArenaApp, principal: Principal, files: dict[Path, str]) -> list[str]:
+    """The names of those of `files` (being written) the caller may read, sorted."""
+    recorder = app.recorder
+    return sorted(
         path.name
-        for path in recorder.current_files
+        for path in files
         if app.access.sees_recording(principal, contents_of(recorder, path))
-    ]
-    return {**recorder.status(), "file": theirs[0] if theirs else None}
+    )
 
 
 async def readable_recording(
@@ -103,13 +109,15 @@ async def readable_recording(
 
 
 def _whole_server(principal: Principal) -> None:
-    """Recording is on or off for every tenant at once: only a caller who sees the whole
-    default tenant switches it."""
+    """Recording is on or off for every tenant at once: only the whole server's admin (a
+    caller of the default tenant who sees all of it) switches it, never a tenant's, which
+    would stop the others' recording too."""
     if not reads_recordings(principal):
         raise ArenaError(
             ErrorCode.FORBIDDEN,
-            f"Recording is on or off for the whole server; {principal.name!r} is confined to "
-            "a tenant or some robots.",
+            "Recording is switched on or off for the whole server, every tenant at once: "
+            f"only an admin of the default tenant with every robot in scope may, and "
+            f"{principal.name!r} is confined to a tenant or some robots.",
         )
 
 
@@ -142,23 +150,29 @@ async def list_recordings() -> dict[str, Any]:
 async def start_recording() -> tuple[dict[str, Any], int]:
     """Start recording (a new file begins with the next message)."""
     _whole_server(g.principal)
-    recorder = _app().recorder
-    await recorder.start()
-    return recorder.status(), 201
+    app = _app()
+    await app.recorder.start()
+    return recorder_status(app, g.principal), 201
 
 
 @blueprint.post("/api/recordings/<name>/stop")
 async def stop_recording(name: str) -> dict[str, Any]:
-    """Stop recording; `name` must be the file being written (or `current`)."""
-    _whole_server(g.principal)
-    recorder = _app().recorder
-    current = recorder.current_file
+    """Stop recording (every tenant's: one switch for the server); `name` must be a file
+    being written that the caller may read (or `current`). `stopped` names the file the
+    stop finished that the caller may read: the caller is of the default tenant (only the
+    whole server's admin stops), which writes one file at a time."""
+    principal: Principal = g.principal
+    _whole_server(principal)
+    app = _app()
+    recorder = app.recorder
     if name != "current":
-        path = check_name(recorder.folder, name)
-        if current is None or path != current.resolve():
+        check_name(recorder.folder, name)
+        writing = await off_the_loop(_files_seen, app, principal, recorder.current_files)
+        if name not in writing:
             raise ArenaError(ErrorCode.UNKNOWN_RECORDING, f"{name!r} is not being recorded.")
-    stopped = await recorder.stop()
-    return {**recorder.status(), "stopped": stopped.name if stopped else None}
+    closed = await recorder.stop()
+    stopped = await off_the_loop(_files_seen, app, principal, closed)
+    return {**recorder_status(app, principal), "stopped": stopped[0] if stopped else None}
 
 
 #: Recordings read at once for requests: each takes memory in proportion to its file.
