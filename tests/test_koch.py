@@ -300,7 +300,8 @@ async def test_a_koch_file_that_does_not_fit_is_refused_before_any_torque(
         for word in words:
             assert word in error["message"]
         assert (await http.get("/api/robots/arm")).json()["slaves"] == []
-    assert set(peek(sim, reg.TORQUE_ENABLE).values()) == {0}
+    with sim.paused() as bus:
+        assert [s.torque_enables for s in bus.servos.values()] == [0] * 6  # never on
 
 
 async def test_an_arena_calibration_on_servos_that_count_turns_is_refused(
@@ -379,7 +380,8 @@ async def test_a_servo_of_another_model_is_refused(
             assert error["code"] == "SERVO_WRONG_MODEL"
             assert "Servo 3 is model 1060" in error["message"]
             assert "XL330-M288" in error["message"]
-        assert set(peek(sim, reg.TORQUE_ENABLE).values()) == {0}
+        with sim.paused() as bus:
+            assert [s.torque_enables for s in bus.servos.values()] == [0] * 6  # never on
 
 
 #: The Koch leader as LeRobot's `KochLeader` calibrates it: XL330-M077 servos, the elbow's
@@ -581,3 +583,61 @@ def test_hardware_errors_reach_the_health_monitor_as_faults(sim: PtySimBus) -> N
         (ErrorCode.SERVO_OVERHEAT, Severity.CRITICAL, 4),
         (ErrorCode.SERVO_VOLTAGE, Severity.ERROR, 4),
     }
+
+
+def test_prepare_refuses_a_servo_whose_mode_read_is_lost(sim: PtySimBus) -> None:
+    """A servo left in velocity mode whose reply to the mode read is lost must not be skipped:
+    torque would come on with its Goal_Velocity still in RAM."""
+    from arena.protocol.errors import ArenaError, ErrorCode
+    from tests.hardware import open_test_bus
+
+    with sim.paused() as bus:
+        bus.servo(3).poke(reg.OPERATING_MODE, reg.OperatingMode.VELOCITY)
+        bus.servo(3).faults.drop = 1
+    dynamixel = open_test_bus(str(sim.link))
+    dynamixel.open()
+    try:
+        with pytest.raises(ArenaError) as refused:
+            dynamixel.prepare(range(1, 7))
+        assert refused.value.code is ErrorCode.SERVO_TIMEOUT
+        assert "[3]" in refused.value.message
+        dynamixel.prepare(range(1, 7))  # answering again: switched, and read back
+    finally:
+        dynamixel.close()
+    assert peek(sim, reg.OPERATING_MODE)[3] == reg.OperatingMode.POSITION
+    with sim.paused() as bus:
+        assert [s.torque_enables for s in bus.servos.values()] == [0] * 6
+
+
+def test_prepare_refuses_a_servo_that_keeps_its_velocity_mode(
+    sim: PtySimBus, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The mode is read back after the change: a servo that acknowledged the write but still
+    reads velocity mode is refused, naming it."""
+    from arena.protocol.errors import ArenaError, ErrorCode
+    from tests.hardware import open_test_bus
+
+    with sim.paused() as bus:
+        bus.servo(5).poke(reg.OPERATING_MODE, reg.OperatingMode.VELOCITY)
+        bus.servo(5).poke(reg.GOAL_VELOCITY, 200)
+    dynamixel = open_test_bus(str(sim.link))
+    write = dynamixel.write  # type: ignore[attr-defined]
+
+    def forgetful(servo_id: int, register: reg.Register, value: int) -> None:
+        # The servo's firmware acknowledges the mode write and keeps its mode.
+        write(servo_id, register, value)
+        if register is reg.OPERATING_MODE and servo_id == 5:
+            with sim.paused() as bus:
+                bus.servo(5).poke(reg.OPERATING_MODE, reg.OperatingMode.VELOCITY)
+
+    monkeypatch.setattr(dynamixel, "write", forgetful)
+    dynamixel.open()
+    try:
+        with pytest.raises(ArenaError) as refused:
+            dynamixel.prepare(range(1, 7))
+    finally:
+        dynamixel.close()
+    assert refused.value.code is ErrorCode.INVALID_CONFIG
+    assert "[5]" in refused.value.message
+    with sim.paused() as bus:
+        assert [s.torque_enables for s in bus.servos.values()] == [0] * 6

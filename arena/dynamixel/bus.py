@@ -173,12 +173,38 @@ class DynamixelBus:
     def prepare(self, servo_ids: Sequence[int]) -> None:
         """Servos in a mode that ignores position goals (velocity, current, PWM) go to position
         mode, torque off for the change; the position modes LeRobot sets (extended position,
-        current-based position for the Koch's gripper) are kept."""
-        modes, _ = self.sync_read_register(reg.OPERATING_MODE, servo_ids)
-        for servo_id, mode in modes.items():
-            if mode not in reg.POSITION_MODES:
-                self.write(servo_id, reg.TORQUE_ENABLE, 0)
-                self.write(servo_id, reg.OPERATING_MODE, reg.OperatingMode.POSITION)
+        current-based position for the Koch's gripper) are kept. Every servo must answer, and
+        the modes are read back after a change: a servo left in another mode would take the
+        coming torque-on with the velocity, PWM or current goal still in its RAM."""
+        modes = self._operating_modes(servo_ids)
+        changed = [sid for sid, mode in modes.items() if mode not in reg.POSITION_MODES]
+        for servo_id in changed:
+            self.write(servo_id, reg.TORQUE_ENABLE, 0)
+            self.write(servo_id, reg.OPERATING_MODE, reg.OperatingMode.POSITION)
+        if not changed:
+            return
+        stuck = {
+            sid: mode
+            for sid, mode in self._operating_modes(changed).items()
+            if mode not in reg.POSITION_MODES
+        }
+        if stuck:
+            raise ArenaError(
+                ErrorCode.INVALID_CONFIG,
+                f"Servo(s) {sorted(stuck)} stayed in operating mode(s) {stuck} rather than a "
+                "position mode: torque stays off. Set their Operating_Mode to 3 (position).",
+            )
+
+    def _operating_modes(self, servo_ids: Sequence[int]) -> dict[int, int]:
+        """Every servo's Operating_Mode; `SERVO_TIMEOUT` naming any that did not answer."""
+        modes, got = self.sync_read_register(reg.OPERATING_MODE, servo_ids)
+        if got.missing or got.corrupt:
+            raise ArenaError(
+                ErrorCode.SERVO_TIMEOUT,
+                f"Servo(s) {sorted(got.missing + got.corrupt)} did not answer the read of their "
+                "operating mode: torque stays off.",
+            )
+        return modes
 
     def read_positions(self, servo_ids: Sequence[int]) -> tuple[dict[int, int], SyncReadResult]:
         """Present positions of several servos in one request; and what came back."""
