@@ -641,3 +641,24 @@ def test_prepare_refuses_a_servo_that_keeps_its_velocity_mode(
     assert "[5]" in refused.value.message
     with sim.paused() as bus:
         assert [s.torque_enables for s in bus.servos.values()] == [0] * 6
+
+
+async def test_a_leader_of_a_model_outside_the_family_is_refused(
+    start_server: StartServer, tmp_path: Path
+) -> None:
+    """A leader may be any 4096-step model of its family (the Koch leader's XL330-M077), but
+    not a servo the family's table does not know (an MX-28, model 30): `SERVO_WRONG_MODEL`."""
+    m077 = reg.MODELS["xl330-m077"]
+    models = {**dict.fromkeys(range(1, 7), m077), 4: 30}
+    with sim_on(tmp_path / "leader", bus=SimBus(models)) as leader:
+        server = await start_server(calibration_dir=str(tmp_path / "cal"))
+        async with server.client() as http:
+            made = await http.post("/api/robots", json={"id": "arm", "robot_type": "koch"})
+            assert made.status_code == 201, made.text
+            body = {"type": "usb-master", "port": str(leader.link)}
+            reply = await http.post("/api/robots/arm/master", json=body)
+            assert reply.status_code == 422, reply.text
+            error = reply.json()["error"]
+            assert error["code"] == "SERVO_WRONG_MODEL"
+            assert "Servo 4 is model 30" in error["message"]
+            assert "XL330-M077 (1190)" in error["message"]

@@ -70,13 +70,30 @@ def servo_models(model: RobotModel, family: ServoFamily) -> dict[int, tuple[int,
     return models
 
 
+def allowed_models(
+    model: RobotModel, family: ServoFamily, *, leader: bool
+) -> dict[int, tuple[frozenset[int], str]]:
+    """The model numbers each servo may answer a ping with, and how to name them: a follower's
+    is the one its robot type names; a leader's any of its family's table (all of them 4096
+    steps a turn, the frame every calibration assumes), since leader arms are built of other
+    models than their followers (the Koch leader's XL330-M077)."""
+    if not leader:
+        return {
+            sid: (frozenset({number}), f"an {name} ({number})")
+            for sid, (number, name) in servo_models(model, family).items()
+        }
+    known = ", ".join(f"{name.upper()} ({number})" for name, number in family.models.items())
+    anyone = (frozenset(family.models.values()), f"a {family.name} model Arena knows: {known}")
+    return {joint.servo_id: anyone for joint in model.joints}
+
+
 class ServoArm:
     """An arm on a servo bus: `prepare()` opens it, `close()` stops its thread.
 
     `port` None finds the adapter by USB id; `baud` None is the robot type's (or its family's).
     `open_bus` replaces the serial bus (tests, benchmarks). The calibration file is read at
-    `prepare()` when it exists. A `leader`'s servos may be any model of the family: leader arms
-    are built of other models than their followers (the Koch leader's XL330-M077).
+    `prepare()` when it exists. A `leader`'s servos may be any model of the family's table
+    (`allowed_models`).
     """
 
     def __init__(
@@ -95,7 +112,7 @@ class ServoArm:
         self.family = family_of(model)
         self.calibration_file = calibration_file
         self.servo_ids = {joint.name: joint.servo_id for joint in model.joints}
-        models = {} if leader else servo_models(model, self.family)
+        models = allowed_models(model, self.family, leader=leader)
         self.settings = dataclasses.replace(settings, models=models)
         rate = baud or model.bus.baud_rate or self.family.default_baud
         family = self.family

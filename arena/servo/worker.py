@@ -78,8 +78,8 @@ class WorkerSettings:
     speed_limit: int | None = None  # the servos' speed (steps/s) set at connect
     torque_on_connect: bool = True  # False for a leader arm, moved by hand
     limits: HealthLimits = field(default_factory=HealthLimits)
-    #: The model number each servo must answer a ping with (by id), and the model's name.
-    models: dict[int, tuple[int, str]] = field(default_factory=dict)
+    #: The model numbers each servo may answer a ping with (by id), and how to name them.
+    models: dict[int, tuple[frozenset[int], str]] = field(default_factory=dict)
     #: Refuse to connect (before any torque) when a servo reads outside one turn: Arena's own
     #: calibration on servos that count turns (specs/servo-bus.md).
     one_turn: bool = False
@@ -262,10 +262,10 @@ class BusWorker:
         for servo_id in self.servo_ids:
             model = _ping(bus, servo_id)
             expected = self.settings.models.get(servo_id)
-            if expected is not None and model != expected[0]:
+            if expected is not None and model not in expected[0]:
                 raise ArenaError(
                     ErrorCode.SERVO_WRONG_MODEL,
-                    f"Servo {servo_id} is model {model}, not an {expected[1]} ({expected[0]}).",
+                    f"Servo {servo_id} is model {model}, not {expected[1]}.",
                 )
         bus.prepare(self.servo_ids)
         if self.settings.one_turn:
