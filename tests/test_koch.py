@@ -662,3 +662,122 @@ async def test_a_leader_of_a_model_outside_the_family_is_refused(
             assert error["code"] == "SERVO_WRONG_MODEL"
             assert "Servo 4 is model 30" in error["message"]
             assert "XL330-M077 (1190)" in error["message"]
+
+
+async def test_a_joint_turned_a_turn_away_is_refused_torque_at_attach(
+    start_server: StartServer, sim: PtySimBus, tmp_path: Path
+) -> None:
+    """LeRobot's file, a joint turned by hand a whole turn further while limp (its servo counts
+    turns): its goal, clamped into the file's range, would be a turn away. The attach is
+    refused, naming the servo and its reading, before any torque."""
+    place_arm(sim)
+    path = tmp_path / "arm.json"
+    await trio.to_thread.run_sync(lerobot_reads, sim, tmp_path)  # writes arm.json
+    with sim.paused() as bus:
+        lift = bus.servo(2)
+        turned = lift.present + 4096
+        lift.move_by_hand(turned)
+        before = [s.torque_enables for s in bus.servos.values()]
+    server = await start_server()
+    async with server.client() as http:
+        reply = await attach_koch(http, sim, str(path))
+        assert reply.status_code == 422, reply.text
+        error = reply.json()["error"]
+        assert error["code"] == "SERVO_OUT_OF_RANGE"
+        lift_range = CALIBRATION["shoulder_lift"]
+        frame = f"{lift_range.range_min - 256}..{lift_range.range_max + 256}"
+        assert f"Servo 2 reads {turned} (its frame {frame})" in error["message"]
+    with sim.paused() as bus:
+        assert [s.torque_enables for s in bus.servos.values()] == before  # never on
+        assert bus.servo(2).present == turned
+
+
+async def test_a_reset_refuses_torque_to_a_joint_turned_a_turn_away(
+    manager: RobotManager, sim: PtySimBus
+) -> None:
+    """Arena's own calibration (one turn, 0..4095) and a torque-off e-stop: a joint turned a
+    whole turn by hand while limp keeps its torque off at the reset, a critical fault names
+    it, and the robot stays stopped; turned back, the next reset brings torque back."""
+    from arena.protocol.errors import ErrorCode, Severity
+    from arena.robot.events import FaultReported
+    from arena.robot.model import load_robot_model
+    from arena.robot.safety import Mode
+    from tests.hardware import usb_slave, wait_joined
+
+    def torque() -> list[int]:
+        return list(peek(sim, reg.TORQUE_ENABLE).values())
+
+    robot = await manager.create_robot("koch", robot_id="arm")
+    with robot.subscribe() as events:
+        await robot.attach_slave(usb_slave(sim, load_robot_model("koch"), estop="torque-off"))
+        await eventually(lambda: all(torque()), what="torque on")
+        await wait_joined(robot)
+        await robot.estop("test")
+        await eventually(lambda: not any(torque()), what="limp")
+        with sim.paused() as bus:
+            elbow = bus.servo(3)
+            back = elbow.present
+            elbow.move_by_hand(back + 4096)
+            before = [s.torque_enables for s in bus.servos.values()]
+        events.drain()
+        await robot.reset()
+        found: list[FaultReported] = []
+
+        def refused() -> bool:
+            found.extend(e for e in events.drain() if isinstance(e, FaultReported))
+            return any(f.code == ErrorCode.SERVO_OUT_OF_RANGE for f in found)
+
+        await eventually(refused, what="the refusal's fault")
+        fault = next(f for f in found if f.code == ErrorCode.SERVO_OUT_OF_RANGE)
+        assert fault.severity is Severity.CRITICAL
+        assert f"Servo 3 reads {back + 4096} (its frame 0..4095)" in fault.message
+        assert robot.snapshot().mode is Mode.ESTOPPED
+        with sim.paused() as bus:
+            assert [s.torque_enables for s in bus.servos.values()] == before
+            assert bus.servo(3).present == back + 4096  # not sent a turn back
+            bus.servo(3).move_by_hand(back)
+        await robot.reset()
+        await eventually(lambda: all(torque()), what="torque back")
+        assert robot.snapshot().mode is not Mode.ESTOPPED
+
+
+async def test_a_reading_that_leaves_the_frame_under_torque_stops_the_robot(
+    manager: RobotManager, sim: PtySimBus
+) -> None:
+    """A servo with torque that reads a turn away (its Homing_Offset changed under it) is a
+    critical fault: the robot e-stops, and the e-stop's hold leaves that servo limp at goal =
+    present while the others keep their torque."""
+    from arena.protocol.errors import ErrorCode, Severity
+    from arena.robot.events import FaultReported
+    from arena.robot.model import load_robot_model
+    from arena.robot.safety import Mode
+    from tests.hardware import usb_slave, wait_joined
+
+    robot = await manager.create_robot("koch", robot_id="arm")
+    with robot.subscribe() as events:
+        await robot.attach_slave(usb_slave(sim, load_robot_model("koch")))
+        await eventually(lambda: all(peek(sim, reg.TORQUE_ENABLE).values()), what="torque on")
+        await wait_joined(robot)
+        with sim.paused() as bus:
+            bus.servo(4).poke(reg.HOMING_OFFSET, 4096)
+        found: list[FaultReported] = []
+
+        def faulted() -> bool:
+            found.extend(e for e in events.drain() if isinstance(e, FaultReported))
+            return any(f.code == ErrorCode.SERVO_OUT_OF_RANGE for f in found)
+
+        await eventually(faulted, what="the out-of-frame fault")
+        fault = next(f for f in found if f.code == ErrorCode.SERVO_OUT_OF_RANGE)
+        assert fault.severity is Severity.CRITICAL and fault.joint == "wrist_flex"
+        assert "outside its frame 0..4095" in fault.message
+        await eventually(lambda: robot.snapshot().mode is Mode.ESTOPPED, what="the e-stop")
+
+        def wrist_limp_others_held() -> bool:
+            torque = peek(sim, reg.TORQUE_ENABLE)
+            return torque == {1: 1, 2: 1, 3: 1, 4: 0, 5: 1, 6: 1}
+
+        await eventually(wrist_limp_others_held, what="servo 4 limp, the others held")
+        with sim.paused() as bus:
+            wrist = bus.servo(4)
+            # goal = present (a turn away) was written: not sent back a whole turn
+            assert wrist.peek(reg.GOAL_POSITION) > 4095 and wrist.present > 4095
