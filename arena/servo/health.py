@@ -142,8 +142,8 @@ class HealthMonitor:
                 ErrorCode.SERVO_OUT_OF_RANGE,
                 Severity.CRITICAL,
                 servo_id,
-                f"Servo {servo_id} reads {step}, outside its frame {low}..{high} (turned a "
-                "turn away?): torque will not come on until it is turned back.",
+                f"Servo {servo_id} reads {step} (its frame {low}..{high}): a turn or more "
+                "away, where goals would send it back a whole turn; turn it back by hand.",
             )
         return faults
 
