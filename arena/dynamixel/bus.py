@@ -8,7 +8,7 @@ Fault flags come from each servo's Hardware_Error_Status, read with the telemetr
 from __future__ import annotations
 
 import inspect
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import dynamixel_sdk as sdk
@@ -17,7 +17,7 @@ from arena.dynamixel import registers as reg
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.servo.interface import ServoFamily, SyncReadResult, Telemetry
 from arena.servo.ports import PortFixes
-from arena.servo.sdk_bus import SdkBus
+from arena.servo.sdk_bus import SdkBus, decode_telemetry
 
 #: USB ids of the adapters Dynamixel arms come with: ROBOTIS's U2D2 (an FTDI FT232H).
 ADAPTERS: dict[tuple[int, int], str] = {(0x0403, 0x6014): "U2D2"}
@@ -35,6 +35,8 @@ class DynamixelBus(SdkBus):
     port_class = DynamixelPort
     ID_AT, DATA_AT, MIN_FRAME = 4, _STATUS_DATA, 11  # FF FF FD 00 id len len 55 error data.. crc
     BROADCAST_ID = reg.BROADCAST_ID
+    PRESENT_POSITION, GOAL_POSITION = reg.PRESENT_POSITION, reg.GOAL_POSITION
+    TORQUE_ENABLE, HOMING_OFFSET = reg.TORQUE_ENABLE, reg.HOMING_OFFSET
     _fast: tuple[bool, ...] = ()  # (fast_option,) where the SDK (3.8) takes it
 
     def _new_handler(self) -> Any:
@@ -109,47 +111,28 @@ class DynamixelBus(SdkBus):
             )
         return modes
 
-    def read_positions(self, servo_ids: Sequence[int]) -> tuple[dict[int, int], SyncReadResult]:
-        """Present positions of several servos in one request; and what came back."""
-        return self.sync_read_register(reg.PRESENT_POSITION, servo_ids)
-
     def read_telemetry(self, servo_ids: Sequence[int]) -> tuple[Telemetry, SyncReadResult]:
         """Present_Current to Present_Temperature in one request, then Hardware_Error_Status
         (its bits become the result's fault flags)."""
         result = self.sync_read(reg.TELEMETRY_START, reg.TELEMETRY_SIZE, servo_ids)
-
-        def field_of(register: reg.Register, data: bytes) -> int:
-            start = register.address - reg.TELEMETRY_START
-            return register.decode(data[start : start + register.size])
-
-        data = {sid: d for sid, d in result.data.items() if len(d) >= reg.TELEMETRY_SIZE}
-        telemetry = Telemetry(
-            positions={sid: field_of(reg.PRESENT_POSITION, d) for sid, d in data.items()},
-            temperatures={sid: field_of(reg.PRESENT_TEMPERATURE, d) for sid, d in data.items()},
-            loads={sid: abs(field_of(reg.PRESENT_CURRENT, d)) for sid, d in data.items()},
-            voltages={sid: field_of(reg.PRESENT_INPUT_VOLTAGE, d) / 10 for sid, d in data.items()},
+        telemetry = decode_telemetry(
+            result,
+            reg.TELEMETRY_START,
+            reg.TELEMETRY_SIZE,
+            position=reg.PRESENT_POSITION,
+            temperature=reg.PRESENT_TEMPERATURE,
+            load=reg.PRESENT_CURRENT,
+            voltage=reg.PRESENT_INPUT_VOLTAGE,
         )
-        hardware, _ = self.sync_read_register(reg.HARDWARE_ERROR_STATUS, list(data))
+        hardware, _ = self.sync_read_register(reg.HARDWARE_ERROR_STATUS, list(telemetry.positions))
         for servo_id, bits in hardware.items():
             result.errors[servo_id] = reg.faults_of(bits)
         return telemetry, result
-
-    def write_goals(self, goals: Mapping[int, int]) -> None:
-        """Goal_Position of several servos in one packet."""
-        self.sync_write(reg.GOAL_POSITION, goals)
-
-    def set_torque(self, servo_ids: Sequence[int], *, on: bool) -> None:
-        """Torque_Enable of every servo named."""
-        self.sync_write(reg.TORQUE_ENABLE, dict.fromkeys(servo_ids, 1 if on else 0))
 
     def set_speed(self, servo_ids: Sequence[int], steps_per_second: int) -> None:
         """Profile_Velocity (0.229 rpm units) of every servo named."""
         units = max(1, round(steps_per_second * 60 / 4096 / reg.RPM_PER_UNIT))
         self.sync_write(reg.PROFILE_VELOCITY, dict.fromkeys(servo_ids, units))
-
-    def read_homings(self, servo_ids: Sequence[int]) -> dict[int, int]:
-        """Each servo's Homing_Offset register."""
-        return {sid: self.read(sid, reg.HOMING_OFFSET) for sid in servo_ids}
 
     def write_homing(self, servo_id: int, value: int) -> None:
         """Homing_Offset into EEPROM (the servo refuses it with torque on)."""

@@ -15,7 +15,7 @@ Both are done as Dynamixel's bus does them, in `arena.servo.sdk_bus.SdkBus`. Bes
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import scservo_sdk as sdk
@@ -23,7 +23,7 @@ import scservo_sdk as sdk
 from arena.feetech import registers as reg
 from arena.servo.interface import ServoFamily, SyncReadResult, Telemetry
 from arena.servo.ports import PortFixes
-from arena.servo.sdk_bus import SdkBus
+from arena.servo.sdk_bus import SdkBus, decode_telemetry
 
 # USB ids of the serial adapters seen on SO-100 arms.
 ADAPTERS: dict[tuple[int, int], str] = {(0x1A86, 0x7523): "CH340", (0x1A86, 0x55D3): "CH343"}
@@ -41,6 +41,8 @@ class FeetechBus(SdkBus):
     port_class = ArenaPort
     ID_AT, DATA_AT, MIN_FRAME = 2, 5, 6  # FF FF id length error data... checksum
     BROADCAST_ID = reg.BROADCAST_ID
+    PRESENT_POSITION, GOAL_POSITION = reg.PRESENT_POSITION, reg.GOAL_POSITION
+    TORQUE_ENABLE, HOMING_OFFSET = reg.TORQUE_ENABLE, reg.HOMING_OFFSET
 
     def _new_handler(self) -> Any:
         return sdk.PacketHandler(0)  # STS servos are little-endian (process-global): each open
@@ -81,42 +83,23 @@ class FeetechBus(SdkBus):
     def prepare(self, servo_ids: Sequence[int]) -> None:
         """Nothing to do: an STS3215 follows position goals as it comes."""
 
-    def read_positions(self, servo_ids: Sequence[int]) -> tuple[dict[int, int], SyncReadResult]:
-        """Present positions of several servos in one request; and what came back."""
-        return self.sync_read_register(reg.PRESENT_POSITION, servo_ids)
-
     def read_telemetry(self, servo_ids: Sequence[int]) -> tuple[Telemetry, SyncReadResult]:
         """Present_Position to Present_Temperature in one request, decoded."""
         result = self.sync_read(reg.TELEMETRY_START, reg.TELEMETRY_SIZE, servo_ids)
-
-        def field_of(register: reg.Register, data: bytes) -> int:
-            start = register.address - reg.TELEMETRY_START
-            return register.decode(data[start : start + register.size])
-
-        data = {sid: d for sid, d in result.data.items() if len(d) >= reg.TELEMETRY_SIZE}
-        telemetry = Telemetry(
-            positions={sid: field_of(reg.PRESENT_POSITION, d) for sid, d in data.items()},
-            temperatures={sid: field_of(reg.PRESENT_TEMPERATURE, d) for sid, d in data.items()},
-            loads={sid: abs(field_of(reg.PRESENT_LOAD, d)) for sid, d in data.items()},
-            voltages={sid: field_of(reg.PRESENT_VOLTAGE, d) / 10 for sid, d in data.items()},
+        telemetry = decode_telemetry(
+            result,
+            reg.TELEMETRY_START,
+            reg.TELEMETRY_SIZE,
+            position=reg.PRESENT_POSITION,
+            temperature=reg.PRESENT_TEMPERATURE,
+            load=reg.PRESENT_LOAD,
+            voltage=reg.PRESENT_VOLTAGE,
         )
         return telemetry, result
-
-    def write_goals(self, goals: Mapping[int, int]) -> None:
-        """Goal_Position of several servos in one packet."""
-        self.sync_write(reg.GOAL_POSITION, goals)
-
-    def set_torque(self, servo_ids: Sequence[int], *, on: bool) -> None:
-        """Torque_Enable of every servo named."""
-        self.sync_write(reg.TORQUE_ENABLE, dict.fromkeys(servo_ids, 1 if on else 0))
 
     def set_speed(self, servo_ids: Sequence[int], steps_per_second: int) -> None:
         """Goal_Velocity (steps/s) of every servo named."""
         self.sync_write(reg.GOAL_VELOCITY, dict.fromkeys(servo_ids, steps_per_second))
-
-    def read_homings(self, servo_ids: Sequence[int]) -> dict[int, int]:
-        """Each servo's Homing_Offset register."""
-        return {sid: self.read(sid, reg.HOMING_OFFSET) for sid in servo_ids}
 
     def write_homing(self, servo_id: int, value: int) -> None:
         """Homing_Offset into EEPROM: the lock opened for the write and closed after."""

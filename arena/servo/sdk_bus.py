@@ -17,7 +17,7 @@ from typing import Any, ClassVar, Protocol
 import serial
 
 from arena.protocol.errors import ArenaError, ErrorCode
-from arena.servo.interface import BusError, SyncReadResult
+from arena.servo.interface import BusError, SyncReadResult, Telemetry
 from arena.servo.ports import DEFAULT_TIMEOUT_MARGIN, port_error
 
 #: What the SDKs raise when the port fails under them (TypeError: the SDK touches `ser` after it
@@ -46,7 +46,8 @@ class SdkBus:
     """Servos on one serial port through an SDK. Not thread-safe: one thread owns it.
 
     A subclass sets `sdk` (the SDK module), `port_class` (its port, `PortFixes` mixed in),
-    the status packet's layout (`ID_AT`, `DATA_AT`, `MIN_FRAME`), and `_new_handler`.
+    the status packet's layout (`ID_AT`, `DATA_AT`, `MIN_FRAME`), its registers, and
+    `_new_handler`.
     """
 
     sdk: ClassVar[Any]
@@ -55,6 +56,11 @@ class SdkBus:
     DATA_AT: ClassVar[int]  # index of its first data byte
     MIN_FRAME: ClassVar[int]  # the shortest whole status packet (a corrupt one counts then)
     BROADCAST_ID: ClassVar[int] = 0xFE
+    #: The family's registers for what both families do alike (below).
+    PRESENT_POSITION: ClassVar[SdkRegister]
+    GOAL_POSITION: ClassVar[SdkRegister]
+    TORQUE_ENABLE: ClassVar[SdkRegister]
+    HOMING_OFFSET: ClassVar[SdkRegister]
 
     def __init__(
         self,
@@ -183,6 +189,24 @@ class SdkBus:
         got = self.sync_read(register.address, register.size, servo_ids)
         return {sid: register.decode(data) for sid, data in got.data.items()}, got
 
+    # -- the parts of `arena.servo.interface.ServoBus` both families do alike ---------------
+
+    def read_positions(self, servo_ids: Sequence[int]) -> tuple[dict[int, int], SyncReadResult]:
+        """Present positions of several servos in one request; and what came back."""
+        return self.sync_read_register(self.PRESENT_POSITION, servo_ids)
+
+    def write_goals(self, goals: Mapping[int, int]) -> None:
+        """Goal_Position of several servos in one packet."""
+        self.sync_write(self.GOAL_POSITION, goals)
+
+    def set_torque(self, servo_ids: Sequence[int], *, on: bool) -> None:
+        """Torque_Enable of every servo named."""
+        self.sync_write(self.TORQUE_ENABLE, dict.fromkeys(servo_ids, 1 if on else 0))
+
+    def read_homings(self, servo_ids: Sequence[int]) -> dict[int, int]:
+        """Each servo's Homing_Offset register."""
+        return {sid: self.read(sid, self.HOMING_OFFSET) for sid in servo_ids}
+
     def _call(self, method: Any, *args: Any) -> Any:
         try:
             return method(*args)
@@ -207,3 +231,30 @@ class SdkBus:
             ErrorCode.PORT_DISCONNECTED,
             f"{what} on {self.port_name} failed: {self._handler.getTxRxResult(result)}",
         )
+
+
+def decode_telemetry(
+    result: SyncReadResult,
+    start: int,
+    size: int,
+    *,
+    position: SdkRegister,
+    temperature: SdkRegister,
+    load: SdkRegister,
+    voltage: SdkRegister,
+) -> Telemetry:
+    """A sync read of the block of `size` bytes from address `start`, decoded: each field from
+    its register (loads as magnitudes, voltages from tenths of a volt); servos whose reply was
+    short are left out."""
+
+    def field_of(register: SdkRegister, data: bytes) -> int:
+        at = register.address - start
+        return register.decode(data[at : at + register.size])
+
+    data = {sid: d for sid, d in result.data.items() if len(d) >= size}
+    return Telemetry(
+        positions={sid: field_of(position, d) for sid, d in data.items()},
+        temperatures={sid: field_of(temperature, d) for sid, d in data.items()},
+        loads={sid: abs(field_of(load, d)) for sid, d in data.items()},
+        voltages={sid: field_of(voltage, d) / 10 for sid, d in data.items()},
+    )
