@@ -27,7 +27,7 @@ from arena.dynamixel.packets import (
     encode_status,
 )
 from arena.servo.interface import CENTER_STEP, MAX_STEP, STEPS_PER_TURN
-from arena.servo.sim_pty import ControlTable, Reply, ServoFaults, register_at
+from arena.servo.sim_pty import Reply, ServoFaults, SimServoBase, register_at
 
 MAX_SPEED = 4000.0  # steps/s at Profile_Velocity 0 (about 58 rpm, the XL430-W250 at 12 V)
 AMBIENT_C = 30
@@ -44,7 +44,7 @@ def _steps_per_second(profile_velocity: int) -> float:
 
 
 @dataclass
-class SimServo(ControlTable):
+class SimServo(SimServoBase):
     """One servo: a control table, where its horn physically is, and what it is doing."""
 
     servo_id: int
@@ -126,16 +126,6 @@ class SimServo(ControlTable):
         turned = present - self.peek(reg.HOMING_OFFSET)
         self.actual = MAX_STEP - turned if self._reversed else turned
         self.velocity = 0.0
-        self._refresh()
-
-    def advance(self, now: float) -> None:
-        """Run the motion model up to `now`."""
-        if self.last_update is None:
-            self.last_update = now
-        dt = max(0.0, now - self.last_update)
-        self.last_update = now
-        if dt:
-            self._step(dt)
         self._refresh()
 
     def _step(self, dt: float) -> None:

@@ -14,7 +14,7 @@ from arena.feetech import registers as reg
 from arena.feetech.bus import FEETECH
 from arena.feetech.packets import Corrupt, Instruction, Packet, PacketParser, encode
 from arena.feetech.registers import ErrorBit
-from arena.servo.sim_pty import ControlTable, Reply, ServoFaults, register_at
+from arena.servo.sim_pty import Reply, ServoFaults, SimServoBase, register_at
 
 MAX_SPEED = 3400.0  # steps/s at Goal_Velocity 0 (about 300 deg/s, the STS3215 at 12 V)
 ACCELERATION_UNIT = 100.0  # steps/s^2 per unit of the Acceleration register
@@ -26,7 +26,7 @@ FULL_LOAD = 1000
 
 
 @dataclass
-class SimServo(ControlTable):
+class SimServo(SimServoBase):
     """One servo: a register file, where it physically is, and what it is doing."""
 
     servo_id: int
@@ -87,16 +87,6 @@ class SimServo(ControlTable):
         """Someone moves the horn (torque off) so that it reads `present`."""
         self.actual = (present + self.homing) % reg.STEPS_PER_TURN
         self.velocity = 0.0
-        self._refresh()
-
-    def advance(self, now: float) -> None:
-        """Run the motion, load and thermal model up to `now`."""
-        if self.last_update is None:
-            self.last_update = now
-        dt = max(0.0, now - self.last_update)
-        self.last_update = now
-        if dt:
-            self._step(dt)
         self._refresh()
 
     def _step(self, dt: float) -> None:

@@ -36,10 +36,29 @@ BITS_PER_BYTE = 10  # 8N1: start bit, 8 data bits, stop bit
 OWED_PATIENCE = 30.0
 
 
-class ControlTable:
-    """Mixed into either family's simulated servo: its registers, as bytes in `memory`."""
+class SimServoBase:
+    """What either family's simulated servo does alike: its registers as bytes in `memory`, and
+    a motion model run up to the bus's time (`advance`: the family's `_step`, then `_refresh`
+    of the registers it reports)."""
 
     memory: bytearray
+    last_update: float | None
+
+    def _step(self, dt: float) -> None:
+        raise NotImplementedError
+
+    def _refresh(self) -> None:
+        raise NotImplementedError
+
+    def advance(self, now: float) -> None:
+        """Run the servo's model up to `now`."""
+        if self.last_update is None:
+            self.last_update = now
+        dt = max(0.0, now - self.last_update)
+        self.last_update = now
+        if dt:
+            self._step(dt)
+        self._refresh()
 
     def peek(self, register: SdkRegister) -> int:
         """A register's value."""
