@@ -730,7 +730,6 @@ async def test_a_reset_refuses_torque_to_a_joint_turned_a_turn_away(
         await eventually(refused, what="the refusal's fault")
         fault = next(f for f in found if f.code == ErrorCode.SERVO_OUT_OF_RANGE)
         assert fault.severity is Severity.CRITICAL
-        # (the refusal's, or the cycle's once torque is wanted: the same words)
         assert f"Servo 3 reads {back + 4096} (its frame 0..4095)" in fault.message
         assert robot.snapshot().mode is Mode.ESTOPPED
         with sim.paused() as bus:

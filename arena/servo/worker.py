@@ -124,6 +124,7 @@ class BusWorker:
         #: setting): no motion left, and nothing jumps when torque comes back.
         self.torque_at_exit: bool | None = None
         self.frames: Frames = {}  # this connection's (`WorkerSettings.frames`)
+        self.torqued = False  # the torque the last successful `hold` set
         self._bus: ServoBus | None = None
         self._lock = threading.Lock()
         self._goals: dict[int, int] | None = None
@@ -283,7 +284,7 @@ class BusWorker:
 
     def hold(self, bus: ServoBus, *, torque: bool) -> dict[int, int]:
         """`hold_here` with this arm's speed and frames (call it in the worker thread)."""
-        return hold_here(
+        present = hold_here(
             bus,
             self.servo_ids,
             torque=torque,
@@ -291,8 +292,11 @@ class BusWorker:
             frames=self.frames,
             hint=self.settings.frame_hint,
         )
+        self.torqued = torque
+        return present
 
     def _lose(self, reason: str) -> None:
+        self.torqued = False
         if self._bus is not None:
             self._bus.close()
             self._bus = None
@@ -321,7 +325,7 @@ class BusWorker:
         faults = self.health.on_read(result)
         if reading.temperatures:
             faults += self.health.on_temperatures(reading.temperatures)
-        if self.frames and self.torque_wanted:  # (a limp servo is checked at torque-on)
+        if self.frames and self.torqued:  # (a limp servo is checked at its torque-on)
             faults += self.health.on_frames(reading.positions, self.frames)
         for fault in faults:
             self.listener.event(fault)
