@@ -23,6 +23,18 @@ from arena.robot.manager import RobotManager
 from arena.servo.sim_pty import PtySimBus
 from tests.conftest import RunningServer
 from tests.hardware import TEST_TIMEOUT_MARGIN, eventually, running_sim
+from tests.lerobot_arms import (
+    NAMES,
+    STEP,
+    all_read,
+    assert_reads_as,
+    attach_arm,
+    joined,
+    lerobot_observes,
+    one_step,
+    place_arm,
+    real_values,
+)
 
 dxl = pytest.importorskip("dynamixel_sdk")
 pytest.importorskip("lerobot.motors.dynamixel")
@@ -35,8 +47,6 @@ from arena.dynamixel.sim import SimBus  # noqa: E402
 
 StartServer = Callable[..., Awaitable[RunningServer]]
 sim_on = contextmanager(running_sim)  # a second simulated bus in one test
-NAMES = ("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper")
-STEP = 360 / 4095  # LeRobot's degrees per step
 #: A calibration as LeRobot's Koch `calibrate()` leaves it: half-turn homings (present 2047 at
 #: the middle pose), the pan and the wrist roll a whole turn, the others swept.
 CALIBRATION = {
@@ -70,12 +80,6 @@ def lerobot_follower(sim: PtySimBus, folder: Path) -> KochFollower:
     return robot
 
 
-def place_arm(sim: PtySimBus) -> None:
-    with sim.paused() as bus:
-        for sid, present in ACTUAL.items():
-            bus.servo(sid).move_by_hand(present)
-
-
 def peek(sim: PtySimBus, register: reg.Register) -> dict[int, int]:
     """One register of every simulated servo."""
     with sim.paused() as bus:
@@ -86,32 +90,12 @@ def lerobot_reads(sim: PtySimBus, folder: Path) -> dict[str, float]:
     """What LeRobot reads: its follower saves the calibration file, connects (which writes the
     calibration to the servos and configures them, as when the user keeps the file), then
     observes the arm."""
-    robot = lerobot_follower(sim, folder)
-    robot.calibration = dict(CALIBRATION)
-    robot._save_calibration()
-    robot.bus.connect()
-    try:
-        robot.bus.disable_torque()
-        robot.bus.write_calibration(robot.calibration)
-        assert robot.bus.is_calibrated  # read back from the servos' registers
-        robot.configure()
-        observed = robot.get_observation()
-    finally:
-        robot.bus.disconnect()
-    return {name: float(observed[f"{name}.pos"]) for name in NAMES}
+    return lerobot_observes(lerobot_follower(sim, folder), CALIBRATION, configure=True)
 
 
 def _steps(robot: KochFollower) -> dict[str, float]:
     """Each goal as LeRobot reads it back (its goal register, normalized)."""
     return robot.bus.sync_read("Goal_Position")
-
-
-def one_step(name: str) -> float:
-    """One servo step in the joint's units."""
-    if name == "gripper":
-        cal = CALIBRATION[name]
-        return 100 / (cal.range_max - cal.range_min)
-    return STEP
 
 
 # -- LeRobot's DynamixelMotorsBus takes the simulated bus for the real one -----------------------
@@ -120,7 +104,7 @@ def one_step(name: str) -> float:
 def test_lerobot_koch_follower_connects_calibrates_moves_and_lets_go(
     sim: PtySimBus, tmp_path: Path
 ) -> None:
-    place_arm(sim)
+    place_arm(sim, ACTUAL)
     robot = lerobot_follower(sim, tmp_path)
     robot.calibration = dict(CALIBRATION)
     robot.bus.connect()  # pings every servo: ids and model numbers must match
@@ -150,7 +134,7 @@ def test_lerobot_koch_follower_connects_calibrates_moves_and_lets_go(
         seen = robot.get_observation()
         assert abs(seen["shoulder_pan.pos"] - 20.0) <= STEP
         assert abs(seen["elbow_flex.pos"] + 15.0) <= STEP
-        assert abs(seen["gripper.pos"] - 40.0) <= one_step("gripper")
+        assert abs(seen["gripper.pos"] - 40.0) <= one_step(CALIBRATION, "gripper")
     finally:
         robot.disconnect()  # torque off, as LeRobot's follower leaves the arm
     assert set(peek(sim, reg.TORQUE_ENABLE).values()) == {0}
@@ -159,21 +143,9 @@ def test_lerobot_koch_follower_connects_calibrates_moves_and_lets_go(
 # -- Arena reads the servos as LeRobot does, through LeRobot's file -----------------------------
 
 
-async def real_values(http: Any) -> dict[str, float | None]:
-    joints = (await http.get("/api/robots/arm/joints")).json()
-    return {j["name"]: j["real_value"] for j in joints}
-
-
-async def _all_read(http: Any) -> bool:
-    return all(v is not None for v in (await real_values(http)).values())
-
-
 async def attach_koch(http: Any, sim: PtySimBus, calibration: str, **more: Any) -> Any:
     """Robot `arm` of type koch, its usb-slave on the simulated bus with `calibration`."""
-    made = await http.post("/api/robots", json={"id": "arm", "robot_type": "koch"})
-    assert made.status_code == 201, made.text
-    body = {"type": "usb-slave", "port": str(sim.link), "calibration": calibration, **more}
-    return await http.post("/api/robots/arm/slaves", json=body)
+    return await attach_arm(http, sim, "koch", calibration, **more)
 
 
 @pytest.mark.parametrize("registers", ["written", "fresh"])
@@ -186,7 +158,7 @@ async def test_arena_reads_the_koch_as_lerobot_does(
 ) -> None:
     """`fresh`: the same arm, its servos' registers back to a new servo's (no homing, whole
     range): Arena applies the file's homing itself and still reads what LeRobot read."""
-    place_arm(sim)
+    place_arm(sim, ACTUAL)
     folder = tmp_path / "hf" / "robots" / "koch_follower"
     expected = await trio.to_thread.run_sync(lerobot_reads, sim, folder)
     assert (folder / "arm.json").is_file()
@@ -204,31 +176,22 @@ async def test_arena_reads_the_koch_as_lerobot_does(
     async with server.client() as http:
         attached = await attach_koch(http, sim, "lerobot:arm")
         assert attached.status_code == 201, attached.text
-        await eventually(lambda: _all_read(http), what="joint states from the bus")
+        await eventually(lambda: all_read(http), what="joint states from the bus")
         read = await real_values(http)
-    for name in NAMES:
-        value = read[name]
-        assert value is not None
-        assert abs(value - expected[name]) <= one_step(name), (name, value, expected[name])
-    assert 0 <= read["gripper"] <= 100  # LeRobot's 0-100, not degrees
-
-
-async def _joined(http: Any) -> bool:
-    robot = (await http.get("/api/robots/arm")).json()
-    return bool(robot["slaves"]) and not any(s.get("joining") for s in robot["slaves"])
+    assert_reads_as(read, expected, CALIBRATION)
 
 
 async def test_koch_driven_through_a_server_with_an_estop(
     start_server: StartServer, sim: PtySimBus, tmp_path: Path
 ) -> None:
-    place_arm(sim)
+    place_arm(sim, ACTUAL)
     path = tmp_path / "arm.json"
     await trio.to_thread.run_sync(lerobot_reads, sim, tmp_path)  # writes arm.json
     server = await start_server()
     async with server.client() as http:
         attached = await attach_koch(http, sim, str(path), estop="torque-off")
         assert attached.status_code == 201, attached.text
-        await eventually(lambda: _joined(http), what="the arm joined")
+        await eventually(lambda: joined(http), what="the arm joined")
         assert set(peek(sim, reg.TORQUE_ENABLE).values()) == {1}
         move = {
             "joints": [{"name": "shoulder_pan", "value": 12.0}, {"name": "gripper", "value": 60}]
@@ -431,7 +394,7 @@ async def test_the_koch_follower_mirrors_the_koch_leader(
     start_server: StartServer, sim: PtySimBus, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     m077 = reg.MODELS["xl330-m077"]
-    place_arm(sim)
+    place_arm(sim, ACTUAL)
     await trio.to_thread.run_sync(lerobot_reads, sim, tmp_path / "hf" / "robots" / "koch_follower")
     with sim_on(tmp_path / "leader", bus=SimBus(dict.fromkeys(range(1, 7), m077))) as leader:
         folder = tmp_path / "hf" / "teleoperators" / "koch_leader"
@@ -445,7 +408,7 @@ async def test_the_koch_follower_mirrors_the_koch_leader(
         async with server.client() as http:
             attached = await attach_koch(http, sim, "lerobot:arm")
             assert attached.status_code == 201, attached.text
-            await eventually(lambda: _joined(http), what="the follower joined")
+            await eventually(lambda: joined(http), what="the follower joined")
             body = {"type": "usb-master", "port": str(leader.link), "calibration": "lerobot:arm"}
             master = await http.post("/api/robots/arm/master", json=body)
             assert master.status_code == 201, master.text
@@ -533,7 +496,7 @@ def test_calibrate_format_lerobot_reads_zero_at_rest_in_lerobots_koch(
         robot.bus.disconnect()
     for name in NAMES[:-1]:
         assert abs(read[f"{name}.pos"]) <= STEP, (name, read)
-    assert read["gripper.pos"] == pytest.approx(0.0, abs=one_step("gripper"))
+    assert read["gripper.pos"] == pytest.approx(0.0, abs=one_step(CALIBRATION, "gripper"))
 
 
 async def test_the_koch_twin_follows_its_commands(
@@ -670,7 +633,7 @@ async def test_a_joint_turned_a_turn_away_is_refused_torque_at_attach(
     """LeRobot's file, a joint turned by hand a whole turn further while limp (its servo counts
     turns): its goal, clamped into the file's range, would be a turn away. The attach is
     refused, naming the servo and its reading, before any torque."""
-    place_arm(sim)
+    place_arm(sim, ACTUAL)
     path = tmp_path / "arm.json"
     await trio.to_thread.run_sync(lerobot_reads, sim, tmp_path)  # writes arm.json
     with sim.paused() as bus:
