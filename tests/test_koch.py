@@ -662,10 +662,9 @@ async def test_a_reset_refuses_torque_to_a_joint_turned_a_turn_away(
     whole turn by hand while limp keeps its torque off at the reset, a critical fault names
     it, and the robot stays stopped; turned back, the next reset brings torque back."""
     from arena.protocol.errors import ErrorCode, Severity
-    from arena.robot.events import FaultReported
     from arena.robot.model import load_robot_model
     from arena.robot.safety import Mode
-    from tests.hardware import usb_slave, wait_joined
+    from tests.hardware import fault_of, usb_slave, wait_joined
 
     def torque() -> list[int]:
         return list(peek(sim, reg.TORQUE_ENABLE).values())
@@ -684,14 +683,7 @@ async def test_a_reset_refuses_torque_to_a_joint_turned_a_turn_away(
             before = [s.torque_enables for s in bus.servos.values()]
         events.drain()
         await robot.reset()
-        found: list[FaultReported] = []
-
-        def refused() -> bool:
-            found.extend(e for e in events.drain() if isinstance(e, FaultReported))
-            return any(f.code == ErrorCode.SERVO_OUT_OF_RANGE for f in found)
-
-        await eventually(refused, what="the refusal's fault")
-        fault = next(f for f in found if f.code == ErrorCode.SERVO_OUT_OF_RANGE)
+        fault = await fault_of(events, ErrorCode.SERVO_OUT_OF_RANGE, "the refusal's fault")
         assert fault.severity is Severity.CRITICAL
         assert f"Servo 3 reads {back + 4096} (its frame 0..4095)" in fault.message
         assert robot.snapshot().mode is Mode.ESTOPPED
@@ -711,10 +703,9 @@ async def test_a_reading_that_leaves_the_frame_under_torque_stops_the_robot(
     critical fault: the robot e-stops, and the e-stop's hold leaves that servo limp at goal =
     present while the others keep their torque."""
     from arena.protocol.errors import ErrorCode, Severity
-    from arena.robot.events import FaultReported
     from arena.robot.model import load_robot_model
     from arena.robot.safety import Mode
-    from tests.hardware import usb_slave, wait_joined
+    from tests.hardware import fault_of, usb_slave, wait_joined
 
     robot = await manager.create_robot("koch", robot_id="arm")
     with robot.subscribe() as events:
@@ -723,14 +714,7 @@ async def test_a_reading_that_leaves_the_frame_under_torque_stops_the_robot(
         await wait_joined(robot)
         with sim.paused() as bus:
             bus.servo(4).poke(reg.HOMING_OFFSET, 4096)
-        found: list[FaultReported] = []
-
-        def faulted() -> bool:
-            found.extend(e for e in events.drain() if isinstance(e, FaultReported))
-            return any(f.code == ErrorCode.SERVO_OUT_OF_RANGE for f in found)
-
-        await eventually(faulted, what="the out-of-frame fault")
-        fault = next(f for f in found if f.code == ErrorCode.SERVO_OUT_OF_RANGE)
+        fault = await fault_of(events, ErrorCode.SERVO_OUT_OF_RANGE, "the out-of-frame fault")
         assert fault.severity is Severity.CRITICAL and fault.joint == "wrist_flex"
         assert "(its frame 0..4095)" in fault.message
         await eventually(lambda: robot.snapshot().mode is Mode.ESTOPPED, what="the e-stop")
