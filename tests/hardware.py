@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 from unittest import mock
 
 from arena.drivers import servo_arm
@@ -11,7 +12,9 @@ from arena.drivers.usb_slave import UsbSlave
 from arena.feetech import registers as reg
 from arena.feetech.bus import FeetechBus
 from arena.feetech.sim import SimBus
+from arena.protocol.errors import ErrorCode
 from arena.protocol.rest import UsbSlaveBody
+from arena.robot.events import FaultReported
 from arena.robot.handle import Robot
 from arena.robot.model import RobotModel
 from arena.server.drivers import usb_slave_config
@@ -70,6 +73,18 @@ async def wait_joined(robot: Robot) -> None:
     await eventually(
         lambda: not any(slave.joining for slave in robot.snapshot().slaves), what="the join"
     )
+
+
+async def fault_of(events: Any, code: ErrorCode, what: str) -> FaultReported:
+    """The first fault with `code` among a robot subscription's `events`, waited for."""
+    found: list[FaultReported] = []
+
+    def seen() -> bool:
+        found.extend(e for e in events.drain() if isinstance(e, FaultReported))
+        return any(f.code == code for f in found)
+
+    await eventually(seen, what=what)
+    return next(f for f in found if f.code == code)
 
 
 def servo_goals(sim: PtySimBus) -> dict[int, int]:

@@ -23,6 +23,18 @@ from arena.robot.manager import RobotManager
 from arena.servo.sim_pty import PtySimBus
 from tests.conftest import RunningServer
 from tests.hardware import TEST_TIMEOUT_MARGIN, eventually, running_sim
+from tests.lerobot_arms import (
+    NAMES,
+    STEP,
+    all_read,
+    assert_reads_as,
+    attach_arm,
+    joined,
+    lerobot_observes,
+    one_step,
+    place_arm,
+    real_values,
+)
 
 dxl = pytest.importorskip("dynamixel_sdk")
 pytest.importorskip("lerobot.motors.dynamixel")
@@ -35,8 +47,6 @@ from arena.dynamixel.sim import SimBus  # noqa: E402
 
 StartServer = Callable[..., Awaitable[RunningServer]]
 sim_on = contextmanager(running_sim)  # a second simulated bus in one test
-NAMES = ("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper")
-STEP = 360 / 4095  # LeRobot's degrees per step
 #: A calibration as LeRobot's Koch `calibrate()` leaves it: half-turn homings (present 2047 at
 #: the middle pose), the pan and the wrist roll a whole turn, the others swept.
 CALIBRATION = {
@@ -70,12 +80,6 @@ def lerobot_follower(sim: PtySimBus, folder: Path) -> KochFollower:
     return robot
 
 
-def place_arm(sim: PtySimBus) -> None:
-    with sim.paused() as bus:
-        for sid, present in ACTUAL.items():
-            bus.servo(sid).move_by_hand(present)
-
-
 def peek(sim: PtySimBus, register: reg.Register) -> dict[int, int]:
     """One register of every simulated servo."""
     with sim.paused() as bus:
@@ -86,32 +90,12 @@ def lerobot_reads(sim: PtySimBus, folder: Path) -> dict[str, float]:
     """What LeRobot reads: its follower saves the calibration file, connects (which writes the
     calibration to the servos and configures them, as when the user keeps the file), then
     observes the arm."""
-    robot = lerobot_follower(sim, folder)
-    robot.calibration = dict(CALIBRATION)
-    robot._save_calibration()
-    robot.bus.connect()
-    try:
-        robot.bus.disable_torque()
-        robot.bus.write_calibration(robot.calibration)
-        assert robot.bus.is_calibrated  # read back from the servos' registers
-        robot.configure()
-        observed = robot.get_observation()
-    finally:
-        robot.bus.disconnect()
-    return {name: float(observed[f"{name}.pos"]) for name in NAMES}
+    return lerobot_observes(lerobot_follower(sim, folder), CALIBRATION, configure=True)
 
 
 def _steps(robot: KochFollower) -> dict[str, float]:
     """Each goal as LeRobot reads it back (its goal register, normalized)."""
     return robot.bus.sync_read("Goal_Position")
-
-
-def one_step(name: str) -> float:
-    """One servo step in the joint's units."""
-    if name == "gripper":
-        cal = CALIBRATION[name]
-        return 100 / (cal.range_max - cal.range_min)
-    return STEP
 
 
 # -- LeRobot's DynamixelMotorsBus takes the simulated bus for the real one -----------------------
@@ -120,7 +104,7 @@ def one_step(name: str) -> float:
 def test_lerobot_koch_follower_connects_calibrates_moves_and_lets_go(
     sim: PtySimBus, tmp_path: Path
 ) -> None:
-    place_arm(sim)
+    place_arm(sim, ACTUAL)
     robot = lerobot_follower(sim, tmp_path)
     robot.calibration = dict(CALIBRATION)
     robot.bus.connect()  # pings every servo: ids and model numbers must match
@@ -150,7 +134,7 @@ def test_lerobot_koch_follower_connects_calibrates_moves_and_lets_go(
         seen = robot.get_observation()
         assert abs(seen["shoulder_pan.pos"] - 20.0) <= STEP
         assert abs(seen["elbow_flex.pos"] + 15.0) <= STEP
-        assert abs(seen["gripper.pos"] - 40.0) <= one_step("gripper")
+        assert abs(seen["gripper.pos"] - 40.0) <= one_step(CALIBRATION, "gripper")
     finally:
         robot.disconnect()  # torque off, as LeRobot's follower leaves the arm
     assert set(peek(sim, reg.TORQUE_ENABLE).values()) == {0}
@@ -159,21 +143,9 @@ def test_lerobot_koch_follower_connects_calibrates_moves_and_lets_go(
 # -- Arena reads the servos as LeRobot does, through LeRobot's file -----------------------------
 
 
-async def real_values(http: Any) -> dict[str, float | None]:
-    joints = (await http.get("/api/robots/arm/joints")).json()
-    return {j["name"]: j["real_value"] for j in joints}
-
-
-async def _all_read(http: Any) -> bool:
-    return all(v is not None for v in (await real_values(http)).values())
-
-
 async def attach_koch(http: Any, sim: PtySimBus, calibration: str, **more: Any) -> Any:
     """Robot `arm` of type koch, its usb-slave on the simulated bus with `calibration`."""
-    made = await http.post("/api/robots", json={"id": "arm", "robot_type": "koch"})
-    assert made.status_code == 201, made.text
-    body = {"type": "usb-slave", "port": str(sim.link), "calibration": calibration, **more}
-    return await http.post("/api/robots/arm/slaves", json=body)
+    return await attach_arm(http, sim, "koch", calibration, **more)
 
 
 @pytest.mark.parametrize("registers", ["written", "fresh"])
@@ -186,7 +158,7 @@ async def test_arena_reads_the_koch_as_lerobot_does(
 ) -> None:
     """`fresh`: the same arm, its servos' registers back to a new servo's (no homing, whole
     range): Arena applies the file's homing itself and still reads what LeRobot read."""
-    place_arm(sim)
+    place_arm(sim, ACTUAL)
     folder = tmp_path / "hf" / "robots" / "koch_follower"
     expected = await trio.to_thread.run_sync(lerobot_reads, sim, folder)
     assert (folder / "arm.json").is_file()
@@ -204,31 +176,22 @@ async def test_arena_reads_the_koch_as_lerobot_does(
     async with server.client() as http:
         attached = await attach_koch(http, sim, "lerobot:arm")
         assert attached.status_code == 201, attached.text
-        await eventually(lambda: _all_read(http), what="joint states from the bus")
+        await eventually(lambda: all_read(http), what="joint states from the bus")
         read = await real_values(http)
-    for name in NAMES:
-        value = read[name]
-        assert value is not None
-        assert abs(value - expected[name]) <= one_step(name), (name, value, expected[name])
-    assert 0 <= read["gripper"] <= 100  # LeRobot's 0-100, not degrees
-
-
-async def _joined(http: Any) -> bool:
-    robot = (await http.get("/api/robots/arm")).json()
-    return bool(robot["slaves"]) and not any(s.get("joining") for s in robot["slaves"])
+    assert_reads_as(read, expected, CALIBRATION)
 
 
 async def test_koch_driven_through_a_server_with_an_estop(
     start_server: StartServer, sim: PtySimBus, tmp_path: Path
 ) -> None:
-    place_arm(sim)
+    place_arm(sim, ACTUAL)
     path = tmp_path / "arm.json"
     await trio.to_thread.run_sync(lerobot_reads, sim, tmp_path)  # writes arm.json
     server = await start_server()
     async with server.client() as http:
         attached = await attach_koch(http, sim, str(path), estop="torque-off")
         assert attached.status_code == 201, attached.text
-        await eventually(lambda: _joined(http), what="the arm joined")
+        await eventually(lambda: joined(http), what="the arm joined")
         assert set(peek(sim, reg.TORQUE_ENABLE).values()) == {1}
         move = {
             "joints": [{"name": "shoulder_pan", "value": 12.0}, {"name": "gripper", "value": 60}]
@@ -300,7 +263,8 @@ async def test_a_koch_file_that_does_not_fit_is_refused_before_any_torque(
         for word in words:
             assert word in error["message"]
         assert (await http.get("/api/robots/arm")).json()["slaves"] == []
-    assert set(peek(sim, reg.TORQUE_ENABLE).values()) == {0}
+    with sim.paused() as bus:
+        assert [s.torque_enables for s in bus.servos.values()] == [0] * 6  # never on
 
 
 async def test_an_arena_calibration_on_servos_that_count_turns_is_refused(
@@ -379,7 +343,8 @@ async def test_a_servo_of_another_model_is_refused(
             assert error["code"] == "SERVO_WRONG_MODEL"
             assert "Servo 3 is model 1060" in error["message"]
             assert "XL330-M288" in error["message"]
-        assert set(peek(sim, reg.TORQUE_ENABLE).values()) == {0}
+        with sim.paused() as bus:
+            assert [s.torque_enables for s in bus.servos.values()] == [0] * 6  # never on
 
 
 #: The Koch leader as LeRobot's `KochLeader` calibrates it: XL330-M077 servos, the elbow's
@@ -429,7 +394,7 @@ async def test_the_koch_follower_mirrors_the_koch_leader(
     start_server: StartServer, sim: PtySimBus, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     m077 = reg.MODELS["xl330-m077"]
-    place_arm(sim)
+    place_arm(sim, ACTUAL)
     await trio.to_thread.run_sync(lerobot_reads, sim, tmp_path / "hf" / "robots" / "koch_follower")
     with sim_on(tmp_path / "leader", bus=SimBus(dict.fromkeys(range(1, 7), m077))) as leader:
         folder = tmp_path / "hf" / "teleoperators" / "koch_leader"
@@ -443,7 +408,7 @@ async def test_the_koch_follower_mirrors_the_koch_leader(
         async with server.client() as http:
             attached = await attach_koch(http, sim, "lerobot:arm")
             assert attached.status_code == 201, attached.text
-            await eventually(lambda: _joined(http), what="the follower joined")
+            await eventually(lambda: joined(http), what="the follower joined")
             body = {"type": "usb-master", "port": str(leader.link), "calibration": "lerobot:arm"}
             master = await http.post("/api/robots/arm/master", json=body)
             assert master.status_code == 201, master.text
@@ -531,7 +496,7 @@ def test_calibrate_format_lerobot_reads_zero_at_rest_in_lerobots_koch(
         robot.bus.disconnect()
     for name in NAMES[:-1]:
         assert abs(read[f"{name}.pos"]) <= STEP, (name, read)
-    assert read["gripper.pos"] == pytest.approx(0.0, abs=one_step("gripper"))
+    assert read["gripper.pos"] == pytest.approx(0.0, abs=one_step(CALIBRATION, "gripper"))
 
 
 async def test_the_koch_twin_follows_its_commands(
@@ -581,3 +546,185 @@ def test_hardware_errors_reach_the_health_monitor_as_faults(sim: PtySimBus) -> N
         (ErrorCode.SERVO_OVERHEAT, Severity.CRITICAL, 4),
         (ErrorCode.SERVO_VOLTAGE, Severity.ERROR, 4),
     }
+
+
+def test_prepare_refuses_a_servo_whose_mode_read_is_lost(sim: PtySimBus) -> None:
+    """A servo left in velocity mode whose reply to the mode read is lost must not be skipped:
+    torque would come on with its Goal_Velocity still in RAM."""
+    from arena.protocol.errors import ArenaError, ErrorCode
+    from tests.hardware import open_test_bus
+
+    with sim.paused() as bus:
+        bus.servo(3).poke(reg.OPERATING_MODE, reg.OperatingMode.VELOCITY)
+        bus.servo(3).faults.drop = 1
+    dynamixel = open_test_bus(str(sim.link))
+    dynamixel.open()
+    try:
+        with pytest.raises(ArenaError) as refused:
+            dynamixel.prepare(range(1, 7))
+        assert refused.value.code is ErrorCode.SERVO_TIMEOUT
+        assert "[3]" in refused.value.message
+        dynamixel.prepare(range(1, 7))  # answering again: switched, and read back
+    finally:
+        dynamixel.close()
+    assert peek(sim, reg.OPERATING_MODE)[3] == reg.OperatingMode.POSITION
+    with sim.paused() as bus:
+        assert [s.torque_enables for s in bus.servos.values()] == [0] * 6
+
+
+def test_prepare_refuses_a_servo_that_keeps_its_velocity_mode(
+    sim: PtySimBus, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The mode is read back after the change: a servo that acknowledged the write but still
+    reads velocity mode is refused, naming it."""
+    from arena.protocol.errors import ArenaError, ErrorCode
+    from tests.hardware import open_test_bus
+
+    with sim.paused() as bus:
+        bus.servo(5).poke(reg.OPERATING_MODE, reg.OperatingMode.VELOCITY)
+        bus.servo(5).poke(reg.GOAL_VELOCITY, 200)
+    dynamixel = open_test_bus(str(sim.link))
+    write = dynamixel.write  # type: ignore[attr-defined]
+
+    def forgetful(servo_id: int, register: reg.Register, value: int) -> None:
+        # The servo's firmware acknowledges the mode write and keeps its mode.
+        write(servo_id, register, value)
+        if register is reg.OPERATING_MODE and servo_id == 5:
+            with sim.paused() as bus:
+                bus.servo(5).poke(reg.OPERATING_MODE, reg.OperatingMode.VELOCITY)
+
+    monkeypatch.setattr(dynamixel, "write", forgetful)
+    dynamixel.open()
+    try:
+        with pytest.raises(ArenaError) as refused:
+            dynamixel.prepare(range(1, 7))
+    finally:
+        dynamixel.close()
+    assert refused.value.code is ErrorCode.INVALID_CONFIG
+    assert "[5]" in refused.value.message
+    with sim.paused() as bus:
+        assert [s.torque_enables for s in bus.servos.values()] == [0] * 6
+
+
+async def test_a_leader_of_a_model_outside_the_family_is_refused(
+    start_server: StartServer, tmp_path: Path
+) -> None:
+    """A leader may be any 4096-step model of its family (the Koch leader's XL330-M077), but
+    not a servo the family's table does not know (an MX-28, model 30): `SERVO_WRONG_MODEL`."""
+    m077 = reg.MODELS["xl330-m077"]
+    models = {**dict.fromkeys(range(1, 7), m077), 4: 30}
+    with sim_on(tmp_path / "leader", bus=SimBus(models)) as leader:
+        server = await start_server(calibration_dir=str(tmp_path / "cal"))
+        async with server.client() as http:
+            made = await http.post("/api/robots", json={"id": "arm", "robot_type": "koch"})
+            assert made.status_code == 201, made.text
+            body = {"type": "usb-master", "port": str(leader.link)}
+            reply = await http.post("/api/robots/arm/master", json=body)
+            assert reply.status_code == 422, reply.text
+            error = reply.json()["error"]
+            assert error["code"] == "SERVO_WRONG_MODEL"
+            assert "Servo 4 is model 30" in error["message"]
+            assert "XL330-M077 (1190)" in error["message"]
+
+
+async def test_a_joint_turned_a_turn_away_is_refused_torque_at_attach(
+    start_server: StartServer, sim: PtySimBus, tmp_path: Path
+) -> None:
+    """LeRobot's file, a joint turned by hand a whole turn further while limp (its servo counts
+    turns): its goal, clamped into the file's range, would be a turn away. The attach is
+    refused, naming the servo and its reading, before any torque."""
+    place_arm(sim, ACTUAL)
+    path = tmp_path / "arm.json"
+    await trio.to_thread.run_sync(lerobot_reads, sim, tmp_path)  # writes arm.json
+    with sim.paused() as bus:
+        lift = bus.servo(2)
+        turned = lift.present + 4096
+        lift.move_by_hand(turned)
+        before = [s.torque_enables for s in bus.servos.values()]
+    server = await start_server()
+    async with server.client() as http:
+        reply = await attach_koch(http, sim, str(path))
+        assert reply.status_code == 422, reply.text
+        error = reply.json()["error"]
+        assert error["code"] == "SERVO_OUT_OF_RANGE"
+        lift_range = CALIBRATION["shoulder_lift"]
+        frame = f"{lift_range.range_min - 256}..{lift_range.range_max + 256}"
+        assert f"Servo 2 reads {turned} (its frame {frame})" in error["message"]
+    with sim.paused() as bus:
+        assert [s.torque_enables for s in bus.servos.values()] == before  # never on
+        assert bus.servo(2).present == turned
+
+
+async def test_a_reset_refuses_torque_to_a_joint_turned_a_turn_away(
+    manager: RobotManager, sim: PtySimBus
+) -> None:
+    """Arena's own calibration (one turn, 0..4095) and a torque-off e-stop: a joint turned a
+    whole turn by hand while limp keeps its torque off at the reset, a critical fault names
+    it, and the robot stays stopped; turned back, the next reset brings torque back."""
+    from arena.protocol.errors import ErrorCode, Severity
+    from arena.robot.model import load_robot_model
+    from arena.robot.safety import Mode
+    from tests.hardware import fault_of, usb_slave, wait_joined
+
+    def torque() -> list[int]:
+        return list(peek(sim, reg.TORQUE_ENABLE).values())
+
+    robot = await manager.create_robot("koch", robot_id="arm")
+    with robot.subscribe() as events:
+        await robot.attach_slave(usb_slave(sim, load_robot_model("koch"), estop="torque-off"))
+        await eventually(lambda: all(torque()), what="torque on")
+        await wait_joined(robot)
+        await robot.estop("test")
+        await eventually(lambda: not any(torque()), what="limp")
+        with sim.paused() as bus:
+            elbow = bus.servo(3)
+            back = elbow.present
+            elbow.move_by_hand(back + 4096)
+            before = [s.torque_enables for s in bus.servos.values()]
+        events.drain()
+        await robot.reset()
+        fault = await fault_of(events, ErrorCode.SERVO_OUT_OF_RANGE, "the refusal's fault")
+        assert fault.severity is Severity.CRITICAL
+        assert f"Servo 3 reads {back + 4096} (its frame 0..4095)" in fault.message
+        assert robot.snapshot().mode is Mode.ESTOPPED
+        with sim.paused() as bus:
+            assert [s.torque_enables for s in bus.servos.values()] == before
+            assert bus.servo(3).present == back + 4096  # not sent a turn back
+            bus.servo(3).move_by_hand(back)
+        await robot.reset()
+        await eventually(lambda: all(torque()), what="torque back")
+        assert robot.snapshot().mode is not Mode.ESTOPPED
+
+
+async def test_a_reading_that_leaves_the_frame_under_torque_stops_the_robot(
+    manager: RobotManager, sim: PtySimBus
+) -> None:
+    """A servo with torque that reads a turn away (its Homing_Offset changed under it) is a
+    critical fault: the robot e-stops, and the e-stop's hold leaves that servo limp at goal =
+    present while the others keep their torque."""
+    from arena.protocol.errors import ErrorCode, Severity
+    from arena.robot.model import load_robot_model
+    from arena.robot.safety import Mode
+    from tests.hardware import fault_of, usb_slave, wait_joined
+
+    robot = await manager.create_robot("koch", robot_id="arm")
+    with robot.subscribe() as events:
+        await robot.attach_slave(usb_slave(sim, load_robot_model("koch")))
+        await eventually(lambda: all(peek(sim, reg.TORQUE_ENABLE).values()), what="torque on")
+        await wait_joined(robot)
+        with sim.paused() as bus:
+            bus.servo(4).poke(reg.HOMING_OFFSET, 4096)
+        fault = await fault_of(events, ErrorCode.SERVO_OUT_OF_RANGE, "the out-of-frame fault")
+        assert fault.severity is Severity.CRITICAL and fault.joint == "wrist_flex"
+        assert "(its frame 0..4095)" in fault.message
+        await eventually(lambda: robot.snapshot().mode is Mode.ESTOPPED, what="the e-stop")
+
+        def wrist_limp_others_held() -> bool:
+            torque = peek(sim, reg.TORQUE_ENABLE)
+            return torque == {1: 1, 2: 1, 3: 1, 4: 0, 5: 1, 6: 1}
+
+        await eventually(wrist_limp_others_held, what="servo 4 limp, the others held")
+        with sim.paused() as bus:
+            wrist = bus.servo(4)
+            # goal = present (a turn away) was written: not sent back a whole turn
+            assert wrist.peek(reg.GOAL_POSITION) > 4095 and wrist.present > 4095

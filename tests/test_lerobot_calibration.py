@@ -37,6 +37,17 @@ from tests.hardware import (
     servo_goals,
     servo_torque,
 )
+from tests.lerobot_arms import (
+    NAMES,
+    STEP,
+    all_read,
+    assert_reads_as,
+    attach_arm,
+    joined,
+    lerobot_observes,
+    place_arm,
+    real_values,
+)
 
 lerobot_motors = pytest.importorskip("lerobot.motors")
 import scservo_sdk as scs  # noqa: E402
@@ -46,8 +57,6 @@ from lerobot.robots.so_follower import SOFollower, SOFollowerRobotConfig  # noqa
 
 StartServer = Callable[..., Awaitable[RunningServer]]
 SO101 = load_robot_model("so-101")
-NAMES = ("shoulder_pan", "shoulder_lift", "elbow_flex", "wrist_flex", "wrist_roll", "gripper")
-STEP = 360 / 4095  # LeRobot's degrees per step
 #: A calibration as LeRobot's `calibrate()` leaves it: homing offsets, swept ranges (the wrist
 #: roll a whole turn), drive mode 0.
 CALIBRATION = {
@@ -82,48 +91,15 @@ def lerobot_follower(sim: PtySimBus, folder: Path) -> SOFollower:
     return robot
 
 
-def place_arm(sim: PtySimBus) -> None:
-    with sim.paused() as bus:
-        for sid, present in ACTUAL.items():
-            bus.servo(sid).move_by_hand(present)
-
-
 def lerobot_reads(sim: PtySimBus, folder: Path) -> dict[str, float]:
     """What LeRobot reads: its follower writes the calibration file and the servos' registers,
     as its `connect()` does when the user keeps the file, then observes the arm."""
-    robot = lerobot_follower(sim, folder)
-    robot.calibration = dict(CALIBRATION)
-    robot._save_calibration()
-    robot.bus.connect()
-    try:
-        robot.bus.disable_torque()
-        robot.bus.write_calibration(robot.calibration)
-        assert robot.bus.is_calibrated
-        observed = robot.get_observation()
-    finally:
-        robot.bus.disconnect()
-    return {name: float(observed[f"{name}.pos"]) for name in NAMES}
-
-
-def one_step(name: str) -> float:
-    """One servo step in the joint's units."""
-    if name == "gripper":
-        cal = CALIBRATION[name]
-        return 100 / (cal.range_max - cal.range_min)
-    return STEP
-
-
-async def real_values(http: Any, robot: str = "arm") -> dict[str, float | None]:
-    joints = (await http.get(f"/api/robots/{robot}/joints")).json()
-    return {j["name"]: j["real_value"] for j in joints}
+    return lerobot_observes(lerobot_follower(sim, folder), CALIBRATION, configure=False)
 
 
 async def attach_so101(http: Any, sim: PtySimBus, calibration: str) -> None:
     """Robot `arm` of type so-101, its usb-slave on the simulated bus with `calibration`."""
-    made = await http.post("/api/robots", json={"id": "arm", "robot_type": "so-101"})
-    assert made.status_code == 201, made.text
-    body = {"type": "usb-slave", "port": str(sim.link), "calibration": calibration}
-    attached = await http.post("/api/robots/arm/slaves", json=body)
+    attached = await attach_arm(http, sim, "so-101", calibration)
     assert attached.status_code == 201, attached.text
 
 
@@ -137,7 +113,7 @@ async def test_arena_reads_the_servos_as_lerobot_does(
 ) -> None:
     """`fresh`: the same arm, but its servos' registers back to a new servo's (no homing, whole
     range): Arena applies the file's offsets itself and still reads what LeRobot read."""
-    place_arm(sim)
+    place_arm(sim, ACTUAL)
     folder = tmp_path / "hf" / "robots" / "so_follower"
     expected = await trio.to_thread.run_sync(lerobot_reads, sim, folder)
     assert (folder / "arm.json").is_file()
@@ -153,29 +129,21 @@ async def test_arena_reads_the_servos_as_lerobot_does(
     server = await start_server()
     async with server.client() as http:
         await attach_so101(http, sim, "lerobot:arm")
-        await eventually(lambda: _all_read(http), what="joint states from the bus")
+        await eventually(lambda: all_read(http), what="joint states from the bus")
         read = await real_values(http)
-    for name in NAMES:
-        value = read[name]
-        assert value is not None
-        assert abs(value - expected[name]) <= one_step(name), (name, value, expected[name])
-    assert 0 <= read["gripper"] <= 100  # LeRobot's 0-100, not degrees
-
-
-async def _all_read(http: Any) -> bool:
-    return all(v is not None for v in (await real_values(http)).values())
+    assert_reads_as(read, expected, CALIBRATION)
 
 
 async def test_so101_driven_through_a_server_with_an_estop(
     start_server: StartServer, sim: PtySimBus, tmp_path: Path
 ) -> None:
-    place_arm(sim)
+    place_arm(sim, ACTUAL)
     path = tmp_path / "arm.json"
     await trio.to_thread.run_sync(lerobot_reads, sim, tmp_path)  # writes arm.json
     server = await start_server()
     async with server.client() as http:
         await attach_so101(http, sim, str(path))
-        await eventually(lambda: _joined(http), what="the arm joined")
+        await eventually(lambda: joined(http), what="the arm joined")
         status = (await http.get("/api/robots/arm/calibration")).json()
         assert status["calibrated"] is True and status["file"] == str(path)
         refused = await http.post("/api/robots/arm/calibration/start")
@@ -218,11 +186,6 @@ async def test_so101_driven_through_a_server_with_an_estop(
         assert (await http.get("/api/robots/arm/status")).json()["state"] == "estopped"
         assert set(servo_torque(sim).values()) == {1}  # "hold": torque kept, goal = present
         assert servo_goals(sim) == held
-
-
-async def _joined(http: Any) -> bool:
-    robot = (await http.get("/api/robots/arm")).json()
-    return bool(robot["slaves"]) and not any(s.get("joining") for s in robot["slaves"])
 
 
 @pytest.mark.parametrize(
@@ -447,7 +410,7 @@ def leader_value(name: str, present: int) -> float:
 async def test_the_so101_follower_mirrors_the_so101_leader(
     start_server: StartServer, sim: PtySimBus, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    place_arm(sim)
+    place_arm(sim, ACTUAL)
     await trio.to_thread.run_sync(lerobot_reads, sim, tmp_path / "hf" / "robots" / "so_follower")
     with contextmanager(running_sim)(tmp_path / "leader") as leader:
         folder = tmp_path / "hf" / "teleoperators" / "so_leader"
@@ -459,7 +422,7 @@ async def test_the_so101_follower_mirrors_the_so101_leader(
         server = await start_server()
         async with server.client() as http:
             await attach_so101(http, sim, "lerobot:arm")
-            await eventually(lambda: _joined(http), what="the follower joined")
+            await eventually(lambda: joined(http), what="the follower joined")
             body = {"type": "usb-master", "port": str(leader.link), "calibration": "lerobot:arm"}
             master = await http.post("/api/robots/arm/master", json=body)
             assert master.status_code == 201, master.text

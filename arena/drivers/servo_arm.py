@@ -15,13 +15,13 @@ from arena.extras import require
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.robot.model import RobotModel
 from arena.servo.calibration import Calibration
-from arena.servo.interface import ServoBus, ServoFamily
+from arena.servo.interface import MAX_STEP, ServoBus, ServoFamily
 from arena.servo.lerobot_calibration import (
     LeRobotCalibration,
     load_calibration,
     read_register_homings,
 )
-from arena.servo.worker import BusWorker, WorkerSettings
+from arena.servo.worker import BusWorker, Frames, WorkerSettings
 
 #: The servo families Arena drives, by the name a robot type's `[bus] family` gives.
 FAMILIES = ("feetech", "dynamixel")
@@ -70,13 +70,30 @@ def servo_models(model: RobotModel, family: ServoFamily) -> dict[int, tuple[int,
     return models
 
 
+def allowed_models(
+    model: RobotModel, family: ServoFamily, *, leader: bool
+) -> dict[int, tuple[frozenset[int], str]]:
+    """The model numbers each servo may answer a ping with, and how to name them: a follower's
+    is the one its robot type names; a leader's any of its family's table (all of them 4096
+    steps a turn, the frame every calibration assumes), since leader arms are built of other
+    models than their followers (the Koch leader's XL330-M077)."""
+    if not leader:
+        return {
+            sid: (frozenset({number}), f"an {name} ({number})")
+            for sid, (number, name) in servo_models(model, family).items()
+        }
+    known = ", ".join(f"{name.upper()} ({number})" for name, number in family.models.items())
+    anyone = (frozenset(family.models.values()), f"a {family.name} model Arena knows: {known}")
+    return {joint.servo_id: anyone for joint in model.joints}
+
+
 class ServoArm:
     """An arm on a servo bus: `prepare()` opens it, `close()` stops its thread.
 
     `port` None finds the adapter by USB id; `baud` None is the robot type's (or its family's).
     `open_bus` replaces the serial bus (tests, benchmarks). The calibration file is read at
-    `prepare()` when it exists. A `leader`'s servos may be any model of the family: leader arms
-    are built of other models than their followers (the Koch leader's XL330-M077).
+    `prepare()` when it exists. A `leader`'s servos may be any model of the family's table
+    (`allowed_models`).
     """
 
     def __init__(
@@ -95,7 +112,8 @@ class ServoArm:
         self.family = family_of(model)
         self.calibration_file = calibration_file
         self.servo_ids = {joint.name: joint.servo_id for joint in model.joints}
-        models = {} if leader else servo_models(model, self.family)
+        self.leader = leader
+        models = allowed_models(model, self.family, leader=leader)
         self.settings = dataclasses.replace(settings, models=models)
         rate = baud or model.bus.baud_rate or self.family.default_baud
         family = self.family
@@ -117,17 +135,38 @@ class ServoArm:
             )
             self.calibrated = True
         ids = tuple(self.servo_ids.values())
-        lerobot = isinstance(self.calibration, LeRobotCalibration)
-        # Arena's own calibration counts steps within one turn: on servos that count turns
-        # (Dynamixel) the worker refuses, before any torque, one that reads outside it (a
-        # Homing_Offset written, turns made in extended mode), which goals would send a turn away.
-        settings = dataclasses.replace(self.settings, one_turn=not (lerobot or self.family.wraps))
+        frames, hint = self._frames(ids)
+        settings = dataclasses.replace(self.settings, frames=frames, frame_hint=hint)
         self.port, self.worker, self.bridge = await start_worker(
             self.requested_port, ids, settings, self._open_bus, self.family.adapters
         )
         if isinstance(self.calibration, LeRobotCalibration):
             homings = await wait_future(self.worker.submit(lambda b: read_register_homings(b, ids)))
             self.calibration = self.calibration.with_register_homings(homings)
+
+    def _frames(self, ids: tuple[int, ...]) -> tuple[Callable[[ServoBus], Frames] | None, str]:
+        """`WorkerSettings.frames` and `frame_hint` for servos that count turns (Dynamixel): a
+        joint turned a turn away by hand (while limp, or by another program) would be sent
+        back a whole turn by goals clamped into its frame. Arena's own calibration counts
+        steps within one turn (0..4095); a LeRobot file spans its range (and a margin), in the
+        frame the servos' Homing_Offset registers give, read at each connection. A leader
+        with a LeRobot file takes no torque and reads what LeRobot reads: no frame."""
+        calibration = self.calibration
+        if self.family.wraps or (self.leader and isinstance(calibration, LeRobotCalibration)):
+            return None, ""
+        if isinstance(calibration, LeRobotCalibration):
+            return (
+                lambda bus: calibration.with_register_homings(
+                    read_register_homings(bus, ids)
+                ).frames(),
+                "Turn the joint back into its range by hand (torque is off).",
+            )
+        return (
+            lambda bus: dict.fromkeys(ids, (0, MAX_STEP)),
+            "Turn the joint back by hand; or, if this arm keeps a calibration in its servos "
+            '(LeRobot\'s), attach it with that calibration file ("calibration": "lerobot:ID" '
+            "or a path).",
+        )
 
     async def close(self) -> None:
         """Torque off, port closed, thread ended (also for an arm prepared but never run)."""

@@ -40,7 +40,6 @@ from arena.servo.worker import (
     Lost,
     Reading,
     WorkerSettings,
-    hold_here,
     read_positions,
     store_offsets_in_servos,
 )
@@ -150,7 +149,7 @@ class UsbSlave(ServoArm):
                 await self._safe_hold(torque=True)
         elif kind is NoticeKind.RESET:
             self.frozen = False
-            if torque_off and self.session is None:
+            if self.session is None:  # torque back (or kept) with goal = present: no motion
                 await self._safe_hold(torque=True)
 
     def _hold(self, bus: ServoBus, *, torque: bool) -> dict[int, int]:
@@ -159,16 +158,32 @@ class UsbSlave(ServoArm):
         assert self.worker is not None
         self.worker.clear_goals()
         self.worker.torque_wanted = torque
-        return hold_here(bus, self.worker.servo_ids, torque=torque, speed=self.settings.speed_limit)
+        try:
+            return self.worker.hold(bus, torque=torque)
+        except ArenaError as exc:
+            if exc.code is ErrorCode.SERVO_OUT_OF_RANGE:  # (the servos outside are limp now)
+                self.worker.torque_wanted = False
+            raise
 
     async def _safe_hold(self, *, torque: bool) -> dict[int, int] | None:
         """Hold where it is with this torque: now (the pose held), or if the bus is away, when
-        it returns (None)."""
+        it returns (None). A torque-on refused because a servo reads outside its frame (a
+        turn away) is a critical fault, and the arm stays stopped until it is turned back and
+        reset (None)."""
         assert self.worker is not None
         # Set before the job: if the bus is away the job is refused, and the worker applies
         # torque_wanted when it reconnects (an e-stop's torque-off must not come back on).
         self.worker.torque_wanted = torque
-        return await self._safe_job(lambda bus: self._hold(bus, torque=torque))
+        try:
+            return await wait_future(self.worker.submit(lambda bus: self._hold(bus, torque=torque)))
+        except ArenaError as exc:
+            if exc.code is not ErrorCode.SERVO_OUT_OF_RANGE:
+                log.warning("usb-slave on %s: %s", self.port, exc.message)
+                return None
+            self.frozen = True
+            if self.link is not None:
+                await self.link.report_fault(exc.code, exc.message, Severity.CRITICAL)
+            return None
 
     async def _safe_job(self, job: Callable[[ServoBus], T]) -> T | None:
         """`job` on the bus; None if the bus is down."""

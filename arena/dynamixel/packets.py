@@ -13,6 +13,8 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
+from arena.servo.frames import FrameParser
+
 HEADER = b"\xff\xff\xfd\x00"
 STATUS = 0x55
 MAX_LENGTH = 1024  # largest `len` field accepted
@@ -133,49 +135,23 @@ def _frame(servo_id: int, body: bytes) -> bytes:
     return head + crc16(head).to_bytes(2, "little")
 
 
-class PacketParser:
+class PacketParser(FrameParser[Packet | Corrupt]):
     """Incremental parser: `feed(data)` returns the packets (and corrupt frames) completed."""
 
-    def __init__(self) -> None:
-        self._buffer = bytearray()
+    HEADER = HEADER
+    HEAD_SIZE = 7  # FF FF FD 00, id, length (2 bytes)
 
-    def feed(self, data: bytes) -> list[Packet | Corrupt]:
-        """Add received bytes; return every frame they complete, in order."""
-        self._buffer += data
-        found: list[Packet | Corrupt] = []
-        buffer = self._buffer
-        while True:
-            start = buffer.find(HEADER)
-            if start < 0:
-                # Keep a tail that may be the start of the next header.
-                keep = next(
-                    (n for n in (3, 2, 1) if buffer.endswith(HEADER[:n])),
-                    0,
-                )
-                del buffer[: len(buffer) - keep]
-                return found
-            del buffer[:start]
-            if len(buffer) < 7:
-                return found
-            servo_id = buffer[4]
-            length = int.from_bytes(buffer[5:7], "little")
-            if servo_id > 0xFE or length < 3 or length > MAX_LENGTH:
-                del buffer[:1]  # not a real header: slide by one
-                continue
-            end = 7 + length
-            if len(buffer) < end:
-                return found
-            frame = bytes(buffer[:end])
-            del buffer[:end]
-            if crc16(frame[:-2]) != int.from_bytes(frame[-2:], "little"):
-                found.append(Corrupt(servo_id, frame))
-                continue
-            body = unstuff(frame[7:-2])
-            if body[0] == STATUS and len(body) >= 2:
-                found.append(Packet(servo_id, STATUS, body[2:], body[1]))
-            else:
-                found.append(Packet(servo_id, body[0], body[1:]))
+    def _frame_size(self, head: bytes) -> int | None:
+        length = int.from_bytes(head[5:7], "little")
+        if head[4] > 0xFE or length < 3 or length > MAX_LENGTH:
+            return None
+        return 7 + length
 
-    def clear(self) -> None:
-        """Drop any partial frame."""
-        self._buffer.clear()
+    def _decode(self, frame: bytes) -> Packet | Corrupt:
+        servo_id = frame[4]
+        if crc16(frame[:-2]) != int.from_bytes(frame[-2:], "little"):
+            return Corrupt(servo_id, frame)
+        body = unstuff(frame[7:-2])
+        if body[0] == STATUS and len(body) >= 2:
+            return Packet(servo_id, STATUS, body[2:], body[1])
+        return Packet(servo_id, body[0], body[1:])

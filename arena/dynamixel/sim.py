@@ -27,7 +27,7 @@ from arena.dynamixel.packets import (
     encode_status,
 )
 from arena.servo.interface import CENTER_STEP, MAX_STEP, STEPS_PER_TURN
-from arena.servo.sim_pty import Reply, ServoFaults
+from arena.servo.sim_pty import Reply, ServoFaults, SimServoBase, register_at
 
 MAX_SPEED = 4000.0  # steps/s at Profile_Velocity 0 (about 58 rpm, the XL430-W250 at 12 V)
 AMBIENT_C = 30
@@ -44,7 +44,7 @@ def _steps_per_second(profile_velocity: int) -> float:
 
 
 @dataclass
-class SimServo:
+class SimServo(SimServoBase):
     """One servo: a control table, where its horn physically is, and what it is doing."""
 
     servo_id: int
@@ -87,21 +87,6 @@ class SimServo:
 
     # -- the control table --------------------------------------------------------------------
 
-    def peek(self, register: reg.Register) -> int:
-        """A register's value."""
-        start = register.address
-        return register.decode(bytes(self.memory[start : start + register.size]))
-
-    def poke(self, register: reg.Register, value: int) -> None:
-        """Set a register directly (the servo's own doing, not a bus write)."""
-        start = register.address
-        self.memory[start : start + register.size] = register.encode(value)
-
-    def read(self, address: int, length: int) -> bytes:
-        """Bytes of the control table (unknown addresses read as zeros)."""
-        data = bytes(self.memory[address : address + length])
-        return data + bytes(length - len(data))
-
     def write(self, address: int, data: bytes) -> int:
         """A bus write, checked whole first: the status error number (0: written)."""
         torque = self.peek(reg.TORQUE_ENABLE) != 0
@@ -141,16 +126,6 @@ class SimServo:
         turned = present - self.peek(reg.HOMING_OFFSET)
         self.actual = MAX_STEP - turned if self._reversed else turned
         self.velocity = 0.0
-        self._refresh()
-
-    def advance(self, now: float) -> None:
-        """Run the motion model up to `now`."""
-        if self.last_update is None:
-            self.last_update = now
-        dt = max(0.0, now - self.last_update)
-        self.last_update = now
-        if dt:
-            self._step(dt)
         self._refresh()
 
     def _step(self, dt: float) -> None:
@@ -302,8 +277,4 @@ def _word(data: bytes, at: int) -> int:
     return int.from_bytes(data[at : at + 2], "little")
 
 
-_REGISTER_AT: dict[int, reg.Register] = {
-    register.address + offset: register
-    for register in reg.REGISTERS
-    for offset in range(register.size)
-}
+_REGISTER_AT = register_at(reg.REGISTERS)

@@ -11,6 +11,8 @@ from __future__ import annotations
 import enum
 from dataclasses import dataclass
 
+from arena.servo.frames import FrameParser
+
 HEADER = b"\xff\xff"
 MAX_LENGTH = 250  # largest `len` field a packet may carry
 
@@ -59,41 +61,20 @@ def encode(servo_id: int, code: int, params: bytes = b"") -> bytes:
     return HEADER + body + bytes((checksum(body),))
 
 
-class PacketParser:
+class PacketParser(FrameParser[Packet | Corrupt]):
     """Incremental parser: `feed(data)` returns the packets (and corrupt frames) completed."""
 
-    def __init__(self) -> None:
-        self._buffer = bytearray()
+    HEADER = HEADER
+    HEAD_SIZE = 4  # FF FF, id, length
 
-    def feed(self, data: bytes) -> list[Packet | Corrupt]:
-        """Add received bytes; return every frame they complete, in order."""
-        self._buffer += data
-        found: list[Packet | Corrupt] = []
-        buffer = self._buffer
-        while True:
-            start = buffer.find(HEADER)
-            if start < 0:
-                # Keep a trailing 0xFF: it may be the first half of the next header.
-                del buffer[: len(buffer) - 1 if buffer.endswith(b"\xff") else len(buffer)]
-                return found
-            del buffer[:start]
-            if len(buffer) < 4:
-                return found
-            servo_id, length = buffer[2], buffer[3]
-            if servo_id == 0xFF or length < 2 or length > MAX_LENGTH:
-                del buffer[:1]  # not a real header (FF FF FF ...): slide by one
-                continue
-            end = 4 + length
-            if len(buffer) < end:
-                return found
-            frame = bytes(buffer[:end])
-            del buffer[:end]
-            body = frame[2:-1]
-            if checksum(body) != frame[-1]:
-                found.append(Corrupt(servo_id, frame))
-            else:
-                found.append(Packet(servo_id, body[2], body[3:]))
+    def _frame_size(self, head: bytes) -> int | None:
+        servo_id, length = head[2], head[3]
+        if servo_id == 0xFF or length < 2 or length > MAX_LENGTH:
+            return None  # (FF FF FF ...)
+        return 4 + length
 
-    def clear(self) -> None:
-        """Drop any partial frame."""
-        self._buffer.clear()
+    def _decode(self, frame: bytes) -> Packet | Corrupt:
+        body = frame[2:-1]
+        if checksum(body) != frame[-1]:
+            return Corrupt(frame[2], frame)
+        return Packet(frame[2], body[2], body[3:])

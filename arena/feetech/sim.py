@@ -14,7 +14,7 @@ from arena.feetech import registers as reg
 from arena.feetech.bus import FEETECH
 from arena.feetech.packets import Corrupt, Instruction, Packet, PacketParser, encode
 from arena.feetech.registers import ErrorBit
-from arena.servo.sim_pty import Reply, ServoFaults
+from arena.servo.sim_pty import Reply, ServoFaults, SimServoBase, register_at
 
 MAX_SPEED = 3400.0  # steps/s at Goal_Velocity 0 (about 300 deg/s, the STS3215 at 12 V)
 ACCELERATION_UNIT = 100.0  # steps/s^2 per unit of the Acceleration register
@@ -26,7 +26,7 @@ FULL_LOAD = 1000
 
 
 @dataclass
-class SimServo:
+class SimServo(SimServoBase):
     """One servo: a register file, where it physically is, and what it is doing."""
 
     servo_id: int
@@ -58,21 +58,6 @@ class SimServo:
 
     # -- registers ----------------------------------------------------------------------------
 
-    def peek(self, register: reg.Register) -> int:
-        """A register's value."""
-        start = register.address
-        return register.decode(bytes(self.memory[start : start + register.size]))
-
-    def poke(self, register: reg.Register, value: int) -> None:
-        """Set a register directly (the servo's own doing, not a bus write)."""
-        start = register.address
-        self.memory[start : start + register.size] = register.encode(value)
-
-    def read(self, address: int, length: int) -> bytes:
-        """Bytes of the register file (beyond its end reads as zeros)."""
-        data = bytes(self.memory[address : address + length])
-        return data + bytes(length - len(data))
-
     def write(self, address: int, data: bytes) -> None:
         """A bus write: read-only bytes are kept; EEPROM bytes only change while unlocked."""
         locked = self.peek(reg.LOCK) != 0
@@ -102,16 +87,6 @@ class SimServo:
         """Someone moves the horn (torque off) so that it reads `present`."""
         self.actual = (present + self.homing) % reg.STEPS_PER_TURN
         self.velocity = 0.0
-        self._refresh()
-
-    def advance(self, now: float) -> None:
-        """Run the motion, load and thermal model up to `now`."""
-        if self.last_update is None:
-            self.last_update = now
-        dt = max(0.0, now - self.last_update)
-        self.last_update = now
-        if dt:
-            self._step(dt)
         self._refresh()
 
     def _step(self, dt: float) -> None:
@@ -272,8 +247,4 @@ class SimBus:
         return Reply(frame, delay, late=faults.late > 0)
 
 
-_REGISTER_AT: dict[int, reg.Register] = {
-    register.address + offset: register
-    for register in reg.REGISTERS
-    for offset in range(register.size)
-}
+_REGISTER_AT = register_at(reg.REGISTERS)

@@ -73,6 +73,7 @@ STATUS_FOR: dict[ErrorCode, int] = {
     ErrorCode.PORT_DISCONNECTED: 503,
     ErrorCode.SERVO_TIMEOUT: 504,
     ErrorCode.SERVO_WRONG_MODEL: 422,
+    ErrorCode.SERVO_OUT_OF_RANGE: 422,
     ErrorCode.REMOTE_UNREACHABLE: 502,
     ErrorCode.REMOTE_REFUSED: 502,
     ErrorCode.UNKNOWN_GROUP: 404,

@@ -127,6 +127,26 @@ class HealthMonitor:
             )
         return faults
 
+    def on_frames(
+        self, positions: Mapping[int, int], frames: Mapping[int, tuple[int, int]]
+    ) -> list[ServoFault]:
+        """The faults of servos reading outside their frames (`arena.servo.worker.Frames`):
+        turned a turn or more away by hand, so that goals would send them back a whole turn."""
+        faults: list[ServoFault] = []
+        for servo_id, step in positions.items():
+            if servo_id not in frames:
+                continue
+            low, high = frames[servo_id]
+            faults += self._edge(
+                not low <= step <= high,
+                ErrorCode.SERVO_OUT_OF_RANGE,
+                Severity.CRITICAL,
+                servo_id,
+                f"Servo {servo_id} reads {step} (its frame {low}..{high}): a turn or more "
+                "away, where goals would send it back a whole turn; turn it back by hand.",
+            )
+        return faults
+
     def _edge(
         self,
         active: bool,

@@ -23,6 +23,10 @@ from arena.servo.calibration import DEGREES_PER_STEP, Calibration, JointCalibrat
 from arena.servo.interface import CENTER_STEP, MAX_STEP, STEPS_PER_TURN, ServoBus, ServoFamily
 from arena.servo.lerobot_format import MAX_RES, LeRobotJoint, LeRobotMotor
 
+#: Steps a servo that counts turns may read past its file's range and still take torque: a
+#: joint a little past the end LeRobot's sweep recorded (its goal, clamped into the range, is
+#: that close), far from the whole turn a joint turned by hand is away.
+FRAME_MARGIN = 256
 #: The prefix of a calibration value naming a file in LeRobot's own folder by its arm id.
 LEROBOT_PREFIX = "lerobot:"
 
@@ -117,6 +121,11 @@ class LeRobotCalibration(Calibration, frozen=True, kw_only=True):
             for name, joint in self.lerobot.items()
         }
         return msgspec.structs.replace(self, lerobot=joints)
+
+    def frames(self, margin: int = FRAME_MARGIN) -> dict[int, tuple[int, int]]:
+        """Each servo's frame (by id): the Present_Positions its file range spans, widened by
+        `margin` (for servos that count turns; see `LeRobotJoint.frame`)."""
+        return {joint.motor.id: joint.frame(margin) for joint in self.lerobot.values()}
 
 
 def from_lerobot(

@@ -70,6 +70,12 @@ class LeRobotJoint(msgspec.Struct, frozen=True, kw_only=True):
     def _frame(self, step: int) -> int:
         return step % STEPS_PER_TURN if self.wraps else step
 
+    def frame(self, margin: int) -> tuple[int, int]:
+        """The Present_Positions (servo frame) the file's range spans, widened by `margin` on
+        each side (for servos that count turns: outside it, `to_steps` is a turn away)."""
+        m = self.motor
+        return m.range_min - self._shift - margin, m.range_max - self._shift + margin
+
     def to_value(self, present: int) -> float:
         """The joint value LeRobot reads for a Present_Position of `present`."""
         m = self.motor

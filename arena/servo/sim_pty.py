@@ -20,17 +20,69 @@ import select
 import threading
 import time
 import tty
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 from arena.servo.interface import ServoBus, ServoFamily
+from arena.servo.sdk_bus import SdkRegister
+
+R = TypeVar("R", bound=SdkRegister)
 
 BITS_PER_BYTE = 10  # 8N1: start bit, 8 data bits, stop bit
 #: A `servo_bus()` reply still owed after its timeout by this much (seconds) times out anyway:
 #: the simulator is stuck, and a test must fail rather than hang.
 OWED_PATIENCE = 30.0
+
+
+class SimServoBase:
+    """What either family's simulated servo does alike: its registers as bytes in `memory`, and
+    a motion model run up to the bus's time (`advance`: the family's `_step`, then `_refresh`
+    of the registers it reports)."""
+
+    memory: bytearray
+    last_update: float | None
+
+    def _step(self, dt: float) -> None:
+        raise NotImplementedError
+
+    def _refresh(self) -> None:
+        raise NotImplementedError
+
+    def advance(self, now: float) -> None:
+        """Run the servo's model up to `now`."""
+        if self.last_update is None:
+            self.last_update = now
+        dt = max(0.0, now - self.last_update)
+        self.last_update = now
+        if dt:
+            self._step(dt)
+        self._refresh()
+
+    def peek(self, register: SdkRegister) -> int:
+        """A register's value."""
+        start = register.address
+        return register.decode(bytes(self.memory[start : start + register.size]))
+
+    def poke(self, register: SdkRegister, value: int) -> None:
+        """Set a register directly (the servo's own doing, not a bus write)."""
+        start = register.address
+        self.memory[start : start + register.size] = register.encode(value)
+
+    def read(self, address: int, length: int) -> bytes:
+        """Bytes of the table (unknown addresses, and beyond its end, read as zeros)."""
+        data = bytes(self.memory[address : address + length])
+        return data + bytes(length - len(data))
+
+
+def register_at(registers: Iterable[R]) -> dict[int, R]:
+    """Each byte address of a family's registers, and the register it belongs to."""
+    return {
+        register.address + offset: register
+        for register in registers
+        for offset in range(register.size)
+    }
 
 
 @dataclass

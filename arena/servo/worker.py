@@ -26,10 +26,12 @@ import msgspec
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.servo.calibration import Calibration, homing_offset_register
 from arena.servo.health import HealthLimits, HealthMonitor, ServoFault
-from arena.servo.interface import MAX_STEP, BusError, ServoBus
+from arena.servo.interface import BusError, ServoBus
 
 T = TypeVar("T")
 log = logging.getLogger(__name__)
+#: The raw present positions (low, high, inclusive) a servo may read when torque goes on, by id.
+Frames = dict[int, tuple[int, int]]
 
 
 @dataclass(frozen=True, slots=True)
@@ -78,11 +80,15 @@ class WorkerSettings:
     speed_limit: int | None = None  # the servos' speed (steps/s) set at connect
     torque_on_connect: bool = True  # False for a leader arm, moved by hand
     limits: HealthLimits = field(default_factory=HealthLimits)
-    #: The model number each servo must answer a ping with (by id), and the model's name.
-    models: dict[int, tuple[int, str]] = field(default_factory=dict)
-    #: Refuse to connect (before any torque) when a servo reads outside one turn: Arena's own
-    #: calibration on servos that count turns (specs/servo-bus.md).
-    one_turn: bool = False
+    #: The model numbers each servo may answer a ping with (by id), and how to name them.
+    models: dict[int, tuple[frozenset[int], str]] = field(default_factory=dict)
+    #: For servos that count turns: each servo's frame (`Frames`), worked out at every
+    #: connection before any torque. A servo outside it refuses the connection and every
+    #: torque-on, and is a fault while it lasts: goals, clamped into the frame, would send it a
+    #: whole turn (specs/servo-bus.md). None: no frame (servos that wrap within one turn).
+    frames: Callable[[ServoBus], Frames] | None = None
+    #: What to do about a servo outside its frame, added to the refusal.
+    frame_hint: str = ""
 
 
 @dataclass
@@ -117,6 +123,8 @@ class BusWorker:
         #: False: goal = present, then torque on or off (a planned stop, by the slave's e-stop
         #: setting): no motion left, and nothing jumps when torque comes back.
         self.torque_at_exit: bool | None = None
+        self.frames: Frames = {}  # this connection's (`WorkerSettings.frames`)
+        self.torqued = False  # the torque the last successful `hold` set
         self._bus: ServoBus | None = None
         self._lock = threading.Lock()
         self._goals: dict[int, int] | None = None
@@ -239,9 +247,7 @@ class BusWorker:
             if self.torque_wanted != torque:
                 # Changed while connecting (an e-stop's torque-off, say): its job was refused
                 # because the bus was away, so it is applied here, before anything else runs.
-                hold_here(
-                    bus, self.servo_ids, torque=self.torque_wanted, speed=self.settings.speed_limit
-                )
+                self.hold(bus, torque=self.torque_wanted)
         except ArenaError as exc:
             self._bus = None
             self._fail_jobs()
@@ -262,28 +268,35 @@ class BusWorker:
         for servo_id in self.servo_ids:
             model = _ping(bus, servo_id)
             expected = self.settings.models.get(servo_id)
-            if expected is not None and model != expected[0]:
+            if expected is not None and model not in expected[0]:
                 raise ArenaError(
                     ErrorCode.SERVO_WRONG_MODEL,
-                    f"Servo {servo_id} is model {model}, not an {expected[1]} ({expected[0]}).",
+                    f"Servo {servo_id} is model {model}, not {expected[1]}.",
                 )
         bus.prepare(self.servo_ids)
-        if self.settings.one_turn:
-            present = read_positions(bus, self.servo_ids)
-            outside = {sid: step for sid, step in present.items() if not 0 <= step <= MAX_STEP}
-            if outside:
-                raise ArenaError(
-                    ErrorCode.INVALID_CONFIG,
-                    f"Servo(s) {outside} read outside one turn (0..{MAX_STEP}): this arm keeps "
-                    "a calibration in its servos (LeRobot's?). Attach it with that calibration "
-                    'file ("calibration": "lerobot:ID" or a path).',
-                )
+        self.frames = self.settings.frames(bus) if self.settings.frames else {}
+        if self.frames:  # torque or not: a servo a turn away reads wrong values too
+            check_frames(read_positions(bus, self.servo_ids), self.frames, self.settings.frame_hint)
         self.clear_goals()  # goals from before the connection are stale
         torque = self.torque_wanted
-        hold_here(bus, self.servo_ids, torque=torque, speed=self.settings.speed_limit)
+        self.hold(bus, torque=torque)
         return torque
 
+    def hold(self, bus: ServoBus, *, torque: bool) -> dict[int, int]:
+        """`hold_here` with this arm's speed and frames (call it in the worker thread)."""
+        present = hold_here(
+            bus,
+            self.servo_ids,
+            torque=torque,
+            speed=self.settings.speed_limit,
+            frames=self.frames,
+            hint=self.settings.frame_hint,
+        )
+        self.torqued = torque
+        return present
+
     def _lose(self, reason: str) -> None:
+        self.torqued = False
         if self._bus is not None:
             self._bus.close()
             self._bus = None
@@ -312,6 +325,8 @@ class BusWorker:
         faults = self.health.on_read(result)
         if reading.temperatures:
             faults += self.health.on_temperatures(reading.temperatures)
+        if self.frames and self.torqued:  # (a limp servo is checked at its torque-on)
+            faults += self.health.on_frames(reading.positions, self.frames)
         for fault in faults:
             self.listener.event(fault)
         if reading.positions:
@@ -348,8 +363,7 @@ class BusWorker:
             return
         with contextlib.suppress(ArenaError):  # a bus that is gone hears nothing anyway
             if self.torque_at_exit is not None:
-                torque, speed = self.torque_at_exit, self.settings.speed_limit
-                hold_here(self._bus, self.servo_ids, torque=torque, speed=speed)
+                self.hold(self._bus, torque=self.torque_at_exit)
             else:
                 set_torque(self._bus, self.servo_ids, on=False)
         self._bus.close()
@@ -372,14 +386,53 @@ def set_torque(bus: ServoBus, servo_ids: Sequence[int], *, on: bool) -> None:
     bus.set_torque(servo_ids, on=on)
 
 
+def outside_frames(present: Mapping[int, int], frames: Frames) -> dict[int, int]:
+    """The servos (and their readings) outside their frames."""
+    return {
+        sid: step
+        for sid, step in present.items()
+        if sid in frames and not frames[sid][0] <= step <= frames[sid][1]
+    }
+
+
+def check_frames(present: Mapping[int, int], frames: Frames, hint: str = "") -> None:
+    """`SERVO_OUT_OF_RANGE` naming every servo that reads outside its frame, and its reading."""
+    outside = outside_frames(present, frames)
+    if outside:
+        named = "; ".join(
+            f"servo {sid} reads {step} (its frame {frames[sid][0]}..{frames[sid][1]})"
+            for sid, step in sorted(outside.items())
+        )
+        raise ArenaError(
+            ErrorCode.SERVO_OUT_OF_RANGE,
+            f"{named.capitalize()}: a servo that counts turns is a turn or more away, where "
+            f"goals would send it back a whole turn, so its torque stays off. {hint}".strip(),
+        )
+
+
 def hold_here(
-    bus: ServoBus, servo_ids: Sequence[int], *, torque: bool, speed: int | None = None
+    bus: ServoBus,
+    servo_ids: Sequence[int],
+    *,
+    torque: bool,
+    speed: int | None = None,
+    frames: Frames | None = None,
+    hint: str = "",
 ) -> dict[int, int]:
-    """Goal = present for every servo, then torque as asked: nothing jumps. Returns the pose."""
+    """Goal = present for every servo, then torque as asked: nothing jumps. Returns the pose.
+
+    Torque on is refused while a servo reads outside its frame (`frames`): goal = present is
+    still written (it stops whatever moves), the servos outside go limp, the others keep their
+    torque, and `SERVO_OUT_OF_RANGE` names them.
+    """
     present = read_positions(bus, servo_ids)
+    outside = outside_frames(present, frames) if torque and frames else {}
     bus.write_goals(present)
     if speed is not None:
         bus.set_speed(servo_ids, speed)
+    if outside:
+        set_torque(bus, sorted(outside), on=False)
+        check_frames(present, frames or {}, hint)
     set_torque(bus, servo_ids, on=torque)
     return present
 
