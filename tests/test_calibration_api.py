@@ -196,7 +196,9 @@ async def test_a_port_this_server_holds_is_said_to_be_held_by_it(
         refused = await http.post("/api/robots/arm2/slaves", json=body)
         error = refused.json()["error"]
         assert (refused.status_code, error["code"]) == (409, "PORT_BUSY")
-        assert "this server" in error["message"] and "robot 'arm''s usb-slave" in error["message"]
+        assert (
+            "this server" in error["message"] and "the usb-slave of robot 'arm'" in error["message"]
+        )
         assert "another program" not in error["message"]
         [slave] = (await http.get("/api/robots/arm")).json()["slaves"]
         detached = await http.delete(f"/api/robots/arm/slaves/{slave['id']}")

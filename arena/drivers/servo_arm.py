@@ -103,7 +103,7 @@ class ServoArm:
         self.calibration = Calibration.identity(self.servo_ids, model.robot_type)
         self.calibrated = False
         self.port: str | None = None
-        #: Who holds the port, as a busy port's error names it ("robot 'arm''s usb-slave").
+        #: Who holds the port, as a busy port's error names it ("the usb-slave of robot 'arm'").
         self.holder = "an arm"
         self.worker: BusWorker | None = None
         self.bridge: BusBridge | None = None

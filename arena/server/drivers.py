@@ -152,7 +152,7 @@ def make_slave(
             calibration_dir, body.calibration, robot_id, model, anywhere=calibration_anywhere
         )
         slave = UsbSlave(usb_slave_config(body), model, calibration)
-        slave.holder = f"robot {robot_id!r}'s usb-slave"
+        slave.holder = f"the usb-slave of robot {robot_id!r}"
         return slave
     if isinstance(body, PhysicsSlaveBody):
         from arena.drivers.physics import PhysicsSettings, PhysicsSlave
@@ -289,7 +289,7 @@ def _master(
                 calibration_dir, name, robot_id, model, True, anywhere=calibration_anywhere
             ),
         )
-        master.holder = f"robot {robot_id!r}'s usb-master"
+        master.holder = f"the usb-master of robot {robot_id!r}"
         return master
     if isinstance(body, ReplayMasterBody):
         if recordings is None:
