@@ -224,7 +224,8 @@ async def test_a_tenant_reads_its_file_being_written_in_a_folder_given_relative(
 
         async def listed() -> list[dict[str, Any]]:
             answer = (await http.get("/api/recordings", headers=acme)).json()
-            return list(answer["recordings"])
+            # (listed from its creation, by its name; active once the recorder says so)
+            return [entry for entry in answer["recordings"] if entry["active"]]
 
         await eventually(listed, what="acme's file being written, listed")
         [entry] = await listed()
