@@ -19,7 +19,7 @@ from arena.servo import terminal
 from arena.servo.calibration import Calibration
 from arena.servo.sim_pty import PtySimBus
 from arena.servo.terminal import calibrate_interactively, read_positions
-from tests.hardware import open_test_bus, running_sim
+from tests.hardware import TEST_TIMEOUT_MARGIN, open_test_bus, running_sim
 
 JOINTS = {"Rotation": 1, "Pitch": 2, "Elbow": 3, "Wrist_Pitch": 4, "Wrist_Roll": 5, "Jaw": 6}
 
@@ -167,6 +167,43 @@ def test_sim_bus_simulates_the_servos_of_a_robot_type(
     assert cli.main(["sim-bus", "--link", str(link), "--robot-type", "nosuch"]) == 2
     assert "nosuch" in capsys.readouterr().err
     assert not link.exists()
+
+
+def test_sim_bus_leaves_a_link_in_use_alone(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A second bus on a live link is refused (as a command: exit 2 and why) and the first
+    keeps its link; a bus removes the link at exit only while it still points to its own pty;
+    a stale link (its pty gone) is taken over."""
+    from arena import cli
+    from arena.feetech.sim import SimBus
+
+    link = tmp_path / "x" / "koch"
+    with PtySimBus(link, SimBus((1,))) as first:
+        ours = os.readlink(link)
+        with pytest.raises(ArenaError) as taken:
+            PtySimBus(link, SimBus((1,))).start()
+        assert taken.value.code is ErrorCode.PORT_BUSY
+        assert str(link) in taken.value.message and "another simulated bus" in taken.value.message
+        assert cli.main(["sim-bus", "--link", str(link)]) == 2
+        assert "another simulated bus" in capsys.readouterr().err
+        assert os.readlink(link) == ours
+        bus = first.servo_bus(TEST_TIMEOUT_MARGIN)  # the first bus still answers on it
+        bus.open()
+        try:
+            assert bus.ping(1)
+        finally:
+            bus.close()
+    assert not os.path.lexists(link)
+    link.symlink_to(tmp_path / "gone")  # stale: a bus killed without cleaning up
+    with PtySimBus(link, SimBus((1,))) as second:
+        assert link.resolve() != tmp_path / "gone"
+        other = tmp_path / "other"
+        other.write_text("")
+        link.unlink()
+        link.symlink_to(other)  # someone else's now
+    assert os.readlink(link) == str(other)
+    assert second.link == link
 
 
 class LateBus:

@@ -184,6 +184,29 @@ async def test_port_problems_say_what_to_do(
         assert robot["slaves"] == []  # nothing half-attached
 
 
+async def test_a_port_this_server_holds_is_said_to_be_held_by_it(
+    start_server: StartServer, sim: PtySimBus, tmp_path: Path
+) -> None:
+    """A second usb-slave on a port an arm of this server holds: PORT_BUSY naming the robot
+    that holds it, not "another program"; once that one is detached, the port is free."""
+    server = await arm_on_bus(start_server, sim, tmp_path)
+    async with server.client() as http:
+        assert (await http.post("/api/robots", json={"id": "arm2"})).status_code == 201
+        body = {"type": "usb-slave", "port": str(sim.link)}
+        refused = await http.post("/api/robots/arm2/slaves", json=body)
+        error = refused.json()["error"]
+        assert (refused.status_code, error["code"]) == (409, "PORT_BUSY")
+        assert (
+            "this server" in error["message"] and "the usb-slave of robot 'arm'" in error["message"]
+        )
+        assert "another program" not in error["message"]
+        [slave] = (await http.get("/api/robots/arm")).json()["slaves"]
+        detached = await http.delete(f"/api/robots/arm/slaves/{slave['id']}")
+        assert detached.is_success, detached.text
+        attached = await http.post("/api/robots/arm2/slaves", json=body)
+        assert attached.status_code == 201, attached.text
+
+
 def test_permission_denied_is_explained() -> None:
     error = port_error("/dev/ttyUSB0", serial.SerialException(errno.EACCES, "Permission denied"))
     assert error.code is ErrorCode.PORT_PERMISSION_DENIED

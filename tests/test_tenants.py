@@ -151,6 +151,37 @@ async def test_the_recorder_s_status_tells_each_tenant_its_own_counts_and_file_a
     assert statuses["default"][1]["messages"] != statuses["acme"][1]["messages"]
 
 
+async def test_a_file_named_for_a_tenant_is_that_tenant_s_before_its_metadata_is_written(
+    start_server: StartServer, secret_file: Path, tmp_path: Path
+) -> None:
+    """A new file's metadata is not flushed yet: its name says whose it is (the default
+    tenant's when it names none), and no other tenant's admin sees it listed."""
+    from mcap.writer import Writer
+
+    folder = tmp_path / "recs"
+    folder.mkdir()
+    gamma_file = "arena-20260101-000000-000.gamma.mcap"
+    default_file = "arena-20260101-000000-001.mcap"
+    for name in (gamma_file, default_file):
+        with (folder / name).open("wb") as stream:
+            Writer(stream).start(profile="arena")  # a header, nothing flushed after it
+    server = await start_server(
+        api_keys=(ADMIN_KEY,), jwt_secret_file=str(secret_file), recordings_dir=str(folder)
+    )
+    async with server.client() as http:
+
+        async def listed(headers: dict[str, str]) -> list[str]:
+            answer = (await http.get("/api/recordings", headers=headers)).json()
+            return [entry["name"] for entry in answer["recordings"]]
+
+        assert await listed(bearer(ADMIN_KEY)) == [default_file]
+        assert await listed(bearer(token("admin"))) == [default_file]
+        assert await listed(bearer(token("admin", tenant="gamma"))) == [gamma_file]
+        assert await listed(bearer(token("admin", tenant="acme"))) == []
+        refused = await http.get(f"/api/recordings/{gamma_file}", headers=bearer(ADMIN_KEY))
+    assert refused.status_code == 404
+
+
 async def test_a_recorder_that_cannot_write_says_why_without_naming_a_file(
     start_server: StartServer, secret_file: Path, tmp_path: Path
 ) -> None:
@@ -193,7 +224,8 @@ async def test_a_tenant_reads_its_file_being_written_in_a_folder_given_relative(
 
         async def listed() -> list[dict[str, Any]]:
             answer = (await http.get("/api/recordings", headers=acme)).json()
-            return list(answer["recordings"])
+            # (listed from its creation, by its name; active once the recorder says so)
+            return [entry for entry in answer["recordings"] if entry["active"]]
 
         await eventually(listed, what="acme's file being written, listed")
         [entry] = await listed()

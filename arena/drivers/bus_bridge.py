@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import os
 import threading
 from collections.abc import Callable, Mapping
 from concurrent.futures import Future
@@ -22,6 +23,9 @@ from arena.servo.worker import BusWorker, Reading, WorkerEvent, WorkerSettings
 
 T = TypeVar("T")
 BUSY_PORT_PATIENCE = 1.0  # seconds
+#: The ports this process's arms hold (their real paths), and whose: a busy port held here is
+#: not "another program's".
+HELD_PORTS: dict[str, str] = {}
 
 
 class BusBridge:
@@ -90,10 +94,11 @@ async def start_worker(
     settings: WorkerSettings,
     open_bus: Callable[[str], ServoBus],
     adapters: Mapping[tuple[int, int], str],
+    holder: str = "an arm",
 ) -> tuple[str, BusWorker, BusBridge]:
     """Find the port (by `adapters`' USB ids when None), start a `BusWorker` on it, wait until
-    every servo answered. Errors (no adapter, missing or busy port, a silent servo) say what
-    to do."""
+    every servo answered, and note it held by `holder` (`HELD_PORTS`, until `release_port`).
+    Errors (no adapter, missing or busy port, a silent servo) say what to do."""
     if port is None:
         port = await trio.to_thread.run_sync(find_adapter, adapters)
     check_serial_device(port)
@@ -112,12 +117,27 @@ async def start_worker(
             if error.code is ErrorCode.PORT_BUSY and trio.current_time() < deadline:
                 await trio.sleep(0.05)
                 continue
+            held = HELD_PORTS.get(os.path.realpath(chosen))
+            if error.code is ErrorCode.PORT_BUSY and held is not None:
+                raise ArenaError(
+                    ErrorCode.PORT_BUSY,
+                    f"Serial port {chosen} is in use by this server already: {held} holds it. "
+                    "Detach that first, or give this one another port.",
+                ) from None
             raise
         except BaseException:
             with trio.CancelScope(shield=True):
                 await trio.to_thread.run_sync(worker.stop)
             raise
+        HELD_PORTS[os.path.realpath(port)] = holder
         return port, worker, bridge
+
+
+def release_port(port: str, holder: str) -> None:
+    """`port` is no longer held here by `holder` (its worker stopped)."""
+    key = os.path.realpath(port)
+    if HELD_PORTS.get(key) == holder:
+        del HELD_PORTS[key]
 
 
 async def wait_future(future: Future[T]) -> T:

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import trio
 
-from arena.drivers.bus_bridge import BusBridge, start_worker, wait_future
+from arena.drivers.bus_bridge import BusBridge, release_port, start_worker, wait_future
 from arena.extras import require
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.robot.model import RobotModel
@@ -121,6 +121,8 @@ class ServoArm:
         self.calibration = Calibration.identity(self.servo_ids, model.robot_type)
         self.calibrated = False
         self.port: str | None = None
+        #: Who holds the port, as a busy port's error names it ("the usb-slave of robot 'arm'").
+        self.holder = "an arm"
         self.worker: BusWorker | None = None
         self.bridge: BusBridge | None = None
 
@@ -138,7 +140,7 @@ class ServoArm:
         frames, hint = self._frames(ids)
         settings = dataclasses.replace(self.settings, frames=frames, frame_hint=hint)
         self.port, self.worker, self.bridge = await start_worker(
-            self.requested_port, ids, settings, self._open_bus, self.family.adapters
+            self.requested_port, ids, settings, self._open_bus, self.family.adapters, self.holder
         )
         if isinstance(self.calibration, LeRobotCalibration):
             homings = await wait_future(self.worker.submit(lambda b: read_register_homings(b, ids)))
@@ -173,3 +175,5 @@ class ServoArm:
         if self.worker is not None:
             with trio.CancelScope(shield=True):
                 await trio.to_thread.run_sync(self.worker.stop)
+            if self.port is not None:
+                release_port(self.port, self.holder)

@@ -13,6 +13,7 @@ import datetime
 import fcntl
 import functools
 import json
+import re
 import struct
 import time
 from collections.abc import Callable, Iterator
@@ -48,6 +49,18 @@ def new_file_name(now: float | None = None, tenant: str | None = None) -> str:
     stamp = datetime.datetime.fromtimestamp(now or time.time(), datetime.UTC)
     whose = "" if tenant in (None, DEFAULT_TENANT) else f".{tenant}"
     return f"arena-{stamp:%Y%m%d-%H%M%S}-{stamp.microsecond // 1000:03d}{whose}{SUFFIX}"
+
+
+_NAMED = re.compile(r"arena-\d{8}-\d{6}-\d{3}(?:\.(?P<tenant>[^/]+))?" + re.escape(SUFFIX))
+
+
+def tenant_in_name(name: str) -> str | None:
+    """The tenant a recorder's file name says (`new_file_name`): the `.TENANT` part, the
+    default tenant without one; None for a name the recorder does not give."""
+    named = _NAMED.fullmatch(name)
+    if named is None:
+        return None
+    return named["tenant"] or DEFAULT_TENANT
 
 
 #: One record to write: (robot id, kind, JSON bytes, log time in ns).

@@ -151,7 +151,9 @@ def make_slave(
         calibration = _calibration_file(
             calibration_dir, body.calibration, robot_id, model, anywhere=calibration_anywhere
         )
-        return UsbSlave(usb_slave_config(body), model, calibration)
+        slave = UsbSlave(usb_slave_config(body), model, calibration)
+        slave.holder = f"the usb-slave of robot {robot_id!r}"
+        return slave
     if isinstance(body, PhysicsSlaveBody):
         from arena.drivers.physics import PhysicsSettings, PhysicsSlave
         from arena.extras import require
@@ -280,13 +282,15 @@ def _master(
         if model is None:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "A usb-master needs the robot's model.")
         name = body.calibration or f"{robot_id}-leader"
-        return UsbMaster(
+        master = UsbMaster(
             usb_master_config(body),
             model,
             _calibration_file(
                 calibration_dir, name, robot_id, model, True, anywhere=calibration_anywhere
             ),
         )
+        master.holder = f"the usb-master of robot {robot_id!r}"
+        return master
     if isinstance(body, ReplayMasterBody):
         if recordings is None:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "This server keeps no recordings.")

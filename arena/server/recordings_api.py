@@ -12,9 +12,9 @@ from mcap.reader import make_reader
 from quart import Blueprint, current_app, g, request, send_file
 
 from arena.protocol.errors import ArenaError, ErrorCode
-from arena.protocol.rest import ReplayBody, ReplayMasterBody
+from arena.protocol.rest import DEFAULT_TENANT, ReplayBody, ReplayMasterBody
 from arena.recording.analysis import joint_series, summarize, thin
-from arena.recording.mcap_file import SUFFIX, read_recording
+from arena.recording.mcap_file import SUFFIX, read_recording, tenant_in_name
 from arena.recording.recorder import Recorder, check_name, existing_recording
 from arena.server.access import Contents, reads_recordings
 from arena.server.base import ArenaApp, read_body
@@ -35,8 +35,9 @@ _MOST_REMEMBERED = 4096
 
 
 def contents_of(recorder: Recorder, path: Path) -> Contents:
-    """Whose a file is and the robots it holds: its `arena` metadata's `tenant` (None in a
-    file of an older version, which may mix tenants) and its `robot/ID` metadata (a file
+    """Whose a file is and the robots it holds: its `arena` metadata's `tenant` (else the
+    tenant its name says; None in a default-named file of an older version with robots,
+    which may mix tenants) and its `robot/ID` metadata (a file
     being written: the robots of its tenant the recorder follows; None when that cannot be
     told). Reads the file's summary, or the whole file when it has none: call it off the
     loop."""
@@ -67,6 +68,12 @@ def contents_of(recorder: Recorder, path: Path) -> Contents:
         found, tenant = set(), None
     if len(_CONTENTS) >= _MOST_REMEMBERED:
         _CONTENTS.clear()
+    named = tenant_in_name(path.name)
+    if tenant is None and named is not None and (named != DEFAULT_TENANT or not found):
+        # Not said yet (a new file, its metadata not flushed) or not at all: a file named
+        # for a tenant is that tenant's, whatever it holds so far; a default-named one
+        # with no robots yet is the default tenant's.
+        tenant = named
     contents = Contents(tenant, frozenset(found) or None)
     _CONTENTS[path] = (key, contents)
     return contents

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol, TypeVar
 
+from arena.protocol.errors import ArenaError, ErrorCode
 from arena.servo.interface import ServoBus, ServoFamily
 from arena.servo.sdk_bus import SdkRegister
 
@@ -157,6 +158,7 @@ class PtySimBus:
         self.given = 0
         self._master: int | None = None
         self._slave: int | None = None
+        self._tty: str | None = None  # our pty's slave path, where `link` points while plugged
         self._wake_r, self._wake_w = os.pipe()
         self._stop = False
         self._thread: threading.Thread | None = None
@@ -164,8 +166,13 @@ class PtySimBus:
     # -- lifetime -----------------------------------------------------------------------------
 
     def start(self) -> PtySimBus:
-        """Create the pty and start serving."""
-        self.plug()
+        """Create the pty and start serving; `ArenaError` (PORT_BUSY) if `link` is taken."""
+        try:
+            self.plug()
+        except ArenaError:
+            os.close(self._wake_r)
+            os.close(self._wake_w)
+            raise
         self._thread = threading.Thread(target=self._serve, name="sim-bus", daemon=True)
         self._thread.start()
         return self
@@ -187,23 +194,46 @@ class PtySimBus:
                 if fd is not None:
                     os.close(fd)
             self._master = self._slave = None
-            with contextlib.suppress(FileNotFoundError):
-                self.link.unlink()
+            # Only our own link: another bus may have taken the path since (a stale link).
+            with contextlib.suppress(OSError):
+                if self._tty is not None and os.readlink(self.link) == self._tty:
+                    self.link.unlink()
+            self._tty = None
         os.write(self._wake_w, b"x")
 
     def plug(self) -> None:
         """The adapter comes (back): a fresh pty behind the same path."""
         with self.lock:
+            self._refuse_taken_link()
             master, slave = os.openpty()
             tty.setraw(master)
             tty.setraw(slave)  # pyserial sets it raw too; this covers the moment before
             self._master, self._slave = master, slave
+            self._tty = os.ttyname(slave)
             self.sent = self.taken = self.given = 0
             with contextlib.suppress(FileNotFoundError):
-                self.link.unlink()
+                self.link.unlink()  # a stale link (its pty gone), or our own
             self.link.parent.mkdir(parents=True, exist_ok=True)
-            self.link.symlink_to(os.ttyname(slave))
+            self.link.symlink_to(self._tty)
         os.write(self._wake_w, b"x")
+
+    def _refuse_taken_link(self) -> None:
+        # A link to a live device, or anything else at the path, belongs to someone else (often
+        # another simulated bus a server is using): replacing it would cut them off.
+        if not os.path.lexists(self.link):
+            return
+        if not self.link.is_symlink():
+            raise ArenaError(
+                ErrorCode.PORT_BUSY,
+                f"{self.link} exists and is not a simulated bus's link: choose another path.",
+            )
+        target = os.readlink(self.link)
+        if target != self._tty and os.path.exists(self.link):
+            raise ArenaError(
+                ErrorCode.PORT_BUSY,
+                f"{self.link} is held by another simulated bus (it points to the live device "
+                f"{target}): stop that bus first or choose another path.",
+            )
 
     @property
     def plugged(self) -> bool:
