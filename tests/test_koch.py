@@ -728,3 +728,31 @@ async def test_a_reading_that_leaves_the_frame_under_torque_stops_the_robot(
             wrist = bus.servo(4)
             # goal = present (a turn away) was written: not sent back a whole turn
             assert wrist.peek(reg.GOAL_POSITION) > 4095 and wrist.present > 4095
+
+
+def test_a_late_reply_to_an_earlier_read_is_not_taken_for_a_position(sim: PtySimBus) -> None:
+    """A servo's telemetry reply that comes after its read timed out, in the window of the next
+    read, is not that read's answer: decoded as a position it is step 0, half a turn away (a
+    newcomer saw every joint of a busy Koch read -180 degrees now and then)."""
+    from tests.hardware import open_test_bus
+
+    dynamixel = open_test_bus(str(sim.link))
+    dynamixel.open()
+    try:
+        handler = dynamixel._handler  # the SDK's packet handler, this open's
+        receive = handler.rxPacket
+        # A whole status packet from servo 6 carrying a telemetry block (all zeros), as the
+        # SDK would hand it over had it come on the wire just before the real replies.
+        late = [0xFF, 0xFF, 0xFD, 0x00, 6, 0, 0, 0x55, 0, *([0] * reg.TELEMETRY_SIZE), 0, 0]
+        pending = [late]
+
+        def late_first(*args: Any) -> Any:
+            return (pending.pop(), 0) if pending else receive(*args)  # 0: COMM_SUCCESS
+
+        handler.rxPacket = late_first
+        positions, result = dynamixel.read_positions(range(1, 7))
+    finally:
+        dynamixel.close()
+    assert not pending, "the late packet was not read first"
+    assert positions == peek(sim, reg.PRESENT_POSITION), positions
+    assert result.missing == [] and result.corrupt == []

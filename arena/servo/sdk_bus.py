@@ -164,7 +164,10 @@ class SdkBus:
             packet, outcome = self._call(self._handler.rxPacket, self._port, *extra)
             if outcome == self.sdk.COMM_SUCCESS:
                 servo_id = packet[self.ID_AT]
-                if servo_id in wanted:
+                # A reply of another size answers an earlier request that timed out (its bytes
+                # came after the port was cleared for this one): a telemetry block read as a
+                # position would be step 0, half a turn away. It is not this servo's answer.
+                if servo_id in wanted and len(packet) - self.MIN_FRAME == length:
                     wanted.discard(servo_id)
                     got.errors[servo_id] = self._reply_error(packet)
                     got.data[servo_id] = bytes(packet[self.DATA_AT : self.DATA_AT + length])
