@@ -18,7 +18,7 @@ import trio
 from trio.testing import MockClock, wait_all_tasks_blocked
 
 from arena.client import Arena, MasterSession
-from arena.client.errors import ArenaClientError
+from arena.client.errors import ArenaClientError, ClientTimeout
 from arena.drivers.physics import PhysicsSettings, PhysicsSlave, View
 from arena.gym.loop import TrioLoop
 from arena.robot.handle import Robot
@@ -382,20 +382,22 @@ class ServerWorld:
 
     async def _step(self, action: Sequence[float]) -> tuple[tuple[float, ...], Safety | None]:
         safety = self._estop()
+        # The joint states before the command: the next ones are what it did (they may come
+        # with its acknowledgment, or after it, at most every `joint_states_interval`).
+        before = self.session.joints
         if safety is None:
             joints = {j.name: float(v) for j, v in zip(self.model.joints, action, strict=True)}
             try:
                 await self.session.command(joints, metadata={"source": MASTER_ID})
             except ArenaClientError as error:
                 safety = {"code": error.code, "message": error.message}
-        before = self.session.joints
         self._tick = max(self._tick + self.period, trio.current_time() - self.period)
         await trio.sleep_until(self._tick)
         if safety is None:
-            # The joint states the server sent after the command (it sends them at most
-            # every `joint_states_interval`): what this step did, not what was before it.
-            with trio.move_on_after(self.observation_wait):
-                await self.session.wait_for(lambda s: s.joints is not before)
+            with contextlib.suppress(ClientTimeout):  # a command that moved nothing
+                await self.session.wait_for(
+                    lambda session: session.joints is not before, timeout=self.observation_wait
+                )
         return self._measured(), safety or self._estop()
 
     def step(self, action: Sequence[float]) -> tuple[tuple[float, ...], Safety | None]:
