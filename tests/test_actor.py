@@ -437,6 +437,25 @@ async def test_a_silent_slave_is_dropped_after_its_heartbeat_timeout(
     assert robot.snapshot().mode is Mode.ESTOPPED
 
 
+async def test_a_slave_that_beats_stays_and_one_that_leaves_is_detached_not_lost(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    link = await robot.connect_slave("s1", heartbeat_timeout=1.0)
+    with robot.subscribe(kinds=[PeerChanged]) as events:
+        for _ in range(6):  # three seconds of heartbeats and nothing else
+            await trio.sleep(0.5)
+            link.alive()
+        assert [s.peer_id for s in robot.snapshot().slaves] == ["s1"]
+        await link.detach()
+        seen = events.drain()
+    assert not robot.snapshot().slaves
+    assert robot.snapshot().mode is Mode.IDLE  # leaving is no loss: no e-stop
+    assert [(e.role, e.peer_id, e.change, e.reason) for e in seen] == [
+        ("slave", "s1", "detached", "slave left")
+    ]
+
+
 # --- failing drivers --------------------------------------------------------------------------
 
 
