@@ -744,6 +744,39 @@ async def test_estop_all(autojump_clock: MockClock, manager: RobotManager) -> No
     robots = [await new_robot(manager, f"r{i}") for i in range(3)]
     await manager.estop_all()
     assert all(r.snapshot().mode is Mode.ESTOPPED for r in robots)
+    # What an operator reads on each robot: why it stopped.
+    assert {r.snapshot().estop_reason for r in robots} == {"emergency stop (all robots)"}
+
+
+async def test_a_deleted_robot_tells_its_master_and_slaves_why_they_were_let_go(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    closing = await new_robot(manager, "closing")
+    masters = [await robot.connect_master("alice"), await closing.connect_master("bob")]
+    for r in (robot, closing):
+        await r.connect_slave("s1")
+    with (
+        robot.subscribe(kinds=[PeerChanged]) as events,
+        closing.subscribe(kinds=[PeerChanged]) as closing_events,
+    ):
+        await manager.delete("arm")
+        await manager.close()
+        observed = [events.drain(), closing_events.drain()]
+    for link, seen, reason in zip(
+        masters, observed, ("robot deleted", "server shutting down"), strict=True
+    ):
+        notices = [n async for n in link.notices]
+        assert (notices[-1].kind, notices[-1].code, notices[-1].message) == (
+            "detached",
+            ErrorCode.ROBOT_STOPPED,
+            reason,
+        )
+        assert {(e.role, e.change, e.reason) for e in seen} == {
+            ("master", "detached", reason),
+            ("slave", "detached", reason),
+        }
+    assert manager.robots() == []
 
 
 async def test_an_idle_robot_is_estopped_before_the_caller_yields(
