@@ -28,7 +28,7 @@ from arena.robot.handle import Robot
 from arena.robot.inbox import DriverEndedMsg
 from arena.robot.links import DETACHED_LINK, MasterLink
 from arena.robot.mailbox import EventQueue, LatestMailbox
-from arena.robot.manager import RobotManager
+from arena.robot.manager import RobotManager, estop_together
 from arena.robot.model import LossPolicy, load_robot_model
 from arena.robot.motion import Command
 from arena.robot.safety import Mode
@@ -825,6 +825,25 @@ async def test_estop_all_stops_idle_robots_at_once_and_busy_ones_after_their_ste
     ]:
         notices = [await slaves[robot.robot_id].receive() for _ in expected]
         assert [n.kind for n in notices if isinstance(n, SlaveNotice)] == expected
+
+
+async def test_an_estop_of_several_robots_passes_over_one_that_has_stopped(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    # A robot deleted meanwhile (a group's member, say) moves nothing: the e-stop goes on to
+    # the others, idle or busy, and does not fail.
+    gone = await new_robot(manager, "gone")
+    await manager.delete("gone")
+    idle = await new_robot(manager, "idle")
+    busy = await new_robot(manager, "busy", loss_policy=LossPolicy.HOLD)
+    await busy.connect_master("alice", heartbeat_timeout=1.0)
+    await trio.testing.wait_all_tasks_blocked()
+    autojump_clock.jump(1.5)  # the busy robot's heartbeat check is due, not yet run
+    assert busy.estop_now("x") is None
+    await estop_together([gone, idle, busy, gone], "all stop")
+    for robot in (idle, busy):
+        assert robot.snapshot().mode is Mode.ESTOPPED
+        assert robot.snapshot().estop_reason == "all stop"
 
 
 async def test_a_drivers_end_is_not_overtaken_by_a_command_decided_at_once(
