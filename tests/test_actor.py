@@ -664,6 +664,7 @@ async def test_manager_create_get_list_delete(
     with pytest.raises(ArenaError) as info:
         manager.get("first")
     assert info.value.code is ErrorCode.UNKNOWN_ROBOT
+    assert info.value.message == "No robot with id 'first'."  # the sentence a client shows
 
 
 @pytest.mark.parametrize(
