@@ -25,12 +25,12 @@ from arena.robot.events import (
     TargetsSent,
 )
 from arena.robot.handle import Robot
-from arena.robot.inbox import DriverEndedMsg
-from arena.robot.links import DETACHED_LINK, MasterLink
+from arena.robot.inbox import DriverEndedMsg, Msg
+from arena.robot.links import DETACHED_LINK, MasterLink, RobotView
 from arena.robot.mailbox import EventQueue, LatestMailbox
 from arena.robot.manager import RobotManager, estop_together
 from arena.robot.model import LossPolicy, load_robot_model
-from arena.robot.motion import Command
+from arena.robot.motion import Command, CommandResult
 from arena.robot.safety import Mode
 from tests.conftest import RecordingSlave
 
@@ -454,6 +454,136 @@ async def test_a_slave_that_beats_stays_and_one_that_leaves_is_detached_not_lost
     assert [(e.role, e.peer_id, e.change, e.reason) for e in seen] == [
         ("slave", "s1", "detached", "slave left")
     ]
+
+
+async def test_a_master_that_leaves_stops_the_arm_where_it_is_unless_it_lets_the_move_end(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    for finish in (False, True):
+        robot = await new_robot(manager, f"arm-{finish}")
+        master = await robot.connect_master("alice")
+        with robot.subscribe(kinds=[PeerChanged]) as events:
+            assert (await master.command(Command.of({"Rotation": 90.0}))).accepted
+            await trio.sleep(0.1)  # on its way
+            if finish:
+                await master.detach(finish_motion=True)
+            else:
+                await master.detach()
+            await trio.sleep(10.0)
+            seen = events.drain()
+        rotation = robot.snapshot().joint("Rotation")
+        if finish:
+            assert rotation.virtual_value == pytest.approx(90.0)
+        else:
+            assert 0.0 < rotation.virtual_value < 45.0  # held where it was at the detach
+        assert robot.snapshot().owner is None and robot.snapshot().mode is Mode.IDLE
+        assert [(e.role, e.peer_id, e.change, e.reason) for e in seen] == [
+            ("master", "alice", "detached", "master left")
+        ]
+
+
+async def test_a_master_that_releases_the_robot_hands_it_back_as_released(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    master = await robot.connect_master("alice")
+    with robot.subscribe(kinds=[PeerChanged]) as events:
+        await master.release()
+        seen = events.drain()
+    assert robot.snapshot().owner is None and robot.snapshot().mode is Mode.IDLE
+    assert [(e.role, e.peer_id, e.change, e.reason) for e in seen] == [
+        ("master", "alice", "released", "released by the master")
+    ]
+
+
+async def test_a_command_decided_at_once_tells_the_slaves_whether_more_follow(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    slave = await robot.connect_slave("s1")
+    master = await robot.connect_master("alice")
+    follows = []
+    for value, in_burst in ((5.0, None), (10.0, True), (15.0, False)):
+        await trio.testing.wait_all_tasks_blocked()  # the robot idle: decided at once
+        command = Command.of({"Rotation": value})
+        result = (
+            master.command_now(command)
+            if in_burst is None
+            else master.command_now(command, in_burst=in_burst)
+        )
+        assert result is not None and result.accepted
+        target = await slave.receive()
+        assert isinstance(target, SlaveTarget)
+        follows.append(target.more_follow)
+    assert follows == [False, True, False]
+
+
+async def test_a_slave_whose_hardware_drops_out_shows_it_and_says_why(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager, loss_policy=LossPolicy.HOLD)
+    link = await robot.connect_slave("s1")
+    with robot.subscribe(kinds=[PeerChanged]) as events:
+        await link.connection_lost("bus unplugged")
+        await trio.testing.wait_all_tasks_blocked()
+        assert robot.snapshot().slaves[0].connected is False
+        await link.connection_restored()
+        await trio.testing.wait_all_tasks_blocked()
+        seen = events.drain()
+    assert robot.snapshot().slaves[0].connected is True
+    assert [(e.peer_id, e.change, e.reason) for e in seen] == [
+        ("s1", "disconnected", "bus unplugged"),
+        ("s1", "reconnected", "reconnected"),
+    ]
+
+
+class LeavingPort:
+    """A robot port that only records who leaves through it: a link on its own."""
+
+    def __init__(self, robot: RobotView) -> None:
+        self.robot = robot
+        self.left: list[tuple[str, str | None]] = []
+
+    async def post(self, message: Msg) -> None:
+        raise AssertionError("not expected")
+
+    def alive(self, peer_id: str) -> None:
+        raise AssertionError("not expected")
+
+    async def leave(
+        self,
+        role: str,
+        peer_id: str | None,
+        *,
+        lost: bool,
+        reason: str,
+        hold: bool = True,
+        released: bool = False,
+    ) -> None:
+        self.left.append((role, peer_id))
+
+    async def command(
+        self, command: Command, master_id: str | None = None, *, in_burst: bool = False
+    ) -> CommandResult:
+        raise AssertionError("not expected")
+
+    def command_run_now(
+        self, commands: list[Command], master_id: str | None = None, *, burst_goes_on: bool = False
+    ) -> list[CommandResult] | None:
+        raise AssertionError("not expected")
+
+
+async def test_a_master_link_leaves_in_its_own_name_only(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    # The robot lets go of whichever master it has when a leaving names none; a link whose
+    # leaving is queued behind a takeover must not take the new master with it.
+    port = LeavingPort(await new_robot(manager))
+    link = MasterLink(port, "alice")
+    await link.detach()
+    await link.release()
+    await link.lost()
+    assert port.left == [("master", "alice")] * 3
 
 
 # --- failing drivers --------------------------------------------------------------------------
