@@ -537,6 +537,19 @@ async def test_a_slave_whose_hardware_drops_out_shows_it_and_says_why(
     ]
 
 
+async def test_a_slave_reported_lost_is_let_go_and_the_loss_policy_applies(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    link = await robot.connect_slave("s1")
+    with robot.subscribe(kinds=[PeerChanged]) as events:
+        await link.lost()
+        seen = events.drain()
+    assert not robot.snapshot().slaves
+    assert robot.snapshot().mode is Mode.ESTOPPED  # the default loss policy
+    assert [(e.peer_id, e.change, e.reason) for e in seen] == [("s1", "lost", "connection lost")]
+
+
 class LeavingPort:
     """A robot port that only records who leaves through it: a link on its own."""
 
