@@ -261,8 +261,9 @@ def test_a_workspace_reads_back_as_written_with_its_defaults_and_limits() -> Non
     zero = workspace_from_json({"margin": 0}).margin
     assert zero == 0.0 and isinstance(zero, float)
     unnamed = {"min": [0, 0, 0], "max": [1, 1, 1]}
-    named = workspace_from_json({"keep_out": [unnamed, unnamed, {**unnamed, "name": "x" * 64}]})
-    assert [b.name for b in named.keep_out] == ["box 1", "box 2", "x" * 64]
+    names = [{**unnamed, "name": "a"}, {**unnamed, "name": "x" * 64}]
+    named = workspace_from_json({"keep_out": [unnamed, unnamed, *names]})
+    assert [b.name for b in named.keep_out] == ["box 1", "box 2", "a", "x" * 64]
     assert named.floor is None and named.policy == "refuse" and named.margin == 0.005
 
 
