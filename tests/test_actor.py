@@ -550,6 +550,21 @@ async def test_a_slave_reported_lost_is_let_go_and_the_loss_policy_applies(
     assert [(e.peer_id, e.change, e.reason) for e in seen] == [("s1", "lost", "connection lost")]
 
 
+async def test_a_master_reported_lost_is_let_go_and_told_why(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    master = await robot.connect_master("alice")
+    with robot.subscribe(kinds=[PeerChanged]) as events:
+        await master.lost()
+        seen = events.drain()
+    assert robot.snapshot().owner is None
+    assert robot.snapshot().mode is Mode.ESTOPPED  # the default loss policy
+    assert [(e.peer_id, e.change, e.reason) for e in seen] == [("alice", "lost", "connection lost")]
+    notices = [n async for n in master.notices]
+    assert (notices[-1].kind, notices[-1].code) == ("detached", ErrorCode.MASTER_LOST)
+
+
 class LeavingPort:
     """A robot port that only records who leaves through it: a link on its own."""
 
