@@ -25,12 +25,12 @@ from arena.robot.events import (
     TargetsSent,
 )
 from arena.robot.handle import Robot
-from arena.robot.inbox import DriverEndedMsg
-from arena.robot.links import DETACHED_LINK, MasterLink
+from arena.robot.inbox import DriverEndedMsg, Msg
+from arena.robot.links import DETACHED_LINK, MasterLink, RobotView
 from arena.robot.mailbox import EventQueue, LatestMailbox
-from arena.robot.manager import RobotManager
+from arena.robot.manager import RobotManager, estop_together
 from arena.robot.model import LossPolicy, load_robot_model
-from arena.robot.motion import Command
+from arena.robot.motion import Command, CommandResult
 from arena.robot.safety import Mode
 from tests.conftest import RecordingSlave
 
@@ -437,6 +437,183 @@ async def test_a_silent_slave_is_dropped_after_its_heartbeat_timeout(
     assert robot.snapshot().mode is Mode.ESTOPPED
 
 
+async def test_a_slave_that_beats_stays_and_one_that_leaves_is_detached_not_lost(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    link = await robot.connect_slave("s1", heartbeat_timeout=1.0)
+    with robot.subscribe(kinds=[PeerChanged]) as events:
+        for _ in range(6):  # three seconds of heartbeats and nothing else
+            await trio.sleep(0.5)
+            link.alive()
+        assert [s.peer_id for s in robot.snapshot().slaves] == ["s1"]
+        await link.detach()
+        seen = events.drain()
+    assert not robot.snapshot().slaves
+    assert robot.snapshot().mode is Mode.IDLE  # leaving is no loss: no e-stop
+    assert [(e.role, e.peer_id, e.change, e.reason) for e in seen] == [
+        ("slave", "s1", "detached", "slave left")
+    ]
+
+
+async def test_a_master_that_leaves_stops_the_arm_where_it_is_unless_it_lets_the_move_end(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    for finish in (False, True):
+        robot = await new_robot(manager, f"arm-{finish}")
+        master = await robot.connect_master("alice")
+        with robot.subscribe(kinds=[PeerChanged]) as events:
+            assert (await master.command(Command.of({"Rotation": 90.0}))).accepted
+            await trio.sleep(0.1)  # on its way
+            if finish:
+                await master.detach(finish_motion=True)
+            else:
+                await master.detach()
+            await trio.sleep(10.0)
+            seen = events.drain()
+        rotation = robot.snapshot().joint("Rotation")
+        if finish:
+            assert rotation.virtual_value == pytest.approx(90.0)
+        else:
+            assert 0.0 < rotation.virtual_value < 45.0  # held where it was at the detach
+        assert robot.snapshot().owner is None and robot.snapshot().mode is Mode.IDLE
+        assert [(e.role, e.peer_id, e.change, e.reason) for e in seen] == [
+            ("master", "alice", "detached", "master left")
+        ]
+
+
+async def test_a_master_that_releases_the_robot_hands_it_back_as_released(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    master = await robot.connect_master("alice")
+    with robot.subscribe(kinds=[PeerChanged]) as events:
+        await master.release()
+        seen = events.drain()
+    assert robot.snapshot().owner is None and robot.snapshot().mode is Mode.IDLE
+    assert [(e.role, e.peer_id, e.change, e.reason) for e in seen] == [
+        ("master", "alice", "released", "released by the master")
+    ]
+
+
+async def test_a_command_decided_at_once_tells_the_slaves_whether_more_follow(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    slave = await robot.connect_slave("s1")
+    master = await robot.connect_master("alice")
+    follows = []
+    for value, in_burst in ((5.0, None), (10.0, True), (15.0, False)):
+        await trio.testing.wait_all_tasks_blocked()  # the robot idle: decided at once
+        command = Command.of({"Rotation": value})
+        result = (
+            master.command_now(command)
+            if in_burst is None
+            else master.command_now(command, in_burst=in_burst)
+        )
+        assert result is not None and result.accepted
+        target = await slave.receive()
+        assert isinstance(target, SlaveTarget)
+        follows.append(target.more_follow)
+    assert follows == [False, True, False]
+
+
+async def test_a_slave_whose_hardware_drops_out_shows_it_and_says_why(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager, loss_policy=LossPolicy.HOLD)
+    link = await robot.connect_slave("s1")
+    with robot.subscribe(kinds=[PeerChanged]) as events:
+        await link.connection_lost("bus unplugged")
+        await trio.testing.wait_all_tasks_blocked()
+        assert robot.snapshot().slaves[0].connected is False
+        await link.connection_restored()
+        await trio.testing.wait_all_tasks_blocked()
+        seen = events.drain()
+    assert robot.snapshot().slaves[0].connected is True
+    assert [(e.peer_id, e.change, e.reason) for e in seen] == [
+        ("s1", "disconnected", "bus unplugged"),
+        ("s1", "reconnected", "reconnected"),
+    ]
+
+
+async def test_a_slave_reported_lost_is_let_go_and_the_loss_policy_applies(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    link = await robot.connect_slave("s1")
+    with robot.subscribe(kinds=[PeerChanged]) as events:
+        await link.lost()
+        seen = events.drain()
+    assert not robot.snapshot().slaves
+    assert robot.snapshot().mode is Mode.ESTOPPED  # the default loss policy
+    assert [(e.peer_id, e.change, e.reason) for e in seen] == [("s1", "lost", "connection lost")]
+
+
+async def test_a_master_reported_lost_is_let_go_and_told_why(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    master = await robot.connect_master("alice")
+    with robot.subscribe(kinds=[PeerChanged]) as events:
+        await master.lost()
+        seen = events.drain()
+    assert robot.snapshot().owner is None
+    assert robot.snapshot().mode is Mode.ESTOPPED  # the default loss policy
+    assert [(e.peer_id, e.change, e.reason) for e in seen] == [("alice", "lost", "connection lost")]
+    notices = [n async for n in master.notices]
+    assert (notices[-1].kind, notices[-1].code) == ("detached", ErrorCode.MASTER_LOST)
+
+
+class LeavingPort:
+    """A robot port that only records who leaves through it: a link on its own."""
+
+    def __init__(self, robot: RobotView) -> None:
+        self.robot = robot
+        self.left: list[tuple[str, str | None]] = []
+
+    async def post(self, message: Msg) -> None:
+        raise AssertionError("not expected")
+
+    def alive(self, peer_id: str) -> None:
+        raise AssertionError("not expected")
+
+    async def leave(
+        self,
+        role: str,
+        peer_id: str | None,
+        *,
+        lost: bool,
+        reason: str,
+        hold: bool = True,
+        released: bool = False,
+    ) -> None:
+        self.left.append((role, peer_id))
+
+    async def command(
+        self, command: Command, master_id: str | None = None, *, in_burst: bool = False
+    ) -> CommandResult:
+        raise AssertionError("not expected")
+
+    def command_run_now(
+        self, commands: list[Command], master_id: str | None = None, *, burst_goes_on: bool = False
+    ) -> list[CommandResult] | None:
+        raise AssertionError("not expected")
+
+
+async def test_a_master_link_leaves_in_its_own_name_only(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    # The robot lets go of whichever master it has when a leaving names none; a link whose
+    # leaving is queued behind a takeover must not take the new master with it.
+    port = LeavingPort(await new_robot(manager))
+    link = MasterLink(port, "alice")
+    await link.detach()
+    await link.release()
+    await link.lost()
+    assert port.left == [("master", "alice")] * 3
+
+
 # --- failing drivers --------------------------------------------------------------------------
 
 
@@ -645,6 +822,7 @@ async def test_manager_create_get_list_delete(
     with pytest.raises(ArenaError) as info:
         manager.get("first")
     assert info.value.code is ErrorCode.UNKNOWN_ROBOT
+    assert info.value.message == "No robot with id 'first'."  # the sentence a client shows
 
 
 @pytest.mark.parametrize(
@@ -725,6 +903,39 @@ async def test_estop_all(autojump_clock: MockClock, manager: RobotManager) -> No
     robots = [await new_robot(manager, f"r{i}") for i in range(3)]
     await manager.estop_all()
     assert all(r.snapshot().mode is Mode.ESTOPPED for r in robots)
+    # What an operator reads on each robot: why it stopped.
+    assert {r.snapshot().estop_reason for r in robots} == {"emergency stop (all robots)"}
+
+
+async def test_a_deleted_robot_tells_its_master_and_slaves_why_they_were_let_go(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    closing = await new_robot(manager, "closing")
+    masters = [await robot.connect_master("alice"), await closing.connect_master("bob")]
+    for r in (robot, closing):
+        await r.connect_slave("s1")
+    with (
+        robot.subscribe(kinds=[PeerChanged]) as events,
+        closing.subscribe(kinds=[PeerChanged]) as closing_events,
+    ):
+        await manager.delete("arm")
+        await manager.close()
+        observed = [events.drain(), closing_events.drain()]
+    for link, seen, reason in zip(
+        masters, observed, ("robot deleted", "server shutting down"), strict=True
+    ):
+        notices = [n async for n in link.notices]
+        assert (notices[-1].kind, notices[-1].code, notices[-1].message) == (
+            "detached",
+            ErrorCode.ROBOT_STOPPED,
+            reason,
+        )
+        assert {(e.role, e.change, e.reason) for e in seen} == {
+            ("master", "detached", reason),
+            ("slave", "detached", reason),
+        }
+    assert manager.robots() == []
 
 
 async def test_an_idle_robot_is_estopped_before_the_caller_yields(
@@ -773,6 +984,25 @@ async def test_estop_all_stops_idle_robots_at_once_and_busy_ones_after_their_ste
     ]:
         notices = [await slaves[robot.robot_id].receive() for _ in expected]
         assert [n.kind for n in notices if isinstance(n, SlaveNotice)] == expected
+
+
+async def test_an_estop_of_several_robots_passes_over_one_that_has_stopped(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    # A robot deleted meanwhile (a group's member, say) moves nothing: the e-stop goes on to
+    # the others, idle or busy, and does not fail.
+    gone = await new_robot(manager, "gone")
+    await manager.delete("gone")
+    idle = await new_robot(manager, "idle")
+    busy = await new_robot(manager, "busy", loss_policy=LossPolicy.HOLD)
+    await busy.connect_master("alice", heartbeat_timeout=1.0)
+    await trio.testing.wait_all_tasks_blocked()
+    autojump_clock.jump(1.5)  # the busy robot's heartbeat check is due, not yet run
+    assert busy.estop_now("x") is None
+    await estop_together([gone, idle, busy, gone], "all stop")
+    for robot in (idle, busy):
+        assert robot.snapshot().mode is Mode.ESTOPPED
+        assert robot.snapshot().estop_reason == "all stop"
 
 
 async def test_a_drivers_end_is_not_overtaken_by_a_command_decided_at_once(

@@ -31,7 +31,7 @@ from arena.robot.core import RobotCore
 from arena.robot.meshes import link_vertices
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
-from arena.robot.workspace import Box, Workspace, workspace_from_json
+from arena.robot.workspace import Box, Workspace, workspace_from_json, workspace_to_json
 from tests.conftest import RunningServer
 from tests.scenarios import record_scenario
 
@@ -205,6 +205,66 @@ def test_a_keep_out_box_and_no_floor() -> None:
 def test_a_bad_workspace_is_refused_with_the_reason(body: dict[str, object], why: str) -> None:
     with pytest.raises(ValueError, match=why):
         workspace_from_json(body)
+
+
+BOX = {"name": "camera", "min": [0, 0, 0], "max": [1, 1, 1]}
+FLOOR = "floor must be a number of metres (or absent: no floor)"
+MARGIN = "margin must be from 0 to 0.5 metres"
+BOXES = "keep_out must be a list of at most 16 boxes"
+NAME = "keep_out[0].name must be a short string"
+CORNER = "keep_out[0].max must be three numbers (metres)"
+
+
+@pytest.mark.parametrize(
+    ("body", "message"),
+    [
+        ({"floor": math.inf}, FLOOR),
+        ({"floor": True}, FLOOR),  # a bool is no number of metres
+        ({"margin": -0.001}, MARGIN),
+        ({"margin": 0.5001}, MARGIN),
+        ({"margin": "0.1"}, MARGIN),
+        ({"policy": "pray"}, "policy must be one of refuse, stop-short"),
+        ({"keep_out": {"camera": BOX}}, BOXES),
+        ({"keep_out": [BOX] * 17}, BOXES),
+        ({"keep_out": ["camera"]}, "keep_out[0] must be a table with min and max"),
+        (
+            {"keep_out": [BOX, {"min": [0, 0], "max": [1, 1, 1]}]},
+            "keep_out[1].min must be three numbers (metres)",
+        ),
+        ({"keep_out": [{"min": [0, 0, 0], "max": [1, 1, math.nan]}]}, CORNER),
+        ({"keep_out": [{"min": [0, 0, 0], "max": "far"}]}, CORNER),
+        (
+            {"keep_out": [{"min": [0, 0, 0], "max": [1, 0, 1]}]},
+            "keep_out[0]: min must be below max on every axis",
+        ),
+        ({"keep_out": [{**BOX, "name": ""}]}, NAME),
+        ({"keep_out": [{**BOX, "name": "x" * 65}]}, NAME),
+        ({"keep_out": [{**BOX, "name": 7}]}, NAME),
+        ({"walls": [], "doors": 1, "floor": 0}, "unknown workspace keys: doors, walls"),
+    ],
+)
+def test_a_bad_workspace_is_refused_in_a_sentence_that_says_what_is_wrong(
+    body: dict[str, object], message: str
+) -> None:
+    with pytest.raises(ValueError) as info:
+        workspace_from_json(body)
+    assert str(info.value) == message
+
+
+def test_a_workspace_reads_back_as_written_with_its_defaults_and_limits() -> None:
+    assert workspace_from_json({}) == Workspace(None, (), 0.005, "refuse")
+    edge = {"floor": -1, "margin": 0.5, "policy": "stop-short", "keep_out": [BOX] * 16}
+    read = workspace_from_json(edge)
+    assert workspace_to_json(read) == edge  # shown as written (numbers as floats)
+    assert isinstance(read.floor, float) and isinstance(read.margin, float)
+    assert all(isinstance(v, float) for b in read.keep_out for v in (*b.low, *b.high))
+    zero = workspace_from_json({"margin": 0}).margin
+    assert zero == 0.0 and isinstance(zero, float)
+    unnamed = {"min": [0, 0, 0], "max": [1, 1, 1]}
+    names = [{**unnamed, "name": "a"}, {**unnamed, "name": "x" * 64}]
+    named = workspace_from_json({"keep_out": [unnamed, unnamed, *names]})
+    assert [b.name for b in named.keep_out] == ["box 1", "box 2", "a", "x" * 64]
+    assert named.floor is None and named.policy == "refuse" and named.margin == 0.005
 
 
 async def test_the_workspace_over_rest_and_every_master_refused_at_the_table(

@@ -23,9 +23,9 @@ import pytest
 import trio
 from trio_websocket import ConnectionClosed, open_websocket_url
 
-from arena.fleet.node import FleetSettings, Tunnel
+from arena.fleet.node import FleetNode, FleetSettings, Tunnel
 from arena.fleet.tunnel import TunnelSocket
-from arena.protocol.errors import ArenaError
+from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.ws_frames import UpgradeRequest, WebSocketClosed
 from arena.recording.mcap_file import read_recording
 from arena.server import fleet_api
@@ -415,6 +415,18 @@ async def test_a_killed_node_goes_offline_its_masters_are_told_and_it_comes_back
         if process.poll() is None:
             process.kill()
             process.wait()
+
+
+async def test_a_node_that_has_left_the_fleet_asks_no_one_and_says_so() -> None:
+    node = FleetNode(FleetSettings(node="solo", listen=("tcp/127.0.0.1:0",)))
+    async with trio.open_nursery() as nursery:
+        await nursery.start(node.run)
+        nursery.cancel_scope.cancel()  # it leaves
+    for ask in (partial(node.ask_all, "info"), partial(node.ask, "solo", "info")):
+        with pytest.raises(ArenaError) as info:
+            await ask()
+        assert info.value.code is ErrorCode.NODE_LOST
+        assert info.value.message == "This node has left the fleet."
 
 
 async def test_without_node_no_zenoh_is_loaded(tmp_path: Path) -> None:

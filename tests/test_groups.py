@@ -12,8 +12,11 @@ from trio_websocket import open_websocket_url
 
 from arena.client import AsyncArena, MasterSession, Refused
 from arena.protocol import messages as wire
+from arena.protocol.errors import ArenaError, ErrorCode
 from arena.robot.groups import GroupRegistry
 from arena.robot.manager import RobotManager
+from arena.robot.motion import Command
+from arena.robot.safety import Mode
 from tests.conftest import RunningServer, eventually
 from tests.test_server_ws import receive
 
@@ -172,6 +175,75 @@ async def test_stop_together_watchers_survive_deletion_at_any_moment(
     await trio.testing.wait_all_tasks_blocked()
     assert str(manager.get("d").snapshot().mode) == "estopped"
     registry.delete("g")
+
+
+async def test_a_member_stopped_amid_a_flood_of_its_own_events_still_stops_the_group(
+    autojump_clock: trio.testing.MockClock, manager: RobotManager
+) -> None:
+    """The watcher waits on state changes only: a burst of other events from the same robot
+    (commands decided at once, each refused and published) cannot push its e-stop out of the
+    watcher's bounded queue before the watcher has run."""
+    for robot_id in ("a", "b"):
+        await manager.create_robot("so-arm100", robot_id=robot_id)
+    registry = GroupRegistry(manager)
+    registry.create("g", ["a", "b"], stop_together=True)
+    await trio.testing.wait_all_tasks_blocked()  # the watchers wait
+    a = manager.get("a")
+    assert a.estop_now("bumper hit") is not None  # no checkpoint from here to the flood's end
+    results = a.command_run_now([Command.of({"Rotation": 1.0})] * 200)
+    assert results is not None and not any(r.accepted for r in results)
+    await trio.testing.wait_all_tasks_blocked()
+    assert manager.get("b").snapshot().mode is Mode.ESTOPPED
+
+
+def a_sentence(message: object) -> bool:
+    """An error's message as a person reads it: capitalised (or opening on a quoted name), not
+    shouted, ended by a full stop."""
+    return (
+        isinstance(message, str)
+        and (message[:1].isupper() or message[:1] == "'")
+        and not message.isupper()
+        and message.endswith(".")
+    )
+
+
+async def test_a_group_describes_each_member_and_refuses_in_a_sentence_naming_the_id(
+    autojump_clock: trio.testing.MockClock, manager: RobotManager
+) -> None:
+    for robot_id in ("a", "b", "c"):
+        await manager.create_robot("so-arm100", robot_id=robot_id)
+    registry = GroupRegistry(manager)
+    group = registry.create("g", ["a", "b", "c"], stop_together=True)
+    plain = registry.create("p", ["c"], stop_together=False)
+    await manager.delete("b")
+    await manager.get("c").estop("bumper hit")
+    await trio.testing.wait_all_tasks_blocked()  # `g` stops together: `a` follows `c`
+    a_reason = manager.get("a").snapshot().estop_reason
+    assert a_reason is not None and "'c'" in a_reason
+    assert group.describe(manager) == {
+        "id": "g",
+        "members": ["a", "b", "c"],
+        "stopTogether": True,
+        "states": {
+            "a": {"state": "estopped", "master": None, "estop_reason": a_reason},
+            "b": {"state": "deleted"},
+            "c": {"state": "estopped", "master": None, "estop_reason": "bumper hit"},
+        },
+    }
+    assert plain.describe(manager)["stopTogether"] is False
+    refusals = [
+        (lambda: registry.get("nope"), ErrorCode.UNKNOWN_GROUP, "'nope'"),
+        (lambda: registry.create("g", ["a"], False), ErrorCode.GROUP_EXISTS, "'g'"),
+        (lambda: registry.create("a", ["c"], False), ErrorCode.GROUP_EXISTS, "'a'"),
+        (lambda: registry.create("h", [], False), ErrorCode.INVALID_BODY, ""),
+        (lambda: registry.create("h", ["a", "a"], False), ErrorCode.INVALID_BODY, ""),
+    ]
+    for refused, code, names in refusals:
+        with pytest.raises(ArenaError) as info:
+            refused()
+        assert info.value.code is code
+        assert a_sentence(info.value.message) and names in info.value.message
+    assert [g.group_id for g in registry.all()] == ["g", "p"]  # the refusals changed nothing
 
 
 def test_a_group_ack_says_how_the_group_answered_in_the_contracts_shape() -> None:

@@ -174,6 +174,10 @@ async def test_unplugged_bus_comes_back_without_stale_goals(
     sim.unplug()
     await eventually(lambda: not robot.snapshot().slaves[0].connected, what="loss")
     assert robot.snapshot().mode is Mode.ESTOPPED
+    # The robot says why: the worker's own account of the loss, passed on whole.
+    why = robot.snapshot().slaves[0].last_error or ""
+    assert why.startswith(f"SLAVE_LOST: servo bus on {sim.link}: The servo bus on {sim.link}")
+    assert why.endswith("check the USB cable and the servo power supply.")
     await robot.reset()
     await robot.command(Command.of({"Rotation": 45.0}))  # sent while the bus is away
     await trio.sleep(0.6)  # the whole move happens (virtually) during the outage

@@ -98,6 +98,8 @@ class Figures:
     equivalent: int = 0
     survived: list[str] = field(default_factory=list)
     not_run: int = 0
+    #: Survivors that no selected test calls: a test file missing from `[tool.mutmut]`.
+    untested: int = 0
 
     @property
     def score(self) -> float:
@@ -250,6 +252,7 @@ def figures(
                 result.timeout += 1
                 continue
             result.survived.append(mutant)
+            result.untested += int(code in NO_TESTS)
             why = "no test calls it" if code in NO_TESTS else f"exit code {code}"
             report.append(f"{mutant} ({why})\n  - {original}\n  + {mutated}\n")
     (ROOT / "mutants" / f"survivors-{module}.txt").write_text("\n".join(report))
@@ -280,11 +283,20 @@ def main(argv: list[str]) -> int:
         f"{'module':<11} {'made':>5} {'killed':>6} {'timeout':>7} {'equiv':>5} {'survived':>8}"
         f" {'not run':>7} {'score':>6}"
     )
+    untested: list[str] = []
     for name in names:
         f = figures(name, known, used)
         print(
             f"{name:<11} {f.made:>5} {f.killed:>6} {f.timeout:>7} {f.equivalent:>5}"
             f" {len(f.survived):>8} {f.not_run:>7} {f.score:>6.1%}"
+        )
+        if f.untested:
+            untested.append(f"{name} ({f.untested})")
+    if untested:
+        print(
+            f"\nSurvivors that no selected test calls: {', '.join(untested)}. The tests that"
+            " reach them are not in [tool.mutmut]'s pytest_add_cli_args_test_selection (a"
+            " change there makes mutmut test every mutant again)."
         )
     stale = {k for k in known if k[0] and k not in used}
     if stale and not report_only and names == list(MODULES):
