@@ -12,6 +12,7 @@ from a copy of the pose the slave publishes under its lock after each batch of s
 from __future__ import annotations
 
 import copy
+import time
 from typing import Any
 
 from arena.drivers.physics import PhysicsSlave, View
@@ -39,6 +40,8 @@ class TwinCamera:
         size.offwidth, size.offheight = max(size.offwidth, width), max(size.offheight, height)
         self._data = mujoco.MjData(self._model)
         self._size = width, height
+        #: When the last frame's pose was read (`perf_counter`): the camera dates it so.
+        self.exposed: float | None = None
         self._renderer: Any = None  # made in the capture thread, on the first frame
         view = view or View()
         self._camera = mujoco.MjvCamera()
@@ -60,6 +63,7 @@ class TwinCamera:
     def render(self) -> Any:
         """The scene now, an (height, width, 3) uint8 RGB array; raises `OSError` once the twin
         has stopped (detached), so the camera reports it and retries."""
+        self.exposed = time.perf_counter()  # the frame shows the arm as it is now
         pose = self._slave.pose()
         if pose is None or not self._slave.running:
             raise OSError("the physics twin stopped")

@@ -226,7 +226,9 @@ class Camera:
                     delay = min(delay * 2, RETRY_MAX)
                     continue
                 delay = RETRY_INITIAL
-                captured = time.perf_counter()
+                # A source that knows when its picture was taken says so (the twin: when it read
+                # the pose, before ~130 ms of rendering); else the frame is as old as its read.
+                captured = getattr(source, "exposed", None) or time.perf_counter()
                 if self._in_flight.acquire(blocking=False):
                     if not self._hand_to_trio(token, self._deliver, jpeg, captured):
                         return

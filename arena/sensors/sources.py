@@ -22,7 +22,9 @@ PATTERN_BITS = 16
 
 
 class FrameSource(Protocol):
-    """A synchronous supplier of JPEG frames."""
+    """A synchronous supplier of JPEG frames. One that knows when its last frame's picture was
+    taken (long before `read` returned) may say so in an attribute `exposed` (`perf_counter`
+    seconds); the camera then dates the frame by it."""
 
     paced: bool  # True when `read` returns at once and the capture thread must keep the rate
 
