@@ -53,7 +53,7 @@ class TwinCamera:
         # is freed in this thread, where it was made.
         try:
             mujoco.Renderer(self._model, height=height, width=width).close()
-        except Exception as exc:  # noqa: BLE001 (mujoco's GL backends raise what they like)
+        except Exception as exc:  # mujoco's GL backends raise what they like
             raise OSError(
                 f"MuJoCo cannot render headless ({exc}): install Debian's libosmesa6, or set "
                 "MUJOCO_GL to a backend this machine has"

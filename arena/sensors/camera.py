@@ -12,7 +12,6 @@ fault, as a warning that never stops the arm, and reopened after 1 s, then 2, 4,
 from __future__ import annotations
 
 import contextlib
-import functools
 import re
 import threading
 import time
@@ -115,9 +114,8 @@ class Camera:
     def __init__(self, robot: Robot, spec: CameraSpec, opener: Opener | None = None) -> None:
         self.robot = robot
         self.spec = spec
-        self.opener: Opener = opener or functools.partial(
-            open_source, spec.source, spec.width, spec.height, spec.fps
-        )
+        #: Opens its source: at attach, and again after a failure.
+        self.opener: Opener = opener or self._open_named
         self.sensor_id = f"camera:{spec.name}"
         self.latest: CameraFrame | None = None
         self.frames = 0  # frames delivered to trio
@@ -133,6 +131,10 @@ class Camera:
         self._changed = trio.Event()
         self._stop = threading.Event()
         self._in_flight = threading.Semaphore(MAX_IN_FLIGHT)
+
+    def _open_named(self) -> FrameSource:
+        """The source `spec.source` names, opened."""
+        return open_source(self.spec.source, self.spec.width, self.spec.height, self.spec.fps)
 
     def as_dict(self) -> dict[str, Any]:
         """What `GET .../cameras` shows of it."""
