@@ -94,7 +94,11 @@ async def test_a_twin_camera_is_recorded_and_exported_with_the_arm_moving_in_it(
             await frames_after(3)
             assert (await http.post(f"{BASE}/episodes/stop")).status_code == 200
         name = (await http.post("/api/recordings/current/stop")).json()["stopped"]
-    assert live.dropped == 0 and live.failures == 0
+        assert live.dropped == 0 and live.failures == 0
+        # the twin detached: the camera says so (and retries), as an unplugged one does
+        assert (await http.delete(f"{BASE}/slaves/{slave.json()['id']}")).status_code == 200
+        await eventually(lambda: live.error is not None, what="the camera's failure")
+        assert live.error in ("the physics twin stopped", "the physics twin is not running")
     path = Path(server.app.recorder.folder) / name
 
     # the recording holds the camera's frames: the same picture while the arm stands, another
@@ -150,3 +154,23 @@ async def test_a_twin_camera_needs_a_physics_slave(
         # a malformed twin source is the body's fault, before any slave is looked for
         bad = await http.post("/api/robots/demo-arm/cameras", json={"name": "f", "source": "twin:"})
         assert (bad.status_code, bad.json()["error"]["code"]) == (422, "INVALID_BODY")
+
+
+async def test_a_twin_camera_where_mujoco_cannot_render_is_refused(
+    start_server: Callable[..., Awaitable[RunningServer]], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    import mujoco.gl_context
+
+    def no_gl(*args: Any) -> None:
+        raise RuntimeError("Failed to create OSMesa GL context.")
+
+    server = await start_server()
+    async with server.client() as http:
+        await http.post("/api/robots", json={"id": "twin-arm", "robot_type": "so-arm100"})
+        assert (await http.post(f"{BASE}/slaves", json={"type": "physics-slave"})).is_success
+        monkeypatch.setattr(mujoco.gl_context, "GLContext", no_gl)
+        refused = await http.post(f"{BASE}/cameras", json={"name": "front", "source": "twin"})
+        error = refused.json()["error"]
+        assert (refused.status_code, error["code"]) == (422, "CAMERA_FAILED")
+        assert "OSMesa GL context" in error["message"] and "libosmesa6" in error["message"]
+        assert (await http.get(f"{BASE}/cameras")).json() == {"cameras": []}

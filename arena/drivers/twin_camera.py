@@ -49,10 +49,15 @@ class TwinCamera:
         self._camera.distance = view.distance
         self._camera.azimuth, self._camera.elevation = view.azimuth, view.elevation
         # Can MuJoCo render here at all (a GL to render with: OSMesa with no display)? Asked
-        # now, so that attaching the camera fails, not its first frame; the probe's context
-        # is freed in this thread, where it was made.
+        # now, so that attaching the camera fails, not its first frame. A bare GL context (a
+        # few ms), freed in this thread, where it was made: a whole renderer would upload the
+        # meshes too, holding Python's GIL for ~80 ms.
         try:
-            mujoco.Renderer(self._model, height=height, width=width).close()
+            import mujoco.gl_context
+
+            context = mujoco.gl_context.GLContext(width, height)
+            context.make_current()
+            context.free()
         except Exception as exc:  # mujoco's GL backends raise what they like
             raise OSError(
                 f"MuJoCo cannot render headless ({exc}): install Debian's libosmesa6, or set "
