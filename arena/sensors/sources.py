@@ -200,6 +200,8 @@ def open_source(source: str, width: int, height: int, fps: int) -> FrameSource:
         return PatternSource(width, height, fps)
     if source.startswith("file:"):
         return FileSource(source[5:], width, height, fps)
+    if source == "twin" or source.startswith("twin:"):  # not a device: a robot's physics slave
+        raise OSError("a twin camera renders a physics slave, which whoever attaches it opens")
     return DeviceSource(source, width, height, fps)
 
 
