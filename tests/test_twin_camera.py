@@ -127,14 +127,23 @@ async def test_a_twin_camera_is_recorded_and_exported_with_the_arm_moving_in_it(
     dataset = lerobot_dataset.LeRobotDataset("lab/twin", root=out, video_backend="pyav")
     assert dataset.meta.video_keys == ["observation.images.front"]
     assert dataset.num_episodes == 1
-    pictures = [
-        (dataset[i]["observation.images.front"].permute(1, 2, 0).numpy() * 255).astype(int)
-        for i in (0, len(dataset) - 1)
-    ]
+    every = [v for v in recording.views if v.topic == "/robots/twin-arm/cameras/front"]
+    ends = (0, len(dataset) - 1)
+    pictures, recorded = [], []
+    for index in ends:
+        item = dataset[index]
+        pictures.append(
+            (item["observation.images.front"].permute(1, 2, 0).numpy() * 255).astype(int)
+        )
+        # the frame the export sampled there: the newest at or before the row's time
+        when = start + round(int(item["frame_index"]) * 1e9 / FPS)
+        jpeg = [v.data for v in every if v.log_time <= when][-1]
+        recorded.append(jpeg_rgb(images.decode(jpeg).data).astype(int))
     assert pictures[0].shape == (96, 96, 3)
     # the dataset's first and last images are the recorded ones (through AV1): each is much
-    # nearer its own recorded frame than the other
-    for picture, own, other in ((pictures[0], first, last), (pictures[1], last, first)):
+    # nearer its own recorded frame than the other end's
+    assert np.abs(recorded[0] - recorded[1]).mean() > 4.0
+    for picture, own, other in ((pictures[0], *recorded), (pictures[1], *recorded[::-1])):
         assert np.abs(picture - own).mean() < np.abs(picture - other).mean() / 2
 
 
