@@ -52,6 +52,15 @@ class View:
 
 
 @dataclass(frozen=True, slots=True)
+class Pose:
+    """A copy of where the simulated arm is (MuJoCo's `qpos`) and where the target marker is
+    (`mocap_pos`): what a camera needs to draw the scene, read off the stepping thread."""
+
+    qpos: Any
+    mocap_pos: Any
+
+
+@dataclass(frozen=True, slots=True)
 class PhysicsSettings:
     """How the simulation runs."""
 
@@ -268,7 +277,10 @@ class PhysicsSlave:
         self.simulation: ArmSimulation | None = None
         self.contacts_reported: list[tuple[str, str]] = []
         self._pending: list[SlaveTarget | SlaveNotice] = []
+        #: Guards `_pending` and `_pose` (taken briefly by the stepping thread and cameras).
         self._lock = threading.Lock()
+        self._pose: Pose | None = None  # the newest pose, for cameras (`pose`)
+        self.running = False  # between the simulation's build and the slave's end
         self._link: SlaveLink | None = None
         self._started = 0.0  # trio time of the simulation's step 0 (stepped mode)
         #: Set once the simulation is built and has reported its first joint values.
@@ -283,19 +295,35 @@ class PhysicsSlave:
             simulation = ArmSimulation(model, self.settings)
         self.simulation = simulation
         self._link, self._started = link, trio.current_time()
-        await link.report_joint_states(simulation.positions())
-        self.ready.set()
-        async with trio.open_nursery() as nursery:
-            if self.settings.stepped:
-                pass  # moved on by its owner (`step_to`)
-            elif self.settings.realtime:
-                nursery.start_soon(self._in_real_time, link, simulation)
-            else:
-                nursery.start_soon(self._in_trio_time, link, simulation)
-            async for message in link.messages():
-                with self._lock:
-                    self._pending.append(message)
-            nursery.cancel_scope.cancel()
+        self._publish(simulation)
+        self.running = True
+        try:
+            await link.report_joint_states(simulation.positions())
+            self.ready.set()
+            async with trio.open_nursery() as nursery:
+                if self.settings.stepped:
+                    pass  # moved on by its owner (`step_to`)
+                elif self.settings.realtime:
+                    nursery.start_soon(self._in_real_time, link, simulation)
+                else:
+                    nursery.start_soon(self._in_trio_time, link, simulation)
+                async for message in link.messages():
+                    with self._lock:
+                        self._pending.append(message)
+                nursery.cancel_scope.cancel()
+        finally:
+            self.running = False
+
+    def _publish(self, simulation: ArmSimulation) -> None:
+        """Keep a copy of the pose just reached for the cameras (in the stepping thread)."""
+        pose = Pose(simulation.data.qpos.copy(), simulation.data.mocap_pos.copy())
+        with self._lock:
+            self._pose = pose
+
+    def pose(self) -> Pose | None:
+        """The newest pose the simulation reached (None before it is built); any thread."""
+        with self._lock:
+            return self._pose
 
     def _apply_pending(self, simulation: ArmSimulation) -> None:
         with self._lock:
@@ -336,6 +364,7 @@ class PhysicsSlave:
         count = round((when - self._started) * self.settings.rate) - simulation.steps
         if count > 0:
             simulation.step(count)
+        self._publish(simulation)
         await self._report(link, simulation.positions(), simulation.contacts())
 
     async def place(self, degrees: Mapping[str, float]) -> None:
@@ -348,6 +377,7 @@ class PhysicsSlave:
         simulation.restart(degrees)
         # Steps count from here: the same step grid for every start, wherever the clock is.
         self._started, simulation.steps = trio.current_time(), 0
+        self._publish(simulation)
         await self._report(link, simulation.positions(), simulation.contacts())
 
     async def _in_trio_time(self, link: SlaveLink, simulation: ArmSimulation) -> None:
@@ -357,6 +387,7 @@ class PhysicsSlave:
             await trio.sleep(interval)
             self._apply_pending(simulation)
             simulation.step(steps)
+            self._publish(simulation)
             await self._report(link, simulation.positions(), simulation.contacts())
 
     async def _in_real_time(self, link: SlaveLink, simulation: ArmSimulation) -> None:
@@ -381,4 +412,5 @@ class PhysicsSlave:
         for _ in range(count):
             self._apply_pending(simulation)
             simulation.step()
+        self._publish(simulation)
         return simulation.positions(), simulation.contacts()

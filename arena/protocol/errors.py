@@ -81,6 +81,7 @@ class ErrorCode(enum.StrEnum):
     CAMERA_EXISTS = "CAMERA_EXISTS"
     CAMERA_FAILED = "CAMERA_FAILED"
     CAMERA_RECOVERED = "CAMERA_RECOVERED"
+    NO_TWIN = "NO_TWIN"  # a twin camera for a robot with no physics slave
     EPISODE_ACTIVE = "EPISODE_ACTIVE"
     NO_EPISODE = "NO_EPISODE"
     # Fleets

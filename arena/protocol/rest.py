@@ -287,13 +287,14 @@ class WorkspaceBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=Tr
 
 class CameraBody(msgspec.Struct, forbid_unknown_fields=True):
     """`POST /api/robots/{id}/cameras`: a camera to attach (`source`: `test-pattern`,
-    `file:PATH`, looped, or a V4L2 device such as `/dev/video0`)."""
+    `file:PATH`, looped, a V4L2 device such as `/dev/video0`, or `twin`: the robot's physics
+    slave rendered). Unnamed, `fps`, `width` and `height` are 30, 640, 480 (a twin: 5, 96, 96)."""
 
     name: Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_-]{1,32}$")]
     source: Annotated[str, msgspec.Meta(min_length=1, max_length=4096)]
-    fps: Annotated[int, msgspec.Meta(ge=1, le=60)] = 30
-    width: Annotated[int, msgspec.Meta(ge=16, le=1920)] = 640
-    height: Annotated[int, msgspec.Meta(ge=16, le=1080)] = 480
+    fps: Annotated[int, msgspec.Meta(ge=1, le=60)] | None = None
+    width: Annotated[int, msgspec.Meta(ge=16, le=1920)] | None = None
+    height: Annotated[int, msgspec.Meta(ge=16, le=1080)] | None = None
 
 
 class EpisodeBody(msgspec.Struct, forbid_unknown_fields=True):

@@ -28,6 +28,10 @@ from arena.robot.mailbox import EventQueue
 from arena.sensors.sources import FrameSource, open_source, pace
 
 NAME = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
+#: `twin` or `twin:SLAVE_ID`: the robot's physics slave, rendered (`arena.drivers.twin_camera`).
+TWIN = re.compile(r"^twin(:[A-Za-z0-9_.-]{1,64})?$")
+#: Rate and size when the body names none: a twin's frames cost ~130 ms each (specs/physics.md).
+DEFAULTS = {"camera": (30, 640, 480), "twin": (5, 96, 96)}
 #: Cameras one robot may have.
 MAX_CAMERAS_PER_ROBOT = 4
 #: Frames captured but not yet taken by trio; beyond it the capture thread drops frames.
@@ -42,10 +46,38 @@ class CameraSpec:
     """What `POST /api/robots/{id}/cameras` asks for."""
 
     name: str
-    source: str  # "test-pattern", "file:PATH" or a V4L2 device such as /dev/video0
+    source: str  # "test-pattern", "file:PATH", a V4L2 device such as /dev/video0, or "twin"
     fps: int = 30
     width: int = 640
     height: int = 480
+
+    @classmethod
+    def of(
+        cls,
+        name: str,
+        source: str,
+        fps: int | None = None,
+        width: int | None = None,
+        height: int | None = None,
+    ) -> CameraSpec:
+        """The spec with the defaults of its kind of source for what is not given."""
+        default_fps, default_width, default_height = DEFAULTS[
+            "twin" if TWIN.match(source) else "camera"
+        ]
+        return cls(
+            name,
+            source,
+            default_fps if fps is None else fps,
+            default_width if width is None else width,
+            default_height if height is None else height,
+        )
+
+    @property
+    def twin(self) -> str | None:
+        """For a twin camera, the slave id it names ("" for the robot's only physics slave);
+        None for any other source."""
+        found = TWIN.match(self.source)
+        return None if found is None else (found.group(1) or ":")[1:]
 
     def check(self) -> None:
         """Raise `ArenaError(INVALID_BODY)` for a spec no camera can have."""
@@ -56,8 +88,12 @@ class CameraSpec:
             self.source == "test-pattern"
             or (self.source.startswith("file:") and len(self.source) > 5)
             or self.source.startswith("/dev/")
+            or TWIN.match(self.source)
         ):
-            problems.append('"source" must be "test-pattern", "file:PATH" or a /dev/video device')
+            problems.append(
+                '"source" must be "test-pattern", "file:PATH", a /dev/video device, "twin" or '
+                '"twin:SLAVE_ID"'
+            )
         if not 1 <= self.fps <= 60:
             problems.append('"fps" must be 1 to 60')
         if not (16 <= self.width <= 1920 and 16 <= self.height <= 1080):
@@ -68,12 +104,18 @@ class CameraSpec:
             raise ArenaError(ErrorCode.INVALID_BODY, "Invalid camera: " + "; ".join(problems) + ".")
 
 
+#: Opens a camera's source (in a worker or the capture thread); raises `OSError` if it cannot.
+Opener = Callable[[], FrameSource]
+
+
 class Camera:
     """One camera of one robot: runs its capture thread while `run` runs."""
 
-    def __init__(self, robot: Robot, spec: CameraSpec) -> None:
+    def __init__(self, robot: Robot, spec: CameraSpec, opener: Opener | None = None) -> None:
         self.robot = robot
         self.spec = spec
+        #: Opens its source: at attach, and again after a failure.
+        self.opener: Opener = opener or self._open_named
         self.sensor_id = f"camera:{spec.name}"
         self.latest: CameraFrame | None = None
         self.frames = 0  # frames delivered to trio
@@ -89,6 +131,10 @@ class Camera:
         self._changed = trio.Event()
         self._stop = threading.Event()
         self._in_flight = threading.Semaphore(MAX_IN_FLIGHT)
+
+    def _open_named(self) -> FrameSource:
+        """The source `spec.source` names, opened."""
+        return open_source(self.spec.source, self.spec.width, self.spec.height, self.spec.fps)
 
     def as_dict(self) -> dict[str, Any]:
         """What `GET .../cameras` shows of it."""
@@ -164,9 +210,7 @@ class Camera:
             while not self._stop.is_set():
                 if source is None:
                     try:
-                        source = open_source(
-                            self.spec.source, self.spec.width, self.spec.height, self.spec.fps
-                        )
+                        source = self.opener()
                     except OSError as exc:
                         self._hand_to_trio(token, self._failed, str(exc))
                         self._stop.wait(delay)
@@ -184,7 +228,9 @@ class Camera:
                     delay = min(delay * 2, RETRY_MAX)
                     continue
                 delay = RETRY_INITIAL
-                captured = time.perf_counter()
+                # A source that knows when its picture was taken says so (the twin: when it read
+                # the pose, before ~130 ms of rendering); else the frame is as old as its read.
+                captured = getattr(source, "exposed", None) or time.perf_counter()
                 if self._in_flight.acquire(blocking=False):
                     if not self._hand_to_trio(token, self._deliver, jpeg, captured):
                         return
@@ -279,8 +325,9 @@ class Cameras:
             )
         return found[0]
 
-    async def attach(self, robot: Robot, spec: CameraSpec) -> Camera:
-        """Open the camera's source (refused with CAMERA_FAILED if it cannot be) and start it."""
+    async def attach(self, robot: Robot, spec: CameraSpec, opener: Opener | None = None) -> Camera:
+        """Open the camera's source (refused with CAMERA_FAILED if it cannot be) and start it.
+        `opener` opens a source that `spec.source` alone cannot say how to (the twin's)."""
         spec.check()
         key = (robot.robot_id, spec.name)
         if key in self._cameras:
@@ -292,10 +339,9 @@ class Cameras:
                 ErrorCode.CAMERA_EXISTS,
                 f"Robot {robot.robot_id!r} has {MAX_CAMERAS_PER_ROBOT} cameras, the most it may.",
             )
+        camera = Camera(robot, spec, opener)
         try:
-            source = await trio.to_thread.run_sync(
-                open_source, spec.source, spec.width, spec.height, spec.fps
-            )
+            source = await trio.to_thread.run_sync(camera.opener)
         except OSError as exc:
             raise ArenaError(
                 ErrorCode.CAMERA_FAILED, f"Camera {spec.name!r} cannot capture: {exc}"
@@ -305,7 +351,6 @@ class Cameras:
             raise ArenaError(
                 ErrorCode.CAMERA_EXISTS, f"Robot {robot.robot_id!r} has a camera {spec.name!r}."
             )
-        camera = Camera(robot, spec)
         scope = trio.CancelScope()
         self._cameras[key] = (camera, scope)
         for callback in self.on_attach:

@@ -22,7 +22,9 @@ PATTERN_BITS = 16
 
 
 class FrameSource(Protocol):
-    """A synchronous supplier of JPEG frames."""
+    """A synchronous supplier of JPEG frames. One that knows when its last frame's picture was
+    taken (long before `read` returned) may say so in an attribute `exposed` (`perf_counter`
+    seconds); the camera then dates the frame by it."""
 
     paced: bool  # True when `read` returns at once and the capture thread must keep the rate
 
@@ -198,6 +200,8 @@ def open_source(source: str, width: int, height: int, fps: int) -> FrameSource:
         return PatternSource(width, height, fps)
     if source.startswith("file:"):
         return FileSource(source[5:], width, height, fps)
+    if source == "twin" or source.startswith("twin:"):  # not a device: a robot's physics slave
+        raise OSError("a twin camera renders a physics slave, which whoever attaches it opens")
     return DeviceSource(source, width, height, fps)
 
 

@@ -81,6 +81,7 @@ STATUS_FOR: dict[ErrorCode, int] = {
     ErrorCode.UNKNOWN_CAMERA: 404,
     ErrorCode.CAMERA_EXISTS: 409,
     ErrorCode.CAMERA_FAILED: 422,
+    ErrorCode.NO_TWIN: 409,
     ErrorCode.EPISODE_ACTIVE: 409,
     ErrorCode.NO_EPISODE: 409,
     ErrorCode.ROBOT_ELSEWHERE: 409,
@@ -101,15 +102,42 @@ class OpenConnection(Protocol):
 
 
 class Hardware:
-    """The hardware slaves attached over REST, by robot and slave id."""
+    """The hardware slaves attached over REST, by robot and slave id (and the physics twins,
+    which twin cameras render)."""
 
     def __init__(self) -> None:
         self._drivers: dict[tuple[str, str], object] = {}
+        self._twins: dict[tuple[str, str], object] = {}
 
     def add(self, robot_id: str, slave_id: str, driver: object) -> None:
-        """Remember `driver` if it can be calibrated."""
+        """Remember `driver` if it can be calibrated, or rendered."""
         if hasattr(driver, "calibration_status"):
             self._drivers[(robot_id, slave_id)] = driver
+        if getattr(driver, "kind", None) == "physics-slave":
+            self._twins[(robot_id, slave_id)] = driver
+
+    def twin(self, robot_id: str, slave_id: str, attached: set[str]) -> Any:
+        """The robot's physics slave (`slave_id`, or the only one when ""), or
+        `ArenaError(NO_TWIN)`."""
+        for key in [k for k in self._twins if k[1] not in attached and k[0] == robot_id]:
+            del self._twins[key]  # detached since
+        found = [
+            driver
+            for (rid, sid), driver in self._twins.items()
+            if rid == robot_id and slave_id in ("", sid)
+        ]
+        if len(found) == 1:
+            return found[0]
+        which = f"physics slave {slave_id!r}" if slave_id else "physics slave"
+        if not found:
+            raise ArenaError(
+                ErrorCode.NO_TWIN,
+                f"Robot {robot_id!r} has no {which} to render: attach a physics-slave first.",
+            )
+        raise ArenaError(
+            ErrorCode.NO_TWIN,
+            f'Robot {robot_id!r} has several physics slaves: say which with "twin:SLAVE_ID".',
+        )
 
     def drivers(self) -> list[object]:
         """Every hardware driver attached over REST (some may have been detached since)."""
