@@ -14,14 +14,15 @@ from arena import cli
 from tests.conftest import RunningServer
 
 README = Path(__file__).resolve().parent.parent / "README.md"
+CLIENT_SPEC = README.with_name("specs") / "client.md"
 
 
 def test_readme_example_runs(capsys: pytest.CaptureFixture[str]) -> None:
-    block = re.search(r"## In-process example\s+```python\n(.*?)```", README.read_text(), re.S)
+    block = re.search(r"## In-process example\s+```python\n(.*?)```", CLIENT_SPEC.read_text(), re.S)
     assert block is not None
     source = block.group(1).replace("trio.run(main)", "")
     namespace: dict[str, Any] = {}
-    exec(compile(source, "README.md", "exec"), namespace)
+    exec(compile(source, "specs/client.md", "exec"), namespace)
     trio.run(namespace["main"], clock=trio.testing.MockClock(autojump_threshold=0))
     out = capsys.readouterr().out
     assert "accepted=True" in out
@@ -50,10 +51,12 @@ def test_demo_rejects_an_unknown_sequence() -> None:
 async def test_readme_agent_example_drives_the_demo_robot(
     server: RunningServer, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    block = re.search(r"### Agent example\s+```python\n(.*?)```", README.read_text(), re.S)
+    block = re.search(r"## Agent example\s+```python\n(.*?)```", CLIENT_SPEC.read_text(), re.S)
     assert block is not None
     namespace: dict[str, Any] = {}
-    exec(compile(block.group(1).replace("trio.run(agent)", ""), "README.md", "exec"), namespace)
+    exec(
+        compile(block.group(1).replace("trio.run(agent)", ""), "specs/client.md", "exec"), namespace
+    )
     await namespace["agent"](server.url, "demo-arm", 4)
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) == 4

@@ -27,15 +27,18 @@ from tests.scenarios import behaviour, record_scenario, replay_session
 
 StartServer = Callable[..., Awaitable[RunningServer]]
 README = Path(__file__).resolve().parent.parent / "README.md"
+CLIENT_SPEC = README.with_name("specs") / "client.md"
 GOLDEN = Path(__file__).resolve().parent.parent / "recordings" / "golden" / "gentle-wave.mcap"
 
 
 def readme_agent() -> Callable[..., Awaitable[None]]:
-    """The README's agent example, as its `agent` function."""
-    block = re.search(r"### Agent example\s+```python\n(.*?)```", README.read_text(), re.S)
+    """specs/client.md's agent example, as its `agent` function."""
+    block = re.search(r"## Agent example\s+```python\n(.*?)```", CLIENT_SPEC.read_text(), re.S)
     assert block is not None
     namespace: dict[str, Any] = {}
-    exec(compile(block.group(1).replace("trio.run(agent)", ""), "README.md", "exec"), namespace)
+    exec(
+        compile(block.group(1).replace("trio.run(agent)", ""), "specs/client.md", "exec"), namespace
+    )
     agent: Callable[..., Awaitable[None]] = namespace["agent"]
     return agent
 
