@@ -23,6 +23,7 @@ from arena.protocol.errors import ErrorCode
 from arena.recording.mcap_file import read_recording
 from arena.robot.collision import (
     CollisionModel,
+    _segment_box_distance,
     _segment_distance,
     fit_capsules,
     for_model,
@@ -93,6 +94,103 @@ def test_segment_distance_matches_a_dense_search(c: list[float]) -> None:
     exact = _segment_distance(p1, q1, p2, q2)  # type: ignore[arg-type]
     # the grid can only overshoot; a segment shorter than 1e-6 m counts as a point
     assert exact <= dense + 1e-6 and dense - exact < 0.02
+
+
+#: The so-arm100's capsules as fitted to its meshes: link, ends (m, link frame), radius (m).
+#: The guard's clearances, and the tests at the table above, were set against these; a change
+#: to the fit must be seen (and these figures taken again, the table tests passing).
+SO_ARM100_CAPSULES = [
+    ("base", (-0.000132, -0.023649, 0.035255), (0.000094, -0.016768, 0.042324), 0.067399),
+    ("shoulder", (0.001133, 0.032467, 0.012477), (-0.000824, 0.076524, 0.029024), 0.043945),
+    ("upper_arm", (0.004115, 0.001817, 0.001096), (-0.001231, 0.116032, 0.009631), 0.040407),
+    ("lower_arm", (0.002599, 0.001095, 0.002093), (-0.000416, 0.003996, 0.131134), 0.039010),
+    ("wrist", (-0.009544, -0.045088, 0.000025), (-0.007308, -0.004883, -0.000013), 0.038057),
+    ("gripper", (0.002158, -0.026974, 0.001532), (0.018510, -0.071455, 0.000113), 0.041487),
+    ("jaw", (-0.005598, -0.065547, 0.000170), (0.000504, -0.006821, -0.000556), 0.028313),
+]
+
+
+def test_the_so_arm100s_capsules_are_the_ones_its_guard_was_set_against() -> None:
+    fitted = [(c.link, c.a, c.b, c.radius) for c in fit_capsules(MODEL.urdf_path)]
+    assert [f[0] for f in fitted] == [s[0] for s in SO_ARM100_CAPSULES]
+    for (link, a, b, radius), (_, want_a, want_b, want_radius) in zip(
+        fitted, SO_ARM100_CAPSULES, strict=True
+    ):
+        assert a == pytest.approx(want_a, abs=2e-6), link
+        assert b == pytest.approx(want_b, abs=2e-6), link
+        assert radius == pytest.approx(want_radius, abs=2e-6), link
+
+
+def _box_gap(point: np.ndarray, box: Box) -> float:
+    return float(np.linalg.norm(np.maximum(np.maximum(box.low - point, 0), point - box.high)))
+
+
+def segment_to_box(a: tuple[float, ...], b: tuple[float, ...], box: Box) -> float:
+    """The exact distance from segment a-b to a box: the distance to a box is convex along a
+    line, so a golden-section search over the segment finds its least."""
+    start, end = np.array(a), np.array(b)
+    lo, hi = 0.0, 1.0
+    ratio = (math.sqrt(5) - 1) / 2
+    for _ in range(200):
+        m1, m2 = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
+        if _box_gap(start + m1 * (end - start), box) <= _box_gap(start + m2 * (end - start), box):
+            hi = m2
+        else:
+            lo = m1
+    return min(
+        _box_gap(start + lo * (end - start), box), _box_gap(start, box), _box_gap(end, box)
+    )
+
+
+def a_box(corner: list[float], size: list[float]) -> Box:
+    return Box("b", tuple(corner), tuple(c + s for c, s in zip(corner, size, strict=True)))
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.lists(st.floats(-0.3, 0.3), min_size=6, max_size=6),
+    st.lists(st.floats(-0.3, 0.3), min_size=3, max_size=3),
+    st.lists(st.floats(0.001, 0.3), min_size=3, max_size=3),
+)
+def test_a_segments_gap_to_a_box_is_never_overstated_and_at_most_half_a_cm_under(
+    ends: list[float], corner: list[float], size: list[float]
+) -> None:
+    # The guard keeps a capsule off a keep-out box by this bound: above the true gap it would
+    # let a link in; far below it, it would refuse what is safe.
+    a, b, box = tuple(ends[:3]), tuple(ends[3:]), a_box(corner, size)
+    exact = segment_to_box(a, b, box)
+    bound = _segment_box_distance(a, b, box)  # type: ignore[arg-type]
+    assert exact - 0.005 - 1e-9 <= bound <= exact + 1e-9
+
+
+@pytest.mark.parametrize(
+    ("a", "b", "box", "exact"),
+    [
+        # the box begins 1.5 cm beyond the segment's end, in line with it
+        ((0, 0, 0), (0.1, 0, 0), a_box([0.115, -0.1, -0.1], [0.1, 0.2, 0.2]), 0.015),
+        # the box touches the segment halfway between two of its points
+        ((0, 0, 0), (0.01, 0, 0), a_box([0.005, -1, -1], [0.0001, 2, 2]), 0.0),
+        # half a metre passing 3 cm under a small box at its middle
+        ((-0.25, 0, 0), (0.25, 0, 0), a_box([-0.01, -0.01, 0.03], [0.02, 0.02, 0.02]), 0.03),
+        # a box below and behind the segment on every axis
+        ((0, 0, 0), (0.05, 0.05, 0.05), a_box([-0.2, -0.2, -0.2], [0.18, 0.18, 0.18]), None),
+    ],
+)
+def test_a_segments_gap_to_a_box_where_the_points_along_it_fall_short(
+    a: tuple[float, ...], b: tuple[float, ...], box: Box, exact: float | None
+) -> None:
+    truth = segment_to_box(a, b, box)
+    if exact is not None:
+        assert truth == pytest.approx(exact, abs=1e-9)
+    bound = _segment_box_distance(a, b, box)  # type: ignore[arg-type]
+    assert truth - 0.005 - 1e-9 <= bound <= truth + 1e-9
+
+
+def test_a_segment_shorter_than_the_spacing_counts_its_nearer_end_less_half_its_length() -> None:
+    # 5 mm long, pointing at a box 1.5 cm beyond its end: its two ends are its points.
+    box = a_box([0.02, -0.1, -0.1], [0.1, 0.2, 0.2])
+    bound = _segment_box_distance((0, 0, 0), (0.005, 0, 0), box)
+    assert bound == pytest.approx(0.015 - 0.0025, abs=1e-12)
 
 
 def test_the_so_arm100_stands_on_its_table() -> None:

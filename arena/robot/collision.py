@@ -21,7 +21,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -135,10 +135,6 @@ class CollisionModel:
     capsules: tuple[Capsule, ...]
     pairs: tuple[tuple[int, int], ...]  # indices into `capsules`
     floor_links: tuple[int, ...]  # capsules checked against the floor
-    _links: dict[str, int] = field(init=False, repr=False, compare=False)
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "_links", {c.link: i for i, c in enumerate(self.capsules)})
 
     @functools.cached_property
     def reaches(self) -> tuple[float, ...]:
