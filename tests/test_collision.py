@@ -4,8 +4,10 @@ or stop short, nothing colliding ever emitted), the workspace over REST, every k
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import json
 import math
+import struct
 from pathlib import Path
 from typing import Any
 
@@ -121,6 +123,34 @@ def test_the_so_arm100s_capsules_are_the_ones_its_guard_was_set_against() -> Non
         assert radius == pytest.approx(want_radius, abs=2e-6), link
 
 
+def write_stl(path: Path, points: list[np.ndarray]) -> None:
+    """A binary STL whose triangles run through `points` (three at a time)."""
+    points = points + points[-1:] * (-len(points) % 3)
+    data = bytearray(80) + struct.pack("<I", len(points) // 3)
+    for n in range(0, len(points), 3):
+        data += struct.pack("<3f", 0, 0, 0)
+        data += b"".join(struct.pack("<3f", *p) for p in points[n : n + 3]) + b"\0\0"
+    path.write_bytes(bytes(data))
+
+
+def test_a_link_as_wide_as_it_is_long_is_held_by_a_ball_about_its_middle(tmp_path: Path) -> None:
+    # A 4 cm cube with more of its points on one face (their mean is off its middle): the
+    # smallest holder is a ball, about the middle of the cube's extent along the fit's axis.
+    middle, side = np.array([0.1, 0.05, 0.02]), 0.04
+    corners = [middle + side / 2 * np.array(c) for c in itertools.product((-1, 1), repeat=3)]
+    face = [middle + np.array([side / 2, y, z]) for y in (-0.01, 0, 0.01) for z in (-0.01, 0, 0.01)]
+    write_stl(tmp_path / "lump.stl", corners + face * 3)
+    (tmp_path / "lump.urdf").write_text(
+        '<robot name="t"><link name="lump"><visual><geometry><mesh filename="lump.stl"/>'
+        "</geometry></visual></link></robot>"
+    )
+    (ball,) = fit_capsules(tmp_path / "lump.urdf")
+    assert ball.a == ball.b  # a ball
+    assert ball.a == pytest.approx((0.1001914, 0.0489184, 0.0189184), abs=1e-6)
+    assert ball.radius == pytest.approx(0.0360078, abs=1e-6)
+    assert max(np.linalg.norm(np.array(ball.a) - c) for c in corners) <= ball.radius + 1e-9
+
+
 def _box_gap(point: np.ndarray, box: Box) -> float:
     return float(np.linalg.norm(np.maximum(np.maximum(box.low - point, 0), point - box.high)))
 
@@ -137,9 +167,7 @@ def segment_to_box(a: tuple[float, ...], b: tuple[float, ...], box: Box) -> floa
             hi = m2
         else:
             lo = m1
-    return min(
-        _box_gap(start + lo * (end - start), box), _box_gap(start, box), _box_gap(end, box)
-    )
+    return min(_box_gap(start + lo * (end - start), box), _box_gap(start, box), _box_gap(end, box))
 
 
 def a_box(corner: list[float], size: list[float]) -> Box:
