@@ -241,6 +241,23 @@ def test_the_trio_floor_relays_as_the_floor_does() -> None:
     assert results["throughput_per_s"] > 0
 
 
+def test_the_contract_floor_acknowledges_every_command() -> None:
+    # `--acks` makes the trio floor the contract floor of `arena bench versus`: every command
+    # answered to its master as Arena answers it, and still relayed to the slave.
+    from arena.bench import versus
+    from arena.bench.fleet import fleet
+
+    async def run() -> dict[str, float]:
+        async with versus.running_floor(sys.executable, versus.CONTRACT_FLOOR, "--acks") as floor:
+            return await asyncio.wait_for(fleet(floor, robots=3, rate=50.0, seconds=1.0), 60)
+
+    results = asyncio.run(run())
+    assert results["fleet_commands_sent"] > 50
+    assert results["fleet_commands_unacknowledged"] == 0
+    assert results["fleet_commands_refused"] == 0
+    assert results["fleet_messages"] >= results["fleet_commands_sent"] - 3  # the slaves' too
+
+
 def test_observation_to_command_counts_frame_age_round_trip_and_the_wait_for_a_step() -> None:
     def message(kind: str, **data: object) -> RecordedMessage:
         return RecordedMessage(f"/robots/arm/{kind}", "arm", kind, 0, data)

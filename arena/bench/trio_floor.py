@@ -10,9 +10,14 @@ from what Arena's own work costs:
         arena bench versus
 
 It serves `POST /api/robots` (201), `GET /` (200), `/ws/slave/{id}` and `/ws/master/{id}`: a
-master's `command` is re-sent to the robot's slave as `execute_command`. No acks, no joint
-states, no safety, no recording, no checks: never serve anything with it.
-Usage: python trio_floor.py PORT
+master's `command` is re-sent to the robot's slave as `execute_command`. No joint states, no
+safety, no recording, no checks: never serve anything with it.
+
+With `--acks` it also answers each command to its master as Arena does, with a plain
+acceptance (`{"type":"ack",...,"data":{"status":"accepted"}}`, after the slave's write): the
+*contract floor*, the least that the contract's messages cost on trio (a read and two writes
+a command), which `arena bench versus` sets beside Arena.
+Usage: python trio_floor.py PORT [--acks]
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ import sys
 
 import trio
 
+from arena.protocol.messages import now_iso
 from arena.protocol.ws_frames import (
     OP_CLOSE,
     OP_PING,
@@ -34,6 +40,7 @@ from arena.protocol.ws_frames import (
 )
 
 _slaves: dict[str, int] = {}
+_acks = "--acks" in sys.argv[2:]
 
 
 async def _write(fd: int, data: bytes) -> None:
@@ -85,12 +92,18 @@ async def _serve(stream: trio.SocketStream) -> None:
         while (message := parser.next()) is not None:
             if message.opcode == OP_TEXT and role == "master":
                 data = json.loads(message.payload)
+                if data.get("type") != "command":
+                    continue
                 slave = _slaves.get(robot_id)
-                if slave is not None and data.get("type") == "command":
+                if slave is not None:
                     out = {"type": "execute_command", "timestamp": data.get("timestamp")}
                     out["data"] = {"joints": data["data"]["joints"]}
                     text = json.dumps(out, separators=(",", ":")).encode()
                     await _write(slave, encode_frame(OP_TEXT, text))
+                if _acks:
+                    ack = {"type": "ack", "timestamp": now_iso(), "data": {"status": "accepted"}}
+                    text = json.dumps(ack, separators=(",", ":")).encode()
+                    await _write(fd, encode_frame(OP_TEXT, text))
             elif message.opcode == OP_PING:
                 await _write(fd, encode_frame(OP_PONG, message.payload))
             elif message.opcode == OP_CLOSE:

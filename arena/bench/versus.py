@@ -16,6 +16,12 @@ one run.
 The floor is `shared/bench/floor_relay.py` (aiohttp on uvloop with orjson: parse and forward,
 nothing else), run with a Python that has those packages: `ARENA_FLOOR_PYTHON=PATH` (and
 `ARENA_FLOOR_SCRIPT=PATH` if the script is not at `../shared/bench/floor_relay.py`).
+
+Beside them runs the *contract floor*: `arena/bench/trio_floor.py --acks`, the floor written on
+trio that also acknowledges every command as Arena does (a read and two writes a command, the
+least the contract's messages cost on the loop Arena is built on). Its figures are
+`versus_contract_*`, and Arena's ratios to it `versus_ratio_contract_*`: what is left above it
+is Arena's own work (the safety machine, limits, the guard, joint states, the recording).
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ import os
 import socket
 import statistics
 import subprocess
+import sys
 import time
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
@@ -124,11 +131,16 @@ def _free_port() -> int:
         return int(probe.getsockname()[1])
 
 
+#: The contract floor: the trio floor that acknowledges every command.
+CONTRACT_FLOOR = Path(__file__).with_name("trio_floor.py")
+
+
 @asynccontextmanager
-async def running_floor(python: str, script: Path) -> AsyncIterator[Server]:
-    """The floor relay on 127.0.0.1, stopped on exit."""
+async def running_floor(python: str, script: Path, *options: str) -> AsyncIterator[Server]:
+    """The floor relay (given `options` after its port) on 127.0.0.1, stopped on exit."""
     port = _free_port()
-    process = subprocess.Popen([python, str(script), str(port)], stderr=subprocess.DEVNULL)
+    command = [python, str(script), str(port), *options]
+    process = subprocess.Popen(command, stderr=subprocess.DEVNULL)
     url = f"http://127.0.0.1:{port}"
     try:
         async with httpx.AsyncClient(base_url=url) as http:
@@ -170,7 +182,7 @@ async def versus_floor(rounds: int = 3, fleet_robots: int = 100, **sizes: int) -
             f"versus needs {FLOOR_PYTHON_ENV} (a Python with aiohttp, uvloop and orjson) and the "
             f"floor script ({FLOOR_SCRIPT_ENV}, default {_DEFAULT_FLOOR})"
         )
-    runs: dict[str, list[dict[str, float]]] = {"arena": [], "floor": []}
+    runs: dict[str, list[dict[str, float]]] = {"arena": [], "floor": [], "contract": []}
     for n in range(rounds):
         async with running_server() as arena:
             measured = await ordinary_relay(arena, f"versus-{n}", **sizes)
@@ -182,6 +194,10 @@ async def versus_floor(rounds: int = 3, fleet_robots: int = 100, **sizes: int) -
             # The floor keeps one slave per robot id, so one process serves both parts.
             measured.update(await fleet_per_core(floor, fleet_robots, acks=False))
         runs["floor"].append(measured)
+        async with running_floor(sys.executable, CONTRACT_FLOOR, "--acks") as contract:
+            measured = await ordinary_relay(contract, f"versus-{n}", **sizes)
+            measured.update(await fleet_per_core(contract, fleet_robots, acks=True))
+        runs["contract"].append(measured)
     results: dict[str, float] = {}
     for name, rounds_of in runs.items():
         for key in rounds_of[0]:
@@ -189,7 +205,7 @@ async def versus_floor(rounds: int = 3, fleet_robots: int = 100, **sizes: int) -
     for key in runs["arena"][0]:
         if key == "fleet_within_5ms":
             continue
-        results[f"versus_ratio_{key}"] = (
-            results[f"versus_arena_{key}"] / results[f"versus_floor_{key}"]
-        )
+        arena = results[f"versus_arena_{key}"]
+        results[f"versus_ratio_{key}"] = arena / results[f"versus_floor_{key}"]
+        results[f"versus_ratio_contract_{key}"] = arena / results[f"versus_contract_{key}"]
     return results
