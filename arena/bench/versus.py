@@ -205,7 +205,7 @@ async def versus_floor(rounds: int = 3, fleet_robots: int = 100, **sizes: int) -
     for key in runs["arena"][0]:
         if key == "fleet_within_5ms":
             continue
-        arena = results[f"versus_arena_{key}"]
-        results[f"versus_ratio_{key}"] = arena / results[f"versus_floor_{key}"]
-        results[f"versus_ratio_contract_{key}"] = arena / results[f"versus_contract_{key}"]
+        ours = results[f"versus_arena_{key}"]
+        results[f"versus_ratio_{key}"] = ours / results[f"versus_floor_{key}"]
+        results[f"versus_ratio_contract_{key}"] = ours / results[f"versus_contract_{key}"]
     return results
