@@ -10,6 +10,7 @@ import subprocess
 import sys
 import sysconfig
 import tarfile
+import time
 import zipfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -136,7 +137,12 @@ def test_the_installed_wheel_serves_ui_docs_and_the_demo_robot_without_the_check
         source = ROOT / "arena" / "robot_types" / "so-arm100" / "meshes" / "Base.stl"
         assert mesh.content == source.read_bytes()
         assert httpx.get(f"{served.url}/readyz", timeout=10).status_code == 200
-    assert list((tmp_path / "recordings").glob("*.mcap"))  # recorded where it was started
+        # Recorded where it was started: the first batch (within a quarter second) opens the
+        # file; the server is killed at the end of this block, so wait for it here.
+        deadline = time.monotonic() + 60
+        while not list((tmp_path / "recordings").glob("*.mcap")):
+            assert time.monotonic() < deadline, "no recording in the folder it was started in"
+            time.sleep(0.05)
 
 
 def test_arena_serve_starts_without_importing_any_extra(installed: Path, tmp_path: Path) -> None:
