@@ -232,3 +232,21 @@ def test_calibration_reads_again_while_servos_are_late_then_says_which() -> None
         terminal.read_patiently(silent, ids)  # type: ignore[arg-type]
     assert error.value.code is ErrorCode.SERVO_TIMEOUT and "[1, 2, 3]" in error.value.message
     assert silent.reads == terminal.READ_ATTEMPTS
+
+
+def test_the_bus_commands_help_names_the_robot_types(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # A type added from files alone is offered too.
+    own = tmp_path / "my-arm"
+    own.mkdir()
+    (own / "robot.toml").write_text("")
+    monkeypatch.setenv("ARENA_ROBOT_TYPES", str(tmp_path))
+    monkeypatch.setenv("COLUMNS", "300")  # no line breaks inside a name
+    from arena.cli import main
+
+    for command in ("sim-bus", "calibrate"):
+        with pytest.raises(SystemExit):
+            main([command, "--help"])
+        shown = " ".join(capsys.readouterr().out.split())
+        assert "koch, my-arm, so-101, so-arm100 (default so-arm100" in shown, command

@@ -22,7 +22,9 @@ def add(commands: Commands) -> None:
         default=None,
         help="servo ids, comma-separated (default: the type's)",
     )
-    sim_bus.add_argument("--robot-type", default="so-arm100", help="whose servos to simulate")
+    sim_bus.add_argument(
+        "--robot-type", default="so-arm100", help=f"whose servos to simulate: {_types()}"
+    )
     sim_bus.add_argument(
         "--wire-time", action="store_true", help="answer as slowly as a real wire at --baud"
     )
@@ -31,7 +33,7 @@ def add(commands: Commands) -> None:
     calibrate = commands.add_parser("calibrate", help="calibrate an arm on a servo bus")
     calibrate.add_argument("--port", help="serial port (default: find the adapter by USB id)")
     calibrate.add_argument("--baud", type=int, default=None, help="(default: the type's)")
-    calibrate.add_argument("--robot-type", default="so-arm100")
+    calibrate.add_argument("--robot-type", default="so-arm100", help=f"the arm's type: {_types()}")
     calibrate.add_argument(
         "--out", default="calibration/robot.json", help="calibration file to write"
     )
@@ -45,6 +47,13 @@ def add(commands: Commands) -> None:
         help="file format: Arena's, or LeRobot's (read by LeRobot and by Arena)",
     )
     calibrate.set_defaults(handler=calibrate_command)
+
+
+def _types() -> str:
+    """The robot types there are, for a `--robot-type` help line."""
+    from arena.robot.model import TYPES_PATH_ENV, list_robot_types
+
+    return f"{', '.join(list_robot_types())} (default so-arm100; more from ${TYPES_PATH_ENV})"
 
 
 def servo_ids(text: str) -> tuple[int, ...]:
