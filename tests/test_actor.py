@@ -527,10 +527,12 @@ async def test_a_slave_whose_hardware_drops_out_shows_it_and_says_why(
         await link.connection_lost("bus unplugged")
         await trio.testing.wait_all_tasks_blocked()
         assert robot.snapshot().slaves[0].connected is False
+        assert robot.snapshot().slaves[0].last_error == "SLAVE_LOST: bus unplugged"
         await link.connection_restored()
         await trio.testing.wait_all_tasks_blocked()
         seen = events.drain()
     assert robot.snapshot().slaves[0].connected is True
+    assert robot.snapshot().slaves[0].last_error is None  # the loss is over: no error shown
     assert [(e.peer_id, e.change, e.reason) for e in seen] == [
         ("s1", "disconnected", "bus unplugged"),
         ("s1", "reconnected", "reconnected"),
