@@ -329,6 +329,21 @@ async def test_what_the_robot_cannot_run_is_refused(
     assert server.app.manager.get("demo-arm").snapshot().master is None
 
 
+async def test_a_relative_path_is_the_servers_and_a_refusal_names_it_in_full(
+    start_server: Start, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The folder is on the server's machine: a relative path is taken from the folder the
+    # server was started in, and the answer says which folder that was.
+    monkeypatch.chdir(tmp_path)
+    server = await start_server(demo=True)
+    answer = await attach(server, Path("policies/act"))
+    assert answer.status_code == 422, answer.text
+    error = answer.json()["error"]
+    assert error["code"] == "POLICY_INVALID", error
+    assert error["message"].startswith(f"{tmp_path / 'policies' / 'act'}: "), error
+    assert workers() == []
+
+
 @pytest.mark.parametrize(
     ("broken", "said"),
     [

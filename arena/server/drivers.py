@@ -231,7 +231,9 @@ def _policy(
             f"A policy master needs LeRobot, which is not installed: {install_line('lerobot')}",
         )
     settings = PolicySettings(
-        path=Path(body.path),
+        # On the server's machine: a relative path from the folder the server started in,
+        # made whole here so that every answer and log line names the folder it means.
+        path=Path(body.path).expanduser().absolute(),
         task=body.task,
         fps=body.fps,
         actions_per_chunk=body.actions_per_chunk,
