@@ -84,6 +84,9 @@ def test_calibrate_interactively(
     assert elbow.max_degrees == pytest.approx(700 * 360 / 4096, abs=0.01)
     assert result.joints["Jaw"].min_degrees is None
     assert any("Saved" in line for line in said)
+    # Only the elbow was swept: the others are named as not moved.
+    warning = next(line for line in said if line.startswith("Warning"))
+    assert "Rotation, Pitch, Wrist_Pitch, Wrist_Roll, Jaw." in warning
 
 
 def test_sim_bus_and_calibrate_commands(tmp_path: Path) -> None:

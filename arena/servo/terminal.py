@@ -34,6 +34,10 @@ def read_patiently(
     return read_positions(bus, ids)
 
 
+#: A joint swept less than this during calibration was most likely not moved at all.
+LEAST_SWEEP_DEGREES = 10.0
+
+
 def calibrate_interactively(
     bus: ServoBus,
     servo_ids: Mapping[str, int],
@@ -102,6 +106,19 @@ def calibrate_interactively(
             else "   (no range captured)"
         )
         say(f"  {name:<12} servo {joint.servo_id}  offset {joint.offset:+5d}  {span}")
+    still = [
+        name
+        for name, joint in calibration.joints.items()
+        if joint.min_degrees is None
+        or joint.max_degrees is None
+        or joint.max_degrees - joint.min_degrees < LEAST_SWEEP_DEGREES
+    ]
+    if still:
+        say(
+            f"Warning: not moved through a range ({LEAST_SWEEP_DEGREES:g} degrees or more): "
+            f"{', '.join(still)}. Was every joint moved from one end to the other? Run the "
+            "calibration again to capture their ranges."
+        )
     say("Torque stays off until a server drives the arm.")
     return calibration
 
