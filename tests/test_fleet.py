@@ -302,6 +302,35 @@ async def test_a_fleet_estop_names_the_node_that_did_not_answer_in_time(
     await eventually(_estopped(b, {"b-0"}))
 
 
+async def test_asking_one_node_passes_on_its_refusal_and_names_it_when_it_is_silent(
+    start_server: Start, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    a, b = await start_fleet(start_server, ["a", "b"])
+    assert "version" in await a.app.fleet.ask("b", "info")
+    # A refusal comes back as the answering node said it: its code and its sentence.
+    monkeypatch.delitem(b.app.fleet.services, "http")
+    with pytest.raises(ArenaError) as refused:
+        await a.app.fleet.ask("b", "http")
+    assert refused.value.code is ErrorCode.NOT_FOUND
+    assert refused.value.message == "Node b offers no http."
+    # A node that answers after the asker's own timeout did not answer: the asker gives up
+    # at its timeout (0.3 s), not at the default (1 s), before b answers (0.8 s after it was
+    # asked, from b's side, so always after the asker's deadline).
+    answered = trio.Event()
+
+    async def slow(payload: bytes) -> Any:
+        await trio.sleep(0.8)
+        answered.set()
+        return "late"
+
+    monkeypatch.setitem(b.app.fleet.services, "info", slow)
+    with pytest.raises(ArenaError) as silent:
+        await a.app.fleet.ask("b", "info", timeout=0.3)
+    assert silent.value.code is ErrorCode.NODE_LOST
+    assert silent.value.message == "Node 'b' did not answer."
+    await answered.wait()  # b did answer, too late
+
+
 def _estopped(node: RunningServer, robots: set[str]) -> Callable[[], Awaitable[bool]]:
     """A check: these robots of `node` are e-stopped."""
 
