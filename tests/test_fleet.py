@@ -331,6 +331,55 @@ async def test_asking_one_node_passes_on_its_refusal_and_names_it_when_it_is_sil
     await answered.wait()  # b did answer, too late
 
 
+async def test_a_garbled_answer_from_a_stranger_on_the_fleet_is_passed_over(
+    start_server: Start, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Anyone who reaches the fleet's Zenoh network can answer its queries: an answer that is
+    # not JSON, or an error (which Arena's nodes never send: a refusal is an answer carrying
+    # `error`), is left out, and the nodes' answers still come back.
+    import zenoh
+
+    from arena.fleet import keys
+
+    a, b = await start_fleet(start_server, ["a", "b"])
+    info = b.app.fleet.services["info"]
+
+    async def unhurried(payload: bytes) -> Any:  # b answers after the strangers have
+        await trio.sleep(0.2)
+        return await info(payload)
+
+    monkeypatch.setitem(b.app.fleet.services, "info", unhurried)
+    config = zenoh.Config()
+    config.insert_json5("mode", '"peer"')
+    config.insert_json5("connect/endpoints", json.dumps(await a.app.fleet.locators()))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    session = await trio.to_thread.run_sync(zenoh.open, config)
+    asked = trio.Event()
+    token = trio.lowlevel.current_trio_token()
+    rogue = keys.service(a.app.fleet.fleet, "rogue", "info")
+    failing = keys.service(a.app.fleet.fleet, "failing", "info")
+
+    def answer(query: Any) -> None:
+        query.reply(rogue, b"\xff not json")
+        token.run_sync_soon(asked.set)
+
+    queryables = [
+        session.declare_queryable(rogue, answer),
+        session.declare_queryable(failing, lambda query: query.reply_err(b"no")),
+    ]
+    try:
+
+        async def heard() -> bool:  # the stranger's queryable is known to the asker
+            answers = await a.app.fleet.ask_all("info")
+            return asked.is_set() and set(answers) == {"a", "b"}
+
+        await eventually(heard)
+    finally:
+        for queryable in queryables:
+            queryable.undeclare()
+        await trio.to_thread.run_sync(session.close)
+
+
 def _estopped(node: RunningServer, robots: set[str]) -> Callable[[], Awaitable[bool]]:
     """A check: these robots of `node` are e-stopped."""
 
