@@ -302,6 +302,84 @@ async def test_a_fleet_estop_names_the_node_that_did_not_answer_in_time(
     await eventually(_estopped(b, {"b-0"}))
 
 
+async def test_asking_one_node_passes_on_its_refusal_and_names_it_when_it_is_silent(
+    start_server: Start, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    a, b = await start_fleet(start_server, ["a", "b"])
+    assert "version" in await a.app.fleet.ask("b", "info")
+    # A refusal comes back as the answering node said it: its code and its sentence.
+    monkeypatch.delitem(b.app.fleet.services, "http")
+    with pytest.raises(ArenaError) as refused:
+        await a.app.fleet.ask("b", "http")
+    assert refused.value.code is ErrorCode.NOT_FOUND
+    assert refused.value.message == "Node b offers no http."
+    # A node that answers after the asker's own timeout did not answer: the asker gives up
+    # at its timeout (0.3 s), not at the default (1 s), before b answers (0.8 s after it was
+    # asked, from b's side, so always after the asker's deadline).
+    answered = trio.Event()
+
+    async def slow(payload: bytes) -> Any:
+        await trio.sleep(0.8)
+        answered.set()
+        return "late"
+
+    monkeypatch.setitem(b.app.fleet.services, "info", slow)
+    with pytest.raises(ArenaError) as silent:
+        await a.app.fleet.ask("b", "info", timeout=0.3)
+    assert silent.value.code is ErrorCode.NODE_LOST
+    assert silent.value.message == "Node 'b' did not answer."
+    await answered.wait()  # b did answer, too late
+
+
+async def test_a_garbled_answer_from_a_stranger_on_the_fleet_is_passed_over(
+    start_server: Start, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Anyone who reaches the fleet's Zenoh network can answer its queries: an answer that is
+    # not JSON, or an error (which Arena's nodes never send: a refusal is an answer carrying
+    # `error`), is left out, and the nodes' answers still come back.
+    import zenoh
+
+    from arena.fleet import keys
+
+    a, b = await start_fleet(start_server, ["a", "b"])
+    info = b.app.fleet.services["info"]
+
+    async def unhurried(payload: bytes) -> Any:  # b answers after the strangers have
+        await trio.sleep(0.2)
+        return await info(payload)
+
+    monkeypatch.setitem(b.app.fleet.services, "info", unhurried)
+    config = zenoh.Config()
+    config.insert_json5("mode", '"peer"')
+    config.insert_json5("connect/endpoints", json.dumps(await a.app.fleet.locators()))
+    config.insert_json5("scouting/multicast/enabled", "false")
+    session = await trio.to_thread.run_sync(zenoh.open, config)
+    asked = trio.Event()
+    token = trio.lowlevel.current_trio_token()
+    rogue = keys.service(a.app.fleet.fleet, "rogue", "info")
+    failing = keys.service(a.app.fleet.fleet, "failing", "info")
+
+    def answer(query: Any) -> None:
+        query.reply(rogue, b"\xff not json")
+        token.run_sync_soon(asked.set)
+
+    queryables = [
+        session.declare_queryable(rogue, answer),
+        session.declare_queryable(failing, lambda query: query.reply_err(b"no")),
+    ]
+    try:
+
+        async def heard() -> bool:  # the stranger's queryable is known to the asker
+            answers = await a.app.fleet.ask_all("info")
+            return asked.is_set() and set(answers) == {"a", "b"}
+
+        await eventually(heard)
+    finally:
+        for queryable in queryables:
+            queryable.undeclare()
+        await trio.to_thread.run_sync(session.close)
+
+
 def _estopped(node: RunningServer, robots: set[str]) -> Callable[[], Awaitable[bool]]:
     """A check: these robots of `node` are e-stopped."""
 

@@ -11,7 +11,7 @@ import pytest
 import scservo_sdk as sdk
 
 from arena.feetech import registers as reg
-from arena.feetech.bus import FeetechBus
+from arena.feetech.bus import FEETECH, FeetechBus
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.servo.sim_pty import PtySimBus
 from tests.hardware import open_test_bus, running_sim
@@ -104,3 +104,15 @@ def test_writes_and_the_eeprom_lock(sim: PtySimBus, bus: FeetechBus) -> None:
     bus.ping(6)  # no answer to a broadcast: a ping after it says the bus has handled it
     with sim.paused() as simulated:
         assert all(s.peek(reg.TORQUE_ENABLE) == 1 for s in simulated.servos.values())
+
+
+@pytest.mark.parametrize("family_name", ["feetech", "dynamixel"])
+def test_an_arms_own_bus_is_its_familys_on_its_port_at_its_rate(family_name: str) -> None:
+    # What a `usb-slave` opens when nothing replaces its bus (a real arm), not yet opened.
+    from arena.drivers.servo_arm import open_family_bus
+    from arena.dynamixel.bus import DYNAMIXEL, DynamixelBus
+
+    family, kind = (FEETECH, FeetechBus) if family_name == "feetech" else (DYNAMIXEL, DynamixelBus)
+    bus = open_family_bus(family, "/dev/ttyACM7", 57_600)
+    assert type(bus) is kind
+    assert (bus.port_name, bus.baud) == ("/dev/ttyACM7", 57_600)
