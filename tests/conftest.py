@@ -6,8 +6,9 @@ import functools
 import importlib
 import inspect
 import os
+import struct
 import subprocess
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import ModuleType
@@ -44,6 +45,17 @@ def missing(reason: str) -> NoReturn:
     if IN_CI:
         pytest.fail(f"{where}: in CI, nothing may be missing: {reason}", pytrace=False)
     pytest.skip(f"{where}: {reason}", allow_module_level=True)
+
+
+def write_stl(path: Path, points: Sequence[Sequence[float]]) -> None:
+    """A binary STL whose triangles run through `points`, three at a time (the last point
+    repeated to fill the last triangle); normals zero, as mesh readers recompute them."""
+    points = [*points] + [points[-1]] * (-len(points) % 3)
+    data = bytearray(80) + struct.pack("<I", len(points) // 3)
+    for n in range(0, len(points), 3):
+        corners = [float(c) for point in points[n : n + 3] for c in point]
+        data += struct.pack("<12fH", 0.0, 0.0, 0.0, *corners, 0)
+    path.write_bytes(bytes(data))
 
 
 def need(module: str, extra: str) -> ModuleType:

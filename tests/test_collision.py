@@ -7,7 +7,6 @@ import dataclasses
 import itertools
 import json
 import math
-import struct
 from pathlib import Path
 from typing import Any
 
@@ -35,7 +34,7 @@ from arena.robot.meshes import link_vertices
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
 from arena.robot.workspace import Box, Workspace, workspace_from_json, workspace_to_json
-from tests.conftest import RunningServer
+from tests.conftest import RunningServer, write_stl
 from tests.scenarios import record_scenario
 
 MODEL = load_robot_model("so-arm100")
@@ -121,16 +120,6 @@ def test_the_so_arm100s_capsules_are_the_ones_its_guard_was_set_against() -> Non
         assert a == pytest.approx(want_a, abs=2e-6), link
         assert b == pytest.approx(want_b, abs=2e-6), link
         assert radius == pytest.approx(want_radius, abs=2e-6), link
-
-
-def write_stl(path: Path, points: list[np.ndarray]) -> None:
-    """A binary STL whose triangles run through `points` (three at a time)."""
-    points = points + points[-1:] * (-len(points) % 3)
-    data = bytearray(80) + struct.pack("<I", len(points) // 3)
-    for n in range(0, len(points), 3):
-        data += struct.pack("<3f", 0, 0, 0)
-        data += b"".join(struct.pack("<3f", *p) for p in points[n : n + 3]) + b"\0\0"
-    path.write_bytes(bytes(data))
 
 
 def test_a_link_as_wide_as_it_is_long_is_held_by_a_ball_about_its_middle(tmp_path: Path) -> None:

@@ -4,7 +4,6 @@ driven through a real server on its simulated bus, as specs/robot-model.md tells
 
 from __future__ import annotations
 
-import struct
 from collections.abc import Awaitable, Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -12,7 +11,7 @@ from typing import Any
 import pytest
 
 from arena.servo.sim_pty import PtySimBus
-from tests.conftest import RunningServer
+from tests.conftest import RunningServer, write_stl
 from tests.hardware import eventually, running_sim
 
 pytest.importorskip("dynamixel_sdk")
@@ -87,12 +86,8 @@ def write_block_stl(path: Path, size: float = 0.04) -> None:
     h = size / 2
     corners = [(x, y, z) for x in (-h, h) for y in (-h, h) for z in (-h, h)]
     faces = [(0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)]
-    data = bytearray(b"block".ljust(80, b" ")) + struct.pack("<I", 12)
-    for a, b, c, d in faces:
-        for tri in ((a, b, c), (a, c, d)):
-            points = [coordinate for index in tri for coordinate in corners[index]]
-            data += struct.pack("<12fH", 0.0, 0.0, 0.0, *points, 0)
-    path.write_bytes(bytes(data))
+    triangles = [(a, b, c, a, c, d) for a, b, c, d in faces]
+    write_stl(path, [corners[index] for corner_indices in triangles for index in corner_indices])
 
 
 @pytest.fixture
