@@ -340,15 +340,15 @@ async def test_a_relative_path_is_the_servers_and_a_refusal_names_it_in_full(
     assert answer.status_code == 422, answer.text
     error = answer.json()["error"]
     assert error["code"] == "POLICY_INVALID", error
-    assert error["message"].startswith(f"{tmp_path / 'policies' / 'act'}: "), error
+    assert error["message"] == f"{tmp_path / 'policies' / 'act'}: not a directory.", error
     assert workers() == []
 
 
 @pytest.mark.parametrize(
     ("broken", "said"),
     [
-        ("missing", "is not a directory"),
-        ("empty", "has no config.json"),
+        ("missing", ": not a directory."),
+        ("empty", ": no config.json in it"),
         ("config", "config.json is not a LeRobot policy config"),
         ("class-step", "step 0 is not one of LeRobot's registered steps"),
     ],

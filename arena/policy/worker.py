@@ -58,12 +58,13 @@ def checkpoint_of(weights: Path) -> str:
 
 def check_directory(path: Path) -> None:
     """Refuse a directory that is not a saved LeRobot 0.4 policy, or whose processors would
-    import a class by name; the message names the file and the problem."""
+    import a class by name; the message names the file and the problem (the server puts the
+    directory in front of it)."""
     if not path.is_dir():
-        raise PolicyDirectoryError(f"{path} is not a directory")
+        raise PolicyDirectoryError("not a directory")
     for name in ("config.json", "model.safetensors", *PROCESSOR_FILES):
         if not (path / name).is_file():
-            raise PolicyDirectoryError(f"{path} has no {name} (a LeRobot 0.4 policy has)")
+            raise PolicyDirectoryError(f"no {name} in it (a LeRobot 0.4 policy has one)")
     for name in PROCESSOR_FILES:
         try:
             pipeline = json.loads((path / name).read_text(encoding="utf-8"))
