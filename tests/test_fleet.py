@@ -316,7 +316,8 @@ async def test_asking_one_node_passes_on_its_refusal_and_names_it_when_it_is_sil
     assert refused.value.message == "Node b offers no http."
     # A node that answers after the asker's own timeout did not answer: the asker gives up
     # at its timeout (0.3 s), not at the default (1 s), before b answers (0.8 s after it was
-    # asked, from b's side, so always after the asker's deadline).
+    # asked, from b's side, so always after the asker's deadline: a slow machine only makes
+    # b later; the real-time wait separates the two timeouts, it decides nothing else).
     answered = trio.Event()
 
     async def slow(payload: bytes) -> Any:
