@@ -120,11 +120,15 @@ def test_a_peers_change_and_snapshot_say_what_it_is() -> None:
         "seq", "master", "mock-sequence", True, None, False, "d"
     )
     arm = slave("arm")
-    arm.connected, arm.last_error = False, "slave_lost: unplugged"
+    arm.last_error = "SERVO_OVERHEAT: servo 3 at 70 C"  # a fault it reported
+    arm.connected, arm.out_of_reach = False, "unplugged"
     assert arm.changed("r", "disconnected", "unplugged", 1.0, 2.0).role == "slave"
+    # While out of reach, that is its error; back in reach, the fault shows again.
     assert arm.snapshot(joining=True) == PeerSnapshot(
-        "arm", "slave", "mock-slave", False, "slave_lost: unplugged", True, ""
+        "arm", "slave", "mock-slave", False, "SLAVE_LOST: unplugged", True, ""
     )
+    arm.connected = True
+    assert arm.snapshot().last_error == "SERVO_OVERHEAT: servo 3 at 70 C"
 
 
 async def test_the_idle_turn_is_taken_only_while_open_and_before_the_waiters_timer(

@@ -282,13 +282,9 @@ class Actor:
         )
         self._peer_changed(peer, change, message.reason, now)
         if not message.connected:
-            peer.last_error = f"{ErrorCode.SLAVE_LOST}: {message.reason}"
+            peer.out_of_reach = message.reason  # shown as its error while it lasts
             self.apply(safety.SlaveLost(peer.peer_id, message.reason), now, cause=message.reason)
         else:
-            if peer.last_error is not None and peer.last_error.startswith(
-                f"{ErrorCode.SLAVE_LOST}:"
-            ):
-                peer.last_error = None  # the loss is over; a fault it reported stays shown
             self.core.slave_rejoins(peer.peer_id)  # its arm may have been moved meanwhile
 
     def _on_rejoin(self, message: inbox.RejoinMsg, now: float) -> None:

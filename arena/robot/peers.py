@@ -22,6 +22,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Generic, TypeVar
 
+from arena.protocol.errors import ErrorCode
 from arena.robot.events import PeerChanged
 from arena.robot.snapshot import PeerSnapshot
 
@@ -62,8 +63,11 @@ class Peer(Generic[L]):
         """The peer as `RobotSnapshot` shows it."""
         connected = self.connected if isinstance(self, SlavePeer) else True
         description = self.description if isinstance(self, MasterPeer) else ""
+        error = self.last_error
+        if isinstance(self, SlavePeer) and not self.connected:  # the loss, while it lasts
+            error = f"{ErrorCode.SLAVE_LOST}: {self.out_of_reach}"
         return PeerSnapshot(
-            self.peer_id, self.role, self.kind, connected, self.last_error, joining, description
+            self.peer_id, self.role, self.kind, connected, error, joining, description
         )
 
 
@@ -82,6 +86,7 @@ class SlavePeer(Peer[L]):
 
     role: ClassVar[str] = "slave"
     connected: bool = True  # False while the hardware behind it is out of reach
+    out_of_reach: str = ""  # why it last went out of reach
     real: dict[str, float] = field(default_factory=dict)  # its newest measured values
 
 
