@@ -9,10 +9,8 @@ control, and the chunk is closed and handed to the OS at least every `flush_inte
 bounds what a crash or a power cut can take. By default the two are the same quarter second:
 one hand-off, one flush. Each hand-off wakes a thread, the writer process and the loop again,
 and the writer pauses its work every few events to let anything waiting run, so fewer, larger
-batches cost less than many small ones: against batches every 0.05 s, one every 0.25 s took
-the relay's p99 one command at a time from 534 to 449 us and its CPU a command from 109 to
-103 us (8 rounds), and a fleet of 100 robots at 50 Hz from 70-76 % of a core to 67-72 % with a
-lower p99 in every round (specs/performance.md).
+batches cost less than many small ones, in CPU and in the relay's tail (the figures are in
+specs/performance.md, "Recording").
 """
 
 from __future__ import annotations
