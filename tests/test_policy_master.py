@@ -365,7 +365,7 @@ async def test_a_worker_process_that_never_answers_is_stopped_and_refused(
     assert refused.value.code is ErrorCode.POLICY_NOT_READY
     assert trio.current_time() - began >= LOAD_TIMEOUT
     (process,) = started
-    assert await process.process.wait() == -9 and process not in PolicyProcess.live
+    assert await process.child.process.wait() == -9 and process not in PolicyProcess.live
 
 
 async def test_a_worker_that_exits_while_loading_is_refused_saying_so() -> None:

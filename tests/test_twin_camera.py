@@ -20,6 +20,7 @@ from trio_websocket import open_websocket_url
 from arena import cli
 from arena.recording import images
 from arena.recording.mcap_file import read_recording
+from arena.sensors import capture
 from tests.conftest import RunningServer, eventually, missing, need
 from tests.test_cameras import jpeg_rgb
 
@@ -168,18 +169,26 @@ async def test_a_twin_camera_needs_a_physics_slave(
 async def test_a_twin_camera_where_mujoco_cannot_render_is_refused(
     start_server: Callable[..., Awaitable[RunningServer]], monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import mujoco.gl_context
-
-    def no_gl(*args: Any) -> None:
-        raise RuntimeError("Failed to create OSMesa GL context.")
-
+    # Every backend fails to start in the capture process: MUJOCO_GL's and the headless ones.
+    monkeypatch.setattr(capture, "_working_gl", None)
+    monkeypatch.setattr(capture, "GL_BACKENDS", ("nogl",))
+    monkeypatch.setenv("MUJOCO_GL", "nosuchgl")
     server = await start_server()
     async with server.client() as http:
         await http.post("/api/robots", json={"id": "twin-arm", "robot_type": "so-arm100"})
         assert (await http.post(f"{BASE}/slaves", json={"type": "physics-slave"})).is_success
-        monkeypatch.setattr(mujoco.gl_context, "GLContext", no_gl)
         refused = await http.post(f"{BASE}/cameras", json={"name": "front", "source": "twin"})
         error = refused.json()["error"]
         assert (refused.status_code, error["code"]) == (422, "CAMERA_FAILED")
-        assert "OSMesa GL context" in error["message"] and "libosmesa6" in error["message"]
+        message = error["message"]
+        assert "nosuchgl: invalid value" in message and "nogl: invalid value" in message
+        assert "libosmesa6" in message
         assert (await http.get(f"{BASE}/cameras")).json() == {"cameras": []}
+
+        # MUJOCO_GL naming a backend this machine lacks: the next that works is found and kept
+        monkeypatch.setattr(capture, "GL_BACKENDS", ("nogl", "egl", "osmesa"))
+        made = await http.post(f"{BASE}/cameras", json={"name": "front", "source": "twin"})
+        assert made.status_code == 201, made.text
+        assert capture.gl_candidates() in (["egl"], ["osmesa"])
+        camera = server.app.cameras.get("twin-arm", "front")
+        await eventually(lambda: camera.frames > 0, what="a frame rendered")

@@ -29,6 +29,7 @@ MAX_LINES = 600
 RANKS: dict[str, int] = {
     "protocol": 0,
     "arena": 1,  # arena/__init__.py: the version
+    "child": 1,  # the helper processes' pipes (a policy's worker, a camera's capture)
     "extras": 1,
     "robot": 1,
     "client": 1,

@@ -1,94 +1,109 @@
-"""The physics twin as a camera: a frame source (`arena.sensors.sources.FrameSource`) that draws
-the MuJoCo scene of a robot's physics slave, the arm at the pose the twin has reached.
+"""The physics twin as a camera: the MuJoCo scene of a robot's physics slave, drawn with the arm
+at the pose the twin has reached.
 
-It runs in the camera's capture thread, never on trio's: a frame costs ~130 ms of CPU at 96x96
-(OSMesa rasterises the meshes), so cameras of the twin are small and slow (specs/physics.md).
-MuJoCo's renderer is not thread-safe, and the twin steps in threads of its own, so the source
-shares nothing mutable with them: it renders its own copy of the model, into its own `MjData`,
-from a copy of the pose the slave publishes under its lock after each batch of steps
-(`PhysicsSlave.pose`). Its GL context is made and used in the capture thread only.
+It renders in a capture process of its own (`arena.sensors.capture`), never in the server: a
+frame costs ~130 ms of CPU at 96x96 (OSMesa rasterises the meshes), and OpenGL runs native code
+that can hang holding its interpreter's lock. The server sends the compiled model once (MuJoCo's
+binary MJB) and, before each frame, the pose the slave published under its lock after its last
+batch of steps (`PhysicsSlave.pose`); the child draws it with its own model and `MjData`, on an
+OpenGL backend the server found to work there (EGL or OSMesa, with no display).
 """
 
 from __future__ import annotations
 
-import copy
+import tempfile
 import time
+from dataclasses import asdict
 from typing import Any
 
+import numpy as np
+
 from arena.drivers.physics import PhysicsSlave, View
+from arena.sensors.capture import GLUnavailable, Recipe
 from arena.sensors.sources import JpegEncoder
 
 
-class TwinCamera:
-    """Frames of `slave`'s scene as `view` sees it, `width` x `height` JPEG at `fps`."""
+def twin_recipe(
+    slave: PhysicsSlave, width: int, height: int, fps: int, view: View | None = None
+) -> Recipe:
+    """How a capture process draws `slave`'s scene as `view` sees it; `OSError` when the twin
+    is not running."""
+    simulation = slave.simulation
+    if simulation is None or not slave.running:
+        raise OSError("the physics twin is not running")
+    import mujoco
 
-    paced = True  # renders on demand: the capture thread keeps the rate
+    model = simulation.model
+    blob = np.empty(mujoco.mj_sizeModel(model), np.uint8)
+    mujoco.mj_saveModel(model, None, blob)
+
+    def pose() -> bytes:
+        found = slave.pose()
+        if found is None or not slave.running:
+            raise OSError("the physics twin stopped")
+        values = np.concatenate([found.qpos, np.ravel(found.mocap_pos)]).astype("<f8")
+        return bytes(values.tobytes())
+
+    params = {"width": width, "height": height, "fps": fps, "view": asdict(view or View())}
+    return Recipe(
+        "arena.drivers.twin_camera:TwinRenderer", params, blob.tobytes(), feed=pose, gl=True
+    )
+
+
+class TwinRenderer:
+    """In the capture process: the scene of the model in `blob` at the pose last fed, as
+    `width` x `height` JPEG. Raises `GLUnavailable` when OpenGL cannot start here."""
+
+    paced = True  # renders on demand: the server keeps the rate
 
     def __init__(
-        self, slave: PhysicsSlave, width: int, height: int, fps: int, view: View | None = None
+        self, blob: bytes, width: int, height: int, fps: int, view: dict[str, Any]
     ) -> None:
-        simulation = slave.simulation
-        if simulation is None or not slave.running:
-            raise OSError("the physics twin is not running")
-        import mujoco
-
+        try:  # MUJOCO_GL names a backend MuJoCo loads at import
+            import mujoco
+        except ModuleNotFoundError:
+            raise
+        except Exception as exc:  # a backend's libraries missing or broken
+            raise GLUnavailable(str(exc) or type(exc).__name__) from None
         self._mj = mujoco
-        self._slave = slave
-        self._model = copy.copy(simulation.model)  # our own: the stepping thread keeps its
+        with tempfile.NamedTemporaryFile(suffix=".mjb") as file:
+            file.write(blob)
+            file.flush()
+            self._model = mujoco.MjModel.from_binary_path(file.name)
         # MuJoCo renders off-screen into a buffer the model sizes: make room for this camera.
         size = self._model.vis.global_
         size.offwidth, size.offheight = max(size.offwidth, width), max(size.offheight, height)
         self._data = mujoco.MjData(self._model)
-        self._size = width, height
-        #: When the last frame's pose was read (`perf_counter`): the camera dates it so.
-        self.exposed: float | None = None
-        self._renderer: Any = None  # made in the capture thread, on the first frame
-        view = view or View()
-        self._camera = mujoco.MjvCamera()
-        self._camera.lookat[:] = view.lookat
-        self._camera.distance = view.distance
-        self._camera.azimuth, self._camera.elevation = view.azimuth, view.elevation
-        # Can MuJoCo render here at all (a GL to render with: OSMesa with no display)? Asked
-        # now, so that attaching the camera fails, not its first frame. A bare GL context (a
-        # few ms), freed in this thread, where it was made: a whole renderer would upload the
-        # meshes too, holding Python's GIL for ~80 ms.
         try:
-            import mujoco.gl_context
-
-            context = mujoco.gl_context.GLContext(width, height)
-            context.make_current()
-            context.free()
+            self._renderer = mujoco.Renderer(self._model, height=height, width=width)
         except Exception as exc:  # mujoco's GL backends raise what they like
-            raise OSError(
-                f"MuJoCo cannot render headless ({exc}): install Debian's libosmesa6, or set "
-                "MUJOCO_GL to a backend this machine has"
-            ) from None
+            raise GLUnavailable(str(exc) or type(exc).__name__) from None
+        self._camera = mujoco.MjvCamera()
+        self._camera.lookat[:] = view["lookat"]
+        self._camera.distance = view["distance"]
+        self._camera.azimuth, self._camera.elevation = view["azimuth"], view["elevation"]
         self._encoder = JpegEncoder(width, height, fps)
+        #: When the pose last fed arrived (`perf_counter`): the frame shows the arm then.
+        self.exposed: float | None = None
 
-    def render(self) -> Any:
-        """The scene now, an (height, width, 3) uint8 RGB array; raises `OSError` once the twin
-        has stopped (detached), so the camera reports it and retries."""
-        self.exposed = time.perf_counter()  # the frame shows the arm as it is now
-        pose = self._slave.pose()
-        if pose is None or not self._slave.running:
-            raise OSError("the physics twin stopped")
-        if self._renderer is None:
-            width, height = self._size
-            self._renderer = self._mj.Renderer(self._model, height=height, width=width)
-        self._data.qpos[:] = pose.qpos
-        self._data.mocap_pos[:] = pose.mocap_pos
+    def feed(self, pose: bytes) -> None:
+        """Where the arm is (`qpos`, then the markers' `mocap_pos`), as little-endian doubles."""
+        values = np.frombuffer(pose, "<f8")
+        count = self._model.nq
+        if values.size != count + 3 * self._model.nmocap:
+            raise OSError(f"a pose of {values.size} numbers for a model of {count} positions")
+        self._data.qpos[:] = values[:count]
+        self._data.mocap_pos[:] = values[count:].reshape(-1, 3)
+        self.exposed = time.perf_counter()
+
+    def read(self) -> bytes:
+        """The scene at the pose last fed, as JPEG."""
         # Only what drawing needs: where the bodies, geoms and lights are for this qpos.
         self._mj.mj_kinematics(self._model, self._data)
         self._mj.mj_camlight(self._model, self._data)
         self._renderer.update_scene(self._data, camera=self._camera)
-        return self._renderer.render()
-
-    def read(self) -> bytes:
-        """The next frame as JPEG."""
-        return self._encoder.encode_rgb(self.render())
+        return self._encoder.encode_rgb(self._renderer.render())
 
     def close(self) -> None:
-        """Free the renderer's GL context (in the capture thread, which made it)."""
-        if self._renderer is not None:
-            self._renderer.close()
-            self._renderer = None
+        """Free the renderer's GL context."""
+        self._renderer.close()

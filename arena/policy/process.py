@@ -8,9 +8,6 @@ and the process killed. A worker whose parent dies sees its stdin end and exits 
 
 from __future__ import annotations
 
-import contextlib
-import os
-import subprocess
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -18,9 +15,9 @@ from typing import ClassVar
 
 import trio
 
-import arena
+from arena.child import Child
 from arena.policy.wire import (
-    HEADER,
+    MAX_FRAME,
     Chunk,
     Failed,
     FrameError,
@@ -30,7 +27,6 @@ from arena.policy.wire import (
     Observe,
     decode_from_worker,
     encode,
-    frame_length,
 )
 from arena.protocol.errors import ArenaError, ErrorCode
 
@@ -41,8 +37,6 @@ LOAD_TIMEOUT = 180.0
 MAX_WORKERS = 4
 #: How a worker is started: this interpreter, the worker module.
 WORKER = (sys.executable, "-m", "arena.policy.worker")
-#: Seconds to wait for a killed worker to be reaped.
-STOP_WAIT = 5.0
 
 
 class WorkerError(Exception):
@@ -59,12 +53,8 @@ class PolicyProcess:
     #: The workers started and not yet closed, all of this process's (bounded by MAX_WORKERS).
     live: ClassVar[set[PolicyProcess]] = set()
 
-    def __init__(self, process: trio.Process) -> None:
-        self.process = process
-        assert process.stdin is not None and process.stdout is not None
-        self._stdin = process.stdin
-        self._stdout = process.stdout
-        self._buffer = bytearray()
+    def __init__(self, child: Child) -> None:
+        self.child = child
         self._lock = trio.Lock()
         self._broken = False
 
@@ -78,29 +68,20 @@ class PolicyProcess:
                 f"{len(cls.live)} policies run or load already (at most {MAX_WORKERS}): "
                 "detach one first.",
             )
-        env = dict(os.environ)
-        # The worker imports the same `arena` as this process, wherever it was found.
-        root = str(Path(arena.__file__).resolve().parent.parent)
-        env["PYTHONPATH"] = os.pathsep.join(p for p in (root, env.get("PYTHONPATH")) if p)
-        process = await trio.lowlevel.open_process(
-            list(command),
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            env=env,
-        )
-        worker = cls(process)
+        child = await Child.start(command, "the worker")
+        worker = cls(child)
         cls.live.add(worker)
         return worker
 
     @property
     def pid(self) -> int:
         """The worker's process id."""
-        return int(self.process.pid)
+        return self.child.pid
 
     @property
     def exited(self) -> bool:
         """Whether the worker has ended."""
-        return self.process.poll() is not None
+        return self.child.process.poll() is not None
 
     async def load(self, path: Path) -> Loaded:
         """Load the policy in `path`; `WorkerError` with the worker's reason if it cannot
@@ -123,43 +104,17 @@ class PolicyProcess:
                 raise WorkerGone("an earlier request to the worker was abandoned half-way")
             self._broken = True  # until the answer is read whole: a cancelled read desyncs
             try:
-                await self._stdin.send_all(encode(request))
-                header = await self._read(HEADER.size)
-                answer = decode_from_worker(await self._read(frame_length(header)))
+                await self.child.send(encode(request))
+                answer = decode_from_worker(await self.child.receive(MAX_FRAME))
             except (trio.BrokenResourceError, trio.ClosedResourceError) as exc:
-                raise WorkerGone(await self._gone()) from exc
+                raise WorkerGone(await self.child.gone()) from exc
             except FrameError as exc:
                 raise WorkerGone(f"the worker sent a bad frame: {exc}") from exc
             self._broken = False
             return answer
 
-    async def _read(self, count: int) -> bytes:
-        while len(self._buffer) < count:
-            data = await self._stdout.receive_some(max(65536, count - len(self._buffer)))
-            if not data:
-                raise WorkerGone(await self._gone())
-            self._buffer += data
-        taken = bytes(self._buffer[:count])
-        del self._buffer[:count]
-        return taken
-
-    async def _gone(self) -> str:
-        """Why the worker's pipes ended: its exit code, once it is reaped (an exit closes the
-        pipes a moment before the process is reaped)."""
-        with trio.move_on_after(STOP_WAIT):
-            await self.process.wait()
-        code = self.process.poll()
-        return "the worker has exited" + ("" if code is None else f" (code {code})")
-
     async def close(self) -> None:
         """Stop the worker at once: it holds nothing that needs a graceful end, and a worker in
         the middle of an inference would not see its stdin close until the inference ends."""
         PolicyProcess.live.discard(self)
-        with trio.CancelScope(shield=True):
-            with contextlib.suppress(trio.BrokenResourceError, trio.ClosedResourceError):
-                await self._stdin.aclose()
-            if self.process.poll() is None:
-                self.process.kill()
-            with trio.move_on_after(STOP_WAIT):
-                await self.process.wait()
-            await self._stdout.aclose()
+        await self.child.close()

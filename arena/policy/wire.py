@@ -8,14 +8,16 @@ bytes the camera captured (the worker decodes them, so the server spends no time
 
 from __future__ import annotations
 
-import struct
 from typing import TypeAlias
 
 import msgspec
 
+from arena.protocol import frames
+from arena.protocol.frames import HEADER as HEADER  # the worker and the server read it
+from arena.protocol.frames import FrameError as FrameError
+
 #: The largest frame either side accepts: four 1080p JPEGs with room to spare.
 MAX_FRAME = 32 * 1024 * 1024
-HEADER = struct.Struct(">I")
 
 
 class Load(msgspec.Struct, tag="load", frozen=True):
@@ -81,24 +83,14 @@ _to_worker = msgspec.msgpack.Decoder(ToWorker)
 _from_worker = msgspec.msgpack.Decoder(FromWorker)
 
 
-class FrameError(Exception):
-    """A frame that is too long or not one of the messages its direction carries."""
-
-
 def encode(message: ToWorker | FromWorker) -> bytes:
     """`message` as one frame: its length, then its msgpack body."""
-    body = _encoder.encode(message)
-    if len(body) > MAX_FRAME:
-        raise FrameError(f"a {type(message).__name__} of {len(body)} bytes is over {MAX_FRAME}")
-    return HEADER.pack(len(body)) + body
+    return frames.pack(_encoder.encode(message), MAX_FRAME)
 
 
 def frame_length(header: bytes) -> int:
     """The body length a frame's 4-byte header announces; `FrameError` past `MAX_FRAME`."""
-    (length,) = HEADER.unpack(header)
-    if length > MAX_FRAME:
-        raise FrameError(f"a frame of {length} bytes is over the limit of {MAX_FRAME}")
-    return int(length)
+    return frames.frame_length(header, MAX_FRAME)
 
 
 def decode_to_worker(body: bytes) -> ToWorker:

@@ -1,1 +1,1 @@
-"""Sensors attached to robots: cameras (capture threads, frames as recorded and streamed)."""
+"""Sensors attached to robots: cameras (capture processes, frames as recorded and streamed)."""

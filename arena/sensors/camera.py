@@ -1,19 +1,19 @@
-"""Cameras attached to robots: a capture thread each, frames handed to trio through its token.
+"""Cameras attached to robots: a capture process each, frames read by a trio task.
 
-The capture thread only reads its source (`sources.py`) and keeps the rate; everything else
-happens in trio, in the order frames arrive: the newest frame is kept for live streams, and
-each subscriber (the recorder) gets the frames in a bounded drop-oldest queue. At most
-`MAX_IN_FLIGHT` frames wait for trio: a busy server loses frames (counted), never memory.
+Each camera's source runs in a process of its own (`capture.py`), so nothing it does in native
+code (a device, FFmpeg, MuJoCo's OpenGL) can stall the server, its control loops or the e-stop.
+A trio task asks it for a frame at a time and keeps the rate; the newest frame is kept for live
+streams, and each subscriber (the recorder) gets the frames in a bounded drop-oldest queue.
 
-A source that fails (a camera unplugged, a file gone) is reported to the robot like a slave's
-fault, as a warning that never stops the arm, and reopened after 1 s, then 2, 4, up to 10.
+A source that fails (a camera unplugged, a file gone, a renderer that hangs or dies) is reported
+to the robot like a slave's fault, as a warning that never stops the arm, at once, and opened
+again in a new process after 1 s, then 2, 4, up to 10.
 """
 
 from __future__ import annotations
 
 import contextlib
 import re
-import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -25,7 +25,7 @@ from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot.events import CameraFrame
 from arena.robot.handle import Robot
 from arena.robot.mailbox import EventQueue
-from arena.sensors.sources import FrameSource, open_source, pace
+from arena.sensors.capture import CaptureProcess, Frame, Recipe, named_recipe
 
 NAME = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 #: `twin` or `twin:SLAVE_ID`: the robot's physics slave, rendered (`arena.drivers.twin_camera`).
@@ -34,11 +34,7 @@ TWIN = re.compile(r"^twin(:[A-Za-z0-9_.-]{1,64})?$")
 DEFAULTS = {"camera": (30, 640, 480), "twin": (5, 96, 96)}
 #: Cameras one robot may have.
 MAX_CAMERAS_PER_ROBOT = 4
-#: Frames captured but not yet taken by trio; beyond it the capture thread drops frames.
-MAX_IN_FLIGHT = 2
 RETRY_INITIAL, RETRY_MAX = 1.0, 10.0
-#: How long a stopping camera waits for its thread (a device stuck in a read is abandoned).
-JOIN_TIMEOUT = 2.0
 
 
 @dataclass(frozen=True)
@@ -104,12 +100,13 @@ class CameraSpec:
             raise ArenaError(ErrorCode.INVALID_BODY, "Invalid camera: " + "; ".join(problems) + ".")
 
 
-#: Opens a camera's source (in a worker or the capture thread); raises `OSError` if it cannot.
-Opener = Callable[[], FrameSource]
+#: Says how to open a camera's source (at attach, and again after each failure); raises
+#: `OSError` when it cannot be opened now (a twin whose physics slave is gone).
+Opener = Callable[[], Recipe]
 
 
 class Camera:
-    """One camera of one robot: runs its capture thread while `run` runs."""
+    """One camera of one robot: runs its capture process while `run` runs."""
 
     def __init__(self, robot: Robot, spec: CameraSpec, opener: Opener | None = None) -> None:
         self.robot = robot
@@ -119,22 +116,20 @@ class Camera:
         self.sensor_id = f"camera:{spec.name}"
         self.latest: CameraFrame | None = None
         self.frames = 0  # frames delivered to trio
-        self.dropped = 0  # frames the capture thread dropped because trio had not taken two
+        self.dropped = 0  # frames a free-running device delivered that nobody took
         self.failures = 0
         self.error: str | None = None
         self.streams = 0  # live streams being served
         self.streams_dropped = 0  # streams ended because their client stopped reading
         self.closed = False
-        self.finished = trio.Event()  # set once the capture thread is done
+        self.finished = trio.Event()  # set once the capture process is gone
         self._seq = 0
         self._subscribers: set[EventQueue[CameraFrame]] = set()
         self._changed = trio.Event()
-        self._stop = threading.Event()
-        self._in_flight = threading.Semaphore(MAX_IN_FLIGHT)
 
-    def _open_named(self) -> FrameSource:
-        """The source `spec.source` names, opened."""
-        return open_source(self.spec.source, self.spec.width, self.spec.height, self.spec.fps)
+    def _open_named(self) -> Recipe:
+        """How to open the source `spec.source` names."""
+        return named_recipe(self.spec.source, self.spec.width, self.spec.height, self.spec.fps)
 
     def as_dict(self) -> dict[str, Any]:
         """What `GET .../cameras` shows of it."""
@@ -176,92 +171,66 @@ class Camera:
             await self._changed.wait()
 
     async def run(
-        self, source: FrameSource, *, task_status: Any = trio.TASK_STATUS_IGNORED
+        self, process: CaptureProcess, *, task_status: Any = trio.TASK_STATUS_IGNORED
     ) -> None:
-        """Capture from `source` (already open) until cancelled or the robot stops."""
-        token = trio.lowlevel.current_trio_token()
-        thread = threading.Thread(
-            target=self._capture,
-            args=(source, token),
-            name=f"camera {self.robot.robot_id}/{self.spec.name}",
-            daemon=True,  # a device stuck in a read must not keep the process alive
-        )
-        thread.start()
+        """Capture from `process` (its source open) until cancelled or the robot stops."""
         task_status.started()
         try:
-            await self.robot.stopped.wait()
+            async with trio.open_nursery() as nursery:
+                nursery.start_soon(self._capture, process)
+                await self.robot.stopped.wait()
+                nursery.cancel_scope.cancel()
         finally:
-            self._stop.set()
             self.closed = True
             self._changed.set()
             for queue in list(self._subscribers):
                 queue.close()
-            with trio.CancelScope(shield=True):
-                await trio.to_thread.run_sync(thread.join, JOIN_TIMEOUT)
             self.finished.set()
 
-    # -- the capture thread -----------------------------------------------------------------
-
-    def _capture(self, source: FrameSource | None, token: trio.lowlevel.TrioToken) -> None:
+    async def _capture(self, process: CaptureProcess | None) -> None:
         period = 1.0 / self.spec.fps
         delay = RETRY_INITIAL
-        next_at = time.perf_counter()
+        next_at = trio.current_time()
         try:
-            while not self._stop.is_set():
-                if source is None:
+            while True:
+                if process is None:
                     try:
-                        source = self.opener()
+                        process = await CaptureProcess.open(self.opener())
                     except OSError as exc:
-                        self._hand_to_trio(token, self._failed, str(exc))
-                        self._stop.wait(delay)
+                        self._failed(str(exc))
+                        await trio.sleep(delay)
                         delay = min(delay * 2, RETRY_MAX)
                         continue
-                    self._hand_to_trio(token, self._recovered)
-                    next_at = time.perf_counter()
+                    self._recovered()
+                    next_at = trio.current_time()
                 try:
-                    jpeg = source.read()
+                    frame = await process.read()
                 except OSError as exc:
-                    source.close()
-                    source = None
-                    self._hand_to_trio(token, self._failed, str(exc))
-                    self._stop.wait(delay)
+                    await process.close()
+                    process = None
+                    self._failed(str(exc))
+                    await trio.sleep(delay)
                     delay = min(delay * 2, RETRY_MAX)
                     continue
                 delay = RETRY_INITIAL
-                # A source that knows when its picture was taken says so (the twin: when it read
-                # the pose, before ~130 ms of rendering); else the frame is as old as its read.
-                captured = getattr(source, "exposed", None) or time.perf_counter()
-                if self._in_flight.acquire(blocking=False):
-                    if not self._hand_to_trio(token, self._deliver, jpeg, captured):
-                        return
-                else:
-                    self.dropped += 1
-                if source.paced:
-                    wait, next_at = pace(next_at, period)
-                    self._stop.wait(wait)
+                self._deliver(frame)
+                if process.paced:  # else the device keeps its own rate
+                    # A source that fell behind by more than a frame starts afresh instead of
+                    # bursting to catch up.
+                    next_at = max(next_at, trio.current_time() - period) + period
+                    await trio.sleep_until(next_at)
         finally:
-            if source is not None:
-                source.close()
+            if process is not None:
+                await process.close()
 
-    def _hand_to_trio(
-        self, token: trio.lowlevel.TrioToken, call: Callable[..., None], *args: Any
-    ) -> bool:
-        """Run `call` in trio soon; False once trio has finished."""
-        try:
-            token.run_sync_soon(call, *args)
-        except trio.RunFinishedError:
-            self._stop.set()
-            return False
-        return True
-
-    # -- in trio ----------------------------------------------------------------------------
-
-    def _deliver(self, jpeg: bytes, captured: float) -> None:
-        self._in_flight.release()
+    def _deliver(self, frame: Frame) -> None:
+        """Keep `frame` as the newest and hand it to every subscriber. Its `age` (from when its
+        picture was taken: the twin's pose read, a device's delivery) dates it."""
+        self.dropped += frame.dropped
         if self.closed:
             return
-        age = max(0.0, time.perf_counter() - captured)
-        frame = CameraFrame(
+        age = max(0.0, frame.age)
+        captured = CameraFrame(
             self.robot.robot_id,
             self.spec.name,
             self._seq,
@@ -269,13 +238,13 @@ class Camera:
             time.time() - age,
             self.spec.width,
             self.spec.height,
-            jpeg,
+            frame.jpeg,
         )
         self._seq += 1
         self.frames += 1
-        self.latest = frame
+        self.latest = captured
         for queue in self._subscribers:
-            queue.put(frame)
+            queue.put(captured)
         self._changed.set()
         self._changed = trio.Event()
 
@@ -341,13 +310,13 @@ class Cameras:
             )
         camera = Camera(robot, spec, opener)
         try:
-            source = await trio.to_thread.run_sync(camera.opener)
+            process = await CaptureProcess.open(camera.opener())
         except OSError as exc:
             raise ArenaError(
                 ErrorCode.CAMERA_FAILED, f"Camera {spec.name!r} cannot capture: {exc}"
             ) from None
         if key in self._cameras or self._nursery is None:  # raced, or shutting down
-            source.close()
+            await process.close()
             raise ArenaError(
                 ErrorCode.CAMERA_EXISTS, f"Robot {robot.robot_id!r} has a camera {spec.name!r}."
             )
@@ -355,7 +324,7 @@ class Cameras:
         self._cameras[key] = (camera, scope)
         for callback in self.on_attach:
             callback(camera)
-        await self._nursery.start(self._host, camera, source, scope)
+        await self._nursery.start(self._host, camera, process, scope)
         return camera
 
     async def detach(self, robot_id: str, name: str) -> None:
@@ -368,14 +337,14 @@ class Cameras:
     async def _host(
         self,
         camera: Camera,
-        source: FrameSource,
+        process: CaptureProcess,
         scope: trio.CancelScope,
         *,
         task_status: Any = trio.TASK_STATUS_IGNORED,
     ) -> None:
         try:
             with scope:
-                await camera.run(source, task_status=task_status)
+                await camera.run(process, task_status=task_status)
         finally:
             key = (camera.robot.robot_id, camera.spec.name)
             if key in self._cameras and self._cameras[key][0] is camera:

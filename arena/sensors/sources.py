@@ -1,14 +1,13 @@
 """Where camera frames come from: a device, a video file, or a generated test pattern.
 
 Every source hands out JPEG bytes of the requested size, synchronously (it runs in the camera's
-capture thread). PyAV does all of it: V4L2 devices and video files through FFmpeg's demuxers,
-and JPEG through FFmpeg's `mjpeg` encoder. A camera that already speaks MJPEG (most USB webcams)
-passes its JPEGs through untouched, which costs next to nothing.
+capture process, `capture.py`). PyAV does all of it: V4L2 devices and video files through
+FFmpeg's demuxers, and JPEG through FFmpeg's `mjpeg` encoder. A camera that already speaks MJPEG
+(most USB webcams) passes its JPEGs through untouched, which costs next to nothing.
 """
 
 from __future__ import annotations
 
-import time
 from fractions import Fraction
 from typing import Any, Protocol
 
@@ -26,7 +25,7 @@ class FrameSource(Protocol):
     taken (long before `read` returned) may say so in an attribute `exposed` (`perf_counter`
     seconds); the camera then dates the frame by it."""
 
-    paced: bool  # True when `read` returns at once and the capture thread must keep the rate
+    paced: bool  # True when `read` returns at once and the server must keep the rate
 
     def read(self) -> bytes:
         """The next frame as JPEG; raises `OSError` when the source fails."""
@@ -203,12 +202,3 @@ def open_source(source: str, width: int, height: int, fps: int) -> FrameSource:
     if source == "twin" or source.startswith("twin:"):  # not a device: a robot's physics slave
         raise OSError("a twin camera renders a physics slave, which whoever attaches it opens")
     return DeviceSource(source, width, height, fps)
-
-
-def pace(next_at: float, period: float) -> tuple[float, float]:
-    """(seconds to sleep, the next deadline) for a paced source; a source that fell behind by
-    more than a frame starts afresh instead of bursting to catch up."""
-    now = time.perf_counter()
-    if now - next_at > period:
-        next_at = now
-    return max(0.0, next_at - now), next_at + period

@@ -67,13 +67,13 @@ TWIN_READY_TIMEOUT = 10.0
 
 async def _twin_opener(app: ArenaApp, robot: Robot, spec: CameraSpec, slave_id: str) -> Opener:
     """How to open a camera of the robot's physics slave (NO_TWIN when it has none)."""
-    from arena.drivers.twin_camera import TwinCamera
+    from arena.drivers.twin_camera import twin_recipe
 
     attached = {slave.peer_id for slave in robot.snapshot().slaves}
     twin = app.hardware.twin(robot.robot_id, slave_id, attached)
     with trio.move_on_after(TWIN_READY_TIMEOUT):
         await twin.ready.wait()
-    return functools.partial(TwinCamera, twin, spec.width, spec.height, spec.fps)
+    return functools.partial(twin_recipe, twin, spec.width, spec.height, spec.fps)
 
 
 @blueprint.get("/api/robots/<robot_id>/cameras/<name>")
