@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 import trio
 from google.protobuf import descriptor_pb2, descriptor_pool, message_factory
+from trio_websocket import open_websocket_url
 
 from arena.protocol.errors import ErrorCode, Severity
 from arena.recording import images
@@ -34,6 +35,7 @@ from arena.sensors.capture import Recipe
 from arena.sensors.sources import JpegEncoder, pattern_image, read_pattern_counter
 from arena.server import sensors_api
 from tests.conftest import RunningServer, eventually
+from tests.test_server_ws import receive
 
 TEST_CAMERA = {"name": "front", "source": "test-pattern", "fps": 30, "width": 320, "height": 240}
 
@@ -425,6 +427,13 @@ async def test_a_source_hung_in_native_code_stalls_neither_the_estop_nor_the_cam
         stopped = await http.post("/api/robots/demo-arm/estop", json={"reason": "hung camera"})
         assert stopped.json()["state"] == "estopped"
         assert (await http.post("/api/robots/demo-arm/reset")).is_success
+        # and over WebSocket, a master's e-stop message
+        async with open_websocket_url(server.ws_url + "/ws/master/demo-arm") as master:
+            assert (await receive(master, "state"))["data"]["mode"] == "mastered"
+            await master.send_message('{"type": "estop", "data": {"reason": "hung camera"}}')
+            assert (await receive(master, "state", 30))["data"]["mode"] == "estopped"
+            await master.send_message('{"type": "reset"}')
+            assert (await receive(master, "state", 30))["data"]["mode"] == "mastered"
         # the stuck child is killed and its failure is the camera's error, reported at once
         await eventually(lambda: camera.error is not None, what="the hang reported")
         assert "no answer in 3 s" in str(camera.error)
