@@ -12,16 +12,15 @@ the server, never by a client) with its parameters, plus bytes only the server h
 time (the twin's compiled model) and, before each frame, bytes it reads then (the twin's pose).
 
 The pipe carries length-prefixed msgpack frames of the structs below and nothing else (nothing
-is pickled). A child whose parent dies is killed with it (Linux's parent-death signal).
+is pickled). A child whose server is gone ends by itself within a second, unless it is stuck in
+native code holding its interpreter's lock: a planned stop kills every child, and a service's
+stop (systemd) kills the whole control group.
 """
 
 from __future__ import annotations
 
-import contextlib
-import ctypes
 import importlib
 import os
-import signal
 import sys
 import threading
 import time
@@ -264,10 +263,18 @@ class _Latest:
 
 
 def _die_with_parent() -> None:
-    """Ask Linux to kill this process when the server dies (elsewhere: stdin's end does)."""
-    with contextlib.suppress(OSError, AttributeError):
-        libc = ctypes.CDLL(None, use_errno=True)
-        libc.prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    """End this process soon after the server's end, even while its main thread is stuck in a
+    source (one that lets go of the interpreter's lock, as reading a device does). Not Linux's
+    parent-death signal: that follows the thread that started the child, and trio starts
+    children from worker threads that end when idle."""
+    parent = os.getppid()
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(1.0)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="parent", daemon=True).start()
 
 
 def _make(request: Open) -> Any:
