@@ -34,6 +34,9 @@ from arena.protocol.messages import (
 from arena.robot.model import BUILTIN_TYPES_DIR, TYPES_PATH_ENV
 
 BENCH_TYPE = "so-arm100-bench"
+#: Seconds a benchmark's own REST calls (making robots, attaching drivers) may take: they are
+#: set-up, never measured, and a loaded machine may take seconds to answer them.
+REST_TIMEOUT = 60.0
 
 T = TypeVar("T")
 

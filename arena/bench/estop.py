@@ -19,6 +19,7 @@ from arena.bench.common import (
     ESTOP_TEXT,
     RESET_MARK,
     RESET_TEXT,
+    REST_TIMEOUT,
     Server,
     create_bench_robot,
     percentile,
@@ -36,7 +37,7 @@ async def estop(server: Server, trials: int = 200, robots: int = 100) -> dict[st
     again with httpx and `websockets` (what a Python user sees)."""
     import websockets
 
-    async with httpx.AsyncClient(base_url=server.url) as http:
+    async with httpx.AsyncClient(base_url=server.url, timeout=REST_TIMEOUT) as http:
         await create_bench_robot(http, "stop-one")
         results = await asyncio.to_thread(without_client_gc, _lean_estop_one, server, trials)
         await create_bench_robot(http, "stop-ws")
@@ -162,7 +163,7 @@ async def _skip_until(ws: Any, kind: str) -> None:
 async def flood(server: Server, trials: int = 300) -> dict[str, float]:
     """One robot's REST e-stop (lean client), alone and while a viewer floods the server with
     pings it never reads the pongs of; the server's memory before and after the flood."""
-    async with httpx.AsyncClient(base_url=server.url) as http:
+    async with httpx.AsyncClient(base_url=server.url, timeout=REST_TIMEOUT) as http:
         for robot_id in ("stop-quiet", "stop-flooded", "flood-target"):
             await create_bench_robot(http, robot_id)
     quiet = await asyncio.to_thread(

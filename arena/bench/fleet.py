@@ -12,6 +12,7 @@ import httpx
 from arena.bench.client import BlockingWebSocket, masked_frame
 from arena.bench.common import (
     HEARTBEAT_TEXT,
+    REST_TIMEOUT,
     Server,
     create_bench_robot,
     joints_text,
@@ -46,7 +47,7 @@ async def drive_fleet(
     """
     import websockets
 
-    async with httpx.AsyncClient(base_url=server.url) as http:
+    async with httpx.AsyncClient(base_url=server.url, timeout=REST_TIMEOUT) as http:
         for n in range(robots):
             await create_bench_robot(http, f"fleet-{n}")
     run = FleetRun(started=time.perf_counter())
@@ -144,7 +145,8 @@ async def fleet(
     floor relay): the run then ends without waiting for acknowledgments."""
     servers = server if isinstance(server, list) else [server]
     for n in range(robots):
-        async with httpx.AsyncClient(base_url=servers[n % len(servers)].url) as http:
+        server = servers[n % len(servers)]
+        async with httpx.AsyncClient(base_url=server.url, timeout=REST_TIMEOUT) as http:
             await create_bench_robot(http, f"fleet-{n}")
     return await asyncio.to_thread(
         without_client_gc, _lean_fleet, servers, robots, rate, seconds, heartbeat_period, acks
@@ -262,7 +264,7 @@ async def soak(
     first, last = run.window(0, window), run.window(seconds - window, seconds)
     warm = next(s for s in run.samples if s[0] >= window)
     (t0, cpu0, _), (t1, cpu1, rss_end) = run.samples[0], run.samples[-1]
-    async with httpx.AsyncClient(base_url=server.url) as http:
+    async with httpx.AsyncClient(base_url=server.url, timeout=REST_TIMEOUT) as http:
         recorder = (await http.get("/api/recordings")).json()["recorder"]
     return {
         "soak_robots": robots,

@@ -22,7 +22,13 @@ from typing import Any
 import httpx
 
 from arena.bench.client import BlockingWebSocket
-from arena.bench.common import Server, create_bench_robot, running_server, without_client_gc
+from arena.bench.common import (
+    REST_TIMEOUT,
+    Server,
+    create_bench_robot,
+    running_server,
+    without_client_gc,
+)
 from arena.bench.fleet import fleet
 from arena.bench.relay import lean_relay
 
@@ -42,7 +48,7 @@ async def running_fleet(count: int, record: bool = True) -> AsyncIterator[list[S
     """`count` nodes: node n0 listens, the others connect to it (and find each other)."""
     async with contextlib.AsyncExitStack() as stack:
         first = await stack.enter_async_context(running_server(record, "--node", "n0", *_LISTEN))
-        async with httpx.AsyncClient(base_url=first.url) as http:
+        async with httpx.AsyncClient(base_url=first.url, timeout=REST_TIMEOUT) as http:
             nodes = (await http.get("/api/fleet/nodes")).json()["nodes"]
         locator = next(n for n in nodes if n["name"] == "n0")["locators"][0]
         servers = [first]
@@ -52,7 +58,7 @@ async def running_fleet(count: int, record: bool = True) -> AsyncIterator[list[S
 
         async def formed() -> bool:
             for server in servers:
-                async with httpx.AsyncClient(base_url=server.url) as http:
+                async with httpx.AsyncClient(base_url=server.url, timeout=REST_TIMEOUT) as http:
                     listed = (await http.get("/api/fleet/nodes")).json()["nodes"]
                 if sum(node["alive"] for node in listed) < count:
                     return False
@@ -65,7 +71,7 @@ async def running_fleet(count: int, record: bool = True) -> AsyncIterator[list[S
 async def _known_everywhere(servers: list[Server], robot_ids: set[str]) -> None:
     async def known() -> bool:
         for server in servers:
-            async with httpx.AsyncClient(base_url=server.url) as http:
+            async with httpx.AsyncClient(base_url=server.url, timeout=REST_TIMEOUT) as http:
                 listed = (await http.get("/api/fleet/robots")).json()["robots"]
             if not robot_ids <= {robot["id"] for robot in listed}:
                 return False
@@ -77,7 +83,7 @@ async def _known_everywhere(servers: list[Server], robot_ids: set[str]) -> None:
 async def nodes_relay(count: int = 2000) -> dict[str, float]:
     """Cross-node relay against same-node relay, one run."""
     async with running_fleet(2) as (home, away):
-        async with httpx.AsyncClient(base_url=home.url) as http:
+        async with httpx.AsyncClient(base_url=home.url, timeout=REST_TIMEOUT) as http:
             await create_bench_robot(http, "relay")
             await create_bench_robot(http, "relay-far")
         await _known_everywhere([away], {"relay-far"})
@@ -100,7 +106,7 @@ async def nodes_estop(nodes: int = 3, robots: int = 100, trials: int = 5) -> dic
     async with running_fleet(nodes) as servers:
         ids: list[tuple[Server, str]] = []
         for index, server in enumerate(servers):
-            async with httpx.AsyncClient(base_url=server.url) as http:
+            async with httpx.AsyncClient(base_url=server.url, timeout=REST_TIMEOUT) as http:
                 for n in range(robots):
                     robot_id = f"stop-{index}-{n}"
                     await create_bench_robot(http, robot_id)
