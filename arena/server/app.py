@@ -51,10 +51,10 @@ from arena.server.config import ServerConfig
 from arena.server.dashboard import blueprint as dashboard_blueprint
 from arena.server.drivers import (
     attach_rest_master,
-    calibration_folder,
     camera_frames,
     make_master,
     make_slave,
+    tenant_folder,
 )
 from arena.server.fleet_api import CALLER, FORWARDED, forwarded_caller
 from arena.server.fleet_api import blueprint as fleet_blueprint
@@ -425,7 +425,7 @@ def _register_routes(app: ArenaApp) -> None:
         driver = make_slave(
             body,
             robot.model,
-            calibration_folder(Path(app.arena_config.calibration_dir), robot.tenant),
+            tenant_folder(Path(app.arena_config.calibration_dir), robot.tenant),
             robot_id,
             calibration_anywhere=server_admin(g.principal),
         )
@@ -453,10 +453,11 @@ def _register_routes(app: ArenaApp) -> None:
             body,
             app.recorder.folder,
             robot.model,
-            calibration_folder(Path(app.arena_config.calibration_dir), robot.tenant),
+            tenant_folder(Path(app.arena_config.calibration_dir), robot.tenant),
             robot_id,
             camera_frames(app.cameras, robot_id),
-            server_admin(g.principal),  # the whole server's admin: any calibration file
+            server_admin(g.principal),  # the whole server's admin: any calibration, any policy
+            tenant_folder(Path(app.arena_config.policy_dir), robot.tenant),
         )
         prepare = getattr(driver, "prepare", None)
         if prepare is not None:
