@@ -563,8 +563,12 @@ async def test_each_tenant_has_its_own_calibration_folder_and_no_other_file(
     async with server.client() as http:
         assert (await http.post("/api/robots", json={"id": "acme-1"}, headers=acme)).is_success
         slaves = "/api/robots/acme-1/slaves"
-        # A file outside acme's folder: refused by path, by LeRobot id, and nothing attached.
-        for value in (str(lab_file), "lerobot:arm", "lab-arm.json"):
+        # A file outside acme's folder: refused by path, by LeRobot id, by a link out of its
+        # folder (made by someone with a shell: the server never follows it), and nothing
+        # is attached.
+        (root / "acme").mkdir()
+        (root / "acme" / "linked.json").symlink_to(lab_file)
+        for value in (str(lab_file), "lerobot:arm", "lab-arm.json", "linked"):
             body = {"type": "usb-slave", "port": str(sim.link), "calibration": value}
             refused = await http.post(slaves, json=body, headers=acme)
             assert (refused.status_code, refused.json()["error"]["code"]) == (403, "FORBIDDEN")
