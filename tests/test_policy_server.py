@@ -332,8 +332,9 @@ async def test_what_the_robot_cannot_run_is_refused(
 async def test_a_relative_path_is_the_servers_and_a_refusal_names_it_in_full(
     start_server: Start, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    # The folder is on the server's machine: a relative path is taken from the folder the
-    # server was started in, and the answer says which folder that was.
+    # The folder is on the server's machine: a relative path (the whole server's admin's, as
+    # here with no keys) is taken from the folder the server was started in, and the answer
+    # says which folder that was.
     monkeypatch.chdir(tmp_path)
     server = await start_server(demo=True)
     answer = await attach(server, Path("policies/act"))
@@ -344,6 +345,35 @@ async def test_a_relative_path_is_the_servers_and_a_refusal_names_it_in_full(
     assert workers() == []
 
 
+async def test_a_tenant_names_a_policy_of_its_own_policy_folder(
+    start_server: Start, tiny: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Where a user puts a policy: a folder of `policies/` (a tenant's: `policies/<tenant>/`)
+    # in the folder the server runs in, named in the body by its name alone.
+    from tests.test_users import SECRET, bearer, token
+
+    monkeypatch.chdir(tmp_path)
+    shutil.copytree(tiny, tmp_path / "policies" / "acme" / "cube")
+    (tmp_path / "jwt-secret").write_bytes(SECRET)
+    server = await start_server(jwt_secret_file=str(tmp_path / "jwt-secret"))
+    admin = bearer(token("admin", tenant="acme"))
+    operator = bearer(token("operator", tenant="acme"))
+    arm = "/api/robots/acme-arm"
+    async with httpx.AsyncClient(base_url=server.url, timeout=LOAD) as http:
+        assert (await http.post("/api/robots", json={"id": "acme-arm"}, headers=admin)).is_success
+        body = {"type": "mock-slave"}
+        assert (await http.post(f"{arm}/slaves", json=body, headers=admin)).is_success
+        assert (await http.post(f"{arm}/cameras", json=CAMERA, headers=admin)).is_success
+        body = {"type": "policy", "path": "cube", "task": "wave"}
+        answer = await http.post(f"{arm}/master", json=body, headers=operator)
+        assert answer.status_code == 201, answer.text
+        assert answer.json()["id"] == f"policy:act:{checkpoint(tiny)}"
+        assert (await http.delete(f"{arm}/master", headers=operator)).is_success
+    with trio.fail_after(WAIT):
+        while workers():
+            await trio.sleep(0.05)
+
+
 @pytest.mark.parametrize(
     ("broken", "said"),
     [
@@ -351,6 +381,7 @@ async def test_a_relative_path_is_the_servers_and_a_refusal_names_it_in_full(
         ("empty", ": no config.json in it"),
         ("config", "config.json is not a LeRobot policy config"),
         ("class-step", "step 0 is not one of LeRobot's registered steps"),
+        ("state-path", "step 0's state_file '/etc/passwd' is not a file's name"),
     ],
 )
 async def test_a_directory_that_is_not_a_policy_is_refused_with_the_reason(
@@ -360,10 +391,14 @@ async def test_a_directory_that_is_not_a_policy_is_refused_with_the_reason(
     folder = tmp_path / "policy"
     if broken != "missing":
         folder.mkdir()
-    if broken in ("config", "class-step"):
+    if broken in ("config", "class-step", "state-path"):
         for name in ("config.json", "model.safetensors", "policy_postprocessor.json"):
             (folder / name).write_text("{}" if name != "config.json" else '{"type": "nope"}')
-        step = {"class": "os.system"} if broken == "class-step" else {"registry_name": "x"}
+        step: dict[str, str] = {"registry_name": "x"}
+        if broken == "class-step":
+            step = {"class": "os.system"}
+        elif broken == "state-path":  # (LeRobot would read any file a path names)
+            step["state_file"] = "/etc/passwd"
         (folder / "policy_preprocessor.json").write_text(json.dumps({"steps": [step]}))
         (folder / "policy_postprocessor.json").write_text(json.dumps({"steps": []}))
     if broken == "config":

@@ -72,7 +72,15 @@ def test_every_kind_of_event_is_recorded_byte_for_byte_as_before() -> None:
             PeerChanged("a", "slave", "s1", "mock-slave", "lost", "gone", 11.0, 12.0),
             "peer",
             '{"t":11.0,"role":"slave","peer_id":"s1","kind":"mock-slave","change":"lost",'
-            '"reason":"gone","autonomous":false}',
+            '"reason":"gone","autonomous":false,"code":null}',
+        ),
+        (
+            PeerChanged(
+                "a", "master", "m2", "ros2", "refused", "held", 11.0, 12.0, code="MASTER_ACTIVE"
+            ),
+            "peer",
+            '{"t":11.0,"role":"master","peer_id":"m2","kind":"ros2","change":"refused",'
+            '"reason":"held","autonomous":false,"code":"MASTER_ACTIVE"}',
         ),
         (
             EpisodeChanged("a", "start", 3, "pick", 1.0, 13.0, 14.0),

@@ -8,6 +8,7 @@ and events, bounded only so that a broken test ends.
 
 from __future__ import annotations
 
+import json
 import struct
 import time
 from collections.abc import Callable
@@ -370,6 +371,75 @@ async def test_a_ros2_peer_sees_reads_commands_and_stops_the_robot(start_server:
             entity.undeclare()
     finally:
         await trio.to_thread.run_sync(session.close)
+
+
+async def test_a_publisher_refused_while_a_websocket_master_drives_is_in_the_recording(
+    start_server: Any, tmp_path: Path
+) -> None:
+    from mcap.reader import make_reader
+    from trio_websocket import open_websocket_url
+
+    from tests.test_server_ws import receive
+
+    recordings = tmp_path / "recordings"
+    server: RunningServer = await start_server(
+        demo=True, ros2=True, ros2_listen=("tcp/127.0.0.1:0",), recordings_dir=str(recordings)
+    )
+    [locator, *_] = await server.app.ros2.locators()
+    config = zenoh.Config()
+    config.insert_json5("mode", '"peer"')
+    config.insert_json5("connect/endpoints", f'["{locator}"]')
+    config.insert_json5("scouting/multicast/enabled", "false")
+    session = await trio.to_thread.run_sync(zenoh.open, config)
+    robot = server.app.manager.get("demo-arm")
+    try:
+        publisher, token, gid = Peer(session).publisher(COMMANDS, "std_msgs/msg/Float64MultiArray")
+        attachment = struct.pack("<qqB16s", 1, time.time_ns(), 16, gid)
+        node = server.app.ros2.nodes["demo-arm"]
+
+        async def send_until(done: Callable[[], bool]) -> None:
+            """Commands until `done` (the first may go before the bridge hears the publisher)."""
+            with trio.fail_after(20):
+                while not done():
+                    publisher.put(float64_array([0.0] * 6), attachment=attachment)
+                    await trio.sleep(0.05)
+
+        with robot.subscribe(kinds=[PeerChanged]) as events:
+            async with open_websocket_url(f"{server.ws_url}/ws/master/demo-arm?id=driver") as ws:
+                await receive(ws, "state")
+                # Refused while the WebSocket master drives, as often as it sends: recorded once.
+                await send_until(lambda: node.refused_again >= 3)
+                assert robot.snapshot().owner == "driver"
+                await ws.send_message(json.dumps({"type": "release"}))
+                await receive(ws, "released")
+                # The robot free, its next command claims it.
+                await send_until(lambda: (robot.snapshot().owner or "").startswith("ros2-"))
+            changes = [(e.kind, e.change, e.code) for e in events.drain()]
+        assert changes == [
+            ("websocket", "attached", None),
+            ("ros2", "refused", "MASTER_ACTIVE"),
+            ("websocket", "released", None),
+            ("ros2", "attached", None),
+        ]
+        publisher.undeclare()
+        token.undeclare()
+    finally:
+        await trio.to_thread.run_sync(session.close)
+    server.stop.set()
+    await server.done.wait()
+    # Read back by the mcap library: the refusal, its code and who was refused.
+    [path] = recordings.glob("*.mcap")
+    with path.open("rb") as stream:
+        peers = [
+            json.loads(message.data)
+            for _, channel, message in make_reader(stream).iter_messages()
+            if channel.topic == "/robots/demo-arm/peer"
+        ]
+    refused = [p for p in peers if p["change"] == "refused"]
+    assert len(refused) == 1, peers  # once, however many commands it sent meanwhile
+    assert refused[0]["kind"] == "ros2" and refused[0]["peer_id"].startswith("ros2-demo_arm-")
+    assert refused[0]["code"] == "MASTER_ACTIVE", refused[0]
+    assert "driver" in refused[0]["reason"]
 
 
 GOLDEN = Path(__file__).resolve().parent.parent / "recordings" / "golden" / "gentle-wave.mcap"

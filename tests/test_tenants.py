@@ -14,6 +14,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import httpx
 import pytest
 import trio
 from mcap.reader import make_reader
@@ -562,8 +563,12 @@ async def test_each_tenant_has_its_own_calibration_folder_and_no_other_file(
     async with server.client() as http:
         assert (await http.post("/api/robots", json={"id": "acme-1"}, headers=acme)).is_success
         slaves = "/api/robots/acme-1/slaves"
-        # A file outside acme's folder: refused by path, by LeRobot id, and nothing attached.
-        for value in (str(lab_file), "lerobot:arm", "lab-arm.json"):
+        # A file outside acme's folder: refused by path, by LeRobot id, by a link out of its
+        # folder (made by someone with a shell: the server never follows it), and nothing
+        # is attached.
+        (root / "acme").mkdir()
+        (root / "acme" / "linked.json").symlink_to(lab_file)
+        for value in (str(lab_file), "lerobot:arm", "lab-arm.json", "linked"):
             body = {"type": "usb-slave", "port": str(sim.link), "calibration": value}
             refused = await http.post(slaves, json=body, headers=acme)
             assert (refused.status_code, refused.json()["error"]["code"]) == (403, "FORBIDDEN")
@@ -576,3 +581,68 @@ async def test_each_tenant_has_its_own_calibration_folder_and_no_other_file(
     assert status["file"] == str(root / "acme" / "lab-arm.json")
     assert status["calibrated"] is False
     assert lab_file.read_bytes() == before
+
+
+# -- policies ----------------------------------------------------------------------------------
+
+
+async def test_a_policy_is_a_folder_of_the_tenant_s_own_and_a_path_is_the_admin_s_alone(
+    start_server: StartServer, secret_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    need("lerobot", "lerobot")  # (else every attach is 501 NOT_INSTALLED)
+    monkeypatch.chdir(tmp_path)  # the default policy folder, `policies/`, is the server's
+    root = tmp_path / "policies"
+    lab = root / "lab-policy"  # the default tenant's (a policy's config.json is enough here)
+    lab.mkdir(parents=True)
+    (lab / "config.json").write_text("{}")
+    acme_folder = root / "acme"
+    acme_folder.mkdir()
+    (acme_folder / "sneaky").symlink_to(lab)  # a link out of acme's folder, to lab's policy
+    leaky = acme_folder / "leaky"  # acme's own folder, with one file linked from lab's
+    leaky.mkdir()
+    (leaky / "config.json").symlink_to(lab / "config.json")
+    server = await start_server(jwt_secret_file=str(secret_file))
+    acme_admin = bearer(token("admin", tenant="acme"))
+    acme = bearer(token("operator", tenant="acme"))
+    scoped_lab = bearer(token("operator", robots=["lab-*"]))  # the default tenant, not its admin
+    async with httpx.AsyncClient(base_url=server.url, timeout=120) as http:  # (a worker's start)
+        for robot_id, headers in (("acme-1", acme_admin), ("lab-1", bearer(token("admin")))):
+            made = await http.post("/api/robots", json={"id": robot_id}, headers=headers)
+            assert made.status_code == 201, made.text
+
+        async def answer(value: str, headers: dict[str, str] = acme) -> tuple[int, str, str]:
+            robot = "lab-1" if headers is scoped_lab else "acme-1"
+            body = {"type": "policy", "path": value}
+            got = await http.post(f"/api/robots/{robot}/master", json=body, headers=headers)
+            error = got.json()["error"]
+            return got.status_code, error["code"], error["message"].replace(value, "X")
+
+        # A path, to another tenant's policy or to nothing at all: the same refusal, which
+        # tells nothing of what is there.
+        refusals = {
+            await answer(value)
+            for value in (
+                str(lab),
+                str(tmp_path / "no-such-folder"),
+                "policies/lab-policy",
+                "../lab-policy",
+                "~",
+                "acme/../lab-policy",
+            )
+        }
+        assert len(refusals) == 1, refusals
+        [(status, code, message)] = refusals
+        assert (status, code) == (403, "FORBIDDEN") and "only an admin" in message
+        # A name is a folder of acme's own: lab's name is not lab's policy.
+        assert await answer("lab-policy") == await answer("no-such-policy")
+        status, code, message = await answer("lab-policy")
+        assert (status, code) == (422, "POLICY_INVALID")
+        assert "policies/acme" in message and str(lab) not in message
+        # Symbolic links out of acme's folder are never followed, the folder's or a file's.
+        for value in ("sneaky", "leaky"):
+            status, code, message = await answer(value)
+            assert (status, code) == (403, "FORBIDDEN") and "symbolic link" in message
+        # The default tenant's folder holds the others': a name there reaches none of them.
+        assert await answer("acme", scoped_lab) == await answer("nothing", scoped_lab)
+    assert server.app.manager.get("acme-1").snapshot().master is None
+    assert server.app.manager.get("lab-1").snapshot().master is None

@@ -432,6 +432,7 @@ async def test_the_audit_trail_is_read_back_from_the_recording(
         if m.kind == "audit"
     ]
     assert trail == [
+        ("api-key-1", "POST /api/robots", "201"),
         ("api-key-1", "POST /api/robots/{robot_id}/slaves", "201"),
         ("alice", "connect master", "alice-ui"),
         ("alice", "estop over WebSocket", "alice-ui"),
@@ -453,7 +454,7 @@ async def test_the_audit_trail_is_read_back_from_the_recording(
     assert main(["inspect", str(path)]) == 0
     inspected = capsys.readouterr().out
     assert "users      alice, api-key-1, bob" in inspected
-    assert "user=bob action=POST /api/robots/{robot_id}/estop detail=200" in inspected
+    assert "user=api-key-1 action=POST /api/robots detail=201" in inspected
     assert main(["timeline", str(path), "--robot", "arm"]) == 0
     shown = capsys.readouterr().out.splitlines()
     assert any("alice: release over WebSocket (alice-ui)" in line for line in shown), shown

@@ -52,7 +52,8 @@ def learn_command(args: argparse.Namespace) -> int:
     times = ", ".join(f"{name} {seconds:.0f} s" for name, seconds in report.seconds.items())
     print(f"took {minutes:.1f} min ({times})")
     print(
-        f"policy saved in {report.policy_dir} (POST /api/robots/ID/master "
-        '{"type": "policy", "path": ..., "environment_state": [x, y, z]})'
+        f"policy saved in {report.policy_dir} (copy it into the server's policies/NAME/, "
+        'then POST /api/robots/ID/master {"type": "policy", "path": "NAME", '
+        '"environment_state": [x, y, z]})'
     )
     return 0

@@ -77,6 +77,23 @@ def check_directory(path: Path) -> None:
                     f"{name}: step {index} is not one of LeRobot's registered steps "
                     "(a step that names a class to import is never loaded)"
                 )
+            state = step.get("state_file")
+            if state is not None and not _file_of_the_folder(state):
+                raise PolicyDirectoryError(
+                    f"{name}: step {index}'s state_file {state!r} is not a file's name "
+                    "(a processor's state is a file of the policy's own folder)"
+                )
+
+
+def _file_of_the_folder(name: object) -> bool:
+    """A processor's `state_file` names a file beside it: LeRobot joins it to the folder,
+    so a path would read a file anywhere."""
+    return (
+        isinstance(name, str)
+        and bool(name)
+        and not name.startswith(".")
+        and not any(c in name for c in "/\\\x00")
+    )
 
 
 class LoadedPolicy:

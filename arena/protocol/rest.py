@@ -56,13 +56,16 @@ class MockSlaveBody(
 #: The fastest joining speed (deg/s) a slave or a robot type may ask for: joining is slow.
 MAX_JOIN_SPEED = 90.0
 
-#: A calibration: a file's name (letters, digits, `_-.`, not starting with a dot), or a LeRobot
-#: calibration file: `lerobot:ID` (found in LeRobot's folder) or a path ending in `.json`.
+#: A name of a file or folder in a tenant's folder (a calibration, a policy): letters,
+#: digits, `_-.`, not starting with a dot (so never `..`, never a path).
+FILE_NAME = r"[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}"
+
+#: A calibration: a file's name (`FILE_NAME`), or a LeRobot calibration file: `lerobot:ID`
+#: (found in LeRobot's folder) or a path ending in `.json`.
 CalibrationName = Annotated[
     str,
     msgspec.Meta(
-        pattern=r"^([A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}|lerobot:[A-Za-z0-9_-][A-Za-z0-9_.-]{0,63}"
-        r"|[^\x00-\x1f]*\.json)$",
+        pattern=rf"^({FILE_NAME}|lerobot:{FILE_NAME}|[^\x00-\x1f]*\.json)$",
         max_length=1024,
     ),
 ]
@@ -222,8 +225,10 @@ class PolicyMasterBody(
     omit_defaults=True,
     forbid_unknown_fields=True,
 ):
-    """A LeRobot 0.4 policy saved in the server's directory `path`, run as the master in a
-    worker process (specs/policy.md). LeRobot's names for LeRobot's settings:
+    """A LeRobot 0.4 policy run as the master in a worker process (specs/policy.md). `path`:
+    the name of the policy's folder in the robot's tenant's policy folder (a path, to a
+    folder anywhere on the server, only from the whole server's admin). LeRobot's names for
+    LeRobot's settings:
     `actions_per_chunk` (default: the policy's chunk length), `chunk_size_threshold`,
     `aggregate_fn_name`; `max_relative_target`: the step limit in degrees (null: off);
     `stall_periods`: control periods without an action before the watchdog trips; `takeover`:

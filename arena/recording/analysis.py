@@ -270,7 +270,9 @@ def _describe(message: RecordedMessage) -> str:
     if message.kind == "audit":
         detail = f" ({data['detail']})" if data["detail"] else ""
         return f"{data['user']}: {data['action']}{detail}"
-    return f"{data['role']} {data['peer_id']} ({data['kind']}) {data['change']} {data['reason']}"
+    code = f" {data['code']}" if data.get("code") else ""  # (a refusal's; older files: none)
+    change = f"{data['role']} {data['peer_id']} ({data['kind']}) {data['change']}{code}"
+    return f"{change} {data['reason']}"
 
 
 def export(recording: Recording, fmt: str, topic: str | None = None) -> str:

@@ -276,7 +276,8 @@ def _peer_line(event: PeerChanged) -> LogLine:
     trouble = ("lost", "refused", "disconnected")
     level = LogLevel.Warning if event.change in trouble else LogLevel.Info
     reason = f": {event.reason}" if event.reason else ""
-    return level, f"{event.role} {event.peer_id} ({event.kind}) {event.change}{reason}"
+    code = f" {event.code}" if event.code else ""
+    return level, f"{event.role} {event.peer_id} ({event.kind}) {event.change}{code}{reason}"
 
 
 def _episode_line(event: EpisodeChanged) -> LogLine:

@@ -320,7 +320,7 @@ class Actor:
             outcome = self.apply(claim, now, cause="master attach")
             if isinstance(outcome, safety.Refused):
                 log.info("robot %s: master %s refused (%s)", self.robot_id, peer_id, outcome.code)
-                self._peer_changed(peer, "refused", outcome.message, now)
+                self._peer_changed(peer, "refused", outcome.message, now, str(outcome.code))
                 message.reply.fail(ArenaError(outcome.code, outcome.message))
                 return
         else:
@@ -570,8 +570,10 @@ class Actor:
             )
         )
 
-    def _peer_changed(self, peer: Peer[Any], change: str, reason: str, now: float) -> None:
-        self._publish(peer.changed(self.robot_id, change, reason, now, wallclock.time()))
+    def _peer_changed(
+        self, peer: Peer[Any], change: str, reason: str, now: float, code: str | None = None
+    ) -> None:
+        self._publish(peer.changed(self.robot_id, change, reason, now, wallclock.time(), code))
 
     # -- drivers ------------------------------------------------------------------------------
 

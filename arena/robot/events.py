@@ -151,6 +151,7 @@ class PeerChanged(Observed, frozen=True, gc=False):
     time: float
     wall_time: float
     autonomous: bool = False  # a master that plays a program (sequence, replay)
+    code: str | None = None  # why a master was "refused" (MASTER_ACTIVE, ...), as it was told
 
 
 class EpisodeChanged(Observed, frozen=True, gc=False):

@@ -51,12 +51,28 @@ class Peer(Generic[L]):
         return math.inf if timeout is None else self.last_seen + timeout
 
     def changed(
-        self, robot_id: str, change: str, reason: str, now: float, wall_time: float
+        self,
+        robot_id: str,
+        change: str,
+        reason: str,
+        now: float,
+        wall_time: float,
+        code: str | None = None,
     ) -> PeerChanged:
-        """The event that says this peer `change`d ("attached", "lost", ...) and why."""
+        """The event that says this peer `change`d ("attached", "lost", ...) and why (`code`:
+        the error code a refused peer was told)."""
         autonomous = change == "attached" and isinstance(self, MasterPeer) and self.autonomous
         return PeerChanged(
-            robot_id, self.role, self.peer_id, self.kind, change, reason, now, wall_time, autonomous
+            robot_id,
+            self.role,
+            self.peer_id,
+            self.kind,
+            change,
+            reason,
+            now,
+            wall_time,
+            autonomous,
+            code,
         )
 
     def snapshot(self, joining: bool = False) -> PeerSnapshot:

@@ -56,6 +56,9 @@ REPEAT = 0.1
 MAX_CALLS = 8
 #: Seconds between two warnings of one node (the others are counted, then said).
 WARN_EVERY = 1.0
+#: Publishers whose refused claim a node remembers (the oldest forgotten first): a GID is
+#: whatever a sample's attachment says, so a peer could make up any number of them.
+MAX_REFUSED = 64
 
 
 class RobotNode:
@@ -81,6 +84,10 @@ class RobotNode:
         self._wake = trio.Event()
         #: Commands a newer one replaced before they were handled.
         self.superseded = 0
+        #: Publishers refused the robot, with its master and state then and the refusal.
+        self._refusals: dict[bytes, tuple[tuple[str | None, str], ArenaError]] = {}
+        #: Commands dropped unasked because their publisher was refused as things still are.
+        self.refused_again = 0
         self._calls = 0  # service calls being answered
         self._nursery: trio.Nursery | None = None
         self._warned_at = -WARN_EVERY
@@ -282,6 +289,7 @@ class RobotNode:
     async def publisher_gone(self, gid: bytes, topic: str) -> None:
         """A commanding publisher's token went: its master is lost (the robot's loss policy
         applies: an e-stop by default)."""
+        self._refusals.pop(gid, None)
         link = self.masters.pop(gid, None)
         if link is None:
             return
@@ -293,7 +301,9 @@ class RobotNode:
 
     async def _master(self, sample: Any, topic: str) -> MasterLink | None:
         """The master link of the sample's publisher: claimed with its first command; None
-        when refused (the actor logs and records the refusal with its code)."""
+        when refused (the actor logs and records the refusal with its code). A publisher
+        refused is not asked for again while the robot's master and state are as they were
+        then: its refusal is recorded once, not at the rate it publishes."""
         try:
             gid = wire.read_attachment(bytes(sample.attachment.to_bytes()))[2]
         except (AttributeError, ValueError) as exc:
@@ -302,6 +312,13 @@ class RobotNode:
         link = self.masters.get(gid)
         if link is not None and not link.detached.is_set():
             return link
+        snapshot = self.robot.snapshot()
+        standing = (snapshot.owner, str(snapshot.mode))
+        refused = self._refusals.get(gid)
+        if refused is not None and refused[0] == standing:
+            self.refused_again += 1
+            self.warn("%s refused: %s", topic, refused[1].message)
+            return None
         try:
             link = await self.robot.connect_master(
                 f"ros2-{self.name}-{gid.hex()[:12]}",
@@ -310,7 +327,12 @@ class RobotNode:
             )
         except ArenaError as error:
             self.warn("%s refused: %s", topic, error.message)
+            self._refusals.pop(gid, None)
+            if len(self._refusals) >= MAX_REFUSED:
+                del self._refusals[next(iter(self._refusals))]
+            self._refusals[gid] = (standing, error)
             return None
+        self._refusals.pop(gid, None)
         # One robot has one master: links of publishers that lost it are let go.
         self.masters = {g: m for g, m in self.masters.items() if not m.detached.is_set()}
         self.masters[gid] = link

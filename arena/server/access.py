@@ -129,7 +129,7 @@ def reads_recordings(principal: Principal) -> bool:
 
 def server_admin(principal: Principal) -> bool:
     """The whole server's admin: an admin of the default tenant with every robot in scope.
-    Only it may name files outside the calibration folders (a path, `lerobot:ID`)."""
+    Only it may name files outside the tenants' folders (a path, `lerobot:ID`)."""
     return principal.role >= Role.ADMIN and reads_recordings(principal)
 
 

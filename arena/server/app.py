@@ -40,9 +40,11 @@ from arena.server.access import AccessControl, needed_role, route_of, server_adm
 from arena.server.auth import authorize, check_role, refuse
 from arena.server.base import (
     ArenaApp,
+    Audit,
     Hardware,
     error_response,
     read_body,
+    record_audit_now,
     refuse_any_body,
     too_large,
 )
@@ -51,10 +53,10 @@ from arena.server.config import ServerConfig
 from arena.server.dashboard import blueprint as dashboard_blueprint
 from arena.server.drivers import (
     attach_rest_master,
-    calibration_folder,
     camera_frames,
     make_master,
     make_slave,
+    tenant_folder,
 )
 from arena.server.fleet_api import CALLER, FORWARDED, forwarded_caller
 from arena.server.fleet_api import blueprint as fleet_blueprint
@@ -164,10 +166,7 @@ def _register_errors(app: ArenaApp) -> None:
             refuse(app, "scope")
             raise
         if request.method not in SAFE_METHODS:
-            g.audit = (principal.audit_name(), route, _audited_robots(app, principal))
-            if route == "DELETE /api/robots/{robot_id}":  # gone once answered: said now
-                _audit(g.audit, "requested")
-                g.audit = None
+            g.audit = Audit(principal.audit_name(), route, _audited_robots(app, principal))
         return None
 
     @app.before_request
@@ -182,9 +181,9 @@ def _register_errors(app: ArenaApp) -> None:
     @app.after_request
     async def count(response: Response) -> Response:
         app.metrics.requests[f"{response.status_code // 100}xx"] += 1
-        audit = g.get("audit")
-        if audit is not None:
-            _audit(audit, str(response.status_code))
+        audit: Audit | None = g.get("audit")
+        if audit is not None and response.status_code < 400:  # a refusal changed nothing
+            audit.record(str(response.status_code))
         return response
 
     @app.errorhandler(ArenaError)
@@ -223,27 +222,28 @@ _BODILESS = frozenset(
 )
 
 
+#: State-changing routes that act on every robot the caller sees. (A route that creates a
+#: robot or a group adds it: `Audit.also`; a fleet e-stop is recorded by each node it
+#: stops robots on, this one included: `fleet_api`.)
+_ON_EVERY_ROBOT = frozenset({"/api/estop", "/api/recordings", "/api/recordings/<name>/stop"})
+
+
 def _audited_robots(app: ArenaApp, principal: Principal) -> list[Robot]:
     """The robots a state-changing request acts on (that the caller sees)."""
     args = request.view_args or {}
+    rule = request.url_rule
     ids: list[str] = []
     if "robot_id" in args:
         ids = [args["robot_id"]]
     elif "group_id" in args and args["group_id"] in app.groups:
         ids = list(app.groups.get(args["group_id"]).members)
-    elif request.path in ("/api/estop", "/api/fleet/estop"):
+    elif rule is not None and rule.rule in _ON_EVERY_ROBOT:
         ids = [robot.robot_id for robot in app.manager.robots()]
     robots = []
     for robot_id in ids:
         with contextlib.suppress(ArenaError):
             robots.append(app.manager.get(robot_id))
     return app.access.visible(principal, robots)
-
-
-def _audit(audit: tuple[str, str, list[Robot]], detail: str) -> None:
-    user, route, robots = audit
-    for robot in robots:
-        robot.audit(user, route, detail)
 
 
 def _has_body() -> bool:
@@ -319,6 +319,7 @@ def _register_routes(app: ArenaApp) -> None:
         if principal.robots is not None and body.id is None:
             raise ArenaError(ErrorCode.INVALID_BODY, 'Give the robot an "id" within your scope.')
         robot = await manager.create_robot(body.robot_type, body.name, body.id, tenant=tenant)
+        g.audit.also([robot])
         return convert.robot_summary(robot, tenant), 201
 
     @app.get("/api/robots/<robot_id>")
@@ -333,6 +334,7 @@ def _register_routes(app: ArenaApp) -> None:
     async def delete_robot(robot_id: str) -> dict[str, Any]:
         robot = manager.get(robot_id)
         app.access.tenants[robot_id] = robot.tenant  # (its past stays its tenant's)
+        record_audit_now()  # (gone once answered: nowhere to record it then)
         await manager.delete(robot_id)
         app.metrics.retire(robot)
         return {"deleted": robot_id}
@@ -425,7 +427,7 @@ def _register_routes(app: ArenaApp) -> None:
         driver = make_slave(
             body,
             robot.model,
-            calibration_folder(Path(app.arena_config.calibration_dir), robot.tenant),
+            tenant_folder(Path(app.arena_config.calibration_dir), robot.tenant),
             robot_id,
             calibration_anywhere=server_admin(g.principal),
         )
@@ -453,10 +455,11 @@ def _register_routes(app: ArenaApp) -> None:
             body,
             app.recorder.folder,
             robot.model,
-            calibration_folder(Path(app.arena_config.calibration_dir), robot.tenant),
+            tenant_folder(Path(app.arena_config.calibration_dir), robot.tenant),
             robot_id,
             camera_frames(app.cameras, robot_id),
-            server_admin(g.principal),  # the whole server's admin: any calibration file
+            server_admin(g.principal),  # the whole server's admin: any calibration, any policy
+            tenant_folder(Path(app.arena_config.policy_dir), robot.tenant),
         )
         prepare = getattr(driver, "prepare", None)
         if prepare is not None:

@@ -4,11 +4,12 @@ and never each other."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import TYPE_CHECKING, Any, Protocol
 
 import msgspec
 import trio
-from quart import request
+from quart import g, request
 from quart_trio import QuartTrio
 
 from arena.protocol.errors import ArenaError, ErrorCode
@@ -16,6 +17,7 @@ from arena.protocol.messages import MAX_MESSAGE_BYTES
 from arena.protocol.validation import refusal
 from arena.recording.recorder import Recorder
 from arena.robot.groups import GroupRegistry
+from arena.robot.handle import Robot
 from arena.robot.manager import RobotManager
 from arena.server.access import AccessControl
 from arena.server.config import ServerConfig
@@ -88,6 +90,38 @@ STATUS_FOR: dict[ErrorCode, int] = {
     ErrorCode.NODE_LOST: 503,
     ErrorCode.ESTOP_INCOMPLETE: 503,
 }
+
+
+class Audit:
+    """Who changes what over REST (specs/api.md, "Audit"): the caller, the route and the
+    robots it acts on, recorded on each robot once the change is made: a refusal changes
+    nothing and is not recorded, and nothing is recorded twice."""
+
+    def __init__(self, user: str, route: str, robots: Iterable[Robot]) -> None:
+        self.user = user
+        self.route = route
+        self.robots = list(robots)
+
+    def also(self, robots: Iterable[Robot]) -> None:
+        """Robots the request acts on that did not exist before it (a robot it creates)
+        or that it named in its body (a group's members)."""
+        self.robots.extend(robots)
+
+    def record(self, detail: str) -> None:
+        """Record it on each robot now, and never again (`detail`: the answer's status, or
+        `requested` for a change after which there is nowhere to record it: a robot
+        deleted, the recording stopped)."""
+        robots, self.robots = self.robots, []
+        for robot in robots:
+            robot.audit(self.user, self.route, detail)
+
+
+def record_audit_now() -> None:
+    """Record the request's audit before the change it asks for, which leaves nowhere to
+    record it (called once every check has passed, so a refusal is still not recorded)."""
+    audit: Audit | None = g.get("audit")
+    if audit is not None:
+        audit.record("requested")
 
 
 class OpenConnection(Protocol):

@@ -52,6 +52,7 @@ class ServerConfig:
     record: bool = True  # record every robot to MCAP from the start
     recordings_dir: str = "recordings"
     calibration_dir: str = "calibration"  # one calibration file per robot (or per name)
+    policy_dir: str = "policies"  # one folder per policy (each tenant's: policies/<tenant>/)
     recording_max_bytes: int = 256 << 20
     recording_max_seconds: float = 3600.0
     recording_retry_max: float = 30.0  # a failing disk is retried after 1 s, doubling to this

@@ -5,8 +5,11 @@ validated body into the driver's own config (`drivers/config.py`): no driver see
 from __future__ import annotations
 
 import importlib.util
+import os
+import re
 from collections.abc import Iterator
 from contextlib import contextmanager
+from itertools import islice
 from pathlib import Path
 
 from arena.drivers.config import RemoteLinkConfig, UsbMasterConfig, UsbSlaveConfig
@@ -19,6 +22,7 @@ from arena.policy.master import CameraFrames, PolicyMaster, PolicySettings, Shot
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import (
     DEFAULT_TENANT,
+    FILE_NAME,
     MasterBody,
     MockSlaveBody,
     PhysicsSlaveBody,
@@ -56,16 +60,47 @@ async def attach_rest_master(robot: Robot, driver: MasterDriver) -> str:
         raise
 
 
-def calibration_folder(root: Path, tenant: str) -> Path:
-    """A tenant's calibration files: `root/<tenant>/` (the default tenant's are `root`
-    itself, where they were before tenants). A tenant never reads another's by naming it."""
+def tenant_folder(root: Path, tenant: str) -> Path:
+    """A tenant's own folder of files it names (its calibrations, its policies):
+    `root/<tenant>/`, the default tenant's `root` itself (where its files were before
+    tenants). A tenant never reaches another's file by naming it."""
     if tenant == DEFAULT_TENANT:
         return root
     if tenant.startswith("."):  # (a tenant's name may hold dots: never `..`)
-        raise ArenaError(
-            ErrorCode.INVALID_CONFIG, f"Tenant {tenant!r} cannot have a calibration folder."
-        )
+        raise ArenaError(ErrorCode.INVALID_CONFIG, f"Tenant {tenant!r} cannot have a folder.")
     return root / tenant
+
+
+def outside_tenant_folder(what: str, value: str, anywhere: bool, instead: str) -> None:
+    """A value that names a file outside the tenant's folder (a path): FORBIDDEN unless
+    `anywhere` (the whole server's admin). Said before anything is looked up, in words that
+    depend on nothing but the value: the answer never tells whether such a file exists."""
+    if not anywhere:
+        raise ArenaError(
+            ErrorCode.FORBIDDEN,
+            f"{what} {value!r} names a file outside this tenant's folder, which only an "
+            f"admin of the default tenant with every robot in scope may; {instead}.",
+        )
+
+
+def in_tenant_folder(folder: Path, name: str, what: str) -> Path:
+    """`folder/name` for a `name` of a file in the tenant's folder (no path, no `..`: the
+    bodies' patterns say so already); FORBIDDEN if a symbolic link leads it out of the folder."""
+    if "/" in name or "\x00" in name or name.startswith("."):
+        raise ArenaError(ErrorCode.INVALID_VALUE, f"{what} {name!r} is not a file's name.")
+    path = folder / name
+    if not inside(path, folder):
+        raise ArenaError(
+            ErrorCode.FORBIDDEN,
+            f"{what} {name!r} is a symbolic link out of this tenant's folder, which is never "
+            "followed; put the file itself there.",
+        )
+    return path
+
+
+def inside(path: Path, folder: Path) -> bool:
+    """`path`, its symbolic links followed, lies in `folder` (itself resolved)."""
+    return path.resolve().is_relative_to(folder.resolve())
 
 
 def _calibration_file(
@@ -79,15 +114,10 @@ def _calibration_file(
     """`folder/<name>.json`, or the LeRobot file a path or `lerobot:ID` names: only when
     `anywhere` (the whole server's admin), as it reads or overwrites any file of that form."""
     if name is not None and is_lerobot_reference(name):
-        if not anywhere:
-            raise ArenaError(
-                ErrorCode.FORBIDDEN,
-                f"Calibration {name!r}: a path or `lerobot:` names a file outside this "
-                "tenant's calibration folder, which only an admin of the default tenant with "
-                "every robot in scope may; give a calibration name instead.",
-            )
+        outside_tenant_folder("Calibration", name, anywhere, "give a calibration name instead")
         return resolve_lerobot(name, model.robot_type, family_of(model), leader=leader)
-    return (folder or Path("calibration")) / f"{name or robot_id}.json"
+    file = f"{name or robot_id}.json"
+    return in_tenant_folder(folder or Path("calibration"), file, "Calibration")
 
 
 def usb_slave_config(body: UsbSlaveBody) -> UsbSlaveConfig:
@@ -219,9 +249,55 @@ def camera_frames(cameras: Cameras, robot_id: str) -> CameraFrames:
     return frames
 
 
+#: Entries of a policy's folder looked at for links out of the tenant's folder (LeRobot saves
+#: about eight files): a folder with more is refused rather than read for long.
+MAX_POLICY_ENTRIES = 1000
+
+
+def policy_folder(value: str, folder: Path | None, anywhere: bool) -> Path:
+    """The folder a policy master's `path` means, made whole (every answer and log line
+    names it in full). A name (`FILE_NAME`) is a folder of the tenant's policy folder
+    `folder`, neither it nor any file in it a symbolic link out of that folder; anything
+    else is a path on the server's machine (a relative one from the folder the server started
+    in), only for the whole server's admin (`anywhere`). Runs off the loop (it reads the
+    disk)."""
+    if not re.fullmatch(FILE_NAME, value):
+        outside_tenant_folder("Policy", value, anywhere, "give the name of a policy's folder")
+        return Path(value).expanduser().absolute()
+    folder = folder or Path("policies")
+    path = in_tenant_folder(folder, value, "Policy")
+    if not (path / "config.json").is_file():  # (nothing else: another tenant's folder is not one)
+        raise ArenaError(
+            ErrorCode.POLICY_INVALID,
+            f"No policy {value!r} in this tenant's policy folder {folder}: a policy is a "
+            f"folder of its own there ({folder / value}/config.json, model.safetensors and "
+            "its processors' files, as LeRobot saves them).",
+        )
+    with os.scandir(path) as entries:
+        listed = list(islice(entries, MAX_POLICY_ENTRIES + 1))
+    if len(listed) > MAX_POLICY_ENTRIES:
+        raise ArenaError(
+            ErrorCode.POLICY_INVALID,
+            f"Policy {value!r}: more than {MAX_POLICY_ENTRIES} files in its folder.",
+        )
+    for entry in listed:
+        if entry.is_symlink() and not inside(Path(entry.path), folder):
+            raise ArenaError(
+                ErrorCode.FORBIDDEN,
+                f"Policy {value!r}: {entry.name} is a symbolic link out of this tenant's "
+                "folder, which is never followed; put the file itself there.",
+            )
+    return path.absolute()
+
+
 def _policy(
-    body: PolicyMasterBody, model: RobotModel | None, cameras: CameraFrames
+    body: PolicyMasterBody,
+    model: RobotModel | None,
+    cameras: CameraFrames,
+    folder: Path | None,
+    anywhere: bool,
 ) -> PolicyMaster:
+    path = policy_folder(body.path, folder, anywhere)  # first: a refusal tells nothing more
     if model is None:
         raise ArenaError(ErrorCode.INVALID_CONFIG, "A policy master needs the robot's model.")
     # Looked for, not imported: LeRobot and torch belong in the worker, never in the server.
@@ -231,9 +307,7 @@ def _policy(
             f"A policy master needs LeRobot, which is not installed: {install_line('lerobot')}",
         )
     settings = PolicySettings(
-        # On the server's machine: a relative path from the folder the server started in,
-        # made whole here so that every answer and log line names the folder it means.
-        path=Path(body.path).expanduser().absolute(),
+        path=path,
         task=body.task,
         fps=body.fps,
         actions_per_chunk=body.actions_per_chunk,
@@ -253,16 +327,19 @@ def make_master(
     calibration_dir: Path | None = None,
     robot_id: str = "robot",
     cameras: CameraFrames = dict,
-    calibration_anywhere: bool = False,
+    anywhere: bool = False,
+    policy_dir: Path | None = None,
 ) -> MasterDriver:
     """Build a master driver from its config (`recordings`: where replay finds its files;
     a leader arm's calibration is `calibration_dir/<name>.json`, default `<robot_id>-leader`,
-    a path or `lerobot:ID` only with `calibration_anywhere` (as `make_slave`); `cameras`:
-    the robot's newest frames, for a policy). It takes over from the robot's master only if
-    the config asks (`takeover`)."""
-    driver = _master(
-        body, recordings, model, calibration_dir, robot_id, cameras, calibration_anywhere
-    )
+    a path or `lerobot:ID` only with `anywhere` (as `make_slave`); `cameras`: the robot's
+    newest frames, for a policy, which is a folder of `policy_dir` (the robot's tenant's
+    folder: `tenant_folder`), a path only with `anywhere`). It takes over from the robot's
+    master only if the config asks (`takeover`)."""
+    if isinstance(body, PolicyMasterBody):
+        driver: MasterDriver = _policy(body, model, cameras, policy_dir, anywhere)
+    else:
+        driver = _master(body, recordings, model, calibration_dir, robot_id, anywhere)
     driver.takes_over = body.takeover
     return driver
 
@@ -273,11 +350,8 @@ def _master(
     model: RobotModel | None,
     calibration_dir: Path | None,
     robot_id: str,
-    cameras: CameraFrames,
     calibration_anywhere: bool,
 ) -> MasterDriver:
-    if isinstance(body, PolicyMasterBody):
-        return _policy(body, model, cameras)
     if isinstance(body, UsbMasterBody):
         from arena.drivers.usb_master import UsbMaster
 

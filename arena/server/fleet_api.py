@@ -100,6 +100,10 @@ async def fleet_robots() -> dict[str, Any]:
     return {"fleet": fleet.fleet, "robots": robots}
 
 
+#: How a fleet e-stop is named in the audit of each robot it stops (on that robot's node).
+FLEET_ESTOP = "POST /api/fleet/estop"
+
+
 @blueprint.post("/api/fleet/estop")
 async def fleet_estop() -> dict[str, Any]:
     """E-stop every robot of every live node. Complete (200) only when every live node said
@@ -111,6 +115,8 @@ async def fleet_estop() -> dict[str, Any]:
     # Each node stops the robots this caller sees there (its tenant and scope go along).
     principal: Principal = g.principal
     whose = {"tenant": principal.tenant, "robots": principal.robots, "groups": principal.groups}
+    # ... and who asked, from where: each node records it on the robots it stops.
+    whose.update(sub=principal.audit_name(), node=fleet.name)
     answers = await fleet.ask_all("estop", {"reason": reason, **whose}, timeout=ESTOP_TIMEOUT)
     acks, failed = [], []
     for node, (answer, seconds) in sorted(answers.items()):
@@ -222,6 +228,9 @@ def install(app: ArenaApp, fleet: FleetNode) -> None:
             await app.manager.estop_all(reason)
         else:
             await estop_together(robots, reason)
+        user, origin = asked.get("sub"), asked.get("node")
+        for robot in robots:  # (a node of an older version says not who)
+            robot.audit(str(user or "fleet"), FLEET_ESTOP, f"from node {origin or '?'}")
         return {"node": fleet.name, "robots": [robot.robot_id for robot in robots]}
 
     async def run(call: forward.Call) -> forward.Answer:

@@ -40,6 +40,7 @@ async def create_group() -> tuple[dict[str, Any], int]:
     for robot_id in body.members:  # a robot the caller does not see is as if absent
         app.access.check_robot(g.principal, robot_id)
     group = app.groups.create(body.id, body.members, body.stopTogether)
+    g.audit.also(app.manager.get(robot_id) for robot_id in group.members)
     return group.describe(app.manager), 201
 
 

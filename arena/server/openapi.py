@@ -193,7 +193,7 @@ EXAMPLES: dict[type, dict[str, Any]] = {
     UsbMasterBody: {"type": "usb-master", "port": "/dev/ttyUSB1", "deadband": 0.5},
     PolicyMasterBody: {
         "type": "policy",
-        "path": "outputs/train/act_cube/checkpoints/last/pretrained_model",
+        "path": "act_cube",
         "task": "pick up the cube",
         "fps": 30,
     },

@@ -17,7 +17,7 @@ from arena.recording.analysis import joint_series, summarize, thin
 from arena.recording.mcap_file import SUFFIX, read_recording, tenant_in_name
 from arena.recording.recorder import Recorder, check_name, existing_recording
 from arena.server.access import Contents, reads_recordings
-from arena.server.base import ArenaApp, read_body
+from arena.server.base import ArenaApp, read_body, record_audit_now
 from arena.server.drivers import attach_rest_master, make_master
 from arena.server.identity import Principal
 
@@ -177,6 +177,7 @@ async def stop_recording(name: str) -> dict[str, Any]:
         writing = await off_the_loop(_files_seen, app, principal, recorder.current_files)
         if name not in writing:
             raise ArenaError(ErrorCode.UNKNOWN_RECORDING, f"{name!r} is not being recorded.")
+    record_audit_now()  # (into the files this stop closes: after it, nowhere)
     closed = await recorder.stop()
     stopped = await off_the_loop(_files_seen, app, principal, closed)
     return {**recorder_status(app, principal), "stopped": stopped[0] if stopped else None}

@@ -11,6 +11,7 @@ import trio
 
 from arena.protocol import messages as wire
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.robot.handle import Robot
 from arena.robot.links import MasterLink
 from arena.robot.manager import estop_together
 from arena.robot.safety import Mode
@@ -25,10 +26,26 @@ class GroupMembers:
     the group master's hands (it is told in a `member_left` message); the rest stay claimed,
     and its e-stop still stops every one of them. When none is left, the socket closes."""
 
-    def __init__(self, connection: Connection, links: dict[str, MasterLink], group_id: str) -> None:
+    def __init__(
+        self,
+        connection: Connection,
+        links: dict[str, MasterLink],
+        group_id: str,
+        robots: list[Robot],
+        master_id: str,
+    ) -> None:
         self.connection = connection
         self.links = links
         self.group_id = group_id
+        self.robots = {robot.robot_id: robot for robot in robots}
+        self.master_id = master_id
+
+    def audit(self, action: str, robot_ids: list[str]) -> None:
+        """Record on each robot of `robot_ids` that the group master's user did `action`."""
+        for robot_id in robot_ids:
+            self.robots[robot_id].audit(
+                self.connection.principal.audit_name(), action, self.master_id
+            )
 
     async def leave(self, robot_id: str, reason: str = "robot deleted") -> None:
         """`robot_id` is gone: forget it and say so (once)."""
@@ -63,15 +80,16 @@ async def serve(connection: Connection, group_id: str) -> None:
                 heartbeat_timeout=app.arena_config.heartbeat_timeout,
                 description=f"master of the group {group_id!r}",
             )
-            robot.audit(connection.principal.audit_name(), "connect group master", master_id)
     except ArenaError as error:
         with trio.CancelScope(shield=True):
             for link in links.values():
                 await link.detach("the group could not be claimed whole")
         await connection.refuse(error)
         return
+    for robot in robots:  # (claimed whole: a group refused in part is not recorded)
+        robot.audit(connection.principal.audit_name(), "connect group master", master_id)
     app.metrics.connections["master"] += 1
-    members = GroupMembers(connection, dict(links), group_id)
+    members = GroupMembers(connection, dict(links), group_id, robots, master_id)
     try:
         with contextlib.ExitStack() as stack:
             queues = [
@@ -136,19 +154,26 @@ async def _handle(members: GroupMembers, message: wire.MasterMessage) -> None:
     elif isinstance(message, wire.EStopMessage):
         reason = (message.data.reason if message.data else None) or "e-stop from group master"
         await estop_together([link.robot for link in members.links.values()], reason)
+        members.audit("estop over WebSocket", list(members.links))
     elif isinstance(message, wire.ResetMessage):
-        for link in list(members.links.values()):
+        reset = []
+        for robot_id, link in list(members.links.items()):
             if link.robot.snapshot().mode is Mode.ESTOPPED:
                 with contextlib.suppress(ArenaError):  # deleted meanwhile: its forwarder tells
                     await link.robot.reset()
+                    reset.append(robot_id)
+        members.audit("reset over WebSocket", reset)
     elif isinstance(message, wire.HeartbeatMessage):
         await connection.send(wire.HeartbeatMessage(timestamp=wire.now_iso()))
     elif isinstance(message, wire.ReleaseMessage):
         modes: dict[str, Mode] = {}
+        released = []
         for robot_id, link in list(members.links.items()):
             with contextlib.suppress(ArenaError):  # deleted meanwhile: nothing to release
                 await link.release()
                 modes[robot_id] = link.robot.snapshot().mode
+                released.append(robot_id)
+        members.audit("release over WebSocket", released)
         mode = Mode.ESTOPPED if Mode.ESTOPPED in modes.values() else Mode.IDLE
         data = wire.ReleasedData(
             members.group_id, str(mode), {robot_id: str(m) for robot_id, m in modes.items()}

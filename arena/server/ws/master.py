@@ -236,11 +236,11 @@ async def _handle_master_message(
     elif isinstance(message, wire.EStopMessage):
         player.stop()
         reason = (message.data.reason if message.data else None) or "e-stop from master"
-        robot.audit(connection.principal.audit_name(), "estop over WebSocket", link.master_id)
         await robot.estop(reason)
+        robot.audit(connection.principal.audit_name(), "estop over WebSocket", link.master_id)
     elif isinstance(message, wire.ResetMessage):
+        await robot.reset()  # (a refused reset changed nothing: not recorded)
         robot.audit(connection.principal.audit_name(), "reset over WebSocket", link.master_id)
-        await robot.reset()
     elif isinstance(message, wire.HeartbeatMessage):
         await connection.send(wire.HeartbeatMessage(timestamp=wire.now_iso()))
     elif isinstance(message, wire.ReleaseMessage):
@@ -248,7 +248,7 @@ async def _handle_master_message(
             raise ArenaError(ErrorCode.NOT_OWNER, DETACHED_LINK.message)
         player.stop()
         player.releasing = True
-        robot.audit(connection.principal.audit_name(), "release over WebSocket", link.master_id)
         await link.release()
+        robot.audit(connection.principal.audit_name(), "release over WebSocket", link.master_id)
         snapshot = robot.snapshot()
         await send_released(connection, wire.ReleasedData(robot.robot_id, str(snapshot.mode)))
