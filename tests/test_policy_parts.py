@@ -27,7 +27,7 @@ from arena.policy.wire import (
     encode,
     frame_length,
 )
-from arena.policy.worker import PolicyDirectoryError, check_directory
+from arena.policy.worker import PolicyDirectoryError, adapt_config, check_directory, check_steps
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording.dataset import Span, dataset_name, policies_in
 from arena.recording.mcap_file import RecordedMessage
@@ -219,3 +219,27 @@ def test_a_dataset_of_a_policys_episodes_is_named_as_an_evaluation() -> None:
     with pytest.raises(ArenaError) as refused:
         dataset_name("lab/eval_cube", "arm", [])
     assert "no policy drove" in refused.value.message
+
+
+def test_a_later_lerobots_config_fields_are_dropped_only_where_they_change_nothing() -> None:
+    known = {"type", "chunk_size", "device"}
+    saved = {"type": "act", "chunk_size": 10, "pretrained_revision": "main"}
+    later = {"gradient_checkpointing": True, "use_relative_actions": False}
+    assert adapt_config({**saved, **later}, known, "0.4.4") == {"type": "act", "chunk_size": 10}
+    for field, value in [
+        ("use_relative_actions", True),
+        ("action_feature_names", ["a"]),
+        ("never_heard_of", None),
+        ("relative_steps", []),
+    ]:
+        with pytest.raises(PolicyDirectoryError) as refused:
+            adapt_config({**saved, field: value}, known, "0.4.4")
+        message = str(refused.value)
+        assert f"{field!r} = {json.dumps(value)}" in message and "LeRobot 0.4.4" in message
+
+
+def test_processor_steps_a_worker_s_lerobot_lacks_are_refused_by_name(tmp_path: Path) -> None:
+    folder = write_policy(tmp_path / "pi0", {"registry_name": "relative_actions_processor"})
+    check_steps(folder, {"normalizer_processor", "relative_actions_processor"}, "0.6.1")
+    with pytest.raises(PolicyDirectoryError, match="does not have: relative_actions_processor"):
+        check_steps(folder, {"normalizer_processor"}, "0.4.4")

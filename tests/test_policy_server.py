@@ -29,7 +29,7 @@ import pytest
 import trio
 
 from arena import cli
-from arena.protocol.errors import ErrorCode
+from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording.mcap_file import read_recording
 from arena.robot.events import (
     CommandHandled,
@@ -41,6 +41,7 @@ from arena.robot.events import (
 )
 from arena.robot.mailbox import EventQueue
 from arena.robot.safety import Mode
+from arena.server.config import ServerConfig
 from tests.conftest import REPOSITORY, RunningServer, need
 from tests.serve_process import serving
 
@@ -496,3 +497,65 @@ def test_torch_never_enters_the_servers_process(tiny: Path, tmp_path: Path) -> N
         ]
         assert any(name.startswith("libtorch") for name in native_libraries(worker))
         assert not any(name.startswith("libtorch") for name in native_libraries(server))
+
+
+async def test_a_policy_a_newer_lerobot_saved_loads_and_what_would_change_it_is_refused(
+    start_server: Start, tiny: Path, tmp_path: Path
+) -> None:
+    """LeRobot 0.6 writes `pretrained_revision` into every config, 0.4.4 knows no such field:
+    the worker drops a later field that holds its neutral value and names any other."""
+
+    def saved_with(folder: Path, **fields: Any) -> Path:
+        shutil.copytree(tiny, folder)
+        config = json.loads((folder / "config.json").read_text())
+        (folder / "config.json").write_text(json.dumps({**config, **fields}))
+        return folder
+
+    server = await start_server(demo=True)
+    await ready(server)
+    newer = saved_with(tmp_path / "newer", pretrained_revision=None, use_relative_actions=False)
+    loaded = await attach(server, newer)
+    assert loaded.status_code == 201, loaded.text
+    async with server.client() as http:
+        assert (await http.delete(f"{ROBOT}/master")).status_code == 200
+    changes = saved_with(tmp_path / "relative", use_relative_actions=True, new_knob=3)
+    refused = await attach(server, changes)
+    error = refused.json()["error"]
+    assert (refused.status_code, error["code"]) == (422, "POLICY_INVALID"), error
+    assert "'use_relative_actions' = true, 'new_knob' = 3" in error["message"]
+    assert "LeRobot 0.4.4, which this worker runs" in error["message"]
+    assert "--policy-python" in error["message"]
+
+
+def python_without_arena(folder: Path) -> Path:
+    """A virtualenv whose Python finds this one's packages (LeRobot, torch, msgspec) but not
+    Arena: its site-packages named in a `.pth` file, whose own `.pth` files (Arena's editable
+    install among them) are then never read."""
+    subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(folder)], check=True)
+    ours = next(p for p in sys.path if p.endswith("site-packages") and Path(p).is_dir())
+    theirs = next((folder / "lib").glob("python3*/site-packages"))
+    (theirs / "packages.pth").write_text(ours + "\n")
+    return folder / "bin" / "python"
+
+
+async def test_a_worker_runs_in_a_python_of_the_user_s_that_has_no_arena(
+    start_server: Start, tiny: Path, tmp_path: Path
+) -> None:
+    python = python_without_arena(tmp_path / "venv")
+    cannot = subprocess.run([str(python), "-I", "-c", "import arena"], capture_output=True)
+    assert b"No module named 'arena'" in cannot.stderr
+    server = await start_server(demo=True, policy_python=str(python))
+    robot = await ready(server)
+    with robot.subscribe(kinds=[CommandHandled]) as events:
+        assert (await attach(server, tiny)).status_code == 201
+        await next_event(events, lambda e: isinstance(e, CommandHandled))
+    (worker,) = workers()
+    assert Path(f"/proc/{worker}/cmdline").read_bytes().split(b"\0")[:2] == [
+        str(python).encode(),
+        b"-I",
+    ]
+
+
+def test_a_policy_python_that_is_no_program_is_refused(tmp_path: Path) -> None:
+    with pytest.raises(ArenaError, match="is not a program"):
+        ServerConfig(policy_python=str(tmp_path / "nothing")).check()

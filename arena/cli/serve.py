@@ -80,6 +80,12 @@ def add(commands: Commands) -> None:
     )
     serve.add_argument("--recordings-dir", help="where recordings go (default recordings/)")
     serve.add_argument(
+        "--policy-python",
+        metavar="PATH",
+        help="the Python policy workers run in: one with LeRobot, torch and msgspec, such as a "
+        "LeRobot 0.6 virtualenv's (default: Arena's own)",
+    )
+    serve.add_argument(
         "--no-record-foxglove",
         action="store_false",
         dest="record_foxglove",
@@ -147,6 +153,7 @@ def serve_command(args: argparse.Namespace) -> int:
         api_key_file=args.api_key_file,
         record=args.record,
         recordings_dir=args.recordings_dir,
+        policy_python=args.policy_python,
         record_foxglove=args.record_foxglove,
         foxglove_port=args.foxglove_port,
         host=args.host,

@@ -12,6 +12,7 @@ autonomous: an e-stop detaches it, which cancels both tasks and stops the worker
 
 from __future__ import annotations
 
+import functools
 import logging
 import time as wallclock
 from collections.abc import Awaitable, Callable, Mapping
@@ -30,7 +31,13 @@ from arena.policy.features import (
     lerobot_state,
     measured,
 )
-from arena.policy.process import LOAD_TIMEOUT, PolicyProcess, WorkerError, WorkerGone
+from arena.policy.process import (
+    LOAD_TIMEOUT,
+    PolicyProcess,
+    WorkerError,
+    WorkerGone,
+    worker_command,
+)
 from arena.policy.wire import Chunk, Loaded, Observe
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot.events import PolicyInferred
@@ -158,6 +165,8 @@ class PolicySettings:
     stall_periods: int = 2
     load_timeout: float = LOAD_TIMEOUT
     environment_state: tuple[float, ...] = ()
+    #: The Python the worker runs in (one with LeRobot, torch and msgspec); None: Arena's own.
+    python: str | None = None
 
 
 @dataclass(slots=True)
@@ -186,12 +195,14 @@ class PolicyMaster:
         settings: PolicySettings,
         model: RobotModel,
         cameras: CameraFrames,
-        start_worker: Callable[[], Awaitable[Worker]] = PolicyProcess.start,
+        start_worker: Callable[[], Awaitable[Worker]] | None = None,
     ) -> None:
         self.settings = settings
         self.model = model
         self.cameras = cameras
-        self.start_worker = start_worker
+        self.start_worker = start_worker or functools.partial(
+            PolicyProcess.start, worker_command(settings.python)
+        )
         self.process: Worker | None = None
         self.loaded: Loaded | None = None
         self.queue: ActionQueue | None = None
@@ -237,7 +248,14 @@ class PolicyMaster:
                 f"{self.settings.load_timeout:g} s; it was stopped.",
             )
         assert self.loaded is not None
-        log.info("policy %s loaded in %.1f s", self.identity, self.loaded.seconds)
+        loaded = self.loaded
+        log.info(
+            "policy %s loaded in %.1f s (LeRobot %s, Python %s)",
+            self.identity,
+            loaded.seconds,
+            loaded.lerobot,
+            loaded.python,
+        )
 
     async def _load(self) -> None:
         self.process = await self.start_worker()

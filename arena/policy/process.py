@@ -35,8 +35,18 @@ from arena.protocol.errors import ArenaError, ErrorCode
 LOAD_TIMEOUT = 180.0
 #: Workers one process runs at most (each holds a policy's weights and torch: hundreds of MB).
 MAX_WORKERS = 4
-#: How a worker is started: this interpreter, the worker module.
+#: How a worker is started in Arena's own Python: this interpreter, the worker module.
 WORKER = (sys.executable, "-m", "arena.policy.worker")
+#: ...and in a Python of the user's (`arena serve --policy-python`), one with LeRobot, torch and
+#: msgspec but no Arena: isolated (`-I`: no PYTHONPATH, no user site), Arena's source found by
+#: its folder alone (the argument after the code).
+BOOT = "import sys; sys.path.insert(0, sys.argv[1]); from arena.policy.worker import main; main()"
+ROOT = Path(__file__).resolve().parent.parent.parent
+
+
+def worker_command(python: str | None) -> tuple[str, ...]:
+    """The command that starts a worker in `python` (None: Arena's own)."""
+    return WORKER if python is None else (python, "-I", "-c", BOOT, str(ROOT))
 
 
 class WorkerError(Exception):

@@ -45,6 +45,8 @@ class Loaded(msgspec.Struct, tag="loaded", frozen=True):
     outputs: tuple[Feature, ...]
     chunk_size: int
     seconds: float  # how long the load took
+    lerobot: str = ""  # the version of LeRobot the worker runs
+    python: str = ""  # ...and of its Python
 
 
 class Observe(msgspec.Struct, tag="observe", frozen=True):

@@ -13,10 +13,12 @@ LeRobot's registered steps) is refused.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
 import sys
+import tempfile
 import time
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -43,8 +45,57 @@ ENVIRONMENT = "observation.environment_state"
 IMAGE_PREFIX = "observation.images."
 
 
+#: Fields a LeRobot newer than 0.4 added to policies' configs, and the values with which a
+#: policy does what an older LeRobot does without the field (ANY: the field never changes what
+#: a loaded policy does). Such a field is dropped for an older LeRobot; any other field it does
+#: not know is refused by name, never ignored (specs/policy.md).
+ANY = object()
+LATER_FIELDS: dict[str, object] = {
+    "pretrained_revision": ANY,  # the hub revision the weights came from: unused once local
+    "gradient_checkpointing": ANY,  # memory in training, not what inference computes
+    "use_relative_actions": False,  # actions relative to the state: a change when on
+    "relative_exclude_joints": ANY,  # read only with use_relative_actions on
+    "action_feature_names": None,
+}
+
+
 class PolicyDirectoryError(Exception):
     """The directory is not a LeRobot policy this worker can load; the message says why."""
+
+
+def adapt_config(config: dict[str, Any], known: set[str], version: str) -> dict[str, Any]:
+    """`config` (a policy's `config.json`) as a LeRobot whose config knows the fields `known`
+    reads it: later LeRobots' fields that hold their neutral value dropped (`LATER_FIELDS`);
+    `PolicyDirectoryError` naming every other field it does not know."""
+    adapted: dict[str, Any] = {}
+    refused: list[str] = []
+    for name, value in config.items():
+        if name == "type" or name in known:
+            adapted[name] = value
+            continue
+        if name not in LATER_FIELDS or LATER_FIELDS[name] not in (ANY, value):
+            refused.append(f"{name!r} = {json.dumps(value)}")
+    if refused:
+        raise PolicyDirectoryError(
+            f"config.json has fields LeRobot {version}, which this worker runs, does not know: "
+            f"{', '.join(refused)}. A newer LeRobot saved it: run the worker with that LeRobot "
+            "(arena serve --policy-python PATH, specs/policy.md)"
+        )
+    return adapted
+
+
+def check_steps(path: Path, registered: set[str], version: str) -> None:
+    """Refuse processor steps LeRobot `version` (its registry: `registered`) does not have."""
+    for name in PROCESSOR_FILES:
+        steps = json.loads((path / name).read_text(encoding="utf-8"))["steps"]
+        unknown = [str(step["registry_name"]) for step in steps]
+        unknown = [step for step in unknown if step not in registered]
+        if unknown:
+            raise PolicyDirectoryError(
+                f"{name} has steps LeRobot {version}, which this worker runs, does not have: "
+                f"{', '.join(unknown)}. A newer LeRobot saved it: run the worker with that "
+                "LeRobot (arena serve --policy-python PATH, specs/policy.md)"
+            )
 
 
 def checkpoint_of(weights: Path) -> str:
@@ -103,17 +154,35 @@ class LoadedPolicy:
         started = time.perf_counter()
         check_directory(path)
         self.checkpoint = checkpoint_of(path / "model.safetensors")
+        import lerobot
         import torch
         from lerobot.configs.policies import PreTrainedConfig
         from lerobot.policies.factory import get_policy_class, make_pre_post_processors
+        from lerobot.processor import ProcessorStepRegistry
 
         torch.set_num_threads(max(1, (os.cpu_count() or 2) // 2))
+        version = self.lerobot = str(lerobot.__version__)
         try:
-            self.config: Any = PreTrainedConfig.from_pretrained(str(path))
-        except Exception as exc:  # draccus and LeRobot raise many kinds
+            saved = json.loads((path / "config.json").read_text(encoding="utf-8"))
+            kind = PreTrainedConfig.get_choice_class(saved["type"])
+        except Exception as exc:  # not JSON, no type, a type this LeRobot does not have
             raise PolicyDirectoryError(
-                f"config.json is not a LeRobot policy config: {exc}"
+                f"config.json is not a LeRobot policy config (LeRobot {version}, which this "
+                f"worker runs): {type(exc).__name__}: {exc}"
             ) from None
+        check_steps(path, set(ProcessorStepRegistry.list()), version)
+        known = {field.name for field in dataclasses.fields(kind)}
+        with tempfile.TemporaryDirectory() as readable:
+            # LeRobot reads a config from a folder: the adapted one goes into a folder of its own
+            (Path(readable) / "config.json").write_text(
+                json.dumps(adapt_config(saved, known, version)), encoding="utf-8"
+            )
+            try:
+                self.config: Any = PreTrainedConfig.from_pretrained(readable)
+            except Exception as exc:  # draccus and LeRobot raise many kinds
+                raise PolicyDirectoryError(
+                    f"config.json is not a LeRobot policy config: {exc}"
+                ) from None
         self.policy: Any = get_policy_class(self.config.type).from_pretrained(
             str(path), config=self.config
         )
@@ -142,19 +211,14 @@ class LoadedPolicy:
             outputs=self.features(self.config.output_features),
             chunk_size=int(chunk),
             seconds=self.seconds,
+            lerobot=self.lerobot,
+            python=sys.version.split()[0],
         )
 
     def image(self, jpeg: bytes, shape: tuple[int, ...]) -> Any:
-        """A camera's JPEG as the (C, H, W) float tensor in [0, 1] the policy's feature asks
-        (decoded and scaled by FFmpeg through PyAV, Arena's own JPEG codec)."""
-        import av
-
+        """A camera's JPEG as the (C, H, W) float tensor in [0, 1] the policy's feature asks."""
         _, height, width = shape
-        codec: Any = av.CodecContext.create("mjpeg", "r")
-        frames = codec.decode(av.Packet(jpeg))
-        if len(frames) != 1:
-            raise ValueError("a camera frame is not one JPEG image")
-        rgb = frames[0].reformat(width=width, height=height, format="rgb24").to_ndarray()
+        rgb = decode_jpeg(jpeg, width, height)
         return self.torch.from_numpy(rgb).permute(2, 0, 1).float() / 255.0
 
     def act(self, observation: Observe) -> Chunk:
@@ -186,6 +250,30 @@ class LoadedPolicy:
             tuple(tuple(row) for row in actions),
             time.perf_counter() - started,
         )
+
+
+def decode_jpeg(jpeg: bytes, width: int, height: int) -> Any:
+    """A JPEG as a (height, width, 3) uint8 RGB array: decoded and scaled by FFmpeg through
+    PyAV (Arena's own JPEG codec) where the worker's Python has it, else by Pillow (LeRobot 0.6
+    brings Pillow and not PyAV)."""
+    try:
+        import av
+    except ImportError:
+        import io
+
+        import numpy as np
+        from PIL import Image
+
+        with Image.open(io.BytesIO(jpeg)) as picture:
+            if picture.format != "JPEG":
+                raise ValueError("a camera frame is not one JPEG image") from None
+            scaled = picture.convert("RGB").resize((width, height), Image.Resampling.BILINEAR)
+            return np.asarray(scaled)
+    codec: Any = av.CodecContext.create("mjpeg", "r")
+    frames = codec.decode(av.Packet(jpeg))
+    if len(frames) != 1:
+        raise ValueError("a camera frame is not one JPEG image")
+    return frames[0].reformat(width=width, height=height, format="rgb24").to_ndarray()
 
 
 def read_frame(stream: BinaryIO) -> bytes | None:

@@ -460,6 +460,7 @@ def _register_routes(app: ArenaApp) -> None:
             camera_frames(app.cameras, robot_id),
             server_admin(g.principal),  # the whole server's admin: any calibration, any policy
             tenant_folder(Path(app.arena_config.policy_dir), robot.tenant),
+            app.arena_config.policy_python,
         )
         prepare = getattr(driver, "prepare", None)
         if prepare is not None:

@@ -53,6 +53,9 @@ class ServerConfig:
     recordings_dir: str = "recordings"
     calibration_dir: str = "calibration"  # one calibration file per robot (or per name)
     policy_dir: str = "policies"  # one folder per policy (each tenant's: policies/<tenant>/)
+    #: The Python policy workers run in: one with LeRobot, torch and msgspec (a LeRobot newer
+    #: than Arena's, say); None: Arena's own (specs/policy.md).
+    policy_python: str | None = None
     recording_max_bytes: int = 256 << 20
     recording_max_seconds: float = 3600.0
     recording_retry_max: float = 30.0  # a failing disk is retried after 1 s, doubling to this
@@ -137,6 +140,14 @@ class ServerConfig:
                     f"ROS 2 has no API keys: anyone who reaches {exposed[0]} could command the "
                     "robots. --ros2 uses loopback endpoints only, unless --insecure.",
                 )
+        if self.policy_python is not None and not (
+            os.path.isfile(self.policy_python) and os.access(self.policy_python, os.X_OK)
+        ):
+            raise ArenaError(
+                ErrorCode.INVALID_CONFIG,
+                f"policy_python {self.policy_python!r} is not a program: give the path of a "
+                "Python with LeRobot, torch and msgspec (its virtualenv's bin/python).",
+            )
         if self.recording_retry_max < 1.0:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "recording_retry_max must be 1 s or more.")
 

@@ -296,12 +296,14 @@ def _policy(
     cameras: CameraFrames,
     folder: Path | None,
     anywhere: bool,
+    python: str | None,
 ) -> PolicyMaster:
     path = policy_folder(body.path, folder, anywhere)  # first: a refusal tells nothing more
     if model is None:
         raise ArenaError(ErrorCode.INVALID_CONFIG, "A policy master needs the robot's model.")
-    # Looked for, not imported: LeRobot and torch belong in the worker, never in the server.
-    if importlib.util.find_spec("lerobot") is None:
+    # Looked for, not imported: LeRobot and torch belong in the worker, never in the server
+    # (a worker in a Python of the user's has its own).
+    if python is None and importlib.util.find_spec("lerobot") is None:
         raise ArenaError(
             ErrorCode.NOT_INSTALLED,
             f"A policy master needs LeRobot, which is not installed: {install_line('lerobot')}",
@@ -316,6 +318,7 @@ def _policy(
         max_relative_target=body.max_relative_target,
         stall_periods=body.stall_periods,
         environment_state=tuple(body.environment_state),
+        python=python,
     )
     return PolicyMaster(settings, model, cameras)
 
@@ -329,15 +332,17 @@ def make_master(
     cameras: CameraFrames = dict,
     anywhere: bool = False,
     policy_dir: Path | None = None,
+    policy_python: str | None = None,
 ) -> MasterDriver:
     """Build a master driver from its config (`recordings`: where replay finds its files;
     a leader arm's calibration is `calibration_dir/<name>.json`, default `<robot_id>-leader`,
     a path or `lerobot:ID` only with `anywhere` (as `make_slave`); `cameras`: the robot's
     newest frames, for a policy, which is a folder of `policy_dir` (the robot's tenant's
-    folder: `tenant_folder`), a path only with `anywhere`). It takes over from the robot's
+    folder: `tenant_folder`), a path only with `anywhere`), run by `policy_python` (None:
+    Arena's own Python). It takes over from the robot's
     master only if the config asks (`takeover`)."""
     if isinstance(body, PolicyMasterBody):
-        driver: MasterDriver = _policy(body, model, cameras, policy_dir, anywhere)
+        driver: MasterDriver = _policy(body, model, cameras, policy_dir, anywhere, policy_python)
     else:
         driver = _master(body, recordings, model, calibration_dir, robot_id, anywhere)
     driver.takes_over = body.takeover
