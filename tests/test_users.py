@@ -369,6 +369,47 @@ async def test_bad_tokens_over_http_and_websocket_say_why_and_are_counted(
     assert "bob" not in logged and signature not in logged
 
 
+def test_a_claim_of_the_wrong_type_makes_an_invalid_token() -> None:
+    verifier = TokenVerifier(SECRET, issuer="lab-idp", audience="arena")
+    later = int(time.time()) + 600
+    good = {"sub": "eve", "exp": later, "iat": later - 600, "iss": "lab-idp", "aud": "arena"}
+    assert verifier.verify(jwt.encode(good, SECRET, "HS256")).expires == later + 30
+    wrong = {  # each claim Arena or PyJWT reads, of a type it is not
+        "exp": str(later),  # a string PyJWT would read as a number: never expiring
+        "nbf": str(later - 600),
+        "iat": str(later - 600),
+        "exp ": True,  # (key trimmed below) a boolean is no number of seconds
+        "exp  ": float("inf"),
+        "iss": 5,  # PyJWT raises a TypeError of its own on this one
+        "aud": 5,
+        "sub": 7,
+        "role": ["admin"],
+        "tenant": 3,
+        "robots": "lab-*",
+        "groups": [1],
+        "jti": 9,
+    }
+    for key, value in wrong.items():
+        claim = key.strip()  # signed as is (PyJWT's encode refuses some of these)
+        text = jwt.PyJWS().encode(json.dumps({**good, claim: value}).encode(), SECRET, "HS256")
+        assert f"'{claim}'" in _refusal(verifier, text), (claim, value)
+
+
+async def test_a_token_whose_expiry_is_a_string_opens_no_websocket(
+    start_server: StartServer, secret_file: Path
+) -> None:
+    server = await start_server(jwt_secret_file=str(secret_file), demo=True)
+    claims = {"sub": "eve", "role": "viewer", "exp": str(int(time.time()) + 600)}
+    text = jwt.encode(claims, SECRET, "HS256")
+    async with open_websocket_url(f"{server.ws_url}/ws/robots/demo-arm/state?token={text}") as ws:
+        error = await receive(ws, "error")
+        assert (error["data"]["code"], await closed_with(ws)) == ("UNAUTHORIZED", 4401)
+        assert "'exp'" in error["data"]["message"]
+    async with server.client() as http:
+        reply = await http.get("/api/robots", headers=bearer(text))
+    assert (reply.status_code, reply.json()["error"]["code"]) == (401, "UNAUTHORIZED")
+
+
 async def test_a_websocket_whose_token_expires_is_closed_with_4401(
     autojump_clock: trio.testing.MockClock, start_server: StartServer, secret_file: Path
 ) -> None:
