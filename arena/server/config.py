@@ -64,6 +64,13 @@ class ServerConfig:
     #: Bytes queued for one WebSocket peer before states keep only the newest and acks are
     #: counted as missed (a peer that stopped reading costs at most about this much).
     ws_queue_bytes: int = 16 * 1024
+    #: An HTTP connection with no request under way is closed after this many seconds (one
+    #: that sends nothing at all too); `Connection: close` closes it after its response.
+    keep_alive_timeout: float = 5.0
+    #: The most connections open at once (HTTP and WebSocket): in all, and from one client
+    #: address. One more is answered 503 OVERLOADED and closed.
+    max_connections: int = 1024
+    max_connections_per_client: int = 256
     #: Web pages (scheme://host:port) besides the server's own that may change anything.
     allowed_origins: tuple[str, ...] = field(default=())
     #: Names besides localhost and loopback addresses that a loopback server answers to.
@@ -112,6 +119,16 @@ class ServerConfig:
         if not 1024 <= self.ws_queue_bytes <= 64 << 20:
             raise ArenaError(
                 ErrorCode.INVALID_CONFIG, "ws_queue_bytes must be from 1 KiB to 64 MiB."
+            )
+        if not 0 < self.keep_alive_timeout <= 3600:
+            raise ArenaError(
+                ErrorCode.INVALID_CONFIG, "keep_alive_timeout must be more than 0 s, at most 3600."
+            )
+        if not 1 <= self.max_connections_per_client <= self.max_connections:
+            raise ArenaError(
+                ErrorCode.INVALID_CONFIG,
+                "max_connections_per_client must be from 1 to max_connections "
+                f"({self.max_connections}).",
             )
         if self.foxglove_port is not None and not (
             _is_loopback(self.host) or (self.insecure and not self.auth_enabled)
