@@ -36,7 +36,13 @@ from arena.robot.manager import RobotManager, estop_together
 from arena.robot.workspace import workspace_from_json, workspace_to_json
 from arena.sensors.camera import Cameras
 from arena.server import convert, dashboard, openapi
-from arena.server.access import AccessControl, needed_role, route_of, server_admin
+from arena.server.access import (
+    AccessControl,
+    needed_role,
+    reads_recordings,
+    route_of,
+    server_admin,
+)
 from arena.server.auth import authorize, check_role, refuse
 from arena.server.base import (
     ArenaApp,
@@ -229,8 +235,9 @@ def _audited_robots(app: ArenaApp, principal: Principal) -> list[Robot]:
     ids: list[str] = []
     if "robot_id" in args:
         ids = [args["robot_id"]]
-    elif "group_id" in args and args["group_id"] in app.groups:
-        ids = list(app.groups.get(args["group_id"]).members)
+    elif "group_id" in args:
+        group = app.groups.find(args["group_id"], principal.tenant)
+        ids = [] if group is None else list(group.members)
     elif request.path in ("/api/estop", "/api/fleet/estop"):
         ids = [robot.robot_id for robot in app.manager.robots()]
     robots = []
@@ -259,6 +266,9 @@ def _register_routes(app: ArenaApp) -> None:
     def robots_seen() -> list[Robot]:
         return app.access.visible(g.principal, manager.robots())
 
+    def sees(robot_id: str) -> bool:
+        return app.access.sees(g.principal, robot_id)
+
     @app.get("/")
     async def status() -> dict[str, Any]:
         robots = robots_seen()
@@ -269,7 +279,7 @@ def _register_routes(app: ArenaApp) -> None:
             "uptime_s": round(time.time() - app.started_at, 3),
             "robots": len(robots),
             "robots_by_state": dict(Counter(str(r.snapshot().mode) for r in robots)),
-            "connections": dict(app.metrics.connections),
+            "connections": app.metrics.connections_seen(sees),
             "commands": _sum_counters(r.command_counts for r in robots),
             "estops": sum(r.estop_count for r in robots),
             "auth": app.arena_config.auth_enabled,
@@ -490,8 +500,14 @@ def _register_routes(app: ArenaApp) -> None:
         return Response(
             app.metrics.render(
                 robots_seen(),
-                sum(c.queued_bytes for c in app.connections),
+                sum(
+                    c.queued_bytes
+                    for c in app.connections
+                    if c.robots and all(sees(robot_id) for robot_id in c.robots)
+                ),
                 recorder_status(app, g.principal),  # the caller's tenant's counts
+                app.metrics.connections_seen(sees),
+                whole_server=reads_recordings(g.principal),
             ),
             content_type="text/plain; version=0.0.4",
         )

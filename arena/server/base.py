@@ -94,6 +94,7 @@ class OpenConnection(Protocol):
     """What the app knows of an open WebSocket connection."""
 
     role: str
+    robots: tuple[str, ...]  # the robots it is a peer of, once counted open
 
     @property
     def queued_bytes(self) -> int:

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import itertools
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Iterable
 from typing import TypeVar
 
 import trio
@@ -75,6 +75,19 @@ class Connection(LatestWins):
         #: credential needed).
         self.principal: Principal = ANONYMOUS
         self.expires_at: float | None = None
+        self._authorized = False
+        #: The robots it is a peer of, once counted open (`count_open`): who sees them all
+        #: sees it counted.
+        self.robots: tuple[str, ...] = ()
+
+    def count_open(self, robots: Iterable[str]) -> None:
+        """Counted open in `/metrics` and `GET /`, by role, on `robots`."""
+        self.robots = tuple(robots)
+        self.app.metrics.connection_opened(self.role, self.robots)
+
+    def count_closed(self) -> None:
+        """Counted closed (after `count_open`)."""
+        self.app.metrics.connection_closed(self.role, self.robots)
 
     def error(self, code: ErrorCode | str, message: str) -> Encoded:
         """An `error` message to send, counted."""
@@ -144,6 +157,8 @@ class Connection(LatestWins):
         caller's tenant and scope are checked here all the same (`sees`)."""
         if getattr(self.ws, "trusted", False):  # `principal`: the caller the node sent
             return True
+        if self._authorized:  # (checked once: the master endpoint asks before a robot's)
+            return True
         try:
             self.principal = authorize(
                 self.app,
@@ -159,6 +174,7 @@ class Connection(LatestWins):
         expires = self.principal.expires
         if expires is not None:  # wall clock to trio's, once
             self.expires_at = trio.current_time() + (expires - time.time())
+        self._authorized = True
         return True
 
     def sees(self, robot_id: str) -> bool:
