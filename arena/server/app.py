@@ -84,6 +84,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.arena_config = config
     app.metrics = Metrics()
     app.connections = set()
+    app.websockets_held = Counter()
     app.acks = AckCache()
     app.origin_policy = OriginPolicy(config.host, config.allowed_origins, config.allowed_hosts)
     app.hardware = Hardware()
@@ -328,6 +329,13 @@ def _register_routes(app: ArenaApp) -> None:
             )
         if principal.robots is not None and body.id is None:
             raise ArenaError(ErrorCode.INVALID_BODY, 'Give the robot an "id" within your scope.')
+        most = app.arena_config.max_robots
+        if sum(robot.tenant == tenant for robot in manager.robots()) >= most:
+            raise ArenaError(
+                ErrorCode.LIMIT_REACHED,
+                f"Tenant {tenant!r} has {most} robots, the most allowed (max_robots): "
+                "delete one first.",
+            )
         robot = await manager.create_robot(body.robot_type, body.name, body.id, tenant=tenant)
         return convert.robot_summary(robot, tenant), 201
 

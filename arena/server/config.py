@@ -71,6 +71,11 @@ class ServerConfig:
     #: address. One more is answered 503 OVERLOADED and closed.
     max_connections: int = 1024
     max_connections_per_client: int = 256
+    #: What one tenant may create, and the WebSockets one caller may hold open at once (on
+    #: a server without keys every caller is the same anonymous one). More: LIMIT_REACHED.
+    max_robots: int = 256
+    max_groups: int = 256
+    max_websockets_per_caller: int = 512
     #: Web pages (scheme://host:port) besides the server's own that may change anything.
     allowed_origins: tuple[str, ...] = field(default=())
     #: Names besides localhost and loopback addresses that a loopback server answers to.
@@ -130,6 +135,9 @@ class ServerConfig:
                 "max_connections_per_client must be from 1 to max_connections "
                 f"({self.max_connections}).",
             )
+        for name in ("max_robots", "max_groups", "max_websockets_per_caller"):
+            if getattr(self, name) < 1:
+                raise ArenaError(ErrorCode.INVALID_CONFIG, f"{name} must be 1 or more.")
         if self.foxglove_port is not None and not (
             _is_loopback(self.host) or (self.insecure and not self.auth_enabled)
         ):
