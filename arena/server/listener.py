@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 from collections import Counter
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
@@ -205,6 +206,8 @@ class ArenaListener:
         #: Connections open now, by client address (the sum: `open_connections`).
         self.clients: Counter[str] = Counter()
         self.open_connections = 0
+        self.turned_away = 0  # connections refused beyond a bound, since the start
+        self._next_warning = -math.inf
         #: Sockets bound beforehand (`run.bind`); None: bind them in `serve`.
         self.sockets = sockets
         self.router = router
@@ -277,11 +280,16 @@ class ArenaListener:
         """A connection beyond a bound: 503 (in plain HTTP; a TLS one is just closed), then
         closed at once, nothing of it read."""
         full = self.clients[client] >= self.limits.per_client
-        log.warning(
-            "refused a connection from %s: %s",
-            client,
-            "its address holds its most" if full else "the server holds its most",
-        )
+        self.turned_away += 1
+        now = trio.current_time()
+        if now >= self._next_warning:  # a flood is one line every 10 s, not one a connection
+            self._next_warning = now + 10.0
+            log.warning(
+                "refused a connection from %s (%d refused so far): %s",
+                client,
+                self.turned_away,
+                "its address holds its most" if full else "the server holds its most",
+            )
         if not tls:
             most = self.limits.per_client if full else self.limits.total
             whose = "from your address" if full else "on this server"
