@@ -298,3 +298,60 @@ def test_allowed_origins_come_from_flags_and_the_config_file(tmp_path: Path) -> 
     )
     assert config.allowed_origins == ("http://a.example", "http://b.example")
     assert config.allowed_hosts == ("lab", "rig")
+
+
+async def test_what_a_caller_creates_is_bounded_and_said_so(start_server: StartServer) -> None:
+    server = await start_server(
+        api_keys=(ADMIN,), max_robots=3, max_groups=2, max_websockets_per_caller=2
+    )
+    admin = {"Authorization": f"Bearer {ADMIN}"}
+    async with server.client(headers=admin) as http:
+        # Names: a robot's name is a line of at most 128 characters, its id and a group's
+        # members robot ids (1-64 letters, digits, '.', '_', '-').
+        for body, field in (
+            ({"name": "x" * 60_000}, "name"),
+            ({"name": "two\nlines"}, "name"),
+            ({"name": ""}, "name"),
+            ({"id": "x" * 65}, "id"),
+            ({"id": "../up"}, "id"),
+        ):
+            refused = await http.post("/api/robots", json=body)
+            error = refused.json()["error"]
+            assert (refused.status_code, error["code"]) == (422, "INVALID_BODY"), body
+            assert f"Invalid `{field}`" in error["message"] and len(error["message"]) < 300, error
+        made = [
+            await http.post("/api/robots", json={"id": f"arm-{n}", "name": f"Arm {n} (SO-101)"})
+            for n in range(3)
+        ]
+        assert [reply.status_code for reply in made] == [201, 201, 201]
+        assert made[0].json()["name"] == "Arm 0 (SO-101)"
+        # Robots: at most `max_robots` a tenant.
+        refused = await http.post("/api/robots", json={"id": "arm-3"})
+        error = refused.json()["error"]
+        assert (refused.status_code, error["code"]) == (429, "LIMIT_REACHED")
+        assert "3 robots" in error["message"] and "max_robots" in error["message"]
+        # Groups: at most `max_groups` a tenant; their members are robot ids.
+        for n in range(2):
+            group = {"id": f"pair-{n}", "members": ["arm-0", "arm-1"]}
+            assert (await http.post("/api/groups", json=group)).status_code == 201
+        refused = await http.post("/api/groups", json={"id": "pair-2", "members": ["arm-2"]})
+        error = refused.json()["error"]
+        assert (refused.status_code, error["code"]) == (429, "LIMIT_REACHED")
+        assert "2 groups" in error["message"] and "max_groups" in error["message"]
+        await http.delete("/api/groups/pair-0")
+        odd = await http.post("/api/groups", json={"id": "pair-2", "members": ["y" * 60_000]})
+        assert odd.json()["error"]["code"] == "INVALID_BODY"
+        assert (
+            await http.post("/api/groups", json={"id": "pair-2", "members": ["arm-2"]})
+        ).is_success
+        # WebSockets: at most `max_websockets_per_caller` open at once for one caller.
+        url = f"{server.ws_url}/ws/robots/arm-0/state?token={ADMIN}"
+        async with open_websocket_url(url) as first, open_websocket_url(url) as second:
+            for ws in (first, second):
+                await receive(ws, "state")
+            async with open_websocket_url(url) as third:
+                error = await receive(third, "error")
+                assert (error["data"]["code"], await closed_with(third)) == ("LIMIT_REACHED", 4429)
+                assert "2 WebSockets" in error["data"]["message"]
+        async with open_websocket_url(url) as again:  # the two closed: free again
+            await receive(again, "state")

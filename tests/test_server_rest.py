@@ -167,7 +167,7 @@ BAD_REQUESTS: list[tuple[str, str, Any, int, str]] = [
     ("POST", "/api/robots", {"robot_type": 5}, 422, "INVALID_BODY"),
     ("POST", "/api/robots", {"robot_type": "toaster"}, 422, "UNKNOWN_ROBOT_TYPE"),
     ("POST", "/api/robots", {"id": "demo-arm"}, 409, "ROBOT_EXISTS"),
-    ("POST", "/api/robots", {"id": "../../etc/passwd"}, 422, "INVALID_CONFIG"),
+    ("POST", "/api/robots", {"id": "../../etc/passwd"}, 422, "INVALID_BODY"),
     ("POST", "/api/robots", b"[1, 2]", 422, "INVALID_BODY"),
     ("PUT", "/api/robots/demo-arm/joints", {}, 422, "INVALID_BODY"),
     ("PUT", "/api/robots/demo-arm/joints", {"joints": "Rotation"}, 422, "INVALID_BODY"),

@@ -317,6 +317,58 @@ async def test_a_token_s_groups_reach_the_robots_in_those_groups(
                 assert (message["data"]["code"], await closed_with(ws)) == ("UNKNOWN_ROBOT", 4404)
 
 
+async def test_what_another_tenant_has_is_as_if_it_did_not_exist(
+    start_server: StartServer, secret_file: Path
+) -> None:
+    server = await _tenanted_server(start_server, secret_file)
+    acme, ours = bearer(token("admin", tenant="acme")), bearer(ADMIN_KEY)
+    scoped = token("operator", robots=["lab-1"])  # of our tenant, seeing lab-1 alone
+    async with server.client() as http:
+        for group_id in ("cell", "acme-cell"):
+            made = await http.post(
+                "/api/groups", json={"id": group_id, "members": ["acme-1"]}, headers=acme
+            )
+            assert made.status_code == 201
+        made = await http.post("/api/groups", json={"id": "pair", "members": ["lab-1", "lab-2"]},
+                               headers=ours)  # fmt: skip
+        assert made.status_code == 201
+        # Ids another tenant holds, a group's or a robot's, are free in ours.
+        for group_id in ("cell", "acme-1"):
+            made = await http.post(
+                "/api/groups", json={"id": group_id, "members": ["lab-1"]}, headers=ours
+            )
+            assert (made.status_code, made.json().get("members")) == (201, ["lab-1"]), group_id
+        listed = (await http.get("/api/groups", headers=ours)).json()["groups"]
+        assert sorted(group["id"] for group in listed) == ["acme-1", "cell", "pair"]
+        theirs = (await http.get("/api/groups/cell", headers=acme)).json()
+        assert theirs["members"] == ["acme-1"]  # each tenant's own "cell"
+        # A group the caller may not see, of another tenant or with a member out of its
+        # scope, is a WebSocket to a robot that does not exist: 4404, as for no robot at all.
+        for caller, group_id in ((token("operator"), "acme-cell"), (scoped, "pair")):
+            answers = []
+            for path in (group_id, "no-such-robot"):
+                url = f"{server.ws_url}/ws/master/{path}?token={caller}"
+                async with open_websocket_url(url) as ws:
+                    error = await receive(ws, "error")
+                    said = error["data"]["message"].replace(path, "ID")
+                    answers.append((error["data"]["code"], said, await closed_with(ws)))
+            assert answers[0] == answers[1] == ("UNKNOWN_ROBOT", "No robot with id 'ID'.", 4404)
+        # Connections are counted to those who see their robots only.
+        url = f"{server.ws_url}/ws/master/acme-1?token={token('operator', tenant='acme')}"
+        async with open_websocket_url(url) as ws:
+            await receive(ws, "state")
+            for caller, masters in ((acme, 1), (ours, 0), (bearer(scoped), 0)):
+                status = (await http.get("/", headers=caller)).json()
+                assert status["connections"].get("master", 0) == masters, caller
+                metrics = (await http.get("/metrics", headers=caller)).text
+                assert f'arena_connections{{role="master"}} {masters}' in metrics, caller
+            # Figures of the whole server go to its own callers, not to a tenant's.
+            assert "arena_http_requests_total" in (await http.get("/metrics", headers=ours)).text
+            assert (
+                "arena_http_requests_total" not in (await http.get("/metrics", headers=acme)).text
+            )
+
+
 async def test_bad_tokens_over_http_and_websocket_say_why_and_are_counted(
     start_server: StartServer, secret_file: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -367,6 +419,47 @@ async def test_bad_tokens_over_http_and_websocket_say_why_and_are_counted(
     logged = "\n".join(r.getMessage() for r in caplog.records) + metrics
     assert not [what for what, (text, _) in bad.items() if text in logged and text != "junk"]
     assert "bob" not in logged and signature not in logged
+
+
+def test_a_claim_of_the_wrong_type_makes_an_invalid_token() -> None:
+    verifier = TokenVerifier(SECRET, issuer="lab-idp", audience="arena")
+    later = int(time.time()) + 600
+    good = {"sub": "eve", "exp": later, "iat": later - 600, "iss": "lab-idp", "aud": "arena"}
+    assert verifier.verify(jwt.encode(good, SECRET, "HS256")).expires == later + 30
+    wrong = {  # each claim Arena or PyJWT reads, of a type it is not
+        "exp": str(later),  # a string PyJWT would read as a number: never expiring
+        "nbf": str(later - 600),
+        "iat": str(later - 600),
+        "exp ": True,  # (key trimmed below) a boolean is no number of seconds
+        "exp  ": float("inf"),
+        "iss": 5,  # PyJWT raises a TypeError of its own on this one
+        "aud": 5,
+        "sub": 7,
+        "role": ["admin"],
+        "tenant": 3,
+        "robots": "lab-*",
+        "groups": [1],
+        "jti": 9,
+    }
+    for key, value in wrong.items():
+        claim = key.strip()  # signed as is (PyJWT's encode refuses some of these)
+        text = jwt.PyJWS().encode(json.dumps({**good, claim: value}).encode(), SECRET, "HS256")
+        assert f"'{claim}'" in _refusal(verifier, text), (claim, value)
+
+
+async def test_a_token_whose_expiry_is_a_string_opens_no_websocket(
+    start_server: StartServer, secret_file: Path
+) -> None:
+    server = await start_server(jwt_secret_file=str(secret_file), demo=True)
+    claims = {"sub": "eve", "role": "viewer", "exp": str(int(time.time()) + 600)}
+    text = jwt.encode(claims, SECRET, "HS256")
+    async with open_websocket_url(f"{server.ws_url}/ws/robots/demo-arm/state?token={text}") as ws:
+        error = await receive(ws, "error")
+        assert (error["data"]["code"], await closed_with(ws)) == ("UNAUTHORIZED", 4401)
+        assert "'exp'" in error["data"]["message"]
+    async with server.client() as http:
+        reply = await http.get("/api/robots", headers=bearer(text))
+    assert (reply.status_code, reply.json()["error"]["code"]) == (401, "UNAUTHORIZED")
 
 
 async def test_a_websocket_whose_token_expires_is_closed_with_4401(

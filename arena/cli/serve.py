@@ -69,6 +69,22 @@ def add(commands: Commands) -> None:
         metavar="NAME",
         help="a host name a loopback server answers to besides localhost (repeatable)",
     )
+    connections = serve.add_argument_group("connections (specs/api.md, Limits)")
+    connections.add_argument(
+        "--keep-alive-timeout",
+        type=float,
+        metavar="SECONDS",
+        help="close an idle HTTP connection after this long (default 5)",
+    )
+    connections.add_argument(
+        "--max-connections", type=int, metavar="N", help="connections open at once (default 1024)"
+    )
+    connections.add_argument(
+        "--max-connections-per-client",
+        type=int,
+        metavar="N",
+        help="connections open at once from one address (default 256)",
+    )
     serve.add_argument("--certfile", help="TLS certificate (PEM)")
     serve.add_argument("--keyfile", help="TLS private key (PEM)")
     serve.add_argument(
@@ -169,6 +185,9 @@ def serve_command(args: argparse.Namespace) -> int:
         jwt_leeway=args.jwt_leeway,
         certfile=args.certfile,
         keyfile=args.keyfile,
+        keep_alive_timeout=args.keep_alive_timeout,
+        max_connections=args.max_connections,
+        max_connections_per_client=args.max_connections_per_client,
         allowed_origins=tuple(args.allowed_origins),
         allowed_hosts=tuple(args.allowed_hosts),
         node=args.node,

@@ -26,6 +26,7 @@ class ErrorCode(enum.StrEnum):
     SIMULATED_FAULT = "SIMULATED_FAULT"  # injected by a mock-slave with simulateErrors
     CONTACT = "CONTACT"  # the physics twin's links touch something
     OVERLOADED = "OVERLOADED"
+    LIMIT_REACHED = "LIMIT_REACHED"  # a caller holds the most robots, groups or WebSockets
     # Registry
     UNKNOWN_ROBOT = "UNKNOWN_ROBOT"
     UNKNOWN_ROBOT_TYPE = "UNKNOWN_ROBOT_TYPE"

@@ -14,13 +14,21 @@ DEFAULT_TENANT = "default"
 TENANT_PATTERN = r"^[A-Za-z0-9_.-]{1,64}$"
 
 
+#: A robot's id: 1-64 letters, digits, '.', '_' or '-', starting with a letter or digit.
+RobotId = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")]
+#: A robot's display name: one line of 1-128 characters (no control characters).
+RobotName = Annotated[
+    str, msgspec.Meta(min_length=1, max_length=128, pattern=r"^[^\x00-\x1f\x7f]*$")
+]
+
+
 class CreateRobotBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     """`POST /api/robots`: a robot type, a display name and, optionally, the id to use and
     the tenant it belongs to (default: the caller's, `default` for API keys)."""
 
     robot_type: str = "so-arm100"
-    name: str | None = None
-    id: str | None = None
+    name: RobotName | None = None
+    id: RobotId | None = None
     tenant: Annotated[str, msgspec.Meta(pattern=TENANT_PATTERN)] | None = None
 
 
@@ -264,7 +272,7 @@ class GroupBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     member e-stops them all."""
 
     id: GroupId
-    members: Annotated[list[str], msgspec.Meta(min_length=1, max_length=256)]
+    members: Annotated[list[RobotId], msgspec.Meta(min_length=1, max_length=256)]
     stopTogether: bool = False
 
 

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import trio
 
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.protocol.rest import DEFAULT_TENANT
 from arena.robot.events import StateChanged
 from arena.robot.manager import RobotManager, estop_together
 from arena.robot.safety import Mode
@@ -20,11 +21,12 @@ from arena.robot.safety import Mode
 
 @dataclass
 class Group:
-    """A named set of robots."""
+    """A named set of robots of one tenant."""
 
     group_id: str
     members: tuple[str, ...]
     stop_together: bool = False
+    tenant: str = DEFAULT_TENANT
     scope: trio.CancelScope = field(default_factory=trio.CancelScope)
 
     def describe(self, manager: RobotManager) -> dict[str, object]:
@@ -50,46 +52,56 @@ class Group:
 
 
 class GroupRegistry:
-    """Every group of a server; ids share no space with robots, so `/ws/master/{id}` is plain."""
+    """Every group of a server, each tenant's apart: a group id is unique in its tenant and
+    shares no space with the tenant's robot ids, so `/ws/master/{id}` is plain to each
+    caller. Another tenant's groups and robots are as if they did not exist."""
 
     def __init__(self, manager: RobotManager) -> None:
         self.manager = manager
-        self._groups: dict[str, Group] = {}
+        self._groups: dict[tuple[str, str], Group] = {}
 
-    def __contains__(self, group_id: str) -> bool:
-        return group_id in self._groups
+    def all(self, tenant: str | None = None) -> list[Group]:
+        """Every group (of `tenant`, if given), oldest first."""
+        return [g for g in self._groups.values() if tenant is None or g.tenant == tenant]
 
-    def all(self) -> list[Group]:
-        """Every group, oldest first."""
-        return list(self._groups.values())
+    def find(self, group_id: str, tenant: str = DEFAULT_TENANT) -> Group | None:
+        """The group of `tenant`, or None."""
+        return self._groups.get((tenant, group_id))
 
-    def get(self, group_id: str) -> Group:
-        """The group, or UNKNOWN_GROUP."""
-        group = self._groups.get(group_id)
+    def get(self, group_id: str, tenant: str = DEFAULT_TENANT) -> Group:
+        """The group of `tenant`, or UNKNOWN_GROUP."""
+        group = self._groups.get((tenant, group_id))
         if group is None:
             raise ArenaError(ErrorCode.UNKNOWN_GROUP, f"No group {group_id!r}.")
         return group
 
-    def create(self, group_id: str, members: list[str], stop_together: bool) -> Group:
-        """A new group of existing robots (at least one, no repeats)."""
-        if group_id in self._groups:
+    def create(
+        self,
+        group_id: str,
+        members: list[str],
+        stop_together: bool,
+        tenant: str = DEFAULT_TENANT,
+    ) -> Group:
+        """A new group of existing robots of `tenant` (at least one, no repeats)."""
+        if (tenant, group_id) in self._groups:
             raise ArenaError(ErrorCode.GROUP_EXISTS, f"A group {group_id!r} exists already.")
-        if any(robot.robot_id == group_id for robot in self.manager.robots()):
+        robot = self.manager.find(group_id)
+        if robot is not None and robot.tenant == tenant:
             raise ArenaError(ErrorCode.GROUP_EXISTS, f"{group_id!r} is a robot's id.")
         if not members or len(set(members)) != len(members):
             raise ArenaError(ErrorCode.INVALID_BODY, "A group needs one or more distinct robots.")
         for robot_id in members:
             self.manager.get(robot_id)  # UNKNOWN_ROBOT for a stranger
-        group = Group(group_id, tuple(members), stop_together)
-        self._groups[group_id] = group
+        group = Group(group_id, tuple(members), stop_together, tenant=tenant)
+        self._groups[tenant, group_id] = group
         if stop_together:
             self.manager.spawn(self._stop_together, group)
         return group
 
-    def delete(self, group_id: str) -> None:
+    def delete(self, group_id: str, tenant: str = DEFAULT_TENANT) -> None:
         """Forget the group; its robots stay as they are."""
-        self.get(group_id).scope.cancel()
-        del self._groups[group_id]
+        self.get(group_id, tenant).scope.cancel()
+        del self._groups[tenant, group_id]
 
     async def _stop_together(self, group: Group) -> None:
         with group.scope:

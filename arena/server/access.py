@@ -189,10 +189,11 @@ class AccessControl:
 
     def check_group(self, principal: Principal, group_id: str) -> None:
         """UNKNOWN_GROUP, as for a group that does not exist, unless the caller sees every
-        member (or it is no group: its id may be a robot's)."""
-        if group_id not in self.groups:
+        member (or it is no group of its tenant: the route says so)."""
+        group = self.groups.find(group_id, principal.tenant)
+        if group is None:
             return
-        if not self.sees_group(principal, self.groups.get(group_id).members):
+        if not self.sees_group(principal, group.members):
             raise ArenaError(ErrorCode.UNKNOWN_GROUP, f"No group {group_id!r}.")
 
     def sees_recording(self, principal: Principal, contents: Contents) -> bool:
@@ -217,5 +218,5 @@ class AccessControl:
         """The robot's id, or a group it is in, is in the caller's scope (tenants aside)."""
         if principal.unlimited:
             return True
-        groups = [g.group_id for g in self.groups.all() if robot_id in g.members]
+        groups = [g.group_id for g in self.groups.all(principal.tenant) if robot_id in g.members]
         return principal.covers(robot_id, groups)

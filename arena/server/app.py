@@ -36,7 +36,13 @@ from arena.robot.manager import RobotManager, estop_together
 from arena.robot.workspace import workspace_from_json, workspace_to_json
 from arena.sensors.camera import Cameras
 from arena.server import convert, dashboard, openapi
-from arena.server.access import AccessControl, needed_role, route_of, server_admin
+from arena.server.access import (
+    AccessControl,
+    needed_role,
+    reads_recordings,
+    route_of,
+    server_admin,
+)
 from arena.server.auth import authorize, check_role, refuse
 from arena.server.base import (
     ArenaApp,
@@ -80,6 +86,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.arena_config = config
     app.metrics = Metrics()
     app.connections = set()
+    app.websockets_held = Counter()
     app.acks = AckCache()
     app.origin_policy = OriginPolicy(config.host, config.allowed_origins, config.allowed_hosts)
     app.hardware = Hardware()
@@ -235,8 +242,9 @@ def _audited_robots(app: ArenaApp, principal: Principal) -> list[Robot]:
     ids: list[str] = []
     if "robot_id" in args:
         ids = [args["robot_id"]]
-    elif "group_id" in args and args["group_id"] in app.groups:
-        ids = list(app.groups.get(args["group_id"]).members)
+    elif "group_id" in args:
+        group = app.groups.find(args["group_id"], principal.tenant)
+        ids = [] if group is None else list(group.members)
     elif rule is not None and rule.rule in _ON_EVERY_ROBOT:
         ids = [robot.robot_id for robot in app.manager.robots()]
     robots = []
@@ -259,6 +267,9 @@ def _register_routes(app: ArenaApp) -> None:
     def robots_seen() -> list[Robot]:
         return app.access.visible(g.principal, manager.robots())
 
+    def sees(robot_id: str) -> bool:
+        return app.access.sees(g.principal, robot_id)
+
     @app.get("/")
     async def status() -> dict[str, Any]:
         robots = robots_seen()
@@ -269,7 +280,7 @@ def _register_routes(app: ArenaApp) -> None:
             "uptime_s": round(time.time() - app.started_at, 3),
             "robots": len(robots),
             "robots_by_state": dict(Counter(str(r.snapshot().mode) for r in robots)),
-            "connections": dict(app.metrics.connections),
+            "connections": app.metrics.connections_seen(sees),
             "commands": _sum_counters(r.command_counts for r in robots),
             "estops": sum(r.estop_count for r in robots),
             "auth": app.arena_config.auth_enabled,
@@ -318,6 +329,13 @@ def _register_routes(app: ArenaApp) -> None:
             )
         if principal.robots is not None and body.id is None:
             raise ArenaError(ErrorCode.INVALID_BODY, 'Give the robot an "id" within your scope.')
+        most = app.arena_config.max_robots
+        if sum(robot.tenant == tenant for robot in manager.robots()) >= most:
+            raise ArenaError(
+                ErrorCode.LIMIT_REACHED,
+                f"Tenant {tenant!r} has {most} robots, the most allowed (max_robots): "
+                "delete one first.",
+            )
         robot = await manager.create_robot(body.robot_type, body.name, body.id, tenant=tenant)
         g.audit.also([robot])
         return convert.robot_summary(robot, tenant), 201
@@ -494,8 +512,14 @@ def _register_routes(app: ArenaApp) -> None:
         return Response(
             app.metrics.render(
                 robots_seen(),
-                sum(c.queued_bytes for c in app.connections),
+                sum(
+                    c.queued_bytes
+                    for c in app.connections
+                    if c.robots and all(sees(robot_id) for robot_id in c.robots)
+                ),
                 recorder_status(app, g.principal),  # the caller's tenant's counts
+                app.metrics.connections_seen(sees),
+                whole_server=reads_recordings(g.principal),
             ),
             content_type="text/plain; version=0.0.4",
         )

@@ -4,6 +4,7 @@ and never each other."""
 
 from __future__ import annotations
 
+from collections import Counter
 from collections.abc import Iterable
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -58,6 +59,7 @@ STATUS_FOR: dict[ErrorCode, int] = {
     ErrorCode.EMPTY_COMMAND: 422,
     ErrorCode.UNKNOWN_ROBOT_TYPE: 422,
     ErrorCode.RATE_LIMITED: 429,
+    ErrorCode.LIMIT_REACHED: 429,
     ErrorCode.COLLISION: 422,
     ErrorCode.UNAUTHORIZED: 401,
     ErrorCode.FORBIDDEN: 403,
@@ -128,6 +130,7 @@ class OpenConnection(Protocol):
     """What the app knows of an open WebSocket connection."""
 
     role: str
+    robots: tuple[str, ...]  # the robots it is a peer of, once counted open
 
     @property
     def queued_bytes(self) -> int:
@@ -213,6 +216,8 @@ class ArenaApp(QuartTrio):
     groups: GroupRegistry
     #: The open WebSocket connections (their queued bytes show in /metrics).
     connections: set[OpenConnection]
+    #: WebSockets open by caller (tenant, name), against `max_websockets_per_caller`.
+    websockets_held: Counter[tuple[str, str]]
     #: The masters' acks encoded (one entry, shared: the acks of a millisecond are one text).
     acks: AckCache
     #: Robots' tenants, and which robots each caller sees (see `access`).

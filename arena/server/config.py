@@ -68,6 +68,18 @@ class ServerConfig:
     #: Bytes queued for one WebSocket peer before states keep only the newest and acks are
     #: counted as missed (a peer that stopped reading costs at most about this much).
     ws_queue_bytes: int = 16 * 1024
+    #: An HTTP connection with no request under way is closed after this many seconds (one
+    #: that sends nothing at all too); `Connection: close` closes it after its response.
+    keep_alive_timeout: float = 5.0
+    #: The most connections open at once (HTTP and WebSocket): in all, and from one client
+    #: address. One more is answered 503 OVERLOADED and closed.
+    max_connections: int = 1024
+    max_connections_per_client: int = 256
+    #: What one tenant may create, and the WebSockets one caller may hold open at once (on
+    #: a server without keys every caller is the same anonymous one). More: LIMIT_REACHED.
+    max_robots: int = 256
+    max_groups: int = 256
+    max_websockets_per_caller: int = 512
     #: Web pages (scheme://host:port) besides the server's own that may change anything.
     allowed_origins: tuple[str, ...] = field(default=())
     #: Names besides localhost and loopback addresses that a loopback server answers to.
@@ -117,6 +129,19 @@ class ServerConfig:
             raise ArenaError(
                 ErrorCode.INVALID_CONFIG, "ws_queue_bytes must be from 1 KiB to 64 MiB."
             )
+        if not 0 < self.keep_alive_timeout <= 3600:
+            raise ArenaError(
+                ErrorCode.INVALID_CONFIG, "keep_alive_timeout must be more than 0 s, at most 3600."
+            )
+        if not 1 <= self.max_connections_per_client <= self.max_connections:
+            raise ArenaError(
+                ErrorCode.INVALID_CONFIG,
+                "max_connections_per_client must be from 1 to max_connections "
+                f"({self.max_connections}).",
+            )
+        for name in ("max_robots", "max_groups", "max_websockets_per_caller"):
+            if getattr(self, name) < 1:
+                raise ArenaError(ErrorCode.INVALID_CONFIG, f"{name} must be 1 or more.")
         if self.foxglove_port is not None and not (
             _is_loopback(self.host) or (self.insecure and not self.auth_enabled)
         ):

@@ -7,7 +7,7 @@ from typing import Any
 
 from quart import Blueprint, current_app, g
 
-from arena.protocol.errors import ArenaError
+from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import GroupBody, ReasonBody
 from arena.server.base import ArenaApp, read_body
 
@@ -26,7 +26,7 @@ async def list_groups() -> dict[str, Any]:
     return {
         "groups": [
             group.describe(app.manager)
-            for group in app.groups.all()
+            for group in app.groups.all(principal.tenant)
             if app.access.sees_group(principal, group.members)
         ]
     }
@@ -39,7 +39,14 @@ async def create_group() -> tuple[dict[str, Any], int]:
     body: GroupBody = await read_body(GroupBody)
     for robot_id in body.members:  # a robot the caller does not see is as if absent
         app.access.check_robot(g.principal, robot_id)
-    group = app.groups.create(body.id, body.members, body.stopTogether)
+    tenant, most = g.principal.tenant, app.arena_config.max_groups
+    if len(app.groups.all(tenant)) >= most and app.groups.find(body.id, tenant) is None:
+        raise ArenaError(
+            ErrorCode.LIMIT_REACHED,
+            f"Tenant {tenant!r} has {most} groups, the most allowed (max_groups): "
+            "delete one first.",
+        )
+    group = app.groups.create(body.id, body.members, body.stopTogether, g.principal.tenant)
     g.audit.also(app.manager.get(robot_id) for robot_id in group.members)
     return group.describe(app.manager), 201
 
@@ -48,13 +55,13 @@ async def create_group() -> tuple[dict[str, Any], int]:
 async def read_group(group_id: str) -> dict[str, Any]:
     """One group."""
     app = _app()
-    return app.groups.get(group_id).describe(app.manager)
+    return app.groups.get(group_id, g.principal.tenant).describe(app.manager)
 
 
 @blueprint.delete("/api/groups/<group_id>")
 async def delete_group(group_id: str) -> dict[str, Any]:
     """Forget a group (its robots and their masters stay)."""
-    _app().groups.delete(group_id)
+    _app().groups.delete(group_id, g.principal.tenant)
     return {"deleted": group_id}
 
 
@@ -62,7 +69,7 @@ async def delete_group(group_id: str) -> dict[str, Any]:
 async def estop_group(group_id: str) -> dict[str, Any]:
     """E-stop every member."""
     app = _app()
-    group = app.groups.get(group_id)
+    group = app.groups.get(group_id, g.principal.tenant)
     body: ReasonBody = await read_body(ReasonBody, optional=True)
     reason = body.reason or f"group {group_id!r} e-stop"
     for robot_id in group.members:
@@ -75,7 +82,7 @@ async def estop_group(group_id: str) -> dict[str, Any]:
 async def reset_group(group_id: str) -> dict[str, Any]:
     """Clear every member's e-stop."""
     app = _app()
-    group = app.groups.get(group_id)
+    group = app.groups.get(group_id, g.principal.tenant)
     for robot_id in group.members:
         with contextlib.suppress(ArenaError):
             robot = app.manager.get(robot_id)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import enum
 import fnmatch
 import json
+import math
 import re
 import time
 from collections.abc import Iterable, Mapping
@@ -211,6 +212,12 @@ class TokenVerifier:
             key = found.key
         else:
             raise unauthorized(f"Tokens signed with alg {algorithm!r} are not accepted here.")
+        try:  # the types first: PyJWT would read "exp": "1700000000" as a number
+            check_claim_types(jwt.decode(token, options={"verify_signature": False}))
+        except jwt.DecodeError:
+            raise unauthorized("The credential is neither an API key nor a valid token.") from None
+        except ValueError as exc:
+            raise unauthorized(f"The token's claims are not valid: {exc}.") from None
         options: dict[str, Any] = {
             "require": ["exp", "sub"],
             "verify_aud": self.audience is not None,
@@ -261,6 +268,41 @@ def _decode(
     return claims
 
 
+#: Registered claims that are a time (seconds since 1970) and the ones that are a string.
+_TIME_CLAIMS = ("exp", "nbf", "iat")
+_STRING_CLAIMS = ("sub", "iss", "jti", "role", "tenant")
+
+
+def check_claim_types(claims: Any) -> None:
+    """ValueError naming the first claim of a type it may not have: a time that is not a
+    finite number (a string such as "1700000000" included), a string claim that is not one,
+    `aud` neither a string nor a list of strings, `robots` or `groups` not a list of strings.
+    A token with such a claim is invalid, whatever a library would make of it."""
+    if not isinstance(claims, Mapping):
+        raise ValueError("the claims must be a JSON object")
+    for name in _TIME_CLAIMS:
+        if name in claims and not _is_time(claims[name]):
+            raise ValueError(f"{name!r} must be a number of seconds since 1970")
+    for name in _STRING_CLAIMS:
+        if name in claims and not isinstance(claims[name], str):
+            raise ValueError(f"{name!r} must be a string")
+    aud = claims.get("aud")
+    if aud is not None and not _strings(aud) and not isinstance(aud, str):
+        raise ValueError("'aud' must be a string or a list of strings")
+    for name in ("robots", "groups"):
+        value = claims.get(name)
+        if value is not None and not _strings(value):
+            raise ValueError(f"{name!r} must be a list of glob patterns")
+
+
+def _strings(value: Any) -> bool:
+    return isinstance(value, list) and all(isinstance(item, str) for item in value)
+
+
+def _is_time(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+
+
 def principal_of(claims: Mapping[str, Any], leeway: float = 0.0) -> Principal:
     """The caller of verified claims; ValueError naming a claim of the wrong shape."""
     sub = claims.get("sub")
@@ -273,13 +315,15 @@ def principal_of(claims: Mapping[str, Any], leeway: float = 0.0) -> Principal:
     if not isinstance(tenant, str) or not _TENANT.fullmatch(tenant):
         raise ValueError("'tenant' must be a name")
     exp = claims.get("exp")
+    if exp is not None and not _is_time(exp):
+        raise ValueError("'exp' must be a number of seconds since 1970")
     return Principal(
         sub,
         Role.named(role),
         tenant,
         _patterns(claims, "robots"),
         _patterns(claims, "groups"),
-        None if not isinstance(exp, int | float) else float(exp) + leeway,
+        None if exp is None else float(exp) + leeway,
     )
 
 

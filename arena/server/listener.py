@@ -7,6 +7,13 @@ hypercorn's own `serve` would. Hypercorn and Quart cost some 100 us per WebSocke
 (wsproto, the ASGI wrapper, a task hop each way, a system call per frame); the robot's hot
 endpoints skip all of it.
 
+Every connection counts against two bounds (`ConnectionLimits`): so many from one client
+address, so many in all. One beyond either is answered 503 OVERLOADED and closed before a byte
+of it is read, so that no client can take the file descriptors the REST e-stop needs. An
+HTTP connection is closed after a response to `Connection: close`, and once it has been idle
+(no request under way) for hypercorn's `keep_alive_timeout`; one that says nothing at all is
+closed after the same time.
+
 This uses hypercorn's per-connection `TCPServer`, `Lifespan` and `WorkerContext`, which are
 not public API: pyproject pins hypercorn below 0.19.
 """
@@ -15,7 +22,10 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
+from collections import Counter
 from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
 from functools import partial
 from typing import Any
 from urllib.parse import parse_qsl, unquote, urlsplit
@@ -24,6 +34,7 @@ import msgspec
 import trio
 from hypercorn.config import Config as HypercornConfig
 from hypercorn.config import Sockets
+from hypercorn.events import Closed, Event, Updated
 from hypercorn.trio.lifespan import Lifespan
 from hypercorn.trio.tcp_server import TCPServer
 from hypercorn.trio.worker_context import WorkerContext
@@ -52,6 +63,50 @@ MAX_HEAD_BYTES = 16 * 1024
 HEAD_TIMEOUT = 10.0
 #: How long a closed WebSocket waits for the peer's close frame and for its last bytes to go.
 CLOSE_TIMEOUT = 2.0
+
+
+@dataclass(frozen=True)
+class ConnectionLimits:
+    """The most connections (HTTP and WebSocket alike) open at once: `per_client` from one
+    client address, `total` from all."""
+
+    total: int = 1024
+    per_client: int = 256
+
+
+class _Server(TCPServer):
+    """Hypercorn's connection, with its ends bounded and shielded.
+
+    Hypercorn ends a response in the task of the request, and quart-trio cancels that task as
+    soon as the response is out (hypercorn's `http.disconnect` wakes it): the close after a
+    `Connection: close` and the restart of the keep-alive timer, begun there, were cancelled
+    at their first checkpoint, and the socket stayed open until the client left. Those two
+    run shielded here; every close is bounded (a TLS peer that reads nothing cannot hold its
+    `close_notify`), then forced.
+    """
+
+    async def protocol_send(self, event: Event) -> None:
+        if isinstance(event, Closed | Updated):
+            with trio.CancelScope(shield=True), trio.move_on_after(CLOSE_TIMEOUT) as bounded:
+                await super().protocol_send(event)
+            if bounded.cancelled_caught:
+                await trio.aclose_forcefully(self.stream)
+        else:
+            await super().protocol_send(event)
+
+    async def _close(self) -> None:
+        try:
+            with trio.move_on_after(CLOSE_TIMEOUT):
+                await super()._close()
+        finally:
+            await trio.aclose_forcefully(self.stream)
+
+    async def _initiate_server_close(self) -> None:
+        try:
+            with trio.move_on_after(CLOSE_TIMEOUT):
+                await super()._initiate_server_close()
+        finally:
+            await trio.aclose_forcefully(self.stream)
 
 
 class _Replay:
@@ -111,6 +166,16 @@ def _handshake_problem(request: UpgradeRequest) -> str | None:
     return None
 
 
+def _client_address(stream: trio.abc.Stream) -> str:
+    """The address of the client at the other end (its IP, without the port)."""
+    transport: Any = getattr(stream, "transport_stream", stream)  # (TLS: the socket beneath)
+    try:
+        peer = transport.socket.getpeername()
+    except (AttributeError, OSError):
+        return "unknown"
+    return str(peer[0]) if isinstance(peer, tuple) else str(peer)
+
+
 def http_error(status: str, message: str, code: ErrorCode = ErrorCode.INVALID_MESSAGE) -> bytes:
     """A whole HTTP/1.1 error response in Arena's error shape, closing the connection."""
     body = msgspec.json.encode({"error": {"code": str(code), "message": message}})
@@ -134,8 +199,15 @@ class ArenaListener:
         queue_bytes: int = 16 * 1024,
         stream_router: StreamRouter | None = None,
         sockets: Sockets | None = None,
+        limits: ConnectionLimits | None = None,
     ) -> None:
         self.config = config
+        self.limits = limits or ConnectionLimits()
+        #: Connections open now, by client address (the sum: `open_connections`).
+        self.clients: Counter[str] = Counter()
+        self.open_connections = 0
+        self.turned_away = 0  # connections refused beyond a bound, since the start
+        self._next_warning = -math.inf
         #: Sockets bound beforehand (`run.bind`); None: bind them in `serve`.
         self.sockets = sockets
         self.router = router
@@ -189,6 +261,46 @@ class ArenaListener:
             lifespan_nursery.cancel_scope.cancel()
 
     async def _connection(self, stream: trio.abc.Stream, ssl_context: Any) -> None:
+        client = _client_address(stream)
+        limits = self.limits
+        if self.open_connections >= limits.total or self.clients[client] >= limits.per_client:
+            await self._turn_away(stream, ssl_context is not None, client)
+            return
+        self.clients[client] += 1
+        self.open_connections += 1
+        try:
+            await self._serve_connection(stream, ssl_context)
+        finally:
+            self.open_connections -= 1
+            self.clients[client] -= 1
+            if not self.clients[client]:
+                del self.clients[client]
+
+    async def _turn_away(self, stream: trio.abc.Stream, tls: bool, client: str) -> None:
+        """A connection beyond a bound: 503 (in plain HTTP; a TLS one is just closed), then
+        closed at once, nothing of it read."""
+        full = self.clients[client] >= self.limits.per_client
+        self.turned_away += 1
+        now = trio.current_time()
+        if now >= self._next_warning:  # a flood is one line every 10 s, not one a connection
+            self._next_warning = now + 10.0
+            log.warning(
+                "refused a connection from %s (%d refused so far): %s",
+                client,
+                self.turned_away,
+                "its address holds its most" if full else "the server holds its most",
+            )
+        if not tls:
+            most = self.limits.per_client if full else self.limits.total
+            whose = "from your address" if full else "on this server"
+            message = f"{most} connections are open {whose}, the most allowed: close some."
+            with trio.move_on_after(CLOSE_TIMEOUT), contextlib.suppress(trio.BrokenResourceError):
+                await stream.send_all(
+                    http_error("503 Service Unavailable", message, ErrorCode.OVERLOADED)
+                )
+        await trio.aclose_forcefully(stream)
+
+    async def _serve_connection(self, stream: trio.abc.Stream, ssl_context: Any) -> None:
         if ssl_context is not None:
             stream = trio.SSLStream(stream, ssl_context, server_side=True, https_compatible=True)
             try:
@@ -236,8 +348,12 @@ class ArenaListener:
 
     async def _read_head(self, stream: trio.abc.Stream) -> bytes:
         """Enough bytes to tell a WebSocket upgrade or a stream (its whole head) from
-        anything else."""
+        anything else; nothing from a client that says nothing for `keep_alive_timeout`."""
         data = b""
+        with trio.move_on_after(self.config.keep_alive_timeout):
+            data = bytes(await stream.receive_some(MAX_HEAD_BYTES))
+        if not data:
+            return b""
         while True:
             if not any(prefix.startswith(data[: len(prefix)]) for prefix in _PREFIXES):
                 return data  # not for us: hypercorn reads the rest
@@ -252,7 +368,7 @@ class ArenaListener:
 
     async def _to_hypercorn(self, stream: trio.abc.Stream, head: bytes) -> None:
         state = ConnectionState(self._lifespan_state.copy())
-        await TCPServer(self._app, self.config, self._context, state, _Replay(stream, head))  # type: ignore[arg-type]
+        await _Server(self._app, self.config, self._context, state, _Replay(stream, head))  # type: ignore[arg-type]
 
     async def _stream(self, stream: trio.abc.Stream, handler: StreamHandler) -> None:
         try:

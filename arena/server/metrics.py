@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import bisect
 import collections
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from typing import Any
 
 from arena.robot.handle import Robot
 
+#: The roles of WebSocket peers.
+ROLES = ("master", "slave", "viewer")
 #: Upper bounds (seconds) of the message latency histogram buckets.
 LATENCY_BUCKETS = (0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.1, 1.0)
 
@@ -28,6 +30,8 @@ class Metrics:
 
     def __init__(self) -> None:
         self.connections: collections.Counter[str] = collections.Counter()  # open, by role
+        #: Open connections by role and the robots each is a peer of.
+        self._open_on: collections.Counter[tuple[str, tuple[str, ...]]] = collections.Counter()
         self.requests: collections.Counter[str] = collections.Counter()  # by status class
         self.messages: collections.Counter[str] = collections.Counter()  # in, by role
         self.message_errors: collections.Counter[str] = collections.Counter()  # by code
@@ -41,54 +45,29 @@ class Metrics:
         self._retired_estops = 0
         self._retired_superseded = 0
 
-    def observe_latency(self, seconds: float, count: int = 1) -> None:
-        """Time from a message's arrival to its answer (`count` messages answered together)."""
-        self._latency_counts[bisect.bisect_left(LATENCY_BUCKETS, seconds)] += count
-        self._latency_sum += seconds * count
+    def connection_opened(self, role: str, robots: tuple[str, ...]) -> None:
+        """A WebSocket peer of `robots` is open."""
+        self.connections[role] += 1
+        self._open_on[role, robots] += 1
 
-    def retire(self, robot: Robot) -> None:
-        """Keep a deleted robot's counts in the totals."""
-        self._retired.update(robot.command_counts)
-        self._retired_estops += robot.estop_count
-        self._retired_superseded += robot.targets_superseded
+    def connection_closed(self, role: str, robots: tuple[str, ...]) -> None:
+        """...and closed."""
+        self.connections[role] -= 1
+        self._open_on[role, robots] -= 1
+        if not self._open_on[role, robots]:
+            del self._open_on[role, robots]
 
-    def render(
-        self,
-        robots: Iterable[Robot],
-        queued_bytes: int = 0,
-        recording: dict[str, Any] | None = None,
-    ) -> str:
-        """The Prometheus exposition text; `queued_bytes` is what the WebSocket connections
-        hold for their peers, `recording` the recorder's status."""
-        robots = list(robots)
-        commands = collections.Counter(self._retired)
-        estops = self._retired_estops
-        for robot in robots:
-            commands.update(robot.command_counts)
-            estops += robot.estop_count
-        superseded = self._retired_superseded + sum(r.targets_superseded for r in robots)
-        lines = [
-            *_family("arena_robots", "gauge", "Robots that exist now.", len(robots)),
-            *_family(
-                "arena_connections",
-                "gauge",
-                "Open WebSocket connections by role.",
-                {f'role="{r}"': self.connections[r] for r in ("master", "slave", "viewer")},
-            ),
-            *_family(
-                "arena_commands_total",
-                "counter",
-                "Commands answered, by result (accepted or refusal code).",
-                {f'result="{result}"': n for result, n in sorted(commands.items())},
-            ),
-            *_family(
-                "arena_targets_superseded_total",
-                "counter",
-                "Targets replaced by a newer one before a slave took it"
-                " (a slave slower than its master gets the newest only).",
-                superseded,
-            ),
-            *_family("arena_estops_total", "counter", "Emergency stops.", estops),
+    def connections_seen(self, sees: Callable[[str], bool]) -> dict[str, int]:
+        """Open connections by role, of those whose every robot `sees` says a caller sees."""
+        counts = dict.fromkeys(ROLES, 0)
+        for (role, robots), n in self._open_on.items():
+            if robots and all(sees(robot_id) for robot_id in robots):
+                counts[role] = counts.get(role, 0) + n
+        return counts
+
+    def _server_families(self) -> list[str]:
+        """Figures of the whole server, of no one robot."""
+        return [
             *_family(
                 "arena_messages_total",
                 "counter",
@@ -101,12 +80,6 @@ class Metrics:
                 "Messages not sent to a peer that stopped reading"
                 " (superseded states, dropped acks), by kind.",
                 {f'kind="{kind}"': n for kind, n in sorted(self.dropped.items())},
-            ),
-            *_family(
-                "arena_ws_queued_bytes",
-                "gauge",
-                "Bytes queued for WebSocket peers, over all connections.",
-                queued_bytes,
             ),
             *_family(
                 "arena_message_errors_total",
@@ -128,6 +101,74 @@ class Metrics:
                 {f'status="{status}"': n for status, n in sorted(self.requests.items())},
             ),
         ]
+
+    def observe_latency(self, seconds: float, count: int = 1) -> None:
+        """Time from a message's arrival to its answer (`count` messages answered together)."""
+        self._latency_counts[bisect.bisect_left(LATENCY_BUCKETS, seconds)] += count
+        self._latency_sum += seconds * count
+
+    def retire(self, robot: Robot) -> None:
+        """Keep a deleted robot's counts in the totals."""
+        self._retired.update(robot.command_counts)
+        self._retired_estops += robot.estop_count
+        self._retired_superseded += robot.targets_superseded
+
+    def render(
+        self,
+        robots: Iterable[Robot],
+        queued_bytes: int = 0,
+        recording: dict[str, Any] | None = None,
+        connections: dict[str, int] | None = None,
+        whole_server: bool = True,
+    ) -> str:
+        """The Prometheus exposition text of what a caller sees: `robots` (theirs),
+        `connections` (open on those robots, by role; None: every one), `queued_bytes` (what
+        those connections hold for their peers), `recording` (the recorder's status as the
+        caller is told it). The server's own figures (deleted robots' counts, messages,
+        requests, refusals, latency) only with `whole_server`."""
+        robots = list(robots)
+        commands: collections.Counter[str] = collections.Counter()
+        estops = superseded = 0
+        if whole_server:
+            commands.update(self._retired)
+            estops, superseded = self._retired_estops, self._retired_superseded
+        for robot in robots:
+            commands.update(robot.command_counts)
+            estops += robot.estop_count
+            superseded += robot.targets_superseded
+        if connections is None:
+            connections = {role: self.connections[role] for role in ROLES}
+        lines = [
+            *_family("arena_robots", "gauge", "Robots that exist now.", len(robots)),
+            *_family(
+                "arena_connections",
+                "gauge",
+                "Open WebSocket connections by role.",
+                {f'role="{r}"': connections.get(r, 0) for r in ROLES},
+            ),
+            *_family(
+                "arena_commands_total",
+                "counter",
+                "Commands answered, by result (accepted or refusal code).",
+                {f'result="{result}"': n for result, n in sorted(commands.items())},
+            ),
+            *_family(
+                "arena_targets_superseded_total",
+                "counter",
+                "Targets replaced by a newer one before a slave took it"
+                " (a slave slower than its master gets the newest only).",
+                superseded,
+            ),
+            *_family("arena_estops_total", "counter", "Emergency stops.", estops),
+            *_family(
+                "arena_ws_queued_bytes",
+                "gauge",
+                "Bytes queued for WebSocket peers, over all connections.",
+                queued_bytes,
+            ),
+        ]
+        if whole_server:
+            lines += self._server_families()
         if recording is not None:
             active = bool(recording["active"])
             lines += [
@@ -159,7 +200,12 @@ class Metrics:
                     recording["errors"],
                 ),
             ]
-        lines += [
+        if whole_server:
+            lines += self._latency_family()
+        return "\n".join(lines) + "\n"
+
+    def _latency_family(self) -> list[str]:
+        lines = [
             "# HELP arena_message_latency_seconds From a message's arrival to its answer.",
             "# TYPE arena_message_latency_seconds histogram",
         ]
@@ -171,4 +217,4 @@ class Metrics:
         lines.append(f'arena_message_latency_seconds_bucket{{le="+Inf"}} {cumulative}')
         lines.append(f"arena_message_latency_seconds_sum {self._latency_sum}")
         lines.append(f"arena_message_latency_seconds_count {cumulative}")
-        return "\n".join(lines) + "\n"
+        return lines

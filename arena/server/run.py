@@ -7,6 +7,7 @@ import errno
 import gc
 import json
 import logging
+import resource
 import socket
 from pathlib import Path
 from typing import Any
@@ -23,7 +24,7 @@ from arena.server import dashboard
 from arena.server.app import create_app
 from arena.server.base import ArenaApp
 from arena.server.config import ServerConfig
-from arena.server.listener import ArenaListener
+from arena.server.listener import ArenaListener, ConnectionLimits
 from arena.server.sensors_api import stream_route
 from arena.server.shutdown import leave_slaves_as_set, stop_on_signals
 from arena.server.systemd import notify
@@ -32,6 +33,8 @@ from arena.server.ws.router import router
 log = logging.getLogger(__name__)
 
 DEMO_ROBOT_ID = "demo-arm"
+#: File descriptors kept beside the connections' (recordings, serial ports, cameras, workers).
+SPARE_FILES = 128
 #: Hard cap on a WebSocket message. Messages up to it are read and answered MESSAGE_TOO_LARGE
 #: when over the 64 KiB protocol limit; one over it closes the connection with 1009.
 MAX_WEBSOCKET_MESSAGE = 16 * 1024 * 1024
@@ -43,6 +46,7 @@ def hypercorn_config(config: ServerConfig) -> HypercornConfig:
     host = f"[{config.host}]" if ":" in config.host else config.host
     hc.bind = [f"{host}:{config.port}"]
     hc.graceful_timeout = config.shutdown_grace
+    hc.keep_alive_timeout = config.keep_alive_timeout
     hc.accesslog = None
     hc.errorlog = logging.getLogger("hypercorn.error")
     if config.certfile and config.keyfile:
@@ -207,6 +211,7 @@ async def _serve(
         stream_router=stream_route(app),
         queue_bytes=config.ws_queue_bytes,
         sockets=sockets,
+        limits=connection_limits(config),
     )
     async with trio.open_nursery() as nursery:
 
@@ -227,6 +232,32 @@ async def _serve(
         # still open after the grace period are cancelled.
         await trio.sleep(config.shutdown_grace + 1.0)
         nursery.cancel_scope.cancel()
+
+
+def connection_limits(config: ServerConfig) -> ConnectionLimits:
+    """The connection bounds of the settings, within the process's file limit: its soft limit
+    raised (to its hard one at most) so that `max_connections` and `SPARE_FILES` fit; where
+    they cannot, fewer connections, said in the log. The bound is what keeps a descriptor
+    free for the e-stop."""
+    needed = config.max_connections + SPARE_FILES
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft != resource.RLIM_INFINITY and soft < needed:
+        raised = needed if hard == resource.RLIM_INFINITY else min(needed, hard)
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (raised, hard))
+            soft = raised
+        except (ValueError, OSError):
+            pass
+    total = config.max_connections
+    if soft != resource.RLIM_INFINITY and soft < needed:
+        total = max(1, soft - SPARE_FILES)
+        log.warning(
+            "max_connections %d does not fit the file limit (%d): at most %d connections",
+            config.max_connections,
+            soft,
+            total,
+        )
+    return ConnectionLimits(total, min(config.max_connections_per_client, total))
 
 
 def tune_garbage_collector() -> None:

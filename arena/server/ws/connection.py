@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import itertools
 import time
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Iterable
 from typing import TypeVar
 
 import trio
@@ -42,6 +42,7 @@ CLOSE_FOR = {
     ErrorCode.TAKEN_OVER: 4409,
     ErrorCode.MASTER_LOST: 4408,
     ErrorCode.NODE_LOST: 4503,
+    ErrorCode.LIMIT_REACHED: 4429,
 }
 
 BINARY_REFUSAL = "Send JSON text frames, not binary frames."
@@ -75,6 +76,20 @@ class Connection(LatestWins):
         #: credential needed).
         self.principal: Principal = ANONYMOUS
         self.expires_at: float | None = None
+        self._authorized = False
+        self._caller_key: tuple[str, str] | None = None  # (tenant, name) while counted
+        #: The robots it is a peer of, once counted open (`count_open`): who sees them all
+        #: sees it counted.
+        self.robots: tuple[str, ...] = ()
+
+    def count_open(self, robots: Iterable[str]) -> None:
+        """Counted open in `/metrics` and `GET /`, by role, on `robots`."""
+        self.robots = tuple(robots)
+        self.app.metrics.connection_opened(self.role, self.robots)
+
+    def count_closed(self) -> None:
+        """Counted closed (after `count_open`)."""
+        self.app.metrics.connection_closed(self.role, self.robots)
 
     def error(self, code: ErrorCode | str, message: str) -> Encoded:
         """An `error` message to send, counted."""
@@ -144,6 +159,8 @@ class Connection(LatestWins):
         caller's tenant and scope are checked here all the same (`sees`)."""
         if getattr(self.ws, "trusted", False):  # `principal`: the caller the node sent
             return True
+        if self._authorized:  # (checked once: the master endpoint asks before a robot's)
+            return True
         try:
             self.principal = authorize(
                 self.app,
@@ -156,10 +173,40 @@ class Connection(LatestWins):
         except ArenaError as error:
             await self.refuse(error)
             return False
+        if not await self._hold():
+            return False
         expires = self.principal.expires
         if expires is not None:  # wall clock to trio's, once
             self.expires_at = trio.current_time() + (expires - time.time())
+        self._authorized = True
         return True
+
+    async def _hold(self) -> bool:
+        """Count this socket among its caller's (`let_go` uncounts it); refused when the
+        caller holds `max_websockets_per_caller` already."""
+        key = (self.principal.tenant, self.principal.name)
+        held, most = self.app.websockets_held, self.app.arena_config.max_websockets_per_caller
+        if held[key] >= most:
+            await self.refuse(
+                ArenaError(
+                    ErrorCode.LIMIT_REACHED,
+                    f"{self.principal.name!r} holds {most} WebSockets open, the most allowed "
+                    "(max_websockets_per_caller): close one first.",
+                )
+            )
+            return False
+        held[key] += 1
+        self._caller_key = key
+        return True
+
+    def let_go(self) -> None:
+        """The socket is closed: no longer its caller's to count."""
+        if self._caller_key is not None:
+            held = self.app.websockets_held
+            held[self._caller_key] -= 1
+            if not held[self._caller_key]:
+                del held[self._caller_key]
+            self._caller_key = None
 
     def sees(self, robot_id: str) -> bool:
         """The caller may see the robot (its tenant and scope); counted when not."""

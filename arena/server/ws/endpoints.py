@@ -9,9 +9,14 @@ from arena.server.ws.connection import Connection
 
 
 async def serve_master(connection: Connection, robot_id: str) -> None:
-    """A master of a robot, or of a group by its id."""
-    if robot_id in connection.app.groups:
-        await group_master.serve(connection, robot_id)
+    """A master of a robot, or of a group by its id: a group of the caller's tenant whose
+    every member it sees (any other is as absent as a robot that does not exist)."""
+    if not await connection.authorized():
+        return
+    app = connection.app
+    group = app.groups.find(robot_id, connection.principal.tenant)
+    if group is not None and app.access.sees_group(connection.principal, group.members):
+        await group_master.serve(connection, group)
     else:
         await master.serve(connection, robot_id)
 

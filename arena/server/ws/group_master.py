@@ -11,6 +11,7 @@ import trio
 
 from arena.protocol import messages as wire
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.robot.groups import Group
 from arena.robot.handle import Robot
 from arena.robot.links import MasterLink
 from arena.robot.manager import estop_together
@@ -60,16 +61,14 @@ class GroupMembers:
             await self.connection.close(CLOSE_NORMAL, "every member of the group is gone")
 
 
-async def serve(connection: Connection, group_id: str) -> None:
-    """A master of the group `group_id` until it leaves or every member is gone."""
+async def serve(connection: Connection, group: Group) -> None:
+    """A master of `group` (which the caller sees) until it leaves or every member is gone."""
     if not await connection.authorized():
         return
     app = connection.app
+    group_id = group.group_id
     links: dict[str, MasterLink] = {}
     try:
-        group = app.groups.get(group_id)
-        if not all([connection.sees(robot_id) for robot_id in group.members]):
-            raise ArenaError(ErrorCode.UNKNOWN_GROUP, f"No group {group_id!r}.")
         robots = [app.manager.get(robot_id) for robot_id in group.members]
         master_id = connection.args.get("id") or f"ws-group-master-{next(peer_ids)}"
         for robot in robots:
@@ -88,7 +87,7 @@ async def serve(connection: Connection, group_id: str) -> None:
         return
     for robot in robots:  # (claimed whole: a group refused in part is not recorded)
         robot.audit(connection.principal.audit_name(), "connect group master", master_id)
-    app.metrics.connections["master"] += 1
+    connection.count_open(group.members)
     members = GroupMembers(connection, dict(links), group_id, robots, master_id)
     try:
         with contextlib.ExitStack() as stack:
@@ -110,7 +109,7 @@ async def serve(connection: Connection, group_id: str) -> None:
 
             await connection.run(body)
     finally:
-        app.metrics.connections["master"] -= 1
+        connection.count_closed()
         for link in links.values():
             await release_master(app, link)
 

@@ -47,7 +47,7 @@ async def serve(connection: Connection, robot_id: str) -> None:
     except ArenaError as error:
         await connection.refuse(error)
         return
-    app.metrics.connections["master"] += 1
+    connection.count_open([robot_id])
     takeover = " (takeover)" if flag(connection.args.get("takeover")) else ""
     robot.audit(connection.principal.audit_name(), "connect master" + takeover, link.master_id)
     try:
@@ -69,7 +69,7 @@ async def serve(connection: Connection, robot_id: str) -> None:
         try:
             await release_master(app, link)
         finally:  # counted closed once the robot has heard (tests wait on it)
-            app.metrics.connections["master"] -= 1
+            connection.count_closed()
 
 
 async def release_master(app: ArenaApp, link: MasterLink) -> None:

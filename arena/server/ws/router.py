@@ -3,7 +3,7 @@ through the fleet, of the node that owns it."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from functools import partial
 
 from arena.protocol.errors import ArenaError, ErrorCode
@@ -35,21 +35,29 @@ def router(app: ArenaApp) -> Callable[[UpgradeRequest], WebSocketHandler | None]
         try:
             node = _remote_node(app, robot_id)
         except ArenaError as error:  # its node is gone (NODE_LOST): the client is told so
-            return partial(_refused, app, role, robot_id, error)
+            return partial(_held, app, role, partial(_refused, robot_id=robot_id, error=error))
         if node is not None:  # another node of the fleet owns it: carried there
-            return lambda ws: proxy(Connection(app, ws, role), robot_id, node)
-        return lambda ws: handler(Connection(app, ws, role), robot_id)
+            return partial(_held, app, role, partial(proxy, robot_id=robot_id, node=node))
+        return partial(_held, app, role, lambda connection: handler(connection, robot_id))
 
     return route
 
 
-async def _refused(
-    app: ArenaApp, role: str, robot_id: str, error: ArenaError, ws: WebSocket
+async def _held(
+    app: ArenaApp, role: str, serve: Callable[[Connection], Awaitable[None]], ws: WebSocket
 ) -> None:
+    """Serve a connection; once it ends it is no longer counted as its caller's."""
+    connection = Connection(app, ws, role)
+    try:
+        await serve(connection)
+    finally:
+        connection.let_go()
+
+
+async def _refused(connection: Connection, robot_id: str, error: ArenaError) -> None:
     """A connection refused before it reaches a robot (its key checked first, then whether
     the caller may see the robot, so that one it may not is as absent as ever): the error,
     then the close."""
-    connection = Connection(app, ws, role)
     if not await connection.authorized():
         return
     if not connection.sees(robot_id):

@@ -30,7 +30,7 @@ async def serve(connection: Connection, robot_id: str) -> None:
     except ArenaError as error:
         await connection.refuse(error)
         return
-    app.metrics.connections["slave"] += 1
+    connection.count_open([robot_id])
     robot.audit(connection.principal.audit_name(), "connect slave", link.slave_id)
     ended_by_robot = trio.Event()
     try:
@@ -44,7 +44,7 @@ async def serve(connection: Connection, robot_id: str) -> None:
 
         await connection.run(body)
     finally:
-        app.metrics.connections["slave"] -= 1
+        connection.count_closed()
         if not ended_by_robot.is_set():
             with trio.CancelScope(shield=True):
                 if app.shutting_down.is_set():

@@ -17,8 +17,7 @@ async def serve(connection: Connection, robot_id: str) -> None:
     robot = await connection.accept(robot_id)
     if robot is None:
         return
-    app = connection.app
-    app.metrics.connections["viewer"] += 1
+    connection.count_open([robot_id])
     try:
         with robot.subscribe(maxlen=QUEUE_LENGTH, kinds=FORWARDED) as events:
             await connection.send(convert.state(robot.snapshot()))
@@ -32,7 +31,7 @@ async def serve(connection: Connection, robot_id: str) -> None:
 
             await connection.run(body)
     finally:
-        app.metrics.connections["viewer"] -= 1
+        connection.count_closed()
 
 
 async def _viewer_reader(connection: Connection) -> None:
