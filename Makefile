@@ -24,7 +24,7 @@ OSMESA := /usr/lib/$(shell uname -m)-linux-gnu/libOSMesa.so.8
 comma := ,
 SUDO := $(shell [ "$$(id -u)" = 0 ] || echo sudo)
 
-.PHONY: install install-dev ui browser osmesa run fleet demo test lint bench mutants package clean
+.PHONY: install install-dev ui browser osmesa run fleet demo test lint bench mutants compat package clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -90,6 +90,13 @@ lint: install-dev
 bench: install-dev
 	$(BIN)/arena bench
 
+# Against LeRobot 0.6: tools/compat.sh builds its Python in .compat/ (Debian 13's, LeRobot 0.6.1
+# in a virtualenv: ~5 GB and a few minutes, once; kept until `make clean`), then the compat
+# tests run policies and workers of both LeRobots (tests/test_compat.py). Not part of `test`.
+compat: install-dev osmesa
+	bash tools/compat.sh
+	$(BIN)/python -m pytest -q -rs -m compat tests/test_compat.py
+
 # The sdist and the wheel in dist/, carrying the built dashboard: `pip install dist/arena-*.whl`
 # needs no Node and no checkout (README, "Deploy").
 package: install-dev ui
@@ -102,4 +109,4 @@ mutants: install-dev
 	nice -n 19 $(BIN)/python tools/mutants.py $(subst $(comma), ,$(MUTATE))
 
 clean:
-	rm -rf $(VENV) mutants .pytest_cache .mypy_cache .ruff_cache .hypothesis $(UI)/node_modules $(UI)/dist
+	rm -rf $(VENV) .compat mutants .pytest_cache .mypy_cache .ruff_cache .hypothesis $(UI)/node_modules $(UI)/dist

@@ -54,10 +54,11 @@ WAIT = 60.0
 Start = Callable[..., Awaitable[RunningServer]]
 
 
-def make_policy(folder: Path, *args: str) -> Path:
-    """Save a tiny policy in `folder` (tests/tiny_policy.py's options)."""
+def make_policy(folder: Path, *args: str, python: str = sys.executable) -> Path:
+    """Save a tiny policy in `folder` (tests/tiny_policy.py's options) with the LeRobot of
+    `python`."""
     subprocess.run(
-        [sys.executable, str(REPOSITORY / "tests" / "tiny_policy.py"), str(folder), *args],
+        [python, str(REPOSITORY / "tests" / "tiny_policy.py"), str(folder), *args],
         check=True,
         env={**os.environ, "PYTHONPATH": str(REPOSITORY)},
         capture_output=True,
