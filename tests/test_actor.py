@@ -485,15 +485,28 @@ async def test_a_master_that_leaves_stops_the_arm_where_it_is_unless_it_lets_the
 async def test_a_master_that_releases_the_robot_hands_it_back_as_released(
     autojump_clock: MockClock, manager: RobotManager
 ) -> None:
-    robot = await new_robot(manager)
-    master = await robot.connect_master("alice")
-    with robot.subscribe(kinds=[PeerChanged]) as events:
-        await master.release()
-        seen = events.drain()
-    assert robot.snapshot().owner is None and robot.snapshot().mode is Mode.IDLE
-    assert [(e.role, e.peer_id, e.change, e.reason) for e in seen] == [
-        ("master", "alice", "released", "released by the master")
-    ]
+    for hold in (False, True):
+        robot = await new_robot(manager, f"arm-{hold}")
+        master = await robot.connect_master("alice")
+        with robot.subscribe(kinds=[PeerChanged]) as events:
+            assert (await master.command(Command.of({"Rotation": 90.0}))).accepted
+            await trio.sleep(0.1)  # on its way
+            await master.release(hold=hold)
+            await trio.sleep(10.0)
+            seen = events.drain()
+        assert robot.snapshot().owner is None and robot.snapshot().mode is Mode.IDLE
+        rotation = robot.snapshot().joint("Rotation").virtual_value
+        reason = "released by the master"
+        if hold:
+            assert 0.0 < rotation < 45.0  # stopped where it was at the release
+            reason += ", stopped where it was"
+        else:
+            assert rotation == pytest.approx(90.0)  # the accepted command completed
+        assert [(e.role, e.peer_id, e.change, e.reason) for e in seen] == [
+            ("master", "alice", "released", reason)
+        ]
+        await master.release()  # once let go, a link changes nothing
+        assert robot.snapshot().joint("Rotation").virtual_value == rotation
 
 
 async def test_a_command_decided_at_once_tells_the_slaves_whether_more_follow(
