@@ -238,8 +238,9 @@ class Actor:
         self._publish(
             JointStatesReceived(self.robot_id, message.slave_id, joints, now, wallclock.time())
         )
-        if message.slave_id in self.core.joining:
-            self._carry_out_joins(self.core.slave_measured(message.slave_id, joints, now), now)
+        core = self.core
+        if message.slave_id in core.joining or message.slave_id in core.unsure:
+            self._carry_out_joins(core.slave_measured(message.slave_id, joints, now), now)
 
     def _on_fault(self, message: inbox.FaultMsg, now: float) -> None:
         peer = self.peers.slaves.get(message.peer_id)
@@ -334,7 +335,8 @@ class Actor:
             driver = message.driver
             self.core.slave_attached(
                 peer_id,
-                measures=driver is not None and getattr(driver, "measures", True),
+                # A slave over the network says by reporting (None: not known yet).
+                measures=None if driver is None else getattr(driver, "measures", True),
                 join_speed=getattr(driver, "join_speed", None),
             )
         self.peers.add(peer)

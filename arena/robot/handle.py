@@ -314,7 +314,9 @@ class Robot:
         kind: str = "external",
         heartbeat_timeout: float | None = None,
     ) -> SlaveLink:
-        """Attach a slave that runs elsewhere (a network connection)."""
+        """Attach a slave that runs elsewhere (a network connection). Whether it measures is
+        not known until it reports: once it has reported every joint it joins as an arm does
+        (`RobotCore.slave_attached`); until then it gets the robot's targets as a twin."""
         link: SlaveLink = await self._attach(
             "slave", slave_id, kind, None, False, False, heartbeat_timeout
         )
