@@ -519,11 +519,12 @@ async def test_a_network_slave_that_reports_every_joint_joins_and_one_that_never
             nursery.start_soon(targets_of, arm, to_arm)
             await twin.report_joint_states({"Rotation": 0.0})  # some joints: not a pose
             await arm.report_joint_states({name: 0.0 for name in MODEL.joint_names})
+            joining = await next_event(events, peer_change("joining"))
+            assert joining.peer_id == "arm"  # (the twin's report came first)
             assert [s.joining for s in robot.snapshot().slaves] == [False, True]
             assert (await master.command(Command.of({"Jaw": 5.0}))).accepted
             await trio.sleep(0.1)
             assert to_twin and to_twin[0]["Rotation"] == 60.0  # at once, as before
-            joining = await next_event(events, peer_change("joining"))
             joined = await next_event(events, peer_change("joined"))
             await trio.sleep(0.1)  # it takes its last target
             nursery.cancel_scope.cancel()
