@@ -482,6 +482,33 @@ async def test_a_master_that_leaves_stops_the_arm_where_it_is_unless_it_lets_the
         ]
 
 
+@dataclasses.dataclass
+class PlannedSlave(RecordingSlave):
+    """A slave driver that can leave its hardware as its settings say (as the usb-slave)."""
+
+    planned: int = 0
+
+    def planned_stop(self) -> None:
+        self.planned += 1
+
+
+async def test_a_planned_stop_reaches_every_slave_driver_however_it_was_attached(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await new_robot(manager)
+    first, second, gone = PlannedSlave(), PlannedSlave(), PlannedSlave()
+    await robot.attach_slave(first)
+    await robot.attach_slave(second, "second")
+    await robot.attach_slave(gone, "gone")
+    await robot.attach_slave(RecordingSlave())  # a driver without the hook
+    await robot.connect_slave("remote")  # a slave that runs elsewhere: nothing to tell
+    await robot.detach_slave("gone")
+    robot.plan_stop()
+    assert (first.planned, second.planned, gone.planned) == (1, 1, 0)
+    await manager.delete("arm")  # and the robot stops as it would have
+    assert robot.stopped.is_set()
+
+
 async def test_a_master_that_releases_the_robot_hands_it_back_as_released(
     autojump_clock: MockClock, manager: RobotManager
 ) -> None:

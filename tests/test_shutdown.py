@@ -143,3 +143,55 @@ def test_arena_serve_exits_0_on_sigterm_with_its_recording_whole(tmp_path: Path)
     recording = read_recording(path)
     assert not recording.truncated and not recording.in_progress
     assert any(m.topic.endswith("/command") for m in recording.messages)
+
+
+#: A server whose arm is attached in its own process, not over REST (as an embedding program,
+#: the demo or a config does it): run with the simulated bus's port and the `estop` setting.
+SERVER_WITH_ITS_OWN_ARM = """
+import logging, sys
+from functools import partial
+
+import trio
+
+from arena.drivers.config import UsbSlaveConfig
+from arena.drivers.usb_slave import UsbSlave
+from arena.server.config import ServerConfig
+from arena.server.run import run_server
+
+
+async def main(port: str, estop: str) -> None:
+    async with trio.open_nursery() as nursery:
+        config = ServerConfig(port=0)
+        app, _ = await nursery.start(partial(run_server, config, handle_signals=True))
+        robot = await app.manager.create_robot("so-arm100", robot_id="arm")
+        await robot.attach_slave(UsbSlave(UsbSlaveConfig(port, estop=estop), robot.model), "bus")
+
+
+logging.basicConfig(level=logging.INFO)
+trio.run(main, *sys.argv[1:])
+"""
+
+
+@pytest.mark.parametrize(("policy", "torque"), [("hold", 1), ("torque-off", 0)])
+def test_sigterm_leaves_an_arm_attached_in_the_servers_own_process_as_its_setting_says(
+    sim: PtySimBus, tmp_path: Path, policy: str, torque: int
+) -> None:
+    script = tmp_path / "serve_with_arm.py"
+    script.write_text(SERVER_WITH_ITS_OWN_ARM, encoding="utf-8")
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    argv = [str(sim.link), policy]
+    with serving(argv, cwd=tmp_path, env=env, program=[str(script)]) as served:
+        deadline = time.monotonic() + 60  # only a broken attach waits this long
+        while True:
+            robot = httpx.get(f"{served.url}/api/robots/arm", timeout=10)
+            slaves = robot.json().get("slaves", []) if robot.status_code == 200 else []
+            if slaves and not slaves[0]["joining"] and slaves[0]["connected"]:
+                break
+            assert time.monotonic() < deadline, served.log
+            time.sleep(0.05)
+        assert set(servo_torque(sim).values()) == {1}  # the arm holds itself up
+        served.process.send_signal(signal.SIGTERM)
+        status = served.process.wait(timeout=60)
+    assert status == 0, served.log
+    assert set(servo_torque(sim).values()) == {torque}, served.log
+    assert all(goal == present for goal, present, _ in servos(sim).values())

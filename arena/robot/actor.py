@@ -238,9 +238,8 @@ class Actor:
         self._publish(
             JointStatesReceived(self.robot_id, message.slave_id, joints, now, wallclock.time())
         )
-        core = self.core
-        if message.slave_id in core.joining or message.slave_id in core.unsure:
-            self._carry_out_joins(core.slave_measured(message.slave_id, joints, now), now)
+        if message.slave_id in self.core.joining or message.slave_id in self.core.unsure:
+            self._carry_out_joins(self.core.slave_measured(message.slave_id, joints, now), now)
 
     def _on_fault(self, message: inbox.FaultMsg, now: float) -> None:
         peer = self.peers.slaves.get(message.peer_id)
@@ -343,6 +342,7 @@ class Actor:
         if message.driver is not None:
             scope = trio.CancelScope()
             peer.stop = scope.cancel
+            peer.driver = message.driver
             assert self._nursery is not None
             self._nursery.start_soon(self._run_driver, peer, message.driver, scope)
         log.info("robot %s: %s %s attached (%s)", self.robot_id, peer.role, peer_id, peer.kind)

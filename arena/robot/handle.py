@@ -326,6 +326,16 @@ class Robot:
         """Detach a slave; it is told to stop. Unknown ids raise `ArenaError(UNKNOWN_SLAVE)`."""
         await self._leave("slave", slave_id, lost=False, reason=reason)
 
+    def plan_stop(self) -> None:
+        """Say that the robot is about to stop as planned (the server's SIGTERM), before
+        `shutdown`: each slave that drives hardware leaves it as its own `estop` setting says
+        (`hold`: torque on where it is), not limp as a detach leaves it. It changes nothing in
+        the robot's state; it never blocks."""
+        for slave in self._actor.peers.slaves.values():
+            planned_stop = getattr(slave.driver, "planned_stop", None)
+            if planned_stop is not None:
+                planned_stop()
+
     # -- the actor ------------------------------------------------------------------------------
 
     async def run(self, *, task_status: Any = trio.TASK_STATUS_IGNORED) -> None:
