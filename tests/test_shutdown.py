@@ -18,6 +18,8 @@ from mcap.reader import make_reader
 from trio_websocket import ConnectionClosed, open_websocket_url
 
 from arena.feetech import registers as reg
+from arena.recording.analysis import summarize
+from arena.recording.dataset import episode_notes, episodes_of
 from arena.recording.mcap_file import read_recording
 from arena.server.base import ArenaApp
 from arena.server.config import ServerConfig
@@ -195,3 +197,36 @@ def test_sigterm_leaves_an_arm_attached_in_the_servers_own_process_as_its_settin
     assert status == 0, served.log
     assert set(servo_torque(sim).values()) == {torque}, served.log
     assert all(goal == present for goal, present, _ in servos(sim).values())
+
+
+async def test_sigterm_cuts_a_running_episode_and_the_recording_says_so(
+    nursery: trio.Nursery, tmp_path: Path
+) -> None:
+    recordings = tmp_path / "recordings"
+    config = ServerConfig(port=0, demo=True, recordings_dir=str(recordings))
+    _, url, done = await start(nursery, config)
+    async with httpx.AsyncClient(base_url=url, timeout=10) as http:
+        for task in ("wave", "pick up the cube"):
+            started = await http.post("/api/robots/demo-arm/episodes/start", json={"task": task})
+            assert started.status_code == 201, started.text
+            if task == "wave":
+                assert (await http.post("/api/robots/demo-arm/episodes/stop")).status_code == 200
+        os.kill(os.getpid(), signal.SIGTERM)
+    with trio.fail_after(30):
+        await done.wait()
+    (path,) = recordings.glob("*.mcap")
+    recording = read_recording(path)
+    marks = [(m.data["index"], m.data["change"]) for m in recording.messages if m.kind == "episode"]
+    assert marks == [(0, "start"), (0, "stop"), (1, "start"), (1, "cut")]
+    # Whatever lists or exports episodes says how each ended.
+    listed = summarize(recording)["episodes"]
+    assert [(e["index"], e["task"], e["ended"]) for e in listed] == [
+        (0, "wave", "stop"),
+        (1, "pick up the cube", "cut"),
+    ]
+    spans = episodes_of([m for m in recording.messages if m.robot_id == "demo-arm"], "x")
+    assert [(span.index, span.ended) for span in spans] == [(0, "stop"), (1, "cut")]
+    assert episode_notes(spans) == [
+        "episode 1 was cut short: its robot stopped (a server shutdown, the robot deleted) "
+        "before the episode was stopped"
+    ]

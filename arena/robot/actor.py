@@ -26,7 +26,7 @@ import trio
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot import inbox, safety
 from arena.robot.core import MANUAL_SOURCE, JoinChange, RobotCore, Step
-from arena.robot.episodes import Episodes
+from arena.robot.episodes import Episode, Episodes
 from arena.robot.events import (
     CommandHandled,
     EpisodeChanged,
@@ -262,13 +262,13 @@ class Actor:
         except ArenaError as refusal:
             message.reply.fail(refusal)
             return
-        index, task, started = episode.index, episode.task, episode.started
-        self._publish(
-            EpisodeChanged(
-                self.robot_id, message.action, index, task, started, now, wallclock.time()
-            )
-        )
+        self._episode_changed(message.action, episode, now)
         message.reply.set(episode)
+
+    def _episode_changed(self, change: str, episode: Episode, now: float) -> None:
+        index, task, started = episode.index, episode.task, episode.started
+        changed = EpisodeChanged(self.robot_id, change, index, task, started, now, wallclock.time())
+        self._publish(changed)
 
     def _on_link(self, message: inbox.LinkMsg, now: float) -> None:
         peer = self.peers.slaves.get(message.slave_id)
@@ -416,6 +416,9 @@ class Actor:
 
     def _on_shutdown(self, reason: str) -> None:
         now = trio.current_time()
+        cut = self.episodes.cut(now)  # nobody stopped it: recorded as cut
+        if cut is not None:
+            self._episode_changed("cut", cut, now)
         master = self.peers.master
         if master is not None:
             self.apply(safety.MasterDetach(master.peer_id), now, cause=reason)
