@@ -527,11 +527,18 @@ async def test_a_network_slave_that_reports_every_joint_joins_and_one_that_never
             assert to_twin and to_twin[0]["Rotation"] == 60.0  # at once, as before
             joined = await next_event(events, peer_change("joined"))
             await trio.sleep(0.1)  # it takes its last target
+            way = list(to_arm)
+            # Joined, it reports as arms do: that changes nothing, it follows.
+            await arm.report_joint_states(dict(to_arm[-1]))
+            assert (await master.command(Command.of({"Rotation": 50.0}))).accepted
+            await trio.sleep(1)
+            assert to_arm[-1]["Rotation"] == 50.0
+            assert [e.change for e in events.drain()] == []
             nursery.cancel_scope.cancel()
     assert joined.time - joining.time == pytest.approx(60.0 / speed, abs=0.02)
-    rotation = [targets["Rotation"] for targets in to_arm]
+    rotation = [targets["Rotation"] for targets in way]
     assert rotation == sorted(rotation) and rotation[0] < 1.0 and rotation[-1] == 60.0
-    assert to_arm[-1]["Jaw"] == 5.0
+    assert way[-1]["Jaw"] == 5.0
     assert [s.joining for s in robot.snapshot().slaves] == [False, False]
 
 
