@@ -414,18 +414,3 @@ async def test_episodes_start_stop_discard_and_are_recorded(server: RunningServe
         ("discard", 1, "stack"),
     ]
     assert "/robots/demo-arm/episode" in recording.schemas
-
-
-async def test_a_robot_deleted_mid_episode_cuts_it_and_the_recording_lists_it_so(
-    server: RunningServer,
-) -> None:
-    async with server.client() as http:
-        assert (await http.post("/api/robots", json={"id": "arm"})).status_code == 201
-        started = await http.post("/api/robots/arm/episodes/start", json={"task": "stack"})
-        assert started.status_code == 201
-        assert (await http.delete("/api/robots/arm")).status_code == 200
-        name = (await http.post("/api/recordings/current/stop")).json()["stopped"]
-        summary = (await http.get(f"/api/recordings/{name}")).json()
-    (episode,) = summary["episodes"]
-    assert (episode["robot"], episode["index"], episode["task"]) == ("arm", 0, "stack")
-    assert episode["ended"] == "cut" and episode["seconds"] >= 0

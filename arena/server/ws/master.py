@@ -248,9 +248,7 @@ async def _handle_master_message(
             raise ArenaError(ErrorCode.NOT_OWNER, DETACHED_LINK.message)
         player.stop()
         player.releasing = True
-        hold = message.data is not None and message.data.hold
-        action = "release over WebSocket" + (" (hold)" if hold else "")
-        robot.audit(connection.principal.audit_name(), action, link.master_id)
-        await link.release(hold=hold)
+        robot.audit(connection.principal.audit_name(), "release over WebSocket", link.master_id)
+        await link.release(hold=message.data is not None and message.data.hold)
         snapshot = robot.snapshot()
         await send_released(connection, wire.ReleasedData(robot.robot_id, str(snapshot.mode)))
