@@ -1,4 +1,5 @@
-"""`arena serve` as a real process for tests: started, its URL read from its log, stopped."""
+"""`arena serve` (or a program that serves) as a real process for tests: started, its URL
+read from its log, stopped."""
 
 from __future__ import annotations
 
@@ -49,13 +50,15 @@ def serving(
     env: dict[str, str] | None = None,
     python: str = sys.executable,
     timeout: float = 60.0,
+    program: Sequence[str] = ("-m", "arena", "serve"),
 ) -> Iterator[ServeProcess]:
-    """Run `python -m arena serve ARGV` in `cwd` with the environment `env` (default: this
+    """Run `python -m arena serve ARGV` (or `python PROGRAM ARGV`: a script that serves as
+    `run_server` does, logging to stderr) in `cwd` with the environment `env` (default: this
     process's) until the block ends (then SIGKILL if still running). Yields once it listens;
     raises with its log if it ends first."""
     environment = {**(os.environ if env is None else env), "LOG_LEVEL": "INFO"}
     process = subprocess.Popen(
-        [python, "-m", "arena", "serve", *argv],
+        [python, *program, *argv],
         stderr=subprocess.PIPE,
         stdout=subprocess.DEVNULL,
         text=True,

@@ -482,18 +482,58 @@ async def test_a_master_that_leaves_stops_the_arm_where_it_is_unless_it_lets_the
         ]
 
 
-async def test_a_master_that_releases_the_robot_hands_it_back_as_released(
+@dataclasses.dataclass
+class PlannedSlave(RecordingSlave):
+    """A slave driver that can leave its hardware as its settings say (as the usb-slave)."""
+
+    planned: int = 0
+
+    def planned_stop(self) -> None:
+        self.planned += 1
+
+
+async def test_a_planned_stop_reaches_every_slave_driver_however_it_was_attached(
     autojump_clock: MockClock, manager: RobotManager
 ) -> None:
     robot = await new_robot(manager)
-    master = await robot.connect_master("alice")
-    with robot.subscribe(kinds=[PeerChanged]) as events:
-        await master.release()
-        seen = events.drain()
-    assert robot.snapshot().owner is None and robot.snapshot().mode is Mode.IDLE
-    assert [(e.role, e.peer_id, e.change, e.reason) for e in seen] == [
-        ("master", "alice", "released", "released by the master")
-    ]
+    first, second, gone = PlannedSlave(), PlannedSlave(), PlannedSlave()
+    await robot.attach_slave(first)
+    await robot.attach_slave(second, "second")
+    await robot.attach_slave(gone, "gone")
+    await robot.attach_slave(RecordingSlave())  # a driver without the hook
+    await robot.connect_slave("remote")  # a slave that runs elsewhere: nothing to tell
+    await robot.detach_slave("gone")
+    robot.plan_stop()
+    assert (first.planned, second.planned, gone.planned) == (1, 1, 0)
+    await manager.delete("arm")  # and the robot stops as it would have
+    assert robot.stopped.is_set()
+
+
+async def test_a_master_that_releases_the_robot_hands_it_back_as_released(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    for hold in (False, True):
+        robot = await new_robot(manager, f"arm-{hold}")
+        master = await robot.connect_master("alice")
+        with robot.subscribe(kinds=[PeerChanged]) as events:
+            assert (await master.command(Command.of({"Rotation": 90.0}))).accepted
+            await trio.sleep(0.1)  # on its way
+            await master.release(hold=hold)
+            await trio.sleep(10.0)
+            seen = events.drain()
+        assert robot.snapshot().owner is None and robot.snapshot().mode is Mode.IDLE
+        rotation = robot.snapshot().joint("Rotation").virtual_value
+        reason = "released by the master"
+        if hold:
+            assert 0.0 < rotation < 45.0  # stopped where it was at the release
+            reason += ", stopped where it was"
+        else:
+            assert rotation == pytest.approx(90.0)  # the accepted command completed
+        assert [(e.role, e.peer_id, e.change, e.reason) for e in seen] == [
+            ("master", "alice", "released", reason)
+        ]
+        await master.release()  # once let go, a link changes nothing
+        assert robot.snapshot().joint("Rotation").virtual_value == rotation
 
 
 async def test_a_command_decided_at_once_tells_the_slaves_whether_more_follow(

@@ -20,7 +20,14 @@ from trio.testing import MockClock
 
 from arena.feetech import registers as reg
 from arena.feetech.sim import SimBus
-from arena.robot.events import JointStatesReceived, PeerChanged, RobotEvent, TargetsSent
+from arena.robot.events import (
+    JointStatesReceived,
+    PeerChanged,
+    RobotEvent,
+    SlaveTarget,
+    TargetsSent,
+)
+from arena.robot.links import SlaveLink
 from arena.robot.mailbox import EventQueue
 from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
@@ -483,3 +490,85 @@ async def test_an_arm_moved_while_its_torque_was_off_for_an_estop_is_not_pulled_
             lambda e: isinstance(e, JointStatesReceived) and abs(e.joints["Rotation"] - 10) < 0.1,
         )
     assert set(goals_written(sim)[3]) == {moved[3]}  # the elbow stays where it was put
+
+
+async def targets_of(link: SlaveLink, into: list[dict[str, float]]) -> None:
+    """Keep every target a slave connected over the network is sent (it runs elsewhere)."""
+    async for message in link.messages():
+        if isinstance(message, SlaveTarget):
+            into.append(dict(message.joints))
+
+
+async def test_a_network_slave_that_reports_every_joint_joins_and_one_that_never_does_follows(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    """A slave that runs elsewhere (driver None: /ws/slave) is not known to measure until it
+    reports: one that never does, or only some joints, gets the robot's targets from the next
+    command, as a twin; one that reports every joint has said where its arm is, and joins."""
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    speed = MODEL.safety.join_speed
+    master = await robot.connect_master("operator")
+    assert (await master.command(Command.of({"Rotation": 60.0}))).accepted
+    await trio.sleep(1)
+    twin, arm = await robot.connect_slave("twin"), await robot.connect_slave("arm")
+    to_twin: list[dict[str, float]] = []
+    to_arm: list[dict[str, float]] = []
+    with robot.subscribe(kinds=[PeerChanged]) as events, trio.fail_after(VIRTUAL):
+        async with trio.open_nursery() as nursery:
+            nursery.start_soon(targets_of, twin, to_twin)
+            nursery.start_soon(targets_of, arm, to_arm)
+            await twin.report_joint_states({"Rotation": 0.0})  # some joints: not a pose
+            await arm.report_joint_states({name: 0.0 for name in MODEL.joint_names})
+            joining = await next_event(events, peer_change("joining"))
+            assert joining.peer_id == "arm"  # (the twin's report came first)
+            assert [s.joining for s in robot.snapshot().slaves] == [False, True]
+            assert (await master.command(Command.of({"Jaw": 5.0}))).accepted
+            await trio.sleep(0.1)
+            assert to_twin and to_twin[0]["Rotation"] == 60.0  # at once, as before
+            joined = await next_event(events, peer_change("joined"))
+            await trio.sleep(0.1)  # it takes its last target
+            way = list(to_arm)
+            # Joined, it reports as arms do: that changes nothing, it follows.
+            await arm.report_joint_states(dict(to_arm[-1]))
+            assert (await master.command(Command.of({"Rotation": 50.0}))).accepted
+            await trio.sleep(1)
+            assert to_arm[-1]["Rotation"] == 50.0
+            assert [e.change for e in events.drain()] == []
+            nursery.cancel_scope.cancel()
+    assert joined.time - joining.time == pytest.approx(60.0 / speed, abs=0.02)
+    rotation = [targets["Rotation"] for targets in way]
+    assert rotation == sorted(rotation) and rotation[0] < 1.0 and rotation[-1] == 60.0
+    assert way[-1]["Jaw"] == 5.0
+    assert [s.joining for s in robot.snapshot().slaves] == [False, False]
+
+
+async def test_a_network_slave_reporting_to_a_robot_nobody_holds_gives_it_its_pose(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    twin = RecordingSlave()
+    await robot.attach_slave(twin, "twin")
+    with robot.subscribe(kinds=[PeerChanged]) as events, trio.fail_after(VIRTUAL):
+        # One that leaves before it said where it is leaves nothing behind: a twin run here
+        # under its id reports what it is told, and stays a twin.
+        gone = await robot.connect_slave("arm")
+        await gone.report_joint_states({"Elbow": -48.0})
+        assert robot.snapshot().joint("Elbow").virtual_value == 0.0  # not every joint yet
+        await gone.detach()
+        again = RecordingSlave()
+        await robot.attach_slave(again, "arm")
+        assert (await robot.command(Command.of({"Rotation": 10.0}))).accepted
+        await trio.sleep(1)
+        assert again.targets and again.targets[-1][1]["Rotation"] == 10.0
+        changes = [event.change for event in events.drain()]
+        assert changes == ["attached", "detached", "attached"]
+        await robot.detach_slave("arm")
+        # One that reports every joint to a robot no master or arm holds: it gives its pose.
+        link = await robot.connect_slave("arm")
+        await link.report_joint_states({name: REST.get(name, 0.0) for name in MODEL.joint_names})
+        await next_event(events, peer_change("adopted"))
+        await next_event(events, peer_change("joined"))
+    assert robot.snapshot().joint("Pitch").virtual_value == 48.5
+    assert robot.snapshot().joint("Rotation").virtual_value == 0.0  # where the arm is
+    await trio.sleep(0.1)
+    assert twin.targets[-1][1]["Pitch"] == 48.5  # the twin goes where the arm is

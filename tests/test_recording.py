@@ -53,7 +53,7 @@ from arena.robot.manager import RobotManager, open_manager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Clamp, Command, CommandResult, JointGoal
 from arena.robot.safety import Mode
-from tests.conftest import RecordingSlave, eventually
+from tests.conftest import RecordingSlave, RunningServer, eventually
 from tests.scenarios import behaviour, record_scenario, replay_session
 
 GOLDEN = Path(__file__).resolve().parent.parent / "recordings" / "golden"
@@ -737,3 +737,18 @@ def test_a_full_disk_leaves_no_empty_file_behind(
     assert kept is not None
     assert [p.name for p in tmp_path.iterdir()] == [kept.name]
     assert read_recording(kept).messages
+
+
+async def test_a_robot_deleted_mid_episode_cuts_it_and_the_recording_lists_it_so(
+    server: RunningServer,
+) -> None:
+    async with server.client() as http:
+        assert (await http.post("/api/robots", json={"id": "arm"})).status_code == 201
+        started = await http.post("/api/robots/arm/episodes/start", json={"task": "stack"})
+        assert started.status_code == 201
+        assert (await http.delete("/api/robots/arm")).status_code == 200
+        name = (await http.post("/api/recordings/current/stop")).json()["stopped"]
+        summary = (await http.get(f"/api/recordings/{name}")).json()
+    (episode,) = summary["episodes"]
+    assert (episode["robot"], episode["index"], episode["task"]) == ("arm", 0, "stack")
+    assert episode["ended"] == "cut" and episode["seconds"] >= 0

@@ -24,7 +24,13 @@ from trio_websocket import ConnectionClosed, WebSocketConnection, open_websocket
 from arena.protocol import messages as wire
 from arena.protocol.errors import ErrorCode
 from arena.protocol.ws_frames import OP_BINARY, OP_PING, OP_PONG, encode_frame
-from arena.robot.events import CommandHandled, RobotEvent, TargetsSent
+from arena.robot.events import (
+    CommandHandled,
+    JointStatesReceived,
+    PeerChanged,
+    RobotEvent,
+    TargetsSent,
+)
 from arena.robot.handle import Robot
 from arena.robot.mailbox import EventQueue
 from arena.robot.manager import RobotManager
@@ -168,6 +174,69 @@ async def test_arduino_like_slave_reads_only_data_joints(server: RunningServer) 
                     if joints["Rotation"]["real_value"] == 10.5:
                         break
                     await trio.sleep(0.01)
+
+
+async def tick(clock: MockClock, seconds: float, step: float = 0.02) -> None:
+    """Let `seconds` of trio's time pass on a clock that stands still, control tick by
+    control tick, everything done at each."""
+    for _ in range(round(seconds / step)):
+        clock.jump(step)
+        await trio.testing.wait_all_tasks_blocked()
+
+
+async def test_a_websocket_arm_that_says_where_it_is_joins_at_the_joining_speed(
+    mock_clock: MockClock, start_server: StartServer
+) -> None:
+    # The robot is at Rotation 60 (a master put it there); an arm connects over /ws/slave and
+    # reports Rotation 0. It is an arm that measures: brought to 60 at 15 deg/s, never sent 60
+    # at once, whatever the master commands meanwhile.
+    server = await start_server(record=False)
+    robot = await server.app.manager.create_robot("so-arm100", robot_id="arm")
+    rest = [{"name": joint.name, "value": 0.0} for joint in robot.model.joints]
+    got: list[float] = []
+
+    async def follow(arm: WebSocketConnection) -> None:
+        while True:
+            message = json.loads(await arm.get_message())
+            if message["type"] == "execute_command":
+                values = {j["name"]: j["value"] for j in message["data"]["joints"]}
+                got.append(values["Rotation"])
+
+    async with (
+        open_websocket_url(server.ws_url + "/ws/master/arm") as master,
+        trio.open_nursery() as nursery,
+    ):
+        assert (await command(master, {"Rotation": 60}))["data"]["status"] == "accepted"
+        await tick(mock_clock, 1.0)
+        assert robot.snapshot().joint("Rotation").virtual_value == pytest.approx(60.0)
+        with robot.subscribe(kinds=[JointStatesReceived, PeerChanged]) as events:
+            arm = await nursery.start(_open_slave, server.ws_url + "/ws/slave/arm?id=arm")
+            nursery.start_soon(follow, arm)
+            await arm.send_message(json.dumps({"type": "joint_states", "data": rest}))
+            seen = [await events.get()]
+            while not isinstance(seen[-1], JointStatesReceived):
+                seen.append(await events.get())
+            # The master moves another joint: the targets it makes are not the arm's.
+            assert (await command(master, {"Jaw": 5}))["data"]["status"] == "accepted"
+            await tick(mock_clock, 1.0)
+            assert got and max(got) <= 15.0 + 1e-6  # 1 s at 15 deg/s from where it was
+            assert got[-1] == pytest.approx(15.0, abs=0.5)
+            (slave,) = robot.snapshot().slaves
+            assert slave.joining  # no target of the robot's until it is at the robot's pose
+            await tick(mock_clock, 4.0)
+            assert got[-1] == pytest.approx(60.0)
+            assert all(b - a <= 15.0 * 0.02 + 1e-6 for a, b in itertools.pairwise([0.0, *got]))
+            changes = [e.change for e in seen + events.drain() if isinstance(e, PeerChanged)]
+            assert changes == ["attached", "joining", "joined"]
+        assert not robot.snapshot().slaves[0].joining
+        nursery.cancel_scope.cancel()
+
+
+async def _open_slave(url: str, task_status: trio.TaskStatus[WebSocketConnection]) -> None:
+    """A slave's WebSocket, open until cancelled."""
+    async with open_websocket_url(url) as ws:
+        task_status.started(ws)
+        await trio.sleep_forever()
 
 
 async def test_acks_accepted_clamped_refused(server: RunningServer) -> None:

@@ -20,9 +20,10 @@ from trio_websocket import open_websocket_url
 from arena import cli
 from arena.client import ClientTimeout, MasterSession, Refused
 from arena.recording.mcap_file import read_recording
+from arena.recording.replay import recorded_commands
 from arena.robot.handle import Robot
 from arena.robot.motion import Command
-from tests.conftest import RunningServer, eventually
+from tests.conftest import RecordingSlave, RunningServer, eventually
 from tests.scenarios import behaviour, record_scenario, replay_session
 
 StartServer = Callable[..., Awaitable[RunningServer]]
@@ -90,7 +91,7 @@ async def test_after_the_readme_agent_the_robot_is_free_and_the_file_says_releas
     assert [(s["mode"], s["owner"]) for s in released] == [("idle", None)]
 
 
-async def test_release_holds_where_the_arm_is_and_a_socket_closed_without_it_still_estops(
+async def test_release_with_hold_stops_the_arm_and_a_socket_closed_without_release_estops(
     server: RunningServer,
 ) -> None:
     robot = server.app.manager.get("demo-arm")
@@ -101,7 +102,7 @@ async def test_release_holds_where_the_arm_is_and_a_socket_closed_without_it_sti
         await ws.send_message(json.dumps({"type": "command", "data": command}))
         assert (await until_type(ws, "ack"))["data"]["status"] == "accepted"
         await eventually(lambda: (robot.snapshot().joint("Rotation").real_value or 0) > 1)
-        await ws.send_message(json.dumps({"type": "release"}))
+        await ws.send_message(json.dumps({"type": "release", "data": {"hold": True}}))
         answer = await until_type(ws, "released")
         assert answer["data"] == {"robot_id": "demo-arm", "mode": "idle"}
         held = robot.snapshot().joint("Rotation")
@@ -122,6 +123,45 @@ async def test_release_holds_where_the_arm_is_and_a_socket_closed_without_it_sti
         await until_type(ws, "state")
     await eventually(lambda: str(robot.snapshot().mode) == "estopped", what="the e-stop")
     assert "master 'agent' lost" in (robot.snapshot().estop_reason or "")
+
+
+@pytest.mark.parametrize(
+    ("release", "rotation"),
+    [
+        ({"type": "release"}, 90.0),  # the accepted move completes
+        ({"type": "release", "data": {"hold": True}}, 20.0),  # stopped where it was
+    ],
+)
+async def test_a_release_lets_the_accepted_move_complete_unless_it_asks_to_hold(
+    mock_clock: trio.testing.MockClock,
+    start_server: StartServer,
+    release: dict[str, Any],
+    rotation: float,
+) -> None:
+    # Trio's clock stands still but when the test moves it: the arm is where the velocity
+    # limit (200 deg/s) had got it 0.1 s after the command when the master lets go.
+    server = await start_server(record=False)
+    robot = await server.app.manager.create_robot("so-arm100", robot_id="arm")
+    slave = RecordingSlave()
+    await robot.attach_slave(slave)
+    async with open_websocket_url(server.ws_url + "/ws/master/arm") as ws:
+        command = {"joints": [{"name": "Rotation", "value": 90}]}
+        await ws.send_message(json.dumps({"type": "command", "data": command}))
+        assert (await until_type(ws, "ack"))["data"]["status"] == "accepted"
+        mock_clock.jump(0.1)
+        await ws.send_message(json.dumps(release))
+        answer = await receive(ws)
+        while answer["type"] in ("state", "joint_states"):
+            answer = await receive(ws)
+        assert (answer["type"], answer["data"]) == ("released", {"robot_id": "arm", "mode": "idle"})
+    for _ in range(100):  # 2 s, tick by tick: time enough for the move
+        mock_clock.jump(0.02)
+        await trio.testing.wait_all_tasks_blocked()
+    joint = robot.snapshot().joint("Rotation")
+    assert joint.virtual_value == pytest.approx(rotation, abs=0.5)
+    assert joint.goal == pytest.approx(rotation, abs=0.5)
+    assert slave.targets[-1][1]["Rotation"] == pytest.approx(rotation, abs=0.5)
+    assert str(robot.snapshot().mode) == "idle" and robot.estop_count == 0
 
 
 async def test_a_group_master_releases_every_member(start_server: StartServer) -> None:
@@ -155,19 +195,20 @@ async def test_a_session_that_ends_with_an_exception_does_not_release(
     assert "crashing" in (robot.snapshot().estop_reason or "")
 
 
-async def released_mid_move(robot: Robot) -> None:
+async def released_mid_move(robot: Robot, *, hold: bool) -> None:
     """A master starts a slow move and releases the robot half-way."""
     link = await robot.connect_master("agent")
     await link.command(Command.of({"Rotation": 40.0}, duration=4.0))
     await trio.sleep(1.005)  # between two control ticks: the same order on replay
-    await link.release()
-    await trio.sleep(2.0)
+    await link.release(hold=hold)
+    await trio.sleep(4.0)
 
 
+@pytest.mark.parametrize("hold", [False, True])
 async def test_a_release_is_recorded_and_replays_the_same(
-    autojump_clock: trio.testing.MockClock, tmp_path: Path
+    autojump_clock: trio.testing.MockClock, tmp_path: Path, hold: bool
 ) -> None:
-    (path,) = await record_scenario(tmp_path, released_mid_move)
+    (path,) = await record_scenario(tmp_path, partial(released_mid_move, hold=hold))
     recording = read_recording(path)
     peers = [m.data for m in recording.messages if m.kind == "peer" and m.data["role"] == "master"]
     assert [(p["peer_id"], p["change"]) for p in peers] == [
@@ -175,8 +216,11 @@ async def test_a_release_is_recorded_and_replays_the_same(
         ("agent", "released"),
     ]
     original = behaviour(recording, "arm")
-    held = original[-1][2]["Rotation"]
-    assert 0 < held < 40  # the move stopped where the release found it
+    last = original[-1][2]["Rotation"]
+    if hold:
+        assert 0 < last < 40  # the move stopped where the release found it
+    else:
+        assert last == pytest.approx(40.0)  # the move accepted completed
     copy = await replay_session(recording, "arm")
     assert behaviour(copy, "arm") == original
 
@@ -192,6 +236,11 @@ async def test_arena_replay_releases_the_robot_at_its_end(
     await master_connections_closed(server)  # a loss would show by then
     snapshot = robot.snapshot()
     assert (str(snapshot.mode), snapshot.master, robot.estop_count) == ("idle", None, 0)
+    # The release let the last move complete: the arm heads for the recording's last pose.
+    last: dict[str, float] = {}
+    for timed in recorded_commands(read_recording(GOLDEN), "arm"):
+        last.update({goal.name: goal.value for goal in timed.command.joints})
+    assert {name: snapshot.joint(name).goal for name in last} == pytest.approx(last)
 
 
 async def master_connections_closed(server: RunningServer) -> None:

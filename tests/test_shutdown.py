@@ -18,6 +18,8 @@ from mcap.reader import make_reader
 from trio_websocket import ConnectionClosed, open_websocket_url
 
 from arena.feetech import registers as reg
+from arena.recording.analysis import summarize
+from arena.recording.dataset import episode_notes, episodes_of
 from arena.recording.mcap_file import read_recording
 from arena.server.base import ArenaApp
 from arena.server.config import ServerConfig
@@ -143,3 +145,88 @@ def test_arena_serve_exits_0_on_sigterm_with_its_recording_whole(tmp_path: Path)
     recording = read_recording(path)
     assert not recording.truncated and not recording.in_progress
     assert any(m.topic.endswith("/command") for m in recording.messages)
+
+
+#: A server whose arm is attached in its own process, not over REST (as an embedding program,
+#: the demo or a config does it): run with the simulated bus's port and the `estop` setting.
+SERVER_WITH_ITS_OWN_ARM = """
+import logging, sys
+from functools import partial
+
+import trio
+
+from arena.drivers.config import UsbSlaveConfig
+from arena.drivers.usb_slave import UsbSlave
+from arena.server.config import ServerConfig
+from arena.server.run import run_server
+
+
+async def main(port: str, estop: str) -> None:
+    async with trio.open_nursery() as nursery:
+        config = ServerConfig(port=0)
+        app, _ = await nursery.start(partial(run_server, config, handle_signals=True))
+        robot = await app.manager.create_robot("so-arm100", robot_id="arm")
+        await robot.attach_slave(UsbSlave(UsbSlaveConfig(port, estop=estop), robot.model), "bus")
+
+
+logging.basicConfig(level=logging.INFO)
+trio.run(main, *sys.argv[1:])
+"""
+
+
+@pytest.mark.parametrize(("policy", "torque"), [("hold", 1), ("torque-off", 0)])
+def test_sigterm_leaves_an_arm_attached_in_the_servers_own_process_as_its_setting_says(
+    sim: PtySimBus, tmp_path: Path, policy: str, torque: int
+) -> None:
+    script = tmp_path / "serve_with_arm.py"
+    script.write_text(SERVER_WITH_ITS_OWN_ARM, encoding="utf-8")
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    argv = [str(sim.link), policy]
+    with serving(argv, cwd=tmp_path, env=env, program=[str(script)]) as served:
+        deadline = time.monotonic() + 60  # only a broken attach waits this long
+        while True:
+            robot = httpx.get(f"{served.url}/api/robots/arm", timeout=10)
+            slaves = robot.json().get("slaves", []) if robot.status_code == 200 else []
+            if slaves and not slaves[0]["joining"] and slaves[0]["connected"]:
+                break
+            assert time.monotonic() < deadline, served.log
+            time.sleep(0.05)
+        assert set(servo_torque(sim).values()) == {1}  # the arm holds itself up
+        served.process.send_signal(signal.SIGTERM)
+        status = served.process.wait(timeout=60)
+    assert status == 0, served.log
+    assert set(servo_torque(sim).values()) == {torque}, served.log
+    assert all(goal == present for goal, present, _ in servos(sim).values())
+
+
+async def test_sigterm_cuts_a_running_episode_and_the_recording_says_so(
+    nursery: trio.Nursery, tmp_path: Path
+) -> None:
+    recordings = tmp_path / "recordings"
+    config = ServerConfig(port=0, demo=True, recordings_dir=str(recordings))
+    _, url, done = await start(nursery, config)
+    async with httpx.AsyncClient(base_url=url, timeout=10) as http:
+        for task in ("wave", "pick up the cube"):
+            started = await http.post("/api/robots/demo-arm/episodes/start", json={"task": task})
+            assert started.status_code == 201, started.text
+            if task == "wave":
+                assert (await http.post("/api/robots/demo-arm/episodes/stop")).status_code == 200
+        os.kill(os.getpid(), signal.SIGTERM)
+    with trio.fail_after(30):
+        await done.wait()
+    (path,) = recordings.glob("*.mcap")
+    recording = read_recording(path)
+    marks = [(m.data["index"], m.data["change"]) for m in recording.messages if m.kind == "episode"]
+    assert marks == [(0, "start"), (0, "stop"), (1, "start"), (1, "cut")]
+    # Whatever lists or exports episodes says how each ended.
+    listed = summarize(recording)["episodes"]
+    assert [(e["index"], e["task"], e["ended"]) for e in listed] == [
+        (0, "wave", "stop"),
+        (1, "pick up the cube", "cut"),
+    ]
+    spans = episodes_of([m for m in recording.messages if m.robot_id == "demo-arm"], "x")
+    assert [(span.index, span.ended) for span in spans] == [(0, "stop"), (1, "cut")]
+    assert episode_notes(spans) == [
+        "episode 1 was cut short: its robot stopped (a server shutdown, the robot deleted) "
+        "before the episode was stopped"
+    ]

@@ -211,8 +211,8 @@ def replay_command(args: argparse.Namespace) -> int:
 
 
 def format_summary(summary: dict[str, Any]) -> str:
-    """`arena inspect`'s text: the file, its robots and topics, then gaps, e-stops and faults
-    (the first LISTED of each)."""
+    """`arena inspect`'s text: the file, its robots and topics, then gaps, e-stops, faults,
+    actions and episodes (the first LISTED of each)."""
     from arena.recording.analysis import GAP_MEANING
 
     state = (
@@ -242,7 +242,7 @@ def format_summary(summary: dict[str, Any]) -> str:
         lines.append(f"gaps       {len(summary['gaps'])} ({GAP_MEANING})")
     if summary.get("users"):
         lines.append(f"users      {', '.join(summary['users'])}")
-    for key in ("gaps", "estops", "faults", "audit"):
+    for key in ("gaps", "estops", "faults", "audit", "episodes"):
         entries: list[dict[str, Any]] = summary.get(key, [])
         if key != "gaps" and entries:
             lines.append(f"{key:<10} {len(entries)}")

@@ -11,9 +11,9 @@ script runs its session code with `trio.run(main)`; see the README's agent examp
 
 Every call ends: what the server refuses raises `Refused` (with its `code` and `message`), a
 wait that runs out raises `ClientTimeout`, a dropped link `Disconnected`; all three are
-`ArenaClientError`s. A master session that ends normally releases the robot (it holds where
-it is, `idle`); one that ends with an exception leaves without a word, and the server applies
-its loss policy (an e-stop by default).
+`ArenaClientError`s. A master session that ends normally releases the robot (`idle`; the
+commands it accepted complete); one that ends with an exception leaves without a word, and the
+server applies its loss policy (an e-stop by default).
 
 The modules: `errors` (the exceptions), `messages` (URLs and the messages a client sends, made
 with the protocol's own structs), `session` (one WebSocket held open: `Session`, `Backoff`),

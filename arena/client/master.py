@@ -125,11 +125,12 @@ class MasterSession(WatchingSession):
         if (ack.get("data") or {}).get("status") == "refused":
             raise refusal(ack)
 
-    async def release(self, timeout: float | None = None) -> dict[str, Any]:
-        """Hand the robot back: it holds where it is and goes `idle` (it stays `estopped` if
-        it was), no e-stop. Returns the `released` data; the server then closes the socket,
-        and the session does not reconnect."""
-        answer = await self._request(messages.release(), "released", timeout)
+    async def release(self, timeout: float | None = None, *, hold: bool = False) -> dict[str, Any]:
+        """Hand the robot back: it goes `idle` (it stays `estopped` if it was), no e-stop; the
+        commands it accepted complete, unless `hold`: then the arm stops where it is. Returns
+        the `released` data; the server then closes the socket, and the session does not
+        reconnect."""
+        answer = await self._request(messages.release(hold), "released", timeout)
         data: dict[str, Any] = answer.get("data") or {}
         return data
 

@@ -27,6 +27,7 @@ from arena.protocol.messages import (
     JointStatesMessage,
     JointValue,
     ReasonData,
+    ReleaseData,
     ReleaseMessage,
     ResetMessage,
     now_iso,
@@ -123,9 +124,11 @@ def reset() -> ResetMessage:
     return ResetMessage(timestamp=now_iso())
 
 
-def release() -> ReleaseMessage:
-    """A master's `release`: hand the robot back."""
-    return ReleaseMessage(timestamp=now_iso())
+def release(hold: bool = False) -> ReleaseMessage:
+    """A master's `release`: hand the robot back (`hold`: the arm stops where it is, rather
+    than completing the commands accepted)."""
+    data = ReleaseData(hold=True) if hold else None
+    return ReleaseMessage(timestamp=now_iso(), data=data)
 
 
 def error(code: str, message: str, severity: Severity = Severity.ERROR) -> ErrorMessage:

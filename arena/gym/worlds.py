@@ -410,10 +410,10 @@ class ServerWorld:
 
     async def _release(self) -> None:
         if self.session.connected and self.session.released is None:
-            await self.session.release()
+            await self.session.release(hold=True)
 
     def close(self) -> None:
-        """Release the robot (it holds where it is, no e-stop) and stop the loop."""
+        """Release the robot (it stops where it is, no e-stop) and stop the loop."""
         if self.loop.running:
             with contextlib.suppress(ArenaClientError):  # gone: the loss policy has it
                 self.loop.call(self._release)

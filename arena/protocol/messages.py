@@ -107,9 +107,19 @@ class ResetMessage(_Msg, tag="reset", forbid_unknown_fields=True):
     """Leave the e-stop."""
 
 
+class ReleaseData(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """How a master lets go: `hold` stops the arm where it is now; without it the commands
+    already accepted complete."""
+
+    hold: bool = False
+
+
 class ReleaseMessage(_Msg, tag="release", forbid_unknown_fields=True):
-    """I am done: hand the robot back, holding where it is (no e-stop). Answered `released`,
-    then the server closes the socket (1000)."""
+    """I am done: hand the robot back (no e-stop). The moves already accepted complete, unless
+    `data.hold` asks the arm to stop where it is. Answered `released`, then the server closes
+    the socket (1000)."""
+
+    data: ReleaseData | None = None
 
 
 MasterMessage: TypeAlias = (

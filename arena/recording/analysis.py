@@ -92,6 +92,7 @@ def summarize(recording: Recording) -> dict[str, Any]:
         if m.kind == "audit"
     ]
     summary["users"] = sorted({entry["user"] for entry in summary["audit"]})
+    summary["episodes"] = list_episodes(messages, origin, end)
     summary["refused_commands"] = sum(
         1 for m in messages if m.kind == "command" and not m.data["accepted"]
     )
@@ -102,6 +103,38 @@ def summarize(recording: Recording) -> dict[str, Any]:
             "tracking_error_deg": tracking_errors(messages, robot_id),
         }
     return summary
+
+
+def list_episodes(messages: list[RecordedMessage], origin: int, end: int) -> list[dict[str, Any]]:
+    """Every episode, in the order they started: its robot, index and task, when it started
+    and how long it ran (seconds), and how it `ended`: `stop`, `discard`, `cut` (its robot
+    stopped first: a server shutdown, the robot deleted) or `file` (the file ends first: a
+    killed server). A kept episode taken back later says `discard`."""
+    found: dict[tuple[str, int], dict[str, Any]] = {}
+    started: dict[tuple[str, int], int] = {}
+    for message in messages:
+        if message.kind != "episode":
+            continue
+        key = (message.robot_id, int(message.data["index"]))
+        if message.data["change"] == "start":
+            started[key] = message.log_time
+            found[key] = {
+                "robot": message.robot_id,
+                "index": key[1],
+                "task": message.data["task"],
+                "at_s": round(_seconds(message, origin), 3),
+                "seconds": None,
+                "ended": "file",
+            }
+        elif key in found:
+            entry = found[key]
+            if entry["seconds"] is None:
+                entry["seconds"] = round((message.log_time - started[key]) / 1e9, 3)
+            entry["ended"] = message.data["change"]
+    for key, entry in found.items():
+        if entry["seconds"] is None:
+            entry["seconds"] = round((end - started[key]) / 1e9, 3)
+    return list(found.values())
 
 
 def find_gaps(messages: list[RecordedMessage], origin: int) -> list[dict[str, Any]]:

@@ -72,13 +72,20 @@ def from_dataset(joint: JointSpec, value: float) -> float:
 
 @dataclass(frozen=True)
 class Span:
-    """One episode: its index and task, and its ends in log time (ns)."""
+    """One episode: its index and task, its ends in log time (ns), and how it ended: `stop`
+    (someone stopped it), `cut` (its robot stopped first: the server shut down, or the robot
+    was deleted) or `file` (the file ended before it did: a killed server)."""
 
     index: int
     task: str
     start: int
     end: int
-    complete: bool = True  # False when the file ended before the episode did
+    ended: str = "stop"
+
+    @property
+    def complete(self) -> bool:
+        """True when someone stopped it: it is as long as they meant it to be."""
+        return self.ended == "stop"
 
 
 def episodes_of(messages: Sequence[RecordedMessage], default_task: str) -> list[Span]:
@@ -99,14 +106,30 @@ def episodes_of(messages: Sequence[RecordedMessage], default_task: str) -> list[
             open_[index] = mark
         elif index in open_:
             start = open_.pop(index)
-            spans[index] = Span(index, str(start.data["task"]), start.log_time, mark.log_time)
+            ended = "cut" if change == "cut" else "stop"
+            task = str(start.data["task"])
+            spans[index] = Span(index, task, start.log_time, mark.log_time, ended)
             if change == "discard":
                 discarded.add(index)
         elif change == "discard":
             discarded.add(index)  # a kept episode taken back
     for index, start in open_.items():
-        spans[index] = Span(index, str(start.data["task"]), start.log_time, last, complete=False)
+        spans[index] = Span(index, str(start.data["task"]), start.log_time, last, "file")
     return [spans[i] for i in sorted(spans) if i not in discarded]
+
+
+def episode_notes(spans: Iterable[Span]) -> list[str]:
+    """What an export says of the episodes that nobody stopped (each is kept as it is)."""
+    notes = []
+    for span in spans:
+        if span.ended == "file":
+            notes.append(f"episode {span.index} has no stop: it ends where the file does")
+        elif span.ended == "cut":
+            notes.append(
+                f"episode {span.index} was cut short: its robot stopped (a server shutdown, "
+                "the robot deleted) before the episode was stopped"
+            )
+    return notes
 
 
 @dataclass
@@ -399,11 +422,7 @@ def export_lerobot(
     spans = episodes_of(session.messages, task)
     if not spans:
         raise ArenaError(ErrorCode.INVALID_RECORDING, f"No kept episode of {robot_id!r}.")
-    notes += [
-        f"episode {s.index} has no stop: it ends where the file does"
-        for s in spans
-        if not s.complete
-    ]
+    notes += episode_notes(spans)
     for line in notes:
         say(f"note: {line}")
     if environment is not None:

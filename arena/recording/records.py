@@ -103,7 +103,8 @@ RECORDED = (
         "episode",
         EpisodeChanged,
         "EpisodeRecord",
-        "A data-collection episode started, stopped or discarded (`arena export` reads them).",
+        "A data-collection episode started, stopped, discarded or cut (its robot stopped while "
+        "it ran: a server's shutdown, the robot deleted); `arena export` reads them.",
     ),
     Recorded(
         "audit",

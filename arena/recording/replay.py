@@ -18,7 +18,7 @@ import trio
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording.mcap_file import RecordedMessage, Recording
 from arena.robot.handle import Robot
-from arena.robot.links import MasterLink
+from arena.robot.links import RELEASED_HOLDING, MasterLink
 from arena.robot.motion import Command, JointGoal
 
 log = logging.getLogger(__name__)
@@ -176,7 +176,8 @@ async def redrive_session(recording: Recording, source: str, robot: Robot) -> No
                 if data["change"] == "lost":
                     await links[peer].lost(str(data["reason"]))
                 elif data["change"] == "released":
-                    await links[peer].release(str(data["reason"]))
+                    hold = data["reason"] == RELEASED_HOLDING
+                    await links[peer].release(str(data["reason"]), hold=hold)
                 else:
                     finished = data["reason"] == "driver finished"  # see Robot._on_driver_ended
                     await links[peer].detach(str(data["reason"]), finish_motion=finished)

@@ -26,7 +26,7 @@ import trio
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot import inbox, safety
 from arena.robot.core import MANUAL_SOURCE, JoinChange, RobotCore, Step
-from arena.robot.episodes import Episodes
+from arena.robot.episodes import Episode, Episodes
 from arena.robot.events import (
     CommandHandled,
     EpisodeChanged,
@@ -238,7 +238,7 @@ class Actor:
         self._publish(
             JointStatesReceived(self.robot_id, message.slave_id, joints, now, wallclock.time())
         )
-        if message.slave_id in self.core.joining:
+        if message.slave_id in self.core.joining or message.slave_id in self.core.unsure:
             self._carry_out_joins(self.core.slave_measured(message.slave_id, joints, now), now)
 
     def _on_fault(self, message: inbox.FaultMsg, now: float) -> None:
@@ -262,13 +262,13 @@ class Actor:
         except ArenaError as refusal:
             message.reply.fail(refusal)
             return
-        index, task, started = episode.index, episode.task, episode.started
-        self._publish(
-            EpisodeChanged(
-                self.robot_id, message.action, index, task, started, now, wallclock.time()
-            )
-        )
+        self._episode_changed(message.action, episode, now)
         message.reply.set(episode)
+
+    def _episode_changed(self, change: str, episode: Episode, now: float) -> None:
+        index, task, started = episode.index, episode.task, episode.started
+        changed = EpisodeChanged(self.robot_id, change, index, task, started, now, wallclock.time())
+        self._publish(changed)
 
     def _on_link(self, message: inbox.LinkMsg, now: float) -> None:
         peer = self.peers.slaves.get(message.slave_id)
@@ -334,13 +334,15 @@ class Actor:
             driver = message.driver
             self.core.slave_attached(
                 peer_id,
-                measures=driver is not None and getattr(driver, "measures", True),
+                # A slave over the network says by reporting (None: not known yet).
+                measures=None if driver is None else getattr(driver, "measures", True),
                 join_speed=getattr(driver, "join_speed", None),
             )
         self.peers.add(peer)
         if message.driver is not None:
             scope = trio.CancelScope()
             peer.stop = scope.cancel
+            peer.driver = message.driver
             assert self._nursery is not None
             self._nursery.start_soon(self._run_driver, peer, message.driver, scope)
         log.info("robot %s: %s %s attached (%s)", self.robot_id, peer.role, peer_id, peer.kind)
@@ -414,6 +416,9 @@ class Actor:
 
     def _on_shutdown(self, reason: str) -> None:
         now = trio.current_time()
+        cut = self.episodes.cut(now)  # nobody stopped it: recorded as cut
+        if cut is not None:
+            self._episode_changed("cut", cut, now)
         master = self.peers.master
         if master is not None:
             self.apply(safety.MasterDetach(master.peer_id), now, cause=reason)

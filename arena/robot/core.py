@@ -131,6 +131,9 @@ class RobotCore:
         # have to join again. See `slave_attached`.
         self._joins: dict[str, _Join] = {}
         self._measuring: dict[str, float] = {}
+        #: Slaves not known to measure yet (connected over the network): what each has
+        #: reported so far, by joint. See `slave_attached`.
+        self.unsure: dict[str, dict[str, float]] = {}
         #: Ids of the slaves that must not be sent the robot's targets (they are joining).
         self.joining: set[str] = set()
 
@@ -170,17 +173,23 @@ class RobotCore:
     # nothing). Rules and reasons: specs/robot-model.md, "Slaves that join".
 
     def slave_attached(
-        self, slave_id: str, *, measures: bool, join_speed: float | None = None
+        self, slave_id: str, *, measures: bool | None, join_speed: float | None = None
     ) -> None:
         """A slave attached; one that `measures` joins (see above) at `join_speed` deg/s
-        (default: the robot's `join_speed`)."""
-        if measures:
+        (default: the robot's `join_speed`). `measures` None: not known (a slave connected
+        over the network, which may be an arm or a twin): it follows the robot's targets until
+        it has reported every joint, and from that report on it is an arm that measures and
+        joins from there (`slave_measured`); one that never reports follows as a twin."""
+        if measures is None:
+            self.unsure[slave_id] = {}
+        elif measures:
             self._wait(slave_id, self.policy.join_speed if join_speed is None else join_speed)
 
     def slave_detached(self, slave_id: str) -> None:
         """A slave left: it holds nothing any more."""
         self._joins.pop(slave_id, None)
         self._measuring.pop(slave_id, None)
+        self.unsure.pop(slave_id, None)
         self.joining.discard(slave_id)
 
     def slave_rejoins(self, slave_id: str) -> None:
@@ -199,7 +208,7 @@ class RobotCore:
         """A slave's report (protocol names, degrees): what it changes in a join, if any."""
         join = self._joins.get(slave_id)
         if join is None:
-            return []
+            return self._reported(slave_id, joints, now)
         join.measured.update(joints)
         if join.ramp is not None or len(join.measured) < len(self.model.joints):
             return []
@@ -207,6 +216,22 @@ class RobotCore:
             if self.state.mode is Mode.ESTOPPED and self.state.owner is None:
                 self._take_pose(join)  # a limp arm moved by hand: the robot's pose follows
             return []
+        return self._decide(slave_id, join, now)
+
+    def _reported(self, slave_id: str, joints: Mapping[str, float], now: float) -> list[JoinChange]:
+        """A report of a slave not known to measure: once it has named every joint, the pose
+        is its own (a twin would only say what it was told), so it joins from there, as an
+        arm that measures does from its first report."""
+        heard = self.unsure.get(slave_id)
+        if heard is None:
+            return []
+        heard.update(joints)
+        if len(heard) < len(self.model.joints):
+            return []
+        del self.unsure[slave_id]
+        self._wait(slave_id, self.policy.join_speed)
+        join = self._joins[slave_id]
+        join.measured = heard
         return self._decide(slave_id, join, now)
 
     def _release_held(self, now: float) -> list[JoinChange]:

@@ -3,7 +3,9 @@
 An episode is a stretch of a session marked for a dataset (`arena export`), with the task a
 policy should learn from it. At most one runs at a time. `discard` ends the running episode, or
 with none running takes back the last one stopped, as LeRobot's "re-record" does; a discarded
-episode stays in the recording (nothing recorded is ever deleted) and export skips it.
+episode stays in the recording (nothing recorded is ever deleted) and export skips it. An
+episode still running when its robot stops (the server's shutdown, the robot deleted) is `cut`:
+ended there, kept, and recorded as cut, so that export and `arena inspect` say so.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ class Episode:
     started: float
     ended: float | None = None
     discarded: bool = False
+    cut: bool = False  # ended because its robot stopped, not by a `stop`
 
 
 class Episodes:
@@ -65,6 +68,17 @@ class Episodes:
         if self.active is None:
             raise ArenaError(ErrorCode.NO_EPISODE, "No episode is running.")
         ended = Episode(self.active.index, self.active.task, self.active.started, now)
+        self.active, self.last = None, ended
+        self.kept += 1
+        return ended
+
+    def cut(self, now: float) -> Episode | None:
+        """The robot stops: end the running episode there and keep it, marked cut (None: no
+        episode runs)."""
+        if self.active is None:
+            return None
+        episode = self.active
+        ended = Episode(episode.index, episode.task, episode.started, now, cut=True)
         self.active, self.last = None, ended
         self.kept += 1
         return ended

@@ -155,10 +155,11 @@ class PeerChanged(Observed, frozen=True, gc=False):
 
 
 class EpisodeChanged(Observed, frozen=True, gc=False):
-    """A data-collection episode started, stopped or was discarded (`episodes.py`)."""
+    """A data-collection episode started, stopped, was discarded, or was cut: its robot stopped
+    while it ran (`episodes.py`)."""
 
     robot_id: str
-    change: str  # "start" | "stop" | "discard"
+    change: str  # "start" | "stop" | "discard" | "cut"
     index: int  # the episode's number on this robot since the server started
     task: str
     started: float  # trio time the episode started

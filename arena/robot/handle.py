@@ -314,7 +314,9 @@ class Robot:
         kind: str = "external",
         heartbeat_timeout: float | None = None,
     ) -> SlaveLink:
-        """Attach a slave that runs elsewhere (a network connection)."""
+        """Attach a slave that runs elsewhere (a network connection). Whether it measures is
+        not known until it reports: once it has reported every joint it joins as an arm does
+        (`RobotCore.slave_attached`); until then it gets the robot's targets as a twin."""
         link: SlaveLink = await self._attach(
             "slave", slave_id, kind, None, False, False, heartbeat_timeout
         )
@@ -323,6 +325,16 @@ class Robot:
     async def detach_slave(self, slave_id: str, reason: str = "detached on request") -> None:
         """Detach a slave; it is told to stop. Unknown ids raise `ArenaError(UNKNOWN_SLAVE)`."""
         await self._leave("slave", slave_id, lost=False, reason=reason)
+
+    def plan_stop(self) -> None:
+        """Say that the robot is about to stop as planned (the server's SIGTERM), before
+        `shutdown`: each slave that drives hardware leaves it as its own `estop` setting says
+        (`hold`: torque on where it is), not limp as a detach leaves it. It changes nothing in
+        the robot's state; it never blocks."""
+        for slave in self._actor.peers.slaves.values():
+            planned_stop = getattr(slave.driver, "planned_stop", None)
+            if planned_stop is not None:
+                planned_stop()
 
     # -- the actor ------------------------------------------------------------------------------
 

@@ -180,11 +180,15 @@ class MasterLink:
                 "master", self.master_id, lost=False, reason=reason, hold=not finish_motion
             )
 
-    async def release(self, reason: str = "released by the master") -> None:
-        """The master is done: hand the robot back, holding where it is (no e-stop)."""
+    async def release(self, reason: str | None = None, *, hold: bool = False) -> None:
+        """The master is done: hand the robot back (no e-stop). The commands it had accepted
+        complete (an accepted command is a promise), unless `hold`: then the arm stops where
+        it is. `reason` defaults to `RELEASED` or `RELEASED_HOLDING`, which a replay reads."""
+        if reason is None:
+            reason = RELEASED_HOLDING if hold else RELEASED
         if not self.detached.is_set():
             await self._port.leave(
-                "master", self.master_id, lost=False, reason=reason, released=True
+                "master", self.master_id, lost=False, reason=reason, hold=hold, released=True
             )
 
     async def lost(self, reason: str = "connection lost") -> None:
@@ -192,6 +196,11 @@ class MasterLink:
         if not self.detached.is_set():
             await self._port.leave("master", self.master_id, lost=True, reason=reason)
 
+
+#: Why a master let go, as its release records it: the moves it had accepted complete...
+RELEASED = "released by the master"
+#: ...or, asked with `hold`, the arm stops where it is.
+RELEASED_HOLDING = "released by the master, stopped where it was"
 
 DETACHED_LINK = CommandResult.refused(
     ErrorCode.NOT_OWNER, "This connection no longer holds the robot (it was detached)."

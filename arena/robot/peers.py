@@ -43,6 +43,8 @@ class Peer(Generic[L]):
     last_seen: float  # trio time the robot last heard from it
     #: Stops the driver the robot runs for this peer (None: the peer runs elsewhere).
     stop: Callable[[], None] | None = None
+    #: The driver the robot runs for this peer (None: the peer runs elsewhere).
+    driver: object | None = None
     last_error: str | None = None
 
     def deadline(self) -> float:

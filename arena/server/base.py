@@ -176,10 +176,6 @@ class Hardware:
             f'Robot {robot_id!r} has several physics slaves: say which with "twin:SLAVE_ID".',
         )
 
-    def drivers(self) -> list[object]:
-        """Every hardware driver attached over REST (some may have been detached since)."""
-        return list(self._drivers.values())
-
     def find(self, robot_id: str, slave_id: str | None, attached: set[str]) -> tuple[str, Any]:
         """The robot's calibratable slave (`slave_id`, or the only one)."""
         for key in [k for k in self._drivers if k[1] not in attached and k[0] == robot_id]:

@@ -36,9 +36,8 @@ async def stop_on_signals(stop: trio.Event, now: trio.CancelScope) -> None:
 
 
 def leave_slaves_as_set(app: ArenaApp) -> None:
-    """Tell each hardware slave the stop is planned, before the robots stop: when its driver
-    ends it leaves the servos as its `estop` setting says (a detach leaves them limp)."""
-    for driver in app.hardware.drivers():
-        planned_stop = getattr(driver, "planned_stop", None)
-        if planned_stop is not None:
-            planned_stop()
+    """Tell every robot the stop is planned, before the robots stop: each hardware slave, however
+    it was attached (over REST, by the demo, by a program that embeds the server), leaves its
+    servos as its `estop` setting says when its driver ends (a detach leaves them limp)."""
+    for robot in app.manager.robots():
+        robot.plan_stop()

@@ -165,11 +165,12 @@ async def _handle(members: GroupMembers, message: wire.MasterMessage) -> None:
     elif isinstance(message, wire.HeartbeatMessage):
         await connection.send(wire.HeartbeatMessage(timestamp=wire.now_iso()))
     elif isinstance(message, wire.ReleaseMessage):
+        hold = message.data is not None and message.data.hold
         modes: dict[str, Mode] = {}
         released = []
         for robot_id, link in list(members.links.items()):
             with contextlib.suppress(ArenaError):  # deleted meanwhile: nothing to release
-                await link.release()
+                await link.release(hold=hold)
                 modes[robot_id] = link.robot.snapshot().mode
                 released.append(robot_id)
         members.audit("release over WebSocket", released)

@@ -248,7 +248,7 @@ async def _handle_master_message(
             raise ArenaError(ErrorCode.NOT_OWNER, DETACHED_LINK.message)
         player.stop()
         player.releasing = True
-        await link.release()
+        await link.release(hold=message.data is not None and message.data.hold)
         robot.audit(connection.principal.audit_name(), "release over WebSocket", link.master_id)
         snapshot = robot.snapshot()
         await send_released(connection, wire.ReleasedData(robot.robot_id, str(snapshot.mode)))
