@@ -7,21 +7,28 @@ either, and the two workers answer one observation with the same actions.
 
 from __future__ import annotations
 
+import json
 import math
 import os
+import subprocess
 from pathlib import Path
 
 import pytest
 import trio
 
+from arena import cli
 from arena.policy.process import PolicyProcess, worker_command
 from arena.policy.wire import Observe
+from arena.recording.mcap_file import read_recording
+from arena.recording.replay import recorded_commands
 from arena.robot.events import CommandHandled
 from arena.sensors.sources import JpegEncoder, pattern_image
 from tests.conftest import REPOSITORY, missing, need
+from tests.test_dataset import session_file
 from tests.test_policy_server import Start, attach, make_policy, next_event, ready
 
 pytestmark = pytest.mark.compat
+__all__ = ["session_file"]  # the fixture, from tests/test_dataset.py
 
 #: The LeRobot 0.6 Python tools/compat.sh makes (or another, named by ARENA_COMPAT_PYTHON).
 COMPAT_PYTHON = Path(os.environ.get("ARENA_COMPAT_PYTHON", REPOSITORY / ".compat" / "python"))
@@ -82,3 +89,78 @@ async def test_both_workers_answer_an_observation_with_the_same_actions(
     for a, b in zip(ours, theirs, strict=True):
         for x, y in zip(a, b, strict=True):
             assert math.isclose(x, y, abs_tol=0.5), (ours, theirs)
+
+
+#: Read in LeRobot 0.6 (by `make compat`'s Python): what a test compares with LeRobot 0.4.4's.
+READ_DATASET = """
+import json, sys
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+dataset = LeRobotDataset(sys.argv[1], root=sys.argv[2])
+rows = list(dataset.hf_dataset.with_format(None))
+item = dataset[len(rows) - 1]
+print(json.dumps({
+    "episodes": dataset.num_episodes, "fps": dataset.fps, "robot": dataset.meta.robot_type,
+    "actions": [list(map(float, row["action"])) for row in rows],
+    "image": list(item["observation.images.front"].shape),
+}))
+"""
+
+#: Written by LeRobot 0.6: two episodes of a so-101's joints, no video.
+WRITE_DATASET = """
+import sys
+import numpy as np
+from lerobot.datasets.lerobot_dataset import LeRobotDataset
+names = ["shoulder_pan.pos", "shoulder_lift.pos", "elbow_flex.pos", "wrist_flex.pos",
+         "wrist_roll.pos", "gripper.pos"]
+feature = {"dtype": "float32", "shape": (6,), "names": names}
+dataset = LeRobotDataset.create(sys.argv[1], fps=10, root=sys.argv[2], robot_type="so101_follower",
+                                features={"action": feature, "observation.state": feature},
+                                use_videos=False)
+for episode in range(2):
+    for step in range(5):
+        value = np.array([episode * 10 + step, -step, step, 0, 0, 50], np.float32)
+        dataset.add_frame({"action": value, "observation.state": value, "task": "wave"})
+    dataset.save_episode()
+dataset.finalize()
+"""
+
+
+async def test_an_exported_dataset_reads_the_same_in_lerobot_06(
+    session_file: Path, tmp_path: Path, newer: str
+) -> None:
+    lerobot_dataset = need("lerobot.datasets.lerobot_dataset", "lerobot")
+    out = tmp_path / "dataset"
+    args = ["export", str(session_file), "--format", "lerobot", "--robot", "demo-arm"]
+    assert cli.main([*args, "-o", str(out), "--repo-id", "lab/cube"]) == 0
+    read = subprocess.run(
+        [newer, "-c", READ_DATASET, "lab/cube", str(out)], capture_output=True, timeout=300
+    )
+    assert read.returncode == 0, read.stderr.decode()[-2000:]
+    theirs = json.loads(read.stdout.decode().strip().splitlines()[-1])
+    ours = lerobot_dataset.LeRobotDataset("lab/cube", root=out, video_backend="pyav")
+    rows = list(ours.hf_dataset.with_format(None))
+    assert (theirs["episodes"], theirs["fps"], theirs["robot"]) == (
+        ours.num_episodes,
+        ours.fps,
+        ours.meta.robot_type,
+    )
+    assert theirs["actions"] == [[float(v) for v in row["action"]] for row in rows]
+    assert theirs["image"] == list(ours[len(rows) - 1]["observation.images.front"].shape)
+
+
+async def test_a_dataset_lerobot_06_wrote_imports_as_a_recording(
+    tmp_path: Path, newer: str
+) -> None:
+    out = tmp_path / "written"
+    wrote = subprocess.run(
+        [newer, "-c", WRITE_DATASET, "lab/wave", str(out)], capture_output=True, timeout=300
+    )
+    assert wrote.returncode == 0, wrote.stderr.decode()[-2000:]
+    imported = tmp_path / "episode1.mcap"
+    assert cli.main(["import-dataset", str(out), "--episode", "1", "-o", str(imported)]) == 0
+    recording = read_recording(imported)
+    (robot,) = {m.robot_id for m in recording.messages if m.kind == "command"}
+    commands = recorded_commands(recording, robot)
+    assert len(commands) == 5
+    pans = [next(g.value for g in c.command.joints if g.name == "Rotation") for c in commands]
+    assert pans == pytest.approx([10, 11, 12, 13, 14], abs=1e-3)

@@ -58,7 +58,11 @@ def train_act(
     import torch
     from lerobot.configs.types import FeatureType, NormalizationMode
     from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
-    from lerobot.datasets.utils import dataset_to_policy_features
+
+    try:  # where LeRobot 0.6 keeps it
+        from lerobot.utils.feature_utils import dataset_to_policy_features
+    except ImportError:  # LeRobot 0.4
+        from lerobot.datasets.utils import dataset_to_policy_features
     from lerobot.policies.act.configuration_act import ACTConfig
     from lerobot.policies.act.modeling_act import ACTPolicy
     from lerobot.policies.factory import make_pre_post_processors
