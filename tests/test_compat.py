@@ -1,8 +1,9 @@
 """Against LeRobot 0.6 itself (`make compat`, which builds its Python with tools/compat.sh and
 runs these; `make test` leaves them out: marker `compat`).
 
-Policies saved by LeRobot 0.6 and by Arena's own 0.4.4 are run by a real server whose worker is
-either, and the two workers answer one observation with the same actions.
+ACT and diffusion policies saved by LeRobot 0.6 and by Arena's own 0.4.4 are run by a real server
+whose worker is either, the two workers answer one observation with the same actions, and
+datasets go both ways.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ import json
 import math
 import os
 import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -45,23 +47,27 @@ def newer() -> str:
 
 @pytest.fixture(scope="module")
 def saved(newer: str, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """The same tiny ACT saved by Arena's LeRobot (0.4.4) and by LeRobot 0.6."""
+    """The same tiny ACT and diffusion policies saved by Arena's LeRobot (0.4.4) and by 0.6."""
     folder = tmp_path_factory.mktemp("saved")
     return {
-        "0.4": make_policy(folder / "act04"),
-        "0.6": make_policy(folder / "act06", python=newer),
+        f"{kind}-{by}": make_policy(
+            folder / f"{kind}{by}", "--type", kind, python=newer if by == "0.6" else sys.executable
+        )
+        for kind in ("act", "diffusion")
+        for by in ("0.4", "0.6")
     }
 
 
+@pytest.mark.parametrize("kind", ["act", "diffusion"])
 @pytest.mark.parametrize("by", ["0.4", "0.6"])
 @pytest.mark.parametrize("worker", ["0.4", "0.6"])
 async def test_a_policy_either_lerobot_saved_runs_in_a_worker_of_either(
-    start_server: Start, saved: dict[str, Path], newer: str, by: str, worker: str
+    start_server: Start, saved: dict[str, Path], newer: str, kind: str, by: str, worker: str
 ) -> None:
     server = await start_server(demo=True, policy_python=newer if worker == "0.6" else None)
     robot = await ready(server)
     with robot.subscribe(kinds=[CommandHandled]) as events:
-        answer = await attach(server, saved[by])
+        answer = await attach(server, saved[f"{kind}-{by}"])
         assert answer.status_code == 201, answer.text
         handled = await next_event(events, lambda e: isinstance(e, CommandHandled))
     assert handled.result.accepted
@@ -77,7 +83,7 @@ async def test_both_workers_answer_an_observation_with_the_same_actions(
         worker = await PolicyProcess.start(worker_command(python))
         try:
             with trio.fail_after(120):
-                loaded = await worker.load(saved["0.6"])
+                loaded = await worker.load(saved["act-0.6"])
                 chunks.append((loaded.lerobot, (await worker.act(observation)).actions))
         finally:
             await worker.close()

@@ -560,3 +560,24 @@ async def test_a_worker_runs_in_a_python_of_the_user_s_that_has_no_arena(
 def test_a_policy_python_that_is_no_program_is_refused(tmp_path: Path) -> None:
     with pytest.raises(ArenaError, match="is not a program"):
         ServerConfig(policy_python=str(tmp_path / "nothing")).check()
+
+
+async def test_a_diffusion_policy_drives_the_arm_from_its_recent_observations(
+    start_server: Start, tmp_path: Path
+) -> None:
+    """Diffusion predicts from its last `n_obs_steps` observations (kept in the policy's
+    queues, which LeRobot's async inference leaves empty): the worker fills them."""
+    need("diffusers", "lerobot")
+    diffusion = make_policy(tmp_path / "diffusion", "--type", "diffusion")
+    server = await start_server(demo=True)
+    robot = await ready(server)
+    with robot.subscribe(kinds=[CommandHandled]) as events:
+        answer = await attach(server, diffusion)
+        assert answer.status_code == 201, answer.text
+        assert answer.json()["id"].startswith("policy:diffusion:")
+        handled = [  # past several chunks (10 actions each, the next asked for at half)
+            await next_event(events, lambda e: isinstance(e, CommandHandled)) for _ in range(20)
+        ]
+    assert sum(event.result.accepted for event in handled) >= 10
+    async with server.client() as http:
+        assert (await http.delete(f"{ROBOT}/master")).status_code == 200

@@ -38,7 +38,7 @@ if [ ! -e "$DIR/venv/bin/$PYVER" ]; then
     PYTHONHOME=$ROOT/usr $LOADER --library-path "$LIBS" "$ROOT/usr/bin/$PYVER" \
         -m venv --without-pip "$DIR/venv"
 fi
-if [ ! -e "$DIR/venv/.installed-$LEROBOT_VERSION-dataset" ]; then
+if [ ! -e "$DIR/venv/.installed-$LEROBOT_VERSION-dataset-diffusion" ]; then
     cp /etc/ssl/certs/ca-certificates.crt "$DIR/ca.crt"
     export PIP_CERT=$DIR/ca.crt SSL_CERT_FILE=$DIR/ca.crt PIP_CONFIG_FILE=/dev/null \
         PIP_DISABLE_PIP_VERSION_CHECK=1
@@ -53,7 +53,7 @@ urllib.request.urlretrieve(wheel["url"], sys.argv[1] + "/" + wheel["filename"])'
         WHEEL=$(echo "$DIR"/wheels/pip-*.whl)
         "$DIR/python" "$WHEEL/pip" install --quiet --no-index "$WHEEL"
     fi
-    "$DIR/python" -m pip install --quiet "lerobot[dataset]==$LEROBOT_VERSION" msgspec
-    touch "$DIR/venv/.installed-$LEROBOT_VERSION-dataset"
+    "$DIR/python" -m pip install --quiet "lerobot[dataset,diffusion]==$LEROBOT_VERSION" msgspec
+    touch "$DIR/venv/.installed-$LEROBOT_VERSION-dataset-diffusion"
 fi
 "$DIR/python" -c 'import lerobot, sys; print("LeRobot", lerobot.__version__, "on Python", sys.version.split()[0])'

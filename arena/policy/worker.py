@@ -221,6 +221,24 @@ class LoadedPolicy:
         rgb = decode_jpeg(jpeg, width, height)
         return self.torch.from_numpy(rgb).permute(2, 0, 1).float() / 255.0
 
+    def history(self, batch: dict[str, Any]) -> dict[str, Any]:
+        """`batch` as the policy's chunk prediction reads it. A policy that looks at its last
+        `n_obs_steps` observations (diffusion, VQ-BeT) keeps them in queues its `select_action`
+        fills before predicting; LeRobot's async inference calls `predict_action_chunk`
+        directly, so they are filled here the same way (images stacked as LeRobot does)."""
+        queues = getattr(self.policy, "_queues", None)
+        if queues is None:  # ACT: each chunk from this observation alone
+            return batch
+        from lerobot.policies.utils import populate_queues
+        from lerobot.utils.constants import ACTION, OBS_IMAGES
+
+        batch = {key: value for key, value in batch.items() if key != ACTION}  # (an empty one)
+        cameras = list(getattr(self.config, "image_features", None) or ())
+        if cameras:
+            batch[OBS_IMAGES] = self.torch.stack([batch[name] for name in cameras], dim=-4)
+        self.policy._queues = populate_queues(queues, batch)
+        return batch
+
     def act(self, observation: Observe) -> Chunk:
         """The action chunk for one observation, in LeRobot's units."""
         started = time.perf_counter()
@@ -239,7 +257,7 @@ class LoadedPolicy:
                     raise ValueError(f"the observation has no image for {name}")
                 batch[name] = self.image(jpeg, tuple(feature.shape))
         with torch.inference_mode():
-            chunk = self.policy.predict_action_chunk(self.pre(batch))
+            chunk = self.policy.predict_action_chunk(self.history(self.pre(batch)))
             if chunk.ndim == 2:
                 chunk = chunk.unsqueeze(0)
             # LeRobot's postprocessor takes one action (B, D) at a time, as its policy server does.
