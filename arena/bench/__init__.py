@@ -88,7 +88,7 @@ SCENARIOS = (
     "teleop",
 )
 #: Long scenarios, run only when named.
-LONG_SCENARIOS = ("soak", "versus", "nodes", "policy")
+LONG_SCENARIOS = ("soak", "versus", "nodes", "policy", "workers")
 
 
 def run_benchmarks(
@@ -111,7 +111,7 @@ def run_benchmarks(
         require("physics", "arena bench physics")
     if "nodes" in chosen:
         require("fleet", "arena bench nodes")
-    if "policy" in chosen:
+    if "policy" in chosen or "workers" in chosen:
         require("lerobot", "arena bench policy")
     results: dict[str, Any] = {}
 
@@ -190,6 +190,12 @@ def run_benchmarks(
         results.update(asyncio.run(versus_floor(rounds=repeats, fleet_robots=fleet_robots)))
     if "policy" in chosen:
         results.update(asyncio.run(_with_server(policy)))
+    if "workers" in chosen:
+        import trio
+
+        from arena.bench.workers import workers  # the policy worker on trio, no server
+
+        results.update(trio.run(workers))
     if "usb" in chosen:
         results.update(median_of([usb_control_rate() for _ in range(repeats)]))
     if "teleop" in chosen:

@@ -1,6 +1,7 @@
-"""The ACT of `arena bench policy`, saved by `python -m arena.bench.act DIR`: LeRobot's default
-architecture with random weights and no pretrained backbone (nothing is downloaded). It imports
-torch, so it runs in a process of its own, never in the benchmark's or the server's."""
+"""The ACT of `arena bench policy`, saved by `python -m arena.bench.act DIR` (and the diffusion
+policy of `arena bench workers`, `--type diffusion`): LeRobot's default architecture with random
+weights and no pretrained backbone (nothing is downloaded). It imports torch, so it runs in a
+process of its own, never in the benchmark's or the server's."""
 
 from __future__ import annotations
 
@@ -48,11 +49,47 @@ def save_act(folder: Path) -> None:
     post.save_pretrained(folder)
 
 
+def save_diffusion(folder: Path) -> None:
+    """Save a diffusion policy of LeRobot's default architecture (random weights, its default
+    100 denoising steps) taking the same camera and state, in `folder` (imports torch)."""
+    import torch
+    from lerobot.configs.types import FeatureType, PolicyFeature
+    from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
+    from lerobot.policies.diffusion.modeling_diffusion import DiffusionPolicy
+    from lerobot.policies.factory import make_pre_post_processors
+
+    image = "observation.images.front"
+    config = DiffusionConfig(
+        input_features={
+            "observation.state": PolicyFeature(FeatureType.STATE, (6,)),
+            image: PolicyFeature(FeatureType.VISUAL, IMAGE),
+        },
+        output_features={"action": PolicyFeature(FeatureType.ACTION, (6,))},
+        pretrained_backbone_weights=None,  # (LeRobot 0.6's default would download them)
+        use_group_norm=True,
+        device="cpu",
+    )
+    torch.manual_seed(0)
+    policy = DiffusionPolicy(config)
+    bounds = {"min": torch.full((6,), -3.0), "max": torch.full((6,), 3.0)}
+    stats = {
+        "observation.state": {"min": torch.full((6,), -90.0), "max": torch.full((6,), 90.0)},
+        image: {"mean": torch.full((3, 1, 1), 0.5), "std": torch.full((3, 1, 1), 0.25)},
+        "action": bounds,
+    }
+    pre, post = make_pre_post_processors(config, dataset_stats=stats)
+    policy.save_pretrained(folder)
+    pre.save_pretrained(folder)
+    post.save_pretrained(folder)
+
+
 def main() -> None:
-    """`python -m arena.bench.act DIR`: save the benchmark's ACT in DIR."""
+    """`python -m arena.bench.act DIR [--type diffusion]`: save the benchmark's policy in DIR."""
     parser = argparse.ArgumentParser()
     parser.add_argument("dir")
-    save_act(Path(parser.parse_args().dir))
+    parser.add_argument("--type", choices=("act", "diffusion"), default="act")
+    args = parser.parse_args()
+    (save_act if args.type == "act" else save_diffusion)(Path(args.dir))
 
 
 if __name__ == "__main__":
