@@ -799,3 +799,30 @@ def move_and_wait(server: LiveServer, page: Page, pose: dict[str, float]) -> Non
         goal = {name: goal.get(name, value) for name, value in pose.items()}
     for name, value in goal.items():
         expect(page.locator(f'[data-virtual="{name}"]')).to_have_text(f"{value:.1f}")
+
+
+def test_a_slaves_fault_shows_on_it_while_it_lasts(start_live: Any, page: Page) -> None:
+    # A fault comes over the viewer socket: logged, and listed on its slave until it is over.
+    server = start_live(demo=True)
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    expect(page.locator("#robot-state")).to_have_text("idle")
+    ws_url = "ws" + server.url[len("http") :] + "/ws/slave/demo-arm"
+    with websockets.sync.client.connect(ws_url) as arm:
+        fault = {"code": "SERVO_HOT", "message": "Elbow is warm", "severity": "warning"}
+        arm.send(json.dumps({"type": "error", "data": fault | {"joint": "Elbow"}}))
+        shown = page.locator('#peers li[data-peer="ws-slave-1"] li.fault')
+        expect(shown).to_have_text("SERVO_HOT (Elbow): Elbow is warm", timeout=WAIT_MS)
+        expect(page.locator("#events")).to_contain_text("ws-slave-1: warning SERVO_HOT (Elbow)")
+        # A status saying it is not connected is a fault of its own; one saying it is again
+        # ends that one (and only that one).
+        status = {"isConnected": False, "error": "cable loose"}
+        arm.send(json.dumps({"type": "status_update", "data": status}))
+        expect(page.locator('#peers li[data-peer="ws-slave-1"] li.fault')).to_have_count(
+            2, timeout=WAIT_MS
+        )
+        status = {"isConnected": True}
+        arm.send(json.dumps({"type": "status_update", "data": status}))
+        expect(page.locator("#events")).to_contain_text("SLAVE_STATUS over", timeout=WAIT_MS)
+        expect(page.locator('#peers li[data-peer="ws-slave-1"] li.fault')).to_have_count(
+            1, timeout=WAIT_MS
+        )

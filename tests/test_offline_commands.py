@@ -148,7 +148,7 @@ def test_inspect(recording_file: Path, capsys: pytest.CaptureFixture[str]) -> No
     summary = json.loads(run(["inspect", str(recording_file), "--json"], capsys))
     assert summary["arena_messages"] == len(recording.messages)
     assert set(summary["robots"]) == {m.robot_id for m in recording.messages}
-    faults = [m for m in recording.messages if m.kind == "fault"]
+    faults = [m for m in recording.messages if m.kind == "fault" and not m.data.get("cleared")]
     assert len(summary["faults"]) == len(faults)
 
 

@@ -13,8 +13,10 @@ import trio
 from arena.drivers.bus_bridge import BusBridge, release_port, start_worker, wait_future
 from arena.extras import require
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.robot.links import MasterLink, SlaveLink
 from arena.robot.model import RobotModel
 from arena.servo.calibration import Calibration
+from arena.servo.health import ServoFault
 from arena.servo.interface import MAX_STEP, ServoBus, ServoFamily
 from arena.servo.lerobot_calibration import (
     LeRobotCalibration,
@@ -112,6 +114,7 @@ class ServoArm:
         self.family = family_of(model)
         self.calibration_file = calibration_file
         self.servo_ids = {joint.name: joint.servo_id for joint in model.joints}
+        self.joint_of = {sid: name for name, sid in self.servo_ids.items()}
         self.leader = leader
         models = allowed_models(model, self.family, leader=leader)
         self.settings = dataclasses.replace(settings, models=models)
@@ -125,6 +128,16 @@ class ServoArm:
         self.holder = "an arm"
         self.worker: BusWorker | None = None
         self.bridge: BusBridge | None = None
+
+    async def tell_fault(self, link: MasterLink | SlaveLink, fault: ServoFault) -> None:
+        """A servo's fault, or its end, told to the robot: the one way for a follower (a
+        slave's link) and a leader (a master's) alike, naming the servo's joint."""
+        joint = self.joint_of.get(fault.servo_id) if fault.servo_id is not None else None
+        message = f"{joint}: {fault.message}" if joint else fault.message
+        if fault.cleared:
+            await link.clear_fault(fault.code, joint, message)
+        else:
+            await link.report_fault(fault.code, message, fault.severity, joint)
 
     async def prepare(self) -> None:
         """Find and open the bus and check every servo; errors say what to do."""

@@ -94,7 +94,7 @@ class UsbMaster(ServoArm):
                     await link.lost(f"leader arm bus on {self.port}: {event.reason}")
                     return
                 if isinstance(event, ServoFault):
-                    log.warning("usb-master on %s: %s", self.port, event.message)
+                    await self.tell_fault(link, event)
             if reading is None:
                 continue
             pose = self._pose(reading)

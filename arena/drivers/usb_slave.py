@@ -84,7 +84,6 @@ class UsbSlave(ServoArm):
         self.config = config
         #: deg/s of its way to the robot's pose when it joins (None: the robot type's).
         self.join_speed = config.join_speed
-        self.joint_of = {sid: name for name, sid in self.servo_ids.items()}
         self.session: CalibrationSession | None = None
         self.frozen = False  # e-stopped: targets are ignored until the reset
         self.telemetry: Reading | None = None
@@ -149,6 +148,8 @@ class UsbSlave(ServoArm):
                 await self._safe_hold(torque=True)
         elif kind is NoticeKind.RESET:
             self.frozen = False
+            if self.worker is not None:  # the reset cleared its faults: what lasts comes back
+                self.worker.rearm_health = True
             if self.session is None:  # torque back (or kept) with goal = present: no motion
                 await self._safe_hold(torque=True)
 
@@ -220,9 +221,7 @@ class UsbSlave(ServoArm):
 
     async def _on_event(self, link: SlaveLink, event: object) -> None:
         if isinstance(event, ServoFault):
-            joint = self.joint_of.get(event.servo_id) if event.servo_id is not None else None
-            message = f"{joint}: {event.message}" if joint else event.message
-            await link.report_fault(event.code, message, event.severity, joint)
+            await self.tell_fault(link, event)
         elif isinstance(event, Lost):
             self._accept_after = math.inf
             await link.connection_lost(f"servo bus on {self.port}: {event.reason}")
@@ -277,6 +276,8 @@ class UsbSlave(ServoArm):
         self.calibration = calibration
         self.calibrated = True
         self.session = None
+        if self.link is not None:
+            await self.link.clear_fault(ErrorCode.UNCALIBRATED, message="calibrated")
         held = await self._job(lambda bus: self._hold(bus, torque=not self._torque_stays_off()))
         await self._rejoin("calibrated: its pose is measured anew", held)
         return calibration

@@ -77,7 +77,7 @@ def summarize(recording: Recording) -> dict[str, Any]:
             "message": m.data["message"],
         }
         for m in messages
-        if m.kind == "fault"
+        if m.kind == "fault" and not m.data.get("cleared")
     ]
     # Who did what (issue 49): each caller's action, and the masters they connected as.
     summary["audit"] = [
@@ -269,7 +269,10 @@ def _describe(message: RecordedMessage) -> str:
         owner = f" owner={data['owner']}" if data["owner"] else ""
         return f"{data['mode']}{owner}{extra} <- {data['cause']}"
     if kind == "fault":
-        return f"{data['severity']} {data['code']} from {data['peer_id']}: {data['message']}"
+        joint = f" on {data['joint']}" if data.get("joint") else ""
+        if data.get("cleared"):
+            return f"over: {data['code']} of {data['peer_id']}{joint}: {data['message']}"
+        return f"{data['severity']} {data['code']} from {data['peer_id']}{joint}: {data['message']}"
     if kind == "audit":
         detail = f" ({data['detail']})" if data["detail"] else ""
         return f"{data['user']}: {data['action']}{detail}"
