@@ -20,11 +20,14 @@ from arena.recording.mcap_file import read_recording
 from arena.robot.events import FaultReported
 from arena.robot.links import SlaveLink
 from arena.robot.manager import RobotManager
+from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
 from arena.robot.safety import Mode
 from arena.servo.sim_pty import PtySimBus
 from tests.conftest import RunningServer, eventually
-from tests.hardware import running_sim
+from tests.hardware import running_sim, usb_slave
+
+MODEL = load_robot_model("so-arm100")
 
 StartServer = Callable[..., Awaitable[RunningServer]]
 
@@ -175,3 +178,25 @@ async def test_a_reset_clears_every_old_fault(
         assert after.faults == ()
         told = [(e.code, e.cleared) for e in events.drain()]
     assert told == [("SERVO_OVERLOAD", False), ("SERVO_OVERLOAD", True)]
+
+
+async def test_a_fault_that_lasts_through_a_reset_is_reported_again(
+    manager: RobotManager, follower: PtySimBus
+) -> None:
+    # The reset ends every fault shown; the arm's bus reports again what still ails it.
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    await robot.attach_slave(usb_slave(follower, MODEL), slave_id="arm-1")
+    with follower.paused() as bus:
+        bus.servo(3).temperature = 58.0
+
+    def hot() -> bool:
+        (slave,) = robot.snapshot().slaves
+        return ("SERVO_HOT", "Elbow") in {(f.code, f.joint) for f in slave.faults}
+
+    await eventually(hot, what="the warm elbow")
+    with robot.subscribe(kinds=[FaultReported]) as events:
+        await robot.estop("test")
+        await robot.reset()
+        await eventually(hot, what="the elbow, still warm, reported again")
+        told = [(e.code, e.cleared) for e in events.drain() if e.code == "SERVO_HOT"]
+    assert told == [("SERVO_HOT", True), ("SERVO_HOT", False)]
