@@ -15,6 +15,7 @@ from arena.extras import require
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.robot.links import MasterLink, SlaveLink
 from arena.robot.model import RobotModel
+from arena.servo import sim_pace
 from arena.servo.calibration import Calibration
 from arena.servo.health import ServoFault
 from arena.servo.interface import MAX_STEP, ServoBus, ServoFamily
@@ -23,6 +24,7 @@ from arena.servo.lerobot_calibration import (
     load_calibration,
     read_register_homings,
 )
+from arena.servo.ports import DEFAULT_TIMEOUT_MARGIN
 from arena.servo.worker import BusWorker, Frames, WorkerSettings
 
 #: The servo families Arena drives, by the name a robot type's `[bus] family` gives.
@@ -52,8 +54,14 @@ def family_of(model: RobotModel) -> ServoFamily:
 
 
 def open_family_bus(family: ServoFamily, port: str, baud: int) -> ServoBus:
-    """A bus of `family` on `port` (not opened yet): what an arm opens by default."""
-    return family.open_bus(port, baud)
+    """A bus of `family` on `port` (not opened yet): what an arm opens by default. On the port
+    of a simulated bus (`arena sim-bus`), its reply timeout also waits for what the simulator
+    owes (`arena.servo.sim_pace`): a simulator kept off the CPU is no silent servo."""
+    if sim_pace.find(port) is None:
+        return family.open_bus(port, baud)
+    paced = sim_pace.paced_class(family.port_class)
+    handler = paced(port, DEFAULT_TIMEOUT_MARGIN, lambda: sim_pace.find(port))
+    return family.open_bus(port, baud, timeout_margin=DEFAULT_TIMEOUT_MARGIN, port_handler=handler)
 
 
 def servo_models(model: RobotModel, family: ServoFamily) -> dict[int, tuple[int, str]]:

@@ -126,7 +126,7 @@ def calibrate_interactively(
 def serve_sim_bus(link: Path, bus: SimulatedBus, wire_time: bool, baud: int) -> None:
     """Run a simulated bus at `link` until SIGINT or SIGTERM."""
     stop = threading.Event()
-    with PtySimBus(link, bus, wire_time=wire_time, baud=baud) as sim:
+    with PtySimBus(link, bus, wire_time=wire_time, baud=baud, share=True) as sim:
         for sig in (signal.SIGINT, signal.SIGTERM):  # once the link is ours (it may be taken)
             signal.signal(sig, lambda *_: stop.set())
         timing = f", wire time at {baud} baud" if wire_time else ""
