@@ -5,6 +5,7 @@ calibration, and the bus thread's lifetime. The family comes from the robot type
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 from pathlib import Path
 
@@ -14,7 +15,7 @@ from arena.drivers.bus_bridge import BusBridge, release_port, start_worker, wait
 from arena.extras import require
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.robot.links import MasterLink, SlaveLink
-from arena.robot.model import RobotModel
+from arena.robot.model import PERCENT, RobotModel
 from arena.servo import sim_pace
 from arena.servo.calibration import Calibration
 from arena.servo.health import ServoFault
@@ -123,6 +124,9 @@ class ServoArm:
         self.calibration_file = calibration_file
         self.servo_ids = {joint.name: joint.servo_id for joint in model.joints}
         self.joint_of = {sid: name for name, sid in self.servo_ids.items()}
+        #: The joints the robot type reads 0..100 (LeRobot's grippers), with their URDF spans
+        #: in degrees: the calibration gives their values so (`Calibration.to_values`).
+        self.spans = {j.name: math.degrees(j.span) for j in model.joints if j.unit == PERCENT}
         self.leader = leader
         models = allowed_models(model, self.family, leader=leader)
         self.settings = dataclasses.replace(settings, models=models)

@@ -62,7 +62,8 @@ def calibrate_interactively(
     say("Torque is off: the arm can be moved by hand (hold it, it will not hold itself).")
     say(
         "1/2  Put the arm in its rest pose, the pose the digital twin shows at 0 degrees: "
-        "every joint in the middle of its range."
+        "every joint in the middle of its range (a gripper read 0 to 100, as the so-101's: "
+        "closed)."
     )
     ask("     Press Enter when it is in place. ")
     raw = read_patiently(bus, ids)

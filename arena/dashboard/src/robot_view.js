@@ -122,9 +122,27 @@ export class RobotView {
       cells[3].dataset.real = joint.name;
       row.append(...cells);
       body.append(row);
-      this.sliders.set(joint.name, { slider, virtual: cells[2], real: cells[3] });
+      this.sliders.set(joint.name, { slider, label: cells[0], virtual: cells[2], real: cells[3] });
     }
     this.showJoints(joints);
+    call("GET", `/api/robot-types/${encodeURIComponent(this.summary.robot_type)}`)
+      .then((type) => this.showUnits(type.joints))
+      .catch((error) => this.log(`robot type: ${error.message}`, true));
+  }
+
+  /** Each joint's unit as its robot type says: degrees, or 0 (closed) to 100 (open) for a
+   * LeRobot gripper (`unit: "percent"`), in the slider's row and its hint. */
+  showUnits(specs) {
+    if (this.closed) return;
+    for (const spec of specs) {
+      const entry = this.sliders.get(spec.name);
+      if (!entry) continue;
+      const unit = spec.unit === "percent" ? "%" : "°";
+      entry.label.textContent = `${spec.name} (${unit})`;
+      entry.slider.dataset.unit = spec.unit;
+      entry.slider.title =
+        spec.unit === "percent" ? "0 % closed, 100 % open" : `${spec.lower.toFixed(0)}° to ${spec.upper.toFixed(0)}°`;
+    }
   }
 
   /** A new robot summary (polled): who is attached, and how they are doing. */
