@@ -219,8 +219,7 @@ class Actor:
         message.reply.set(None)
 
     def _on_sensor_fault(self, message: inbox.SensorFaultMsg, now: float) -> None:
-        # A peer's own (a policy master's, by its id) is kept on it; a camera's is not. Neither
-        # stops the robot.
+        # A peer's own (a policy master's) is kept on it, a camera's not; neither stops it.
         m = message
         peer = self.peers.master_named(m.sensor_id) or self.peers.slaves.get(m.sensor_id)
         rid, told = self.robot_id, (m.code, m.message, m.severity, None, now, wallclock.time())
@@ -247,8 +246,7 @@ class Actor:
             self._carry_out_joins(self.core.slave_measured(message.slave_id, joints, now), now)
 
     def _on_fault(self, message: inbox.FaultMsg, now: float) -> None:
-        # The one way a peer's fault goes, a master's and a slave's alike: kept on the peer
-        # (its details, the dashboard) and told (viewers, the recording) until it ends.
+        # A master's and a slave's alike: kept on the peer and told, until it ends.
         m, peers = message, self.peers
         peer = peers.master_named(m.peer_id) if m.role == "master" else peers.slaves.get(m.peer_id)
         if peer is None:
@@ -457,8 +455,7 @@ class Actor:
                 self._notify_slaves(SlaveNotice(NoticeKind.HOLD, "holding position"))
             elif isinstance(effect, safety.ResumeSlaves):
                 log.info("robot %s: reset", self.robot_id)
-                # The reset acknowledges every fault; a driver whose fault's cause lasts
-                # reports it again (a servo still hot, an arm still a turn away).
+                # Every fault ends (a driver reports again what lasts: a servo still hot).
                 for peer in self.peers:
                     self._faults_over(peer, "cleared by the reset", now)
                 self._notify_slaves(SlaveNotice(NoticeKind.RESET, "e-stop reset"))
@@ -571,9 +568,7 @@ class Actor:
         )
         self.apply(event, now, cause=reason)
 
-    def _faults_over(
-        self, peer: Master | Slave, why: str, now: float, keys: FaultKeys = None
-    ) -> None:
+    def _faults_over(self, peer: Peer[Any], why: str, now: float, keys: FaultKeys = None) -> None:
         for event in peer.faults_over(self.robot_id, why, now, wallclock.time(), keys):
             self._publish(event)
 
