@@ -105,6 +105,25 @@ HAND_WRITTEN: tuple[HandMutant, ...] = (
         "the shortcut's floor bound half as tight: small steps toward the table get a target "
         "into it unchecked",
     ),
+    HandMutant(
+        "motion",
+        "arena/robot/motion.py",
+        "self.tokens + self.speed * (now - self.stamp)",
+        "self.tokens + self.speed * 1.1 * (now - self.stamp)",
+        ("tests/test_motion.py::test_a_large_step_is_spread_at_the_velocity_limit",),
+        "every joint 10 % over its velocity limit",
+    ),
+    HandMutant(
+        "motion",
+        "arena/robot/motion.py",
+        "step = self._speeds[name] * elapsed",
+        "step = self._speeds[name] * elapsed * 1.5",
+        (
+            "tests/test_joining.py::"
+            "test_an_arm_joining_a_mastered_robot_is_brought_to_its_pose_at_the_joining_speed",
+        ),
+        "a joining arm brought to the robot's pose half again as fast as the joining speed",
+    ),
 )
 
 
