@@ -22,6 +22,7 @@ SCHEMA_TYPES: dict[str, Any] = {
     "error": wire.ErrorMessage,
     "joint-states": wire.JointStatesOut,
     "state": wire.StateMessage,
+    "fault": wire.FaultMessage,
     "execute-command": wire.ExecuteCommandMessage,
     "slave-notice": wire.EStopNotice | wire.ResetNotice | wire.HoldNotice | wire.StopNotice,
     "detached": wire.DetachedMessage,

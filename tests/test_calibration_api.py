@@ -100,10 +100,10 @@ async def test_calibration_workflow(
         await eventually(lambda: servo_goals(sim)[1] == 2048 + limit, what="clamped goal")
 
 
-def _joints(server: RunningServer) -> list[dict[str, Any]]:
+def _joints(server: RunningServer, robot_id: str = "arm") -> list[dict[str, Any]]:
     from arena.server import convert
 
-    robot = server.app.manager.get("arm")
+    robot = server.app.manager.get(robot_id)
     data: list[dict[str, Any]] = [
         {"name": j.name, "real_value": j.real_value} for j in convert.joint_states(robot).data
     ]
@@ -225,3 +225,56 @@ def test_adapter_auto_detection() -> None:
     with pytest.raises(ArenaError) as several:
         find_adapter(ADAPTERS, [ch340, ch343])
     assert "/dev/ttyUSB0" in several.value.message and "/dev/ttyACM0" in several.value.message
+
+
+async def test_the_so101_gripper_reads_and_moves_in_percent_through_arenas_calibration(
+    start_server: StartServer, sim: PtySimBus, tmp_path: Path
+) -> None:
+    # The robot type says 0 (closed) to 100 (open), as LeRobot and the export do: Arena's own
+    # calibration reads it so too, 100 at the end of its captured range, not in degrees.
+    server = await start_server(calibration_dir=str(tmp_path / "calibration"))
+    async with server.client() as http:
+        body = {"id": "arm", "robot_type": "so-101"}
+        assert (await http.post("/api/robots", json=body)).status_code == 201
+        slave = {"type": "usb-slave", "port": str(sim.link)}
+        assert (await http.post("/api/robots/arm/slaves", json=slave)).status_code == 201
+        await eventually(lambda: all(servo_torque(sim).values()), what="torque on")
+
+        def gripper() -> float:
+            return real_values(_joints(server, "arm"))["gripper"]
+
+        # Uncalibrated, the gripper's span (110 degrees of jaw) is its 0..100.
+        span_steps = round(110.0 * 4096 / 360)
+        await http.post("/api/robots/arm/calibration/start")
+        await eventually(lambda: not any(servo_torque(sim).values()), what="torque off")
+        with sim.paused() as bus:
+            bus.servo(6).move_by_hand(2048 + span_steps // 2)
+        await eventually(lambda: abs(gripper() - 50.0) < 0.2, what="half open: 50")
+        # Posed like the twin's rest (the gripper closed: 0), then opened and closed fully.
+        rest = 1500
+        with sim.paused() as bus:
+            bus.servo(6).move_by_hand(rest)
+        captured = await http.post("/api/robots/arm/calibration/capture")
+        assert captured.status_code == 200, captured.text
+        await eventually(lambda: abs(gripper()) < 0.2, what="closed: 0")
+        for raw in (rest + 1000, rest):
+            with sim.paused() as bus:
+                bus.servo(6).move_by_hand(raw)
+            await eventually(lambda r=raw: abs(gripper() - (r - rest) * 100 / span_steps) < 0.2)
+        session = (await http.get("/api/robots/arm/calibration")).json()["session"]
+        low, high = session["range"]["gripper"]
+        assert (low, round(high, 1)) == (0.0, round(1000 * 100 / span_steps, 1))
+        finished = await http.post("/api/robots/arm/calibration/finish")
+        assert finished.status_code == 200, finished.text
+        joint = finished.json()["calibration"]["joints"]["gripper"]  # the file holds degrees
+        assert joint["max_degrees"] == pytest.approx(1000 * 360 / 4096, abs=0.01)
+        await eventually(lambda: all(servo_torque(sim).values()), what="torque back on")
+        await eventually(lambda: abs(gripper()) < 0.2, what="closed at rest: 0")
+        # A command in percent goes to that share of the captured range, and reads so.
+        for value, goal in ((100, rest + 1000), (25, rest + 250)):
+            moved = await http.put(
+                "/api/robots/arm/joints", json={"joints": [{"name": "gripper", "value": value}]}
+            )
+            assert moved.status_code == 200, moved.text
+            await eventually(lambda g=goal: servo_goals(sim)[6] == g, what=f"the goal of {value}")
+            await eventually(lambda v=value: abs(gripper() - v) < 0.2, what=f"reads {value}")

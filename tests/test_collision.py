@@ -24,6 +24,7 @@ from arena.protocol.errors import ErrorCode
 from arena.recording.mcap_file import read_recording
 from arena.robot.collision import (
     CollisionModel,
+    Hit,
     _segment_box_distance,
     _segment_distance,
     fit_capsules,
@@ -544,6 +545,41 @@ def count_full_checks(monkeypatch: pytest.MonkeyPatch) -> list[int]:
 
     monkeypatch.setattr(CollisionModel, "assess", counted)
     return full
+
+
+#: A post beside the so-arm100's gripper (at rest it points along -y): turning the base by
+#: +8.75 degrees or more brings the gripper's far end into it.
+POST = Box("post", (0.1, -0.45, 0.15), (0.2, -0.35, 0.35))
+
+
+def test_the_shortcut_takes_the_whole_bound_a_turn_toward_a_box_is_checked_in_full() -> None:
+    # The shortcut (`near`) skips the full check while the joints have moved less than the
+    # gaps allow, each sweep times its reach. Near a box, a turn of 9.5 degrees ends inside it
+    # although it sweeps under twice the smallest gap at stake: a bound only half as tight
+    # would take it as safe unchecked. (The gripper's far end, at 0.36 m from the axis, meets
+    # the post at 8.75 degrees; the base's reach is 0.54 m.)
+    workspace = Workspace(floor=0.0, keep_out=(POST,))
+    model = guard()
+    start, end = urdf({}), urdf({"Rotation": 9.5})
+    hit, clearances = model.assess(start, workspace)
+    assert hit is None
+    reference = model.reference(start, clearances)
+    rotation = [j.name for j in model.kinematics.joints].index(MODEL.joints[0].urdf_name)
+    sweep = abs(end[MODEL.joints[0].urdf_name] - start[MODEL.joints[0].urdf_name])
+    assert (
+        reference.limits[rotation]
+        < sweep * reference.units[rotation]
+        < 2 * reference.limits[rotation]
+    )
+    assert model.hit(end, workspace) == Hit("gripper", "post")
+    assert not model.safe_move(clearances, start, end)
+    # and in the core: the first command is checked in full (the reference), the turn too
+    core = RobotCore(MODEL, 0.0)
+    core.workspace = workspace
+    assert core.command(None, Command.of({"Rotation": 0.0}), 0.0)[0].accepted
+    result, step = core.command(None, Command.of({"Rotation": 9.5}), 1.0)
+    assert not result.accepted and result.code is ErrorCode.COLLISION, result
+    assert "gripper and post" in result.message and step.targets is None
 
 
 def test_a_stream_of_small_steps_is_checked_now_and_then(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -799,3 +799,52 @@ def move_and_wait(server: LiveServer, page: Page, pose: dict[str, float]) -> Non
         goal = {name: goal.get(name, value) for name, value in pose.items()}
     for name, value in goal.items():
         expect(page.locator(f'[data-virtual="{name}"]')).to_have_text(f"{value:.1f}")
+
+
+def test_a_slaves_fault_shows_on_it_while_it_lasts(start_live: Any, page: Page) -> None:
+    # A fault comes over the viewer socket: logged, and listed on its slave until it is over.
+    server = start_live(demo=True)
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    expect(page.locator("#robot-state")).to_have_text("idle")
+    expect(page.locator("#watch-status")).to_have_text("live")  # its viewer socket is open
+    ws_url = "ws" + server.url[len("http") :] + "/ws/slave/demo-arm"
+    with websockets.sync.client.connect(ws_url) as arm:
+        fault = {"code": "SERVO_HOT", "message": "Elbow is warm", "severity": "warning"}
+        arm.send(json.dumps({"type": "error", "data": fault | {"joint": "Elbow"}}))
+        shown = page.locator('#peers li[data-peer="ws-slave-1"] li.fault')
+        expect(shown).to_have_text("SERVO_HOT (Elbow): Elbow is warm", timeout=WAIT_MS)
+        expect(page.locator("#events")).to_contain_text("ws-slave-1: warning SERVO_HOT (Elbow)")
+        # A status saying it is not connected is a fault of its own; one saying it is again
+        # ends that one (and only that one).
+        status = {"isConnected": False, "error": "cable loose"}
+        arm.send(json.dumps({"type": "status_update", "data": status}))
+        expect(page.locator('#peers li[data-peer="ws-slave-1"] li.fault')).to_have_count(
+            2, timeout=WAIT_MS
+        )
+        status = {"isConnected": True}
+        arm.send(json.dumps({"type": "status_update", "data": status}))
+        expect(page.locator("#events")).to_contain_text("SLAVE_STATUS over", timeout=WAIT_MS)
+        expect(page.locator('#peers li[data-peer="ws-slave-1"] li.fault')).to_have_count(
+            1, timeout=WAIT_MS
+        )
+
+
+def test_the_so101_gripper_slider_is_in_percent(start_live: Any, page: Page) -> None:
+    # One unit everywhere the robot type says: the so-101's gripper runs 0 (closed) to 100.
+    server = start_live()
+    with server.http() as http:
+        created = http.post("/api/robots", json={"robot_type": "so-101", "id": "follower"})
+        assert created.status_code == 201
+        http.post("/api/robots/follower/slaves", json={"type": "mock-slave"})
+    page.goto(server.url + "/ui/#/robots/follower")
+    row = page.locator("#joints tbody tr").filter(has=slider(page, "gripper"))
+    expect(row.locator("td").first).to_have_text("gripper (%)", timeout=WAIT_MS)
+    expect(page.locator("#joints tbody tr").first.locator("td").first).to_have_text(
+        "shoulder_pan (°)"
+    )
+    expect(slider(page, "gripper")).to_have_attribute("min", "0")
+    expect(slider(page, "gripper")).to_have_attribute("max", "100")
+    wanted = click_slider_at(page, "gripper", 0.5)
+    assert 40 <= wanted <= 60
+    expect(page.locator('td[data-real="gripper"]')).to_have_text(f"{wanted:.1f}", timeout=WAIT_MS)
+    assert real_value(server, "follower", "gripper") == pytest.approx(wanted, abs=0.1)

@@ -13,14 +13,15 @@ from trio.testing import MockClock
 
 from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import get_sequence
+from arena.protocol.errors import Severity
 from arena.robot.events import PeerChanged
 from arena.robot.handle import Robot
 from arena.robot.idle import IdleTurn
 from arena.robot.mailbox import LatestMailbox
 from arena.robot.manager import RobotManager
 from arena.robot.model import LossPolicy, load_robot_model
-from arena.robot.peers import MasterPeer, Peers, SlavePeer
-from arena.robot.snapshot import PeerSnapshot
+from arena.robot.peers import MAX_FAULTS, MasterPeer, Peers, SlavePeer
+from arena.robot.snapshot import FaultSnapshot, PeerSnapshot
 
 
 def master(
@@ -120,15 +121,25 @@ def test_a_peers_change_and_snapshot_say_what_it_is() -> None:
         "seq", "master", "mock-sequence", True, None, False, "d"
     )
     arm = slave("arm")
-    arm.last_error = "SERVO_OVERHEAT: servo 3 at 70 C"  # a fault it reported
+    told = arm.fault("r", "SERVO_OVERHEAT", "servo 3 at 70 C", Severity.CRITICAL, "Elbow", 0.5, 9.0)
+    assert (told.peer_id, told.joint, told.cleared) == ("arm", "Elbow", False)
     arm.connected, arm.out_of_reach = False, "unplugged"
     assert arm.changed("r", "disconnected", "unplugged", 1.0, 2.0).role == "slave"
     # While out of reach, that is its error; back in reach, the fault shows again.
+    overheat = FaultSnapshot("SERVO_OVERHEAT", "servo 3 at 70 C", "critical", "Elbow", 0.5)
     assert arm.snapshot(joining=True) == PeerSnapshot(
-        "arm", "slave", "mock-slave", False, "SLAVE_LOST: unplugged", True, ""
+        "arm", "slave", "mock-slave", False, "SLAVE_LOST: unplugged", True, "", (overheat,)
     )
     arm.connected = True
     assert arm.snapshot().last_error == "SERVO_OVERHEAT: servo 3 at 70 C"
+    # A peer's faults are bounded: the oldest goes; the newest is its error.
+    for k in range(MAX_FAULTS + 5):
+        arm.fault("r", "X", f"fault {k}", Severity.WARNING, str(k), 1.0 + k, 9.0)
+    assert len(arm.snapshot().faults) == MAX_FAULTS
+    assert arm.snapshot().last_error == f"X: fault {MAX_FAULTS + 4}"
+    (ended,) = arm.faults_over("r", "over", 20.0, 9.0, [("X", str(MAX_FAULTS + 4)), ("X", "0")])
+    assert (ended.joint, ended.cleared, ended.severity) == (str(MAX_FAULTS + 4), True, "info")
+    assert len(arm.faults_over("r", "reset", 21.0, 9.0)) == MAX_FAULTS - 1  # "0" went first
 
 
 async def test_the_idle_turn_is_taken_only_while_open_and_before_the_waiters_timer(

@@ -257,9 +257,13 @@ async def test_a_killed_worker_trips_the_watchdog(start_server: Start, tiny: Pat
         await next_event(events, lambda e: isinstance(e, CommandHandled))
         (worker,) = workers()
         os.kill(worker, signal.SIGKILL)
-        fault = await next_event(events, lambda e: isinstance(e, FaultReported))
+        # (on a loaded machine an inference slower than the fps may stall it before: a fault
+        # of its own, the same code saying so)
+        fault = await next_event(
+            events, lambda e: isinstance(e, FaultReported) and "died (SIGKILL)" in e.message
+        )
     assert fault.code == ErrorCode.POLICY_STALLED and fault.severity == "warning"
-    assert "died (SIGKILL)" in fault.message and "holds where it is" in fault.message
+    assert "holds where it is" in fault.message
     with trio.fail_after(WAIT):
         while robot.snapshot().master is not None:
             await trio.sleep(0.05)

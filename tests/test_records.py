@@ -66,7 +66,13 @@ def test_every_kind_of_event_is_recorded_byte_for_byte_as_before() -> None:
             FaultReported("a", "s1", "OVERHEAT", "hot", Severity.CRITICAL, None, 9.0, 10.0),
             "fault",
             '{"t":9.0,"peer_id":"s1","code":"OVERHEAT","message":"hot","severity":"critical",'
-            '"joint":null}',
+            '"joint":null,"cleared":false}',
+        ),
+        (
+            FaultReported("a", "s1", "OVERHEAT", "over", Severity.INFO, "Elbow", 9.5, 10.0, True),
+            "fault",
+            '{"t":9.5,"peer_id":"s1","code":"OVERHEAT","message":"over","severity":"info",'
+            '"joint":"Elbow","cleared":true}',
         ),
         (
             PeerChanged("a", "slave", "s1", "mock-slave", "lost", "gone", 11.0, 12.0),

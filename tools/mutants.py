@@ -13,6 +13,12 @@ longer matches any survivor is reported as stale.
     python tools/mutants.py --report        # figures of the last runs, running nothing
 
 Survivors are written, with their diffs, to mutants/survivors-<module>.txt.
+
+Beside mutmut's mutants, `HAND_WRITTEN` lists mutants written by hand: changes mutmut never
+makes (a bound scaled by a half, say) that a test is known to catch. Each runs after its module's
+mutmut run, against the tests named for it, through the import hook of `tools/hand_mutation.py`
+(the tree is never written to). tests/test_mutation_list.py checks that each one's text is still
+in its file, so that the list cannot rot.
 """
 
 from __future__ import annotations
@@ -61,6 +67,111 @@ MODULES: dict[str, tuple[str, tuple[str, ...]]] = {
     "workspace": ("arena/robot/workspace.py", ()),
     "peers": ("arena/robot/peers.py", ()),
 }
+
+
+@dataclass(frozen=True)
+class HandMutant:
+    """A mutant written by hand: in `file` (of module `module`), the text `original`, which
+    must occur exactly once, becomes `mutated`; `tests` (pytest node ids) are expected to
+    fail. `why`: what the change would let through."""
+
+    module: str
+    file: str
+    original: str
+    mutated: str
+    tests: tuple[str, ...]
+    why: str
+
+
+HAND_WRITTEN: tuple[HandMutant, ...] = (
+    HandMutant(
+        "collision",
+        "arena/robot/collision.py",
+        "total += sweep * units[k]",
+        "total += sweep * units[k] * 0.5",
+        (
+            "tests/test_collision.py::"
+            "test_the_shortcut_takes_the_whole_bound_a_turn_toward_a_box_is_checked_in_full",
+        ),
+        "the shortcut's bound half as tight: a move near a box or the arm's own links skips "
+        "the full check that would refuse it",
+    ),
+    HandMutant(
+        "collision",
+        "arena/robot/collision.py",
+        "floor_total += sweep * floor_units[k]",
+        "floor_total += sweep * floor_units[k] * 0.5",
+        ("tests/test_collision.py::test_small_steps_toward_the_table_never_get_a_target_into_it",),
+        "the shortcut's floor bound half as tight: small steps toward the table get a target "
+        "into it unchecked",
+    ),
+    HandMutant(
+        "motion",
+        "arena/robot/motion.py",
+        "self.tokens + self.speed * (now - self.stamp)",
+        "self.tokens + self.speed * 1.1 * (now - self.stamp)",
+        ("tests/test_motion.py::test_a_large_step_is_spread_at_the_velocity_limit",),
+        "every joint 10 % over its velocity limit",
+    ),
+    HandMutant(
+        "motion",
+        "arena/robot/motion.py",
+        "step = self._speeds[name] * elapsed",
+        "step = self._speeds[name] * elapsed * 1.5",
+        (
+            "tests/test_joining.py::"
+            "test_an_arm_joining_a_mastered_robot_is_brought_to_its_pose_at_the_joining_speed",
+        ),
+        "a joining arm brought to the robot's pose half again as fast as the joining speed",
+    ),
+)
+
+
+def run_hand_written(mutant: HandMutant) -> str:
+    """Run `mutant`'s tests against it: "killed" (a test failed), "survived" (all passed) or
+    "broken: ..." (its text is not in the file once, no test imported the file, or pytest
+    stopped for another reason)."""
+    path = ROOT / mutant.file
+    count = path.read_text(encoding="utf-8").count(mutant.original)
+    if count != 1:
+        return f"broken: {mutant.original!r} occurs {count} times in {mutant.file}"
+    entry = {"file": str(path), "original": mutant.original, "mutated": mutant.mutated}
+    env = {
+        **os.environ,
+        "ARENA_HAND_MUTANT": json.dumps(entry),
+        "PYTHONPATH": os.pathsep.join([str(ROOT), str(ROOT / "tools")]),
+    }
+    done = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-x", "-p", "hand_mutation", *mutant.tests],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if done.returncode == 1:
+        return "killed"
+    if done.returncode == 0:
+        return "survived"
+    tail = (done.stdout + done.stderr).strip().splitlines()[-3:]
+    return f"broken: pytest exit code {done.returncode}: {' / '.join(tail)}"
+
+
+def hand_written_report(names: list[str]) -> int:
+    """Run the hand-written mutants of the modules `names` and print each one's result; the
+    number of them not killed."""
+    chosen = [m for m in HAND_WRITTEN if m.module in names]
+    if not chosen:
+        return 0
+    print("\nHand-written mutants (tools/mutants.py, HAND_WRITTEN):")
+    missed = 0
+    for mutant in chosen:
+        result = run_hand_written(mutant)
+        missed += result != "killed"
+        print(f"  {mutant.module:<10} {result:<9} {mutant.original!r} -> {mutant.mutated!r}")
+        if result != "killed":
+            print(f"    ({mutant.why}; expected to be killed by {', '.join(mutant.tests)})")
+    return missed
 
 
 def patterns(module: str, suffix: str = "*") -> list[str]:
@@ -304,6 +415,8 @@ def main(argv: list[str]) -> int:
         for function, original, mutated in sorted(stale):
             print(f"  {function}: {original!r} -> {mutated!r}")
     print("\nSurvivors and their diffs: mutants/survivors-<module>.txt")
+    if not report_only:
+        hand_written_report(names)
     return 0
 
 

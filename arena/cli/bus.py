@@ -94,8 +94,9 @@ def sim_bus_command(args: argparse.Namespace) -> int:
 
 
 def calibrate_command(args: argparse.Namespace) -> int:
-    """`arena calibrate`: the interactive calibration of an arm on a real bus."""
-    from arena.drivers.servo_arm import family_of
+    """`arena calibrate`: the interactive calibration of an arm on a real bus (or a simulated
+    one, waited for as an arm's bus waits)."""
+    from arena.drivers.servo_arm import family_of, open_family_bus
     from arena.protocol.errors import ArenaError, ErrorCode
     from arena.robot.model import load_robot_model
     from arena.servo import terminal
@@ -114,7 +115,7 @@ def calibrate_command(args: argparse.Namespace) -> int:
         port = args.port or find_adapter(family.adapters)
     except ArenaError as error:
         raise ArenaError(error.code, f"{error.message} (--port PATH)") from None
-    bus = family.open_bus(port, args.baud or model.bus.baud_rate or family.default_baud)
+    bus = open_family_bus(family, port, args.baud or model.bus.baud_rate or family.default_baud)
     bus.open()
     try:
         terminal.calibrate_interactively(

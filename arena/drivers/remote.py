@@ -222,6 +222,10 @@ class _Upstream(MasterSession):
                     f"the robot on {self.url} is e-stopped: {data.get('estop_reason')}",
                     Severity.WARNING,
                 )
+            else:
+                await self.link.clear_fault(
+                    ErrorCode.REMOTE_ESTOPPED, message=f"the robot on {self.url} was reset"
+                )
         elif kind in ("error", "detached"):
             data = message.get("data") or {}
             await self.link.report_fault(

@@ -5,6 +5,7 @@ calibration, and the bus thread's lifetime. The family comes from the robot type
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 from pathlib import Path
 
@@ -13,14 +14,18 @@ import trio
 from arena.drivers.bus_bridge import BusBridge, release_port, start_worker, wait_future
 from arena.extras import require
 from arena.protocol.errors import ArenaError, ErrorCode
-from arena.robot.model import RobotModel
+from arena.robot.links import MasterLink, SlaveLink
+from arena.robot.model import PERCENT, RobotModel
+from arena.servo import sim_pace
 from arena.servo.calibration import Calibration
+from arena.servo.health import ServoFault
 from arena.servo.interface import MAX_STEP, ServoBus, ServoFamily
 from arena.servo.lerobot_calibration import (
     LeRobotCalibration,
     load_calibration,
     read_register_homings,
 )
+from arena.servo.ports import DEFAULT_TIMEOUT_MARGIN
 from arena.servo.worker import BusWorker, Frames, WorkerSettings
 
 #: The servo families Arena drives, by the name a robot type's `[bus] family` gives.
@@ -50,8 +55,14 @@ def family_of(model: RobotModel) -> ServoFamily:
 
 
 def open_family_bus(family: ServoFamily, port: str, baud: int) -> ServoBus:
-    """A bus of `family` on `port` (not opened yet): what an arm opens by default."""
-    return family.open_bus(port, baud)
+    """A bus of `family` on `port` (not opened yet): what an arm opens by default. On the port
+    of a simulated bus (`arena sim-bus`), its reply timeout also waits for what the simulator
+    owes (`arena.servo.sim_pace`): a simulator kept off the CPU is no silent servo."""
+    if sim_pace.find(port) is None:
+        return family.open_bus(port, baud)
+    paced = sim_pace.paced_class(family.port_class)
+    handler = paced(port, DEFAULT_TIMEOUT_MARGIN, lambda: sim_pace.find(port))
+    return family.open_bus(port, baud, timeout_margin=DEFAULT_TIMEOUT_MARGIN, port_handler=handler)
 
 
 def servo_models(model: RobotModel, family: ServoFamily) -> dict[int, tuple[int, str]]:
@@ -112,6 +123,10 @@ class ServoArm:
         self.family = family_of(model)
         self.calibration_file = calibration_file
         self.servo_ids = {joint.name: joint.servo_id for joint in model.joints}
+        self.joint_of = {sid: name for name, sid in self.servo_ids.items()}
+        #: The joints the robot type reads 0..100 (LeRobot's grippers), with their URDF spans
+        #: in degrees: the calibration gives their values so (`Calibration.to_values`).
+        self.spans = {j.name: math.degrees(j.span) for j in model.joints if j.unit == PERCENT}
         self.leader = leader
         models = allowed_models(model, self.family, leader=leader)
         self.settings = dataclasses.replace(settings, models=models)
@@ -125,6 +140,16 @@ class ServoArm:
         self.holder = "an arm"
         self.worker: BusWorker | None = None
         self.bridge: BusBridge | None = None
+
+    async def tell_fault(self, link: MasterLink | SlaveLink, fault: ServoFault) -> None:
+        """A servo's fault, or its end, told to the robot: the one way for a follower (a
+        slave's link) and a leader (a master's) alike, naming the servo's joint."""
+        joint = self.joint_of.get(fault.servo_id) if fault.servo_id is not None else None
+        message = f"{joint}: {fault.message}" if joint else fault.message
+        if fault.cleared:
+            await link.clear_fault(fault.code, joint, message)
+        else:
+            await link.report_fault(fault.code, message, fault.severity, joint)
 
     async def prepare(self) -> None:
         """Find and open the bus and check every servo; errors say what to do."""

@@ -94,7 +94,7 @@ class UsbMaster(ServoArm):
                     await link.lost(f"leader arm bus on {self.port}: {event.reason}")
                     return
                 if isinstance(event, ServoFault):
-                    log.warning("usb-master on %s: %s", self.port, event.message)
+                    await self.tell_fault(link, event)
             if reading is None:
                 continue
             pose = self._pose(reading)
@@ -119,7 +119,7 @@ class UsbMaster(ServoArm):
                 return  # stopped for good: a leader never resumes by itself
 
     def _pose(self, reading: Reading) -> dict[str, float]:
-        return self.calibration.to_degrees(reading.positions)
+        return self.calibration.to_values(reading.positions, self.spans)
 
 
 def _moved(pose: Mapping[str, float], last: Mapping[str, float], deadband: float) -> bool:

@@ -31,6 +31,7 @@ from arena.servo.calibration import (
     Calibration,
     RangeCapture,
     calibrate_rest,
+    rest_degrees,
 )
 from arena.servo.health import ServoFault
 from arena.servo.interface import STEPS_PER_TURN, ServoBus
@@ -84,7 +85,6 @@ class UsbSlave(ServoArm):
         self.config = config
         #: deg/s of its way to the robot's pose when it joins (None: the robot type's).
         self.join_speed = config.join_speed
-        self.joint_of = {sid: name for name, sid in self.servo_ids.items()}
         self.session: CalibrationSession | None = None
         self.frozen = False  # e-stopped: targets are ignored until the reset
         self.telemetry: Reading | None = None
@@ -133,7 +133,7 @@ class UsbSlave(ServoArm):
                 continue
             if self.frozen or self.session is not None or message.time < self._accept_after:
                 continue  # e-stopped, calibrating, or sent while the bus was away: never later
-            self.worker.set_goals(self.calibration.to_steps(message.joints))
+            self.worker.set_goals(self.calibration.to_goal_steps(message.joints, self.spans))
 
     async def _on_notice(self, kind: NoticeKind) -> None:
         torque_off = self.config.estop == "torque-off"
@@ -149,6 +149,8 @@ class UsbSlave(ServoArm):
                 await self._safe_hold(torque=True)
         elif kind is NoticeKind.RESET:
             self.frozen = False
+            if self.worker is not None:  # the reset cleared its faults: what lasts comes back
+                self.worker.rearm_health = True
             if self.session is None:  # torque back (or kept) with goal = present: no motion
                 await self._safe_hold(torque=True)
 
@@ -206,7 +208,6 @@ class UsbSlave(ServoArm):
                 continue
             if reading.temperatures is not None:
                 self.telemetry = reading
-            degrees = self.calibration.to_degrees(reading.positions)
             # (a reading read before the rest pose was captured may still be on its way: it
             # shows the arm before it was posed, no part of its range)
             session = self.session
@@ -215,14 +216,14 @@ class UsbSlave(ServoArm):
                 and session.phase == "range"
                 and reading.time >= self._range_since
             ):
-                session.capture.observe(degrees)
-            await link.report_joint_states(degrees)
+                session.capture.observe(self.calibration.to_degrees(reading.positions))
+            await link.report_joint_states(
+                self.calibration.to_values(reading.positions, self.spans)
+            )
 
     async def _on_event(self, link: SlaveLink, event: object) -> None:
         if isinstance(event, ServoFault):
-            joint = self.joint_of.get(event.servo_id) if event.servo_id is not None else None
-            message = f"{joint}: {event.message}" if joint else event.message
-            await link.report_fault(event.code, message, event.severity, joint)
+            await self.tell_fault(link, event)
         elif isinstance(event, Lost):
             self._accept_after = math.inf
             await link.connection_lost(f"servo bus on {self.port}: {event.reason}")
@@ -258,7 +259,8 @@ class UsbSlave(ServoArm):
         ids = tuple(self.servo_ids.values())
         self._range_since = time.monotonic()  # the clock of `Reading.time`
         raw = await self._job(lambda bus: read_positions(bus, ids))
-        self.calibration = calibrate_rest(self.calibration, raw, session.rest)
+        rest = rest_degrees(session.rest, self.spans)  # (the file holds degrees)
+        self.calibration = calibrate_rest(self.calibration, raw, rest)
         session.phase = "range"
         session.capture.observe(self.calibration.to_degrees(raw))
         return self.calibration
@@ -277,6 +279,8 @@ class UsbSlave(ServoArm):
         self.calibration = calibration
         self.calibrated = True
         self.session = None
+        if self.link is not None:
+            await self.link.clear_fault(ErrorCode.UNCALIBRATED, message="calibrated")
         held = await self._job(lambda bus: self._hold(bus, torque=not self._torque_stays_off()))
         await self._rejoin("calibrated: its pose is measured anew", held)
         return calibration
@@ -301,8 +305,12 @@ class UsbSlave(ServoArm):
             else {
                 "phase": session.phase,
                 "rest": session.rest,
+                # in the robot type's units: a percent joint's share of its span so far
                 "range": {
-                    name: [session.capture.low[name], session.capture.high[name]]
+                    name: [
+                        session.capture.low[name] * self._unit_per_degree(name),
+                        session.capture.high[name] * self._unit_per_degree(name),
+                    ]
                     for name in session.capture.low
                 },
             },
@@ -313,8 +321,12 @@ class UsbSlave(ServoArm):
         # robot's targets must not pull it back at full speed. `held`: the raw pose the hold
         # just read, so that the join starts from it (a reading already on its way is older).
         if self.link is not None:
-            pose = None if held is None else self.calibration.to_degrees(held)
+            pose = None if held is None else self.calibration.to_values(held, self.spans)
             await self.link.rejoin(reason, pose)
+
+    def _unit_per_degree(self, name: str) -> float:
+        span = self.spans.get(name)
+        return 1.0 if span is None else 100.0 / span
 
     def _torque_stays_off(self) -> bool:
         return self.frozen and self.config.estop == "torque-off"

@@ -287,6 +287,25 @@ class StateMessage(_Msg, tag="state"):
     data: StateData | None = None
 
 
+class FaultData(msgspec.Struct):
+    """A fault of one of the robot's peers (a master or a slave) or of a camera, or with
+    `cleared` its end (`message` says how: its source said so, a reset, the peer left)."""
+
+    robot_id: str
+    peer_id: str
+    code: str
+    message: str
+    severity: str
+    joint: str | None = None
+    cleared: bool = False
+
+
+class FaultMessage(_Msg, tag="fault"):
+    """A fault as it happens, or its end (sent to viewers)."""
+
+    data: FaultData
+
+
 class ExecuteData(msgspec.Struct):
     """Targets for a slave."""
 
@@ -391,6 +410,7 @@ class MissedData(msgspec.Struct):
     state: int = 0
     error: int = 0
     heartbeat: int = 0
+    fault: int = 0
 
 
 class MissedMessage(_Msg, tag="missed"):

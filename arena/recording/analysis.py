@@ -77,7 +77,7 @@ def summarize(recording: Recording) -> dict[str, Any]:
             "message": m.data["message"],
         }
         for m in messages
-        if m.kind == "fault"
+        if m.kind == "fault" and not m.data.get("cleared")
     ]
     # Who did what (issue 49): each caller's action, and the masters they connected as.
     summary["audit"] = [
@@ -280,8 +280,11 @@ def timeline(
 
 
 def _describe(message: RecordedMessage) -> str:
+    """One record in words: each kind has its own sentence; a kind this reader does not know
+    (a newer server's) is its fields, so that no record stops the timeline."""
     data = message.data
-    if message.kind == "command":
+    kind = message.kind
+    if kind == "command":
         joints = " ".join(f"{j['name']}={j['value']:g}" for j in data["joints"])
         verdict = "accepted" if data["accepted"] else f"refused {data['code']}"
         if data["accepted"] and data.get("clamped"):
@@ -290,22 +293,36 @@ def _describe(message: RecordedMessage) -> str:
             )
         duration = f" over {data['duration']:g} ms" if data.get("duration") else ""
         return f"from {data['source']}: {joints}{duration} -> {verdict}"
-    if message.kind in ("targets", "joint_states"):
+    if kind in ("targets", "joint_states"):
         values = " ".join(f"{k}={v:.2f}" for k, v in data["joints"].items())
-        origin = f"{data['slave_id']}: " if message.kind == "joint_states" else ""
+        origin = f"{data['slave_id']}: " if kind == "joint_states" else ""
         return origin + values
-    if message.kind == "state":
+    if kind == "state":
         extra = f" ({data['estop_reason']})" if data["estop_reason"] else ""
         owner = f" owner={data['owner']}" if data["owner"] else ""
         return f"{data['mode']}{owner}{extra} <- {data['cause']}"
-    if message.kind == "fault":
-        return f"{data['severity']} {data['code']} from {data['peer_id']}: {data['message']}"
-    if message.kind == "audit":
+    if kind == "fault":
+        joint = f" on {data['joint']}" if data.get("joint") else ""
+        if data.get("cleared"):
+            return f"over: {data['code']} of {data['peer_id']}{joint}: {data['message']}"
+        return f"{data['severity']} {data['code']} from {data['peer_id']}{joint}: {data['message']}"
+    if kind == "audit":
         detail = f" ({data['detail']})" if data["detail"] else ""
         return f"{data['user']}: {data['action']}{detail}"
-    code = f" {data['code']}" if data.get("code") else ""  # (a refusal's; older files: none)
-    change = f"{data['role']} {data['peer_id']} ({data['kind']}) {data['change']}{code}"
-    return f"{change} {data['reason']}"
+    if kind == "peer":
+        code = f" {data['code']}" if data.get("code") else ""  # (a refusal's; older files: none)
+        change = f"{data['change']}{code} {data['reason']}".rstrip()
+        return f"{data['role']} {data['peer_id']} ({data['kind']}) {change}"
+    if kind == "episode":
+        return f"{data['change']} episode {data['index']}: {data['task']}"
+    if kind == "policy":
+        age = data.get("frame_age")
+        frame = "" if age is None else f", frame {age * 1000:.0f} ms old"
+        return (
+            f"{data['policy']} step {data['timestep']}: chunk {data['chunk_size']} "
+            f"({data['kept']} kept) in {data['latency'] * 1000:.1f} ms{frame}"
+        )
+    return " ".join(f"{key}={value}" for key, value in data.items() if key != "t")
 
 
 def export(recording: Recording, fmt: str, topic: str | None = None) -> str:

@@ -262,6 +262,8 @@ def _state_line(event: StateChanged) -> LogLine:
 
 def _fault_line(event: FaultReported) -> LogLine:
     joint = f" on {event.joint}" if event.joint else ""
+    if event.cleared:
+        return LogLevel.Info, f"fault {event.code} of {event.peer_id}{joint} over: {event.message}"
     level = _LEVEL_OF_SEVERITY.get(str(event.severity), LogLevel.Warning)
     return level, f"fault {event.code} from {event.peer_id}{joint}: {event.message}"
 

@@ -46,7 +46,7 @@ from arena.robot.inbox import Driver, Msg
 from arena.robot.links import MasterLink, RobotPort, SlaveLink
 from arena.robot.mailbox import Observers
 from arena.robot.motion import Command, CommandResult
-from arena.robot.peers import MasterPeer, Peer, Peers, SlavePeer
+from arena.robot.peers import FaultKeys, MasterPeer, Peer, Peers, SlavePeer
 
 log = logging.getLogger(__name__)
 
@@ -219,7 +219,11 @@ class Actor:
         message.reply.set(None)
 
     def _on_sensor_fault(self, message: inbox.SensorFaultMsg, now: float) -> None:
-        self._fault(message.sensor_id, message.code, message.message, message.severity, None, now)
+        # A peer's own (a policy master's) is kept on it, a camera's not; neither stops it.
+        m = message
+        peer = self.peers.master_named(m.sensor_id) or self.peers.slaves.get(m.sensor_id)
+        rid, told = self.robot_id, (m.code, m.message, m.severity, None, now, wallclock.time())
+        self._publish(peer.fault(rid, *told) if peer else FaultReported(rid, m.sensor_id, *told))
 
     def _on_states(self, message: inbox.StatesMsg, now: float) -> None:
         peer = self.peers.slaves.get(message.slave_id)
@@ -242,19 +246,22 @@ class Actor:
             self._carry_out_joins(self.core.slave_measured(message.slave_id, joints, now), now)
 
     def _on_fault(self, message: inbox.FaultMsg, now: float) -> None:
-        peer = self.peers.slaves.get(message.peer_id)
+        # A master's and a slave's alike: kept on the peer and told, until it ends.
+        m, peers = message, self.peers
+        peer = peers.master_named(m.peer_id) if m.role == "master" else peers.slaves.get(m.peer_id)
         if peer is None:
             return
         peer.last_seen = now
-        peer.last_error = f"{message.code}: {message.message}"
-        joint = self.model.joint(message.joint) if message.joint else None
-        name = joint.name if joint else message.joint
-        self._fault(message.peer_id, message.code, message.message, message.severity, name, now)
-        self.apply(
-            safety.SlaveError(message.peer_id, message.severity, message.message),
-            now,
-            cause=message.code,
+        joint = self.model.joint(m.joint) if m.joint else None
+        name = joint.name if joint else m.joint
+        if m.cleared:
+            self._faults_over(peer, m.message or "cleared", now, [(m.code, name)])
+            return
+        self._publish(
+            peer.fault(self.robot_id, m.code, m.message, m.severity, name, now, wallclock.time())
         )
+        if isinstance(peer, SlavePeer):  # a master's faults never stop the robot by themselves
+            self.apply(safety.SlaveError(m.peer_id, m.severity, m.message), now, cause=m.code)
 
     def _on_episode(self, message: inbox.EpisodeMsg, now: float) -> None:
         try:
@@ -385,7 +392,8 @@ class Actor:
             text = f"{type(error).__name__}: {error}"
             what = f"{peer.role} driver {peer.peer_id}"
             log.error("robot %s: %s failed: %s", self.robot_id, what, text, exc_info=error)
-            self._fault(peer.peer_id, ErrorCode.DRIVER_FAILED, text, Severity.ERROR, None, now)
+            failed = (ErrorCode.DRIVER_FAILED, text, Severity.ERROR, None, now, wallclock.time())
+            self._publish(peer.fault(self.robot_id, *failed))  # (it ends as the peer goes)
         reason = "driver failed" if error else "driver finished"
         if isinstance(peer, MasterPeer):
             event: safety.Event = (
@@ -452,6 +460,9 @@ class Actor:
                 self._notify_slaves(SlaveNotice(NoticeKind.HOLD, "holding position"))
             elif isinstance(effect, safety.ResumeSlaves):
                 log.info("robot %s: reset", self.robot_id)
+                # Every fault ends (a driver reports again what lasts: a servo still hot).
+                for peer in self.peers:
+                    self._faults_over(peer, "cleared by the reset", now)
                 self._notify_slaves(SlaveNotice(NoticeKind.RESET, "e-stop reset"))
         if self.next_tick is None:
             self.next_tick = self.core.next_tick(now)
@@ -538,6 +549,7 @@ class Actor:
         link.notices.close()
         if master.stop is not None:
             master.stop()
+        self._faults_over(master, f"the master {change}", now)
         log.info("robot %s: master %s %s (%s)", self.robot_id, master.peer_id, change, reason)
         self._peer_changed(master, change, reason, now)
 
@@ -552,6 +564,7 @@ class Actor:
         if slave.stop is not None:
             slave.stop()
         change = "lost" if lost else "detached"
+        self._faults_over(slave, f"the slave {change}", now)
         level = logging.WARNING if lost else logging.INFO
         log.log(level, "robot %s: slave %s %s (%s)", self.robot_id, slave.peer_id, change, reason)
         self._peer_changed(slave, change, reason, now)
@@ -560,20 +573,9 @@ class Actor:
         )
         self.apply(event, now, cause=reason)
 
-    def _fault(
-        self,
-        source: str,
-        code: str,
-        message: str,
-        severity: Severity,
-        joint: str | None,
-        now: float,
-    ) -> None:
-        self._publish(
-            FaultReported(
-                self.robot_id, source, code, message, severity, joint, now, wallclock.time()
-            )
-        )
+    def _faults_over(self, peer: Peer[Any], why: str, now: float, keys: FaultKeys = None) -> None:
+        for event in peer.faults_over(self.robot_id, why, now, wallclock.time(), keys):
+            self._publish(event)
 
     def _peer_changed(
         self, peer: Peer[Any], change: str, reason: str, now: float, code: str | None = None

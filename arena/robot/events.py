@@ -124,7 +124,9 @@ class JointStatesReceived(Observed, frozen=True, gc=False):
 
 
 class FaultReported(Observed, frozen=True, gc=False):
-    """A fault reported by a slave or a driver."""
+    """A fault of a peer (a master or a slave), a camera or a driver, or with `cleared` the
+    end of one a peer had: its source said it is over (`message` says how), the robot was
+    reset, or the peer left."""
 
     robot_id: str
     peer_id: str
@@ -134,6 +136,7 @@ class FaultReported(Observed, frozen=True, gc=False):
     joint: str | None
     time: float
     wall_time: float
+    cleared: bool = False
 
 
 class PeerChanged(Observed, frozen=True, gc=False):

@@ -100,11 +100,15 @@ class StatesMsg:
 
 @dataclass(slots=True)
 class FaultMsg:
+    """A fault of a peer (`role`: "master" or "slave"), or with `cleared` its end."""
+
+    role: str
     peer_id: str
     code: str
     message: str
     severity: Severity
     joint: str | None
+    cleared: bool = False
 
 
 @dataclass(slots=True)

@@ -173,6 +173,23 @@ class MasterLink:
         if not self.detached.is_set():
             self._port.alive(self.master_id)
 
+    async def report_fault(
+        self, code: str, message: str, severity: Severity = Severity.ERROR, joint: str | None = None
+    ) -> None:
+        """A fault of this master (a leader arm's servo, say): shown on it, sent to viewers and
+        recorded until `clear_fault`; a master's fault never stops the robot by itself."""
+        if not self.detached.is_set():
+            await self._port.post(
+                FaultMsg("master", self.master_id, code, message, severity, joint)
+            )
+
+    async def clear_fault(self, code: str, joint: str | None = None, message: str = "") -> None:
+        """The fault `code` (at `joint`) is over (`message`: how)."""
+        if not self.detached.is_set():
+            await self._port.post(
+                FaultMsg("master", self.master_id, code, message, Severity.INFO, joint, True)
+            )
+
     async def detach(self, reason: str = "master left", *, finish_motion: bool = False) -> None:
         """Give up ownership; motion in progress stops, unless `finish_motion`."""
         if not self.detached.is_set():
@@ -242,8 +259,15 @@ class SlaveLink:
     async def report_fault(
         self, code: str, message: str, severity: Severity = Severity.ERROR, joint: str | None = None
     ) -> None:
-        """A fault; at or above the robot's e-stop severity it e-stops the robot."""
-        await self._port.post(FaultMsg(self.slave_id, code, message, severity, joint))
+        """A fault, shown on this slave, sent to viewers and recorded until `clear_fault` (or
+        a reset); at or above the robot's e-stop severity it e-stops the robot."""
+        await self._port.post(FaultMsg("slave", self.slave_id, code, message, severity, joint))
+
+    async def clear_fault(self, code: str, joint: str | None = None, message: str = "") -> None:
+        """The fault `code` (at `joint`) is over (`message`: how)."""
+        await self._port.post(
+            FaultMsg("slave", self.slave_id, code, message, Severity.INFO, joint, True)
+        )
 
     def alive(self) -> None:
         """Heartbeat: the peer is still there."""

@@ -22,9 +22,16 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Generic, TypeVar
 
-from arena.protocol.errors import ErrorCode
-from arena.robot.events import PeerChanged
-from arena.robot.snapshot import PeerSnapshot
+from arena.protocol.errors import ErrorCode, Severity
+from arena.robot.events import FaultReported, PeerChanged
+from arena.robot.snapshot import FaultSnapshot, PeerSnapshot
+
+#: Faults a peer holds at once (a peer may be hostile: a WebSocket slave names its own codes and
+#: joints); the oldest goes when another comes.
+MAX_FAULTS = 16
+
+#: Which faults of a peer (code, joint): None, every one.
+FaultKeys = list[tuple[str, str | None]] | None
 
 L = TypeVar("L")
 M = TypeVar("M")
@@ -45,12 +52,62 @@ class Peer(Generic[L]):
     stop: Callable[[], None] | None = None
     #: The driver the robot runs for this peer (None: the peer runs elsewhere).
     driver: object | None = None
-    last_error: str | None = None
+    #: Its faults that last, by (code, joint), oldest first: each one until its source says it
+    #: is over, the robot is reset or the peer leaves (`fault`, `faults_over`).
+    faults: dict[tuple[str, str | None], FaultSnapshot] = field(default_factory=dict)
 
     def deadline(self) -> float:
         """When it is lost unless heard from (inf: never)."""
         timeout = self.heartbeat_timeout
         return math.inf if timeout is None else self.last_seen + timeout
+
+    def fault(
+        self,
+        robot_id: str,
+        code: str,
+        message: str,
+        severity: Severity,
+        joint: str | None,
+        now: float,
+        wall_time: float,
+    ) -> FaultReported:
+        """Keep a fault that lasts from `now` (the same code at the same joint replaces it,
+        and is then the newest; at most `MAX_FAULTS`, the oldest goes); the event that tells
+        it (to viewers and the recording)."""
+        key = (code, joint)
+        self.faults.pop(key, None)
+        self.faults[key] = FaultSnapshot(code, message, str(severity), joint, now)
+        while len(self.faults) > MAX_FAULTS:
+            del self.faults[next(iter(self.faults))]
+        return FaultReported(robot_id, self.peer_id, code, message, severity, joint, now, wall_time)
+
+    def faults_over(
+        self,
+        robot_id: str,
+        why: str,
+        now: float,
+        wall_time: float,
+        keys: FaultKeys = None,
+    ) -> list[FaultReported]:
+        """The end of these faults, by (code, joint) (None: every one), each as an event
+        (severity info: an end is news, not trouble); a fault it did not have is no news."""
+        ended = []
+        for code, joint in list(self.faults) if keys is None else keys:
+            if self.faults.pop((code, joint), None) is not None:
+                ended.append(
+                    FaultReported(
+                        robot_id,
+                        self.peer_id,
+                        code,
+                        why,
+                        Severity.INFO,
+                        joint,
+                        now,
+                        wall_time,
+                        True,
+                    )
+                )
+        return ended
 
     def changed(
         self,
@@ -81,11 +138,12 @@ class Peer(Generic[L]):
         """The peer as `RobotSnapshot` shows it."""
         connected = self.connected if isinstance(self, SlavePeer) else True
         description = self.description if isinstance(self, MasterPeer) else ""
-        error = self.last_error
+        faults = tuple(self.faults.values())
+        error = f"{faults[-1].code}: {faults[-1].message}" if faults else None
         if isinstance(self, SlavePeer) and not self.connected:  # the loss, while it lasts
             error = f"{ErrorCode.SLAVE_LOST}: {self.out_of_reach}"
         return PeerSnapshot(
-            self.peer_id, self.role, self.kind, connected, error, joining, description
+            self.peer_id, self.role, self.kind, connected, error, joining, description, faults
         )
 
 

@@ -22,8 +22,21 @@ class JointSnapshot:
 
 
 @dataclass(frozen=True, slots=True)
+class FaultSnapshot:
+    """A fault a peer reported that lasts: its code, sentence, severity, joint (None: not of
+    one joint) and since when (trio time)."""
+
+    code: str
+    message: str
+    severity: str
+    joint: str | None
+    since: float
+
+
+@dataclass(frozen=True, slots=True)
 class PeerSnapshot:
-    """An attached master or slave."""
+    """An attached master or slave. `last_error`: its loss while it lasts, else its newest
+    fault (`CODE: sentence`), else None; `faults`: every fault it has that lasts."""
 
     peer_id: str
     role: str
@@ -32,6 +45,7 @@ class PeerSnapshot:
     last_error: str | None = None
     joining: bool = False  # a slave not yet following the robot's targets (it joins)
     description: str = ""  # a master's, in words ("replay of 'x.mcap'")
+    faults: tuple[FaultSnapshot, ...] = ()
 
 
 @dataclass(frozen=True, slots=True)

@@ -8,7 +8,7 @@ import msgspec
 
 from arena.drivers.sequences import Sequence, parse_sequence
 from arena.protocol import messages as wire
-from arena.robot.events import NoticeKind, SlaveNotice, SlaveTarget
+from arena.robot.events import FaultReported, NoticeKind, SlaveNotice, SlaveTarget
 from arena.robot.handle import Robot
 from arena.robot.motion import Command, CommandResult
 from arena.robot.snapshot import PeerSnapshot, RobotSnapshot
@@ -111,6 +111,22 @@ def to_slave(message: SlaveTarget | SlaveNotice) -> msgspec.Struct:
     return _NOTICES[message.kind](timestamp=wire.now_iso(), data=wire.NoticeData(message.reason))
 
 
+def fault(event: FaultReported) -> wire.FaultMessage:
+    """A fault, or its end, as viewers get it."""
+    return wire.FaultMessage(
+        timestamp=wire.now_iso(),
+        data=wire.FaultData(
+            event.robot_id,
+            event.peer_id,
+            event.code,
+            event.message,
+            str(event.severity),
+            event.joint,
+            event.cleared,
+        ),
+    )
+
+
 def _peer(peer: PeerSnapshot) -> dict[str, Any]:
     return {
         "id": peer.peer_id,
@@ -118,6 +134,15 @@ def _peer(peer: PeerSnapshot) -> dict[str, Any]:
         "connected": peer.connected,
         "last_error": peer.last_error,
         "joining": peer.joining,
+        "faults": [
+            {
+                "code": f.code,
+                "message": f.message,
+                "severity": f.severity,
+                "joint": f.joint,
+            }
+            for f in peer.faults
+        ],
     }
 
 

@@ -4,6 +4,11 @@ A servo reports a raw step in 0..4095. Calibration adds an offset per joint (`re
 offset`, modulo one turn) chosen so that the pose the user matched to the twin reads as the
 twin's values; then `degrees = direction * (real - 2048) * 360 / 4096`, wrapped into one turn
 around the joint's neutral. Everything here is pure: no bus, no files except `load`/`save`.
+
+The file holds degrees for every joint. A joint whose robot type says `percent` (LeRobot's
+grippers) is read in its own unit at the edge (`to_values`, `to_goal_steps`): 0 at its rest,
+the twin's 0 % (closed), to 100 across its captured range, or else its URDF span (`spans`:
+degrees by joint), as LeRobot's RANGE_0_100 reads a gripper and as `to_lerobot` writes one.
 """
 
 from __future__ import annotations
@@ -42,6 +47,22 @@ class JointCalibration(msgspec.Struct, frozen=True, kw_only=True):
         degrees = self.clamp(degrees)
         steps = round(self.direction * degrees / DEGREES_PER_STEP)
         return (steps + CENTER_STEP - self.offset) % STEPS_PER_TURN
+
+    def percent(self, degrees: float, span: float) -> float:
+        """A percent joint's value for `degrees` (see the module docstring)."""
+        low, high = self._percent_range(span)
+        return (degrees - low) / (high - low) * 100.0
+
+    def from_percent(self, value: float, span: float) -> float:
+        """The degrees of a percent joint's `value`."""
+        low, high = self._percent_range(span)
+        return low + value / 100.0 * (high - low)
+
+    def _percent_range(self, span: float) -> tuple[float, float]:
+        low, high = self.min_degrees, self.max_degrees
+        if low is None or high is None or high <= low:
+            return 0.0, span
+        return low, high
 
     def clamp(self, degrees: float) -> float:
         """`degrees` limited to the captured range of motion (if one was captured)."""
@@ -84,6 +105,21 @@ class Calibration(msgspec.Struct, frozen=True, kw_only=True):
             if (joint := self.joints.get(name)) is not None
         }
 
+    def to_values(self, raw: Mapping[int, int], spans: Mapping[str, float]) -> dict[str, float]:
+        """Joint values in the robot type's units for raw steps by servo id: degrees, and 0 to
+        100 for the percent joints of `spans` (their URDF spans in degrees)."""
+        values = self.to_degrees(raw)
+        for name, span in spans.items():
+            if name in values:
+                values[name] = self.joints[name].percent(values[name], span)
+        return values
+
+    def to_goal_steps(
+        self, values: Mapping[str, float], spans: Mapping[str, float]
+    ) -> dict[int, int]:
+        """Raw goal steps by servo id for joint values in the robot type's units."""
+        return self.to_steps(in_degrees(self, values, spans))
+
     def save(self, path: Path) -> None:
         """Write atomically (a crash leaves the old file or the new one, never half of one)."""
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -104,6 +140,28 @@ class Calibration(msgspec.Struct, frozen=True, kw_only=True):
             raise ArenaError(
                 ErrorCode.INVALID_CONFIG, f"Calibration file {path} is unreadable: {exc}"
             ) from exc
+
+
+def in_degrees(
+    calibration: Calibration, values: Mapping[str, float], spans: Mapping[str, float]
+) -> dict[str, float]:
+    """Joint values in the robot type's units as the calibration's degrees (percent joints of
+    `spans` through their range; a joint the calibration lacks as it is)."""
+    return {
+        name: joint.from_percent(value, spans[name])
+        if name in spans and (joint := calibration.joints.get(name)) is not None
+        else value
+        for name, value in values.items()
+    }
+
+
+def rest_degrees(rest: Mapping[str, float], spans: Mapping[str, float]) -> dict[str, float]:
+    """A rest pose in the robot type's units as the degrees a new calibration's offsets are
+    made for (no range captured yet: a percent joint's 100 is its whole span)."""
+    return {
+        name: value * spans[name] / 100.0 if name in spans else value
+        for name, value in rest.items()
+    }
 
 
 def offset_for(raw: int, rest_degrees: float, direction: int = 1) -> int:

@@ -1,7 +1,8 @@
 """Servo health, without I/O: which faults to report, and when the bus counts as lost.
 
 Faults are reported on their rising edge (once while they last), so a servo that stays hot
-gives one message, not one per control cycle.
+gives one message, not one per control cycle, and their end on the falling edge (a `ServoFault`
+with `cleared`), so that what a robot shows of its arm is what lasts.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ class ServoFault:
     severity: Severity
     servo_id: int | None
     message: str
+    cleared: bool = False  # the fault is over (`message` says so)
 
 
 @dataclass(frozen=True, slots=True)
@@ -68,10 +70,21 @@ class HealthMonitor:
                 return servo_id
         return None
 
-    def reset(self) -> None:
-        """Forget everything (after a reconnection)."""
+    def reset(self) -> list[ServoFault]:
+        """Forget everything (after a reconnection): the end of every fault that lasted (what
+        still ails the arm is raised again by the next reads)."""
+        ended = [
+            self._ended(code, servo_id, "the bus connected again")
+            for code, servo_id, _ in sorted(self._active, key=str)
+        ]
         self._active.clear()
         self._misses = dict.fromkeys(self.servo_ids, 0)
+        return ended
+
+    def rearm(self) -> None:
+        """Raise again, from the next reads, every fault that still lasts (the robot was reset:
+        what it showed was acknowledged and cleared)."""
+        self._active.clear()
 
     def on_read(self, result: SyncReadResult) -> list[ServoFault]:
         """The faults a cycle's read result raises."""
@@ -97,8 +110,8 @@ class HealthMonitor:
                 )
                 continue
             self._misses[servo_id] = 0
-            self._active.discard((ErrorCode.SERVO_TIMEOUT, servo_id, ""))
-            self._active.discard((ErrorCode.SERVO_CORRUPT, servo_id, ""))
+            faults += self._edge(False, ErrorCode.SERVO_TIMEOUT, Severity.ERROR, servo_id, "")
+            faults += self._edge(False, ErrorCode.SERVO_CORRUPT, Severity.WARNING, servo_id, "")
             bits = FaultBit(result.errors.get(servo_id, 0))
             for bit, (code, severity, what) in ERROR_BITS.items():
                 faults += self._edge(
@@ -158,9 +171,18 @@ class HealthMonitor:
     ) -> list[ServoFault]:
         key = (code, servo_id, source)
         if not active:
+            if key not in self._active:
+                return []
             self._active.discard(key)
-            return []
+            if any(k[:2] == (code, servo_id) for k in self._active):
+                return []  # the same code from another source lasts (bits and temperature)
+            return [self._ended(code, servo_id, "it is over")]
         if key in self._active:
             return []
         self._active.add(key)
         return [ServoFault(code, severity, servo_id, message)]
+
+    @staticmethod
+    def _ended(code: ErrorCode, servo_id: int | None, why: str) -> ServoFault:
+        who = "the bus" if servo_id is None else f"Servo {servo_id}"
+        return ServoFault(code, Severity.INFO, servo_id, f"{who}: {code} cleared ({why}).", True)

@@ -114,6 +114,16 @@ class LeRobotCalibration(Calibration, frozen=True, kw_only=True):
             if (joint := self.lerobot.get(name)) is not None
         }
 
+    def to_values(self, raw: Mapping[int, int], spans: Mapping[str, float]) -> dict[str, float]:
+        """As LeRobot reads them: degrees, and 0..100 for its RANGE_0_100 joints already."""
+        return self.to_degrees(raw)
+
+    def to_goal_steps(
+        self, values: Mapping[str, float], spans: Mapping[str, float]
+    ) -> dict[int, int]:
+        """Goal steps for values as LeRobot reads them (see `to_values`)."""
+        return self.to_steps(values)
+
     def with_register_homings(self, homings: Mapping[int, int]) -> LeRobotCalibration:
         """This calibration for servos whose Homing_Offset registers hold `homings` (by id)."""
         joints = {

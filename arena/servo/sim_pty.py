@@ -5,11 +5,12 @@ The bus runs in its own thread. Its port is the pty's slave side, reached throug
 symlink (`link`) that survives `unplug()` / `plug()`: a test can make the bus disappear and
 come back under the same path, as a USB adapter does.
 
-The bus is a thread of the test's own process: on a loaded machine it can be kept off the CPU
-for longer than a driver waits for a reply, and a healthy servo would look silent. `servo_bus()`
-gives a bus of the simulator's family whose reply timeout also waits until the simulator has
-dealt with every byte sent to it and every reply byte it wrote has arrived: only a servo silent
-or late on purpose (`ServoFaults`) times out, however slow the machine.
+On a loaded machine the bus can be kept off the CPU for longer than a driver waits for a reply,
+and a healthy servo would look silent. It counts what it owes its client (`arena.servo.sim_pace`):
+`servo_bus()` gives a bus of the simulator's family in the same process whose reply timeout also
+waits for the simulator, and with `share` (`arena sim-bus`) the counters are published for
+clients in other processes, whose buses (`servo_arm.open_family_bus`) find them by the port.
+Only a servo silent or late on purpose (`ServoFaults`) times out, however slow the machine.
 """
 
 from __future__ import annotations
@@ -28,13 +29,11 @@ from typing import Any, Protocol, TypeVar
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.servo.interface import ServoBus, ServoFamily
 from arena.servo.sdk_bus import SdkRegister
+from arena.servo.sim_pace import LocalPace, SharedPace, paced_class, publish
 
 R = TypeVar("R", bound=SdkRegister)
 
 BITS_PER_BYTE = 10  # 8N1: start bit, 8 data bits, stop bit
-#: A `servo_bus()` reply still owed after its timeout by this much (seconds) times out anyway:
-#: the simulator is stuck, and a test must fail rather than hang.
-OWED_PATIENCE = 30.0
 
 
 class SimServoBase:
@@ -134,7 +133,8 @@ class PtySimBus:
     """Serve a `SimBus` on a pty at `link` (a symlink to the pty) until `close()`.
 
     With `wire_time` each exchange takes as long as its bytes would at `baud`, so a driver
-    sees the same timing as on a real bus.
+    sees the same timing as on a real bus. With `share`, what it owes its client is published
+    for other processes (`arena.servo.sim_pace`).
     """
 
     def __init__(
@@ -144,6 +144,7 @@ class PtySimBus:
         *,
         wire_time: bool = False,
         baud: int = 1_000_000,
+        share: bool = False,
     ) -> None:
         self.link = link
         self.bus = bus
@@ -151,11 +152,10 @@ class PtySimBus:
         self.baud = baud
         self.lock = threading.Lock()  # held while the bus handles a packet: tests poke safely
         self.requests = 0
-        # Bytes on the present pty (see `servo_bus`): sent by its clients, dealt with by the
-        # bus (answered, or left unanswered on purpose), and written back as replies.
-        self.sent = 0
-        self.taken = 0
-        self.given = 0
+        self.share = share
+        # Bytes on the present pty (see `arena.servo.sim_pace`): sent by its client, dealt with
+        # by the bus (answered, or left unanswered on purpose), and written back as replies.
+        self.pace: LocalPace | SharedPace = LocalPace()
         self._master: int | None = None
         self._slave: int | None = None
         self._tty: str | None = None  # our pty's slave path, where `link` points while plugged
@@ -194,6 +194,9 @@ class PtySimBus:
                 if fd is not None:
                     os.close(fd)
             self._master = self._slave = None
+            if isinstance(self.pace, SharedPace):
+                self.pace.withdraw()
+                self.pace = LocalPace()
             # Only our own link: another bus may have taken the path since (a stale link).
             with contextlib.suppress(OSError):
                 if self._tty is not None and os.readlink(self.link) == self._tty:
@@ -210,7 +213,10 @@ class PtySimBus:
             tty.setraw(slave)  # pyserial sets it raw too; this covers the moment before
             self._master, self._slave = master, slave
             self._tty = os.ttyname(slave)
-            self.sent = self.taken = self.given = 0
+            if self.share:
+                self.pace = publish(self._tty)
+            else:
+                self.pace.sent = self.pace.taken = self.pace.given = 0
             with contextlib.suppress(FileNotFoundError):
                 self.link.unlink()  # a stale link (its pty gone), or our own
             self.link.parent.mkdir(parents=True, exist_ok=True)
@@ -259,8 +265,8 @@ class PtySimBus:
     def paced_port(self, timeout_margin: float) -> Any:
         """An SDK port handler on this port paced as `servo_bus`'s is, for other programs'
         clients of the bus (LeRobot's `FeetechMotorsBus` and `DynamixelMotorsBus` in tests)."""
-        paced = _paced_class(self.bus.family.port_class)
-        return paced(str(self.link), timeout_margin, self)
+        paced = paced_class(self.bus.family.port_class)
+        return paced(str(self.link), timeout_margin, lambda: self.pace)
 
     @contextlib.contextmanager
     def paused(self) -> Iterator[Any]:
@@ -298,7 +304,7 @@ class PtySimBus:
                 out = b"".join(reply.data for reply in replies)
                 delay = max((reply.delay for reply in replies), default=0.0)
                 if any(reply.late for reply in replies) and not taken:
-                    self.taken += len(data)  # the servo holds its reply back on purpose
+                    self.pace.taken += len(data)  # the servo holds its reply back on purpose
                     taken = True
                 if self.wire_time:
                     delay += (len(data) + len(out)) * BITS_PER_BYTE / self.baud
@@ -306,70 +312,11 @@ class PtySimBus:
                 elif delay:
                     time.sleep(delay)
                 if out:
-                    self.given += len(out)  # before the write: a reader never waits for less
+                    self.pace.given += len(out)  # before the write: a reader never waits for less
                     with contextlib.suppress(OSError, TypeError):
                         os.write(master, out)
             if not taken:
-                self.taken += len(data)
-
-
-class _Paced:
-    """Mixed in before a family's port class: a timeout that also waits for the simulator
-    (`servo_bus`)."""
-
-    ser: Any
-    packet_timeout: float
-
-    def __init__(self, port_name: str, timeout_margin: float, sim: PtySimBus) -> None:
-        super().__init__(port_name, timeout_margin)  # type: ignore[call-arg]
-        self.sim = sim
-        self.received = 0
-
-    def setupPort(self, cflag_baud: int) -> bool:
-        opened: bool = super().setupPort(cflag_baud)  # type: ignore[misc]
-        self.received = self.sim.given  # replies to an earlier client are not owed to this one
-        return opened
-
-    def writePort(self, packet: Any) -> int:
-        self.sim.sent += len(packet)  # before the write: the bus never takes more than sent
-        return self.ser.write(packet) or 0
-
-    def clearPort(self) -> None:
-        # Stale input is read and counted rather than dropped: every reply byte is accounted.
-        while waiting := self.ser.in_waiting:
-            self.received += len(self.ser.read(waiting))
-
-    def readPort(self, length: int) -> bytes:
-        data: bytes = super().readPort(length)  # type: ignore[misc]
-        if not data and self._owed():
-            # Past the wall-clock deadline, and the bus has not answered yet: wait for it
-            # without spinning (a spinning reader would take the CPU the bus needs).
-            select.select([self.ser.fileno()], [], [], 0.005)
-            data = self.ser.read(length)
-        self.received += len(data)
-        return data
-
-    def isPacketTimeout(self) -> bool:
-        since: float = self.getTimeSinceStart()  # type: ignore[attr-defined]
-        if self._owed() and since < self.packet_timeout + OWED_PATIENCE * 1e3:
-            return False
-        timed_out: bool = super().isPacketTimeout()  # type: ignore[misc]
-        return timed_out
-
-    def _owed(self) -> bool:
-        sim = self.sim
-        return sim.taken < sim.sent or self.received < sim.given
-
-
-_PACED: dict[str, type[Any]] = {}  # by the port class's qualified name
-
-
-def _paced_class(port_class: type[Any]) -> type[Any]:
-    """The family's port class, paced (`_Paced` mixed in before it); one class per family."""
-    key = f"{port_class.__module__}.{port_class.__qualname__}"
-    if key not in _PACED:
-        _PACED[key] = type(f"Paced{port_class.__name__}", (_Paced, port_class), {})
-    return _PACED[key]
+                self.pace.taken += len(data)
 
 
 def _sleep_until(deadline: float) -> None:

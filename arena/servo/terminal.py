@@ -62,7 +62,8 @@ def calibrate_interactively(
     say("Torque is off: the arm can be moved by hand (hold it, it will not hold itself).")
     say(
         "1/2  Put the arm in its rest pose, the pose the digital twin shows at 0 degrees: "
-        "every joint in the middle of its range."
+        "every joint in the middle of its range (a gripper read 0 to 100, as the so-101's: "
+        "closed)."
     )
     ask("     Press Enter when it is in place. ")
     raw = read_patiently(bus, ids)
@@ -126,7 +127,7 @@ def calibrate_interactively(
 def serve_sim_bus(link: Path, bus: SimulatedBus, wire_time: bool, baud: int) -> None:
     """Run a simulated bus at `link` until SIGINT or SIGTERM."""
     stop = threading.Event()
-    with PtySimBus(link, bus, wire_time=wire_time, baud=baud) as sim:
+    with PtySimBus(link, bus, wire_time=wire_time, baud=baud, share=True) as sim:
         for sig in (signal.SIGINT, signal.SIGTERM):  # once the link is ours (it may be taken)
             signal.signal(sig, lambda *_: stop.set())
         timing = f", wire time at {baud} baud" if wire_time else ""

@@ -125,6 +125,8 @@ class BusWorker:
         self.torque_at_exit: bool | None = None
         self.frames: Frames = {}  # this connection's (`WorkerSettings.frames`)
         self.torqued = False  # the torque the last successful `hold` set
+        #: Set from another thread: raise again every fault that lasts (`HealthMonitor.rearm`).
+        self.rearm_health = False
         self._bus: ServoBus | None = None
         self._lock = threading.Lock()
         self._goals: dict[int, int] | None = None
@@ -256,7 +258,8 @@ class BusWorker:
                 self.first_connect.set_exception(exc)
                 self._stopping.set()  # the caller hears why; nothing to retry for
             return False
-        self.health.reset()
+        for ended in self.health.reset():
+            self.listener.event(ended)
         if not self.first_connect.done():
             self.first_connect.set_result(None)
         self.listener.event(Connected(again))
@@ -322,6 +325,9 @@ class BusWorker:
         else:
             positions, result = self._bus.read_positions(self.servo_ids)
             reading = Reading(positions, time.monotonic())
+        if self.rearm_health:
+            self.rearm_health = False
+            self.health.rearm()
         faults = self.health.on_read(result)
         if reading.temperatures:
             faults += self.health.on_temperatures(reading.temperatures)

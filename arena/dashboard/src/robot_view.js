@@ -122,9 +122,27 @@ export class RobotView {
       cells[3].dataset.real = joint.name;
       row.append(...cells);
       body.append(row);
-      this.sliders.set(joint.name, { slider, virtual: cells[2], real: cells[3] });
+      this.sliders.set(joint.name, { slider, label: cells[0], virtual: cells[2], real: cells[3] });
     }
     this.showJoints(joints);
+    call("GET", `/api/robot-types/${encodeURIComponent(this.summary.robot_type)}`)
+      .then((type) => this.showUnits(type.joints))
+      .catch((error) => this.log(`robot type: ${error.message}`, true));
+  }
+
+  /** Each joint's unit as its robot type says: degrees, or 0 (closed) to 100 (open) for a
+   * LeRobot gripper (`unit: "percent"`), in the slider's row and its hint. */
+  showUnits(specs) {
+    if (this.closed) return;
+    for (const spec of specs) {
+      const entry = this.sliders.get(spec.name);
+      if (!entry) continue;
+      const unit = spec.unit === "percent" ? "%" : "°";
+      entry.label.textContent = `${spec.name} (${unit})`;
+      entry.slider.dataset.unit = spec.unit;
+      entry.slider.title =
+        spec.unit === "percent" ? "0 % closed, 100 % open" : `${spec.lower.toFixed(0)}° to ${spec.upper.toFixed(0)}°`;
+    }
   }
 
   /** A new robot summary (polled): who is attached, and how they are doing. */
@@ -176,16 +194,27 @@ export class RobotView {
         ),
       );
       item.append(label, tag, detach);
-      if (peer.last_error) {
-        const error = document.createElement("span");
-        error.className = "muted";
-        error.textContent = peer.last_error;
-        item.append(error);
-        if (this.lastErrors?.get(peer.id) !== peer.last_error) this.log(`${peer.id}: ${peer.last_error}`, true);
+      // Its faults that last (each until it is over, a reset, or the peer leaves); a loss
+      // while it lasts is its error without being one of them. The socket's `fault`
+      // messages log each as it comes and goes.
+      const troubles = (peer.faults || []).map((fault) => {
+        const joint = fault.joint ? ` (${fault.joint})` : "";
+        return { text: `${fault.code}${joint}: ${fault.message}`, severity: fault.severity };
+      });
+      if (!peer.connected && peer.last_error) troubles.unshift({ text: peer.last_error, severity: "error" });
+      if (troubles.length) {
+        const list = document.createElement("ul");
+        list.className = "faults";
+        for (const trouble of troubles) {
+          const line = document.createElement("li");
+          line.className = `fault ${trouble.severity}`;
+          line.textContent = trouble.text;
+          list.append(line);
+        }
+        item.append(list);
       }
       peers.append(item);
     }
-    this.lastErrors = new Map(entries.map(([, peer]) => [peer.id, peer.last_error]));
     if (!entries.length) peers.innerHTML = '<li class="muted">nothing attached</li>';
     this.refreshSensors().catch((error) => this.log(`${error.code}: ${error.message}`, true));
   }
@@ -246,6 +275,25 @@ export class RobotView {
   onMessage(type, data) {
     if (type === "state") this.applyState(data);
     else if (type === "joint_states") this.showJoints(data);
+    else if (type === "fault") this.showFault(data);
+  }
+
+  /** A fault of a master, a slave or a camera as it comes or goes: logged, and the peers'
+   * list fetched again so that it shows what lasts. */
+  showFault(fault) {
+    const joint = fault.joint ? ` (${fault.joint})` : "";
+    if (fault.cleared) this.log(`${fault.peer_id}: ${fault.code}${joint} over: ${fault.message}`);
+    else {
+      const trouble = fault.severity === "error" || fault.severity === "critical";
+      this.log(`${fault.peer_id}: ${fault.severity} ${fault.code}${joint}: ${fault.message}`, trouble);
+    }
+    // (at most one refresh a half second, however many faults come)
+    if (!this.faultRefresh) {
+      this.faultRefresh = setTimeout(() => {
+        this.faultRefresh = null;
+        if (!this.closed) this.onChanged();
+      }, 500);
+    }
   }
 
   /** The safety state: the badge, the master line, and whether the sliders may move. */

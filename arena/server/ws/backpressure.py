@@ -2,7 +2,8 @@
 
 `send` never waits, so a reader answering its peer never stalls on that peer. Once the peer
 has let the transport's `high_water` bytes pile up, states and joint states keep only the
-newest of each, and acks, errors and heartbeats are dropped and counted; when the peer has
+newest of each, and acks, errors, heartbeats and faults are dropped and counted (a viewer that
+was behind reads a robot's faults that last in its details); when the peer has
 read what was queued, it gets one `missed` message with the counts, then the newest states.
 Messages that must not be dropped (a slave's targets) go through `send_in_turn`, which waits
 for room in the writer task that sends them.
@@ -88,7 +89,7 @@ Outgoing = msgspec.Struct | Encoded
 #: Kinds of which a peer that is behind gets only the newest, once it reads again.
 LATEST_KINDS = frozenset({"state", "joint_states"})
 #: Kinds that a peer that is behind misses (counted in the `missed` message).
-DROPPED_KINDS = frozenset({"ack", "error", "heartbeat"})
+DROPPED_KINDS = frozenset({"ack", "error", "heartbeat", "fault"})
 _KIND_OF: dict[type, str] = {
     wire.StateMessage: "state",
     wire.JointStatesOut: "joint_states",
@@ -96,6 +97,7 @@ _KIND_OF: dict[type, str] = {
     wire.GroupAckMessage: "ack",
     wire.ErrorMessage: "error",
     wire.HeartbeatMessage: "heartbeat",
+    wire.FaultMessage: "fault",
 }
 
 

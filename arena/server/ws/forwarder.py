@@ -11,7 +11,13 @@ import msgspec
 import trio
 
 from arena.protocol import messages as wire
-from arena.robot.events import JointStatesReceived, RobotEvent, StateChanged, TargetsSent
+from arena.robot.events import (
+    FaultReported,
+    JointStatesReceived,
+    RobotEvent,
+    StateChanged,
+    TargetsSent,
+)
 from arena.robot.handle import Robot
 from arena.robot.mailbox import EventQueue
 from arena.server import convert
@@ -20,6 +26,8 @@ from arena.server.ws.connection import CLOSE_NORMAL, Connection
 
 #: The events a `RobotEventForwarder` makes messages of (its queue takes no others).
 FORWARDED = (StateChanged, JointStatesReceived, TargetsSent)
+#: ... and for a viewer, faults as they happen and end (`fault` messages).
+FORWARDED_TO_VIEWERS = (*FORWARDED, FaultReported)
 #: Events a peer's queue holds before the oldest are dropped (the newest state wins).
 QUEUE_LENGTH = 256
 
@@ -105,6 +113,8 @@ class RobotEventForwarder:
             kind = type(event)
             changed = changed or kind is StateChanged
             moved = moved or kind is TargetsSent or kind is JointStatesReceived
+            if kind is FaultReported:  # (only a viewer's queue takes them)
+                out.append(convert.fault(event))  # type: ignore[arg-type]
         if changed:
             state = convert.state(self.robot.snapshot())
             if self.name_robot:  # the newest of each member's is kept for a peer behind

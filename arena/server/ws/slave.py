@@ -99,5 +99,7 @@ async def _handle_slave_message(
         link.alive()
         if not message.data.isConnected or message.data.error:
             await link.report_fault(ErrorCode.SLAVE_STATUS, message.data.error or "disconnected")
+        else:  # connected without an error: a status fault it had is over
+            await link.clear_fault(ErrorCode.SLAVE_STATUS, message="connected again")
     else:
         link.alive()

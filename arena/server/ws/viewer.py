@@ -1,5 +1,5 @@
-"""The viewer endpoint, `/ws/robots/{robot id}/state`: read-only, the robot's state and joint
-states as they change. Any number may watch."""
+"""The viewer endpoint, `/ws/robots/{robot id}/state`: read-only, the robot's state, joint
+states and faults as they change. Any number may watch."""
 
 from __future__ import annotations
 
@@ -9,17 +9,18 @@ import trio
 from arena.protocol.errors import ErrorCode
 from arena.server import convert
 from arena.server.ws.connection import Connection
-from arena.server.ws.forwarder import FORWARDED, QUEUE_LENGTH, RobotEventForwarder
+from arena.server.ws.forwarder import FORWARDED_TO_VIEWERS, QUEUE_LENGTH, RobotEventForwarder
 
 
 async def serve(connection: Connection, robot_id: str) -> None:
-    """Read-only: the robot's state and joint states as they change. Any number may watch."""
+    """Read-only: the robot's state, joint states and faults as they change. Any number may
+    watch."""
     robot = await connection.accept(robot_id)
     if robot is None:
         return
     connection.count_open([robot_id])
     try:
-        with robot.subscribe(maxlen=QUEUE_LENGTH, kinds=FORWARDED) as events:
+        with robot.subscribe(maxlen=QUEUE_LENGTH, kinds=FORWARDED_TO_VIEWERS) as events:
             await connection.send(convert.state(robot.snapshot()))
             if connection.wants_joint_states:
                 await connection.send(convert.joint_states(robot))
