@@ -7,6 +7,7 @@ so that a broken test ends.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -55,6 +56,20 @@ async def start_fleet(start_server: Start, names: list[str], **first: Any) -> li
         )
 
     await eventually(all_see_all)
+
+    async def all_answer_all() -> bool:
+        """Every node's questions reach every other: Zenoh routes a query a little after a
+        node is seen (on a loaded machine, long enough for one asked at once to find no one)."""
+        for node in nodes:
+            for name in names:
+                if name != node.app.fleet.name:
+                    with contextlib.suppress(ArenaError):
+                        await node.app.fleet.ask(name, "info", timeout=30)
+                        continue
+                    return False
+        return True
+
+    await eventually(all_answer_all, what="every node answering every other")
     return nodes
 
 
