@@ -146,11 +146,27 @@ async def test_the_rest_estop_answers_while_one_address_holds_its_most_connectio
     port = port_of(server)
     hostile = [await connect(port, "127.0.0.2") for _ in range(8)]  # idle, holding on
     await eventually(lambda: server_sockets(port) == 8, DEADLINE, "eight connections held")
-    one_more = await connect(port, "127.0.0.2")  # turned away at once, nothing read
+    one_more = await connect(port, "127.0.0.2")  # silent: turned away (after 2 s of nothing)
     refused = await read_until_closed(one_more)
     assert refused.startswith(b"HTTP/1.1 503"), refused
     error = json.loads(refused.partition(b"\r\n\r\n")[2])["error"]
     assert error["code"] == "OVERLOADED" and "from your address" in error["message"]
+    # From that full address, anything but an e-stop is turned away; an e-stop is served (an
+    # operator's e-stop passes a leaky client's bound), and its connection closed after it.
+    asks = await connect(port, "127.0.0.2")
+    await get(asks, "/healthz")
+    assert (await read_until_closed(asks)).startswith(b"HTTP/1.1 503")
+    body = b'{"reason": "same address"}'
+    stop = await connect(port, "127.0.0.2")
+    await stop.send_all(
+        b"POST /api/robots/demo-arm/estop HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+        b"Content-Type: application/json\r\nContent-Length: %d\r\n\r\n%s" % (len(body), body)
+    )
+    answer = await read_until_closed(stop)
+    assert answer.startswith(b"HTTP/1.1 200"), answer
+    assert json.loads(answer.partition(b"\r\n\r\n")[2])["estop_reason"] == "same address"
+    async with server.client() as http:
+        assert (await http.post("/api/robots/demo-arm/reset")).status_code == 200
     async with server.client() as http:  # another address is served, the e-stop first
         stopped = await http.post("/api/robots/demo-arm/estop", json={"reason": "held"})
         assert (stopped.status_code, stopped.json()["state"]) == (200, "estopped")

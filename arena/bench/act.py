@@ -89,6 +89,12 @@ def main() -> None:
     parser.add_argument("dir")
     parser.add_argument("--type", choices=("act", "diffusion"), default="act")
     args = parser.parse_args()
+    try:
+        import lerobot  # noqa: F401  (a clear line where it is missing, not a traceback)
+    except ImportError:
+        from arena.extras import install_line
+
+        raise SystemExit(f"Saving a policy needs LeRobot: {install_line('lerobot')}") from None
     (save_act if args.type == "act" else save_diffusion)(Path(args.dir))
 
 

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import signal
 import sys
 import threading
 import time
@@ -322,6 +323,8 @@ def _read_exactly(stream: IO[bytes], count: int) -> bytes | None:
 
 def main() -> None:
     """Serve one source's frames over stdin and stdout until stdin ends."""
+    # A terminal's Ctrl-C reaches the whole process group: the server stops its children.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     _die_with_parent()
     stdin, stdout = sys.stdin.buffer, sys.stdout.buffer
     sys.stdout = sys.stderr  # stdout carries frames only: a library's print goes to the log

@@ -8,8 +8,10 @@ hypercorn's own `serve` would. Hypercorn and Quart cost some 100 us per WebSocke
 endpoints skip all of it.
 
 Every connection counts against two bounds (`ConnectionLimits`): so many from one client
-address, so many in all. One beyond either is answered 503 OVERLOADED and closed before a byte
-of it is read, so that no client can take the file descriptors the REST e-stop needs. An
+address, so many in all. One beyond either is answered 503 OVERLOADED and closed, unless its
+first request is an e-stop (up to `ESTOP_RESERVE` such connections are read, for 2 s each, to
+see): so no client can take the file descriptors the REST e-stop needs, nor keep an operator on
+its own address (a proxy, the same machine) from stopping the robots. An
 HTTP connection is closed after a response to `Connection: close`, and once it has been idle
 (no request under way) for hypercorn's `keep_alive_timeout`; one that says nothing at all is
 closed after the same time.
@@ -23,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
+import re
 from collections import Counter
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
@@ -61,6 +64,12 @@ _STREAM_PREFIX = b"GET /api/robots/"
 _PREFIXES = (_WS_PREFIX, _STREAM_PREFIX)
 MAX_HEAD_BYTES = 16 * 1024
 HEAD_TIMEOUT = 10.0
+#: Connections beyond a bound kept, at most, to see whether they carry an e-stop (then served),
+#: and how long each has to say so; anything else is turned away.
+ESTOP_RESERVE = 8
+ESTOP_HEAD_TIMEOUT = 2.0
+#: The request lines of the e-stops: a robot's, a group's, every robot's, the fleet's.
+ESTOP_REQUEST = re.compile(rb"POST /api/(?:(?:robots|groups)/[^/ ?]+/|fleet/)?estop[ ?]")
 #: How long a closed WebSocket waits for the peer's close frame and for its last bytes to go.
 CLOSE_TIMEOUT = 2.0
 
@@ -207,6 +216,7 @@ class ArenaListener:
         self.clients: Counter[str] = Counter()
         self.open_connections = 0
         self.turned_away = 0  # connections refused beyond a bound, since the start
+        self.reserved = 0  # connections beyond a bound being looked at for an e-stop
         self._next_warning = -math.inf
         #: Sockets bound beforehand (`run.bind`); None: bind them in `serve`.
         self.sockets = sockets
@@ -264,7 +274,14 @@ class ArenaListener:
         client = _client_address(stream)
         limits = self.limits
         if self.open_connections >= limits.total or self.clients[client] >= limits.per_client:
-            await self._turn_away(stream, ssl_context is not None, client)
+            if self.reserved >= ESTOP_RESERVE:
+                await self._turn_away(stream, ssl_context is not None, client)
+                return
+            self.reserved += 1  # an operator's e-stop still passes a leaky client's bound
+            try:
+                await self._serve_connection(stream, ssl_context, estop_only=client)
+            finally:
+                self.reserved -= 1
             return
         self.clients[client] += 1
         self.open_connections += 1
@@ -278,7 +295,7 @@ class ArenaListener:
 
     async def _turn_away(self, stream: trio.abc.Stream, tls: bool, client: str) -> None:
         """A connection beyond a bound: 503 (in plain HTTP; a TLS one is just closed), then
-        closed at once, nothing of it read."""
+        closed at once (read, if at all, only to see whether it carried an e-stop)."""
         full = self.clients[client] >= self.limits.per_client
         self.turned_away += 1
         now = trio.current_time()
@@ -300,7 +317,11 @@ class ArenaListener:
                 )
         await trio.aclose_forcefully(stream)
 
-    async def _serve_connection(self, stream: trio.abc.Stream, ssl_context: Any) -> None:
+    async def _serve_connection(
+        self, stream: trio.abc.Stream, ssl_context: Any, estop_only: str | None = None
+    ) -> None:
+        """Serve one connection; `estop_only` (its client's address): a connection beyond a
+        bound, served only if its first request is an e-stop, and closed after it."""
         if ssl_context is not None:
             stream = trio.SSLStream(stream, ssl_context, server_side=True, https_compatible=True)
             try:
@@ -309,9 +330,12 @@ class ArenaListener:
             except (trio.BrokenResourceError, trio.TooSlowError):
                 await trio.aclose_forcefully(stream)
                 return
-            if stream.selected_alpn_protocol() == "h2":
+            if stream.selected_alpn_protocol() == "h2" and estop_only is None:
                 await self._to_hypercorn(stream, b"")
                 return
+        if estop_only is not None:
+            await self._estop_only(stream, estop_only)
+            return
         head = b""
         with trio.move_on_after(HEAD_TIMEOUT) as timer:
             try:
@@ -345,6 +369,24 @@ class ArenaListener:
             await self._to_hypercorn(stream, head)
             return
         await self._websocket(stream, request, handler, head[end + 4 :])
+
+    async def _estop_only(self, stream: trio.abc.Stream, client: str) -> None:
+        """Serve the e-stop a connection beyond a bound carries (its request line within
+        `ESTOP_HEAD_TIMEOUT`), asking hypercorn to close it after; anything else: 503."""
+        head = b""
+        with trio.move_on_after(ESTOP_HEAD_TIMEOUT):
+            with contextlib.suppress(trio.BrokenResourceError, trio.ClosedResourceError):
+                while b"\r\n" not in head and len(head) < MAX_HEAD_BYTES:
+                    chunk = await stream.receive_some(MAX_HEAD_BYTES)
+                    if not chunk:
+                        break
+                    head += chunk
+        if not ESTOP_REQUEST.match(head):
+            await self._turn_away(stream, False, client)
+            return
+        line = head.index(b"\r\n")
+        # One request, then closed: `Connection: close` wins over any keep-alive it asked.
+        await self._to_hypercorn(stream, head[:line] + b"\r\nConnection: close" + head[line:])
 
     async def _read_head(self, stream: trio.abc.Stream) -> bytes:
         """Enough bytes to tell a WebSocket upgrade or a stream (its whole head) from
