@@ -173,19 +173,27 @@ def test_calibration_file_round_trip_and_errors(tmp_path: object) -> None:
 # -- health ------------------------------------------------------------------------------------
 
 
-def test_health_reports_each_fault_once_and_again_after_it_cleared() -> None:
+def test_health_reports_each_fault_once_its_end_once_and_again_after_it_cleared() -> None:
     monitor = HealthMonitor((1, 2), HealthLimits(hot=50, overheat=60, lost_after=3))
     ok = SyncReadResult(data={1: b"", 2: b""}, errors={1: 0, 2: 0})
     hot = SyncReadResult(data={1: b"", 2: b""}, errors={1: 0, 2: int(reg.ErrorBit.OVERLOAD)})
     first = monitor.on_read(hot)
-    assert [(f.code, f.servo_id, f.severity) for f in first] == [
-        (ErrorCode.SERVO_OVERLOAD, 2, Severity.CRITICAL)
+    assert [(f.code, f.servo_id, f.severity, f.cleared) for f in first] == [
+        (ErrorCode.SERVO_OVERLOAD, 2, Severity.CRITICAL, False)
     ]
     assert monitor.on_read(hot) == []
+    over = monitor.on_read(ok)  # its end, once (as news: info)
+    assert [(f.code, f.servo_id, f.severity, f.cleared) for f in over] == [
+        (ErrorCode.SERVO_OVERLOAD, 2, Severity.INFO, True)
+    ]
     assert monitor.on_read(ok) == []
     assert len(monitor.on_read(hot)) == 1
     assert [f.code for f in monitor.on_temperatures({1: 55})] == [ErrorCode.SERVO_HOT]
-    assert [f.code for f in monitor.on_temperatures({1: 61})] == [ErrorCode.SERVO_OVERHEAT]
+    # warm becomes too hot: the critical fault, and the warm one's end (the levels exclude)
+    assert [(f.code, f.cleared) for f in monitor.on_temperatures({1: 61})] == [
+        (ErrorCode.SERVO_OVERHEAT, False),
+        (ErrorCode.SERVO_HOT, True),
+    ]
 
 
 def test_health_counts_a_silent_servo_as_lost() -> None:

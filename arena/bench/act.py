@@ -50,8 +50,9 @@ def save_act(folder: Path) -> None:
 
 
 def save_diffusion(folder: Path) -> None:
-    """Save a diffusion policy of LeRobot's default architecture (random weights, its default
-    100 denoising steps) taking the same camera and state, in `folder` (imports torch)."""
+    """Save a diffusion policy of LeRobot's default architecture (random weights) taking the
+    same camera and state, denoising in 10 steps (its default 100 take most of a minute a chunk
+    on a small CPU), in `folder` (imports torch)."""
     import torch
     from lerobot.configs.types import FeatureType, PolicyFeature
     from lerobot.policies.diffusion.configuration_diffusion import DiffusionConfig
@@ -67,6 +68,7 @@ def save_diffusion(folder: Path) -> None:
         output_features={"action": PolicyFeature(FeatureType.ACTION, (6,))},
         pretrained_backbone_weights=None,  # (LeRobot 0.6's default would download them)
         use_group_norm=True,
+        num_inference_steps=10,
         device="cpu",
     )
     torch.manual_seed(0)

@@ -1,6 +1,8 @@
 """`arena bench workers`: a policy worker's start-up and inference on this CPU, for ACT and
 diffusion (LeRobot's default architectures, `arena/bench/act.py`), in Arena's own Python and, with
 `ARENA_POLICY_PYTHON` set (`make compat` builds one: `.compat/python`), in that one too.
+The diffusion policy denoises in 10 steps (LeRobot's default 100 take most of a minute a chunk
+here).
 
 Each worker is started, loads the policy (start-up: from the start of the process to the policy
 loaded) and answers the same observation (a 640x480 camera frame scaled to the policy's 240x320,
@@ -24,8 +26,8 @@ from arena.policy.process import PolicyProcess, worker_command
 from arena.policy.wire import Observe
 from arena.sensors.sources import JpegEncoder, pattern_image
 
-#: Inferences measured per worker (diffusion's 100 denoising steps take seconds on a CPU).
-COUNT = {"act": 30, "diffusion": 8}
+#: Inferences measured per worker (diffusion's denoising takes seconds on a CPU).
+COUNT = {"act": 20, "diffusion": 5}
 
 
 def _pythons() -> dict[str, str | None]:
