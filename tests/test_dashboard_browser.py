@@ -49,7 +49,11 @@ CHROMIUM_ARGS = [
     "--use-angle=swiftshader",
     "--enable-unsafe-swiftshader",
 ]
-WAIT_MS = 15_000
+#: How long an expectation waits for the page (a bound only a broken page reaches: on a loaded
+#: 2-core machine, chromium's software rendering and the server share the cores with everything
+#: else, and 15 s was once not enough for a fault to show).
+WAIT_MS = 60_000
+expect.set_options(timeout=30_000)  # every other expectation (Playwright's own default: 5 s)
 
 
 @dataclass

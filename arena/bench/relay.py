@@ -14,6 +14,7 @@ from arena.bench.client import BlockingWebSocket, masked_frame
 from arena.bench.common import (
     ACK_MARK,
     EXECUTE_MARK,
+    REST_TIMEOUT,
     Server,
     command_text,
     create_bench_robot,
@@ -25,7 +26,7 @@ from arena.bench.common import (
 
 async def relay(server: Server, count: int = 5000) -> dict[str, float]:
     """Master send -> slave receipt of execute_command, one command at a time (lean client)."""
-    async with httpx.AsyncClient(base_url=server.url) as http:
+    async with httpx.AsyncClient(base_url=server.url, timeout=REST_TIMEOUT) as http:
         await create_bench_robot(http, "relay")
         await create_bench_robot(http, "relay-deaf")
     results = await asyncio.to_thread(without_client_gc, lean_relay, server.ws, count)
@@ -75,7 +76,7 @@ async def relay_with_websockets(server: Server, count: int = 5000) -> dict[str, 
     """The relay again with the `websockets` client library (what a Python user sees)."""
     import websockets
 
-    async with httpx.AsyncClient(base_url=server.url) as http:
+    async with httpx.AsyncClient(base_url=server.url, timeout=REST_TIMEOUT) as http:
         await create_bench_robot(http, "relay-ws")
     async with (
         websockets.connect(compression=None, uri=server.ws + "/ws/slave/relay-ws") as slave,
@@ -107,7 +108,7 @@ async def throughput(
     The frames are made before the clock starts and go out in one `sendall` from a thread,
     so the client costs as little as it can (lean client, see `bench_client`).
     """
-    async with httpx.AsyncClient(base_url=server.url) as http:
+    async with httpx.AsyncClient(base_url=server.url, timeout=REST_TIMEOUT) as http:
         await create_bench_robot(http, robot_id)
     return await asyncio.to_thread(without_client_gc, _lean_throughput, server.ws, robot_id, count)
 

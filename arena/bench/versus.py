@@ -41,7 +41,7 @@ from pathlib import Path
 
 import httpx
 
-from arena.bench.common import BENCH_TYPE, Server, percentile, running_server
+from arena.bench.common import BENCH_TYPE, REST_TIMEOUT, Server, percentile, running_server
 from arena.bench.fleet import fleet
 
 FLOOR_PYTHON_ENV = "ARENA_FLOOR_PYTHON"
@@ -72,7 +72,7 @@ async def ordinary_relay(
     """Relay latency, burst throughput and (for a server the bench started) CPU a command."""
     import websockets
 
-    async with httpx.AsyncClient(base_url=server.url) as http:
+    async with httpx.AsyncClient(base_url=server.url, timeout=REST_TIMEOUT) as http:
         created = await http.post("/api/robots", json={"robot_type": BENCH_TYPE, "id": robot_id})
         created.raise_for_status()
     arrived: asyncio.Queue[str] = asyncio.Queue()
@@ -143,7 +143,7 @@ async def running_floor(python: str, script: Path, *options: str) -> AsyncIterat
     process = subprocess.Popen(command, stderr=subprocess.DEVNULL)
     url = f"http://127.0.0.1:{port}"
     try:
-        async with httpx.AsyncClient(base_url=url) as http:
+        async with httpx.AsyncClient(base_url=url, timeout=REST_TIMEOUT) as http:
             for _ in range(200):
                 with contextlib.suppress(httpx.TransportError):
                     if (await http.get("/")).status_code == 200:
