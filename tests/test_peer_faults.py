@@ -6,11 +6,10 @@ peer leaves."""
 from __future__ import annotations
 
 import json
-from collections.abc import Awaitable, Callable, Iterator
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
-import pytest
 import trio
 from trio.testing import MockClock
 from trio_websocket import WebSocketConnection, open_websocket_url
@@ -25,21 +24,14 @@ from arena.robot.motion import Command
 from arena.robot.safety import Mode
 from arena.servo.sim_pty import PtySimBus
 from tests.conftest import RunningServer, eventually
-from tests.hardware import running_sim, usb_slave
+from tests.hardware import usb_slave
+from tests.test_usb_master import follower, leader
 
 MODEL = load_robot_model("so-arm100")
+__all__ = ["follower", "leader"]  # the fixtures: two simulated buses
+
 
 StartServer = Callable[..., Awaitable[RunningServer]]
-
-
-@pytest.fixture
-def leader(tmp_path: Path) -> Iterator[PtySimBus]:
-    yield from running_sim(tmp_path / "leader")
-
-
-@pytest.fixture
-def follower(tmp_path: Path) -> Iterator[PtySimBus]:
-    yield from running_sim(tmp_path / "follower")
 
 
 class Viewer:
