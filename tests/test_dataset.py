@@ -277,3 +277,32 @@ async def test_export_says_what_is_missing(
     assert "not a LeRobot dataset" in capsys.readouterr().err
     assert cli.main(["import-dataset", str(tmp_path / "b"), "--episode", "7", "-o", "x.mcap"]) == 2
     assert "episode 7" in capsys.readouterr().err
+
+
+async def test_a_camera_that_changed_size_is_refused_before_anything_is_written(
+    start_server: Callable[..., Any], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    server: RunningServer = await start_server(demo=True)
+    base = "/api/robots/demo-arm"
+    robot = server.app.manager.get("demo-arm")
+    async with server.client() as http:
+        moved = await http.put(f"{base}/joints", json={"joints": [{"name": "Jaw", "value": 5}]})
+        assert moved.is_success, moved.text  # a command and the slave's report, before all
+        await eventually(lambda: robot.snapshot().joint("Jaw").real_value == 5)
+        for width, height in ((64, 48), (32, 32)):  # the same camera, re-attached smaller
+            body = {**TEST_CAMERA, "width": width, "height": height}
+            assert (await http.post(f"{base}/cameras", json=body)).status_code == 201
+            camera = server.app.cameras.get("demo-arm", "front")
+            await eventually(lambda camera=camera: camera.frames > 3)  # type: ignore[misc]
+            assert (await http.post(f"{base}/episodes/start", json={"task": "t"})).is_success
+            await eventually(lambda camera=camera: camera.frames > 10)  # type: ignore[misc]
+            assert (await http.post(f"{base}/episodes/stop")).is_success
+            assert (await http.delete(f"{base}/cameras/front")).is_success
+        name = (await http.post("/api/recordings/current/stop")).json()["stopped"]
+    recording = Path(server.app.recorder.folder) / name
+    out = tmp_path / "dataset"
+    args = ["export", str(recording), "--format", "lerobot", "--robot", "demo-arm", "-o"]
+    assert cli.main([*args, str(out), "--fps", "10"]) == 2
+    err = capsys.readouterr().err
+    assert "Camera 'front' is 32x32 in episode 1 but 64x48 in episode 0" in err, err
+    assert not out.exists()  # nothing half-written blocks a retry
