@@ -811,7 +811,8 @@ def test_a_slaves_fault_shows_on_it_while_it_lasts(start_live: Any, page: Page) 
     page.goto(server.url + "/ui/#/robots/demo-arm")
     expect(page.locator("#robot-state")).to_have_text("idle")
     expect(page.locator("#watch-status")).to_have_text("live")  # its viewer socket is open
-    ws_url = "ws" + server.url[len("http") :] + "/ws/slave/demo-arm"
+    # (named: an unnamed one's number counts the slaves of every server this process ran)
+    ws_url = "ws" + server.url[len("http") :] + "/ws/slave/demo-arm?id=ws-slave-1"
     with websockets.sync.client.connect(ws_url) as arm:
         fault = {"code": "SERVO_HOT", "message": "Elbow is warm", "severity": "warning"}
         arm.send(json.dumps({"type": "error", "data": fault | {"joint": "Elbow"}}))
