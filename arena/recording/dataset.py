@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import bisect
 import json
-import shutil
 import sys
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
@@ -23,6 +22,7 @@ from typing import Any
 from arena.extras import install_line, require
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.recording import images
+from arena.recording.dataset_output import camera_shapes, nothing_left_on_failure
 from arena.recording.mcap_file import RecordedMessage, Recording, read_recording
 from arena.recording.records import camera_of_topic
 from arena.robot.model import JointSpec, RobotModel
@@ -386,20 +386,6 @@ class ExportReport:
     policies: list[str] = field(default_factory=list)  # an evaluation of these (`eval_...`)
 
 
-def _size(shape: Sequence[int]) -> str:
-    """An image's (height, width, channels) as WIDTHxHEIGHT."""
-    return f"{shape[1]}x{shape[0]}"
-
-
-def _empty(folder: Path) -> None:
-    """Remove what is in `folder`, keeping it."""
-    for entry in folder.iterdir():
-        if entry.is_dir() and not entry.is_symlink():
-            shutil.rmtree(entry, ignore_errors=True)
-        else:
-            entry.unlink(missing_ok=True)
-
-
 def export_lerobot(
     paths: Sequence[Path],
     robot_id: str,
@@ -449,20 +435,8 @@ def export_lerobot(
     policies = policies_in(session.messages, [span for span, _ in frames])
     repo_id = dataset_name(repo_id, robot_id, policies)
     decoder = _JpegDecoder()
-    shapes = {name: decoder.rgb(jpeg).shape for name, jpeg in frames[0][1][0].jpegs.items()}
-    for span, found in frames:  # a dataset's camera has one size: said before anything is written
-        for frame in (found[0], found[-1]):
-            for name, jpeg in frame.jpegs.items():
-                shape = decoder.rgb(jpeg).shape
-                if shape != shapes.get(name):
-                    first = frames[0][0].index
-                    was = "no such camera" if name not in shapes else _size(shapes[name])
-                    raise ArenaError(
-                        ErrorCode.INVALID_RECORDING,
-                        f"Camera {name!r} is {_size(shape)} in episode {span.index} but "
-                        f"{was} in episode {first}: a dataset's cameras keep one size; export "
-                        "the episodes of each size apart (one recording each).",
-                    )
+    jpegs = [(span.index, [frame.jpegs for frame in found]) for span, found in frames]
+    shapes = camera_shapes(jpegs, lambda jpeg: decoder.rgb(jpeg).shape)  # one size each
     names = feature_names(session.model)
     features: dict[str, Any] = {
         "action": {"dtype": "float32", "shape": (len(names),), "names": names},
@@ -493,31 +467,24 @@ def export_lerobot(
         streaming_encoding=bool(shapes),
     )
     written = []
-    made = not root.exists()
-    try:
-        for span, found in frames:
-            for frame in found:
-                values: dict[str, Any] = {
-                    "action": np.asarray(frame.action, dtype=np.float32),
-                    "observation.state": np.asarray(frame.state, dtype=np.float32),
-                    "task": span.task,
-                }
-                if environment is not None:
-                    values[ENVIRONMENT] = np.asarray(environment[span.index], dtype=np.float32)
-                for name, jpeg in frame.jpegs.items():
-                    values[f"observation.images.{name}"] = decoder.rgb(jpeg)
-                dataset.add_frame(values)
-            dataset.save_episode()
-            written.append((span.index, span.task, len(found)))
-    except BaseException:
-        dataset.finalize()
-        # nothing half-written is left behind to block a retry (the folder was empty)
-        if made:
-            shutil.rmtree(root, ignore_errors=True)
-        else:
-            _empty(root)
-        raise
-    dataset.finalize()
+    with nothing_left_on_failure(root):
+        try:
+            for span, found in frames:
+                for frame in found:
+                    values: dict[str, Any] = {
+                        "action": np.asarray(frame.action, dtype=np.float32),
+                        "observation.state": np.asarray(frame.state, dtype=np.float32),
+                        "task": span.task,
+                    }
+                    if environment is not None:
+                        values[ENVIRONMENT] = np.asarray(environment[span.index], dtype=np.float32)
+                    for name, jpeg in frame.jpegs.items():
+                        values[f"observation.images.{name}"] = decoder.rgb(jpeg)
+                    dataset.add_frame(values)
+                dataset.save_episode()
+                written.append((span.index, span.task, len(found)))
+        finally:
+            dataset.finalize()
     info = {
         "source": [p.name for p in paths],
         "robot": robot_id,
