@@ -144,6 +144,8 @@ servo_id = 8
 neutral = 0.0
 upper = 45.0
 max_velocity = 30.0
+max_acceleration = 120.0
+max_jerk = 2400.0
 """
 
 
@@ -166,6 +168,11 @@ def test_a_new_robot_type_is_a_folder(tmp_path: Path, monkeypatch: pytest.Monkey
     assert tilt is not None
     assert (tilt.lower, tilt.upper) == (0.0, 45.0)  # soft upper limit narrows the URDF's 57.3
     assert tilt.max_velocity == 30.0
+    assert (tilt.max_acceleration, tilt.max_jerk) == (120.0, 2400.0)  # the trajectory's limits
+    pan = model.joint("Pan")
+    assert pan is not None  # unset: full speed in 1/30 s, full acceleration in 1/25 s
+    assert pan.max_acceleration == 30 * pan.max_velocity
+    assert pan.max_jerk == 25 * pan.max_acceleration
     assert model.safety.loss_policy is LossPolicy.HOLD
     assert model.safety.command_rate == 20.0
     assert model.safety.join_speed == 15.0  # the default when a type does not say
@@ -185,6 +192,16 @@ def test_a_new_robot_type_is_a_folder(tmp_path: Path, monkeypatch: pytest.Monkey
             TWO_JOINT_URDF,
             TWO_JOINT_CONFIG.replace("max_velocity = 30.0", "max_velocity = 300.0"),
             "max_velocity",
+        ),
+        (
+            TWO_JOINT_URDF,
+            TWO_JOINT_CONFIG.replace("max_jerk = 2400.0", "max_jerk = -1.0"),
+            "max_jerk must be a positive number",
+        ),
+        (
+            TWO_JOINT_URDF,
+            TWO_JOINT_CONFIG.replace("max_acceleration = 120.0", "max_acceleration = nan"),
+            "max_acceleration must be a positive number",
         ),
         (
             TWO_JOINT_URDF,

@@ -25,6 +25,11 @@ BUILTIN_TYPES_DIR = Path(__file__).resolve().parent.parent / "robot_types"
 #: Environment variable naming extra folders of robot types (os.pathsep separated).
 TYPES_PATH_ENV = "ARENA_ROBOT_TYPES"
 CONFIG_FILE = "robot.toml"
+#: A joint's default acceleration limit per deg/s of its velocity limit (full speed in 33 ms;
+#: specs/motion.md says why).
+ACCELERATION_PER_VELOCITY = 30.0
+#: A joint's default jerk limit per deg/s^2 of its acceleration limit (full acceleration in 40 ms).
+JERK_PER_ACCELERATION = 25.0
 #: A joint's `unit` when its wire value is 0..100 across its URDF range (LeRobot's grippers).
 PERCENT = "percent"
 
@@ -45,7 +50,6 @@ class SafetyPolicy:
     command_burst: int = 10
     estop_severity: Severity = Severity.CRITICAL
     control_rate: float = 100.0
-    velocity_burst: float = 0.05
     #: deg/s at which a measuring slave that joins is brought to the robot's pose.
     join_speed: float = 15.0
 
@@ -67,6 +71,20 @@ class JointSpec:
     span: float = 0.0  # URDF radians from lower to upper limit (percent joints)
     #: The servo's model name in its bus family (`[bus] family`); "" for the family's default.
     servo_model: str = ""
+    #: deg/s^2 (or %/s^2) and deg/s^3 the trajectory may ask of the joint; 0: the defaults,
+    #: `ACCELERATION_PER_VELOCITY` times `max_velocity` and `JERK_PER_ACCELERATION` times that.
+    acceleration: float = 0.0
+    jerk: float = 0.0
+
+    @property
+    def max_acceleration(self) -> float:
+        """deg/s^2 (or %/s^2) the trajectory may ask of this joint."""
+        return self.acceleration or ACCELERATION_PER_VELOCITY * self.max_velocity
+
+    @property
+    def max_jerk(self) -> float:
+        """deg/s^3 (or %/s^3) the trajectory may ask of this joint."""
+        return self.jerk or JERK_PER_ACCELERATION * self.max_acceleration
 
     @property
     def urdf_name(self) -> str:
@@ -251,13 +269,10 @@ def _safety_policy(section: dict[str, Any]) -> SafetyPolicy:
         command_burst=int(section.get("command_burst", 10)),
         estop_severity=Severity(section.get("estop_severity", Severity.CRITICAL)),
         control_rate=float(section.get("control_rate", 100.0)),
-        velocity_burst=float(section.get("velocity_burst", 0.05)),
         join_speed=float(section.get("join_speed", 15.0)),
     )
     if policy.command_rate <= 0 or policy.command_burst < 1 or policy.control_rate <= 0:
         raise ValueError("command_rate, command_burst and control_rate must be positive")
-    if policy.velocity_burst < 0:
-        raise ValueError("velocity_burst must not be negative")
     if not 0 < policy.join_speed <= MAX_JOIN_SPEED:
         raise ValueError(f"join_speed must be above 0 and at most {MAX_JOIN_SPEED:g} deg/s")
     return policy
@@ -290,6 +305,11 @@ def _joint_spec(entry: dict[str, Any], urdf: dict[str, _UrdfJoint], bad: Any) ->
     max_velocity = float(entry.get("max_velocity", velocity))
     if not 0 < max_velocity <= velocity + 1e-9:
         raise bad(f"joint {name!r}: max_velocity must be in (0, {velocity:.1f}] {unit}/s")
+    acceleration = float(entry.get("max_acceleration", 0.0))
+    jerk = float(entry.get("max_jerk", 0.0))
+    for key, value in (("max_acceleration", acceleration), ("max_jerk", jerk)):
+        if key in entry and not (math.isfinite(value) and value > 0):
+            raise bad(f"joint {name!r}: {key} must be a positive number")
     return JointSpec(
         name=name,
         servo_id=int(entry.get("servo_id", 0)),
@@ -302,4 +322,6 @@ def _joint_spec(entry: dict[str, Any], urdf: dict[str, _UrdfJoint], bad: Any) ->
         unit=unit,
         span=span,
         servo_model=str(entry.get("servo_model", "")),
+        acceleration=acceleration,
+        jerk=jerk,
     )

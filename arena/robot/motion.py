@@ -1,19 +1,10 @@
-"""Motion safety, pure: command validation, clamping, velocity limits, interpolation, rate limits.
+"""Motion safety, pure: command validation, clamping, jerk-limited trajectories, rate limits.
 
-Every target that reaches a slave comes out of `MotionLimiter.advance`. Its guarantee, per joint,
-for any two targets it emits at times t1 <= t2:
-
-    |x2 - x1| <= v * (t2 - t1) + v * velocity_burst
-
-where v is the joint's velocity limit (or the lower `speed` a command asked for). A small step
-inside that budget goes out at once; a larger one is spread over the following control ticks.
-A command in the middle of a master's burst (`advance(now, fresh=True)`) moves at once only
-the joints it finds at rest; a joint still on its way to an earlier goal (trailing a master
-faster than it may move) is left to the ticks. Emitting a sliver of motion per command while
-a joint trails gave a master streaming 10,000 commands a second as many targets (each checked
-by the collision guard, recorded and offered to the slaves, which keep only the newest) for no
-motion the ticks would not give. Outside a burst every command moves every joint it can at
-once: the slave hears of it without waiting for a tick.
+Every target that reaches a slave comes out of `MotionLimiter.advance`: a sample of one online
+trajectory (Ruckig) limited per joint in velocity, acceleration and jerk, planned afresh from
+where the joints are and how fast they move whenever a goal changes. Tested on the targets
+emitted at the control rate: no finite-difference acceleration or jerk above its limit (within
+the tolerance tests/test_motion_trajectory.py states). See specs/motion.md.
 Time is an argument everywhere (seconds, any monotonic origin): nothing here reads a clock.
 """
 
@@ -23,6 +14,12 @@ import math
 from collections.abc import Iterable, Mapping
 
 import msgspec
+from ruckig import (
+    InputParameter,
+    Ruckig,
+    Synchronization,
+    Trajectory,
+)
 
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.messages import ClampInfo, JointValue
@@ -127,68 +124,74 @@ def _is_finite_number(value: object) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
 
 
-def min_jerk(fraction: float) -> float:
-    """Smooth 0..1 progress with zero velocity and acceleration at both ends."""
-    f = min(1.0, max(0.0, fraction))
-    return f * f * f * (10.0 + f * (-15.0 + 6.0 * f))
-
-
-class _JointMotion:
-    """One joint's emitted position, goal and velocity budget.
-
-    The budget refills lazily: `tokens` is what was left at `stamp`, and `refill` brings it up
-    to date only for a joint that is about to spend or change it, so an idle joint costs nothing
-    per command. Saturating refills add up exactly, so the budget is the same either way.
-    """
-
-    __slots__ = ("cap", "goal", "position", "profile", "speed", "stamp", "tokens")
-
-    def __init__(self, position: float, limit: float, burst: float, now: float) -> None:
-        self.position = position
-        self.goal = position
-        self.speed = limit  # effective cap for the current move (the joint's limit at first)
-        self.cap = limit * burst  # the most degrees the budget can hold at `speed`
-        self.tokens = self.cap  # degrees that may be emitted at `stamp`
-        self.stamp = now
-        self.profile: tuple[float, float, float] | None = None  # (start, t0, duration)
-
-    def refill(self, now: float) -> None:
-        if now > self.stamp:
-            self.tokens = min(self.cap, self.tokens + self.speed * (now - self.stamp))
-            self.stamp = now
-
-    def desired(self, now: float) -> float:
-        if self.profile is None:
-            return self.goal
-        start, t0, duration = self.profile
-        if now >= t0 + duration:
-            return self.goal
-        return start + (self.goal - start) * min_jerk((now - t0) / duration)
+#: Seconds between two goals of a joint up to which they are taken as one stream (a leader arm,
+#: a policy, a slider dragged), followed along the line between them; goals further apart are
+#: steps, reached at rest.
+STREAM_WINDOW = 0.1
+#: A stream is followed at up to this share of the joint's speed cap (Ruckig refuses a target
+#: velocity at the cap itself; the headroom lets a joint that trails catch up).
+STREAM_SHARE = 0.9
 
 
 class MotionLimiter:
-    """Turns goals into a stream of velocity-limited targets for the slaves."""
+    """Turns goals into a jerk-limited trajectory for the slaves (Ruckig; specs/motion.md).
+
+    Every joint's targets follow one trajectory limited per joint in velocity (the joint's
+    limit, or a command's lower `speed`), acceleration and jerk (`JointSpec.max_acceleration`,
+    `max_jerk`), planned from where the trajectory is and how fast it moves there: a new goal
+    mid-motion bends it, and the velocity never steps. A step (a goal after a pause) is reached
+    at rest, all joints arriving together on the straight line in joint space the collision
+    guard checked (Ruckig's phase synchronization). A stream of goals (each within
+    `STREAM_WINDOW` of the last) is a moving reference instead, the line from one goal to the
+    next over the time between them; the trajectory is replanned on every tick toward where
+    the reference is and how fast it moves, so it follows a leader arm or a policy without
+    stopping at each goal, and comes to rest on the last goal when the stream ends.
+
+    Targets lead the clock by one control tick: what is emitted at `now` is the trajectory at
+    `now + 1 / control_rate`, so a command's first step goes out with the command. `freeze`
+    and `stop_at` stop at once (an e-stop's hold, a collision ahead): nothing is smoother
+    than safe. Time is an argument everywhere (seconds, any monotonic origin).
+    """
 
     def __init__(
         self, model: RobotModel, now: float, initial: Mapping[str, float] | None = None
     ) -> None:
-        self._burst = model.safety.velocity_burst
+        self._names = tuple(j.name for j in model.joints)
+        self._index = {name: k for k, name in enumerate(self._names)}
         self._clamps = {j.name: j.clamp for j in model.joints}
+        self._bounds = tuple((j.lower, j.upper) for j in model.joints)
+        self._lead = 1.0 / model.safety.control_rate
+        dofs = len(self._names)
+        self._otg = Ruckig(dofs)
+        self._input = InputParameter(dofs)
+        self._input.synchronization = Synchronization.Phase  # the straight line in joint space
+        self._input.max_acceleration = [j.max_acceleration for j in model.joints]
+        self._input.max_jerk = [j.max_jerk for j in model.joints]
+        self._accel = tuple(j.max_acceleration for j in model.joints)
+        self._jerk = tuple(j.max_jerk for j in model.joints)
+        self._zeros = [0.0] * dofs
         start = dict(initial or {})
-        self._joints = {
-            j.name: _JointMotion(j.clamp(start.get(j.name, 0.0)), j.max_velocity, self._burst, now)
-            for j in model.joints
-        }
-        # Every joint's goal, kept as the joints' change: the guard copies it for each command.
-        self._goals = {name: m.goal for name, m in self._joints.items()}
-        self._moving: bool | None = False  # None: not known since the goals last changed
-        # Joints the last `set_goals` aimed that were at rest: what a command moves at once.
-        self._fresh: list[_JointMotion] = []
+        self._position = {j.name: j.clamp(float(start.get(j.name, 0.0))) for j in model.joints}
+        self._goals = self._position.copy()
+        self._speeds = [j.max_velocity for j in model.joints]  # caps of the move under way
+        self._stamps = [-math.inf] * dofs  # when each joint's goal was last set
+        self._duration: float | None = None  # a timed move's least duration, until planned
+        # The stream being followed: from `_origin` (values at `_since`) to the goals (at
+        # `_until`), sample times; None when the goals are steps.
+        self._origin: list[float] | None = None
+        self._since = self._until = 0.0
+        self._planned = True  # the trajectory meets the newest goals
+        self._trajectory: Trajectory | None = None  # None: every joint rests at its target
+        self._t0 = 0.0  # sample time at which the trajectory starts
+        self._sampled = -math.inf  # sample time of the last emitted targets
+        self._fresh = False  # the last `set_goals` found every joint at rest
+        #: Trajectories planned (benchmarks and tests count them).
+        self.plans = 0
 
     @property
     def positions(self) -> dict[str, float]:
         """The last emitted target of every joint (the virtual values)."""
-        return {name: m.position for name, m in self._joints.items()}
+        return self._position.copy()
 
     @property
     def goals(self) -> dict[str, float]:
@@ -198,86 +201,168 @@ class MotionLimiter:
     @property
     def moving(self) -> bool:
         """True while some joint has not reached its goal (ticks are needed)."""
-        if self._moving is None:
-            self._moving = any(
-                m.position != m.goal or m.profile is not None for m in self._joints.values()
-            )
-        return self._moving
+        return self._trajectory is not None or not self._planned
 
     def set_goals(self, goals: Iterable[ResolvedGoal], duration: float | None, now: float) -> None:
-        """Aim joints at new goals; with `duration`, follow a smooth curve over that time.
-        `advance(now, fresh=True)` then moves the joints that were at rest."""
-        fresh = self._fresh = []
+        """Aim joints at new goals (with `duration`, reached in no less than that time). The
+        trajectory is planned by the next `advance`: a burst of commands plans once.
+        `advance(now, fresh=True)` moves at once only a robot that was at rest."""
+        self._fresh = self._trajectory is None and self._planned
+        origin: list[float] | None = None
+        index, stamps = self._index, self._stamps
+        stream = duration is None
+        interval = 0.0
         for goal in goals:
-            motion = self._joints[goal.name]
-            if motion.position == motion.goal and motion.profile is None:
-                fresh.append(motion)
-            motion.refill(now)  # what was earned so far, at the old speed
-            motion.goal = self._goals[goal.name] = goal.value
-            motion.speed = goal.speed
-            motion.cap = goal.speed * self._burst
-            motion.tokens = min(motion.tokens, motion.cap)
-            motion.profile = (motion.position, now, duration) if duration else None
-        self._moving = None
+            k = index[goal.name]
+            elapsed = now - stamps[k]
+            stamps[k] = now
+            if origin is None:
+                origin = [self._goals[name] for name in self._names]
+            origin[k] = self._goals[goal.name]
+            self._goals[goal.name] = goal.value
+            self._speeds[k] = goal.speed
+            if 0.0 < elapsed <= STREAM_WINDOW:
+                interval = max(interval, elapsed)
+            else:
+                stream = False
+        if stream and interval > 0.0:
+            # Met at the stream's pace: reached when the stream's next goal is due.
+            self._origin = origin
+            self._since = max(self._sampled, now)
+            self._until = self._since + interval
+        else:
+            self._origin = None
+        self._duration = duration
+        self._planned = False
 
     def advance(self, now: float, *, fresh: bool = False) -> dict[str, float] | None:
-        """Move every joint as far toward its goal as its budget allows (with `fresh`, only
-        the joints the last `set_goals` found at rest: a command's own step).
+        """The trajectory's targets for `now` (see the class docstring); with `fresh` (a
+        command in the middle of a burst) only if the robot was at rest: a robot already on
+        its way takes the newest goals at its next tick.
 
         Returns the full target vector if any joint moved, else None.
         """
-        changed = moving = False
-        for motion in self._fresh if fresh else self._joints.values():
-            # (`desired` inlined for a move without a curve: this runs per joint and command)
-            desired = motion.goal if motion.profile is None else motion.desired(now)
-            delta = desired - motion.position
-            if delta != 0.0:
-                motion.refill(now)
-                if abs(delta) <= motion.tokens:
-                    motion.position = desired
-                    motion.tokens -= abs(delta)
-                else:
-                    motion.position += math.copysign(motion.tokens, delta)
-                    motion.tokens = 0.0
+        if fresh and not self._fresh:
+            return None
+        sample = now + self._lead
+        if not self._planned:
+            self._plan(max(self._sampled, now))
+        if self._trajectory is None or sample <= self._sampled:
+            return None
+        targets = self._sample(sample)
+        self._sampled = sample
+        position = self._position
+        changed = False
+        for name, value in zip(self._names, targets, strict=True):
+            if position[name] != value:
+                position[name] = value
                 changed = True
-            if motion.profile is not None:
-                if motion.position == motion.goal and now >= motion.profile[1] + motion.profile[2]:
-                    motion.profile = None
-                else:
-                    moving = True
-            elif motion.position != motion.goal:
-                moving = True
-        self._moving = None if fresh else moving  # `fresh` saw only some joints
-        return self.positions if changed else None
+        return position.copy() if changed else None
+
+    def _state(self, at: float) -> tuple[list[float], list[float], list[float]]:
+        """Position, velocity and acceleration of every joint at sample time `at`."""
+        trajectory = self._trajectory
+        if trajectory is None:
+            return [self._position[name] for name in self._names], self._zeros, self._zeros
+        p, v, a = trajectory.at_time(min(at - self._t0, trajectory.duration))
+        return p, v, a
+
+    def _plan(self, start: float) -> None:
+        """Plan from the trajectory's state at sample time `start` to the goals: at rest, or,
+        following a stream, at the stream's velocity when its next goal is due."""
+        p, v, a = self._state(start)
+        self._planned = True
+        goals = [self._goals[name] for name in self._names]
+        velocity = self._zeros
+        duration = self._duration
+        if self._origin is not None:
+            velocity = self._stream_velocity()
+            duration = self._until - start
+        if p == goals and not any(v) and not any(a) and not any(velocity):
+            self._trajectory = None
+            self._duration = None
+            return
+        inp = self._input
+        inp.current_position = p
+        inp.current_velocity = v
+        inp.current_acceleration = a
+        inp.target_position = goals
+        inp.target_velocity = velocity
+        inp.max_velocity = self._speeds
+        inp.minimum_duration = duration
+        self._duration = None
+        trajectory = Trajectory(len(goals))
+        self.plans += 1
+        self._otg.calculate(inp, trajectory)
+        self._trajectory = trajectory
+        self._t0 = start
+
+    def _stream_velocity(self) -> list[float]:
+        """The stream's velocity, per joint: inside the joint's cap, and none where braking
+        from it at the stream's last goal could pass a limit."""
+        assert self._origin is not None
+        span = self._until - self._since
+        velocity = []
+        for k, name in enumerate(self._names):
+            goal = self._goals[name]
+            cap = STREAM_SHARE * self._speeds[k]
+            v = max(-cap, min(cap, (goal - self._origin[k]) / span))
+            a = self._accel[k]
+            reach = v * v / (2.0 * a) + abs(v) * a / self._jerk[k]  # braking, jerk included
+            lower, upper = self._bounds[k]
+            velocity.append(v if lower <= goal + math.copysign(reach, v) <= upper else 0.0)
+        return velocity
+
+    def _sample(self, at: float) -> list[float]:
+        """Every joint's target at sample time `at`; the trajectory ends on the goals, and a
+        stream whose next goal is overdue comes to rest on its last one."""
+        trajectory = self._trajectory
+        assert trajectory is not None
+        local = at - self._t0
+        if local < trajectory.duration:
+            return list(trajectory.at_time(local)[0])
+        if self._origin is not None:  # the stream ended (or is late): brake from its end
+            self._origin = None
+            self._plan(self._t0 + trajectory.duration)
+            if self._trajectory is None:
+                return [self._goals[name] for name in self._names]
+            return self._sample(at)
+        self._trajectory = None  # arrived: exactly on the goals, at rest
+        return [self._goals[name] for name in self._names]
 
     def stop_at(self, positions: Mapping[str, float]) -> None:
         """Stop every joint at `positions` (targets already sent): the way on was unsafe."""
-        for name, motion in self._joints.items():
-            motion.position = motion.goal = self._goals[name] = positions[name]
-            motion.profile = None
-        self._moving = False
+        for name in self._names:
+            self._position[name] = self._goals[name] = positions[name]
+        self._rest()
+
+    def _rest(self) -> None:
+        """Every joint rests where its last target put it."""
+        self._trajectory = None
+        self._origin = None
+        self._planned = True
+        self._duration = None
 
     def adopt(self, pose: Mapping[str, float]) -> dict[str, float]:
-        """Take `pose` (every joint, clamped to its limits) as where each joint is: the robot
-        learns where its arm is. A joint at rest stays there (its goal becomes that value);
-        a joint that a command is moving goes on to its goal from there, velocity-limited
-        (the command asked for that joint to move; a curve it was on is dropped). Returns
-        the pose taken."""
-        for name, motion in self._joints.items():
+        """Take `pose` (every joint, clamped to its limits) as where each joint is, at rest:
+        the robot learns where its arm is. A joint at rest stays there (its goal becomes that
+        value); a joint that a command is moving goes on to its goal from there. Returns the
+        pose taken."""
+        moving = self.moving
+        for name in self._names:
             value = self._clamps[name](float(pose[name]))
-            if motion.position == motion.goal and motion.profile is None:
-                motion.goal = self._goals[name] = value
-            motion.position = value
-            motion.profile = None
-        self._moving = None
+            if not moving or self._position[name] == self._goals[name]:
+                self._goals[name] = value
+            self._position[name] = value
+        self._rest()
+        self._sampled = -math.inf
+        self._planned = self._position == self._goals
         return self.positions
 
     def freeze(self) -> None:
         """Stop every joint where it is: goals become the current targets."""
-        for name, motion in self._joints.items():
-            motion.goal = self._goals[name] = motion.position
-            motion.profile = None
-        self._moving = False
+        self._goals.update(self._position)
+        self._rest()
 
 
 class RateLimiter:

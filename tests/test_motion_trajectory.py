@@ -1,0 +1,250 @@
+"""Jerk-limited trajectories, checked on the targets the slaves are sent (specs/motion.md).
+
+The core is driven as the robot's actor drives it (a command's own targets, then control ticks
+while it moves) on a simulated clock, and every emitted target is recorded with the trajectory
+time it stands for. Velocity, acceleration and jerk are then taken by divided differences of
+those targets: for a trajectory whose jerk is bounded by J, every third divided difference
+times 6 lies within [-J, J] (it is the jerk somewhere in between), and likewise for the
+acceleration and velocity; so the only tolerance needed is float rounding, stated as `TOL`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Iterable, Mapping
+
+import pytest
+
+from arena.robot.core import RobotCore
+from arena.robot.model import RobotModel, load_robot_model
+from arena.robot.motion import Command, JointGoal
+
+MODEL = load_robot_model("so-arm100")
+#: Relative tolerance on the limits (float rounding of divided differences over 10 ms).
+TOL = 1e-3
+#: Factor over the time-optimal duration within which a step from rest arrives (plus one
+#: tick of sampling: the targets are emitted on the control ticks, not at the exact instant).
+OPTIMAL_FACTOR = 1.05
+#: Median lag (seconds) of a 100 Hz minimum-jerk sweep at up to 180 deg/s, from when the leader
+#: was somewhere to the time the target that gets there stands for (a tick after it is sent):
+#: 26 ms measured with the so-arm100's limits (specs/motion.md).
+LAG = 0.035
+#: Seconds between the targets the derivatives are taken of (see `derivatives`).
+SPACING = 1e-3
+
+Schedule = Iterable[tuple[float, Mapping[str, float]]]
+
+
+def fast_core(model: RobotModel = MODEL) -> RobotCore:
+    """A core with the command rate limit out of the way."""
+    policy = dataclasses.replace(model.safety, command_rate=1e9, command_burst=10**9)
+    return RobotCore(model, 0.0, policy)
+
+
+def drive(
+    core: RobotCore, schedule: Schedule, until: float, *, speed: float | None = None
+) -> list[tuple[float, dict[str, float]]]:
+    """Run `schedule` (time, goals) through `core` as the actor does; the emitted targets, each
+    with the trajectory time it stands for (a target emitted at `now` is the trajectory at
+    `now + tick`), from the start pose on."""
+    lead = core.tick_interval
+    emitted = [(lead * 0, core.motion.positions)]
+    pending = sorted(schedule, key=lambda item: item[0])
+    next_tick: float | None = None
+    now = 0.0
+    while now <= until:
+        due_command = pending[0][0] if pending else math.inf
+        due_tick = next_tick if next_tick is not None else math.inf
+        now = min(due_command, due_tick)
+        if now == math.inf or now > until:
+            break
+        if due_command <= due_tick:
+            _, goals = pending.pop(0)
+            joints = tuple(JointGoal(n, v, speed=speed) for n, v in goals.items())
+            result, step = core.command(None, Command(joints), now)
+            assert result.accepted, result
+            targets = step.targets
+            if next_tick is None:
+                next_tick = core.next_tick(now)
+        else:
+            next_tick = None
+            targets = core.tick(now)
+            next_tick = core.next_tick(now)
+        if targets is not None:
+            emitted.append((now + lead, targets))
+    return emitted
+
+
+def derivatives(
+    emitted: list[tuple[float, dict[str, float]]], joint: str
+) -> tuple[list[float], list[float], list[float]]:
+    """Velocity, acceleration and jerk of one joint's targets by divided differences (of the
+    targets at least `SPACING` apart: any subset of a trajectory's samples bounds it as well,
+    and two a hair apart would only measure rounding)."""
+    times: list[float] = []
+    values: list[float] = []
+    for t, targets in emitted:
+        if times and t - times[-1] < SPACING:
+            times.pop()
+            values.pop()
+        times.append(t)
+        values.append(targets[joint])
+
+    def divided(order: int) -> list[float]:
+        table = values[:]
+        for k in range(1, order + 1):
+            table = [
+                (table[i + 1] - table[i]) / (times[i + k] - times[i]) for i in range(len(table) - 1)
+            ]
+        return [math.factorial(order) * d for d in table]
+
+    return divided(1), divided(2), divided(3)
+
+
+def assert_within_limits(emitted: list[tuple[float, dict[str, float]]], model: RobotModel) -> None:
+    """No joint's targets exceed its velocity, acceleration or jerk limit."""
+    for joint in model.joints:
+        v, a, j = derivatives(emitted, joint.name)
+        peaks = (max(map(abs, v), default=0), max(map(abs, a), default=0), max(map(abs, j)))
+        limits = (joint.max_velocity, joint.max_acceleration, joint.max_jerk)
+        for what, peak, limit in zip(
+            ("velocity", "acceleration", "jerk"), peaks, limits, strict=True
+        ):
+            assert peak <= limit * (1 + TOL), f"{joint.name}: {what} {peak:g} > {limit:g}"
+
+
+def optimal_duration(distance: float, v: float, a: float, j: float) -> float:
+    """The least time a rest-to-rest move of `distance` takes under the three limits (the
+    textbook seven-phase profile, solved here without Ruckig)."""
+
+    def ramp(peak: float) -> tuple[float, float]:  # time and distance from rest to `peak`
+        t = peak / a + a / j if peak >= a * a / j else 2 * math.sqrt(peak / j)
+        return t, peak * t / 2
+
+    t_v, d_v = ramp(v)
+    if 2 * d_v <= distance:
+        return 2 * t_v + (distance - 2 * d_v) / v
+    low, high = 0.0, v
+    for _ in range(200):
+        mid = (low + high) / 2
+        low, high = (mid, high) if 2 * ramp(mid)[1] < distance else (low, mid)
+    return 2 * ramp(low)[0]
+
+
+def arrival(emitted: list[tuple[float, dict[str, float]]], goals: Mapping[str, float]) -> float:
+    """When the targets first stood on `goals`."""
+    for t, targets in emitted:
+        if all(targets[name] == value for name, value in goals.items()):
+            return t
+    raise AssertionError(f"never arrived at {goals}")
+
+
+@pytest.mark.parametrize("distance", [0.5, 2.2, 10.0, 45.0, 90.0])
+def test_a_step_command_keeps_the_limits_and_arrives_near_the_optimal_time(distance: float) -> None:
+    core = fast_core()
+    emitted = drive(core, [(0.0, {"Rotation": distance})], until=5.0)
+    assert_within_limits(emitted, MODEL)
+    joint = MODEL.joint("Rotation")
+    assert joint is not None
+    best = optimal_duration(distance, joint.max_velocity, joint.max_acceleration, joint.max_jerk)
+    took = arrival(emitted, {"Rotation": distance})
+    assert best <= took <= best * OPTIMAL_FACTOR + core.tick_interval
+    assert core.next_tick(took) is None  # at rest on its goal: no more ticks
+
+
+def test_a_reversal_mid_motion_bends_the_trajectory_without_a_velocity_step() -> None:
+    core = fast_core()
+    emitted = drive(core, [(0.0, {"Rotation": 90.0}), (0.3, {"Rotation": -30.0})], until=5.0)
+    assert_within_limits(emitted, MODEL)
+    v, _, _ = derivatives(emitted, "Rotation")
+    assert max(v) > 150.0 and min(v) < -150.0  # it did go both ways, fast
+    assert emitted[-1][1]["Rotation"] == -30.0
+    assert max(targets["Rotation"] for _, targets in emitted) < 90.0  # bent before the goal
+
+
+def test_a_burst_of_commands_keeps_the_limits_and_ends_on_the_newest() -> None:
+    core = fast_core()
+    burst = [(k * 1e-4, {"Rotation": 40.0 * math.sin(k), "Pitch": 5.0 * k % 30}) for k in range(50)]
+    emitted = drive(core, burst, until=5.0)
+    assert_within_limits(emitted, MODEL)
+    assert emitted[-1][1]["Rotation"] == burst[-1][1]["Rotation"]
+    assert emitted[-1][1]["Pitch"] == burst[-1][1]["Pitch"]
+
+
+def test_a_policy_like_chunk_stream_keeps_the_limits_and_settles_on_the_last_action() -> None:
+    # 30 actions a second, in chunks of 10 whose starts disagree with the chunk before
+    # (each chunk a ramp from a jumped start): the seams a policy makes.
+    core = fast_core()
+    schedule = []
+    for k in range(60):
+        chunk, step = divmod(k, 10)
+        value = (-15.0 if chunk % 2 else 15.0) + 2.0 * step
+        schedule.append((k / 30, {"Rotation": value, "Elbow": -value / 2}))
+    emitted = drive(core, schedule, until=6.0)
+    assert_within_limits(emitted, MODEL)
+    assert emitted[-1][1]["Rotation"] == schedule[-1][1]["Rotation"]
+    assert emitted[-1][1]["Elbow"] == schedule[-1][1]["Elbow"]
+
+
+def test_a_smooth_stream_is_tracked_closely_and_the_end_lands_on_the_last_goal() -> None:
+    # A leader arm's sweep at 100 Hz (minimum-jerk, 60 degrees in 0.625 s: 180 deg/s at its
+    # peak): the trajectory meets the stream's velocity instead of stopping at every goal.
+    core = fast_core()
+
+    def leader(t: float) -> float:
+        f = min(1.0, t / 0.625)
+        return 60.0 * f**3 * (10 - 15 * f + 6 * f * f)
+
+    schedule = [(k / 100, {"Rotation": leader(k / 100)}) for k in range(1, 64)]
+    emitted = drive(core, schedule, until=3.0)
+    assert_within_limits(emitted, MODEL)
+    # Lag: from when the leader was somewhere to when the emitted target got there.
+    lags = []
+    for t, targets in emitted:
+        x = targets["Rotation"]
+        if 3.0 < x < 57.0:
+            low, high = 0.0, 0.625
+            for _ in range(60):
+                mid = (low + high) / 2
+                low, high = (mid, high) if leader(mid) < x else (low, mid)
+            lags.append(t - low)
+    lags.sort()
+    assert lags[len(lags) // 2] <= LAG  # (from the time a target stands for: a tick after its send)
+    assert emitted[-1][1]["Rotation"] == pytest.approx(60.0)
+    assert max(targets["Rotation"] for _, targets in emitted) <= 60.0 + 1.0  # overshoot bound
+
+
+def test_a_command_speed_caps_the_trajectory() -> None:
+    core = fast_core()
+    emitted = drive(core, [(0.0, {"Rotation": 30.0})], until=5.0, speed=20.0)
+    v, _, _ = derivatives(emitted, "Rotation")
+    assert max(v) <= 20.0 * (1 + TOL)
+    assert emitted[-1][1]["Rotation"] == 30.0
+
+
+def test_an_estop_freezes_at_once_mid_motion() -> None:
+    from arena.robot import safety as sm
+
+    core = fast_core()
+    emitted = drive(core, [(0.0, {"Rotation": 90.0})], until=0.2)
+    held = emitted[-1][1]
+    core.handle(sm.EStop("test"), 0.2)
+    assert core.motion.goals == held and not core.motion.moving
+    assert core.tick(0.21) is None and core.next_tick(0.21) is None
+
+
+def test_the_issues_move_runs_the_straight_line_the_guard_checked() -> None:
+    # Issue 57: from zero to Rotation -45, Pitch 30, Elbow 30, Wrist_Pitch -40 is accepted with
+    # nothing clamped; with joints at their own pace the arm left the checked line and the
+    # guard stopped it part-way. Joints in step: every target on the line, and it arrives.
+    core = fast_core()
+    goal = {"Rotation": -45.0, "Pitch": 30.0, "Elbow": 30.0, "Wrist_Pitch": -40.0}
+    emitted = drive(core, [(0.0, goal)], until=5.0)
+    assert core.collision_stops == 0
+    assert {name: emitted[-1][1][name] for name in goal} == goal
+    for _, targets in emitted:
+        share = targets["Rotation"] / goal["Rotation"]
+        for name, value in goal.items():
+            assert targets[name] == pytest.approx(share * value, abs=1e-9)
+    assert_within_limits(emitted, MODEL)
