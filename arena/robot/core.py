@@ -105,6 +105,10 @@ class RobotCore:
         self.workspace = model.workspace
         #: Moves stopped on the way because an emitted target would have collided.
         self.collision_stops = 0
+        #: The last such stop not yet reported: (who commanded the move, what it would have
+        #: hit); `take_stop` hands it to the actor, which tells them.
+        self.stop: tuple[str, str] | None = None
+        self._commander = MANUAL_SOURCE  # who gave the last accepted command
         self._to_urdf = tuple((j.name, j.urdf_name, j.to_urdf) for j in model.joints)
         # Per joint of the model, its place in the guard's kinematics (None if not there): the
         # references are kept in the model's order and wire degrees, as the limiter lists its
@@ -371,6 +375,7 @@ class RobotCore:
                 clamps = [*clamps, *short]
                 message = "stopped short of a collision"
         self.motion.set_goals(goals, command.duration, now)
+        self._commander = key
         targets = self._advance(now, fresh=in_burst)
         result = CommandResult(True, None, message, tuple(clamps)) if clamps else _ACCEPTED
         if self.joining:  # (rare: one check per command otherwise)
@@ -429,10 +434,16 @@ class RobotCore:
             if hit is not None:
                 self.motion.stop_at(self._sent)
                 self.collision_stops += 1
+                self.stop = (self._commander, str(hit))
                 return None
             self._remember(targets, pose, clearance)
         self._sent = targets
         return targets
+
+    def take_stop(self) -> tuple[str, str] | None:
+        """The collision stop not yet reported (see `stop`), once."""
+        stop, self.stop = self.stop, None
+        return stop
 
     def _near_reference(self, degrees: dict[str, float]) -> bool:
         """True when no part of the arm can have moved from a pose checked in full as far as

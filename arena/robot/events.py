@@ -69,7 +69,7 @@ class MasterNotice(msgspec.Struct, frozen=True, gc=False):
     """Something a master should know: it was detached (`by`: who took over), or the robot
     changed state."""
 
-    kind: str  # "detached" | "state"
+    kind: str  # "detached" | "state" | "stopped" (a move stopped short of a collision)
     code: ErrorCode | None = None
     message: str = ""
     mode: Mode | None = None

@@ -10,7 +10,7 @@ import trio
 
 from arena.drivers.sequence_master import SequenceMaster
 from arena.protocol import messages as wire
-from arena.protocol.errors import ArenaError, ErrorCode
+from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot.events import MasterNotice
 from arena.robot.handle import Robot
 from arena.robot.links import DETACHED_LINK, MasterLink
@@ -89,6 +89,10 @@ async def _forward_master_notices(
         if notice.kind == "detached":
             await _send_detached(connection, notice)
             return
+        if notice.kind == "stopped":  # a move of this master's stopped after its ack
+            code = str(notice.code or ErrorCode.COLLISION)
+            data = wire.ErrorData(code, notice.message, severity=Severity.WARNING)
+            await connection.send(wire.ErrorMessage(timestamp=wire.now_iso(), data=data))
     if player.releasing:
         return  # the reader answers the release and closes
     # The robot closed the link (deleted, or detached without a word).
