@@ -74,7 +74,9 @@ async def test_a_command_reaches_the_slave_at_once(
     assert result.accepted
     message = await link.receive()
     assert isinstance(message, SlaveTarget)
-    assert message.joints["Rotation"] == 5.0 and message.joints["Jaw"] == 3.0
+    # The trajectory's first step, both joints on their way together (a tick ahead).
+    assert 0.0 < message.joints["Rotation"] < 5.0 and 0.0 < message.joints["Jaw"] < 3.0
+    assert message.joints["Rotation"] / 5.0 == pytest.approx(message.joints["Jaw"] / 3.0)
     assert message.time == before == trio.current_time()  # no tick, no waiting
 
 
@@ -120,11 +122,13 @@ async def test_a_run_of_commands_is_decided_at_once_each_on_its_own(
     assert [e.command for e in events] == run  # type: ignore[attr-defined]
     assert [e.result for e in events] == results  # type: ignore[attr-defined]
     assert robot.snapshot().joint("Rotation").goal == 3.0
-    newest = await slave.receive()
-    assert isinstance(newest, SlaveTarget) and not newest.more_follow
-    # With more of the burst still to come, even the last one's target says so.
+    newest = await slave.receive()  # the run's first step (the rest, at the same instant,
+    assert isinstance(newest, SlaveTarget)  # move nothing more: a trajectory takes time)
     while robot.snapshot().joint("Rotation").virtual_value != 3.0:  # the arm arrives
-        await slave.receive()  # the ticks' targets, each at its tick (mock clock)
+        tick = await slave.receive()  # the ticks' targets, each at its tick (mock clock)
+        assert isinstance(tick, SlaveTarget) and not tick.more_follow
+    # With more of the burst still to come, even the last one's target says so.
+    autojump_clock.jump(robot.core.tick_interval)  # (at the arrival's instant: no step)
     await trio.testing.wait_all_tasks_blocked()
     results = alice.command_run_now([Command.of({"Rotation": 2.0})], burst_goes_on=True)
     assert results is not None and results[0].accepted
@@ -162,7 +166,7 @@ async def test_the_mock_slave_follows_after_its_delays(
     await trio.sleep_until(start + 0.069)
     assert robot.snapshot().joint("Elbow").real_value == 0.0  # the arm starts at rest
     await trio.sleep_until(start + 0.071)
-    assert robot.snapshot().joint("Elbow").real_value == -5.0
+    assert robot.snapshot().joint("Elbow").real_value < 0.0  # the first target, on its way
     await robot.command(Command.of({"Rotation": 45.0, "Pitch": -30.0}))
     await trio.sleep(1.0)
     snapshot = robot.snapshot()
@@ -181,8 +185,12 @@ async def test_a_slow_slave_gets_only_the_newest_target(
         await trio.sleep(0.01)
     message = await link.receive()
     assert isinstance(message, SlaveTarget)
-    assert message.joints["Rotation"] == pytest.approx(5.0)
-    assert link.mailbox.coalesced == 49
+    assert link.mailbox.coalesced >= 49  # every target but the newest (ticks' included)
+    with trio.fail_after(5):
+        # The rest of the way (a stream's end brakes past its last goal and comes back).
+        while message.joints["Rotation"] != 5.0 or robot.core.motion.moving:
+            message = await link.receive()
+            assert isinstance(message, SlaveTarget)
     with trio.move_on_after(1):
         await link.receive()
         pytest.fail("a backlog reached the slave")
@@ -543,9 +551,11 @@ async def test_a_command_decided_at_once_tells_the_slaves_whether_more_follow(
     slave = await robot.connect_slave("s1")
     master = await robot.connect_master("alice")
     follows = []
-    for value, in_burst in ((5.0, None), (10.0, True), (15.0, False)):
+    # Moves so small that each is one step (a duration: steps, not a stream), a tick apart.
+    for value, in_burst in ((0.001, None), (0.002, True), (0.003, False)):
+        autojump_clock.jump(robot.core.tick_interval)
         await trio.testing.wait_all_tasks_blocked()  # the robot idle: decided at once
-        command = Command.of({"Rotation": value})
+        command = Command.of({"Rotation": value}, duration=0.0)
         result = (
             master.command_now(command)
             if in_burst is None
@@ -694,7 +704,7 @@ async def test_a_crashing_slave_is_detached_and_reported(
     assert (await other_robot.command(Command.of({"Rotation": 1.0}))).accepted
     await robot.reset()
     assert (await robot.command(Command.of({"Rotation": 3.0}))).accepted
-    await trio.sleep(0.01)
+    await trio.sleep(1.0)  # along the trajectory
     assert healthy.targets[-1][1]["Rotation"] == 3.0
 
 
@@ -745,8 +755,12 @@ async def test_a_slow_observer_does_not_slow_the_robot(
             assert (await robot.command(Command.of({"Rotation": i * 0.01}))).accepted
         assert trio.current_time() == start
         assert slow.dropped > 0 and len(slow) == 5
-    message = await link.receive()
-    assert isinstance(message, SlaveTarget) and message.joints["Rotation"] == pytest.approx(0.99)
+    rotation = 0.0
+    with trio.fail_after(10):
+        while rotation != pytest.approx(0.99):  # the first step, then the ticks' targets
+            message = await link.receive()
+            assert isinstance(message, SlaveTarget)
+            rotation = message.joints["Rotation"]
 
 
 async def test_a_queue_holding_wakes_wakes_its_reader_once_only_if_items_are_left() -> None:
