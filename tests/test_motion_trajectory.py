@@ -248,3 +248,24 @@ def test_the_issues_move_runs_the_straight_line_the_guard_checked() -> None:
         for name, value in goal.items():
             assert targets[name] == pytest.approx(share * value, abs=1e-9)
     assert_within_limits(emitted, MODEL)
+
+
+def test_a_state_ruckig_finds_no_profile_for_is_planned_all_the_same() -> None:
+    # Ruckig 0.19 raises on this state (met in tests/test_collision.py's burst), with any
+    # synchronization; the same with the acceleration a millionth lower it solves.
+    from ruckig import Trajectory
+
+    from arena.robot.motion import MotionLimiter
+
+    limiter = MotionLimiter(MODEL, 0.0)
+    inp = limiter._input
+    inp.current_position = [17.78371797337839, 0, 0, 0, 0, 0]
+    inp.current_velocity = [-46.41630668564321, 0, 0, 0, 0, 0]
+    inp.current_acceleration = [-5760.374432796545, 0, 0, 0, 0, 0]
+    inp.target_position = [16.1, 0, 0, 0, 0, 0]
+    inp.target_velocity = [0.0] * 6
+    inp.max_velocity = [j.max_velocity for j in MODEL.joints]
+    trajectory = Trajectory(6)
+    assert limiter._solve(trajectory)
+    assert limiter.fallbacks >= 1
+    assert trajectory.at_time(trajectory.duration)[0][0] == pytest.approx(16.1)

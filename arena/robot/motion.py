@@ -17,6 +17,7 @@ import msgspec
 from ruckig import (
     InputParameter,
     Ruckig,
+    RuckigError,
     Synchronization,
     Trajectory,
 )
@@ -185,8 +186,10 @@ class MotionLimiter:
         self._t0 = 0.0  # sample time at which the trajectory starts
         self._sampled = -math.inf  # sample time of the last emitted targets
         self._fresh = False  # the last `set_goals` found every joint at rest
-        #: Trajectories planned (benchmarks and tests count them).
+        #: Trajectories planned (benchmarks and tests count them), and how many of them a
+        #: stream's timing made Ruckig fail, planned again as steps.
         self.plans = 0
+        self.fallbacks = 0
 
     @property
     def positions(self) -> dict[str, float]:
@@ -293,9 +296,32 @@ class MotionLimiter:
         self._duration = None
         trajectory = Trajectory(len(goals))
         self.plans += 1
-        self._otg.calculate(inp, trajectory)
+        if not self._solve(trajectory):
+            self.stop_at(self._position)  # (never seen: every retry failed) safe, if abrupt
+            return
         self._trajectory = trajectory
         self._t0 = start
+
+    def _solve(self, trajectory: Trajectory) -> bool:
+        """Ruckig on the input as set, retried when it finds no profile: Ruckig 0.19 fails
+        now and then on a state near its acceleration limit (seen: -5760 of 6016 deg/s^2),
+        which the same state with the acceleration a millionth lower solves; a stream's
+        timing that still fails is planned as a step. Each retry is counted (`fallbacks`)."""
+        inp = self._input
+        for attempt in range(4):
+            try:
+                self._otg.calculate(inp, trajectory)
+                return True
+            except RuckigError:
+                self.fallbacks += 1
+                inp.current_acceleration = [x * (1.0 - 1e-6) for x in inp.current_acceleration]
+                if attempt >= 1:
+                    self._origin = None
+                    inp.target_velocity = self._zeros
+                    inp.minimum_duration = None
+                if attempt >= 2:
+                    inp.current_acceleration = [x * 0.999 for x in inp.current_acceleration]
+        return False
 
     def _stream_velocity(self) -> list[float]:
         """The stream's velocity, per joint: inside the joint's cap, and none where braking
