@@ -47,8 +47,17 @@ def in_order(seen: list[float]) -> bool:
 async def fast_server(
     start_server: StartServer, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> RunningServer:
-    """A server with robot `fast` (rate limit lifted) and small outbound buffers."""
-    monkeypatch.setenv(TYPES_PATH_ENV, str(bench_types(tmp_path / "types")))
+    """A server with robot `fast` (rate limit lifted, and acceleration and jerk limits so
+    high that each small step is one target: what is measured here is the messages, not the
+    trajectory) and small outbound buffers."""
+    types = bench_types(tmp_path / "types")
+    config = types / BENCH_TYPE / "robot.toml"
+    config.write_text(
+        config.read_text().replace(
+            "[[joints]]", "[[joints]]\nmax_acceleration = 1e9\nmax_jerk = 1e15"
+        )
+    )
+    monkeypatch.setenv(TYPES_PATH_ENV, str(types))
     server = await start_server(joint_states_interval=0.0)
     async with server.client() as http:
         created = await http.post("/api/robots", json={"robot_type": BENCH_TYPE, "id": "fast"})

@@ -125,6 +125,10 @@ def _is_finite_number(value: object) -> bool:
     return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
 
 
+#: Seconds within which a trajectory counts as at its end: a tick that falls on the end in
+#: real arithmetic lands on either side of it in floating point (a replay's times are the
+#: recording's, rounded), and must arrive all the same.
+EPSILON = 1e-9
 #: Seconds between two goals of a joint up to which they are taken as one stream (a leader arm,
 #: a policy, a slider dragged), followed along the line between them; goals further apart are
 #: steps, reached at rest.
@@ -345,7 +349,7 @@ class MotionLimiter:
         trajectory = self._trajectory
         assert trajectory is not None
         local = at - self._t0
-        if local < trajectory.duration:
+        if local < trajectory.duration - EPSILON:
             return list(trajectory.at_time(local)[0])
         if self._origin is not None:  # the stream ended (or is late): brake from its end
             self._origin = None
