@@ -24,7 +24,7 @@ from typing import Any
 import trio
 
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
-from arena.robot import inbox, safety
+from arena.robot import inbox, safety, stops
 from arena.robot.core import MANUAL_SOURCE, JoinChange, RobotCore, Step
 from arena.robot.episodes import Episode, Episodes
 from arena.robot.events import (
@@ -470,8 +470,7 @@ class Actor:
     def _send_targets(
         self, targets: dict[str, float] | None, now: float, *, more_follow: bool = False
     ) -> None:
-        if self.core.stop is not None:
-            self._report_stop(now)
+        self.core.stop is None or self._publish(stops.report_stop(self, now))  # (specs/motion.md)
         if targets is not None:
             target = SlaveTarget(targets, now, more_follow)
             joining = self.core.joining  # they get targets of their own (`_carry_out_joins`)
@@ -481,25 +480,6 @@ class Actor:
             self._publish(TargetsSent(self.robot_id, targets, now, wallclock.time()))
         if self.next_tick is None:
             self.next_tick = self.core.next_tick(now)
-
-    def _report_stop(self, now: float) -> None:
-        """A move accepted earlier was stopped on its way (a target on it would have
-        collided): whoever commanded it is told (a master on its link, as an `error` on its
-        socket), and a `COLLISION` fault is published (viewers, the recording)."""
-        stop = self.core.take_stop()
-        if stop is None:
-            return
-        source, hit = stop
-        message = (
-            f"The move was stopped on its way: going on would bring {hit} together; "
-            "the arm holds where it stopped."
-        )
-        log.warning("robot %s: %s", self.robot_id, message)
-        master = self.peers.master_named(source)
-        if master is not None:
-            master.link.notices.put(MasterNotice("stopped", ErrorCode.COLLISION, message))
-        told = (ErrorCode.COLLISION, message, Severity.WARNING, None, now, wallclock.time())
-        self._publish(FaultReported(self.robot_id, source, *told))
 
     def _carry_out_joins(self, changes: Iterable[JoinChange], now: float) -> None:
         """Send joining slaves their own targets, the robot's an adopted pose; report each
