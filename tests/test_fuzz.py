@@ -213,8 +213,11 @@ async def test_multi_megabyte_frames_get_an_error(server: RunningServer) -> None
             await master.send_message(padded(3 << 20))
             assert (await receive(master, "error"))["data"]["code"] == "MESSAGE_TOO_LARGE"
             assert (await command(master, {"Rotation": 2}))["data"]["status"] == "accepted"
-        after = (await http.get("/api/robots/demo-arm/joints")).json()
-        assert after[0]["virtual_value"] == pytest.approx(2.0)  # only the valid command moved it
+            with trio.fail_after(30):  # the move takes its trajectory's time
+                while (after := (await http.get("/api/robots/demo-arm/joints")).json())[0][
+                    "virtual_value"
+                ] != pytest.approx(2.0):
+                    await trio.sleep(0.01)  # only the valid command moved it
         assert [j["virtual_value"] for j in after[1:]] == [j["virtual_value"] for j in before[1:]]
 
 
