@@ -125,6 +125,15 @@ class MasterSession(WatchingSession):
         if (ack.get("data") or {}).get("status") == "refused":
             raise refusal(ack)
 
+    async def declare_policy(
+        self, fps: float, stall_periods: int = 2, timeout: float | None = None
+    ) -> None:
+        """Say that this master runs a policy at `fps`: the server records its inferences
+        (`send_inference`) and runs its watchdog over `stall_periods` periods."""
+        ack = await self._request(messages.policy(fps, stall_periods), "ack", timeout)
+        if (ack.get("data") or {}).get("status") == "refused":
+            raise refusal(ack)
+
     async def release(self, timeout: float | None = None, *, hold: bool = False) -> dict[str, Any]:
         """Hand the robot back: it goes `idle` (it stays `estopped` if it was), no e-stop; the
         commands it accepted complete, unless `hold`: then the arm stops where it is. Returns

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import datetime
 import time
-from typing import Any, Literal, TypeAlias
+from typing import Annotated, Any, Literal, TypeAlias
 
 import msgspec
 
@@ -122,6 +122,45 @@ class ReleaseMessage(_Msg, tag="release", forbid_unknown_fields=True):
     data: ReleaseData | None = None
 
 
+#: Seconds (a latency, an age): finite, not negative, under a day.
+Seconds = Annotated[float, msgspec.Meta(ge=0, le=86_400)]
+#: A count of actions or steps.
+Count = Annotated[int, msgspec.Meta(ge=0, le=2**31)]
+
+
+class PolicyData(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """A master that runs a policy elsewhere (`arena policy --url`) says so once: its control
+    rate and watchdog periods, so the server keeps its watchdog and its record as it does for
+    a policy it runs itself."""
+
+    fps: Annotated[float, msgspec.Meta(gt=0, le=1000)]
+    stall_periods: Annotated[int, msgspec.Meta(ge=1, le=1000)] = 2
+
+
+class PolicyMessage(_Msg, tag="policy", forbid_unknown_fields=True):
+    """Declare this master a policy (`PolicyData`)."""
+
+    data: PolicyData
+
+
+class InferenceData(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """One inference of a policy master that runs elsewhere, as `events.PolicyInferred`
+    records it (seconds; `frame_age` None: no camera)."""
+
+    timestep: Count
+    chunk_size: Count
+    kept: Count
+    latency: Seconds
+    inference: Seconds
+    frame_age: Seconds | None = None
+
+
+class InferenceMessage(_Msg, tag="inference", forbid_unknown_fields=True):
+    """Record one inference (`InferenceData`); only after `policy`."""
+
+    data: InferenceData
+
+
 MasterMessage: TypeAlias = (
     CommandMessage
     | SequenceMessage
@@ -129,6 +168,8 @@ MasterMessage: TypeAlias = (
     | EStopMessage
     | ResetMessage
     | ReleaseMessage
+    | PolicyMessage
+    | InferenceMessage
 )
 
 

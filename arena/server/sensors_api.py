@@ -90,13 +90,44 @@ async def detach_camera(robot_id: str, name: str) -> dict[str, Any]:
     return {"detached": name}
 
 
+#: The largest side a frame may be scaled to (`?width=&height=`).
+MAX_SCALED_SIDE = 4096
+
+
+def _scaled_size(args: Any) -> tuple[int, int] | None:
+    """`?width=W&height=H` (both or neither; even numbers, as JPEG's 4:2:0 needs them), else
+    None; `INVALID_VALUE` with the reason."""
+    given = [args.get(name) for name in ("width", "height")]
+    if given == [None, None]:
+        return None
+    # ASCII digits only, and short: str.isdigit() accepts "²" and int() refuses huge strings.
+    if not all(v is not None and v.isascii() and v.isdigit() and len(v) <= 5 for v in given):
+        raise ArenaError(
+            ErrorCode.INVALID_VALUE,
+            '"width" and "height" are given together, as whole numbers of pixels.',
+        )
+    width, height = (int(value) for value in given)
+    if not (2 <= width <= MAX_SCALED_SIDE and 2 <= height <= MAX_SCALED_SIDE) or (
+        width % 2 or height % 2
+    ):
+        raise ArenaError(
+            ErrorCode.INVALID_VALUE,
+            f'"width" and "height" are even numbers from 2 to {MAX_SCALED_SIDE} '
+            f"(given {width} x {height}).",
+        )
+    return width, height
+
+
 @blueprint.get("/api/robots/<robot_id>/cameras/<name>/frame")
 async def camera_frame(robot_id: str, name: str) -> Response:
-    """The newest frame as one JPEG."""
+    """The newest frame as one JPEG, at the camera's size or scaled to `?width=&height=` (a
+    policy's input size: what a remote policy fetches, so less travels)."""
+    size = _scaled_size(request.args)
     camera = _app().cameras.get(robot_id, name)
     with trio.move_on_after(2.0):
         frame = await camera.next_frame(-1)
-        response = Response(frame.jpeg, mimetype="image/jpeg")
+        jpeg = frame.jpeg if size is None else await camera.scaled(frame, *size)
+        response = Response(jpeg, mimetype="image/jpeg")
         response.headers["Cache-Control"] = "no-store"
         response.headers["X-Frame-Seq"] = str(frame.seq)
         return response

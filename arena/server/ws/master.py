@@ -27,6 +27,7 @@ from arena.server.ws.connection import (
     peer_ids,
 )
 from arena.server.ws.forwarder import FORWARDED, QUEUE_LENGTH, RobotEventForwarder
+from arena.server.ws.remote_policy import RemotePolicy
 from arena.server.ws.sequence_player import SequencePlayer
 
 
@@ -129,7 +130,8 @@ async def _master_reader(
     decided, recorded and acknowledged on its own and in order; what a run shares is the
     forwarder's hold and one write of the answers.
     """
-    handle = partial(_handle_master_message, connection, robot, link, player, nursery)
+    policy = RemotePolicy(robot, link)
+    handle = partial(_handle_master_message, connection, robot, link, player, policy, nursery)
     while True:
         raw = await connection.receive_text()
         if raw is None:
@@ -149,8 +151,10 @@ async def _master_reader(
             if isinstance(message, wire.CommandMessage):
                 run.append(message.data)
                 continue
-            if run and not await decide_commands(connection, link, forwarder, run, True, acks):
-                return
+            if run:
+                policy.commanded()
+                if not await decide_commands(connection, link, forwarder, run, True, acks):
+                    return
             run = []
             if isinstance(message, ArenaError):
                 await connection.send_error(message.code, message.message)
@@ -160,10 +164,12 @@ async def _master_reader(
             except ArenaError as error:
                 if not await connection.answer_error(error):
                     return
-        if run and not await decide_commands(
-            connection, link, forwarder, run, connection.ws.holds_more(), acks
-        ):
-            return
+        if run:
+            policy.commanded()
+            if not await decide_commands(
+                connection, link, forwarder, run, connection.ws.holds_more(), acks
+            ):
+                return
         connection.app.metrics.observe_latency(time.perf_counter() - started, len(frames))
         if closed:
             return
@@ -220,6 +226,7 @@ async def _handle_master_message(
     robot: Robot,
     link: MasterLink,
     player: SequencePlayer,
+    policy: RemotePolicy,
     nursery: trio.Nursery,
     message: wire.MasterMessage,
 ) -> None:
@@ -241,6 +248,18 @@ async def _handle_master_message(
     elif isinstance(message, wire.ResetMessage):
         await robot.reset()  # (a refused reset changed nothing: not recorded)
         robot.audit(connection.principal.audit_name(), "reset over WebSocket", link.master_id)
+    elif isinstance(message, wire.InferenceMessage):
+        policy.inferred(message.data)
+    elif isinstance(message, wire.PolicyMessage):
+        policy.declare(message.data, nursery)
+        robot.audit(
+            connection.principal.audit_name(),
+            f"remote policy at {message.data.fps:g} fps",
+            link.master_id,
+        )
+        await connection.send(
+            wire.AckMessage(timestamp=wire.now_iso(), data=wire.AckData("accepted"))
+        )
     elif isinstance(message, wire.HeartbeatMessage):
         await connection.send(wire.HeartbeatMessage(timestamp=wire.now_iso()))
     elif isinstance(message, wire.ReleaseMessage):
