@@ -73,6 +73,36 @@ async def test_a_policy_either_lerobot_saved_runs_in_a_worker_of_either(
     assert handled.result.accepted
 
 
+async def test_arena_policy_runs_a_06_policy_remotely_in_the_users_python(
+    start_server: Start, saved: dict[str, Path], newer: str
+) -> None:
+    """`arena policy --url --policy-python`: the remote worker is the user's LeRobot 0.6, and
+    the server records its inferences."""
+    from arena.policy.master import PolicySettings
+    from arena.policy.remote import run_remote
+    from arena.robot.events import PolicyInferred
+
+    server = await start_server(demo=True)
+    robot = await ready(server)
+    settings = PolicySettings(saved["act-0.6"], python=newer)
+    done = trio.Event()
+
+    async def remote() -> None:
+        await run_remote(settings, server.url, "demo-arm")
+        done.set()
+
+    with robot.subscribe(kinds=[CommandHandled, PolicyInferred]) as events:
+        async with trio.open_nursery() as nursery:
+            nursery.start_soon(remote)
+            inferred = await next_event(events, lambda e: isinstance(e, PolicyInferred))
+            handled = await next_event(events, lambda e: isinstance(e, CommandHandled))
+            async with server.client() as http:
+                await http.post("/api/robots/demo-arm/estop", json={"reason": "test"})
+            with trio.fail_after(120):
+                await done.wait()
+    assert inferred.policy.startswith("policy:act:") and handled.result.accepted
+
+
 async def test_both_workers_answer_an_observation_with_the_same_actions(
     saved: dict[str, Path], newer: str
 ) -> None:
