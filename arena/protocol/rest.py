@@ -242,7 +242,9 @@ class PolicyMasterBody(
     `stall_periods`: control periods without an action before the watchdog trips; `takeover`:
     displace the robot's master (else MASTER_ACTIVE while it has one); `environment_state`:
     the task's state for a policy that takes `observation.environment_state` (a reach
-    target, say), the same in every observation of the run."""
+    target, say), the same in every observation of the run; `python`: the program that runs
+    this policy's worker instead of the server's (a LeRobot of another version; only from the
+    whole server's admin: it names a program to run)."""
 
     path: Annotated[str, msgspec.Meta(min_length=1, max_length=4096)]
     task: Annotated[str, msgspec.Meta(max_length=1000)] = ""
@@ -255,6 +257,7 @@ class PolicyMasterBody(
     max_relative_target: Annotated[float, msgspec.Meta(gt=0, le=360)] | None = 10.0
     stall_periods: Annotated[int, msgspec.Meta(ge=1, le=1000)] = 2
     environment_state: Annotated[list[float], msgspec.Meta(max_length=64)] = []
+    python: Annotated[str, msgspec.Meta(min_length=1, max_length=4096)] | None = None
     takeover: bool = False
 
 
