@@ -237,7 +237,10 @@ def format_summary(summary: dict[str, Any]) -> str:
     topics = summary.get("topics", {})
     assert isinstance(topics, dict)
     for name, info in topics.items():
-        lines.append(f"topic      {name:<36} {info['count']:>8} msgs  {info['rate_hz']} Hz")
+        rate = info["rate_hz"]
+        # (one message, or all at one instant: no rate to speak of)
+        said = "" if rate is None else f"  {rate} Hz"
+        lines.append(f"topic      {name:<36} {info['count']:>8} msgs{said}")
     if "gaps" in summary:
         lines.append(f"gaps       {len(summary['gaps'])} ({GAP_MEANING})")
     if summary.get("users"):
