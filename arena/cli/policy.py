@@ -93,6 +93,6 @@ def policy_command(args: argparse.Namespace) -> int:
         f"{run.master.identity}: {counters.sent} commands, {counters.inferences} inferences "
         f"({run.unsent} not recorded: the link was down), {counters.clamped} targets clamped, "
         f"{counters.invalid} actions refused, {counters.stalls} stalls; "
-        f"{run.frame_bytes / 1e6:.1f} MB of camera frames"
+        f"{run.frames} camera frames, {run.frame_bytes / 1e3:.0f} kB"
     )
     return 0
