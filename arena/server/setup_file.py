@@ -327,15 +327,18 @@ def check_references(
                     + (" (it has several: say which, twin:ID)" if len(physics) > 1 else ""),
                 )
         master = robot.master
-        at = (*where, "master")
+        at: KeyPath = (*where, "master")
         try:
             if isinstance(master, SequenceMasterBody):
-                for sequence in master.sequences or ():
+                for number, sequence in enumerate(master.sequences or ()):
+                    at = (*where, "master", "sequences", number)
                     get_sequence(sequence).check_against(models[robot.robot_id])
             elif isinstance(master, PolicyMasterBody):
+                at = (*where, "master", "path")
                 folder = tenant_folder(Path(policy_dir), robot.tenant or "default")
                 policy_folder(master.path, folder, anywhere)
             elif isinstance(master, ReplayMasterBody):
+                at = (*where, "master", "recording")
                 existing_recording(Path(recordings_dir), master.recording)
         except ArenaError as error:
             raise setup.error(at, error.message) from None
