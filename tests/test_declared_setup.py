@@ -358,6 +358,30 @@ async def test_sighup_reloads_the_file(nursery: trio.Nursery, tmp_path: Path) ->
         await done.wait()
 
 
+async def test_sighup_without_a_file_is_said_and_the_server_runs_on(
+    nursery: trio.Nursery, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    config = ServerConfig(port=0, recordings_dir=str(tmp_path / "rec"))
+    done = trio.Event()
+
+    async def run(task_status: trio.TaskStatus[Any]) -> None:
+        try:
+            await run_server(config, handle_signals=True, task_status=task_status)
+        finally:
+            done.set()
+
+    _, urls = await nursery.start(run)
+    os.kill(os.getpid(), signal.SIGHUP)  # (its default would end the process)
+    await eventually(lambda: "no file to reload" in caplog.text, what="the refusal logged")
+    async with httpx.AsyncClient(base_url=urls[0], timeout=10) as http:
+        assert (await http.get("/healthz")).status_code == 200
+        refused = await http.post("/api/config/reload")
+        assert refused.json()["error"]["code"] == "INVALID_CONFIG"
+    os.kill(os.getpid(), signal.SIGTERM)
+    with trio.fail_after(30):
+        await done.wait()
+
+
 # -- written back ---------------------------------------------------------------------------
 
 

@@ -322,13 +322,7 @@ def _register_routes(app: ArenaApp) -> None:
 
     @app.post("/api/config/reload")
     async def reload_config() -> dict[str, Any]:
-        declared = _whole_server(app)
-        if app.arena_config.config_file is None:
-            raise ArenaError(
-                ErrorCode.INVALID_CONFIG,
-                "This server was started without --config: there is no file to reload.",
-            )
-        return await declared.reload()
+        return await _whole_server(app).reload()
 
     @app.get("/api/robots/<robot_id>/status")
     async def robot_status(robot_id: str) -> dict[str, Any]:

@@ -109,6 +109,11 @@ class DeclaredSetup:
 
     async def reload(self) -> dict[str, Any]:
         """Read the file again and apply what changed (nothing if it is refused)."""
+        if self.app.arena_config.config_file is None:
+            raise ArenaError(
+                ErrorCode.INVALID_CONFIG,
+                "This server was started without --config: there is no file to reload.",
+            )
         setup = await trio.to_thread.run_sync(read_setup, self.app.arena_config)
         return await self.apply(setup)
 

@@ -194,8 +194,8 @@ async def _run(
             app.declared = DeclaredSetup(app, config.config_file or "")
             if setup is not None:
                 await app.declared.apply(setup)  # in order; what cannot come up is retried
-                if handle_signals:
-                    recording_nursery.start_soon(reload_on_sighup, app.declared)
+            if handle_signals:  # (SIGHUP's default would end the process)
+                recording_nursery.start_soon(reload_on_sighup, app.declared)
             if freeze_startup_objects:
                 tune_garbage_collector()
             await _serve(app, config, sockets, stop, task_status)
