@@ -99,6 +99,7 @@ async def start_from(start_server: Start, path: str, tmp_path: Path, **more: Any
         (('source = "test-pattern"', 'source = "twin"'), 16, "names no physics-slave"),
         (('id = "right"', 'id = "left"'), 26, "a robot of this id comes earlier"),
         (("fps = 5", 'fps = "5"'), 17, "Expected `int | null`, got `str`"),
+        (('source = "test-pattern"', 'source = "webcam"'), 14, '"source" must be'),
     ],
 )
 def test_a_file_is_refused_whole_in_one_line_naming_its_line(

@@ -24,6 +24,7 @@ from typing import Annotated, Any
 import msgspec
 
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.sensors.camera import CameraSpec
 from arena.protocol.rest import (
     TENANT_PATTERN,
     CameraBody,
@@ -272,6 +273,12 @@ def _robot(
             raise refusal(
                 path, lines, (*where, "cameras", number, "name"), "a camera of this name earlier"
             )
+        try:  # what no camera can be is said now, not retried for ever
+            CameraSpec.of(
+                camera.name, camera.source, camera.fps, camera.width, camera.height
+            ).check()
+        except ArenaError as error:
+            raise refusal(path, lines, (*where, "cameras", number), error.message) from None
         cameras[camera.name] = camera
     return DeclaredRobot(
         robot.id,
