@@ -24,7 +24,6 @@ from typing import Annotated, Any
 import msgspec
 
 from arena.protocol.errors import ArenaError, ErrorCode
-from arena.sensors.camera import CameraSpec
 from arena.protocol.rest import (
     TENANT_PATTERN,
     CameraBody,
@@ -39,6 +38,7 @@ from arena.protocol.rest import (
     SlaveBody,
     WorkspaceBody,
 )
+from arena.sensors.camera import CameraSpec
 
 #: Path of a value in the file: keys and array indexes, as tomllib's dicts nest them.
 KeyPath = tuple[str | int, ...]
