@@ -115,6 +115,24 @@ def test_a_file_is_refused_whole_in_one_line_naming_its_line(
     assert words in message and "\n" not in message
 
 
+def test_the_readmes_lab_file_is_a_valid_setup_and_its_mistake_is_on_the_line_it_says(
+    tmp_path: Path,
+) -> None:
+    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text(encoding="utf-8")
+    text = readme.split("```toml\n", 1)[1].split("```", 1)[0]
+    setup = read_setup(ServerConfig(config_file=write(tmp_path / "lab.toml", text)))
+    (robot,) = setup.robots.values()
+    assert (list(robot.slaves), robot.master is not None, list(robot.cameras)) == (
+        ["follower"],
+        True,
+        ["front"],
+    )
+    assert "`lab.toml:7: robots[0].slaves[0].prot: ...`" in " ".join(readme.split())
+    wrong = write(tmp_path / "lab.toml", text.replace("port =", "prot =", 1))
+    with pytest.raises(ArenaError, match=r"lab.toml:7: robots\[0\]\.slaves\[0\]\.prot: "):
+        read_setup(ServerConfig(config_file=wrong))
+
+
 def test_arena_serve_refuses_a_bad_file_before_anything_moves(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
