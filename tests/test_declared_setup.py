@@ -278,6 +278,51 @@ async def test_retries_wait_1_s_doubling_to_30_s_until_the_part_comes_up(
     assert len(tries) == 12  # up: tried no more
 
 
+async def test_a_robot_id_taken_by_hand_gets_none_of_the_files_parts_until_it_is_free(
+    autojump_clock: trio.testing.MockClock, manager: RobotManager, tmp_path: Path
+) -> None:
+    app = create_app(manager, ServerConfig(), Recorder(tmp_path, {}, active=False))
+    hand = await manager.create_robot("so-arm100", robot_id="arm")
+    text = '[[robots]]\nid = "arm"\n[[robots.slaves]]\nid = "sim"\ntype = "mock-slave"\n'
+    path = write(tmp_path / "lab.toml", text)
+    declared = app.declared = DeclaredSetup(app, path)
+    start = trio.current_time()
+    await declared.apply(read_setup(ServerConfig(config_file=path)))
+    assert [p.split(" (")[0] for p in declared.not_ready()] == [
+        "robot arm is not up",
+        "robot arm: slave sim is not up",
+    ]
+    await trio.sleep(2)
+    assert hand.snapshot().slaves == ()  # never the hand-made robot's
+    await parts.delete_robot(app, hand)  # freed at 2 s: the file's is made at its 3 s try
+    await eventually(lambda: not declared.pending, what="the robot and its slave up")
+    assert trio.current_time() - start == pytest.approx(3, abs=0.1)
+    robot = manager.get("arm")
+    assert robot is not hand and [s.peer_id for s in robot.snapshot().slaves] == ["sim"]
+
+
+async def test_a_part_whose_robot_is_deleted_by_hand_is_no_longer_tried(
+    autojump_clock: trio.testing.MockClock,
+    manager: RobotManager,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    app = create_app(manager, ServerConfig(), Recorder(tmp_path, {}, active=False))
+
+    async def attach_slave(*args: Any) -> str:
+        raise ArenaError(ErrorCode.PORT_NOT_FOUND, "No adapter.")
+
+    monkeypatch.setattr(declared_module.parts, "attach_slave", attach_slave)
+    text = '[[robots]]\nid = "arm"\n[[robots.slaves]]\ntype = "mock-slave"\n'
+    path = write(tmp_path / "lab.toml", text)
+    declared = app.declared = DeclaredSetup(app, path)
+    await declared.apply(read_setup(ServerConfig(config_file=path)))
+    assert len(declared.pending_of("arm")) == 1
+    await parts.delete_robot(app, manager.get("arm"))
+    await trio.sleep(1.5)
+    assert declared.not_ready() == []
+
+
 # -- reload ------------------------------------------------------------------------------
 
 
@@ -315,17 +360,18 @@ async def test_reload_changes_what_changed_and_never_rejoins_an_arm_that_stays(
             assert (await http.get("/api/groups/pair")).status_code == 404
         await trio.sleep(0.5)  # a re-join would have begun by now
         seen = events.drain()
-    assert changes["added"] == ["robot new", "robot new: slave mock-slave"]
-    assert changes["changed"] == ["robot right: slave mock-slave"]
-    assert changes["removed"] == ["robot left: camera top", "group pair"]
-    assert "robot arm: slave bus" in changes["unchanged"]
-    assert "robot arm: camera wrist" in changes["unchanged"]
-    # The arm that stays: the same driver, no event about it, and its servos never let go.
+    # The arm that stays: the same robot and driver, no event about it, servos never let go.
+    assert server.app.manager.get("arm") is arm
     assert server.app.hardware.find("arm", "bus", {"bus"})[1] is driver
     assert seen == []
     torque = reg.TORQUE_ENABLE.address
     assert [w for w in sim.bus.write_log if w[2] == torque] == []
     assert not any(s.joining for s in arm.snapshot().slaves)
+    assert changes["added"] == ["robot new", "robot new: slave mock-slave"]
+    assert changes["changed"] == ["robot right: slave mock-slave"]
+    assert changes["removed"] == ["robot left: camera top", "group pair"]
+    assert "robot arm: slave bus" in changes["unchanged"]
+    assert "robot arm: camera wrist" in changes["unchanged"]
 
 
 async def test_a_refused_reload_changes_nothing_and_needs_the_whole_servers_admin(

@@ -230,6 +230,7 @@ def load_config(
     if path:
         config = replace(config, **_read_file(path), config_file=path)
     fields = typing.get_type_hints(ServerConfig)
+    del fields["config_file"]  # (ARENA_CONFIG names the file)
     from_env = settings_from_env(fields, environ)
     env_keys = from_env.pop("api_keys", ())
     config = replace(config, **from_env, api_keys=config.api_keys + env_keys)

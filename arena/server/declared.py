@@ -87,6 +87,10 @@ def _parts(setup: Setup) -> dict[PartKey, Any]:
     return found
 
 
+class _Gone(Exception):
+    """The robot of a part was deleted by hand since the file made it."""
+
+
 @dataclass
 class Pending:
     """A part that did not come up, and when it is tried next."""
@@ -95,6 +99,8 @@ class Pending:
     attempts: int = 1
     next_try: float = 0.0  # trio time
     scope: trio.CancelScope = field(default_factory=trio.CancelScope)
+    #: Set when what it waits for came up (its robot): it is tried at once.
+    wake: trio.Event = field(default_factory=trio.Event)
 
 
 class DeclaredSetup:
@@ -175,18 +181,28 @@ class DeclaredSetup:
         with pending.scope:
             while True:
                 pending.next_try = trio.current_time() + wait
-                await trio.sleep(wait)
+                with trio.move_on_after(wait):
+                    await pending.wake.wait()
+                pending.wake = trio.Event()
                 async with self._lock:
                     if self.pending.get(key) is not pending:
                         return
                     try:
                         await self._make(key)
+                    except _Gone:  # its robot was deleted by hand: nothing left to wait for
+                        del self.pending[key]
+                        log.info("%s: its robot was deleted, no longer tried", _name(key))
+                        return
                     except Exception as error:
                         pending.error = _reason(error)
                         pending.attempts += 1
                     else:
                         del self.pending[key]
                         log.info("%s came up (attempt %d)", _name(key), pending.attempts + 1)
+                        if key[0] == "robot":  # its parts need not wait their turn
+                            for (_, owner, _), waiting in self.pending.items():
+                                if owner == key[1]:
+                                    waiting.wake.set()
                         return
                 wait = min(wait * 2, LONGEST_RETRY)
 
@@ -205,7 +221,7 @@ class DeclaredSetup:
             )
             await parts.create_robot(app, parts.FILE_PRINCIPAL, body)
             return
-        robot = app.manager.get(owner)
+        robot = self._robot_up(owner)
         if kind == "workspace":
             assert declared.workspace is not None
             await parts.set_workspace(robot, declared.workspace)
@@ -247,6 +263,16 @@ class DeclaredSetup:
                 master = robot.snapshot().master
                 if master is not None and master.peer_id == self._masters.get(owner):
                     await robot.detach_master(master.peer_id)
+
+    def _robot_up(self, robot_id: str) -> Robot:
+        """The declared robot, made by the file: never a robot of that id made by hand while
+        the file's could not be (its parts wait for it); `_Gone` once deleted by hand."""
+        if ("robot", robot_id, "") in self.pending:
+            raise ArenaError(ErrorCode.UNKNOWN_ROBOT, f"Robot {robot_id!r} is not up yet.")
+        robot = self.app.manager.find(robot_id)
+        if robot is None:
+            raise _Gone
+        return robot
 
     def _robot(self, robot_id: str) -> DeclaredRobot:
         return self.setup.robots[robot_id]
@@ -354,6 +380,8 @@ def _name(key: PartKey) -> str:
 
 
 def _reason(error: Exception) -> str:
+    if isinstance(error, _Gone):
+        return f"{ErrorCode.UNKNOWN_ROBOT}: its robot was deleted"
     if isinstance(error, ArenaError):
         return f"{error.code}: {error.message}"
     if isinstance(error, OSError):
