@@ -227,7 +227,9 @@ _BODILESS = frozenset(
 #: State-changing routes that act on every robot the caller sees. (A route that creates a
 #: robot or a group adds it: `Audit.also`; a fleet e-stop is recorded by each node it
 #: stops robots on, this one included: `fleet_api`.)
-_ON_EVERY_ROBOT = frozenset({"/api/estop", "/api/recordings", "/api/recordings/<name>/stop"})
+_ON_EVERY_ROBOT = frozenset(
+    {"/api/estop", "/api/recordings", "/api/recordings/<name>/stop", "/api/config/reload"}
+)
 
 
 def _audited_robots(app: ArenaApp, principal: Principal) -> list[Robot]:
