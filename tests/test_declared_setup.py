@@ -374,6 +374,35 @@ async def test_reload_changes_what_changed_and_never_rejoins_an_arm_that_stays(
     assert "robot arm: camera wrist" in changes["unchanged"]
 
 
+async def test_a_robot_renamed_in_the_file_is_made_anew_with_its_parts_and_groups(
+    autojump_clock: trio.testing.MockClock, manager: RobotManager, tmp_path: Path
+) -> None:
+    # (no camera: its capture process runs on the real clock)
+    text = TWO_ROBOTS.replace('[[robots.cameras]]\nname = "top"\nsource = "test-pattern"\n', "")
+    text = text.replace("fps = 5\n", "")
+    path = write(tmp_path / "lab.toml", text)
+    config = ServerConfig(config_file=path)
+    app = create_app(manager, config, Recorder(tmp_path, {}, active=False))
+    declared = app.declared = DeclaredSetup(app, path)
+    await declared.apply(read_setup(ServerConfig(config_file=path)))
+    left, right = manager.get("left"), manager.get("right")
+    write(Path(path), text.replace('name = "Left arm"', 'name = "Bench arm"'))
+    changes = await declared.reload()
+    assert changes["changed"] == [
+        "robot left",
+        "robot left: workspace",
+        "robot left: slave sim",
+        "robot left: master",
+        "group pair",
+    ]
+    assert changes["unchanged"] == ["robot right", "robot right: slave mock-slave"]
+    assert manager.get("right") is right and manager.get("left") is not left
+    snapshot = manager.get("left").snapshot()
+    assert (snapshot.name, [s.peer_id for s in snapshot.slaves]) == ("Bench arm", ["sim"])
+    assert app.groups.get("pair").members == ("left", "right")
+    assert declared.pending == {}
+
+
 async def test_a_refused_reload_changes_nothing_and_needs_the_whole_servers_admin(
     start_server: Start, tmp_path: Path
 ) -> None:

@@ -129,18 +129,22 @@ class DeclaredSetup:
         async with self._lock:
             old = self.setup
             before, after = _parts(old), _parts(new)
-            remade = {
+            robots = {  # robots made anew (a new type, name or tenant), and their groups
                 robot_id
                 for (kind, robot_id, _), value in after.items()
                 if kind == "robot" and before.get((kind, robot_id, "")) not in (None, value)
             }
-            remade |= {  # a group of a robot made anew is made anew too
+            groups = {
                 key[1]
                 for key, group in after.items()
-                if key[0] == "group" and remade & set(group.members)
+                if key[0] == "group" and robots & set(group.members)
             }
-            gone = [k for k, v in before.items() if after.get(k) != v or k[1] in remade]
-            coming = [k for k, v in after.items() if before.get(k) != v or k[1] in remade]
+
+            def remade(key: PartKey) -> bool:
+                return key[1] in (groups if key[0] == "group" else robots)
+
+            gone = [k for k, v in before.items() if after.get(k) != v or remade(k)]
+            coming = [k for k, v in after.items() if before.get(k) != v or remade(k)]
             dropped = {key[1] for key in gone if key[0] == "robot"}
             for key in reversed(gone):
                 await self._take_down(key, dropped)

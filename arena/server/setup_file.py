@@ -350,14 +350,14 @@ def check_references(
         except ArenaError as error:
             raise setup.error(at, error.message) from None
     for index, group in enumerate(setup.groups.values()):
+        if group.id in setup.robots:
+            raise setup.error(("groups", index, "id"), "a group's id may not be a robot's")
         for number, member in enumerate(group.members):
             if member not in setup.robots:
                 raise setup.error(
                     ("groups", index, "members", number),
                     f"no robot {member!r} is declared in this file",
                 )
-            if member in setup.groups or group.id in setup.robots:
-                raise setup.error(("groups", index, "id"), "a group's id is not a robot's")
         if len(set(group.members)) != len(group.members):
             raise setup.error(("groups", index, "members"), "a member is named twice")
         tenants = {setup.robots[m].tenant or "default" for m in group.members}
