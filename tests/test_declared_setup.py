@@ -133,6 +133,22 @@ def test_the_readmes_lab_file_is_a_valid_setup_and_its_mistake_is_on_the_line_it
         read_setup(ServerConfig(config_file=wrong))
 
 
+def test_a_policy_master_is_named_in_its_robots_tenant_folder(tmp_path: Path) -> None:
+    text = '[[robots]]\nid = "arm"\ntenant = "lab"\n\n[robots.master]\ntype = "policy"\n'
+    path = write(tmp_path / "lab.toml", text + 'path = "act_cube"\n')
+    config = ServerConfig(config_file=path, policy_dir=str(tmp_path / "policies"))
+    with pytest.raises(ArenaError, match=r"lab.toml:7: robots\[0\]\.master\.path: No policy"):
+        read_setup(config)
+    (tmp_path / "policies" / "act_cube").mkdir(parents=True)  # the default tenant's: not lab's
+    (tmp_path / "policies" / "act_cube" / "config.json").write_text("{}")
+    with pytest.raises(ArenaError, match="No policy 'act_cube' in this tenant's policy folder"):
+        read_setup(config)
+    (tmp_path / "policies" / "lab").mkdir()
+    (tmp_path / "policies" / "act_cube").rename(tmp_path / "policies" / "lab" / "act_cube")
+    (robot,) = read_setup(config).robots.values()
+    assert robot.master is not None and robot.tenant == "lab"
+
+
 def test_arena_serve_refuses_a_bad_file_before_anything_moves(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
