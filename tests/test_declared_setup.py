@@ -257,6 +257,31 @@ async def test_an_adapter_plugged_in_later_is_enough(
         assert {s.peek(reg.TORQUE_ENABLE) for s in bus.servos.values()} == {1}
 
 
+async def test_a_leader_arm_plugged_in_later_becomes_the_master(
+    start_server: Start, tmp_path: Path, later_sim: Callable[[], PtySimBus]
+) -> None:
+    follower = later_sim()
+    leader_port = tmp_path / "leader" / "ttySIM0"
+    text = ONE_ARM.format(port=follower.link, camera="test-pattern")
+    text += f'\n[robots.master]\ntype = "usb-master"\nport = "{leader_port}"\n'
+    server = await start_from(start_server, write(tmp_path / "lab.toml", text), tmp_path)
+    robot = server.app.manager.get("arm")
+    await wait_joined(robot)
+    async with server.client() as http:
+        arm = (await http.get("/api/robots/arm")).json()
+        assert arm["master"] is None and [p["part"] for p in arm["pending"]] == ["master"]
+        running = running_sim(tmp_path / "leader")
+        next(running)  # the leader's adapter plugged in
+        try:
+            await eventually(lambda: robot.snapshot().master, timeout=60, what="the leader")
+            arm = (await http.get("/api/robots/arm")).json()
+            assert (arm["master"]["type"], arm["pending"]) == ("usb-master", [])
+            saved = tomllib.loads((await http.get("/api/config")).text)
+            assert saved["robots"][0]["master"] == {"type": "usb-master", "port": str(leader_port)}
+        finally:
+            running.close()
+
+
 async def test_retries_wait_1_s_doubling_to_30_s_until_the_part_comes_up(
     autojump_clock: trio.testing.MockClock,
     manager: RobotManager,
