@@ -105,7 +105,9 @@ async def test_every_change_is_audited_once_with_who_and_no_refusal_is(
     recordings = tmp_path / "recordings"
     recordings.mkdir()
     shutil.copy(REPOSITORY / "recordings" / "golden" / "gentle-wave.mcap", recordings)
+    (tmp_path / "arena.toml").write_text("# the robots are made below, over REST\n")
     server = await start_server(
+        config_file=str(tmp_path / "arena.toml"),
         jwt_secret_file=str(tmp_path / "jwt-secret"),
         recordings_dir=str(recordings),
         calibration_dir=str(tmp_path / "calibration"),
@@ -160,6 +162,7 @@ async def test_every_change_is_audited_once_with_who_and_no_refusal_is(
         # The recording switched off and on: the stop is recorded into the file it closes.
         await change("POST", "/api/recordings/current/stop", robots=both, detail="requested")
         await change("POST", "/api/recordings", status=201, robots=both)
+        await change("POST", "/api/config/reload", robots=both)  # (the file declares none)
 
         # WebSockets: a master's e-stop, reset and release; a group master's, on each member.
         url = server.ws_url

@@ -91,6 +91,8 @@ ROLE_FOR: dict[tuple[str, str], Role] = {
     ("GET", "/api/recordings/{name}"): V,
     ("GET", "/api/recordings/{name}/joints"): V,
     ("GET", "/api/recordings/{name}/file"): V,
+    ("GET", "/api/config"): A,
+    ("POST", "/api/config/reload"): A,
     ("GET", "/api/fleet/nodes"): V,
     ("GET", "/api/fleet/robots"): V,
     ("POST", "/api/fleet/estop"): V,

@@ -7,7 +7,6 @@ import re
 import time
 from collections import Counter
 from collections.abc import Iterable
-from pathlib import Path
 from typing import Any
 
 import msgspec
@@ -33,9 +32,9 @@ from arena.recording.recorder import Recorder
 from arena.robot.groups import GroupRegistry
 from arena.robot.handle import Robot
 from arena.robot.manager import RobotManager, estop_together
-from arena.robot.workspace import workspace_from_json, workspace_to_json
+from arena.robot.workspace import workspace_to_json
 from arena.sensors.camera import Cameras
-from arena.server import convert, dashboard, openapi
+from arena.server import convert, dashboard, openapi, parts
 from arena.server.access import (
     AccessControl,
     needed_role,
@@ -47,7 +46,9 @@ from arena.server.auth import authorize, check_role, refuse
 from arena.server.base import (
     ArenaApp,
     Audit,
+    Declared,
     Hardware,
+    Parts,
     error_response,
     read_body,
     record_audit_now,
@@ -57,13 +58,6 @@ from arena.server.base import (
 from arena.server.calibration_api import blueprint as calibration_blueprint
 from arena.server.config import ServerConfig
 from arena.server.dashboard import blueprint as dashboard_blueprint
-from arena.server.drivers import (
-    attach_rest_master,
-    camera_frames,
-    make_master,
-    make_slave,
-    tenant_folder,
-)
 from arena.server.fleet_api import CALLER, FORWARDED, forwarded_caller
 from arena.server.fleet_api import blueprint as fleet_blueprint
 from arena.server.groups_api import blueprint as groups_blueprint
@@ -72,7 +66,7 @@ from arena.server.identity import Principal, TokenVerifier
 from arena.server.metrics import Metrics
 from arena.server.origin import SAFE_METHODS, OriginPolicy, is_json
 from arena.server.recordings_api import blueprint as recordings_blueprint
-from arena.server.recordings_api import off_the_loop, readable_recording, recorder_status
+from arena.server.recordings_api import readable_recording, recorder_status
 from arena.server.robot_types_api import blueprint as robot_types_blueprint
 from arena.server.sensors_api import blueprint as sensors_blueprint
 from arena.server.ws.acks import AckCache
@@ -101,6 +95,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
             leeway=config.jwt_leeway,
         )
     app.cameras = Cameras()
+    app.parts = Parts()
     app.shutting_down = trio.Event()
     app.started_at = time.time()
     app.config["MAX_CONTENT_LENGTH"] = MAX_MESSAGE_BYTES
@@ -232,7 +227,9 @@ _BODILESS = frozenset(
 #: State-changing routes that act on every robot the caller sees. (A route that creates a
 #: robot or a group adds it: `Audit.also`; a fleet e-stop is recorded by each node it
 #: stops robots on, this one included: `fleet_api`.)
-_ON_EVERY_ROBOT = frozenset({"/api/estop", "/api/recordings", "/api/recordings/<name>/stop"})
+_ON_EVERY_ROBOT = frozenset(
+    {"/api/estop", "/api/recordings", "/api/recordings/<name>/stop", "/api/config/reload"}
+)
 
 
 def _audited_robots(app: ArenaApp, principal: Principal) -> list[Robot]:
@@ -309,40 +306,25 @@ def _register_routes(app: ArenaApp) -> None:
     @app.post("/api/robots")
     async def create_robot() -> tuple[dict[str, Any], int]:
         body = await read_body(CreateRobotBody)
-        if app.fleet is not None and body.id is not None:
-            owner = await app.fleet.owner_elsewhere(body.id)
-            if owner is not None:
-                raise ArenaError(
-                    ErrorCode.ROBOT_ELSEWHERE,
-                    f"Robot id {body.id!r} is taken in fleet {app.fleet.fleet!r}: node "
-                    f"{owner!r} owns it.",
-                )
-        principal: Principal = g.principal
-        tenant = body.tenant or principal.tenant
-        if tenant != principal.tenant or not (body.id is None or principal.covers(body.id)):
-            refuse(app, "scope")
-            raise ArenaError(
-                ErrorCode.FORBIDDEN,
-                f"{principal.name!r} may create robots of tenant {principal.tenant!r} only"
-                + ("" if principal.robots is None else f", with ids like {principal.robots}")
-                + ".",
-            )
-        if principal.robots is not None and body.id is None:
-            raise ArenaError(ErrorCode.INVALID_BODY, 'Give the robot an "id" within your scope.')
-        most = app.arena_config.max_robots
-        if sum(robot.tenant == tenant for robot in manager.robots()) >= most:
-            raise ArenaError(
-                ErrorCode.LIMIT_REACHED,
-                f"Tenant {tenant!r} has {most} robots, the most allowed (max_robots): "
-                "delete one first.",
-            )
-        robot = await manager.create_robot(body.robot_type, body.name, body.id, tenant=tenant)
+        robot = await parts.create_robot(app, g.principal, body)
         g.audit.also([robot])
-        return convert.robot_summary(robot, tenant), 201
+        return convert.robot_summary(robot, robot.tenant), 201
 
     @app.get("/api/robots/<robot_id>")
     async def get_robot(robot_id: str) -> dict[str, Any]:
-        return convert.robot_summary(manager.get(robot_id), app.access.tenant_of(robot_id))
+        summary = convert.robot_summary(manager.get(robot_id), app.access.tenant_of(robot_id))
+        # The parts the configuration file declares that are not up yet, being retried.
+        summary["pending"] = [] if app.declared is None else app.declared.pending_of(robot_id)
+        return summary
+
+    @app.get("/api/config")
+    async def get_config() -> Response:
+        declared = _whole_server(app)
+        return Response(declared.running(), content_type="application/toml; charset=utf-8")
+
+    @app.post("/api/config/reload")
+    async def reload_config() -> dict[str, Any]:
+        return await _whole_server(app).reload()
 
     @app.get("/api/robots/<robot_id>/status")
     async def robot_status(robot_id: str) -> dict[str, Any]:
@@ -351,10 +333,8 @@ def _register_routes(app: ArenaApp) -> None:
     @app.delete("/api/robots/<robot_id>")
     async def delete_robot(robot_id: str) -> dict[str, Any]:
         robot = manager.get(robot_id)
-        app.access.tenants[robot_id] = robot.tenant  # (its past stays its tenant's)
         record_audit_now()  # (gone once answered: nowhere to record it then)
-        await manager.delete(robot_id)
-        app.metrics.retire(robot)
+        await parts.delete_robot(app, robot)
         return {"deleted": robot_id}
 
     @app.get("/api/sequences")
@@ -430,30 +410,15 @@ def _register_routes(app: ArenaApp) -> None:
     @app.put("/api/robots/<robot_id>/workspace")
     async def put_workspace(robot_id: str) -> dict[str, Any]:
         robot = manager.get(robot_id)
-        body = await read_body(WorkspaceBody)
-        try:
-            workspace = workspace_from_json(msgspec.to_builtins(body))
-        except ValueError as exc:
-            raise ArenaError(ErrorCode.INVALID_BODY, f"Invalid workspace: {exc}.") from None
-        await robot.set_workspace(workspace)
+        workspace = await parts.set_workspace(robot, await read_body(WorkspaceBody))
         return workspace_to_json(workspace)
 
     @app.post("/api/robots/<robot_id>/slaves")
     async def attach_slave(robot_id: str) -> tuple[dict[str, Any], int]:
         robot = manager.get(robot_id)
         body = await read_body(SlaveBody)
-        driver = make_slave(
-            body,
-            robot.model,
-            tenant_folder(Path(app.arena_config.calibration_dir), robot.tenant),
-            robot_id,
-            calibration_anywhere=server_admin(g.principal),
-        )
-        prepare = getattr(driver, "prepare", None)
-        if prepare is not None:
-            await prepare()  # hardware: a missing or busy port is the caller's error, now
-        slave_id = await robot.attach_slave(driver)
-        app.hardware.add(robot_id, slave_id, driver)
+        # hardware: a missing or busy port is the caller's error, now
+        slave_id = await parts.attach_slave(app, robot, body, server_admin(g.principal))
         return {"id": slave_id, "type": type(body).__struct_config__.tag}, 201
 
     @app.delete("/api/robots/<robot_id>/slaves/<slave_id>")
@@ -467,36 +432,8 @@ def _register_routes(app: ArenaApp) -> None:
         body: MasterBody = await read_body(MasterBody)
         if isinstance(body, ReplayMasterBody):
             await readable_recording(app, g.principal, body.recording, field="recording")
-        # A replay reads its recording: in a thread, never stalling the robots.
-        driver = await off_the_loop(
-            make_master,
-            body,
-            app.recorder.folder,
-            robot.model,
-            tenant_folder(Path(app.arena_config.calibration_dir), robot.tenant),
-            robot_id,
-            camera_frames(app.cameras, robot_id),
-            server_admin(g.principal),  # the whole server's admin: any calibration, any policy
-            tenant_folder(Path(app.arena_config.policy_dir), robot.tenant),
-            app.arena_config.policy_python,
-        )
-        prepare = getattr(driver, "prepare", None)
-        if prepare is not None:
-            holder = robot.snapshot().master
-            if holder is not None and not driver.takes_over:
-                raise ArenaError(  # say so before opening any hardware
-                    ErrorCode.MASTER_ACTIVE,
-                    f"Master {holder.peer_id!r} already drives this robot. "
-                    'Send "takeover": true in the body to replace it.',
-                )
-            await prepare()  # hardware: port problems are the caller's error, now
-        try:
-            master_id = await attach_rest_master(robot, driver)
-        except BaseException:
-            close = getattr(driver, "close", None)
-            if close is not None:
-                await close()  # refused (another master holds the robot): free the port
-            raise
+        # The whole server's admin: any calibration, any policy.
+        master_id = await parts.attach_master(app, robot, body, server_admin(g.principal))
         return {"id": master_id, "type": type(body).__struct_config__.tag}, 201
 
     @app.delete("/api/robots/<robot_id>/master")
@@ -531,6 +468,19 @@ def _register_routes(app: ArenaApp) -> None:
     @app.get("/docs")
     async def docs() -> Response:
         return Response(openapi.DOCS_PAGE, content_type="text/html; charset=utf-8")
+
+
+def _whole_server(app: ArenaApp) -> Declared:
+    """The declared setup, for the whole server's admin only (it spans every tenant)."""
+    if not server_admin(g.principal):
+        refuse(app, "scope")
+        raise ArenaError(
+            ErrorCode.FORBIDDEN,
+            "The server's configuration is the whole server's: an admin of the default "
+            "tenant with every robot in scope only.",
+        )
+    assert app.declared is not None
+    return app.declared
 
 
 def _wants_html() -> bool:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Iterable
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
 import msgspec
@@ -15,6 +16,7 @@ from quart_trio import QuartTrio
 
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.messages import MAX_MESSAGE_BYTES
+from arena.protocol.rest import MasterBody, SlaveBody
 from arena.protocol.validation import refusal
 from arena.recording.recorder import Recorder
 from arena.robot.groups import GroupRegistry
@@ -199,6 +201,51 @@ class Hardware:
         return found[0]
 
 
+@dataclass
+class Parts:
+    """The bodies the live parts were made from, by robot: its slaves' by slave id, its
+    master's with the master's id. A part detached since is told by the robot itself (its
+    snapshot), so nothing here needs to hear of detaches."""
+
+    slaves: dict[str, dict[str, SlaveBody]] = field(default_factory=dict)
+    masters: dict[str, tuple[str, MasterBody]] = field(default_factory=dict)
+
+    def forget(self, robot_id: str) -> None:
+        """The robot is gone."""
+        self.slaves.pop(robot_id, None)
+        self.masters.pop(robot_id, None)
+
+    def slaves_of(self, robot: Robot) -> dict[str, SlaveBody]:
+        """The bodies of the robot's slaves still attached, in the order they were."""
+        attached = {slave.peer_id for slave in robot.snapshot().slaves}
+        made = self.slaves.get(robot.robot_id, {})
+        return {sid: body for sid, body in made.items() if sid in attached}
+
+    def master_of(self, robot: Robot) -> MasterBody | None:
+        """The body of the robot's master, if it is still the one made from it."""
+        made = self.masters.get(robot.robot_id)
+        master = robot.snapshot().master
+        if made is None or master is None or master.peer_id != made[0]:
+            return None
+        return made[1]
+
+
+class Declared(Protocol):
+    """The setup of the configuration file on a running server (`arena.server.declared`)."""
+
+    def pending_of(self, robot_id: str) -> list[dict[str, Any]]:
+        """The robot's declared parts not up yet."""
+
+    def not_ready(self) -> list[str]:
+        """A sentence for each declared part not up."""
+
+    def running(self) -> str:
+        """The running setup in the file's form."""
+
+    async def reload(self) -> dict[str, Any]:
+        """Read the file again and apply its changes."""
+
+
 class ArenaApp(QuartTrio):
     """The Quart app, carrying the manager, the settings and the metrics."""
 
@@ -224,6 +271,10 @@ class ArenaApp(QuartTrio):
     origin_policy: OriginPolicy
     #: Every robot's cameras (`arena/sensors`).
     cameras: Cameras
+    #: The bodies the live parts were made from (`GET /api/config` writes them back).
+    parts: Parts
+    #: The setup the configuration file declares, once brought up (None: no file).
+    declared: Declared | None = None
     #: This node's membership of a fleet, with `--node`.
     fleet: FleetNode | None = None
     #: Marks REST calls another node of the fleet forwarded (known only in this process).

@@ -5,11 +5,9 @@ from __future__ import annotations
 
 import ipaddress
 import os
-import tomllib
 import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from arena.protocol.errors import ArenaError, ErrorCode
@@ -99,6 +97,9 @@ class ServerConfig:
     ros_domain: int | None = None
     ros2_listen: tuple[str, ...] = field(default=())
     ros2_connect: tuple[str, ...] = field(default=())
+    #: The TOML file these settings came from: it may declare robots, their parts and groups
+    #: too (`arena.server.declared`), brought up at start and again on SIGHUP.
+    config_file: str | None = None
 
     @property
     def jwt_enabled(self) -> bool:
@@ -227,8 +228,9 @@ def load_config(
     path = path or environ.get(CONFIG_ENV) or None
     config = ServerConfig()
     if path:
-        config = replace(config, **_read_file(path))
+        config = replace(config, **_read_file(path), config_file=path)
     fields = typing.get_type_hints(ServerConfig)
+    del fields["config_file"]  # (ARENA_CONFIG names the file)
     from_env = settings_from_env(fields, environ)
     env_keys = from_env.pop("api_keys", ())
     config = replace(config, **from_env, api_keys=config.api_keys + env_keys)
@@ -247,17 +249,12 @@ def load_config(
 
 def _read_file(path: str) -> dict[str, Any]:
     """The settings of a TOML file; unknown names and unreadable files are refused."""
-    try:
-        data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise ArenaError(ErrorCode.INVALID_CONFIG, f"Cannot read {path}: {exc}") from exc
-    known = set(ServerConfig.__dataclass_fields__)
-    unknown = set(data) - known
-    if unknown:
-        raise ArenaError(
-            ErrorCode.INVALID_CONFIG,
-            f"Unknown settings in {path}: {', '.join(sorted(unknown))}.",
-        )
+    from arena.server.setup_file import parse_setup, read_toml
+
+    text, data = read_toml(path)
+    known = set(ServerConfig.__dataclass_fields__) - {"config_file"}
+    setup = parse_setup(path, text, data, known)  # the robots it declares too, whole
+    data = dict(setup.settings)
     for key in (
         "api_keys",
         "viewer_keys",

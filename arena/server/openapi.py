@@ -126,6 +126,8 @@ ROUTES: list[tuple[str, str, str, Any]] = [
     ("GET", "/api/fleet/nodes", "The nodes of this server's fleet (--node)", None),
     ("GET", "/api/fleet/robots", "Every robot of every node, with its node and state", None),
     ("POST", "/api/fleet/estop", "E-stop every robot of every node; each node's ack", ReasonBody),
+    ("GET", "/api/config", "The running setup as a configuration file (TOML)", None),
+    ("POST", "/api/config/reload", "Apply the configuration file's changes", None),
     ("GET", "/api/groups", "List robot groups and their members' states", None),
     ("POST", "/api/groups", "Create a group one master can drive", GroupBody),
     ("GET", "/api/groups/{group_id}", "Get a group", None),

@@ -8,7 +8,6 @@ and it always gets the newest frame (latest wins; a slow client skips frames).
 
 from __future__ import annotations
 
-import functools
 from typing import Any
 
 import trio
@@ -18,8 +17,8 @@ from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import CameraBody, EpisodeBody
 from arena.protocol.ws_frames import UpgradeRequest
 from arena.robot.episodes import Episode
-from arena.robot.handle import Robot
-from arena.sensors.camera import Camera, CameraSpec, Opener
+from arena.sensors.camera import Camera
+from arena.server import parts
 from arena.server.auth import authorize, refuse
 from arena.server.base import STATUS_FOR, ArenaApp, read_body
 from arena.server.identity import Role
@@ -52,28 +51,8 @@ async def attach_camera(robot_id: str) -> tuple[dict[str, Any], int]:
     app = _app()
     robot = app.manager.get(robot_id)
     body: CameraBody = await read_body(CameraBody)
-    spec = CameraSpec.of(body.name, body.source, body.fps, body.width, body.height)
-    opener = None
-    if spec.twin is not None:
-        spec.check()  # a bad body is refused before the twin is looked for
-        opener = await _twin_opener(app, robot, spec, spec.twin)
-    camera = await app.cameras.attach(robot, spec, opener)
+    camera = await parts.attach_camera(app, robot, body)
     return camera.as_dict(), 201
-
-
-#: How long a twin camera waits for a physics slave just attached to build its simulation.
-TWIN_READY_TIMEOUT = 10.0
-
-
-async def _twin_opener(app: ArenaApp, robot: Robot, spec: CameraSpec, slave_id: str) -> Opener:
-    """How to open a camera of the robot's physics slave (NO_TWIN when it has none)."""
-    from arena.drivers.twin_camera import twin_recipe
-
-    attached = {slave.peer_id for slave in robot.snapshot().slaves}
-    twin = app.hardware.twin(robot.robot_id, slave_id, attached)
-    with trio.move_on_after(TWIN_READY_TIMEOUT):
-        await twin.ready.wait()
-    return functools.partial(twin_recipe, twin, spec.width, spec.height, spec.fps)
 
 
 @blueprint.get("/api/robots/<robot_id>/cameras/<name>")
