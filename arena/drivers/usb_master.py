@@ -97,6 +97,10 @@ class UsbMaster(ServoArm):
                     await self.tell_fault(link, event)
             if reading is None:
                 continue
+            if link.paused:  # sends nothing until resumed, then the pose it finds then
+                await link.wait_resumed()
+                last_sent = None
+                continue
             pose = self._pose(reading)
             if last_sent is not None and not _moved(pose, last_sent, self.config.deadband):
                 continue

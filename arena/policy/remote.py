@@ -69,6 +69,15 @@ class SessionArm:
         """Logged here at debug level (the server records only what reaches it)."""
         log.debug("%s: %s", source, inference)
 
+    @property
+    def paused(self) -> bool:
+        """Never paused here: the server refuses a paused master's commands (MASTER_PAUSED,
+        which the policy skips) and holds the robot."""
+        return False
+
+    async def wait_resumed(self) -> None:
+        """See `paused`."""
+
 
 class CameraPoller:
     """The newest JPEG of each of the robot's cameras, fetched over REST at `fps`; a frame's

@@ -263,6 +263,20 @@ MasterBody: TypeAlias = (
 )
 
 
+class InterventionBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """`POST .../intervention`: `master`, the intervening master's config (any master's, as
+    `POST .../master` takes it: a leader arm's `usb-master`, say); none: the caller
+    intervenes itself, over `PUT .../joints`."""
+
+    master: MasterBody | None = None
+
+
+class HandBackBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """`DELETE .../intervention`: `resume` false leaves the paused master paused."""
+
+    resume: bool = True
+
+
 #: A group id: like a robot id.
 GroupId = Annotated[str, msgspec.Meta(pattern=r"^[A-Za-z0-9_.-]{1,64}$")]
 

@@ -46,6 +46,7 @@ class PeerSnapshot:
     joining: bool = False  # a slave not yet following the robot's targets (it joins)
     description: str = ""  # a master's, in words ("replay of 'x.mcap'")
     faults: tuple[FaultSnapshot, ...] = ()
+    paused: bool = False  # a master that is paused (it sends nothing; the robot holds)
 
 
 @dataclass(frozen=True, slots=True)
@@ -61,6 +62,8 @@ class RobotSnapshot:
     master: PeerSnapshot | None
     slaves: tuple[PeerSnapshot, ...]
     joints: tuple[JointSnapshot, ...]
+    #: The master an intervention paused (it waits; `master` is the intervening one).
+    paused_master: PeerSnapshot | None = None
 
     def joint(self, name: str) -> JointSnapshot:
         """The joint called `name` (protocol name)."""
