@@ -12,6 +12,7 @@ autonomous: an e-stop detaches it, which cancels both tasks and stops the worker
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import time as wallclock
@@ -248,6 +249,10 @@ class PolicyMaster:
     def master_id(self) -> str:
         """The id it holds the robot under: its identity."""
         return self.identity
+
+    def figures(self) -> dict[str, float]:
+        """Its counters, shown with the robot's master (`PolicyCounters`)."""
+        return dataclasses.asdict(self.counters)
 
     @property
     def description(self) -> str:

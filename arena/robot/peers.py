@@ -142,9 +142,10 @@ class Peer(Generic[L]):
         error = f"{faults[-1].code}: {faults[-1].message}" if faults else None
         if isinstance(self, SlavePeer) and not self.connected:  # the loss, while it lasts
             error = f"{ErrorCode.SLAVE_LOST}: {self.out_of_reach}"
+        figures = getattr(self.driver, "figures", None)  # (a driver's own, if it has any)
         return PeerSnapshot(
             self.peer_id, self.role, self.kind, connected, error, joining, description, faults,
-            paused,
+            paused, None if figures is None else figures(),
         )  # fmt: skip
 
 

@@ -47,6 +47,8 @@ class PeerSnapshot:
     description: str = ""  # a master's, in words ("replay of 'x.mcap'")
     faults: tuple[FaultSnapshot, ...] = ()
     paused: bool = False  # a master that is paused (it sends nothing; the robot holds)
+    #: A driver's own figures (a policy's: loads, inferences, stalls...), None: it has none.
+    figures: dict[str, float] | None = None
 
 
 @dataclass(frozen=True, slots=True)

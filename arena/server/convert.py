@@ -151,11 +151,14 @@ def _master(peer: PeerSnapshot | None) -> dict[str, Any] | None:
     them (`kind` is its `type`): a client shows what plays without having started it."""
     if peer is None:
         return None
-    return _peer(peer) | {
+    shown = _peer(peer) | {
         "kind": peer.kind,
         "description": peer.description,
         "paused": peer.paused,
     }
+    if peer.figures is not None:
+        shown["figures"] = peer.figures
+    return shown
 
 
 def robot_summary(robot: Robot, tenant: str = "default") -> dict[str, Any]:
