@@ -16,6 +16,7 @@ import httpx
 import trio
 from trio_websocket import open_websocket_url
 
+from arena.client import MasterSession
 from arena.robot.events import CommandHandled
 from tests.conftest import RunningServer
 from tests.test_policy_server import (
@@ -199,3 +200,15 @@ async def test_a_websocket_master_is_told_it_is_paused_and_its_commands_wait(
         await receive(ws, "resume")
         ack = await command(ws, {"Rotation": 3.0})
         assert ack["data"]["status"] == "accepted", ack
+
+
+async def test_a_client_master_session_knows_it_is_paused(server: RunningServer) -> None:
+    """What `arena policy` (a policy on another machine) reads to send nothing while paused."""
+    async with MasterSession.open(server.url, "demo-arm") as master, server.client() as http:
+        assert not master.paused
+        assert (await http.post(f"{ROBOT}/master/pause")).status_code == 200
+        await master.wait_for(lambda session: session.paused)
+        assert (await http.post(f"{ROBOT}/master/resume")).status_code == 200
+        with trio.fail_after(10):
+            await master.wait_resumed()
+        assert not master.paused

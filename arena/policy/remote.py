@@ -71,12 +71,12 @@ class SessionArm:
 
     @property
     def paused(self) -> bool:
-        """Never paused here: the server refuses a paused master's commands (MASTER_PAUSED,
-        which the policy skips) and holds the robot."""
-        return False
+        """The server paused this master (its `pause` message, until `resume`)."""
+        return self.session.paused
 
     async def wait_resumed(self) -> None:
         """See `paused`."""
+        await self.session.wait_resumed()
 
 
 class CameraPoller:
