@@ -18,9 +18,9 @@ from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import get_sequence
 from arena.policy.master import PolicyMaster, PolicySettings
 from arena.policy.wire import Observe
-from arena.protocol.errors import ArenaError, ErrorCode
+from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot import safety as sm
-from arena.robot.events import CommandHandled, InterventionChanged
+from arena.robot.events import CommandHandled, InterventionChanged, TargetsSent
 from arena.robot.handle import Robot
 from arena.robot.links import MasterLink
 from arena.robot.manager import RobotManager
@@ -40,7 +40,7 @@ EVENTS = st.one_of(
     st.just(sm.ManualCommand()),
     st.builds(sm.EStop, st.sampled_from(["a", "b"])),
     st.just(sm.Reset()),
-    st.builds(sm.SlaveError, PEERS, st.sampled_from(list(sm.Severity))),
+    st.builds(sm.SlaveError, PEERS, st.sampled_from(list(Severity))),
     st.builds(sm.SlaveLost, PEERS),
     st.builds(sm.HeartbeatTimeout, PEERS),
     st.just(sm.MasterPause()),
@@ -340,3 +340,46 @@ async def test_handing_back_resumes_the_paused_master_unless_asked_not_to(
     assert snapshot.master is not None and snapshot.master.kind == "mock-sequence"
     assert snapshot.master.paused is not resume
     assert snapshot.mode is (sm.Mode.MASTERED if resume else sm.Mode.PAUSED)
+
+
+# -- no jerk at the handover ---------------------------------------------------------------------
+
+
+def fastest(targets: list[TargetsSent], joint: str, burst: float) -> float:
+    """The highest speed (deg/s) of `joint` between consecutive targets, its one-off burst
+    allowance (`velocity_burst` seconds at the speed) taken off each step."""
+    speeds = []
+    for before, after in itertools.pairwise(targets):
+        step = abs(after.joints[joint] - before.joints[joint])
+        if step:
+            speeds.append(step / (after.time - before.time + burst))
+    return max(speeds)
+
+
+async def test_an_intervening_master_moves_the_arm_at_the_join_speed_until_they_agree(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    current = await scene(manager, "arm")
+    robot = current.robot
+    model = robot.model
+    join, burst = model.safety.join_speed, model.safety.velocity_burst
+    full = model.joint("Rotation").max_velocity
+    assert full > 2 * join  # else the test could not tell the two apart
+    link = await robot.connect_master("corrector", intervene=True)
+    start = robot.joint_values()[0]["Rotation"]
+    far = start + 60.0 if start < 0 else start - 60.0
+    with robot.subscribe(kinds=[TargetsSent]) as events:
+        # The human's input is 60 degrees away from the arm: the arm travels there at the join
+        # speed (a leader arm in a hand is wherever it is), never at full speed...
+        assert (await link.command(Command((JointGoal("Rotation", far),)))).accepted
+        await trio.sleep(60.0 / join + 1.0)
+        eased = [e for e in events.drain() if isinstance(e, TargetsSent)]
+        assert eased[-1].joints["Rotation"] == pytest.approx(far)
+        assert fastest(eased, "Rotation", burst) <= join + 1e-6
+        assert eased[-1].time - eased[0].time >= 60.0 / join - 0.1
+        assert robot.core.easing is None  # they agree: its commands pass as they are
+        # ...and once input and arm agree, the commands pass straight (at the joint's speed).
+        assert (await link.command(Command((JointGoal("Rotation", start),)))).accepted
+        await trio.sleep(60.0 / full + 1.0)
+        straight = [e for e in events.drain() if isinstance(e, TargetsSent)]
+        assert fastest(straight, "Rotation", burst) > 2 * join

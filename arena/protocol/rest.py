@@ -215,7 +215,9 @@ class UsbMasterBody(
 
     `rate`: Hz at which it is read; `deadband`: degrees a joint must move before a new command
     goes out; `calibration`: the leader's calibration name (default: `<robot id>-leader`);
-    `takeover`: displace the robot's master (else MASTER_ACTIVE while it has one).
+    `takeover`: displace the robot's master (else MASTER_ACTIVE while it has one);
+    `actuated`: the leader's servos take torque: it is first driven to the follower's pose at
+    the robot's joining speed, then goes limp for the hand (no jerk when it takes over).
     """
 
     port: str | None = None
@@ -224,6 +226,7 @@ class UsbMasterBody(
     deadband: Annotated[float, msgspec.Meta(ge=0, le=10)] = 0.5
     calibration: CalibrationName | None = None
     takeover: bool = False
+    actuated: bool = False
 
 
 class PolicyMasterBody(
