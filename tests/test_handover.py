@@ -8,14 +8,16 @@ given. These wait for events (`eventually`), never for a time to pass."""
 from __future__ import annotations
 
 import itertools
+from collections.abc import Awaitable, Callable
 from pathlib import Path
 
+from arena.feetech import registers as reg
 from arena.robot.events import TargetsSent
 from arena.robot.handle import Robot
 from arena.robot.manager import RobotManager
 from arena.robot.safety import Mode
 from arena.servo.sim_pty import PtySimBus
-from tests.conftest import eventually
+from tests.conftest import RunningServer, eventually
 from tests.hardware import servo_torque, usb_slave, wait_joined
 from tests.test_usb_master import (
     FOLLOWER_REST,
@@ -117,3 +119,31 @@ async def test_an_actuated_leader_is_driven_to_the_follower_then_goes_limp(
     for _, joints in targets:
         for name, value in joints.items():
             assert abs(value - held[name]) <= 2.0, (name, value, held[name])
+
+
+async def test_a_leader_arm_intervenes_over_rest_and_frees_its_port_when_handed_back(
+    start_server: Callable[..., Awaitable[RunningServer]],
+    leader: PtySimBus,  # noqa: F811
+    tmp_path: Path,
+) -> None:
+    server = await start_server(calibration_dir=str(tmp_path / "calibration"))
+    leader_config = {"type": "usb-master", "port": str(leader.link), "actuated": True}
+    sequence = {"type": "mock-sequence", "sequences": ["gentle-wave"], "loop": True}
+    async with server.client() as http:
+        await http.post("/api/robots", json={"id": "arm"})
+        await http.post("/api/robots/arm/slaves", json={"type": "mock-slave"})
+        assert (await http.post("/api/robots/arm/master", json=sequence)).status_code == 201
+        for _ in range(2):  # twice: the leader's port was freed at the hand-back
+            taken = await http.post("/api/robots/arm/intervention", json={"master": leader_config})
+            assert taken.status_code == 201, taken.text
+            shown = (await http.get("/api/robots/arm")).json()
+            assert shown["master"]["type"] == "usb-master" and shown["state"] == "intervened"
+            assert shown["paused_master"]["type"] == "mock-sequence"
+            busy = await http.post("/api/robots/arm/intervention", json={"master": leader_config})
+            assert busy.json()["error"]["code"] == "INTERVENTION_ACTIVE"
+            back = await http.request("DELETE", "/api/robots/arm/intervention")
+            assert back.status_code == 200, back.text
+            assert back.json()["master"]["type"] == "mock-sequence"
+            assert not back.json()["master"]["paused"]
+    with leader.paused() as bus:  # limp again, its port closed
+        assert all(s.peek(reg.TORQUE_ENABLE) == 0 for s in bus.servos.values())
