@@ -5,7 +5,6 @@ intervene, release, e-stop and takeover, and a policy paused and resumed without
 from __future__ import annotations
 
 import itertools
-from collections.abc import Awaitable, Callable
 from pathlib import Path
 
 import pytest
@@ -321,9 +320,6 @@ async def test_a_paused_policy_keeps_its_worker_and_starts_afresh_on_resume(
     assert paused_at < resumed_at
     # The worker stayed loaded: started and loaded once, never closed.
     assert starts == 1 and master.counters.loads == 1 and not worker.closed
-
-
-Op = Callable[[], Awaitable[object]]
 
 
 @pytest.mark.parametrize("resume", [True, False])
