@@ -138,6 +138,10 @@ async def test_every_change_is_audited_once_with_who_and_no_refusal_is(
         await change("POST", f"{arm}/stop-sequence", robots=("arm",))
         sequence = {"type": "mock-sequence", "sequences": ["gentle-wave"], "loop": True}
         await change("POST", f"{arm}/master", sequence, status=201, robots=("arm",))
+        await change("POST", f"{arm}/master/pause", robots=("arm",))
+        await change("POST", f"{arm}/master/resume", robots=("arm",))
+        await change("POST", f"{arm}/intervention", status=201, robots=("arm",))
+        await change("DELETE", f"{arm}/intervention", robots=("arm",))
         await change("DELETE", f"{arm}/master", robots=("arm",))
         replay = {"recording": "gentle-wave.mcap", "speed": 100}
         await change("POST", f"{arm}/replay", replay, status=201, robots=("arm",))

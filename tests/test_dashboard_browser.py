@@ -853,3 +853,47 @@ def test_the_so101_gripper_slider_is_in_percent(start_live: Any, page: Page) -> 
     assert 40 <= wanted <= 60
     expect(page.locator('td[data-real="gripper"]')).to_have_text(f"{wanted:.1f}", timeout=WAIT_MS)
     assert real_value(server, "follower", "gripper") == pytest.approx(wanted, abs=0.1)
+
+
+def test_pause_resume_intervene_and_hand_back_from_the_page(start_live: Any, page: Page) -> None:
+    server = start_live(demo=True)
+    with server.http() as http:
+        sequence = {"type": "mock-sequence", "sequences": ["gentle-wave"], "loop": True}
+        assert http.post("/api/robots/demo-arm/master", json=sequence).status_code == 201
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    state = page.locator("#robot-state")
+    line = page.locator("#master-line")
+    expect(state).to_have_text("mastered")
+    expect(slider(page, "Rotation")).to_be_disabled()
+    page.click("#master-pause")
+    expect(state).to_have_text("paused")
+    expect(line).to_contain_text("Paused: sequence 'gentle-wave'")
+    expect(page.locator("#master-pause")).to_be_disabled()
+    # Space resumes (and pauses) for whoever has the page focused.
+    page.locator("#robot-title").click()
+    page.keyboard.press(" ")
+    expect(state).to_have_text("mastered")
+    page.keyboard.press(" ")
+    expect(state).to_have_text("paused")
+    page.click("#master-resume")
+    expect(state).to_have_text("mastered")
+    # Intervene: the sequence waits, paused, and the sliders drive the robot.
+    page.click("#intervene")
+    expect(state).to_have_text("intervened")
+    expect(line).to_contain_text("You intervene")
+    expect(slider(page, "Rotation")).to_be_enabled()
+    with server.http() as http:
+        shown = http.get("/api/robots/demo-arm").json()
+        assert shown["paused_master"]["kind"] == "mock-sequence"
+        assert shown["master"]["kind"] == "operator"
+    wanted = click_slider_at(page, "Rotation", 0.8)
+    expect(page.locator('td[data-virtual="Rotation"]')).to_have_text(
+        f"{wanted:.1f}", timeout=WAIT_MS
+    )
+    page.click("#hand-back")
+    expect(state).to_have_text("mastered")
+    expect(slider(page, "Rotation")).to_be_disabled()
+    expect(line).to_contain_text("Playing sequence 'gentle-wave'")
+    with server.http() as http:
+        shown = http.get("/api/robots/demo-arm").json()
+        assert shown["paused_master"] is None and not shown["master"]["paused"]

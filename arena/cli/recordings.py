@@ -45,6 +45,11 @@ def add(commands: Commands) -> None:
     export.add_argument("--repo-id", help="lerobot: the dataset's name (default arena/ROBOT)")
     export.add_argument("--slave", help="lerobot: whose joint states are the observation")
     export.add_argument(
+        "--corrections-only",
+        action="store_true",
+        help="lerobot: each intervention's correction as an episode of its own, nothing else",
+    )
+    export.add_argument(
         "--task", default="teleoperation", help="lerobot: the task of a file with no episodes"
     )
     export.set_defaults(handler=export_command)

@@ -27,12 +27,14 @@ class UsbSlaveConfig:
 @dataclass(frozen=True, slots=True)
 class UsbMasterConfig:
     """A leader arm on a servo bus. `rate`: Hz at which it is read; `deadband`:
-    degrees a joint must move before a new command goes out."""
+    degrees a joint must move before a new command goes out; `actuated`: its servos take
+    torque, so that it is first driven to the follower's pose (then goes limp)."""
 
     port: str | None = None
     baud_rate: int | None = None  # None: the robot type's
     rate: float = 250.0
     deadband: float = 0.5
+    actuated: bool = False
 
 
 @dataclass(frozen=True, slots=True)

@@ -103,6 +103,15 @@ class SessionArm:
             if not sent:
                 self.unsent += 1
 
+    @property
+    def paused(self) -> bool:
+        """The server paused this master (its `pause` message, until `resume`)."""
+        return self.session.paused
+
+    async def wait_resumed(self) -> None:
+        """See `paused`."""
+        await self.session.wait_resumed()
+
 
 class CameraPoller:
     """The newest JPEG of each of the robot's cameras, fetched over REST at `fps`; a frame's

@@ -19,6 +19,11 @@ class ErrorCode(enum.StrEnum):
     RATE_LIMITED = "RATE_LIMITED"
     COLLISION = "COLLISION"  # the move would bring links together or into the workspace's walls
     TAKEN_OVER = "TAKEN_OVER"
+    MASTER_PAUSED = "MASTER_PAUSED"  # a paused master's command: it waits for a resume
+    NO_MASTER = "NO_MASTER"  # a pause, resume or intervention asks for a master the robot lacks
+    INTERVENTION_ACTIVE = "INTERVENTION_ACTIVE"  # one intervention at a time
+    NO_INTERVENTION = "NO_INTERVENTION"  # ending an intervention when none runs
+    INTERVENTION_ENDED = "INTERVENTION_ENDED"  # told to an intervening master handed back
     MASTER_LOST = "MASTER_LOST"
     SLAVE_LOST = "SLAVE_LOST"
     DRIVER_FAILED = "DRIVER_FAILED"

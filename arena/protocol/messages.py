@@ -413,6 +413,15 @@ class DetachedMessage(_Msg, tag="detached"):
     data: DetachedData | None = None
 
 
+class PauseNotice(_Msg, tag="pause"):
+    """To a master: the robot paused it (`POST .../master/pause`, an intervention): send
+    nothing until `resume` (what it sends meanwhile is refused MASTER_PAUSED)."""
+
+
+class ResumeNotice(_Msg, tag="resume"):
+    """To a paused master: it may command again."""
+
+
 class ReleasedData(msgspec.Struct, omit_defaults=True):
     """A master's release done: the robot's mode now (`idle`, or `estopped` if it was
     e-stopped). To a group master: the group's id, `mode` `estopped` if any member is, and

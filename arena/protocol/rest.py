@@ -215,7 +215,9 @@ class UsbMasterBody(
 
     `rate`: Hz at which it is read; `deadband`: degrees a joint must move before a new command
     goes out; `calibration`: the leader's calibration name (default: `<robot id>-leader`);
-    `takeover`: displace the robot's master (else MASTER_ACTIVE while it has one).
+    `takeover`: displace the robot's master (else MASTER_ACTIVE while it has one);
+    `actuated`: the leader's servos take torque: it is first driven to the follower's pose at
+    the robot's joining speed, then goes limp for the hand (no jerk when it takes over).
     """
 
     port: str | None = None
@@ -224,6 +226,7 @@ class UsbMasterBody(
     deadband: Annotated[float, msgspec.Meta(ge=0, le=10)] = 0.5
     calibration: CalibrationName | None = None
     takeover: bool = False
+    actuated: bool = False
 
 
 class PolicyMasterBody(
@@ -264,6 +267,20 @@ class PolicyMasterBody(
 MasterBody: TypeAlias = (
     SequenceMasterBody | ReplayMasterBody | UsbMasterBody | RemoteServerBody | PolicyMasterBody
 )
+
+
+class InterventionBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """`POST .../intervention`: `master`, the intervening master's config (any master's, as
+    `POST .../master` takes it: a leader arm's `usb-master`, say); none: the caller
+    intervenes itself, over `PUT .../joints`."""
+
+    master: MasterBody | None = None
+
+
+class HandBackBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """`DELETE .../intervention`: `resume` false leaves the paused master paused."""
+
+    resume: bool = True
 
 
 #: A group id: like a robot id.

@@ -63,6 +63,8 @@ from arena.server.fleet_api import blueprint as fleet_blueprint
 from arena.server.groups_api import blueprint as groups_blueprint
 from arena.server.health import blueprint as health_blueprint
 from arena.server.identity import Principal, TokenVerifier
+from arena.server.interventions_api import blueprint as interventions_blueprint
+from arena.server.interventions_api import operator_of
 from arena.server.metrics import Metrics
 from arena.server.origin import SAFE_METHODS, OriginPolicy, is_json
 from arena.server.recordings_api import blueprint as recordings_blueprint
@@ -107,6 +109,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.register_blueprint(sensors_blueprint)
     app.register_blueprint(fleet_blueprint)
     app.register_blueprint(health_blueprint)
+    app.register_blueprint(interventions_blueprint)
     _register_errors(app)
     _register_routes(app)
     return app
@@ -395,7 +398,8 @@ def _register_routes(app: ArenaApp) -> None:
         robot = manager.get(robot_id)
         body = await read_body(JointsBody)
         result = await robot.command(
-            convert.command_from_wire(body.joints, body.duration, {"source": "rest"})
+            convert.command_from_wire(body.joints, body.duration, {"source": "rest"}),
+            operator_of(robot, g.principal),  # an operator's intervention: as its master
         )
         if not result.accepted:
             assert result.code is not None

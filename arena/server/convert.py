@@ -151,7 +151,14 @@ def _master(peer: PeerSnapshot | None) -> dict[str, Any] | None:
     them (`kind` is its `type`): a client shows what plays without having started it."""
     if peer is None:
         return None
-    return _peer(peer) | {"kind": peer.kind, "description": peer.description}
+    shown = _peer(peer) | {
+        "kind": peer.kind,
+        "description": peer.description,
+        "paused": peer.paused,
+    }
+    if peer.figures is not None:
+        shown["figures"] = peer.figures
+    return shown
 
 
 def robot_summary(robot: Robot, tenant: str = "default") -> dict[str, Any]:
@@ -166,6 +173,7 @@ def robot_summary(robot: Robot, tenant: str = "default") -> dict[str, Any]:
         "owner": snapshot.owner,
         "estop_reason": snapshot.estop_reason,
         "master": _master(snapshot.master),
+        "paused_master": _master(snapshot.paused_master),
         "slaves": [_peer(s) for s in snapshot.slaves],
         "joints": msgspec.to_builtins(joint_states(robot).data),
     }
@@ -179,6 +187,7 @@ def robot_status(robot: Robot) -> dict[str, Any]:
         "state": str(snapshot.mode),
         "has_master": snapshot.master is not None,
         "master": _master(snapshot.master),
+        "paused_master": _master(snapshot.paused_master),
         "slave_count": len(snapshot.slaves),
         "slaves": [_peer(s) for s in snapshot.slaves],
         "estop_reason": snapshot.estop_reason,

@@ -127,7 +127,7 @@ def usb_slave_config(body: UsbSlaveBody) -> UsbSlaveConfig:
 
 def usb_master_config(body: UsbMasterBody) -> UsbMasterConfig:
     """A usb-master's settings from its body."""
-    return UsbMasterConfig(body.port, body.baudRate, body.rate, body.deadband)
+    return UsbMasterConfig(body.port, body.baudRate, body.rate, body.deadband, body.actuated)
 
 
 def remote_link_config(body: RemoteLinkBody, takeover: bool) -> RemoteLinkConfig:

@@ -15,6 +15,8 @@ from arena.protocol.rest import (
     CreateRobotBody,
     EpisodeBody,
     GroupBody,
+    HandBackBody,
+    InterventionBody,
     JointsBody,
     MasterBody,
     MockSlaveBody,
@@ -66,6 +68,20 @@ ROUTES: list[tuple[str, str, str, Any]] = [
     ("DELETE", "/api/robots/{robot_id}/slaves/{slave_id}", "Detach a slave", None),
     ("POST", "/api/robots/{robot_id}/master", "Attach a master driver", MasterBody),
     ("DELETE", "/api/robots/{robot_id}/master", "Detach the master", None),
+    ("POST", "/api/robots/{robot_id}/master/pause", "Pause the master (the robot holds)", None),
+    ("POST", "/api/robots/{robot_id}/master/resume", "Resume the paused master", None),
+    (
+        "POST",
+        "/api/robots/{robot_id}/intervention",
+        "Intervene: pause the master, another drives",
+        InterventionBody,
+    ),
+    (
+        "DELETE",
+        "/api/robots/{robot_id}/intervention",
+        "End the intervention (the master resumes)",
+        HandBackBody,
+    ),
     ("GET", "/api/recordings", "List recordings and the recorder's state", None),
     ("POST", "/api/recordings", "Start recording", None),
     ("POST", "/api/recordings/{name}/stop", "Stop recording (name or 'current')", None),
@@ -153,6 +169,7 @@ SUCCESS: dict[tuple[str, str], int] = {
     ("POST", "/api/robots"): 201,
     ("POST", "/api/robots/{robot_id}/slaves"): 201,
     ("POST", "/api/robots/{robot_id}/master"): 201,
+    ("POST", "/api/robots/{robot_id}/intervention"): 201,
     ("POST", "/api/recordings"): 201,
     ("POST", "/api/robots/{robot_id}/replay"): 201,
     ("POST", "/api/robots/{robot_id}/cameras"): 201,
@@ -169,6 +186,8 @@ SUCCESS: dict[tuple[str, str], int] = {
 EXAMPLES: dict[type, dict[str, Any]] = {
     CreateRobotBody: {"robot_type": "so-arm100", "name": "My Robot", "id": "my-robot"},
     ReasonBody: {"reason": "operator pressed stop"},
+    InterventionBody: {"master": {"type": "mock-sequence", "sequences": ["gentle-wave"]}},
+    HandBackBody: {"resume": False},
     JointsBody: {
         "joints": [
             {"name": "Rotation", "value": 45},

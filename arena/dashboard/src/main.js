@@ -223,6 +223,27 @@ function wireRobotControls() {
     }),
   );
   $("episode-stop").addEventListener("click", () => act("POST", `${robotPath()}/episodes/stop`));
+  $("master-pause").addEventListener("click", () => act("POST", `${robotPath()}/master/pause`));
+  $("master-resume").addEventListener("click", () => act("POST", `${robotPath()}/master/resume`));
+  $("intervene").addEventListener("click", async () => {
+    const shown = view;
+    const answer = await act("POST", `${robotPath()}/intervention`, {});
+    if (answer && shown === view && view) {
+      view.intervening = true; // the sliders are this page's now (its PUT .../joints)
+      if (view.state) view.applyState(view.state);
+    }
+  });
+  $("hand-back").addEventListener("click", () => act("DELETE", `${robotPath()}/intervention`));
+  // Space pauses and resumes the master for whoever has the page focused (not while typing,
+  // nor on a button, which space presses by itself).
+  document.addEventListener("keydown", (event) => {
+    if (event.key !== " " || !view || !view.state) return;
+    if (event.target.closest && event.target.closest("input, select, textarea, button, dialog")) return;
+    const mode = view.state.mode;
+    if (mode !== "mastered" && mode !== "paused") return;
+    event.preventDefault();
+    act("POST", `${robotPath()}/master/${mode === "mastered" ? "pause" : "resume"}`);
+  });
   $("episode-discard").addEventListener("click", () => act("POST", `${robotPath()}/episodes/discard`));
   // Deleting needs a second click on the same button: no modal dialog to dismiss on a phone.
   const remove = $("delete-robot");

@@ -61,6 +61,7 @@ export class RobotView {
     this.pending = new Map(); // joint -> value not yet sent
     this.sending = false;
     this.closed = false;
+    this.intervening = false; // this page's operator intervenes (its sliders drive)
     colourLegend();
     this.buildJoints(summary.joints);
     this.applySummary(summary);
@@ -309,8 +310,16 @@ export class RobotView {
       this.log(`now ${state.mode}${why}`, state.mode === "estopped");
       this.onChanged();
     }
-    const locked = state.mode !== "idle";
+    if (previous && previous.mode === "intervened" && state.mode !== "intervened") {
+      this.intervening = false; // handed back (or e-stopped): the sliders are not ours now
+    }
+    // The sliders drive an idle robot, or one this page intervenes on (as its operator).
+    const locked = state.mode !== "idle" && !this.intervening;
     for (const { slider } of this.sliders.values()) slider.disabled = locked;
+    $("master-pause").disabled = state.mode !== "mastered";
+    $("master-resume").disabled = state.mode !== "paused";
+    $("intervene").disabled = state.mode !== "mastered" && state.mode !== "paused";
+    $("hand-back").disabled = state.mode !== "intervened";
     $("estop").disabled = state.mode === "estopped";
     $("reset").disabled = state.mode !== "estopped";
     this.showMaster();
@@ -330,7 +339,13 @@ export class RobotView {
     const kind = master ? master.kind || master.type : ""; // (`type`: a server of before kinds)
     let text;
     if (state.mode === "estopped") text = `E-stopped: ${state.estop_reason || "no reason given"}. Reset to move again.`;
-    else if (master && PLAYERS.has(kind)) {
+    else if (state.mode === "intervened" && this.intervening) {
+      text = "You intervene: the sliders drive the robot; the paused master waits for Hand back.";
+    } else if (state.mode === "intervened" && master) {
+      text = `Corrected by ${masterText(master)}: the paused master waits for the hand-back.`;
+    } else if (state.mode === "paused" && master) {
+      text = `Paused: ${masterText(master)} waits; the robot holds. Resume to go on.`;
+    } else if (master && PLAYERS.has(kind)) {
       text = `Playing ${masterText(master)}: the sliders are locked.`;
     } else if (master) text = `Held by ${masterText(master)}: the sliders are locked.`;
     else if (state.owner) text = `Held by master '${state.owner}': the sliders are locked.`;

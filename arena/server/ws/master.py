@@ -37,6 +37,7 @@ async def serve(connection: Connection, robot_id: str) -> None:
     if robot is None:
         return
     app = connection.app
+    intervene = flag(connection.args.get("intervene"))  # the running master waits, paused
     try:
         link = await robot.connect_master(
             connection.args.get("id") or f"ws-master-{next(peer_ids)}",
@@ -44,13 +45,15 @@ async def serve(connection: Connection, robot_id: str) -> None:
             takeover=flag(connection.args.get("takeover")),
             heartbeat_timeout=app.arena_config.heartbeat_timeout,
             description="WebSocket client",
+            intervene=intervene,
         )
     except ArenaError as error:
         await connection.refuse(error)
         return
     connection.count_open([robot_id])
-    takeover = " (takeover)" if flag(connection.args.get("takeover")) else ""
-    robot.audit(connection.principal.audit_name(), "connect master" + takeover, link.master_id)
+    how = " (intervene)" if intervene else ""
+    how = " (takeover)" if flag(connection.args.get("takeover")) else how
+    robot.audit(connection.principal.audit_name(), "connect master" + how, link.master_id)
     try:
         await connection.send(convert.state(robot.snapshot()))
         with robot.subscribe(maxlen=QUEUE_LENGTH, kinds=FORWARDED) as events:
@@ -90,6 +93,10 @@ async def _forward_master_notices(
         if notice.kind == "detached":
             await _send_detached(connection, notice)
             return
+        if notice.kind == "paused":
+            await connection.send(wire.PauseNotice(timestamp=wire.now_iso()))
+        elif notice.kind == "resumed":
+            await connection.send(wire.ResumeNotice(timestamp=wire.now_iso()))
     if player.releasing:
         return  # the reader answers the release and closes
     # The robot closed the link (deleted, or detached without a word).
