@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
@@ -54,6 +55,11 @@ class FakeRobot:
     def __init__(self) -> None:
         self.faults: list[tuple[str, str, str, Severity, float]] = []
         self.inferences: list[PolicyInferred] = []
+        self.paused = False
+
+    def snapshot(self) -> SimpleNamespace:
+        master = SimpleNamespace(peer_id=FakeLink.master_id, paused=self.paused)
+        return SimpleNamespace(master=master, paused_master=None)
 
     def report_sensor_fault(self, source: str, code: str, message: str, sev: Severity) -> None:
         self.faults.append((source, code, message, sev, trio.current_time()))
@@ -96,10 +102,19 @@ async def test_the_watchdog_trips_once_a_silence_and_never_while_commands_flow()
         policy.commanded()
         await trio.sleep(5)
         assert len(robot.faults) == 2 and policy.stalls == 2
+        # Paused by the robot (POST .../master/pause): its silence is no stall.
+        robot.paused = True
+        policy.commanded()
+        await trio.sleep(5)
+        assert len(robot.faults) == 2
+        robot.paused = False
+        policy.commanded()  # resumed, commanding again, then silent: a stall again
+        await trio.sleep(5)
+        assert len(robot.faults) == 3
         link.detached.set()
         policy.commanded()
         await trio.sleep(5)
-        assert len(robot.faults) == 2  # a link the robot let go is watched no more
+        assert len(robot.faults) == 3  # a link the robot let go is watched no more
         nursery.cancel_scope.cancel()
 
 

@@ -102,6 +102,14 @@ class RemotePolicy:
             )
         )
 
+    def _paused(self) -> bool:
+        """The robot paused this master (`POST .../master/pause`, an intervention)."""
+        snapshot = self.robot.snapshot()
+        for peer in (snapshot.master, snapshot.paused_master):
+            if peer is not None and peer.peer_id == self.link.master_id and peer.paused:
+                return True
+        return False
+
     async def _watch(self) -> None:
         """The watchdog: a fault each time the commands stop for the stall window, armed
         again by the next command (the first inference, which warms a policy up, is not a
@@ -114,6 +122,8 @@ class RemotePolicy:
             if self.link.detached.is_set():
                 return
             self._commanded = trio.Event()
+            if self._paused():
+                continue  # told to send nothing: silence is obedience (armed again on resume)
             self.stalls += 1
             waited = trio.current_time() - self._last_command
             self.robot.report_sensor_fault(
