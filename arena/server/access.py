@@ -53,6 +53,8 @@ ROLE_FOR: dict[tuple[str, str], Role] = {
     ("POST", "/api/estop"): V,
     ("GET", "/api/robots/{robot_id}/joints"): V,
     ("PUT", "/api/robots/{robot_id}/joints"): OP,
+    ("GET", "/api/robots/{robot_id}/pose"): V,
+    ("PUT", "/api/robots/{robot_id}/pose"): OP,
     ("GET", "/api/robots/{robot_id}/workspace"): V,
     ("PUT", "/api/robots/{robot_id}/workspace"): A,
     ("POST", "/api/robots/{robot_id}/slaves"): A,

@@ -67,6 +67,7 @@ from arena.server.drivers import (
 from arena.server.fleet_api import CALLER, FORWARDED, forwarded_caller
 from arena.server.fleet_api import blueprint as fleet_blueprint
 from arena.server.groups_api import blueprint as groups_blueprint
+from arena.server.hand_api import blueprint as hand_blueprint
 from arena.server.health import blueprint as health_blueprint
 from arena.server.identity import Principal, TokenVerifier
 from arena.server.metrics import Metrics
@@ -112,6 +113,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.register_blueprint(sensors_blueprint)
     app.register_blueprint(fleet_blueprint)
     app.register_blueprint(health_blueprint)
+    app.register_blueprint(hand_blueprint)
     _register_errors(app)
     _register_routes(app)
     return app

@@ -16,6 +16,7 @@ from arena.robot.handle import Robot
 from arena.robot.links import DETACHED_LINK, MasterLink
 from arena.server import convert
 from arena.server.base import ArenaApp
+from arena.server.hand_api import command_pose
 from arena.server.ws.acks import AckCache
 from arena.server.ws.backpressure import Outgoing
 from arena.server.ws.connection import (
@@ -260,6 +261,9 @@ async def _handle_master_message(
         await connection.send(
             wire.AckMessage(timestamp=wire.now_iso(), data=wire.AckData("accepted"))
         )
+    elif isinstance(message, wire.PoseMessage):
+        result, _ = await command_pose(robot, message.data, link.command, "pose")
+        await connection.send(convert.ack(result))
     elif isinstance(message, wire.HeartbeatMessage):
         await connection.send(wire.HeartbeatMessage(timestamp=wire.now_iso()))
     elif isinstance(message, wire.ReleaseMessage):
