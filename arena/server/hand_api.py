@@ -19,9 +19,11 @@ from quart import Blueprint, current_app
 
 from arena.protocol import messages as wire
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.protocol.rest import TeleopBody
 from arena.robot.cartesian import Hand, HandPose, Solution, hand_for, normalized
 from arena.robot.handle import Robot
 from arena.robot.motion import Command, CommandResult
+from arena.robot.teleop import TeleopSettings, choose_settings, settings_of
 from arena.server import convert
 from arena.server.base import ArenaApp, error_response, read_body
 
@@ -179,3 +181,39 @@ async def unreachable(error: Unreachable) -> tuple[dict[str, Any], int]:
         "joints": nearest.joints,
     }
     return body, status
+
+
+def teleop_json(settings: TeleopSettings) -> dict[str, Any]:
+    """Teleoperation settings as the API shows them (the dead-man time in milliseconds)."""
+    return {
+        "box": {"min": list(settings.low), "max": list(settings.high)},
+        "deadman": round(settings.deadman * 1000.0, 3),
+    }
+
+
+@blueprint.get("/api/robots/<robot_id>/teleop")
+async def get_teleop(robot_id: str) -> dict[str, Any]:
+    """Where `ee_velocity` may take the hand, and its dead-man time."""
+    robot = _app().manager.get(robot_id)
+    return teleop_json(settings_of(robot, hand_of(robot), robot.workspace))
+
+
+@blueprint.put("/api/robots/<robot_id>/teleop")
+async def put_teleop(robot_id: str) -> dict[str, Any]:
+    """Change the box and the dead-man time (what is left out is kept)."""
+    robot = _app().manager.get(robot_id)
+    body: TeleopBody = await read_body(TeleopBody)
+    settings = settings_of(robot, hand_of(robot), robot.workspace)
+    low, high, deadman = settings.low, settings.high, settings.deadman
+    if body.box is not None:
+        low = (body.box.min[0], body.box.min[1], body.box.min[2])
+        high = (body.box.max[0], body.box.max[1], body.box.max[2])
+        if not all(a < b for a, b in zip(low, high, strict=True)):
+            raise ArenaError(
+                ErrorCode.INVALID_VALUE, "`box`: each of `min` must be below its `max`."
+            )
+    if body.deadman is not None:
+        deadman = body.deadman / 1000.0
+    chosen = TeleopSettings(low, high, deadman)
+    choose_settings(robot, chosen)
+    return teleop_json(chosen)

@@ -28,6 +28,7 @@ from arena.server.ws.connection import (
     peer_ids,
 )
 from arena.server.ws.forwarder import FORWARDED, QUEUE_LENGTH, RobotEventForwarder
+from arena.server.ws.hand_drive import HandDrive
 from arena.server.ws.remote_policy import RemotePolicy
 from arena.server.ws.sequence_player import SequencePlayer
 
@@ -132,7 +133,10 @@ async def _master_reader(
     forwarder's hold and one write of the answers.
     """
     policy = RemotePolicy(robot, link)
-    handle = partial(_handle_master_message, connection, robot, link, player, policy, nursery)
+    drive = HandDrive(connection, robot, link)
+    handle = partial(
+        _handle_master_message, connection, robot, link, player, policy, nursery, drive
+    )
     while True:
         raw = await connection.receive_text()
         if raw is None:
@@ -229,6 +233,7 @@ async def _handle_master_message(
     player: SequencePlayer,
     policy: RemotePolicy,
     nursery: trio.Nursery,
+    drive: HandDrive,
     message: wire.MasterMessage,
 ) -> None:
     """Any message of a master but a command (those go to `decide_commands`)."""
@@ -261,6 +266,8 @@ async def _handle_master_message(
         await connection.send(
             wire.AckMessage(timestamp=wire.now_iso(), data=wire.AckData("accepted"))
         )
+    elif isinstance(message, wire.EeVelocityMessage):
+        drive.velocity(message.data, nursery)
     elif isinstance(message, wire.PoseMessage):
         result, _ = await command_pose(robot, message.data, link.command, "pose")
         await connection.send(convert.ack(result))
