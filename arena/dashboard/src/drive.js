@@ -31,6 +31,7 @@ export class HandDriver {
     this.timer = null;
     this.down = (event) => this.key(event, true);
     this.up = (event) => this.key(event, false);
+    this.blur = () => this.held.clear(); // a key let go elsewhere is never heard here
   }
 
   get driving() {
@@ -63,7 +64,7 @@ export class HandDriver {
     });
     window.addEventListener("keydown", this.down);
     window.addEventListener("keyup", this.up);
-    window.addEventListener("blur", () => this.held.clear());
+    window.addEventListener("blur", this.blur);
     this.timer = setInterval(() => this.send(), SEND_MS);
   }
 
@@ -82,6 +83,7 @@ export class HandDriver {
     clearInterval(this.timer);
     window.removeEventListener("keydown", this.down);
     window.removeEventListener("keyup", this.up);
+    window.removeEventListener("blur", this.blur);
   }
 
   key(event, pressed) {
