@@ -11,6 +11,7 @@ import queue
 import re
 import shutil
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -897,3 +898,50 @@ def test_pause_resume_intervene_and_hand_back_from_the_page(start_live: Any, pag
     with server.http() as http:
         shown = http.get("/api/robots/demo-arm").json()
         assert shown["paused_master"] is None and not shown["master"]["paused"]
+
+
+def hand_position(server: LiveServer, robot: str) -> list[float]:
+    """The hand's commanded tool point (metres), as the API says it."""
+    with server.http() as http:
+        pose = http.get(f"/api/robots/{robot}/pose").json()
+    return [float(v) for v in pose["commanded"]["position"]]
+
+
+def moved_along(server: LiveServer, start: list[float], axis: int, sign: int) -> float:
+    """How far the hand has gone from `start` along `axis` (`sign`: the way it should), once
+    that is over 1 cm (or the wait's bound has passed)."""
+    ends = time.monotonic() + WAIT_MS / 1000
+    moved = 0.0
+    while time.monotonic() < ends:
+        moved = sign * (hand_position(server, "demo-arm")[axis] - start[axis])
+        if moved > 0.01:
+            break
+        time.sleep(0.05)
+    return moved
+
+
+def test_the_keyboard_drives_the_hand_over_the_master_websocket(
+    start_live: Any, page: Page
+) -> None:
+    server = start_live(demo=True)
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    expect(page.locator("#robot-state")).to_have_text("idle")
+    page.click("#drive-hand")
+    expect(page.locator("#drive-status")).to_contain_text("driving")
+    expect(page.locator("#robot-state")).to_have_text("mastered")
+    start = hand_position(server, "demo-arm")
+    for key, axis, sign in [("w", 2, 1), ("ArrowUp", 0, 1), ("ArrowLeft", 1, 1)]:
+        page.keyboard.down(key)  # held: the hand goes at 5 cm/s along the key's axis
+        moved = moved_along(server, start, axis, sign)
+        page.keyboard.up(key)
+        assert moved > 0.01, (key, moved)
+        # Let go: the hand stops (within the dead-man time); the other axes stayed put.
+        time.sleep(1.0)
+        stopped = hand_position(server, "demo-arm")
+        time.sleep(0.5)
+        assert hand_position(server, "demo-arm") == pytest.approx(stopped, abs=1e-4)
+        for other in {0, 1, 2} - {axis}:
+            assert stopped[other] == pytest.approx(start[other], abs=0.003), (key, other)
+        start = stopped
+    page.click("#drive-hand")  # stop driving: the master lets go of the robot
+    expect(page.locator("#robot-state")).to_have_text("idle")

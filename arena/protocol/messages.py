@@ -161,6 +161,45 @@ class InferenceMessage(_Msg, tag="inference", forbid_unknown_fields=True):
     data: InferenceData
 
 
+#: A coordinate (metres) of a hand's target: no arm Arena drives reaches 10 m.
+Metres = Annotated[float, msgspec.Meta(ge=-10, le=10)]
+#: A component of a velocity: m/s, rad/s, or the gripper's unit per second.
+Rate = Annotated[float, msgspec.Meta(ge=-1000, le=1000)]
+
+
+class PoseData(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """Where the hand should go (specs/cartesian.md): its tool point in metres in the robot's
+    base frame, optionally its orientation (a quaternion x, y, z, w; left out: any), the
+    gripper's value (degrees or percent, as its joint) and the move's duration (ms)."""
+
+    position: Annotated[list[Metres], msgspec.Meta(min_length=3, max_length=3)]
+    orientation: Annotated[list[Rate], msgspec.Meta(min_length=4, max_length=4)] | None = None
+    gripper: float | None = None
+    duration: Annotated[float, msgspec.Meta(ge=0, le=3_600_000)] | None = None
+
+
+class PoseMessage(_Msg, tag="pose", forbid_unknown_fields=True):
+    """Move the hand to a pose (`PoseData`); acknowledged as a command is."""
+
+    data: PoseData
+
+
+class EeVelocityData(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """Move the hand at this velocity until the next message, or until messages stop for the
+    robot's dead-man time: `linear` m/s and `angular` rad/s in the base frame, `gripper` in
+    its joint's unit per second."""
+
+    linear: Annotated[list[Rate], msgspec.Meta(min_length=3, max_length=3)]
+    angular: Annotated[list[Rate], msgspec.Meta(min_length=3, max_length=3)] | None = None
+    gripper: Rate | None = None
+
+
+class EeVelocityMessage(_Msg, tag="ee_velocity", forbid_unknown_fields=True):
+    """Drive the hand by velocity (`EeVelocityData`): teleoperation without a leader arm."""
+
+    data: EeVelocityData
+
+
 MasterMessage: TypeAlias = (
     CommandMessage
     | SequenceMessage
@@ -170,6 +209,8 @@ MasterMessage: TypeAlias = (
     | ReleaseMessage
     | PolicyMessage
     | InferenceMessage
+    | PoseMessage
+    | EeVelocityMessage
 )
 
 

@@ -335,3 +335,24 @@ class EpisodeBody(msgspec.Struct, forbid_unknown_fields=True):
     learns from it)."""
 
     task: Annotated[str, msgspec.Meta(min_length=1, max_length=1000)]
+
+
+class TeleopBoxBody(msgspec.Struct, forbid_unknown_fields=True):
+    """An axis-aligned box (metres, the robot's base frame): its lowest and highest corner."""
+
+    min: Annotated[
+        list[Annotated[float, msgspec.Meta(ge=-10, le=10)]],
+        msgspec.Meta(min_length=3, max_length=3),
+    ]
+    max: Annotated[
+        list[Annotated[float, msgspec.Meta(ge=-10, le=10)]],
+        msgspec.Meta(min_length=3, max_length=3),
+    ]
+
+
+class TeleopBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """`PUT /api/robots/{id}/teleop`: where `ee_velocity` may take the hand, and the dead-man
+    time in milliseconds (how long after the last message the hand stops). Left out: kept."""
+
+    box: TeleopBoxBody | None = None
+    deadman: Annotated[float, msgspec.Meta(gt=0, le=2000)] | None = None

@@ -104,6 +104,17 @@ class BusSpec:
     baud_rate: int | None = None
 
 
+@dataclass(frozen=True, slots=True)
+class EndEffector:
+    """The robot type's hand (`[end_effector]` in robot.toml): the URDF link whose pose is the
+    hand's, the tool point `offset` in that link's frame (metres), and the joint that opens
+    and closes it (`gripper`, a joint's protocol name, or "" for none)."""
+
+    link: str
+    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    gripper: str = ""
+
+
 @dataclass(frozen=True)
 class RobotModel:
     """Everything Arena knows about a robot type: joints in servo order, safety, URDF."""
@@ -116,6 +127,8 @@ class RobotModel:
     #: Where the arm may go (the collision guard's floor and keep-out boxes).
     workspace: Workspace = field(default_factory=Workspace)
     bus: BusSpec = field(default_factory=BusSpec)
+    #: The hand whose pose `arena.robot.cartesian` computes and solves for (None: not named).
+    end_effector: EndEffector | None = None
 
     _by_name: dict[str, JointSpec] = field(init=False, repr=False, compare=False)
 
@@ -196,6 +209,7 @@ def _load_from_folder(folder: Path) -> RobotModel:
     except (TypeError, ValueError) as exc:
         raise bad(f"invalid [bus]: {exc}") from exc
     names = [j.name for j in joints]
+    end_effector = _end_effector(config.get("end_effector"), urdf_path, names, bad)
     every_name = [n for j in joints for n in {x.lower() for x in (j.name, *j.aliases)}]
     if len(set(every_name)) != len(every_name):
         raise bad(f"joint names and aliases must be unique: {names}")
@@ -207,7 +221,34 @@ def _load_from_folder(folder: Path) -> RobotModel:
         urdf_path=urdf_path,
         workspace=workspace,
         bus=bus,
+        end_effector=end_effector,
     )
+
+
+def _end_effector(section: Any, urdf_path: Path, names: list[str], bad: Any) -> EndEffector | None:
+    if section is None:
+        return None
+    from arena.robot.kinematics import Kinematics  # the standard library's XML parser only
+
+    if not isinstance(section, dict) or not isinstance(section.get("link"), str):
+        raise bad("[end_effector] needs link = the name of a URDF link")
+    unknown = set(section) - {"link", "offset", "gripper"}
+    if unknown:
+        raise bad(f"[end_effector] has unknown keys {sorted(unknown)}")
+    link = section["link"]
+    if link not in Kinematics.from_urdf(urdf_path).links:
+        raise bad(f"[end_effector] link {link!r} is not a link of {urdf_path.name}")
+    offset = section.get("offset", [0.0, 0.0, 0.0])
+    if (
+        not isinstance(offset, list)
+        or len(offset) != 3
+        or not all(isinstance(v, int | float) and math.isfinite(v) for v in offset)
+    ):
+        raise bad("[end_effector] offset must be three finite numbers (metres)")
+    gripper = section.get("gripper", "")
+    if not isinstance(gripper, str) or (gripper and gripper not in names):
+        raise bad(f"[end_effector] gripper must name one of the joints {names}")
+    return EndEffector(link, (float(offset[0]), float(offset[1]), float(offset[2])), gripper)
 
 
 def _bus_spec(section: dict[str, Any]) -> BusSpec:

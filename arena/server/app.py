@@ -61,6 +61,7 @@ from arena.server.dashboard import blueprint as dashboard_blueprint
 from arena.server.fleet_api import CALLER, FORWARDED, forwarded_caller
 from arena.server.fleet_api import blueprint as fleet_blueprint
 from arena.server.groups_api import blueprint as groups_blueprint
+from arena.server.hand_api import blueprint as hand_blueprint
 from arena.server.health import blueprint as health_blueprint
 from arena.server.identity import Principal, TokenVerifier
 from arena.server.interventions_api import blueprint as interventions_blueprint
@@ -110,6 +111,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.register_blueprint(fleet_blueprint)
     app.register_blueprint(health_blueprint)
     app.register_blueprint(interventions_blueprint)
+    app.register_blueprint(hand_blueprint)
     _register_errors(app)
     _register_routes(app)
     return app

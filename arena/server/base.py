@@ -67,6 +67,7 @@ STATUS_FOR: dict[ErrorCode, int] = {
     ErrorCode.RATE_LIMITED: 429,
     ErrorCode.LIMIT_REACHED: 429,
     ErrorCode.COLLISION: 422,
+    ErrorCode.UNREACHABLE: 422,
     ErrorCode.UNAUTHORIZED: 401,
     ErrorCode.FORBIDDEN: 403,
     ErrorCode.ORIGIN_NOT_ALLOWED: 403,

@@ -28,6 +28,7 @@ from arena.protocol.rest import (
     ReplayMasterBody,
     SequenceMasterBody,
     SlaveBody,
+    TeleopBody,
     UsbMasterBody,
     UsbSlaveBody,
     WebSocketSlaveBody,
@@ -57,6 +58,10 @@ ROUTES: list[tuple[str, str, str, Any]] = [
     ("POST", "/api/estop", "Emergency-stop every robot", ReasonBody),
     ("GET", "/api/robots/{robot_id}/joints", "Joint values, virtual and real", None),
     ("PUT", "/api/robots/{robot_id}/joints", "Manual control (refused while mastered)", JointsBody),
+    ("GET", "/api/robots/{robot_id}/pose", "The hand's pose, measured and commanded", None),
+    ("PUT", "/api/robots/{robot_id}/pose", "Move the hand to a pose (solved)", wire.PoseData),
+    ("GET", "/api/robots/{robot_id}/teleop", "Teleoperation's box and dead-man time", None),
+    ("PUT", "/api/robots/{robot_id}/teleop", "Change teleoperation's box, dead-man", TeleopBody),
     ("GET", "/api/robots/{robot_id}/workspace", "The collision guard's workspace", None),
     (
         "PUT",
@@ -228,6 +233,8 @@ EXAMPLES: dict[type, dict[str, Any]] = {
     CameraBody: {"name": "wrist", "source": "test-pattern", "fps": 15, "width": 320, "height": 240},
     EpisodeBody: {"task": "pick up the red cube"},
     GroupBody: {"id": "pair", "members": ["demo-arm"], "stopTogether": True},
+    TeleopBody: {"box": {"min": [-0.3, -0.4, 0.02], "max": [0.3, 0.0, 0.4]}, "deadman": 200},
+    wire.PoseData: {"position": [0.0, -0.25, 0.2], "gripper": 50, "duration": 1000},
 }
 
 

@@ -2,6 +2,7 @@
 // stop buttons, the API key, and the periodic refresh of what the sockets do not push.
 
 import { ApiError, apiKey, call, callReporting, setApiKey } from "./api.js";
+import { HandDriver } from "./drive.js";
 import { RecordingsPanel } from "./recordings.js";
 import { masterText, RobotView } from "./robot_view.js";
 import { SecondClickTakeover } from "./takeover.js";
@@ -106,7 +107,14 @@ function chooseForTheVisitor() {
   }
 }
 
+// "Drive the hand" (drive.js): the keyboard as the robot's master while it is on.
+const hand = new HandDriver((text) => {
+  $("drive-status").textContent = text;
+  $("drive-hand").textContent = hand.driving ? "Stop driving" : "Drive the hand";
+});
+
 function closeView() {
+  if (hand.driving) hand.stop();
   if (view) view.close();
   view = null;
   $("robot-panel").hidden = true;
@@ -202,6 +210,11 @@ function wireRobotControls() {
       { report, holder, stillWanted: () => selectedId() === robot },
     );
     if (answer) await refresh();
+  });
+  $("drive-hand").addEventListener("click", () => {
+    if (hand.driving) hand.stop();
+    else hand.start(selectedId());
+    $("drive-hand").textContent = hand.driving ? "Stop driving" : "Drive the hand";
   });
   $("stop-sequence").addEventListener("click", () => act("POST", `${robotPath()}/stop-sequence`));
   $("add-mock").addEventListener("click", () =>

@@ -16,6 +16,7 @@ from arena.robot.handle import Robot
 from arena.robot.links import DETACHED_LINK, MasterLink
 from arena.server import convert
 from arena.server.base import ArenaApp
+from arena.server.hand_api import command_pose
 from arena.server.ws.acks import AckCache
 from arena.server.ws.backpressure import Outgoing
 from arena.server.ws.connection import (
@@ -27,6 +28,7 @@ from arena.server.ws.connection import (
     peer_ids,
 )
 from arena.server.ws.forwarder import FORWARDED, QUEUE_LENGTH, RobotEventForwarder
+from arena.server.ws.hand_drive import HandDrive
 from arena.server.ws.remote_policy import RemotePolicy
 from arena.server.ws.sequence_player import SequencePlayer
 
@@ -138,7 +140,10 @@ async def _master_reader(
     forwarder's hold and one write of the answers.
     """
     policy = RemotePolicy(robot, link)
-    handle = partial(_handle_master_message, connection, robot, link, player, policy, nursery)
+    drive = HandDrive(connection, robot, link)
+    handle = partial(
+        _handle_master_message, connection, robot, link, player, policy, nursery, drive
+    )
     while True:
         raw = await connection.receive_text()
         if raw is None:
@@ -235,6 +240,7 @@ async def _handle_master_message(
     player: SequencePlayer,
     policy: RemotePolicy,
     nursery: trio.Nursery,
+    drive: HandDrive,
     message: wire.MasterMessage,
 ) -> None:
     """Any message of a master but a command (those go to `decide_commands`)."""
@@ -267,6 +273,11 @@ async def _handle_master_message(
         await connection.send(
             wire.AckMessage(timestamp=wire.now_iso(), data=wire.AckData("accepted"))
         )
+    elif isinstance(message, wire.EeVelocityMessage):
+        drive.velocity(message.data, nursery)
+    elif isinstance(message, wire.PoseMessage):
+        result, _ = await command_pose(robot, message.data, link.command, "pose")
+        await connection.send(convert.ack(result))
     elif isinstance(message, wire.HeartbeatMessage):
         await connection.send(wire.HeartbeatMessage(timestamp=wire.now_iso()))
     elif isinstance(message, wire.ReleaseMessage):
