@@ -156,6 +156,7 @@ def click_slider_at(page: Page, joint: str, fraction: float) -> float:
     slider shows the robot's value again, which may still be on its way there."""
     handle = slider(page, joint)
     handle.evaluate("el => el.addEventListener('input', () => { el.dataset.clicked = el.value; })")
+    handle.scroll_into_view_if_needed()  # (a card with more buttons puts the last below the fold)
     box = handle.bounding_box()
     assert box is not None
     page.mouse.click(box["x"] + box["width"] * fraction, box["y"] + box["height"] / 2)
