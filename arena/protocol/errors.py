@@ -17,6 +17,7 @@ class ErrorCode(enum.StrEnum):
     NOT_OWNER = "NOT_OWNER"
     ESTOPPED = "ESTOPPED"
     RATE_LIMITED = "RATE_LIMITED"
+    STALE_COMMAND = "STALE_COMMAND"  # a stamped command arrived older than command_max_age
     COLLISION = "COLLISION"  # the move would bring links together or into the workspace's walls
     TAKEN_OVER = "TAKEN_OVER"
     MASTER_LOST = "MASTER_LOST"

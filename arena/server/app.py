@@ -88,6 +88,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.connections = set()
     app.websockets_held = Counter()
     app.acks = AckCache()
+    app.master_links = {}
     app.origin_policy = OriginPolicy(config.host, config.allowed_origins, config.allowed_hosts)
     app.hardware = Hardware()
     app.groups = GroupRegistry(manager)

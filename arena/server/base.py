@@ -23,6 +23,7 @@ from arena.robot.manager import RobotManager
 from arena.server.access import AccessControl
 from arena.server.config import ServerConfig
 from arena.server.identity import TokenVerifier
+from arena.server.link_quality import LinkQuality
 from arena.server.metrics import Metrics
 from arena.server.origin import OriginPolicy
 
@@ -214,6 +215,8 @@ class ArenaApp(QuartTrio):
     connections: set[OpenConnection]
     #: WebSockets open by caller (tenant, name), against `max_websockets_per_caller`.
     websockets_held: Counter[tuple[str, str]]
+    #: Each robot's WebSocket master's link (round trip, jitter, stale commands), by robot.
+    master_links: dict[str, LinkQuality]
     #: The masters' acks encoded (one entry, shared: the acks of a millisecond are one text).
     acks: AckCache
     #: Robots' tenants, and which robots each caller sees (see `access`).

@@ -39,6 +39,8 @@ class Metrics:
         self.auth_refused: collections.Counter[str] = collections.Counter()
         #: Messages a peer that stopped reading did not get, by kind (ack, joint_states...).
         self.dropped: collections.Counter[str] = collections.Counter()
+        #: Masters' commands dropped for arriving too late, by robot.
+        self.stale_commands: collections.Counter[str] = collections.Counter()
         self._latency_counts = [0] * (len(LATENCY_BUCKETS) + 1)
         self._latency_sum = 0.0
         self._retired: collections.Counter[str] = collections.Counter()  # deleted robots

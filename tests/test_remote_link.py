@@ -1,0 +1,231 @@
+"""Operators across a slow link (specs/remote-link.md): stale commands dropped, operator loss,
+the link's figures. The estimator on trio's mock clock; the server across the test relay
+(arena/bench/slow_link.py), on the mock clock too, so the link's delays are virtual and exact."""
+
+from __future__ import annotations
+
+import json
+import random
+import time
+from collections.abc import Awaitable, Callable
+from typing import Any
+
+import pytest
+import trio
+from trio.testing import MockClock
+from trio_websocket import WebSocketConnection, open_websocket_url
+
+from arena.bench.slow_link import SlowLink
+from arena.server.link_quality import RESYNC_AFTER, LinkQuality
+from tests.conftest import RecordingSlave, RunningServer, eventually
+
+StartServer = Callable[..., Awaitable[RunningServer]]
+PERIOD = 1 / 30  # a 30 Hz master
+
+
+class Master:
+    """A simulated master's clock and link for the estimator: sends at trio times, its stamps
+    off by `offset` seconds, each arriving `delay ± jitter` later in order (TCP)."""
+
+    def __init__(self, quality: LinkQuality, offset: float, delay: float, jitter: float) -> None:
+        self.quality = quality
+        self.offset = offset
+        self.delay, self.jitter = delay, jitter
+        self.rng = random.Random(3)
+        self.epoch = quality.wall_now() - trio.current_time()
+        self.last_arrival = 0.0
+        self.next_ping = 0.0
+
+    def stamp(self, sent: float) -> float:
+        return (self.epoch + sent + self.offset) * 1000
+
+    def arrival(self, sent: float) -> float:
+        lag = self.delay + self.rng.uniform(-self.jitter, self.jitter)
+        self.last_arrival = max(self.last_arrival, sent + lag)
+        return self.last_arrival
+
+    async def play(self, sends: list[tuple[float, float]]) -> list[tuple[float, bool, float]]:
+        """(sent, arrival) pairs in order: each admitted or not at its arrival, with pings
+        (round trip 2 x delay) once a second. Returns (true age, admitted, estimated age)."""
+        events: list[tuple[float, int, float]] = []  # (when, 0 ping / 1 pong / 2 command, sent)
+        while sends and self.next_ping <= sends[-1][1]:
+            events += [(self.next_ping, 0, 0.0), (self.next_ping + 2 * self.delay, 1, 0.0)]
+            self.next_ping += 1.0
+        events += [(arrived, 2, sent) for sent, arrived in sends]
+        events.sort(key=lambda event: event[:2])
+        seen, pings = [], []
+        for when, kind, sent in events:
+            await trio.sleep_until(max(when, trio.current_time()))
+            if kind == 0:
+                pings.append(self.quality.ping_payload())
+            elif kind == 1:
+                self.quality.pong(pings.pop(0))
+            else:
+                admitted = self.quality.admit(self.stamp(sent))
+                assert self.quality.last_age is not None
+                seen.append((when - sent, admitted, self.quality.last_age))
+        return seen
+
+    def steady(self, start: float, seconds: float) -> list[tuple[float, float]]:
+        count = round(seconds / PERIOD)
+        sends = [start + n * PERIOD for n in range(count)]
+        return [(sent, self.arrival(sent)) for sent in sends]
+
+
+async def test_ages_are_right_whatever_the_clock_offset_and_jitter(
+    autojump_clock: MockClock,
+) -> None:
+    quality = LinkQuality("remote", max_age=0.4, ping_interval=1.0)
+    master = Master(quality, offset=37.5, delay=0.1, jitter=0.025)  # 37.5 s ahead
+    seen = await master.play(master.steady(trio.current_time(), 10.0))
+    assert all(admitted for _, admitted, _ in seen)
+    assert quality.stale == 0
+    # Once a ping has timed the round trip, each estimate is within the jitter of the truth.
+    after_first_second = seen[35:]
+    assert all(abs(estimate - truth) <= 0.05 + 1e-9 for truth, _, estimate in after_first_second)
+    assert quality.rtt == pytest.approx(0.2)
+    assert 0.005 < quality.jitter < 0.05
+    assert quality.quality() == "good"
+
+
+async def test_a_stall_then_its_backlog_in_one_burst_runs_only_what_is_still_fresh(
+    autojump_clock: MockClock,
+) -> None:
+    quality = LinkQuality("remote", max_age=0.4, ping_interval=1.0)
+    master = Master(quality, offset=-2.25, delay=0.1, jitter=0.025)
+    start = trio.current_time()
+    await master.play(master.steady(start, 2.0))
+    # 2 s stall: 60 commands held, then all delivered in one burst at the release.
+    stall_start = start + 2.0
+    released = stall_start + 2.0
+    held = [stall_start + n * PERIOD for n in range(60)]
+    seen = await master.play([(sent, released) for sent in held])
+    admitted = [truth for truth, ok, _ in seen if ok]
+    dropped = [truth for truth, ok, _ in seen if not ok]
+    assert all(age <= 0.4 + 0.05 for age in admitted)  # the estimate's error at most
+    assert all(age > 0.4 - 0.05 for age in dropped)
+    assert len(dropped) == quality.stale >= 60 - round(0.45 / PERIOD) - 1
+    assert len(admitted) <= round(0.45 / PERIOD) + 1  # < half a second of motion, not 2 s
+    assert quality.quality() == "poor"  # dropped just now
+    # The link is back: the next commands run.
+    master.last_arrival = released
+    after = await master.play(master.steady(released, 1.0))
+    assert all(ok for _, ok, _ in after)
+
+
+async def test_a_master_whose_clock_is_set_back_is_believed_again_once_the_link_is_quick(
+    autojump_clock: MockClock,
+) -> None:
+    quality = LinkQuality("remote", max_age=0.4, ping_interval=1.0)
+    master = Master(quality, offset=0.0, delay=0.05, jitter=0.0)
+    await master.play(master.steady(trio.current_time(), 2.0))
+    master.offset = -1.0  # NTP steps the master's clock back a second
+    seen = await master.play(master.steady(trio.current_time(), 4.0))
+    refused = [n for n, (_, ok, _) in enumerate(seen) if not ok]
+    # For a second its stamps are no later than its last before the step (taken as
+    # unstamped); then they look a second old, and are dropped only until a quick round trip
+    # after RESYNC_AFTER: then believed again, for good.
+    assert refused, "commands stamped a second back look a second old"
+    assert refused == list(range(refused[0], refused[0] + len(refused)))
+    assert len(refused) * PERIOD <= RESYNC_AFTER + 1.0 + 2 * PERIOD
+
+
+async def test_unstamped_or_repeated_stamps_and_max_age_zero_never_drop(
+    autojump_clock: MockClock,
+) -> None:
+    quality = LinkQuality("remote", max_age=0.4, ping_interval=1.0)
+    assert quality.admit(None)
+    assert quality.admit(1704110400000)  # the seed's example stamp, in every command
+    await trio.sleep(5.0)
+    assert quality.admit(1704110400000)  # no later than the last: not a clock reading
+    assert quality.admit(float("nan"))
+    assert quality.stale == 0
+    off = LinkQuality("remote", max_age=0, ping_interval=1.0)
+    master = Master(off, offset=0.0, delay=0.01, jitter=0.0)
+    seen = await master.play([(0.0, 0.01), (0.1, 5.0)])  # 4.9 s late: still run
+    assert [ok for _, ok, _ in seen] == [True, True]
+
+
+# --- across the relay, on a real server -------------------------------------------------------
+
+
+async def stamped_command(ws: WebSocketConnection, epoch: float, value: float) -> None:
+    """A command stamped with this client's clock (ms since the epoch)."""
+    stamp = (epoch + trio.current_time()) * 1000
+    joints = [{"name": "Rotation", "value": value}]
+    await ws.send_message(
+        json.dumps({"type": "command", "data": {"timestamp": stamp, "joints": joints}})
+    )
+
+
+async def collect_acks(ws: WebSocketConnection, acks: list[dict[str, Any]]) -> None:
+    while True:
+        message = json.loads(await ws.get_message())
+        if message["type"] == "ack":
+            acks.append(message["data"])
+
+
+async def stall_scenario(
+    start_server: StartServer, nursery: trio.Nursery, max_age: float
+) -> tuple[list[dict[str, Any]], RecordingSlave, RunningServer]:
+    """30 Hz commands through a link of 100 +- 25 ms each way: 1 s, a 2 s stall with 60
+    commands held, then 1 s more. The acks, in order, and what the slave was told."""
+    server = await start_server(record=False, command_max_age=max_age)
+    robot = await server.app.manager.create_robot("so-arm100", robot_id="far")
+    slave = RecordingSlave()
+    await robot.attach_slave(slave, "arm")
+    port = int(server.url.rsplit(":", 1)[1])
+    link = SlowLink("127.0.0.1", port, random_seed=5)
+    await nursery.start(link.serve)
+    link.shape(delay=0.1, jitter=0.025)
+    epoch = time.time() - trio.current_time() + 11.0  # this client's clock is 11 s ahead
+    acks: list[dict[str, Any]] = []
+    url = f"ws://127.0.0.1:{link.port}/ws/master/far?joint_states=false"
+    async with open_websocket_url(url) as ws, trio.open_nursery() as inner:
+        inner.start_soon(collect_acks, ws, acks)
+        value = 0.0
+        for phase in ("before", "stall", "after"):
+            if phase == "stall":
+                link.stall()
+            if phase == "after":
+                link.release()
+            for _ in range(60 if phase == "stall" else 30):
+                value += 0.5
+                await stamped_command(ws, epoch, value)
+                await trio.sleep(PERIOD)
+        await eventually(lambda: len(acks) == 120, what="every command answered")
+        inner.cancel_scope.cancel()
+    return acks, slave, server
+
+
+async def test_a_2_s_stall_does_not_replay_its_60_commands_across_the_relay(
+    autojump_clock: MockClock, start_server: StartServer, nursery: trio.Nursery
+) -> None:
+    acks, _, server = await stall_scenario(start_server, nursery, max_age=0.4)
+    status = [ack["status"] for ack in acks]
+    stale = [n for n, s in enumerate(status) if s != "accepted"]
+    assert all(acks[n]["code"] == "STALE_COMMAND" for n in stale)
+    # The backlog: the 60 commands of the stall and the few still on their way when it
+    # began (100 ms of them). Its oldest are dropped, in one run; only its newest, sent less
+    # than max_age (+ the estimate's margin) before the release, run: at most half a second
+    # of motion, not two. The link's delay and jitter alone drop nothing.
+    assert stale == list(range(stale[0], stale[-1] + 1))
+    assert 30 - round(0.1 / PERIOD) - 1 <= stale[0] <= 30
+    assert 90 - (stale[-1] + 1) <= round(0.5 / PERIOD)
+    assert status[90:] == ["accepted"] * 30
+    assert server.app.metrics.stale_commands["far"] == len(stale)
+
+
+async def test_without_max_age_the_backlog_s_oldest_commands_run_late_in_a_burst(
+    autojump_clock: MockClock, start_server: StartServer, nursery: trio.Nursery
+) -> None:
+    # Today's behaviour, kept for command_max_age = 0: the backlog arrives at once and its
+    # OLDEST commands run, 2 s late, in a burst (until the rate limit refuses the rest, the
+    # newest among them: the opposite of what the operator wants).
+    acks, _, _ = await stall_scenario(start_server, nursery, max_age=0)
+    status = [ack["status"] for ack in acks]
+    assert "STALE_COMMAND" not in [ack.get("code") for ack in acks]
+    # the first second, and the backlog's oldest (stalled from 27 on), 1.8 s late or more
+    assert status[:35] == ["accepted"] * 35
+    refused = [n for n, s in enumerate(status) if s != "accepted"]
+    assert refused and all(acks[n]["code"] == "RATE_LIMITED" for n in refused)
