@@ -4,6 +4,7 @@ the link's figures. The estimator on trio's mock clock; the server across the te
 
 from __future__ import annotations
 
+import contextlib
 import json
 import random
 import time
@@ -13,7 +14,7 @@ from typing import Any
 import pytest
 import trio
 from trio.testing import MockClock
-from trio_websocket import WebSocketConnection, open_websocket_url
+from trio_websocket import ConnectionClosed, WebSocketConnection, open_websocket_url
 
 from arena.bench.slow_link import SlowLink
 from arena.server.link_quality import RESYNC_AFTER, LinkQuality
@@ -159,10 +160,11 @@ async def stamped_command(ws: WebSocketConnection, epoch: float, value: float) -
 
 
 async def collect_acks(ws: WebSocketConnection, acks: list[dict[str, Any]]) -> None:
-    while True:
-        message = json.loads(await ws.get_message())
-        if message["type"] == "ack":
-            acks.append(message["data"])
+    with contextlib.suppress(ConnectionClosed):
+        while True:
+            message = json.loads(await ws.get_message())
+            if message["type"] == "ack":
+                acks.append(message["data"])
 
 
 async def stall_scenario(
@@ -229,3 +231,70 @@ async def test_without_max_age_the_backlog_s_oldest_commands_run_late_in_a_burst
     assert status[:35] == ["accepted"] * 35
     refused = [n for n, s in enumerate(status) if s != "accepted"]
     assert refused and all(acks[n]["code"] == "RATE_LIMITED" for n in refused)
+
+
+async def heartbeats(ws: WebSocketConnection, every: float) -> None:
+    with contextlib.suppress(ConnectionClosed):
+        while True:
+            await ws.send_message('{"type": "heartbeat"}')
+            await trio.sleep(every)
+
+
+async def test_operator_loss_stops_the_arm_and_the_recovered_link_moves_only_anew(
+    autojump_clock: MockClock, start_server: StartServer, nursery: trio.Nursery
+) -> None:
+    # Across 100 ms each way, the link stalls for 3 s: the robot hears nothing, and stops
+    # (its loss policy, an e-stop) within the heartbeat bound of the last message it heard.
+    # What the operator sent meanwhile (a move to 30 degrees) arrives after the release and
+    # never moves the arm; after a reset the arm holds until a new command comes.
+    timeout = 1.0
+    server = await start_server(record=False, heartbeat_timeout=timeout, heartbeat_interval=0.3)
+    robot = await server.app.manager.create_robot("so-arm100", robot_id="far")
+    slave = RecordingSlave()
+    await robot.attach_slave(slave, "arm")
+    port = int(server.url.rsplit(":", 1)[1])
+    link = SlowLink("127.0.0.1", port, random_seed=9)
+    await nursery.start(link.serve)
+    link.shape(delay=0.1)
+    epoch = time.time() - trio.current_time()
+    url = f"ws://127.0.0.1:{link.port}/ws/master/far?joint_states=false"
+    async with open_websocket_url(url) as ws, trio.open_nursery() as inner:
+        acks: list[dict[str, Any]] = []
+        inner.start_soon(collect_acks, ws, acks)
+        inner.start_soon(heartbeats, ws, 0.3)
+        await stamped_command(ws, epoch, 10.0)
+        await eventually(lambda: slave.targets and slave.targets[-1][1]["Rotation"] == 10.0)
+        link.stall()
+        last_heard = trio.current_time()  # nothing sent from now on reaches the server
+        stopped: list[float] = []
+
+        async def note_the_stop() -> None:  # on the mock clock: exact to its 10 ms polls
+            await eventually(lambda: robot.snapshot().mode == "estopped", what="the e-stop")
+            stopped.append(trio.current_time())
+
+        inner.start_soon(note_the_stop)
+        with contextlib.suppress(ConnectionClosed):  # (closed once the release shows it)
+            for _ in range(60):  # the operator goes on: 2 s of commands toward 30 degrees
+                await stamped_command(ws, epoch, 30.0)
+                await trio.sleep(PERIOD)
+        await eventually(lambda: bool(stopped), what="the e-stop")
+        assert timeout - 0.1 <= stopped[0] - last_heard <= timeout + 0.02  # (a poll's slack)
+        await trio.sleep_until(last_heard + 3.0)
+        link.release()
+        await trio.sleep(1.0)  # the backlog arrives at the server, on a link that is gone
+        inner.cancel_scope.cancel()
+    assert all(target["Rotation"] <= 10.0 for _, target in slave.targets)
+    await robot.reset()
+    targets_at_reset = len(slave.targets)
+    async with open_websocket_url(url) as ws, trio.open_nursery() as inner:
+        acks = []
+        inner.start_soon(collect_acks, ws, acks)
+        inner.start_soon(heartbeats, ws, 0.3)
+        await trio.sleep(2.0)  # connected, no command yet: the arm holds
+        assert all(t["Rotation"] == 10.0 for _, t in slave.targets[targets_at_reset:])
+        await stamped_command(ws, epoch, -5.0)
+        await eventually(lambda: slave.targets[-1][1]["Rotation"] == -5.0, what="the new move")
+        await eventually(lambda: bool(acks), what="its ack")
+        inner.cancel_scope.cancel()
+    assert acks[-1]["status"] == "accepted"
+    assert all(target["Rotation"] <= 10.0 for _, target in slave.targets)
