@@ -11,6 +11,7 @@ import queue
 import re
 import shutil
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -853,3 +854,40 @@ def test_the_so101_gripper_slider_is_in_percent(start_live: Any, page: Page) -> 
     assert 40 <= wanted <= 60
     expect(page.locator('td[data-real="gripper"]')).to_have_text(f"{wanted:.1f}", timeout=WAIT_MS)
     assert real_value(server, "follower", "gripper") == pytest.approx(wanted, abs=0.1)
+
+
+def test_a_websocket_master_s_link_shows_beside_it_green_then_red_when_commands_come_late(
+    start_live: Any, page: Page
+) -> None:
+    server = start_live(demo=True, command_max_age=0.05)
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    ws_url = server.url.replace("http://", "ws://") + "/ws/master/demo-arm?id=alice"
+    first = time.time() * 1000
+
+    def command(stamp: float) -> str:
+        data = {"timestamp": stamp, "joints": [{"name": "Rotation", "value": 1}]}
+        return json.dumps({"type": "command", "data": data})
+
+    with websockets.sync.client.connect(ws_url) as alice:  # (it answers the server's pings)
+        alice.send(command(first))
+        tag = page.locator('#peers li[data-peer="alice"] .tag.link')
+        expect(tag).to_have_class(re.compile(r"\bgood\b"), timeout=WAIT_MS)  # loopback
+        expect(tag).to_contain_text("ms")
+        # Stamps a millisecond apart sent at least 0.3 s apart: each arrives later than the
+        # 50 ms allowed, is dropped and counted, and the link shows red.
+        stop = threading.Event()
+
+        def late() -> None:
+            stamp = first
+            while not stop.wait(0.3):
+                stamp += 1
+                alice.send(command(stamp))
+
+        sender = threading.Thread(target=late, daemon=True)
+        sender.start()
+        try:
+            expect(tag).to_have_class(re.compile(r"\bpoor\b"), timeout=WAIT_MS)
+            expect(tag).to_contain_text("stale")
+        finally:
+            stop.set()
+            sender.join()

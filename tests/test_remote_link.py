@@ -298,3 +298,54 @@ async def test_operator_loss_stops_the_arm_and_the_recovered_link_moves_only_ane
         inner.cancel_scope.cancel()
     assert acks[-1]["status"] == "accepted"
     assert all(target["Rotation"] <= 10.0 for _, target in slave.targets)
+
+
+async def test_the_link_shows_in_the_robot_s_details_and_on_metrics(
+    autojump_clock: MockClock, start_server: StartServer, nursery: trio.Nursery
+) -> None:
+    server = await start_server(record=False)
+    robot = await server.app.manager.create_robot("so-arm100", robot_id="far")
+    await robot.attach_slave(RecordingSlave(), "arm")
+    port = int(server.url.rsplit(":", 1)[1])
+    link = SlowLink("127.0.0.1", port, random_seed=2)
+    await nursery.start(link.serve)
+    link.shape(delay=0.1, jitter=0.025)  # 200 ms round trip, +-50
+    epoch = time.time() - trio.current_time()
+    url = f"ws://127.0.0.1:{link.port}/ws/master/far?id=overseas&joint_states=false"
+    async with (
+        open_websocket_url(url) as ws,
+        trio.open_nursery() as inner,
+        server.client() as http,
+    ):
+        inner.start_soon(collect_acks, ws, [])
+        for n in range(90):  # 3 s at 30 Hz
+            await stamped_command(ws, epoch, n / 10)
+            await trio.sleep(PERIOD)
+        master = (await http.get("/api/robots/far")).json()["master"]
+        assert master["id"] == "overseas"
+        shown = master["link"]
+        assert 0.15 <= shown["rtt"] <= 0.25
+        assert 0.0 < shown["jitter"] < 0.05
+        assert shown["dropped_stale"] == 0 and 85 <= shown["stamped"] <= 90  # (some on the way)
+        assert shown["quality"] in ("good", "fair")
+        text = (await http.get("/metrics")).text
+        assert f'arena_master_rtt_seconds{{robot="far"}} {shown["rtt"]}' in text
+        assert 'arena_stale_commands_total{robot="far"} 0' in text
+        # A 2 s stall: its backlog is dropped, counted, and the link shows poor.
+        link.stall()
+        for n in range(60):
+            await stamped_command(ws, epoch, 9 + n / 10)
+            await trio.sleep(PERIOD)
+        link.release()
+        await eventually(
+            lambda: server.app.master_links["far"].stale > 0, what="the backlog's drops"
+        )
+        await trio.sleep(0.5)
+        status = (await http.get("/api/robots/far/status")).json()
+        dropped = status["master"]["link"]["dropped_stale"]
+        assert dropped >= 40 and status["master"]["link"]["quality"] == "poor"
+        text = (await http.get("/metrics")).text
+        assert f'arena_stale_commands_total{{robot="far"}} {dropped}' in text
+        assert 'arena_master_link_quality{robot="far"} 3' in text
+        inner.cancel_scope.cancel()
+    await eventually(lambda: "far" not in server.app.master_links, what="the link forgotten")

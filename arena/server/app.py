@@ -264,6 +264,7 @@ def _has_body() -> bool:
 
 def _register_routes(app: ArenaApp) -> None:
     manager = app.manager
+    links = app.master_links  # each robot's WebSocket master's link
 
     def robots_seen() -> list[Robot]:
         return app.access.visible(g.principal, manager.robots())
@@ -305,7 +306,10 @@ def _register_routes(app: ArenaApp) -> None:
 
     @app.get("/api/robots")
     async def list_robots() -> list[dict[str, Any]]:
-        return [convert.robot_summary(r, app.access.tenant_of(r.robot_id)) for r in robots_seen()]
+        return [
+            convert.robot_summary(r, app.access.tenant_of(r.robot_id), links.get(r.robot_id))
+            for r in robots_seen()
+        ]
 
     @app.post("/api/robots")
     async def create_robot() -> tuple[dict[str, Any], int]:
@@ -343,11 +347,13 @@ def _register_routes(app: ArenaApp) -> None:
 
     @app.get("/api/robots/<robot_id>")
     async def get_robot(robot_id: str) -> dict[str, Any]:
-        return convert.robot_summary(manager.get(robot_id), app.access.tenant_of(robot_id))
+        return convert.robot_summary(
+            manager.get(robot_id), app.access.tenant_of(robot_id), links.get(robot_id)
+        )
 
     @app.get("/api/robots/<robot_id>/status")
     async def robot_status(robot_id: str) -> dict[str, Any]:
-        return convert.robot_status(manager.get(robot_id))
+        return convert.robot_status(manager.get(robot_id), links.get(robot_id))
 
     @app.delete("/api/robots/<robot_id>")
     async def delete_robot(robot_id: str) -> dict[str, Any]:
@@ -521,6 +527,7 @@ def _register_routes(app: ArenaApp) -> None:
                 recorder_status(app, g.principal),  # the caller's tenant's counts
                 app.metrics.connections_seen(sees),
                 whole_server=reads_recordings(g.principal),
+                links=app.master_links,
             ),
             content_type="text/plain; version=0.0.4",
         )

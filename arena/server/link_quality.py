@@ -41,6 +41,8 @@ RESYNC_AFTER = 1.0
 PINGS_KEPT = 8
 #: RFC 3550's gain for the jitter estimate.
 JITTER_GAIN = 1 / 16
+#: The qualities, as `/metrics` numbers them.
+QUALITY_LEVELS = {"unknown": 0, "good": 1, "fair": 2, "poor": 3}
 #: Recent stale drops make the link "poor" for this long.
 STALE_RECENT = 5.0
 

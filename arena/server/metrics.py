@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import bisect
 import collections
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 from arena.robot.handle import Robot
+from arena.server.link_quality import QUALITY_LEVELS, LinkQuality
 
 #: The roles of WebSocket peers.
 ROLES = ("master", "slave", "viewer")
@@ -122,12 +123,14 @@ class Metrics:
         recording: dict[str, Any] | None = None,
         connections: dict[str, int] | None = None,
         whole_server: bool = True,
+        links: Mapping[str, LinkQuality] | None = None,
     ) -> str:
         """The Prometheus exposition text of what a caller sees: `robots` (theirs),
         `connections` (open on those robots, by role; None: every one), `queued_bytes` (what
         those connections hold for their peers), `recording` (the recorder's status as the
         caller is told it). The server's own figures (deleted robots' counts, messages,
-        requests, refusals, latency) only with `whole_server`."""
+        requests, refusals, latency) only with `whole_server`. `links`: the robots' WebSocket
+        masters' links, by robot (those of `robots` are shown)."""
         robots = list(robots)
         commands: collections.Counter[str] = collections.Counter()
         estops = superseded = 0
@@ -169,6 +172,7 @@ class Metrics:
                 queued_bytes,
             ),
         ]
+        lines += self._link_families([r.robot_id for r in robots], links or {})
         if whole_server:
             lines += self._server_families()
         if recording is not None:
@@ -205,6 +209,37 @@ class Metrics:
         if whole_server:
             lines += self._latency_family()
         return "\n".join(lines) + "\n"
+
+    def _link_families(self, robot_ids: list[str], links: Mapping[str, LinkQuality]) -> list[str]:
+        """Each robot's WebSocket master's link: round trip, jitter, quality, stale commands."""
+        shown = [(rid, links[rid]) for rid in robot_ids if rid in links]
+        timed = [(rid, link) for rid, link in shown if link.rtt is not None]
+        return [
+            *_family(
+                "arena_master_rtt_seconds",
+                "gauge",
+                "Round trip of the server's last ping to the robot's WebSocket master.",
+                {f'robot="{rid}"': link.rtt or 0.0 for rid, link in timed},
+            ),
+            *_family(
+                "arena_master_jitter_seconds",
+                "gauge",
+                "Jitter of the master's link (RFC 3550's estimate, one way).",
+                {f'robot="{rid}"': link.jitter for rid, link in shown},
+            ),
+            *_family(
+                "arena_master_link_quality",
+                "gauge",
+                "The master's link: 0 unknown, 1 good, 2 fair, 3 poor (the dashboard's colours).",
+                {f'robot="{rid}"': QUALITY_LEVELS[link.quality()] for rid, link in shown},
+            ),
+            *_family(
+                "arena_stale_commands_total",
+                "counter",
+                "Masters' commands dropped for arriving older than command_max_age, by robot.",
+                {f'robot="{rid}"': self.stale_commands[rid] for rid in robot_ids},
+            ),
+        ]
 
     def _latency_family(self) -> list[str]:
         lines = [
