@@ -52,8 +52,8 @@ class ServerConfig:
     #: delay and jitter (specs/remote-link.md).
     command_max_age: float = 0.4
     #: Seconds between the server's pings to each master (its round trip, for the link's
-    #: quality and the commands' age).
-    link_ping_interval: float = 1.0
+    #: quality and the commands' age; specs/remote-link.md says why not more often).
+    link_ping_interval: float = 2.0
     joint_states_interval: float = 0.02  # at most 50 joint_states a second to each client
     shutdown_grace: float = 1.0
     record: bool = True  # record every robot to MCAP from the start
