@@ -5,10 +5,12 @@ the link's figures. The estimator on trio's mock clock; the server across the te
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import random
 import time
 from collections.abc import Awaitable, Callable
+from types import SimpleNamespace
 from typing import Any
 
 import pytest
@@ -17,6 +19,7 @@ from trio.testing import MockClock
 from trio_websocket import ConnectionClosed, WebSocketConnection, open_websocket_url
 
 from arena.bench.slow_link import SlowLink
+from arena.server import sensors_api
 from arena.server.link_quality import RESYNC_AFTER, LinkQuality
 from tests.conftest import RecordingSlave, RunningServer, eventually
 
@@ -349,3 +352,72 @@ async def test_the_link_shows_in_the_robot_s_details_and_on_metrics(
         assert 'arena_master_link_quality{robot="far"} 3' in text
         inner.cancel_scope.cancel()
     await eventually(lambda: "far" not in server.app.master_links, what="the link forgotten")
+
+
+# --- video keeps up ---------------------------------------------------------------------------
+
+
+class PatternCamera:
+    """A camera of 9 kB frames at 30 fps on trio's clock."""
+
+    def __init__(self) -> None:
+        self.latest: SimpleNamespace | None = None
+        self.changed = trio.Event()
+        self.streams_dropped = 0
+
+    async def run(self) -> None:
+        for seq in itertools.count():
+            self.latest = SimpleNamespace(seq=seq, wall_time=trio.current_time(), jpeg=b"j" * 9000)
+            self.changed.set()
+            self.changed = trio.Event()
+            await trio.sleep(1 / 30)
+
+    async def next_frame(self, after: int) -> SimpleNamespace:
+        while self.latest is None or self.latest.seq <= after:
+            await self.changed.wait()
+        return self.latest
+
+
+class SlowClientSocket:
+    """A socket whose kernel takes every write at once and hands it to a client that takes
+    `rate` bytes a second: notes when each part's last byte reached the client."""
+
+    def __init__(self, rate: float) -> None:
+        self.rate = rate
+        self.free_at = 0.0  # when the client will have everything written so far
+        self.delivered: list[tuple[float, float]] = []  # (delivered, the frame's time)
+
+    async def send_all(self, data: bytes) -> None:
+        self.free_at = max(self.free_at, trio.current_time()) + len(data) / self.rate
+        if b"X-Timestamp: " in data:
+            stamp = float(data.split(b"X-Timestamp: ")[1].split(b"\r\n")[0])
+            self.delivered.append((self.free_at, stamp))
+
+    def queued(self) -> int:
+        return max(0, round((self.free_at - trio.current_time()) * self.rate))
+
+
+@pytest.mark.parametrize("waits", [True, False])
+async def test_a_slow_client_gets_the_newest_frames_at_its_rate_never_a_backlog(
+    autojump_clock: MockClock, waits: bool
+) -> None:
+    # 30 fps of 9 kB frames to a client that takes 90 kB/s (10 frames a second). Waiting for
+    # the kernel to hand each part over, the stream sends about 10 a second, each as old when
+    # it arrives as its time on the link and a camera period, however long it runs. Without waiting
+    # (False: the stream as it was) the kernel's queue grows and with it every frame's age.
+    camera, client = PatternCamera(), SlowClientSocket(90_000)
+    async with trio.open_nursery() as nursery:
+        nursery.start_soon(camera.run)
+        await trio.sleep(0.1)
+        with trio.move_on_after(20.0):
+            await sensors_api.send_frames(camera, client, client.queued if waits else None)  # type: ignore[arg-type]
+        nursery.cancel_scope.cancel()
+    arrived = [(at, stamp) for at, stamp in client.delivered if at <= trio.current_time()]
+    ages = [at - stamp for at, stamp in arrived]
+    if waits:
+        assert 9 * 20 <= len(arrived) <= 10 * 20 + 1
+        # at most the rest of the last part ahead of it, itself, a camera period and a poll
+        on_the_link = (sensors_api.STREAM_QUEUE_BYTES + 9100) / 90_000
+        assert max(ages) <= on_the_link + 1 / 30 + sensors_api.STREAM_DRAIN_POLL + 1e-6
+    else:
+        assert max(ages) > 10.0  # half the run behind, and growing

@@ -8,8 +8,10 @@ kernel has no netem). The shape may change at any time: it applies to the bytes 
   before the chunk ahead of it: TCP keeps the order, so a late chunk holds up the rest).
 - `stall()` holds every byte in both directions until `release()` (or for `seconds`), then
   lets them go in one burst, as a link that stops and recovers does.
-- `bandwidth`: bytes a second per direction; the relay reads at most `buffer_bytes` ahead, so
-  a sender of more than the link takes feels it as TCP backpressure.
+- `bandwidth`: bytes a second per direction, taken in at that rate: what the link has not
+  taken waits unread in the sender's socket, unacknowledged, as it would before a real
+  bottleneck (the sender's kernel sees its backlog; with `kernel_buffer` small, the relay's
+  own sockets hide little of it). At most `buffer_bytes` wait in the relay (a stall's).
 - `cut()` drops every connection at once (both ends see it closed); `refuse` drops new ones.
 
 All waits are on trio's clock, so under `trio.testing.MockClock` the link's time is virtual
@@ -20,6 +22,7 @@ from __future__ import annotations
 
 import math
 import random
+import socket
 from collections import deque
 from dataclasses import dataclass
 
@@ -55,8 +58,18 @@ class DirectionStats:
 class SlowLink:
     """A shaping TCP relay to `target_host:target_port` (run `serve` in a nursery)."""
 
-    def __init__(self, target_host: str, target_port: int, *, random_seed: int = 0) -> None:
+    def __init__(
+        self,
+        target_host: str,
+        target_port: int,
+        *,
+        random_seed: int = 0,
+        kernel_buffer: int | None = None,
+    ) -> None:
         self.target = (target_host, target_port)
+        #: The relay's sockets' kernel buffers (SO_RCVBUF, SO_SNDBUF), made small to model a
+        #: link that queues little rather than a proxy that takes everything at once.
+        self.kernel_buffer = kernel_buffer
         self.up = LinkShape()  # client -> target
         self.down = LinkShape()  # target -> client
         self.up_stats = DirectionStats()
@@ -134,6 +147,10 @@ class SlowLink:
         except OSError:
             await trio.aclose_forcefully(client)
             return
+        if self.kernel_buffer is not None:
+            for stream in (client, upstream):
+                for option in (socket.SO_RCVBUF, socket.SO_SNDBUF):
+                    stream.setsockopt(socket.SOL_SOCKET, option, self.kernel_buffer)
         scope = trio.CancelScope()
         self._scopes.add(scope)
         self.connections += 1
@@ -160,8 +177,8 @@ class SlowLink:
         stats: DirectionStats,
         nursery: trio.Nursery,
     ) -> None:
-        """One direction: a reader that stamps each chunk with its due time, a writer that
-        waits for it (and for a stall's end, and for the bandwidth) before writing."""
+        """One direction: a reader that takes chunks in at the bandwidth and stamps each with
+        its due time, a writer that waits for it (and for a stall's end) before writing."""
         held: deque[tuple[float, bytes]] = deque()
         held_bytes = 0
         more = trio.lowlevel.ParkingLot()  # the writer waits here for chunks
@@ -171,6 +188,7 @@ class SlowLink:
         async def read() -> None:
             nonlocal held_bytes, ended
             last_due = -math.inf
+            free_at = -math.inf  # when the bandwidth allows the next byte in
             try:
                 while True:
                     while held_bytes >= shape.buffer_bytes:
@@ -178,10 +196,14 @@ class SlowLink:
                     data = await source.receive_some(CHUNK)
                     if not data:
                         break
-                    last_due = max(last_due, trio.current_time() + shape.due_after(self._rng))
+                    now = trio.current_time()
+                    last_due = max(last_due, now + shape.due_after(self._rng))
                     held.append((last_due, data))
                     held_bytes += len(data)
                     more.unpark_all()
+                    if shape.bandwidth:  # taken in at the link's rate: the rest waits unread
+                        free_at = max(free_at, now) + len(data) / shape.bandwidth
+                        await trio.sleep_until(free_at)
             except (trio.BrokenResourceError, trio.ClosedResourceError):
                 pass
             ended = True
@@ -189,7 +211,6 @@ class SlowLink:
 
         async def write() -> None:
             nonlocal held_bytes
-            free_at = -math.inf  # when the bandwidth allows the next byte
             while True:
                 while not held:
                     if ended:
@@ -199,10 +220,6 @@ class SlowLink:
                 due, data = held[0]
                 await trio.sleep_until(due)
                 await self._released.wait()
-                if shape.bandwidth:
-                    free_at = max(free_at, trio.current_time()) + len(data) / shape.bandwidth
-                    await trio.sleep_until(free_at)
-                    await self._released.wait()  # a stall that began meanwhile
                 held.popleft()
                 held_bytes -= len(data)
                 room.unpark_all()
