@@ -514,6 +514,10 @@ def _register_routes(app: ArenaApp) -> None:
             await robot.detach_master(master.peer_id)
         return {"detached": master.peer_id if master else None}
 
+    def servo_readings(robot: Robot) -> list[tuple[str, int, int]]:
+        attached = {slave.peer_id for slave in robot.snapshot().slaves}
+        return app.hardware.servo_readings(robot.robot_id, attached)
+
     @app.get("/metrics")
     async def metrics() -> Response:
         return Response(
@@ -528,6 +532,7 @@ def _register_routes(app: ArenaApp) -> None:
                 app.metrics.connections_seen(sees),
                 whole_server=reads_recordings(g.principal),
                 links=app.master_links,
+                servos=servo_readings,
             ),
             content_type="text/plain; version=0.0.4",
         )

@@ -177,6 +177,20 @@ class Hardware:
             f'Robot {robot_id!r} has several physics slaves: say which with "twin:SLAVE_ID".',
         )
 
+    def servo_readings(self, robot_id: str, attached: set[str]) -> list[tuple[str, int, int]]:
+        """The newest temperature (°C) and load (as the servo reports it) of each servo of the
+        robot's attached hardware slaves, by joint: (joint, temperature, load)."""
+        found = []
+        for (rid, sid), driver in self._drivers.items():
+            reading = getattr(driver, "telemetry", None)
+            if rid != robot_id or sid not in attached or reading is None:
+                continue
+            temperatures, loads = reading.temperatures or {}, reading.loads or {}
+            for joint, servo_id in getattr(driver, "servo_ids", {}).items():
+                if servo_id in temperatures:
+                    found.append((joint, temperatures[servo_id], loads.get(servo_id, 0)))
+        return found
+
     def find(self, robot_id: str, slave_id: str | None, attached: set[str]) -> tuple[str, Any]:
         """The robot's calibratable slave (`slave_id`, or the only one)."""
         for key in [k for k in self._drivers if k[1] not in attached and k[0] == robot_id]:

@@ -26,6 +26,50 @@ def _family(name: str, kind: str, text: str, samples: float | dict[str, float]) 
     return lines
 
 
+def _label(value: str) -> str:
+    """A label value as the exposition format writes it (a robot type names its joints)."""
+    return value.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
+
+
+def _robot_families(
+    robots: list[Robot], servos: Callable[[Robot], list[tuple[str, int, int]]] | None
+) -> list[str]:
+    """Each robot's lasting faults by severity, and its servos' temperature and load."""
+    faults: dict[str, float] = {}
+    temperatures: dict[str, float] = {}
+    loads: dict[str, float] = {}
+    for robot in robots:
+        snapshot = robot.snapshot()
+        peers = [*snapshot.slaves, *([snapshot.master] if snapshot.master else [])]
+        counts = collections.Counter(f.severity for peer in peers for f in peer.faults)
+        for severity, n in sorted(counts.items()):
+            faults[f'robot="{robot.robot_id}",severity="{severity}"'] = n
+        for joint, temperature, load in servos(robot) if servos else []:
+            labels = f'robot="{robot.robot_id}",joint="{_label(joint)}"'
+            temperatures[labels], loads[labels] = temperature, load
+    return [
+        *_family(
+            "arena_faults_active",
+            "gauge",
+            "Faults that last (a peer's, until it is over or a reset), by robot and severity.",
+            faults,
+        ),
+        *_family(
+            "arena_servo_temperature_celsius",
+            "gauge",
+            "Each hardware servo's temperature, by robot and joint.",
+            temperatures,
+        ),
+        *_family(
+            "arena_servo_load",
+            "gauge",
+            "Each hardware servo's load as it reports it (Feetech: per mille of its torque;"
+            " Dynamixel: its current's units), by robot and joint.",
+            loads,
+        ),
+    ]
+
+
 class Metrics:
     """Counters the server keeps at its edges; robot counters are read from the actors."""
 
@@ -124,13 +168,15 @@ class Metrics:
         connections: dict[str, int] | None = None,
         whole_server: bool = True,
         links: Mapping[str, LinkQuality] | None = None,
+        servos: Callable[[Robot], list[tuple[str, int, int]]] | None = None,
     ) -> str:
         """The Prometheus exposition text of what a caller sees: `robots` (theirs),
         `connections` (open on those robots, by role; None: every one), `queued_bytes` (what
         those connections hold for their peers), `recording` (the recorder's status as the
         caller is told it). The server's own figures (deleted robots' counts, messages,
         requests, refusals, latency) only with `whole_server`. `links`: the robots' WebSocket
-        masters' links, by robot (those of `robots` are shown)."""
+        masters' links, by robot (those of `robots` are shown); `servos`: a robot's servos'
+        (joint, temperature, load)."""
         robots = list(robots)
         commands: collections.Counter[str] = collections.Counter()
         estops = superseded = 0
@@ -173,6 +219,7 @@ class Metrics:
             ),
         ]
         lines += self._link_families([r.robot_id for r in robots], links or {})
+        lines += _robot_families(robots, servos)
         if whole_server:
             lines += self._server_families()
         if recording is not None:
