@@ -421,3 +421,27 @@ async def test_a_slow_client_gets_the_newest_frames_at_its_rate_never_a_backlog(
         assert max(ages) <= on_the_link + 1 / 30 + sensors_api.STREAM_DRAIN_POLL + 1e-6
     else:
         assert max(ages) > 10.0  # half the run behind, and growing
+
+
+async def test_the_link_s_quality_goes_by_its_pongs_and_its_stale_drops(
+    autojump_clock: MockClock,
+) -> None:
+    quality = LinkQuality("remote", max_age=0.4, ping_interval=2.0)
+    await trio.sleep(30.0)
+    assert quality.quality() == "unknown"  # never pinged (a fleet's tunnel): no verdict
+    payload = quality.ping_payload()
+    await trio.sleep(0.05)
+    quality.pong(payload)
+    assert quality.quality() == "good"
+    payload = quality.ping_payload()
+    await trio.sleep(0.2)
+    quality.pong(payload)  # 200 ms: about 100 ms one way, under half of max_age
+    assert quality.quality() == "good"
+    payload = quality.ping_payload()
+    await trio.sleep(0.5)
+    quality.pong(payload)  # 500 ms round trip: 250 ms one way, above half of max_age
+    assert quality.quality() == "fair"
+    quality.ping_payload()
+    await trio.sleep(3 * 2.0 + 0.6)  # three pings' time without an answer
+    assert quality.quality() == "poor"
+    assert quality.as_dict()["rtt"] == pytest.approx(0.5)

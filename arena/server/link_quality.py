@@ -63,6 +63,8 @@ class LinkQuality:
         self._pings: OrderedDict[int, float] = OrderedDict()
         self._next_ping = 0
         self.started = trio.current_time()
+        #: Pinged by the server (a socket carried from another node of a fleet is not).
+        self.pinging = False
         self.rtt: float | None = None  # the last round trip
         self.rtt_min: float | None = None
         self.jitter = 0.0
@@ -141,6 +143,7 @@ class LinkQuality:
 
     def ping_payload(self) -> bytes:
         """The payload of the next ping (its number), noted as sent now."""
+        self.pinging = True
         number = self._next_ping
         self._next_ping += 1
         self._pings[number] = trio.current_time()
@@ -170,7 +173,7 @@ class LinkQuality:
         green, amber and red (specs/remote-link.md says where the lines are)."""
         now = trio.current_time()
         heard = self.last_pong_at if self.last_pong_at is not None else self.started
-        if now - heard > 3 * self.ping_interval + (self.rtt or 0.0):
+        if self.pinging and now - heard > 3 * self.ping_interval + (self.rtt or 0.0):
             return "poor"  # no answer to three pings
         if self.last_stale_at is not None and now - self.last_stale_at < STALE_RECENT:
             return "poor"

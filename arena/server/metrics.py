@@ -159,6 +159,7 @@ class Metrics:
         self._retired.update(robot.command_counts)
         self._retired_estops += robot.estop_count
         self._retired_superseded += robot.targets_superseded
+        self.stale_commands.pop(robot.robot_id, None)  # (a per-robot series ends with it)
 
     def render(
         self,
