@@ -946,3 +946,40 @@ def test_the_keyboard_drives_the_hand_over_the_master_websocket(
         start = stopped
     page.click("#drive-hand")  # stop driving: the master lets go of the robot
     expect(page.locator("#robot-state")).to_have_text("idle")
+
+
+def test_a_websocket_master_s_link_shows_beside_it_green_then_red_when_commands_come_late(
+    start_live: Any, page: Page
+) -> None:
+    server = start_live(demo=True, command_max_age=0.05)
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    ws_url = server.url.replace("http://", "ws://") + "/ws/master/demo-arm?id=alice"
+    first = time.time() * 1000
+
+    def command(stamp: float) -> str:
+        data = {"timestamp": stamp, "joints": [{"name": "Rotation", "value": 1}]}
+        return json.dumps({"type": "command", "data": data})
+
+    with websockets.sync.client.connect(ws_url) as alice:  # (it answers the server's pings)
+        alice.send(command(first))
+        tag = page.locator('#peers li[data-peer="alice"] .tag.link')
+        expect(tag).to_have_class(re.compile(r"\bgood\b"), timeout=WAIT_MS)  # loopback
+        expect(tag).to_contain_text("ms")
+        # Stamps a millisecond apart sent at least 0.3 s apart: each arrives later than the
+        # 50 ms allowed, is dropped and counted, and the link shows red.
+        stop = threading.Event()
+
+        def late() -> None:
+            stamp = first
+            while not stop.wait(0.3):
+                stamp += 1
+                alice.send(command(stamp))
+
+        sender = threading.Thread(target=late, daemon=True)
+        sender.start()
+        try:
+            expect(tag).to_have_class(re.compile(r"\bpoor\b"), timeout=WAIT_MS)
+            expect(tag).to_contain_text("stale")
+        finally:
+            stop.set()
+            sender.join()

@@ -85,6 +85,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.connections = set()
     app.websockets_held = Counter()
     app.acks = AckCache()
+    app.master_links = {}
     app.origin_policy = OriginPolicy(config.host, config.allowed_origins, config.allowed_hosts)
     app.hardware = Hardware()
     app.groups = GroupRegistry(manager)
@@ -265,6 +266,7 @@ def _has_body() -> bool:
 
 def _register_routes(app: ArenaApp) -> None:
     manager = app.manager
+    links = app.master_links  # each robot's WebSocket master's link
 
     def robots_seen() -> list[Robot]:
         return app.access.visible(g.principal, manager.robots())
@@ -306,7 +308,10 @@ def _register_routes(app: ArenaApp) -> None:
 
     @app.get("/api/robots")
     async def list_robots() -> list[dict[str, Any]]:
-        return [convert.robot_summary(r, app.access.tenant_of(r.robot_id)) for r in robots_seen()]
+        return [
+            convert.robot_summary(r, app.access.tenant_of(r.robot_id), links.get(r.robot_id))
+            for r in robots_seen()
+        ]
 
     @app.post("/api/robots")
     async def create_robot() -> tuple[dict[str, Any], int]:
@@ -317,7 +322,9 @@ def _register_routes(app: ArenaApp) -> None:
 
     @app.get("/api/robots/<robot_id>")
     async def get_robot(robot_id: str) -> dict[str, Any]:
-        summary = convert.robot_summary(manager.get(robot_id), app.access.tenant_of(robot_id))
+        summary = convert.robot_summary(
+            manager.get(robot_id), app.access.tenant_of(robot_id), links.get(robot_id)
+        )
         # The parts the configuration file declares that are not up yet, being retried.
         summary["pending"] = [] if app.declared is None else app.declared.pending_of(robot_id)
         return summary
@@ -333,7 +340,7 @@ def _register_routes(app: ArenaApp) -> None:
 
     @app.get("/api/robots/<robot_id>/status")
     async def robot_status(robot_id: str) -> dict[str, Any]:
-        return convert.robot_status(manager.get(robot_id))
+        return convert.robot_status(manager.get(robot_id), links.get(robot_id))
 
     @app.delete("/api/robots/<robot_id>")
     async def delete_robot(robot_id: str) -> dict[str, Any]:
@@ -450,6 +457,10 @@ def _register_routes(app: ArenaApp) -> None:
             await robot.detach_master(master.peer_id)
         return {"detached": master.peer_id if master else None}
 
+    def servo_readings(robot: Robot) -> list[tuple[str, int, int]]:
+        attached = {slave.peer_id for slave in robot.snapshot().slaves}
+        return app.hardware.servo_readings(robot.robot_id, attached)
+
     @app.get("/metrics")
     async def metrics() -> Response:
         return Response(
@@ -463,6 +474,8 @@ def _register_routes(app: ArenaApp) -> None:
                 recorder_status(app, g.principal),  # the caller's tenant's counts
                 app.metrics.connections_seen(sees),
                 whole_server=reads_recordings(g.principal),
+                links=app.master_links,
+                servos=servo_readings,
             ),
             content_type="text/plain; version=0.0.4",
         )

@@ -25,6 +25,7 @@ from arena.robot.manager import RobotManager
 from arena.server.access import AccessControl
 from arena.server.config import ServerConfig
 from arena.server.identity import TokenVerifier
+from arena.server.link_quality import LinkQuality
 from arena.server.metrics import Metrics
 from arena.server.origin import OriginPolicy
 
@@ -183,6 +184,20 @@ class Hardware:
             f'Robot {robot_id!r} has several physics slaves: say which with "twin:SLAVE_ID".',
         )
 
+    def servo_readings(self, robot_id: str, attached: set[str]) -> list[tuple[str, int, int]]:
+        """The newest temperature (°C) and load (as the servo reports it) of each servo of the
+        robot's attached hardware slaves, by joint: (joint, temperature, load)."""
+        found = []
+        for (rid, sid), driver in self._drivers.items():
+            reading = getattr(driver, "telemetry", None)
+            if rid != robot_id or sid not in attached or reading is None:
+                continue
+            temperatures, loads = reading.temperatures or {}, reading.loads or {}
+            for joint, servo_id in getattr(driver, "servo_ids", {}).items():
+                if servo_id in temperatures:
+                    found.append((joint, temperatures[servo_id], loads.get(servo_id, 0)))
+        return found
+
     def find(self, robot_id: str, slave_id: str | None, attached: set[str]) -> tuple[str, Any]:
         """The robot's calibratable slave (`slave_id`, or the only one)."""
         for key in [k for k in self._drivers if k[1] not in attached and k[0] == robot_id]:
@@ -266,6 +281,8 @@ class ArenaApp(QuartTrio):
     connections: set[OpenConnection]
     #: WebSockets open by caller (tenant, name), against `max_websockets_per_caller`.
     websockets_held: Counter[tuple[str, str]]
+    #: Each robot's WebSocket master's link (round trip, jitter, stale commands), by robot.
+    master_links: dict[str, LinkQuality]
     #: The masters' acks encoded (one entry, shared: the acks of a millisecond are one text).
     acks: AckCache
     #: Robots' tenants, and which robots each caller sees (see `access`).

@@ -45,6 +45,13 @@ class ServerConfig:
     keyfile: str | None = None
     heartbeat_interval: float = 30.0  # seconds between our heartbeats to each peer
     heartbeat_timeout: float = 90.0  # a peer silent this long is dropped
+    #: A master's stamped command older than this (seconds) on arrival is dropped, never run
+    #: late (0: none is). 0.4 s: ITU-T G.114's bound for interactive use, above a long link's
+    #: delay and jitter (specs/remote-link.md).
+    command_max_age: float = 0.4
+    #: Seconds between the server's pings to each master (its round trip, for the link's
+    #: quality and the commands' age; specs/remote-link.md says why not more often).
+    link_ping_interval: float = 2.0
     joint_states_interval: float = 0.02  # at most 50 joint_states a second to each client
     shutdown_grace: float = 1.0
     record: bool = True  # record every robot to MCAP from the start
@@ -126,6 +133,14 @@ class ServerConfig:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "TLS needs both --certfile and --keyfile.")
         if self.heartbeat_interval <= 0 or self.heartbeat_timeout <= 0:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "Heartbeat settings must be positive.")
+        if not 0 <= self.command_max_age <= 60:
+            raise ArenaError(
+                ErrorCode.INVALID_CONFIG, "command_max_age must be from 0 (off) to 60 s."
+            )
+        if not 0.05 <= self.link_ping_interval <= 3600:
+            raise ArenaError(
+                ErrorCode.INVALID_CONFIG, "link_ping_interval must be from 0.05 to 3600 s."
+            )
         if not 1024 <= self.ws_queue_bytes <= 64 << 20:
             raise ArenaError(
                 ErrorCode.INVALID_CONFIG, "ws_queue_bytes must be from 1 KiB to 64 MiB."

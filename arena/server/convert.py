@@ -12,6 +12,7 @@ from arena.robot.events import FaultReported, NoticeKind, SlaveNotice, SlaveTarg
 from arena.robot.handle import Robot
 from arena.robot.motion import Command, CommandResult
 from arena.robot.snapshot import PeerSnapshot, RobotSnapshot
+from arena.server.link_quality import LinkQuality
 
 
 def command_from_wire(
@@ -146,9 +147,10 @@ def _peer(peer: PeerSnapshot) -> dict[str, Any]:
     }
 
 
-def _master(peer: PeerSnapshot | None) -> dict[str, Any] | None:
+def _master(peer: PeerSnapshot | None, link: LinkQuality | None = None) -> dict[str, Any] | None:
     """A master as a peer, with its `kind` and `description` as `TAKEN_OVER`'s `by` names
-    them (`kind` is its `type`): a client shows what plays without having started it."""
+    them (`kind` is its `type`): a client shows what plays without having started it. A
+    WebSocket master's `link` (round trip, jitter, stale commands) when `link` is its own."""
     if peer is None:
         return None
     shown = _peer(peer) | {
@@ -158,11 +160,16 @@ def _master(peer: PeerSnapshot | None) -> dict[str, Any] | None:
     }
     if peer.figures is not None:
         shown["figures"] = peer.figures
+    if link is not None and link.master_id == peer.peer_id:
+        shown["link"] = link.as_dict()
     return shown
 
 
-def robot_summary(robot: Robot, tenant: str = "default") -> dict[str, Any]:
-    """A robot as the REST API shows it (`tenant`: whose it is)."""
+def robot_summary(
+    robot: Robot, tenant: str = "default", link: LinkQuality | None = None
+) -> dict[str, Any]:
+    """A robot as the REST API shows it (`tenant`: whose it is; `link`: its WebSocket
+    master's, if it has one)."""
     snapshot = robot.snapshot()
     return {
         "id": snapshot.robot_id,
@@ -172,22 +179,22 @@ def robot_summary(robot: Robot, tenant: str = "default") -> dict[str, Any]:
         "state": str(snapshot.mode),
         "owner": snapshot.owner,
         "estop_reason": snapshot.estop_reason,
-        "master": _master(snapshot.master),
-        "paused_master": _master(snapshot.paused_master),
+        "master": _master(snapshot.master, link),
+        "paused_master": _master(snapshot.paused_master, link),
         "slaves": [_peer(s) for s in snapshot.slaves],
         "joints": msgspec.to_builtins(joint_states(robot).data),
     }
 
 
-def robot_status(robot: Robot) -> dict[str, Any]:
+def robot_status(robot: Robot, link: LinkQuality | None = None) -> dict[str, Any]:
     """Connection status: who is attached, and the safety state."""
     snapshot = robot.snapshot()
     return {
         "id": snapshot.robot_id,
         "state": str(snapshot.mode),
         "has_master": snapshot.master is not None,
-        "master": _master(snapshot.master),
-        "paused_master": _master(snapshot.paused_master),
+        "master": _master(snapshot.master, link),
+        "paused_master": _master(snapshot.paused_master, link),
         "slave_count": len(snapshot.slaves),
         "slaves": [_peer(s) for s in snapshot.slaves],
         "estop_reason": snapshot.estop_reason,

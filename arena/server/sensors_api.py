@@ -4,11 +4,20 @@ The stream (`GET /api/robots/{id}/cameras/{name}/stream`) is served by the liste
 like the WebSockets, not by hypercorn: each part is written with a deadline, so a client that
 stops reading loses its stream after `STREAM_SEND_TIMEOUT` instead of holding a slot for ever,
 and it always gets the newest frame (latest wins; a slow client skips frames).
+
+Never a backlog: after each part the stream waits until the kernel has handed it to the client
+(the socket's unsent and unacknowledged bytes, `TIOCOUTQ`, at most `STREAM_QUEUE_BYTES`) before
+taking the newest frame, so a slow client or link gets fewer frames, each fresh, instead of
+every frame ever later (specs/remote-link.md, "Video keeps up").
 """
 
 from __future__ import annotations
 
-from typing import Any
+import fcntl
+import struct
+import termios
+from collections.abc import Callable
+from typing import Any, Protocol
 
 import trio
 from quart import Blueprint, Response, current_app, request
@@ -17,7 +26,6 @@ from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import CameraBody, EpisodeBody
 from arena.protocol.ws_frames import UpgradeRequest
 from arena.robot.episodes import Episode
-from arena.sensors.camera import Camera
 from arena.server import parts
 from arena.server.auth import authorize, refuse
 from arena.server.base import STATUS_FOR, ArenaApp, read_body
@@ -31,6 +39,10 @@ MAX_STREAMS_PER_CAMERA = 8
 #: A part not taken by the client within this long ends its stream.
 STREAM_SEND_TIMEOUT = 5.0
 BOUNDARY = "arenaframe"
+#: A part is taken once at most this many of the stream's bytes wait in the kernel.
+STREAM_QUEUE_BYTES = 8 * 1024
+#: How often a stream whose client is behind looks again.
+STREAM_DRAIN_POLL = 0.01
 
 
 def _app() -> ArenaApp:
@@ -212,12 +224,56 @@ async def _serve_stream(
         return
     camera.streams += 1
     try:
-        await _send_frames(camera, stream)
+        await send_frames(camera, stream, kernel_queue(stream))
     finally:
         camera.streams -= 1
 
 
-async def _send_frames(camera: Camera, stream: trio.abc.Stream) -> None:
+class FrameSource(Protocol):
+    """What a stream needs of a camera."""
+
+    streams_dropped: int
+
+    async def next_frame(self, after: int) -> Any:
+        """The newest frame past `after` (with `seq`, `wall_time`, `jpeg`)."""
+
+
+def kernel_queue(stream: trio.abc.Stream) -> Callable[[], int] | None:
+    """How many bytes written to `stream` the kernel holds still (unsent or unacknowledged:
+    Linux's TIOCOUTQ), or None where it cannot tell (another system, a stream with no
+    socket)."""
+    transport: Any = stream
+    while not hasattr(transport, "socket") and hasattr(transport, "transport_stream"):
+        transport = transport.transport_stream  # TLS
+    sock = getattr(transport, "socket", None)
+    if sock is None or not hasattr(termios, "TIOCOUTQ"):
+        return None
+
+    def queued() -> int:
+        fd = sock.fileno()
+        if fd < 0:
+            return 0
+        answer = fcntl.ioctl(fd, termios.TIOCOUTQ, b"\0\0\0\0")
+        return int(struct.unpack("i", answer)[0])
+
+    try:
+        queued()
+    except OSError:
+        return None
+    return queued
+
+
+async def _drained(queued: Callable[[], int]) -> None:
+    """Until the kernel holds at most `STREAM_QUEUE_BYTES` of the stream."""
+    while queued() > STREAM_QUEUE_BYTES:
+        await trio.sleep(STREAM_DRAIN_POLL)
+
+
+async def send_frames(
+    camera: FrameSource, stream: trio.abc.Stream, queued: Callable[[], int] | None
+) -> None:
+    """Serve the multipart stream: the newest frame each time the client has taken the last
+    (`queued`: the kernel's bytes of the stream; None: as fast as the stream takes them)."""
     await stream.send_all(
         b"HTTP/1.1 200 OK\r\nContent-Type: multipart/x-mixed-replace; boundary="
         + BOUNDARY.encode()
@@ -236,6 +292,8 @@ async def _send_frames(camera: Camera, stream: trio.abc.Stream) -> None:
         ).encode("latin-1")
         with trio.move_on_after(STREAM_SEND_TIMEOUT) as late:
             await stream.send_all(part + frame.jpeg + b"\r\n")
+            if queued is not None:
+                await _drained(queued)
         if late.cancelled_caught:
             camera.streams_dropped += 1
             return

@@ -33,6 +33,19 @@ function attachedText(summary) {
   return "No master, no slave";
 }
 
+/** A WebSocket master's link beside it: green, amber or red (the server's `quality`), with
+ * its round trip, jitter and the commands dropped for arriving too late. */
+export function linkTag(link) {
+  const ms = (seconds) => (seconds == null ? "?" : `${Math.round(seconds * 1000)}`);
+  const tag = document.createElement("span");
+  tag.className = `tag link ${link.quality}`;
+  tag.textContent = `link ${ms(link.rtt)} ms ±${ms(link.jitter)}` + (link.dropped_stale ? `, ${link.dropped_stale} stale` : "");
+  tag.title =
+    `${link.quality}: round trip ${ms(link.rtt)} ms, jitter ${ms(link.jitter)} ms, ` +
+    `${link.dropped_stale} commands dropped for arriving over ${ms(link.max_age)} ms old`;
+  return tag;
+}
+
 /** What a master is, in the server's words: "sequence 'gentle-wave' (master 'master-3',
  * mock-sequence)"; without a description, "master 'alice' (websocket)". */
 export function masterText(master) {
@@ -194,7 +207,9 @@ export class RobotView {
             : `/api/robots/${this.robotId}/slaves/${encodeURIComponent(peer.id)}`,
         ),
       );
-      item.append(label, tag, detach);
+      item.append(label, tag);
+      if (peer.link) item.append(linkTag(peer.link));
+      item.append(detach);
       // Its faults that last (each until it is over, a reset, or the peer leaves); a loss
       // while it lasts is its error without being one of them. The socket's `fault`
       // messages log each as it comes and goes.
