@@ -134,6 +134,10 @@ async def test_every_change_is_audited_once_with_who_and_no_refusal_is(
         await change("PUT", f"{arm}/workspace", {"margin": 0.01}, robots=("arm",))
         joints = {"joints": [{"name": "Rotation", "value": 5}]}
         await change("PUT", f"{arm}/joints", joints, robots=("arm",))
+        reader = bearer(token("admin", sub="reader"))
+        pose = (await http.get(f"{arm}/pose", headers=reader)).json()["commanded"]
+        await change("PUT", f"{arm}/pose", {"position": pose["position"]}, robots=("arm",))
+        await change("PUT", f"{arm}/teleop", {"deadman": 300}, robots=("arm",))
         await change("POST", f"{arm}/play-sequence/gentle-wave", robots=("arm",))
         await change("POST", f"{arm}/stop-sequence", robots=("arm",))
         sequence = {"type": "mock-sequence", "sequences": ["gentle-wave"], "loop": True}
