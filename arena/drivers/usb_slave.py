@@ -9,6 +9,7 @@ reconnects; after a reconnection nothing queued during the outage is executed.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -83,6 +84,9 @@ class UsbSlave(ServoArm):
             open_bus,
         )
         self.config = config
+        self.settings = dataclasses.replace(
+            self.settings, torque_limits=torque_limits(model, config.torque_limit)
+        )
         #: deg/s of its way to the robot's pose when it joins (None: the robot type's).
         self.join_speed = config.join_speed
         self.session: CalibrationSession | None = None
@@ -346,6 +350,22 @@ class UsbSlave(ServoArm):
         if self.worker is None or not self.worker.connected:
             raise ArenaError(ErrorCode.PORT_DISCONNECTED, "The servo bus is not connected.")
         return await wait_future(self.worker.submit(job))
+
+
+def torque_limits(model: RobotModel, overrides: Mapping[str, float]) -> dict[int, float]:
+    """Percent of full torque by servo id: the robot type's caps (its gripper's), then the
+    slave's own (`overrides`, by joint name or alias); a name the type lacks is refused."""
+    limits = {j.servo_id: j.torque_limit for j in model.joints if j.torque_limit is not None}
+    for name, percent in overrides.items():
+        joint = model.joint(name)
+        if joint is None:
+            raise ArenaError(
+                ErrorCode.UNKNOWN_JOINT,
+                f"torqueLimit names {name!r}, not a joint of robot type {model.robot_type} "
+                f"(its joints: {', '.join(model.joint_names)}).",
+            )
+        limits[joint.servo_id] = float(percent)
+    return limits
 
 
 def _speed_limit(model: RobotModel) -> int:
