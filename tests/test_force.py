@@ -7,12 +7,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import trio
 
 from arena.drivers.usb_slave import torque_limits
 from arena.feetech import registers as reg
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.robot.model import load_robot_model
-from arena.servo.sim_pty import PtySimBus
+from arena.servo.force import ForceGuard, ForceSettings
+from arena.servo.sim_pty import AMBIENT_C, PtySimBus
 from tests.conftest import RunningServer, eventually
 from tests.hardware import open_test_bus, running_sim
 from tests.lerobot_arms import joined
@@ -137,3 +139,154 @@ def test_the_koch_gripper_is_current_based_as_lerobot_runs_it(tmp_path: Path) ->
             assert "XL430-W250" in refused.value.message and "servo 2" in refused.value.message
         finally:
             bus.close()
+
+
+async def slave_faults(http: Any) -> set[tuple[str, str | None]]:
+    """The (code, joint) of each fault robot `arm`'s slave shows now."""
+    robot = (await http.get("/api/robots/arm")).json()
+    return {(f["code"], f["joint"]) for f in robot["slaves"][0]["faults"]}
+
+
+async def test_a_blocked_gripper_stalls_eases_to_a_holding_torque_and_stays_cool(
+    start_server: StartServer, sim: PtySimBus
+) -> None:
+    with sim.paused() as bus:  # heats and cools twice as fast as the defaults: same limits
+        bus.servo(GRIPPER).heating *= 2
+        bus.servo(GRIPPER).cooling *= 2
+    server = await start_server()
+    async with server.client() as http:
+        # Uncapped, as a gripper pushing with all it has would burn (110 C when it settles).
+        attached = await attach_so101(http, sim, torqueLimit={"gripper": 100}, stallTime=0.5)
+        assert attached.status_code == 201, attached.text
+        await eventually(lambda: joined(http), what="the arm joined")
+        await grip_an_object(http, sim)
+
+        async def stalled() -> bool:
+            return ("STALL", "gripper") in await slave_faults(http)
+
+        await eventually(stalled, what="a STALL fault naming the gripper")
+        robot = (await http.get("/api/robots/arm")).json()
+        assert robot["state"] != "estopped"  # a warning: the robot goes on
+        # Eased to a holding torque: it keeps its grip, gently, and cools down.
+        await eventually(
+            lambda: peek(sim, GRIPPER, reg.TORQUE_LIMIT) == 250, what="the holding torque"
+        )
+        await eventually(
+            lambda: peek(sim, GRIPPER, reg.PRESENT_LOAD) == 250, what="the gentle grip"
+        )
+        with sim.paused() as bus:
+            servo = bus.servo(GRIPPER)
+            load, celsius = servo.load, servo.temperature
+            settles_at = AMBIENT_C + servo.heating * load**2 / servo.cooling
+        assert load == pytest.approx(0.25)
+        assert celsius < 55  # the warm threshold was never reached
+        assert settles_at < 40  # and never will be: 35 C at 25 % (110 C pushing uncapped)
+        assert peek(sim, GRIPPER, reg.TORQUE_ENABLE) == 1
+        # The next command moves it again, with its limit back: the fault clears.
+        with sim.paused() as bus:
+            bus.servo(GRIPPER).remove_obstacle()
+        move = {"joints": [{"name": "gripper", "value": 10}]}
+        assert (await http.put("/api/robots/arm/joints", json=move)).status_code == 200
+
+        async def released() -> bool:
+            return ("STALL", "gripper") not in await slave_faults(http)
+
+        await eventually(released, what="the STALL fault cleared")
+        await eventually(
+            lambda: peek(sim, GRIPPER, reg.TORQUE_LIMIT) == 1000, what="the gripper's own limit"
+        )
+        await eventually(
+            lambda: abs(peek(sim, GRIPPER, reg.PRESENT_POSITION) - 2173) <= 3,
+            what="the gripper at 10 %",
+        )
+
+
+async def test_a_blocked_joint_stops_pushing_where_it_is(
+    start_server: StartServer, sim: PtySimBus
+) -> None:
+    server = await start_server()
+    async with server.client() as http:
+        attached = await attach_so101(http, sim, stallTime=0.5)
+        assert attached.status_code == 201, attached.text
+        await eventually(lambda: joined(http), what="the arm joined")
+        with sim.paused() as bus:
+            bus.servo(1).place_obstacle(2048 + 100)  # a wall 8.8 degrees on
+        move = {"joints": [{"name": "shoulder_pan", "value": 30}]}
+        assert (await http.put("/api/robots/arm/joints", json=move)).status_code == 200
+
+        async def stalled() -> bool:
+            return ("STALL", "shoulder_pan") in await slave_faults(http)
+
+        await eventually(stalled, what="a STALL fault naming shoulder_pan")
+        # It stops pushing: its goal is where it stopped, its load gone, no overload.
+        await eventually(
+            lambda: peek(sim, 1, reg.GOAL_POSITION) == 2148, what="the goal where it stopped"
+        )
+        await eventually(lambda: peek(sim, 1, reg.PRESENT_LOAD) == 0, what="no load")
+        await trio.sleep(0.5)  # targets still arriving do not push it again
+        assert peek(sim, 1, reg.GOAL_POSITION) == 2148
+        assert peek(sim, 1, reg.TORQUE_ENABLE) == 1
+        # The next command (away from the wall) moves it.
+        move = {"joints": [{"name": "shoulder_pan", "value": -10}]}
+        assert (await http.put("/api/robots/arm/joints", json=move)).status_code == 200
+        await eventually(
+            lambda: abs(peek(sim, 1, reg.PRESENT_POSITION) - (2048 - 114)) <= 3,
+            what="shoulder_pan at -10",
+        )
+
+        async def released() -> bool:
+            return ("STALL", "shoulder_pan") not in await slave_faults(http)
+
+        await eventually(released, what="the STALL fault cleared")
+
+
+async def test_a_warm_servo_gets_its_torque_limit_lowered(
+    start_server: StartServer, sim: PtySimBus
+) -> None:
+    server = await start_server()
+    async with server.client() as http:
+        attached = await attach_so101(http, sim)
+        assert attached.status_code == 201, attached.text
+        await eventually(lambda: joined(http), what="the arm joined")
+        with sim.paused() as bus:
+            bus.servo(GRIPPER).temperature = 60.0
+            bus.servo(GRIPPER).cooling = 0.001  # it stays warm while the test looks
+        await eventually(
+            lambda: peek(sim, GRIPPER, reg.TORQUE_LIMIT) == 250, what="half its 50 % limit"
+        )
+        assert peek(sim, 1, reg.TORQUE_LIMIT) == 1000
+        text = (await http.get("/metrics")).text
+        assert 'arena_servo_temperature_celsius{robot="arm",joint="gripper"} 60' in text
+        assert 'arena_servo_load_percent{robot="arm",joint="shoulder_pan"} 0' in text
+        with sim.paused() as bus:
+            bus.servo(GRIPPER).temperature = 45.0  # cooled: its own limit comes back
+        await eventually(
+            lambda: peek(sim, GRIPPER, reg.TORQUE_LIMIT) == 500, what="its own limit back"
+        )
+
+
+def test_the_guard_counts_a_stall_from_a_steady_goal_on_its_own_clock() -> None:
+    guard = ForceGuard({GRIPPER: 50.0}, grippers=[GRIPPER], settings=ForceSettings(stall_time=1.0))
+    guard.goal(1, 3000)
+    guard.goal(GRIPPER, 3000)
+    cool = {1: 30.0, GRIPPER: 30.0}
+    # Short of the goal but with little load (still moving): no stall, however long.
+    assert guard.observe(0.0, {1: 2500, GRIPPER: 2500}, {1: 10.0, GRIPPER: 10.0}, cool) == []
+    assert guard.observe(5.0, {1: 2600, GRIPPER: 2600}, {1: 10.0, GRIPPER: 10.0}, cool) == []
+    # Pushing: half its limit is high for the capped gripper (25 of 50), not for the other.
+    assert guard.observe(6.0, {1: 2600, GRIPPER: 2600}, {1: 30.0, GRIPPER: 30.0}, cool) == []
+    # A goal that moves restarts the wait.
+    guard.goal(GRIPPER, 3100)
+    assert guard.observe(6.9, {1: 2600, GRIPPER: 2600}, {1: 30.0, GRIPPER: 30.0}, cool) == []
+    (stall,) = guard.observe(7.9, {1: 2600, GRIPPER: 2600}, {1: 30.0, GRIPPER: 30.0}, cool)
+    assert (stall.servo_id, stall.present, stall.goal, stall.limit) == (GRIPPER, 2600, 3100, 50.0)
+    assert guard.stalled(GRIPPER) and guard.limit(GRIPPER) == 25.0  # the holding torque
+    assert guard.observe(9.0, {GRIPPER: 2600}, {GRIPPER: 25.0}, cool) == []  # told once
+    guard.release(GRIPPER)
+    assert not guard.stalled(GRIPPER) and guard.limit(GRIPPER) == 50.0
+    # Warm: the limit halves; it comes back only once cooled past the margin.
+    assert guard.observe(10.0, {}, {}, {1: 56.0}) == [] and guard.limit(1) == 50.0
+    guard.observe(11.0, {}, {}, {1: 52.0})
+    assert guard.limit(1) == 50.0
+    guard.observe(12.0, {}, {}, {1: 49.0})
+    assert guard.limit(1) == 100.0

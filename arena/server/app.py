@@ -520,6 +520,7 @@ def _register_routes(app: ArenaApp) -> None:
                 recorder_status(app, g.principal),  # the caller's tenant's counts
                 app.metrics.connections_seen(sees),
                 whole_server=reads_recordings(g.principal),
+                servos=app.hardware.servo_states({r.robot_id for r in robots_seen()}),
             ),
             content_type="text/plain; version=0.0.4",
         )

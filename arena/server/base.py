@@ -176,6 +176,22 @@ class Hardware:
             f'Robot {robot_id!r} has several physics slaves: say which with "twin:SLAVE_ID".',
         )
 
+    def servo_states(self, robot_ids: set[str]) -> dict[tuple[str, str], tuple[float, float]]:
+        """Each running arm's servos as its last telemetry read them: (temperature C, load
+        percent) by (robot id, joint), for /metrics (the first arm of a robot with several)."""
+        states: dict[tuple[str, str], tuple[float, float]] = {}
+        for (robot_id, _), driver in self._drivers.items():
+            servo_state = getattr(driver, "servo_state", None)
+            if (
+                robot_id not in robot_ids
+                or servo_state is None
+                or not getattr(driver, "running", False)
+            ):
+                continue
+            for joint, state in servo_state().items():
+                states.setdefault((robot_id, joint), state)
+        return states
+
     def find(self, robot_id: str, slave_id: str | None, attached: set[str]) -> tuple[str, Any]:
         """The robot's calibratable slave (`slave_id`, or the only one)."""
         for key in [k for k in self._drivers if k[1] not in attached and k[0] == robot_id]:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import bisect
 import collections
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 from arena.robot.handle import Robot
@@ -120,12 +120,14 @@ class Metrics:
         recording: dict[str, Any] | None = None,
         connections: dict[str, int] | None = None,
         whole_server: bool = True,
+        servos: Mapping[tuple[str, str], tuple[float, float]] | None = None,
     ) -> str:
         """The Prometheus exposition text of what a caller sees: `robots` (theirs),
         `connections` (open on those robots, by role; None: every one), `queued_bytes` (what
         those connections hold for their peers), `recording` (the recorder's status as the
         caller is told it). The server's own figures (deleted robots' counts, messages,
-        requests, refusals, latency) only with `whole_server`."""
+        requests, refusals, latency) only with `whole_server`. `servos`: the arms' servos as
+        last read, (temperature C, load percent) by (robot, joint)."""
         robots = list(robots)
         commands: collections.Counter[str] = collections.Counter()
         estops = superseded = 0
@@ -167,6 +169,22 @@ class Metrics:
                 queued_bytes,
             ),
         ]
+        if servos:
+            lines += _family(
+                "arena_servo_temperature_celsius",
+                "gauge",
+                "Each servo's temperature as last read.",
+                {f'robot="{r}",joint="{j}"': t for (r, j), (t, _) in sorted(servos.items())},
+            )
+            lines += _family(
+                "arena_servo_load_percent",
+                "gauge",
+                "Each servo's load as last read, in percent of its full torque.",
+                {
+                    f'robot="{r}",joint="{j}"': round(x, 1)
+                    for (r, j), (_, x) in sorted(servos.items())
+                },
+            )
         if whole_server:
             lines += self._server_families()
         if recording is not None:
