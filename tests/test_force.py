@@ -12,6 +12,7 @@ import trio
 from arena.drivers.usb_slave import torque_limits
 from arena.feetech import registers as reg
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.recording.mcap_file import read_recording
 from arena.robot.model import load_robot_model
 from arena.servo.force import ForceGuard, ForceSettings
 from arena.servo.sim_pty import AMBIENT_C, PtySimBus
@@ -290,3 +291,67 @@ def test_the_guard_counts_a_stall_from_a_steady_goal_on_its_own_clock() -> None:
     assert guard.limit(1) == 50.0
     guard.observe(12.0, {}, {}, {1: 49.0})
     assert guard.limit(1) == 100.0
+
+
+async def test_hand_guiding_records_the_motion_as_commands_that_replay(
+    start_server: StartServer, sim: PtySimBus, tmp_path: Path
+) -> None:
+    server = await start_server()
+    async with server.client() as http:
+        attached = await attach_so101(http, sim)
+        assert attached.status_code == 201, attached.text
+        await eventually(lambda: joined(http), what="the arm joined")
+        refused = await http.post(
+            "/api/robots/arm/compliance", json={"joints": ["thumb"], "torque": 20}
+        )
+        assert refused.status_code == 422 and refused.json()["error"]["code"] == "UNKNOWN_JOINT"
+        entered = await http.post(
+            "/api/robots/arm/compliance", json={"joints": ["shoulder_pan"], "torque": 20}
+        )
+        assert entered.status_code == 201, entered.text
+        assert entered.json()["joints"] == ["shoulder_pan"]
+        robot = (await http.get("/api/robots/arm")).json()
+        assert robot["master"]["kind"] == "hand-guide"
+        await eventually(lambda: peek(sim, 1, reg.TORQUE_LIMIT) == 200, what="20 % torque")
+        assert peek(sim, 2, reg.TORQUE_LIMIT) == 1000  # the other joints stay stiff
+        # A hand takes shoulder_pan round, step by step: the robot's target follows it.
+        for step in range(2098, 2310, 50):
+            with sim.paused() as bus:
+                bus.servo(1).hold_by_hand(step)
+            await eventually(
+                lambda s=step: abs(peek(sim, 1, reg.GOAL_POSITION) - s) <= 12,  # type: ignore[misc]
+                what=f"the goal following the hand to {step}",
+            )
+        with sim.paused() as bus:
+            bus.servo(1).let_go()
+        left = await http.delete("/api/robots/arm/compliance")
+        assert left.json() == {"detached": entered.json()["id"]}
+        await eventually(lambda: peek(sim, 1, reg.TORQUE_LIMIT) == 1000, what="full torque back")
+        # It holds where the hand left it (22 degrees on), no spring back.
+        await trio.sleep(0.3)
+        assert abs(peek(sim, 1, reg.PRESENT_POSITION) - 2298) <= 12
+        back = {"joints": [{"name": "shoulder_pan", "value": 0}]}
+        assert (await http.put("/api/robots/arm/joints", json=back)).status_code == 200
+        await eventually(
+            lambda: abs(peek(sim, 1, reg.PRESENT_POSITION) - 2048) <= 3, what="back at 0"
+        )
+
+        async def file_open() -> bool:
+            return bool((await http.get("/api/recordings")).json()["recorder"]["file"])
+
+        await eventually(file_open, what="the recording's file")
+        name = (await http.post("/api/recordings/current/stop")).json()["stopped"]
+        guided = [
+            m
+            for m in read_recording(tmp_path / "recordings" / name).messages
+            if m.kind == "command" and m.data["label"] == "hand-guide"  # (its own source)
+        ]
+        assert len(guided) >= 4 and all(m.data["accepted"] for m in guided)
+        values = [m.data["joints"][0]["value"] for m in guided]
+        assert values == sorted(values) and values[-1] > 20  # the way the hand went
+        # Replayed: the arm goes the way the hand took it.
+        replay = await http.post("/api/robots/arm/replay", json={"recording": name, "speed": 2})
+        assert replay.status_code == 201, replay.text
+        await eventually(
+            lambda: peek(sim, 1, reg.GOAL_POSITION) > 2270, what="the replay going the hand's way"
+        )

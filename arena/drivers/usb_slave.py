@@ -13,7 +13,7 @@ import dataclasses
 import logging
 import math
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -102,6 +102,9 @@ class UsbSlave(ServoArm):
         self._limits_written: dict[int, float] = {}  # the torque limits the guard last wrote
         self._held: dict[int, int] = {}  # stalled joints held where they stopped (raw steps)
         self._stalled_goal: dict[int, int] = {}  # the goal each stalled joint fell short of
+        #: The newest reading: raw steps by servo id, and the joints' values (for hand guiding).
+        self.present: dict[int, int] = {}
+        self.pose: dict[str, float] = {}
         #: deg/s of its way to the robot's pose when it joins (None: the robot type's).
         self.join_speed = config.join_speed
         self.session: CalibrationSession | None = None
@@ -246,9 +249,9 @@ class UsbSlave(ServoArm):
                 and reading.time >= self._range_since
             ):
                 session.capture.observe(self.calibration.to_degrees(reading.positions))
-            await link.report_joint_states(
-                self.calibration.to_values(reading.positions, self.spans)
-            )
+            self.present = dict(reading.positions)
+            self.pose = self.calibration.to_values(reading.positions, self.spans)
+            await link.report_joint_states(self.pose)
 
     # -- stall and heat (specs/force.md) ------------------------------------------------------
 
@@ -309,6 +312,51 @@ class UsbSlave(ServoArm):
             return
         self._limits_written.update(changed)
         await self._safe_job(lambda bus: worker.set_torque_limits(bus, changed))
+
+    # -- compliance (hand guiding, specs/force.md) ---------------------------------------------
+
+    def servo_ids_of(self, joints: Sequence[str]) -> dict[str, int]:
+        """The servo id of each joint named (protocol names or aliases); `UNKNOWN_JOINT` for a
+        name the robot type lacks."""
+        found: dict[str, int] = {}
+        for name in joints:
+            joint = self.model.joint(name)
+            if joint is None:
+                raise ArenaError(
+                    ErrorCode.UNKNOWN_JOINT,
+                    f"No joint {name!r} on robot type {self.model.robot_type} (its joints: "
+                    f"{', '.join(self.model.joint_names)}).",
+                )
+            found[joint.name] = joint.servo_id
+        return found
+
+    async def enter_compliance(self, joints: Sequence[str], torque: float) -> None:
+        """The joints named give at most `torque` percent (a person can move them), and are
+        never taken for stalled while they are compliant."""
+        if not self.running or self.worker is None:
+            raise ArenaError(ErrorCode.NO_HARDWARE, "The arm is not running: attach it first.")
+        for servo_id in self.servo_ids_of(joints).values():
+            self.guard.release(servo_id)
+            self._held.pop(servo_id, None)
+            self.guard.overrides[servo_id] = torque
+        await self._write_limits()
+
+    async def leave_compliance(self) -> None:
+        """Compliance ends: the compliant joints hold where they are (goal = present), with
+        their own torque limits back."""
+        if not self.guard.overrides or self.worker is None:
+            return
+        servo_ids = list(self.guard.overrides)
+        self.guard.overrides.clear()
+        here = {sid: self.present[sid] for sid in servo_ids if sid in self.present}
+        if not self.frozen:
+            self.worker.set_goals(here)
+        await self._write_limits()
+
+    @property
+    def compliant(self) -> list[str]:
+        """The joints in compliance now."""
+        return [self.joint_of[sid] for sid in self.guard.overrides]
 
     def servo_state(self) -> dict[str, tuple[float, float]]:
         """Each joint's last temperature (C) and load (percent of full torque), for /metrics."""

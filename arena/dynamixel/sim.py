@@ -74,6 +74,7 @@ class SimServo(SimServoBase):
     heating: float = HEATING_C_PER_S
     cooling: float = COOLING_PER_S
     obstacle: Obstacle | None = None
+    hand: float | None = None
     load: float = 0.0
     stall_time: float = 0.0
     overloaded: bool = False  # the overload error, until torque is written on again

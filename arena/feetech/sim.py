@@ -50,6 +50,7 @@ class SimServo(SimServoBase):
     heating: float = HEATING_C_PER_S
     cooling: float = COOLING_PER_S
     obstacle: Obstacle | None = None
+    hand: float | None = None
     load: float = 0.0
     faults: ServoFaults = field(default_factory=ServoFaults)
     memory: bytearray = field(default_factory=lambda: bytearray(reg.MEMORY_SIZE))

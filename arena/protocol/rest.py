@@ -114,6 +114,15 @@ class UsbSlaveBody(
     stallTime: Annotated[float, msgspec.Meta(ge=0.1, le=60)] = 1.0
 
 
+class ComplianceBody(msgspec.Struct, forbid_unknown_fields=True):
+    """Hand guiding: the `joints` (names or aliases) of the robot's usb-slave give at most
+    `torque` percent of full torque, so a person can move them; their motion is recorded as a
+    master's commands (`source: "hand-guide"`). specs/force.md."""
+
+    joints: Annotated[list[JointKey], msgspec.Meta(min_length=1, max_length=MAX_TORQUE_LIMITS)]
+    torque: TorquePercent
+
+
 #: Where another Arena server listens: ws(s):// or http(s)://, host and port.
 ServerUrl = Annotated[str, msgspec.Meta(pattern=r"^(ws|wss|http|https)://[^\s/?#]+/?$")]
 #: A robot id on another server.

@@ -59,6 +59,8 @@ ROLE_FOR: dict[tuple[str, str], Role] = {
     ("DELETE", "/api/robots/{robot_id}/slaves/{slave_id}"): A,
     ("POST", "/api/robots/{robot_id}/master"): OP,
     ("DELETE", "/api/robots/{robot_id}/master"): OP,
+    ("POST", "/api/robots/{robot_id}/compliance"): OP,
+    ("DELETE", "/api/robots/{robot_id}/compliance"): OP,
     ("POST", "/api/robots/{robot_id}/replay"): OP,
     ("GET", "/api/robots/{robot_id}/calibration"): V,
     ("POST", "/api/robots/{robot_id}/calibration/start"): A,

@@ -16,11 +16,13 @@ from quart import Response, g, redirect, request
 from werkzeug.exceptions import HTTPException
 
 import arena
+from arena.drivers.hand_guide import HandGuide
 from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import demo_sequences, get_sequence
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.messages import MAX_MESSAGE_BYTES
 from arena.protocol.rest import (
+    ComplianceBody,
     CreateRobotBody,
     JointsBody,
     MasterBody,
@@ -506,6 +508,28 @@ def _register_routes(app: ArenaApp) -> None:
         if master is not None:
             await robot.detach_master(master.peer_id)
         return {"detached": master.peer_id if master else None}
+
+    @app.post("/api/robots/<robot_id>/compliance")
+    async def enter_compliance(robot_id: str) -> tuple[dict[str, Any], int]:
+        robot = manager.get(robot_id)
+        body = await read_body(ComplianceBody)
+        attached = {slave.peer_id for slave in robot.snapshot().slaves}
+        _, arm = app.hardware.find(robot_id, None, attached)
+        if not hasattr(arm, "enter_compliance"):
+            raise ArenaError(ErrorCode.NO_HARDWARE, f"Robot {robot_id!r} has no usb-slave.")
+        joints = list(arm.servo_ids_of(body.joints))  # (unknown names refused here)
+        guide = HandGuide(arm, joints, body.torque, robot.model.safety.command_rate)
+        master_id = await attach_rest_master(robot, guide)
+        return {"id": master_id, "joints": joints, "torque": body.torque}, 201
+
+    @app.delete("/api/robots/<robot_id>/compliance")
+    async def leave_compliance(robot_id: str) -> dict[str, Any]:
+        robot = manager.get(robot_id)
+        master = robot.snapshot().master
+        if master is None or master.kind != HandGuide.kind:
+            return {"detached": None}
+        await robot.detach_master(master.peer_id)
+        return {"detached": master.peer_id}
 
     @app.get("/metrics")
     async def metrics() -> Response:

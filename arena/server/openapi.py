@@ -12,6 +12,7 @@ from arena.protocol import messages as wire
 from arena.protocol.rest import (
     CalibrationBody,
     CameraBody,
+    ComplianceBody,
     CreateRobotBody,
     EpisodeBody,
     GroupBody,
@@ -66,6 +67,13 @@ ROUTES: list[tuple[str, str, str, Any]] = [
     ("DELETE", "/api/robots/{robot_id}/slaves/{slave_id}", "Detach a slave", None),
     ("POST", "/api/robots/{robot_id}/master", "Attach a master driver", MasterBody),
     ("DELETE", "/api/robots/{robot_id}/master", "Detach the master", None),
+    (
+        "POST",
+        "/api/robots/{robot_id}/compliance",
+        "Hand guiding: lower joints' torque, record their motion",
+        ComplianceBody,
+    ),
+    ("DELETE", "/api/robots/{robot_id}/compliance", "End hand guiding: hold where it is", None),
     ("GET", "/api/recordings", "List recordings and the recorder's state", None),
     ("POST", "/api/recordings", "Start recording", None),
     ("POST", "/api/recordings/{name}/stop", "Stop recording (name or 'current')", None),
@@ -151,6 +159,7 @@ SUCCESS: dict[tuple[str, str], int] = {
     ("POST", "/api/robots"): 201,
     ("POST", "/api/robots/{robot_id}/slaves"): 201,
     ("POST", "/api/robots/{robot_id}/master"): 201,
+    ("POST", "/api/robots/{robot_id}/compliance"): 201,
     ("POST", "/api/recordings"): 201,
     ("POST", "/api/robots/{robot_id}/replay"): 201,
     ("POST", "/api/robots/{robot_id}/cameras"): 201,
@@ -191,6 +200,7 @@ EXAMPLES: dict[type, dict[str, Any]] = {
     SequenceMasterBody: {"type": "mock-sequence", "sequences": ["gentle-wave"], "loop": True},
     ReplayMasterBody: {"type": "replay", "recording": "session.mcap", "speed": 2.0},
     UsbMasterBody: {"type": "usb-master", "port": "/dev/ttyUSB1", "deadband": 0.5},
+    ComplianceBody: {"joints": ["shoulder_pan", "shoulder_lift"], "torque": 20},
     PolicyMasterBody: {
         "type": "policy",
         "path": "act_cube",

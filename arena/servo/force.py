@@ -59,6 +59,9 @@ class ForceGuard:
     limits: Mapping[int, float]
     grippers: Collection[int] = ()
     settings: ForceSettings = field(default_factory=ForceSettings)
+    #: Limits set at run time over `limits` (compliance: a hand moves the joint, so it is
+    #: never taken for a stall while it lasts).
+    overrides: dict[int, float] = field(default_factory=dict)
     _joints: dict[int, _Joint] = field(default_factory=dict)
 
     def _joint(self, servo_id: int) -> _Joint:
@@ -85,7 +88,7 @@ class ForceGuard:
         """The torque limit the servo should have now (percent): its own, lowered while it is
         hot, and a stalled gripper's holding torque."""
         joint = self._joint(servo_id)
-        limit = self.limits.get(servo_id, 100.0)
+        limit = self.overrides.get(servo_id, self.limits.get(servo_id, 100.0))
         if joint.hot:
             limit *= self.settings.hot_share
         if joint.stalled and servo_id in self.grippers:
@@ -111,7 +114,7 @@ class ForceGuard:
         for servo_id, present in positions.items():
             joint = self._joint(servo_id)
             load = loads.get(servo_id)
-            if joint.stalled or joint.goal is None or load is None:
+            if joint.stalled or joint.goal is None or load is None or servo_id in self.overrides:
                 continue
             limit = self.limit(servo_id)
             pushing = (

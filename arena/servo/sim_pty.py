@@ -73,6 +73,7 @@ class SimServoBase:
     last_update: float | None
     temperature: float
     obstacle: Obstacle | None
+    hand: float | None  # a hand holds the horn here (present steps): it moves neither way
     heating: float  # C/s at full load (`HEATING_C_PER_S`)
     cooling: float  # share of the excess lost per second (`COOLING_PER_S`)
     load: float  # present load, as a share of full (0..1)
@@ -87,6 +88,20 @@ class SimServoBase:
         """The stop is gone: the horn moves freely again."""
         self.obstacle = None
 
+    def hold_by_hand(self, present: float) -> None:
+        """A hand takes the horn to `present` (stronger than the servo) and holds it there:
+        the servo pushes on the hand, it does not move, until `let_go`."""
+        self.move_by_hand(present)
+        self.hand = float(present)
+
+    def let_go(self) -> None:
+        """The hand lets go of the horn."""
+        self.hand = None
+
+    def move_by_hand(self, present: float) -> None:
+        """Someone moves the horn so that it reads `present` (the family's own)."""
+        raise NotImplementedError
+
     @property
     def present_position(self) -> float:
         """Where the horn is, in present steps (the family's own frame)."""
@@ -99,6 +114,8 @@ class SimServoBase:
     def blocked_move(self, move: float) -> tuple[float, bool]:
         """The part of a `move` (steps, in the present frame) the obstacle lets through, and
         whether it stopped the horn."""
+        if self.hand is not None:
+            return 0.0, True
         stop = self.obstacle
         if stop is None or move * stop.side <= 0:
             return move, False
@@ -110,7 +127,9 @@ class SimServoBase:
         return move, False
 
     def pushing(self, error: float) -> bool:
-        """Whether a goal `error` steps away presses the horn on its obstacle."""
+        """Whether a goal `error` steps away presses the horn on its obstacle (or a hand)."""
+        if self.hand is not None:
+            return True
         stop = self.obstacle
         if stop is None or error * stop.side <= 0:
             return False
