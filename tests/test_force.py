@@ -133,6 +133,14 @@ def test_the_koch_gripper_is_current_based_as_lerobot_runs_it(tmp_path: Path) ->
                 goal_current = servos.servo(GRIPPER).peek(dr.GOAL_CURRENT)
             assert modes == {1: 3, 2: 3, 3: 3, 4: 3, 5: 3, 6: dr.OperatingMode.CURRENT_POSITION}
             assert goal_current == 700  # 40 % of the XL330-M288's 1750 mA
+            # A servo not in current-based mode cannot be lowered: the others are written.
+            with pytest.raises(ArenaError) as unlimited:
+                bus.set_torque_limits({2: 50.0, GRIPPER: 20.0})
+            assert unlimited.value.code is ErrorCode.INVALID_CONFIG
+            assert "[2]" in unlimited.value.message
+            bus.read_positions(range(1, 7))
+            with sim.paused() as servos:
+                assert servos.servo(GRIPPER).peek(dr.GOAL_CURRENT) == 350
             # A limit on an XL430, which reads no current, is refused, naming it.
             with pytest.raises(ArenaError) as refused:
                 bus.prepare(range(1, 7), limited=[2, GRIPPER])
@@ -305,6 +313,14 @@ async def test_hand_guiding_records_the_motion_as_commands_that_replay(
             "/api/robots/arm/compliance", json={"joints": ["thumb"], "torque": 20}
         )
         assert refused.status_code == 422 and refused.json()["error"]["code"] == "UNKNOWN_JOINT"
+        holder = await server.app.manager.get("arm").connect_master("holder")
+        busy = await http.post(
+            "/api/robots/arm/compliance", json={"joints": ["shoulder_pan"], "torque": 20}
+        )
+        assert busy.status_code == 409 and busy.json()["error"]["code"] == "MASTER_ACTIVE"
+        assert peek(sim, 1, reg.TORQUE_LIMIT) == 1000  # nothing changed
+        await holder.release()
+        assert (await http.delete("/api/robots/arm/compliance")).json() == {"detached": None}
         entered = await http.post(
             "/api/robots/arm/compliance", json={"joints": ["shoulder_pan"], "torque": 20}
         )

@@ -1,7 +1,8 @@
 """Hand guiding: a person moves the arm, and the robot records it as a master's commands.
 
 `POST /api/robots/{id}/compliance` lowers the torque of some joints of the robot's usb-slave
-(`UsbSlave.enter_compliance`) and attaches this master: it reads the arm's measured pose and
+(`UsbSlave.enter_compliance`, refused there if a servo cannot be limited) and attaches this
+master: it reads the arm's measured pose and
 commands the robot with the compliant joints' values (`source: "hand-guide"`) whenever one moved
 more than the dead band, at most at the robot's command rate, so the robot's target follows
 the hand (the servo, given that target, no longer pulls back) and the motion is recorded, replays
@@ -30,8 +31,6 @@ class Compliant(Protocol):
     """The arm a hand guides (a `UsbSlave`)."""
 
     pose: dict[str, float]
-
-    async def enter_compliance(self, joints: Sequence[str], torque: float) -> None: ...
 
     async def leave_compliance(self) -> None: ...
 
@@ -64,9 +63,8 @@ class HandGuide:
         return f"hand guiding of {', '.join(self.joints)} at {self.torque:g} % torque"
 
     async def run(self, link: MasterLink) -> None:
-        """Compliance on, then the hand's motion as commands until detached or refused."""
+        """The hand's motion as commands until detached or refused; then compliance ends."""
         try:
-            await self.arm.enter_compliance(self.joints, self.torque)
             last: dict[str, float] | None = None
             while True:
                 await trio.sleep(self.interval)

@@ -335,11 +335,21 @@ class UsbSlave(ServoArm):
         never taken for stalled while they are compliant."""
         if not self.running or self.worker is None:
             raise ArenaError(ErrorCode.NO_HARDWARE, "The arm is not running: attach it first.")
-        for servo_id in self.servo_ids_of(joints).values():
+        worker = self.worker
+        servo_ids = list(self.servo_ids_of(joints).values())
+        for servo_id in servo_ids:
             self.guard.release(servo_id)
             self._held.pop(servo_id, None)
             self.guard.overrides[servo_id] = torque
-        await self._write_limits()
+        wanted = {sid: self.guard.limit(sid) for sid in servo_ids}
+        try:  # (a servo that cannot be limited refuses: say so, and change nothing)
+            await self._job(lambda bus: worker.set_torque_limits(bus, wanted))
+        except ArenaError:
+            for servo_id in servo_ids:
+                del self.guard.overrides[servo_id]
+            await self._write_limits()
+            raise
+        self._limits_written.update(wanted)
 
     async def leave_compliance(self) -> None:
         """Compliance ends: the compliant joints hold where they are (goal = present), with

@@ -153,23 +153,23 @@ class DynamixelBus(SdkBus):
 
     def set_torque_limits(self, limits: Mapping[int, float]) -> None:
         """Goal_Current, as a share of each servo's Current_Limit, of the servos in
-        current-based position mode; a limit under 100 % on any other is refused (it would
-        not be obeyed), a full one needs nothing."""
+        current-based position mode; then a limit under 100 % on any other is refused (it
+        would not be obeyed; the others are written), a full one needs nothing."""
         unlimited = sorted(
             sid for sid, p in limits.items() if p < 100 and sid not in self._current_based
         )
-        if unlimited:
-            raise ArenaError(
-                ErrorCode.INVALID_CONFIG,
-                f"Servo(s) {unlimited} are not in current-based position mode: a torque "
-                "limit would not be obeyed.",
-            )
         goals = {
             sid: max(0, min(full, round(full * p / 100)))
             for sid, p in limits.items()
             if sid in self._current_based and (full := self._full_loads.get(sid, 0)) > 0
         }
         self.sync_write(reg.GOAL_CURRENT, goals)
+        if unlimited:
+            raise ArenaError(
+                ErrorCode.INVALID_CONFIG,
+                f"Servo(s) {unlimited} cannot have their torque lowered: not in current-based "
+                "position mode (attach the arm with a torqueLimit for their joints).",
+            )
 
     def _operating_modes(self, servo_ids: Sequence[int]) -> dict[int, int]:
         """Every servo's Operating_Mode; `SERVO_TIMEOUT` naming any that did not answer."""

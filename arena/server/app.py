@@ -518,8 +518,19 @@ def _register_routes(app: ArenaApp) -> None:
         if not hasattr(arm, "enter_compliance"):
             raise ArenaError(ErrorCode.NO_HARDWARE, f"Robot {robot_id!r} has no usb-slave.")
         joints = list(arm.servo_ids_of(body.joints))  # (unknown names refused here)
+        holder = robot.snapshot().master
+        if holder is not None:  # (before any torque changes)
+            raise ArenaError(
+                ErrorCode.MASTER_ACTIVE,
+                f"Master {holder.peer_id!r} drives this robot: detach it to guide the arm by hand.",
+            )
+        await arm.enter_compliance(joints, body.torque)
         guide = HandGuide(arm, joints, body.torque, robot.model.safety.command_rate)
-        master_id = await attach_rest_master(robot, guide)
+        try:
+            master_id = await attach_rest_master(robot, guide)
+        except BaseException:
+            await arm.leave_compliance()
+            raise
         return {"id": master_id, "joints": joints, "torque": body.torque}, 201
 
     @app.delete("/api/robots/<robot_id>/compliance")
