@@ -138,6 +138,9 @@ async def test_every_change_is_audited_once_with_who_and_no_refusal_is(
         pose = (await http.get(f"{arm}/pose", headers=reader)).json()["commanded"]
         await change("PUT", f"{arm}/pose", {"position": pose["position"]}, robots=("arm",))
         await change("PUT", f"{arm}/teleop", {"deadman": 300}, robots=("arm",))
+        guide = {"joints": ["Rotation"], "torque": 20}
+        await change("POST", f"{arm}/compliance", guide, status=201, robots=("arm",))
+        await change("DELETE", f"{arm}/compliance", robots=("arm",))
         await change("POST", f"{arm}/play-sequence/gentle-wave", robots=("arm",))
         await change("POST", f"{arm}/stop-sequence", robots=("arm",))
         sequence = {"type": "mock-sequence", "sequences": ["gentle-wave"], "loop": True}

@@ -60,7 +60,7 @@ async def test_every_query_of_the_grafana_dashboard_names_a_metric_arena_serves(
         "arena_master_rtt_seconds",
         "arena_stale_commands_total",
         "arena_servo_temperature_celsius",
-        "arena_servo_load",
+        "arena_servo_load_percent",
     ):
         assert wanted in asked
     # each panel queries through the dashboard's data source, each query of it named apart
@@ -107,4 +107,4 @@ async def test_a_hot_servo_shows_its_temperature_and_its_fault_on_metrics(
             lambda: shows('arena_faults_active{robot="arm",severity="critical"} 1'),
             what="the overheat fault",
         )
-        assert 'arena_servo_load{robot="arm",joint="Pitch"} ' in await metrics()
+        assert 'arena_servo_load_percent{robot="arm",joint="Pitch"} ' in await metrics()

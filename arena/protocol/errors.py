@@ -74,6 +74,7 @@ class ErrorCode(enum.StrEnum):
     SERVO_VOLTAGE = "SERVO_VOLTAGE"
     SERVO_ANGLE = "SERVO_ANGLE"
     SERVO_OUT_OF_RANGE = "SERVO_OUT_OF_RANGE"  # reads outside the frame it may take torque in
+    STALL = "STALL"  # fault (warning): a joint pushed short of its goal; Arena stopped pushing
     UNCALIBRATED = "UNCALIBRATED"
     CALIBRATION_STATE = "CALIBRATION_STATE"
     NO_HARDWARE = "NO_HARDWARE"

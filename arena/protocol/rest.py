@@ -63,6 +63,11 @@ class MockSlaveBody(
 
 #: The fastest joining speed (deg/s) a slave or a robot type may ask for: joining is slow.
 MAX_JOIN_SPEED = 90.0
+#: A joint's name as a key of a per-joint setting (the robot type decides which exist).
+JointKey = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
+#: Percent of a servo's full torque: above 0 (a servo given none cannot hold itself up).
+TorquePercent = Annotated[float, msgspec.Meta(gt=0, le=100)]
+MAX_TORQUE_LIMITS = 32  # joints a `torqueLimit` may name
 
 #: A name of a file or folder in a tenant's folder (a calibration, a policy): letters,
 #: digits, `_-.`, not starting with a dot (so never `..`, never a path).
@@ -92,7 +97,9 @@ class UsbSlaveBody(
     `estop`: what the servos do on an e-stop, `hold` (torque kept, goal = present) or
     `torque-off`. `calibration`: the calibration's name (default: the robot's id).
     `joinSpeed`: deg/s at which the arm is brought to the robot's pose when it joins a robot
-    that is elsewhere (default: the robot type's `join_speed`).
+    that is elsewhere (default: the robot type's `join_speed`). `torqueLimit`: percent of full
+    torque per joint (over the robot type's caps: its gripper's). `stallTime`: seconds a joint
+    may push short of its goal at a high load before it counts as stalled (specs/force.md).
     """
 
     port: str | None = None
@@ -101,6 +108,19 @@ class UsbSlaveBody(
     estop: Literal["hold", "torque-off"] = "hold"
     calibration: CalibrationName | None = None
     joinSpeed: Annotated[float, msgspec.Meta(gt=0, le=MAX_JOIN_SPEED)] | None = None
+    torqueLimit: (
+        Annotated[dict[JointKey, TorquePercent], msgspec.Meta(max_length=MAX_TORQUE_LIMITS)] | None
+    ) = None
+    stallTime: Annotated[float, msgspec.Meta(ge=0.1, le=60)] = 1.0
+
+
+class ComplianceBody(msgspec.Struct, forbid_unknown_fields=True):
+    """Hand guiding: the `joints` (names or aliases) of the robot's usb-slave give at most
+    `torque` percent of full torque, so a person can move them; their motion is recorded as a
+    master's commands (`source: "hand-guide"`). specs/force.md."""
+
+    joints: Annotated[list[JointKey], msgspec.Meta(min_length=1, max_length=MAX_TORQUE_LIMITS)]
+    torque: TorquePercent
 
 
 #: Where another Arena server listens: ws(s):// or http(s)://, host and port.

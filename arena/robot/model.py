@@ -67,6 +67,9 @@ class JointSpec:
     span: float = 0.0  # URDF radians from lower to upper limit (percent joints)
     #: The servo's model name in its bus family (`[bus] family`); "" for the family's default.
     servo_model: str = ""
+    #: Percent of the servo's full torque it may give (the robot type's cap, as LeRobot caps
+    #: its grippers; a usb-slave's `torqueLimit` overrides it); None: uncapped. specs/force.md.
+    torque_limit: float | None = None
 
     @property
     def urdf_name(self) -> str:
@@ -331,6 +334,13 @@ def _joint_spec(entry: dict[str, Any], urdf: dict[str, _UrdfJoint], bad: Any) ->
     max_velocity = float(entry.get("max_velocity", velocity))
     if not 0 < max_velocity <= velocity + 1e-9:
         raise bad(f"joint {name!r}: max_velocity must be in (0, {velocity:.1f}] {unit}/s")
+    torque_limit = entry.get("torque_limit")
+    if torque_limit is not None and (
+        isinstance(torque_limit, bool)
+        or not isinstance(torque_limit, int | float)
+        or not 0 < torque_limit <= 100
+    ):
+        raise bad(f"joint {name!r}: torque_limit must be a percent in (0, 100]")
     return JointSpec(
         name=name,
         servo_id=int(entry.get("servo_id", 0)),
@@ -343,4 +353,5 @@ def _joint_spec(entry: dict[str, Any], urdf: dict[str, _UrdfJoint], bad: Any) ->
         unit=unit,
         span=span,
         servo_model=str(entry.get("servo_model", "")),
+        torque_limit=None if torque_limit is None else float(torque_limit),
     )

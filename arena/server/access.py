@@ -67,6 +67,8 @@ ROLE_FOR: dict[tuple[str, str], Role] = {
     ("POST", "/api/robots/{robot_id}/master/resume"): OP,
     ("POST", "/api/robots/{robot_id}/intervention"): OP,
     ("DELETE", "/api/robots/{robot_id}/intervention"): OP,
+    ("POST", "/api/robots/{robot_id}/compliance"): OP,
+    ("DELETE", "/api/robots/{robot_id}/compliance"): OP,
     ("POST", "/api/robots/{robot_id}/replay"): OP,
     ("GET", "/api/robots/{robot_id}/calibration"): V,
     ("POST", "/api/robots/{robot_id}/calibration/start"): A,

@@ -15,11 +15,13 @@ from quart import Response, g, redirect, request
 from werkzeug.exceptions import HTTPException
 
 import arena
+from arena.drivers.hand_guide import HandGuide
 from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import demo_sequences, get_sequence
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.messages import MAX_MESSAGE_BYTES
 from arena.protocol.rest import (
+    ComplianceBody,
     CreateRobotBody,
     JointsBody,
     MasterBody,
@@ -58,6 +60,7 @@ from arena.server.base import (
 from arena.server.calibration_api import blueprint as calibration_blueprint
 from arena.server.config import ServerConfig
 from arena.server.dashboard import blueprint as dashboard_blueprint
+from arena.server.drivers import attach_rest_master
 from arena.server.fleet_api import CALLER, FORWARDED, forwarded_caller
 from arena.server.fleet_api import blueprint as fleet_blueprint
 from arena.server.groups_api import blueprint as groups_blueprint
@@ -457,9 +460,42 @@ def _register_routes(app: ArenaApp) -> None:
             await robot.detach_master(master.peer_id)
         return {"detached": master.peer_id if master else None}
 
-    def servo_readings(robot: Robot) -> list[tuple[str, int, int]]:
+    def servo_readings(robot: Robot) -> list[tuple[str, float, float]]:
         attached = {slave.peer_id for slave in robot.snapshot().slaves}
         return app.hardware.servo_readings(robot.robot_id, attached)
+
+    @app.post("/api/robots/<robot_id>/compliance")
+    async def enter_compliance(robot_id: str) -> tuple[dict[str, Any], int]:
+        robot = manager.get(robot_id)
+        body = await read_body(ComplianceBody)
+        attached = {slave.peer_id for slave in robot.snapshot().slaves}
+        _, arm = app.hardware.find(robot_id, None, attached)
+        if not hasattr(arm, "enter_compliance"):
+            raise ArenaError(ErrorCode.NO_HARDWARE, f"Robot {robot_id!r} has no usb-slave.")
+        joints = list(arm.servo_ids_of(body.joints))  # (unknown names refused here)
+        holder = robot.snapshot().master
+        if holder is not None:  # (before any torque changes)
+            raise ArenaError(
+                ErrorCode.MASTER_ACTIVE,
+                f"Master {holder.peer_id!r} drives this robot: detach it to guide the arm by hand.",
+            )
+        await arm.enter_compliance(joints, body.torque)
+        guide = HandGuide(arm, joints, body.torque, robot.model.safety.command_rate)
+        try:
+            master_id = await attach_rest_master(robot, guide)
+        except BaseException:
+            await arm.leave_compliance()
+            raise
+        return {"id": master_id, "joints": joints, "torque": body.torque}, 201
+
+    @app.delete("/api/robots/<robot_id>/compliance")
+    async def leave_compliance(robot_id: str) -> dict[str, Any]:
+        robot = manager.get(robot_id)
+        master = robot.snapshot().master
+        if master is None or master.kind != HandGuide.kind:
+            return {"detached": None}
+        await robot.detach_master(master.peer_id)
+        return {"detached": master.peer_id}
 
     @app.get("/metrics")
     async def metrics() -> Response:

@@ -184,19 +184,20 @@ class Hardware:
             f'Robot {robot_id!r} has several physics slaves: say which with "twin:SLAVE_ID".',
         )
 
-    def servo_readings(self, robot_id: str, attached: set[str]) -> list[tuple[str, int, int]]:
-        """The newest temperature (°C) and load (as the servo reports it) of each servo of the
-        robot's attached hardware slaves, by joint: (joint, temperature, load)."""
-        found = []
+    def servo_readings(self, robot_id: str, attached: set[str]) -> list[tuple[str, float, float]]:
+        """Each servo of the robot's attached, running hardware slaves as its last telemetry
+        read it, by joint: (joint, temperature C, load in percent of full torque); a joint
+        on several arms, the first arm's."""
+        found: dict[str, tuple[str, float, float]] = {}
         for (rid, sid), driver in self._drivers.items():
-            reading = getattr(driver, "telemetry", None)
-            if rid != robot_id or sid not in attached or reading is None:
+            servo_state = getattr(driver, "servo_state", None)
+            if rid != robot_id or sid not in attached or servo_state is None:
                 continue
-            temperatures, loads = reading.temperatures or {}, reading.loads or {}
-            for joint, servo_id in getattr(driver, "servo_ids", {}).items():
-                if servo_id in temperatures:
-                    found.append((joint, temperatures[servo_id], loads.get(servo_id, 0)))
-        return found
+            if not getattr(driver, "running", False):
+                continue
+            for joint, (celsius, load) in servo_state().items():
+                found.setdefault(joint, (joint, celsius, load))
+        return list(found.values())
 
     def find(self, robot_id: str, slave_id: str | None, attached: set[str]) -> tuple[str, Any]:
         """The robot's calibratable slave (`slave_id`, or the only one)."""

@@ -122,7 +122,15 @@ def _calibration_file(
 
 def usb_slave_config(body: UsbSlaveBody) -> UsbSlaveConfig:
     """A usb-slave's settings from its body."""
-    return UsbSlaveConfig(body.port, body.baudRate, body.rate, body.estop, body.joinSpeed)
+    return UsbSlaveConfig(
+        body.port,
+        body.baudRate,
+        body.rate,
+        body.estop,
+        body.joinSpeed,
+        dict(body.torqueLimit or {}),
+        body.stallTime,
+    )
 
 
 def usb_master_config(body: UsbMasterBody) -> UsbMasterConfig:

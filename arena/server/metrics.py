@@ -32,7 +32,7 @@ def _label(value: str) -> str:
 
 
 def _robot_families(
-    robots: list[Robot], servos: Callable[[Robot], list[tuple[str, int, int]]] | None
+    robots: list[Robot], servos: Callable[[Robot], list[tuple[str, float, float]]] | None
 ) -> list[str]:
     """Each robot's lasting faults by severity, and its servos' temperature and load."""
     faults: dict[str, float] = {}
@@ -61,11 +61,10 @@ def _robot_families(
             temperatures,
         ),
         *_family(
-            "arena_servo_load",
+            "arena_servo_load_percent",
             "gauge",
-            "Each hardware servo's load as it reports it (Feetech: per mille of its torque;"
-            " Dynamixel: its current's units), by robot and joint.",
-            loads,
+            "Each hardware servo's load in percent of its full torque, by robot and joint.",
+            {labels: round(load, 1) for labels, load in loads.items()},
         ),
     ]
 
@@ -169,7 +168,7 @@ class Metrics:
         connections: dict[str, int] | None = None,
         whole_server: bool = True,
         links: Mapping[str, LinkQuality] | None = None,
-        servos: Callable[[Robot], list[tuple[str, int, int]]] | None = None,
+        servos: Callable[[Robot], list[tuple[str, float, float]]] | None = None,
     ) -> str:
         """The Prometheus exposition text of what a caller sees: `robots` (theirs),
         `connections` (open on those robots, by role; None: every one), `queued_bytes` (what
@@ -177,7 +176,7 @@ class Metrics:
         caller is told it). The server's own figures (deleted robots' counts, messages,
         requests, refusals, latency) only with `whole_server`. `links`: the robots' WebSocket
         masters' links, by robot (those of `robots` are shown); `servos`: a robot's servos'
-        (joint, temperature, load)."""
+        (joint, temperature C, load in percent of full torque)."""
         robots = list(robots)
         commands: collections.Counter[str] = collections.Counter()
         estops = superseded = 0

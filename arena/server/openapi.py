@@ -12,6 +12,7 @@ from arena.protocol import messages as wire
 from arena.protocol.rest import (
     CalibrationBody,
     CameraBody,
+    ComplianceBody,
     CreateRobotBody,
     EpisodeBody,
     GroupBody,
@@ -87,6 +88,13 @@ ROUTES: list[tuple[str, str, str, Any]] = [
         "End the intervention (the master resumes)",
         HandBackBody,
     ),
+    (
+        "POST",
+        "/api/robots/{robot_id}/compliance",
+        "Hand guiding: lower joints' torque, record their motion",
+        ComplianceBody,
+    ),
+    ("DELETE", "/api/robots/{robot_id}/compliance", "End hand guiding: hold where it is", None),
     ("GET", "/api/recordings", "List recordings and the recorder's state", None),
     ("POST", "/api/recordings", "Start recording", None),
     ("POST", "/api/recordings/{name}/stop", "Stop recording (name or 'current')", None),
@@ -175,6 +183,7 @@ SUCCESS: dict[tuple[str, str], int] = {
     ("POST", "/api/robots/{robot_id}/slaves"): 201,
     ("POST", "/api/robots/{robot_id}/master"): 201,
     ("POST", "/api/robots/{robot_id}/intervention"): 201,
+    ("POST", "/api/robots/{robot_id}/compliance"): 201,
     ("POST", "/api/recordings"): 201,
     ("POST", "/api/robots/{robot_id}/replay"): 201,
     ("POST", "/api/robots/{robot_id}/cameras"): 201,
@@ -217,6 +226,7 @@ EXAMPLES: dict[type, dict[str, Any]] = {
     SequenceMasterBody: {"type": "mock-sequence", "sequences": ["gentle-wave"], "loop": True},
     ReplayMasterBody: {"type": "replay", "recording": "session.mcap", "speed": 2.0},
     UsbMasterBody: {"type": "usb-master", "port": "/dev/ttyUSB1", "deadband": 0.5},
+    ComplianceBody: {"joints": ["shoulder_pan", "shoulder_lift"], "torque": 20},
     PolicyMasterBody: {
         "type": "policy",
         "path": "act_cube",
