@@ -445,3 +445,45 @@ async def test_the_link_s_quality_goes_by_its_pongs_and_its_stale_drops(
     await trio.sleep(3 * 2.0 + 0.6)  # three pings' time without an answer
     assert quality.quality() == "poor"
     assert quality.as_dict()["rtt"] == pytest.approx(0.5)
+
+
+async def test_a_group_master_s_stale_command_is_refused_and_moves_no_member(
+    autojump_clock: MockClock, start_server: StartServer
+) -> None:
+    server = await start_server(record=False, command_max_age=0.4)
+    for robot_id in ("left", "right"):
+        robot = await server.app.manager.create_robot("so-arm100", robot_id=robot_id)
+        await robot.attach_slave(RecordingSlave(), "arm")
+    async with server.client() as http:
+        made = await http.post("/api/groups", json={"id": "line", "members": ["left", "right"]})
+        assert made.status_code == 201, made.text
+
+    def goals() -> list[float]:
+        manager = server.app.manager
+        return [manager.get(r).snapshot().joint("Rotation").goal for r in ("left", "right")]
+
+    epoch = time.time() - trio.current_time() - 30.0  # this client's clock is 30 s behind
+    url = f"{server.url.replace('http', 'ws')}/ws/master/line?joint_states=false"
+    async with open_websocket_url(url) as ws:
+
+        async def answer() -> dict[str, Any]:
+            while True:
+                message = json.loads(await ws.get_message())
+                if message["type"] in ("ack", "error"):
+                    return message
+
+        stamp = (epoch + trio.current_time()) * 1000
+        await stamped_command(ws, epoch, 5.0)
+        assert (await answer())["data"]["status"] == "accepted"
+        assert goals() == [5.0, 5.0]
+        await trio.sleep(2.0)  # this command is held 2 s on its way: sent then, run now?
+        joints = [{"name": "Rotation", "value": 20.0}]
+        late = {"type": "command", "data": {"timestamp": stamp + 1, "joints": joints}}
+        await ws.send_message(json.dumps(late))
+        refused = await answer()
+        assert (refused["type"], refused["data"]["code"]) == ("error", "STALE_COMMAND")
+        assert goals() == [5.0, 5.0]
+        await stamped_command(ws, epoch, 6.0)  # a fresh one runs
+        assert (await answer())["data"]["status"] == "accepted"
+        assert goals() == [6.0, 6.0]
+    assert server.app.metrics.stale_commands["left"] == 1
