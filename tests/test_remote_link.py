@@ -341,7 +341,8 @@ async def test_the_link_shows_in_the_robot_s_details_and_on_metrics(
             await trio.sleep(PERIOD)
         link.release()
         await eventually(
-            lambda: server.app.master_links["far"].stale > 0, what="the backlog's drops"
+            lambda: server.app.master_links["far"]["overseas"].stale > 0,
+            what="the backlog's drops",
         )
         await trio.sleep(0.5)
         status = (await http.get("/api/robots/far/status")).json()
@@ -487,3 +488,45 @@ async def test_a_group_master_s_stale_command_is_refused_and_moves_no_member(
         assert (await answer())["data"]["status"] == "accepted"
         assert goals() == [6.0, 6.0]
     assert server.app.metrics.stale_commands["left"] == 1
+
+
+async def test_an_intervening_master_and_the_one_it_paused_each_show_their_own_link(
+    autojump_clock: MockClock, start_server: StartServer
+) -> None:
+    server = await start_server(record=False)
+    robot = await server.app.manager.create_robot("so-arm100", robot_id="arm")
+    await robot.attach_slave(RecordingSlave(), "s")
+    base = f"{server.url.replace('http', 'ws')}/ws/master/arm?joint_states=false"
+    epoch = time.time() - trio.current_time()
+
+    async def details() -> dict[str, Any]:
+        async with server.client() as http:
+            return dict((await http.get("/api/robots/arm")).json())
+
+    # Each socket is read while open (its pings answered then, never while it closes).
+    async with open_websocket_url(f"{base}&id=first") as first, trio.open_nursery() as outer:
+        outer.start_soon(collect_acks, first, [])
+        await stamped_command(first, epoch, 1.0)
+        url = f"{base}&id=second&intervene=1"
+        async with open_websocket_url(url) as second, trio.open_nursery() as inner:
+            inner.start_soon(collect_acks, second, [])
+            await stamped_command(second, epoch, 2.0)
+            await trio.sleep(PERIOD)  # (a stamp no later than the last is not a clock reading)
+            await stamped_command(second, epoch, 3.0)
+            await eventually(
+                lambda: server.app.master_links["arm"]["second"].stamped == 2,
+                what="the corrector's commands",
+            )
+            shown = await details()
+            assert shown["master"]["id"] == "second" and shown["paused_master"]["id"] == "first"
+            assert shown["master"]["link"]["stamped"] == 2
+            assert shown["paused_master"]["link"]["stamped"] == 1
+            await second.send_message(json.dumps({"type": "release"}))  # hands back
+            await eventually(lambda: robot.snapshot().master.peer_id == "first", what="back")
+            inner.cancel_scope.cancel()
+        await eventually(
+            lambda: set(server.app.master_links["arm"]) == {"first"}, what="the corrector gone"
+        )
+        assert (await details())["master"]["link"]["stamped"] == 1
+        outer.cancel_scope.cancel()
+    await eventually(lambda: "arm" not in server.app.master_links, what="both links forgotten")

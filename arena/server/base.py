@@ -283,7 +283,8 @@ class ArenaApp(QuartTrio):
     #: WebSockets open by caller (tenant, name), against `max_websockets_per_caller`.
     websockets_held: Counter[tuple[str, str]]
     #: Each robot's WebSocket master's link (round trip, jitter, stale commands), by robot.
-    master_links: dict[str, LinkQuality]
+    #: Each robot's WebSocket masters' links, by master id (an intervention makes two).
+    master_links: dict[str, dict[str, LinkQuality]]
     #: The masters' acks encoded (one entry, shared: the acks of a millisecond are one text).
     acks: AckCache
     #: Robots' tenants, and which robots each caller sees (see `access`).

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import msgspec
@@ -147,10 +148,12 @@ def _peer(peer: PeerSnapshot) -> dict[str, Any]:
     }
 
 
-def _master(peer: PeerSnapshot | None, link: LinkQuality | None = None) -> dict[str, Any] | None:
+def _master(
+    peer: PeerSnapshot | None, links: Mapping[str, LinkQuality] | None = None
+) -> dict[str, Any] | None:
     """A master as a peer, with its `kind` and `description` as `TAKEN_OVER`'s `by` names
     them (`kind` is its `type`): a client shows what plays without having started it. A
-    WebSocket master's `link` (round trip, jitter, stale commands) when `link` is its own."""
+    WebSocket master's `link` (round trip, jitter, stale commands) from `links`, by master id."""
     if peer is None:
         return None
     shown = _peer(peer) | {
@@ -160,15 +163,16 @@ def _master(peer: PeerSnapshot | None, link: LinkQuality | None = None) -> dict[
     }
     if peer.figures is not None:
         shown["figures"] = peer.figures
-    if link is not None and link.master_id == peer.peer_id:
+    link = (links or {}).get(peer.peer_id)
+    if link is not None:
         shown["link"] = link.as_dict()
     return shown
 
 
 def robot_summary(
-    robot: Robot, tenant: str = "default", link: LinkQuality | None = None
+    robot: Robot, tenant: str = "default", links: Mapping[str, LinkQuality] | None = None
 ) -> dict[str, Any]:
-    """A robot as the REST API shows it (`tenant`: whose it is; `link`: its WebSocket
+    """A robot as the REST API shows it (`tenant`: whose it is; `links`: its WebSocket
     master's, if it has one)."""
     snapshot = robot.snapshot()
     return {
@@ -179,22 +183,22 @@ def robot_summary(
         "state": str(snapshot.mode),
         "owner": snapshot.owner,
         "estop_reason": snapshot.estop_reason,
-        "master": _master(snapshot.master, link),
-        "paused_master": _master(snapshot.paused_master, link),
+        "master": _master(snapshot.master, links),
+        "paused_master": _master(snapshot.paused_master, links),
         "slaves": [_peer(s) for s in snapshot.slaves],
         "joints": msgspec.to_builtins(joint_states(robot).data),
     }
 
 
-def robot_status(robot: Robot, link: LinkQuality | None = None) -> dict[str, Any]:
+def robot_status(robot: Robot, links: Mapping[str, LinkQuality] | None = None) -> dict[str, Any]:
     """Connection status: who is attached, and the safety state."""
     snapshot = robot.snapshot()
     return {
         "id": snapshot.robot_id,
         "state": str(snapshot.mode),
         "has_master": snapshot.master is not None,
-        "master": _master(snapshot.master, link),
-        "paused_master": _master(snapshot.paused_master, link),
+        "master": _master(snapshot.master, links),
+        "paused_master": _master(snapshot.paused_master, links),
         "slave_count": len(snapshot.slaves),
         "slaves": [_peer(s) for s in snapshot.slaves],
         "estop_reason": snapshot.estop_reason,

@@ -167,7 +167,7 @@ class Metrics:
         recording: dict[str, Any] | None = None,
         connections: dict[str, int] | None = None,
         whole_server: bool = True,
-        links: Mapping[str, LinkQuality] | None = None,
+        links: Mapping[str, Mapping[str, LinkQuality]] | None = None,
         servos: Callable[[Robot], list[tuple[str, float, float]]] | None = None,
     ) -> str:
         """The Prometheus exposition text of what a caller sees: `robots` (theirs),
@@ -218,7 +218,7 @@ class Metrics:
                 queued_bytes,
             ),
         ]
-        lines += self._link_families([r.robot_id for r in robots], links or {})
+        lines += self._link_families(robots, links or {})
         lines += _robot_families(robots, servos)
         if whole_server:
             lines += self._server_families()
@@ -257,9 +257,17 @@ class Metrics:
             lines += self._latency_family()
         return "\n".join(lines) + "\n"
 
-    def _link_families(self, robot_ids: list[str], links: Mapping[str, LinkQuality]) -> list[str]:
-        """Each robot's WebSocket master's link: round trip, jitter, quality, stale commands."""
-        shown = [(rid, links[rid]) for rid in robot_ids if rid in links]
+    def _link_families(
+        self, robots: list[Robot], links: Mapping[str, Mapping[str, LinkQuality]]
+    ) -> list[str]:
+        """Each robot's WebSocket master's link (the one that drives it): round trip, jitter,
+        quality, stale commands."""
+        shown = []
+        for robot in robots:
+            master = robot.snapshot().master
+            link = links.get(robot.robot_id, {}).get(master.peer_id) if master else None
+            if link is not None:
+                shown.append((robot.robot_id, link))
         timed = [(rid, link) for rid, link in shown if link.rtt is not None]
         return [
             *_family(
@@ -284,7 +292,7 @@ class Metrics:
                 "arena_stale_commands_total",
                 "counter",
                 "Masters' commands dropped for arriving older than command_max_age, by robot.",
-                {f'robot="{rid}"': self.stale_commands[rid] for rid in robot_ids},
+                {f'robot="{r.robot_id}"': self.stale_commands[r.robot_id] for r in robots},
             ),
         ]
 

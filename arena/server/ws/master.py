@@ -57,7 +57,7 @@ async def serve(connection: Connection, robot_id: str) -> None:
     connection.count_open([robot_id])
     config = app.arena_config
     quality = LinkQuality(link.master_id, config.command_max_age, config.link_ping_interval)
-    app.master_links[robot_id] = quality
+    app.master_links.setdefault(robot_id, {})[link.master_id] = quality
     how = " (intervene)" if intervene else ""
     how = " (takeover)" if flag(connection.args.get("takeover")) else how
     robot.audit(connection.principal.audit_name(), "connect master" + how, link.master_id)
@@ -80,8 +80,11 @@ async def serve(connection: Connection, robot_id: str) -> None:
 
             await connection.run(body)
     finally:
-        if app.master_links.get(robot_id) is quality:
-            del app.master_links[robot_id]
+        masters = app.master_links.get(robot_id, {})
+        if masters.get(link.master_id) is quality:
+            del masters[link.master_id]
+            if not masters:
+                del app.master_links[robot_id]
         try:
             await release_master(app, link)
         finally:  # counted closed once the robot has heard (tests wait on it)
