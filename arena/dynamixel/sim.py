@@ -41,12 +41,6 @@ from arena.servo.sim_pty import (
 MAX_SPEED = 4000.0  # steps/s at Profile_Velocity 0 (about 58 rpm, the XL430-W250 at 12 V)
 #: Present_Load (tenths of a percent) at full torque, of servos that read no current (XL430).
 FULL_LOAD = 1000
-#: The load of a horn moving freely at full speed (friction, as a share of full torque).
-MOVING_LOAD = 0.15
-#: Overload: a load past this share for this long sets the overload error and drops torque
-#: (the X series' Shutdown default).
-OVERLOAD_SHARE = 0.8
-OVERLOAD_AFTER_S = 2.0
 #: Per model: supply voltage (V), Velocity_Limit, Temperature_Limit, Current_Limit (mA, 0: the
 #: model reads no current, its address 126 is Present_Load). A current-sensing servo's full
 #: torque is at its shipped Current_Limit.
@@ -195,21 +189,12 @@ class SimServo(SimServoBase):
         profile = self.peek(reg.PROFILE_VELOCITY)
         speed = _steps_per_second(profile) if profile else MAX_SPEED
         velocity = math.copysign(min(speed, abs(error) / dt), error)
-        step = velocity * dt
-        moved, blocked = self.blocked_move(error if abs(step) >= abs(error) else step)
+        moved = self.move_toward(error, velocity * dt, velocity, MAX_SPEED)
         self.actual += -moved if self._reversed else moved
-        if blocked:  # it ran into the stop: from now on it pushes on it
-            self.load = self.push_load(error - moved)
-        else:
-            self.velocity = velocity
-            self.load = min(self.load_cap(), MOVING_LOAD * abs(velocity) / MAX_SPEED)
 
     def _protect(self, dt: float) -> None:
-        if self.load < OVERLOAD_SHARE:
-            self.stall_time = 0.0
-            return
-        self.stall_time += dt
-        if self.stall_time >= OVERLOAD_AFTER_S:
+        # Tripped, it sets the overload error and drops torque (the X series' Shutdown).
+        if self.overload_tripped(dt):
             self.overloaded = True
             self.poke(reg.TORQUE_ENABLE, 0)
 

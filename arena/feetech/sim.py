@@ -18,6 +18,7 @@ from arena.servo.sim_pty import (
     AMBIENT_C,
     COOLING_PER_S,
     HEATING_C_PER_S,
+    OVERLOAD_AFTER_S,
     Obstacle,
     Reply,
     ServoFaults,
@@ -31,12 +32,6 @@ ACCELERATION_UNIT = 100.0  # steps/s^2 per unit of the Acceleration register
 FULL_LOAD = 1000
 #: Present_Current at full torque (6.5 mA units: the STS3215's 2.7 A stall current at 12 V).
 STALL_CURRENT = 415
-#: The load of a horn moving freely at full speed (friction, as a share of full torque).
-MOVING_LOAD = 0.15
-#: The overload protection: a load past this share (Overload_Torque, 80 % as the STS3215
-#: ships) for this long (Protection_Time, 2 s as it ships) releases the horn.
-OVERLOAD_SHARE = 0.8
-OVERLOAD_AFTER_S = 2.0
 
 
 @dataclass
@@ -140,23 +135,11 @@ class SimServo(SimServoBase):
         if accel:
             change = max(-accel * dt, min(accel * dt, wanted - previous))
             wanted = previous + change
-        step = wanted * dt
-        moved, blocked = self.blocked_move(error if abs(step) >= abs(error) else step)
-        self.actual += moved
-        if blocked:  # it ran into the stop: from now on it pushes on it
-            self.load = self.push_load(error - moved)
-        else:
-            self.velocity = wanted
-            self.load = min(self.load_cap(), MOVING_LOAD * abs(wanted) / MAX_SPEED)
+        self.actual += self.move_toward(error, wanted * dt, wanted, MAX_SPEED)
 
     def _protect(self, dt: float) -> None:
-        # The servo's overload protection: a load past OVERLOAD_SHARE for OVERLOAD_AFTER_S
-        # releases the horn (torque off) and sets the overload bit until torque is written.
-        if self.load < OVERLOAD_SHARE:
-            self.stall_time = 0.0
-            return
-        self.stall_time += dt
-        if self.stall_time >= OVERLOAD_AFTER_S:
+        # Tripped, it releases the horn and shows the overload bit until torque is written.
+        if self.overload_tripped(dt):
             self.poke(reg.TORQUE_ENABLE, 0)
 
     def _refresh(self) -> None:

@@ -46,6 +46,13 @@ AMBIENT_C = 30.0
 #: ambient + HEATING / COOLING (110 C: it burns), at half load at a quarter of that rise.
 HEATING_C_PER_S = 4.0
 COOLING_PER_S = 0.05
+#: The load of a horn moving freely at full speed (friction, as a share of full torque).
+MOVING_LOAD = 0.15
+#: The overload protection of both families as they ship: a load past this share (the
+#: STS3215's Overload_Torque 80 %) for this long (its Protection_Time 2 s; the X series'
+#: Shutdown alike) releases the horn.
+OVERLOAD_SHARE = 0.8
+OVERLOAD_AFTER_S = 2.0
 
 
 @dataclass
@@ -138,6 +145,27 @@ class SimServoBase:
     def push_load(self, error: float) -> float:
         """The load (share of full) of a horn held `error` steps short of its goal, capped."""
         return min(self.load_cap(), abs(error) / FULL_PUSH_STEPS)
+
+    def move_toward(self, error: float, step: float, velocity: float, max_speed: float) -> float:
+        """Move `step` steps toward a goal `error` away (all of it if the step reaches it),
+        as far as the obstacle lets: the part moved. Stopped, the horn pushes on the stop;
+        else it moves at `velocity` (of `max_speed`, its full speed) against friction."""
+        moved, blocked = self.blocked_move(error if abs(step) >= abs(error) else step)
+        if blocked:  # it ran into the stop: from now on it pushes on it
+            self.load = self.push_load(error - moved)
+        else:
+            self.velocity = velocity
+            self.load = min(self.load_cap(), MOVING_LOAD * abs(velocity) / max_speed)
+        return moved
+
+    def overload_tripped(self, dt: float) -> bool:
+        """The overload protection after `dt` more seconds at the present load: True once a
+        load past OVERLOAD_SHARE has lasted OVERLOAD_AFTER_S (the family then drops torque)."""
+        if self.load < OVERLOAD_SHARE:
+            self.stall_time = 0.0
+            return False
+        self.stall_time += dt
+        return self.stall_time >= OVERLOAD_AFTER_S
 
     def heat(self, dt: float) -> None:
         """The temperature after `dt` seconds at the present load: exact for a constant load
