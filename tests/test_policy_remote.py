@@ -3,7 +3,8 @@ public API, each inference it runs is recorded on the server as a local worker's
 frames leave the server at the policy's input size, and the server's watchdog trips when its
 commands stop coming (a stalled link or worker), as it does for a policy it runs itself.
 
-The watchdog's timing is checked on trio's mock clock; the end-to-end tests wait for events."""
+The watchdog's timing is checked on trio's mock clock (`autojump_clock`); the end-to-end
+tests wait for events."""
 
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from typing import Any
 import pytest
 import trio
 import trio.testing
+from trio.testing import MockClock
 from trio_websocket import open_websocket_url
 
 from arena.protocol import messages as wire
@@ -73,7 +75,9 @@ def remote_policy() -> tuple[RemotePolicy, FakeRobot, FakeLink]:
     return RemotePolicy(robot, link), robot, link  # type: ignore[arg-type]
 
 
-async def test_the_watchdog_trips_once_a_silence_and_never_while_commands_flow() -> None:
+async def test_the_watchdog_trips_once_a_silence_and_never_while_commands_flow(
+    autojump_clock: MockClock,
+) -> None:
     policy, robot, link = remote_policy()
     async with trio.open_nursery() as nursery:
         policy.declare(wire.PolicyData(fps=30, stall_periods=2), nursery)
@@ -118,7 +122,9 @@ async def test_the_watchdog_trips_once_a_silence_and_never_while_commands_flow()
         nursery.cancel_scope.cancel()
 
 
-async def test_inference_records_are_bounded_by_the_policys_rate() -> None:
+async def test_inference_records_are_bounded_by_the_policys_rate(
+    autojump_clock: MockClock,
+) -> None:
     policy, robot, _ = remote_policy()
     record = wire.InferenceData(
         timestep=3, chunk_size=10, kept=7, latency=0.2, inference=0.1, frame_age=0.05
