@@ -8,6 +8,8 @@ command line (one line, exit 2), instead of an `ImportError` from deep inside.
 from __future__ import annotations
 
 import importlib
+import shlex
+import sys
 from dataclasses import dataclass
 from types import ModuleType
 
@@ -36,8 +38,10 @@ EXTRAS = {
 
 
 def install_line(extra: str) -> str:
-    """The command that installs `extra`: `pip install 'arena[NAME]'`."""
-    return f"pip install 'arena[{EXTRAS[extra].extra}]'"
+    """The command that installs `extra`: `PYTHON -m pip install 'arena[NAME]'`, with the
+    Python that runs Arena named (PyPI's `arena` is another project: another environment's
+    pip would install that one; this one's has Arena and installs only the extra's packages)."""
+    return f"{shlex.quote(sys.executable)} -m pip install 'arena[{EXTRAS[extra].extra}]'"
 
 
 def require(extra: str, feature: str) -> ModuleType:

@@ -16,7 +16,14 @@ from dataclasses import dataclass, field
 import trio
 
 from arena.client.handshake import refusal, split_answer, upgrade_request
-from arena.protocol.ws_frames import OP_CLOSE, OP_TEXT, encode_frame, split_unmasked
+from arena.protocol.ws_frames import (
+    OP_CLOSE,
+    OP_PING,
+    OP_PONG,
+    OP_TEXT,
+    encode_frame,
+    split_unmasked,
+)
 
 __all__ = ["OP_CLOSE", "OP_TEXT", "Frame", "RawWebSocket"]
 
@@ -77,9 +84,14 @@ class RawWebSocket:
         await self.stream.send_all(encode_frame(opcode, payload, mask=os.urandom(4)))
 
     async def receive_frame(self) -> Frame | None:
-        """The next frame, or None once the server has closed the TCP connection."""
+        """The next frame, or None once the server has closed the TCP connection. The server's
+        pings (it times a master's link with them) are answered on the way, as any client's
+        library does."""
         while True:
             frame = self._parse()
+            if frame is not None and frame.opcode == OP_PING:
+                await self.send_frame(OP_PONG, frame.payload)
+                continue
             if frame is not None:
                 return frame
             if not await self._fill():

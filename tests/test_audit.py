@@ -105,7 +105,9 @@ async def test_every_change_is_audited_once_with_who_and_no_refusal_is(
     recordings = tmp_path / "recordings"
     recordings.mkdir()
     shutil.copy(REPOSITORY / "recordings" / "golden" / "gentle-wave.mcap", recordings)
+    (tmp_path / "arena.toml").write_text("# the robots are made below, over REST\n")
     server = await start_server(
+        config_file=str(tmp_path / "arena.toml"),
         jwt_secret_file=str(tmp_path / "jwt-secret"),
         recordings_dir=str(recordings),
         calibration_dir=str(tmp_path / "calibration"),
@@ -132,10 +134,21 @@ async def test_every_change_is_audited_once_with_who_and_no_refusal_is(
         await change("PUT", f"{arm}/workspace", {"margin": 0.01}, robots=("arm",))
         joints = {"joints": [{"name": "Rotation", "value": 5}]}
         await change("PUT", f"{arm}/joints", joints, robots=("arm",))
+        reader = bearer(token("admin", sub="reader"))
+        pose = (await http.get(f"{arm}/pose", headers=reader)).json()["commanded"]
+        await change("PUT", f"{arm}/pose", {"position": pose["position"]}, robots=("arm",))
+        await change("PUT", f"{arm}/teleop", {"deadman": 300}, robots=("arm",))
+        guide = {"joints": ["Rotation"], "torque": 20}
+        await change("POST", f"{arm}/compliance", guide, status=201, robots=("arm",))
+        await change("DELETE", f"{arm}/compliance", robots=("arm",))
         await change("POST", f"{arm}/play-sequence/gentle-wave", robots=("arm",))
         await change("POST", f"{arm}/stop-sequence", robots=("arm",))
         sequence = {"type": "mock-sequence", "sequences": ["gentle-wave"], "loop": True}
         await change("POST", f"{arm}/master", sequence, status=201, robots=("arm",))
+        await change("POST", f"{arm}/master/pause", robots=("arm",))
+        await change("POST", f"{arm}/master/resume", robots=("arm",))
+        await change("POST", f"{arm}/intervention", status=201, robots=("arm",))
+        await change("DELETE", f"{arm}/intervention", robots=("arm",))
         await change("DELETE", f"{arm}/master", robots=("arm",))
         replay = {"recording": "gentle-wave.mcap", "speed": 100}
         await change("POST", f"{arm}/replay", replay, status=201, robots=("arm",))
@@ -160,6 +173,7 @@ async def test_every_change_is_audited_once_with_who_and_no_refusal_is(
         # The recording switched off and on: the stop is recorded into the file it closes.
         await change("POST", "/api/recordings/current/stop", robots=both, detail="requested")
         await change("POST", "/api/recordings", status=201, robots=both)
+        await change("POST", "/api/config/reload", robots=both)  # (the file declares none)
 
         # WebSockets: a master's e-stop, reset and release; a group master's, on each member.
         url = server.ws_url

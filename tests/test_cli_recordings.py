@@ -121,10 +121,21 @@ def test_inspect_counts_only_real_gaps_and_summarises_them(
     burst(293.0, 1.0, answered=True)
     peer(300.0, "detached")
     burst(301.0, 5.0, answered=False)  # no slave: nothing to answer
+    records.append(("arm", "audit", {"t": 1.0, "user": "ann", "action": "x", "detail": ""}, at(1)))
     path = write_records(tmp_path, records)
 
     status, out, _ = run(["inspect", str(path)], capsys)
     assert status == 0
+    # A topic of one message has no rate, and says none.
+    (audit,) = [
+        line.split() for line in out.splitlines() if line.startswith("topic") and "audit" in line
+    ]
+    assert audit[2:] == ["1", "msgs"]
+    assert all(
+        line.endswith(" Hz")
+        for line in out.splitlines()
+        if line.startswith("topic") and "audit" not in line
+    )
     gap_lines = [line for line in out.splitlines() if "gap" in line]
     assert gap_lines[0] == "gaps       1 (a slave left targets unanswered for over 1 s)"
     assert gap_lines[1].split() == [

@@ -73,6 +73,36 @@ async def test_a_policy_either_lerobot_saved_runs_in_a_worker_of_either(
     assert handled.result.accepted
 
 
+async def test_arena_policy_runs_a_06_policy_remotely_in_the_users_python(
+    start_server: Start, saved: dict[str, Path], newer: str
+) -> None:
+    """`arena policy --url --policy-python`: the remote worker is the user's LeRobot 0.6, and
+    the server records its inferences."""
+    from arena.policy.master import PolicySettings
+    from arena.policy.remote import run_remote
+    from arena.robot.events import PolicyInferred
+
+    server = await start_server(demo=True)
+    robot = await ready(server)
+    settings = PolicySettings(saved["act-0.6"], python=newer)
+    done = trio.Event()
+
+    async def remote() -> None:
+        await run_remote(settings, server.url, "demo-arm")
+        done.set()
+
+    with robot.subscribe(kinds=[CommandHandled, PolicyInferred]) as events:
+        async with trio.open_nursery() as nursery:
+            nursery.start_soon(remote)
+            inferred = await next_event(events, lambda e: isinstance(e, PolicyInferred))
+            handled = await next_event(events, lambda e: isinstance(e, CommandHandled))
+            async with server.client() as http:
+                await http.post("/api/robots/demo-arm/estop", json={"reason": "test"})
+            with trio.fail_after(120):
+                await done.wait()
+    assert inferred.policy.startswith("policy:act:") and handled.result.accepted
+
+
 async def test_both_workers_answer_an_observation_with_the_same_actions(
     saved: dict[str, Path], newer: str
 ) -> None:
@@ -152,6 +182,50 @@ async def test_an_exported_dataset_reads_the_same_in_lerobot_06(
     )
     assert theirs["actions"] == [[float(v) for v in row["action"]] for row in rows]
     assert theirs["image"] == list(ours[len(rows) - 1]["observation.images.front"].shape)
+
+
+#: `arena learn`'s training (arena/gym/train.py, which imports only numpy, torch and LeRobot)
+#: run by LeRobot 0.6's Python on a dataset Arena exported: a few steps, saved as LeRobot saves.
+TRAIN = """
+import importlib.util, sys
+from pathlib import Path
+spec = importlib.util.spec_from_file_location("train", sys.argv[1])
+train = sys.modules["train"] = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(train)
+settings = train.TrainSettings(steps=3, batch_size=4, dim_model=32, dim_feedforward=64)
+loss = train.train_act(Path(sys.argv[2]), sys.argv[4], Path(sys.argv[3]), settings, print)
+print("loss", loss)
+"""
+
+
+async def test_arena_learns_training_runs_on_lerobot_06(tmp_path: Path, newer: str) -> None:
+    """`arena learn reach`'s own data (two expert episodes in the twin, exported as it exports
+    them), trained on by its training code in LeRobot 0.6."""
+    need("mujoco", "physics")
+    from arena.gym.learn import REPO_ID, TWIN_ROBOT, LearnSettings, collect
+    from arena.recording.dataset import export_lerobot
+
+    settings = LearnSettings(tmp_path, episodes=2)
+    targets = await trio.to_thread.run_sync(collect, settings, print)
+    dataset, out = tmp_path / "dataset", tmp_path / "policy"
+    recordings = sorted((tmp_path / "recordings").glob("*.mcap"))
+    export_lerobot(recordings, TWIN_ROBOT, dataset, fps=30, repo_id=REPO_ID, environment=targets)
+    train = REPOSITORY / "arena" / "gym" / "train.py"
+    ran = subprocess.run(
+        [newer, "-c", TRAIN, str(train), str(dataset), str(out), REPO_ID],
+        capture_output=True,
+        timeout=600,
+    )
+    assert ran.returncode == 0, ran.stderr.decode()[-2000:]
+    assert math.isfinite(float(ran.stdout.decode().split("loss")[-1]))
+    # What it saved loads in either LeRobot's worker.
+    for python in (newer, None):
+        worker = await PolicyProcess.start(worker_command(python))
+        try:
+            loaded = await worker.load(out)
+        finally:
+            await worker.close()
+        assert loaded.policy_type == "act" and loaded.chunk_size == 10
 
 
 async def test_a_dataset_lerobot_06_wrote_imports_as_a_recording(

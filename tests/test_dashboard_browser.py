@@ -11,6 +11,7 @@ import queue
 import re
 import shutil
 import threading
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -155,6 +156,7 @@ def click_slider_at(page: Page, joint: str, fraction: float) -> float:
     slider shows the robot's value again, which may still be on its way there."""
     handle = slider(page, joint)
     handle.evaluate("el => el.addEventListener('input', () => { el.dataset.clicked = el.value; })")
+    handle.scroll_into_view_if_needed()  # (a card with more buttons puts the last below the fold)
     box = handle.bounding_box()
     assert box is not None
     page.mouse.click(box["x"] + box["width"] * fraction, box["y"] + box["height"] / 2)
@@ -853,3 +855,131 @@ def test_the_so101_gripper_slider_is_in_percent(start_live: Any, page: Page) -> 
     assert 40 <= wanted <= 60
     expect(page.locator('td[data-real="gripper"]')).to_have_text(f"{wanted:.1f}", timeout=WAIT_MS)
     assert real_value(server, "follower", "gripper") == pytest.approx(wanted, abs=0.1)
+
+
+def test_pause_resume_intervene_and_hand_back_from_the_page(start_live: Any, page: Page) -> None:
+    server = start_live(demo=True)
+    with server.http() as http:
+        sequence = {"type": "mock-sequence", "sequences": ["gentle-wave"], "loop": True}
+        assert http.post("/api/robots/demo-arm/master", json=sequence).status_code == 201
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    state = page.locator("#robot-state")
+    line = page.locator("#master-line")
+    expect(state).to_have_text("mastered")
+    expect(slider(page, "Rotation")).to_be_disabled()
+    page.click("#master-pause")
+    expect(state).to_have_text("paused")
+    expect(line).to_contain_text("Paused: sequence 'gentle-wave'")
+    expect(page.locator("#master-pause")).to_be_disabled()
+    # Space resumes (and pauses) for whoever has the page focused.
+    page.locator("#robot-title").click()
+    page.keyboard.press(" ")
+    expect(state).to_have_text("mastered")
+    page.keyboard.press(" ")
+    expect(state).to_have_text("paused")
+    page.click("#master-resume")
+    expect(state).to_have_text("mastered")
+    # Intervene: the sequence waits, paused, and the sliders drive the robot.
+    page.click("#intervene")
+    expect(state).to_have_text("intervened")
+    expect(line).to_contain_text("You intervene")
+    expect(slider(page, "Rotation")).to_be_enabled()
+    with server.http() as http:
+        shown = http.get("/api/robots/demo-arm").json()
+        assert shown["paused_master"]["kind"] == "mock-sequence"
+        assert shown["master"]["kind"] == "operator"
+    wanted = click_slider_at(page, "Rotation", 0.8)
+    expect(page.locator('td[data-virtual="Rotation"]')).to_have_text(
+        f"{wanted:.1f}", timeout=WAIT_MS
+    )
+    page.click("#hand-back")
+    expect(state).to_have_text("mastered")
+    expect(slider(page, "Rotation")).to_be_disabled()
+    expect(line).to_contain_text("Playing sequence 'gentle-wave'")
+    with server.http() as http:
+        shown = http.get("/api/robots/demo-arm").json()
+        assert shown["paused_master"] is None and not shown["master"]["paused"]
+
+
+def hand_position(server: LiveServer, robot: str) -> list[float]:
+    """The hand's commanded tool point (metres), as the API says it."""
+    with server.http() as http:
+        pose = http.get(f"/api/robots/{robot}/pose").json()
+    return [float(v) for v in pose["commanded"]["position"]]
+
+
+def moved_along(server: LiveServer, start: list[float], axis: int, sign: int) -> float:
+    """How far the hand has gone from `start` along `axis` (`sign`: the way it should), once
+    that is over 1 cm (or the wait's bound has passed)."""
+    ends = time.monotonic() + WAIT_MS / 1000
+    moved = 0.0
+    while time.monotonic() < ends:
+        moved = sign * (hand_position(server, "demo-arm")[axis] - start[axis])
+        if moved > 0.01:
+            break
+        time.sleep(0.05)
+    return moved
+
+
+def test_the_keyboard_drives_the_hand_over_the_master_websocket(
+    start_live: Any, page: Page
+) -> None:
+    server = start_live(demo=True)
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    expect(page.locator("#robot-state")).to_have_text("idle")
+    page.click("#drive-hand")
+    expect(page.locator("#drive-status")).to_contain_text("driving")
+    expect(page.locator("#robot-state")).to_have_text("mastered")
+    start = hand_position(server, "demo-arm")
+    for key, axis, sign in [("w", 2, 1), ("ArrowUp", 0, 1), ("ArrowLeft", 1, 1)]:
+        page.keyboard.down(key)  # held: the hand goes at 5 cm/s along the key's axis
+        moved = moved_along(server, start, axis, sign)
+        page.keyboard.up(key)
+        assert moved > 0.01, (key, moved)
+        # Let go: the hand stops (within the dead-man time); the other axes stayed put.
+        time.sleep(1.0)
+        stopped = hand_position(server, "demo-arm")
+        time.sleep(0.5)
+        assert hand_position(server, "demo-arm") == pytest.approx(stopped, abs=1e-4)
+        for other in {0, 1, 2} - {axis}:
+            assert stopped[other] == pytest.approx(start[other], abs=0.003), (key, other)
+        start = stopped
+    page.click("#drive-hand")  # stop driving: the master lets go of the robot
+    expect(page.locator("#robot-state")).to_have_text("idle")
+
+
+def test_a_websocket_master_s_link_shows_beside_it_green_then_red_when_commands_come_late(
+    start_live: Any, page: Page
+) -> None:
+    server = start_live(demo=True, command_max_age=0.05)
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    ws_url = server.url.replace("http://", "ws://") + "/ws/master/demo-arm?id=alice"
+    first = time.time() * 1000
+
+    def command(stamp: float) -> str:
+        data = {"timestamp": stamp, "joints": [{"name": "Rotation", "value": 1}]}
+        return json.dumps({"type": "command", "data": data})
+
+    with websockets.sync.client.connect(ws_url) as alice:  # (it answers the server's pings)
+        alice.send(command(first))
+        tag = page.locator('#peers li[data-peer="alice"] .tag.link')
+        expect(tag).to_have_class(re.compile(r"\bgood\b"), timeout=WAIT_MS)  # loopback
+        expect(tag).to_contain_text("ms")
+        # Stamps a millisecond apart sent at least 0.3 s apart: each arrives later than the
+        # 50 ms allowed, is dropped and counted, and the link shows red.
+        stop = threading.Event()
+
+        def late() -> None:
+            stamp = first
+            while not stop.wait(0.3):
+                stamp += 1
+                alice.send(command(stamp))
+
+        sender = threading.Thread(target=late, daemon=True)
+        sender.start()
+        try:
+            expect(tag).to_have_class(re.compile(r"\bpoor\b"), timeout=WAIT_MS)
+            expect(tag).to_contain_text("stale")
+        finally:
+            stop.set()
+            sender.join()

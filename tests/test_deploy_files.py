@@ -68,9 +68,11 @@ def test_the_unit_passes_systemd_analyze_verify(tmp_path: Path) -> None:
 def test_the_unit_runs_arena_as_its_own_user_with_the_serial_group_and_restarts() -> None:
     settings = unit_settings()
     assert settings["Type"] == ["notify"]
-    assert settings["User"] == ["arena"] and settings["SupplementaryGroups"] == ["dialout"]
+    assert settings["User"] == ["arena"] and settings["SupplementaryGroups"] == ["dialout video"]
     assert settings["Restart"] == ["on-failure"]
-    assert settings["DeviceAllow"] == ["char-ttyACM rw", "char-ttyUSB rw"]
+    devices = ["char-ttyACM rw", "char-ttyUSB rw", "char-video4linux rw"]  # arms and cameras
+    assert settings["DeviceAllow"] == devices
+    assert settings["ExecReload"] == ["/bin/kill -HUP $MAINPID"]  # the file's changes applied
     (command,) = settings["ExecStart"]
     program, *argv = shlex.split(command)
     assert program == INSTALLED

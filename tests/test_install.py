@@ -150,7 +150,7 @@ def test_every_optional_import_is_an_extra_of_the_package() -> None:
     optional = project["optional-dependencies"]
     for name, extra in EXTRAS.items():
         assert extra.extra in optional, name
-        assert install_line(name) == f"pip install 'arena[{extra.extra}]'"
+        assert install_line(name) == f"{sys.executable} -m pip install 'arena[{extra.extra}]'"
     # and no runtime dependency is one of them
     runtime = " ".join(project["dependencies"])
     for extra in EXTRAS.values():

@@ -28,8 +28,8 @@ GOLDEN = Path(__file__).resolve().parent.parent / "recordings" / "golden"
 
 async def record_every_kind(folder: Path) -> Path:
     """A running server (real sockets, real recorder) driven through every kind of record it
-    writes: two robots, slaves, a camera, an episode, a policy master, a slave's fault, a
-    group's e-stop and reset; the finished file."""
+    writes: two robots, slaves, a camera, an episode, a policy master and an intervention on it,
+    a slave's fault, a group's e-stop and reset; the finished file."""
     config = ServerConfig(port=0, recordings_dir=str(folder))
     stop, done = trio.Event(), trio.Event()
     async with trio.open_nursery() as nursery:
@@ -97,6 +97,9 @@ async def record_every_kind(folder: Path) -> Path:
             await policy.prepare()
             await robot.attach_master(policy, master_id=policy.master_id)
             await eventually(lambda: len(worker.observations) >= 3, timeout=30)
+            # An operator's correction of it (an intervention, started and ended).
+            await ok("POST", "/api/robots/arm/intervention", {})
+            await ok("DELETE", "/api/robots/arm/intervention")
             await ok("DELETE", "/api/robots/arm/master")
             # A group's e-stop and reset.
             await ok("POST", "/api/groups", {"id": "line", "members": ["arm", "follower"]})

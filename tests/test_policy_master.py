@@ -478,6 +478,11 @@ class SlowArm:
     def inferred(self, source: str, inference: object) -> None:
         pass
 
+    paused = False  # never paused
+
+    async def wait_resumed(self) -> None:
+        pass
+
 
 async def test_a_late_step_is_not_made_up_with_a_burst(autojump_clock: MockClock) -> None:
     """A step that ends late is followed a full period later, as LeRobot's loop does: never

@@ -243,3 +243,34 @@ def test_processor_steps_a_worker_s_lerobot_lacks_are_refused_by_name(tmp_path: 
     check_steps(folder, {"normalizer_processor", "relative_actions_processor"}, "0.6.1")
     with pytest.raises(PolicyDirectoryError, match="does not have: relative_actions_processor"):
         check_steps(folder, {"normalizer_processor"}, "0.4.4")
+
+
+def test_a_policys_own_python_is_for_the_servers_admin_and_must_be_a_program(
+    tmp_path: Path,
+) -> None:
+    import importlib.util
+    import sys
+
+    from arena.protocol.rest import PolicyMasterBody
+    from arena.server.drivers import make_master
+
+    if importlib.util.find_spec("lerobot") is None:
+        pytest.skip("lerobot is not installed")
+    model = load_robot_model("so-arm100")
+    folder = tmp_path / "act"
+    folder.mkdir()
+    (folder / "config.json").write_text("{}")  # looked for, not read, before the worker starts
+
+    def made(python: str, anywhere: bool) -> object:
+        body = PolicyMasterBody(path="act", python=python)  # a name in the tenant's folder
+        return make_master(body, model=model, anywhere=anywhere, policy_dir=tmp_path)
+
+    with pytest.raises(ArenaError) as tenant:
+        made(sys.executable, anywhere=False)
+    assert tenant.value.code is ErrorCode.FORBIDDEN and '"python"' in tenant.value.message
+    with pytest.raises(ArenaError) as not_a_program:
+        made(str(tmp_path / "no-python"), anywhere=True)
+    assert not_a_program.value.code is ErrorCode.INVALID_VALUE
+    assert "no-python" in not_a_program.value.message
+    master = made(sys.executable, anywhere=True)
+    assert master.settings.python == sys.executable  # type: ignore[attr-defined]

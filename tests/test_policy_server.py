@@ -416,37 +416,6 @@ async def test_a_directory_that_is_not_a_policy_is_refused_with_the_reason(
     assert workers() == []
 
 
-async def test_arena_policy_drives_a_robot_over_the_public_api_until_an_estop(
-    start_server: Start, tiny: Path
-) -> None:
-    from arena.policy.master import PolicySettings
-    from arena.policy.remote import run_remote
-
-    server = await start_server(demo=True)
-    robot = await ready(server)
-    identity = f"policy:act:{checkpoint(tiny)}"
-    done = trio.Event()
-    ran: list[Any] = []
-
-    async def remote() -> None:
-        ran.append(await run_remote(PolicySettings(tiny, task="wave"), server.url, "demo-arm"))
-        done.set()
-
-    with robot.subscribe(kinds=[CommandHandled]) as events:
-        async with trio.open_nursery() as nursery:
-            nursery.start_soon(remote)
-            for _ in range(10):
-                command = await next_event(events, lambda e: isinstance(e, CommandHandled))
-                assert command.source == identity and command.result.accepted
-                assert command.command.source == identity
-            assert robot.snapshot().master.peer_id == identity
-            async with server.client() as http:
-                await http.post(f"{ROBOT}/estop", json={"reason": "test"})
-            with trio.fail_after(WAIT):
-                await done.wait()
-    assert ran[0].counters.sent >= 10 and workers() == []
-
-
 async def test_without_lerobot_a_policy_master_is_not_installed(
     start_server: Start, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:

@@ -12,6 +12,7 @@ from arena.robot.events import (
     CommandHandled,
     EpisodeChanged,
     FaultReported,
+    InterventionChanged,
     JointStatesReceived,
     Observed,
     PeerChanged,
@@ -104,6 +105,11 @@ def test_every_kind_of_event_is_recorded_byte_for_byte_as_before() -> None:
             "policy",
             '{"t":17.0,"policy":"policy:act:0123456789ab","timestep":12,"chunk_size":10,"kept":8,'
             '"latency":0.04,"inference":0.03,"frame_age":null}',
+        ),
+        (
+            InterventionChanged("a", "started", "leader", "policy:act:0123456789ab", 19.0, 20.0),
+            "intervention",
+            '{"t":19.0,"change":"started","master":"leader","paused":"policy:act:0123456789ab"}',
         ),
     ]  # fmt: skip
     assert {kind for _, kind, _ in cases} == set(RECORD_TYPES)

@@ -41,9 +41,9 @@ Scenarios:
               last slave's notice, 100 robots at 50 Hz on two nodes against one
   soak        (only when named) the fleet held for 10 minutes: latency and memory of the first
               minute against the last, commands unacknowledged, recording messages dropped
-  policy      (only when named; needs lerobot) an ACT with random weights drives a robot at
-              30 fps: observation (camera frame age included) to command p50/p99, the server
-              CPU the policy adds, the worker's CPU (see arena/bench/policy.py)
+  policy      (only when named; needs lerobot) an ACT, then a diffusion policy, random weights,
+              drive a robot at 30 fps: observation (camera frame age included) to command
+              p50/p99, the server CPU each adds, the worker's (see arena/bench/policy.py)
 """
 
 from __future__ import annotations

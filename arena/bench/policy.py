@@ -1,4 +1,5 @@
-"""`arena bench policy`: a LeRobot ACT as a robot's master, on this machine's CPU.
+"""`arena bench policy`: a LeRobot ACT, then a diffusion policy, as a robot's master, on this
+machine's CPU.
 
 One robot on a server of its own (`arena serve`, recording on) with a mock slave and a
 640x480 test-pattern camera at 30 fps. An ACT with LeRobot's default architecture (a ResNet-18
@@ -6,7 +7,8 @@ backbone, `dim_model` 512, chunks of 100 actions) and random weights (no pretrai
 nothing is downloaded) is saved by `python -m arena.bench.act DIR` in a process of its own,
 then attached over REST at 30 fps with LeRobot's async-inference defaults (50 actions a chunk,
 an observation when half are left). It takes one 240x320 image, which the worker scales from
-the camera's JPEG.
+the camera's JPEG. Then the same with a diffusion policy of LeRobot's default architecture (10
+denoising steps; `python -m arena.bench.act DIR --type diffusion`), its figures beside.
 
 Measured:
 - the server's CPU (its recording process included, the policy's worker not) over the same
@@ -82,50 +84,80 @@ async def _cpu_over(server: Server, seconds: float, worker: int | None) -> tuple
     )
 
 
+async def _saved(folder: Path, kind: str) -> Path:
+    """The benchmark's policy of `kind` saved in `folder` by a process of its own."""
+    made = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "arena.bench.act", str(folder), "--type", kind
+    )
+    if await made.wait() != 0:
+        raise RuntimeError(f"the benchmark's {kind} policy could not be saved")
+    return folder
+
+
+async def _drive(
+    http: httpx.AsyncClient, server: Server, folder: Path, seconds: float, warmup: float
+) -> tuple[str, float, float]:
+    """Attach the policy in `folder`, let it warm up, then measure `seconds`: its identity,
+    the server's CPU and the worker's (percent of one core); detached after."""
+    base = f"/api/robots/{ROBOT}"
+    body = {
+        "type": "policy",
+        "path": str(folder),
+        "fps": FPS,
+        "actions_per_chunk": ACTIONS_PER_CHUNK,
+    }
+    attached = await http.post(f"{base}/master", json=body)
+    attached.raise_for_status()
+    await asyncio.sleep(warmup)  # the first inferences warm the policy up
+    busy, worker_cpu = await _cpu_over(server, seconds, _worker_pid(server))
+    await http.delete(f"{base}/master")
+    return str(attached.json()["id"]), busy, worker_cpu
+
+
+def _figures(
+    messages: Sequence[RecordedMessage], identity: str, prefix: str, skip: int
+) -> dict[str, float]:
+    """Observation to command and the policy's own records, past its first `skip` inferences."""
+    records = [m.data for m in messages if m.kind == "policy" and m.data["policy"] == identity]
+    records = records[skip:]
+    latencies = observation_to_command(messages, identity)[skip:]
+    return {
+        f"{prefix}_observation_to_command_p50_ms": percentile(latencies, 0.5) * 1000,
+        f"{prefix}_observation_to_command_p99_ms": percentile(latencies, 0.99) * 1000,
+        f"{prefix}_frame_age_p50_ms": percentile([r["frame_age"] for r in records], 0.5) * 1000,
+        f"{prefix}_round_trip_p50_ms": percentile([r["latency"] for r in records], 0.5) * 1000,
+        f"{prefix}_inference_p50_ms": percentile([r["inference"] for r in records], 0.5) * 1000,
+        f"{prefix}_inferences": float(len(latencies)),
+    }
+
+
 async def policy(server: Server, seconds: float = 20.0, warmup: float = 5.0) -> dict[str, float]:
-    """The figures above, for `seconds` of each phase."""
+    """The figures above for an ACT (`policy_...`) and then a diffusion policy (`policy_
+    diffusion_...`, 10 denoising steps: seconds an inference on a CPU, so it runs twice as
+    long), each for `seconds` after its warm-up, on the same server."""
     with tempfile.TemporaryDirectory() as scratch:
-        folder = Path(scratch) / "act"
-        made = await asyncio.create_subprocess_exec(
-            sys.executable, "-m", "arena.bench.act", str(folder)
-        )
-        if await made.wait() != 0:
-            raise RuntimeError("the benchmark's ACT could not be saved")
+        act = await _saved(Path(scratch) / "act", "act")
+        diffusion = await _saved(Path(scratch) / "diffusion", "diffusion")
         async with httpx.AsyncClient(base_url=server.url, timeout=300) as http:
-            base = f"/api/robots/{ROBOT}"
             await create_bench_robot(http, ROBOT)
+            base = f"/api/robots/{ROBOT}"
             (await http.post(f"{base}/slaves", json={"type": "mock-slave"})).raise_for_status()
             (await http.post(f"{base}/cameras", json=CAMERA)).raise_for_status()
             await asyncio.sleep(warmup)
             idle, _ = await _cpu_over(server, seconds, None)
-            body = {
-                "type": "policy",
-                "path": str(folder),
-                "fps": FPS,
-                "actions_per_chunk": ACTIONS_PER_CHUNK,
-            }
-            attached = await http.post(f"{base}/master", json=body)
-            attached.raise_for_status()
-            identity = attached.json()["id"]
-            await asyncio.sleep(warmup)  # the first inferences warm the policy up
-            worker = _worker_pid(server)
-            busy, worker_cpu = await _cpu_over(server, seconds, worker)
-            await http.delete(f"{base}/master")
+            act_id, busy, worker_cpu = await _drive(http, server, act, seconds, warmup)
+            slow = await _drive(http, server, diffusion, 2 * seconds, 2 * warmup)
             stopped = (await http.post("/api/recordings/current/stop")).json()["stopped"]
             data = (await http.get(f"/api/recordings/{stopped}/file")).content
         path = Path(scratch) / "run.mcap"
         path.write_bytes(data)
         messages = read_recording(path).messages
-    records = [m.data for m in messages if m.kind == "policy"][2:]  # past the warm-up
-    latencies = observation_to_command(messages, identity)[2:]
     return {
         "policy_server_cpu_percent": busy - idle,
         "policy_idle_server_cpu_percent": idle,
         "policy_worker_cpu_percent": worker_cpu,
-        "policy_observation_to_command_p50_ms": percentile(latencies, 0.5) * 1000,
-        "policy_observation_to_command_p99_ms": percentile(latencies, 0.99) * 1000,
-        "policy_frame_age_p50_ms": percentile([r["frame_age"] for r in records], 0.5) * 1000,
-        "policy_round_trip_p50_ms": percentile([r["latency"] for r in records], 0.5) * 1000,
-        "policy_inference_p50_ms": percentile([r["inference"] for r in records], 0.5) * 1000,
-        "policy_inferences": float(len(latencies)),
+        **_figures(messages, act_id, "policy", 2),
+        "policy_diffusion_server_cpu_percent": slow[1] - idle,
+        "policy_diffusion_worker_cpu_percent": slow[2],
+        **_figures(messages, slow[0], "policy_diffusion", 1),
     }

@@ -40,6 +40,7 @@ def export_lerobot(args: argparse.Namespace) -> int:
         repo_id=args.repo_id,
         slave=args.slave,
         task=args.task,
+        corrections_only=args.corrections_only,
     )
     frames = sum(count for _, _, count in report.episodes)
     cameras = ", ".join(report.cameras) or "none"

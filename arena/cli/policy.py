@@ -4,6 +4,8 @@ of a robot on an Arena server (specs/policy.md)."""
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import sys
 from pathlib import Path
 
@@ -28,9 +30,33 @@ def add(commands: Commands) -> None:
         help="the step limit: degrees from the measured position (10; 0: off)",
     )
     policy.add_argument(
+        "--environment-state",
+        type=_numbers,
+        default=(),
+        metavar="X,Y,...",
+        help="observation.environment_state, for a policy that takes one (the task's state)",
+    )
+    policy.add_argument(
+        "--policy-python",
+        metavar="PATH",
+        help="the Python that runs the worker (one with LeRobot and torch, e.g. your LeRobot "
+        "0.6 virtualenv's bin/python); default: this one",
+    )
+    policy.add_argument(
         "--takeover", action="store_true", help="displace the robot's master, if it has one"
     )
     policy.set_defaults(handler=policy_command)
+
+
+def _numbers(text: str) -> tuple[float, ...]:
+    """Comma-separated finite numbers."""
+    try:
+        values = tuple(float(part) for part in text.split(",") if part.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not numbers separated by commas: {text!r}") from None
+    if not all(math.isfinite(value) for value in values):
+        raise argparse.ArgumentTypeError(f"not finite numbers: {text!r}")
+    return values
 
 
 def policy_command(args: argparse.Namespace) -> int:
@@ -44,22 +70,29 @@ def policy_command(args: argparse.Namespace) -> int:
     from arena.policy.remote import run_remote
     from arena.protocol.errors import ArenaError
 
-    require("lerobot", "arena policy")
+    if args.policy_python is None:
+        require("lerobot", "arena policy")
+    elif not (os.path.isfile(args.policy_python) and os.access(args.policy_python, os.X_OK)):
+        print(f"arena policy: {args.policy_python} is not a program that runs", file=sys.stderr)
+        return 2
     settings = PolicySettings(
         path=Path(args.path),
         task=args.task,
         fps=args.fps,
         max_relative_target=args.max_relative_target or None,
+        environment_state=args.environment_state,
+        python=args.policy_python,
     )
     try:
-        master = trio.run(run_remote, settings, args.url, args.robot, args.api_key, args.takeover)
+        run = trio.run(run_remote, settings, args.url, args.robot, args.api_key, args.takeover)
     except (ArenaError, ArenaClientError) as error:
         print(f"arena policy: {error.code}: {error.message}", file=sys.stderr)
         return 2
-    counters = master.counters
+    counters = run.master.counters
     print(
-        f"{master.identity}: {counters.sent} commands, {counters.inferences} inferences, "
-        f"{counters.clamped} targets clamped, {counters.invalid} actions refused, "
-        f"{counters.stalls} stalls"
+        f"{run.master.identity}: {counters.sent} commands, {counters.inferences} inferences "
+        f"({run.unsent} not recorded: the link was down), {counters.clamped} targets clamped, "
+        f"{counters.invalid} actions refused, {counters.stalls} stalls; "
+        f"{run.frames} camera frames, {run.frame_bytes / 1e3:.0f} kB"
     )
     return 0

@@ -45,6 +45,11 @@ def add(commands: Commands) -> None:
     export.add_argument("--repo-id", help="lerobot: the dataset's name (default arena/ROBOT)")
     export.add_argument("--slave", help="lerobot: whose joint states are the observation")
     export.add_argument(
+        "--corrections-only",
+        action="store_true",
+        help="lerobot: each intervention's correction as an episode of its own, nothing else",
+    )
+    export.add_argument(
         "--task", default="teleoperation", help="lerobot: the task of a file with no episodes"
     )
     export.set_defaults(handler=export_command)
@@ -237,7 +242,10 @@ def format_summary(summary: dict[str, Any]) -> str:
     topics = summary.get("topics", {})
     assert isinstance(topics, dict)
     for name, info in topics.items():
-        lines.append(f"topic      {name:<36} {info['count']:>8} msgs  {info['rate_hz']} Hz")
+        rate = info["rate_hz"]
+        # (one message, or all at one instant: no rate to speak of)
+        said = "" if rate is None else f"  {rate} Hz"
+        lines.append(f"topic      {name:<36} {info['count']:>8} msgs{said}")
     if "gaps" in summary:
         lines.append(f"gaps       {len(summary['gaps'])} ({GAP_MEANING})")
     if summary.get("users"):

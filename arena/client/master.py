@@ -64,6 +64,10 @@ class MasterSession(WatchingSession):
         self.released: dict[str, Any] | None = None
         #: The newest `detached` data (taken over, e-stopped sequence, ...), if any.
         self.detached: dict[str, Any] | None = None
+        #: The server has this master paused (`pause` until `resume`): send nothing.
+        self.paused = False
+        self._resumed = trio.Event()
+        self._resumed.set()
         #: Why the server would not have this master (MASTER_ACTIVE, UNKNOWN_ROBOT, ...).
         self.refusal: ArenaClientError | None = None
         #: A refusal of the first connection ends the session (`open` sets it: its caller is
@@ -122,6 +126,15 @@ class MasterSession(WatchingSession):
         # (`Refused`), which is the contract for a sequence.
         message = {"type": "sequence", "timestamp": now_iso(), "data": dict(sequence)}
         ack = await self._request(message, "ack", timeout)
+        if (ack.get("data") or {}).get("status") == "refused":
+            raise refusal(ack)
+
+    async def declare_policy(
+        self, fps: float, stall_periods: int = 2, timeout: float | None = None
+    ) -> None:
+        """Say that this master runs a policy at `fps`: the server records its inferences
+        (`send_inference`) and runs its watchdog over `stall_periods` periods."""
+        ack = await self._request(messages.policy(fps, stall_periods), "ack", timeout)
         if (ack.get("data") or {}).get("status") == "refused":
             raise refusal(ack)
 
@@ -185,6 +198,10 @@ class MasterSession(WatchingSession):
         if self.refusal is not None:
             raise self.refusal
 
+    async def wait_resumed(self) -> None:
+        """Return once the server does not have this master paused."""
+        await self._resumed.wait()
+
     async def on_message(self, message: dict[str, Any]) -> None:
         kind = message.get("type")
         if kind == "ack":
@@ -196,6 +213,11 @@ class MasterSession(WatchingSession):
             self._settled.set()
         elif kind == "state":
             self._settled.set()
+        elif kind == "pause" and not self.paused:
+            self.paused, self._resumed = True, trio.Event()
+        elif kind == "resume":
+            self.paused = False
+            self._resumed.set()
         if kind == "released":
             self.released = message.get("data") or {}
             self.finished = True  # the server closes now: no reconnection

@@ -23,9 +23,13 @@ from arena.protocol.messages import (
     ErrorMessage,
     EStopMessage,
     HeartbeatMessage,
+    InferenceData,
+    InferenceMessage,
     JointStateEntry,
     JointStatesMessage,
     JointValue,
+    PolicyData,
+    PolicyMessage,
     ReasonData,
     ReleaseData,
     ReleaseMessage,
@@ -40,9 +44,11 @@ __all__ = [
     "estop",
     "finite_joints",
     "heartbeat",
+    "inference",
     "joint_states",
     "joint_states_message",
     "now_iso",
+    "policy",
     "release",
     "reset",
     "ws_url",
@@ -129,6 +135,24 @@ def release(hold: bool = False) -> ReleaseMessage:
     than completing the commands accepted)."""
     data = ReleaseData(hold=True) if hold else None
     return ReleaseMessage(timestamp=now_iso(), data=data)
+
+
+def policy(fps: float, stall_periods: int) -> PolicyMessage:
+    """A master's `policy`: it runs a policy at `fps`, watched over `stall_periods` periods."""
+    return PolicyMessage(timestamp=now_iso(), data=PolicyData(fps, stall_periods))
+
+
+def inference(
+    timestep: int,
+    chunk_size: int,
+    kept: int,
+    latency: float,
+    seconds: float,
+    frame_age: float | None,
+) -> InferenceMessage:
+    """A policy master's `inference` record (`seconds`: the worker's own part of `latency`)."""
+    data = InferenceData(timestep, chunk_size, kept, latency, seconds, frame_age)
+    return InferenceMessage(timestamp=now_iso(), data=data)
 
 
 def error(code: str, message: str, severity: Severity = Severity.ERROR) -> ErrorMessage:

@@ -4,7 +4,8 @@ REST bodies (`server/drivers.py`), so a driver never depends on a body's shape o
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from typing import Literal
 
 #: What servos do on an e-stop: `hold` (torque kept, goal = present) or `torque-off`.
@@ -15,24 +16,29 @@ EStopPolicy = Literal["hold", "torque-off"]
 class UsbSlaveConfig:
     """An arm on a servo bus. `port` None: the adapter is found by its USB id;
     `rate`: control loop Hz; `join_speed`: deg/s at which the arm is brought to the robot's
-    pose when it joins (None: the robot type's)."""
+    pose when it joins (None: the robot type's); `torque_limit`: percent of full torque by
+    joint name, over the robot type's; `stall_time`: seconds of pushing before a stall."""
 
     port: str | None = None
     baud_rate: int | None = None  # None: the robot type's
     rate: float = 250.0
     estop: EStopPolicy = "hold"
     join_speed: float | None = None
+    torque_limit: Mapping[str, float] = field(default_factory=dict)
+    stall_time: float = 1.0
 
 
 @dataclass(frozen=True, slots=True)
 class UsbMasterConfig:
     """A leader arm on a servo bus. `rate`: Hz at which it is read; `deadband`:
-    degrees a joint must move before a new command goes out."""
+    degrees a joint must move before a new command goes out; `actuated`: its servos take
+    torque, so that it is first driven to the follower's pose (then goes limp)."""
 
     port: str | None = None
     baud_rate: int | None = None  # None: the robot type's
     rate: float = 250.0
     deadband: float = 0.5
+    actuated: bool = False
 
 
 @dataclass(frozen=True, slots=True)

@@ -78,9 +78,10 @@ class SequenceMaster:
     async def _play(self, link: MasterLink, sequence: Sequence) -> bool:
         """Play one sequence; False if the robot stopped it (e-stop, lost ownership)."""
         self.playing = sequence.id
-        start = trio.current_time()
+        # The master's own clock: it stands still while the robot has it paused.
+        start = trio.current_time() - link.paused_time(trio.current_time())
         for keyframe in sequence.keyframes:
-            await trio.sleep_until(start + keyframe.at)
+            await link.sleep_until(start + keyframe.at)
             result = await link.command(keyframe.command)
             if not result.accepted:
                 self.refusals.append((result.code, result.message))
@@ -88,5 +89,5 @@ class SequenceMaster:
                 if result.code in _FINAL_REFUSALS:
                     return False  # stopped for good: never resume by itself
                 # Otherwise (a rate limit, say) keep going with the next keyframe.
-        await trio.sleep_until(start + sequence.total_duration)
+        await link.sleep_until(start + sequence.total_duration)
         return True

@@ -1,10 +1,13 @@
 """The USB master: a leader arm, moved by hand, commands the robot.
 
-Torque stays off on the leader. Its present positions are read on its own bus thread (the same
-`BusWorker` as the USB slave), turned into degrees through the leader's calibration, and sent
-as commands whenever a joint moved more than the dead band, at most as often as the robot's
-rate limit allows (the newest pose wins). It claims the robot like any master (no takeover), an
-e-stop ends it for good, and losing the leader's bus is a lost master (the loss policy applies).
+Torque stays off on the leader, but for an `actuated` one's first moments: it is driven to
+the follower's pose at the robot's joining speed, then goes limp, so that the hand takes it
+where the follower is (no jerk when it starts to command). Its present positions are read on
+its own bus thread (the same `BusWorker` as the USB slave), turned into degrees through the
+leader's calibration, and sent as commands whenever a joint moved more than the dead band, at
+most as often as the robot's rate limit allows (the newest pose wins). It claims the robot like
+any master (no takeover), an e-stop ends it for good, and losing the leader's bus is a lost
+master (the loss policy applies).
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ from pathlib import Path
 
 import trio
 
-from arena.drivers.bus_bridge import BusBridge
+from arena.drivers.bus_bridge import BusBridge, wait_future
 from arena.drivers.config import UsbMasterConfig
 from arena.drivers.refusals import Refusals
 from arena.drivers.servo_arm import ServoArm
@@ -27,7 +30,7 @@ from arena.robot.model import RobotModel
 from arena.robot.motion import Command, JointGoal
 from arena.servo.health import ServoFault
 from arena.servo.interface import ServoBus
-from arena.servo.worker import Lost, Reading, WorkerSettings
+from arena.servo.worker import BusWorker, Lost, Reading, WorkerSettings
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +69,9 @@ class UsbMaster(ServoArm):
         self.config = config
         self.sent = 0
         self.refusals = Refusals()
+        #: An actuated leader's way to the follower's pose: (trio time, joint values), each
+        #: as written to its servos.
+        self.approach: list[tuple[float, dict[str, float]]] = []
 
     @property
     def description(self) -> str:
@@ -79,9 +85,52 @@ class UsbMaster(ServoArm):
         if not self.calibrated:
             log.warning("usb-master on %s: uncalibrated, raw 2048 is 0 deg", self.port)
         try:
+            if self.config.actuated:
+                await self._meet_follower(link, self.worker, self.bridge)
             await self._mirror(link, self.bridge)
         finally:
             await self.close()
+
+    async def _meet_follower(self, link: MasterLink, worker: BusWorker, bridge: BusBridge) -> None:
+        """Torque on, drive the leader to the follower's pose at the joining speed, torque
+        off. Nothing is commanded meanwhile; a lost bus ends it (the mirror then reports it)."""
+        snapshot = link.robot.snapshot()
+        goal = {
+            j.name: j.virtual_value if j.real_value is None else j.real_value
+            for j in snapshot.joints
+        }
+        reading = bridge.take_reading()
+        while reading is None:
+            reading, events = await bridge.next()
+            if any(isinstance(event, Lost) for event in events):
+                return
+        start = self._pose(reading)
+        speed = self.model.safety.join_speed
+        far = max(abs(goal[name] - value) for name, value in start.items())
+        await wait_future(worker.submit(lambda bus: worker.hold(bus, torque=True)))
+        began = trio.current_time()
+        try:
+            while True:
+                now = trio.current_time()
+                reach = speed * (now - began)
+                pose = {
+                    name: value + max(-reach, min(reach, goal[name] - value))
+                    for name, value in start.items()
+                }
+                worker.set_goals(self.calibration.to_goal_steps(pose, self.spans))
+                self.approach.append((now, pose))
+                if reach >= far:
+                    break
+                await trio.sleep(1.0 / self.config.rate)
+            # Let the servos get there (bounded: a leader held by a hand stops short).
+            with trio.move_on_after(1.0):
+                while not _near(self._pose(reading), goal, 1.0):
+                    newer, _ = await bridge.next()
+                    reading = newer or reading
+        finally:
+            with trio.CancelScope(shield=True):
+                await wait_future(worker.submit(lambda bus: worker.hold(bus, torque=False)))
+        log.info("usb-master on %s: at the follower's pose, limp", self.port)
 
     async def _mirror(self, link: MasterLink, bridge: BusBridge) -> None:
         interval = 1.0 / min(self.config.rate, self.model.safety.command_rate)
@@ -96,6 +145,10 @@ class UsbMaster(ServoArm):
                 if isinstance(event, ServoFault):
                     await self.tell_fault(link, event)
             if reading is None:
+                continue
+            if link.paused:  # sends nothing until resumed, then the pose it finds then
+                await link.wait_resumed()
+                last_sent = None
                 continue
             pose = self._pose(reading)
             if last_sent is not None and not _moved(pose, last_sent, self.config.deadband):
@@ -120,6 +173,11 @@ class UsbMaster(ServoArm):
 
     def _pose(self, reading: Reading) -> dict[str, float]:
         return self.calibration.to_values(reading.positions, self.spans)
+
+
+def _near(pose: Mapping[str, float], goal: Mapping[str, float], tolerance: float) -> bool:
+    """Whether every joint of `pose` is within `tolerance` of `goal`."""
+    return all(abs(value - goal[name]) <= tolerance for name, value in pose.items())
 
 
 def _moved(pose: Mapping[str, float], last: Mapping[str, float], deadband: float) -> bool:

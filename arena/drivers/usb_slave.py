@@ -9,10 +9,11 @@ reconnects; after a reconnection nothing queued during the outage is executed.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -33,6 +34,7 @@ from arena.servo.calibration import (
     calibrate_rest,
     rest_degrees,
 )
+from arena.servo.force import ForceGuard, ForceSettings, Stalled
 from arena.servo.health import ServoFault
 from arena.servo.interface import STEPS_PER_TURN, ServoBus
 from arena.servo.lerobot_calibration import LeRobotCalibration
@@ -83,6 +85,26 @@ class UsbSlave(ServoArm):
             open_bus,
         )
         self.config = config
+        self.settings = dataclasses.replace(
+            self.settings, torque_limits=torque_limits(model, config.torque_limit)
+        )
+        grippers = [
+            j.servo_id
+            for j in model.joints
+            if "gripper" in {name.lower() for name in (j.name, *j.aliases)}
+        ]
+        #: Stall and heat protection (specs/force.md).
+        self.guard = ForceGuard(
+            self.settings.torque_limits,
+            grippers,
+            ForceSettings(stall_time=config.stall_time, hot=self.settings.limits.hot),
+        )
+        self._limits_written: dict[int, float] = {}  # the torque limits the guard last wrote
+        self._held: dict[int, int] = {}  # stalled joints held where they stopped (raw steps)
+        self._stalled_goal: dict[int, int] = {}  # the goal each stalled joint fell short of
+        #: The newest reading: raw steps by servo id, and the joints' values (for hand guiding).
+        self.present: dict[int, int] = {}
+        self.pose: dict[str, float] = {}
         #: deg/s of its way to the robot's pose when it joins (None: the robot type's).
         self.join_speed = config.join_speed
         self.session: CalibrationSession | None = None
@@ -133,7 +155,16 @@ class UsbSlave(ServoArm):
                 continue
             if self.frozen or self.session is not None or message.time < self._accept_after:
                 continue  # e-stopped, calibrating, or sent while the bus was away: never later
-            self.worker.set_goals(self.calibration.to_goal_steps(message.joints, self.spans))
+            goals = self.calibration.to_goal_steps(message.joints, self.spans)
+            for servo_id, steps in goals.items():
+                if self.guard.stalled(servo_id):
+                    if abs(steps - self._stalled_goal[servo_id]) <= self.guard.settings.stall_steps:
+                        if servo_id in self._held:  # not a new command: it stays where it is
+                            goals[servo_id] = self._held[servo_id]
+                        continue
+                    await self._release(link, servo_id)
+                self.guard.goal(servo_id, steps)
+            self.worker.set_goals(goals)
 
     async def _on_notice(self, kind: NoticeKind) -> None:
         torque_off = self.config.estop == "torque-off"
@@ -208,6 +239,7 @@ class UsbSlave(ServoArm):
                 continue
             if reading.temperatures is not None:
                 self.telemetry = reading
+                await self._protect(link, reading)
             # (a reading read before the rest pose was captured may still be on its way: it
             # shows the arm before it was posed, no part of its range)
             session = self.session
@@ -217,9 +249,136 @@ class UsbSlave(ServoArm):
                 and reading.time >= self._range_since
             ):
                 session.capture.observe(self.calibration.to_degrees(reading.positions))
-            await link.report_joint_states(
-                self.calibration.to_values(reading.positions, self.spans)
-            )
+            self.present = dict(reading.positions)
+            self.pose = self.calibration.to_values(reading.positions, self.spans)
+            await link.report_joint_states(self.pose)
+
+    # -- stall and heat (specs/force.md) ------------------------------------------------------
+
+    async def _protect(self, link: SlaveLink, reading: Reading) -> None:
+        """A telemetry read through the guard: stalled joints stop pushing, torque limits
+        follow the temperatures and the stalls."""
+        assert reading.temperatures is not None
+        stalled = self.guard.observe(
+            reading.time,
+            reading.positions,
+            reading.load_percent or {},
+            {sid: float(c) for sid, c in reading.temperatures.items()},
+        )
+        for stall in stalled:
+            await self._stall(link, stall)
+        await self._write_limits()
+
+    async def _stall(self, link: SlaveLink, stall: Stalled) -> None:
+        assert self.worker is not None
+        sid, name = stall.servo_id, self.joint_of[stall.servo_id]
+        self._stalled_goal[sid] = stall.goal
+        values = self.calibration.to_values({sid: stall.present}, self.spans)
+        goals = self.calibration.to_values({sid: stall.goal}, self.spans)
+        if sid in self.guard.grippers:
+            what = f"it holds with {self.guard.settings.hold_torque:.0f} % torque"
+        else:  # it stops pushing: its goal is where it is, until a new command
+            self._held[sid] = stall.present
+            self.worker.set_goals({sid: stall.present})
+            what = "it holds where it is"
+        await link.report_fault(
+            ErrorCode.STALL,
+            f"{name}: stalled at {values[name]:.1f}, short of its goal {goals[name]:.1f}, pushing "
+            f"with {stall.load:.0f} % torque (its limit {stall.limit:.0f} %) for "
+            f"{self.guard.settings.stall_time:g} s: {what} until a new command moves it.",
+            Severity.WARNING,
+            name,
+        )
+
+    async def _release(self, link: SlaveLink, servo_id: int) -> None:
+        """A new command for a stalled joint: it pushes again, with its limit back."""
+        self.guard.release(servo_id)
+        self._held.pop(servo_id, None)
+        name = self.joint_of[servo_id]
+        await link.clear_fault(ErrorCode.STALL, name, f"{name}: a new command moves it again")
+        await self._write_limits()
+
+    async def _write_limits(self) -> None:
+        """The torque limits the guard wants, where they changed."""
+        assert self.worker is not None
+        worker = self.worker
+        changed = {
+            sid: limit
+            for sid in self.servo_ids.values()
+            if (limit := self.guard.limit(sid))
+            != self._limits_written.get(sid, worker.torque_limits.get(sid, 100.0))
+        }
+        if not changed:
+            return
+        self._limits_written.update(changed)
+        await self._safe_job(lambda bus: worker.set_torque_limits(bus, changed))
+
+    # -- compliance (hand guiding, specs/force.md) ---------------------------------------------
+
+    def servo_ids_of(self, joints: Sequence[str]) -> dict[str, int]:
+        """The servo id of each joint named (protocol names or aliases); `UNKNOWN_JOINT` for a
+        name the robot type lacks."""
+        found: dict[str, int] = {}
+        for name in joints:
+            joint = self.model.joint(name)
+            if joint is None:
+                raise ArenaError(
+                    ErrorCode.UNKNOWN_JOINT,
+                    f"No joint {name!r} on robot type {self.model.robot_type} (its joints: "
+                    f"{', '.join(self.model.joint_names)}).",
+                )
+            found[joint.name] = joint.servo_id
+        return found
+
+    async def enter_compliance(self, joints: Sequence[str], torque: float) -> None:
+        """The joints named give at most `torque` percent (a person can move them), and are
+        never taken for stalled while they are compliant."""
+        if not self.running or self.worker is None:
+            raise ArenaError(ErrorCode.NO_HARDWARE, "The arm is not running: attach it first.")
+        worker = self.worker
+        servo_ids = list(self.servo_ids_of(joints).values())
+        for servo_id in servo_ids:
+            self.guard.release(servo_id)
+            self._held.pop(servo_id, None)
+            self.guard.overrides[servo_id] = torque
+        wanted = {sid: self.guard.limit(sid) for sid in servo_ids}
+        try:  # (a servo that cannot be limited refuses: say so, and change nothing)
+            await self._job(lambda bus: worker.set_torque_limits(bus, wanted))
+        except ArenaError:
+            for servo_id in servo_ids:
+                del self.guard.overrides[servo_id]
+            await self._write_limits()
+            raise
+        self._limits_written.update(wanted)
+
+    async def leave_compliance(self) -> None:
+        """Compliance ends: the compliant joints hold where they are (goal = present), with
+        their own torque limits back."""
+        if not self.guard.overrides or self.worker is None:
+            return
+        servo_ids = list(self.guard.overrides)
+        self.guard.overrides.clear()
+        here = {sid: self.present[sid] for sid in servo_ids if sid in self.present}
+        if not self.frozen:
+            self.worker.set_goals(here)
+        await self._write_limits()
+
+    @property
+    def compliant(self) -> list[str]:
+        """The joints in compliance now."""
+        return [self.joint_of[sid] for sid in self.guard.overrides]
+
+    def servo_state(self) -> dict[str, tuple[float, float]]:
+        """Each joint's last temperature (C) and load (percent of full torque), for /metrics."""
+        reading = self.telemetry
+        if reading is None or reading.temperatures is None:
+            return {}
+        loads = reading.load_percent or {}
+        return {
+            self.joint_of[sid]: (float(celsius), loads.get(sid, 0.0))
+            for sid, celsius in reading.temperatures.items()
+            if sid in self.joint_of
+        }
 
     async def _on_event(self, link: SlaveLink, event: object) -> None:
         if isinstance(event, ServoFault):
@@ -346,6 +505,22 @@ class UsbSlave(ServoArm):
         if self.worker is None or not self.worker.connected:
             raise ArenaError(ErrorCode.PORT_DISCONNECTED, "The servo bus is not connected.")
         return await wait_future(self.worker.submit(job))
+
+
+def torque_limits(model: RobotModel, overrides: Mapping[str, float]) -> dict[int, float]:
+    """Percent of full torque by servo id: the robot type's caps (its gripper's), then the
+    slave's own (`overrides`, by joint name or alias); a name the type lacks is refused."""
+    limits = {j.servo_id: j.torque_limit for j in model.joints if j.torque_limit is not None}
+    for name, percent in overrides.items():
+        joint = model.joint(name)
+        if joint is None:
+            raise ArenaError(
+                ErrorCode.UNKNOWN_JOINT,
+                f"torqueLimit names {name!r}, not a joint of robot type {model.robot_type} "
+                f"(its joints: {', '.join(model.joint_names)}).",
+            )
+        limits[joint.servo_id] = float(percent)
+    return limits
 
 
 def _speed_limit(model: RobotModel) -> int:

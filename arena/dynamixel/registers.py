@@ -24,6 +24,11 @@ MODELS: dict[str, int] = {
     "xm540-w270": 1120,
     "xc430-w150": 1070,
 }
+#: Model numbers of the servos that read their current (Present_Current, Current_Limit and the
+#: current-based modes); the others (XL430, XC430) read a Present_Load at address 126.
+CURRENT_SENSING = frozenset(
+    MODELS[name] for name in ("xl330-m077", "xl330-m288", "xm430-w350", "xm540-w270")
+)
 #: The Baud_Rate register's values.
 BAUD_RATES: dict[int, int] = {
     9_600: 0,

@@ -27,11 +27,23 @@ from arena.dynamixel.packets import (
     encode_status,
 )
 from arena.servo.interface import CENTER_STEP, MAX_STEP, STEPS_PER_TURN
-from arena.servo.sim_pty import Reply, ServoFaults, SimServoBase, register_at
+from arena.servo.sim_pty import (
+    AMBIENT_C,
+    COOLING_PER_S,
+    HEATING_C_PER_S,
+    Obstacle,
+    Reply,
+    ServoFaults,
+    SimServoBase,
+    register_at,
+)
 
 MAX_SPEED = 4000.0  # steps/s at Profile_Velocity 0 (about 58 rpm, the XL430-W250 at 12 V)
-AMBIENT_C = 30
-#: Per model: supply voltage (V), Velocity_Limit, Temperature_Limit, Current_Limit.
+#: Present_Load (tenths of a percent) at full torque, of servos that read no current (XL430).
+FULL_LOAD = 1000
+#: Per model: supply voltage (V), Velocity_Limit, Temperature_Limit, Current_Limit (mA, 0: the
+#: model reads no current, its address 126 is Present_Load). A current-sensing servo's full
+#: torque is at its shipped Current_Limit.
 MODEL_DEFAULTS: dict[int, tuple[float, int, int, int]] = {
     reg.MODELS["xl430-w250"]: (12.0, 265, 72, 0),
     reg.MODELS["xl330-m288"]: (5.0, 445, 70, 1750),
@@ -52,6 +64,14 @@ class SimServo(SimServoBase):
     actual: float = CENTER_STEP  # physical position in steps, before drive mode and homing
     faults: ServoFaults = field(default_factory=ServoFaults)
     memory: bytearray = field(default_factory=lambda: bytearray(reg.MEMORY_SIZE))
+    temperature: float = AMBIENT_C
+    heating: float = HEATING_C_PER_S
+    cooling: float = COOLING_PER_S
+    obstacle: Obstacle | None = None
+    hand: float | None = None
+    load: float = 0.0
+    stall_time: float = 0.0
+    overloaded: bool = False  # the overload error, until torque is written on again
     velocity: float = 0.0  # steps/s, in the servo's frame
     pending: tuple[int, bytes] | None = None  # REG_WRITE waiting for ACTION
     last_update: float | None = None
@@ -62,6 +82,7 @@ class SimServo(SimServoBase):
             self.model, (12.0, 265, 72, 0)
         )
         self.voltage = volts
+        self.full_current = current_limit  # mA at full torque (0: reads Present_Load)
         defaults = {
             reg.MODEL_NUMBER: self.model,
             reg.FIRMWARE_VERSION: 52,
@@ -74,6 +95,7 @@ class SimServo(SimServoBase):
             reg.MAX_VOLTAGE_LIMIT: 140 if volts > 6 else 70,
             reg.MIN_VOLTAGE_LIMIT: 60 if volts > 6 else 35,
             reg.CURRENT_LIMIT: current_limit,
+            reg.GOAL_CURRENT: current_limit,  # as at power-up: the limit
             reg.VELOCITY_LIMIT: velocity_limit,
             reg.MAX_POSITION_LIMIT: MAX_STEP,
             reg.MIN_POSITION_LIMIT: 0,
@@ -102,6 +124,8 @@ class SimServo(SimServoBase):
         if not torque and self.peek(reg.TORQUE_ENABLE):
             self.poke(reg.GOAL_POSITION, self.present)  # torque on holds where it is
             self.torque_enables += 1
+            self.overloaded = False
+            self.stall_time = 0.0
         return StatusError.NONE
 
     # -- physics ------------------------------------------------------------------------------
@@ -128,6 +152,21 @@ class SimServo(SimServoBase):
         self.velocity = 0.0
         self._refresh()
 
+    @property
+    def present_position(self) -> float:
+        """Where the horn is in present steps (unrounded)."""
+        return self._position
+
+    def load_cap(self) -> float:
+        """A current-sensing servo gives at most its Current_Limit, and in current-based
+        position mode at most its Goal_Current; one that reads no current, full torque."""
+        if not self.full_current:
+            return 1.0
+        cap = self.peek(reg.CURRENT_LIMIT)
+        if self.peek(reg.OPERATING_MODE) == reg.OperatingMode.CURRENT_POSITION:
+            cap = min(cap, abs(self.peek(reg.GOAL_CURRENT)))
+        return max(0.0, min(1.0, cap / self.full_current))
+
     def _step(self, dt: float) -> None:
         mode = self.peek(reg.OPERATING_MODE)
         torque = self.peek(reg.TORQUE_ENABLE) != 0
@@ -136,31 +175,46 @@ class SimServo(SimServoBase):
             low, high = self.peek(reg.MIN_POSITION_LIMIT), self.peek(reg.MAX_POSITION_LIMIT)
             goal = max(low, min(high, goal))
         error = goal - self._position
-        if not torque or mode not in reg.POSITION_MODES or abs(error) <= 0.5:
-            self.velocity = 0.0
-            return
-        if self.faults.stalled:
-            self.velocity = 0.0
-            return
+        wants_to_move = torque and mode in reg.POSITION_MODES and abs(error) > 0.5
+        self.velocity = 0.0
+        self.load = 0.0
+        if wants_to_move and (self.faults.stalled or self.pushing(error)):
+            self.load = self.push_load(error)
+        elif wants_to_move and self.load_cap() > 0:
+            self._move(error, dt)
+        self._protect(dt)
+        self.heat(dt)
+
+    def _move(self, error: float, dt: float) -> None:
         profile = self.peek(reg.PROFILE_VELOCITY)
         speed = _steps_per_second(profile) if profile else MAX_SPEED
-        self.velocity = math.copysign(min(speed, abs(error) / dt), error)
-        step = self.velocity * dt
-        moved = error if abs(step) >= abs(error) else step
+        velocity = math.copysign(min(speed, abs(error) / dt), error)
+        moved = self.move_toward(error, velocity * dt, velocity, MAX_SPEED)
         self.actual += -moved if self._reversed else moved
+
+    def _protect(self, dt: float) -> None:
+        # Tripped, it sets the overload error and drops torque (the X series' Shutdown).
+        if self.overload_tripped(dt):
+            self.overloaded = True
+            self.poke(reg.TORQUE_ENABLE, 0)
 
     def _refresh(self) -> None:
         self.poke(reg.PRESENT_POSITION, self.present)
         rpm_units = round(self.velocity * 60 / STEPS_PER_TURN / reg.RPM_PER_UNIT)
         self.poke(reg.PRESENT_VELOCITY, rpm_units)
-        self.poke(reg.PRESENT_CURRENT, min(1000, round(abs(self.velocity) / 10)))
+        # Present_Current (mA), or Present_Load (tenths of a percent) where no current is read.
+        self.poke(reg.PRESENT_CURRENT, round(self.load * (self.full_current or FULL_LOAD)))
         self.poke(reg.PRESENT_INPUT_VOLTAGE, round(self.voltage * 10))
-        self.poke(reg.PRESENT_TEMPERATURE, AMBIENT_C)
+        self.poke(reg.PRESENT_TEMPERATURE, max(0, min(255, round(self.temperature))))
         self.poke(reg.MOVING, 1 if self.velocity else 0)
         hardware = 0
         for bit, fault in reg.FAULTS.items():
             if self.faults.error_bits & fault:
                 hardware |= bit
+        if self.overloaded:
+            hardware |= reg.HardwareError.OVERLOAD
+        if self.temperature >= self.peek(reg.TEMPERATURE_LIMIT):
+            hardware |= reg.HardwareError.OVERHEATING
         self.poke(reg.HARDWARE_ERROR_STATUS, hardware)
 
 

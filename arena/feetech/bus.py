@@ -15,7 +15,7 @@ Both are done as Dynamixel's bus does them, in `arena.servo.sdk_bus.SdkBus`. Bes
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import scservo_sdk as sdk
@@ -25,6 +25,8 @@ from arena.servo.interface import ServoFamily, SyncReadResult, Telemetry
 from arena.servo.ports import PortFixes
 from arena.servo.sdk_bus import SdkBus, decode_telemetry
 
+#: Present_Load and Torque_Limit at full torque (tenths of a percent).
+FULL_TORQUE = 1000
 # USB ids of the serial adapters seen on SO-100 arms.
 ADAPTERS: dict[tuple[int, int], str] = {(0x1A86, 0x7523): "CH340", (0x1A86, 0x55D3): "CH343"}
 
@@ -80,8 +82,17 @@ class FeetechBus(SdkBus):
         """Feetech's."""
         return FEETECH
 
-    def prepare(self, servo_ids: Sequence[int]) -> None:
-        """Nothing to do: an STS3215 follows position goals as it comes."""
+    def prepare(self, servo_ids: Sequence[int], *, limited: Sequence[int] = ()) -> None:
+        """Nothing to do: an STS3215 follows position goals as it comes, and obeys its
+        Torque_Limit in any mode."""
+
+    def set_torque_limits(self, limits: Mapping[int, float]) -> None:
+        """Torque_Limit (RAM, tenths of a percent; it starts from Max_Torque_Limit at power-on)
+        of every servo named."""
+        self.sync_write(
+            reg.TORQUE_LIMIT,
+            {sid: max(0, min(FULL_TORQUE, round(p * 10))) for sid, p in limits.items()},
+        )
 
     def read_telemetry(self, servo_ids: Sequence[int]) -> tuple[Telemetry, SyncReadResult]:
         """Present_Position to Present_Temperature in one request, decoded."""
@@ -94,6 +105,7 @@ class FeetechBus(SdkBus):
             temperature=reg.PRESENT_TEMPERATURE,
             load=reg.PRESENT_LOAD,
             voltage=reg.PRESENT_VOLTAGE,
+            full_load=FULL_TORQUE,
         )
         return telemetry, result
 

@@ -14,15 +14,24 @@ from arena.feetech import registers as reg
 from arena.feetech.bus import FEETECH
 from arena.feetech.packets import Corrupt, Instruction, Packet, PacketParser, encode
 from arena.feetech.registers import ErrorBit
-from arena.servo.sim_pty import Reply, ServoFaults, SimServoBase, register_at
+from arena.servo.sim_pty import (
+    AMBIENT_C,
+    COOLING_PER_S,
+    HEATING_C_PER_S,
+    OVERLOAD_AFTER_S,
+    Obstacle,
+    Reply,
+    ServoFaults,
+    SimServoBase,
+    register_at,
+)
 
 MAX_SPEED = 3400.0  # steps/s at Goal_Velocity 0 (about 300 deg/s, the STS3215 at 12 V)
 ACCELERATION_UNIT = 100.0  # steps/s^2 per unit of the Acceleration register
-AMBIENT_C = 30.0
-HEATING_C_PER_S = 4.0  # under full stall
-COOLING_PER_S = 0.05  # fraction of the excess over ambient lost each second
-OVERLOAD_AFTER_S = 1.0  # stall time before the overload protection trips
+#: Present_Load and Torque_Limit at full torque (tenths of a percent).
 FULL_LOAD = 1000
+#: Present_Current at full torque (6.5 mA units: the STS3215's 2.7 A stall current at 12 V).
+STALL_CURRENT = 415
 
 
 @dataclass
@@ -33,6 +42,11 @@ class SimServo(SimServoBase):
     actual: float = reg.CENTER_STEP  # physical position in steps (before Homing_Offset)
     voltage: float = 12.0
     temperature: float = AMBIENT_C
+    heating: float = HEATING_C_PER_S
+    cooling: float = COOLING_PER_S
+    obstacle: Obstacle | None = None
+    hand: float | None = None
+    load: float = 0.0
     faults: ServoFaults = field(default_factory=ServoFaults)
     memory: bytearray = field(default_factory=lambda: bytearray(reg.MEMORY_SIZE))
     velocity: float = 0.0
@@ -89,42 +103,50 @@ class SimServo(SimServoBase):
         self.velocity = 0.0
         self._refresh()
 
+    @property
+    def present_position(self) -> float:
+        """Where the horn is in present steps (unrounded)."""
+        return (self.actual - self.homing) % reg.STEPS_PER_TURN
+
+    def load_cap(self) -> float:
+        """Torque_Limit (tenths of a percent of full torque) is the most it gives."""
+        return max(0.0, min(1.0, self.peek(reg.TORQUE_LIMIT) / FULL_LOAD))
+
     def _step(self, dt: float) -> None:
         torque = self.peek(reg.TORQUE_ENABLE) != 0
         # The servo works in its own frame (after Homing_Offset), within its position limits:
         # a goal never makes it turn across that frame's ends.
         goal = self.peek(reg.GOAL_POSITION)
         goal = max(self.peek(reg.MIN_POSITION_LIMIT), min(self.peek(reg.MAX_POSITION_LIMIT), goal))
-        error = goal - (self.actual - self.homing) % reg.STEPS_PER_TURN
+        error = goal - self.present_position
         wants_to_move = torque and abs(error) > 0.5
-        if self.faults.stalled and wants_to_move:
-            self.velocity = 0.0
-            self.stall_time += dt
-            self.temperature += HEATING_C_PER_S * dt
-            if self.stall_time >= OVERLOAD_AFTER_S:
-                self.poke(reg.TORQUE_ENABLE, 0)  # the overload protection releases the horn
-            return
-        self.stall_time = 0.0
-        self.temperature -= (self.temperature - AMBIENT_C) * min(1.0, COOLING_PER_S * dt)
-        if not wants_to_move:
-            self.velocity = 0.0
-            return
+        previous, self.velocity, self.load = self.velocity, 0.0, 0.0
+        if wants_to_move and (self.faults.stalled or self.pushing(error)):
+            self.load = self.push_load(error)
+        elif wants_to_move and self.load_cap() > 0:
+            self._move(error, dt, previous)
+        self._protect(dt)
+        self.heat(dt)
+
+    def _move(self, error: float, dt: float, previous: float) -> None:
         speed = abs(self.peek(reg.GOAL_VELOCITY)) or MAX_SPEED
         accel = self.peek(reg.ACCELERATION) * ACCELERATION_UNIT
         wanted = math.copysign(min(speed, abs(error) / dt), error)
         if accel:
-            change = max(-accel * dt, min(accel * dt, wanted - self.velocity))
-            wanted = self.velocity + change
-        self.velocity = wanted
-        step = wanted * dt
-        self.actual += error if abs(step) >= abs(error) else step
+            change = max(-accel * dt, min(accel * dt, wanted - previous))
+            wanted = previous + change
+        self.actual += self.move_toward(error, wanted * dt, wanted, MAX_SPEED)
+
+    def _protect(self, dt: float) -> None:
+        # Tripped, it releases the horn and shows the overload bit until torque is written.
+        if self.overload_tripped(dt):
+            self.poke(reg.TORQUE_ENABLE, 0)
 
     def _refresh(self) -> None:
         self.poke(reg.PRESENT_POSITION, self.present)
         self.poke(reg.PRESENT_VELOCITY, round(self.velocity))
-        stalled_load = self.faults.stalled and self.stall_time > 0
-        load = FULL_LOAD if stalled_load else min(FULL_LOAD, round(abs(self.velocity) / 10))
-        self.poke(reg.PRESENT_LOAD, load)
+        self.poke(reg.PRESENT_LOAD, round(self.load * FULL_LOAD))
+        self.poke(reg.PRESENT_CURRENT, round(self.load * STALL_CURRENT))
         self.poke(reg.PRESENT_VOLTAGE, round(self.voltage * 10))
         self.poke(reg.PRESENT_TEMPERATURE, max(0, min(255, round(self.temperature))))
         self.poke(reg.MOVING, 1 if self.velocity else 0)

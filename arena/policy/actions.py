@@ -73,6 +73,10 @@ class ActionQueue:
         self.queue = future
         return len(future)
 
+    def drop(self) -> None:
+        """Forget every action waiting (a pause: what was computed before it is stale)."""
+        self.queue = {}
+
     def next_action(self) -> tuple[int, Action] | None:
         """Take the earliest action off the queue (None when it is empty)."""
         if not self.queue:

@@ -12,6 +12,7 @@ autonomous: an e-stop detaches it, which cancels both tasks and stops the worker
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import time as wallclock
@@ -93,6 +94,13 @@ class Arm(Protocol):
     def inferred(self, source: str, inference: Inference) -> None:
         """Report one inference of the policy."""
 
+    @property
+    def paused(self) -> bool:
+        """The robot has the policy paused: it sends nothing until resumed."""
+
+    async def wait_resumed(self) -> None:
+        """Return once the policy is not paused."""
+
 
 class LinkArm:
     """`Arm` over a master's link to a robot of this server."""
@@ -108,6 +116,15 @@ class LinkArm:
     async def command(self, command: Command) -> CommandResult:
         """See `Arm.command`."""
         return await self.link.command(command)
+
+    @property
+    def paused(self) -> bool:
+        """See `Arm.paused`."""
+        return self.link.paused
+
+    async def wait_resumed(self) -> None:
+        """See `Arm.wait_resumed`."""
+        await self.link.wait_resumed()
 
     def fault(self, source: str, code: ErrorCode, message: str, severity: Severity) -> None:
         """Recorded and shown as a camera's faults are; never an e-stop by itself."""
@@ -179,6 +196,9 @@ class PolicyCounters:
     invalid: int = 0  # actions refused for a value that is not finite
     stalls: int = 0  # times the watchdog tripped
     last_latency: float = 0.0  # seconds, the worker's own measure of its last inference
+    loads: int = 0  # times the worker loaded the policy (a pause and resume never reloads)
+    pauses: int = 0  # times the robot paused the policy
+    dropped: int = 0  # actions dropped at a pause (computed before it)
 
 
 class PolicyMaster:
@@ -215,6 +235,8 @@ class PolicyMaster:
         # The watchdog waits for the worker's first answer (a chunk or a refusal): the first
         # inference, which warms the policy up, is not a stall.
         self._armed = False
+        # Pauses so far: a chunk whose observation was taken before a pause is dropped.
+        self._epoch = 0
 
     @property
     def identity(self) -> str:
@@ -227,6 +249,10 @@ class PolicyMaster:
     def master_id(self) -> str:
         """The id it holds the robot under: its identity."""
         return self.identity
+
+    def figures(self) -> dict[str, float]:
+        """Its counters, shown with the robot's master (`PolicyCounters`)."""
+        return dataclasses.asdict(self.counters)
 
     @property
     def description(self) -> str:
@@ -261,6 +287,7 @@ class PolicyMaster:
         self.process = await self.start_worker()
         try:
             self.loaded = await self.process.load(self.settings.path)
+            self.counters.loads += 1
             check_features(
                 self.loaded,
                 self.model,
@@ -314,6 +341,10 @@ class PolicyMaster:
         while True:
             tick += period
             await trio.sleep_until(tick)
+            if arm.paused:
+                await self._hold(arm, queue)
+                tick, empty = trio.current_time(), 0
+                continue
             late = trio.current_time() - tick
             if late > period / 2:
                 # Woke late (a busy machine): the next step comes a full period after this one,
@@ -334,6 +365,20 @@ class PolicyMaster:
             empty = 0
             if not await self._step(arm, item[1]):
                 return
+
+    async def _hold(self, arm: Arm, queue: ActionQueue) -> None:
+        """The robot paused the policy: drop what it computed, send nothing until resumed
+        (the worker stays loaded), then start over from a fresh observation; its first step
+        meets the step limit from the pose measured then, as every step does."""
+        self._epoch += 1
+        self.counters.pauses += 1
+        self.counters.dropped += len(queue)
+        queue.drop()
+        await arm.wait_resumed()
+        self.counters.dropped += len(queue)  # (a chunk that came meanwhile is stale too)
+        queue.drop()
+        self._armed = False  # waiting for the fresh chunk is no stall
+        self._wake.set()
 
     def _stalled(self, arm: Arm, waited: float) -> None:
         """The watchdog: no action was due for `stall_periods` periods; the robot holds."""
@@ -393,6 +438,9 @@ class PolicyMaster:
         while True:
             await self._wake.wait()
             self._wake = trio.Event()
+            if arm.paused:
+                await arm.wait_resumed()
+                continue  # the control loop wakes this task once it has dropped the queue
             if not queue.ready_for_observation():
                 # a wake-up of the control loop's from while the last inference ran: the chunk
                 # it brought has filled the queue since (LeRobot checks the queue as it sends)
@@ -415,7 +463,9 @@ class PolicyMaster:
             )
             sent = trio.current_time()
             captured = [s.captured for n, s in shots.items() if s is not None and n in images]
+            epoch = self._epoch
             try:
+                # (never cancelled half-way: a read cut short would leave the worker unusable)
                 chunk = await process.act(observation)
             except WorkerError as exc:
                 self._failure = str(exc)
@@ -426,6 +476,9 @@ class PolicyMaster:
                 await trio.sleep(period)  # the policy failed this once: try again, paced
                 self._wake.set()
                 continue
+            if epoch != self._epoch or arm.paused:
+                self.counters.dropped += len(chunk.actions)
+                continue  # observed before a pause: stale (the resume asks afresh)
             self._failure = None
             self._armed = True
             self.counters.inferences += 1

@@ -17,8 +17,15 @@ class ErrorCode(enum.StrEnum):
     NOT_OWNER = "NOT_OWNER"
     ESTOPPED = "ESTOPPED"
     RATE_LIMITED = "RATE_LIMITED"
+    UNREACHABLE = "UNREACHABLE"  # no pose of the arm puts its hand where it was asked to go
+    STALE_COMMAND = "STALE_COMMAND"  # a stamped command arrived older than command_max_age
     COLLISION = "COLLISION"  # the move would bring links together or into the workspace's walls
     TAKEN_OVER = "TAKEN_OVER"
+    MASTER_PAUSED = "MASTER_PAUSED"  # a paused master's command: it waits for a resume
+    NO_MASTER = "NO_MASTER"  # a pause, resume or intervention asks for a master the robot lacks
+    INTERVENTION_ACTIVE = "INTERVENTION_ACTIVE"  # one intervention at a time
+    NO_INTERVENTION = "NO_INTERVENTION"  # ending an intervention when none runs
+    INTERVENTION_ENDED = "INTERVENTION_ENDED"  # told to an intervening master handed back
     MASTER_LOST = "MASTER_LOST"
     SLAVE_LOST = "SLAVE_LOST"
     DRIVER_FAILED = "DRIVER_FAILED"
@@ -67,6 +74,7 @@ class ErrorCode(enum.StrEnum):
     SERVO_VOLTAGE = "SERVO_VOLTAGE"
     SERVO_ANGLE = "SERVO_ANGLE"
     SERVO_OUT_OF_RANGE = "SERVO_OUT_OF_RANGE"  # reads outside the frame it may take torque in
+    STALL = "STALL"  # fault (warning): a joint pushed short of its goal; Arena stopped pushing
     UNCALIBRATED = "UNCALIBRATED"
     CALIBRATION_STATE = "CALIBRATION_STATE"
     NO_HARDWARE = "NO_HARDWARE"

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import datetime
 import time
-from typing import Any, Literal, TypeAlias
+from typing import Annotated, Any, Literal, TypeAlias
 
 import msgspec
 
@@ -122,6 +122,84 @@ class ReleaseMessage(_Msg, tag="release", forbid_unknown_fields=True):
     data: ReleaseData | None = None
 
 
+#: Seconds (a latency, an age): finite, not negative, under a day.
+Seconds = Annotated[float, msgspec.Meta(ge=0, le=86_400)]
+#: A count of actions or steps.
+Count = Annotated[int, msgspec.Meta(ge=0, le=2**31)]
+
+
+class PolicyData(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """A master that runs a policy elsewhere (`arena policy --url`) says so once: its control
+    rate and watchdog periods, so the server keeps its watchdog and its record as it does for
+    a policy it runs itself."""
+
+    fps: Annotated[float, msgspec.Meta(gt=0, le=1000)]
+    stall_periods: Annotated[int, msgspec.Meta(ge=1, le=1000)] = 2
+
+
+class PolicyMessage(_Msg, tag="policy", forbid_unknown_fields=True):
+    """Declare this master a policy (`PolicyData`)."""
+
+    data: PolicyData
+
+
+class InferenceData(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """One inference of a policy master that runs elsewhere, as `events.PolicyInferred`
+    records it (seconds; `frame_age` None: no camera)."""
+
+    timestep: Count
+    chunk_size: Count
+    kept: Count
+    latency: Seconds
+    inference: Seconds
+    frame_age: Seconds | None = None
+
+
+class InferenceMessage(_Msg, tag="inference", forbid_unknown_fields=True):
+    """Record one inference (`InferenceData`); only after `policy`."""
+
+    data: InferenceData
+
+
+#: A coordinate (metres) of a hand's target: no arm Arena drives reaches 10 m.
+Metres = Annotated[float, msgspec.Meta(ge=-10, le=10)]
+#: A component of a velocity: m/s, rad/s, or the gripper's unit per second.
+Rate = Annotated[float, msgspec.Meta(ge=-1000, le=1000)]
+
+
+class PoseData(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """Where the hand should go (specs/cartesian.md): its tool point in metres in the robot's
+    base frame, optionally its orientation (a quaternion x, y, z, w; left out: any), the
+    gripper's value (degrees or percent, as its joint) and the move's duration (ms)."""
+
+    position: Annotated[list[Metres], msgspec.Meta(min_length=3, max_length=3)]
+    orientation: Annotated[list[Rate], msgspec.Meta(min_length=4, max_length=4)] | None = None
+    gripper: float | None = None
+    duration: Annotated[float, msgspec.Meta(ge=0, le=3_600_000)] | None = None
+
+
+class PoseMessage(_Msg, tag="pose", forbid_unknown_fields=True):
+    """Move the hand to a pose (`PoseData`); acknowledged as a command is."""
+
+    data: PoseData
+
+
+class EeVelocityData(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """Move the hand at this velocity until the next message, or until messages stop for the
+    robot's dead-man time: `linear` m/s and `angular` rad/s in the base frame, `gripper` in
+    its joint's unit per second."""
+
+    linear: Annotated[list[Rate], msgspec.Meta(min_length=3, max_length=3)]
+    angular: Annotated[list[Rate], msgspec.Meta(min_length=3, max_length=3)] | None = None
+    gripper: Rate | None = None
+
+
+class EeVelocityMessage(_Msg, tag="ee_velocity", forbid_unknown_fields=True):
+    """Drive the hand by velocity (`EeVelocityData`): teleoperation without a leader arm."""
+
+    data: EeVelocityData
+
+
 MasterMessage: TypeAlias = (
     CommandMessage
     | SequenceMessage
@@ -129,6 +207,10 @@ MasterMessage: TypeAlias = (
     | EStopMessage
     | ResetMessage
     | ReleaseMessage
+    | PolicyMessage
+    | InferenceMessage
+    | PoseMessage
+    | EeVelocityMessage
 )
 
 
@@ -370,6 +452,15 @@ class DetachedMessage(_Msg, tag="detached"):
     """This master no longer owns the robot."""
 
     data: DetachedData | None = None
+
+
+class PauseNotice(_Msg, tag="pause"):
+    """To a master: the robot paused it (`POST .../master/pause`, an intervention): send
+    nothing until `resume` (what it sends meanwhile is refused MASTER_PAUSED)."""
+
+
+class ResumeNotice(_Msg, tag="resume"):
+    """To a paused master: it may command again."""
 
 
 class ReleasedData(msgspec.Struct, omit_defaults=True):

@@ -63,6 +63,11 @@ class MockSlaveBody(
 
 #: The fastest joining speed (deg/s) a slave or a robot type may ask for: joining is slow.
 MAX_JOIN_SPEED = 90.0
+#: A joint's name as a key of a per-joint setting (the robot type decides which exist).
+JointKey = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
+#: Percent of a servo's full torque: above 0 (a servo given none cannot hold itself up).
+TorquePercent = Annotated[float, msgspec.Meta(gt=0, le=100)]
+MAX_TORQUE_LIMITS = 32  # joints a `torqueLimit` may name
 
 #: A name of a file or folder in a tenant's folder (a calibration, a policy): letters,
 #: digits, `_-.`, not starting with a dot (so never `..`, never a path).
@@ -92,7 +97,9 @@ class UsbSlaveBody(
     `estop`: what the servos do on an e-stop, `hold` (torque kept, goal = present) or
     `torque-off`. `calibration`: the calibration's name (default: the robot's id).
     `joinSpeed`: deg/s at which the arm is brought to the robot's pose when it joins a robot
-    that is elsewhere (default: the robot type's `join_speed`).
+    that is elsewhere (default: the robot type's `join_speed`). `torqueLimit`: percent of full
+    torque per joint (over the robot type's caps: its gripper's). `stallTime`: seconds a joint
+    may push short of its goal at a high load before it counts as stalled (specs/force.md).
     """
 
     port: str | None = None
@@ -101,6 +108,19 @@ class UsbSlaveBody(
     estop: Literal["hold", "torque-off"] = "hold"
     calibration: CalibrationName | None = None
     joinSpeed: Annotated[float, msgspec.Meta(gt=0, le=MAX_JOIN_SPEED)] | None = None
+    torqueLimit: (
+        Annotated[dict[JointKey, TorquePercent], msgspec.Meta(max_length=MAX_TORQUE_LIMITS)] | None
+    ) = None
+    stallTime: Annotated[float, msgspec.Meta(ge=0.1, le=60)] = 1.0
+
+
+class ComplianceBody(msgspec.Struct, forbid_unknown_fields=True):
+    """Hand guiding: the `joints` (names or aliases) of the robot's usb-slave give at most
+    `torque` percent of full torque, so a person can move them; their motion is recorded as a
+    master's commands (`source: "hand-guide"`). specs/force.md."""
+
+    joints: Annotated[list[JointKey], msgspec.Meta(min_length=1, max_length=MAX_TORQUE_LIMITS)]
+    torque: TorquePercent
 
 
 #: Where another Arena server listens: ws(s):// or http(s)://, host and port.
@@ -215,7 +235,9 @@ class UsbMasterBody(
 
     `rate`: Hz at which it is read; `deadband`: degrees a joint must move before a new command
     goes out; `calibration`: the leader's calibration name (default: `<robot id>-leader`);
-    `takeover`: displace the robot's master (else MASTER_ACTIVE while it has one).
+    `takeover`: displace the robot's master (else MASTER_ACTIVE while it has one);
+    `actuated`: the leader's servos take torque: it is first driven to the follower's pose at
+    the robot's joining speed, then goes limp for the hand (no jerk when it takes over).
     """
 
     port: str | None = None
@@ -224,6 +246,7 @@ class UsbMasterBody(
     deadband: Annotated[float, msgspec.Meta(ge=0, le=10)] = 0.5
     calibration: CalibrationName | None = None
     takeover: bool = False
+    actuated: bool = False
 
 
 class PolicyMasterBody(
@@ -242,7 +265,9 @@ class PolicyMasterBody(
     `stall_periods`: control periods without an action before the watchdog trips; `takeover`:
     displace the robot's master (else MASTER_ACTIVE while it has one); `environment_state`:
     the task's state for a policy that takes `observation.environment_state` (a reach
-    target, say), the same in every observation of the run."""
+    target, say), the same in every observation of the run; `python`: the program that runs
+    this policy's worker instead of the server's (a LeRobot of another version; only from the
+    whole server's admin: it names a program to run)."""
 
     path: Annotated[str, msgspec.Meta(min_length=1, max_length=4096)]
     task: Annotated[str, msgspec.Meta(max_length=1000)] = ""
@@ -255,12 +280,27 @@ class PolicyMasterBody(
     max_relative_target: Annotated[float, msgspec.Meta(gt=0, le=360)] | None = 10.0
     stall_periods: Annotated[int, msgspec.Meta(ge=1, le=1000)] = 2
     environment_state: Annotated[list[float], msgspec.Meta(max_length=64)] = []
+    python: Annotated[str, msgspec.Meta(min_length=1, max_length=4096)] | None = None
     takeover: bool = False
 
 
 MasterBody: TypeAlias = (
     SequenceMasterBody | ReplayMasterBody | UsbMasterBody | RemoteServerBody | PolicyMasterBody
 )
+
+
+class InterventionBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """`POST .../intervention`: `master`, the intervening master's config (any master's, as
+    `POST .../master` takes it: a leader arm's `usb-master`, say); none: the caller
+    intervenes itself, over `PUT .../joints`."""
+
+    master: MasterBody | None = None
+
+
+class HandBackBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """`DELETE .../intervention`: `resume` false leaves the paused master paused."""
+
+    resume: bool = True
 
 
 #: A group id: like a robot id.
@@ -315,3 +355,24 @@ class EpisodeBody(msgspec.Struct, forbid_unknown_fields=True):
     learns from it)."""
 
     task: Annotated[str, msgspec.Meta(min_length=1, max_length=1000)]
+
+
+class TeleopBoxBody(msgspec.Struct, forbid_unknown_fields=True):
+    """An axis-aligned box (metres, the robot's base frame): its lowest and highest corner."""
+
+    min: Annotated[
+        list[Annotated[float, msgspec.Meta(ge=-10, le=10)]],
+        msgspec.Meta(min_length=3, max_length=3),
+    ]
+    max: Annotated[
+        list[Annotated[float, msgspec.Meta(ge=-10, le=10)]],
+        msgspec.Meta(min_length=3, max_length=3),
+    ]
+
+
+class TeleopBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """`PUT /api/robots/{id}/teleop`: where `ee_velocity` may take the hand, and the dead-man
+    time in milliseconds (how long after the last message the hand stops). Left out: kept."""
+
+    box: TeleopBoxBody | None = None
+    deadman: Annotated[float, msgspec.Meta(gt=0, le=2000)] | None = None

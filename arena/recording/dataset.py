@@ -25,6 +25,14 @@ from arena.recording import images
 from arena.recording.dataset_output import camera_shapes, nothing_left_on_failure
 from arena.recording.mcap_file import RecordedMessage, Recording, read_recording
 from arena.recording.records import camera_of_topic
+from arena.recording.spans import (
+    Span,
+    commanding,
+    correction_spans,
+    corrections_of,
+    episode_notes,
+    episodes_of,
+)
 from arena.robot.model import JointSpec, RobotModel
 
 #: LeRobot's feature names for the so100 follower's joints, by the names Arena gives them
@@ -40,6 +48,8 @@ POLICY_SOURCE = "policy:"
 EVAL_PREFIX = "eval_"
 #: LeRobot's feature for the task's state (what Arena does not measure: a reach target).
 ENVIRONMENT = "observation.environment_state"
+#: The feature LeRobot's DAgger rollouts write: true where the human's correction commanded.
+INTERVENTION = "intervention"
 
 
 def feature_names(model: RobotModel) -> list[str]:
@@ -66,71 +76,6 @@ def from_dataset(joint: JointSpec, value: float) -> float:
     if _is_gripper(joint):
         return joint.lower + value / GRIPPER_RANGE * (joint.upper - joint.lower)
     return value
-
-
-# -- what a recording holds for one robot ------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class Span:
-    """One episode: its index and task, its ends in log time (ns), and how it ended: `stop`
-    (someone stopped it), `cut` (its robot stopped first: the server shut down, or the robot
-    was deleted) or `file` (the file ended before it did: a killed server)."""
-
-    index: int
-    task: str
-    start: int
-    end: int
-    ended: str = "stop"
-
-    @property
-    def complete(self) -> bool:
-        """True when someone stopped it: it is as long as they meant it to be."""
-        return self.ended == "stop"
-
-
-def episodes_of(messages: Sequence[RecordedMessage], default_task: str) -> list[Span]:
-    """The kept episodes of one robot's messages (time-ordered). With no episode records the
-    whole recording is one episode; an episode the file cut short ends at its last message."""
-    if not messages:
-        return []
-    last = messages[-1].log_time
-    marks = [m for m in messages if m.kind == "episode"]
-    if not marks:
-        return [Span(0, default_task, messages[0].log_time, last)]
-    open_: dict[int, RecordedMessage] = {}
-    spans: dict[int, Span] = {}
-    discarded: set[int] = set()
-    for mark in marks:
-        index, change = int(mark.data["index"]), mark.data["change"]
-        if change == "start":
-            open_[index] = mark
-        elif index in open_:
-            start = open_.pop(index)
-            ended = "cut" if change == "cut" else "stop"
-            task = str(start.data["task"])
-            spans[index] = Span(index, task, start.log_time, mark.log_time, ended)
-            if change == "discard":
-                discarded.add(index)
-        elif change == "discard":
-            discarded.add(index)  # a kept episode taken back
-    for index, start in open_.items():
-        spans[index] = Span(index, str(start.data["task"]), start.log_time, last, "file")
-    return [spans[i] for i in sorted(spans) if i not in discarded]
-
-
-def episode_notes(spans: Iterable[Span]) -> list[str]:
-    """What an export says of the episodes that nobody stopped (each is kept as it is)."""
-    notes = []
-    for span in spans:
-        if span.ended == "file":
-            notes.append(f"episode {span.index} has no stop: it ends where the file does")
-        elif span.ended == "cut":
-            notes.append(
-                f"episode {span.index} was cut short: its robot stopped (a server shutdown, "
-                "the robot deleted) before the episode was stopped"
-            )
-    return notes
 
 
 @dataclass
@@ -397,12 +342,15 @@ def export_lerobot(
     task: str = DEFAULT_TASK,
     say: Callable[[str], None] = lambda line: print(line, file=sys.stderr),
     environment: Mapping[int, Sequence[float]] | None = None,
+    corrections_only: bool = False,
 ) -> ExportReport:
     """Write a LeRobotDataset (v3.0, with LeRobot's own writer) of one robot's episodes;
     an evaluation dataset (`eval_...`) when a policy drove them. `environment`: the task's
     state of each episode (by its recorded index), which Arena does not measure (a reach
     target): `observation.environment_state` of its every frame; an episode it does not name
-    is left out."""
+    is left out. Episodes with corrections (an intervening master drove) get the feature
+    `intervention` (bool, (1,)), true where it commanded; `corrections_only`: each correction
+    is an episode of its own, and nothing else is written."""
     lerobot = _lerobot()  # before any work: a missing LeRobot is said first
     if not 1 <= fps <= 1000:
         raise ArenaError(ErrorCode.INVALID_VALUE, "--fps must be 1 to 1000.")
@@ -428,6 +376,11 @@ def export_lerobot(
         say(f"note: {line}")
     if environment is not None:
         spans = [span for span in spans if span.index in environment]
+    corrections = corrections_of(session.messages, spans)
+    if corrections_only:
+        if not corrections:
+            raise ArenaError(ErrorCode.INVALID_RECORDING, f"No correction of {robot_id!r}.")
+        spans = correction_spans(corrections)
     frames = [(span, frames_of(session, span, fps, slave)) for span in spans]
     frames = [(span, found) for span, found in frames if found]
     if not frames:
@@ -449,6 +402,8 @@ def export_lerobot(
         )
     for size in sizes:
         features[ENVIRONMENT] = {"dtype": "float32", "shape": (size,), "names": None}
+    if corrections:
+        features[INTERVENTION] = {"dtype": "bool", "shape": (1,), "names": None}
     for name, shape in shapes.items():
         features[f"observation.images.{name}"] = {
             "dtype": "video",
@@ -478,6 +433,9 @@ def export_lerobot(
                     }
                     if environment is not None:
                         values[ENVIRONMENT] = np.asarray(environment[span.index], dtype=np.float32)
+                    if corrections:
+                        flag = commanding(corrections, frame.at)
+                        values[INTERVENTION] = np.asarray([flag], dtype=bool)
                     for name, jpeg in frame.jpegs.items():
                         values[f"observation.images.{name}"] = decoder.rgb(jpeg)
                     dataset.add_frame(values)
@@ -490,6 +448,7 @@ def export_lerobot(
         "robot": robot_id,
         "slave": slave,
         "policies": policies,
+        "corrections": [[c.episode.index, c.master] for c in corrections],
     }
     (root / "meta" / "arena.json").write_text(json.dumps(info, indent=2), encoding="utf-8")
     return ExportReport(root, repo_id, fps, written, sorted(shapes), notes, policies)

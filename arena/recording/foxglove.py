@@ -48,6 +48,7 @@ from arena.robot.events import (
     CommandHandled,
     EpisodeChanged,
     FaultReported,
+    InterventionChanged,
     JointStatesReceived,
     PeerChanged,
     PolicyInferred,
@@ -286,6 +287,10 @@ def _episode_line(event: EpisodeChanged) -> LogLine:
     return LogLevel.Info, f"episode {event.index} {event.change}: {event.task}"
 
 
+def _intervention_line(event: InterventionChanged) -> LogLine:
+    return LogLevel.Info, f"intervention by {event.master} {event.change} ({event.paused} waits)"
+
+
 def _audit_line(event: Audited) -> LogLine:
     detail = f" ({event.detail})" if event.detail else ""
     return LogLevel.Info, f"{event.user}: {event.action}{detail}"
@@ -302,6 +307,7 @@ _LOG_LINES: dict[type[RobotEvent], Callable[[Any], LogLine | None]] = {
     PeerChanged: _peer_line,
     EpisodeChanged: _episode_line,
     Audited: _audit_line,
+    InterventionChanged: _intervention_line,
     PolicyInferred: lambda _: None,  # many a second: plotted from its topic, not logged
 }
 if set(TREE_OF) | set(_LOG_LINES) != set(get_args(RobotEvent)):  # (a new event is shown)

@@ -26,6 +26,7 @@ from arena.robot.events import (
     CommandHandled,
     EpisodeChanged,
     FaultReported,
+    InterventionChanged,
     JointStatesReceived,
     Observed,
     PeerChanged,
@@ -117,6 +118,13 @@ RECORDED = (
         PolicyInferred,
         "PolicyRecord",
         "One inference of a policy master: its latency (seconds) and chunk size (specs/policy.md).",
+    ),
+    Recorded(
+        "intervention",
+        InterventionChanged,
+        "InterventionRecord",
+        "An intervention started or ended: the intervening master and the master it paused "
+        "(a correction; `arena export` marks its frames).",
     ),
 )
 

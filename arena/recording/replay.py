@@ -126,11 +126,10 @@ class ReplayMaster:
     async def run(self, link: MasterLink) -> None:
         """Issue every command at its (scaled) time; loop if asked."""
         while True:
-            start = trio.current_time()
+            # The master's own clock: it stands still while the robot has it paused.
+            start = trio.current_time() - link.paused_time(trio.current_time())
             for index, timed in enumerate(self.commands):
-                due = start + timed.at / self.speed
-                if due > trio.current_time():
-                    await trio.sleep_until(due)
+                await link.sleep_until(start + timed.at / self.speed)
                 command = timed.command
                 if command.duration is not None and self.speed != 1.0:
                     command = Command(command.joints, command.duration / self.speed, command.source)

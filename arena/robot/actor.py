@@ -38,7 +38,6 @@ from arena.robot.events import (
     SlaveNotice,
     SlaveTarget,
     StateChanged,
-    TakenBy,
     TargetsSent,
 )
 from arena.robot.idle import IdleTurn
@@ -46,15 +45,13 @@ from arena.robot.inbox import Driver, Msg
 from arena.robot.links import MasterLink, RobotPort, SlaveLink
 from arena.robot.mailbox import Observers
 from arena.robot.motion import Command, CommandResult
-from arena.robot.peers import FaultKeys, MasterPeer, Peer, Peers, SlavePeer
+from arena.robot.ownership import Master, MasterKeeping, Slave
+from arena.robot.peers import MasterPeer, Peers, SlavePeer
 
 log = logging.getLogger(__name__)
 
-Master = MasterPeer[MasterLink]
-Slave = SlavePeer[SlaveLink]
 
-
-class Actor:
+class Actor(MasterKeeping):
     """The loop of one robot and the carrying out of its decisions (see the module)."""
 
     def __init__(
@@ -194,8 +191,8 @@ class Actor:
         step = self.core.handle(event, now)
         self._carry_out(step, now)
         after = self.core.state
-        changed = before.mode, before.owner, before.estop_reason
-        if changed != (after.mode, after.owner, after.estop_reason):
+        changed = before.mode, before.owner, before.waiting, before.estop_reason
+        if changed != (after.mode, after.owner, after.waiting, after.estop_reason):
             self._state_changed(cause, now)
         return step.outcome
 
@@ -221,7 +218,7 @@ class Actor:
     def _on_sensor_fault(self, message: inbox.SensorFaultMsg, now: float) -> None:
         # A peer's own (a policy master's) is kept on it, a camera's not; neither stops it.
         m = message
-        peer = self.peers.master_named(m.sensor_id) or self.peers.slaves.get(m.sensor_id)
+        peer = self.peers.either_named(m.sensor_id) or self.peers.slaves.get(m.sensor_id)
         rid, told = self.robot_id, (m.code, m.message, m.severity, None, now, wallclock.time())
         self._publish(peer.fault(rid, *told) if peer else FaultReported(rid, m.sensor_id, *told))
 
@@ -248,7 +245,7 @@ class Actor:
     def _on_fault(self, message: inbox.FaultMsg, now: float) -> None:
         # A master's and a slave's alike: kept on the peer and told, until it ends.
         m, peers = message, self.peers
-        peer = peers.master_named(m.peer_id) if m.role == "master" else peers.slaves.get(m.peer_id)
+        peer = peers.either_named(m.peer_id) if m.role == "master" else peers.slaves.get(m.peer_id)
         if peer is None:
             return
         peer.last_seen = now
@@ -321,10 +318,16 @@ class Actor:
                 autonomous=message.autonomous,
                 description=message.description,
             )
-            claim = safety.MasterAttach(
-                peer_id, message.autonomous, message.takeover, message.kind, message.description
+            claim: safety.Event = (
+                safety.Intervene(peer_id, message.autonomous, message.kind, message.description)
+                if message.intervene
+                else safety.MasterAttach(
+                    peer_id, message.autonomous, message.takeover, message.kind, message.description
+                )
             )
-            outcome = self.apply(claim, now, cause="master attach")
+            outcome = self.apply(
+                claim, now, cause="intervention" if message.intervene else "master attach"
+            )
             if isinstance(outcome, safety.Refused):
                 log.info("robot %s: master %s refused (%s)", self.robot_id, peer_id, outcome.code)
                 self._peer_changed(peer, "refused", outcome.message, now, str(outcome.code))
@@ -345,7 +348,10 @@ class Actor:
                 measures=None if driver is None else getattr(driver, "measures", True),
                 join_speed=getattr(driver, "join_speed", None),
             )
-        self.peers.add(peer)
+        if isinstance(peer, MasterPeer) and message.intervene:
+            self.peers.intervene(peer)  # the master it paused waits
+        else:
+            self.peers.add(peer)
         if message.driver is not None:
             scope = trio.CancelScope()
             peer.stop = scope.cancel
@@ -358,7 +364,7 @@ class Actor:
 
     def _on_detach(self, message: inbox.DetachMsg, now: float) -> None:
         if message.role == "master":
-            master = self.peers.master_named(message.peer_id)
+            master = self.peers.either_named(message.peer_id)
             if master is None:
                 if message.reply is not None:
                     message.reply.set(None)  # not the master (any more): nothing to do
@@ -427,8 +433,10 @@ class Actor:
         cut = self.episodes.cut(now)  # nobody stopped it: recorded as cut
         if cut is not None:
             self._episode_changed("cut", cut, now)
-        master = self.peers.master
-        if master is not None:
+        for _ in range(2):  # an intervening master, then the master it had paused
+            master = self.peers.master
+            if master is None:
+                break
             self.apply(safety.MasterDetach(master.peer_id), now, cause=reason)
             self._settle_master(ErrorCode.ROBOT_STOPPED, reason, "detached", now)
         for slave in list(self.peers.slaves.values()):
@@ -442,22 +450,17 @@ class Actor:
         self._carry_out_joins(step.joins, now)
         for effect in step.effects:
             if isinstance(effect, safety.DetachMaster):
-                # Displaced (a takeover, an e-stop that ends a program): the table says why.
-                master = self.peers.master_named(effect.master_id)
-                if master is not None and self.peers.remove(master):
-                    by = effect.by
-                    taken_by = (
-                        None if by is None else TakenBy(by.master_id, by.kind, by.description)
-                    )
-                    self._master_gone(
-                        master, effect.code, effect.message, "detached", now, taken_by
-                    )
+                self._displaced(effect, now)
             elif isinstance(effect, safety.StopMotion):
                 self.estop_count += 1
                 log.warning("robot %s: e-stop (%s)", self.robot_id, effect.reason)
                 self._notify_slaves(SlaveNotice(NoticeKind.ESTOP, effect.reason), clears=True)
             elif isinstance(effect, safety.HoldPosition):
                 self._notify_slaves(SlaveNotice(NoticeKind.HOLD, "holding position"))
+            elif isinstance(effect, safety.PauseMaster | safety.ResumeMaster):
+                self._pause_master(effect, now)
+            elif isinstance(effect, safety.Intervention):
+                self._intervention(effect, now)
             elif isinstance(effect, safety.ResumeSlaves):
                 log.info("robot %s: reset", self.robot_id)
                 # Every fault ends (a driver reports again what lasts: a servo still hot).
@@ -525,35 +528,6 @@ class Actor:
         if master is not None:
             master.link.notices.put(MasterNotice("state", None, cause, state.mode))
 
-    def _settle_master(self, code: ErrorCode | None, reason: str, change: str, now: float) -> None:
-        """After a master's own leaving was applied: if the safety state no longer names it as
-        owner (`Peers.settle`), it is gone."""
-        master = self.peers.settle(self.core.state.owner)
-        if master is not None:
-            self._master_gone(master, code, reason, change, now)
-
-    def _master_gone(
-        self,
-        master: Master,
-        code: ErrorCode | None,
-        reason: str,
-        change: str,
-        now: float,
-        by: TakenBy | None = None,
-    ) -> None:
-        """A master no longer attached: forgotten by the core, told why, its driver stopped."""
-        self.core.forget_master(master.peer_id)
-        link = master.link
-        if code is not None:
-            link.notices.put(MasterNotice("detached", code, reason, by=by))
-        link.detached.set()
-        link.notices.close()
-        if master.stop is not None:
-            master.stop()
-        self._faults_over(master, f"the master {change}", now)
-        log.info("robot %s: master %s %s (%s)", self.robot_id, master.peer_id, change, reason)
-        self._peer_changed(master, change, reason, now)
-
     def _drop_slave(self, slave: Slave, reason: str, *, lost: bool, now: float) -> None:
         if not self.peers.remove(slave):
             return
@@ -573,15 +547,6 @@ class Actor:
             safety.SlaveLost(slave.peer_id, reason) if lost else safety.SlaveDetach(slave.peer_id)
         )
         self.apply(event, now, cause=reason)
-
-    def _faults_over(self, peer: Peer[Any], why: str, now: float, keys: FaultKeys = None) -> None:
-        for event in peer.faults_over(self.robot_id, why, now, wallclock.time(), keys):
-            self._publish(event)
-
-    def _peer_changed(
-        self, peer: Peer[Any], change: str, reason: str, now: float, code: str | None = None
-    ) -> None:
-        self._publish(peer.changed(self.robot_id, change, reason, now, wallclock.time(), code))
 
     # -- drivers ------------------------------------------------------------------------------
 

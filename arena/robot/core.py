@@ -30,6 +30,7 @@ from arena.robot.safety import (
     Effect,
     Event,
     HoldPosition,
+    Intervention,
     ManualCommand,
     MasterCommand,
     Mode,
@@ -140,6 +141,11 @@ class RobotCore:
         self.unsure: dict[str, dict[str, float]] = {}
         #: Ids of the slaves that must not be sent the robot's targets (they are joining).
         self.joining: set[str] = set()
+        #: An intervening master whose commands move no joint faster than the joining speed
+        #: until the arm is where they command (a handover without a jerk: the leader arm in
+        #: the human's hand is wherever it is). None: none.
+        self.easing: str | None = None
+        self._eased = False  # a command of the easing master has been taken
 
     @property
     def tick_interval(self) -> float:
@@ -163,6 +169,9 @@ class RobotCore:
             elif isinstance(effect, ResumeSlaves):
                 for slave_id, join in list(self._joins.items()):
                     joins += self._decide(slave_id, join, now)  # held: moves nothing
+            elif isinstance(effect, Intervention):
+                self.easing = None if effect.ended else effect.master_id
+                self._eased = False
         return Step(outcome, None, outcome.effects, tuple(joins))
 
     # -- slaves that join ---------------------------------------------------------------------
@@ -367,6 +376,8 @@ class RobotCore:
             refusal = Refused(exc.code, exc.message)
             return CommandResult.refused(exc.code, exc.message), Step(refusal)
         message = "clamped to the joint limits" if clamps else ""
+        if self.easing is not None and source == self.easing:
+            goals = self._ease(goals)
         if self.guard is not None:
             goals, unsafe, short = self._guard(goals)
             if unsafe is not None:
@@ -377,10 +388,26 @@ class RobotCore:
         self.motion.set_goals(goals, command.duration, now)
         self._commander = key
         targets = self._advance(now, fresh=in_burst)
+        if self.easing is not None:
+            self._eased_in()
         result = CommandResult(True, None, message, tuple(clamps)) if clamps else _ACCEPTED
         if self.joining:  # (rare: one check per command otherwise)
             return result, Step(outcome, targets, (), tuple(self._release_held(now)))
         return result, Step(outcome, targets)
+
+    def _ease(self, goals: list[ResolvedGoal]) -> list[ResolvedGoal]:
+        """An intervening master's goals at the joining speed at most (see `easing`)."""
+        self._eased = True
+        speed = self.policy.join_speed
+        return [
+            goal if goal.speed <= speed else ResolvedGoal(goal.name, goal.value, speed)
+            for goal in goals
+        ]
+
+    def _eased_in(self) -> None:
+        """The arm is where the easing master commands: its commands pass as they are now."""
+        if self._eased and not self.motion.moving:
+            self.easing = None
 
     def _urdf(self, degrees: Mapping[str, float]) -> dict[str, float]:
         """Wire degrees by joint name to URDF radians by URDF joint (`JointSpec.to_urdf`)."""
@@ -478,7 +505,10 @@ class RobotCore:
         """Advance interpolation; returns new targets, or None if nothing moved."""
         if self.state.mode is Mode.ESTOPPED:
             return None
-        return self._advance(now)
+        targets = self._advance(now)
+        if self.easing is not None:
+            self._eased_in()
+        return targets
 
     def next_tick(self, now: float) -> float | None:
         """When the next control tick is due, or None while nothing is moving."""

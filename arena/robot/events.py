@@ -69,7 +69,8 @@ class MasterNotice(msgspec.Struct, frozen=True, gc=False):
     """Something a master should know: it was detached (`by`: who took over), or the robot
     changed state."""
 
-    kind: str  # "detached" | "state" | "stopped" (a move stopped short of a collision)
+    #: "detached" | "state" | "paused" | "resumed" | "stopped" (a move stopped short of a collision)
+    kind: str
     code: ErrorCode | None = None
     message: str = ""
     mode: Mode | None = None
@@ -148,7 +149,7 @@ class PeerChanged(Observed, frozen=True, gc=False):
     kind: str  # driver kind, e.g. "mock-slave"
     # "attached" | "detached" | "released" (a master's own `release`) | "lost" | "refused" |
     # "disconnected" | "reconnected", and for a slave that measures "adopted" | "joining" |
-    # "joined" (specs/robot-model.md)
+    # "joined" (specs/robot-model.md), and for a master "paused" | "resumed"
     change: str
     reason: str
     time: float
@@ -183,6 +184,18 @@ class Audited(Observed, frozen=True, gc=False):
     wall_time: float
 
 
+class InterventionChanged(Observed, frozen=True, gc=False):
+    """An intervention `started` or `ended`: `master` is the intervening master, `paused` the
+    master it paused (which waits, and drives again once handed back)."""
+
+    robot_id: str
+    change: str  # "started" | "ended"
+    master: str
+    paused: str
+    time: float
+    wall_time: float
+
+
 class PolicyInferred(Observed, frozen=True, gc=False):
     """One inference of a policy master (`arena/policy`): `policy` its identity, `timestep`
     the control step its observation was taken at, `chunk_size` the actions the chunk held
@@ -212,6 +225,7 @@ RobotEvent: TypeAlias = (
     | EpisodeChanged
     | Audited
     | PolicyInferred
+    | InterventionChanged
 )
 
 

@@ -111,7 +111,9 @@ class Robot:
             for j in self.model.joints
         )
         peers = self._actor.peers
-        master = peers.master.snapshot() if peers.master is not None else None
+        paused = state.mode is safety.Mode.PAUSED
+        master = peers.master.snapshot(paused=paused) if peers.master is not None else None
+        waiting = peers.waiting.snapshot(paused=True) if peers.waiting is not None else None
         joining = self.core.joining
         slaves = tuple(p.snapshot(p.peer_id in joining) for p in peers.slaves.values())
         return RobotSnapshot(
@@ -124,6 +126,7 @@ class Robot:
             master,
             slaves,
             joints,
+            waiting,
         )
 
     def joint_values(self) -> tuple[dict[str, float], Mapping[str, float]]:
@@ -224,6 +227,19 @@ class Robot:
         """Leave the e-stop. Causes no motion by itself."""
         return await self._event(safety.Reset())
 
+    async def pause(self) -> safety.Outcome:
+        """Pause the robot's master: it sends nothing and the robot holds where it is."""
+        return await self._event(safety.MasterPause())
+
+    async def resume(self) -> safety.Outcome:
+        """Resume the paused master."""
+        return await self._event(safety.MasterResume())
+
+    async def end_intervention(self, resume: bool = True) -> safety.Outcome:
+        """End the intervention: the intervening master goes and the paused master resumes
+        (unless `resume` is false: then it stays paused)."""
+        return await self._event(safety.InterventionEnd(resume))
+
     async def set_workspace(self, workspace: Workspace) -> None:
         """Change where the arm may go, from the next command on."""
         reply: Reply[None] = Reply()
@@ -261,17 +277,31 @@ class Robot:
     # -- masters and slaves ---------------------------------------------------------------------
 
     async def attach_master(
-        self, driver: MasterDriver, *, takeover: bool | None = None, master_id: str | None = None
+        self,
+        driver: MasterDriver,
+        *,
+        takeover: bool | None = None,
+        master_id: str | None = None,
+        intervene: bool = False,
     ) -> str:
         """Run `driver` as this robot's master; returns its id. Refusals raise `ArenaError`.
 
-        `takeover` defaults to the driver's own `takes_over`.
+        `takeover` defaults to the driver's own `takes_over`; `intervene`: the running master
+        is paused, not ended, until the intervention ends (`end_intervention`).
         """
         if takeover is None:
             takeover = driver.takes_over
         description = str(getattr(driver, "description", "") or "")
         link: MasterLink = await self._attach(
-            "master", master_id, driver.kind, driver, driver.autonomous, takeover, None, description
+            "master",
+            master_id,
+            driver.kind,
+            driver,
+            driver.autonomous,
+            takeover,
+            None,
+            description,
+            intervene,
         )
         return link.master_id
 
@@ -284,11 +314,21 @@ class Robot:
         heartbeat_timeout: float | None = None,
         autonomous: bool = False,
         description: str = "",
+        intervene: bool = False,
     ) -> MasterLink:
         """Claim the robot for a master that runs elsewhere (a network connection);
-        `description` says what it is to a master it takes over from."""
+        `description` says what it is to a master it takes over from; `intervene`: it
+        intervenes (see `attach_master`)."""
         link: MasterLink = await self._attach(
-            "master", master_id, kind, None, autonomous, takeover, heartbeat_timeout, description
+            "master",
+            master_id,
+            kind,
+            None,
+            autonomous,
+            takeover,
+            heartbeat_timeout,
+            description,
+            intervene,
         )
         return link
 
@@ -363,6 +403,7 @@ class Robot:
         takeover: bool,
         heartbeat_timeout: float | None,
         description: str = "",
+        intervene: bool = False,
     ) -> Any:
         reply: Reply[Any] = Reply()
         await self._post(
@@ -376,6 +417,7 @@ class Robot:
                 heartbeat_timeout,
                 reply,
                 description,
+                intervene,
             )
         )
         try:

@@ -79,6 +79,7 @@ class AttachMsg:
     heartbeat_timeout: float | None
     reply: Reply[Any]
     description: str = ""  # what the master is, in words (told to a master it displaces)
+    intervene: bool = False  # the master intervenes: the running master is paused, not ended
 
 
 @dataclass(slots=True)

@@ -144,6 +144,51 @@ class MasterLink:
         self.master_id = master_id
         self.notices: EventQueue[MasterNotice] = EventQueue(256)
         self.detached = trio.Event()
+        #: The robot paused this master (`POST .../master/pause`, an intervention): it must
+        #: send nothing until resumed (what it sends is refused `MASTER_PAUSED`).
+        self.paused = False
+        #: Pauses so far: a driver compares it to tell that a pause came meanwhile.
+        self.pauses = 0
+        self._resumed = trio.Event()
+        self._resumed.set()
+        self._paused_at = 0.0
+        self._paused_before = 0.0  # seconds paused, pauses that are over
+
+    def set_paused(self, paused: bool, now: float) -> None:
+        """The robot pauses or resumes this master (the actor calls this; `now`: trio time)."""
+        if paused == self.paused:
+            return
+        self.paused = paused
+        if paused:
+            self.pauses += 1
+            self._paused_at = now
+            self._resumed = trio.Event()
+        else:
+            self._paused_before += now - self._paused_at
+            self._resumed.set()
+        self.notices.put(MasterNotice("paused" if paused else "resumed"))
+
+    def paused_time(self, now: float) -> float:
+        """Seconds this master was paused so far (a program's clock stands still meanwhile)."""
+        current = now - self._paused_at if self.paused else 0.0
+        return self._paused_before + current
+
+    async def wait_resumed(self) -> None:
+        """Return once the master is not paused (at once if it is not)."""
+        await self._resumed.wait()
+
+    async def sleep_until(self, due: float) -> None:
+        """Sleep until `due` (trio time) on this master's own clock, which stands still while
+        it is paused: a program resumed goes on where it stood (at once when `due` has passed
+        and it is not paused, without a checkpoint)."""
+        while True:
+            if self.paused:
+                await self._resumed.wait()
+                continue
+            target = due + self._paused_before
+            if trio.current_time() >= target:
+                return
+            await trio.sleep_until(target)
 
     async def command(self, command: Command, *, in_burst: bool = False) -> CommandResult:
         """Send a command as this master and wait for the answer (`in_burst`: more of this

@@ -75,6 +75,9 @@ class JointSpec:
     #: `ACCELERATION_PER_VELOCITY` times `max_velocity` and `JERK_PER_ACCELERATION` times that.
     acceleration: float = 0.0
     jerk: float = 0.0
+    #: Percent of the servo's full torque it may give (the robot type's cap, as LeRobot caps
+    #: its grippers; a usb-slave's `torqueLimit` overrides it); None: uncapped. specs/force.md.
+    torque_limit: float | None = None
 
     @property
     def max_acceleration(self) -> float:
@@ -122,6 +125,17 @@ class BusSpec:
     baud_rate: int | None = None
 
 
+@dataclass(frozen=True, slots=True)
+class EndEffector:
+    """The robot type's hand (`[end_effector]` in robot.toml): the URDF link whose pose is the
+    hand's, the tool point `offset` in that link's frame (metres), and the joint that opens
+    and closes it (`gripper`, a joint's protocol name, or "" for none)."""
+
+    link: str
+    offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    gripper: str = ""
+
+
 @dataclass(frozen=True)
 class RobotModel:
     """Everything Arena knows about a robot type: joints in servo order, safety, URDF."""
@@ -134,6 +148,8 @@ class RobotModel:
     #: Where the arm may go (the collision guard's floor and keep-out boxes).
     workspace: Workspace = field(default_factory=Workspace)
     bus: BusSpec = field(default_factory=BusSpec)
+    #: The hand whose pose `arena.robot.cartesian` computes and solves for (None: not named).
+    end_effector: EndEffector | None = None
 
     _by_name: dict[str, JointSpec] = field(init=False, repr=False, compare=False)
 
@@ -214,6 +230,7 @@ def _load_from_folder(folder: Path) -> RobotModel:
     except (TypeError, ValueError) as exc:
         raise bad(f"invalid [bus]: {exc}") from exc
     names = [j.name for j in joints]
+    end_effector = _end_effector(config.get("end_effector"), urdf_path, names, bad)
     every_name = [n for j in joints for n in {x.lower() for x in (j.name, *j.aliases)}]
     if len(set(every_name)) != len(every_name):
         raise bad(f"joint names and aliases must be unique: {names}")
@@ -225,7 +242,34 @@ def _load_from_folder(folder: Path) -> RobotModel:
         urdf_path=urdf_path,
         workspace=workspace,
         bus=bus,
+        end_effector=end_effector,
     )
+
+
+def _end_effector(section: Any, urdf_path: Path, names: list[str], bad: Any) -> EndEffector | None:
+    if section is None:
+        return None
+    from arena.robot.kinematics import Kinematics  # the standard library's XML parser only
+
+    if not isinstance(section, dict) or not isinstance(section.get("link"), str):
+        raise bad("[end_effector] needs link = the name of a URDF link")
+    unknown = set(section) - {"link", "offset", "gripper"}
+    if unknown:
+        raise bad(f"[end_effector] has unknown keys {sorted(unknown)}")
+    link = section["link"]
+    if link not in Kinematics.from_urdf(urdf_path).links:
+        raise bad(f"[end_effector] link {link!r} is not a link of {urdf_path.name}")
+    offset = section.get("offset", [0.0, 0.0, 0.0])
+    if (
+        not isinstance(offset, list)
+        or len(offset) != 3
+        or not all(isinstance(v, int | float) and math.isfinite(v) for v in offset)
+    ):
+        raise bad("[end_effector] offset must be three finite numbers (metres)")
+    gripper = section.get("gripper", "")
+    if not isinstance(gripper, str) or (gripper and gripper not in names):
+        raise bad(f"[end_effector] gripper must name one of the joints {names}")
+    return EndEffector(link, (float(offset[0]), float(offset[1]), float(offset[2])), gripper)
 
 
 def _bus_spec(section: dict[str, Any]) -> BusSpec:
@@ -310,6 +354,13 @@ def _joint_spec(entry: dict[str, Any], urdf: dict[str, _UrdfJoint], bad: Any) ->
     for key, value in (("max_acceleration", acceleration), ("max_jerk", jerk)):
         if key in entry and not (math.isfinite(value) and value > 0):
             raise bad(f"joint {name!r}: {key} must be a positive number")
+    torque_limit = entry.get("torque_limit")
+    if torque_limit is not None and (
+        isinstance(torque_limit, bool)
+        or not isinstance(torque_limit, int | float)
+        or not 0 < torque_limit <= 100
+    ):
+        raise bad(f"joint {name!r}: torque_limit must be a percent in (0, 100]")
     return JointSpec(
         name=name,
         servo_id=int(entry.get("servo_id", 0)),
@@ -324,4 +375,5 @@ def _joint_spec(entry: dict[str, Any], urdf: dict[str, _UrdfJoint], bad: Any) ->
         servo_model=str(entry.get("servo_model", "")),
         acceleration=acceleration,
         jerk=jerk,
+        torque_limit=None if torque_limit is None else float(torque_limit),
     )

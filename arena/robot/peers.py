@@ -134,17 +134,19 @@ class Peer(Generic[L]):
             code,
         )
 
-    def snapshot(self, joining: bool = False) -> PeerSnapshot:
-        """The peer as `RobotSnapshot` shows it."""
+    def snapshot(self, joining: bool = False, paused: bool = False) -> PeerSnapshot:
+        """The peer as `RobotSnapshot` shows it (`paused`: a master that waits)."""
         connected = self.connected if isinstance(self, SlavePeer) else True
         description = self.description if isinstance(self, MasterPeer) else ""
         faults = tuple(self.faults.values())
         error = f"{faults[-1].code}: {faults[-1].message}" if faults else None
         if isinstance(self, SlavePeer) and not self.connected:  # the loss, while it lasts
             error = f"{ErrorCode.SLAVE_LOST}: {self.out_of_reach}"
+        figures = getattr(self.driver, "figures", None)  # (a driver's own, if it has any)
         return PeerSnapshot(
-            self.peer_id, self.role, self.kind, connected, error, joining, description, faults
-        )
+            self.peer_id, self.role, self.kind, connected, error, joining, description, faults,
+            paused, None if figures is None else figures(),
+        )  # fmt: skip
 
 
 @dataclass(eq=False, slots=True)
@@ -171,6 +173,9 @@ class Peers(Generic[M, S]):
 
     def __init__(self) -> None:
         self.master: MasterPeer[M] | None = None
+        #: The master an intervention paused (the safety state's `waiting`), kept until the
+        #: intervention ends and it is the master again.
+        self.waiting: MasterPeer[M] | None = None
         self.slaves: dict[str, SlavePeer[S]] = {}
         self._ids = itertools.count(1)
 
@@ -183,6 +188,8 @@ class Peers(Generic[M, S]):
         yield from self.slaves.values()
         if self.master is not None:
             yield self.master
+        if self.waiting is not None:
+            yield self.waiting
 
     def add(self, peer: MasterPeer[M] | SlavePeer[S]) -> None:
         """Record a peer that attached (a master once the safety table let it claim the robot:
@@ -194,12 +201,15 @@ class Peers(Generic[M, S]):
 
     def holds(self, peer: Peer[Any]) -> bool:
         """True while this very record is attached (a later peer may have its id)."""
-        return peer is self.master or self.slaves.get(peer.peer_id) is peer
+        return peer is self.master or peer is self.waiting or self.slaves.get(peer.peer_id) is peer
 
     def remove(self, peer: Peer[Any]) -> bool:
         """Let `peer` go; False if it was not attached (any more), and nothing changes."""
         if peer is self.master:
             self.master = None
+            return True
+        if peer is self.waiting:
+            self.waiting = None
             return True
         if self.slaves.get(peer.peer_id) is peer:
             del self.slaves[peer.peer_id]
@@ -212,6 +222,25 @@ class Peers(Generic[M, S]):
         if master is None or (master_id is not None and master.peer_id != master_id):
             return None
         return master
+
+    def either_named(self, master_id: str | None) -> MasterPeer[M] | None:
+        """The master (else the paused master of an intervention) if it is `master_id`."""
+        found = self.master_named(master_id)
+        if found is None and master_id is not None:
+            waiting = self.waiting
+            if waiting is not None and waiting.peer_id == master_id:
+                return waiting
+        return found
+
+    def intervene(self, peer: MasterPeer[M]) -> None:
+        """`peer` intervenes: the master waits, `peer` is the master."""
+        self.waiting, self.master = self.master, peer
+
+    def hand_back(self) -> MasterPeer[M] | None:
+        """The intervention ends: the waiting master is the master again; returns the
+        intervening one (let go)."""
+        intervening, self.master, self.waiting = self.master, self.waiting, None
+        return intervening
 
     def settle(self, owner: str | None) -> MasterPeer[M] | None:
         """The master, let go, if the safety state's `owner` is no longer it; else None."""
@@ -226,6 +255,8 @@ class Peers(Generic[M, S]):
         master = self.master
         if master is not None and master.peer_id == peer_id:
             master.last_seen = now
+        elif (waiting := self.waiting) is not None and waiting.peer_id == peer_id:
+            waiting.last_seen = now
         elif (slave := self.slaves.get(peer_id)) is not None:
             slave.last_seen = now
 
@@ -238,6 +269,9 @@ class Peers(Generic[M, S]):
         master = self.master
         if master is not None and master.heartbeat_timeout is not None:
             deadline = min(deadline, master.last_seen + master.heartbeat_timeout)
+        waiting = self.waiting
+        if waiting is not None and waiting.heartbeat_timeout is not None:
+            deadline = min(deadline, waiting.last_seen + waiting.heartbeat_timeout)
         return deadline
 
     def timed_out(self, now: float) -> list[MasterPeer[M] | SlavePeer[S]]:

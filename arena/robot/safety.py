@@ -3,240 +3,115 @@
 `transition(state, event)` looks up the rule for (state.mode, type(event)) in `TABLE` and
 returns what happens: `Allowed` (a new state and the effects the actor must carry out),
 `Refused` (an error code and a sentence for the sender) or `Ignored`. Everything that affects
-who may command the robot lives in this file. No trio, no I/O, no clock.
+who may command the robot lives in this file and its two halves kept apart for length: the
+values it speaks of (`safety_types`: modes, state, events, effects, outcomes, re-exported here)
+and the rules of pause, resume and intervention (`safety_pause`). No trio, no I/O, no clock.
 
 The same table is written out in specs/safety-state-machine.md; a test keeps the two in step.
 """
 
 from __future__ import annotations
 
-import enum
-from collections.abc import Callable
-from dataclasses import dataclass, replace
-from typing import TypeAlias
+from dataclasses import replace
 
-from arena.protocol.errors import ErrorCode, Severity
+from arena.protocol.errors import ErrorCode
 from arena.robot.model import LossPolicy
-
-
-class Mode(enum.StrEnum):
-    """The three safety modes of a robot."""
-
-    IDLE = "idle"  # no master; manual control allowed
-    MASTERED = "mastered"  # one master owns the robot
-    ESTOPPED = "estopped"  # nothing moves until an explicit reset
-
-
-@dataclass(frozen=True, slots=True)
-class SafetyState:
-    """The machine's whole state. `owner` may be set in ESTOPPED (a live master waiting)."""
-
-    mode: Mode = Mode.IDLE
-    owner: str | None = None
-    owner_autonomous: bool = False  # plays a program (sequence, replay): ends on e-stop
-    estop_reason: str | None = None
-    loss_policy: LossPolicy = LossPolicy.ESTOP
-    estop_severity: Severity = Severity.CRITICAL
-
-
-# ---------------------------------------------------------------------------------------------
-# Events
-
-
-@dataclass(frozen=True, slots=True)
-class MasterAttach:
-    """A master asks to own the robot; `takeover` displaces the current one. `kind` and
-    `description` say what it is (`mock-sequence`, "sequence 'gentle-wave'"): a master it
-    displaces is told."""
-
-    master_id: str
-    autonomous: bool = False
-    takeover: bool = False
-    kind: str = ""
-    description: str = ""
-
-
-@dataclass(frozen=True, slots=True)
-class MasterDetach:
-    """A master leaves of its own accord: `hold` stops motion in progress where it is (an
-    operator's stop); without it the last command completes (a sequence that finished)."""
-
-    master_id: str
-    hold: bool = True
-
-
-@dataclass(frozen=True, slots=True)
-class MasterLost:
-    """A master's connection dropped or its driver failed."""
-
-    master_id: str
-    reason: str = "connection lost"
-
-
-@dataclass(frozen=True, slots=True)
-class MasterCommand:
-    """A command from the master `source`."""
-
-    source: str
-
-
-@dataclass(frozen=True, slots=True)
-class ManualCommand:
-    """A command from manual control (sliders, REST joints)."""
-
-
-@dataclass(frozen=True, slots=True)
-class EStop:
-    """Emergency stop."""
-
-    reason: str = "emergency stop"
-
-
-@dataclass(frozen=True, slots=True)
-class Reset:
-    """Leave the e-stop."""
-
-
-@dataclass(frozen=True, slots=True)
-class SlaveAttach:
-    """A slave joins."""
-
-    slave_id: str
-
-
-@dataclass(frozen=True, slots=True)
-class SlaveDetach:
-    """A slave leaves of its own accord."""
-
-    slave_id: str
-
-
-@dataclass(frozen=True, slots=True)
-class SlaveError:
-    """A slave reports a fault."""
-
-    slave_id: str
-    severity: Severity
-    message: str = ""
-
-
-@dataclass(frozen=True, slots=True)
-class SlaveLost:
-    """A slave stopped answering or its driver failed."""
-
-    slave_id: str
-    reason: str = "connection lost"
-
-
-@dataclass(frozen=True, slots=True)
-class HeartbeatTimeout:
-    """A peer was silent past its timeout (a master or a slave)."""
-
-    peer_id: str
-
-
-Event: TypeAlias = (
-    MasterAttach
-    | MasterDetach
-    | MasterLost
-    | MasterCommand
-    | ManualCommand
-    | EStop
-    | Reset
-    | SlaveAttach
-    | SlaveDetach
-    | SlaveError
-    | SlaveLost
-    | HeartbeatTimeout
+from arena.robot.safety_pause import (
+    already_paused,
+    attach_while_intervened,
+    detach_while_intervened,
+    end_intervention,
+    estop_intervened,
+    estop_paused,
+    intervene,
+    intervened_command,
+    lose_while_intervened,
+    not_paused,
+    pause,
+    paused_command,
+    refuse_intervention_active,
+    refuse_no_intervention,
+    refuse_no_master,
+    resume,
 )
-EVENT_TYPES: tuple[type[Event], ...] = (
+from arena.robot.safety_types import (
+    APPLY_COMMAND,
+    EVENT_TYPES,
+    Allowed,
+    ApplyCommand,
+    DetachMaster,
+    Effect,
+    EStop,
+    Event,
+    HeartbeatTimeout,
+    HoldPosition,
+    Ignored,
+    Intervene,
+    Intervention,
+    InterventionEnd,
+    ManualCommand,
     MasterAttach,
+    MasterCommand,
     MasterDetach,
     MasterLost,
-    MasterCommand,
-    ManualCommand,
-    EStop,
+    MasterPause,
+    MasterResume,
+    Mode,
+    Outcome,
+    PauseMaster,
+    Refused,
     Reset,
+    ResumeMaster,
+    ResumeSlaves,
+    Rule,
+    SafetyState,
     SlaveAttach,
     SlaveDetach,
     SlaveError,
     SlaveLost,
-    HeartbeatTimeout,
+    StopMotion,
+    estop_state,
 )
 
-
-# ---------------------------------------------------------------------------------------------
-# Effects: what the actor must do when a transition is allowed
-
-
-@dataclass(frozen=True, slots=True)
-class ApplyCommand:
-    """Pass the command on to the motion filter."""
-
-
-#: The effects of an allowed command, shared: effects are immutable values.
-_APPLY_COMMAND = (ApplyCommand(),)
-
-
-@dataclass(frozen=True, slots=True)
-class DetachMaster:
-    """End a master's ownership and tell it why (`by`: the attach that took over)."""
-
-    master_id: str
-    code: ErrorCode
-    message: str
-    by: MasterAttach | None = None
-
-
-@dataclass(frozen=True, slots=True)
-class StopMotion:
-    """Freeze every target where it is and tell the slaves to stop."""
-
-    reason: str
-
-
-@dataclass(frozen=True, slots=True)
-class HoldPosition:
-    """Freeze every target where it is; slaves keep holding the last target."""
-
-
-@dataclass(frozen=True, slots=True)
-class ResumeSlaves:
-    """Tell the slaves the e-stop is over (no motion until a new command)."""
-
-
-Effect: TypeAlias = ApplyCommand | DetachMaster | StopMotion | HoldPosition | ResumeSlaves
-
-
-# ---------------------------------------------------------------------------------------------
-# Outcomes
-
-
-@dataclass(frozen=True, slots=True)
-class Allowed:
-    """The event is accepted: move to `state` and carry out `effects` in order."""
-
-    state: SafetyState
-    effects: tuple[Effect, ...] = ()
-
-
-@dataclass(frozen=True, slots=True)
-class Refused:
-    """The event is refused; the sender gets `code` and `message`. State is unchanged."""
-
-    code: ErrorCode
-    message: str
-
-
-@dataclass(frozen=True, slots=True)
-class Ignored:
-    """The event changes nothing and needs no answer beyond `reason`."""
-
-    reason: str
-
-
-Outcome: TypeAlias = Allowed | Refused | Ignored
-Rule: TypeAlias = Callable[[SafetyState, Event], Outcome]
+__all__ = [
+    "EVENT_TYPES",
+    "TABLE",
+    "Allowed",
+    "ApplyCommand",
+    "DetachMaster",
+    "EStop",
+    "Effect",
+    "Event",
+    "HeartbeatTimeout",
+    "HoldPosition",
+    "Ignored",
+    "Intervene",
+    "Intervention",
+    "InterventionEnd",
+    "ManualCommand",
+    "MasterAttach",
+    "MasterCommand",
+    "MasterDetach",
+    "MasterLost",
+    "MasterPause",
+    "MasterResume",
+    "Mode",
+    "Outcome",
+    "PauseMaster",
+    "Refused",
+    "Reset",
+    "ResumeMaster",
+    "ResumeSlaves",
+    "Rule",
+    "SafetyState",
+    "SlaveAttach",
+    "SlaveDetach",
+    "SlaveError",
+    "SlaveLost",
+    "StopMotion",
+    "describe_table",
+    "transition",
+]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -245,29 +120,12 @@ Rule: TypeAlias = Callable[[SafetyState, Event], Outcome]
 # leaves decorated functions alone.)
 
 
-def _estop_state(state: SafetyState, reason: str) -> tuple[SafetyState, tuple[Effect, ...]]:
-    """Enter ESTOPPED: autonomous masters end, live masters stay but may not move the robot."""
-    effects: list[Effect] = [StopMotion(reason)]
-    owner = state.owner
-    if owner is not None and state.owner_autonomous:
-        effects.append(DetachMaster(owner, ErrorCode.ESTOPPED, f"Stopped by e-stop: {reason}."))
-        owner = None
-    new = replace(
-        state,
-        mode=Mode.ESTOPPED,
-        owner=owner,
-        owner_autonomous=state.owner_autonomous and owner is not None,
-        estop_reason=reason,
-    )
-    return new, tuple(effects)
-
-
 def _apply_loss_policy(state: SafetyState, why: str) -> Outcome:
     if state.loss_policy is LossPolicy.HOLD:
         return Allowed(
             replace(state, mode=Mode.IDLE, owner=None, owner_autonomous=False), (HoldPosition(),)
         )
-    new, effects = _estop_state(replace(state, owner=None, owner_autonomous=False), why)
+    new, effects = estop_state(replace(state, owner=None, owner_autonomous=False), why)
     return Allowed(new, effects)
 
 
@@ -312,9 +170,10 @@ def _claim_or_takeover(state: SafetyState, event: Event) -> Outcome:
     answer = _refuse_or_take_over(state, event)
     if isinstance(answer, Refused):
         return answer
-    return Allowed(
-        replace(state, owner=event.master_id, owner_autonomous=event.autonomous), (answer,)
+    new = replace(
+        state, mode=Mode.MASTERED, owner=event.master_id, owner_autonomous=event.autonomous
     )
+    return Allowed(new, (answer,))
 
 
 def _claim_while_estopped(state: SafetyState, event: Event) -> Outcome:
@@ -388,7 +247,7 @@ def _owner_command(state: SafetyState, event: Event) -> Outcome:
             ErrorCode.NOT_OWNER,
             f"Robot is controlled by master {state.owner!r}, not {event.source!r}.",
         )
-    return Allowed(state, _APPLY_COMMAND)
+    return Allowed(state, APPLY_COMMAND)
 
 
 def _refuse_estopped(state: SafetyState, event: Event) -> Outcome:
@@ -400,7 +259,7 @@ def _refuse_estopped(state: SafetyState, event: Event) -> Outcome:
 
 def _manual_command(state: SafetyState, event: Event) -> Outcome:
     """allowed, apply"""
-    return Allowed(state, _APPLY_COMMAND)
+    return Allowed(state, APPLY_COMMAND)
 
 
 def _manual_refused(state: SafetyState, event: Event) -> Outcome:
@@ -414,7 +273,7 @@ def _manual_refused(state: SafetyState, event: Event) -> Outcome:
 def _estop(state: SafetyState, event: Event) -> Outcome:
     """allowed: stop motion, autonomous master detached -> estopped"""
     assert isinstance(event, EStop)
-    new, effects = _estop_state(state, event.reason)
+    new, effects = estop_state(state, event.reason)
     return Allowed(new, effects)
 
 
@@ -445,7 +304,7 @@ def _slave_error(state: SafetyState, event: Event) -> Outcome:
     if event.severity.rank < state.estop_severity.rank:
         return Allowed(state)
     reason = f"slave {event.slave_id!r} reported a {event.severity} fault: {event.message}"
-    new, effects = _estop_state(state, reason)
+    new, effects = estop_state(state, reason)
     return Allowed(new, effects)
 
 
@@ -460,11 +319,12 @@ def _lose_slave(state: SafetyState, event: Event) -> Outcome:
     why = f"slave {event.slave_id!r} lost: {event.reason}"
     if state.loss_policy is LossPolicy.HOLD:
         return Allowed(state, (HoldPosition(),))
-    new, effects = _estop_state(state, why)
+    new, effects = estop_state(state, why)
     return Allowed(new, effects)
 
 
 _I, _M, _E = Mode.IDLE, Mode.MASTERED, Mode.ESTOPPED
+_P, _N = Mode.PAUSED, Mode.INTERVENED
 
 #: Every (mode, event type) pair and its rule. Heartbeat timeouts name the peer; a timed-out
 #: slave is reported by the actor as SlaveLost, so here a timeout concerns masters only.
@@ -505,6 +365,51 @@ TABLE: dict[tuple[Mode, type[Event]], Rule] = {
     (_I, SlaveLost): _lose_slave,
     (_M, SlaveLost): _lose_slave,
     (_E, SlaveLost): _slave_error_while_estopped,
+    # A paused master still owns the robot: the rules of a mastered robot, but for commands.
+    (_P, MasterAttach): _claim_or_takeover,
+    (_P, MasterDetach): _release,
+    (_P, MasterLost): _lose_master,
+    (_P, HeartbeatTimeout): _lose_master,
+    (_P, MasterCommand): paused_command,
+    (_P, ManualCommand): _manual_refused,
+    (_P, EStop): estop_paused,
+    (_P, Reset): _not_estopped,
+    (_P, SlaveAttach): _slave_membership,
+    (_P, SlaveDetach): _slave_membership,
+    (_P, SlaveError): _slave_error,
+    (_P, SlaveLost): _lose_slave,
+    (_N, MasterAttach): attach_while_intervened,
+    (_N, MasterDetach): detach_while_intervened,
+    (_N, MasterLost): lose_while_intervened,
+    (_N, HeartbeatTimeout): lose_while_intervened,
+    (_N, MasterCommand): intervened_command,
+    (_N, ManualCommand): _manual_refused,
+    (_N, EStop): estop_intervened,
+    (_N, Reset): _not_estopped,
+    (_N, SlaveAttach): _slave_membership,
+    (_N, SlaveDetach): _slave_membership,
+    (_N, SlaveError): _slave_error,
+    (_N, SlaveLost): _lose_slave,
+    (_I, MasterPause): refuse_no_master,
+    (_M, MasterPause): pause,
+    (_P, MasterPause): already_paused,
+    (_N, MasterPause): refuse_intervention_active,
+    (_E, MasterPause): _refuse_estopped,
+    (_I, MasterResume): refuse_no_master,
+    (_M, MasterResume): not_paused,
+    (_P, MasterResume): resume,
+    (_N, MasterResume): refuse_intervention_active,
+    (_E, MasterResume): _refuse_estopped,
+    (_I, Intervene): refuse_no_master,
+    (_M, Intervene): intervene,
+    (_P, Intervene): intervene,
+    (_N, Intervene): refuse_intervention_active,
+    (_E, Intervene): _refuse_estopped,
+    (_I, InterventionEnd): refuse_no_intervention,
+    (_M, InterventionEnd): refuse_no_intervention,
+    (_P, InterventionEnd): refuse_no_intervention,
+    (_N, InterventionEnd): end_intervention,
+    (_E, InterventionEnd): refuse_no_intervention,
 }
 
 

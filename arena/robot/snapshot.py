@@ -46,6 +46,9 @@ class PeerSnapshot:
     joining: bool = False  # a slave not yet following the robot's targets (it joins)
     description: str = ""  # a master's, in words ("replay of 'x.mcap'")
     faults: tuple[FaultSnapshot, ...] = ()
+    paused: bool = False  # a master that is paused (it sends nothing; the robot holds)
+    #: A driver's own figures (a policy's: loads, inferences, stalls...), None: it has none.
+    figures: dict[str, float] | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -61,6 +64,8 @@ class RobotSnapshot:
     master: PeerSnapshot | None
     slaves: tuple[PeerSnapshot, ...]
     joints: tuple[JointSnapshot, ...]
+    #: The master an intervention paused (it waits; `master` is the intervening one).
+    paused_master: PeerSnapshot | None = None
 
     def joint(self, name: str) -> JointSnapshot:
         """The joint called `name` (protocol name)."""

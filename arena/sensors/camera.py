@@ -26,6 +26,7 @@ from arena.robot.events import CameraFrame
 from arena.robot.handle import Robot
 from arena.robot.mailbox import EventQueue
 from arena.sensors.capture import CaptureProcess, Frame, Recipe, named_recipe
+from arena.sensors.sources import scale_jpeg
 
 NAME = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 #: `twin` or `twin:SLAVE_ID`: the robot's physics slave, rendered (`arena.drivers.twin_camera`).
@@ -100,6 +101,9 @@ class CameraSpec:
             raise ArenaError(ErrorCode.INVALID_BODY, "Invalid camera: " + "; ".join(problems) + ".")
 
 
+#: Frames being scaled at once, server-wide (`Camera.scaled`).
+SCALING = trio.CapacityLimiter(1)
+
 #: Says how to open a camera's source (at attach, and again after each failure); raises
 #: `OSError` when it cannot be opened now (a twin whose physics slave is gone).
 Opener = Callable[[], Recipe]
@@ -126,6 +130,7 @@ class Camera:
         self._seq = 0
         self._subscribers: set[EventQueue[CameraFrame]] = set()
         self._changed = trio.Event()
+        self._scaled: tuple[tuple[int, int, int], bytes] | None = None
 
     def _open_named(self) -> Recipe:
         """How to open the source `spec.source` names."""
@@ -169,6 +174,22 @@ class Camera:
             if self.latest is not None and self.latest.seq > after:
                 return self.latest
             await self._changed.wait()
+
+    async def scaled(self, frame: CameraFrame, width: int, height: int) -> bytes:
+        """`frame` as a JPEG of `width` x `height` (the frame itself at its own size). Scaled
+        in a thread, one at a time for the whole server: FFmpeg's JPEG codec works on bytes in
+        memory and cannot block, but holds the interpreter for a few milliseconds a frame,
+        so a client asking for many sizes at once waits its turn instead of starving the
+        event loop; the newest scaled frame is kept for the next client that asks the same."""
+        if (width, height) == (frame.width, frame.height):
+            return frame.jpeg
+        key = (frame.seq, width, height)
+        cached = self._scaled
+        if cached is not None and cached[0] == key:
+            return cached[1]
+        jpeg = await trio.to_thread.run_sync(scale_jpeg, frame.jpeg, width, height, limiter=SCALING)
+        self._scaled = (key, jpeg)
+        return jpeg
 
     async def run(
         self, process: CaptureProcess, *, task_status: Any = trio.TASK_STATUS_IGNORED

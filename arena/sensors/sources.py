@@ -64,6 +64,16 @@ class JpegEncoder:
         return b"".join(bytes(packet) for packet in self._codec.encode(frame))
 
 
+def scale_jpeg(jpeg: bytes, width: int, height: int) -> bytes:
+    """A JPEG at another size: decoded, scaled and encoded again by FFmpeg (a policy's input
+    size, before the frame leaves the server)."""
+    import av
+
+    decoder: Any = av.CodecContext.create("mjpeg", "r")
+    (frame,) = decoder.decode(av.Packet(jpeg))
+    return JpegEncoder(width, height, 30).encode_frame(frame)
+
+
 def pattern_image(seq: int, width: int, height: int) -> Image:
     """A frame that changes every frame: a moving colour ramp, with `seq` written along the top
     edge as `PATTERN_BITS` black or white squares (most significant first), so a test can read

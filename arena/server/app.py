@@ -7,7 +7,6 @@ import re
 import time
 from collections import Counter
 from collections.abc import Iterable
-from pathlib import Path
 from typing import Any
 
 import msgspec
@@ -16,11 +15,13 @@ from quart import Response, g, redirect, request
 from werkzeug.exceptions import HTTPException
 
 import arena
+from arena.drivers.hand_guide import HandGuide
 from arena.drivers.sequence_master import SequenceMaster
 from arena.drivers.sequences import demo_sequences, get_sequence
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.messages import MAX_MESSAGE_BYTES
 from arena.protocol.rest import (
+    ComplianceBody,
     CreateRobotBody,
     JointsBody,
     MasterBody,
@@ -33,9 +34,9 @@ from arena.recording.recorder import Recorder
 from arena.robot.groups import GroupRegistry
 from arena.robot.handle import Robot
 from arena.robot.manager import RobotManager, estop_together
-from arena.robot.workspace import workspace_from_json, workspace_to_json
+from arena.robot.workspace import workspace_to_json
 from arena.sensors.camera import Cameras
-from arena.server import convert, dashboard, openapi
+from arena.server import convert, dashboard, openapi, parts
 from arena.server.access import (
     AccessControl,
     needed_role,
@@ -47,7 +48,9 @@ from arena.server.auth import authorize, check_role, refuse
 from arena.server.base import (
     ArenaApp,
     Audit,
+    Declared,
     Hardware,
+    Parts,
     error_response,
     read_body,
     record_audit_now,
@@ -57,22 +60,19 @@ from arena.server.base import (
 from arena.server.calibration_api import blueprint as calibration_blueprint
 from arena.server.config import ServerConfig
 from arena.server.dashboard import blueprint as dashboard_blueprint
-from arena.server.drivers import (
-    attach_rest_master,
-    camera_frames,
-    make_master,
-    make_slave,
-    tenant_folder,
-)
+from arena.server.drivers import attach_rest_master
 from arena.server.fleet_api import CALLER, FORWARDED, forwarded_caller
 from arena.server.fleet_api import blueprint as fleet_blueprint
 from arena.server.groups_api import blueprint as groups_blueprint
+from arena.server.hand_api import blueprint as hand_blueprint
 from arena.server.health import blueprint as health_blueprint
 from arena.server.identity import Principal, TokenVerifier
+from arena.server.interventions_api import blueprint as interventions_blueprint
+from arena.server.interventions_api import operator_of
 from arena.server.metrics import Metrics
 from arena.server.origin import SAFE_METHODS, OriginPolicy, is_json
 from arena.server.recordings_api import blueprint as recordings_blueprint
-from arena.server.recordings_api import off_the_loop, readable_recording, recorder_status
+from arena.server.recordings_api import readable_recording, recorder_status
 from arena.server.robot_types_api import blueprint as robot_types_blueprint
 from arena.server.sensors_api import blueprint as sensors_blueprint
 from arena.server.ws.acks import AckCache
@@ -88,6 +88,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.connections = set()
     app.websockets_held = Counter()
     app.acks = AckCache()
+    app.master_links = {}
     app.origin_policy = OriginPolicy(config.host, config.allowed_origins, config.allowed_hosts)
     app.hardware = Hardware()
     app.groups = GroupRegistry(manager)
@@ -101,6 +102,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
             leeway=config.jwt_leeway,
         )
     app.cameras = Cameras()
+    app.parts = Parts()
     app.shutting_down = trio.Event()
     app.started_at = time.time()
     app.config["MAX_CONTENT_LENGTH"] = MAX_MESSAGE_BYTES
@@ -112,6 +114,8 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.register_blueprint(sensors_blueprint)
     app.register_blueprint(fleet_blueprint)
     app.register_blueprint(health_blueprint)
+    app.register_blueprint(interventions_blueprint)
+    app.register_blueprint(hand_blueprint)
     _register_errors(app)
     _register_routes(app)
     return app
@@ -232,7 +236,9 @@ _BODILESS = frozenset(
 #: State-changing routes that act on every robot the caller sees. (A route that creates a
 #: robot or a group adds it: `Audit.also`; a fleet e-stop is recorded by each node it
 #: stops robots on, this one included: `fleet_api`.)
-_ON_EVERY_ROBOT = frozenset({"/api/estop", "/api/recordings", "/api/recordings/<name>/stop"})
+_ON_EVERY_ROBOT = frozenset(
+    {"/api/estop", "/api/recordings", "/api/recordings/<name>/stop", "/api/config/reload"}
+)
 
 
 def _audited_robots(app: ArenaApp, principal: Principal) -> list[Robot]:
@@ -263,6 +269,7 @@ def _has_body() -> bool:
 
 def _register_routes(app: ArenaApp) -> None:
     manager = app.manager
+    links = app.master_links  # each robot's WebSocket master's link
 
     def robots_seen() -> list[Robot]:
         return app.access.visible(g.principal, manager.robots())
@@ -304,57 +311,45 @@ def _register_routes(app: ArenaApp) -> None:
 
     @app.get("/api/robots")
     async def list_robots() -> list[dict[str, Any]]:
-        return [convert.robot_summary(r, app.access.tenant_of(r.robot_id)) for r in robots_seen()]
+        return [
+            convert.robot_summary(r, app.access.tenant_of(r.robot_id), links.get(r.robot_id))
+            for r in robots_seen()
+        ]
 
     @app.post("/api/robots")
     async def create_robot() -> tuple[dict[str, Any], int]:
         body = await read_body(CreateRobotBody)
-        if app.fleet is not None and body.id is not None:
-            owner = await app.fleet.owner_elsewhere(body.id)
-            if owner is not None:
-                raise ArenaError(
-                    ErrorCode.ROBOT_ELSEWHERE,
-                    f"Robot id {body.id!r} is taken in fleet {app.fleet.fleet!r}: node "
-                    f"{owner!r} owns it.",
-                )
-        principal: Principal = g.principal
-        tenant = body.tenant or principal.tenant
-        if tenant != principal.tenant or not (body.id is None or principal.covers(body.id)):
-            refuse(app, "scope")
-            raise ArenaError(
-                ErrorCode.FORBIDDEN,
-                f"{principal.name!r} may create robots of tenant {principal.tenant!r} only"
-                + ("" if principal.robots is None else f", with ids like {principal.robots}")
-                + ".",
-            )
-        if principal.robots is not None and body.id is None:
-            raise ArenaError(ErrorCode.INVALID_BODY, 'Give the robot an "id" within your scope.')
-        most = app.arena_config.max_robots
-        if sum(robot.tenant == tenant for robot in manager.robots()) >= most:
-            raise ArenaError(
-                ErrorCode.LIMIT_REACHED,
-                f"Tenant {tenant!r} has {most} robots, the most allowed (max_robots): "
-                "delete one first.",
-            )
-        robot = await manager.create_robot(body.robot_type, body.name, body.id, tenant=tenant)
+        robot = await parts.create_robot(app, g.principal, body)
         g.audit.also([robot])
-        return convert.robot_summary(robot, tenant), 201
+        return convert.robot_summary(robot, robot.tenant), 201
 
     @app.get("/api/robots/<robot_id>")
     async def get_robot(robot_id: str) -> dict[str, Any]:
-        return convert.robot_summary(manager.get(robot_id), app.access.tenant_of(robot_id))
+        summary = convert.robot_summary(
+            manager.get(robot_id), app.access.tenant_of(robot_id), links.get(robot_id)
+        )
+        # The parts the configuration file declares that are not up yet, being retried.
+        summary["pending"] = [] if app.declared is None else app.declared.pending_of(robot_id)
+        return summary
+
+    @app.get("/api/config")
+    async def get_config() -> Response:
+        declared = _whole_server(app)
+        return Response(declared.running(), content_type="application/toml; charset=utf-8")
+
+    @app.post("/api/config/reload")
+    async def reload_config() -> dict[str, Any]:
+        return await _whole_server(app).reload()
 
     @app.get("/api/robots/<robot_id>/status")
     async def robot_status(robot_id: str) -> dict[str, Any]:
-        return convert.robot_status(manager.get(robot_id))
+        return convert.robot_status(manager.get(robot_id), links.get(robot_id))
 
     @app.delete("/api/robots/<robot_id>")
     async def delete_robot(robot_id: str) -> dict[str, Any]:
         robot = manager.get(robot_id)
-        app.access.tenants[robot_id] = robot.tenant  # (its past stays its tenant's)
         record_audit_now()  # (gone once answered: nowhere to record it then)
-        await manager.delete(robot_id)
-        app.metrics.retire(robot)
+        await parts.delete_robot(app, robot)
         return {"deleted": robot_id}
 
     @app.get("/api/sequences")
@@ -415,7 +410,8 @@ def _register_routes(app: ArenaApp) -> None:
         robot = manager.get(robot_id)
         body = await read_body(JointsBody)
         result = await robot.command(
-            convert.command_from_wire(body.joints, body.duration, {"source": "rest"})
+            convert.command_from_wire(body.joints, body.duration, {"source": "rest"}),
+            operator_of(robot, g.principal),  # an operator's intervention: as its master
         )
         if not result.accepted:
             assert result.code is not None
@@ -430,30 +426,15 @@ def _register_routes(app: ArenaApp) -> None:
     @app.put("/api/robots/<robot_id>/workspace")
     async def put_workspace(robot_id: str) -> dict[str, Any]:
         robot = manager.get(robot_id)
-        body = await read_body(WorkspaceBody)
-        try:
-            workspace = workspace_from_json(msgspec.to_builtins(body))
-        except ValueError as exc:
-            raise ArenaError(ErrorCode.INVALID_BODY, f"Invalid workspace: {exc}.") from None
-        await robot.set_workspace(workspace)
+        workspace = await parts.set_workspace(robot, await read_body(WorkspaceBody))
         return workspace_to_json(workspace)
 
     @app.post("/api/robots/<robot_id>/slaves")
     async def attach_slave(robot_id: str) -> tuple[dict[str, Any], int]:
         robot = manager.get(robot_id)
         body = await read_body(SlaveBody)
-        driver = make_slave(
-            body,
-            robot.model,
-            tenant_folder(Path(app.arena_config.calibration_dir), robot.tenant),
-            robot_id,
-            calibration_anywhere=server_admin(g.principal),
-        )
-        prepare = getattr(driver, "prepare", None)
-        if prepare is not None:
-            await prepare()  # hardware: a missing or busy port is the caller's error, now
-        slave_id = await robot.attach_slave(driver)
-        app.hardware.add(robot_id, slave_id, driver)
+        # hardware: a missing or busy port is the caller's error, now
+        slave_id = await parts.attach_slave(app, robot, body, server_admin(g.principal))
         return {"id": slave_id, "type": type(body).__struct_config__.tag}, 201
 
     @app.delete("/api/robots/<robot_id>/slaves/<slave_id>")
@@ -467,36 +448,8 @@ def _register_routes(app: ArenaApp) -> None:
         body: MasterBody = await read_body(MasterBody)
         if isinstance(body, ReplayMasterBody):
             await readable_recording(app, g.principal, body.recording, field="recording")
-        # A replay reads its recording: in a thread, never stalling the robots.
-        driver = await off_the_loop(
-            make_master,
-            body,
-            app.recorder.folder,
-            robot.model,
-            tenant_folder(Path(app.arena_config.calibration_dir), robot.tenant),
-            robot_id,
-            camera_frames(app.cameras, robot_id),
-            server_admin(g.principal),  # the whole server's admin: any calibration, any policy
-            tenant_folder(Path(app.arena_config.policy_dir), robot.tenant),
-            app.arena_config.policy_python,
-        )
-        prepare = getattr(driver, "prepare", None)
-        if prepare is not None:
-            holder = robot.snapshot().master
-            if holder is not None and not driver.takes_over:
-                raise ArenaError(  # say so before opening any hardware
-                    ErrorCode.MASTER_ACTIVE,
-                    f"Master {holder.peer_id!r} already drives this robot. "
-                    'Send "takeover": true in the body to replace it.',
-                )
-            await prepare()  # hardware: port problems are the caller's error, now
-        try:
-            master_id = await attach_rest_master(robot, driver)
-        except BaseException:
-            close = getattr(driver, "close", None)
-            if close is not None:
-                await close()  # refused (another master holds the robot): free the port
-            raise
+        # The whole server's admin: any calibration, any policy.
+        master_id = await parts.attach_master(app, robot, body, server_admin(g.principal))
         return {"id": master_id, "type": type(body).__struct_config__.tag}, 201
 
     @app.delete("/api/robots/<robot_id>/master")
@@ -506,6 +459,43 @@ def _register_routes(app: ArenaApp) -> None:
         if master is not None:
             await robot.detach_master(master.peer_id)
         return {"detached": master.peer_id if master else None}
+
+    def servo_readings(robot: Robot) -> list[tuple[str, float, float]]:
+        attached = {slave.peer_id for slave in robot.snapshot().slaves}
+        return app.hardware.servo_readings(robot.robot_id, attached)
+
+    @app.post("/api/robots/<robot_id>/compliance")
+    async def enter_compliance(robot_id: str) -> tuple[dict[str, Any], int]:
+        robot = manager.get(robot_id)
+        body = await read_body(ComplianceBody)
+        attached = {slave.peer_id for slave in robot.snapshot().slaves}
+        _, arm = app.hardware.find(robot_id, None, attached)
+        if not hasattr(arm, "enter_compliance"):
+            raise ArenaError(ErrorCode.NO_HARDWARE, f"Robot {robot_id!r} has no usb-slave.")
+        joints = list(arm.servo_ids_of(body.joints))  # (unknown names refused here)
+        holder = robot.snapshot().master
+        if holder is not None:  # (before any torque changes)
+            raise ArenaError(
+                ErrorCode.MASTER_ACTIVE,
+                f"Master {holder.peer_id!r} drives this robot: detach it to guide the arm by hand.",
+            )
+        await arm.enter_compliance(joints, body.torque)
+        guide = HandGuide(arm, joints, body.torque, robot.model.safety.command_rate)
+        try:
+            master_id = await attach_rest_master(robot, guide)
+        except BaseException:
+            await arm.leave_compliance()
+            raise
+        return {"id": master_id, "joints": joints, "torque": body.torque}, 201
+
+    @app.delete("/api/robots/<robot_id>/compliance")
+    async def leave_compliance(robot_id: str) -> dict[str, Any]:
+        robot = manager.get(robot_id)
+        master = robot.snapshot().master
+        if master is None or master.kind != HandGuide.kind:
+            return {"detached": None}
+        await robot.detach_master(master.peer_id)
+        return {"detached": master.peer_id}
 
     @app.get("/metrics")
     async def metrics() -> Response:
@@ -520,6 +510,8 @@ def _register_routes(app: ArenaApp) -> None:
                 recorder_status(app, g.principal),  # the caller's tenant's counts
                 app.metrics.connections_seen(sees),
                 whole_server=reads_recordings(g.principal),
+                links=app.master_links,
+                servos=servo_readings,
             ),
             content_type="text/plain; version=0.0.4",
         )
@@ -531,6 +523,19 @@ def _register_routes(app: ArenaApp) -> None:
     @app.get("/docs")
     async def docs() -> Response:
         return Response(openapi.DOCS_PAGE, content_type="text/html; charset=utf-8")
+
+
+def _whole_server(app: ArenaApp) -> Declared:
+    """The declared setup, for the whole server's admin only (it spans every tenant)."""
+    if not server_admin(g.principal):
+        refuse(app, "scope")
+        raise ArenaError(
+            ErrorCode.FORBIDDEN,
+            "The server's configuration is the whole server's: an admin of the default "
+            "tenant with every robot in scope only.",
+        )
+    assert app.declared is not None
+    return app.declared
 
 
 def _wants_html() -> bool:

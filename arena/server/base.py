@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections import Counter
 from collections.abc import Iterable
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
 import msgspec
@@ -15,6 +16,7 @@ from quart_trio import QuartTrio
 
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.messages import MAX_MESSAGE_BYTES
+from arena.protocol.rest import MasterBody, SlaveBody
 from arena.protocol.validation import refusal
 from arena.recording.recorder import Recorder
 from arena.robot.groups import GroupRegistry
@@ -23,6 +25,7 @@ from arena.robot.manager import RobotManager
 from arena.server.access import AccessControl
 from arena.server.config import ServerConfig
 from arena.server.identity import TokenVerifier
+from arena.server.link_quality import LinkQuality
 from arena.server.metrics import Metrics
 from arena.server.origin import OriginPolicy
 
@@ -47,6 +50,10 @@ STATUS_FOR: dict[ErrorCode, int] = {
     ErrorCode.METHOD_NOT_ALLOWED: 405,
     ErrorCode.MASTER_ACTIVE: 409,
     ErrorCode.NOT_OWNER: 409,
+    ErrorCode.MASTER_PAUSED: 409,
+    ErrorCode.NO_MASTER: 409,
+    ErrorCode.INTERVENTION_ACTIVE: 409,
+    ErrorCode.NO_INTERVENTION: 409,
     ErrorCode.ROBOT_EXISTS: 409,
     ErrorCode.ESTOPPED: 423,
     ErrorCode.MESSAGE_TOO_LARGE: 413,
@@ -61,6 +68,7 @@ STATUS_FOR: dict[ErrorCode, int] = {
     ErrorCode.RATE_LIMITED: 429,
     ErrorCode.LIMIT_REACHED: 429,
     ErrorCode.COLLISION: 422,
+    ErrorCode.UNREACHABLE: 422,
     ErrorCode.UNAUTHORIZED: 401,
     ErrorCode.FORBIDDEN: 403,
     ErrorCode.ORIGIN_NOT_ALLOWED: 403,
@@ -176,6 +184,21 @@ class Hardware:
             f'Robot {robot_id!r} has several physics slaves: say which with "twin:SLAVE_ID".',
         )
 
+    def servo_readings(self, robot_id: str, attached: set[str]) -> list[tuple[str, float, float]]:
+        """Each servo of the robot's attached, running hardware slaves as its last telemetry
+        read it, by joint: (joint, temperature C, load in percent of full torque); a joint
+        on several arms, the first arm's."""
+        found: dict[str, tuple[str, float, float]] = {}
+        for (rid, sid), driver in self._drivers.items():
+            servo_state = getattr(driver, "servo_state", None)
+            if rid != robot_id or sid not in attached or servo_state is None:
+                continue
+            if not getattr(driver, "running", False):
+                continue
+            for joint, (celsius, load) in servo_state().items():
+                found.setdefault(joint, (joint, celsius, load))
+        return list(found.values())
+
     def find(self, robot_id: str, slave_id: str | None, attached: set[str]) -> tuple[str, Any]:
         """The robot's calibratable slave (`slave_id`, or the only one)."""
         for key in [k for k in self._drivers if k[1] not in attached and k[0] == robot_id]:
@@ -199,6 +222,51 @@ class Hardware:
         return found[0]
 
 
+@dataclass
+class Parts:
+    """The bodies the live parts were made from, by robot: its slaves' by slave id, its
+    master's with the master's id. A part detached since is told by the robot itself (its
+    snapshot), so nothing here needs to hear of detaches."""
+
+    slaves: dict[str, dict[str, SlaveBody]] = field(default_factory=dict)
+    masters: dict[str, tuple[str, MasterBody]] = field(default_factory=dict)
+
+    def forget(self, robot_id: str) -> None:
+        """The robot is gone."""
+        self.slaves.pop(robot_id, None)
+        self.masters.pop(robot_id, None)
+
+    def slaves_of(self, robot: Robot) -> dict[str, SlaveBody]:
+        """The bodies of the robot's slaves still attached, in the order they were."""
+        attached = {slave.peer_id for slave in robot.snapshot().slaves}
+        made = self.slaves.get(robot.robot_id, {})
+        return {sid: body for sid, body in made.items() if sid in attached}
+
+    def master_of(self, robot: Robot) -> MasterBody | None:
+        """The body of the robot's master, if it is still the one made from it."""
+        made = self.masters.get(robot.robot_id)
+        master = robot.snapshot().master
+        if made is None or master is None or master.peer_id != made[0]:
+            return None
+        return made[1]
+
+
+class Declared(Protocol):
+    """The setup of the configuration file on a running server (`arena.server.declared`)."""
+
+    def pending_of(self, robot_id: str) -> list[dict[str, Any]]:
+        """The robot's declared parts not up yet."""
+
+    def not_ready(self) -> list[str]:
+        """A sentence for each declared part not up."""
+
+    def running(self) -> str:
+        """The running setup in the file's form."""
+
+    async def reload(self) -> dict[str, Any]:
+        """Read the file again and apply its changes."""
+
+
 class ArenaApp(QuartTrio):
     """The Quart app, carrying the manager, the settings and the metrics."""
 
@@ -214,6 +282,9 @@ class ArenaApp(QuartTrio):
     connections: set[OpenConnection]
     #: WebSockets open by caller (tenant, name), against `max_websockets_per_caller`.
     websockets_held: Counter[tuple[str, str]]
+    #: Each robot's WebSocket master's link (round trip, jitter, stale commands), by robot.
+    #: Each robot's WebSocket masters' links, by master id (an intervention makes two).
+    master_links: dict[str, dict[str, LinkQuality]]
     #: The masters' acks encoded (one entry, shared: the acks of a millisecond are one text).
     acks: AckCache
     #: Robots' tenants, and which robots each caller sees (see `access`).
@@ -224,6 +295,10 @@ class ArenaApp(QuartTrio):
     origin_policy: OriginPolicy
     #: Every robot's cameras (`arena/sensors`).
     cameras: Cameras
+    #: The bodies the live parts were made from (`GET /api/config` writes them back).
+    parts: Parts
+    #: The setup the configuration file declares, once brought up (None: no file).
+    declared: Declared | None = None
     #: This node's membership of a fleet, with `--node`.
     fleet: FleetNode | None = None
     #: Marks REST calls another node of the fleet forwarded (known only in this process).

@@ -5,11 +5,9 @@ from __future__ import annotations
 
 import ipaddress
 import os
-import tomllib
 import typing
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from arena.protocol.errors import ArenaError, ErrorCode
@@ -47,6 +45,13 @@ class ServerConfig:
     keyfile: str | None = None
     heartbeat_interval: float = 30.0  # seconds between our heartbeats to each peer
     heartbeat_timeout: float = 90.0  # a peer silent this long is dropped
+    #: A master's stamped command older than this (seconds) on arrival is dropped, never run
+    #: late (0: none is). 0.4 s: ITU-T G.114's bound for interactive use, above a long link's
+    #: delay and jitter (specs/remote-link.md).
+    command_max_age: float = 0.4
+    #: Seconds between the server's pings to each master (its round trip, for the link's
+    #: quality and the commands' age; specs/remote-link.md says why not more often).
+    link_ping_interval: float = 2.0
     joint_states_interval: float = 0.02  # at most 50 joint_states a second to each client
     shutdown_grace: float = 1.0
     record: bool = True  # record every robot to MCAP from the start
@@ -99,6 +104,9 @@ class ServerConfig:
     ros_domain: int | None = None
     ros2_listen: tuple[str, ...] = field(default=())
     ros2_connect: tuple[str, ...] = field(default=())
+    #: The TOML file these settings came from: it may declare robots, their parts and groups
+    #: too (`arena.server.declared`), brought up at start and again on SIGHUP.
+    config_file: str | None = None
 
     @property
     def jwt_enabled(self) -> bool:
@@ -125,6 +133,14 @@ class ServerConfig:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "TLS needs both --certfile and --keyfile.")
         if self.heartbeat_interval <= 0 or self.heartbeat_timeout <= 0:
             raise ArenaError(ErrorCode.INVALID_CONFIG, "Heartbeat settings must be positive.")
+        if not 0 <= self.command_max_age <= 60:
+            raise ArenaError(
+                ErrorCode.INVALID_CONFIG, "command_max_age must be from 0 (off) to 60 s."
+            )
+        if not 0.05 <= self.link_ping_interval <= 3600:
+            raise ArenaError(
+                ErrorCode.INVALID_CONFIG, "link_ping_interval must be from 0.05 to 3600 s."
+            )
         if not 1024 <= self.ws_queue_bytes <= 64 << 20:
             raise ArenaError(
                 ErrorCode.INVALID_CONFIG, "ws_queue_bytes must be from 1 KiB to 64 MiB."
@@ -227,8 +243,9 @@ def load_config(
     path = path or environ.get(CONFIG_ENV) or None
     config = ServerConfig()
     if path:
-        config = replace(config, **_read_file(path))
+        config = replace(config, **_read_file(path), config_file=path)
     fields = typing.get_type_hints(ServerConfig)
+    del fields["config_file"]  # (ARENA_CONFIG names the file)
     from_env = settings_from_env(fields, environ)
     env_keys = from_env.pop("api_keys", ())
     config = replace(config, **from_env, api_keys=config.api_keys + env_keys)
@@ -247,17 +264,12 @@ def load_config(
 
 def _read_file(path: str) -> dict[str, Any]:
     """The settings of a TOML file; unknown names and unreadable files are refused."""
-    try:
-        data = tomllib.loads(Path(path).read_text(encoding="utf-8"))
-    except (OSError, tomllib.TOMLDecodeError) as exc:
-        raise ArenaError(ErrorCode.INVALID_CONFIG, f"Cannot read {path}: {exc}") from exc
-    known = set(ServerConfig.__dataclass_fields__)
-    unknown = set(data) - known
-    if unknown:
-        raise ArenaError(
-            ErrorCode.INVALID_CONFIG,
-            f"Unknown settings in {path}: {', '.join(sorted(unknown))}.",
-        )
+    from arena.server.setup_file import parse_setup, read_toml
+
+    text, data = read_toml(path)
+    known = set(ServerConfig.__dataclass_fields__) - {"config_file"}
+    setup = parse_setup(path, text, data, known)  # the robots it declares too, whole
+    data = dict(setup.settings)
     for key in (
         "api_keys",
         "viewer_keys",

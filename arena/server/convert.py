@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any
 
 import msgspec
@@ -12,6 +13,7 @@ from arena.robot.events import FaultReported, NoticeKind, SlaveNotice, SlaveTarg
 from arena.robot.handle import Robot
 from arena.robot.motion import Command, CommandResult
 from arena.robot.snapshot import PeerSnapshot, RobotSnapshot
+from arena.server.link_quality import LinkQuality
 
 
 def command_from_wire(
@@ -146,16 +148,32 @@ def _peer(peer: PeerSnapshot) -> dict[str, Any]:
     }
 
 
-def _master(peer: PeerSnapshot | None) -> dict[str, Any] | None:
+def _master(
+    peer: PeerSnapshot | None, links: Mapping[str, LinkQuality] | None = None
+) -> dict[str, Any] | None:
     """A master as a peer, with its `kind` and `description` as `TAKEN_OVER`'s `by` names
-    them (`kind` is its `type`): a client shows what plays without having started it."""
+    them (`kind` is its `type`): a client shows what plays without having started it. A
+    WebSocket master's `link` (round trip, jitter, stale commands) from `links`, by master id."""
     if peer is None:
         return None
-    return _peer(peer) | {"kind": peer.kind, "description": peer.description}
+    shown = _peer(peer) | {
+        "kind": peer.kind,
+        "description": peer.description,
+        "paused": peer.paused,
+    }
+    if peer.figures is not None:
+        shown["figures"] = peer.figures
+    link = (links or {}).get(peer.peer_id)
+    if link is not None:
+        shown["link"] = link.as_dict()
+    return shown
 
 
-def robot_summary(robot: Robot, tenant: str = "default") -> dict[str, Any]:
-    """A robot as the REST API shows it (`tenant`: whose it is)."""
+def robot_summary(
+    robot: Robot, tenant: str = "default", links: Mapping[str, LinkQuality] | None = None
+) -> dict[str, Any]:
+    """A robot as the REST API shows it (`tenant`: whose it is; `links`: its WebSocket
+    master's, if it has one)."""
     snapshot = robot.snapshot()
     return {
         "id": snapshot.robot_id,
@@ -165,20 +183,22 @@ def robot_summary(robot: Robot, tenant: str = "default") -> dict[str, Any]:
         "state": str(snapshot.mode),
         "owner": snapshot.owner,
         "estop_reason": snapshot.estop_reason,
-        "master": _master(snapshot.master),
+        "master": _master(snapshot.master, links),
+        "paused_master": _master(snapshot.paused_master, links),
         "slaves": [_peer(s) for s in snapshot.slaves],
         "joints": msgspec.to_builtins(joint_states(robot).data),
     }
 
 
-def robot_status(robot: Robot) -> dict[str, Any]:
+def robot_status(robot: Robot, links: Mapping[str, LinkQuality] | None = None) -> dict[str, Any]:
     """Connection status: who is attached, and the safety state."""
     snapshot = robot.snapshot()
     return {
         "id": snapshot.robot_id,
         "state": str(snapshot.mode),
         "has_master": snapshot.master is not None,
-        "master": _master(snapshot.master),
+        "master": _master(snapshot.master, links),
+        "paused_master": _master(snapshot.paused_master, links),
         "slave_count": len(snapshot.slaves),
         "slaves": [_peer(s) for s in snapshot.slaves],
         "estop_reason": snapshot.estop_reason,

@@ -122,12 +122,20 @@ def _calibration_file(
 
 def usb_slave_config(body: UsbSlaveBody) -> UsbSlaveConfig:
     """A usb-slave's settings from its body."""
-    return UsbSlaveConfig(body.port, body.baudRate, body.rate, body.estop, body.joinSpeed)
+    return UsbSlaveConfig(
+        body.port,
+        body.baudRate,
+        body.rate,
+        body.estop,
+        body.joinSpeed,
+        dict(body.torqueLimit or {}),
+        body.stallTime,
+    )
 
 
 def usb_master_config(body: UsbMasterBody) -> UsbMasterConfig:
     """A usb-master's settings from its body."""
-    return UsbMasterConfig(body.port, body.baudRate, body.rate, body.deadband)
+    return UsbMasterConfig(body.port, body.baudRate, body.rate, body.deadband, body.actuated)
 
 
 def remote_link_config(body: RemoteLinkBody, takeover: bool) -> RemoteLinkConfig:
@@ -299,6 +307,21 @@ def _policy(
     python: str | None,
 ) -> PolicyMaster:
     path = policy_folder(body.path, folder, anywhere)  # first: a refusal tells nothing more
+    if body.python is not None:
+        if not anywhere:
+            raise ArenaError(
+                ErrorCode.FORBIDDEN,
+                '"python" names a program for the server to run, which only an admin of the '
+                "default tenant with every robot in scope may; leave it out (the server's own "
+                "policy Python runs the worker).",
+            )
+        if not (os.path.isfile(body.python) and os.access(body.python, os.X_OK)):
+            raise ArenaError(
+                ErrorCode.INVALID_VALUE,
+                f'"python" {body.python!r} is not a program on the server: give the path of '
+                "a Python with LeRobot, torch and msgspec.",
+            )
+        python = body.python
     if model is None:
         raise ArenaError(ErrorCode.INVALID_CONFIG, "A policy master needs the robot's model.")
     # Looked for, not imported: LeRobot and torch belong in the worker, never in the server

@@ -7,8 +7,9 @@ from typing import Any
 
 from quart import Blueprint, current_app, g
 
-from arena.protocol.errors import ArenaError, ErrorCode
+from arena.protocol.errors import ArenaError
 from arena.protocol.rest import GroupBody, ReasonBody
+from arena.server import parts
 from arena.server.base import ArenaApp, read_body
 
 blueprint = Blueprint("groups", __name__)
@@ -39,14 +40,7 @@ async def create_group() -> tuple[dict[str, Any], int]:
     body: GroupBody = await read_body(GroupBody)
     for robot_id in body.members:  # a robot the caller does not see is as if absent
         app.access.check_robot(g.principal, robot_id)
-    tenant, most = g.principal.tenant, app.arena_config.max_groups
-    if len(app.groups.all(tenant)) >= most and app.groups.find(body.id, tenant) is None:
-        raise ArenaError(
-            ErrorCode.LIMIT_REACHED,
-            f"Tenant {tenant!r} has {most} groups, the most allowed (max_groups): "
-            "delete one first.",
-        )
-    group = app.groups.create(body.id, body.members, body.stopTogether, g.principal.tenant)
+    group = parts.create_group(app, body, g.principal.tenant)
     g.audit.also(app.manager.get(robot_id) for robot_id in group.members)
     return group.describe(app.manager), 201
 

@@ -32,6 +32,8 @@ def not_ready(app: ArenaApp) -> list[str]:
     if app.recorder.active and app.recorder.error is not None:
         reasons.append(f"the recorder cannot write: {app.recorder.error}")
     reasons.extend(_slaves_not_connected(app.manager))
+    if app.declared is not None:  # declared parts not up yet, being retried
+        reasons.extend(app.declared.not_ready())
     return reasons
 
 

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import bisect
 import collections
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any
 
 from arena.robot.handle import Robot
+from arena.server.link_quality import QUALITY_LEVELS, LinkQuality
 
 #: The roles of WebSocket peers.
 ROLES = ("master", "slave", "viewer")
@@ -25,6 +26,49 @@ def _family(name: str, kind: str, text: str, samples: float | dict[str, float]) 
     return lines
 
 
+def _label(value: str) -> str:
+    """A label value as the exposition format writes it (a robot type names its joints)."""
+    return value.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
+
+
+def _robot_families(
+    robots: list[Robot], servos: Callable[[Robot], list[tuple[str, float, float]]] | None
+) -> list[str]:
+    """Each robot's lasting faults by severity, and its servos' temperature and load."""
+    faults: dict[str, float] = {}
+    temperatures: dict[str, float] = {}
+    loads: dict[str, float] = {}
+    for robot in robots:
+        snapshot = robot.snapshot()
+        peers = [*snapshot.slaves, *([snapshot.master] if snapshot.master else [])]
+        counts = collections.Counter(f.severity for peer in peers for f in peer.faults)
+        for severity, n in sorted(counts.items()):
+            faults[f'robot="{robot.robot_id}",severity="{severity}"'] = n
+        for joint, temperature, load in servos(robot) if servos else []:
+            labels = f'robot="{robot.robot_id}",joint="{_label(joint)}"'
+            temperatures[labels], loads[labels] = temperature, load
+    return [
+        *_family(
+            "arena_faults_active",
+            "gauge",
+            "Faults that last (a peer's, until it is over or a reset), by robot and severity.",
+            faults,
+        ),
+        *_family(
+            "arena_servo_temperature_celsius",
+            "gauge",
+            "Each hardware servo's temperature, by robot and joint.",
+            temperatures,
+        ),
+        *_family(
+            "arena_servo_load_percent",
+            "gauge",
+            "Each hardware servo's load in percent of its full torque, by robot and joint.",
+            {labels: round(load, 1) for labels, load in loads.items()},
+        ),
+    ]
+
+
 class Metrics:
     """Counters the server keeps at its edges; robot counters are read from the actors."""
 
@@ -39,6 +83,8 @@ class Metrics:
         self.auth_refused: collections.Counter[str] = collections.Counter()
         #: Messages a peer that stopped reading did not get, by kind (ack, joint_states...).
         self.dropped: collections.Counter[str] = collections.Counter()
+        #: Masters' commands dropped for arriving too late, by robot.
+        self.stale_commands: collections.Counter[str] = collections.Counter()
         self._latency_counts = [0] * (len(LATENCY_BUCKETS) + 1)
         self._latency_sum = 0.0
         self._retired: collections.Counter[str] = collections.Counter()  # deleted robots
@@ -112,6 +158,7 @@ class Metrics:
         self._retired.update(robot.command_counts)
         self._retired_estops += robot.estop_count
         self._retired_superseded += robot.targets_superseded
+        self.stale_commands.pop(robot.robot_id, None)  # (a per-robot series ends with it)
 
     def render(
         self,
@@ -120,12 +167,16 @@ class Metrics:
         recording: dict[str, Any] | None = None,
         connections: dict[str, int] | None = None,
         whole_server: bool = True,
+        links: Mapping[str, Mapping[str, LinkQuality]] | None = None,
+        servos: Callable[[Robot], list[tuple[str, float, float]]] | None = None,
     ) -> str:
         """The Prometheus exposition text of what a caller sees: `robots` (theirs),
         `connections` (open on those robots, by role; None: every one), `queued_bytes` (what
         those connections hold for their peers), `recording` (the recorder's status as the
         caller is told it). The server's own figures (deleted robots' counts, messages,
-        requests, refusals, latency) only with `whole_server`."""
+        requests, refusals, latency) only with `whole_server`. `links`: the robots' WebSocket
+        masters' links, by robot (those of `robots` are shown); `servos`: a robot's servos'
+        (joint, temperature C, load in percent of full torque)."""
         robots = list(robots)
         commands: collections.Counter[str] = collections.Counter()
         estops = superseded = 0
@@ -167,6 +218,8 @@ class Metrics:
                 queued_bytes,
             ),
         ]
+        lines += self._link_families(robots, links or {})
+        lines += _robot_families(robots, servos)
         if whole_server:
             lines += self._server_families()
         if recording is not None:
@@ -203,6 +256,45 @@ class Metrics:
         if whole_server:
             lines += self._latency_family()
         return "\n".join(lines) + "\n"
+
+    def _link_families(
+        self, robots: list[Robot], links: Mapping[str, Mapping[str, LinkQuality]]
+    ) -> list[str]:
+        """Each robot's WebSocket master's link (the one that drives it): round trip, jitter,
+        quality, stale commands."""
+        shown = []
+        for robot in robots:
+            master = robot.snapshot().master
+            link = links.get(robot.robot_id, {}).get(master.peer_id) if master else None
+            if link is not None:
+                shown.append((robot.robot_id, link))
+        timed = [(rid, link) for rid, link in shown if link.rtt is not None]
+        return [
+            *_family(
+                "arena_master_rtt_seconds",
+                "gauge",
+                "Round trip of the server's last ping to the robot's WebSocket master.",
+                {f'robot="{rid}"': link.rtt or 0.0 for rid, link in timed},
+            ),
+            *_family(
+                "arena_master_jitter_seconds",
+                "gauge",
+                "Jitter of the master's link (RFC 3550's estimate, one way).",
+                {f'robot="{rid}"': link.jitter for rid, link in shown},
+            ),
+            *_family(
+                "arena_master_link_quality",
+                "gauge",
+                "The master's link: 0 unknown, 1 good, 2 fair, 3 poor (the dashboard's colours).",
+                {f'robot="{rid}"': QUALITY_LEVELS[link.quality()] for rid, link in shown},
+            ),
+            *_family(
+                "arena_stale_commands_total",
+                "counter",
+                "Masters' commands dropped for arriving older than command_max_age, by robot.",
+                {f'robot="{r.robot_id}"': self.stale_commands[r.robot_id] for r in robots},
+            ),
+        ]
 
     def _latency_family(self) -> list[str]:
         lines = [

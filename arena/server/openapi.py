@@ -12,9 +12,12 @@ from arena.protocol import messages as wire
 from arena.protocol.rest import (
     CalibrationBody,
     CameraBody,
+    ComplianceBody,
     CreateRobotBody,
     EpisodeBody,
     GroupBody,
+    HandBackBody,
+    InterventionBody,
     JointsBody,
     MasterBody,
     MockSlaveBody,
@@ -26,6 +29,7 @@ from arena.protocol.rest import (
     ReplayMasterBody,
     SequenceMasterBody,
     SlaveBody,
+    TeleopBody,
     UsbMasterBody,
     UsbSlaveBody,
     WebSocketSlaveBody,
@@ -55,6 +59,10 @@ ROUTES: list[tuple[str, str, str, Any]] = [
     ("POST", "/api/estop", "Emergency-stop every robot", ReasonBody),
     ("GET", "/api/robots/{robot_id}/joints", "Joint values, virtual and real", None),
     ("PUT", "/api/robots/{robot_id}/joints", "Manual control (refused while mastered)", JointsBody),
+    ("GET", "/api/robots/{robot_id}/pose", "The hand's pose, measured and commanded", None),
+    ("PUT", "/api/robots/{robot_id}/pose", "Move the hand to a pose (solved)", wire.PoseData),
+    ("GET", "/api/robots/{robot_id}/teleop", "Teleoperation's box and dead-man time", None),
+    ("PUT", "/api/robots/{robot_id}/teleop", "Change teleoperation's box, dead-man", TeleopBody),
     ("GET", "/api/robots/{robot_id}/workspace", "The collision guard's workspace", None),
     (
         "PUT",
@@ -66,6 +74,27 @@ ROUTES: list[tuple[str, str, str, Any]] = [
     ("DELETE", "/api/robots/{robot_id}/slaves/{slave_id}", "Detach a slave", None),
     ("POST", "/api/robots/{robot_id}/master", "Attach a master driver", MasterBody),
     ("DELETE", "/api/robots/{robot_id}/master", "Detach the master", None),
+    ("POST", "/api/robots/{robot_id}/master/pause", "Pause the master (the robot holds)", None),
+    ("POST", "/api/robots/{robot_id}/master/resume", "Resume the paused master", None),
+    (
+        "POST",
+        "/api/robots/{robot_id}/intervention",
+        "Intervene: pause the master, another drives",
+        InterventionBody,
+    ),
+    (
+        "DELETE",
+        "/api/robots/{robot_id}/intervention",
+        "End the intervention (the master resumes)",
+        HandBackBody,
+    ),
+    (
+        "POST",
+        "/api/robots/{robot_id}/compliance",
+        "Hand guiding: lower joints' torque, record their motion",
+        ComplianceBody,
+    ),
+    ("DELETE", "/api/robots/{robot_id}/compliance", "End hand guiding: hold where it is", None),
     ("GET", "/api/recordings", "List recordings and the recorder's state", None),
     ("POST", "/api/recordings", "Start recording", None),
     ("POST", "/api/recordings/{name}/stop", "Stop recording (name or 'current')", None),
@@ -126,6 +155,8 @@ ROUTES: list[tuple[str, str, str, Any]] = [
     ("GET", "/api/fleet/nodes", "The nodes of this server's fleet (--node)", None),
     ("GET", "/api/fleet/robots", "Every robot of every node, with its node and state", None),
     ("POST", "/api/fleet/estop", "E-stop every robot of every node; each node's ack", ReasonBody),
+    ("GET", "/api/config", "The running setup as a configuration file (TOML)", None),
+    ("POST", "/api/config/reload", "Apply the configuration file's changes", None),
     ("GET", "/api/groups", "List robot groups and their members' states", None),
     ("POST", "/api/groups", "Create a group one master can drive", GroupBody),
     ("GET", "/api/groups/{group_id}", "Get a group", None),
@@ -151,6 +182,8 @@ SUCCESS: dict[tuple[str, str], int] = {
     ("POST", "/api/robots"): 201,
     ("POST", "/api/robots/{robot_id}/slaves"): 201,
     ("POST", "/api/robots/{robot_id}/master"): 201,
+    ("POST", "/api/robots/{robot_id}/intervention"): 201,
+    ("POST", "/api/robots/{robot_id}/compliance"): 201,
     ("POST", "/api/recordings"): 201,
     ("POST", "/api/robots/{robot_id}/replay"): 201,
     ("POST", "/api/robots/{robot_id}/cameras"): 201,
@@ -167,6 +200,8 @@ SUCCESS: dict[tuple[str, str], int] = {
 EXAMPLES: dict[type, dict[str, Any]] = {
     CreateRobotBody: {"robot_type": "so-arm100", "name": "My Robot", "id": "my-robot"},
     ReasonBody: {"reason": "operator pressed stop"},
+    InterventionBody: {"master": {"type": "mock-sequence", "sequences": ["gentle-wave"]}},
+    HandBackBody: {"resume": False},
     JointsBody: {
         "joints": [
             {"name": "Rotation", "value": 45},
@@ -191,6 +226,7 @@ EXAMPLES: dict[type, dict[str, Any]] = {
     SequenceMasterBody: {"type": "mock-sequence", "sequences": ["gentle-wave"], "loop": True},
     ReplayMasterBody: {"type": "replay", "recording": "session.mcap", "speed": 2.0},
     UsbMasterBody: {"type": "usb-master", "port": "/dev/ttyUSB1", "deadband": 0.5},
+    ComplianceBody: {"joints": ["shoulder_pan", "shoulder_lift"], "torque": 20},
     PolicyMasterBody: {
         "type": "policy",
         "path": "act_cube",
@@ -207,6 +243,8 @@ EXAMPLES: dict[type, dict[str, Any]] = {
     CameraBody: {"name": "wrist", "source": "test-pattern", "fps": 15, "width": 320, "height": 240},
     EpisodeBody: {"task": "pick up the red cube"},
     GroupBody: {"id": "pair", "members": ["demo-arm"], "stopTogether": True},
+    TeleopBody: {"box": {"min": [-0.3, -0.4, 0.02], "max": [0.3, 0.0, 0.4]}, "deadman": 200},
+    wire.PoseData: {"position": [0.0, -0.25, 0.2], "gripper": 50, "duration": 1000},
 }
 
 

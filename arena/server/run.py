@@ -24,8 +24,10 @@ from arena.server import dashboard
 from arena.server.app import create_app
 from arena.server.base import ArenaApp
 from arena.server.config import ServerConfig
+from arena.server.declared import DeclaredSetup, read_setup, reload_on_sighup
 from arena.server.listener import ArenaListener, ConnectionLimits
 from arena.server.sensors_api import stream_route
+from arena.server.setup_file import Setup
 from arena.server.shutdown import leave_slaves_as_set, stop_on_signals
 from arena.server.systemd import notify
 from arena.server.ws.router import router
@@ -112,13 +114,17 @@ async def run_server(
         from arena.extras import require
 
         require("ros2", "ROS 2 (--ros2)")
+    # The declared setup is read and checked whole before anything moves.
+    setup = read_setup(config) if config.config_file is not None else None
     sockets = bind(config)
     stop = trio.Event() if stop is None else stop
     try:
         async with trio.open_nursery() as nursery:
             if handle_signals:  # a second signal cancels the whole run: cleanups are shielded
                 nursery.start_soon(stop_on_signals, stop, nursery.cancel_scope)
-            await _run(config, sockets, stop, freeze_startup_objects, task_status)
+            await _run(
+                config, sockets, stop, freeze_startup_objects, task_status, setup, handle_signals
+            )
             nursery.cancel_scope.cancel()
     finally:
         _close(sockets)  # those never listened on (the listener closes the others)
@@ -130,6 +136,8 @@ async def _run(
     stop: trio.Event,
     freeze_startup_objects: bool,
     task_status: Any,
+    setup: Setup | None = None,
+    handle_signals: bool = False,
 ) -> None:
     metadata = {"config": json.dumps(_public_settings(config))}
     if config.node is not None:  # each file names the node and fleet it was recorded on
@@ -183,6 +191,11 @@ async def _run(
                 log.info("Foxglove: ws://%s:%d", config.host, port)
             if config.demo:
                 await _create_demo_robot(app)
+            app.declared = DeclaredSetup(app, config.config_file or "")
+            if setup is not None:
+                await app.declared.apply(setup)  # in order; what cannot come up is retried
+            if handle_signals:  # (SIGHUP's default would end the process)
+                recording_nursery.start_soon(reload_on_sighup, app.declared)
             if freeze_startup_objects:
                 tune_garbage_collector()
             await _serve(app, config, sockets, stop, task_status)

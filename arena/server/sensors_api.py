@@ -4,12 +4,20 @@ The stream (`GET /api/robots/{id}/cameras/{name}/stream`) is served by the liste
 like the WebSockets, not by hypercorn: each part is written with a deadline, so a client that
 stops reading loses its stream after `STREAM_SEND_TIMEOUT` instead of holding a slot for ever,
 and it always gets the newest frame (latest wins; a slow client skips frames).
+
+Never a backlog: after each part the stream waits until the kernel has handed it to the client
+(the socket's unsent and unacknowledged bytes, `TIOCOUTQ`, at most `STREAM_QUEUE_BYTES`) before
+taking the newest frame, so a slow client or link gets fewer frames, each fresh, instead of
+every frame ever later (specs/remote-link.md, "Video keeps up").
 """
 
 from __future__ import annotations
 
-import functools
-from typing import Any
+import fcntl
+import struct
+import termios
+from collections.abc import Callable
+from typing import Any, Protocol
 
 import trio
 from quart import Blueprint, Response, current_app, request
@@ -18,8 +26,7 @@ from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import CameraBody, EpisodeBody
 from arena.protocol.ws_frames import UpgradeRequest
 from arena.robot.episodes import Episode
-from arena.robot.handle import Robot
-from arena.sensors.camera import Camera, CameraSpec, Opener
+from arena.server import parts
 from arena.server.auth import authorize, refuse
 from arena.server.base import STATUS_FOR, ArenaApp, read_body
 from arena.server.identity import Role
@@ -32,6 +39,10 @@ MAX_STREAMS_PER_CAMERA = 8
 #: A part not taken by the client within this long ends its stream.
 STREAM_SEND_TIMEOUT = 5.0
 BOUNDARY = "arenaframe"
+#: A part is taken once at most this many of the stream's bytes wait in the kernel.
+STREAM_QUEUE_BYTES = 8 * 1024
+#: How often a stream whose client is behind looks again.
+STREAM_DRAIN_POLL = 0.01
 
 
 def _app() -> ArenaApp:
@@ -52,28 +63,8 @@ async def attach_camera(robot_id: str) -> tuple[dict[str, Any], int]:
     app = _app()
     robot = app.manager.get(robot_id)
     body: CameraBody = await read_body(CameraBody)
-    spec = CameraSpec.of(body.name, body.source, body.fps, body.width, body.height)
-    opener = None
-    if spec.twin is not None:
-        spec.check()  # a bad body is refused before the twin is looked for
-        opener = await _twin_opener(app, robot, spec, spec.twin)
-    camera = await app.cameras.attach(robot, spec, opener)
+    camera = await parts.attach_camera(app, robot, body)
     return camera.as_dict(), 201
-
-
-#: How long a twin camera waits for a physics slave just attached to build its simulation.
-TWIN_READY_TIMEOUT = 10.0
-
-
-async def _twin_opener(app: ArenaApp, robot: Robot, spec: CameraSpec, slave_id: str) -> Opener:
-    """How to open a camera of the robot's physics slave (NO_TWIN when it has none)."""
-    from arena.drivers.twin_camera import twin_recipe
-
-    attached = {slave.peer_id for slave in robot.snapshot().slaves}
-    twin = app.hardware.twin(robot.robot_id, slave_id, attached)
-    with trio.move_on_after(TWIN_READY_TIMEOUT):
-        await twin.ready.wait()
-    return functools.partial(twin_recipe, twin, spec.width, spec.height, spec.fps)
 
 
 @blueprint.get("/api/robots/<robot_id>/cameras/<name>")
@@ -90,13 +81,44 @@ async def detach_camera(robot_id: str, name: str) -> dict[str, Any]:
     return {"detached": name}
 
 
+#: The largest side a frame may be scaled to (`?width=&height=`).
+MAX_SCALED_SIDE = 4096
+
+
+def _scaled_size(args: Any) -> tuple[int, int] | None:
+    """`?width=W&height=H` (both or neither; even numbers, as JPEG's 4:2:0 needs them), else
+    None; `INVALID_VALUE` with the reason."""
+    given = [args.get(name) for name in ("width", "height")]
+    if given == [None, None]:
+        return None
+    # ASCII digits only, and short: str.isdigit() accepts "²" and int() refuses huge strings.
+    if not all(v is not None and v.isascii() and v.isdigit() and len(v) <= 5 for v in given):
+        raise ArenaError(
+            ErrorCode.INVALID_VALUE,
+            '"width" and "height" are given together, as whole numbers of pixels.',
+        )
+    width, height = (int(value) for value in given)
+    if not (2 <= width <= MAX_SCALED_SIDE and 2 <= height <= MAX_SCALED_SIDE) or (
+        width % 2 or height % 2
+    ):
+        raise ArenaError(
+            ErrorCode.INVALID_VALUE,
+            f'"width" and "height" are even numbers from 2 to {MAX_SCALED_SIDE} '
+            f"(given {width} x {height}).",
+        )
+    return width, height
+
+
 @blueprint.get("/api/robots/<robot_id>/cameras/<name>/frame")
 async def camera_frame(robot_id: str, name: str) -> Response:
-    """The newest frame as one JPEG."""
+    """The newest frame as one JPEG, at the camera's size or scaled to `?width=&height=` (a
+    policy's input size: what a remote policy fetches, so less travels)."""
+    size = _scaled_size(request.args)
     camera = _app().cameras.get(robot_id, name)
     with trio.move_on_after(2.0):
         frame = await camera.next_frame(-1)
-        response = Response(frame.jpeg, mimetype="image/jpeg")
+        jpeg = frame.jpeg if size is None else await camera.scaled(frame, *size)
+        response = Response(jpeg, mimetype="image/jpeg")
         response.headers["Cache-Control"] = "no-store"
         response.headers["X-Frame-Seq"] = str(frame.seq)
         return response
@@ -202,12 +224,56 @@ async def _serve_stream(
         return
     camera.streams += 1
     try:
-        await _send_frames(camera, stream)
+        await send_frames(camera, stream, kernel_queue(stream))
     finally:
         camera.streams -= 1
 
 
-async def _send_frames(camera: Camera, stream: trio.abc.Stream) -> None:
+class FrameSource(Protocol):
+    """What a stream needs of a camera."""
+
+    streams_dropped: int
+
+    async def next_frame(self, after: int) -> Any:
+        """The newest frame past `after` (with `seq`, `wall_time`, `jpeg`)."""
+
+
+def kernel_queue(stream: trio.abc.Stream) -> Callable[[], int] | None:
+    """How many bytes written to `stream` the kernel holds still (unsent or unacknowledged:
+    Linux's TIOCOUTQ), or None where it cannot tell (another system, a stream with no
+    socket)."""
+    transport: Any = stream
+    while not hasattr(transport, "socket") and hasattr(transport, "transport_stream"):
+        transport = transport.transport_stream  # TLS
+    sock = getattr(transport, "socket", None)
+    if sock is None or not hasattr(termios, "TIOCOUTQ"):
+        return None
+
+    def queued() -> int:
+        fd = sock.fileno()
+        if fd < 0:
+            return 0
+        answer = fcntl.ioctl(fd, termios.TIOCOUTQ, b"\0\0\0\0")
+        return int(struct.unpack("i", answer)[0])
+
+    try:
+        queued()
+    except OSError:
+        return None
+    return queued
+
+
+async def _drained(queued: Callable[[], int]) -> None:
+    """Until the kernel holds at most `STREAM_QUEUE_BYTES` of the stream."""
+    while queued() > STREAM_QUEUE_BYTES:
+        await trio.sleep(STREAM_DRAIN_POLL)
+
+
+async def send_frames(
+    camera: FrameSource, stream: trio.abc.Stream, queued: Callable[[], int] | None
+) -> None:
+    """Serve the multipart stream: the newest frame each time the client has taken the last
+    (`queued`: the kernel's bytes of the stream; None: as fast as the stream takes them)."""
     await stream.send_all(
         b"HTTP/1.1 200 OK\r\nContent-Type: multipart/x-mixed-replace; boundary="
         + BOUNDARY.encode()
@@ -226,6 +292,8 @@ async def _send_frames(camera: Camera, stream: trio.abc.Stream) -> None:
         ).encode("latin-1")
         with trio.move_on_after(STREAM_SEND_TIMEOUT) as late:
             await stream.send_all(part + frame.jpeg + b"\r\n")
+            if queued is not None:
+                await _drained(queued)
         if late.cancelled_caught:
             camera.streams_dropped += 1
             return

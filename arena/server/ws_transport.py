@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+from collections.abc import Callable
 
 import trio
 
@@ -106,6 +107,8 @@ class WebSocket:
         self.broken = False
         self._failed = False
         self._owed_close: tuple[int, str] | None = None  # (code, reason) of the close to send
+        #: Told each pong's payload (a master's link times the server's pings with it).
+        self.on_pong: Callable[[bytes], None] | None = None
 
     # -- receiving ------------------------------------------------------------------------------
 
@@ -169,6 +172,9 @@ class WebSocket:
             return message.payload
         elif message.opcode == OP_PING:
             self._pong(message.payload)
+        elif message.opcode == OP_PONG:
+            if self.on_pong is not None:
+                self.on_pong(message.payload)
         elif message.opcode == OP_CLOSE:
             try:
                 code, reason = ws_frames.parse_close(message.payload)
@@ -237,6 +243,12 @@ class WebSocket:
         self._failed = True
 
     # -- sending --------------------------------------------------------------------------------
+
+    def ping_nowait(self, payload: bytes) -> None:
+        """Queue a ping (its pong goes to `on_pong`); none to a peer that is behind, whose
+        pong would time its backlog rather than the link."""
+        if not self.backlogged:
+            self._queue(ws_frames.encode_frame(OP_PING, payload))
 
     def send_nowait(self, text: str) -> None:
         """Queue a text message (dropped silently once the connection is closing)."""

@@ -49,12 +49,14 @@ class SyncReadResult:
 @dataclass(frozen=True, slots=True)
 class Telemetry:
     """A telemetry read, decoded: present positions (raw steps), temperatures (C), loads
-    (the family's own unit, magnitude only), voltages (V), by servo id."""
+    (the family's own unit, magnitude only), voltages (V), by servo id; and the loads as
+    percents of each servo's full torque (`load_percent`: the unit torque limits are in)."""
 
     positions: dict[int, int]
     temperatures: dict[int, int]
     loads: dict[int, int]
     voltages: dict[int, float]
+    load_percent: dict[int, float] = field(default_factory=dict)
 
 
 class ServoBus(Protocol):
@@ -80,9 +82,15 @@ class ServoBus(Protocol):
     def ping(self, servo_id: int) -> int:
         """The servo's model number; `ArenaError(SERVO_TIMEOUT)` if it does not answer."""
 
-    def prepare(self, servo_ids: Sequence[int]) -> None:
+    def prepare(self, servo_ids: Sequence[int], *, limited: Sequence[int] = ()) -> None:
         """Whatever the family needs before its servos follow position goals (run at connect,
-        before the hold: Dynamixel's operating mode, say). Never moves a servo."""
+        before the hold: Dynamixel's operating mode, say). `limited`: the servos that will be
+        given a torque limit (`set_torque_limits`), where the family needs a mode for it
+        (Dynamixel's current-based position control). Never moves a servo."""
+
+    def set_torque_limits(self, limits: Mapping[int, float]) -> None:
+        """The most torque each servo named may give, in percent of its full torque; an
+        `ArenaError(INVALID_CONFIG)` for a servo that cannot be limited."""
 
     def read_positions(self, servo_ids: Sequence[int]) -> tuple[dict[int, int], SyncReadResult]:
         """Present positions of several servos in one request; and what came back."""

@@ -245,19 +245,28 @@ def decode_telemetry(
     temperature: SdkRegister,
     load: SdkRegister,
     voltage: SdkRegister,
+    full_load: Mapping[int, int] | int,
 ) -> Telemetry:
     """A sync read of the block of `size` bytes from address `start`, decoded: each field from
     its register (loads as magnitudes, voltages from tenths of a volt); servos whose reply was
-    short are left out."""
+    short are left out. `full_load`: the load register's value at full torque (by servo, or
+    one for all), for `Telemetry.load_percent`."""
 
     def field_of(register: SdkRegister, data: bytes) -> int:
         at = register.address - start
         return register.decode(data[at : at + register.size])
 
     data = {sid: d for sid, d in result.data.items() if len(d) >= size}
+    loads = {sid: abs(field_of(load, d)) for sid, d in data.items()}
+
+    def full(servo_id: int) -> int:
+        value = full_load if isinstance(full_load, int) else full_load.get(servo_id, 0)
+        return max(1, value)
+
     return Telemetry(
         positions={sid: field_of(position, d) for sid, d in data.items()},
         temperatures={sid: field_of(temperature, d) for sid, d in data.items()},
-        loads={sid: abs(field_of(load, d)) for sid, d in data.items()},
+        loads=loads,
         voltages={sid: field_of(voltage, d) / 10 for sid, d in data.items()},
+        load_percent={sid: 100.0 * value / full(sid) for sid, value in loads.items()},
     )

@@ -16,6 +16,7 @@ Only a servo silent or late on purpose (`ServoFaults`) times out, however slow t
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import select
 import threading
@@ -36,13 +37,141 @@ R = TypeVar("R", bound=SdkRegister)
 BITS_PER_BYTE = 10  # 8N1: start bit, 8 data bits, stop bit
 
 
+#: Steps of position error at which a servo pushing on a stop gives its full torque: its
+#: position loop's gain (the STS3215 and the X series both saturate within a few degrees).
+FULL_PUSH_STEPS = 40.0
+AMBIENT_C = 30.0
+#: Degrees C per second at full load (heat grows with the square of the current), and the
+#: share of the excess over ambient lost each second: a servo held at full load settles at
+#: ambient + HEATING / COOLING (110 C: it burns), at half load at a quarter of that rise.
+HEATING_C_PER_S = 4.0
+COOLING_PER_S = 0.05
+#: The load of a horn moving freely at full speed (friction, as a share of full torque).
+MOVING_LOAD = 0.15
+#: The overload protection of both families as they ship: a load past this share (the
+#: STS3215's Overload_Torque 80 %) for this long (its Protection_Time 2 s; the X series'
+#: Shutdown alike) releases the horn.
+OVERLOAD_SHARE = 0.8
+OVERLOAD_AFTER_S = 2.0
+
+
+@dataclass
+class Obstacle:
+    """A stop in a servo's way: at `at` (present steps), on the `side` (+1 or -1) of the horn
+    it was placed on; the horn does not pass it going that way."""
+
+    at: float
+    side: int
+
+
 class SimServoBase:
     """What either family's simulated servo does alike: its registers as bytes in `memory`, and
     a motion model run up to the bus's time (`advance`: the family's `_step`, then `_refresh`
-    of the registers it reports)."""
+    of the registers it reports).
+
+    The load model both share: a horn meets an `Obstacle` a test places (`place_obstacle`) and
+    stops there; pushing on it (a goal beyond it, torque on), its load grows with the position
+    error up to the torque its registers allow (`load_cap`); its temperature follows the load
+    (a first-order model: heating with the load's square, cooling toward ambient), in the
+    bus's time, so a test that passes the time in decides it exactly.
+    """
 
     memory: bytearray
     last_update: float | None
+    temperature: float
+    obstacle: Obstacle | None
+    hand: float | None  # a hand holds the horn here (present steps): it moves neither way
+    heating: float  # C/s at full load (`HEATING_C_PER_S`)
+    cooling: float  # share of the excess lost per second (`COOLING_PER_S`)
+    load: float  # present load, as a share of full (0..1)
+
+    def place_obstacle(self, at: float) -> None:
+        """A stop at `at` (present steps) on the side of the horn it lies on: the horn will not
+        pass it (as an object in the gripper's jaws, or a wall)."""
+        here = self.present_position
+        self.obstacle = Obstacle(float(at), 1 if at >= here else -1)
+
+    def remove_obstacle(self) -> None:
+        """The stop is gone: the horn moves freely again."""
+        self.obstacle = None
+
+    def hold_by_hand(self, present: float) -> None:
+        """A hand takes the horn to `present` (stronger than the servo) and holds it there:
+        the servo pushes on the hand, it does not move, until `let_go`."""
+        self.move_by_hand(present)
+        self.hand = float(present)
+
+    def let_go(self) -> None:
+        """The hand lets go of the horn."""
+        self.hand = None
+
+    def move_by_hand(self, present: float) -> None:
+        """Someone moves the horn so that it reads `present` (the family's own)."""
+        raise NotImplementedError
+
+    @property
+    def present_position(self) -> float:
+        """Where the horn is, in present steps (the family's own frame)."""
+        raise NotImplementedError
+
+    def load_cap(self) -> float:
+        """The most load (share of full, 0..1) the servo's registers let it give now."""
+        raise NotImplementedError
+
+    def blocked_move(self, move: float) -> tuple[float, bool]:
+        """The part of a `move` (steps, in the present frame) the obstacle lets through, and
+        whether it stopped the horn."""
+        if self.hand is not None:
+            return 0.0, True
+        stop = self.obstacle
+        if stop is None or move * stop.side <= 0:
+            return move, False
+        room = (stop.at - self.present_position) * stop.side
+        if room <= 0:
+            return 0.0, True
+        if abs(move) > room:
+            return room * stop.side, True
+        return move, False
+
+    def pushing(self, error: float) -> bool:
+        """Whether a goal `error` steps away presses the horn on its obstacle (or a hand)."""
+        if self.hand is not None:
+            return True
+        stop = self.obstacle
+        if stop is None or error * stop.side <= 0:
+            return False
+        return (stop.at - self.present_position) * stop.side <= 0.5
+
+    def push_load(self, error: float) -> float:
+        """The load (share of full) of a horn held `error` steps short of its goal, capped."""
+        return min(self.load_cap(), abs(error) / FULL_PUSH_STEPS)
+
+    def move_toward(self, error: float, step: float, velocity: float, max_speed: float) -> float:
+        """Move `step` steps toward a goal `error` away (all of it if the step reaches it),
+        as far as the obstacle lets: the part moved. Stopped, the horn pushes on the stop;
+        else it moves at `velocity` (of `max_speed`, its full speed) against friction."""
+        moved, blocked = self.blocked_move(error if abs(step) >= abs(error) else step)
+        if blocked:  # it ran into the stop: from now on it pushes on it
+            self.load = self.push_load(error - moved)
+        else:
+            self.velocity = velocity
+            self.load = min(self.load_cap(), MOVING_LOAD * abs(velocity) / max_speed)
+        return moved
+
+    def overload_tripped(self, dt: float) -> bool:
+        """The overload protection after `dt` more seconds at the present load: True once a
+        load past OVERLOAD_SHARE has lasted OVERLOAD_AFTER_S (the family then drops torque)."""
+        if self.load < OVERLOAD_SHARE:
+            self.stall_time = 0.0
+            return False
+        self.stall_time += dt
+        return self.stall_time >= OVERLOAD_AFTER_S
+
+    def heat(self, dt: float) -> None:
+        """The temperature after `dt` seconds at the present load: exact for a constant load
+        (the first-order model's own solution), so a long step does not overshoot."""
+        settled = AMBIENT_C + self.heating * self.load**2 / self.cooling
+        self.temperature = settled + (self.temperature - settled) * math.exp(-self.cooling * dt)
 
     def _step(self, dt: float) -> None:
         raise NotImplementedError

@@ -43,6 +43,7 @@ class Reading:
     temperatures: dict[int, int] | None = None
     loads: dict[int, int] | None = None
     voltages: dict[int, float] | None = None
+    load_percent: dict[int, float] | None = None  # loads in percent of full torque
 
 
 @dataclass(frozen=True, slots=True)
@@ -89,6 +90,10 @@ class WorkerSettings:
     frames: Callable[[ServoBus], Frames] | None = None
     #: What to do about a servo outside its frame, added to the refusal.
     frame_hint: str = ""
+    #: Percent of full torque each servo may give, by id (absent: 100), written at every
+    #: connection before the hold (`ServoBus.set_torque_limits`); the servos named are
+    #: prepared for it (`ServoBus.prepare`'s `limited`). specs/force.md.
+    torque_limits: dict[int, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -125,6 +130,11 @@ class BusWorker:
         self.torque_at_exit: bool | None = None
         self.frames: Frames = {}  # this connection's (`WorkerSettings.frames`)
         self.torqued = False  # the torque the last successful `hold` set
+        #: The torque limits in force (percent by servo id): the settings', lowered at run
+        #: time (`set_torque_limits`: stall, heat, compliance); written again at a reconnection.
+        self.torque_limits = {
+            sid: self.settings.torque_limits.get(sid, 100.0) for sid in self.servo_ids
+        }
         #: Set from another thread: raise again every fault that lasts (`HealthMonitor.rearm`).
         self.rearm_health = False
         self._bus: ServoBus | None = None
@@ -276,7 +286,8 @@ class BusWorker:
                     ErrorCode.SERVO_WRONG_MODEL,
                     f"Servo {servo_id} is model {model}, not {expected[1]}.",
                 )
-        bus.prepare(self.servo_ids)
+        bus.prepare(self.servo_ids, limited=sorted(self.settings.torque_limits))
+        bus.set_torque_limits(self.torque_limits)
         self.frames = self.settings.frames(bus) if self.settings.frames else {}
         if self.frames:  # torque or not: a servo a turn away reads wrong values too
             check_frames(read_positions(bus, self.servo_ids), self.frames, self.settings.frame_hint)
@@ -284,6 +295,12 @@ class BusWorker:
         torque = self.torque_wanted
         self.hold(bus, torque=torque)
         return torque
+
+    def set_torque_limits(self, bus: ServoBus, limits: Mapping[int, float]) -> None:
+        """New torque limits (percent by servo id) for the servos named (call it in the worker
+        thread); kept for the next connection."""
+        bus.set_torque_limits(limits)
+        self.torque_limits.update(limits)
 
     def hold(self, bus: ServoBus, *, torque: bool) -> dict[int, int]:
         """`hold_here` with this arm's speed and frames (call it in the worker thread)."""
@@ -321,6 +338,7 @@ class BusWorker:
                 temperatures=values.temperatures,
                 loads=values.loads,
                 voltages=values.voltages,
+                load_percent=values.load_percent,
             )
         else:
             positions, result = self._bus.read_positions(self.servo_ids)

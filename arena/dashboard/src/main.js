@@ -2,6 +2,7 @@
 // stop buttons, the API key, and the periodic refresh of what the sockets do not push.
 
 import { ApiError, apiKey, call, callReporting, setApiKey } from "./api.js";
+import { HandDriver } from "./drive.js";
 import { RecordingsPanel } from "./recordings.js";
 import { masterText, RobotView } from "./robot_view.js";
 import { SecondClickTakeover } from "./takeover.js";
@@ -106,7 +107,14 @@ function chooseForTheVisitor() {
   }
 }
 
+// "Drive the hand" (drive.js): the keyboard as the robot's master while it is on.
+const hand = new HandDriver((text) => {
+  $("drive-status").textContent = text;
+  $("drive-hand").textContent = hand.driving ? "Stop driving" : "Drive the hand";
+});
+
 function closeView() {
+  if (hand.driving) hand.stop();
   if (view) view.close();
   view = null;
   $("robot-panel").hidden = true;
@@ -203,6 +211,11 @@ function wireRobotControls() {
     );
     if (answer) await refresh();
   });
+  $("drive-hand").addEventListener("click", () => {
+    if (hand.driving) hand.stop();
+    else hand.start(selectedId());
+    $("drive-hand").textContent = hand.driving ? "Stop driving" : "Drive the hand";
+  });
   $("stop-sequence").addEventListener("click", () => act("POST", `${robotPath()}/stop-sequence`));
   $("add-mock").addEventListener("click", () =>
     act("POST", `${robotPath()}/slaves`, { type: "mock-slave" }),
@@ -223,6 +236,27 @@ function wireRobotControls() {
     }),
   );
   $("episode-stop").addEventListener("click", () => act("POST", `${robotPath()}/episodes/stop`));
+  $("master-pause").addEventListener("click", () => act("POST", `${robotPath()}/master/pause`));
+  $("master-resume").addEventListener("click", () => act("POST", `${robotPath()}/master/resume`));
+  $("intervene").addEventListener("click", async () => {
+    const shown = view;
+    const answer = await act("POST", `${robotPath()}/intervention`, {});
+    if (answer && shown === view && view) {
+      view.intervening = true; // the sliders are this page's now (its PUT .../joints)
+      if (view.state) view.applyState(view.state);
+    }
+  });
+  $("hand-back").addEventListener("click", () => act("DELETE", `${robotPath()}/intervention`));
+  // Space pauses and resumes the master for whoever has the page focused (not while typing,
+  // nor on a button, which space presses by itself).
+  document.addEventListener("keydown", (event) => {
+    if (event.key !== " " || !view || !view.state) return;
+    if (event.target.closest && event.target.closest("input, select, textarea, button, dialog")) return;
+    const mode = view.state.mode;
+    if (mode !== "mastered" && mode !== "paused") return;
+    event.preventDefault();
+    act("POST", `${robotPath()}/master/${mode === "mastered" ? "pause" : "resume"}`);
+  });
   $("episode-discard").addEventListener("click", () => act("POST", `${robotPath()}/episodes/discard`));
   // Deleting needs a second click on the same button: no modal dialog to dismiss on a phone.
   const remove = $("delete-robot");

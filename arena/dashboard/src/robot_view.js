@@ -33,6 +33,19 @@ function attachedText(summary) {
   return "No master, no slave";
 }
 
+/** A WebSocket master's link beside it: green, amber or red (the server's `quality`), with
+ * its round trip, jitter and the commands dropped for arriving too late. */
+export function linkTag(link) {
+  const ms = (seconds) => (seconds == null ? "?" : `${Math.round(seconds * 1000)}`);
+  const tag = document.createElement("span");
+  tag.className = `tag link ${link.quality}`;
+  tag.textContent = `link ${ms(link.rtt)} ms ±${ms(link.jitter)}` + (link.dropped_stale ? `, ${link.dropped_stale} stale` : "");
+  tag.title =
+    `${link.quality}: round trip ${ms(link.rtt)} ms, jitter ${ms(link.jitter)} ms, ` +
+    `${link.dropped_stale} commands dropped for arriving over ${ms(link.max_age)} ms old`;
+  return tag;
+}
+
 /** What a master is, in the server's words: "sequence 'gentle-wave' (master 'master-3',
  * mock-sequence)"; without a description, "master 'alice' (websocket)". */
 export function masterText(master) {
@@ -61,6 +74,7 @@ export class RobotView {
     this.pending = new Map(); // joint -> value not yet sent
     this.sending = false;
     this.closed = false;
+    this.intervening = false; // this page's operator intervenes (its sliders drive)
     colourLegend();
     this.buildJoints(summary.joints);
     this.applySummary(summary);
@@ -193,7 +207,9 @@ export class RobotView {
             : `/api/robots/${this.robotId}/slaves/${encodeURIComponent(peer.id)}`,
         ),
       );
-      item.append(label, tag, detach);
+      item.append(label, tag);
+      if (peer.link) item.append(linkTag(peer.link));
+      item.append(detach);
       // Its faults that last (each until it is over, a reset, or the peer leaves); a loss
       // while it lasts is its error without being one of them. The socket's `fault`
       // messages log each as it comes and goes.
@@ -309,8 +325,16 @@ export class RobotView {
       this.log(`now ${state.mode}${why}`, state.mode === "estopped");
       this.onChanged();
     }
-    const locked = state.mode !== "idle";
+    if (previous && previous.mode === "intervened" && state.mode !== "intervened") {
+      this.intervening = false; // handed back (or e-stopped): the sliders are not ours now
+    }
+    // The sliders drive an idle robot, or one this page intervenes on (as its operator).
+    const locked = state.mode !== "idle" && !this.intervening;
     for (const { slider } of this.sliders.values()) slider.disabled = locked;
+    $("master-pause").disabled = state.mode !== "mastered";
+    $("master-resume").disabled = state.mode !== "paused";
+    $("intervene").disabled = state.mode !== "mastered" && state.mode !== "paused";
+    $("hand-back").disabled = state.mode !== "intervened";
     $("estop").disabled = state.mode === "estopped";
     $("reset").disabled = state.mode !== "estopped";
     this.showMaster();
@@ -330,7 +354,13 @@ export class RobotView {
     const kind = master ? master.kind || master.type : ""; // (`type`: a server of before kinds)
     let text;
     if (state.mode === "estopped") text = `E-stopped: ${state.estop_reason || "no reason given"}. Reset to move again.`;
-    else if (master && PLAYERS.has(kind)) {
+    else if (state.mode === "intervened" && this.intervening) {
+      text = "You intervene: the sliders drive the robot; the paused master waits for Hand back.";
+    } else if (state.mode === "intervened" && master) {
+      text = `Corrected by ${masterText(master)}: the paused master waits for the hand-back.`;
+    } else if (state.mode === "paused" && master) {
+      text = `Paused: ${masterText(master)} waits; the robot holds. Resume to go on.`;
+    } else if (master && PLAYERS.has(kind)) {
       text = `Playing ${masterText(master)}: the sliders are locked.`;
     } else if (master) text = `Held by ${masterText(master)}: the sliders are locked.`;
     else if (state.owner) text = `Held by master '${state.owner}': the sliders are locked.`;

@@ -17,9 +17,10 @@ from arena.robot.links import MasterLink
 from arena.robot.manager import estop_together
 from arena.robot.safety import Mode
 from arena.server import convert
+from arena.server.link_quality import LinkQuality
 from arena.server.ws.connection import CLOSE_NORMAL, Connection, flag, peer_ids
 from arena.server.ws.forwarder import FORWARDED, QUEUE_LENGTH, RobotEventForwarder
-from arena.server.ws.master import release_master, send_released
+from arena.server.ws.master import release_master, send_released, stale_refusal
 
 
 class GroupMembers:
@@ -37,6 +38,8 @@ class GroupMembers:
     ) -> None:
         self.connection = connection
         self.links = links
+        #: Its link's clock estimate, for stale commands (None: not checked).
+        self.quality: LinkQuality | None = None
         self.group_id = group_id
         self.robots = {robot.robot_id: robot for robot in robots}
         self.master_id = master_id
@@ -89,6 +92,9 @@ async def serve(connection: Connection, group: Group) -> None:
         robot.audit(connection.principal.audit_name(), "connect group master", master_id)
     connection.count_open(group.members)
     members = GroupMembers(connection, dict(links), group_id, robots, master_id)
+    config = app.arena_config
+    # (A group's socket is not pinged: its clock estimate rests on the stamps alone.)
+    members.quality = LinkQuality(master_id, config.command_max_age, config.link_ping_interval)
     try:
         with contextlib.ExitStack() as stack:
             queues = [
@@ -149,6 +155,13 @@ async def _handle(members: GroupMembers, message: wire.MasterMessage) -> None:
     for link in members.links.values():
         link.alive()
     if isinstance(message, wire.CommandMessage):
+        quality = members.quality
+        if quality is not None and not quality.admit(message.data.timestamp):
+            for robot_id in members.links:
+                connection.app.metrics.stale_commands[robot_id] += 1
+            refusal = stale_refusal(quality)
+            await connection.send_error(ErrorCode.STALE_COMMAND, refusal.message)
+            return
         await _command(members, message.data)
     elif isinstance(message, wire.EStopMessage):
         reason = (message.data.reason if message.data else None) or "e-stop from group master"

@@ -14,8 +14,11 @@ from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot.events import MasterNotice
 from arena.robot.handle import Robot
 from arena.robot.links import DETACHED_LINK, MasterLink
+from arena.robot.motion import CommandResult
 from arena.server import convert
 from arena.server.base import ArenaApp
+from arena.server.hand_api import command_pose
+from arena.server.link_quality import LinkQuality
 from arena.server.ws.acks import AckCache
 from arena.server.ws.backpressure import Outgoing
 from arena.server.ws.connection import (
@@ -27,6 +30,8 @@ from arena.server.ws.connection import (
     peer_ids,
 )
 from arena.server.ws.forwarder import FORWARDED, QUEUE_LENGTH, RobotEventForwarder
+from arena.server.ws.hand_drive import HandDrive
+from arena.server.ws.remote_policy import RemotePolicy
 from arena.server.ws.sequence_player import SequencePlayer
 
 
@@ -36,6 +41,7 @@ async def serve(connection: Connection, robot_id: str) -> None:
     if robot is None:
         return
     app = connection.app
+    intervene = flag(connection.args.get("intervene"))  # the running master waits, paused
     try:
         link = await robot.connect_master(
             connection.args.get("id") or f"ws-master-{next(peer_ids)}",
@@ -43,13 +49,18 @@ async def serve(connection: Connection, robot_id: str) -> None:
             takeover=flag(connection.args.get("takeover")),
             heartbeat_timeout=app.arena_config.heartbeat_timeout,
             description="WebSocket client",
+            intervene=intervene,
         )
     except ArenaError as error:
         await connection.refuse(error)
         return
     connection.count_open([robot_id])
-    takeover = " (takeover)" if flag(connection.args.get("takeover")) else ""
-    robot.audit(connection.principal.audit_name(), "connect master" + takeover, link.master_id)
+    config = app.arena_config
+    quality = LinkQuality(link.master_id, config.command_max_age, config.link_ping_interval)
+    app.master_links.setdefault(robot_id, {})[link.master_id] = quality
+    how = " (intervene)" if intervene else ""
+    how = " (takeover)" if flag(connection.args.get("takeover")) else how
+    robot.audit(connection.principal.audit_name(), "connect master" + how, link.master_id)
     try:
         await connection.send(convert.state(robot.snapshot()))
         with robot.subscribe(maxlen=QUEUE_LENGTH, kinds=FORWARDED) as events:
@@ -62,14 +73,35 @@ async def serve(connection: Connection, robot_id: str) -> None:
                 nursery.start_soon(forwarder.run)
                 nursery.start_soon(_forward_master_notices, connection, link, player)
                 nursery.start_soon(connection.heartbeats)
-                await _master_reader(connection, robot, link, forwarder, app.acks, player, nursery)
+                nursery.start_soon(_ping, connection, quality)
+                await _master_reader(
+                    connection, robot, link, forwarder, app.acks, player, nursery, quality
+                )
 
             await connection.run(body)
     finally:
+        masters = app.master_links.get(robot_id, {})
+        if masters.get(link.master_id) is quality:
+            del masters[link.master_id]
+            if not masters:
+                del app.master_links[robot_id]
         try:
             await release_master(app, link)
         finally:  # counted closed once the robot has heard (tests wait on it)
             connection.count_closed()
+
+
+async def _ping(connection: Connection, quality: LinkQuality) -> None:
+    """Ping the master every `ping_interval` to time its round trip (a socket carried from
+    another node of the fleet has no pings: its link is the tunnel's)."""
+    ws = connection.ws
+    ping = getattr(ws, "ping_nowait", None)
+    if ping is None:
+        return
+    ws.on_pong = quality.pong  # type: ignore[attr-defined]
+    while True:
+        ping(quality.ping_payload())
+        await trio.sleep(quality.ping_interval)
 
 
 async def release_master(app: ArenaApp, link: MasterLink) -> None:
@@ -89,7 +121,11 @@ async def _forward_master_notices(
         if notice.kind == "detached":
             await _send_detached(connection, notice)
             return
-        if notice.kind == "stopped":  # a move of this master's stopped after its ack
+        if notice.kind == "paused":
+            await connection.send(wire.PauseNotice(timestamp=wire.now_iso()))
+        elif notice.kind == "resumed":
+            await connection.send(wire.ResumeNotice(timestamp=wire.now_iso()))
+        elif notice.kind == "stopped":  # a move of this master's stopped after its ack
             code = str(notice.code or ErrorCode.COLLISION)
             data = wire.ErrorData(code, notice.message, severity=Severity.WARNING)
             await connection.send(wire.ErrorMessage(timestamp=wire.now_iso(), data=data))
@@ -125,22 +161,37 @@ async def _master_reader(
     acks: AckCache,
     player: SequencePlayer,
     nursery: trio.Nursery,
+    quality: LinkQuality,
 ) -> None:
     """A master's messages until it leaves; errors are answered, not fatal.
 
     The frames of a burst that are in hand together are taken at once, and each run of
     commands among them is decided in one pass (`decide_commands`). Every command is still
     decided, recorded and acknowledged on its own and in order; what a run shares is the
-    forwarder's hold and one write of the answers.
+    forwarder's hold and one write of the answers. A stamped command that arrives older than
+    `command_max_age` is refused STALE_COMMAND instead (it still shows the master is there).
     """
-    handle = partial(_handle_master_message, connection, robot, link, player, nursery)
+    policy = RemotePolicy(robot, link)
+    drive = HandDrive(connection, robot, link)
+    handle = partial(
+        _handle_master_message, connection, robot, link, player, policy, nursery, drive
+    )
+    run: list[wire.CommandData] = []
+
+    async def decide_run(burst_goes_on: bool) -> bool:
+        """Decide the commands in hand, if any; False once the robot is gone."""
+        if not run:
+            return True
+        policy.commanded()
+        return await decide_commands(connection, link, forwarder, run, burst_goes_on, acks)
+
     while True:
         raw = await connection.receive_text()
         if raw is None:
             return
         started = time.perf_counter()
         frames, closed = connection.in_hand(raw)
-        run: list[wire.CommandData] = []
+        run = []
         for frame in frames:
             message: wire.MasterMessage | ArenaError
             if isinstance(frame, bytes):
@@ -151,9 +202,17 @@ async def _master_reader(
                 except ArenaError as error:
                     message = error
             if isinstance(message, wire.CommandMessage):
-                run.append(message.data)
+                if quality.admit(message.data.timestamp):
+                    run.append(message.data)
+                    continue
+                if not await decide_run(True):
+                    return
+                run = []
+                link.alive()
+                connection.app.metrics.stale_commands[robot.robot_id] += 1
+                await connection.send(acks.ack(stale_refusal(quality)))
                 continue
-            if run and not await decide_commands(connection, link, forwarder, run, True, acks):
+            if not await decide_run(True):
                 return
             run = []
             if isinstance(message, ArenaError):
@@ -164,13 +223,21 @@ async def _master_reader(
             except ArenaError as error:
                 if not await connection.answer_error(error):
                     return
-        if run and not await decide_commands(
-            connection, link, forwarder, run, connection.ws.holds_more(), acks
-        ):
+        if not await decide_run(connection.ws.holds_more()):
             return
         connection.app.metrics.observe_latency(time.perf_counter() - started, len(frames))
         if closed:
             return
+
+
+def stale_refusal(quality: LinkQuality) -> CommandResult:
+    """The answer to a command that came too late."""
+    age = quality.last_age or 0.0
+    return CommandResult.refused(
+        ErrorCode.STALE_COMMAND,
+        f"The command arrived {age * 1000:.0f} ms after it was sent, more than "
+        f"command_max_age ({(quality.max_age or 0) * 1000:.0f} ms): dropped, not run late.",
+    )
 
 
 async def decide_commands(
@@ -224,7 +291,9 @@ async def _handle_master_message(
     robot: Robot,
     link: MasterLink,
     player: SequencePlayer,
+    policy: RemotePolicy,
     nursery: trio.Nursery,
+    drive: HandDrive,
     message: wire.MasterMessage,
 ) -> None:
     """Any message of a master but a command (those go to `decide_commands`)."""
@@ -245,6 +314,23 @@ async def _handle_master_message(
     elif isinstance(message, wire.ResetMessage):
         await robot.reset()  # (a refused reset changed nothing: not recorded)
         robot.audit(connection.principal.audit_name(), "reset over WebSocket", link.master_id)
+    elif isinstance(message, wire.InferenceMessage):
+        policy.inferred(message.data)
+    elif isinstance(message, wire.PolicyMessage):
+        policy.declare(message.data, nursery)
+        robot.audit(
+            connection.principal.audit_name(),
+            f"remote policy at {message.data.fps:g} fps",
+            link.master_id,
+        )
+        await connection.send(
+            wire.AckMessage(timestamp=wire.now_iso(), data=wire.AckData("accepted"))
+        )
+    elif isinstance(message, wire.EeVelocityMessage):
+        drive.velocity(message.data, nursery)
+    elif isinstance(message, wire.PoseMessage):
+        result, _ = await command_pose(robot, message.data, link.command, "pose")
+        await connection.send(convert.ack(result))
     elif isinstance(message, wire.HeartbeatMessage):
         await connection.send(wire.HeartbeatMessage(timestamp=wire.now_iso()))
     elif isinstance(message, wire.ReleaseMessage):

@@ -1,0 +1,111 @@
+"""The actor's carrying out of who masters the robot (`arena.robot.actor.Actor` is one): a
+master that goes, one that is paused or resumed, an intervention that starts or ends, and the
+events each publishes. Split off the actor for its length; it decides nothing (the safety
+table has, `arena.robot.safety`)."""
+
+from __future__ import annotations
+
+import logging
+import time as wallclock
+from collections.abc import Callable
+from typing import Any
+
+from arena.protocol.errors import ErrorCode
+from arena.robot import safety
+from arena.robot.core import RobotCore
+from arena.robot.events import InterventionChanged, MasterNotice, RobotEvent, TakenBy
+from arena.robot.links import MasterLink, SlaveLink
+from arena.robot.peers import FaultKeys, MasterPeer, Peer, Peers, SlavePeer
+
+log = logging.getLogger("arena.robot.actor")
+
+Master = MasterPeer[MasterLink]
+Slave = SlavePeer[SlaveLink]
+
+
+class MasterKeeping:
+    """What the actor does when the safety table changes its masters."""
+
+    robot_id: str
+    core: RobotCore
+    peers: Peers[MasterLink, SlaveLink]
+    _publish: Callable[[RobotEvent], None]
+
+    def _displaced(self, effect: safety.DetachMaster, now: float) -> None:
+        """A master displaced (a takeover, an e-stop that ends a program, an intervention's
+        paused master that ends): the table says why."""
+        master = self.peers.either_named(effect.master_id)
+        if master is not None and self.peers.remove(master):
+            by = effect.by
+            taken_by = None if by is None else TakenBy(by.master_id, by.kind, by.description)
+            self._master_gone(master, effect.code, effect.message, "detached", now, taken_by)
+
+    def _pause_master(self, effect: safety.PauseMaster | safety.ResumeMaster, now: float) -> None:
+        """Tell a master (its link, and through it its driver) that it is paused or resumed."""
+        paused = isinstance(effect, safety.PauseMaster)
+        master = self.peers.either_named(effect.master_id)
+        if master is not None:
+            master.link.set_paused(paused, now)
+            change = "paused" if paused else "resumed"
+            log.info("robot %s: master %s %s", self.robot_id, master.peer_id, change)
+            self._peer_changed(master, change, "", now)
+
+    def _intervention(self, effect: safety.Intervention, now: float) -> None:
+        """An intervention starts (the attach records the peers) or ends: the intervening
+        master goes, the paused one is the master again."""
+        if effect.ended:
+            intervening = self.peers.hand_back()
+            if intervening is not None:
+                reason = effect.message or "the intervention ended"
+                self._master_gone(intervening, effect.code, reason, "released", now)
+        change = "ended" if effect.ended else "started"
+        log.info(
+            "robot %s: intervention by %s %s (%s waits)",
+            self.robot_id,
+            effect.master_id,
+            change,
+            effect.paused,
+        )
+        self._publish(
+            InterventionChanged(
+                self.robot_id, change, effect.master_id, effect.paused, now, wallclock.time()
+            )
+        )
+
+    def _settle_master(self, code: ErrorCode | None, reason: str, change: str, now: float) -> None:
+        """After a master's own leaving was applied: if the safety state no longer names it as
+        owner (`Peers.settle`), it is gone."""
+        master = self.peers.settle(self.core.state.owner)
+        if master is not None:
+            self._master_gone(master, code, reason, change, now)
+
+    def _master_gone(
+        self,
+        master: Master,
+        code: ErrorCode | None,
+        reason: str,
+        change: str,
+        now: float,
+        by: TakenBy | None = None,
+    ) -> None:
+        """A master no longer attached: forgotten by the core, told why, its driver stopped."""
+        self.core.forget_master(master.peer_id)
+        link = master.link
+        if code is not None:
+            link.notices.put(MasterNotice("detached", code, reason, by=by))
+        link.detached.set()
+        link.notices.close()
+        if master.stop is not None:
+            master.stop()
+        self._faults_over(master, f"the master {change}", now)
+        log.info("robot %s: master %s %s (%s)", self.robot_id, master.peer_id, change, reason)
+        self._peer_changed(master, change, reason, now)
+
+    def _faults_over(self, peer: Peer[Any], why: str, now: float, keys: FaultKeys = None) -> None:
+        for event in peer.faults_over(self.robot_id, why, now, wallclock.time(), keys):
+            self._publish(event)
+
+    def _peer_changed(
+        self, peer: Peer[Any], change: str, reason: str, now: float, code: str | None = None
+    ) -> None:
+        self._publish(peer.changed(self.robot_id, change, reason, now, wallclock.time(), code))

@@ -1,0 +1,132 @@
+"""Stall and heat protection, without I/O: which joints stopped against something, and what
+torque each servo may give now.
+
+A servo that pushes against an obstacle (a gripper on an object, an arm on a table) holds its
+goal out of reach: its load stays high and it heats (I squared R), and a gripper held shut burns
+out within minutes. `ForceGuard` is fed each telemetry read (positions, loads in percent of full
+torque, temperatures), with the goals the driver last sent and the bus thread's own clock, and
+says what to do: a joint whose load stays at or above `stall_share` of its torque limit while it
+is more than `stall_steps` short of a goal that has not changed for `stall_time` is stalled
+(`Stalled`); the driver stops pushing and the guard lowers a stalled gripper's torque limit to
+`hold_torque` (it keeps its grip, gently); a new goal releases it (`release`). A servo at or
+above the warm temperature (the health monitor's `hot`) gets its limit scaled by `hot_share`
+until it is `cool_margin` below it. specs/force.md gives the reasons and the values.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection, Mapping
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True, slots=True)
+class ForceSettings:
+    """The thresholds of `ForceGuard` (see the module docstring)."""
+
+    stall_time: float = 1.0
+    stall_share: float = 0.5
+    stall_steps: int = 20  # about 1.8 degrees of a 4096-step turn
+    hold_torque: float = 25.0  # percent: LeRobot's gripper Overload_Torque (so_follower.py)
+    hot: float = 55.0
+    hot_share: float = 0.5
+    cool_margin: float = 5.0
+
+
+@dataclass(frozen=True, slots=True)
+class Stalled:
+    """A servo stalled: where it is, the goal it could not reach, the load it pushed with."""
+
+    servo_id: int
+    present: int
+    goal: int
+    load: float  # percent of full torque
+    limit: float  # its torque limit then, percent
+
+
+@dataclass
+class _Joint:
+    goal: int | None = None
+    pushing_since: float | None = None
+    stalled: bool = False
+    hot: bool = False
+
+
+@dataclass
+class ForceGuard:
+    """See the module docstring. `limits`: each servo's configured torque limit (percent;
+    absent: 100); `grippers`: the servos that keep a holding torque when stalled."""
+
+    limits: Mapping[int, float]
+    grippers: Collection[int] = ()
+    settings: ForceSettings = field(default_factory=ForceSettings)
+    #: Limits set at run time over `limits` (compliance: a hand moves the joint, so it is
+    #: never taken for a stall while it lasts).
+    overrides: dict[int, float] = field(default_factory=dict)
+    _joints: dict[int, _Joint] = field(default_factory=dict)
+
+    def _joint(self, servo_id: int) -> _Joint:
+        return self._joints.setdefault(servo_id, _Joint())
+
+    def stalled(self, servo_id: int) -> bool:
+        """Whether the servo is stalled now (until `release`)."""
+        return self._joint(servo_id).stalled
+
+    def goal(self, servo_id: int, steps: int) -> None:
+        """The driver sent `steps` as the servo's goal: a goal that moved restarts the wait."""
+        joint = self._joint(servo_id)
+        if joint.goal is None or abs(steps - joint.goal) > self.settings.stall_steps:
+            joint.pushing_since = None
+        joint.goal = steps
+
+    def release(self, servo_id: int) -> None:
+        """A new command for a stalled servo: it may push again (its limit comes back)."""
+        joint = self._joint(servo_id)
+        joint.stalled = False
+        joint.pushing_since = None
+
+    def limit(self, servo_id: int) -> float:
+        """The torque limit the servo should have now (percent): its own, lowered while it is
+        hot, and a stalled gripper's holding torque."""
+        joint = self._joint(servo_id)
+        limit = self.overrides.get(servo_id, self.limits.get(servo_id, 100.0))
+        if joint.hot:
+            limit *= self.settings.hot_share
+        if joint.stalled and servo_id in self.grippers:
+            limit = min(limit, self.settings.hold_torque)
+        return limit
+
+    def observe(
+        self,
+        now: float,
+        positions: Mapping[int, int],
+        loads: Mapping[int, float],
+        temperatures: Mapping[int, float],
+    ) -> list[Stalled]:
+        """A telemetry read at `now` (seconds, any monotonic clock): the servos it finds
+        newly stalled. Temperatures change `limit` (the caller writes what changed)."""
+        found: list[Stalled] = []
+        for servo_id, celsius in temperatures.items():
+            joint = self._joint(servo_id)
+            if celsius >= self.settings.hot:
+                joint.hot = True
+            elif celsius < self.settings.hot - self.settings.cool_margin:
+                joint.hot = False
+        for servo_id, present in positions.items():
+            joint = self._joint(servo_id)
+            load = loads.get(servo_id)
+            if joint.stalled or joint.goal is None or load is None or servo_id in self.overrides:
+                continue
+            limit = self.limit(servo_id)
+            pushing = (
+                abs(joint.goal - present) > self.settings.stall_steps
+                and load >= self.settings.stall_share * limit
+            )
+            if not pushing:
+                joint.pushing_since = None
+                continue
+            if joint.pushing_since is None:
+                joint.pushing_since = now
+            if now - joint.pushing_since >= self.settings.stall_time:
+                joint.stalled = True
+                found.append(Stalled(servo_id, present, joint.goal, load, limit))
+        return found
