@@ -45,6 +45,10 @@ FEATURES = [
     "gripper.pos",
 ]
 FPS = 30
+#: Degrees within which a replayed stream's targets pass by each of its actions (2.9 at worst
+#: measured: the trajectory rounds off the recorded 20 fps steps; see
+#: `test_import_then_replay_under_mock_clock_gives_the_dataset_actions`).
+PASSES_BY = 3.5
 JAW = MODEL.joint("Jaw")
 assert JAW is not None
 
@@ -231,15 +235,22 @@ async def test_import_then_replay_under_mock_clock_gives_the_dataset_actions(
     first = await trio.to_thread.run_sync(replay_alone)
     second = await trio.to_thread.run_sync(replay_alone)
     assert first == second  # deterministic
-    # every action is reached, in order: the arm passes through the dataset's poses
+    # The arm passes by every action, in order, and ends exactly on the last. By, not
+    # through: the replay is a 20 fps stream, which the trajectory follows at the stream's
+    # velocity instead of stopping at each action (specs/motion.md), so a target at the
+    # 100 Hz ticks comes within `PASSES_BY` degrees of each action on every joint.
     reached = 0
     for timed in commands:
         goal = {g.name: g.value for g in timed.command.joints}
-        while reached < len(first) and not all(
-            abs(first[reached][name] - value) < 1e-6 for name, value in goal.items()
-        ):
-            reached += 1
-        assert reached < len(first), f"the replay never reached {goal}"
+
+        def off(targets: dict[str, float], goal: dict[str, float] = goal) -> float:
+            return max(abs(targets[name] - value) for name, value in goal.items())
+
+        near = [k for k in range(reached, len(first)) if off(first[k]) <= PASSES_BY]
+        assert near, f"the replay never came near {goal}"
+        reached = near[0]
+    last = {g.name: g.value for g in commands[-1].command.joints}
+    assert all(first[-1][name] == value for name, value in last.items())
 
 
 async def test_export_says_what_is_missing(

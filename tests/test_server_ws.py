@@ -906,11 +906,9 @@ async def test_after_a_stall_the_acknowledgments_carry_the_joint_states_again(
                     carried.append(any(isinstance(m, wire.JointStatesOut) for m in due_now))
             await trio.sleep(0.1)
             nursery.cancel_scope.cancel()
-        # The second of the two that came together moves nothing at once (a trajectory moves
-        # nothing in no time): its target goes out at the next tick, whose joint states the
-        # task sends; the acknowledgments from the third after it on carry them again.
-        assert [n for n, c in enumerate(carried) if not c] == [21, 22, 23]
-        assert len(sent) <= 2 and {kind for _, kind in sent} == {wire.JointStatesOut}
+        # (A move this small is one target at once, trajectory or not: `MotionLimiter._jump`.)
+        assert carried.count(False) == 1, carried
+        assert [kind for _, kind in sent] == []
 
 
 async def test_joint_states_keep_to_the_interval_on_average_despite_jitter(

@@ -473,7 +473,8 @@ class Actor(MasterKeeping):
     def _send_targets(
         self, targets: dict[str, float] | None, now: float, *, more_follow: bool = False
     ) -> None:
-        self.core.stop is None or self._publish(stops.report_stop(self, now))  # (specs/motion.md)
+        if self.core.stop is not None:  # a move stopped on its way: told (specs/motion.md)
+            self._publish(stops.report_stop(self, now))
         if targets is not None:
             target = SlaveTarget(targets, now, more_follow)
             joining = self.core.joining  # they get targets of their own (`_carry_out_joins`)

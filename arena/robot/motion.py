@@ -130,12 +130,19 @@ def _is_finite_number(value: object) -> bool:
 #: recording's, rounded), and must arrive all the same.
 EPSILON = 1e-9
 #: Seconds between two goals of a joint up to which they are taken as one stream (a leader arm,
-#: a policy, a slider dragged), followed along the line between them; goals further apart are
-#: steps, reached at rest.
+#: a policy, a slider dragged), followed through them at the stream's own velocity; goals
+#: further apart are steps, reached at rest.
 STREAM_WINDOW = 0.1
 #: A stream is followed at up to this share of the joint's speed cap (Ruckig refuses a target
 #: velocity at the cap itself; the headroom lets a joint that trails catch up).
 STREAM_SHARE = 0.9
+#: A stream's next goal is overdue this many of its intervals after its last: the trajectory,
+#: coasting at the stream's velocity since it met the last goal, then comes to rest on it.
+OVERDUE = 1.5
+#: Control ticks within which a stream's trajectory is planned to be back on the stream's
+#: line (its last goal, carried on at its velocity): short, so the lag stays small; long
+#: enough that a correction keeps inside the acceleration and jerk limits (`_follow`).
+HORIZON_TICKS = 2
 
 
 class MotionLimiter:
@@ -147,10 +154,15 @@ class MotionLimiter:
     mid-motion bends it, and the velocity never steps. A step (a goal after a pause) is reached
     at rest, all joints arriving together on the straight line in joint space the collision
     guard checked (Ruckig's phase synchronization). A stream of goals (each within
-    `STREAM_WINDOW` of the last) is a moving reference instead, the line from one goal to the
-    next over the time between them; the trajectory is replanned on every tick toward where
-    the reference is and how fast it moves, so it follows a leader arm or a policy without
-    stopping at each goal, and comes to rest on the last goal when the stream ends.
+    `STREAM_WINDOW` of the last: a leader arm, a policy) is followed, not stopped at: each goal
+    is met as soon as the limits allow at the stream's own velocity (from the last two goals),
+    the trajectory coasts on at that velocity until the next goal bends it, and comes to rest
+    on the last goal when the stream's next is overdue (`OVERDUE`).
+
+    Costs: a robot at rest costs nothing per tick (no tick is asked for), and a move small
+    enough to be made within one tick from rest (`reach`: the jerk-limited distance of one
+    tick) is one target without planning; everything else is one Ruckig plan per new goal
+    and one sample per tick.
 
     Targets lead the clock by one control tick: what is emitted at `now` is the trajectory at
     `now + 1 / control_rate`, so a command's first step goes out with the command. `freeze`
@@ -165,7 +177,7 @@ class MotionLimiter:
         self._index = {name: k for k, name in enumerate(self._names)}
         self._clamps = {j.name: j.clamp for j in model.joints}
         self._bounds = tuple((j.lower, j.upper) for j in model.joints)
-        self._lead = 1.0 / model.safety.control_rate
+        self._lead = lead = 1.0 / model.safety.control_rate
         dofs = len(self._names)
         self._otg = Ruckig(dofs)
         self._input = InputParameter(dofs)
@@ -174,6 +186,17 @@ class MotionLimiter:
         self._input.max_jerk = [j.max_jerk for j in model.joints]
         self._accel = tuple(j.max_acceleration for j in model.joints)
         self._jerk = tuple(j.max_jerk for j in model.joints)
+        #: Per joint, the distance a jerk-limited move from rest to rest covers in one tick
+        #: (jerk j T^3/32, peak acceleration j T/4 <= a, peak velocity j T^2/16 <= v): a
+        #: move no longer than this is made in one target, without a plan (`_jump`).
+        self._reach = tuple(
+            min(
+                j.max_jerk * lead**3 / 32,
+                j.max_acceleration * lead**2 / 8,
+                j.max_velocity * lead / 2,
+            )
+            for j in model.joints
+        )
         self._zeros = [0.0] * dofs
         start = dict(initial or {})
         self._position = {j.name: j.clamp(float(start.get(j.name, 0.0))) for j in model.joints}
@@ -181,19 +204,27 @@ class MotionLimiter:
         self._speeds = [j.max_velocity for j in model.joints]  # caps of the move under way
         self._stamps = [-math.inf] * dofs  # when each joint's goal was last set
         self._duration: float | None = None  # a timed move's least duration, until planned
-        # The stream being followed: from `_origin` (values at `_since`) to the goals (at
-        # `_until`), sample times; None when the goals are steps.
+        # The stream being followed: the goals before the newest (`_origin`, None when the
+        # goals are steps), the time between them, and the sample time at which the stream's
+        # next goal is overdue.
         self._origin: list[float] | None = None
-        self._since = self._until = 0.0
+        self._interval = 0.0
+        self._stamp = 0.0  # when the stream's newest goal was set
+        self._due = 0.0
         self._planned = True  # the trajectory meets the newest goals
         self._trajectory: Trajectory | None = None  # None: every joint rests at its target
+        # Two trajectories, planned into in turn: the one in use is never overwritten (its
+        # state is where the next plan starts), and a plan allocates none.
+        self._pair = (Trajectory(dofs), Trajectory(dofs))
+        self._which = 0
         self._t0 = 0.0  # sample time at which the trajectory starts
         self._sampled = -math.inf  # sample time of the last emitted targets
         self._fresh = False  # the last `set_goals` found every joint at rest
         #: Trajectories planned (benchmarks and tests count them), and how many of them a
-        #: stream's timing made Ruckig fail, planned again as steps.
+        #: stream's timing made Ruckig fail, planned again as steps; moves made in one target.
         self.plans = 0
         self.fallbacks = 0
+        self.jumps = 0
 
     @property
     def positions(self) -> dict[str, float]:
@@ -216,7 +247,7 @@ class MotionLimiter:
         `advance(now, fresh=True)` moves at once only a robot that was at rest."""
         self._fresh = self._trajectory is None and self._planned
         origin: list[float] | None = None
-        index, stamps = self._index, self._stamps
+        index, stamps, targets = self._index, self._stamps, self._goals
         stream = duration is None
         interval = 0.0
         for goal in goals:
@@ -224,19 +255,19 @@ class MotionLimiter:
             elapsed = now - stamps[k]
             stamps[k] = now
             if origin is None:
-                origin = [self._goals[name] for name in self._names]
-            origin[k] = self._goals[goal.name]
-            self._goals[goal.name] = goal.value
+                origin = [targets[name] for name in self._names]
+            origin[k] = targets[goal.name]
+            targets[goal.name] = goal.value
             self._speeds[k] = goal.speed
             if 0.0 < elapsed <= STREAM_WINDOW:
                 interval = max(interval, elapsed)
             else:
                 stream = False
         if stream and interval > 0.0:
-            # Met at the stream's pace: reached when the stream's next goal is due.
             self._origin = origin
-            self._since = max(self._sampled, now)
-            self._until = self._since + interval
+            self._interval = interval
+            self._stamp = now
+            self._due = now + self._lead + OVERDUE * interval
         else:
             self._origin = None
         self._duration = duration
@@ -253,9 +284,19 @@ class MotionLimiter:
             return None
         sample = now + self._lead
         if not self._planned:
-            self._plan(max(self._sampled, now))
-        if self._trajectory is None or sample <= self._sampled:
+            if self._trajectory is None and self._jump():
+                self._sampled = max(self._sampled, sample)
+                return self._position.copy()
+            if not self._planned:
+                self._plan(max(self._sampled, now))
+        if sample <= self._sampled:
             return None
+        if self._trajectory is None:  # at rest: on the goals (a plan found it there)
+            if self._position == self._goals:
+                return None
+            self._position.update(self._goals)
+            self._sampled = sample
+            return self._position.copy()
         targets = self._sample(sample)
         self._sampled = sample
         position = self._position
@@ -266,39 +307,62 @@ class MotionLimiter:
                 changed = True
         return position.copy() if changed else None
 
+    def _jump(self) -> bool:
+        """From rest, goals within one tick's `reach` of every joint's target: taken in one
+        target (what a full plan would give within a tick), planned no further. The
+        fleet's tiny moves and a stream's last creep cost no plan and no tick."""
+        self._planned = True
+        position, goals = self._position, self._goals
+        changed = False
+        for name, reach in zip(self._names, self._reach, strict=True):
+            delta = goals[name] - position[name]
+            if delta > reach or -delta > reach:
+                self._planned = False
+                return False
+            changed = changed or delta != 0.0
+        if not changed:
+            self._origin = None
+            return False  # (nothing to move: at rest on the goals already)
+        position.update(goals)
+        self._origin = None
+        self._duration = None
+        self.jumps += 1
+        return True
+
     def _state(self, at: float) -> tuple[list[float], list[float], list[float]]:
         """Position, velocity and acceleration of every joint at sample time `at`."""
         trajectory = self._trajectory
         if trajectory is None:
             return [self._position[name] for name in self._names], self._zeros, self._zeros
-        p, v, a = trajectory.at_time(min(at - self._t0, trajectory.duration))
+        p, v, a = trajectory.at_time(at - self._t0)  # (past its end: coasting, see `_sample`)
         return p, v, a
 
     def _plan(self, start: float) -> None:
         """Plan from the trajectory's state at sample time `start` to the goals: at rest, or,
-        following a stream, at the stream's velocity when its next goal is due."""
+        following a stream, onto the stream's line (see `_follow`)."""
         p, v, a = self._state(start)
         self._planned = True
         goals = [self._goals[name] for name in self._names]
-        velocity = self._zeros
-        duration = self._duration
-        if self._origin is not None:
-            velocity = self._stream_velocity()
-            duration = self._until - start
-        if p == goals and not any(v) and not any(a) and not any(velocity):
-            self._trajectory = None
+        velocity = self._stream_velocity() if self._origin is not None else self._zeros
+        if not any(velocity) and _settled(p, v, a, goals):
+            self._trajectory = None  # (`advance` puts the targets exactly on the goals)
             self._duration = None
             return
         inp = self._input
         inp.current_position = p
         inp.current_velocity = v
         inp.current_acceleration = a
-        inp.target_position = goals
-        inp.target_velocity = velocity
         inp.max_velocity = self._speeds
-        inp.minimum_duration = duration
+        self._which ^= 1
+        trajectory = self._pair[self._which]
+        if self._origin is not None and self._follow(trajectory, start, goals, velocity):
+            self._trajectory = trajectory
+            self._t0 = start
+            return
+        inp.target_position = goals
+        inp.target_velocity = self._zeros
+        inp.minimum_duration = self._duration
         self._duration = None
-        trajectory = Trajectory(len(goals))
         self.plans += 1
         if not self._solve(trajectory):
             self.stop_at(self._position)  # (never seen: every retry failed) safe, if abrupt
@@ -306,11 +370,43 @@ class MotionLimiter:
         self._trajectory = trajectory
         self._t0 = start
 
+    def _follow(
+        self, trajectory: Trajectory, start: float, goals: list[float], velocity: list[float]
+    ) -> bool:
+        """Plan onto the stream's line (its newest goal carried on at its velocity; the goal
+        set at `_stamp` stands for sample time `_stamp + lead`), meeting it `HORIZON_TICKS`
+        ahead, or twice or four times that when the nearer meeting is out of reach: Ruckig
+        then gives a long detour (seen: 0.13 s, backing up, for a joint 1.2 degrees ahead
+        of the line at 105 deg/s). False when no horizon is met (the caller plans to rest on
+        the goals)."""
+        inp = self._input
+        inp.target_velocity = velocity
+        bounds = self._bounds
+        for ticks in (HORIZON_TICKS, 2 * HORIZON_TICKS, 4 * HORIZON_TICKS):
+            horizon = ticks * self._lead
+            ahead = start + horizon - self._stamp - self._lead
+            inp.target_position = [
+                min(upper, max(lower, g + u * ahead))
+                for g, u, (lower, upper) in zip(goals, velocity, bounds, strict=True)
+            ]
+            inp.minimum_duration = horizon
+            self.plans += 1
+            try:
+                self._otg.calculate(inp, trajectory)
+            except RuckigError:
+                self.fallbacks += 1
+                continue
+            if trajectory.duration <= horizon + self._lead:
+                return True
+        self.fallbacks += 1
+        return False
+
     def _solve(self, trajectory: Trajectory) -> bool:
         """Ruckig on the input as set, retried when it finds no profile: Ruckig 0.19 fails
         now and then on a state near its acceleration limit (seen: -5760 of 6016 deg/s^2),
         which the same state with the acceleration a millionth lower solves; a stream's
-        timing that still fails is planned as a step. Each retry is counted (`fallbacks`)."""
+        target velocity that still fails is planned as a step. Each retry is counted
+        (`fallbacks`)."""
         inp = self._input
         for attempt in range(4):
             try:
@@ -328,32 +424,38 @@ class MotionLimiter:
         return False
 
     def _stream_velocity(self) -> list[float]:
-        """The stream's velocity, per joint: inside the joint's cap, and none where braking
-        from it at the stream's last goal could pass a limit."""
+        """The stream's velocity, per joint: inside the joint's cap, and none where coasting
+        until the stream is overdue and braking from there could pass a limit."""
         assert self._origin is not None
-        span = self._until - self._since
+        span = self._interval
+        coast = OVERDUE * span + self._lead
         velocity = []
         for k, name in enumerate(self._names):
             goal = self._goals[name]
             cap = STREAM_SHARE * self._speeds[k]
             v = max(-cap, min(cap, (goal - self._origin[k]) / span))
             a = self._accel[k]
-            reach = v * v / (2.0 * a) + abs(v) * a / self._jerk[k]  # braking, jerk included
+            # coasting, then braking (jerk included)
+            reach = abs(v) * coast + v * v / (2.0 * a) + abs(v) * a / self._jerk[k]
             lower, upper = self._bounds[k]
             velocity.append(v if lower <= goal + math.copysign(reach, v) <= upper else 0.0)
         return velocity
 
     def _sample(self, at: float) -> list[float]:
-        """Every joint's target at sample time `at`; the trajectory ends on the goals, and a
-        stream whose next goal is overdue comes to rest on its last one."""
+        """Every joint's target at sample time `at`: on the trajectory; past its end, a stream
+        not yet overdue coasts on at its velocity, an overdue one comes to rest on its last
+        goal, and a step has arrived, exactly on its goals."""
         trajectory = self._trajectory
         assert trajectory is not None
         local = at - self._t0
-        if local < trajectory.duration - EPSILON:
-            return list(trajectory.at_time(local)[0])
-        if self._origin is not None:  # the stream ended (or is late): brake from its end
-            self._origin = None
-            self._plan(self._t0 + trajectory.duration)
+        coasting = self._origin is not None and at <= self._due
+        if local < trajectory.duration - EPSILON or coasting:
+            # (past its end Ruckig extrapolates at the end's velocity: a stream coasts on)
+            position: list[float] = trajectory.at_time(local)[0]
+            return position
+        if self._origin is not None:
+            self._origin = None  # the stream ended (or is late): to rest on its last goal
+            self._plan(max(self._due, self._t0 + trajectory.duration))
             if self._trajectory is None:
                 return [self._goals[name] for name in self._names]
             return self._sample(at)
@@ -393,6 +495,15 @@ class MotionLimiter:
         """Stop every joint where it is: goals become the current targets."""
         self._goals.update(self._position)
         self._rest()
+
+
+def _settled(p: list[float], v: list[float], a: list[float], goals: list[float]) -> bool:
+    """Whether a state is at rest on `goals`, but for float dust (Ruckig finds no profile for
+    a move of 1e-14 degrees at 1e-14 deg/s, seen at the end of a burst)."""
+    for x, u, w, g in zip(p, v, a, goals, strict=True):
+        if abs(x - g) > 1e-9 or abs(u) > 1e-9 or abs(w) > 1e-6:
+            return False
+    return True
 
 
 class RateLimiter:
