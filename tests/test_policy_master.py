@@ -502,3 +502,68 @@ async def test_a_late_step_is_not_made_up_with_a_burst(autojump_clock: MockClock
     assert len(gaps) > 20
     assert gaps[4] == pytest.approx(1.8 * PERIOD)  # the slow one, then at once the late step
     assert min(gaps) == pytest.approx(PERIOD)
+
+
+# -- seams (issue 57) --------------------------------------------------------------------------
+
+
+def disagreeing(observation: Observe) -> list[tuple[float, ...]]:
+    """Ten actions a chunk, Rotation on a ramp that starts 2 degrees to one side of the
+    measured pose, the next chunk's to the other: every seam disagrees on purpose."""
+    side = 2.0 if int(observation.timestep) % 2 == 0 else -2.0
+    start = observation.state[0] + side
+    return [(start + 0.5 * k, *observation.state[1:]) for k in range(10)]
+
+
+def seam_figures(targets: list[TargetsSent]) -> tuple[float, float, float]:
+    """Of Rotation's targets: the largest step (degrees) between consecutive ones, the largest
+    speed and acceleration (deg/s, deg/s^2) by divided differences of targets at least 5 ms
+    apart (two a hair apart would only measure rounding)."""
+    kept: list[tuple[float, float]] = []
+    for event in targets:
+        if kept and event.time - kept[-1][0] < 0.005:
+            kept.pop()
+        kept.append((event.time, event.joints["Rotation"]))
+    step = max(abs(b[1] - a[1]) for a, b in itertools.pairwise(kept))
+    speeds = [
+        ((a[0] + b[0]) / 2, (b[1] - a[1]) / (b[0] - a[0])) for a, b in itertools.pairwise(kept)
+    ]
+    speed = max(abs(v) for _, v in speeds)
+    accel = max(abs(v2 - v1) / (t2 - t1) for (t1, v1), (t2, v2) in itertools.pairwise(speeds))
+    return step, speed, accel
+
+
+async def run_seams(
+    manager: RobotManager, **settings: float
+) -> tuple[tuple[float, float, float], int]:
+    robot, _ = await arm(manager)
+    worker = FakeWorker(disagreeing)
+    with robot.subscribe(kinds=[TargetsSent, CommandHandled]) as events:
+        master = await attach(robot, worker, max_relative_target=None, **settings)
+        await trio.sleep(3.0)
+        got = events.drain()
+    await robot.detach_master(master.master_id)
+    targets = [e for e in got if isinstance(e, TargetsSent)]
+    commands = [e for e in got if isinstance(e, CommandHandled)]
+    assert master.counters.inferences >= 10  # many seams
+    return seam_figures(targets), len(commands)
+
+
+async def test_disagreeing_chunks_are_blended_and_interpolated_within_the_limits(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    limit = MODEL.joint("Rotation")
+    assert limit is not None
+    stepped = await run_seams(manager, blend_steps=0)
+    await manager.delete("arm")
+    blended = await run_seams(manager, blend_steps=3, interpolation_multiplier=3)
+    # Every seam inside the trajectory's limits either way (0.1 % for rounding)...
+    for (_, speed, accel), _ in (stepped, blended):
+        assert speed <= limit.max_velocity * 1.001
+        assert accel <= limit.max_acceleration * 1.001
+    # ...and the blend asks less of the arm at the seams than a chunk stepped to (measured:
+    # largest step 1.92 -> 0.70 degrees a tick, acceleration 5,239 -> 2,306 deg/s^2).
+    assert blended[0][0] < 0.5 * stepped[0][0]
+    assert blended[0][2] < 0.6 * stepped[0][2]
+    # Three commands a policy step with the multiplier (a 90 Hz stream of a 30 fps policy).
+    assert blended[1] >= 2.5 * stepped[1]

@@ -75,7 +75,12 @@ def test_a_new_chunk_replaces_the_queue_and_chunks_are_cut_to_actions_per_chunk(
 
 @pytest.mark.parametrize(
     "settings",
-    [{"actions_per_chunk": 0}, {"chunk_size_threshold": 1.5}, {"aggregate_fn_name": "max"}],
+    [
+        {"actions_per_chunk": 0},
+        {"chunk_size_threshold": 1.5},
+        {"aggregate_fn_name": "max"},
+        {"blend_steps": -1},
+    ],
 )
 def test_queue_settings_out_of_range_are_refused(settings: dict[str, object]) -> None:
     with pytest.raises(ValueError):
@@ -274,3 +279,34 @@ def test_a_policys_own_python_is_for_the_servers_admin_and_must_be_a_program(
     assert "no-python" in not_a_program.value.message
     master = made(sys.executable, anywhere=True)
     assert master.settings.python == sys.executable  # type: ignore[attr-defined]
+
+
+def test_a_new_chunk_is_blended_in_from_the_old_plan_over_blend_steps() -> None:
+    # Issue 57: a chunk whose first actions disagree with the one running stepped the arm at
+    # the seam. Blended over 3 steps: step k of the new chunk lies k/4 of the way from the old
+    # plan (the queue's action for that step, else the last action taken) to the new one.
+    queue = ActionQueue(10, aggregate_fn_name="latest_only", blend_steps=3)
+    queue.add_chunk(0, [(float(k),) for k in range(4)])  # the old plan: 0, 1, 2, 3
+    assert queue.next_action() == (0, (0.0,))
+    assert queue.next_action() == (1, (1.0,))
+    queue.add_chunk(2, [(40.0,)] * 6)  # disagrees by 38 degrees and more
+    blended = [queue.next_action() for _ in range(6)]
+    assert blended == [
+        (2, (2.0 + 0.25 * 38.0,)),  # from the old plan's 2
+        (3, (3.0 + 0.5 * 37.0,)),  # from the old plan's 3
+        (4, (1.0 + 0.75 * 39.0,)),  # past the old plan: from the last action taken (step 1)
+        (5, (40.0,)),
+        (6, (40.0,)),
+        (7, (40.0,)),
+    ]
+    queue.drop()  # a pause: nothing to blend from after it (the arm may have been moved)
+    queue.add_chunk(8, [(0.0,)] * 2)
+    assert queue.next_action() == (8, (0.0,))
+
+
+def test_blend_steps_zero_keeps_lerobots_seams() -> None:
+    queue = ActionQueue(10, aggregate_fn_name="latest_only")
+    queue.add_chunk(0, [(0.0,)] * 3)
+    queue.next_action()
+    queue.add_chunk(1, [(40.0,)] * 3)
+    assert queue.next_action() == (1, (40.0,))

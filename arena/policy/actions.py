@@ -6,7 +6,10 @@ settings' names: an observation goes to the policy when the queue holds at most
 `chunk_size_threshold` of a chunk; a chunk's actions are timed from the step the observation was
 taken at; those already due are dropped, and those the queue still holds are merged with
 `aggregate_fn_name`'s function. As in LeRobot, a new chunk replaces the queue: what it holds
-beyond the new chunk's end is dropped.
+beyond the new chunk's end is dropped. Beyond LeRobot: the first `blend_steps` actions of a new
+chunk are blended from the old plan (the queue's action for that step, else the last action
+taken) to the new one, so a chunk that disagrees with the arm's motion is eased into instead
+of stepped to (issue 57; specs/motion.md).
 """
 
 from __future__ import annotations
@@ -36,6 +39,9 @@ class ActionQueue:
     aggregate_fn_name: str = "weighted_average"
     latest_action: int = -1  # the step of the last action taken off the queue
     queue: dict[int, Action] = field(default_factory=dict)
+    #: Steps over which a new chunk is blended in (0: none; see the module docstring).
+    blend_steps: int = 0
+    last_taken: Action | None = None  # the last action taken off the queue
 
     def __post_init__(self) -> None:
         if self.actions_per_chunk < 1:
@@ -44,6 +50,8 @@ class ActionQueue:
             raise ValueError("chunk_size_threshold must be between 0 and 1")
         if self.aggregate_fn_name not in AGGREGATE_FUNCTIONS:
             raise ValueError(f"unknown aggregate_fn_name {self.aggregate_fn_name!r}")
+        if self.blend_steps < 0:
+            raise ValueError("blend_steps must be at least 0")
 
     def __len__(self) -> int:
         return len(self.queue)
@@ -70,12 +78,28 @@ class ActionQueue:
                 future[step] = tuple(action)
             else:
                 future[step] = tuple(merge(a, b) for a, b in zip(old, action, strict=True))
+        if self.blend_steps:
+            self._blend(future)
         self.queue = future
         return len(future)
 
+    def _blend(self, future: dict[int, Action]) -> None:
+        """Ease the first `blend_steps` actions of `future` in from the old plan: action k
+        (from 1) is the old one moved k / (blend_steps + 1) of the way to the new one."""
+        held = self.last_taken
+        for k, step in enumerate(sorted(future)[: self.blend_steps], start=1):
+            old = self.queue.get(step, held)
+            new = future[step]
+            if old is None or len(old) != len(new):
+                continue
+            w = k / (self.blend_steps + 1)
+            future[step] = tuple(a + w * (b - a) for a, b in zip(old, new, strict=True))
+
     def drop(self) -> None:
-        """Forget every action waiting (a pause: what was computed before it is stale)."""
+        """Forget every action waiting (a pause: what was computed before it is stale, and
+        so is the last action taken, which a blend would start from)."""
         self.queue = {}
+        self.last_taken = None
 
     def next_action(self) -> tuple[int, Action] | None:
         """Take the earliest action off the queue (None when it is empty)."""
@@ -83,7 +107,8 @@ class ActionQueue:
             return None
         step = min(self.queue)
         self.latest_action = step
-        return step, self.queue.pop(step)
+        action = self.last_taken = self.queue.pop(step)
+        return step, action
 
 
 @dataclass(frozen=True, slots=True)

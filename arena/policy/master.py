@@ -50,6 +50,8 @@ log = logging.getLogger(__name__)
 
 #: Refusals after which the policy stops for good (it never resumes by itself).
 _FINAL_REFUSALS = frozenset({ErrorCode.ESTOPPED, ErrorCode.NOT_OWNER})
+#: Steps over which a new chunk's first actions are blended in from the old plan (issue 57).
+BLEND_STEPS = 3
 
 
 class Shot(NamedTuple):
@@ -170,7 +172,10 @@ class PolicySettings:
     None: off). `stall_periods`: control periods without an action that trip the watchdog;
     `load_timeout`: seconds the worker has to start and load the policy.
     `environment_state`: `observation.environment_state` of every observation (the task's
-    state, which Arena does not measure; empty: none)."""
+    state, which Arena does not measure; empty: none). `blend_steps`: a new chunk's first
+    actions blended in from the old plan over that many steps (0: stepped to, as LeRobot);
+    `interpolation_multiplier`: commands per action, interpolated from the last target to
+    the action (LeRobot's name; 1: one command an action). specs/motion.md."""
 
     path: Path
     task: str = ""
@@ -182,6 +187,8 @@ class PolicySettings:
     stall_periods: int = 2
     load_timeout: float = LOAD_TIMEOUT
     environment_state: tuple[float, ...] = ()
+    blend_steps: int = BLEND_STEPS
+    interpolation_multiplier: int = 1
     #: The Python the worker runs in (one with LeRobot, torch and msgspec); None: Arena's own.
     python: str | None = None
 
@@ -232,6 +239,7 @@ class PolicyMaster:
         self._failure: str | None = None  # the worker's last refusal or why it is gone
         self._worker_gone = False
         self._last_valid = True  # the last action passed the rules (a fault per run of bad ones)
+        self._last_targets: dict[str, float] | None = None  # (interpolated from; see `_step`)
         # The watchdog waits for the worker's first answer (a chunk or a refusal): the first
         # inference, which warms the policy up, is not a stall.
         self._armed = False
@@ -296,7 +304,10 @@ class PolicyMaster:
             )
             chunk = self.settings.actions_per_chunk or self.loaded.chunk_size
             self.queue = ActionQueue(
-                chunk, self.settings.chunk_size_threshold, self.settings.aggregate_fn_name
+                chunk,
+                self.settings.chunk_size_threshold,
+                self.settings.aggregate_fn_name,
+                blend_steps=self.settings.blend_steps,
             )
         except WorkerGone as exc:
             await self.close()
@@ -378,6 +389,7 @@ class PolicyMaster:
         self.counters.dropped += len(queue)  # (a chunk that came meanwhile is stale too)
         queue.drop()
         self._armed = False  # waiting for the fresh chunk is no stall
+        self._last_targets = None  # the arm may have moved meanwhile: no interpolation from it
         self._wake.set()
 
     def _stalled(self, arm: Arm, waited: float) -> None:
@@ -414,8 +426,32 @@ class PolicyMaster:
             return True
         self._last_valid = True
         self.counters.clamped += len(check.clamped)
+        targets = check.targets
+        parts = self.settings.interpolation_multiplier
+        before = self._last_targets
+        self._last_targets = targets
+        if parts <= 1 or before is None or arm.paused:
+            return await self._send(arm, targets)
+        # Interpolated: `parts` commands a period, from the last target to this action, the
+        # action itself last (so it is reached within its period, not a period late).
+        sub = 1.0 / (self.settings.fps * parts)
+        for k in range(1, parts + 1):
+            if k > 1:
+                await trio.sleep(sub)
+                if arm.paused:
+                    return True
+            w = k / parts
+            part = {
+                name: before[name] + w * (value - before[name]) for name, value in targets.items()
+            }
+            if not await self._send(arm, part):
+                return False
+        return True
+
+    async def _send(self, arm: Arm, targets: dict[str, float]) -> bool:
+        """One command of `targets`; False once the robot has stopped the policy for good."""
         command = Command(
-            tuple(JointGoal(name, value) for name, value in check.targets.items()),
+            tuple(JointGoal(name, value) for name, value in targets.items()),
             source=self.identity,
         )
         result = await arm.command(command)

@@ -265,7 +265,10 @@ class PolicyMasterBody(
     `stall_periods`: control periods without an action before the watchdog trips; `takeover`:
     displace the robot's master (else MASTER_ACTIVE while it has one); `environment_state`:
     the task's state for a policy that takes `observation.environment_state` (a reach
-    target, say), the same in every observation of the run; `python`: the program that runs
+    target, say), the same in every observation of the run; `blend_steps`: a new chunk's
+    first actions blended in from the old plan over that many steps (0: none);
+    `interpolation_multiplier`: commands per action, interpolated (LeRobot's name; `fps`
+    times it at most the robot's command rate); `python`: the program that runs
     this policy's worker instead of the server's (a LeRobot of another version; only from the
     whole server's admin: it names a program to run)."""
 
@@ -280,6 +283,8 @@ class PolicyMasterBody(
     max_relative_target: Annotated[float, msgspec.Meta(gt=0, le=360)] | None = 10.0
     stall_periods: Annotated[int, msgspec.Meta(ge=1, le=1000)] = 2
     environment_state: Annotated[list[float], msgspec.Meta(max_length=64)] = []
+    blend_steps: Annotated[int, msgspec.Meta(ge=0, le=100)] = 3
+    interpolation_multiplier: Annotated[int, msgspec.Meta(ge=1, le=20)] = 1
     python: Annotated[str, msgspec.Meta(min_length=1, max_length=4096)] | None = None
     takeover: bool = False
 

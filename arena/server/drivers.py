@@ -331,6 +331,13 @@ def _policy(
             ErrorCode.NOT_INSTALLED,
             f"A policy master needs LeRobot, which is not installed: {install_line('lerobot')}",
         )
+    rate = body.fps * body.interpolation_multiplier
+    if rate > model.safety.command_rate:
+        raise ArenaError(
+            ErrorCode.INVALID_CONFIG,
+            f"fps times interpolation_multiplier is {rate:g} commands/s, over the robot's "
+            f"command rate ({model.safety.command_rate:g}/s): lower one of them.",
+        )
     settings = PolicySettings(
         path=path,
         task=body.task,
@@ -341,6 +348,8 @@ def _policy(
         max_relative_target=body.max_relative_target,
         stall_periods=body.stall_periods,
         environment_state=tuple(body.environment_state),
+        blend_steps=body.blend_steps,
+        interpolation_multiplier=body.interpolation_multiplier,
         python=python,
     )
     return PolicyMaster(settings, model, cameras)
