@@ -197,6 +197,7 @@ class MotionLimiter:
             )
             for j in model.joints
         )
+        self._reaches = tuple(zip(self._names, self._reach, strict=True))
         self._zeros = [0.0] * dofs
         start = dict(initial or {})
         self._position = {j.name: j.clamp(float(start.get(j.name, 0.0))) for j in model.joints}
@@ -246,21 +247,20 @@ class MotionLimiter:
         trajectory is planned by the next `advance`: a burst of commands plans once.
         `advance(now, fresh=True)` moves at once only a robot that was at rest."""
         self._fresh = self._trajectory is None and self._planned
-        origin: list[float] | None = None
-        index, stamps, targets = self._index, self._stamps, self._goals
+        targets = self._goals
+        origin = list(targets.values())  # (the goals before these, in the joints' order)
+        index, stamps, speeds = self._index, self._stamps, self._speeds
         stream = duration is None
         interval = 0.0
         for goal in goals:
             k = index[goal.name]
             elapsed = now - stamps[k]
             stamps[k] = now
-            if origin is None:
-                origin = [targets[name] for name in self._names]
-            origin[k] = targets[goal.name]
             targets[goal.name] = goal.value
-            self._speeds[k] = goal.speed
+            speeds[k] = goal.speed
             if 0.0 < elapsed <= STREAM_WINDOW:
-                interval = max(interval, elapsed)
+                if elapsed > interval:
+                    interval = elapsed
             else:
                 stream = False
         if stream and interval > 0.0:
@@ -313,16 +313,14 @@ class MotionLimiter:
         fleet's tiny moves and a stream's last creep cost no plan and no tick."""
         self._planned = True
         position, goals = self._position, self._goals
-        changed = False
-        for name, reach in zip(self._names, self._reach, strict=True):
+        if position == goals:
+            self._origin = None
+            return False  # (nothing to move: at rest on the goals already)
+        for name, reach in self._reaches:
             delta = goals[name] - position[name]
             if delta > reach or -delta > reach:
                 self._planned = False
                 return False
-            changed = changed or delta != 0.0
-        if not changed:
-            self._origin = None
-            return False  # (nothing to move: at rest on the goals already)
         position.update(goals)
         self._origin = None
         self._duration = None
