@@ -445,14 +445,16 @@ class RobotCore:
         self._checked = {**end, **{goal.name: goal.value for goal in short}}
         return short, None, clamps
 
-    def _advance(self, now: float, *, fresh: bool = False) -> dict[str, float] | None:
+    def _advance(
+        self, now: float, *, fresh: bool = False, tick: bool = False
+    ) -> dict[str, float] | None:
         """The limiter's next targets (`fresh`: a command's own step, see `MotionLimiter`),
         unless they would collide: then the motion stops at the targets already sent (a
         joint-space path checked at its goal can still bend into something while joints of
         different speeds move)."""
         if self.guard is None:
-            return self.motion.advance(now, fresh=fresh)
-        targets = self.motion.advance(now, fresh=fresh)
+            return self.motion.advance(now, fresh=fresh, tick=tick)
+        targets = self.motion.advance(now, fresh=fresh, tick=tick)
         if targets is None:
             return None
         if targets != self._checked and not self._near_reference(targets):
@@ -505,7 +507,7 @@ class RobotCore:
         """Advance interpolation; returns new targets, or None if nothing moved."""
         if self.state.mode is Mode.ESTOPPED:
             return None
-        targets = self._advance(now)
+        targets = self._advance(now, tick=True)
         if self.easing is not None:
             self._eased_in()
         return targets

@@ -273,10 +273,15 @@ class MotionLimiter:
         self._duration = duration
         self._planned = False
 
-    def advance(self, now: float, *, fresh: bool = False) -> dict[str, float] | None:
+    def advance(
+        self, now: float, *, fresh: bool = False, tick: bool = False
+    ) -> dict[str, float] | None:
         """The trajectory's targets for `now` (see the class docstring); with `fresh` (a
         command in the middle of a burst) only if the robot was at rest: a robot already on
-        its way takes the newest goals at its next tick.
+        its way takes the newest goals at its next tick. A `tick` within half a tick of the
+        last targets (a command's) sends none: a stream's targets stay about a tick apart
+        instead of a command's and a tick's a few milliseconds apart (a third fewer targets
+        for a 50 Hz stream, at no cost in lag).
 
         Returns the full target vector if any joint moved, else None.
         """
@@ -289,7 +294,7 @@ class MotionLimiter:
                 return self._position.copy()
             if not self._planned:
                 self._plan(max(self._sampled, now))
-        if sample <= self._sampled:
+        if sample <= self._sampled or (tick and sample - self._sampled < 0.5 * self._lead):
             return None
         if self._trajectory is None:  # at rest: on the goals (a plan found it there)
             if self._position == self._goals:
