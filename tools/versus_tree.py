@@ -144,7 +144,7 @@ def main():
             PtySimBus(Path(folder) / "follower", SimBus(), wire_time=True) as follower:
         trio.run(run, leader, follower, out)
     path, writes = out["path"], out["writes"]
-    lags, overshoots = [], []
+    lags = []
     # Each write while the leader moves: how long ago the leader was where it puts the follower.
     t_end = path[-1][0]
     k = 0
@@ -187,11 +187,15 @@ def _teleop_once(tree: Path) -> dict[str, float]:
 
 def _run(tree: Path, code: str) -> dict[str, float]:
     env = {**os.environ, "PYTHONPATH": str(tree)}
-    out = subprocess.run(
-        [sys.executable, "-c", code], env=env, cwd=tree, capture_output=True, text=True, check=True
-    )
-    result: dict[str, float] = json.loads(out.stdout.strip().splitlines()[-1])
-    return result
+    for _ in range(3):  # (a loaded machine makes a simulated servo miss its first ping)
+        out = subprocess.run(
+            [sys.executable, "-c", code], env=env, cwd=tree, capture_output=True, text=True
+        )
+        if out.returncode == 0:
+            result: dict[str, float] = json.loads(out.stdout.strip().splitlines()[-1])
+            return result
+        print(f"(a run on {tree} failed; again)\n{out.stderr[-500:]}", file=sys.stderr)
+    raise RuntimeError(f"three runs on {tree} failed")
 
 
 def main() -> None:
