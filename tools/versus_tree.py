@@ -163,9 +163,28 @@ def main():
                 lags.append(t - tj)
                 break
             j -= 1
+    # Per leader sample while it moves: how long until the follower's goal gets there (the
+    # same set of samples for any follower, however many goals it writes).
+    reach = []
+    w = 0
+    for k in range(len(path) - 1):
+        (t, x), nxt = path[k], path[k + 1][1]
+        if nxt == x:
+            continue
+        up = nxt > x
+        while w < len(writes) and writes[w][0] < t:
+            w += 1
+        for tw, steps in writes[w:]:
+            value = (steps - 2048) / STEP
+            if (value >= x - 0.05) if up else (value <= x + 0.05):
+                reach.append(tw - t)
+                break
+    reach.sort()
+    at = lambda q: 1000 * reach[min(len(reach) - 1, int(q * len(reach)))] if reach else float("nan")
     lags.sort()
     pct = lambda q: 1000 * lags[min(len(lags) - 1, int(q * len(lags)))] if lags else float("nan")
     print(json.dumps({"sweep_lag_p50_ms": pct(0.5), "sweep_lag_p99_ms": pct(0.99),
+                      "sweep_reach_p50_ms": at(0.5), "sweep_reach_p99_ms": at(0.99),
                       "sweep_writes": len(writes), "sweep_lag_samples": len(lags)}))
 
 main()
