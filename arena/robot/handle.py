@@ -41,6 +41,7 @@ from arena.robot.mailbox import EventQueue
 from arena.robot.model import RobotModel, SafetyPolicy
 from arena.robot.motion import Command, CommandResult
 from arena.robot.snapshot import JointSnapshot, RobotSnapshot
+from arena.robot.teleop import TeleopSettings
 from arena.robot.workspace import Workspace
 
 
@@ -72,6 +73,9 @@ class Robot:
         self.command_counts = self._actor.command_counts
         #: Data-collection episodes (owned by the actor: changed only through `episode`).
         self.episodes = self._actor.episodes
+        #: Teleoperation's box and dead-man time set over REST (None: the default from the
+        #: hand and the workspace, `arena.robot.teleop.settings_of`).
+        self.teleop: TeleopSettings | None = None
 
     # -- what the robot is ----------------------------------------------------------------------
 

@@ -23,7 +23,7 @@ from arena.protocol.rest import TeleopBody
 from arena.robot.cartesian import Hand, HandPose, Solution, hand_for, normalized
 from arena.robot.handle import Robot
 from arena.robot.motion import Command, CommandResult
-from arena.robot.teleop import TeleopSettings, choose_settings, settings_of
+from arena.robot.teleop import TeleopSettings, settings_of
 from arena.server import convert
 from arena.server.base import ArenaApp, error_response, read_body
 
@@ -215,5 +215,5 @@ async def put_teleop(robot_id: str) -> dict[str, Any]:
     if body.deadman is not None:
         deadman = body.deadman / 1000.0
     chosen = TeleopSettings(low, high, deadman)
-    choose_settings(robot, chosen)
+    robot.teleop = chosen  # from the next tick on
     return teleop_json(chosen)
