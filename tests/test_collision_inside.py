@@ -9,7 +9,7 @@ from __future__ import annotations
 import re
 
 from arena.protocol.errors import ErrorCode
-from arena.robot import collision
+from arena.robot import collision, collision_inside
 from arena.robot.core import RobotCore
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command
@@ -33,7 +33,8 @@ def urdf(degrees: dict[str, float]) -> dict[str, float]:
 
 def clearances(degrees: dict[str, float]) -> dict[str, float]:
     assert GUARD is not None
-    return {str(hit): gap for hit, gap in GUARD.clearances(urdf(degrees), MODEL.workspace).items()}
+    found = collision_inside.clearances(GUARD, urdf(degrees), MODEL.workspace)
+    return {str(hit): gap for hit, gap in found.items()}
 
 
 def measured_inside() -> RobotCore:

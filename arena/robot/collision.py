@@ -49,9 +49,6 @@ LEVEL_TILT = 1e-3
 REST_CONTACT = 0.01
 #: Default spacing of the poses checked along a move (radians of the joint that moves most).
 PATH_STEP = math.radians(5.0)
-#: Metres a clearance may lose from one pose to the next and still count as kept: rounding in
-#: the kinematics, not motion (a turn about the vertical leaves a floor gap as it was).
-CLEARANCE_TOLERANCE = 1e-6
 
 
 @dataclass(frozen=True)
@@ -87,23 +84,6 @@ class Hit:
 
     def __str__(self) -> str:
         return f"{self.first} and {self.second}"
-
-
-@dataclass(frozen=True, slots=True)
-class Escape:
-    """A move from a pose that already collides in the model (`CollisionModel.escape`): the
-    constraint that decides it, its clearance (metres, signed: negative is how deep the parts
-    overlap) at the start and at the worst pose checked on the way, and whether the move is
-    allowed (no clearance that is negative gets smaller, none becomes negative)."""
-
-    hit: Hit
-    before: float
-    after: float
-    allowed: bool
-
-    def describe(self) -> str:
-        """The clearance change in a few words, millimetres signed."""
-        return f"{self.hit} {self.before * 1000:+.1f} mm to {self.after * 1000:+.1f} mm"
 
 
 @dataclass(frozen=True, slots=True)
@@ -251,61 +231,6 @@ class CollisionModel:
                     return Hit(first.link, second.link), ()
             gaps[2 * count + number] = gap
         return None, tuple(gaps)
-
-    def clearances(self, values: Mapping[str, float], workspace: Workspace) -> dict[Hit, float]:
-        """The signed clearance of every constraint of the pose `values` (URDF radians):
-        metres between the two parts less the margin, negative when they overlap (as deep as
-        they do). Every one is measured exactly, so this costs more than `assess`; the guard
-        needs it only for a pose that already collides (a measured arm the model puts in the
-        table, say), to tell a move out of it from a move deeper in."""
-        poses = self.kinematics.link_poses(values)
-        ends = [(_apply(poses[c.link], c.a), _apply(poses[c.link], c.b)) for c in self.capsules]
-        margin = workspace.margin
-        found: dict[Hit, float] = {}
-        if workspace.floor is not None:
-            for index in self.floor_links:
-                (a, b), capsule = ends[index], self.capsules[index]
-                found[Hit(capsule.link, "floor")] = (
-                    min(a[2], b[2]) - capsule.radius - workspace.floor - margin
-                )
-        for box in workspace.keep_out:
-            for (a, b), capsule in zip(ends, self.capsules, strict=True):
-                gap = _segment_box_signed(a, b, box) - capsule.radius - margin
-                found[Hit(capsule.link, box.name)] = gap
-        for i, j in self.pairs:
-            first, second = self.capsules[i], self.capsules[j]
-            distance = _segment_distance(*ends[i], *ends[j])
-            found[Hit(first.link, second.link)] = distance - first.radius - second.radius - margin
-        return found
-
-    def escape(
-        self,
-        start: Mapping[str, float],
-        goal: Mapping[str, float],
-        workspace: Workspace,
-        step: float = PATH_STEP,
-    ) -> Escape | None:
-        """A move from a pose `start` that collides (None if it does not): allowed when, at
-        every pose checked on the straight way to `goal` (as `path_hit` checks them), no
-        clearance that was negative at `start` is smaller than it was, and none that was not
-        is negative. The answer names the constraint that refuses it, or else the deepest one
-        at `start` with its clearance at the goal."""
-        before = self.clearances(start, workspace)
-        deepest = min(before, key=before.__getitem__, default=None)
-        if deepest is None or before[deepest] >= 0.0:
-            return None
-        largest = max((abs(goal[n] - start.get(n, goal[n])) for n in goal), default=0.0)
-        count = max(1, math.ceil(largest / step))
-        now = before
-        for k in range(1, count + 1):
-            f = k / count
-            pose = {n: start.get(n, v) + (v - start.get(n, v)) * f for n, v in goal.items()}
-            now = self.clearances({**start, **pose}, workspace)
-            for hit, value in now.items():
-                was = before.get(hit, math.inf)
-                if value < 0.0 and value < min(was, 0.0) - CLEARANCE_TOLERANCE:
-                    return Escape(hit, was, value, False)
-        return Escape(deepest, before[deepest], now[deepest], True)
 
     @functools.cached_property
     def _affected(self) -> tuple[tuple[tuple[int, ...], tuple[int, ...]], ...]:
@@ -489,6 +414,11 @@ def _segment_distance(p1: Vector, q1: Vector, p2: Vector, q2: Vector) -> float:
     return math.sqrt(dx * dx + dy * dy + dz * dz)
 
 
+def segment_distance(p1: Vector, q1: Vector, p2: Vector, q2: Vector) -> float:
+    """The distance between segments p1-q1 and p2-q2 (for the guard's other modules)."""
+    return _segment_distance(p1, q1, p2, q2)
+
+
 def _segment_box_distance(a: Vector, b: Vector, box: Box) -> float:
     """A lower bound of the distance from segment a-b to a box: points every 1 cm along the
     segment, each less the half spacing (so the bound never overstates it)."""
@@ -506,30 +436,6 @@ def _segment_box_distance(a: Vector, b: Vector, box: Box) -> float:
         )
         best = min(best, gap)
     return max(0.0, best - length / count / 2)
-
-
-def _segment_box_signed(a: Vector, b: Vector, box: Box) -> float:
-    """A lower bound of the signed distance from segment a-b to a box: as
-    `_segment_box_distance` outside, and inside less how far the deepest point checked is from
-    the box's nearest face (so a move deeper into a box reads as a smaller clearance)."""
-    length = math.dist(a, b)
-    count = max(1, math.ceil(length / 0.01))
-    best = math.inf
-    for k in range(count + 1):
-        f = k / count
-        point = (a[0] + (b[0] - a[0]) * f, a[1] + (b[1] - a[1]) * f, a[2] + (b[2] - a[2]) * f)
-        outside = math.sqrt(
-            sum(
-                max(lo - p, 0.0, p - hi) ** 2
-                for p, lo, hi in zip(point, box.low, box.high, strict=True)
-            )
-        )
-        if outside == 0.0:
-            outside = -min(
-                min(p - lo, hi - p) for p, lo, hi in zip(point, box.low, box.high, strict=True)
-            )
-        best = min(best, outside)
-    return best - length / count / 2
 
 
 def for_model(model: RobotModel) -> CollisionModel | None:

@@ -12,7 +12,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 from arena.protocol.errors import ArenaError, ErrorCode
-from arena.robot import collision
+from arena.robot import collision, collision_inside
 from arena.robot.model import RobotModel, SafetyPolicy
 from arena.robot.motion import (
     Clamp,
@@ -116,7 +116,7 @@ class RobotCore:
         self._guard_scales = tuple(j.radians_per_unit for j in model.joints)  # URDF per wire unit
         self._checked: dict[str, float] | None = None  # the last goal pose found safe
         #: The last command's way out of a collision in the model, if it was one (`_guard`).
-        self._escaping: collision.Escape | None = None
+        self._escaping: collision_inside.Escape | None = None
         # The last poses checked in full with their clearances (metres), newest first: a pose
         # whose joints are so close to one that no part of the arm can have moved that far
         # is safe without a check (a stream of small steps is checked now and then, not
@@ -434,7 +434,10 @@ class RobotCore:
             self._remember(end, target, clearance)
             return goals, None, []
         names = ", ".join(goal.name for goal in goals)
-        if safe <= 0.0 and (escape := self.guard.escape(self._urdf(start), target, self.workspace)):
+        escape = None
+        if safe <= 0.0:
+            escape = collision_inside.escape(self.guard, self._urdf(start), target, self.workspace)
+        if escape is not None:
             # The arm is where the model says it collides (a measured pose, a model a little
             # off the arm): a move that takes no part deeper in, nor any into something new,
             # is let out; one that does is refused, saying which clearance it would shrink.
@@ -474,7 +477,9 @@ class RobotCore:
             pose = self._urdf(targets)
             hit, clearance = self.guard.assess(pose, self.workspace)
             if hit is not None:
-                escape = self.guard.escape(self._urdf(self._sent), pose, self.workspace)
+                escape = collision_inside.escape(
+                    self.guard, self._urdf(self._sent), pose, self.workspace
+                )
                 if escape is None or not escape.allowed:
                     self.motion.stop_at(self._sent)
                     self.collision_stops += 1
