@@ -272,3 +272,25 @@ def test_the_sim_bus_command_serves_the_control_and_says_how(tmp_path: Path) -> 
         process.terminate()
         process.wait(timeout=10)
     assert process.returncode == 0
+
+
+def test_keys_pick_a_joint_and_move_it(sim: PtySimBus) -> None:
+    clock = Clock()
+    control = SimControl(sim, MODEL, clock=clock)
+    keys = iter(["2", "+", "+", "-", "r", "9", "0", "?", ""])
+    said: list[str] = []
+    seen: list[float] = []
+
+    def read_key() -> str:
+        clock.now += 1.0  # each key after the last move is done
+        control.advance(clock.now)
+        seen.append(control.read()["shoulder_lift"])
+        return next(keys)
+
+    sim_control.key_loop(control, read_key, said.append)
+    step = sim_control.KEY_STEP
+    assert seen[2:5] == pytest.approx([step, 2 * step, step], abs=STEP)
+    assert said[0] == "shoulder_lift selected"
+    assert json.loads(said[4])["shoulder_lift"] == pytest.approx(step, abs=STEP)  # r
+    assert seen[-1] == pytest.approx(0, abs=STEP)  # 9 picks nothing (six joints); 0 sends it home
+    assert said[-1].startswith("keys: 1 shoulder_pan, 2 shoulder_lift")

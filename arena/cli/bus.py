@@ -116,6 +116,9 @@ def sim_bus_command(args: argparse.Namespace) -> int:
 
         bus = SimBus(args.ids or tuple(j.servo_id for j in model.joints))
     baud = args.baud or model.bus.baud_rate or family.default_baud
+    keys = args.keys and sys.stdin.isatty()
+    if args.keys and not keys:
+        print("--keys needs a terminal (stdin is not one): no keys", file=sys.stderr)
     calibration = None
     if args.calibration:
         from arena.servo.lerobot_calibration import load_calibration
@@ -129,7 +132,7 @@ def sim_bus_command(args: argparse.Namespace) -> int:
         model=model,
         control_port=args.control,
         calibration=calibration,
-        keys=args.keys and sys.stdin.isatty(),
+        keys=keys,
     )
     return 0
 
