@@ -294,3 +294,58 @@ def test_keys_pick_a_joint_and_move_it(sim: PtySimBus) -> None:
     assert json.loads(said[4])["shoulder_lift"] == pytest.approx(step, abs=STEP)  # r
     assert seen[-1] == pytest.approx(0, abs=STEP)  # 9 picks nothing (six joints); 0 sends it home
     assert said[-1].startswith("keys: 1 shoulder_pan, 2 shoulder_lift")
+
+
+def test_the_sim_bus_command_takes_keys_from_its_terminal(tmp_path: Path) -> None:
+    """`arena sim-bus --keys` on a terminal of the test's own (a pty): single keys move a
+    joint, Ctrl-C stops it and the terminal is given back as it was."""
+    import pty
+    import select
+    import signal
+    import termios
+
+    link = tmp_path / "ttyKEYS"
+    command = [sys.executable, "-m", "arena.cli", "sim-bus", "--link", str(link)]
+    pid, terminal = pty.fork()
+    if pid == 0:  # the child: the command on the pty
+        os.execve(
+            sys.executable,
+            [*command, "--robot-type", "so-101", "--keys"],
+            {**os.environ, "PYTHONUNBUFFERED": "1"},
+        )
+    shown = b""
+
+    def until(text: bytes, after: int = 0) -> None:
+        """Read the terminal until `text` shows (after byte `after`)."""
+        nonlocal shown
+        deadline = time.monotonic() + 60  # a loaded machine starts Python slowly
+        while text not in shown[after:]:
+            assert time.monotonic() < deadline, (text, shown)
+            if select.select([terminal], [], [], 0.5)[0]:
+                shown += os.read(terminal, 4096)
+
+    try:
+        before = termios.tcgetattr(terminal)
+        until(b"keys: 1 shoulder_pan")
+        assert not termios.tcgetattr(terminal)[3] & termios.ICANON  # one key at a time
+        for key, answer in ((b"3", b"elbow_flex selected"), (b"-", b"elbow_flex -> -5")):
+            os.write(terminal, key)
+            until(answer)
+        deadline = time.monotonic() + 60
+        while True:  # read (r) until the step, a smooth one, is done
+            assert time.monotonic() < deadline, shown
+            start = len(shown)
+            os.write(terminal, b"r")
+            until(b"}", after=start)
+            if b'"elbow_flex": -5' in shown[start:]:
+                break
+        os.kill(pid, signal.SIGINT)
+        _, status = os.waitpid(pid, 0)
+        pid = 0
+        assert os.WIFEXITED(status) and os.WEXITSTATUS(status) == 0
+        assert termios.tcgetattr(terminal)[3] == before[3]  # given back
+    finally:
+        if pid:
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+        os.close(terminal)

@@ -353,6 +353,7 @@ def key_loop(control: SimControl, read_key: Callable[[], str], say: Callable[[st
     """Move joints from single key presses until `read_key` returns "" (end of input)."""
     names = control.names[:9]
     selected = names[0]
+    goals = control.read()  # each key moves from the last goal (a reading is a step off)
     while key := read_key():
         if key.isdigit() and key != "0" and int(key) <= len(names):
             selected = names[int(key) - 1]
@@ -361,9 +362,8 @@ def key_loop(control: SimControl, read_key: Callable[[], str], say: Callable[[st
         if key in "+=-0":
             joint = control.model.joint(selected)
             assert joint is not None
-            now = control.read()[selected]
-            goal = 0.0 if key == "0" else now + (KEY_STEP if key in "+=" else -KEY_STEP)
-            goal = joint.clamp(goal)
+            step = KEY_STEP if key in "+=" else -KEY_STEP
+            goal = goals[selected] = joint.clamp(0.0 if key == "0" else goals[selected] + step)
             control.move({selected: goal}, 0.2, control.clock())
             say(f"{selected} -> {goal:g}")
         elif key == "r":

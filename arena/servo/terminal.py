@@ -161,16 +161,15 @@ def serve_sim_bus(
             port = control.serve(control_port, stop).port
         else:
             threading.Thread(target=control.run_mover, args=(stop,), daemon=True).start()
-        print(sim_control.usage(control, port, keys), flush=True)
-        if keys:
-            with _keys_from_terminal() as read_key:
+        with _keys_from_terminal() if keys else contextlib.nullcontext() as read_key:
+            # (told once the keys are read one by one: a key pressed on the word counts)
+            print(sim_control.usage(control, port, keys), flush=True)
+            if read_key is not None:
                 threading.Thread(
                     target=sim_control.key_loop,
                     args=(control, read_key, lambda text: print(text, flush=True)),
                     daemon=True,
                 ).start()
-                stop.wait()
-        else:
             stop.wait()
 
 
