@@ -414,6 +414,11 @@ def _segment_distance(p1: Vector, q1: Vector, p2: Vector, q2: Vector) -> float:
     return math.sqrt(dx * dx + dy * dy + dz * dz)
 
 
+def segment_distance(p1: Vector, q1: Vector, p2: Vector, q2: Vector) -> float:
+    """The distance between segments p1-q1 and p2-q2 (for the guard's other modules)."""
+    return _segment_distance(p1, q1, p2, q2)
+
+
 def _segment_box_distance(a: Vector, b: Vector, box: Box) -> float:
     """A lower bound of the distance from segment a-b to a box: points every 1 cm along the
     segment, each less the half spacing (so the bound never overstates it)."""

@@ -39,8 +39,8 @@ def ack(result: CommandResult) -> wire.AckMessage:
         data = wire.AckData("refused", str(result.code), result.message)
     elif result.clamped:
         data = wire.AckData("clamped", None, result.message, list(result.clamped))
-    else:
-        data = wire.AckData("accepted")
+    else:  # (its message: a way out of a collision in the model, say)
+        data = wire.AckData("accepted", None, result.message)
     return wire.AckMessage(timestamp=wire.now_iso(), data=data)
 
 
