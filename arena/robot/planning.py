@@ -17,6 +17,7 @@ while Python runs, which gives it up every switch interval: the event loop keeps
 from __future__ import annotations
 
 import collections
+import itertools
 import math
 import threading
 import time
@@ -148,10 +149,7 @@ class GuardCheck:
             d = [y - x for x, y in zip(p, b, strict=True)]
             largest = max(abs(x) for x in d)
             step = max(_provable(at, self._ordered(tuple(d))), FINE_STEP / largest)
-            if step >= 1.0:
-                p = b
-            else:
-                p = tuple(x + dx * step for x, dx in zip(p, d, strict=True))
+            p = b if step >= 1.0 else tuple(x + dx * step for x, dx in zip(p, d, strict=True))
 
     def first_hit(self, a: Values, b: Values) -> Hit | None:
         """What the straight way from `a` to `b` first hits (the guard's own `path_hit`)."""
@@ -179,7 +177,7 @@ def _provable(at: Reference, way: Values) -> float:
 
 def _ompl() -> tuple[Any, Any, Any]:
     """OMPL's base, geometric and util modules (ImportError when the extra is missing)."""
-    from ompl import base, geometric, util
+    from ompl import base, geometric, util  # type: ignore[import-untyped]
 
     util.setLogLevel(util.LOG_NONE)  # its progress lines would go to the server's stdout
     return base, geometric, util
@@ -212,16 +210,15 @@ def plan(
     if found is not None:
         raise NoPath(f"the goal itself would bring {found} together", found)
     straight = check.free(a, b)
-    if straight:
-        corners = [a, b]
-    else:
-        corners = _search(check, model, a, b, budget, cancel, began)
+    corners = [a, b] if straight else _search(check, model, a, b, budget, cancel, began)
     samples = timed(corners, model, speed)
     for _, pose in samples:  # every pose commanded: the guard's check, as the core will do
         found = check.hit(pose)
         if found is not None:  # (never: every way was proven free; checked all the same)
             raise NoPath(f"the path found grazes {found}", found)
-    wire = [{s.name: s.clamp(s.from_urdf(v)) for s, v in zip(specs, p, strict=True)} for p in corners]
+    wire = [
+        {s.name: s.clamp(s.from_urdf(v)) for s, v in zip(specs, p, strict=True)} for p in corners
+    ]
     return PlannedPath(
         tuple(wire),
         tuple(
@@ -265,7 +262,7 @@ def _search(
     class Way(base.MotionValidator):  # type: ignore[misc,name-defined]
         """The guard's straight-way check, for OMPL."""
 
-        def checkMotion(self, first: Any, second: Any) -> bool:  # noqa: N802 (OMPL's name)
+        def checkMotion(self, first: Any, second: Any) -> bool:
             return check.free(read(first), read(second))
 
     way = Way(info)
@@ -329,7 +326,7 @@ def timed(
     acceleration = [v / ACCELERATION_TIME for v in velocity]
     ways: list[tuple[float, float, float, float, Values, Values]] = []  # t0, T, ta, rate, p, q
     clock = 0.0
-    for p, q in zip(corners, corners[1:]):
+    for p, q in itertools.pairwise(corners):
         d = [y - x for x, y in zip(p, q, strict=True)]
         moved = [(abs(x), v, acc) for x, v, acc in zip(d, velocity, acceleration, strict=True) if x]
         if not moved:

@@ -141,8 +141,7 @@ async def _planned(robot: Robot, body: MoveBody) -> dict[str, Any]:
     if now != start or robot.workspace is not workspace:
         raise ArenaError(
             ErrorCode.NO_PATH,
-            "The arm was moved, or its workspace changed, while the path was planned: ask "
-            "again.",
+            "The arm was moved, or its workspace changed, while the path was planned: ask again.",
         )
     master_id = await robot.attach_master(PlannedMove(path))
     return {
@@ -175,7 +174,8 @@ async def _plan_off_the_loop(robot: Robot, plan: Any) -> planning.PlannedPath:
     plans = _planning()
     if robot.robot_id in plans.robots:
         raise ArenaError(
-            ErrorCode.LIMIT_REACHED, "A path is being planned for this robot already: one at a time."
+            ErrorCode.LIMIT_REACHED,
+            "A path is being planned for this robot already: one at a time.",
         )
     plans.robots.add(robot.robot_id)
     cancel = threading.Event()
@@ -215,4 +215,3 @@ async def no_path(error: PathNotFound) -> tuple[dict[str, Any], int]:
     body, status = error_response(error.code, error.message)
     body["error"]["blocked"] = None if error.hit is None else [error.hit.first, error.hit.second]
     return body, status
-

@@ -252,7 +252,7 @@ EXAMPLES: dict[type, dict[str, Any]] = {
     GroupBody: {"id": "pair", "members": ["demo-arm"], "stopTogether": True},
     TeleopBody: {"box": {"min": [-0.3, -0.4, 0.02], "max": [0.3, 0.0, 0.4]}, "deadman": 200},
     wire.PoseData: {"position": [0.0, -0.25, 0.2], "gripper": 50, "duration": 1000},
-    MoveBody: {"joints": {"Rotation": 40, "Pitch": -20}, "plan": True, "budget": 1000},
+    MoveBody: {"pose": {"position": [0.1, -0.2, 0.15]}, "plan": True, "budget": 1000},
 }
 
 
