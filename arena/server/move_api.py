@@ -111,7 +111,8 @@ async def _planned(robot: Robot, body: MoveBody) -> dict[str, Any]:
             "A planned move is timed by the joints' limits: leave `duration` out (`speed` "
             "slows it).",
         )
-    require("plan", "A planned move")
+    # (in a thread: the first import of OMPL takes most of a second, the loop must not wait)
+    await trio.to_thread.run_sync(require, "plan", "A planned move")
     guard = collision.for_model(robot.model)
     if guard is None:
         raise ArenaError(
