@@ -6,6 +6,7 @@ stops a planned move; the move without `plan`; the timing within the joints' lim
 from __future__ import annotations
 
 import itertools
+import json
 import math
 import sys
 from collections.abc import Awaitable, Callable
@@ -13,6 +14,7 @@ from typing import Any
 
 import pytest
 import trio
+from trio_websocket import open_websocket_url
 
 from arena.robot import collision, planning
 from arena.robot.cartesian import hand_for
@@ -210,6 +212,59 @@ async def test_an_estop_during_a_planned_move_stops_it(server: RunningServer) ->
     last = recorder.targets[-1][1]
     pan = "Rotation"
     assert abs(last[pan] - goal[pan]) > 20  # stopped on the way, far from the goal
+
+
+async def test_a_master_plans_a_move_and_plays_it_as_its_own_commands(
+    server: RunningServer,
+) -> None:
+    need("ompl", "plan")
+    model, start, goal, pillar = scene("so-arm100")
+    guard = collision.for_model(model)
+    assert guard is not None
+    workspace = boxes(model, pillar)
+    async with server.client() as http:
+        robot = await arm_at(server, http, "demo-arm", start)
+        recorder = RecordingSlave()
+        await robot.attach_slave(recorder)
+        await http.put("/api/robots/demo-arm/workspace", json={"keep_out": [pillar]})
+        async with open_websocket_url(server.ws_url + "/ws/master/demo-arm?id=planner") as ws:
+            move = {"type": "move", "data": {"joints": goal, "plan": True}}
+            await ws.send_message(json.dumps(move))
+            ack = await next_of(ws, "ack")
+            assert ack["data"]["status"] == "accepted" and "planned" in ack["data"]["message"]
+            await eventually(
+                lambda: (
+                    robot.core.motion.goals["Rotation"] == pytest.approx(goal["Rotation"])
+                    and not robot.core.motion.moving
+                ),
+                what="the arm at the goal",
+            )
+            assert robot.snapshot().master.peer_id == "planner"  # type: ignore[union-attr]
+            # Straight back is refused (the pillar), as a command would be.
+            back = {"type": "move", "data": {"joints": start}}
+            await ws.send_message(json.dumps(back))
+            refused = await next_of(ws, "ack")
+            assert refused["data"]["code"] == "COLLISION"
+            inside = {"type": "move", "data": {"pose": {"position": centre(pillar)}, "plan": True}}
+            await ws.send_message(json.dumps(inside))
+            error = await next_of(ws, "error")
+            assert error["data"]["code"] in ("NO_PATH", "UNREACHABLE"), error
+    sent = [joints for _, joints in recorder.targets]
+    assert len(sent) > 10
+    for joints in sent:
+        assert guard.hit(urdf(model, joints), workspace) is None, joints
+
+
+def centre(box: dict[str, Any]) -> list[float]:
+    return [(lo + hi) / 2 for lo, hi in zip(box["min"], box["max"], strict=True)]
+
+
+async def next_of(ws: Any, wanted: str) -> dict[str, Any]:
+    with trio.fail_after(30):
+        while True:
+            message: dict[str, Any] = json.loads(await ws.get_message())
+            if message["type"] == wanted:
+                return message
 
 
 async def test_a_move_without_plan_is_one_command_and_bad_bodies_are_refused(

@@ -200,6 +200,33 @@ class EeVelocityMessage(_Msg, tag="ee_velocity", forbid_unknown_fields=True):
     data: EeVelocityData
 
 
+#: A joint's name in a move's goal (a robot type's names are short).
+GoalJoint = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
+
+
+class MoveData(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """A move to a goal, `joints` (value by joint name, degrees or percent) or `pose` (as the
+    `pose` message takes it), and `plan`: find a path around the table, the keep-out boxes and
+    the arm itself, timed within the joints' limits (specs/cartesian.md). `budget` (ms) bounds
+    the search, `speed` (0 to 1) scales every joint's velocity and acceleration limits.
+    Without `plan` the move is one command (`duration` ms), the straight way the collision
+    guard checks. `POST /api/robots/{id}/move` takes the same."""
+
+    joints: Annotated[dict[GoalJoint, float], msgspec.Meta(max_length=32)] | None = None
+    pose: PoseData | None = None
+    plan: bool = False
+    budget: Annotated[float, msgspec.Meta(ge=10, le=10_000)] | None = None
+    speed: Annotated[float, msgspec.Meta(gt=0, le=1)] | None = None
+    duration: Annotated[float, msgspec.Meta(ge=0, le=3_600_000)] | None = None
+
+
+class MoveMessage(_Msg, tag="move", forbid_unknown_fields=True):
+    """Move to a joint or pose goal (`MoveData`), straight or along a planned path played as
+    this master's commands."""
+
+    data: MoveData
+
+
 MasterMessage: TypeAlias = (
     CommandMessage
     | SequenceMessage
@@ -211,6 +238,7 @@ MasterMessage: TypeAlias = (
     | InferenceMessage
     | PoseMessage
     | EeVelocityMessage
+    | MoveMessage
 )
 
 

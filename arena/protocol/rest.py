@@ -6,7 +6,7 @@ from typing import Annotated, Literal, TypeAlias
 
 import msgspec
 
-from arena.protocol.messages import JointValue, PoseData
+from arena.protocol.messages import JointValue, MoveData
 
 #: The tenant of API keys, of robots created without one, and of tokens without the claim.
 DEFAULT_TENANT = "default"
@@ -378,21 +378,5 @@ class TeleopBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True)
     deadman: Annotated[float, msgspec.Meta(gt=0, le=2000)] | None = None
 
 
-#: A joint's name in a move's goal (a robot type's names are short).
-GoalJoint = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
-
-
-class MoveBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
-    """`POST /api/robots/{id}/move`: a goal, `joints` (value by joint name, degrees or percent)
-    or `pose` (as `PUT .../pose` takes it), and `plan`: find a path around the table, the
-    keep-out boxes and the arm itself, timed within the joints' limits (specs/cartesian.md).
-    `budget` (ms) bounds the search, `speed` (0 to 1) scales every joint's velocity and
-    acceleration limits. Without `plan` the move is one command (`duration` ms, as
-    `PUT .../joints`), the straight way the collision guard checks."""
-
-    joints: Annotated[dict[GoalJoint, float], msgspec.Meta(max_length=32)] | None = None
-    pose: PoseData | None = None
-    plan: bool = False
-    budget: Annotated[float, msgspec.Meta(ge=10, le=10_000)] | None = None
-    speed: Annotated[float, msgspec.Meta(gt=0, le=1)] | None = None
-    duration: Annotated[float, msgspec.Meta(ge=0, le=3_600_000)] | None = None
+#: `POST /api/robots/{id}/move`: the master message `move`'s data (`MoveData`).
+MoveBody: TypeAlias = MoveData
