@@ -205,12 +205,8 @@ GoalJoint = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
 
 
 class MoveData(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
-    """A move to a goal, `joints` (value by joint name, degrees or percent) or `pose` (as the
-    `pose` message takes it), and `plan`: find a path around the table, the keep-out boxes and
-    the arm itself, timed within the joints' limits (specs/cartesian.md). `budget` (ms) bounds
-    the search, `speed` (0 to 1) scales every joint's velocity and acceleration limits.
-    Without `plan` the move is one command (`duration` ms), the straight way the collision
-    guard checks. `POST /api/robots/{id}/move` takes the same."""
+    """A goal, `joints` (by name) or `pose`, reached straight (one command) or, with `plan`,
+    along a path found within `budget` ms at `speed` (0-1) of the limits (specs/cartesian.md)."""
 
     joints: Annotated[dict[GoalJoint, float], msgspec.Meta(max_length=32)] | None = None
     pose: PoseData | None = None
@@ -221,8 +217,7 @@ class MoveData(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
 
 
 class MoveMessage(_Msg, tag="move", forbid_unknown_fields=True):
-    """Move to a joint or pose goal (`MoveData`), straight or along a planned path played as
-    this master's commands."""
+    """Move to a goal (`MoveData`), straight or along a path played as this master's commands."""
 
     data: MoveData
 
