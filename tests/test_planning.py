@@ -291,6 +291,7 @@ async def test_a_move_without_plan_is_one_command_and_bad_bodies_are_refused(
             ({"joints": {"Rotation": 1}, "plan": True, "duration": 500}, "INVALID_VALUE"),
             ({"joints": {"Rotation": 1}, "plan": True, "budget": 5}, "INVALID_BODY"),
             ({"joints": {"Rotation": 1}, "plan": True, "speed": 2}, "INVALID_BODY"),
+            ({"joints": {"Rotation": 1}, "plan": True, "speed": 1e-9}, "INVALID_BODY"),
             ({"joints": {"Nope": 1}, "plan": True}, "UNKNOWN_JOINT"),
             ({"joints": {"Rotation": 1}, "plan": "yes"}, "INVALID_BODY"),
             ({"joints": {"Rotation": 1}, "via": []}, "UNKNOWN_FIELD"),

@@ -212,7 +212,7 @@ class MoveData(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     pose: PoseData | None = None
     plan: bool = False
     budget: Annotated[float, msgspec.Meta(ge=10, le=10_000)] | None = None
-    speed: Annotated[float, msgspec.Meta(gt=0, le=1)] | None = None
+    speed: Annotated[float, msgspec.Meta(ge=0.01, le=1)] | None = None
     duration: Annotated[float, msgspec.Meta(ge=0, le=3_600_000)] | None = None
 
 
