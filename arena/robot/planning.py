@@ -6,12 +6,14 @@ The check is the guard's own (`arena.robot.collision.CollisionModel`): a pose is
 `assess` finds no hit; the straight way between two poses is free when the guard's own bound
 (`CollisionModel.near`: no point of the arm can move as far as the gaps of the pose it starts
 from) proves it, step by step: from each pose checked, as far on as the bound proves safe,
-then check there. Where the bound cannot prove a step of `FINE_STEP`, the way is taken as
-blocked. No second collision model: what the planner finds free, the guard lets through.
+then check there; where the gaps are too small to prove a step of `FINE_STEP`, the way goes on
+by that step between checked poses (the guard checks a command's way in 5-degree steps). Every
+pose the move will command is checked once more. No second collision model: what the planner
+finds free, the guard lets through.
 
-OMPL (the `plan` extra) is imported when a plan is made, not before. Pure otherwise: no I/O,
-no clock but OMPL's own budget; the caller runs `plan` in a thread (it holds the GIL only
-while Python runs, which gives it up every switch interval: the event loop keeps its turns).
+OMPL (the `plan` extra) is imported when a plan needs a search, not before. No I/O; the
+caller runs `plan` in a thread: the checks are Python, which gives up the GIL every switch
+interval, and the checks pause now and then (`YIELD_EVERY`) so the event loop gets it at once.
 """
 
 from __future__ import annotations
@@ -29,9 +31,8 @@ from arena.robot.collision import CollisionModel, Hit, Reference
 from arena.robot.model import RobotModel
 from arena.robot.workspace import Workspace
 
-#: Seconds a plan may take by default, and at most (the caller's `budget`).
+#: Seconds a plan's search may take by default (the caller's `budget`).
 DEFAULT_BUDGET = 1.0
-MAX_BUDGET = 10.0
 #: No robot type declares an acceleration: a joint reaches its velocity limit from rest in
 #: this time (seconds), so its acceleration limit is its velocity limit / ACCELERATION_TIME.
 ACCELERATION_TIME = 0.25
@@ -225,7 +226,7 @@ def plan(
     samples = timed(corners, model, speed)
     for _, pose in samples:  # every pose commanded: the guard's check, as the core will do
         found = check.hit(pose)
-        if found is not None:  # (never: every way was proven free; checked all the same)
+        if found is not None:  # (a way stepped through by FINE_STEP can graze something)
             raise NoPath(f"the path found grazes {found}", found)
     wire = [
         {s.name: s.clamp(s.from_urdf(v)) for s, v in zip(specs, p, strict=True)} for p in corners
