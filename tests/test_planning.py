@@ -182,6 +182,12 @@ async def test_an_estop_answers_while_a_plan_runs_and_ends_the_plan(
                 return plans is not None and "demo-arm" in plans.robots
 
             await eventually(planning_now, what="the plan running")
+            # One plan at a time per robot: a second one is refused, not queued.
+            second = await http.post(
+                "/api/robots/demo-arm/move", json={"joints": goal, "plan": True}
+            )
+            assert second.status_code == 429, second.text
+            assert second.json()["error"]["code"] == "LIMIT_REACHED"
             stopped = await http.post("/api/robots/demo-arm/estop", json={"reason": "stop it"})
             assert stopped.status_code == 200, stopped.text
             assert robot.snapshot().mode == "estopped"
