@@ -137,6 +137,7 @@ async def test_every_change_is_audited_once_with_who_and_no_refusal_is(
         reader = bearer(token("admin", sub="reader"))
         pose = (await http.get(f"{arm}/pose", headers=reader)).json()["commanded"]
         await change("PUT", f"{arm}/pose", {"position": pose["position"]}, robots=("arm",))
+        await change("POST", f"{arm}/move", {"joints": {"Rotation": 6}}, robots=("arm",))
         await change("PUT", f"{arm}/teleop", {"deadman": 300}, robots=("arm",))
         guide = {"joints": ["Rotation"], "torque": 20}
         await change("POST", f"{arm}/compliance", guide, status=201, robots=("arm",))

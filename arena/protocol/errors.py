@@ -18,6 +18,7 @@ class ErrorCode(enum.StrEnum):
     ESTOPPED = "ESTOPPED"
     RATE_LIMITED = "RATE_LIMITED"
     UNREACHABLE = "UNREACHABLE"  # no pose of the arm puts its hand where it was asked to go
+    NO_PATH = "NO_PATH"  # no collision-free path to a planned move's goal within its budget
     STALE_COMMAND = "STALE_COMMAND"  # a stamped command arrived older than command_max_age
     COLLISION = "COLLISION"  # the move would bring links together or into the workspace's walls
     TAKEN_OVER = "TAKEN_OVER"

@@ -6,7 +6,7 @@ from typing import Annotated, Literal, TypeAlias
 
 import msgspec
 
-from arena.protocol.messages import JointValue
+from arena.protocol.messages import JointValue, MoveData
 
 #: The tenant of API keys, of robots created without one, and of tokens without the claim.
 DEFAULT_TENANT = "default"
@@ -376,3 +376,7 @@ class TeleopBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True)
 
     box: TeleopBoxBody | None = None
     deadman: Annotated[float, msgspec.Meta(gt=0, le=2000)] | None = None
+
+
+#: `POST /api/robots/{id}/move`: the master message `move`'s data (`MoveData`).
+MoveBody: TypeAlias = MoveData

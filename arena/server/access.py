@@ -55,6 +55,7 @@ ROLE_FOR: dict[tuple[str, str], Role] = {
     ("PUT", "/api/robots/{robot_id}/joints"): OP,
     ("GET", "/api/robots/{robot_id}/pose"): V,
     ("PUT", "/api/robots/{robot_id}/pose"): OP,
+    ("POST", "/api/robots/{robot_id}/move"): OP,
     ("GET", "/api/robots/{robot_id}/teleop"): V,
     ("PUT", "/api/robots/{robot_id}/teleop"): A,
     ("GET", "/api/robots/{robot_id}/workspace"): V,

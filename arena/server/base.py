@@ -69,6 +69,7 @@ STATUS_FOR: dict[ErrorCode, int] = {
     ErrorCode.LIMIT_REACHED: 429,
     ErrorCode.COLLISION: 422,
     ErrorCode.UNREACHABLE: 422,
+    ErrorCode.NO_PATH: 422,
     ErrorCode.UNAUTHORIZED: 401,
     ErrorCode.FORBIDDEN: 403,
     ErrorCode.ORIGIN_NOT_ALLOWED: 403,

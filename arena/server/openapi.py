@@ -21,6 +21,7 @@ from arena.protocol.rest import (
     JointsBody,
     MasterBody,
     MockSlaveBody,
+    MoveBody,
     PhysicsSlaveBody,
     PolicyMasterBody,
     ReasonBody,
@@ -61,6 +62,12 @@ ROUTES: list[tuple[str, str, str, Any]] = [
     ("PUT", "/api/robots/{robot_id}/joints", "Manual control (refused while mastered)", JointsBody),
     ("GET", "/api/robots/{robot_id}/pose", "The hand's pose, measured and commanded", None),
     ("PUT", "/api/robots/{robot_id}/pose", "Move the hand to a pose (solved)", wire.PoseData),
+    (
+        "POST",
+        "/api/robots/{robot_id}/move",
+        "Move to a joint or pose goal, straight or along a planned path",
+        MoveBody,
+    ),
     ("GET", "/api/robots/{robot_id}/teleop", "Teleoperation's box and dead-man time", None),
     ("PUT", "/api/robots/{robot_id}/teleop", "Change teleoperation's box, dead-man", TeleopBody),
     ("GET", "/api/robots/{robot_id}/workspace", "The collision guard's workspace", None),
@@ -245,6 +252,7 @@ EXAMPLES: dict[type, dict[str, Any]] = {
     GroupBody: {"id": "pair", "members": ["demo-arm"], "stopTogether": True},
     TeleopBody: {"box": {"min": [-0.3, -0.4, 0.02], "max": [0.3, 0.0, 0.4]}, "deadman": 200},
     wire.PoseData: {"position": [0.0, -0.25, 0.2], "gripper": 50, "duration": 1000},
+    MoveBody: {"pose": {"position": [0.1, -0.2, 0.15]}, "plan": True, "budget": 1000},
 }
 
 
