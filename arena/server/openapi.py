@@ -27,6 +27,7 @@ from arena.protocol.rest import (
     RemoteServerBody,
     ReplayBody,
     ReplayMasterBody,
+    ScriptMasterBody,
     SequenceMasterBody,
     SlaveBody,
     TeleopBody,
@@ -233,6 +234,7 @@ EXAMPLES: dict[type, dict[str, Any]] = {
         "task": "pick up the cube",
         "fps": 30,
     },
+    ScriptMasterBody: {"type": "script", "path": "pick_and_place.py"},
     RemoteServerBody: {
         "type": "remote-server",
         "url": "ws://localhost:8080",
