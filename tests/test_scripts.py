@@ -4,6 +4,7 @@ only a file of the tenant's scripts folder runs; `arena script` runs one from an
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import textwrap
@@ -118,3 +119,269 @@ async def test_a_script_moves_the_hand_to_three_poses_through_the_master_path(
         assert reached is not None
         wanted = [a + b for a, b in zip(start.position, step, strict=True)]
         assert math.dist(reached.position, wanted) < 0.001
+
+
+async def wait_for_no_master(server: RunningServer) -> None:
+    robot = server.app.manager.get("demo-arm")
+    with trio.fail_after(WAIT):
+        while robot.snapshot().master is not None:
+            await trio.sleep(0.05)
+
+
+async def test_a_script_that_raises_is_a_fault_naming_its_file_and_line(
+    start_server: Start, tmp_path: Path
+) -> None:
+    server = await scripted(start_server, tmp_path)
+    path = write(
+        tmp_path / "scripts",
+        "bad.py",
+        """\
+        from arena.script import move_joints
+
+        move_joints({"Rotation": 5})
+        values = {"Pitch": 1}
+        print(values["Roll"])
+        """,
+    )
+    robot = server.app.manager.get("demo-arm")
+    with robot.subscribe(kinds=[FaultReported]) as events:
+        answer = await attach(server, "bad.py")
+        assert answer.status_code == 201, answer.text
+        fault = await next_event(events, lambda e: isinstance(e, FaultReported))
+    assert fault.code == "SCRIPT_FAILED" and fault.peer_id == "script:bad.py"
+    assert fault.message == f"{path.resolve()}, line 5: KeyError: 'Roll'"
+    await wait_for_no_master(server)
+    assert robot.snapshot().joint("Rotation").goal == 5  # what it did before is done
+
+
+async def test_a_refused_command_raises_in_the_script_which_may_catch_it(
+    start_server: Start, tmp_path: Path
+) -> None:
+    server = await scripted(start_server, tmp_path)
+    write(
+        tmp_path / "scripts",
+        "far.py",
+        """\
+        from arena.script import ScriptError, move_joints, move_to_pose
+
+        try:
+            move_to_pose([5.0, 0.0, 0.0])
+        except ScriptError as error:
+            print("refused", error.code)
+            move_joints({"Rotation": 7})
+        move_joints({"Nope": 1})
+        """,
+    )
+    robot = server.app.manager.get("demo-arm")
+    with robot.subscribe(kinds=[FaultReported]) as events:
+        assert (await attach(server, "far.py")).status_code == 201
+        fault = await next_event(events, lambda e: isinstance(e, FaultReported))
+    assert "far.py, line 8: ScriptError: UNKNOWN_JOINT" in fault.message, fault.message
+    await wait_for_no_master(server)
+    assert robot.snapshot().joint("Rotation").goal == 7
+
+
+async def test_an_estop_during_a_script_kills_its_worker_at_once(
+    start_server: Start, tmp_path: Path
+) -> None:
+    server = await scripted(start_server, tmp_path)
+    write(
+        tmp_path / "scripts",
+        "loop.py",
+        """\
+        from arena.script import move_joints
+
+        angle = 0
+        while True:
+            angle = 10 - angle
+            move_joints({"Rotation": angle}, duration=0.2)
+        """,
+    )
+    robot = server.app.manager.get("demo-arm")
+    before = set(script_workers())
+    with robot.subscribe(kinds=[CommandHandled, StateChanged]) as events:
+        assert (await attach(server, "loop.py")).status_code == 201
+        await next_event(events, lambda e: isinstance(e, CommandHandled))
+        (worker,) = set(script_workers()) - before
+        async with server.client() as http:
+            estop = await http.post(f"{ROBOT}/estop", json={"reason": "test"})
+            assert estop.status_code == 200
+        await next_event(events, lambda e: isinstance(e, StateChanged) and e.mode is Mode.ESTOPPED)
+        after = events.drain()
+        assert not [e for e in after if isinstance(e, CommandHandled)]
+    # The worker was killed as the master was detached: it is gone (reaped), not running on.
+    assert worker not in script_workers()
+    assert robot.snapshot().master is None
+
+
+@pytest.mark.parametrize(
+    ("name", "status", "code"),
+    [
+        ("../outside.py", 403, "FORBIDDEN"),
+        ("/etc/hostname", 403, "FORBIDDEN"),
+        ("sub/inner.py", 403, "FORBIDDEN"),
+        ("link.py", 403, "FORBIDDEN"),
+        ("missing.py", 422, "SCRIPT_INVALID"),
+        ("notes.txt", 422, "SCRIPT_INVALID"),
+    ],
+)
+async def test_only_a_script_of_the_tenants_folder_runs(
+    start_server: Start, tmp_path: Path, name: str, status: int, code: str
+) -> None:
+    server = await scripted(start_server, tmp_path)
+    write(tmp_path, "outside.py", "print('outside')\n")
+    write(tmp_path / "scripts" / "sub", "inner.py", "print('inner')\n")
+    write(tmp_path / "scripts", "notes.txt", "print('notes')\n")
+    (tmp_path / "scripts" / "link.py").symlink_to(tmp_path / "outside.py")
+    before = set(script_workers())
+    answer = await attach(server, name)
+    assert (answer.status_code, answer.json()["error"]["code"]) == (status, code)
+    message = answer.json()["error"]["message"]
+    assert message.endswith(".") and name in message
+    assert set(script_workers()) == before  # nothing ran
+    assert server.app.manager.get("demo-arm").snapshot().master is None
+
+
+async def test_pause_holds_a_script_and_resume_finishes_its_move(
+    start_server: Start, tmp_path: Path
+) -> None:
+    server = await scripted(start_server, tmp_path)
+    write(
+        tmp_path / "scripts",
+        "slow.py",
+        """\
+        from arena.script import move_joints
+
+        move_joints({"Rotation": 30}, duration=3)
+        move_joints({"Pitch": 10})
+        """,
+    )
+    robot = server.app.manager.get("demo-arm")
+    with robot.subscribe(kinds=[CommandHandled]) as events:
+        assert (await attach(server, "slow.py")).status_code == 201
+        first = await next_event(events, lambda e: isinstance(e, CommandHandled))
+        async with server.client() as http:
+            assert (await http.post(f"{ROBOT}/master/pause")).status_code == 200
+            held = robot.snapshot().joint("Rotation").virtual_value
+            assert held < 30
+            await trio.sleep(0.5)  # (nothing may come meanwhile: checked below)
+            assert not [e for e in events.drain() if isinstance(e, CommandHandled)]
+            assert robot.snapshot().joint("Rotation").virtual_value == held
+            assert (await http.post(f"{ROBOT}/master/resume")).status_code == 200
+        await wait_for_no_master(server)
+        rest = [e for e in events.drain() if isinstance(e, CommandHandled)]
+    assert first.result.accepted
+    # On the resume the move was sent again (the arm held where the pause found it), finished,
+    # and the script went on to its next move.
+    joints = [[(g.name, g.value) for g in e.command.joints] for e in rest]
+    assert joints == [[("Rotation", 30)], [("Pitch", 10)]], joints
+    assert all(e.result.accepted for e in rest)
+    assert robot.snapshot().joint("Rotation").virtual_value == pytest.approx(30, abs=0.1)
+
+
+class StandIn:
+    """A `ScriptArm` that accepts every command at once and moves nothing (for the bounds)."""
+
+    paused = False
+
+    def __init__(self) -> None:
+        self.commands: list[Any] = []
+        self.faults: list[tuple[str, str]] = []
+
+    def joint_values(self) -> tuple[dict[str, float], dict[str, float]]:
+        return {"Rotation": 0.0}, {}
+
+    async def command(self, command: Any) -> Any:
+        from arena.robot.motion import CommandResult
+
+        self.commands.append((trio.current_time(), command))
+        return CommandResult(True)
+
+    async def pose(self, data: Any, source: str) -> Any:
+        raise AssertionError("not asked")
+
+    async def planned(self, request: Any, source: str) -> Any:
+        from arena.protocol.errors import ArenaError, ErrorCode
+        from arena.script.master import NO_PLANNER
+
+        raise ArenaError(ErrorCode.NOT_INSTALLED, NO_PLANNER)
+
+    async def wait_resumed(self) -> None:
+        pass
+
+    def fault(self, source: str, code: Any, message: str, severity: Any) -> None:
+        self.faults.append((str(code), message))
+
+
+async def run_stand_in(tmp_path: Path, text: str, **settings: Any) -> tuple[Any, StandIn, float]:
+    from arena.script.master import ScriptMaster, ScriptSettings
+
+    path = write(tmp_path, "bounded.py", text)
+    master = ScriptMaster(ScriptSettings(path, **settings), load_robot_model("so-arm100"))
+    arm = StandIn()
+    started = trio.current_time()
+    # (no deadline: the mock clock would jump to it while the worker starts; marked real_io)
+    await master.drive(arm)
+    return master, arm, trio.current_time() - started
+
+
+@pytest.mark.real_io
+async def test_a_script_in_a_tight_loop_is_slowed_to_its_request_rate(
+    autojump_clock: trio.testing.MockClock, tmp_path: Path
+) -> None:
+    master, arm, took = await run_stand_in(
+        tmp_path,
+        """\
+        from arena.script import move_joints, paused
+
+        for i in range(100):
+            paused()
+            move_joints({"Rotation": i % 10}, wait=False)
+        """,
+        rate=50.0,
+    )
+    assert master.outcome == "" and not arm.faults
+    assert master.counters.requests == 200 and len(arm.commands) == 100
+    # 200 requests at 50 a second: never faster (on trio's clock, which the pacing uses).
+    assert took >= 199 / 50 - 1e-6
+    times = [t for t, _ in arm.commands]
+    assert min(b - a for a, b in itertools.pairwise(times)) >= 2 / 50 - 1e-9
+
+
+@pytest.mark.real_io
+async def test_a_script_that_prints_without_end_is_slowed_and_its_lines_bounded(
+    autojump_clock: trio.testing.MockClock, tmp_path: Path
+) -> None:
+    master, _, took = await run_stand_in(
+        tmp_path,
+        """\
+        for i in range(300):
+            print("line", i, "x" * 5000)
+        """,
+        lines_rate=20.0,
+        lines_burst=50,
+    )
+    # A line goes in pieces of at most 1000 characters: each print of 5007 as six lines,
+    # none lost; the newest 100 are kept.
+    assert master.outcome == "" and master.counters.lines == 300 * 6
+    assert len(master.lines) == 100 and max(len(line) for line in master.lines) == 1000
+    assert master.lines[-1].startswith("x") and master.lines[-2] == "x" * 1000
+    # After a burst of 50, at most 20 lines a second (on trio's clock, which the bound uses).
+    assert took >= (1800 - 50) / 20 - 1e-6
+
+
+@pytest.mark.real_io
+async def test_a_planned_move_where_the_server_plans_none_says_so(
+    autojump_clock: trio.testing.MockClock, tmp_path: Path
+) -> None:
+    _, arm, _ = await run_stand_in(
+        tmp_path,
+        """\
+        from arena.script import move
+
+        move({"Rotation": 10}, plan=True)
+        """,
+    )
+    ((code, message),) = arm.faults
+    assert code == "SCRIPT_FAILED" and "line 3: ScriptError: NOT_INSTALLED" in message
+    assert "plans no moves" in message and not arm.commands

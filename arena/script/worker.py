@@ -41,9 +41,9 @@ class LineWriter(io.TextIOBase):
         while "\n" in self.pending:
             line, self.pending = self.pending.split("\n", 1)
             self._send(line)
-        if len(self.pending) > MAX_LINE:  # a line with no end yet: sent in pieces
-            self._send(self.pending)
-            self.pending = ""
+        while len(self.pending) > MAX_LINE:  # a line with no end yet: sent in pieces
+            self._send(self.pending[:MAX_LINE])
+            self.pending = self.pending[MAX_LINE:]
         return len(text)
 
     def flush(self) -> None:
