@@ -7,6 +7,7 @@ from __future__ import annotations
 import itertools
 import math
 import os
+import sys
 import textwrap
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -385,3 +386,76 @@ async def test_a_planned_move_where_the_server_plans_none_says_so(
     ((code, message),) = arm.faults
     assert code == "SCRIPT_FAILED" and "line 3: ScriptError: NOT_INSTALLED" in message
     assert "plans no moves" in message and not arm.commands
+
+
+async def run_arena_script(server: RunningServer, path: Path, *args: str) -> Any:
+    """`arena script` in a process of its own (another machine, as far as the API goes)."""
+    command = [sys.executable, "-m", "arena", "script", str(path), "--url", server.url]
+    return await trio.run_process(
+        [*command, "--robot", "demo-arm", *args],
+        capture_stdout=True,
+        capture_stderr=True,
+        check=False,
+    )
+
+
+async def test_arena_script_runs_a_script_from_another_machine_over_the_master_socket(
+    start_server: Start, tmp_path: Path
+) -> None:
+    server = await start_server(demo=True)
+    path = write(tmp_path, "remote.py", THREE_POSES)
+    robot = server.app.manager.get("demo-arm")
+    hand = hand_for(robot.model)
+    assert hand is not None
+    start = hand.pose({j.name: j.goal for j in robot.snapshot().joints})
+    assert start is not None
+    with robot.subscribe(kinds=[CommandHandled]) as events:
+        with trio.fail_after(WAIT):
+            done = await run_arena_script(server, path)
+        handled = [e for e in events.drain() if isinstance(e, CommandHandled)]
+    assert done.returncode == 0, done.stderr.decode()
+    out = done.stdout.decode().splitlines()
+    assert out[-1] == "script:remote.py: 9 requests, 3 commands accepted, 0 refused", out
+    assert out[-2].startswith("done ['Elbow', 'Jaw', 'Pitch'")
+    # The three poses went as the master's `pose` messages, solved and checked by the server.
+    assert [e.result.accepted for e in handled] == [True] * 3
+    final = hand.pose({j.name: j.goal for j in robot.snapshot().joints})
+    assert final is not None
+    wanted = [a + b for a, b in zip(start.position, (0.0, 0.0, 0.03), strict=True)]
+    assert math.dist(final.position, wanted) < 0.001
+    assert robot.snapshot().master is None  # released when the script ended
+
+
+async def test_an_estop_ends_a_remote_script_and_kills_its_worker(
+    start_server: Start, tmp_path: Path
+) -> None:
+    server = await start_server(demo=True)
+    path = write(
+        tmp_path,
+        "loop.py",
+        """\
+        from arena.script import move_joints
+
+        while True:
+            move_joints({"Rotation": 10}, duration=0.2)
+            move_joints({"Rotation": 0}, duration=0.2)
+        """,
+    )
+    robot = server.app.manager.get("demo-arm")
+    async with trio.open_nursery() as nursery:
+        result: list[Any] = []
+
+        async def run() -> None:
+            result.append(await run_arena_script(server, path))
+
+        with robot.subscribe(kinds=[CommandHandled]) as events:
+            nursery.start_soon(run)
+            await next_event(events, lambda e: isinstance(e, CommandHandled))
+        await robot.estop("test")
+    with trio.fail_after(WAIT):
+        while result == []:
+            await trio.sleep(0.05)
+    (done,) = result
+    assert done.returncode == 1
+    assert "arena script: the robot was e-stopped (test): the script ended" in done.stderr.decode()
+    assert not [pid for pid in script_workers() if pid != os.getpid()]
