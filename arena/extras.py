@@ -34,6 +34,7 @@ EXTRAS = {
     "lerobot": Extra("lerobot", "LeRobot (0.4, which brings torch)", "lerobot"),
     "dynamixel": Extra("dynamixel_sdk", "the Dynamixel SDK (dynamixel-sdk)", "dynamixel"),
     "gym": Extra("gymnasium", "Gymnasium", "gym"),
+    "mcp": Extra("mcp", "the MCP Python SDK (mcp)", "mcp"),
 }
 
 

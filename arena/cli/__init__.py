@@ -34,6 +34,7 @@ from arena.cli import (
     estop,
     foxglove,
     learn,
+    mcp,
     policy,
     recordings,
     script,
@@ -79,6 +80,7 @@ def build_parser() -> argparse.ArgumentParser:
     estop.add(commands)
     policy.add(commands)
     script.add(commands)
+    mcp.add(commands)
     learn.add(commands)
     tools.add(commands)
     users.add(commands)
