@@ -210,8 +210,11 @@ async def test_an_estop_during_a_script_kills_its_worker_at_once(
         await next_event(events, lambda e: isinstance(e, StateChanged) and e.mode is Mode.ESTOPPED)
         after = events.drain()
         assert not [e for e in after if isinstance(e, CommandHandled)]
-    # The worker was killed as the master was detached: it is gone (reaped), not running on.
-    assert worker not in script_workers()
+    # The worker was killed as the master was detached (the script loops for ever: it never
+    # ends by itself).
+    with trio.fail_after(WAIT):
+        while worker in script_workers():
+            await trio.sleep(0.05)
     assert robot.snapshot().master is None
 
 
@@ -243,6 +246,38 @@ async def test_only_a_script_of_the_tenants_folder_runs(
     assert server.app.manager.get("demo-arm").snapshot().master is None
 
 
+async def test_a_tenant_runs_the_scripts_of_its_own_folder_only(
+    start_server: Start, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Where the server's owner puts a script: `scripts/` (a tenant's: `scripts/<tenant>/`) in
+    # the folder the server runs in; a tenant's operator runs it by its name.
+    from tests.test_users import SECRET, bearer, token
+
+    monkeypatch.chdir(tmp_path)
+    write(tmp_path / "scripts" / "acme", "mine.py", "from arena.script import wait\nwait(0)\n")
+    write(tmp_path / "scripts", "default.py", "from arena.script import wait\nwait(0)\n")
+    (tmp_path / "jwt-secret").write_bytes(SECRET)
+    server = await start_server(jwt_secret_file=str(tmp_path / "jwt-secret"))
+    admin = bearer(token("admin", tenant="acme"))
+    operator = bearer(token("operator", tenant="acme"))
+    viewer = bearer(token("viewer", tenant="acme"))
+    arm = "/api/robots/acme-arm"
+    async with server.client() as http:
+        assert (await http.post("/api/robots", json={"id": "acme-arm"}, headers=admin)).is_success
+        body = {"type": "script", "path": "default.py"}  # the default tenant's: not acme's
+        answer = await http.post(f"{arm}/master", json=body, headers=operator)
+        assert (answer.status_code, answer.json()["error"]["code"]) == (422, "SCRIPT_INVALID")
+        assert "scripts/acme" in answer.json()["error"]["message"]
+        body = {"type": "script", "path": "mine.py"}
+        assert (await http.post(f"{arm}/master", json=body, headers=viewer)).status_code == 403
+        answer = await http.post(f"{arm}/master", json=body, headers=operator)
+        assert answer.status_code == 201, answer.text
+    robot = server.app.manager.get("acme-arm")
+    with trio.fail_after(WAIT):
+        while robot.snapshot().master is not None:
+            await trio.sleep(0.05)
+
+
 async def test_pause_holds_a_script_and_resume_finishes_its_move(
     start_server: Start, tmp_path: Path
 ) -> None:
@@ -253,7 +288,7 @@ async def test_pause_holds_a_script_and_resume_finishes_its_move(
         """\
         from arena.script import move_joints
 
-        move_joints({"Rotation": 30}, duration=3)
+        move_joints({"Rotation": 30}, duration=5)
         move_joints({"Pitch": 10})
         """,
     )
@@ -459,3 +494,23 @@ async def test_an_estop_ends_a_remote_script_and_kills_its_worker(
     assert done.returncode == 1
     assert "arena script: the robot was e-stopped (test): the script ended" in done.stderr.decode()
     assert not [pid for pid in script_workers() if pid != os.getpid()]
+
+
+def test_a_script_master_of_the_configuration_file_is_checked_as_it_loads(
+    tmp_path: Path,
+) -> None:
+    from arena.protocol.errors import ArenaError
+    from arena.server.config import ServerConfig
+    from arena.server.declared import read_setup
+
+    text = '[[robots]]\nid = "arm"\ntenant = "lab"\n\n[robots.master]\ntype = "script"\n'
+    path = write(tmp_path, "lab.toml", text + 'path = "pick.py"\n')
+    config = ServerConfig(config_file=path, script_dir=str(tmp_path / "scripts"))
+    with pytest.raises(ArenaError, match=r"lab.toml:7: robots\[0\]\.master\.path: No script"):
+        read_setup(config)
+    write(tmp_path / "scripts" / "lab", "pick.py", "print('pick')\n")
+    (robot,) = read_setup(config).robots.values()
+    assert robot.master is not None and robot.tenant == "lab"
+    outside = write(tmp_path, "out.toml", text + 'path = "/tmp/pick.py"\n')
+    with pytest.raises(ArenaError, match=r"out.toml:7: robots\[0\]\.master\.path: Script "):
+        read_setup(ServerConfig(config_file=outside, script_dir=str(tmp_path / "scripts")))
