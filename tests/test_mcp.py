@@ -102,6 +102,8 @@ async def test_the_sdks_client_lists_and_calls_the_tools_and_the_agent_is_a_mast
         closed = await call(session, "gripper", robot_id="demo-arm", action="close")
         jaw = robot.model.joint("Jaw")
         assert jaw is not None and closed["joints"]["Jaw"] == pytest.approx(jaw.lower, abs=0.01)
+        half = await call(session, "gripper", robot_id="demo-arm", action=10)
+        assert half["joints"]["Jaw"] == pytest.approx(10, abs=0.01)
 
         # Every rule applies: a joint past its limit is clamped, a far pose is unreachable,
         # and this server plans no moves.

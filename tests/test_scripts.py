@@ -514,3 +514,13 @@ def test_a_script_master_of_the_configuration_file_is_checked_as_it_loads(
     outside = write(tmp_path, "out.toml", text + 'path = "/tmp/pick.py"\n')
     with pytest.raises(ArenaError, match=r"out.toml:7: robots\[0\]\.master\.path: Script "):
         read_setup(ServerConfig(config_file=outside, script_dir=str(tmp_path / "scripts")))
+
+
+@pytest.mark.real_io
+async def test_a_script_that_does_not_parse_is_a_fault_naming_its_line(
+    autojump_clock: trio.testing.MockClock, tmp_path: Path
+) -> None:
+    master, arm, _ = await run_stand_in(tmp_path, "from arena.script import wait\n\nwait(0\n")
+    ((code, message),) = arm.faults
+    assert code == "SCRIPT_FAILED" and message.startswith(f"{tmp_path / 'bounded.py'}, line 3: ")
+    assert "SyntaxError" in message and master.outcome == message

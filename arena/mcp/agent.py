@@ -211,7 +211,7 @@ class Agent:
         finished = await self._settle(held, {}, None)
         return self._moved(held, robot_id, ack, finished)
 
-    async def gripper(self, robot_id: str, action: str) -> dict[str, Any]:
+    async def gripper(self, robot_id: str, action: str | float) -> dict[str, Any]:
         """`open` (the top of the gripper joint's range), `close` (its bottom), or a number
         (its unit)."""
         robot = await self._get(f"/api/robots/{quote(robot_id)}")
@@ -229,6 +229,8 @@ class Agent:
                 value = float(action)
             except ValueError:
                 raise AgentError(f"{action!r}: open, close or a number.") from None
+            if not math.isfinite(value):
+                raise AgentError(f"INVALID_VALUE: {action!r} is not a finite number.")
         return await self.move_joints(robot_id, {joint.name: value})
 
     async def estop(self, robot_id: str, reason: str) -> dict[str, Any]:

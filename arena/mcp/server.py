@@ -101,7 +101,7 @@ def build(agent: Agent) -> MCPServer[Any]:
 
     @server.tool()
     @_told
-    async def gripper(robot_id: str, action: str) -> dict[str, Any]:
+    async def gripper(robot_id: str, action: str | float) -> dict[str, Any]:
         """Open or close the gripper: `open`, `close`, or a value 0-100."""
         return await agent.gripper(robot_id, action)
 
