@@ -150,3 +150,15 @@ async def test_without_the_key_the_agent_reads_and_moves_nothing(start_server: S
         moved = await refused(session, "move_joints", robot_id="demo-arm", joints={"Pitch": 5})
         assert moved.startswith("FORBIDDEN: ")
     assert server.app.manager.get("demo-arm").snapshot().master is None
+
+
+def test_without_the_sdk_arena_mcp_says_what_to_install(
+    monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from arena import cli
+
+    monkeypatch.setitem(sys.modules, "mcp", None)  # (an import of it raises ImportError)
+    assert cli.main(["mcp", "--url", "http://127.0.0.1:9"]) == 2
+    said = capsys.readouterr().err
+    assert said.startswith("arena mcp: NOT_INSTALLED: arena mcp needs the MCP Python SDK (mcp)")
+    assert "-m pip install 'arena[mcp]'" in said

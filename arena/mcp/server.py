@@ -11,8 +11,13 @@ from typing import Any, ParamSpec, TypeVar
 
 import anyio
 import trio
-from mcp.server.mcpserver import MCPServer
-from mcp.server.mcpserver.exceptions import ToolError
+
+try:
+    from mcp.server.mcpserver import MCPServer
+    from mcp.server.mcpserver.exceptions import ToolError
+except ImportError:  # mcp before 2: FastMCP, the same decorator and stdio run (tests run 2.3)
+    from mcp.server.fastmcp import FastMCP as MCPServer  # type: ignore[attr-defined,no-redef]
+    from mcp.server.fastmcp.exceptions import ToolError  # type: ignore[import-not-found,no-redef]
 
 from arena.client import AsyncArena
 from arena.mcp.agent import Agent, AgentError
