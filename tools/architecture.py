@@ -44,8 +44,8 @@ RANKS: dict[str, int] = {
     "fleet": 5,
     "policy": 5,
     "script": 5,  # a script's worker and master, as a policy's
-    "mcp": 5,  # `arena mcp`: a client of the API, as a remote policy is
     "gym": 6,  # on policy: `arena learn` runs its policy as the master
+    "mcp": 6,  # on script: `arena mcp`'s moves end as a script's (a client of the API)
     "ros2": 6,  # on the fleet's Zenoh pieces
     "server": 7,
     "bench": 8,

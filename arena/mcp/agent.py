@@ -17,13 +17,10 @@ from arena.client import AsyncArena, MasterSession
 from arena.client.errors import ArenaClientError
 from arena.robot.cartesian import hand_for
 from arena.robot.model import RobotModel, load_robot_model
+from arena.script.master import MoveEnd
 
 #: Seconds between looks at the joints while a move runs.
 POLL = 0.05
-#: A move is over when its joints are this close to their targets (degrees), or when none of
-#: them has moved for `STILL` seconds (a target clamped, a pose whose joints are not told).
-TOLERANCE = 0.05
-STILL = 0.3
 #: The longest a tool waits for a move to end beyond its own duration (seconds): it answers
 #: then, saying the move goes on.
 MOVE_WAIT = 30.0
@@ -244,26 +241,22 @@ class Agent:
         return {"robot": robot_id, "state": response.json().get("state")}
 
     async def _settle(self, held: Held, targets: dict[str, float], duration: float | None) -> bool:
-        """Wait for the move to end (its joints at their targets, or still); False if it
-        still runs after its duration and `MOVE_WAIT`."""
+        """Wait for the move to end (as a script's move: `MoveEnd`); False if the robot
+        paused or let go of the agent, or the move still runs after its duration and
+        `MOVE_WAIT`."""
         session = held.session
-        last: tuple[float, ...] | None = None
-        still_since = trio.current_time()
+        ending = MoveEnd(targets, duration, trio.current_time(), lambda _, value: value)
         with trio.move_on_after((duration or 0.0) + MOVE_WAIT):
             while True:
                 await trio.sleep(POLL)
                 if session.paused or session.detached is not None:
                     return False
-                values = {n: e.get("virtual_value") for n, e in session.joints.items()}
-                names = list(targets) or list(values)
-                now = tuple(float(values.get(n) or 0.0) for n in names)
-                if targets and all(
-                    abs(v - targets[n]) <= TOLERANCE for n, v in zip(names, now, strict=True)
-                ):
-                    return True
-                if now != last:
-                    last, still_since = now, trio.current_time()
-                elif trio.current_time() - still_since >= STILL:
+                values = {
+                    name: float(entry["virtual_value"])
+                    for name, entry in session.joints.items()
+                    if entry.get("virtual_value") is not None
+                }
+                if ending.over(values, trio.current_time()):
                     return True
         return False
 

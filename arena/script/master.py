@@ -57,7 +57,7 @@ MAX_WORKERS = 8
 POLL = 0.02
 #: A move is over when every joint it moves is this close to its target (degrees)...
 TOLERANCE = 0.05
-#: ...or when none of them has moved for this long (a target clamped, a joint held).
+#: ...or when none of them has moved for this long once they moved (`MoveEnd`).
 STILL = 0.25
 
 #: A command's result and the joints' targets it set (empty: not known on this side).
@@ -67,6 +67,45 @@ Sent = tuple[CommandResult, dict[str, float]]
 HandMover = Callable[[RobotView, wire.PoseData, str], Awaitable[Command]]
 #: A planned move (`POST .../move` with `plan`): the command stream's result, and its goal.
 Planner = Callable[[RobotView, Request, str], Awaitable[tuple[CommandResult, dict[str, float]]]]
+
+
+class MoveEnd:
+    """When a move is over, from the joints' commanded values as they come: every joint it
+    moves within `TOLERANCE` of its target (clamped to its limits), or, where the targets are
+    not known here (a pose over the API) or not reached (held short), the joints having moved
+    and then stood still for `STILL`. A move that has not started after `STILL` plus a quarter
+    of its duration (and half a second: a slow start's first steps may not be reported) was
+    already there."""
+
+    def __init__(
+        self,
+        targets: Mapping[str, float],
+        duration: float | None,
+        started: float,
+        clamp: Callable[[str, float], float],
+    ) -> None:
+        self.targets = {name: clamp(name, value) for name, value in targets.items()}
+        self.grace = STILL + 0.5 + 0.25 * (duration or 0.0)
+        self.started = started
+        self.last: tuple[float, ...] | None = None
+        self.moved = False
+        self.still_since = started
+
+    def over(self, commanded: Mapping[str, float], now: float) -> bool:
+        """Whether the move is over, given the joints' commanded values `now`."""
+        names = list(self.targets) or list(commanded)
+        values = tuple(commanded.get(name, math.nan) for name in names)
+        if self.targets and all(
+            abs(value - self.targets[name]) <= TOLERANCE
+            for name, value in zip(names, values, strict=True)
+        ):
+            return True
+        if self.last is not None and values != self.last:
+            self.moved, self.still_since = True, now
+        self.last = values
+        if self.moved:
+            return now - self.still_since >= STILL
+        return now - self.started >= self.grace
 
 
 class ScriptArm(Protocol):
@@ -362,7 +401,9 @@ class ScriptMaster:
             async def send() -> Sent:
                 return await arm.pose(data, self.identity)
 
-        await self._move(arm, lambda: self._paced(arm, send), request.wait)
+        milliseconds = request.duration if isinstance(request, MoveJoints | MoveToPose) else None
+        seconds = None if milliseconds is None else milliseconds / 1000.0
+        await self._move(arm, lambda: self._paced(arm, send), request.wait, seconds)
         return None
 
     # -- commands --------------------------------------------------------------------------------
@@ -395,16 +436,15 @@ class ScriptMaster:
         arm: ScriptArm,
         send: Callable[[], Awaitable[Sent]],
         wait: bool,
+        duration: float | None,
     ) -> None:
-        """Send a move; with `wait`, return once it is over (the joints at their targets, or
-        still for `STILL`); a pause meanwhile holds the arm, and the move is sent again on the
-        resume."""
+        """Send a move; with `wait`, return once it is over; a pause meanwhile holds the arm,
+        and the move is sent again on the resume."""
         result, targets = await send()
         self._accepted(result)
         if not wait:
             return
-        last: tuple[float, ...] | None = None
-        still_since = trio.current_time()
+        ending = MoveEnd(targets, duration, trio.current_time(), self._clamped)
         while True:
             await trio.sleep(POLL)
             if arm.paused:
@@ -412,19 +452,10 @@ class ScriptMaster:
                 self.counters.pauses += 1
                 result, targets = await send()
                 self._accepted(result)
-                last, still_since = None, trio.current_time()
+                ending = MoveEnd(targets, duration, trio.current_time(), self._clamped)
                 continue
             commanded, _ = arm.joint_values()
-            names = list(targets) or list(commanded)
-            now = tuple(commanded.get(name, math.nan) for name in names)
-            if targets and all(
-                abs(value - self._clamped(name, targets[name])) <= TOLERANCE
-                for name, value in zip(names, now, strict=True)
-            ):
-                return
-            if now != last:
-                last, still_since = now, trio.current_time()
-            elif trio.current_time() - still_since >= STILL:
+            if ending.over(commanded, trio.current_time()):
                 return
 
     def _accepted(self, result: CommandResult) -> None:
