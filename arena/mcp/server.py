@@ -1,6 +1,6 @@
 """`arena mcp --url URL [--api-key KEY]`: the robots of an Arena server as MCP tools over stdio,
-with the official MCP Python SDK (the `mcp` extra). The SDK runs on anyio; here on anyio's trio
-backend, so the tools use Arena's own trio client in the same loop (specs/scripts.md).
+with the official MCP Python SDK (the `mcp` extra). The SDK runs on anyio; here under trio (anyio's
+trio backend), so the tools use Arena's own trio client in the same loop (specs/scripts.md).
 """
 
 from __future__ import annotations
@@ -9,7 +9,6 @@ import functools
 from collections.abc import Awaitable, Callable
 from typing import Any, ParamSpec, TypeVar
 
-import anyio
 import trio
 
 try:
@@ -138,5 +137,5 @@ async def serve(url: str, api_key: str | None = None, name: str = "mcp-agent") -
 
 
 def run(url: str, api_key: str | None = None, name: str = "mcp-agent") -> None:
-    """`serve` on anyio's trio backend."""
-    anyio.run(functools.partial(serve, url, api_key, name), backend="trio")
+    """`serve` under trio (the SDK's anyio finds trio running and uses its backend)."""
+    trio.run(serve, url, api_key, name)
