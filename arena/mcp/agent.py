@@ -6,6 +6,7 @@ a master to the agent's commands. Nothing here knows MCP (`arena.mcp.server` doe
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 from typing import Any, cast
@@ -18,6 +19,8 @@ from arena.client.errors import ArenaClientError
 from arena.robot.cartesian import hand_for
 from arena.robot.model import RobotModel, load_robot_model
 from arena.script.master import MoveEnd
+
+log = logging.getLogger(__name__)
 
 #: Seconds between looks at the joints while a move runs.
 POLL = 0.05
@@ -117,13 +120,22 @@ class Agent:
         model = load_robot_model(robot["robot_type"])
 
         async def run(task_status: trio.TaskStatus[Held]) -> None:
-            async with MasterSession.open(
-                self.url, robot_id, master_id=self.name, api_key=self.api_key
-            ) as session:
-                await session.wait_for(lambda s: bool(s.joints), timeout=10)
-                held = Held(session, model)
-                task_status.started(held)
-                await held.done.wait()
+            started: list[Held] = []
+            try:
+                async with MasterSession.open(
+                    self.url, robot_id, master_id=self.name, api_key=self.api_key
+                ) as session:
+                    await session.wait_for(lambda s: bool(s.joints), timeout=10)
+                    started.append(Held(session, model))
+                    task_status.started(started[0])
+                    await started[0].done.wait()
+            except (ArenaClientError, OSError) as error:
+                if not started:
+                    raise  # (the tool that asked says why)
+                # The link ended (the server went away): this robot is no longer held, and
+                # `arena mcp` goes on serving the others.
+                started[0].done.set()
+                log.warning("%s: the master link to %r ended: %s", self.name, robot_id, error)
 
         try:
             held = cast(Held, await self.nursery.start(run))
