@@ -105,14 +105,21 @@ async def test_the_sdks_client_lists_and_calls_the_tools_and_the_agent_is_a_mast
         half = await call(session, "gripper", robot_id="demo-arm", action=10)
         assert half["joints"]["Jaw"] == pytest.approx(10, abs=0.01)
 
-        # Every rule applies: a joint past its limit is clamped, a far pose is unreachable,
-        # and this server plans no moves.
+        # Every rule applies: a joint past its limit is clamped, a far pose is unreachable;
+        # a planned move where the server plans (else it says it does not).
         clamped = await call(session, "move_joints", robot_id="demo-arm", joints={"Rotation": 999})
         assert clamped["status"] == "clamped"
         far = await refused(session, "move_to_pose", robot_id="demo-arm", position=[3, 0, 0])
         assert far.startswith("UNREACHABLE: ")
-        plan = await refused(session, "plan_move", robot_id="demo-arm", joints={"Rotation": 0})
-        assert plan.startswith("NOT_INSTALLED: this server plans no moves")
+        from arena.protocol import messages
+
+        if hasattr(messages, "MoveMessage"):  # a server with planned moves (issue 58's)
+            planned = await call(session, "plan_move", robot_id="demo-arm", joints={"Rotation": 0})
+            assert planned["finished"] is True
+            assert planned["joints"]["Rotation"] == pytest.approx(0, abs=0.1)
+        else:
+            plan = await refused(session, "plan_move", robot_id="demo-arm", joints={"Rotation": 0})
+            assert plan.startswith("NOT_INSTALLED: this server plans no moves")
 
         stopped = await call(session, "estop", robot_id="demo-arm", reason="agent test")
         assert stopped["state"] == "estopped"

@@ -140,9 +140,10 @@ class MasterSession(WatchingSession):
     async def move(
         self, goal: Mapping[str, Any], *, plan: bool = True, timeout: float | None = None
     ) -> dict[str, Any]:
-        """A move to `goal` (`{"joints": {name: degrees}}` or `{"position": [...],
-        "orientation"?: [...]}`) along a planned path: the `move` message, where the server
-        plans moves (else `Refused` with its UNKNOWN_MESSAGE_TYPE). Its acknowledgment."""
+        """A move to `goal` (`{"joints": {name: degrees}}` or `{"pose": {"position": [...],
+        "orientation"?: [...]}}`), along a planned path with `plan`: the `move` message, where
+        the server has it (else `Refused` with its UNKNOWN_MESSAGE_TYPE). Its acknowledgment;
+        a planned path is then played as this master's commands."""
         data = {**goal, "plan": plan}
         message = {"type": "move", "timestamp": now_iso(), "data": data}
         ack = await self._request(message, "ack", timeout)

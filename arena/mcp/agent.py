@@ -204,9 +204,10 @@ class Agent:
         if (joints is None) == (position is None):
             raise AgentError("Give either joints or a position.")
         held = await self._hold(robot_id)
-        goal: dict[str, Any] = {"joints": joints} if joints is not None else {"position": position}
+        pose: dict[str, Any] = {"position": position}
         if orientation is not None:
-            goal["orientation"] = orientation
+            pose["orientation"] = orientation
+        goal: dict[str, Any] = {"joints": joints} if joints is not None else {"pose": pose}
         try:
             ack = await held.session.move(goal, plan=True)
         except ArenaClientError as error:

@@ -65,8 +65,9 @@ Sent = tuple[CommandResult, dict[str, float]]
 #: Turns a pose into the joint command that gets the hand there (the server's inverse
 #: kinematics, `arena.server.hand_api`); raises `ArenaError` (UNREACHABLE, ...) if none does.
 HandMover = Callable[[RobotView, wire.PoseData, str], Awaitable[Command]]
-#: A planned move (`POST .../move` with `plan`): the command stream's result, and its goal.
-Planner = Callable[[RobotView, Request, str], Awaitable[tuple[CommandResult, dict[str, float]]]]
+#: A planned move (the `move` message with `plan`), played on the master's link: the result
+#: and the goal's joints.
+Planner = Callable[[MasterLink, Request, str], Awaitable[tuple[CommandResult, dict[str, float]]]]
 
 
 class MoveEnd:
@@ -177,7 +178,7 @@ class LinkArm:
         """See `ScriptArm.planned`."""
         if self.planner is None:
             raise ArenaError(ErrorCode.NOT_INSTALLED, NO_PLANNER)
-        return await self.planner(self.link.robot, request, source)
+        return await self.planner(self.link, request, source)
 
     @property
     def paused(self) -> bool:

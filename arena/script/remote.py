@@ -85,9 +85,10 @@ class SessionArm:
         if isinstance(request, PlannedJoints):
             goal: dict[str, object] = {"joints": dict(request.joints)}
         else:
-            goal = {"position": list(request.position)}
+            pose: dict[str, object] = {"position": list(request.position)}
             if request.orientation is not None:
-                goal["orientation"] = list(request.orientation)
+                pose["orientation"] = list(request.orientation)
+            goal = {"pose": pose}
         try:
             await self.session.move(goal, plan=True)
         except ArenaClientError as error:
