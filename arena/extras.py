@@ -35,6 +35,7 @@ EXTRAS = {
     "dynamixel": Extra("dynamixel_sdk", "the Dynamixel SDK (dynamixel-sdk)", "dynamixel"),
     "gym": Extra("gymnasium", "Gymnasium", "gym"),
     "plan": Extra("ompl", "OMPL (ompl)", "plan"),
+    "mcp": Extra("mcp", "the MCP Python SDK (mcp)", "mcp"),
 }
 
 

@@ -106,6 +106,9 @@ class ErrorCode(enum.StrEnum):
     POLICY_NOT_READY = "POLICY_NOT_READY"  # the worker did not load it in time, or exited
     POLICY_OUTPUT_INVALID = "POLICY_OUTPUT_INVALID"  # fault: an action that is not finite
     POLICY_STALLED = "POLICY_STALLED"  # fault (warning): no action due for two periods
+    # Scripts as masters (specs/scripts.md)
+    SCRIPT_INVALID = "SCRIPT_INVALID"  # no script of that name in the tenant's scripts folder
+    SCRIPT_FAILED = "SCRIPT_FAILED"  # fault: the script raised (its file and line) or died
 
 
 class ArenaError(Exception):

@@ -284,8 +284,29 @@ class PolicyMasterBody(
     takeover: bool = False
 
 
+class ScriptMasterBody(
+    msgspec.Struct,
+    tag="script",
+    tag_field="type",
+    omit_defaults=True,
+    forbid_unknown_fields=True,
+):
+    """A Python script run as the master in a worker process (specs/scripts.md). `path`: the
+    name of a `.py` file in the robot's tenant's scripts folder (never a path: a script is
+    code, and only what the server's owner put there runs); `takeover`: displace the robot's
+    master (else MASTER_ACTIVE while it has one)."""
+
+    path: Annotated[str, msgspec.Meta(min_length=1, max_length=4096)]
+    takeover: bool = False
+
+
 MasterBody: TypeAlias = (
-    SequenceMasterBody | ReplayMasterBody | UsbMasterBody | RemoteServerBody | PolicyMasterBody
+    SequenceMasterBody
+    | ReplayMasterBody
+    | UsbMasterBody
+    | RemoteServerBody
+    | PolicyMasterBody
+    | ScriptMasterBody
 )
 
 

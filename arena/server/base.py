@@ -45,6 +45,7 @@ STATUS_FOR: dict[ErrorCode, int] = {
     ErrorCode.INVALID_RECORDING: 422,
     ErrorCode.POLICY_INVALID: 422,
     ErrorCode.POLICY_NOT_READY: 504,
+    ErrorCode.SCRIPT_INVALID: 422,
     ErrorCode.NOT_FOUND: 404,
     ErrorCode.ROBOT_STOPPED: 404,
     ErrorCode.METHOD_NOT_ALLOWED: 405,

@@ -30,6 +30,7 @@ from arena.protocol.rest import (
     RemoteLinkBody,
     RemoteServerBody,
     ReplayMasterBody,
+    ScriptMasterBody,
     SequenceMasterBody,
     SlaveBody,
     UsbMasterBody,
@@ -42,6 +43,7 @@ from arena.recording.replay import ReplayMaster, pick_robot, recorded_commands
 from arena.robot.handle import Robot
 from arena.robot.links import MasterDriver, SlaveDriver
 from arena.robot.model import RobotModel
+from arena.script.master import ScriptMaster, ScriptSettings
 from arena.sensors.camera import Cameras
 from arena.servo.lerobot_calibration import is_lerobot_reference
 from arena.servo.lerobot_calibration import resolve as resolve_lerobot
@@ -346,6 +348,32 @@ def _policy(
     return PolicyMaster(settings, model, cameras)
 
 
+def script_file(value: str, folder: Path) -> Path:
+    """The script a script master's `path` names: a `.py` file of the tenant's scripts folder
+    `folder`, neither a path nor a symbolic link out of the folder (FORBIDDEN, for everyone: a
+    script is code, and only what the server's owner put in the folder runs). Runs off the
+    loop (it reads the disk)."""
+    if not re.fullmatch(FILE_NAME, value):
+        raise ArenaError(
+            ErrorCode.FORBIDDEN,
+            f"Script {value!r} is not the name of a file in this tenant's scripts folder: a "
+            "script is code, and only a file the server's owner put there runs (give its "
+            "name, e.g. pick.py).",
+        )
+    if not value.endswith(".py"):
+        raise ArenaError(
+            ErrorCode.SCRIPT_INVALID, f"Script {value!r}: a script's name ends in .py."
+        )
+    path = in_tenant_folder(folder, value, "Script")
+    if not path.is_file():
+        raise ArenaError(
+            ErrorCode.SCRIPT_INVALID,
+            f"No script {value!r} in this tenant's scripts folder {folder}: put the file there "
+            f"({folder / value}).",
+        )
+    return path.resolve()
+
+
 def make_master(
     body: MasterBody,
     recordings: Path | None = None,
@@ -356,16 +384,22 @@ def make_master(
     anywhere: bool = False,
     policy_dir: Path | None = None,
     policy_python: str | None = None,
+    script_dir: Path | None = None,
 ) -> MasterDriver:
     """Build a master driver from its config (`recordings`: where replay finds its files;
     a leader arm's calibration is `calibration_dir/<name>.json`, default `<robot_id>-leader`,
     a path or `lerobot:ID` only with `anywhere` (as `make_slave`); `cameras`: the robot's
     newest frames, for a policy, which is a folder of `policy_dir` (the robot's tenant's
     folder: `tenant_folder`), a path only with `anywhere`), run by `policy_python` (None:
-    Arena's own Python). It takes over from the robot's
-    master only if the config asks (`takeover`)."""
+    Arena's own Python); a script is a file of `script_dir` (the tenant's folder too). It
+    takes over from the robot's master only if the config asks (`takeover`)."""
     if isinstance(body, PolicyMasterBody):
         driver: MasterDriver = _policy(body, model, cameras, policy_dir, anywhere, policy_python)
+    elif isinstance(body, ScriptMasterBody):
+        path = script_file(body.path, script_dir or Path("scripts"))
+        if model is None:
+            raise ArenaError(ErrorCode.INVALID_CONFIG, "A script master needs the robot's model.")
+        driver = ScriptMaster(ScriptSettings(path), model)  # (its hand_mover: the caller's)
     else:
         driver = _master(body, recordings, model, calibration_dir, robot_id, anywhere)
     driver.takes_over = body.takeover

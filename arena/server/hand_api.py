@@ -22,6 +22,7 @@ from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import TeleopBody
 from arena.robot.cartesian import Hand, HandPose, Solution, hand_for, normalized
 from arena.robot.handle import Robot
+from arena.robot.links import RobotView
 from arena.robot.motion import Command, CommandResult
 from arena.robot.teleop import TeleopSettings, settings_of
 from arena.server import convert
@@ -121,6 +122,14 @@ async def plan_pose(robot: Robot, data: wire.PoseData, source: str) -> HandMove:
         goals.append(wire.JointValue(hand.gripper.name, data.gripper))
     duration = None if data.duration is None else data.duration / 1000.0
     return HandMove(Command(tuple(goals), duration, source), solution)
+
+
+async def hand_command(view: RobotView, data: wire.PoseData, source: str) -> Command:
+    """A pose as the joint command that gets the hand there, for a script master (its
+    `hand_mover`): solved as `PUT .../pose` and the `pose` message solve it."""
+    if not isinstance(view, Robot):
+        raise TypeError("a script master drives a robot of this server")
+    return (await plan_pose(view, data, source)).command
 
 
 async def solve_off_the_loop(

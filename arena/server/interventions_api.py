@@ -20,10 +20,12 @@ from arena.protocol.rest import HandBackBody, InterventionBody, MasterBody, Repl
 from arena.robot import safety
 from arena.robot.handle import Robot
 from arena.robot.links import MasterDriver
+from arena.script.master import ScriptMaster
 from arena.server import convert
 from arena.server.access import server_admin
 from arena.server.base import ArenaApp, read_body
 from arena.server.drivers import camera_frames, make_master, tenant_folder
+from arena.server.hand_api import hand_command
 from arena.server.identity import Principal
 from arena.server.recordings_api import off_the_loop, readable_recording
 
@@ -77,7 +79,10 @@ async def build_master(app: ArenaApp, robot: Robot, body: MasterBody) -> MasterD
         server_admin(g.principal),  # the whole server's admin: any calibration, any policy
         tenant_folder(Path(app.arena_config.policy_dir), robot.tenant),
         app.arena_config.policy_python,
+        tenant_folder(Path(app.arena_config.script_dir), robot.tenant),
     )
+    if isinstance(driver, ScriptMaster):
+        driver.hand_mover = hand_command  # (the server's inverse kinematics)
     return driver
 
 

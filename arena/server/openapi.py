@@ -28,6 +28,7 @@ from arena.protocol.rest import (
     RemoteServerBody,
     ReplayBody,
     ReplayMasterBody,
+    ScriptMasterBody,
     SequenceMasterBody,
     SlaveBody,
     TeleopBody,
@@ -240,6 +241,7 @@ EXAMPLES: dict[type, dict[str, Any]] = {
         "task": "pick up the cube",
         "fps": 30,
     },
+    ScriptMasterBody: {"type": "script", "path": "pick_and_place.py"},
     RemoteServerBody: {
         "type": "remote-server",
         "url": "ws://localhost:8080",
