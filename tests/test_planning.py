@@ -10,6 +10,7 @@ import json
 import math
 import sys
 from collections.abc import Awaitable, Callable
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -18,7 +19,7 @@ from trio_websocket import open_websocket_url
 
 from arena.robot import collision, planning
 from arena.robot.cartesian import hand_for
-from arena.robot.events import NoticeKind
+from arena.robot.events import FaultReported, NoticeKind
 from arena.robot.handle import Robot
 from arena.robot.model import RobotModel, load_robot_model
 from arena.robot.workspace import Box, Workspace
@@ -64,6 +65,15 @@ def boxes(model: RobotModel, *entries: dict[str, Any]) -> Workspace:
     return Workspace(floor=floor, keep_out=keep_out, margin=margin)  # type: ignore[arg-type]
 
 
+def guarded(
+    model: RobotModel, pillar: dict[str, Any]
+) -> tuple[collision.CollisionModel, Workspace]:
+    """The guard's own model of `model` and the workspace with the pillar, as the server has."""
+    guard = collision.for_model(model)
+    assert guard is not None
+    return guard, boxes(model, pillar)
+
+
 def urdf(model: RobotModel, joints: dict[str, float]) -> dict[str, float]:
     return {j.urdf_name: j.to_urdf(joints[j.name]) for j in model.joints}
 
@@ -89,9 +99,7 @@ async def test_a_planned_move_goes_around_a_pillar_the_straight_way_runs_into(
 ) -> None:
     need("ompl", "plan")
     model, start, goal, pillar = scene(robot_type)
-    guard = collision.for_model(model)
-    assert guard is not None
-    workspace = boxes(model, pillar)
+    guard, workspace = guarded(model, pillar)
     straight = guard.path_hit(urdf(model, start), urdf(model, goal), workspace)[0]
     assert straight is not None and straight.second == "pillar"  # the scene is what it says
     server = await start_server()
@@ -229,9 +237,7 @@ async def test_a_master_plans_a_move_and_plays_it_as_its_own_commands(
 ) -> None:
     need("ompl", "plan")
     model, start, goal, pillar = scene("so-arm100")
-    guard = collision.for_model(model)
-    assert guard is not None
-    workspace = boxes(model, pillar)
+    guard, workspace = guarded(model, pillar)
     async with server.client() as http:
         robot = await arm_at(server, http, "demo-arm", start)
         recorder = RecordingSlave()
@@ -364,3 +370,38 @@ def test_the_timed_path_keeps_every_joint_within_its_limits_and_stops_at_each_co
         # step starts from rest (its first step is no longer than the acceleration allows)
         for corner in corners[1:-1]:
             assert corner in poses
+
+
+async def test_a_script_plans_its_move_around_the_pillar_on_the_server(
+    start_server: StartServer, tmp_path: Path
+) -> None:
+    need("ompl", "plan")
+    model, start, goal, pillar = scene("so-arm100")
+    guard, workspace = guarded(model, pillar)
+    folder = tmp_path / "scripts"
+    folder.mkdir()
+    (folder / "around.py").write_text(
+        "from arena.script import move\n"
+        f"move({goal!r}, plan=True)\n"
+        f"move({start!r})  # straight back: through the pillar\n"
+    )
+    server = await start_server(demo=True, script_dir=str(folder))
+    async with server.client() as http:
+        robot = await arm_at(server, http, "demo-arm", start)
+        recorder = RecordingSlave()
+        await robot.attach_slave(recorder)
+        await http.put("/api/robots/demo-arm/workspace", json={"keep_out": [pillar]})
+        with robot.subscribe(kinds=[FaultReported]) as faults:
+            body = {"type": "script", "path": "around.py"}
+            attached = await http.post("/api/robots/demo-arm/master", json=body)
+            assert attached.status_code == 201, attached.text
+            fault = await faults.get()  # the script's end: its straight move refused
+        await eventually(lambda: robot.snapshot().master is None, what="the script ended")
+    assert isinstance(fault, FaultReported) and fault.code == "SCRIPT_FAILED", fault
+    assert "line 3" in fault.message and "COLLISION" in fault.message, fault.message
+    sent = [joints for _, joints in recorder.targets]
+    assert len(sent) > 10
+    for joints in sent:  # the planned way went around: every target clear in the guard's model
+        assert guard.hit(urdf(model, joints), workspace) is None, joints
+    for name, value in goal.items():  # and reached the goal
+        assert sent[-1][name] == pytest.approx(value, abs=1e-6)

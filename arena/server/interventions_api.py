@@ -20,13 +20,12 @@ from arena.protocol.rest import HandBackBody, InterventionBody, MasterBody, Repl
 from arena.robot import safety
 from arena.robot.handle import Robot
 from arena.robot.links import MasterDriver
-from arena.script.master import ScriptMaster
 from arena.server import convert
 from arena.server.access import server_admin
 from arena.server.base import ArenaApp, read_body
 from arena.server.drivers import camera_frames, make_master, tenant_folder
-from arena.server.hand_api import hand_command
 from arena.server.identity import Principal
+from arena.server.planned_moves import equip_script
 from arena.server.recordings_api import off_the_loop, readable_recording
 
 blueprint = Blueprint("interventions", __name__)
@@ -81,8 +80,7 @@ async def build_master(app: ArenaApp, robot: Robot, body: MasterBody) -> MasterD
         app.arena_config.policy_python,
         tenant_folder(Path(app.arena_config.script_dir), robot.tenant),
     )
-    if isinstance(driver, ScriptMaster):
-        driver.hand_mover = hand_command  # (the server's inverse kinematics)
+    equip_script(app, driver)
     return driver
 
 

@@ -30,7 +30,6 @@ from arena.protocol.rest import (
 from arena.robot.groups import Group
 from arena.robot.handle import Robot
 from arena.robot.workspace import Workspace, workspace_from_json
-from arena.script.master import ScriptMaster
 from arena.sensors.camera import Camera, CameraSpec, Opener
 from arena.server.auth import refuse
 from arena.server.drivers import (
@@ -40,8 +39,8 @@ from arena.server.drivers import (
     make_slave,
     tenant_folder,
 )
-from arena.server.hand_api import hand_command
 from arena.server.identity import Principal, Role
+from arena.server.planned_moves import equip_script
 from arena.server.recordings_api import off_the_loop
 
 if TYPE_CHECKING:
@@ -137,8 +136,7 @@ async def attach_master(app: ArenaApp, robot: Robot, body: MasterBody, anywhere:
         app.arena_config.policy_python,
         tenant_folder(Path(app.arena_config.script_dir), robot.tenant),
     )
-    if isinstance(driver, ScriptMaster):
-        driver.hand_mover = hand_command  # (the server's inverse kinematics)
+    equip_script(app, driver)
     prepare = getattr(driver, "prepare", None)
     if prepare is not None:
         holder = robot.snapshot().master

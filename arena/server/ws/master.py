@@ -20,7 +20,8 @@ from arena.server import convert
 from arena.server.base import ArenaApp
 from arena.server.hand_api import command_pose
 from arena.server.link_quality import LinkQuality
-from arena.server.move_api import check_goal, move_straight, plan_move
+from arena.server.move_api import check_goal, move_straight
+from arena.server.planned_moves import plan_move
 from arena.server.ws.acks import AckCache
 from arena.server.ws.backpressure import Outgoing
 from arena.server.ws.connection import (
