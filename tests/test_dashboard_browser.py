@@ -983,3 +983,35 @@ def test_a_websocket_master_s_link_shows_beside_it_green_then_red_when_commands_
         finally:
             stop.set()
             sender.join()
+
+
+def test_driving_the_hand_while_a_master_runs_intervenes_and_hands_back(
+    start_live: Any, page: Page
+) -> None:
+    server = start_live(demo=True)
+    with server.http() as http:
+        sequence = {"type": "mock-sequence", "sequences": ["gentle-wave"], "loop": True}
+        assert http.post("/api/robots/demo-arm/master", json=sequence).status_code == 201
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    state = page.locator("#robot-state")
+    expect(state).to_have_text("mastered")
+    page.click("#drive-hand")
+    # The keyboard corrects the sequence: it waits, paused, while the hand is driven.
+    expect(state).to_have_text("intervened")
+    expect(page.locator("#drive-status")).to_contain_text("correcting")
+    with server.http() as http:
+        shown = http.get("/api/robots/demo-arm").json()
+    assert shown["master"]["id"] == "dashboard-hand"
+    assert shown["paused_master"]["kind"] == "mock-sequence"
+    start = hand_position(server, "demo-arm")
+    page.keyboard.down("w")
+    moved = moved_along(server, start, 2, 1)
+    page.keyboard.up("w")
+    assert moved > 0.01
+    # Stop driving: the correction ends and the sequence plays again.
+    page.click("#drive-hand")
+    expect(state).to_have_text("mastered")
+    expect(page.locator("#master-line")).to_contain_text("Playing sequence 'gentle-wave'")
+    with server.http() as http:
+        shown = http.get("/api/robots/demo-arm").json()
+    assert shown["paused_master"] is None and shown["master"]["kind"] == "mock-sequence"

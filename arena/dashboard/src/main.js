@@ -3,6 +3,7 @@
 
 import { ApiError, apiKey, call, callReporting, setApiKey } from "./api.js";
 import { HandDriver } from "./drive.js";
+import { KeyboardSource } from "./keys.js";
 import { RecordingsPanel } from "./recordings.js";
 import { masterText, RobotView } from "./robot_view.js";
 import { SecondClickTakeover } from "./takeover.js";
@@ -107,11 +108,15 @@ function chooseForTheVisitor() {
   }
 }
 
-// "Drive the hand" (drive.js): the keyboard as the robot's master while it is on.
-const hand = new HandDriver((text) => {
-  $("drive-status").textContent = text;
-  $("drive-hand").textContent = hand.driving ? "Stop driving" : "Drive the hand";
-});
+// "Drive the hand" (drive.js): the keyboard as the robot's master while it is on, or as an
+// intervention on the master that runs.
+const hand = new HandDriver(
+  (text) => {
+    $("drive-status").textContent = text;
+    $("drive-hand").textContent = hand.driving ? "Stop driving" : "Drive the hand";
+  },
+  [new KeyboardSource()],
+);
 
 function closeView() {
   if (hand.driving) hand.stop();
@@ -212,8 +217,9 @@ function wireRobotControls() {
     if (answer) await refresh();
   });
   $("drive-hand").addEventListener("click", () => {
+    const mode = view && view.state ? view.state.mode : "";
     if (hand.driving) hand.stop();
-    else hand.start(selectedId());
+    else hand.start(selectedId(), { intervene: mode === "mastered" || mode === "paused" });
     $("drive-hand").textContent = hand.driving ? "Stop driving" : "Drive the hand";
   });
   $("stop-sequence").addEventListener("click", () => act("POST", `${robotPath()}/stop-sequence`));
