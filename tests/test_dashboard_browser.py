@@ -1015,3 +1015,110 @@ def test_driving_the_hand_while_a_master_runs_intervenes_and_hands_back(
     with server.http() as http:
         shown = http.get("/api/robots/demo-arm").json()
     assert shown["paused_master"] is None and shown["master"]["kind"] == "mock-sequence"
+
+
+#: A gamepad the page sees through `navigator.getGamepads` (the standard mapping), set from the
+#: test with `window.testPad(axes, triggers)`.
+SYNTHETIC_GAMEPAD = """
+window.testPad = (axes, triggers = [0, 0]) => {
+  const buttons = Array.from({ length: 17 }, () => ({ value: 0, pressed: false }));
+  buttons[6] = { value: triggers[0], pressed: triggers[0] > 0.5 };
+  buttons[7] = { value: triggers[1], pressed: triggers[1] > 0.5 };
+  window.pad = { id: "Test pad", index: 0, connected: true, mapping: "standard", axes, buttons };
+};
+window.pad = null;
+navigator.getGamepads = () => [window.pad, null, null, null];
+"""
+
+
+def held_still(server: LiveServer, seconds: float = 1.0) -> list[float]:
+    """The hand's position after `seconds` in which it must not have moved."""
+    before = hand_position(server, "demo-arm")
+    time.sleep(seconds)
+    after = hand_position(server, "demo-arm")
+    assert after == pytest.approx(before, abs=1e-4)
+    return after
+
+
+def test_a_gamepad_drives_the_hand_with_a_dead_zone(start_live: Any, page: Page) -> None:
+    server = start_live(demo=True)
+    page.add_init_script(SYNTHETIC_GAMEPAD)
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    expect(page.locator("#robot-state")).to_have_text("idle")
+    page.click("#drive-hand")
+    expect(page.locator("#drive-status")).to_contain_text("driving")
+    page.evaluate("testPad([0, 0, 0, 0])")
+    expect(page.locator("#drive-status")).to_contain_text("gamepad: Test pad")
+    # A stick resting a little off its centre moves nothing.
+    page.evaluate("testPad([0.1, -0.1, 0, 0.12])")
+    start = held_still(server)
+    # Left stick up: forward (x); left: to the left (y); right stick up: up (z).
+    for axes, axis in [([0, -1, 0, 0], 0), ([-1, 0, 0, 0], 1), ([0, 0, 0, -1], 2)]:
+        page.evaluate(f"testPad({axes})")
+        moved = moved_along(server, start, axis, 1)
+        page.evaluate("testPad([0, 0, 0, 0])")
+        assert moved > 0.01, (axes, moved)
+        stopped = held_still(server)
+        for other in {0, 1, 2} - {axis}:
+            assert stopped[other] == pytest.approx(start[other], abs=0.003), (axes, other)
+        start = stopped
+    # The right trigger closes the gripper.
+    with server.http() as http:
+        before = http.get("/api/robots/demo-arm/pose").json()["commanded"]["gripper"]
+    page.evaluate("testPad([0, 0, 0, 0], [0, 1])")
+    ends = time.monotonic() + WAIT_MS / 1000
+    closed = before
+    while time.monotonic() < ends and closed > before - 5:
+        with server.http() as http:
+            closed = http.get("/api/robots/demo-arm/pose").json()["commanded"]["gripper"]
+        time.sleep(0.05)
+    page.evaluate("testPad([0, 0, 0, 0])")
+    assert closed <= before - 5
+    page.click("#drive-hand")
+    expect(page.locator("#robot-state")).to_have_text("idle")
+
+
+def orient(page: Page, beta: float, gamma: float) -> None:
+    """A DeviceOrientation event, as a phone's sensor sends it."""
+    page.evaluate(
+        "([beta, gamma]) => window.dispatchEvent(new DeviceOrientationEvent("
+        "'deviceorientation', { alpha: 0, beta, gamma, absolute: false }))",
+        [beta, gamma],
+    )
+
+
+def test_a_phone_s_tilt_drives_the_hand_while_a_clutch_is_held(
+    start_live: Any, browser: Browser
+) -> None:
+    server = start_live(demo=True)
+    phone = {"viewport": {"width": 390, "height": 844}, "is_mobile": True, "has_touch": True}
+    with checked_page(browser, "phone_tilt", **phone) as page:
+        page.goto(server.url + "/ui/#/robots/demo-arm")
+        expect(page.locator("#robot-state")).to_have_text("idle")
+        expect(page.locator("#tilt-row")).to_be_hidden()
+        page.click("#drive-hand")
+        expect(page.locator("#drive-status")).to_contain_text("driving")
+        expect(page.locator("#tilt-move")).to_be_visible()
+        orient(page, 40, 0)  # held at 40 degrees, as one reads a phone
+        start = hand_position(server, "demo-arm")
+        orient(page, 10, 0)  # tipped without the clutch: nothing moves
+        start = held_still(server)
+        # Held at 40 degrees, the clutch pressed, the top tipped away: the hand goes forward.
+        for button, beta, gamma, axis, sign in [
+            ("#tilt-move", 10, 0, 0, 1),
+            ("#tilt-move", 40, 30, 1, -1),  # the right edge down: to the right
+            ("#tilt-lift", 70, 0, 2, 1),  # the top back toward the face: up
+        ]:
+            orient(page, 40, 0)
+            page.locator(button).dispatch_event("pointerdown", {"pointerId": 1})
+            orient(page, beta, gamma)
+            moved = moved_along(server, start, axis, sign)
+            page.locator(button).dispatch_event("pointerup", {"pointerId": 1})
+            assert moved > 0.01, (button, beta, gamma, moved)
+            stopped = held_still(server)  # let go: it stops, however the phone is held
+            for other in {0, 1, 2} - {axis}:
+                assert stopped[other] == pytest.approx(start[other], abs=0.003), (button, other)
+            start = stopped
+        page.click("#drive-hand")
+        expect(page.locator("#robot-state")).to_have_text("idle")
+        expect(page.locator("#tilt-row")).to_be_hidden()

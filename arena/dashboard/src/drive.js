@@ -14,7 +14,8 @@ const SEND_MS = 50;
 
 /** The driver of one robot's hand: `start(robotId, {intervene})`, `stop()`; `onStatus(text)`
  * hears what it is doing. `sources` have `velocity()` (an array of four, or null), `attach()`
- * and `detach()`; they call `changed()` for a message at once (a key let go). */
+ * and `detach()`; they call `changed()` for a message at once (a key let go) and `note(text)`
+ * to say what they see (a gamepad). */
 export class HandDriver {
   constructor(onStatus, sources) {
     this.onStatus = onStatus;
@@ -23,7 +24,10 @@ export class HandDriver {
     this.moving = false; // the last message sent was not a stop
     this.timer = null;
     this.help = "";
-    for (const source of sources) source.changed = () => this.send();
+    for (const source of sources) {
+      source.changed = () => this.send();
+      source.note = (text) => this.note(text);
+    }
   }
 
   get driving() {

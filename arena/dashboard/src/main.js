@@ -3,10 +3,12 @@
 
 import { ApiError, apiKey, call, callReporting, setApiKey } from "./api.js";
 import { HandDriver } from "./drive.js";
+import { GamepadSource } from "./gamepad.js";
 import { KeyboardSource } from "./keys.js";
 import { RecordingsPanel } from "./recordings.js";
 import { masterText, RobotView } from "./robot_view.js";
 import { SecondClickTakeover } from "./takeover.js";
+import { TiltSource } from "./tilt.js";
 
 const $ = (id) => document.getElementById(id);
 const REFRESH_MS = 1000;
@@ -108,14 +110,14 @@ function chooseForTheVisitor() {
   }
 }
 
-// "Drive the hand" (drive.js): the keyboard as the robot's master while it is on, or as an
-// intervention on the master that runs.
+// "Drive the hand" (drive.js): the keyboard, a gamepad and a phone's tilt as the robot's
+// master while it is on, or as an intervention on the master that runs.
 const hand = new HandDriver(
   (text) => {
     $("drive-status").textContent = text;
     $("drive-hand").textContent = hand.driving ? "Stop driving" : "Drive the hand";
   },
-  [new KeyboardSource()],
+  [new KeyboardSource(), new GamepadSource(), new TiltSource($("tilt-row"), $("tilt-move"), $("tilt-lift"))],
 );
 
 function closeView() {
