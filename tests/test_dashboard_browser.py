@@ -29,6 +29,8 @@ from arena.server.config import ServerConfig
 from arena.server.run import run_server
 from tests.conftest import missing, need
 from tests.golden import GOLDEN
+from tests.hardware import running_sim
+from tests.test_policy_server import CAMERA, tiny  # noqa: F401 (the fixture)
 
 playwright_api = need("playwright.sync_api", "dev")
 from playwright.sync_api import Browser, Page, expect  # noqa: E402
@@ -1122,3 +1124,64 @@ def test_a_phone_s_tilt_drives_the_hand_while_a_clutch_is_held(
         page.click("#drive-hand")
         expect(page.locator("#robot-state")).to_have_text("idle")
         expect(page.locator("#tilt-row")).to_be_hidden()
+
+
+def test_a_leader_arm_attaches_from_the_card_and_corrects_a_running_master(
+    start_live: Any, page: Page, tmp_path: Path
+) -> None:
+    sims = running_sim(tmp_path / "leader")
+    sim = next(sims)
+    try:
+        server = start_live(demo=True, calibration_dir=str(tmp_path / "calibrations"))
+        page.goto(server.url + "/ui/#/robots/demo-arm")
+        expect(page.locator("#robot-state")).to_have_text("idle")
+        expect(page.locator("#attach-leader")).to_have_text("Attach leader arm")
+        page.fill("#leader-port", str(sim.link))
+        page.click("#attach-leader")
+        expect(page.locator("#robot-state")).to_have_text("mastered", timeout=WAIT_MS)
+        with server.http() as http:
+            shown = http.get("/api/robots/demo-arm").json()
+            assert shown["master"]["kind"] == "usb-master"
+            assert http.delete("/api/robots/demo-arm/master").status_code == 200
+            sequence = {"type": "mock-sequence", "sequences": ["gentle-wave"], "loop": True}
+            assert http.post("/api/robots/demo-arm/master", json=sequence).status_code == 201
+        # While a master runs, the leader arm corrects it (actuated: no jerk at the handover).
+        expect(page.locator("#attach-leader")).to_have_text("Correct with the leader arm")
+        page.check("#leader-actuated")
+        page.click("#attach-leader")
+        expect(page.locator("#robot-state")).to_have_text("intervened", timeout=WAIT_MS)
+        expect(page.locator("#attach-status")).to_contain_text("leader arm corrects")
+        with server.http() as http:
+            shown = http.get("/api/robots/demo-arm").json()
+        assert shown["master"]["kind"] == "usb-master"
+        assert shown["paused_master"]["kind"] == "mock-sequence"
+        page.click("#hand-back")
+        expect(page.locator("#robot-state")).to_have_text("mastered")
+    finally:
+        sims.close()
+
+
+def test_a_policy_of_the_tenant_s_folder_attaches_from_the_card(
+    start_live: Any,
+    page: Page,
+    tiny: Path,  # noqa: F811
+    tmp_path: Path,
+) -> None:
+    policies = tmp_path / "policies"
+    shutil.copytree(tiny, policies / "tiny-act")
+    (policies / "notes").mkdir()  # not a policy: not offered
+    server = start_live(demo=True, policy_dir=str(policies))
+    with server.http() as http:
+        assert http.post("/api/robots/demo-arm/cameras", json=CAMERA).status_code == 201
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    options = page.locator("#policy option")
+    expect(options).to_have_text(["tiny-act (act)"])
+    page.fill("#policy-task", "wave")
+    page.click("#attach-policy")
+    expect(page.locator("#robot-state")).to_have_text("mastered", timeout=2 * WAIT_MS)
+    expect(page.locator("#attach-status")).to_contain_text("running policy:act:")
+    expect(page.locator("#master-line")).to_contain_text("policy:act:")
+    with server.http() as http:
+        shown = http.get("/api/robots/demo-arm").json()
+    assert shown["master"]["kind"] == "policy"
+    assert "'wave'" in shown["master"]["description"]

@@ -2,6 +2,7 @@
 // stop buttons, the API key, and the periodic refresh of what the sockets do not push.
 
 import { ApiError, apiKey, call, callReporting, setApiKey } from "./api.js";
+import { showPolicies, wireAttach } from "./attach.js";
 import { HandDriver } from "./drive.js";
 import { GamepadSource } from "./gamepad.js";
 import { KeyboardSource } from "./keys.js";
@@ -89,6 +90,7 @@ async function refresh() {
     closeView();
     view = new RobotView(summary, { onChanged: () => refresh() });
     $("robot-panel").hidden = false;
+    showPolicies(id);
   } else {
     view.applySummary(summary);
   }
@@ -224,6 +226,7 @@ function wireRobotControls() {
     else hand.start(selectedId(), { intervene: mode === "mastered" || mode === "paused" });
     $("drive-hand").textContent = hand.driving ? "Stop driving" : "Drive the hand";
   });
+  wireAttach({ robotPath, mode: () => (view && view.state ? view.state.mode : ""), act });
   $("stop-sequence").addEventListener("click", () => act("POST", `${robotPath()}/stop-sequence`));
   $("add-mock").addEventListener("click", () =>
     act("POST", `${robotPath()}/slaves`, { type: "mock-slave" }),

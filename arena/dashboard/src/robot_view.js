@@ -2,6 +2,7 @@
 // master and slaves, recent events. Everything goes through the public API.
 
 import { apiKey, call, callReporting, watchRobot } from "./api.js";
+import { showAttach } from "./attach.js";
 import { COMMANDED_COLOR, cssColor, MEASURED_COLOR, Twin } from "./twin.js";
 
 const $ = (id) => document.getElementById(id);
@@ -337,6 +338,7 @@ export class RobotView {
     $("hand-back").disabled = state.mode !== "intervened";
     $("estop").disabled = state.mode === "estopped";
     $("reset").disabled = state.mode !== "estopped";
+    showAttach(state.mode);
     this.showMaster();
   }
 
