@@ -997,10 +997,21 @@ def test_driving_the_hand_while_a_master_runs_intervenes_and_hands_back(
     page.goto(server.url + "/ui/#/robots/demo-arm")
     state = page.locator("#robot-state")
     expect(state).to_have_text("mastered")
+    expect(page.locator("#who-drives")).to_have_text(
+        "drives: sequence 'gentle-wave' in a loop (master 'master-1', mock-sequence)"
+    )
+    page.click("#episode-start")
+    corrections = page.locator("#corrections")
+    expect(corrections).to_have_text("0 corrections in this episode (0 in all)")
     page.click("#drive-hand")
     # The keyboard corrects the sequence: it waits, paused, while the hand is driven.
     expect(state).to_have_text("intervened")
     expect(page.locator("#drive-status")).to_contain_text("correcting")
+    expect(page.locator("#who-drives")).to_have_text(
+        "drives: WebSocket client (master 'dashboard-hand', websocket); "
+        "waits: sequence 'gentle-wave' in a loop (master 'master-1', mock-sequence)"
+    )
+    expect(corrections).to_have_text("1 correction in this episode (1 in all)")
     with server.http() as http:
         shown = http.get("/api/robots/demo-arm").json()
     assert shown["master"]["id"] == "dashboard-hand"
@@ -1181,6 +1192,26 @@ def test_a_policy_of_the_tenant_s_folder_attaches_from_the_card(
     expect(page.locator("#robot-state")).to_have_text("mastered", timeout=2 * WAIT_MS)
     expect(page.locator("#attach-status")).to_contain_text("running policy:act:")
     expect(page.locator("#master-line")).to_contain_text("policy:act:")
+    # Its live figures on the card, and on /metrics.
+    figures = page.locator("#policy-figures")
+    expect(figures).to_have_text(
+        re.compile(r"^policy: inference \d+ ms, chunk 10, \d+ stalls?, [1-9]\d* inferences$"),
+        timeout=WAIT_MS,
+    )
+    with server.http() as http:
+        text = http.get("/metrics").text
+    assert 'arena_policy_chunk_actions{robot="demo-arm"} 10' in text
+    assert re.search(r'arena_policy_inferences_total\{robot="demo-arm"\} [1-9]', text)
+    # (a loaded machine may make a stall: the series is there, whatever it counts)
+    assert re.search(r'arena_policy_stalls_total\{robot="demo-arm"\} \d+\n', text)
+    # Corrected from the keyboard, the policy waits and its figures stay in view.
+    page.click("#drive-hand")
+    expect(page.locator("#robot-state")).to_have_text("intervened")
+    expect(page.locator("#who-drives")).to_contain_text("waits: policy:act:")
+    expect(figures).to_be_visible()
+    expect(page.locator("#corrections")).to_have_text("1 correction in all (no episode running)")
+    page.click("#drive-hand")
+    expect(page.locator("#robot-state")).to_have_text("mastered")
     with server.http() as http:
         shown = http.get("/api/robots/demo-arm").json()
     assert shown["master"]["kind"] == "policy"

@@ -3,6 +3,7 @@
 
 import { apiKey, call, callReporting, watchRobot } from "./api.js";
 import { showAttach } from "./attach.js";
+import { showFlywheel } from "./flywheel.js";
 import { COMMANDED_COLOR, cssColor, MEASURED_COLOR, Twin } from "./twin.js";
 
 const $ = (id) => document.getElementById(id);
@@ -181,6 +182,7 @@ export class RobotView {
       });
     }
     this.showMaster();
+    showFlywheel(summary);
     const peers = $("peers");
     peers.replaceChildren();
     const entries = [
