@@ -1216,3 +1216,68 @@ def test_a_policy_of_the_tenant_s_folder_attaches_from_the_card(
         shown = http.get("/api/robots/demo-arm").json()
     assert shown["master"]["kind"] == "policy"
     assert "'wave'" in shown["master"]["description"]
+
+
+def test_a_new_arm_is_calibrated_from_the_card_step_by_step(
+    start_live: Any, page: Page, tmp_path: Path
+) -> None:
+    sims = running_sim(tmp_path / "arm")
+    sim = next(sims)
+    try:
+        server = start_live(calibration_dir=str(tmp_path / "calibrations"))
+        with server.http() as http:
+            assert http.post("/api/robots", json={"id": "arm"}).status_code == 201
+            slave = {"type": "usb-slave", "port": str(sim.link)}
+            assert http.post("/api/robots/arm/slaves", json=slave).status_code == 201
+        page.goto(server.url + "/ui/#/robots/arm")
+        step = page.locator("#calibration-step")
+        expect(step).to_contain_text("not calibrated", timeout=WAIT_MS)
+        page.click("#calibrate-start")
+        expect(step).to_contain_text("1 of 2. Torque is off")
+        expect(page.locator("#calibrate-start")).to_be_disabled()
+        # Posed like the twin (every joint at 0): the horns sit at arbitrary raw steps.
+        rest_raw = {1: 3000, 2: 1100, 3: 2500, 4: 700, 5: 3900, 6: 2048}
+        with sim.paused() as bus:
+            for sid, raw in rest_raw.items():
+                bus.servo(sid).move_by_hand(raw)
+        page.click("#calibrate-capture")
+        expect(step).to_contain_text("2 of 2. Move each joint")
+        # The base through its range: the twin's measured arm follows live, the range grows.
+        rotation = page.locator('#calibration-ranges li[data-joint="Rotation"]')
+        for delta in (-400, 300):
+            with sim.paused() as bus:
+                bus.servo(1).move_by_hand(rest_raw[1] + delta)
+            expect(page.locator('td[data-real="Rotation"]')).to_have_text(
+                f"{delta * 360 / 4096:.1f}", timeout=WAIT_MS
+            )
+        expect(rotation).to_contain_text("Rotation: -35.2 to 26.4", timeout=WAIT_MS)
+        assert float(rotation.locator("meter").get_attribute("value") or 0) > 0
+        page.click("#calibrate-finish")
+        expect(step).to_contain_text("calibrated (", timeout=WAIT_MS)
+        expect(page.locator("#calibration-ranges li")).to_have_count(0)
+        with server.http() as http:
+            stored = http.get("/api/robots/arm/calibration").json()
+        assert stored["calibrated"] is True and stored["session"] is None
+        joint = stored["calibration"]["joints"]["Rotation"]
+        assert joint["min_degrees"] == pytest.approx(-400 * 360 / 4096, abs=0.01)
+        assert joint["max_degrees"] == pytest.approx(300 * 360 / 4096, abs=0.01)
+        assert (tmp_path / "calibrations" / "arm.json").is_file()
+        # Started again and cancelled: the calibration in use stays.
+        page.click("#calibrate-start")
+        expect(step).to_contain_text("1 of 2")
+        page.click("#calibrate-cancel")
+        expect(step).to_contain_text("calibrated (")
+        with server.http() as http:
+            again = http.get("/api/robots/arm/calibration").json()
+        assert again["session"] is None and again["calibration"] == stored["calibration"]
+    finally:
+        sims.close()
+
+
+def test_the_calibration_flow_shows_only_for_a_hardware_arm(start_live: Any, page: Page) -> None:
+    server = start_live(demo=True)  # the demo robot's slave is a mock
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    expect(page.locator("#robot-state")).to_have_text("idle")
+    expect(page.locator("#peers li").first).to_contain_text("mock-slave")
+    expect(page.locator("#calibration")).to_be_attached()
+    expect(page.locator("#calibration")).to_be_hidden()

@@ -3,6 +3,7 @@
 
 import { ApiError, apiKey, call, callReporting, setApiKey } from "./api.js";
 import { showPolicies, wireAttach } from "./attach.js";
+import { closeCalibration, wireCalibration } from "./calibrate.js";
 import { HandDriver } from "./drive.js";
 import { GamepadSource } from "./gamepad.js";
 import { KeyboardSource } from "./keys.js";
@@ -125,6 +126,7 @@ const hand = new HandDriver(
 function closeView() {
   if (hand.driving) hand.stop();
   if (view) view.close();
+  closeCalibration();
   view = null;
   $("robot-panel").hidden = true;
   $("estop").disabled = true;
@@ -339,6 +341,7 @@ async function fillChoices() {
 
 wireHeader();
 wireRobotControls();
+wireCalibration(report);
 window.addEventListener("hashchange", () => {
   takeover.disarm(); // armed for the robot that was on screen
   refresh();

@@ -3,6 +3,7 @@
 
 import { apiKey, call, callReporting, watchRobot } from "./api.js";
 import { showAttach } from "./attach.js";
+import { showCalibration } from "./calibrate.js";
 import { showFlywheel } from "./flywheel.js";
 import { COMMANDED_COLOR, cssColor, MEASURED_COLOR, Twin } from "./twin.js";
 
@@ -183,6 +184,7 @@ export class RobotView {
     }
     this.showMaster();
     showFlywheel(summary);
+    showCalibration(summary);
     const peers = $("peers");
     peers.replaceChildren();
     const entries = [
