@@ -17,10 +17,10 @@ function running(mode) {
 export async function showPolicies(robotId) {
   const select = $("policy");
   try {
-    const { policies, truncated } = await call("GET", `/api/robots/${encodeURIComponent(robotId)}/policies`);
-    select.replaceChildren(
-      ...policies.map((policy) => new Option(policy.type ? `${policy.name} (${policy.type})` : policy.name, policy.name)),
-    );
+    const path = `/api/robots/${encodeURIComponent(robotId)}/policies`;
+    const { policies, truncated } = await call("GET", path);
+    const label = (policy) => (policy.type ? `${policy.name} (${policy.type})` : policy.name);
+    select.replaceChildren(...policies.map((policy) => new Option(label(policy), policy.name)));
     if (truncated) select.append(new Option("(more not listed: name fewer)", "", false, false));
     if (!policies.length) select.append(new Option("no policy in this tenant's folder", ""));
   } catch (error) {

@@ -16,7 +16,8 @@ const STEPS = {
 };
 
 let robot = null; // {id, slave, joints} of the card shown, with a hardware arm
-let asking = 0; // counts status requests: an older answer that comes late is not shown
+let asked = 0; // counts status requests...
+let answered = 0; // ...and the newest shown: an older answer that comes late is not
 
 function path(action = "") {
   return `/api/robots/${encodeURIComponent(robot.id)}/calibration${action}`;
@@ -48,18 +49,25 @@ function render(status) {
   $("calibrate-cancel").disabled = !session;
   const limits = new Map(robot.joints.map((joint) => [joint.name, joint.limits]));
   const ranges = phase === "range" ? Object.entries(session.range) : [];
-  $("calibration-ranges").replaceChildren(...ranges.map(([name, range]) => rangeRow(name, range, limits.get(name))));
+  $("calibration-ranges").replaceChildren(
+    ...ranges.map(([name, range]) => rangeRow(name, range, limits.get(name))),
+  );
 }
 
 async function refresh() {
   if (!robot) return;
-  const mine = ++asking;
-  const shown = robot;
+  const mine = ++asked;
+  const id = robot.id;
+  const current = () => mine > answered && robot !== null && robot.id === id;
   try {
     const status = await call("GET", `${path()}?slave=${encodeURIComponent(robot.slave)}`);
-    if (mine === asking && shown === robot) render(status);
+    if (!current()) return;
+    answered = mine;
+    render(status);
   } catch (error) {
-    if (mine === asking && shown === robot) $("calibration-step").textContent = `${error.code}: ${error.message}`;
+    if (!current()) return;
+    answered = mine;
+    $("calibration-step").textContent = `${error.code}: ${error.message}`;
   }
 }
 

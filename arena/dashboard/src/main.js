@@ -120,7 +120,11 @@ const hand = new HandDriver(
     $("drive-status").textContent = text;
     $("drive-hand").textContent = hand.driving ? "Stop driving" : "Drive the hand";
   },
-  [new KeyboardSource(), new GamepadSource(), new TiltSource($("tilt-row"), $("tilt-move"), $("tilt-lift"))],
+  [
+    new KeyboardSource(),
+    new GamepadSource(),
+    new TiltSource($("tilt-row"), $("tilt-move"), $("tilt-lift")),
+  ],
 );
 
 function closeView() {

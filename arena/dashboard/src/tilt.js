@@ -11,7 +11,8 @@ const FULL_DEGREES = 30; // full speed from this far off neutral
 function tilt(degrees) {
   const size = Math.abs(degrees);
   if (!(size > DEAD_DEGREES)) return 0;
-  return (Math.sign(degrees) * Math.min(size - DEAD_DEGREES, FULL_DEGREES - DEAD_DEGREES)) / (FULL_DEGREES - DEAD_DEGREES);
+  const full = FULL_DEGREES - DEAD_DEGREES;
+  return (Math.sign(degrees) * Math.min(size - DEAD_DEGREES, full)) / full;
 }
 
 /** `b - a` for angles in degrees, within (-180, 180] (beta wraps at ±180). */
