@@ -196,6 +196,7 @@ class PolicyCounters:
     invalid: int = 0  # actions refused for a value that is not finite
     stalls: int = 0  # times the watchdog tripped
     last_latency: float = 0.0  # seconds, the worker's own measure of its last inference
+    last_chunk: int = 0  # actions in the last chunk that came back
     loads: int = 0  # times the worker loaded the policy (a pause and resume never reloads)
     pauses: int = 0  # times the robot paused the policy
     dropped: int = 0  # actions dropped at a pause (computed before it)
@@ -483,6 +484,7 @@ class PolicyMaster:
             self._armed = True
             self.counters.inferences += 1
             self.counters.last_latency = chunk.latency
+            self.counters.last_chunk = len(chunk.actions)
             kept = queue.add_chunk(chunk.timestep, chunk.actions)
             inference = Inference(
                 chunk.timestep,

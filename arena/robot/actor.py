@@ -80,6 +80,7 @@ class Actor(MasterKeeping):
         #: Commands answered, by outcome: "accepted" or the refusal code (for metrics).
         self.command_counts: collections.Counter[str] = collections.Counter()
         self.estop_count = 0
+        self.intervention_count = 0  # interventions started (corrections)
         self._superseded_by_gone = 0  # targets superseded at slaves that have left
         #: Data-collection episodes (changed only through `EpisodeMsg`).
         self.episodes = Episodes()

@@ -38,6 +38,8 @@ class Episodes:
         self.last: Episode | None = None  # the last episode that ended
         self.kept = 0
         self.discarded = 0
+        #: Corrections (interventions started) in the running episode.
+        self.corrections = 0
         self._next = 0
 
     def act(self, action: str, task: str, now: float) -> Episode:
@@ -60,8 +62,18 @@ class Episodes:
                 f'"task" must say what the episode shows, in 1 to {MAX_TASK_CHARS} characters.',
             )
         self.active = Episode(self._next, task, now)
+        self.corrections = 0
         self._next += 1
         return self.active
+
+    def corrected(self) -> None:
+        """An intervention started: one more correction in the running episode, if one runs."""
+        if self.active is not None:
+            self.corrections += 1
+
+    def running_corrections(self) -> int | None:
+        """The running episode's corrections, None with no episode running."""
+        return None if self.active is None else self.corrections
 
     def stop(self, now: float) -> Episode:
         """End the running episode and keep it."""
@@ -107,6 +119,7 @@ class Episodes:
                 "index": self.active.index,
                 "task": self.active.task,
                 "elapsed": round(now - self.active.started, 3),
+                "corrections": self.corrections,
             }
         last = None
         if self.last is not None:

@@ -85,6 +85,11 @@ class Robot:
         return self._actor.estop_count
 
     @property
+    def intervention_count(self) -> int:
+        """Interventions (corrections) started on the robot."""
+        return self._actor.intervention_count
+
+    @property
     def targets_superseded(self) -> int:
         """Targets a newer one replaced before a slave took it (latest wins toward a slave
         slower than its master); every accepted command is still recorded."""

@@ -71,6 +71,7 @@ ROLE_FOR: dict[tuple[str, str], Role] = {
     ("POST", "/api/robots/{robot_id}/compliance"): OP,
     ("DELETE", "/api/robots/{robot_id}/compliance"): OP,
     ("POST", "/api/robots/{robot_id}/replay"): OP,
+    ("GET", "/api/robots/{robot_id}/policies"): V,
     ("GET", "/api/robots/{robot_id}/calibration"): V,
     ("POST", "/api/robots/{robot_id}/calibration/start"): A,
     ("POST", "/api/robots/{robot_id}/calibration/capture"): A,

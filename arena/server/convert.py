@@ -185,6 +185,10 @@ def robot_summary(
         "estop_reason": snapshot.estop_reason,
         "master": _master(snapshot.master, links),
         "paused_master": _master(snapshot.paused_master, links),
+        "corrections": {
+            "total": robot.intervention_count,
+            "episode": robot.episodes.running_corrections(),
+        },
         "slaves": [_peer(s) for s in snapshot.slaves],
         "joints": msgspec.to_builtins(joint_states(robot).data),
     }

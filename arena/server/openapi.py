@@ -110,6 +110,7 @@ ROUTES: list[tuple[str, str, str, Any]] = [
     ("GET", "/api/recordings/{name}/file", "Download a recording (MCAP)", None),
     ("GET", "/api/recordings/{name}/joints", "A robot's joints over a recording, for plots", None),
     ("POST", "/api/robots/{robot_id}/replay", "Replay a recording onto a robot", ReplayBody),
+    ("GET", "/api/robots/{robot_id}/policies", "The policies the robot's tenant may run", None),
     ("GET", "/api/robots/{robot_id}/calibration", "Calibration of a hardware slave", None),
     (
         "POST",
