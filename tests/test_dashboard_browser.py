@@ -643,16 +643,26 @@ def test_the_page_says_which_sequence_plays(start_live: Any, page: Page) -> None
     expect(line).to_contain_text("Playing sequence 'small-scan' (master 'master-")
     expect(line).to_contain_text(", mock-sequence): the sliders are locked.")
     expect(page.locator('[data-testid="robot-status"]')).to_contain_text("Master + Slaves")
+    # The rest plays it in a loop (the page's 8 s play may end on a loaded machine before the
+    # reload and the two clicks are done).
+    with server.http() as http:
+        body = {
+            "type": "mock-sequence",
+            "sequences": ["small-scan"],
+            "loop": True,
+            "takeover": True,
+        }
+        assert http.post("/api/robots/demo-arm/master", json=body).is_success
     # Reloaded, the page still knows what plays: the server says.
     page.reload()
-    expect(line).to_contain_text("Playing sequence 'small-scan'")
+    expect(line).to_contain_text("Playing sequence 'small-scan' in a loop")
     # The demo sequences take over only when asked twice: the first click is refused, and the
     # page says who holds the robot.
     connect = page.locator('[data-testid="connect-demo-sequences"]')
     connect.click()
     events = page.locator("#events")
     expect(events).to_contain_text("MASTER_ACTIVE")
-    expect(events).to_contain_text("It is held by sequence 'small-scan' (master 'master-")
+    expect(events).to_contain_text("It is held by sequence 'small-scan' in a loop (master 'master-")
     expect(connect).to_have_text("Take over with the demo sequences?")
     expect(line).to_contain_text("Playing sequence 'small-scan'")
     connect.click()
