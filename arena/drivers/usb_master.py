@@ -5,9 +5,10 @@ the follower's pose at the robot's joining speed, then goes limp, so that the ha
 where the follower is (no jerk when it starts to command). Its present positions are read on
 its own bus thread (the same `BusWorker` as the USB slave), turned into degrees through the
 leader's calibration, and sent as commands whenever a joint moved more than the dead band, at
-most as often as the robot's rate limit allows (the newest pose wins). It claims the robot like
-any master (no takeover), an e-stop ends it for good, and losing the leader's bus is a lost
-master (the loss policy applies).
+most as often as the robot's rate limit allows (the newest pose wins); a pose the leader
+holds after a move inside the band is sent once (`SETTLE_AFTER`), so the follower settles
+where the leader did. It claims the robot like any master (no takeover), an e-stop ends it
+for good, and losing the leader's bus is a lost master (the loss policy applies).
 """
 
 from __future__ import annotations
@@ -36,6 +37,8 @@ log = logging.getLogger(__name__)
 
 #: Refusals after which the leader stops for good.
 _FINAL_REFUSALS = frozenset({ErrorCode.ESTOPPED, ErrorCode.NOT_OWNER})
+#: Seconds a leader's pose must hold for its last move inside the dead band to be sent.
+SETTLE_AFTER = 0.1
 
 
 class UsbMaster(ServoArm):
@@ -136,6 +139,12 @@ class UsbMaster(ServoArm):
         interval = 1.0 / min(self.config.rate, self.model.safety.command_rate)
         last_sent: dict[str, float] | None = None
         last_at = -math.inf
+        # The dead band's remainder: a pose held `SETTLE_AFTER` seconds (no joint further than
+        # a quarter of the band from `still`) is sent once even when inside the band, so the
+        # follower settles where the leader settled, not up to the band short of it.
+        still: dict[str, float] | None = None
+        still_since = -math.inf
+        settled = False
         while True:
             reading, events = await bridge.next()
             for event in events:
@@ -151,8 +160,13 @@ class UsbMaster(ServoArm):
                 last_sent = None
                 continue
             pose = self._pose(reading)
+            now = trio.current_time()
+            if still is None or _moved(pose, still, self.config.deadband / 4):
+                still, still_since, settled = pose, now, False
             if last_sent is not None and not _moved(pose, last_sent, self.config.deadband):
-                continue
+                if settled or now - still_since < SETTLE_AFTER or pose == last_sent:
+                    continue
+                settled = True  # once: a hand's flicker afterwards sends nothing
             wait = last_at + interval - trio.current_time()
             if wait > 0:  # the robot's rate limit: wait, then send the newest pose there is
                 await trio.sleep(wait)
