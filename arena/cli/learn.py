@@ -8,6 +8,9 @@ from pathlib import Path
 
 from arena.cli.common import Commands
 
+#: The arms the reach task knows (their twins, their tips).
+ROBOT_TYPES = ("so-arm100", "so-101")
+
 
 def add(commands: Commands) -> None:
     """Declare `learn`."""
@@ -22,6 +25,12 @@ def add(commands: Commands) -> None:
     learn.add_argument("--steps", type=int, default=3000, help="training steps (3000)")
     learn.add_argument("--targets", type=int, default=20, help="held-out targets (20)")
     learn.add_argument("--seed", type=int, default=0, help="seed of targets and training (0)")
+    learn.add_argument(
+        "--robot-type",
+        choices=list(ROBOT_TYPES),
+        default="so-arm100",
+        help="the arm in the twin (so-arm100)",
+    )
     learn.set_defaults(handler=learn_command)
 
 
@@ -42,10 +51,15 @@ def learn_command(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and any(out.iterdir()):
         raise ArenaError(ErrorCode.INVALID_VALUE, f"{out} (-o) exists and is not empty.")
-    settings = LearnSettings(out, args.episodes, args.steps, args.targets, seed=args.seed)
+    settings = LearnSettings(
+        out, args.episodes, args.steps, args.targets, seed=args.seed, robot_type=args.robot_type
+    )
     report = learn_reach(settings, say=lambda line: print(line, flush=True))
     minutes = sum(report.seconds.values()) / 60
-    print(f"success on {args.targets} held-out targets (tip within 2 cm for 0.5 s):")
+    print(
+        f"success on {args.targets} held-out targets of the {args.robot_type} "
+        "(tip within 2 cm for 0.5 s):"
+    )
     print(f"  expert  {report.expert:6.0%}")
     print(f"  random  {report.random:6.0%}")
     print(f"  policy  {report.policy:6.0%}   (ACT, {report.episodes} episodes, {args.steps} steps)")
