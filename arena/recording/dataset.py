@@ -381,6 +381,11 @@ def export_lerobot(
         if not corrections:
             raise ArenaError(ErrorCode.INVALID_RECORDING, f"No correction of {robot_id!r}.")
         spans = correction_spans(corrections)
+        if environment is not None:  # each correction has its episode's state, by its number
+            environment = {
+                span.index: environment[c.episode.index]
+                for span, c in zip(spans, corrections, strict=True)
+            }
     frames = [(span, frames_of(session, span, fps, slave)) for span in spans]
     frames = [(span, found) for span, found in frames if found]
     if not frames:
