@@ -31,6 +31,19 @@ def add(commands: Commands) -> None:
         default="so-arm100",
         help="the arm in the twin (so-arm100)",
     )
+    learn.add_argument(
+        "--dagger",
+        type=int,
+        metavar="ROUNDS",
+        help="improve the policy in ROUNDS rounds: deploy it, let the expert correct it "
+        "through an intervention where it strays, retrain on the corrections",
+    )
+    learn.add_argument(
+        "--demos", type=int, default=10, help="with --dagger: expert demonstrations (10)"
+    )
+    learn.add_argument(
+        "--rollouts", type=int, default=20, help="with --dagger: corrected episodes a round (20)"
+    )
     learn.set_defaults(handler=learn_command)
 
 
@@ -51,6 +64,8 @@ def learn_command(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and any(out.iterdir()):
         raise ArenaError(ErrorCode.INVALID_VALUE, f"{out} (-o) exists and is not empty.")
+    if args.dagger is not None:
+        return _dagger(args, out)
     settings = LearnSettings(
         out, args.episodes, args.steps, args.targets, seed=args.seed, robot_type=args.robot_type
     )
@@ -70,4 +85,35 @@ def learn_command(args: argparse.Namespace) -> int:
         'then POST /api/robots/ID/master {"type": "policy", "path": "NAME", '
         '"environment_state": [x, y, z]})'
     )
+    return 0
+
+
+def _dagger(args: argparse.Namespace, out: Path) -> int:
+    """`--dagger ROUNDS`: the loop, and the held-out success after each round."""
+    from arena.gym.dagger import DaggerSettings, learn_dagger
+    from arena.protocol.errors import ArenaError, ErrorCode
+
+    if args.dagger < 1 or args.demos < 1 or args.rollouts < 1:
+        raise ArenaError(
+            ErrorCode.INVALID_VALUE, "--dagger, --demos and --rollouts must be 1 or more."
+        )
+    settings = DaggerSettings(
+        out,
+        rounds=args.dagger,
+        demos=args.demos,
+        rollouts=args.rollouts,
+        steps=args.steps,
+        targets=args.targets,
+        seed=args.seed,
+        robot_type=args.robot_type,
+    )
+    report = learn_dagger(settings, say=lambda line: print(line, flush=True))
+    print(
+        f"success on {args.targets} held-out targets of the {args.robot_type} "
+        "(tip within 2 cm for 0.5 s), policy alone:"
+    )
+    for stage in report.rounds:
+        print(f"  round {stage.round}  {stage.success:6.0%}   (trained on {stage.frames} frames)")
+    print(f"took {report.seconds / 60:.1f} min")
+    print(f"policy saved in {report.rounds[-1].policy_dir}")
     return 0
