@@ -127,3 +127,39 @@ async def test_one_small_round_corrects_exports_and_retrains(
         assert attached.status_code == 201, attached.text
         assert attached.json()["id"].startswith("policy:act:")
         await http.delete("/api/robots/arm/master")
+
+
+def test_the_policy_strays_after_half_a_second_without_progress() -> None:
+    need("gymnasium", "gym")
+    from arena.gym.dagger import Stray
+
+    stray = Stray(30.0)  # 15 steps
+    # Coming closer by 3 mm a step is progress, however far it still is.
+    assert not any(stray.update(0.30 - 0.003 * k) for k in range(40))
+    # Arriving 5 cm away (progress) and standing still there: 15 steps (half a second)
+    # later it strays, not a step earlier.
+    stuck = [stray.update(0.05) for _ in range(17)]
+    assert stuck.index(True) == 15
+    # Holding within the success distance is what it should do: no stray.
+    stray.restart()
+    assert not any(stray.update(0.015) for _ in range(60))
+    # Drifting away strays too.
+    stray.restart()
+    assert any(stray.update(0.03 + 0.001 * k) for k in range(16))
+
+
+def test_a_following_expert_stays_on_a_leash_from_the_arm() -> None:
+    """The corrector's commands are eased in at the joining speed: its plan must not run
+    away from an arm that moves slowly, or its actions label states they do not fit."""
+    need("gymnasium", "gym")
+    from arena.gym.task import ARM_JOINTS, EXPERT_LEASH, EXPERT_STEP, Expert, Reach
+
+    task = Reach(load_robot_model("so-101"))
+    rng = np.random.default_rng(3)
+    target = task.draw_target(rng)
+    arm = np.zeros(6)
+    free, leashed = Expert(task, target, arm), Expert(task, target, arm, follow=True)
+    for _ in range(20):  # the arm does not move at all
+        ahead = np.abs(free.act(arm)[:ARM_JOINTS]).max()
+        near = np.abs(leashed.act(arm)[:ARM_JOINTS]).max()
+    assert near <= EXPERT_LEASH + EXPERT_STEP + 1e-9 < ahead

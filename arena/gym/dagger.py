@@ -71,6 +71,9 @@ class DaggerSettings:
     robot_type: str = "so-arm100"
     dim_model: int = 64
     dim_feedforward: int = 256
+    #: Steps of a later round's training, which starts from the round before's policy (None:
+    #: every round trains afresh for `steps`).
+    retrain_steps: int | None = None
 
 
 @dataclass
@@ -183,7 +186,7 @@ async def deploy(
             link = await robot.connect_master(
                 CORRECTOR, kind="corrector", description="the reach task's expert", intervene=True
             )
-            expert = Expert(task, target, world.measured())
+            expert = Expert(task, target, world.measured(), follow=True)
             while steps < max_steps:
                 await world.command(
                     command_of(world.model, expert.act(world.measured()).tolist()), link
@@ -296,15 +299,22 @@ def learn_dagger(settings: DaggerSettings, say: Callable[[str], None] = print) -
     for number in range(settings.rounds + 1):
         folder = out / f"round-{number}"
         frames = report.demo_frames + sum(r.correction_frames for r in report.rounds)
-        say(f"round {number}: training ACT for {settings.steps} steps on {frames} frames ...")
+        start = Path(report.rounds[-1].policy_dir) if report.rounds else None
+        steps = settings.steps
+        if start is not None and settings.retrain_steps is not None:
+            steps = settings.retrain_steps
+        else:
+            start = None
+        how = f"from round {number - 1}'s policy" if start is not None else "afresh"
+        say(f"round {number}: training ACT {how} for {steps} steps on {frames} frames ...")
         policy = folder / "policy"
         train = TrainSettings(
-            steps=settings.steps,
+            steps=steps,
             dim_model=settings.dim_model,
             dim_feedforward=settings.dim_feedforward,
             seed=settings.seed,
         )
-        stage.loss = train_act_on(datasets, policy, train, say)
+        stage.loss = train_act_on(datasets, policy, train, say, start=start)
         stage.frames, stage.policy_dir = frames, str(policy)
         lap(stage, "train")
         last = number == settings.rounds

@@ -40,6 +40,8 @@ MIN_HEIGHT = 0.06
 #: The expert's largest step per action (degrees), and the gain of its correction for sag.
 EXPERT_STEP = 4.0
 EXPERT_GAIN = 0.1
+#: How far (degrees) a following expert's plan may run ahead of the measured arm.
+EXPERT_LEASH = 8.0
 #: The plan counts as there within this distance (metres) of the target.
 PLAN_REACHED = 0.005
 #: Damped least-squares steps the inverse kinematics takes at most.
@@ -169,10 +171,19 @@ class Expert:
     """The scripted expert. It solves the inverse kinematics once (`Reach.solve`), then moves
     the commanded joints toward the solution, at most `EXPERT_STEP` degrees a joint an action;
     once there, a slow integral term made from where the tip really is makes up for the arm's
-    sag under gravity, which the kinematics cannot know."""
+    sag under gravity, which the kinematics cannot know.
 
-    def __init__(self, task: Reach, target: Sequence[float], start: Joints) -> None:
+    `follow`: its plan is kept within `EXPERT_LEASH` degrees of the measured arm, so its
+    action stays a function of what it sees. A corrector is so: its commands are eased in
+    at the joining speed, and a plan of its own would run far ahead of the arm, labelling
+    the states it passes with actions the arm is nowhere near. (Not the plan reset to the
+    arm each step: an arm that sags more than a step under gravity then never gets there.)"""
+
+    def __init__(
+        self, task: Reach, target: Sequence[float], start: Joints, follow: bool = False
+    ) -> None:
         self.task = task
+        self.follow = follow
         self.target = tuple(target)
         self.plan: Vec = np.array(start, dtype=float)
         self.goal = task.solve(target, start)
@@ -180,6 +191,11 @@ class Expert:
 
     def act(self, measured: Joints) -> Vec:
         """The next action (every joint, wire units) from the measured joints."""
+        if self.follow:  # the plan kept on a leash of `EXPERT_LEASH` degrees from the arm
+            arm = np.asarray(measured, dtype=float)[:ARM_JOINTS]
+            self.plan[:ARM_JOINTS] = np.clip(
+                self.plan[:ARM_JOINTS], arm - EXPERT_LEASH, arm + EXPERT_LEASH
+            )
         step = np.clip(self.goal - self.plan, -EXPERT_STEP, EXPERT_STEP)
         self.plan += step
         if self.task.distance(self.plan, self.target) < PLAN_REACHED:
