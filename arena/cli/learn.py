@@ -22,7 +22,9 @@ def add(commands: Commands) -> None:
     learn.add_argument("task", choices=["reach"], help="the task (reach: the gripper to a point)")
     learn.add_argument("-o", "--out", required=True, help="the folder for everything it makes")
     learn.add_argument("--episodes", type=int, default=50, help="expert episodes (50)")
-    learn.add_argument("--steps", type=int, default=3000, help="training steps (3000)")
+    learn.add_argument(
+        "--steps", type=int, help="training steps (3000; with --dagger, each round: 1500)"
+    )
     learn.add_argument("--targets", type=int, default=20, help="held-out targets (20)")
     learn.add_argument("--seed", type=int, default=0, help="seed of targets and training (0)")
     learn.add_argument(
@@ -55,8 +57,11 @@ def learn_command(args: argparse.Namespace) -> int:
     require("gym", "arena learn")
     require("physics", "arena learn")
     require("lerobot", "arena learn")
+    from arena.gym.dagger import STEPS
     from arena.gym.learn import LearnSettings, learn_reach
 
+    if args.steps is None:
+        args.steps = 3000 if args.dagger is None else STEPS
     if args.episodes < 1 or args.steps < 1 or args.targets < 1:
         raise ArenaError(
             ErrorCode.INVALID_VALUE, "--episodes, --steps and --targets must be 1 or more."

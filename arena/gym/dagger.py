@@ -53,6 +53,8 @@ HANDBACK_DISTANCE = 0.01
 #: Seeds of the rollouts' targets start here (demonstrations use seed + 0, 1, ...; held-out
 #: targets `HELD_OUT_SEED` + ...).
 ROLLOUT_SEED = 500_000
+#: Training steps of a round's policy (the first round's; later ones: `retrain_steps`).
+STEPS = 1500
 
 
 @dataclass(frozen=True, slots=True)
@@ -64,7 +66,7 @@ class DaggerSettings:
     rounds: int = 2
     demos: int = 10
     rollouts: int = 20
-    steps: int = 1500
+    steps: int = STEPS
     targets: int = 20
     fps: float = 30.0
     seed: int = 0
