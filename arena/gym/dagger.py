@@ -53,7 +53,7 @@ HANDBACK_DISTANCE = 0.01
 #: Seeds of the rollouts' targets start here (demonstrations use seed + 0, 1, ...; held-out
 #: targets `HELD_OUT_SEED` + ...).
 ROLLOUT_SEED = 500_000
-#: Training steps of a round's policy (the first round's; later ones: `retrain_steps`).
+#: Training steps of each round's policy (afresh, on all the data so far).
 STEPS = 1500
 
 
@@ -73,9 +73,6 @@ class DaggerSettings:
     robot_type: str = "so-arm100"
     dim_model: int = 64
     dim_feedforward: int = 256
-    #: Steps of a later round's training, which starts from the round before's policy (None:
-    #: every round trains afresh for `steps`).
-    retrain_steps: int | None = None
 
 
 @dataclass
@@ -301,14 +298,8 @@ def learn_dagger(settings: DaggerSettings, say: Callable[[str], None] = print) -
     for number in range(settings.rounds + 1):
         folder = out / f"round-{number}"
         frames = report.demo_frames + sum(r.correction_frames for r in report.rounds)
-        start = Path(report.rounds[-1].policy_dir) if report.rounds else None
         steps = settings.steps
-        if start is not None and settings.retrain_steps is not None:
-            steps = settings.retrain_steps
-        else:
-            start = None
-        how = f"from round {number - 1}'s policy" if start is not None else "afresh"
-        say(f"round {number}: training ACT {how} for {steps} steps on {frames} frames ...")
+        say(f"round {number}: training ACT for {steps} steps on {frames} frames ...")
         policy = folder / "policy"
         train = TrainSettings(
             steps=steps,
@@ -316,7 +307,7 @@ def learn_dagger(settings: DaggerSettings, say: Callable[[str], None] = print) -
             dim_feedforward=settings.dim_feedforward,
             seed=settings.seed,
         )
-        stage.loss = train_act_on(datasets, policy, train, say, start=start)
+        stage.loss = train_act_on(datasets, policy, train, say)
         stage.frames, stage.policy_dir = frames, str(policy)
         lap(stage, "train")
         last = number == settings.rounds

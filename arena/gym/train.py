@@ -63,14 +63,12 @@ def train_act_on(
     out: Path,
     settings: TrainSettings = TrainSettings(),
     say: Callable[[str], None] = print,
-    start: Path | None = None,
 ) -> float:
     """Train ACT on the frames of several datasets (root, repo id) taken as one, and save it
     in `out`; the last loss. The first dataset names the features (the others may have more,
     `intervention` say: unused); normalisation comes from all of them (LeRobot's
     `aggregate_stats`). `arena learn reach --dagger` trains on its demonstrations and every
-    round's corrections so. `start`: a policy this one starts from (its weights and its
-    normalisation, which were the first dataset's: they stay so) rather than from scratch."""
+    round's corrections so."""
     import torch
     from lerobot.configs.types import FeatureType, NormalizationMode
     from lerobot.datasets.compute_stats import aggregate_stats
@@ -112,14 +110,9 @@ def train_act_on(
         },
         device="cpu",
     )
-    if start is not None:
-        policy: Any = ACTPolicy.from_pretrained(start)
-        config = policy.config
-    else:
-        policy = ACTPolicy(config)
+    policy: Any = ACTPolicy(config)
     policy.train()
-    several = len(metas) > 1 and start is None
-    stats = aggregate_stats([m.stats for m in metas]) if several else meta.stats
+    stats = meta.stats if len(metas) == 1 else aggregate_stats([m.stats for m in metas])
     pre, post = make_pre_post_processors(config, dataset_stats=stats)
     parts: dict[str, list[Any]] = {name: [] for name in (*inputs, "action", "episode_index")}
     episodes = 0
