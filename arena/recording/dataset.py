@@ -387,6 +387,8 @@ def export_lerobot(
                 for span, c in zip(spans, corrections, strict=True)
             }
     frames = [(span, frames_of(session, span, fps, slave)) for span in spans]
+    if corrections_only:  # a correction ends where its master stopped commanding: no frame there
+        frames = [(span, [f for f in found if f.at < span.end]) for span, found in frames]
     frames = [(span, found) for span, found in frames if found]
     if not frames:
         raise ArenaError(ErrorCode.INVALID_RECORDING, "The episodes hold no complete frame.")
