@@ -105,6 +105,8 @@ class ErrorCode(enum.StrEnum):
     POLICY_NOT_READY = "POLICY_NOT_READY"  # the worker did not load it in time, or exited
     POLICY_OUTPUT_INVALID = "POLICY_OUTPUT_INVALID"  # fault: an action that is not finite
     POLICY_STALLED = "POLICY_STALLED"  # fault (warning): no action due for two periods
+    NO_HIGHLIGHT = "NO_HIGHLIGHT"  # a highlight asked of a robot whose policy keeps none
+    POSE_NOT_REACHED = "POSE_NOT_REACHED"  # fault (warning): an episodic reset ran out of time
 
 
 class ArenaError(Exception):

@@ -145,9 +145,10 @@ class WorkspaceMsg:
 
 @dataclass(slots=True)
 class EpisodeMsg:
-    action: str  # "start" | "stop" | "discard"
+    action: str  # "start" | "stop" | "discard" | "highlight"
     task: str
     reply: Reply[Episode]
+    since: float = 0.0  # a highlight's start (trio time): it ends now
 
 
 @dataclass(slots=True)
