@@ -170,7 +170,7 @@ async def test_highlight_keeps_the_last_seconds_only_when_asked(
         def release(self) -> None:
             kept.append(-1.0)
 
-        async def save(self, since: float) -> None:
+        async def save(self, since: float, until: float) -> None:
             saved.append(since)
 
     with robot.subscribe(kinds=[EpisodeChanged]) as queue:
@@ -206,6 +206,7 @@ async def test_highlight_keeps_the_last_seconds_only_when_asked(
         assert third.started == second.ended
         marks = episodes(queue.drain())
         await robot.detach_master(master.master_id)
+        await trio.sleep(0.5)  # (the driver's task ends after the detach)
     # Each highlight is marked where it began, in the past, and where it ended.
     assert marks[:2] == [("start", 0, first.started), ("stop", 0, first.ended)]
     assert marks[2:4] == [("start", 1, second.started), ("stop", 1, second.ended)]

@@ -119,9 +119,9 @@ class Keeper(Protocol):
     def release(self) -> None:
         """Keep nothing more (the strategy ended)."""
 
-    async def save(self, since: float) -> None:
-        """Make sure what happened since `since` (trio time) is written, with the marks of
-        the episode just made."""
+    async def save(self, since: float, until: float) -> None:
+        """Make sure what happened from `since` to `until` (trio time) is written, with the
+        marks of the episode just made."""
 
 
 def check_pose(
@@ -217,12 +217,12 @@ class Rollout:
                 'which keeps no highlight: attach it with {"strategy": {"type": "highlight", '
                 "...}}.",
             )
-        since = max(self._since, trio.current_time() - strategy.keep_s)
-        episode = await self.robot.highlight(strategy.task, since)
-        self._since = episode.ended if episode.ended is not None else trio.current_time()
+        episode = await self.robot.highlight(strategy.task, strategy.keep_s, self._since)
+        ended = episode.ended if episode.ended is not None else trio.current_time()
+        self._since = ended
         self.episodes += 1
         if self.keeper is not None:
-            await self.keeper.save(episode.started)
+            await self.keeper.save(episode.started, ended)
         return episode
 
     async def _start(self, task: str) -> None:

@@ -81,9 +81,9 @@ class Kept:
             if isinstance(gone, CameraFrame):
                 self.bytes -= len(gone.jpeg)
 
-    def since(self, start: float) -> list[Followed]:
-        """What is kept from `start` (trio time) on."""
-        return [event for event in self.events if event.time >= start]
+    def between(self, start: float, end: float) -> list[Followed]:
+        """What is kept from `start` to `end` (trio time)."""
+        return [event for event in self.events if start <= event.time <= end]
 
     def clear(self) -> None:
         """Forget everything (the recorder writes it all)."""
@@ -107,9 +107,9 @@ class RecorderKeeper:
         """Keep nothing more."""
         self.recorder.kept.pop(self.robot_id, None)
 
-    async def save(self, since: float) -> None:
-        """Write what happened since `since` (`Recorder.save_kept`)."""
-        await self.recorder.save_kept(self.robot_id, since)
+    async def save(self, since: float, until: float) -> None:
+        """Write what happened from `since` to `until` (`Recorder.save_kept`)."""
+        await self.recorder.save_kept(self.robot_id, since, until)
 
 
 @dataclass
@@ -352,18 +352,18 @@ class Recorder:
         """A highlight strategy's side in the recorder, for one robot."""
         return RecorderKeeper(self, robot_id)
 
-    async def save_kept(self, robot_id: str, since: float) -> None:
+    async def save_kept(self, robot_id: str, since: float, until: float) -> None:
         """A highlight of the robot was marked: recording, write what is pending now (the
         episode's marks with it; the rest of it is in the file already); not recording,
-        write what was kept of the robot since `since` (trio time, with the marks) into a
-        file of its own, at the times it happened."""
+        write what was kept of the robot from `since` to `until` (trio time, with the
+        marks) into a file of its own, at the times it happened."""
         async with self._writing:
             batch = await self._collect()  # (while off, this keeps the marks)
             if self.active:
                 await self._write(batch)
                 return
             kept = self.kept.get(robot_id)
-            events = [] if kept is None else kept.since(since)
+            events = [] if kept is None else kept.between(since, until)
             if not events:
                 return
             tenant = self.writer.robots.get(robot_id, {}).get("tenant", DEFAULT_TENANT)

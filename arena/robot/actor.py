@@ -262,7 +262,9 @@ class Actor(MasterKeeping):
 
     def _on_episode(self, message: inbox.EpisodeMsg, now: float) -> None:
         try:
-            episode = self.episodes.act(message.action, message.task, now, message.since)
+            episode = self.episodes.act(
+                message.action, message.task, now, message.since, message.keep
+            )
         except ArenaError as refusal:
             message.reply.fail(refusal)
             return

@@ -40,13 +40,15 @@ class Episodes:
         self.discarded = 0
         self._next = 0
 
-    def act(self, action: str, task: str, now: float, since: float = 0.0) -> Episode:
-        """`start` (with `task`), `stop`, `discard` or `highlight` (with `task` and
-        `since`), by the action's name."""
+    def act(
+        self, action: str, task: str, now: float, since: float = 0.0, keep: float = 0.0
+    ) -> Episode:
+        """`start` (with `task`), `stop`, `discard` or `highlight` (with `task`, `since` and
+        `keep`), by the action's name."""
         if action == "start":
             return self.start(task, now)
         if action == "highlight":
-            return self.highlight(task, since, now)
+            return self.highlight(task, max(since, now - keep), now)
         return self.stop(now) if action == "stop" else self.discard(now)
 
     def start(self, task: str, now: float) -> Episode:

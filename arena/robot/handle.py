@@ -253,12 +253,12 @@ class Robot:
         await self._post(EpisodeMsg(action, task, reply))
         return await reply.wait()
 
-    async def highlight(self, task: str, since: float) -> Episode:
-        """Keep what happened from `since` (trio time, no earlier than the last episode's
-        end) to now as a kept episode of `task`, marked in the recording at its own times;
-        EPISODE_ACTIVE while an episode runs."""
+    async def highlight(self, task: str, keep: float, since: float) -> Episode:
+        """Keep the last `keep` seconds as a kept episode of `task` (none before `since`,
+        trio time, nor before the last episode's end), marked in the recording at its own
+        times; EPISODE_ACTIVE while an episode runs."""
         reply: Reply[Episode] = Reply()
-        await self._post(EpisodeMsg("highlight", task, reply, since))
+        await self._post(EpisodeMsg("highlight", task, reply, since, keep))
         return await reply.wait()
 
     def master_driver(self) -> object | None:

@@ -73,8 +73,8 @@ class RobotView(Protocol):
     async def episode(self, action: str, task: str = "") -> Episode:
         """Start, stop or discard a data-collection episode."""
 
-    async def highlight(self, task: str, since: float) -> Episode:
-        """Keep what happened since `since` as an episode of `task`."""
+    async def highlight(self, task: str, keep: float, since: float) -> Episode:
+        """Keep the last `keep` seconds (none before `since`) as an episode of `task`."""
 
 
 class RobotPort(Protocol):
