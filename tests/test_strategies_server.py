@@ -32,6 +32,7 @@ from tests.test_policy_server import (
     next_event,
     ready,
     tiny,  # noqa: F401 (the fixture)
+    workers,
 )
 
 lerobot_dataset = need("lerobot.datasets.lerobot_dataset", "lerobot")
@@ -181,3 +182,81 @@ async def test_with_the_recorder_off_a_highlight_writes_its_seconds_and_nothing_
     dataset = read_back(path, tmp_path / "highlight", capsys)
     assert dataset.num_episodes == 1 and 20 <= dataset.num_frames <= 31
     assert dataset.meta.video_keys == ["observation.images.front"]  # its frames were kept too
+
+
+async def test_a_strategy_is_checked_at_the_edge_with_clear_errors(
+    start_server: Start,
+    tiny: Path,  # noqa: F811 (the fixture)
+) -> None:
+    server = await start_server(demo=True)
+    robot = await ready(server)
+    name = robot.model.joints[0].name
+    upper = robot.model.joints[0].upper
+    bad: list[tuple[dict[str, Any], int, str, str]] = [
+        (
+            {"type": "episodic", "episodes": 0, "episode_s": 1, "task": "t"},
+            422,
+            "INVALID_BODY",
+            "episodes",
+        ),
+        (
+            {"type": "episodic", "episodes": 2, "episode_s": 1e9, "task": "t"},
+            422,
+            "INVALID_BODY",
+            "episode_s",
+        ),
+        ({"type": "sentry", "episode_s": 0, "task": "t"}, 422, "INVALID_BODY", "episode_s"),
+        ({"type": "highlight", "keep_s": 301, "task": "t"}, 422, "INVALID_BODY", "keep_s"),
+        ({"type": "highlight", "keep_s": 5}, 422, "INVALID_BODY", "task"),
+        ({"type": "dagger", "task": "t"}, 422, "INVALID_BODY", "sentry"),
+        (
+            {"type": "sentry", "episode_s": 1, "task": "t", "every": 2},
+            400,
+            "UNKNOWN_FIELD",
+            "every",
+        ),
+        ({"type": "sentry", "episode_s": 1, "task": "  "}, 422, "INVALID_VALUE", "blank"),
+        (
+            {
+                "type": "episodic",
+                "episodes": 2,
+                "episode_s": 1,
+                "task": "t",
+                "start_pose": {"Elbow2": 0},
+            },
+            422,
+            "INVALID_VALUE",
+            "Elbow2",
+        ),
+        (
+            {
+                "type": "episodic",
+                "episodes": 2,
+                "episode_s": 1,
+                "task": "t",
+                "start_pose": {name: upper + 1},
+            },
+            422,
+            "INVALID_VALUE",
+            "outside its limits",
+        ),
+    ]
+    async with httpx.AsyncClient(base_url=server.url, timeout=LOAD) as http:
+        for body, status, code, words in bad:
+            answer = await http.post(
+                f"{ROBOT}/master", json={"type": "policy", "path": str(tiny), "strategy": body}
+            )
+            assert answer.status_code == status, (body, answer.text)
+            error = answer.json()["error"]
+            assert error["code"] == code and words in error["message"], (body, error)
+        # A strategy makes its own episodes: refused while one runs, before anything loads.
+        assert (
+            await http.post(f"{ROBOT}/episodes/start", json={"task": "mine"})
+        ).status_code == 201
+        sentry = {"type": "sentry", "episode_s": 1, "task": "t"}
+        answer = await http.post(
+            f"{ROBOT}/master", json={"type": "policy", "path": str(tiny), "strategy": sentry}
+        )
+        assert answer.status_code == 409 and answer.json()["error"]["code"] == "EPISODE_ACTIVE"
+        assert workers() == []
+    assert robot.snapshot().master is None
