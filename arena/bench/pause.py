@@ -1,0 +1,112 @@
+"""`arena bench pause`: how fast a running policy holds when paused, and acts again when
+resumed (specs/policy.md, "Figures: `arena bench pause`").
+
+One robot on a server of its own (`arena serve`, recording on) with a mock slave and a 640x480
+test-pattern camera at 30 fps; LeRobot's default ACT with random weights (as `arena bench
+policy` saves it) drives it at 30 fps. After a warm-up, `runs` times: `POST .../master/pause`,
+a second paused, `POST .../master/resume`, a second and a half running. From the recording:
+
+- pause to hold: from the moment the pause request left the client to the last change of the
+  robot's targets before the resume (the robot holds from then on; none after the request:
+  zero);
+- resume to first action: from the moment the resume request left to the first command of the
+  policy the robot accepted after it (a fresh observation, one inference, the next control
+  step).
+
+The client's wall clock against the records' log times (the server's wall clock, anchored
+when its recording started): one machine, one clock.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import tempfile
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import httpx
+
+from arena.bench.common import Server, create_bench_robot, percentile
+from arena.bench.policy import ACTIONS_PER_CHUNK, CAMERA, FPS, _saved
+from arena.recording.mcap_file import RecordedMessage, read_recording
+
+ROBOT = "pause-arm"
+
+
+def pause_latencies(
+    messages: Sequence[RecordedMessage],
+    identity: str,
+    pauses: Sequence[float],
+    resumes: Sequence[float],
+) -> tuple[list[float], list[float]]:
+    """(pause to hold, resume to first action) in seconds for each pause at `pauses[i]` and
+    resume at `resumes[i]` (wall-clock seconds), from the robot's recorded targets and the
+    policy's accepted commands."""
+    targets = [(m.log_time / 1e9, m.data["joints"]) for m in messages if m.kind == "targets"]
+    commands = sorted(
+        m.log_time / 1e9
+        for m in messages
+        if m.kind == "command" and m.data["source"] == identity and m.data["accepted"]
+    )
+    holds, firsts = [], []
+    for paused, resumed in zip(pauses, resumes, strict=True):
+        last_change = paused
+        previous = None
+        for at, joints in targets:
+            if at >= resumed:
+                break
+            if at >= paused and previous is not None and joints != previous:
+                last_change = at
+            previous = joints
+        holds.append(last_change - paused)
+        first = next((at for at in commands if at >= resumed), None)
+        if first is not None:
+            firsts.append(first - resumed)
+    return holds, firsts
+
+
+async def pause(
+    server: Server, runs: int = 20, warmup: float = 5.0, paused: float = 1.0, running: float = 1.5
+) -> dict[str, float]:
+    """The figures above over `runs` pauses and resumes."""
+    with tempfile.TemporaryDirectory() as scratch:
+        act = await _saved(Path(scratch) / "act", "act")
+        async with httpx.AsyncClient(base_url=server.url, timeout=300) as http:
+            await create_bench_robot(http, ROBOT)
+            base = f"/api/robots/{ROBOT}"
+            (await http.post(f"{base}/slaves", json={"type": "mock-slave"})).raise_for_status()
+            (await http.post(f"{base}/cameras", json=CAMERA)).raise_for_status()
+            body = {
+                "type": "policy",
+                "path": str(act),
+                "fps": FPS,
+                "actions_per_chunk": ACTIONS_PER_CHUNK,
+            }
+            attached = await http.post(f"{base}/master", json=body)
+            attached.raise_for_status()
+            identity = str(attached.json()["id"])
+            await asyncio.sleep(warmup)
+            pauses, resumes = [], []
+            for _ in range(runs):
+                pauses.append(time.time())
+                (await http.post(f"{base}/master/pause")).raise_for_status()
+                await asyncio.sleep(paused)
+                resumes.append(time.time())
+                (await http.post(f"{base}/master/resume")).raise_for_status()
+                await asyncio.sleep(running)
+            await http.delete(f"{base}/master")
+            stopped = (await http.post("/api/recordings/current/stop")).json()["stopped"]
+            data = (await http.get(f"/api/recordings/{stopped}/file")).content
+        path = Path(scratch) / "run.mcap"
+        path.write_bytes(data)
+        messages = read_recording(path).messages
+    holds, firsts = pause_latencies(messages, identity, pauses, resumes)
+    return {
+        "pause_to_hold_p50_ms": percentile(holds, 0.5) * 1000,
+        "pause_to_hold_p99_ms": percentile(holds, 0.99) * 1000,
+        "resume_to_first_action_p50_ms": percentile(firsts, 0.5) * 1000,
+        "resume_to_first_action_p99_ms": percentile(firsts, 0.99) * 1000,
+        "pause_runs": float(len(holds)),
+        "resume_runs": float(len(firsts)),
+    }
