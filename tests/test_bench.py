@@ -303,3 +303,20 @@ def test_pause_latencies_take_the_last_target_change_and_the_first_command_after
     holds, firsts = pause_latencies(messages, me, [10.0, 20.0], [11.0, 21.0])
     assert holds == pytest.approx([0.03, 0.0])
     assert firsts == pytest.approx([0.3, 0.25])
+
+
+def test_resume_parts_split_off_the_inference() -> None:
+    from arena.bench.pause import resume_parts
+
+    def message(kind: str, at: float, **data: object) -> RecordedMessage:
+        return RecordedMessage(f"/robots/arm/{kind}", "arm", kind, round(at * 1e9), data)
+
+    me = "policy:act:0123456789ab"
+    messages = [
+        message("policy", 10.2, policy=me, latency=0.3),  # observed before the resume: stale
+        message("policy", 10.6, policy=me, latency=0.3),  # the fresh one: sent at 10.3
+        message("command", 10.62, source=me, accepted=True),
+        message("command", 10.65, source=me, accepted=True),
+    ]
+    observed, commanded = resume_parts(messages, me, [10.0])
+    assert observed == pytest.approx([0.3]) and commanded == pytest.approx([0.02])

@@ -14,7 +14,10 @@ a second paused, `POST .../master/resume`, a second and a half running. From the
   step).
 
 The client's wall clock against the records' log times (the server's wall clock, anchored
-when its recording started): one machine, one clock.
+when its recording started): one machine, one clock. The same two again from the moment the
+robot applied the pause or resume (its master's `paused` / `resumed` record), which leaves out
+the HTTP request's way in. Resume to first action is mostly one inference: Arena's own parts
+of it are taken apart (`resume_parts`).
 """
 
 from __future__ import annotations
@@ -66,6 +69,36 @@ def pause_latencies(
     return holds, firsts
 
 
+def resume_parts(
+    messages: Sequence[RecordedMessage], identity: str, resumes: Sequence[float]
+) -> tuple[list[float], list[float]]:
+    """Arena's own parts of each resume at `resumes[i]` (the log time, seconds, the robot
+    applied it): to the fresh observation leaving for the worker (the first inference
+    recorded after it, less its round trip: an inference in flight at the pause is waited
+    out first), and from its chunk back to the first command of the policy accepted."""
+    inferences = sorted(
+        (m.log_time / 1e9, float(m.data["latency"]))
+        for m in messages
+        if m.kind == "policy" and m.data["policy"] == identity
+    )
+    commands = sorted(
+        m.log_time / 1e9
+        for m in messages
+        if m.kind == "command" and m.data["source"] == identity and m.data["accepted"]
+    )
+    observed, commanded = [], []
+    for resumed in resumes:
+        fresh = next(((t, lat) for t, lat in inferences if t - lat >= resumed), None)
+        if fresh is None:
+            continue
+        back, latency = fresh
+        observed.append(back - latency - resumed)
+        first = next((at for at in commands if at >= back), None)
+        if first is not None:
+            commanded.append(first - back)
+    return observed, commanded
+
+
 async def pause(
     server: Server, runs: int = 20, warmup: float = 5.0, paused: float = 1.0, running: float = 1.5
 ) -> dict[str, float]:
@@ -102,7 +135,27 @@ async def pause(
         path.write_bytes(data)
         messages = read_recording(path).messages
     holds, firsts = pause_latencies(messages, identity, pauses, resumes)
+    # The same from when the robot applied each (its master's `paused` / `resumed` record):
+    # what the robot and the policy take, without the HTTP request's way in.
+    applied = {
+        change: [
+            m.log_time / 1e9
+            for m in messages
+            if m.kind == "peer" and m.data["peer_id"] == identity and m.data["change"] == change
+        ]
+        for change in ("paused", "resumed")
+    }
+    held, acted = pause_latencies(messages, identity, applied["paused"], applied["resumed"])
+    observed, commanded = resume_parts(messages, identity, applied["resumed"])
     return {
+        "resume_applied_to_observation_p50_ms": percentile(observed, 0.5) * 1000,
+        "resume_applied_to_observation_p99_ms": percentile(observed, 0.99) * 1000,
+        "resume_chunk_to_action_p50_ms": percentile(commanded, 0.5) * 1000,
+        "resume_chunk_to_action_p99_ms": percentile(commanded, 0.99) * 1000,
+        "pause_applied_to_hold_p50_ms": percentile(held, 0.5) * 1000,
+        "pause_applied_to_hold_p99_ms": percentile(held, 0.99) * 1000,
+        "resume_applied_to_first_action_p50_ms": percentile(acted, 0.5) * 1000,
+        "resume_applied_to_first_action_p99_ms": percentile(acted, 0.99) * 1000,
         "pause_to_hold_p50_ms": percentile(holds, 0.5) * 1000,
         "pause_to_hold_p99_ms": percentile(holds, 0.99) * 1000,
         "resume_to_first_action_p50_ms": percentile(firsts, 0.5) * 1000,
