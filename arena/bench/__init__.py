@@ -44,8 +44,9 @@ Scenarios:
   policy      (only when named; needs lerobot) an ACT, then a diffusion policy, random weights,
               drive a robot at 30 fps: observation (camera frame age included) to command
               p50/p99, the server CPU each adds, the worker's (see arena/bench/policy.py)
-  pause       (only when named; needs lerobot) that ACT paused and resumed 20 times: pause to
-              hold and resume to first action p50/p99 (see arena/bench/pause.py)
+  pause       (only when named; needs lerobot) a small ACT, then that ACT, paused and resumed
+              20 times each: pause to hold and resume to first action p50/p99 (see
+              arena/bench/pause.py)
 """
 
 from __future__ import annotations

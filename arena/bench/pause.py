@@ -99,41 +99,45 @@ def resume_parts(
     return observed, commanded
 
 
-async def pause(
-    server: Server, runs: int = 20, warmup: float = 5.0, paused: float = 1.0, running: float = 1.5
+async def _runs(
+    http: httpx.AsyncClient,
+    folder: Path,
+    runs: int,
+    warmup: float,
+    paused: float,
+    running: float,
+) -> tuple[str, list[float], list[float]]:
+    """Attach the policy in `folder`, pause and resume it `runs` times, detach it: its
+    identity and the wall-clock times each pause and resume request left."""
+    base = f"/api/robots/{ROBOT}"
+    body = {
+        "type": "policy",
+        "path": str(folder),
+        "fps": FPS,
+        "actions_per_chunk": ACTIONS_PER_CHUNK,
+    }
+    attached = await http.post(f"{base}/master", json=body)
+    attached.raise_for_status()
+    await asyncio.sleep(warmup)
+    pauses, resumes = [], []
+    for _ in range(runs):
+        pauses.append(time.time())
+        (await http.post(f"{base}/master/pause")).raise_for_status()
+        await asyncio.sleep(paused)
+        resumes.append(time.time())
+        (await http.post(f"{base}/master/resume")).raise_for_status()
+        await asyncio.sleep(running)
+    await http.delete(f"{base}/master")
+    return str(attached.json()["id"]), pauses, resumes
+
+
+def _figures(
+    messages: Sequence[RecordedMessage],
+    identity: str,
+    pauses: list[float],
+    resumes: list[float],
+    prefix: str,
 ) -> dict[str, float]:
-    """The figures above over `runs` pauses and resumes."""
-    with tempfile.TemporaryDirectory() as scratch:
-        act = await _saved(Path(scratch) / "act", "act")
-        async with httpx.AsyncClient(base_url=server.url, timeout=300) as http:
-            await create_bench_robot(http, ROBOT)
-            base = f"/api/robots/{ROBOT}"
-            (await http.post(f"{base}/slaves", json={"type": "mock-slave"})).raise_for_status()
-            (await http.post(f"{base}/cameras", json=CAMERA)).raise_for_status()
-            body = {
-                "type": "policy",
-                "path": str(act),
-                "fps": FPS,
-                "actions_per_chunk": ACTIONS_PER_CHUNK,
-            }
-            attached = await http.post(f"{base}/master", json=body)
-            attached.raise_for_status()
-            identity = str(attached.json()["id"])
-            await asyncio.sleep(warmup)
-            pauses, resumes = [], []
-            for _ in range(runs):
-                pauses.append(time.time())
-                (await http.post(f"{base}/master/pause")).raise_for_status()
-                await asyncio.sleep(paused)
-                resumes.append(time.time())
-                (await http.post(f"{base}/master/resume")).raise_for_status()
-                await asyncio.sleep(running)
-            await http.delete(f"{base}/master")
-            stopped = (await http.post("/api/recordings/current/stop")).json()["stopped"]
-            data = (await http.get(f"/api/recordings/{stopped}/file")).content
-        path = Path(scratch) / "run.mcap"
-        path.write_bytes(data)
-        messages = read_recording(path).messages
     holds, firsts = pause_latencies(messages, identity, pauses, resumes)
     # The same from when the robot applied each (its master's `paused` / `resumed` record):
     # what the robot and the policy take, without the HTTP request's way in.
@@ -147,19 +151,49 @@ async def pause(
     }
     held, acted = pause_latencies(messages, identity, applied["paused"], applied["resumed"])
     observed, commanded = resume_parts(messages, identity, applied["resumed"])
+    inferences = [
+        float(m.data["latency"])
+        for m in messages
+        if m.kind == "policy" and m.data["policy"] == identity
+    ]
+    found = {
+        "to_hold": holds,
+        "applied_to_hold": held,
+        "to_first_action": firsts,
+        "applied_to_first_action": acted,
+        "applied_to_observation": observed,
+        "chunk_to_action": commanded,
+        "inference_round_trip": inferences,
+    }
+    figures = {f"{prefix}_runs": float(len(holds))}
+    for name, values in found.items():
+        figures[f"{prefix}_{name}_p50_ms"] = percentile(values, 0.5) * 1000
+        figures[f"{prefix}_{name}_p99_ms"] = percentile(values, 0.99) * 1000
+    return figures
+
+
+async def pause(
+    server: Server, runs: int = 20, warmup: float = 5.0, paused: float = 1.0, running: float = 1.5
+) -> dict[str, float]:
+    """The figures above over `runs` pauses and resumes of a small ACT (`pause_small_...`:
+    milliseconds an inference, so Arena's own part shows) and of LeRobot's default ACT
+    (`pause_act_...`), one after the other on the same server."""
+    with tempfile.TemporaryDirectory() as scratch:
+        small = await _saved(Path(scratch) / "small", "small")
+        act = await _saved(Path(scratch) / "act", "act")
+        async with httpx.AsyncClient(base_url=server.url, timeout=300) as http:
+            await create_bench_robot(http, ROBOT)
+            base = f"/api/robots/{ROBOT}"
+            (await http.post(f"{base}/slaves", json={"type": "mock-slave"})).raise_for_status()
+            (await http.post(f"{base}/cameras", json=CAMERA)).raise_for_status()
+            first = await _runs(http, small, runs, warmup, paused, running)
+            second = await _runs(http, act, runs, warmup, paused, running)
+            stopped = (await http.post("/api/recordings/current/stop")).json()["stopped"]
+            data = (await http.get(f"/api/recordings/{stopped}/file")).content
+        path = Path(scratch) / "run.mcap"
+        path.write_bytes(data)
+        messages = read_recording(path).messages
     return {
-        "resume_applied_to_observation_p50_ms": percentile(observed, 0.5) * 1000,
-        "resume_applied_to_observation_p99_ms": percentile(observed, 0.99) * 1000,
-        "resume_chunk_to_action_p50_ms": percentile(commanded, 0.5) * 1000,
-        "resume_chunk_to_action_p99_ms": percentile(commanded, 0.99) * 1000,
-        "pause_applied_to_hold_p50_ms": percentile(held, 0.5) * 1000,
-        "pause_applied_to_hold_p99_ms": percentile(held, 0.99) * 1000,
-        "resume_applied_to_first_action_p50_ms": percentile(acted, 0.5) * 1000,
-        "resume_applied_to_first_action_p99_ms": percentile(acted, 0.99) * 1000,
-        "pause_to_hold_p50_ms": percentile(holds, 0.5) * 1000,
-        "pause_to_hold_p99_ms": percentile(holds, 0.99) * 1000,
-        "resume_to_first_action_p50_ms": percentile(firsts, 0.5) * 1000,
-        "resume_to_first_action_p99_ms": percentile(firsts, 0.99) * 1000,
-        "pause_runs": float(len(holds)),
-        "resume_runs": float(len(firsts)),
+        **_figures(messages, *first, "pause_small"),
+        **_figures(messages, *second, "pause_act"),
     }
