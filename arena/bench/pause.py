@@ -2,9 +2,10 @@
 resumed (specs/policy.md, "Figures: `arena bench pause`").
 
 One robot on a server of its own (`arena serve`, recording on) with a mock slave and a 640x480
-test-pattern camera at 30 fps; LeRobot's default ACT with random weights (as `arena bench
-policy` saves it) drives it at 30 fps. After a warm-up, `runs` times: `POST .../master/pause`,
-a second paused, `POST .../master/resume`, a second and a half running. From the recording:
+test-pattern camera at 30 fps; a small ACT (milliseconds an inference), then LeRobot's default
+ACT, random weights (as `arena bench policy` saves it), drives it at 30 fps. After a warm-up, `runs` times: `POST .../master/pause`,
+a second paused, `POST .../master/resume`, and once the policy acts again a second and a half
+running. From the recording:
 
 - pause to hold: from the moment the pause request left the client to the last change of the
   robot's targets before the resume (the robot holds from then on; none after the request:
@@ -99,6 +100,12 @@ def resume_parts(
     return observed, commanded
 
 
+async def _sent(http: httpx.AsyncClient) -> float:
+    """Commands of the robot's policy master the robot accepted so far (its figures)."""
+    master = (await http.get(f"/api/robots/{ROBOT}")).json()["master"]
+    return float(master["figures"]["sent"])
+
+
 async def _runs(
     http: httpx.AsyncClient,
     folder: Path,
@@ -124,8 +131,14 @@ async def _runs(
         pauses.append(time.time())
         (await http.post(f"{base}/master/pause")).raise_for_status()
         await asyncio.sleep(paused)
+        sent = await _sent(http)
         resumes.append(time.time())
         (await http.post(f"{base}/master/resume")).raise_for_status()
+        # Until the policy acts again (on a busy CPU an inference may take longer than any
+        # fixed wait, and a chunk that comes back after the next pause is dropped), then on.
+        deadline = time.monotonic() + 120
+        while await _sent(http) == sent and time.monotonic() < deadline:
+            await asyncio.sleep(0.05)
         await asyncio.sleep(running)
     await http.delete(f"{base}/master")
     return str(attached.json()["id"]), pauses, resumes
