@@ -3,9 +3,9 @@ resumed (specs/policy.md, "Figures: `arena bench pause`").
 
 One robot on a server of its own (`arena serve`, recording on) with a mock slave and a 640x480
 test-pattern camera at 30 fps; a small ACT (milliseconds an inference), then LeRobot's default
-ACT, random weights (as `arena bench policy` saves it), drives it at 30 fps. After a warm-up, `runs` times: `POST .../master/pause`,
-a second paused, `POST .../master/resume`, and once the policy acts again a second and a half
-running. From the recording:
+ACT, random weights (as `arena bench policy` saves it), drives it at 30 fps. After a warm-up,
+`runs` times: `POST .../master/pause`, a second paused, `POST .../master/resume`, and once the
+policy acts again a second and a half running. From the recording:
 
 - pause to hold: from the moment the pause request left the client to the last change of the
   robot's targets before the resume (the robot holds from then on; none after the request:
