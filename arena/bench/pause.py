@@ -32,7 +32,7 @@ from pathlib import Path
 import httpx
 
 from arena.bench.common import Server, create_bench_robot, percentile
-from arena.bench.policy import ACTIONS_PER_CHUNK, CAMERA, FPS, _saved
+from arena.bench.policy import ACTIONS_PER_CHUNK, CAMERA, FPS, saved_policy
 from arena.recording.mcap_file import RecordedMessage, read_recording
 
 ROBOT = "pause-arm"
@@ -192,8 +192,8 @@ async def pause(
     milliseconds an inference, so Arena's own part shows) and of LeRobot's default ACT
     (`pause_act_...`), one after the other on the same server."""
     with tempfile.TemporaryDirectory() as scratch:
-        small = await _saved(Path(scratch) / "small", "small")
-        act = await _saved(Path(scratch) / "act", "act")
+        small = await saved_policy(Path(scratch) / "small", "small")
+        act = await saved_policy(Path(scratch) / "act", "act")
         async with httpx.AsyncClient(base_url=server.url, timeout=300) as http:
             await create_bench_robot(http, ROBOT)
             base = f"/api/robots/{ROBOT}"
