@@ -109,6 +109,8 @@ class ErrorCode(enum.StrEnum):
     # Scripts as masters (specs/scripts.md)
     SCRIPT_INVALID = "SCRIPT_INVALID"  # no script of that name in the tenant's scripts folder
     SCRIPT_FAILED = "SCRIPT_FAILED"  # fault: the script raised (its file and line) or died
+    NO_HIGHLIGHT = "NO_HIGHLIGHT"  # a highlight asked of a robot whose policy keeps none
+    POSE_NOT_REACHED = "POSE_NOT_REACHED"  # fault (warning): an episodic reset ran out of time
 
 
 class ArenaError(Exception):

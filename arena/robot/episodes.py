@@ -42,10 +42,15 @@ class Episodes:
         self.corrections = 0
         self._next = 0
 
-    def act(self, action: str, task: str, now: float) -> Episode:
-        """`start` (with `task`), `stop` or `discard`, by the action's name."""
+    def act(
+        self, action: str, task: str, now: float, since: float = 0.0, keep: float = 0.0
+    ) -> Episode:
+        """`start` (with `task`), `stop`, `discard` or `highlight` (with `task`, `since` and
+        `keep`), by the action's name."""
         if action == "start":
             return self.start(task, now)
+        if action == "highlight":
+            return self.highlight(task, max(since, now - keep), now)
         return self.stop(now) if action == "stop" else self.discard(now)
 
     def start(self, task: str, now: float) -> Episode:
@@ -74,6 +79,16 @@ class Episodes:
     def running_corrections(self) -> int | None:
         """The running episode's corrections, None with no episode running."""
         return None if self.active is None else self.corrections
+
+    def highlight(self, task: str, since: float, now: float) -> Episode:
+        """Keep what happened from `since` to `now` as an episode, at once (a rollout's
+        highlight: specs/policy.md). It starts no earlier than the last episode's end, so
+        two never overlap; refused while an episode runs."""
+        if self.last is not None and self.last.ended is not None:
+            since = max(since, self.last.ended)
+        since = min(since, now)
+        self.start(task, since)
+        return self.stop(now)
 
     def stop(self, now: float) -> Episode:
         """End the running episode and keep it."""

@@ -262,6 +262,23 @@ class Robot:
         await self._post(EpisodeMsg(action, task, reply))
         return await reply.wait()
 
+    async def highlight(self, task: str, keep: float, since: float) -> Episode:
+        """Keep the last `keep` seconds as a kept episode of `task` (none before `since`,
+        trio time, nor before the last episode's end), marked in the recording at its own
+        times; EPISODE_ACTIVE while an episode runs."""
+        reply: Reply[Episode] = Reply()
+        await self._post(EpisodeMsg("highlight", task, reply, since, keep))
+        return await reply.wait()
+
+    def master_driver(self) -> object | None:
+        """The driver of the master this robot runs itself, paused or driving (None: the
+        master runs elsewhere or there is none); during an intervention, the paused one's."""
+        peers = self._actor.peers
+        for peer in (peers.waiting, peers.master):
+            if peer is not None and peer.driver is not None:
+                return peer.driver
+        return None
+
     def audit(self, user: str, action: str, detail: str = "") -> None:
         """Record who did what (`events.Audited`). It changes nothing in the robot, so it
         goes straight to the observers, in order with what the actor publishes; never

@@ -87,6 +87,7 @@ ROLE_FOR: dict[tuple[str, str], Role] = {
     ("POST", "/api/robots/{robot_id}/episodes/start"): OP,
     ("POST", "/api/robots/{robot_id}/episodes/stop"): OP,
     ("POST", "/api/robots/{robot_id}/episodes/discard"): OP,
+    ("POST", "/api/robots/{robot_id}/highlight"): OP,
     ("GET", "/api/groups"): V,
     ("POST", "/api/groups"): A,
     ("GET", "/api/groups/{group_id}"): V,

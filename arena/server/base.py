@@ -55,6 +55,7 @@ STATUS_FOR: dict[ErrorCode, int] = {
     ErrorCode.NO_MASTER: 409,
     ErrorCode.INTERVENTION_ACTIVE: 409,
     ErrorCode.NO_INTERVENTION: 409,
+    ErrorCode.NO_HIGHLIGHT: 409,
     ErrorCode.ROBOT_EXISTS: 409,
     ErrorCode.ESTOPPED: 423,
     ErrorCode.MESSAGE_TOO_LARGE: 413,

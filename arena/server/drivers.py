@@ -19,10 +19,13 @@ from arena.drivers.sequences import demo_sequences, get_sequence
 from arena.drivers.servo_arm import family_of
 from arena.extras import install_line
 from arena.policy.master import CameraFrames, PolicyMaster, PolicySettings, Shot
+from arena.policy.strategy import Episodic, Highlight, Sentry, Strategy, check_pose
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import (
     DEFAULT_TENANT,
     FILE_NAME,
+    EpisodicStrategy,
+    HighlightStrategy,
     MasterBody,
     MockSlaveBody,
     PhysicsSlaveBody,
@@ -31,8 +34,10 @@ from arena.protocol.rest import (
     RemoteServerBody,
     ReplayMasterBody,
     ScriptMasterBody,
+    SentryStrategy,
     SequenceMasterBody,
     SlaveBody,
+    StrategyBody,
     UsbMasterBody,
     UsbSlaveBody,
     WebSocketSlaveBody,
@@ -344,6 +349,7 @@ def _policy(
         stall_periods=body.stall_periods,
         environment_state=tuple(body.environment_state),
         python=python,
+        strategy=_strategy(body.strategy, model),
     )
     return PolicyMaster(settings, model, cameras)
 
@@ -372,6 +378,33 @@ def script_file(value: str, folder: Path) -> Path:
             f"({folder / value}).",
         )
     return path.resolve()
+
+def _strategy(body: StrategyBody | None, model: RobotModel) -> Strategy | None:
+    """A policy's rollout strategy from its body; a start pose is checked against the robot
+    (INVALID_VALUE naming the joint)."""
+    if body is not None and not body.task.strip():
+        raise ArenaError(
+            ErrorCode.INVALID_VALUE,
+            '"strategy.task" must say what its episodes show (it is blank).',
+        )
+    if isinstance(body, EpisodicStrategy):
+        pose = None
+        if body.start_pose is not None:
+            names = [joint.name for joint in model.joints]
+            limits = {joint.name: (joint.lower, joint.upper) for joint in model.joints}
+            # A joint's alias names it too, as in a command.
+            canonical = {}
+            for name, value in body.start_pose.items():
+                joint = model.joint(name)
+                canonical[joint.name if joint is not None else name] = value
+            check_pose(names, limits, canonical)
+            pose = canonical
+        return Episodic(body.episodes, body.episode_s, body.task.strip(), body.reset_s, pose)
+    if isinstance(body, SentryStrategy):
+        return Sentry(body.episode_s, body.task.strip())
+    if isinstance(body, HighlightStrategy):
+        return Highlight(body.keep_s, body.task.strip())
+    return None
 
 
 def make_master(

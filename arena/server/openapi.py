@@ -161,6 +161,12 @@ ROUTES: list[tuple[str, str, str, Any]] = [
         "End the episode without keeping it (or take back the last)",
         None,
     ),
+    (
+        "POST",
+        "/api/robots/{robot_id}/highlight",
+        "Save the last seconds a policy's highlight strategy keeps as an episode",
+        None,
+    ),
     ("GET", "/api/fleet/nodes", "The nodes of this server's fleet (--node)", None),
     ("GET", "/api/fleet/robots", "Every robot of every node, with its node and state", None),
     ("POST", "/api/fleet/estop", "E-stop every robot of every node; each node's ack", ReasonBody),
@@ -197,6 +203,7 @@ SUCCESS: dict[tuple[str, str], int] = {
     ("POST", "/api/robots/{robot_id}/replay"): 201,
     ("POST", "/api/robots/{robot_id}/cameras"): 201,
     ("POST", "/api/robots/{robot_id}/episodes/start"): 201,
+    ("POST", "/api/robots/{robot_id}/highlight"): 201,
     ("POST", "/api/groups"): 201,
     ("GET", "/ui"): 302,
     # Asked on a reused connection; as a connection's first request the listener serves it
