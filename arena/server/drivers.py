@@ -379,6 +379,7 @@ def script_file(value: str, folder: Path) -> Path:
         )
     return path.resolve()
 
+
 def _strategy(body: StrategyBody | None, model: RobotModel) -> Strategy | None:
     """A policy's rollout strategy from its body; a start pose is checked against the robot
     (INVALID_VALUE naming the joint)."""
