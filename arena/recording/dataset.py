@@ -390,6 +390,13 @@ def export_lerobot(
     if corrections_only:  # a correction ends where its master stopped commanding: no frame there
         frames = [(span, [f for f in found if f.at < span.end]) for span, found in frames]
     frames = [(span, found) for span, found in frames if found]
+    if session.cameras:  # LeRobot's writer cannot finish a video episode of one frame
+        for span, found in frames:
+            if len(found) == 1:
+                line = f"episode {span.index} has one frame at {fps} fps: left out"
+                notes.append(line)
+                say(f"note: {line}")
+        frames = [(span, found) for span, found in frames if len(found) > 1]
     if not frames:
         raise ArenaError(ErrorCode.INVALID_RECORDING, "The episodes hold no complete frame.")
     policies = policies_in(session.messages, [span for span, _ in frames])
