@@ -390,7 +390,9 @@ def export_lerobot(
     if corrections_only:  # a correction ends where its master stopped commanding: no frame there
         frames = [(span, [f for f in found if f.at < span.end]) for span, found in frames]
     frames = [(span, found) for span, found in frames if found]
-    if session.cameras:  # LeRobot's writer cannot finish a video episode of one frame
+    # LeRobot's writer cannot finish a dataset that mixes video episodes of one frame with
+    # longer ones (the one-frame episodes' image stats come out short): those are left out.
+    if session.cameras and any(len(found) > 1 for _, found in frames):
         for span, found in frames:
             if len(found) == 1:
                 line = f"episode {span.index} has one frame at {fps} fps: left out"
