@@ -319,6 +319,7 @@ class StandIn:
     """A `ScriptArm` that accepts every command at once and moves nothing (for the bounds)."""
 
     paused = False
+    pauses = 0
 
     def __init__(self) -> None:
         self.commands: list[Any] = []
@@ -359,6 +360,34 @@ async def run_stand_in(tmp_path: Path, text: str, **settings: Any) -> tuple[Any,
     # (no deadline: the mock clock would jump to it while the worker starts; marked real_io)
     await master.drive(arm)
     return master, arm, trio.current_time() - started
+
+
+class PausedBetweenLooks(StandIn):
+    """A pause and a resume that come and go right after the first command, before the script
+    looks again: only the count of pauses tells."""
+
+    async def command(self, command: Any) -> Any:
+        if not self.commands:
+            self.pauses += 1
+        return await super().command(command)
+
+
+@pytest.mark.real_io
+async def test_a_pause_over_before_the_script_looks_still_sends_the_move_again(
+    autojump_clock: trio.testing.MockClock, tmp_path: Path
+) -> None:
+    from arena.script.master import ScriptMaster, ScriptSettings
+
+    path = write(
+        tmp_path, "one.py", 'from arena.script import move_joints\nmove_joints({"Rotation": 10})\n'
+    )
+    master = ScriptMaster(ScriptSettings(path), load_robot_model("so-arm100"))
+    arm = PausedBetweenLooks()
+    await master.drive(arm)
+    assert master.outcome == "" and not arm.faults
+    # The arm held where the pause found it: the move went again after it.
+    goals = [[(g.name, g.value) for g in c.joints] for _, c in arm.commands]
+    assert goals == [[("Rotation", 10)], [("Rotation", 10)]] and master.counters.pauses == 1
 
 
 @pytest.mark.real_io

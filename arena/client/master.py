@@ -66,6 +66,8 @@ class MasterSession(WatchingSession):
         self.detached: dict[str, Any] | None = None
         #: The server has this master paused (`pause` until `resume`): send nothing.
         self.paused = False
+        #: `pause` messages so far (one that came and went between two looks still counts).
+        self.pauses = 0
         self._resumed = trio.Event()
         self._resumed.set()
         #: Why the server would not have this master (MASTER_ACTIVE, UNKNOWN_ROBOT, ...).
@@ -247,6 +249,7 @@ class MasterSession(WatchingSession):
             self._settled.set()
         elif kind == "pause" and not self.paused:
             self.paused, self._resumed = True, trio.Event()
+            self.pauses += 1
         elif kind == "resume":
             self.paused = False
             self._resumed.set()

@@ -134,6 +134,10 @@ class ScriptArm(Protocol):
     def paused(self) -> bool:
         """The robot has the script paused."""
 
+    @property
+    def pauses(self) -> int:
+        """Pauses so far (a pause and resume between two looks still counts)."""
+
     async def wait_resumed(self) -> None:
         """Return once the script is not paused."""
 
@@ -184,6 +188,11 @@ class LinkArm:
     def paused(self) -> bool:
         """See `ScriptArm.paused`."""
         return self.link.paused
+
+    @property
+    def pauses(self) -> int:
+        """See `ScriptArm.pauses`."""
+        return self.link.pauses
 
     async def wait_resumed(self) -> None:
         """See `ScriptArm.wait_resumed`."""
@@ -441,6 +450,7 @@ class ScriptMaster:
     ) -> None:
         """Send a move; with `wait`, return once it is over; a pause meanwhile holds the arm,
         and the move is sent again on the resume."""
+        pauses = arm.pauses
         result, targets = await send()
         self._accepted(result)
         if not wait:
@@ -448,9 +458,12 @@ class ScriptMaster:
         ending = MoveEnd(targets, duration, trio.current_time(), self._clamped)
         while True:
             await trio.sleep(POLL)
-            if arm.paused:
+            # Paused since the move went (now, or a pause already over: the arm held where it
+            # found it either way): sent again once resumed.
+            if arm.paused or arm.pauses != pauses:
                 await arm.wait_resumed()
                 self.counters.pauses += 1
+                pauses = arm.pauses
                 result, targets = await send()
                 self._accepted(result)
                 ending = MoveEnd(targets, duration, trio.current_time(), self._clamped)
