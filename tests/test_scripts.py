@@ -19,11 +19,11 @@ import trio
 
 from arena.recording.mcap_file import read_recording
 from arena.robot.cartesian import hand_for
-from arena.robot.events import CommandHandled, FaultReported, RobotEvent, StateChanged
-from arena.robot.mailbox import EventQueue
+from arena.robot.events import CommandHandled, FaultReported, StateChanged
 from arena.robot.model import load_robot_model
 from arena.robot.safety import Mode
 from tests.conftest import RunningServer
+from tests.test_policy_server import next_event
 
 Start = Callable[..., Awaitable[RunningServer]]
 ROBOT = "/api/robots/demo-arm"
@@ -61,14 +61,6 @@ def script_workers() -> list[int]:
             if b"arena.script.worker" in command:
                 found.append(int(pid))
     return found
-
-
-async def next_event(events: EventQueue[RobotEvent], check: Callable[[RobotEvent], bool]) -> Any:
-    with trio.fail_after(WAIT):
-        while True:
-            event = await events.get()
-            if check(event):
-                return event
 
 
 async def attach(server: RunningServer, name: str, **body: Any) -> httpx.Response:
