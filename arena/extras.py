@@ -34,6 +34,8 @@ EXTRAS = {
     "lerobot": Extra("lerobot", "LeRobot (0.4, which brings torch)", "lerobot"),
     "dynamixel": Extra("dynamixel_sdk", "the Dynamixel SDK (dynamixel-sdk)", "dynamixel"),
     "gym": Extra("gymnasium", "Gymnasium", "gym"),
+    "plan": Extra("ompl", "OMPL (ompl)", "plan"),
+    "mcp": Extra("mcp", "the MCP Python SDK (mcp)", "mcp"),
 }
 
 

@@ -49,6 +49,9 @@ class RawWebSocket:
 
     stream: trio.SocketStream
     buffer: bytearray = field(default_factory=bytearray)
+    #: A close frame was sent: nothing more goes out (a pong after it could reach a server that
+    #: has already closed the connection, which the kernel answers with a reset).
+    closing: bool = False
 
     @classmethod
     async def connect(cls, url: str, path: str, receive_buffer: int | None = None) -> RawWebSocket:
@@ -82,6 +85,7 @@ class RawWebSocket:
     async def send_frame(self, opcode: int, payload: bytes) -> None:
         """Send one final, masked frame as a client must."""
         await self.stream.send_all(encode_frame(opcode, payload, mask=os.urandom(4)))
+        self.closing = self.closing or opcode == OP_CLOSE
 
     async def receive_frame(self) -> Frame | None:
         """The next frame, or None once the server has closed the TCP connection. The server's
@@ -90,7 +94,8 @@ class RawWebSocket:
         while True:
             frame = self._parse()
             if frame is not None and frame.opcode == OP_PING:
-                await self.send_frame(OP_PONG, frame.payload)
+                if not self.closing:
+                    await self.send_frame(OP_PONG, frame.payload)
                 continue
             if frame is not None:
                 return frame

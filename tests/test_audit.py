@@ -16,10 +16,14 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import trio
 from trio_websocket import open_websocket_url
 
 from arena.protocol.messages import MAX_MESSAGE_BYTES
 from arena.recording.mcap_file import read_recording
+from arena.robot.episodes import Episode
+from arena.robot.handle import Robot
+from arena.robot.links import MasterLink
 from arena.server.access import route_of
 from arena.server.origin import SAFE_METHODS
 from arena.servo.sim_pty import PtySimBus
@@ -97,6 +101,24 @@ class Walk:
         assert answer.status_code == status, (method, path, answer.text)
 
 
+class Highlighter:
+    """The lightest master with a highlight (a policy with the `highlight` strategy has one:
+    tests/test_strategies_server.py), so that the walk reaches `POST .../highlight`."""
+
+    kind = "highlighter"
+    autonomous = False
+    takes_over = False
+
+    def __init__(self, robot: Robot) -> None:
+        self.robot = robot
+
+    async def run(self, link: MasterLink) -> None:
+        await trio.sleep_forever()
+
+    async def highlight(self) -> Episode:
+        return await self.robot.highlight("t", 1.0, 0.0)
+
+
 async def test_every_change_is_audited_once_with_who_and_no_refusal_is(
     start_server: StartServer, sim: PtySimBus, tmp_path: Path
 ) -> None:
@@ -137,6 +159,7 @@ async def test_every_change_is_audited_once_with_who_and_no_refusal_is(
         reader = bearer(token("admin", sub="reader"))
         pose = (await http.get(f"{arm}/pose", headers=reader)).json()["commanded"]
         await change("PUT", f"{arm}/pose", {"position": pose["position"]}, robots=("arm",))
+        await change("POST", f"{arm}/move", {"joints": {"Rotation": 6}}, robots=("arm",))
         await change("PUT", f"{arm}/teleop", {"deadman": 300}, robots=("arm",))
         guide = {"joints": ["Rotation"], "torque": 20}
         await change("POST", f"{arm}/compliance", guide, status=201, robots=("arm",))
@@ -160,6 +183,10 @@ async def test_every_change_is_audited_once_with_who_and_no_refusal_is(
         await change("POST", f"{arm}/episodes/stop", robots=("arm",))
         await change("POST", f"{arm}/episodes/start", {"task": "t"}, status=201, robots=("arm",))
         await change("POST", f"{arm}/episodes/discard", robots=("arm",))
+        robot = server.app.manager.get("arm")
+        highlighter = await robot.attach_master(Highlighter(robot))
+        await change("POST", f"{arm}/highlight", status=201, robots=("arm",))
+        await robot.detach_master(highlighter)
         await change("POST", f"{arm}/estop", robots=("arm",))
         await change("POST", f"{arm}/reset", robots=("arm",))
         both = ("arm", "other")

@@ -279,3 +279,44 @@ def test_observation_to_command_counts_frame_age_round_trip_and_the_wait_for_a_s
         pytest.approx(2.04 - 1.8),
     ]
     assert observation_to_command(messages, other) == []
+
+
+def test_pause_latencies_take_the_last_target_change_and_the_first_command_after() -> None:
+    from arena.bench.pause import pause_latencies
+
+    def message(kind: str, at: float, **data: object) -> RecordedMessage:
+        return RecordedMessage(f"/robots/arm/{kind}", "arm", kind, round(at * 1e9), data)
+
+    me = "policy:act:0123456789ab"
+    messages = [
+        message("targets", 9.9, joints={"a": 1.0}),
+        message("targets", 10.01, joints={"a": 2.0}),  # still moving after the request
+        message("targets", 10.03, joints={"a": 2.5}),  # the last change: it holds from here
+        message("targets", 10.5, joints={"a": 2.5}),  # the same targets again: no change
+        message("command", 11.1, source=me, accepted=False),  # refused: not an action
+        message("command", 11.2, source="other", accepted=True),  # another master's
+        message("command", 11.3, source=me, accepted=True),  # the first action after resume
+        message("targets", 11.3, joints={"a": 3.0}),
+        message("targets", 20.5, joints={"a": 3.0}),  # a pause with no change after it
+        message("command", 21.25, source=me, accepted=True),
+    ]
+    holds, firsts = pause_latencies(messages, me, [10.0, 20.0], [11.0, 21.0])
+    assert holds == pytest.approx([0.03, 0.0])
+    assert firsts == pytest.approx([0.3, 0.25])
+
+
+def test_resume_parts_split_off_the_inference() -> None:
+    from arena.bench.pause import resume_parts
+
+    def message(kind: str, at: float, **data: object) -> RecordedMessage:
+        return RecordedMessage(f"/robots/arm/{kind}", "arm", kind, round(at * 1e9), data)
+
+    me = "policy:act:0123456789ab"
+    messages = [
+        message("policy", 10.2, policy=me, latency=0.3),  # observed before the resume: stale
+        message("policy", 10.6, policy=me, latency=0.3),  # the fresh one: sent at 10.3
+        message("command", 10.62, source=me, accepted=True),
+        message("command", 10.65, source=me, accepted=True),
+    ]
+    observed, commanded = resume_parts(messages, me, [10.0])
+    assert observed == pytest.approx([0.3]) and commanded == pytest.approx([0.02])

@@ -140,3 +140,34 @@ async def test_the_intervention_frames_are_marked_and_corrections_export_alone(
             )
             assert source == "fixer"
             assert np.allclose(row["action"], lerobot_units(joints), atol=1e-4)
+
+
+async def test_each_correction_exported_alone_keeps_its_episodes_environment_state(
+    corrected: Path, tmp_path: Path
+) -> None:
+    """`--corrections-only` with a task state per episode (a reach target, as `arena learn
+    reach --dagger` exports its corrections): each correction's frames carry the state of
+    the episode it corrected, not of the episode its own number happens to name."""
+    from arena.recording.dataset import export_lerobot
+
+    messages = read_recording(corrected).messages
+    starts = [m for m in messages if m.kind == "episode" and m.data["change"] == "start"]
+    corrected_index, other_index = (int(m.data["index"]) for m in starts)
+    states = {corrected_index: [0.1, 0.2, 0.3], other_index: [0.9, 0.8, 0.7]}
+    out = tmp_path / "corrections"
+    exported = export_lerobot(
+        [corrected],
+        "demo-arm",
+        out,
+        fps=FPS,
+        environment=states,
+        corrections_only=True,
+        say=lambda line: None,
+    )
+    assert len(exported.episodes) == 2
+    dataset = lerobot_dataset.LeRobotDataset(exported.repo_id, root=out)
+    rows = list(dataset.hf_dataset.with_format(None))
+    assert {row["episode_index"] for row in rows} == {0, 1}
+    for row in rows:  # both corrections were made in the first episode
+        assert np.allclose(row["observation.environment_state"], states[corrected_index])
+        assert flag(row)

@@ -29,6 +29,8 @@ from arena.server.config import ServerConfig
 from arena.server.run import run_server
 from tests.conftest import missing, need
 from tests.golden import GOLDEN
+from tests.hardware import running_sim
+from tests.test_policy_server import CAMERA, tiny  # noqa: F401 (the fixture)
 
 playwright_api = need("playwright.sync_api", "dev")
 from playwright.sync_api import Browser, Page, expect  # noqa: E402
@@ -641,16 +643,26 @@ def test_the_page_says_which_sequence_plays(start_live: Any, page: Page) -> None
     expect(line).to_contain_text("Playing sequence 'small-scan' (master 'master-")
     expect(line).to_contain_text(", mock-sequence): the sliders are locked.")
     expect(page.locator('[data-testid="robot-status"]')).to_contain_text("Master + Slaves")
+    # The rest plays it in a loop (the page's 8 s play may end on a loaded machine before the
+    # reload and the two clicks are done).
+    with server.http() as http:
+        body = {
+            "type": "mock-sequence",
+            "sequences": ["small-scan"],
+            "loop": True,
+            "takeover": True,
+        }
+        assert http.post("/api/robots/demo-arm/master", json=body).is_success
     # Reloaded, the page still knows what plays: the server says.
     page.reload()
-    expect(line).to_contain_text("Playing sequence 'small-scan'")
+    expect(line).to_contain_text("Playing sequence 'small-scan' in a loop")
     # The demo sequences take over only when asked twice: the first click is refused, and the
     # page says who holds the robot.
     connect = page.locator('[data-testid="connect-demo-sequences"]')
     connect.click()
     events = page.locator("#events")
     expect(events).to_contain_text("MASTER_ACTIVE")
-    expect(events).to_contain_text("It is held by sequence 'small-scan' (master 'master-")
+    expect(events).to_contain_text("It is held by sequence 'small-scan' in a loop (master 'master-")
     expect(connect).to_have_text("Take over with the demo sequences?")
     expect(line).to_contain_text("Playing sequence 'small-scan'")
     connect.click()
@@ -983,3 +995,307 @@ def test_a_websocket_master_s_link_shows_beside_it_green_then_red_when_commands_
         finally:
             stop.set()
             sender.join()
+
+
+def test_driving_the_hand_while_a_master_runs_intervenes_and_hands_back(
+    start_live: Any, page: Page
+) -> None:
+    server = start_live(demo=True)
+    with server.http() as http:
+        sequence = {"type": "mock-sequence", "sequences": ["gentle-wave"], "loop": True}
+        assert http.post("/api/robots/demo-arm/master", json=sequence).status_code == 201
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    state = page.locator("#robot-state")
+    expect(state).to_have_text("mastered")
+    expect(page.locator("#who-drives")).to_have_text(
+        "drives: sequence 'gentle-wave' in a loop (master 'master-1', mock-sequence)"
+    )
+    page.click("#episode-start")
+    corrections = page.locator("#corrections")
+    expect(corrections).to_have_text("0 corrections in this episode (0 in all)")
+    page.click("#drive-hand")
+    # The keyboard corrects the sequence: it waits, paused, while the hand is driven.
+    expect(state).to_have_text("intervened")
+    expect(page.locator("#drive-status")).to_contain_text("correcting")
+    expect(page.locator("#who-drives")).to_have_text(
+        "drives: WebSocket client (master 'dashboard-hand', websocket); "
+        "waits: sequence 'gentle-wave' in a loop (master 'master-1', mock-sequence)"
+    )
+    expect(corrections).to_have_text("1 correction in this episode (1 in all)")
+    with server.http() as http:
+        shown = http.get("/api/robots/demo-arm").json()
+    assert shown["master"]["id"] == "dashboard-hand"
+    assert shown["paused_master"]["kind"] == "mock-sequence"
+    start = hand_position(server, "demo-arm")
+    page.keyboard.down("w")
+    moved = moved_along(server, start, 2, 1)
+    page.keyboard.up("w")
+    assert moved > 0.01
+    # Stop driving: the correction ends and the sequence plays again.
+    page.click("#drive-hand")
+    expect(state).to_have_text("mastered")
+    expect(page.locator("#master-line")).to_contain_text("Playing sequence 'gentle-wave'")
+    with server.http() as http:
+        shown = http.get("/api/robots/demo-arm").json()
+    assert shown["paused_master"] is None and shown["master"]["kind"] == "mock-sequence"
+
+
+#: A gamepad the page sees through `navigator.getGamepads` (the standard mapping), set from the
+#: test with `window.testPad(axes, triggers)`.
+SYNTHETIC_GAMEPAD = """
+window.testPad = (axes, triggers = [0, 0]) => {
+  const buttons = Array.from({ length: 17 }, () => ({ value: 0, pressed: false }));
+  buttons[6] = { value: triggers[0], pressed: triggers[0] > 0.5 };
+  buttons[7] = { value: triggers[1], pressed: triggers[1] > 0.5 };
+  window.pad = { id: "Test pad", index: 0, connected: true, mapping: "standard", axes, buttons };
+};
+window.pad = null;
+navigator.getGamepads = () => [window.pad, null, null, null];
+"""
+
+
+def held_still(server: LiveServer, seconds: float = 1.0) -> list[float]:
+    """The hand's position after `seconds` in which it must not have moved."""
+    before = hand_position(server, "demo-arm")
+    time.sleep(seconds)
+    after = hand_position(server, "demo-arm")
+    assert after == pytest.approx(before, abs=1e-4)
+    return after
+
+
+def assert_along(start: list[float], stopped: list[float], axis: int, what: object) -> None:
+    """The hand went from `start` to `stopped` along `axis`: the other two axes moved at most
+    3 mm, or a quarter of the way it went (the test lets go only once it has seen 1 cm: on a
+    loaded machine the hand may go further meanwhile, the inverse kinematics drifting with it)."""
+    bound = max(0.003, 0.25 * abs(stopped[axis] - start[axis]))
+    for other in {0, 1, 2} - {axis}:
+        assert stopped[other] == pytest.approx(start[other], abs=bound), (what, other)
+
+
+def test_a_gamepad_drives_the_hand_with_a_dead_zone(start_live: Any, page: Page) -> None:
+    server = start_live(demo=True)
+    page.add_init_script(SYNTHETIC_GAMEPAD)
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    expect(page.locator("#robot-state")).to_have_text("idle")
+    page.click("#drive-hand")
+    expect(page.locator("#drive-status")).to_contain_text("driving")
+    page.evaluate("testPad([0, 0, 0, 0])")
+    expect(page.locator("#drive-status")).to_contain_text("gamepad: Test pad")
+    # A stick resting a little off its centre moves nothing.
+    page.evaluate("testPad([0.1, -0.1, 0, 0.12])")
+    start = held_still(server)
+    # Right stick up: up (z); left stick up: forward (x); left: to the left (y).
+    for axes, axis in [([0, 0, 0, -1], 2), ([0, -1, 0, 0], 0), ([-1, 0, 0, 0], 1)]:
+        page.evaluate(f"testPad({axes})")
+        moved = moved_along(server, start, axis, 1)
+        page.evaluate("testPad([0, 0, 0, 0])")
+        assert moved > 0.01, (axes, moved)
+        stopped = held_still(server)
+        assert_along(start, stopped, axis, axes)
+        start = stopped
+    # The right trigger closes the gripper.
+    with server.http() as http:
+        before = http.get("/api/robots/demo-arm/pose").json()["commanded"]["gripper"]
+    page.evaluate("testPad([0, 0, 0, 0], [0, 1])")
+    ends = time.monotonic() + WAIT_MS / 1000
+    closed = before
+    while time.monotonic() < ends and closed > before - 5:
+        with server.http() as http:
+            closed = http.get("/api/robots/demo-arm/pose").json()["commanded"]["gripper"]
+        time.sleep(0.05)
+    page.evaluate("testPad([0, 0, 0, 0])")
+    assert closed <= before - 5
+    page.click("#drive-hand")
+    expect(page.locator("#robot-state")).to_have_text("idle")
+
+
+def orient(page: Page, beta: float, gamma: float) -> None:
+    """A DeviceOrientation event, as a phone's sensor sends it."""
+    page.evaluate(
+        "([beta, gamma]) => window.dispatchEvent(new DeviceOrientationEvent("
+        "'deviceorientation', { alpha: 0, beta, gamma, absolute: false }))",
+        [beta, gamma],
+    )
+
+
+def test_a_phone_s_tilt_drives_the_hand_while_a_clutch_is_held(
+    start_live: Any, browser: Browser
+) -> None:
+    server = start_live(demo=True)
+    phone = {"viewport": {"width": 390, "height": 844}, "is_mobile": True, "has_touch": True}
+    with checked_page(browser, "phone_tilt", **phone) as page:
+        page.goto(server.url + "/ui/#/robots/demo-arm")
+        expect(page.locator("#robot-state")).to_have_text("idle")
+        expect(page.locator("#tilt-row")).to_be_hidden()
+        page.click("#drive-hand")
+        expect(page.locator("#drive-status")).to_contain_text("driving")
+        expect(page.locator("#tilt-move")).to_be_visible()
+        orient(page, 40, 0)  # held at 40 degrees, as one reads a phone
+        start = hand_position(server, "demo-arm")
+        orient(page, 10, 0)  # tipped without the clutch: nothing moves
+        start = held_still(server)
+        # Held at 40 degrees, a clutch pressed, the phone tipped: the hand goes its way.
+        # (in the keyboard test's order: the arm's reach keeps each way within its bounds)
+        for button, beta, gamma, axis, sign in [
+            ("#tilt-lift", 70, 0, 2, 1),  # the top back toward the face: up
+            ("#tilt-move", 10, 0, 0, 1),
+            ("#tilt-move", 40, 30, 1, -1),  # the right edge down: to the right
+        ]:
+            orient(page, 40, 0)
+            page.locator(button).dispatch_event("pointerdown", {"pointerId": 1})
+            orient(page, beta, gamma)
+            moved = moved_along(server, start, axis, sign)
+            page.locator(button).dispatch_event("pointerup", {"pointerId": 1})
+            assert moved > 0.01, (button, beta, gamma, moved)
+            stopped = held_still(server)  # let go: it stops, however the phone is held
+            assert_along(start, stopped, axis, button)
+            start = stopped
+        page.click("#drive-hand")
+        expect(page.locator("#robot-state")).to_have_text("idle")
+        expect(page.locator("#tilt-row")).to_be_hidden()
+
+
+def test_a_leader_arm_attaches_from_the_card_and_corrects_a_running_master(
+    start_live: Any, page: Page, tmp_path: Path
+) -> None:
+    sims = running_sim(tmp_path / "leader")
+    sim = next(sims)
+    try:
+        server = start_live(demo=True, calibration_dir=str(tmp_path / "calibrations"))
+        page.goto(server.url + "/ui/#/robots/demo-arm")
+        expect(page.locator("#robot-state")).to_have_text("idle")
+        expect(page.locator("#attach-leader")).to_have_text("Attach leader arm")
+        page.fill("#leader-port", str(sim.link))
+        page.click("#attach-leader")
+        expect(page.locator("#robot-state")).to_have_text("mastered", timeout=WAIT_MS)
+        with server.http() as http:
+            shown = http.get("/api/robots/demo-arm").json()
+            assert shown["master"]["kind"] == "usb-master"
+            assert http.delete("/api/robots/demo-arm/master").status_code == 200
+            sequence = {"type": "mock-sequence", "sequences": ["gentle-wave"], "loop": True}
+            assert http.post("/api/robots/demo-arm/master", json=sequence).status_code == 201
+        # While a master runs, the leader arm corrects it (actuated: no jerk at the handover).
+        expect(page.locator("#attach-leader")).to_have_text("Correct with the leader arm")
+        page.check("#leader-actuated")
+        page.click("#attach-leader")
+        expect(page.locator("#robot-state")).to_have_text("intervened", timeout=WAIT_MS)
+        expect(page.locator("#attach-status")).to_contain_text("leader arm corrects")
+        with server.http() as http:
+            shown = http.get("/api/robots/demo-arm").json()
+        assert shown["master"]["kind"] == "usb-master"
+        assert shown["paused_master"]["kind"] == "mock-sequence"
+        page.click("#hand-back")
+        expect(page.locator("#robot-state")).to_have_text("mastered")
+    finally:
+        sims.close()
+
+
+def test_a_policy_of_the_tenant_s_folder_attaches_from_the_card(
+    start_live: Any,
+    page: Page,
+    tiny: Path,  # noqa: F811
+    tmp_path: Path,
+) -> None:
+    policies = tmp_path / "policies"
+    shutil.copytree(tiny, policies / "tiny-act")
+    (policies / "notes").mkdir()  # not a policy: not offered
+    server = start_live(demo=True, policy_dir=str(policies))
+    with server.http() as http:
+        assert http.post("/api/robots/demo-arm/cameras", json=CAMERA).status_code == 201
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    options = page.locator("#policy option")
+    expect(options).to_have_text(["tiny-act (act)"])
+    page.fill("#policy-task", "wave")
+    page.click("#attach-policy")
+    expect(page.locator("#robot-state")).to_have_text("mastered", timeout=2 * WAIT_MS)
+    expect(page.locator("#attach-status")).to_contain_text("running policy:act:")
+    expect(page.locator("#master-line")).to_contain_text("policy:act:")
+    # Its live figures on the card, and on /metrics.
+    figures = page.locator("#policy-figures")
+    expect(figures).to_have_text(
+        re.compile(r"^policy: inference \d+ ms, chunk 10, \d+ stalls?, [1-9]\d* inferences$"),
+        timeout=WAIT_MS,
+    )
+    with server.http() as http:
+        text = http.get("/metrics").text
+    assert 'arena_policy_chunk_actions{robot="demo-arm"} 10' in text
+    assert re.search(r'arena_policy_inferences_total\{robot="demo-arm"\} [1-9]', text)
+    # (a loaded machine may make a stall: the series is there, whatever it counts)
+    assert re.search(r'arena_policy_stalls_total\{robot="demo-arm"\} \d+\n', text)
+    # Corrected from the keyboard, the policy waits and its figures stay in view.
+    page.click("#drive-hand")
+    expect(page.locator("#robot-state")).to_have_text("intervened")
+    expect(page.locator("#who-drives")).to_contain_text("waits: policy:act:")
+    expect(figures).to_be_visible()
+    expect(page.locator("#corrections")).to_have_text("1 correction in all (no episode running)")
+    page.click("#drive-hand")
+    expect(page.locator("#robot-state")).to_have_text("mastered")
+    with server.http() as http:
+        shown = http.get("/api/robots/demo-arm").json()
+    assert shown["master"]["kind"] == "policy"
+    assert "'wave'" in shown["master"]["description"]
+
+
+def test_a_new_arm_is_calibrated_from_the_card_step_by_step(
+    start_live: Any, page: Page, tmp_path: Path
+) -> None:
+    sims = running_sim(tmp_path / "arm")
+    sim = next(sims)
+    try:
+        server = start_live(calibration_dir=str(tmp_path / "calibrations"))
+        with server.http() as http:
+            assert http.post("/api/robots", json={"id": "arm"}).status_code == 201
+            slave = {"type": "usb-slave", "port": str(sim.link)}
+            assert http.post("/api/robots/arm/slaves", json=slave).status_code == 201
+        page.goto(server.url + "/ui/#/robots/arm")
+        step = page.locator("#calibration-step")
+        expect(step).to_contain_text("not calibrated", timeout=WAIT_MS)
+        page.click("#calibrate-start")
+        expect(step).to_contain_text("1 of 2. Torque is off")
+        expect(page.locator("#calibrate-start")).to_be_disabled()
+        # Posed like the twin (every joint at 0): the horns sit at arbitrary raw steps.
+        rest_raw = {1: 3000, 2: 1100, 3: 2500, 4: 700, 5: 3900, 6: 2048}
+        with sim.paused() as bus:
+            for sid, raw in rest_raw.items():
+                bus.servo(sid).move_by_hand(raw)
+        page.click("#calibrate-capture")
+        expect(step).to_contain_text("2 of 2. Move each joint")
+        # The base through its range: the twin's measured arm follows live, the range grows.
+        rotation = page.locator('#calibration-ranges li[data-joint="Rotation"]')
+        for delta in (-400, 300):
+            with sim.paused() as bus:
+                bus.servo(1).move_by_hand(rest_raw[1] + delta)
+            expect(page.locator('td[data-real="Rotation"]')).to_have_text(
+                f"{delta * 360 / 4096:.1f}", timeout=WAIT_MS
+            )
+        expect(rotation).to_contain_text("Rotation: -35.2 to 26.4", timeout=WAIT_MS)
+        assert float(rotation.locator("meter").get_attribute("value") or 0) > 0
+        page.click("#calibrate-finish")
+        expect(step).to_contain_text("calibrated (", timeout=WAIT_MS)
+        expect(page.locator("#calibration-ranges li")).to_have_count(0)
+        with server.http() as http:
+            stored = http.get("/api/robots/arm/calibration").json()
+        assert stored["calibrated"] is True and stored["session"] is None
+        joint = stored["calibration"]["joints"]["Rotation"]
+        assert joint["min_degrees"] == pytest.approx(-400 * 360 / 4096, abs=0.01)
+        assert joint["max_degrees"] == pytest.approx(300 * 360 / 4096, abs=0.01)
+        assert (tmp_path / "calibrations" / "arm.json").is_file()
+        # Started again and cancelled: the calibration in use stays.
+        page.click("#calibrate-start")
+        expect(step).to_contain_text("1 of 2")
+        page.click("#calibrate-cancel")
+        expect(step).to_contain_text("calibrated (")
+        with server.http() as http:
+            again = http.get("/api/robots/arm/calibration").json()
+        assert again["session"] is None and again["calibration"] == stored["calibration"]
+    finally:
+        sims.close()
+
+
+def test_the_calibration_flow_shows_only_for_a_hardware_arm(start_live: Any, page: Page) -> None:
+    server = start_live(demo=True)  # the demo robot's slave is a mock
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    expect(page.locator("#robot-state")).to_have_text("idle")
+    expect(page.locator("#peers li").first).to_contain_text("mock-slave")
+    expect(page.locator("#calibration")).to_be_attached()
+    expect(page.locator("#calibration")).to_be_hidden()

@@ -290,16 +290,23 @@ async def test_export_says_what_is_missing(
     assert "episode 7" in capsys.readouterr().err
 
 
+async def commanded_and_reported(server: RunningServer, http: Any) -> None:
+    """A command and the slave's report of it: every stream has data before an episode."""
+    robot = server.app.manager.get("demo-arm")
+    moved = await http.put(
+        "/api/robots/demo-arm/joints", json={"joints": [{"name": "Jaw", "value": 5}]}
+    )
+    assert moved.is_success, moved.text
+    await eventually(lambda: robot.snapshot().joint("Jaw").real_value == 5)
+
+
 async def test_a_camera_that_changed_size_is_refused_before_anything_is_written(
     start_server: Callable[..., Any], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     server: RunningServer = await start_server(demo=True)
     base = "/api/robots/demo-arm"
-    robot = server.app.manager.get("demo-arm")
     async with server.client() as http:
-        moved = await http.put(f"{base}/joints", json={"joints": [{"name": "Jaw", "value": 5}]})
-        assert moved.is_success, moved.text  # a command and the slave's report, before all
-        await eventually(lambda: robot.snapshot().joint("Jaw").real_value == 5)
+        await commanded_and_reported(server, http)
         for width, height in ((64, 48), (32, 32)):  # the same camera, re-attached smaller
             body = {**TEST_CAMERA, "width": width, "height": height}
             assert (await http.post(f"{base}/cameras", json=body)).status_code == 201
@@ -317,3 +324,37 @@ async def test_a_camera_that_changed_size_is_refused_before_anything_is_written(
     err = capsys.readouterr().err
     assert "Camera 'front' is 32x32 in episode 1 but 64x48 in episode 0" in err, err
     assert not out.exists()  # nothing half-written blocks a retry
+
+
+async def test_an_episode_of_one_frame_is_left_out_with_a_note(
+    start_server: Callable[..., Any], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    # A sentry detached just after an episode began, or a start and stop clicked at once: one
+    # frame at the dataset's rate. LeRobot's writer cannot finish a video episode of one frame.
+    server: RunningServer = await start_server(demo=True)
+    base = "/api/robots/demo-arm"
+    async with server.client() as http:
+        assert (await http.post(f"{base}/cameras", json=TEST_CAMERA)).status_code == 201
+        camera = server.app.cameras.get("demo-arm", "front")
+        await commanded_and_reported(server, http)
+        await eventually(lambda: camera.frames > 3)
+        assert (await http.post(f"{base}/episodes/start", json={"task": "long"})).is_success
+        await trio.sleep(2.1)  # at least three samples at 1 fps
+        assert (await http.post(f"{base}/episodes/stop")).is_success
+        assert (await http.post(f"{base}/episodes/start", json={"task": "blink"})).is_success
+        assert (await http.post(f"{base}/episodes/stop")).is_success
+        name = (await http.post("/api/recordings/current/stop")).json()["stopped"]
+    recording = Path(server.app.recorder.folder) / name
+    marks = [m for m in read_recording(recording).messages if m.kind == "episode"]
+    blink = marks[-1].log_time - marks[-2].log_time
+    out = tmp_path / "dataset"
+    args = ["export", str(recording), "--format", "lerobot", "--robot", "demo-arm", "-o"]
+    assert cli.main([*args, str(out), "--fps", "1"]) == 0, capsys.readouterr().err
+    err = capsys.readouterr().err
+    lerobot_dataset = pytest.importorskip("lerobot.datasets.lerobot_dataset")
+    dataset = lerobot_dataset.LeRobotDataset("arena/demo-arm", root=out, video_backend="pyav")
+    if blink < 1e9:  # one sample at 1 fps (a loaded machine may take a second to stop it)
+        assert dataset.num_episodes == 1, err
+        assert "episode 1 has one frame at 1 fps: left out" in err, err
+    else:
+        assert dataset.num_episodes == 2, err

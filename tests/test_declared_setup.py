@@ -118,8 +118,10 @@ def test_a_file_is_refused_whole_in_one_line_naming_its_line(
 def test_the_readmes_lab_file_is_a_valid_setup_and_its_mistake_is_on_the_line_it_says(
     tmp_path: Path,
 ) -> None:
-    readme = (Path(__file__).resolve().parent.parent / "README.md").read_text(encoding="utf-8")
-    text = readme.split("```toml\n", 1)[1].split("```", 1)[0]
+    root = Path(__file__).resolve().parent.parent
+    readme = (root / "README.md").read_text(encoding="utf-8")
+    spec = (root / "specs" / "declared-setup.md").read_text(encoding="utf-8")
+    text = spec.split("## A lab Pi's file", 1)[1].split("```toml\n", 1)[1].split("```", 1)[0]
     setup = read_setup(ServerConfig(config_file=write(tmp_path / "lab.toml", text)))
     (robot,) = setup.robots.values()
     assert (list(robot.slaves), robot.master is not None, list(robot.cameras)) == (

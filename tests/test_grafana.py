@@ -61,6 +61,8 @@ async def test_every_query_of_the_grafana_dashboard_names_a_metric_arena_serves(
         "arena_stale_commands_total",
         "arena_servo_temperature_celsius",
         "arena_servo_load_percent",
+        "arena_policy_inference_seconds",
+        "arena_interventions_total",
     ):
         assert wanted in asked
     # each panel queries through the dashboard's data source, each query of it named apart

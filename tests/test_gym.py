@@ -86,6 +86,27 @@ def test_the_expert_reaches_its_targets(twin: ArenaEnv) -> None:
         assert float(reward) == pytest.approx(-info["distance"])
 
 
+def test_the_expert_reaches_its_targets_on_the_so_101() -> None:
+    """The reach task on the arm users own: its tip is the far end of the fixed jaw on the
+    so-101's own link, and the expert reaches targets drawn for it in its twin."""
+    env = ArenaEnv(robot_type="so-101")
+    try:
+        assert env.task.tip_link == "gripper_link"  # the gripper joint's parent in its URDF
+        for seed in range(3):
+            _, info = env.reset(seed=seed)
+            start = info["distance"]
+            expert = Expert(env.task, env.target, info["measured"])
+            for _ in range(env.max_steps):
+                action = env.to_action(expert.act(info["measured"]))
+                _, _, terminated, truncated, info = env.step(action)
+                if terminated or truncated:
+                    break
+            assert terminated and info["is_success"] and "safety" not in info, f"seed {seed}"
+            assert info["distance"] <= 0.02 < start
+    finally:
+        env.close()
+
+
 def test_the_gripper_driven_into_the_table_ends_the_episode(twin: ArenaEnv) -> None:
     observation, info = twin.reset(seed=1)
     down = observation["agent_pos"].copy()

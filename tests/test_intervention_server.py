@@ -212,3 +212,43 @@ async def test_a_client_master_session_knows_it_is_paused(server: RunningServer)
         with trio.fail_after(10):
             await master.wait_resumed()
         assert not master.paused
+
+
+def metric(text: str, name: str, robot: str = "demo-arm") -> float | None:
+    """The value of `name{robot="..."}` in a /metrics text (None: not there)."""
+    for line in text.splitlines():
+        if line.startswith(f'{name}{{robot="{robot}"}} '):
+            return float(line.split()[-1])
+    return None
+
+
+async def test_corrections_are_counted_per_episode_in_the_details_and_on_metrics(
+    start_server: Start,
+) -> None:
+    server = await start_server(demo=True)
+    async with server.client() as http:
+        assert (await http.post(f"{ROBOT}/master", json=SEQUENCE)).status_code == 201
+        assert (await details(http))["corrections"] == {"total": 0, "episode": None}
+
+        async def correct() -> None:
+            assert (await http.post(f"{ROBOT}/intervention", json={})).status_code == 201
+            assert (await http.delete(f"{ROBOT}/intervention")).status_code == 200
+
+        await correct()  # before any episode: counted in the total only
+        started = await http.post(f"{ROBOT}/episodes/start", json={"task": "wave"})
+        assert started.status_code == 201
+        assert (await details(http))["corrections"] == {"total": 1, "episode": 0}
+        await correct()
+        await correct()
+        assert (await details(http))["corrections"] == {"total": 3, "episode": 2}
+        episodes = (await http.get(f"{ROBOT}/episodes")).json()
+        assert episodes["active"]["corrections"] == 2
+        text = (await http.get("/metrics")).text
+        assert metric(text, "arena_interventions_total") == 3
+        assert metric(text, "arena_episode_corrections") == 2
+        # A new episode counts from zero; without one running, no episode figure.
+        assert (await http.post(f"{ROBOT}/episodes/stop")).status_code == 200
+        assert (await details(http))["corrections"] == {"total": 3, "episode": None}
+        assert metric((await http.get("/metrics")).text, "arena_episode_corrections") is None
+        assert (await http.post(f"{ROBOT}/episodes/start", json={"task": "again"})).is_success
+        assert (await details(http))["corrections"] == {"total": 3, "episode": 0}

@@ -646,3 +646,42 @@ async def test_a_policy_is_a_folder_of_the_tenant_s_own_and_a_path_is_the_admin_
         assert await answer("acme", scoped_lab) == await answer("nothing", scoped_lab)
     assert server.app.manager.get("acme-1").snapshot().master is None
     assert server.app.manager.get("lab-1").snapshot().master is None
+
+
+async def test_a_tenant_lists_its_own_policies_only_and_the_listing_is_bounded(
+    start_server: StartServer, secret_file: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    root = tmp_path / "policies"
+    for folder, kind in ((root / "lab-policy", "act"), (root / "acme" / "reach", "diffusion")):
+        folder.mkdir(parents=True)
+        (folder / "config.json").write_text(json.dumps({"type": kind}))
+    (root / "acme" / "notes").mkdir()  # a folder that is not a policy
+    (root / "acme" / "sneaky").symlink_to(root / "lab-policy")  # a link out of acme's folder
+    leaky = root / "acme" / "leaky"  # acme's own folder, its config.json linked from lab's
+    leaky.mkdir()
+    (leaky / "config.json").symlink_to(root / "lab-policy" / "config.json")
+    (root / "acme" / "broken").mkdir()
+    (root / "acme" / "broken" / "config.json").write_text("{not json")
+    server = await start_server(jwt_secret_file=str(secret_file), policy_dir=str(root))
+    acme = bearer(token("admin", tenant="acme"))
+    lab = bearer(token("admin"))
+    async with server.client() as http:
+        for robot_id, headers in (("acme-1", acme), ("lab-1", lab)):
+            made = await http.post("/api/robots", json={"id": robot_id}, headers=headers)
+            assert made.status_code == 201, made.text
+        listed = await http.get("/api/robots/acme-1/policies", headers=acme)
+        assert listed.status_code == 200, listed.text
+        assert listed.json() == {
+            "policies": [{"name": "broken", "type": None}, {"name": "reach", "type": "diffusion"}],
+            "truncated": False,
+        }
+        # The default tenant's folder holds acme's: acme's folder is no policy of its.
+        listed = await http.get("/api/robots/lab-1/policies", headers=lab)
+        assert listed.json()["policies"] == [{"name": "lab-policy", "type": "act"}]
+        # Another tenant's robot is as absent as any.
+        hidden = await http.get("/api/robots/lab-1/policies", headers=acme)
+        assert hidden.status_code == 404
+        # However many there are, a bounded answer that says it was cut.
+        monkeypatch.setattr("arena.server.policies_api.MAX_LISTED", 1)
+        listed = await http.get("/api/robots/acme-1/policies", headers=acme)
+        assert listed.json() == {"policies": [{"name": "broken", "type": None}], "truncated": True}

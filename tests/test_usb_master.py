@@ -147,7 +147,7 @@ async def test_the_follower_settles_where_the_leader_settled(
 ) -> None:
     # Issue 57: a last move inside the leader's dead band (0.5 degrees) left the follower up
     # to the band short of the leader for good. A pose held is sent once.
-    await teleop(manager, leader, follower, tmp_path)
+    robot, _ = await teleop(manager, leader, follower, tmp_path)
     await eventually(lambda: servo_goals(follower) == FOLLOWER_REST, what="rest mirrored")
     pose(leader, {1: LEADER_REST[1] + 40})  # a real move (3.5 degrees)...
     await eventually(
@@ -157,6 +157,7 @@ async def test_the_follower_settles_where_the_leader_settled(
     await eventually(
         lambda: servo_goals(follower)[1] == FOLLOWER_REST[1] + 45, what="the follower settled"
     )
+    assert robot.joint_values()[0]["Rotation"] == pytest.approx(45 * 360 / 4096)
 
 
 async def test_estop_freezes_the_follower_for_good(

@@ -43,7 +43,9 @@ RANKS: dict[str, int] = {
     "schemas": 4,
     "fleet": 5,
     "policy": 5,
+    "script": 5,  # a script's worker and master, as a policy's
     "gym": 6,  # on policy: `arena learn` runs its policy as the master
+    "mcp": 6,  # on script: `arena mcp`'s moves end as a script's (a client of the API)
     "ros2": 6,  # on the fleet's Zenoh pieces
     "server": 7,
     "bench": 8,

@@ -44,6 +44,9 @@ Scenarios:
   policy      (only when named; needs lerobot) an ACT, then a diffusion policy, random weights,
               drive a robot at 30 fps: observation (camera frame age included) to command
               p50/p99, the server CPU each adds, the worker's (see arena/bench/policy.py)
+  pause       (only when named; needs lerobot) a small ACT, then that ACT, paused and resumed
+              20 times each: pause to hold and resume to first action p50/p99 (see
+              arena/bench/pause.py)
 """
 
 from __future__ import annotations
@@ -88,7 +91,7 @@ SCENARIOS = (
     "teleop",
 )
 #: Long scenarios, run only when named.
-LONG_SCENARIOS = ("soak", "versus", "nodes", "policy", "workers")
+LONG_SCENARIOS = ("soak", "versus", "nodes", "policy", "workers", "pause")
 
 
 def run_benchmarks(
@@ -111,7 +114,7 @@ def run_benchmarks(
         require("physics", "arena bench physics")
     if "nodes" in chosen:
         require("fleet", "arena bench nodes")
-    if "policy" in chosen or "workers" in chosen:
+    if "policy" in chosen or "workers" in chosen or "pause" in chosen:
         require("lerobot", "arena bench policy")
     results: dict[str, Any] = {}
 
@@ -190,6 +193,10 @@ def run_benchmarks(
         results.update(asyncio.run(versus_floor(rounds=repeats, fleet_robots=fleet_robots)))
     if "policy" in chosen:
         results.update(asyncio.run(_with_server(policy)))
+    if "pause" in chosen:
+        from arena.bench.pause import pause
+
+        results.update(asyncio.run(_with_server(pause)))
     if "workers" in chosen:
         import trio
 

@@ -14,9 +14,11 @@ IMAGE = (3, 240, 320)
 CHUNK = 100
 
 
-def save_act(folder: Path) -> None:
+def save_act(folder: Path, small: bool = False) -> None:
     """Save the benchmark's ACT (random weights) with its processors in `folder` (this
-    imports torch: run it in a process of its own, `python -m arena.bench.act DIR`)."""
+    imports torch: run it in a process of its own, `python -m arena.bench.act DIR`); `small`:
+    a few-layer ACT on a 32x32 image (milliseconds an inference: what `arena bench pause`
+    measures Arena's own part with)."""
     import torch
     from lerobot.configs.types import FeatureType, PolicyFeature
     from lerobot.policies.act.configuration_act import ACTConfig
@@ -24,16 +26,18 @@ def save_act(folder: Path) -> None:
     from lerobot.policies.factory import make_pre_post_processors
 
     image = "observation.images.front"
+    size = dict(dim_model=32, n_heads=2, dim_feedforward=64, n_encoder_layers=1) if small else {}
     config = ACTConfig(
         input_features={
             "observation.state": PolicyFeature(FeatureType.STATE, (6,)),
-            image: PolicyFeature(FeatureType.VISUAL, IMAGE),
+            image: PolicyFeature(FeatureType.VISUAL, (3, 32, 32) if small else IMAGE),
         },
         output_features={"action": PolicyFeature(FeatureType.ACTION, (6,))},
         chunk_size=CHUNK,
         n_action_steps=CHUNK,
         pretrained_backbone_weights=None,
         device="cpu",
+        **size,
     )
     torch.manual_seed(0)
     policy = ACTPolicy(config)
@@ -86,10 +90,11 @@ def save_diffusion(folder: Path) -> None:
 
 
 def main() -> None:
-    """`python -m arena.bench.act DIR [--type diffusion]`: save the benchmark's policy in DIR."""
+    """`python -m arena.bench.act DIR [--type diffusion|small]`: save the benchmark's policy
+    in DIR."""
     parser = argparse.ArgumentParser()
     parser.add_argument("dir")
-    parser.add_argument("--type", choices=("act", "diffusion"), default="act")
+    parser.add_argument("--type", choices=("act", "diffusion", "small"), default="act")
     args = parser.parse_args()
     try:
         import lerobot  # noqa: F401  (a clear line where it is missing, not a traceback)
@@ -97,7 +102,10 @@ def main() -> None:
         from arena.extras import install_line
 
         raise SystemExit(f"Saving a policy needs LeRobot: {install_line('lerobot')}") from None
-    (save_act if args.type == "act" else save_diffusion)(Path(args.dir))
+    if args.type == "diffusion":
+        save_diffusion(Path(args.dir))
+    else:
+        save_act(Path(args.dir), small=args.type == "small")
 
 
 if __name__ == "__main__":

@@ -84,7 +84,7 @@ async def _cpu_over(server: Server, seconds: float, worker: int | None) -> tuple
     )
 
 
-async def _saved(folder: Path, kind: str) -> Path:
+async def saved_policy(folder: Path, kind: str) -> Path:
     """The benchmark's policy of `kind` saved in `folder` by a process of its own."""
     made = await asyncio.create_subprocess_exec(
         sys.executable, "-m", "arena.bench.act", str(folder), "--type", kind
@@ -136,8 +136,8 @@ async def policy(server: Server, seconds: float = 20.0, warmup: float = 5.0) -> 
     diffusion_...`, 10 denoising steps: seconds an inference on a CPU, so it runs twice as
     long), each for `seconds` after its warm-up, on the same server."""
     with tempfile.TemporaryDirectory() as scratch:
-        act = await _saved(Path(scratch) / "act", "act")
-        diffusion = await _saved(Path(scratch) / "diffusion", "diffusion")
+        act = await saved_policy(Path(scratch) / "act", "act")
+        diffusion = await saved_policy(Path(scratch) / "diffusion", "diffusion")
         async with httpx.AsyncClient(base_url=server.url, timeout=300) as http:
             await create_bench_robot(http, ROBOT)
             base = f"/api/robots/{ROBOT}"

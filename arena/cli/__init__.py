@@ -3,7 +3,8 @@
 `arena serve` runs the server; `inspect`, `timeline`, `export`, `plot`, `recover`, `replay`,
 `import-dataset` and `foxglove-layout` work on recordings; `calibrate` and `sim-bus` on the
 servo bus; `estop-test` times every way a robot stops; `policy` runs a LeRobot policy as a
-robot's master from this machine; `learn` runs the whole learning loop in the physics
+robot's master from this machine, `script` a Python script, `mcp` serves robots to
+LLM agents as MCP tools; `learn` runs the whole learning loop in the physics
 twin; `bench` measures; `schemas` writes the messages' JSON
 Schemas; `token` mints a user's token; `demo` plays the demo sequences on a simulated arm in
 this process.
@@ -14,8 +15,9 @@ A refusal is one line on stderr and exit status 2.
 # its subcommands and their handlers, and the handlers themselves (`handler(args) -> status`):
 # demo, serve, recordings (inspect, timeline, export, recover, plot, replay), datasets (the
 # LeRobot side of export, import-dataset), foxglove (foxglove-layout), bus (sim-bus,
-# calibrate), estop (estop-test), policy (policy), learn (learn), tools (schemas, bench), users
-# (token). A handler imports what it needs when it runs, so that `arena --help` stays quick.
+# calibrate), estop (estop-test), policy (policy), script (script), mcp (mcp), learn (learn),
+# tools (schemas, bench), users (token). A handler imports what it needs when it runs, so
+# that `arena --help` stays quick.
 
 from __future__ import annotations
 
@@ -26,7 +28,20 @@ import sys
 from collections.abc import Callable
 
 import arena
-from arena.cli import bus, demo, estop, foxglove, learn, policy, recordings, serve, tools, users
+from arena.cli import (
+    bus,
+    demo,
+    estop,
+    foxglove,
+    learn,
+    mcp,
+    policy,
+    recordings,
+    script,
+    serve,
+    tools,
+    users,
+)
 from arena.cli.demo import format_joints, run_demo
 from arena.cli.recordings import LISTED
 from arena.cli.tools import BENCH_SCENARIOS
@@ -64,6 +79,8 @@ def build_parser() -> argparse.ArgumentParser:
     foxglove.add(commands)
     estop.add(commands)
     policy.add(commands)
+    script.add(commands)
+    mcp.add(commands)
     learn.add(commands)
     tools.add(commands)
     users.add(commands)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from arena.cli.common import Commands
@@ -29,6 +30,21 @@ def add(commands: Commands) -> None:
         "--wire-time", action="store_true", help="answer as slowly as a real wire at --baud"
     )
     sim_bus.add_argument("--baud", type=int, default=None, help="(default: the type's)")
+    sim_bus.add_argument(
+        "--control",
+        type=control_port,
+        default=None,
+        metavar="PORT",
+        help="move joints by hand: JSON lines on 127.0.0.1:PORT (0: any free port)",
+    )
+    sim_bus.add_argument(
+        "--keys", action="store_true", help="move joints by single keys in this terminal"
+    )
+    sim_bus.add_argument(
+        "--calibration",
+        default=None,
+        help="the arm's calibration file (Arena's or LeRobot's), for --control's values",
+    )
     sim_bus.set_defaults(handler=sim_bus_command)
     calibrate = commands.add_parser("calibrate", help="calibrate an arm on a servo bus")
     calibrate.add_argument("--port", help="serial port (default: find the adapter by USB id)")
@@ -67,6 +83,17 @@ def servo_ids(text: str) -> tuple[int, ...]:
     return ids
 
 
+def control_port(text: str) -> int:
+    """`--control PORT`: 0 (any free port) to 65535."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{text!r}: a port is 0 to 65535")
+    return port
+
+
 def sim_bus_command(args: argparse.Namespace) -> int:
     """`arena sim-bus`: serve the simulated bus until Ctrl-C."""
     from arena.drivers.servo_arm import family_of, servo_models
@@ -89,7 +116,24 @@ def sim_bus_command(args: argparse.Namespace) -> int:
 
         bus = SimBus(args.ids or tuple(j.servo_id for j in model.joints))
     baud = args.baud or model.bus.baud_rate or family.default_baud
-    terminal.serve_sim_bus(Path(args.link), bus, args.wire_time, baud)
+    keys = args.keys and sys.stdin.isatty()
+    if args.keys and not keys:
+        print("--keys needs a terminal (stdin is not one): no keys", file=sys.stderr)
+    calibration = None
+    if args.calibration:
+        from arena.servo.lerobot_calibration import load_calibration
+
+        calibration = load_calibration(Path(args.calibration), model, family)
+    terminal.serve_sim_bus(
+        Path(args.link),
+        bus,
+        args.wire_time,
+        baud,
+        model=model,
+        control_port=args.control,
+        calibration=calibration,
+        keys=keys,
+    )
     return 0
 
 

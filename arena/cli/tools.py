@@ -10,7 +10,18 @@ from arena.cli.common import Commands
 #: reading the arguments does not import the benchmarks.
 BENCH_SCENARIOS = (
     *("relay", "throughput", "fleet", "estop", "flood", "recording", "replay", "core"),
-    *("physics", "camera", "usb", "teleop", "soak", "versus", "nodes", "policy", "workers"),
+    *(
+        "physics",
+        "camera",
+        "usb",
+        "teleop",
+        "soak",
+        "versus",
+        "nodes",
+        "policy",
+        "workers",
+        "pause",
+    ),
 )
 
 
@@ -28,7 +39,7 @@ def add(commands: Commands) -> None:
         metavar="SCENARIO",
         help="which (default: all but the long ones): relay throughput fleet estop flood "
         "recording replay core physics camera usb teleop; only when named: soak versus "
-        "nodes policy workers",
+        "nodes policy workers pause",
     )
     bench.add_argument("--repeats", type=int, default=3)
     bench.add_argument("--fleet-robots", type=int, default=100, help="robots in fleet and soak")

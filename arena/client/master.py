@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 from collections import deque
-from collections.abc import AsyncIterator, Mapping
+from collections.abc import AsyncIterator, Mapping, Sequence
 from contextlib import asynccontextmanager
 from typing import Any, Self
 from urllib.parse import quote
@@ -66,6 +66,8 @@ class MasterSession(WatchingSession):
         self.detached: dict[str, Any] | None = None
         #: The server has this master paused (`pause` until `resume`): send nothing.
         self.paused = False
+        #: `pause` messages so far (one that came and went between two looks still counts).
+        self.pauses = 0
         self._resumed = trio.Event()
         self._resumed.set()
         #: Why the server would not have this master (MASTER_ACTIVE, UNKNOWN_ROBOT, ...).
@@ -115,6 +117,38 @@ class MasterSession(WatchingSession):
         """Send a command and return its acknowledgment (`data.status`: accepted or clamped,
         with what was clamped). A refusal raises `Refused` with the server's code."""
         ack = await self._request(messages.command(joints, **data), "ack", timeout)
+        if (ack.get("data") or {}).get("status") == "refused":
+            raise refusal(ack)
+        return ack
+
+    async def pose(
+        self,
+        position: Sequence[float],
+        orientation: Sequence[float] | None = None,
+        *,
+        gripper: float | None = None,
+        duration: float | None = None,
+        timeout: float | None = None,
+    ) -> dict[str, Any]:
+        """Move the hand to a pose (`position` metres in the robot's base frame, `orientation`
+        a quaternion x, y, z, w; `duration` ms): the server solves the joints and sends them as
+        this master's command. Its acknowledgment; `Refused` (UNREACHABLE, a rule) if not."""
+        message = messages.pose(position, orientation, gripper, duration)
+        ack = await self._request(message, "ack", timeout)
+        if (ack.get("data") or {}).get("status") == "refused":
+            raise refusal(ack)
+        return ack
+
+    async def move(
+        self, goal: Mapping[str, Any], *, plan: bool = True, timeout: float | None = None
+    ) -> dict[str, Any]:
+        """A move to `goal` (`{"joints": {name: degrees}}` or `{"pose": {"position": [...],
+        "orientation"?: [...]}}`), along a planned path with `plan`: the `move` message, where
+        the server has it (else `Refused` with its UNKNOWN_MESSAGE_TYPE). Its acknowledgment;
+        a planned path is then played as this master's commands."""
+        data = {**goal, "plan": plan}
+        message = {"type": "move", "timestamp": now_iso(), "data": data}
+        ack = await self._request(message, "ack", timeout)
         if (ack.get("data") or {}).get("status") == "refused":
             raise refusal(ack)
         return ack
@@ -215,6 +249,7 @@ class MasterSession(WatchingSession):
             self._settled.set()
         elif kind == "pause" and not self.paused:
             self.paused, self._resumed = True, trio.Event()
+            self.pauses += 1
         elif kind == "resume":
             self.paused = False
             self._resumed.set()

@@ -9,7 +9,7 @@ encoder would write NaN as `null`, which the server would take as "no value".
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 from urllib.parse import quote
 
@@ -30,6 +30,8 @@ from arena.protocol.messages import (
     JointValue,
     PolicyData,
     PolicyMessage,
+    PoseData,
+    PoseMessage,
     ReasonData,
     ReleaseData,
     ReleaseMessage,
@@ -49,6 +51,7 @@ __all__ = [
     "joint_states_message",
     "now_iso",
     "policy",
+    "pose",
     "release",
     "reset",
     "ws_url",
@@ -104,6 +107,25 @@ def command(joints: Mapping[str, float], **data: Any) -> CommandMessage:
     _check_numbers(data, "command")
     entries = [JointValue(name, value) for name, value in finite_joints(joints).items()]
     return CommandMessage(timestamp=now_iso(), data=CommandData(joints=entries, **data))
+
+
+def pose(
+    position: Sequence[float],
+    orientation: Sequence[float] | None = None,
+    gripper: float | None = None,
+    duration: float | None = None,
+) -> PoseMessage:
+    """A master's `pose`: the hand's tool point (metres, base frame), its orientation (x, y,
+    z, w) if wanted, the gripper, the duration (ms). `ValueError` for what is not finite."""
+    given = [*position, *(orientation or ()), gripper, duration]
+    _check_numbers([v for v in given if v is not None], "pose")
+    data = PoseData(
+        [float(v) for v in position],
+        None if orientation is None else [float(v) for v in orientation],
+        None if gripper is None else float(gripper),
+        None if duration is None else float(duration),
+    )
+    return PoseMessage(timestamp=now_iso(), data=data)
 
 
 def joint_states(joints: Mapping[str, float]) -> JointStatesMessage:

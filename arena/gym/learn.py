@@ -44,6 +44,7 @@ class LearnSettings:
     targets: int = 20
     fps: float = 30.0
     seed: int = 0
+    robot_type: str = "so-arm100"
 
 
 @dataclass
@@ -82,7 +83,7 @@ def _run_random(env: ArenaEnv, seed: int) -> bool:
 def collect(settings: LearnSettings, say: Callable[[str], None]) -> dict[int, list[float]]:
     """The expert's episodes, recorded in `out/recordings`; the target of each kept episode by
     its recorded index (a failed one is discarded, as an operator would)."""
-    world = TwinWorld(fps=settings.fps, recordings=settings.out / "recordings")
+    world = TwinWorld(settings.robot_type, settings.fps, recordings=settings.out / "recordings")
     env = ArenaEnv(world=world)
     targets: dict[int, list[float]] = {}
     try:
@@ -163,7 +164,7 @@ async def _policy_episode(
 def evaluate(settings: LearnSettings, policy: Path | None) -> dict[str, float]:
     """Success rates of the expert, random actions and (if given) the policy on the held-out
     targets."""
-    world = TwinWorld(fps=settings.fps)
+    world = TwinWorld(settings.robot_type, settings.fps)
     env = ArenaEnv(world=world)
     seeds = [HELD_OUT_SEED + settings.seed + k for k in range(settings.targets)]
     rates: dict[str, float] = {}

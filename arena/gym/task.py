@@ -25,8 +25,6 @@ Joints: TypeAlias = Sequence[float] | npt.NDArray[Any]
 #: A vector of floats.
 Vec: TypeAlias = npt.NDArray[np.float64]
 
-#: The link that carries the fixed jaw, whose far end is the tip.
-TIP_LINK = "gripper"
 #: Success: the tip within this distance (metres) of the target ...
 SUCCESS_DISTANCE = 0.02
 #: ... for this long (seconds).
@@ -42,16 +40,31 @@ MIN_HEIGHT = 0.06
 #: The expert's largest step per action (degrees), and the gain of its correction for sag.
 EXPERT_STEP = 4.0
 EXPERT_GAIN = 0.1
+#: How far (degrees) a following expert's plan may run ahead of the measured arm.
+EXPERT_LEASH = 8.0
 #: The plan counts as there within this distance (metres) of the target.
 PLAN_REACHED = 0.005
 #: Damped least-squares steps the inverse kinematics takes at most.
 IK_ITERATIONS = 100
 
 
-def tip_offset(model: RobotModel) -> Vector:
-    """The tip in `TIP_LINK`'s frame: the middle of its mesh's points within 1 cm of its point
+def tip_link(model: RobotModel, kinematics: Kinematics) -> str:
+    """The link that carries the fixed jaw: the parent of the gripper's joint (the hand's
+    `gripper`, else the type's last joint). The so-arm100's `gripper`, the so-101's
+    `gripper_link`."""
+    hand = model.end_effector
+    name = hand.gripper if hand is not None and hand.gripper else model.joints[-1].name
+    urdf = next(spec.urdf_name for spec in model.joints if spec.name == name)
+    for joint in kinematics.joints:
+        if joint.name == urdf:
+            return joint.parent
+    raise ValueError(f"{model.robot_type}: no URDF joint {urdf!r} for the gripper")
+
+
+def tip_offset(model: RobotModel, link: str) -> Vector:
+    """The tip in `link`'s frame: the middle of its mesh's points within 1 cm of its point
     farthest from the link's origin (the end of the fixed jaw)."""
-    points = link_vertices(model.urdf_path)[TIP_LINK]
+    points = link_vertices(model.urdf_path)[link]
     reach = np.linalg.norm(points, axis=1)
     far = points[reach > reach.max() - 0.01].mean(axis=0)
     return float(far[0]), float(far[1]), float(far[2])
@@ -63,11 +76,13 @@ class Reach:
 
     model: RobotModel
     kinematics: Kinematics = field(init=False)
+    tip_link: str = field(init=False)
     tip: Vector = field(init=False)
 
     def __post_init__(self) -> None:
         self.kinematics = Kinematics.from_urdf(self.model.urdf_path)
-        self.tip = tip_offset(self.model)
+        self.tip_link = tip_link(self.model, self.kinematics)
+        self.tip = tip_offset(self.model, self.tip_link)
         self._collision = for_model(self.model)
 
     def _urdf(self, joints: Joints) -> dict[str, float]:
@@ -78,7 +93,7 @@ class Reach:
 
     def tip_position(self, joints: Joints) -> Vector:
         """Where the gripper's tip is (metres, the base's frame) at `joints`."""
-        rotation, origin = self.kinematics.link_poses(self._urdf(joints))[TIP_LINK]
+        rotation, origin = self.kinematics.link_poses(self._urdf(joints))[self.tip_link]
         moved = rotate(rotation, self.tip)
         return origin[0] + moved[0], origin[1] + moved[1], origin[2] + moved[2]
 
@@ -156,10 +171,19 @@ class Expert:
     """The scripted expert. It solves the inverse kinematics once (`Reach.solve`), then moves
     the commanded joints toward the solution, at most `EXPERT_STEP` degrees a joint an action;
     once there, a slow integral term made from where the tip really is makes up for the arm's
-    sag under gravity, which the kinematics cannot know."""
+    sag under gravity, which the kinematics cannot know.
 
-    def __init__(self, task: Reach, target: Sequence[float], start: Joints) -> None:
+    `follow`: its plan is kept within `EXPERT_LEASH` degrees of the measured arm, so its
+    action stays a function of what it sees. A corrector is so: its commands are eased in
+    at the joining speed, and a plan of its own would run far ahead of the arm, labelling
+    the states it passes with actions the arm is nowhere near. (Not the plan reset to the
+    arm each step: an arm that sags more than a step under gravity then never gets there.)"""
+
+    def __init__(
+        self, task: Reach, target: Sequence[float], start: Joints, follow: bool = False
+    ) -> None:
         self.task = task
+        self.follow = follow
         self.target = tuple(target)
         self.plan: Vec = np.array(start, dtype=float)
         self.goal = task.solve(target, start)
@@ -167,6 +191,11 @@ class Expert:
 
     def act(self, measured: Joints) -> Vec:
         """The next action (every joint, wire units) from the measured joints."""
+        if self.follow:  # the plan kept on a leash of `EXPERT_LEASH` degrees from the arm
+            arm = np.asarray(measured, dtype=float)[:ARM_JOINTS]
+            self.plan[:ARM_JOINTS] = np.clip(
+                self.plan[:ARM_JOINTS], arm - EXPERT_LEASH, arm + EXPERT_LEASH
+            )
         step = np.clip(self.goal - self.plan, -EXPERT_STEP, EXPERT_STEP)
         self.plan += step
         if self.task.distance(self.plan, self.target) < PLAN_REACHED:

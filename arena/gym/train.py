@@ -11,7 +11,7 @@ policy (`config.json`, `model.safetensors`, the processors), which a policy mast
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -55,8 +55,23 @@ def train_act(
     say: Callable[[str], None] = print,
 ) -> float:
     """Train ACT on the dataset at `dataset` and save it in `out`; the last loss."""
+    return train_act_on([(dataset, repo_id)], out, settings, say)
+
+
+def train_act_on(
+    datasets: Sequence[tuple[Path, str]],
+    out: Path,
+    settings: TrainSettings = TrainSettings(),
+    say: Callable[[str], None] = print,
+) -> float:
+    """Train ACT on the frames of several datasets (root, repo id) taken as one, and save it
+    in `out`; the last loss. The first dataset names the features (the others may have more,
+    `intervention` say: unused); normalisation comes from all of them (LeRobot's
+    `aggregate_stats`). `arena learn reach --dagger` trains on its demonstrations and every
+    round's corrections so."""
     import torch
     from lerobot.configs.types import FeatureType, NormalizationMode
+    from lerobot.datasets.compute_stats import aggregate_stats
     from lerobot.datasets.lerobot_dataset import LeRobotDataset, LeRobotDatasetMetadata
 
     try:  # where LeRobot 0.6 keeps it
@@ -71,7 +86,8 @@ def train_act(
     # One thread: on a small shared machine more threads fight over the cores (two threads
     # made a step of this small model 20 times slower here, not faster).
     torch.set_num_threads(1)
-    meta = LeRobotDatasetMetadata(repo_id, root=dataset)
+    metas = [LeRobotDatasetMetadata(repo_id, root=root) for root, repo_id in datasets]
+    meta = metas[0]
     features = dataset_to_policy_features(meta.features)
     outputs = {k: f for k, f in features.items() if f.type is FeatureType.ACTION}
     inputs = {k: f for k, f in features.items() if k not in outputs}
@@ -96,9 +112,18 @@ def train_act(
     )
     policy: Any = ACTPolicy(config)
     policy.train()
-    pre, post = make_pre_post_processors(config, dataset_stats=meta.stats)
-    table = LeRobotDataset(repo_id, root=dataset).hf_dataset.with_format("numpy")
-    columns = {name: np.asarray(table[name]) for name in (*inputs, "action", "episode_index")}
+    stats = meta.stats if len(metas) == 1 else aggregate_stats([m.stats for m in metas])
+    pre, post = make_pre_post_processors(config, dataset_stats=stats)
+    parts: dict[str, list[Any]] = {name: [] for name in (*inputs, "action", "episode_index")}
+    episodes = 0
+    for root, repo_id in datasets:
+        table = LeRobotDataset(repo_id, root=root).hf_dataset.with_format("numpy")
+        for name, values in parts.items():
+            values.append(np.asarray(table[name]))
+        # Episodes of the next dataset numbered after this one's: chunks never cross them.
+        parts["episode_index"][-1] = parts["episode_index"][-1] + episodes
+        episodes = int(parts["episode_index"][-1].max()) + 1
+    columns = {name: np.concatenate(values) for name, values in parts.items()}
     chunks, padded = action_chunks(columns["episode_index"], settings.chunk_size)
     tensors = {name: torch.as_tensor(columns[name], dtype=torch.float32) for name in inputs}
     actions = torch.as_tensor(columns["action"], dtype=torch.float32)

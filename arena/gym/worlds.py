@@ -185,15 +185,15 @@ class TwinWorld:
             await self.slave.step_to(self._time)
         await wait_all_tasks_blocked()  # the twin's report reached the robot
 
-    async def command(self, command: Command) -> CommandResult:
-        """Send `command` as the environment's master, a hair after the step boundary: one
-        `COMMAND_DELAY` after it, then two, then one... A timer the robot set a whole number
-        of its control periods after the last command then always fires on the same side of
-        this command (before it after a short delay, after it after a long one), and the
-        twin's steps, on the boundaries' grid, never meet the robot's ticks."""
+    async def command(self, command: Command, link: MasterLink | None = None) -> CommandResult:
+        """Send `command` as the environment's master (or as `link`'s), a hair after the step
+        boundary: one `COMMAND_DELAY` after it, then two, then one... A timer the robot set a
+        whole number of its control periods after the last command then always fires on the
+        same side of this command (before it after a short delay, after it after a long
+        one), and the twin's steps, on the boundaries' grid, never meet the robot's ticks."""
         self._turn = not self._turn
         await self._until(self._time + COMMAND_DELAY * (1 if self._turn else 2))
-        link = self._link
+        link = link or self._link
         if link is None:
             raise RuntimeError("the twin is not running")
         return await link.command(command)

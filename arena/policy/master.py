@@ -39,8 +39,10 @@ from arena.policy.process import (
     WorkerGone,
     worker_command,
 )
+from arena.policy.strategy import Keeper, Rollout, Strategy, describe
 from arena.policy.wire import Chunk, Loaded, Observe
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
+from arena.robot.episodes import Episode
 from arena.robot.events import PolicyInferred
 from arena.robot.links import MasterLink
 from arena.robot.model import RobotModel
@@ -191,6 +193,8 @@ class PolicySettings:
     interpolation_multiplier: int = 1
     #: The Python the worker runs in (one with LeRobot, torch and msgspec); None: Arena's own.
     python: str | None = None
+    #: The rollout strategy that makes episodes of the run (None: none; `strategy.py`).
+    strategy: Strategy | None = None
 
 
 @dataclass(slots=True)
@@ -203,9 +207,12 @@ class PolicyCounters:
     invalid: int = 0  # actions refused for a value that is not finite
     stalls: int = 0  # times the watchdog tripped
     last_latency: float = 0.0  # seconds, the worker's own measure of its last inference
+    last_chunk: int = 0  # actions in the last chunk that came back
     loads: int = 0  # times the worker loaded the policy (a pause and resume never reloads)
     pauses: int = 0  # times the robot paused the policy
     dropped: int = 0  # actions dropped at a pause (computed before it)
+    episodes: int = 0  # episodes its strategy made
+    resets: int = 0  # times its episodic strategy took the robot back to the start pose
 
 
 class PolicyMaster:
@@ -245,6 +252,16 @@ class PolicyMaster:
         self._armed = False
         # Pauses so far: a chunk whose observation was taken before a pause is dropped.
         self._epoch = 0
+        #: The recorder's side of a highlight strategy (given by the server; None: none).
+        self.keeper: Keeper | None = None
+        self.rollout: Rollout | None = None  # its strategy, once it runs
+        self._arm: Arm | None = None
+        # Its own strategy paused it (an episodic reset): the control loop holds, as for a
+        # pause of the robot's, and the strategy commands meanwhile.
+        self._suspended = False
+        self._unsuspended = trio.Event()
+        self._holding = False  # the control loop holds (paused by the robot or suspended)
+        self._held = trio.Event()
 
     @property
     def identity(self) -> str:
@@ -254,19 +271,71 @@ class PolicyMaster:
         return f"policy:{self.loaded.policy_type}:{self.loaded.checkpoint}"
 
     @property
+    def fps(self) -> float:
+        """Its control steps a second."""
+        return self.settings.fps
+
+    @property
     def master_id(self) -> str:
         """The id it holds the robot under: its identity."""
         return self.identity
 
     def figures(self) -> dict[str, float]:
         """Its counters, shown with the robot's master (`PolicyCounters`)."""
+        if self.rollout is not None:
+            self.counters.episodes = self.rollout.episodes
         return dataclasses.asdict(self.counters)
 
     @property
     def description(self) -> str:
-        """What it is, in words: its identity and task."""
+        """What it is, in words: its identity, task and strategy."""
         task = f" ({self.settings.task!r})" if self.settings.task else ""
-        return f"{self.identity}{task} at {self.settings.fps:g} fps"
+        strategy = describe(self.settings.strategy)
+        strategy = f", {strategy}" if strategy else ""
+        return f"{self.identity}{task} at {self.settings.fps:g} fps{strategy}"
+
+    async def highlight(self) -> Episode:
+        """Save the last seconds of a highlight strategy as an episode (`Rollout.highlight`);
+        NO_HIGHLIGHT if the policy runs no such strategy."""
+        if self.rollout is None:
+            raise ArenaError(
+                ErrorCode.NO_HIGHLIGHT,
+                "The robot's policy runs no rollout strategy: attach it with "
+                '{"strategy": {"type": "highlight", "keep_s": N, "task": "..."}}.',
+            )
+        return await self.rollout.highlight()
+
+    def report(self, code: ErrorCode, message: str) -> None:
+        """A warning fault of the policy (its strategy's)."""
+        if self._arm is not None:
+            self._fault(self._arm, code, message, Severity.WARNING)
+
+    async def suspend(self) -> None:
+        """Pause the policy for its own strategy: return once the control loop holds, its
+        queue dropped (the worker stays loaded); `unsuspend` resumes it from a fresh
+        observation, as a resume does."""
+        self._suspended = True
+        self._unsuspended = trio.Event()
+        self.counters.resets += 1
+        if not self._holding:
+            self._held = trio.Event()
+            await self._held.wait()
+
+    def unsuspend(self) -> None:
+        """End `suspend`."""
+        self._suspended = False
+        self._unsuspended.set()
+
+    def _halted(self, arm: Arm) -> bool:
+        return arm.paused or self._suspended
+
+    async def _wait_running(self, arm: Arm) -> None:
+        """Return once neither the robot nor the policy's strategy holds it paused."""
+        while self._halted(arm):
+            if arm.paused:
+                await arm.wait_resumed()
+            else:
+                await self._unsuspended.wait()
 
     async def prepare(self) -> None:
         """Start the worker, load the policy and check it against the robot; POLICY_INVALID
@@ -327,8 +396,23 @@ class PolicyMaster:
             await self.process.close()
 
     async def run(self, link: MasterLink) -> None:
-        """Drive the robot until an e-stop, a detach, or the worker's end."""
-        await self.drive(LinkArm(link, self.model))
+        """Drive the robot until an e-stop, a detach, the worker's end, or the end of its
+        strategy (an episodic one's last episode)."""
+        arm = LinkArm(link, self.model)
+        self._arm = arm
+        if self.settings.strategy is None:
+            await self.drive(arm)
+            return
+        self.rollout = Rollout(self.settings.strategy, self, link.robot, arm, self.keeper)
+        async with trio.open_nursery() as nursery:
+
+            async def driving() -> None:
+                await self.drive(arm)
+                nursery.cancel_scope.cancel()  # the worker ended: so does the strategy
+
+            nursery.start_soon(driving)
+            await self.rollout.run()
+            nursery.cancel_scope.cancel()
 
     async def drive(self, arm: Arm) -> None:
         """Drive `arm` until the robot stops the policy for good or the worker ends; the
@@ -352,7 +436,7 @@ class PolicyMaster:
         while True:
             tick += period
             await trio.sleep_until(tick)
-            if arm.paused:
+            if self._halted(arm):
                 await self._hold(arm, queue)
                 tick, empty = trio.current_time(), 0
                 continue
@@ -382,10 +466,16 @@ class PolicyMaster:
         (the worker stays loaded), then start over from a fresh observation; its first step
         meets the step limit from the pose measured then, as every step does."""
         self._epoch += 1
-        self.counters.pauses += 1
+        if arm.paused:
+            self.counters.pauses += 1
         self.counters.dropped += len(queue)
         queue.drop()
-        await arm.wait_resumed()
+        self._holding = True
+        self._held.set()
+        try:
+            await self._wait_running(arm)
+        finally:
+            self._holding = False
         self.counters.dropped += len(queue)  # (a chunk that came meanwhile is stale too)
         queue.drop()
         self._armed = False  # waiting for the fresh chunk is no stall
@@ -474,8 +564,8 @@ class PolicyMaster:
         while True:
             await self._wake.wait()
             self._wake = trio.Event()
-            if arm.paused:
-                await arm.wait_resumed()
+            if self._halted(arm):
+                await self._wait_running(arm)
                 continue  # the control loop wakes this task once it has dropped the queue
             if not queue.ready_for_observation():
                 # a wake-up of the control loop's from while the last inference ran: the chunk
@@ -512,13 +602,14 @@ class PolicyMaster:
                 await trio.sleep(period)  # the policy failed this once: try again, paced
                 self._wake.set()
                 continue
-            if epoch != self._epoch or arm.paused:
+            if epoch != self._epoch or self._halted(arm):
                 self.counters.dropped += len(chunk.actions)
                 continue  # observed before a pause: stale (the resume asks afresh)
             self._failure = None
             self._armed = True
             self.counters.inferences += 1
             self.counters.last_latency = chunk.latency
+            self.counters.last_chunk = len(chunk.actions)
             kept = queue.add_chunk(chunk.timestep, chunk.actions)
             inference = Inference(
                 chunk.timestep,

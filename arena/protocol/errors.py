@@ -18,6 +18,7 @@ class ErrorCode(enum.StrEnum):
     ESTOPPED = "ESTOPPED"
     RATE_LIMITED = "RATE_LIMITED"
     UNREACHABLE = "UNREACHABLE"  # no pose of the arm puts its hand where it was asked to go
+    NO_PATH = "NO_PATH"  # no collision-free path to a planned move's goal within its budget
     STALE_COMMAND = "STALE_COMMAND"  # a stamped command arrived older than command_max_age
     COLLISION = "COLLISION"  # the move would bring links together or into the workspace's walls
     TAKEN_OVER = "TAKEN_OVER"
@@ -105,6 +106,11 @@ class ErrorCode(enum.StrEnum):
     POLICY_NOT_READY = "POLICY_NOT_READY"  # the worker did not load it in time, or exited
     POLICY_OUTPUT_INVALID = "POLICY_OUTPUT_INVALID"  # fault: an action that is not finite
     POLICY_STALLED = "POLICY_STALLED"  # fault (warning): no action due for two periods
+    # Scripts as masters (specs/scripts.md)
+    SCRIPT_INVALID = "SCRIPT_INVALID"  # no script of that name in the tenant's scripts folder
+    SCRIPT_FAILED = "SCRIPT_FAILED"  # fault: the script raised (its file and line) or died
+    NO_HIGHLIGHT = "NO_HIGHLIGHT"  # a highlight asked of a robot whose policy keeps none
+    POSE_NOT_REACHED = "POSE_NOT_REACHED"  # fault (warning): an episodic reset ran out of time
 
 
 class ArenaError(Exception):

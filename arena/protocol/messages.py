@@ -200,6 +200,28 @@ class EeVelocityMessage(_Msg, tag="ee_velocity", forbid_unknown_fields=True):
     data: EeVelocityData
 
 
+#: A joint's name in a move's goal (a robot type's names are short).
+GoalJoint = Annotated[str, msgspec.Meta(min_length=1, max_length=64)]
+
+
+class MoveData(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """A goal, `joints` (by name) or `pose`, reached straight (one command) or, with `plan`,
+    along a path found within `budget` ms at `speed` (0-1) of the limits (specs/cartesian.md)."""
+
+    joints: Annotated[dict[GoalJoint, float], msgspec.Meta(max_length=32)] | None = None
+    pose: PoseData | None = None
+    plan: bool = False
+    budget: Annotated[float, msgspec.Meta(ge=10, le=10_000)] | None = None
+    speed: Annotated[float, msgspec.Meta(ge=0.01, le=1)] | None = None
+    duration: Annotated[float, msgspec.Meta(ge=0, le=3_600_000)] | None = None
+
+
+class MoveMessage(_Msg, tag="move", forbid_unknown_fields=True):
+    """Move to a goal (`MoveData`), straight or along a path played as this master's commands."""
+
+    data: MoveData
+
+
 MasterMessage: TypeAlias = (
     CommandMessage
     | SequenceMessage
@@ -211,6 +233,7 @@ MasterMessage: TypeAlias = (
     | InferenceMessage
     | PoseMessage
     | EeVelocityMessage
+    | MoveMessage
 )
 
 

@@ -6,7 +6,7 @@ from typing import Annotated, Literal, TypeAlias
 
 import msgspec
 
-from arena.protocol.messages import JointValue
+from arena.protocol.messages import JointValue, MoveData
 
 #: The tenant of API keys, of robots created without one, and of tokens without the claim.
 DEFAULT_TENANT = "default"
@@ -249,6 +249,59 @@ class UsbMasterBody(
     actuated: bool = False
 
 
+#: A strategy's task: what its episodes show (as `EpisodeBody`'s).
+StrategyTask = Annotated[str, msgspec.Meta(min_length=1, max_length=1000)]
+#: Longest episode, reset and highlight window a strategy may ask for (seconds: an hour).
+MAX_STRATEGY_SECONDS = 3600.0
+#: Longest window a highlight keeps in memory (seconds): the server holds its events and
+#: camera frames while the recorder is off (specs/policy.md, "Rollout strategies").
+MAX_HIGHLIGHT_SECONDS = 300.0
+#: Most episodes an episodic strategy runs.
+MAX_EPISODES = 10_000
+
+
+class EpisodicStrategy(
+    msgspec.Struct, tag="episodic", tag_field="type", omit_defaults=True, forbid_unknown_fields=True
+):
+    """LeRobot's `episodic` rollout: `episodes` episodes of `episode_s` seconds with `task`;
+    between two, the policy paused, the robot taken back to `start_pose` (joint name to
+    degrees, or the gripper's value; default: the pose at attach) at the robot's join speed
+    within `reset_s` seconds. The master ends after the last."""
+
+    episodes: Annotated[int, msgspec.Meta(ge=1, le=MAX_EPISODES)]
+    episode_s: Annotated[float, msgspec.Meta(gt=0, le=MAX_STRATEGY_SECONDS)]
+    task: StrategyTask
+    reset_s: Annotated[float, msgspec.Meta(ge=0, le=MAX_STRATEGY_SECONDS)] = 10.0
+    start_pose: Annotated[dict[JointKey, float], msgspec.Meta(max_length=32)] | None = None
+
+
+class SentryStrategy(
+    msgspec.Struct, tag="sentry", tag_field="type", omit_defaults=True, forbid_unknown_fields=True
+):
+    """LeRobot's `sentry` rollout: the policy runs on, a new episode of `task` every
+    `episode_s` seconds."""
+
+    episode_s: Annotated[float, msgspec.Meta(gt=0, le=MAX_STRATEGY_SECONDS)]
+    task: StrategyTask
+
+
+class HighlightStrategy(
+    msgspec.Struct,
+    tag="highlight",
+    tag_field="type",
+    omit_defaults=True,
+    forbid_unknown_fields=True,
+):
+    """LeRobot's `highlight` rollout: the last `keep_s` seconds are kept, and `POST
+    .../highlight` saves them as an episode of `task`; nothing else is one."""
+
+    keep_s: Annotated[float, msgspec.Meta(gt=0, le=MAX_HIGHLIGHT_SECONDS)]
+    task: StrategyTask
+
+
+StrategyBody: TypeAlias = EpisodicStrategy | SentryStrategy | HighlightStrategy
+
+
 class PolicyMasterBody(
     msgspec.Struct,
     tag="policy",
@@ -270,7 +323,8 @@ class PolicyMasterBody(
     `interpolation_multiplier`: commands per action, interpolated (LeRobot's name; `fps`
     times it at most the robot's command rate); `python`: the program that runs
     this policy's worker instead of the server's (a LeRobot of another version; only from the
-    whole server's admin: it names a program to run)."""
+    whole server's admin: it names a program to run); `strategy`: a rollout strategy
+    (`episodic`, `sentry`, `highlight`) that makes episodes of the run."""
 
     path: Annotated[str, msgspec.Meta(min_length=1, max_length=4096)]
     task: Annotated[str, msgspec.Meta(max_length=1000)] = ""
@@ -287,10 +341,32 @@ class PolicyMasterBody(
     interpolation_multiplier: Annotated[int, msgspec.Meta(ge=1, le=20)] = 1
     python: Annotated[str, msgspec.Meta(min_length=1, max_length=4096)] | None = None
     takeover: bool = False
+    strategy: StrategyBody | None = None
+
+
+class ScriptMasterBody(
+    msgspec.Struct,
+    tag="script",
+    tag_field="type",
+    omit_defaults=True,
+    forbid_unknown_fields=True,
+):
+    """A Python script run as the master in a worker process (specs/scripts.md). `path`: the
+    name of a `.py` file in the robot's tenant's scripts folder (never a path: a script is
+    code, and only what the server's owner put there runs); `takeover`: displace the robot's
+    master (else MASTER_ACTIVE while it has one)."""
+
+    path: Annotated[str, msgspec.Meta(min_length=1, max_length=4096)]
+    takeover: bool = False
 
 
 MasterBody: TypeAlias = (
-    SequenceMasterBody | ReplayMasterBody | UsbMasterBody | RemoteServerBody | PolicyMasterBody
+    SequenceMasterBody
+    | ReplayMasterBody
+    | UsbMasterBody
+    | RemoteServerBody
+    | PolicyMasterBody
+    | ScriptMasterBody
 )
 
 
@@ -381,3 +457,7 @@ class TeleopBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True)
 
     box: TeleopBoxBody | None = None
     deadman: Annotated[float, msgspec.Meta(gt=0, le=2000)] | None = None
+
+
+#: `POST /api/robots/{id}/move`: the master message `move`'s data (`MoveData`).
+MoveBody: TypeAlias = MoveData

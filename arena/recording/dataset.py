@@ -381,8 +381,24 @@ def export_lerobot(
         if not corrections:
             raise ArenaError(ErrorCode.INVALID_RECORDING, f"No correction of {robot_id!r}.")
         spans = correction_spans(corrections)
+        if environment is not None:  # each correction has its episode's state, by its number
+            environment = {
+                span.index: environment[c.episode.index]
+                for span, c in zip(spans, corrections, strict=True)
+            }
     frames = [(span, frames_of(session, span, fps, slave)) for span in spans]
+    if corrections_only:  # a correction ends where its master stopped commanding: no frame there
+        frames = [(span, [f for f in found if f.at < span.end]) for span, found in frames]
     frames = [(span, found) for span, found in frames if found]
+    # LeRobot's writer cannot finish a dataset that mixes video episodes of one frame with
+    # longer ones (the one-frame episodes' image stats come out short): those are left out.
+    if session.cameras and any(len(found) > 1 for _, found in frames):
+        for span, found in frames:
+            if len(found) == 1:
+                line = f"episode {span.index} has one frame at {fps} fps: left out"
+                notes.append(line)
+                say(f"note: {line}")
+        frames = [(span, found) for span, found in frames if len(found) > 1]
     if not frames:
         raise ArenaError(ErrorCode.INVALID_RECORDING, "The episodes hold no complete frame.")
     policies = policies_in(session.messages, [span for span, _ in frames])

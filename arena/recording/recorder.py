@@ -19,6 +19,7 @@ import contextlib
 import logging
 import math
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -44,6 +45,71 @@ log = logging.getLogger(__name__)
 #: for long: with 256 records a slice (at ~1 us each, as they were packed then) the relay
 #: benchmark's p99 rose by 100 us. An event now packs in ~0.2 us.
 _PACK_SLICE = 128
+
+
+#: What a highlight keeps of one robot at most while the recorder is off (events, and bytes
+#: of camera frames): beyond either, the oldest go (specs/policy.md, "Rollout strategies").
+MAX_KEPT_EVENTS = 500_000
+MAX_KEPT_BYTES = 256 << 20
+
+
+class Kept:
+    """A robot's last `seconds` of events and camera frames, kept while the recorder writes
+    nothing, for a highlight to write (bounded by `MAX_KEPT_EVENTS` and `MAX_KEPT_BYTES`)."""
+
+    def __init__(self, seconds: float) -> None:
+        self.seconds = seconds
+        self.events: deque[Followed] = deque()
+        self.bytes = 0
+        self.dropped = 0  # events let go for the bounds, not for their age
+
+    def add(self, events: list[Followed]) -> None:
+        """Keep `events` (drained from one queue), letting the oldest go."""
+        for event in events:
+            self.events.append(event)
+            if isinstance(event, CameraFrame):
+                self.bytes += len(event.jpeg)
+        # (Queues are drained one after the other: a batch's margin keeps the window whole.)
+        oldest = events[-1].time - self.seconds - 1.0 if events else -math.inf
+        kept = self.events
+        while kept and (
+            kept[0].time < oldest or len(kept) > MAX_KEPT_EVENTS or self.bytes > MAX_KEPT_BYTES
+        ):
+            gone = kept.popleft()
+            if gone.time >= oldest:
+                self.dropped += 1
+            if isinstance(gone, CameraFrame):
+                self.bytes -= len(gone.jpeg)
+
+    def between(self, start: float, end: float) -> list[Followed]:
+        """What is kept from `start` to `end` (trio time)."""
+        return [event for event in self.events if start <= event.time <= end]
+
+    def clear(self) -> None:
+        """Forget everything (the recorder writes it all)."""
+        self.events.clear()
+        self.bytes = 0
+
+
+class RecorderKeeper:
+    """`arena.policy.strategy.Keeper` for one robot: a highlight strategy's side in the
+    recorder."""
+
+    def __init__(self, recorder: Recorder, robot_id: str) -> None:
+        self.recorder = recorder
+        self.robot_id = robot_id
+
+    def keep(self, seconds: float) -> None:
+        """Keep the robot's last `seconds` whenever the recorder is off."""
+        self.recorder.kept[self.robot_id] = Kept(seconds)
+
+    def release(self) -> None:
+        """Keep nothing more."""
+        self.recorder.kept.pop(self.robot_id, None)
+
+    async def save(self, since: float, until: float) -> None:
+        """Write what happened from `since` to `until` (`Recorder.save_kept`)."""
+        await self.recorder.save_kept(self.robot_id, since, until)
 
 
 @dataclass
@@ -157,6 +223,8 @@ class Recorder:
         self._next_flush = 0.0
         self._unflushed = False  # records handed over since the last flush
         self._writing = trio.Lock()  # one batch from collection to the writer at a time
+        #: Robots whose highlight strategy keeps their last seconds while recording is off.
+        self.kept: dict[str, Kept] = {}
 
     @property
     def folder(self) -> Path:
@@ -261,6 +329,12 @@ class Recorder:
                 self._of(tenant).dropped_by_gone += queue.dropped
                 del self._followed[queue]
                 subscription.close()
+            kept = self.kept.get(robot_id)
+            if kept is not None:
+                if self.active:
+                    kept.clear()  # all of it goes into the file
+                elif events:
+                    kept.add(events)
             if not self.active:
                 continue
             # Log times follow trio's clock from one wall-clock anchor: monotonic within a
@@ -273,6 +347,33 @@ class Recorder:
                     packed = 0
                     await trio.lowlevel.checkpoint()
         return batch
+
+    def keeper(self, robot_id: str) -> RecorderKeeper:
+        """A highlight strategy's side in the recorder, for one robot."""
+        return RecorderKeeper(self, robot_id)
+
+    async def save_kept(self, robot_id: str, since: float, until: float) -> None:
+        """A highlight of the robot was marked: recording, write what is pending now (the
+        episode's marks with it; the rest of it is in the file already); not recording,
+        write what was kept of the robot from `since` to `until` (trio time, with the
+        marks) into a file of its own, at the times it happened."""
+        async with self._writing:
+            batch = await self._collect()  # (while off, this keeps the marks)
+            if self.active:
+                await self._write(batch)
+                return
+            kept = self.kept.get(robot_id)
+            events = [] if kept is None else kept.between(since, until)
+            if not events:
+                return
+            tenant = self.writer.robots.get(robot_id, {}).get("tenant", DEFAULT_TENANT)
+            highlight = _Batch()
+            for start in range(0, len(events), _PACK_SLICE):
+                part = events[start : start + _PACK_SLICE]
+                highlight.add(robot_id, tenant, self._wall_offset, part)
+                await trio.lowlevel.checkpoint()
+            await self._write(highlight)
+            await trio.to_thread.run_sync(self.writer.close)  # a highlight is a file's whole
 
     async def _write_forever(self) -> None:
         # One batch per interval: a single thread hop however busy it is.

@@ -80,6 +80,7 @@ class Actor(MasterKeeping):
         #: Commands answered, by outcome: "accepted" or the refusal code (for metrics).
         self.command_counts: collections.Counter[str] = collections.Counter()
         self.estop_count = 0
+        self.intervention_count = 0  # interventions started (corrections)
         self._superseded_by_gone = 0  # targets superseded at slaves that have left
         #: Data-collection episodes (changed only through `EpisodeMsg`).
         self.episodes = Episodes()
@@ -262,16 +263,28 @@ class Actor(MasterKeeping):
 
     def _on_episode(self, message: inbox.EpisodeMsg, now: float) -> None:
         try:
-            episode = self.episodes.act(message.action, message.task, now)
+            episode = self.episodes.act(
+                message.action, message.task, now, message.since, message.keep
+            )
         except ArenaError as refusal:
             message.reply.fail(refusal)
             return
-        self._episode_changed(message.action, episode, now)
+        if message.action == "highlight":
+            # Marked where it began, in the past: the recording and export sort by time.
+            self._episode_changed("start", episode, now, episode.started)
+            self._episode_changed("stop", episode, now)
+        else:
+            self._episode_changed(message.action, episode, now)
         message.reply.set(episode)
 
-    def _episode_changed(self, change: str, episode: Episode, now: float) -> None:
+    def _episode_changed(
+        self, change: str, episode: Episode, now: float, at: float | None = None
+    ) -> None:
+        """Publish an episode's change, stamped `at` (default: now)."""
         index, task, started = episode.index, episode.task, episode.started
-        changed = EpisodeChanged(self.robot_id, change, index, task, started, now, wallclock.time())
+        at = now if at is None else at
+        wall = wallclock.time() - (now - at)
+        changed = EpisodeChanged(self.robot_id, change, index, task, started, at, wall)
         self._publish(changed)
 
     def _on_link(self, message: inbox.LinkMsg, now: float) -> None:

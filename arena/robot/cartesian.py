@@ -27,7 +27,7 @@ ANGLE_TOLERANCE = math.radians(0.5)
 ORIENTATION_WEIGHT = 0.1
 #: Iterations of one start, and the starts tried in all (the caller's first).
 MAX_ITERATIONS = 80
-MAX_STARTS = 6
+MAX_STARTS = 8  # six left the Koch stretched up and back (its whole lift range) unsolved
 #: The largest step of one joint in one iteration (radians): keeps a step near a singularity
 #: from swinging the arm across its range.
 MAX_STEP = 0.35

@@ -12,7 +12,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 from arena.protocol.errors import ArenaError, ErrorCode
-from arena.robot import collision
+from arena.robot import collision, collision_inside
 from arena.robot.model import RobotModel, SafetyPolicy
 from arena.robot.motion import (
     Clamp,
@@ -119,6 +119,8 @@ class RobotCore:
         self._guard_index = tuple(place.get(j.urdf_name) for j in model.joints)
         self._guard_scales = tuple(j.radians_per_unit for j in model.joints)  # URDF per wire unit
         self._checked: dict[str, float] | None = None  # the last goal pose found safe
+        #: The last command's way out of a collision in the model, if it was one (`_guard`).
+        self._escaping: collision_inside.Escape | None = None
         # The last poses checked in full with their clearances (metres), newest first: a pose
         # whose joints are so close to one that no part of the arm can have moved that far
         # is safe without a check (a stream of small steps is checked now and then, not
@@ -385,12 +387,15 @@ class RobotCore:
             if short:
                 clamps = [*clamps, *short]
                 message = "stopped short of a collision"
+            elif self._escaping is not None:
+                way_out = f"out of a collision in the model: {self._escaping.describe()}"
+                message = f"{message}; {way_out}" if message else way_out
         self.motion.set_goals(goals, command.duration, now)
         self._commander = key
         targets = self._advance(now, fresh=in_burst)
         if self.easing is not None:
             self._eased_in()
-        result = CommandResult(True, None, message, tuple(clamps)) if clamps else _ACCEPTED
+        result = CommandResult(True, None, message, tuple(clamps)) if message else _ACCEPTED
         if self.joining:  # (rare: one check per command otherwise)
             return result, Step(outcome, targets, (), tuple(self._release_held(now)))
         return result, Step(outcome, targets)
@@ -419,6 +424,7 @@ class RobotCore:
         """Check the way from the current targets to the new goals: the goals (or, stopping
         short, the last safe ones with what was cut as clamps), or a refusal."""
         assert self.guard is not None
+        self._escaping = None
         start = self._sent
         end = self.motion.goals
         for goal in goals:
@@ -432,8 +438,25 @@ class RobotCore:
             self._checked = end
             self._remember(end, target, clearance)
             return goals, None, []
+        names = ", ".join(goal.name for goal in goals)
+        escape = None
+        if safe <= 0.0:
+            escape = collision_inside.escape(self.guard, self._urdf(start), target, self.workspace)
+        if escape is not None:
+            # The arm is where the model says it collides (a measured pose, a model a little
+            # off the arm): a move that takes no part deeper in, nor any into something new,
+            # is let out; one that does is refused, saying which clearance it would shrink.
+            if escape.allowed:
+                self._checked = end
+                self._escaping = escape
+                return goals, None, []
+            message = (
+                f"The arm already collides in the model; moving {names} there would bring the "
+                f"clearance of {escape.describe()}: it decreases, and only motion that "
+                "increases it is accepted; command refused."
+            )
+            return goals, Refused(ErrorCode.COLLISION, message), []
         if self.workspace.policy != "stop-short" or safe <= 0.0:
-            names = ", ".join(goal.name for goal in goals)
             message = f"Moving {names} there would bring {hit} together; command refused."
             return goals, Refused(ErrorCode.COLLISION, message), []
         short, clamps = [], []
@@ -461,11 +484,16 @@ class RobotCore:
             pose = self._urdf(targets)
             hit, clearance = self.guard.assess(pose, self.workspace)
             if hit is not None:
-                self.motion.stop_at(self._sent)
-                self.collision_stops += 1
-                self.stop = (self._commander, str(hit))
-                return None
-            self._remember(targets, pose, clearance)
+                escape = collision_inside.escape(
+                    self.guard, self._urdf(self._sent), pose, self.workspace
+                )
+                if escape is None or not escape.allowed:
+                    self.motion.stop_at(self._sent)
+                    self.collision_stops += 1
+                    self.stop = (self._commander, str(hit))
+                    return None
+            else:  # (a pose on its way out of a collision is no reference)
+                self._remember(targets, pose, clearance)
         self._sent = targets
         return targets
 

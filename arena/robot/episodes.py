@@ -38,12 +38,19 @@ class Episodes:
         self.last: Episode | None = None  # the last episode that ended
         self.kept = 0
         self.discarded = 0
+        #: Corrections (interventions started) in the running episode.
+        self.corrections = 0
         self._next = 0
 
-    def act(self, action: str, task: str, now: float) -> Episode:
-        """`start` (with `task`), `stop` or `discard`, by the action's name."""
+    def act(
+        self, action: str, task: str, now: float, since: float = 0.0, keep: float = 0.0
+    ) -> Episode:
+        """`start` (with `task`), `stop`, `discard` or `highlight` (with `task`, `since` and
+        `keep`), by the action's name."""
         if action == "start":
             return self.start(task, now)
+        if action == "highlight":
+            return self.highlight(task, max(since, now - keep), now)
         return self.stop(now) if action == "stop" else self.discard(now)
 
     def start(self, task: str, now: float) -> Episode:
@@ -60,8 +67,28 @@ class Episodes:
                 f'"task" must say what the episode shows, in 1 to {MAX_TASK_CHARS} characters.',
             )
         self.active = Episode(self._next, task, now)
+        self.corrections = 0
         self._next += 1
         return self.active
+
+    def corrected(self) -> None:
+        """An intervention started: one more correction in the running episode, if one runs."""
+        if self.active is not None:
+            self.corrections += 1
+
+    def running_corrections(self) -> int | None:
+        """The running episode's corrections, None with no episode running."""
+        return None if self.active is None else self.corrections
+
+    def highlight(self, task: str, since: float, now: float) -> Episode:
+        """Keep what happened from `since` to `now` as an episode, at once (a rollout's
+        highlight: specs/policy.md). It starts no earlier than the last episode's end, so
+        two never overlap; refused while an episode runs."""
+        if self.last is not None and self.last.ended is not None:
+            since = max(since, self.last.ended)
+        since = min(since, now)
+        self.start(task, since)
+        return self.stop(now)
 
     def stop(self, now: float) -> Episode:
         """End the running episode and keep it."""
@@ -107,6 +134,7 @@ class Episodes:
                 "index": self.active.index,
                 "task": self.active.task,
                 "elapsed": round(now - self.active.started, 3),
+                "corrections": self.corrections,
             }
         last = None
         if self.last is not None:

@@ -41,6 +41,7 @@ from arena.robot.mailbox import EventQueue
 from arena.robot.model import RobotModel, SafetyPolicy
 from arena.robot.motion import Command, CommandResult
 from arena.robot.snapshot import JointSnapshot, RobotSnapshot
+from arena.robot.teleop import TeleopSettings
 from arena.robot.workspace import Workspace
 
 
@@ -72,6 +73,9 @@ class Robot:
         self.command_counts = self._actor.command_counts
         #: Data-collection episodes (owned by the actor: changed only through `episode`).
         self.episodes = self._actor.episodes
+        #: Teleoperation's box and dead-man time set over REST (None: the default from the
+        #: hand and the workspace, `arena.robot.teleop.settings_of`).
+        self.teleop: TeleopSettings | None = None
 
     # -- what the robot is ----------------------------------------------------------------------
 
@@ -79,6 +83,11 @@ class Robot:
     def estop_count(self) -> int:
         """E-stops the robot went through."""
         return self._actor.estop_count
+
+    @property
+    def intervention_count(self) -> int:
+        """Interventions (corrections) started on the robot."""
+        return self._actor.intervention_count
 
     @property
     def targets_superseded(self) -> int:
@@ -252,6 +261,23 @@ class Robot:
         reply: Reply[Episode] = Reply()
         await self._post(EpisodeMsg(action, task, reply))
         return await reply.wait()
+
+    async def highlight(self, task: str, keep: float, since: float) -> Episode:
+        """Keep the last `keep` seconds as a kept episode of `task` (none before `since`,
+        trio time, nor before the last episode's end), marked in the recording at its own
+        times; EPISODE_ACTIVE while an episode runs."""
+        reply: Reply[Episode] = Reply()
+        await self._post(EpisodeMsg("highlight", task, reply, since, keep))
+        return await reply.wait()
+
+    def master_driver(self) -> object | None:
+        """The driver of the master this robot runs itself, paused or driving (None: the
+        master runs elsewhere or there is none); during an intervention, the paused one's."""
+        peers = self._actor.peers
+        for peer in (peers.waiting, peers.master):
+            if peer is not None and peer.driver is not None:
+                return peer.driver
+        return None
 
     def audit(self, user: str, action: str, detail: str = "") -> None:
         """Record who did what (`events.Audited`). It changes nothing in the robot, so it

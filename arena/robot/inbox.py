@@ -145,9 +145,11 @@ class WorkspaceMsg:
 
 @dataclass(slots=True)
 class EpisodeMsg:
-    action: str  # "start" | "stop" | "discard"
+    action: str  # "start" | "stop" | "discard" | "highlight"
     task: str
     reply: Reply[Episode]
+    since: float = 0.0  # a highlight starts no earlier (trio time)...
+    keep: float = 0.0  # ...nor more than this many seconds before now, when it ends
 
 
 @dataclass(slots=True)

@@ -16,6 +16,7 @@ import trio
 
 from arena.protocol.errors import ErrorCode, Severity
 from arena.robot import safety
+from arena.robot.episodes import Episode
 from arena.robot.events import (
     MasterNotice,
     NoticeKind,
@@ -68,6 +69,12 @@ class RobotView(Protocol):
 
     def report_inference(self, event: PolicyInferred) -> None:
         """Record one inference of a policy master."""
+
+    async def episode(self, action: str, task: str = "") -> Episode:
+        """Start, stop or discard a data-collection episode."""
+
+    async def highlight(self, task: str, keep: float, since: float) -> Episode:
+        """Keep the last `keep` seconds (none before `since`) as an episode of `task`."""
 
 
 class RobotPort(Protocol):

@@ -13,6 +13,7 @@ from typing import Any
 from arena.protocol.errors import ErrorCode
 from arena.robot import safety
 from arena.robot.core import RobotCore
+from arena.robot.episodes import Episodes
 from arena.robot.events import InterventionChanged, MasterNotice, RobotEvent, TakenBy
 from arena.robot.links import MasterLink, SlaveLink
 from arena.robot.peers import FaultKeys, MasterPeer, Peer, Peers, SlavePeer
@@ -30,6 +31,8 @@ class MasterKeeping:
     core: RobotCore
     peers: Peers[MasterLink, SlaveLink]
     _publish: Callable[[RobotEvent], None]
+    episodes: Episodes
+    intervention_count: int
 
     def _displaced(self, effect: safety.DetachMaster, now: float) -> None:
         """A master displaced (a takeover, an e-stop that ends a program, an intervention's
@@ -59,6 +62,9 @@ class MasterKeeping:
                 reason = effect.message or "the intervention ended"
                 self._master_gone(intervening, effect.code, reason, "released", now)
         change = "ended" if effect.ended else "started"
+        if not effect.ended:  # a correction, counted in the episode it falls in
+            self.intervention_count += 1
+            self.episodes.corrected()
         log.info(
             "robot %s: intervention by %s %s (%s waits)",
             self.robot_id,

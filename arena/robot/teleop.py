@@ -9,9 +9,9 @@ command through every rule, as any command of the master.
 from __future__ import annotations
 
 import math
-import weakref
 from collections.abc import Awaitable, Callable, Mapping
 from dataclasses import dataclass
+from typing import Protocol
 
 import trio
 
@@ -50,18 +50,13 @@ def default_settings(hand: Hand, workspace: Workspace) -> TeleopSettings:
     return TeleopSettings((x - reach, y - reach, bottom), (x + reach, y + reach, z + reach))
 
 
-#: Settings changed over REST, per robot (a robot's own, gone with it).
-_chosen: weakref.WeakKeyDictionary[object, TeleopSettings] = weakref.WeakKeyDictionary()
+class _Settled(Protocol):
+    teleop: TeleopSettings | None
 
 
-def settings_of(robot: object, hand: Hand, workspace: Workspace) -> TeleopSettings:
-    """The robot's teleoperation settings: those set, else the default."""
-    return _chosen.get(robot) or default_settings(hand, workspace)
-
-
-def choose_settings(robot: object, settings: TeleopSettings) -> None:
-    """Set the robot's teleoperation settings (from the next tick on)."""
-    _chosen[robot] = settings
+def settings_of(robot: _Settled, hand: Hand, workspace: Workspace) -> TeleopSettings:
+    """The robot's teleoperation settings: those set over REST, else the default."""
+    return robot.teleop or default_settings(hand, workspace)
 
 
 class VelocityDriver:

@@ -70,7 +70,9 @@ from arena.server.identity import Principal, TokenVerifier
 from arena.server.interventions_api import blueprint as interventions_blueprint
 from arena.server.interventions_api import operator_of
 from arena.server.metrics import Metrics
+from arena.server.move_api import blueprint as move_blueprint
 from arena.server.origin import SAFE_METHODS, OriginPolicy, is_json
+from arena.server.policies_api import blueprint as policies_blueprint
 from arena.server.recordings_api import blueprint as recordings_blueprint
 from arena.server.recordings_api import readable_recording, recorder_status
 from arena.server.robot_types_api import blueprint as robot_types_blueprint
@@ -115,7 +117,9 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.register_blueprint(fleet_blueprint)
     app.register_blueprint(health_blueprint)
     app.register_blueprint(interventions_blueprint)
+    app.register_blueprint(policies_blueprint)
     app.register_blueprint(hand_blueprint)
+    app.register_blueprint(move_blueprint)
     _register_errors(app)
     _register_routes(app)
     return app

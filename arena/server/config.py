@@ -58,6 +58,7 @@ class ServerConfig:
     recordings_dir: str = "recordings"
     calibration_dir: str = "calibration"  # one calibration file per robot (or per name)
     policy_dir: str = "policies"  # one folder per policy (each tenant's: policies/<tenant>/)
+    script_dir: str = "scripts"  # the scripts a master may run (each tenant's: scripts/<tenant>/)
     #: The Python policy workers run in: one with LeRobot, torch and msgspec (a LeRobot newer
     #: than Arena's, say); None: Arena's own (specs/policy.md).
     policy_python: str | None = None

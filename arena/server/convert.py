@@ -39,8 +39,8 @@ def ack(result: CommandResult) -> wire.AckMessage:
         data = wire.AckData("refused", str(result.code), result.message)
     elif result.clamped:
         data = wire.AckData("clamped", None, result.message, list(result.clamped))
-    else:
-        data = wire.AckData("accepted")
+    else:  # (its message: a way out of a collision in the model, say)
+        data = wire.AckData("accepted", None, result.message)
     return wire.AckMessage(timestamp=wire.now_iso(), data=data)
 
 
@@ -185,6 +185,10 @@ def robot_summary(
         "estop_reason": snapshot.estop_reason,
         "master": _master(snapshot.master, links),
         "paused_master": _master(snapshot.paused_master, links),
+        "corrections": {
+            "total": robot.intervention_count,
+            "episode": robot.episodes.running_corrections(),
+        },
         "slaves": [_peer(s) for s in snapshot.slaves],
         "joints": msgspec.to_builtins(joint_states(robot).data),
     }

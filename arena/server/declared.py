@@ -59,7 +59,7 @@ def read_setup(config: ServerConfig) -> Setup:
     text, data = read_toml(config.config_file)
     known = set(ServerConfig.__dataclass_fields__) - {"config_file"}
     setup = parse_setup(config.config_file, text, data, known)
-    check_references(setup, config.policy_dir, config.recordings_dir)
+    check_references(setup, config.policy_dir, config.recordings_dir, script_dir=config.script_dir)
     return setup
 
 

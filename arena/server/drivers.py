@@ -19,10 +19,13 @@ from arena.drivers.sequences import demo_sequences, get_sequence
 from arena.drivers.servo_arm import family_of
 from arena.extras import install_line
 from arena.policy.master import CameraFrames, PolicyMaster, PolicySettings, Shot
+from arena.policy.strategy import Episodic, Highlight, Sentry, Strategy, check_pose
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import (
     DEFAULT_TENANT,
     FILE_NAME,
+    EpisodicStrategy,
+    HighlightStrategy,
     MasterBody,
     MockSlaveBody,
     PhysicsSlaveBody,
@@ -30,8 +33,11 @@ from arena.protocol.rest import (
     RemoteLinkBody,
     RemoteServerBody,
     ReplayMasterBody,
+    ScriptMasterBody,
+    SentryStrategy,
     SequenceMasterBody,
     SlaveBody,
+    StrategyBody,
     UsbMasterBody,
     UsbSlaveBody,
     WebSocketSlaveBody,
@@ -42,6 +48,7 @@ from arena.recording.replay import ReplayMaster, pick_robot, recorded_commands
 from arena.robot.handle import Robot
 from arena.robot.links import MasterDriver, SlaveDriver
 from arena.robot.model import RobotModel
+from arena.script.master import ScriptMaster, ScriptSettings
 from arena.sensors.camera import Cameras
 from arena.servo.lerobot_calibration import is_lerobot_reference
 from arena.servo.lerobot_calibration import resolve as resolve_lerobot
@@ -351,8 +358,63 @@ def _policy(
         blend_steps=body.blend_steps,
         interpolation_multiplier=body.interpolation_multiplier,
         python=python,
+        strategy=_strategy(body.strategy, model),
     )
     return PolicyMaster(settings, model, cameras)
+
+
+def script_file(value: str, folder: Path) -> Path:
+    """The script a script master's `path` names: a `.py` file of the tenant's scripts folder
+    `folder`, neither a path nor a symbolic link out of the folder (FORBIDDEN, for everyone: a
+    script is code, and only what the server's owner put in the folder runs). Runs off the
+    loop (it reads the disk)."""
+    if not re.fullmatch(FILE_NAME, value):
+        raise ArenaError(
+            ErrorCode.FORBIDDEN,
+            f"Script {value!r} is not the name of a file in this tenant's scripts folder: a "
+            "script is code, and only a file the server's owner put there runs (give its "
+            "name, e.g. pick.py).",
+        )
+    if not value.endswith(".py"):
+        raise ArenaError(
+            ErrorCode.SCRIPT_INVALID, f"Script {value!r}: a script's name ends in .py."
+        )
+    path = in_tenant_folder(folder, value, "Script")
+    if not path.is_file():
+        raise ArenaError(
+            ErrorCode.SCRIPT_INVALID,
+            f"No script {value!r} in this tenant's scripts folder {folder}: put the file there "
+            f"({folder / value}).",
+        )
+    return path.resolve()
+
+
+def _strategy(body: StrategyBody | None, model: RobotModel) -> Strategy | None:
+    """A policy's rollout strategy from its body; a start pose is checked against the robot
+    (INVALID_VALUE naming the joint)."""
+    if body is not None and not body.task.strip():
+        raise ArenaError(
+            ErrorCode.INVALID_VALUE,
+            '"strategy.task" must say what its episodes show (it is blank).',
+        )
+    if isinstance(body, EpisodicStrategy):
+        pose = None
+        if body.start_pose is not None:
+            names = [joint.name for joint in model.joints]
+            limits = {joint.name: (joint.lower, joint.upper) for joint in model.joints}
+            # A joint's alias names it too, as in a command.
+            canonical = {}
+            for name, value in body.start_pose.items():
+                joint = model.joint(name)
+                canonical[joint.name if joint is not None else name] = value
+            check_pose(names, limits, canonical)
+            pose = canonical
+        return Episodic(body.episodes, body.episode_s, body.task.strip(), body.reset_s, pose)
+    if isinstance(body, SentryStrategy):
+        return Sentry(body.episode_s, body.task.strip())
+    if isinstance(body, HighlightStrategy):
+        return Highlight(body.keep_s, body.task.strip())
+    return None
 
 
 def make_master(
@@ -365,16 +427,22 @@ def make_master(
     anywhere: bool = False,
     policy_dir: Path | None = None,
     policy_python: str | None = None,
+    script_dir: Path | None = None,
 ) -> MasterDriver:
     """Build a master driver from its config (`recordings`: where replay finds its files;
     a leader arm's calibration is `calibration_dir/<name>.json`, default `<robot_id>-leader`,
     a path or `lerobot:ID` only with `anywhere` (as `make_slave`); `cameras`: the robot's
     newest frames, for a policy, which is a folder of `policy_dir` (the robot's tenant's
     folder: `tenant_folder`), a path only with `anywhere`), run by `policy_python` (None:
-    Arena's own Python). It takes over from the robot's
-    master only if the config asks (`takeover`)."""
+    Arena's own Python); a script is a file of `script_dir` (the tenant's folder too). It
+    takes over from the robot's master only if the config asks (`takeover`)."""
     if isinstance(body, PolicyMasterBody):
         driver: MasterDriver = _policy(body, model, cameras, policy_dir, anywhere, policy_python)
+    elif isinstance(body, ScriptMasterBody):
+        path = script_file(body.path, script_dir or Path("scripts"))
+        if model is None:
+            raise ArenaError(ErrorCode.INVALID_CONFIG, "A script master needs the robot's model.")
+        driver = ScriptMaster(ScriptSettings(path), model)  # (its hand_mover: the caller's)
     else:
         driver = _master(body, recordings, model, calibration_dir, robot_id, anywhere)
     driver.takes_over = body.takeover

@@ -22,8 +22,9 @@ from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import TeleopBody
 from arena.robot.cartesian import Hand, HandPose, Solution, hand_for, normalized
 from arena.robot.handle import Robot
+from arena.robot.links import RobotView
 from arena.robot.motion import Command, CommandResult
-from arena.robot.teleop import TeleopSettings, choose_settings, settings_of
+from arena.robot.teleop import TeleopSettings, settings_of
 from arena.server import convert
 from arena.server.base import ArenaApp, error_response, read_body
 
@@ -123,6 +124,14 @@ async def plan_pose(robot: Robot, data: wire.PoseData, source: str) -> HandMove:
     return HandMove(Command(tuple(goals), duration, source), solution)
 
 
+async def hand_command(view: RobotView, data: wire.PoseData, source: str) -> Command:
+    """A pose as the joint command that gets the hand there, for a script master (its
+    `hand_mover`): solved as `PUT .../pose` and the `pose` message solve it."""
+    if not isinstance(view, Robot):
+        raise TypeError("a script master drives a robot of this server")
+    return (await plan_pose(view, data, source)).command
+
+
 async def solve_off_the_loop(
     hand: Hand, position: tuple[float, float, float], orientation: Any, start: dict[str, float]
 ) -> Solution:
@@ -215,5 +224,5 @@ async def put_teleop(robot_id: str) -> dict[str, Any]:
     if body.deadman is not None:
         deadman = body.deadman / 1000.0
     chosen = TeleopSettings(low, high, deadman)
-    choose_settings(robot, chosen)
+    robot.teleop = chosen  # from the next tick on
     return teleop_json(chosen)

@@ -25,6 +25,7 @@ from arena.server.access import server_admin
 from arena.server.base import ArenaApp, read_body
 from arena.server.drivers import camera_frames, make_master, tenant_folder
 from arena.server.identity import Principal
+from arena.server.planned_moves import equip_script
 from arena.server.recordings_api import off_the_loop, readable_recording
 
 blueprint = Blueprint("interventions", __name__)
@@ -77,7 +78,9 @@ async def build_master(app: ArenaApp, robot: Robot, body: MasterBody) -> MasterD
         server_admin(g.principal),  # the whole server's admin: any calibration, any policy
         tenant_folder(Path(app.arena_config.policy_dir), robot.tenant),
         app.arena_config.policy_python,
+        tenant_folder(Path(app.arena_config.script_dir), robot.tenant),
     )
+    equip_script(app, driver)
     return driver
 
 

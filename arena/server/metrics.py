@@ -31,6 +31,66 @@ def _label(value: str) -> str:
     return value.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n")
 
 
+#: A policy's figures shown on /metrics: (metric, type, its key in the figures, help).
+POLICY_FIGURES = (
+    (
+        "arena_policy_inference_seconds",
+        "gauge",
+        "last_latency",
+        "The policy's last inference, as its worker timed it, by robot.",
+    ),
+    (
+        "arena_policy_chunk_actions",
+        "gauge",
+        "last_chunk",
+        "Actions in the policy's last chunk, by robot.",
+    ),
+    ("arena_policy_inferences_total", "counter", "inferences", "The policy's inferences."),
+    (
+        "arena_policy_stalls_total",
+        "counter",
+        "stalls",
+        "Times the policy's watchdog tripped (no action in time), by robot.",
+    ),
+)
+
+
+def _flywheel_families(robots: list[Robot]) -> list[str]:
+    """Each robot's corrections (interventions), in all and in its running episode, and the
+    figures of the policy that drives it or waits for a correction to end."""
+    total: dict[str, float] = {}
+    episode: dict[str, float] = {}
+    policies: dict[str, dict[str, float]] = {}
+    for robot in robots:
+        labels = f'robot="{robot.robot_id}"'
+        total[labels] = robot.intervention_count
+        running = robot.episodes.running_corrections()
+        if running is not None:
+            episode[labels] = running
+        snapshot = robot.snapshot()
+        for master in (snapshot.master, snapshot.paused_master):
+            if master is not None and master.figures is not None and master.kind == "policy":
+                policies[labels] = master.figures
+    lines = [
+        *_family(
+            "arena_interventions_total",
+            "counter",
+            "Interventions (a human's corrections of a running master), by robot.",
+            total,
+        ),
+        *_family(
+            "arena_episode_corrections",
+            "gauge",
+            "Corrections in the robot's running episode.",
+            episode,
+        ),
+    ]
+    for name, kind, key, text in POLICY_FIGURES:
+        values = {labels: figures.get(key, 0) for labels, figures in policies.items()}
+        lines += _family(name, kind, text, values)
+    return lines
+
+
 def _robot_families(
     robots: list[Robot], servos: Callable[[Robot], list[tuple[str, float, float]]] | None
 ) -> list[str]:
@@ -220,6 +280,7 @@ class Metrics:
         ]
         lines += self._link_families(robots, links or {})
         lines += _robot_families(robots, servos)
+        lines += _flywheel_families(robots)
         if whole_server:
             lines += self._server_families()
         if recording is not None:

@@ -21,12 +21,14 @@ from arena.protocol.rest import (
     JointsBody,
     MasterBody,
     MockSlaveBody,
+    MoveBody,
     PhysicsSlaveBody,
     PolicyMasterBody,
     ReasonBody,
     RemoteServerBody,
     ReplayBody,
     ReplayMasterBody,
+    ScriptMasterBody,
     SequenceMasterBody,
     SlaveBody,
     TeleopBody,
@@ -61,6 +63,12 @@ ROUTES: list[tuple[str, str, str, Any]] = [
     ("PUT", "/api/robots/{robot_id}/joints", "Manual control (refused while mastered)", JointsBody),
     ("GET", "/api/robots/{robot_id}/pose", "The hand's pose, measured and commanded", None),
     ("PUT", "/api/robots/{robot_id}/pose", "Move the hand to a pose (solved)", wire.PoseData),
+    (
+        "POST",
+        "/api/robots/{robot_id}/move",
+        "Move to a joint or pose goal, straight or along a planned path",
+        MoveBody,
+    ),
     ("GET", "/api/robots/{robot_id}/teleop", "Teleoperation's box and dead-man time", None),
     ("PUT", "/api/robots/{robot_id}/teleop", "Change teleoperation's box, dead-man", TeleopBody),
     ("GET", "/api/robots/{robot_id}/workspace", "The collision guard's workspace", None),
@@ -102,6 +110,7 @@ ROUTES: list[tuple[str, str, str, Any]] = [
     ("GET", "/api/recordings/{name}/file", "Download a recording (MCAP)", None),
     ("GET", "/api/recordings/{name}/joints", "A robot's joints over a recording, for plots", None),
     ("POST", "/api/robots/{robot_id}/replay", "Replay a recording onto a robot", ReplayBody),
+    ("GET", "/api/robots/{robot_id}/policies", "The policies the robot's tenant may run", None),
     ("GET", "/api/robots/{robot_id}/calibration", "Calibration of a hardware slave", None),
     (
         "POST",
@@ -152,6 +161,12 @@ ROUTES: list[tuple[str, str, str, Any]] = [
         "End the episode without keeping it (or take back the last)",
         None,
     ),
+    (
+        "POST",
+        "/api/robots/{robot_id}/highlight",
+        "Save the last seconds a policy's highlight strategy keeps as an episode",
+        None,
+    ),
     ("GET", "/api/fleet/nodes", "The nodes of this server's fleet (--node)", None),
     ("GET", "/api/fleet/robots", "Every robot of every node, with its node and state", None),
     ("POST", "/api/fleet/estop", "E-stop every robot of every node; each node's ack", ReasonBody),
@@ -188,6 +203,7 @@ SUCCESS: dict[tuple[str, str], int] = {
     ("POST", "/api/robots/{robot_id}/replay"): 201,
     ("POST", "/api/robots/{robot_id}/cameras"): 201,
     ("POST", "/api/robots/{robot_id}/episodes/start"): 201,
+    ("POST", "/api/robots/{robot_id}/highlight"): 201,
     ("POST", "/api/groups"): 201,
     ("GET", "/ui"): 302,
     # Asked on a reused connection; as a connection's first request the listener serves it
@@ -233,6 +249,7 @@ EXAMPLES: dict[type, dict[str, Any]] = {
         "task": "pick up the cube",
         "fps": 30,
     },
+    ScriptMasterBody: {"type": "script", "path": "pick_and_place.py"},
     RemoteServerBody: {
         "type": "remote-server",
         "url": "ws://localhost:8080",
@@ -245,6 +262,7 @@ EXAMPLES: dict[type, dict[str, Any]] = {
     GroupBody: {"id": "pair", "members": ["demo-arm"], "stopTogether": True},
     TeleopBody: {"box": {"min": [-0.3, -0.4, 0.02], "max": [0.3, 0.0, 0.4]}, "deadman": 200},
     wire.PoseData: {"position": [0.0, -0.25, 0.2], "gripper": 50, "duration": 1000},
+    MoveBody: {"pose": {"position": [0.1, -0.2, 0.15]}, "plan": True, "budget": 1000},
 }
 
 

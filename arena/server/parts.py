@@ -16,6 +16,7 @@ from typing import TYPE_CHECKING
 import msgspec
 import trio
 
+from arena.policy.master import PolicyMaster
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import (
     DEFAULT_TENANT,
@@ -23,6 +24,7 @@ from arena.protocol.rest import (
     CreateRobotBody,
     GroupBody,
     MasterBody,
+    PolicyMasterBody,
     ReplayMasterBody,
     SlaveBody,
     WorkspaceBody,
@@ -40,6 +42,7 @@ from arena.server.drivers import (
     tenant_folder,
 )
 from arena.server.identity import Principal, Role
+from arena.server.planned_moves import equip_script
 from arena.server.recordings_api import off_the_loop
 
 if TYPE_CHECKING:
@@ -133,7 +136,19 @@ async def attach_master(app: ArenaApp, robot: Robot, body: MasterBody, anywhere:
         anywhere,
         tenant_folder(Path(app.arena_config.policy_dir), robot.tenant),
         app.arena_config.policy_python,
+        tenant_folder(Path(app.arena_config.script_dir), robot.tenant),
     )
+    equip_script(app, driver)
+    if isinstance(body, PolicyMasterBody) and body.strategy is not None:
+        running = robot.episodes.active
+        if running is not None:  # said before the policy loads
+            raise ArenaError(
+                ErrorCode.EPISODE_ACTIVE,
+                f"Episode {running.index} is running: a rollout strategy makes its own "
+                "episodes; stop or discard it first.",
+            )
+        if isinstance(driver, PolicyMaster):
+            driver.keeper = app.recorder.keeper(robot.robot_id)
     prepare = getattr(driver, "prepare", None)
     if prepare is not None:
         holder = robot.snapshot().master

@@ -175,6 +175,22 @@ async def discard_episode(robot_id: str) -> dict[str, Any]:
     return _episode(await robot.episode("discard"))
 
 
+@blueprint.post("/api/robots/<robot_id>/highlight")
+async def highlight(robot_id: str) -> tuple[dict[str, Any], int]:
+    """Save the last seconds a policy's highlight strategy keeps as a kept episode."""
+    robot = _app().manager.get(robot_id)
+    driver = robot.master_driver()
+    save = getattr(driver, "highlight", None)
+    if save is None:
+        raise ArenaError(
+            ErrorCode.NO_HIGHLIGHT,
+            "The robot's master is no policy Arena runs with the highlight strategy: nothing "
+            "is kept to save.",
+        )
+    episode: Episode = await save()
+    return _episode(episode), 201
+
+
 # -- the MJPEG stream, served by the listener --------------------------------------------------
 
 

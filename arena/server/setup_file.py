@@ -34,6 +34,7 @@ from arena.protocol.rest import (
     ReplayMasterBody,
     RobotId,
     RobotName,
+    ScriptMasterBody,
     SequenceMasterBody,
     SlaveBody,
     WorkspaceBody,
@@ -303,14 +304,19 @@ def _free_id(base: str, taken: Mapping[str, object]) -> str:
 
 
 def check_references(
-    setup: Setup, policy_dir: str, recordings_dir: str, anywhere: bool = True
+    setup: Setup,
+    policy_dir: str,
+    recordings_dir: str,
+    anywhere: bool = True,
+    script_dir: str = "scripts",
 ) -> None:
     """Every name the setup uses names something: a robot type, a group's members, a
-    twin camera's physics slave, a sequence, a policy's folder, a replay's recording."""
+    twin camera's physics slave, a sequence, a policy's folder, a script, a replay's
+    recording."""
     from arena.drivers.sequences import get_sequence
     from arena.recording.recorder import existing_recording
     from arena.robot.model import load_robot_model
-    from arena.server.drivers import policy_folder, tenant_folder
+    from arena.server.drivers import policy_folder, script_file, tenant_folder
 
     models = {}
     for index, robot in enumerate(setup.robots.values()):
@@ -344,6 +350,9 @@ def check_references(
                 at = (*where, "master", "path")
                 folder = tenant_folder(Path(policy_dir), robot.tenant or "default")
                 policy_folder(master.path, folder, anywhere)
+            elif isinstance(master, ScriptMasterBody):
+                at = (*where, "master", "path")
+                script_file(master.path, tenant_folder(Path(script_dir), robot.tenant or "default"))
             elif isinstance(master, ReplayMasterBody):
                 at = (*where, "master", "recording")
                 existing_recording(Path(recordings_dir), master.recording)

@@ -3,9 +3,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import signal
 import threading
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 
 from arena.protocol.errors import ArenaError, ErrorCode
@@ -124,8 +125,22 @@ def calibrate_interactively(
     return calibration
 
 
-def serve_sim_bus(link: Path, bus: SimulatedBus, wire_time: bool, baud: int) -> None:
-    """Run a simulated bus at `link` until SIGINT or SIGTERM."""
+def serve_sim_bus(
+    link: Path,
+    bus: SimulatedBus,
+    wire_time: bool,
+    baud: int,
+    *,
+    model: RobotModel | None = None,
+    control_port: int | None = None,
+    calibration: Calibration | None = None,
+    keys: bool = False,
+) -> None:
+    """Run a simulated bus at `link` until SIGINT or SIGTERM. With `model`, its joints can be
+    moved by hand (`arena.servo.sim_control`): over a socket on 127.0.0.1:`control_port` (0:
+    any free port), and by `keys` in this terminal."""
+    from arena.servo import sim_control
+
     stop = threading.Event()
     with PtySimBus(link, bus, wire_time=wire_time, baud=baud, share=True) as sim:
         for sig in (signal.SIGINT, signal.SIGTERM):  # once the link is ours (it may be taken)
@@ -136,4 +151,39 @@ def serve_sim_bus(link: Path, bus: SimulatedBus, wire_time: bool, baud: int) -> 
             f"{sim.link} -> {sim.link.resolve()}{timing}",
             flush=True,
         )
-        stop.wait()
+        if model is None or (control_port is None and not keys):
+            print("move its joints by hand: --control PORT (JSON lines) or --keys", flush=True)
+            stop.wait()
+            return
+        control = sim_control.SimControl(sim, model, calibration)
+        port = None
+        if control_port is not None:
+            port = control.serve(control_port, stop).port
+        else:
+            threading.Thread(target=control.run_mover, args=(stop,), daemon=True).start()
+        with _keys_from_terminal() if keys else contextlib.nullcontext() as read_key:
+            # (told once the keys are read one by one: a key pressed on the word counts)
+            print(sim_control.usage(control, port, keys), flush=True)
+            if read_key is not None:
+                threading.Thread(
+                    target=sim_control.key_loop,
+                    args=(control, read_key, lambda text: print(text, flush=True)),
+                    daemon=True,
+                ).start()
+            stop.wait()
+
+
+@contextlib.contextmanager
+def _keys_from_terminal() -> Iterator[Callable[[], str]]:
+    """Single key presses from this terminal (cbreak: Ctrl-C still stops), restored after."""
+    import sys
+    import termios
+    import tty
+
+    stdin = sys.stdin.fileno()
+    saved = termios.tcgetattr(stdin)
+    tty.setcbreak(stdin)
+    try:
+        yield lambda: sys.stdin.read(1)
+    finally:
+        termios.tcsetattr(stdin, termios.TCSADRAIN, saved)

@@ -1,55 +1,57 @@
-// "Drive the hand": the keyboard steers the selected robot's hand over the master WebSocket
-// with `ee_velocity` messages (specs/cartesian.md). Arrow keys move it along the base frame's
-// x (up/down) and y (left/right), W/S along z; O/C open and close the gripper. While a key is
-// held a message goes every 50 ms; letting go sends a stop, and a page that goes quiet (a
-// closed tab, a lost network) stops the hand within the robot's dead-man time anyway.
+// "Drive the hand": the keyboard, a gamepad and a phone's tilt steer the selected robot's hand
+// over the master WebSocket with `ee_velocity` messages (specs/cartesian.md). Each input is a
+// source of a velocity in fractions of full speed, [x, y, z, gripper] in the robot's base
+// frame; the driver adds them up and, while the sum is not zero, sends it every 50 ms, then one
+// stop. A page that goes quiet (a closed tab, a lost network) stops the hand within the
+// robot's dead-man time anyway. While a master runs (a policy, a sequence), driving is an
+// intervention (`?intervene=1`): that master waits, paused, and stopping hands it back.
 
 import { apiKey } from "./api.js";
 
-const SPEED = 0.05; // m/s of the hand
+const SPEED = 0.05; // m/s of the hand at full deflection
 const GRIP_SPEED = 50; // the gripper's unit (percent or degrees) per second
 const SEND_MS = 50;
-// key -> [axis, sign]; axis 3 is the gripper
-const KEYS = {
-  ArrowUp: [0, 1],
-  ArrowDown: [0, -1],
-  ArrowLeft: [1, 1],
-  ArrowRight: [1, -1],
-  w: [2, 1],
-  s: [2, -1],
-  o: [3, 1],
-  c: [3, -1],
-};
 
-/** The keyboard driver of one robot's hand: `start(robotId)`, `stop()`; `onStatus(text)`
- * hears what it is doing. */
+/** The driver of one robot's hand: `start(robotId, {intervene})`, `stop()`; `onStatus(text)`
+ * hears what it is doing. `sources` have `velocity()` (an array of four, or null), `attach()`
+ * and `detach()`; they call `changed()` for a message at once (a key let go) and `note(text)`
+ * to say what they see (a gamepad). */
 export class HandDriver {
-  constructor(onStatus) {
+  constructor(onStatus, sources) {
     this.onStatus = onStatus;
+    this.sources = sources;
     this.socket = null;
-    this.held = new Set();
+    this.moving = false; // the last message sent was not a stop
     this.timer = null;
-    this.down = (event) => this.key(event, true);
-    this.up = (event) => this.key(event, false);
-    this.blur = () => this.held.clear(); // a key let go elsewhere is never heard here
+    this.help = "";
+    for (const source of sources) {
+      source.changed = () => this.send();
+      source.note = (text) => this.note(text);
+    }
   }
 
   get driving() {
     return this.socket !== null;
   }
 
-  start(robotId) {
+  /** Take the robot: as its master, or (`intervene`) as an intervention on the running one. */
+  start(robotId, { intervene = false } = {}) {
     this.stop();
     const scheme = location.protocol === "https:" ? "wss" : "ws";
     const key = apiKey();
-    const query = `?id=dashboard-hand${key ? `&token=${encodeURIComponent(key)}` : ""}`;
+    const query =
+      `?id=dashboard-hand${intervene ? "&intervene=1" : ""}` +
+      (key ? `&token=${encodeURIComponent(key)}` : "");
     const socket = new WebSocket(
       `${scheme}://${location.host}/ws/master/${encodeURIComponent(robotId)}${query}`,
     );
     this.socket = socket;
+    this.help = intervene
+      ? "correcting (the master waits; stop to hand back): arrows, W/S, O/C"
+      : "driving: arrows, W/S, O/C";
     this.onStatus("connecting…");
     socket.addEventListener("open", () => {
-      if (this.socket === socket) this.onStatus("driving: arrows, W/S, O/C");
+      if (this.socket === socket) this.onStatus(this.help);
     });
     socket.addEventListener("message", (event) => {
       const message = JSON.parse(event.data);
@@ -62,9 +64,7 @@ export class HandDriver {
       this.release();
       this.onStatus(event.reason ? `stopped: ${event.reason}` : "stopped");
     });
-    window.addEventListener("keydown", this.down);
-    window.addEventListener("keyup", this.up);
-    window.addEventListener("blur", this.blur);
+    for (const source of this.sources) source.attach();
     this.timer = setInterval(() => this.send(), SEND_MS);
   }
 
@@ -79,35 +79,34 @@ export class HandDriver {
 
   release() {
     this.socket = null;
-    this.held.clear();
+    this.moving = false;
     clearInterval(this.timer);
-    window.removeEventListener("keydown", this.down);
-    window.removeEventListener("keyup", this.up);
-    window.removeEventListener("blur", this.blur);
+    for (const source of this.sources) source.detach();
   }
 
-  key(event, pressed) {
-    const name = event.key.length === 1 ? event.key.toLowerCase() : event.key;
-    if (!(name in KEYS) || event.target.closest("input, textarea, select")) return;
-    event.preventDefault(); // arrows would scroll the page
-    const was = this.held.size;
-    if (pressed) this.held.add(name);
-    else this.held.delete(name);
-    if (this.held.size !== was) this.send(true);
-  }
-
-  /** The velocity of the keys held; sent while any is, and once more (a stop) when the
-   * last is let go (`changed`). */
-  send(changed = false) {
-    const socket = this.socket;
-    if (!socket || socket.readyState !== WebSocket.OPEN || (!this.held.size && !changed)) return;
-    const velocity = [0, 0, 0, 0];
-    for (const name of this.held) {
-      const [axis, sign] = KEYS[name];
-      velocity[axis] += sign * (axis === 3 ? GRIP_SPEED : SPEED);
+  /** A source's name beside the keys in the status (a gamepad seen, say). */
+  note(text) {
+    if (this.socket && this.socket.readyState === WebSocket.OPEN) {
+      this.onStatus(text ? `${this.help}; ${text}` : this.help);
     }
-    const data = { linear: velocity.slice(0, 3) };
-    if (velocity[3]) data.gripper = velocity[3];
+  }
+
+  /** The sources' velocity, each part within full speed; sent while it is not zero, and
+   * once more (a stop) when it comes back to zero. */
+  send() {
+    const socket = this.socket;
+    if (!socket || socket.readyState !== WebSocket.OPEN) return;
+    const sum = [0, 0, 0, 0];
+    for (const source of this.sources) {
+      const velocity = source.velocity();
+      if (velocity) velocity.forEach((value, axis) => (sum[axis] += value));
+    }
+    const clamped = sum.map((value) => Math.max(-1, Math.min(1, value)));
+    const moving = clamped.some((value) => value !== 0);
+    if (!moving && !this.moving) return;
+    this.moving = moving;
+    const data = { linear: clamped.slice(0, 3).map((value) => value * SPEED) };
+    if (clamped[3]) data.gripper = clamped[3] * GRIP_SPEED;
     socket.send(JSON.stringify({ type: "ee_velocity", data }));
   }
 }

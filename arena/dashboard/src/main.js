@@ -2,10 +2,15 @@
 // stop buttons, the API key, and the periodic refresh of what the sockets do not push.
 
 import { ApiError, apiKey, call, callReporting, setApiKey } from "./api.js";
+import { showPolicies, wireAttach } from "./attach.js";
+import { closeCalibration, wireCalibration } from "./calibrate.js";
 import { HandDriver } from "./drive.js";
+import { GamepadSource } from "./gamepad.js";
+import { KeyboardSource } from "./keys.js";
 import { RecordingsPanel } from "./recordings.js";
 import { masterText, RobotView } from "./robot_view.js";
 import { SecondClickTakeover } from "./takeover.js";
+import { TiltSource } from "./tilt.js";
 
 const $ = (id) => document.getElementById(id);
 const REFRESH_MS = 1000;
@@ -86,6 +91,7 @@ async function refresh() {
     closeView();
     view = new RobotView(summary, { onChanged: () => refresh() });
     $("robot-panel").hidden = false;
+    showPolicies(id);
   } else {
     view.applySummary(summary);
   }
@@ -107,15 +113,24 @@ function chooseForTheVisitor() {
   }
 }
 
-// "Drive the hand" (drive.js): the keyboard as the robot's master while it is on.
-const hand = new HandDriver((text) => {
-  $("drive-status").textContent = text;
-  $("drive-hand").textContent = hand.driving ? "Stop driving" : "Drive the hand";
-});
+// "Drive the hand" (drive.js): the keyboard, a gamepad and a phone's tilt as the robot's
+// master while it is on, or as an intervention on the master that runs.
+const hand = new HandDriver(
+  (text) => {
+    $("drive-status").textContent = text;
+    $("drive-hand").textContent = hand.driving ? "Stop driving" : "Drive the hand";
+  },
+  [
+    new KeyboardSource(),
+    new GamepadSource(),
+    new TiltSource($("tilt-row"), $("tilt-move"), $("tilt-lift")),
+  ],
+);
 
 function closeView() {
   if (hand.driving) hand.stop();
   if (view) view.close();
+  closeCalibration();
   view = null;
   $("robot-panel").hidden = true;
   $("estop").disabled = true;
@@ -212,10 +227,12 @@ function wireRobotControls() {
     if (answer) await refresh();
   });
   $("drive-hand").addEventListener("click", () => {
+    const mode = view && view.state ? view.state.mode : "";
     if (hand.driving) hand.stop();
-    else hand.start(selectedId());
+    else hand.start(selectedId(), { intervene: mode === "mastered" || mode === "paused" });
     $("drive-hand").textContent = hand.driving ? "Stop driving" : "Drive the hand";
   });
+  wireAttach({ robotPath, mode: () => (view && view.state ? view.state.mode : ""), act });
   $("stop-sequence").addEventListener("click", () => act("POST", `${robotPath()}/stop-sequence`));
   $("add-mock").addEventListener("click", () =>
     act("POST", `${robotPath()}/slaves`, { type: "mock-slave" }),
@@ -328,6 +345,7 @@ async function fillChoices() {
 
 wireHeader();
 wireRobotControls();
+wireCalibration(report);
 window.addEventListener("hashchange", () => {
   takeover.disarm(); // armed for the robot that was on screen
   refresh();

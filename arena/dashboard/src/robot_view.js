@@ -2,6 +2,9 @@
 // master and slaves, recent events. Everything goes through the public API.
 
 import { apiKey, call, callReporting, watchRobot } from "./api.js";
+import { showAttach } from "./attach.js";
+import { showCalibration } from "./calibrate.js";
+import { showFlywheel } from "./flywheel.js";
 import { COMMANDED_COLOR, cssColor, MEASURED_COLOR, Twin } from "./twin.js";
 
 const $ = (id) => document.getElementById(id);
@@ -180,6 +183,8 @@ export class RobotView {
       });
     }
     this.showMaster();
+    showFlywheel(summary);
+    showCalibration(summary);
     const peers = $("peers");
     peers.replaceChildren();
     const entries = [
@@ -337,6 +342,7 @@ export class RobotView {
     $("hand-back").disabled = state.mode !== "intervened";
     $("estop").disabled = state.mode === "estopped";
     $("reset").disabled = state.mode !== "estopped";
+    showAttach(state.mode);
     this.showMaster();
   }
 

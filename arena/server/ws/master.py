@@ -8,6 +8,7 @@ from functools import partial
 
 import trio
 
+from arena.drivers.planned_move import PlannedMove
 from arena.drivers.sequence_master import SequenceMaster
 from arena.protocol import messages as wire
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
@@ -19,6 +20,8 @@ from arena.server import convert
 from arena.server.base import ArenaApp
 from arena.server.hand_api import command_pose
 from arena.server.link_quality import LinkQuality
+from arena.server.move_api import check_goal, move_straight
+from arena.server.planned_moves import plan_move
 from arena.server.ws.acks import AckCache
 from arena.server.ws.backpressure import Outgoing
 from arena.server.ws.connection import (
@@ -286,6 +289,30 @@ async def decide_commands(
     return not stopped
 
 
+async def _play_planned(
+    connection: Connection,
+    robot: Robot,
+    link: MasterLink,
+    player: SequencePlayer,
+    data: wire.MoveData,
+) -> None:
+    """Plan a `move` (in a thread, the messages go on meanwhile), say so with an `ack` (its
+    message: the corners and the duration) or an `error`, then play the path as this
+    master's commands; a new sequence or move, an e-stop or a release stops it."""
+    with trio.CancelScope() as scope:
+        player.scope = scope
+        try:
+            path = await plan_move(connection.app, robot, data, link.master_id)
+        except ArenaError as error:
+            await connection.send_error(error.code, error.message)
+            return
+        what = f"planned: {len(path.waypoints)} corners, {path.duration:.2f} s"
+        await connection.send(
+            wire.AckMessage(timestamp=wire.now_iso(), data=wire.AckData("accepted", message=what))
+        )
+        await PlannedMove(path, source="move").run(link)
+
+
 async def _handle_master_message(
     connection: Connection,
     robot: Robot,
@@ -331,6 +358,14 @@ async def _handle_master_message(
     elif isinstance(message, wire.PoseMessage):
         result, _ = await command_pose(robot, message.data, link.command, "pose")
         await connection.send(convert.ack(result))
+    elif isinstance(message, wire.MoveMessage):
+        check_goal(message.data)
+        if message.data.plan:
+            player.stop()  # (as a new sequence does; this one is stopped alike)
+            nursery.start_soon(_play_planned, connection, robot, link, player, message.data)
+        else:
+            result, _ = await move_straight(robot, message.data, link.command, "move")
+            await connection.send(convert.ack(result))
     elif isinstance(message, wire.HeartbeatMessage):
         await connection.send(wire.HeartbeatMessage(timestamp=wire.now_iso()))
     elif isinstance(message, wire.ReleaseMessage):

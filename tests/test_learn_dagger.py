@@ -1,0 +1,165 @@
+"""`arena learn reach --dagger`, small enough for CI: on the so-101, two demonstrations, a policy
+trained a few steps (so it strays), one round of corrected deployments. The mechanics, each read
+back by its own reader: the corrector intervened through the robot's intervention (its start and
+end in the recording, its commands accepted under its own id), Arena's export wrote its
+corrections with `intervention` and the episode's target (LeRobot's own `LeRobotDataset`
+reads them), the next round trained on more frames, and the retrained policy is loaded by a
+server's policy master as a user would load it. The success figures are the long run's
+(specs/learning.md), not this test's."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+
+import httpx
+import numpy as np
+import trio
+
+from arena.recording.mcap_file import read_recording
+from arena.robot.model import load_robot_model
+from tests.conftest import REPOSITORY, RunningServer, need
+
+Start = Callable[..., Awaitable[RunningServer]]
+#: Bounds only a broken command reaches (torch and LeRobot take seconds to import, and the
+#: policy's worker is started twice).
+RUN = 900.0
+LOAD = 120.0
+
+
+async def test_one_small_round_corrects_exports_and_retrains(
+    start_server: Start, tmp_path: Path
+) -> None:
+    lerobot_dataset = need("lerobot.datasets.lerobot_dataset", "lerobot")
+    need("gymnasium", "gym")
+    need("mujoco", "physics")
+    from arena.gym.dagger import ROLLOUT_SEED, target_of
+    from arena.gym.task import Reach
+
+    out = tmp_path / "dagger"
+    with trio.fail_after(RUN):
+        done = await trio.run_process(
+            [
+                sys.executable,
+                "-m",
+                "arena",
+                "learn",
+                "reach",
+                "-o",
+                str(out),
+                "--robot-type",
+                "so-101",
+                "--dagger",
+                "1",
+                "--demos",
+                "2",
+                "--rollouts",
+                "2",
+                "--steps",
+                "10",
+                "--targets",
+                "1",
+            ],
+            capture_stdout=True,
+            capture_stderr=True,
+            check=False,
+            env={**os.environ, "PYTHONPATH": str(REPOSITORY)},
+        )
+    said = done.stdout.decode()
+    assert done.returncode == 0, said + done.stderr.decode()
+    report = json.loads((out / "report.json").read_text())
+    first, second = report["rounds"]
+    assert "round 0 " in said and "round 1 " in said
+    assert f"policy saved in {out / 'round-1' / 'policy'}" in said
+
+    # The corrector intervened, through the robot's intervention, and commanded.
+    assert first["rollouts"] == 2 and first["interventions"] >= 1
+    (recording,) = sorted((out / "round-0" / "recordings").glob("*.mcap"))
+    messages = read_recording(recording).messages
+    changes = [m.data for m in messages if m.kind == "intervention"]
+    started = [c for c in changes if c["change"] == "started"]
+    assert len(started) == first["interventions"]
+    assert all(c["master"] == "corrector" for c in changes)
+    assert sum(c["change"] == "ended" for c in changes) == len(started)
+    accepted = [m for m in messages if m.kind == "command" and m.data["accepted"]]
+    assert any(m.data["source"] == "corrector" for m in accepted)
+    starts = [m for m in messages if m.kind == "episode" and m.data["change"] == "start"]
+    assert len(starts) == 2
+
+    # Its corrections, exported by Arena: every frame flagged, each with its episode's target.
+    root = out / "round-0" / "corrections"
+    arena_info = json.loads((root / "meta" / "arena.json").read_text())
+    assert arena_info["corrections"] and all(m == "corrector" for _, m in arena_info["corrections"])
+    repo_id = json.loads((root / "meta" / "info.json").read_text()).get("repo_id")
+    dataset = lerobot_dataset.LeRobotDataset(repo_id or "arena/reach-corrections-0", root=root)
+    feature = dataset.meta.features["intervention"]
+    assert feature["dtype"] == "bool" and tuple(feature["shape"]) == (1,)
+    assert dataset.num_episodes == len(arena_info["corrections"])
+    rows = list(dataset.hf_dataset.with_format(None))
+    assert len(rows) == first["correction_frames"] > 0
+    assert all(bool(np.asarray(row["intervention"]).reshape(-1)[0]) for row in rows)
+    task = Reach(load_robot_model("so-101"))
+    targets = [target_of(task, ROLLOUT_SEED + k) for k in range(2)]  # the rollouts' own
+    for row in rows:
+        state = row["observation.environment_state"]
+        assert any(np.allclose(state, target, atol=1e-6) for target in targets)
+
+    # The data grew by the corrections, and round 1 trained on it all.
+    assert second["frames"] == first["frames"] + first["correction_frames"]
+    assert second["rollouts"] == 0 and 0.0 <= second["success"] <= 1.0
+
+    # The retrained policy is what a server's policy master loads, target and all.
+    server = await start_server()
+    async with httpx.AsyncClient(base_url=server.url, timeout=LOAD) as http:
+        made = await http.post("/api/robots", json={"id": "arm", "robot_type": "so-101"})
+        assert made.status_code == 201, made.text
+        slave = await http.post("/api/robots/arm/slaves", json={"type": "mock-slave"})
+        assert slave.status_code == 201, slave.text
+        body = {
+            "type": "policy",
+            "path": second["policy_dir"],
+            "environment_state": [0.3, 0.0, 0.2],
+        }
+        attached = await http.post("/api/robots/arm/master", json=body)
+        assert attached.status_code == 201, attached.text
+        assert attached.json()["id"].startswith("policy:act:")
+        await http.delete("/api/robots/arm/master")
+
+
+def test_the_policy_strays_after_half_a_second_without_progress() -> None:
+    need("gymnasium", "gym")
+    from arena.gym.dagger import Stray
+
+    stray = Stray(30.0)  # 15 steps
+    # Coming closer by 3 mm a step is progress, however far it still is.
+    assert not any(stray.update(0.30 - 0.003 * k) for k in range(40))
+    # Arriving 5 cm away (progress) and standing still there: 15 steps (half a second)
+    # later it strays, not a step earlier.
+    stuck = [stray.update(0.05) for _ in range(17)]
+    assert stuck.index(True) == 15
+    # Holding within the success distance is what it should do: no stray.
+    stray.restart()
+    assert not any(stray.update(0.015) for _ in range(60))
+    # Drifting away strays too.
+    stray.restart()
+    assert any(stray.update(0.03 + 0.001 * k) for k in range(16))
+
+
+def test_a_following_expert_stays_on_a_leash_from_the_arm() -> None:
+    """The corrector's commands are eased in at the joining speed: its plan must not run
+    away from an arm that moves slowly, or its actions label states they do not fit."""
+    need("gymnasium", "gym")
+    from arena.gym.task import ARM_JOINTS, EXPERT_LEASH, EXPERT_STEP, Expert, Reach
+
+    task = Reach(load_robot_model("so-101"))
+    rng = np.random.default_rng(3)
+    target = task.draw_target(rng)
+    arm = np.zeros(6)
+    free, leashed = Expert(task, target, arm), Expert(task, target, arm, follow=True)
+    for _ in range(20):  # the arm does not move at all
+        ahead = np.abs(free.act(arm)[:ARM_JOINTS]).max()
+        near = np.abs(leashed.act(arm)[:ARM_JOINTS]).max()
+    assert near <= EXPERT_LEASH + EXPERT_STEP + 1e-9 < ahead
