@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
@@ -160,6 +161,7 @@ class UsbMaster(ServoArm):
                 last_sent = None
                 continue
             pose = self._pose(reading)
+            read_time = reading.time
             now = trio.current_time()
             if still is None or _moved(pose, still, self.config.deadband / 4):
                 still, still_since, settled = pose, now, False
@@ -173,9 +175,17 @@ class UsbMaster(ServoArm):
                 newer = bridge.take_reading()
                 if newer is not None:
                     pose = self._pose(newer)
+                    read_time = newer.time
             last_at = trio.current_time()
+            # When the pose was read, on the robot's clock: the trajectory follows the
+            # leader's stream by its read times, not by the loop's jitter of arrival.
+            read_at = trio.current_time() - max(0.0, time.monotonic() - read_time)
             result = await link.command(
-                Command(tuple(JointGoal(n, v) for n, v in pose.items()), source="leader-arm")
+                Command(
+                    tuple(JointGoal(n, v) for n, v in pose.items()),
+                    source="leader-arm",
+                    stamp=read_at,
+                )
             )
             self.sent += 1
             if result.accepted:

@@ -390,7 +390,7 @@ class RobotCore:
             elif self._escaping is not None:
                 way_out = f"out of a collision in the model: {self._escaping.describe()}"
                 message = f"{message}; {way_out}" if message else way_out
-        self.motion.set_goals(goals, command.duration, now)
+        self.motion.set_goals(goals, command.duration, now, command.stamp)
         self._commander = key
         targets = self._advance(now, fresh=in_burst)
         if self.easing is not None:

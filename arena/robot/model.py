@@ -28,8 +28,9 @@ CONFIG_FILE = "robot.toml"
 #: A joint's default acceleration limit per deg/s of its velocity limit (full speed in 33 ms;
 #: specs/motion.md says why).
 ACCELERATION_PER_VELOCITY = 30.0
-#: A joint's default jerk limit per deg/s^2 of its acceleration limit (full acceleration in 40 ms).
-JERK_PER_ACCELERATION = 25.0
+#: A joint's default jerk limit per deg/s^2 of its acceleration limit: full acceleration in
+#: 10 ms, one control tick (specs/motion.md: a slower ramp cannot follow a leader's reads).
+JERK_PER_ACCELERATION = 100.0
 #: A joint's `unit` when its wire value is 0..100 across its URDF range (LeRobot's grippers).
 PERCENT = "percent"
 

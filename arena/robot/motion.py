@@ -38,6 +38,10 @@ class Command(msgspec.Struct, frozen=True, gc=False):
     joints: tuple[JointGoal, ...]
     duration: float | None = None
     source: str | None = None  # free-form label (the wire's metadata.source)
+    #: When the values were true, on the robot's clock, if the master knows it (a leader
+    #: arm: its bus read, before the command arrived by the bus's and the loop's delays):
+    #: a stream's velocity and line are taken from it (`MotionLimiter.set_goals`).
+    stamp: float | None = None
 
     @classmethod
     def of(cls, values: Mapping[str, float], duration: float | None = None) -> Command:
@@ -143,6 +147,9 @@ OVERDUE = 1.5
 #: line (its last goal, carried on at its velocity): short, so the lag stays small; long
 #: enough that a correction keeps inside the acceleration and jerk limits (`_follow`).
 HORIZON_TICKS = 2
+#: The oldest a command's `stamp` is taken to be (seconds before it arrived): a master's
+#: clock that is off cannot throw the stream's line further than this.
+MAX_AGE = 0.05
 
 
 class MotionLimiter:
@@ -210,7 +217,8 @@ class MotionLimiter:
         # next goal is overdue.
         self._origin: list[float] | None = None
         self._interval = 0.0
-        self._stamp = 0.0  # when the stream's newest goal was set
+        self._stamp = 0.0  # when the stream's newest goal was true
+        self._true_at = -math.inf  # when the newest goals were true
         self._due = 0.0
         self._planned = True  # the trajectory meets the newest goals
         self._trajectory: Trajectory | None = None  # None: every joint rests at its target
@@ -242,10 +250,17 @@ class MotionLimiter:
         """True while some joint has not reached its goal (ticks are needed)."""
         return self._trajectory is not None or not self._planned
 
-    def set_goals(self, goals: Iterable[ResolvedGoal], duration: float | None, now: float) -> None:
+    def set_goals(
+        self,
+        goals: Iterable[ResolvedGoal],
+        duration: float | None,
+        now: float,
+        stamp: float | None = None,
+    ) -> None:
         """Aim joints at new goals (with `duration`, reached in no less than that time). The
         trajectory is planned by the next `advance`: a burst of commands plans once.
-        `advance(now, fresh=True)` moves at once only a robot that was at rest."""
+        `advance(now, fresh=True)` moves at once only a robot that was at rest. `stamp`: when
+        the goals were true (a leader's read; at most `MAX_AGE` before `now`), else `now`."""
         self._fresh = self._trajectory is None and self._planned
         targets = self._goals
         origin = list(targets.values())  # (the goals before these, in the joints' order)
@@ -263,13 +278,17 @@ class MotionLimiter:
                     interval = elapsed
             else:
                 stream = False
+        true_at = now if stamp is None else min(now, max(now - MAX_AGE, stamp))
         if stream and interval > 0.0:
             self._origin = origin
-            self._interval = interval
-            self._stamp = now
+            # the stream's pace by when its goals were true, where it is known
+            between = true_at - self._true_at
+            self._interval = between if stamp is not None and between > 0.0 else interval
+            self._stamp = true_at
             self._due = now + self._lead + OVERDUE * interval
         else:
             self._origin = None
+        self._true_at = true_at
         self._duration = duration
         self._planned = False
 
