@@ -170,9 +170,9 @@ def test_a_new_robot_type_is_a_folder(tmp_path: Path, monkeypatch: pytest.Monkey
     assert tilt.max_velocity == 30.0
     assert (tilt.max_acceleration, tilt.max_jerk) == (120.0, 2400.0)  # the trajectory's limits
     pan = model.joint("Pan")
-    assert pan is not None  # unset: full speed in 1/30 s, full acceleration in 1/25 s
+    assert pan is not None  # unset: full speed in 1/30 s, full acceleration in 1/100 s
     assert pan.max_acceleration == 30 * pan.max_velocity
-    assert pan.max_jerk == 25 * pan.max_acceleration
+    assert pan.max_jerk == 100 * pan.max_acceleration
     assert model.safety.loss_policy is LossPolicy.HOLD
     assert model.safety.command_rate == 20.0
     assert model.safety.join_speed == 15.0  # the default when a type does not say
