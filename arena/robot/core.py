@@ -89,6 +89,9 @@ class JoinChange:
 
 #: Poses checked in full that later poses are compared with (see `_references`).
 REFERENCES = 2
+#: Degrees past a checked goal a stream's trajectory may end up (its line carried on a
+#: little after the stream slowed to a stop): a collision found there ends on the goal.
+GOAL_DUST = 0.05
 
 
 class RobotCore:
@@ -488,6 +491,13 @@ class RobotCore:
                     self.guard, self._urdf(self._sent), pose, self.workspace
                 )
                 if escape is None or not escape.allowed:
+                    goals = self.motion.goals
+                    if _within(targets, goals, GOAL_DUST):
+                        # A stream's last few thousandths past its goal (the goal itself
+                        # was checked when it was commanded): end on the goal.
+                        self.motion.stop_at(goals)
+                        self._sent = goals
+                        return goals
                     self.motion.stop_at(self._sent)
                     self.collision_stops += 1
                     self.stop = (self._commander, str(hit))
@@ -549,3 +559,8 @@ class RobotCore:
         ):
             return now + self.tick_interval
         return None
+
+
+def _within(a: Mapping[str, float], b: Mapping[str, float], tolerance: float) -> bool:
+    """Whether every joint of `a` is within `tolerance` of `b`'s."""
+    return all(abs(value - b[name]) <= tolerance for name, value in a.items())
