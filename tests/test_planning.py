@@ -372,6 +372,30 @@ def test_the_timed_path_keeps_every_joint_within_its_limits_and_stops_at_each_co
             assert corner in poses
 
 
+def test_a_timed_path_keeps_a_joints_declared_acceleration_when_it_is_lower() -> None:
+    # A robot type whose joints declare 100 deg/s^2 (`max_acceleration` in robot.toml): far
+    # below the planner's own gentleness (the velocity limit in 0.25 s, 800 deg/s^2 here).
+    import dataclasses
+
+    base = load_robot_model("so-arm100")
+    model = dataclasses.replace(
+        base, joints=tuple(dataclasses.replace(j, acceleration=100.0) for j in base.joints)
+    )
+    corners = [tuple(0.0 for _ in model.joints), tuple(s.to_urdf(60) for s in model.joints)]
+    samples = planning.timed(corners, model)
+    times = [0.0] + [t for t, _ in samples]
+    poses = [corners[0]] + [p for _, p in samples]
+    for k, spec in enumerate(model.joints):
+        limit = 100.0 * spec.radians_per_unit
+        speeds = [
+            ((q[k] - p[k]) / (b - a), (a + b) / 2)
+            for a, b, p, q in zip(times, times[1:], poses, poses[1:], strict=False)
+            if b > a
+        ]
+        for (v1, t1), (v2, t2) in itertools.pairwise(speeds):
+            assert abs(v2 - v1) <= limit * (t2 - t1) * (1 + 1e-6) + 1e-9
+
+
 async def test_a_script_plans_its_move_around_the_pillar_on_the_server(
     start_server: StartServer, tmp_path: Path
 ) -> None:

@@ -33,8 +33,10 @@ from arena.robot.workspace import Workspace
 
 #: Seconds a plan's search may take by default (the caller's `budget`).
 DEFAULT_BUDGET = 1.0
-#: No robot type declares an acceleration: a joint reaches its velocity limit from rest in
-#: this time (seconds), so its acceleration limit is its velocity limit / ACCELERATION_TIME.
+#: A planned way is gentler than the trajectory's limits: a joint reaches its velocity limit
+#: from rest in no less than this time (seconds), and never faster than its acceleration
+#: limit allows, so the trajectory that plays it follows the way checked closely (a sharper
+#: way's corners are rounded by the jerk limit, off the checked line).
 ACCELERATION_TIME = 0.25
 #: Seconds between the poses of a timed path (each one command: 50 a second, half the default
 #: command rate, so the stream stays inside the rate limit's budget).
@@ -333,9 +335,12 @@ def timed(
     """The poses to command along straight ways between `corners` (URDF units), one every
     `period` seconds and the last corner at the end: each way from rest to rest, its progress
     a trapezoid (or a triangle) so that no joint passes its velocity limit times `speed` or its
-    acceleration limit (`ACCELERATION_TIME`) times `speed`."""
+    acceleration (`ACCELERATION_TIME`, and the joint's limit) times `speed`."""
     velocity = [s.max_velocity * s.radians_per_unit * speed for s in model.joints]
-    acceleration = [v / ACCELERATION_TIME for v in velocity]
+    acceleration = [
+        min(v / ACCELERATION_TIME, s.max_acceleration * s.radians_per_unit * speed)
+        for v, s in zip(velocity, model.joints, strict=True)
+    ]
     ways: list[tuple[float, float, float, float, Values, Values]] = []  # t0, T, ta, rate, p, q
     clock = 0.0
     for p, q in itertools.pairwise(corners):
