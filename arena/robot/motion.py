@@ -222,6 +222,14 @@ class MotionLimiter:
         self._due = 0.0
         self._planned = True  # the trajectory meets the newest goals
         self._trajectory: Trajectory | None = None  # None: every joint rests at its target
+        # A stream tracked (`_track`): the last emitted targets' sample time, and every
+        # joint's position, velocity and acceleration there.
+        self._tracking = False
+        self._new_goal = False  # a goal came since the last targets
+        self._tt = 0.0
+        self._tp = [0.0] * dofs
+        self._tv = [0.0] * dofs
+        self._ta = [0.0] * dofs
         # Two trajectories, planned into in turn: the one in use is never overwritten (its
         # state is where the next plan starts), and a plan allocates none.
         self._pair = (Trajectory(dofs), Trajectory(dofs))
@@ -248,7 +256,7 @@ class MotionLimiter:
     @property
     def moving(self) -> bool:
         """True while some joint has not reached its goal (ticks are needed)."""
-        return self._trajectory is not None or not self._planned
+        return self._trajectory is not None or self._tracking or not self._planned
 
     def set_goals(
         self,
@@ -261,7 +269,7 @@ class MotionLimiter:
         trajectory is planned by the next `advance`: a burst of commands plans once.
         `advance(now, fresh=True)` moves at once only a robot that was at rest. `stamp`: when
         the goals were true (a leader's read; at most `MAX_AGE` before `now`), else `now`."""
-        self._fresh = self._trajectory is None and self._planned
+        self._fresh = self._trajectory is None and not self._tracking and self._planned
         targets = self._goals
         origin = list(targets.values())  # (the goals before these, in the joints' order)
         index, stamps, speeds = self._index, self._stamps, self._speeds
@@ -291,6 +299,7 @@ class MotionLimiter:
         self._true_at = true_at
         self._duration = duration
         self._planned = False
+        self._new_goal = True
 
     def advance(
         self, now: float, *, fresh: bool = False, tick: bool = False
@@ -308,20 +317,25 @@ class MotionLimiter:
             return None
         sample = now + self._lead
         if not self._planned:
-            if self._trajectory is None and self._jump():
+            if self._trajectory is None and not self._tracking and self._jump():
                 self._sampled = max(self._sampled, sample)
                 return self._position.copy()
             if not self._planned:
                 self._plan(max(self._sampled, now))
         if sample <= self._sampled or (tick and sample - self._sampled < 0.5 * self._lead):
             return None
-        if self._trajectory is None:  # at rest: on the goals (a plan found it there)
+        if self._tracking:
+            if not self._new_goal and self._origin is not None and sample < self._due:
+                return None  # (a stream on time: its next goal, not a guess, moves it on)
+            targets = self._track(sample)
+        elif self._trajectory is None:  # at rest: on the goals (a plan found it there)
             if self._position == self._goals:
                 return None
             self._position.update(self._goals)
             self._sampled = sample
             return self._position.copy()
-        targets = self._sample(sample)
+        else:
+            targets = self._sample(sample)
         self._sampled = sample
         position = self._position
         changed = False
@@ -330,6 +344,45 @@ class MotionLimiter:
                 position[name] = value
                 changed = True
         return position.copy() if changed else None
+
+    def _track(self, at: float) -> list[float]:
+        """A stream's targets at sample time `at`: each joint's goal itself when reaching it
+        there keeps the joint within its velocity, acceleration and jerk limits (a person's
+        hand on a leader, a policy's smooth actions: passed on as they come, no lag added);
+        otherwise as close as the limits allow, never faster than stopping on the goal allows
+        (a stream that jumps is approached without overshoot; one that stops dead is braked
+        at the acceleration limit, past its goal and back). Rests, and the tracking ends, once
+        every joint is on its goal at rest."""
+        h = at - self._tt
+        p, v, a = self._tp, self._tv, self._ta
+        speeds, accel, jerk = self._speeds, self._accel, self._jerk
+        rest = True
+        for k, name in enumerate(self._names):
+            goal = self._goals[name]
+            x, u, w = p[k], v[k], a[k]
+            cap, limit = speeds[k], accel[k]
+            low = max(-limit, w - jerk[k] * h)
+            high = min(limit, w + jerk[k] * h)
+            want = (goal - x) / h
+            change = (want - u) / h
+            if low <= change <= high and -cap <= want <= cap:
+                p[k], v[k], a[k] = goal, want, change
+            else:
+                d = goal - x
+                brake = limit * h
+                stop = brake * (math.sqrt(0.25 + 2.0 * abs(d) / (brake * h)) - 0.5)
+                toward = math.copysign(min(cap, stop), d)
+                change = max(low, min(high, (toward - u) / h))
+                u += change * h
+                p[k], v[k], a[k] = x + u * h, u, change
+            if p[k] != goal or v[k] != 0.0 or a[k] != 0.0:
+                rest = False
+        self._tt = at
+        self._new_goal = False
+        if rest:
+            self._tracking = False
+            self._origin = None
+        return list(p)
 
     def _jump(self) -> bool:
         """From rest, goals within one tick's `reach` of every joint's target: taken in one
@@ -353,6 +406,8 @@ class MotionLimiter:
 
     def _state(self, at: float) -> tuple[list[float], list[float], list[float]]:
         """Position, velocity and acceleration of every joint at sample time `at`."""
+        if self._tracking:  # (as of the last targets: a tick or less ago)
+            return list(self._tp), list(self._tv), list(self._ta)
         trajectory = self._trajectory
         if trajectory is None:
             return [self._position[name] for name in self._names], self._zeros, self._zeros
@@ -365,7 +420,14 @@ class MotionLimiter:
         p, v, a = self._state(start)
         self._planned = True
         goals = [self._goals[name] for name in self._names]
-        velocity = self._stream_velocity() if self._origin is not None else self._zeros
+        if self._origin is not None:  # a stream: tracked, target by target (`_track`)
+            if not self._tracking:
+                self._tracking = True
+                self._trajectory = None
+                self._tt, self._tp, self._tv, self._ta = start, list(p), list(v), list(a)
+            return
+        self._tracking = False
+        velocity = self._zeros
         if not any(velocity) and _settled(p, v, a, goals):
             self._trajectory = None  # (`advance` puts the targets exactly on the goals)
             self._duration = None
@@ -493,6 +555,7 @@ class MotionLimiter:
     def _rest(self) -> None:
         """Every joint rests where its last target put it."""
         self._trajectory = None
+        self._tracking = False
         self._origin = None
         self._planned = True
         self._duration = None
