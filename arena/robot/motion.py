@@ -227,6 +227,7 @@ class MotionLimiter:
         self._tracking = False
         self._new_goal = False  # a goal came since the last targets
         self._tt = 0.0
+        self._th = (0.0, 0.0)  # the last two steps' lengths (seconds)
         self._tp = [0.0] * dofs
         self._tv = [0.0] * dofs
         self._ta = [0.0] * dofs
@@ -327,6 +328,8 @@ class MotionLimiter:
         if self._tracking:
             if not self._new_goal and self._origin is not None and sample < self._due:
                 return None  # (a stream on time: its next goal, not a guess, moves it on)
+            if sample - self._tt < 0.5 * self._lead:
+                return None  # (a step this short measures rounding: the next tick takes it)
             targets = self._track(sample)
         elif self._trajectory is None:  # at rest: on the goals (a plan found it there)
             if self._position == self._goals:
@@ -355,28 +358,34 @@ class MotionLimiter:
         every joint is on its goal at rest."""
         h = at - self._tt
         p, v, a = self._tp, self._tv, self._ta
+        h1, h0 = self._th  # the last two steps' lengths
         speeds, accel, jerk = self._speeds, self._accel, self._jerk
         rest = True
         for k, name in enumerate(self._names):
             goal = self._goals[name]
             x, u, w = p[k], v[k], a[k]
             cap, limit = speeds[k], accel[k]
-            low = max(-limit, w - jerk[k] * h)
-            high = min(limit, w + jerk[k] * h)
+            # The limits as the divided differences of the targets measure them: linear in
+            # the new target, so an interval of velocities for this step.
+            spread = jerk[k] * (h0 + h1 + h) / 3.0
+            low_a, high_a = max(-limit, w - spread), min(limit, w + spread)
+            half = (h1 + h) / 2.0
+            low = max(-cap, u + low_a * half)
+            high = min(cap, u + high_a * half)
+            if low > high:  # (over the cap at once: the acceleration bound wins)
+                low = high = max(u + low_a * half, min(u + high_a * half, 0.0))
             want = (goal - x) / h
-            change = (want - u) / h
-            if low <= change <= high and -cap <= want <= cap:
-                p[k], v[k], a[k] = goal, want, change
-            else:
+            if not low <= want <= high:
                 d = goal - x
                 brake = limit * h
                 stop = brake * (math.sqrt(0.25 + 2.0 * abs(d) / (brake * h)) - 0.5)
-                toward = math.copysign(min(cap, stop), d)
-                change = max(low, min(high, (toward - u) / h))
-                u += change * h
-                p[k], v[k], a[k] = x + u * h, u, change
+                want = max(low, min(high, math.copysign(min(cap, stop), d)))
+            p[k] = goal if want == (goal - x) / h else x + want * h
+            a[k] = (want - u) / half
+            v[k] = want
             if p[k] != goal or v[k] != 0.0 or a[k] != 0.0:
                 rest = False
+        self._th = (h, h1)
         self._tt = at
         self._new_goal = False
         if rest:
@@ -425,6 +434,7 @@ class MotionLimiter:
                 self._tracking = True
                 self._trajectory = None
                 self._tt, self._tp, self._tv, self._ta = start, list(p), list(v), list(a)
+                self._th = (self._lead, self._lead)
             return
         self._tracking = False
         velocity = self._zeros
