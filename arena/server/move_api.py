@@ -25,7 +25,7 @@ from arena.robot.motion import Command, CommandResult
 from arena.server import convert
 from arena.server.base import ArenaApp, error_response, read_body
 from arena.server.hand_api import HandMove, answer, command_pose
-from arena.server.interventions_api import operator_of
+from arena.server.manual import operator_of, refusal
 from arena.server.planned_moves import PathNotFound, plan_move
 
 blueprint = Blueprint("move", __name__)
@@ -50,8 +50,7 @@ async def move(robot_id: str) -> dict[str, Any]:
 
     result, solved = await move_straight(robot, body, send, "rest")
     if not result.accepted:
-        assert result.code is not None
-        raise ArenaError(result.code, result.message)
+        raise refusal(robot, result)
     if solved is not None:
         return {**answer(result, solved), "plan": False}
     ack: dict[str, Any] = msgspec.to_builtins(convert.ack(result).data)
