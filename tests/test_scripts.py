@@ -146,6 +146,14 @@ async def test_a_script_that_raises_is_a_fault_naming_its_file_and_line(
     assert fault.message == f"{path.resolve()}, line 5: KeyError: 'Roll'"
     await wait_for_no_master(server)
     assert robot.snapshot().joint("Rotation").goal == 5  # what it did before is done
+    # Over REST too, once it has gone: the robot's details keep why its last master ended.
+    async with server.client() as http:
+        shown = (await http.get(ROBOT)).json()
+    assert shown["master"] is None
+    last = shown["last_master"]
+    assert last["id"] == "script:bad.py" and last["type"] == "script", last
+    assert last["ended"] == "detached" and last["reason"] == "driver finished", last
+    assert last["error"] == f"SCRIPT_FAILED: {fault.message}", last
 
 
 async def test_a_refused_command_raises_in_the_script_which_may_catch_it(
