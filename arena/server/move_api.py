@@ -30,6 +30,10 @@ from arena.server.planned_moves import PathNotFound, plan_move
 
 blueprint = Blueprint("move", __name__)
 
+#: The refusal of `joints` given as `PUT .../joints`'s list, and what this route takes instead.
+_LISTED = "Invalid `joints`: Expected `object"
+_JOINTS_FORM = 'Here `joints` maps names to degrees, e.g. {"Rotation": 10}.'
+
 
 def _app() -> ArenaApp:
     return current_app  # type: ignore[return-value]
@@ -39,7 +43,12 @@ def _app() -> ArenaApp:
 async def move(robot_id: str) -> dict[str, Any]:
     """Move to a joint or pose goal: straight (one command), or along a planned path."""
     robot = _app().manager.get(robot_id)
-    body: MoveBody = await read_body(MoveBody)
+    try:
+        body: MoveBody = await read_body(MoveBody)
+    except ArenaError as error:
+        if error.code is ErrorCode.INVALID_BODY and error.message.startswith(_LISTED):
+            raise ArenaError(error.code, f"{error.message} {_JOINTS_FORM}") from None
+        raise
     check_goal(body)
     if body.plan:
         return await _planned(robot, body)
