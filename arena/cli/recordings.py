@@ -124,7 +124,20 @@ def timeline_command(args: argparse.Namespace) -> int:
 
     recording = open_recording(args.file)
     robot = None if args.robot is None else pick_robot(recording, args.robot)
-    print("\n".join(analysis.timeline(recording, robot, args.start, args.end)))
+    lines = analysis.timeline(recording, robot, args.start, args.end)
+    if lines:
+        print("\n".join(lines))
+    elif recording.messages:  # (an empty window printed nothing, as if the file were empty)
+        origin = min(m.log_time for m in recording.messages)
+        times = [
+            (m.log_time - origin) / 1e9 for m in recording.messages if robot in (None, m.robot_id)
+        ]
+        whose = "any robot" if robot is None else f"robot {robot!r}"
+        window = f"from {args.start or 0:g} s to " + (
+            "the end" if args.end is None else f"{args.end:g} s"
+        )
+        span = f"{min(times):.3f}-{max(times):.3f} s" if times else "nothing"
+        print(f"note: no record of {whose} {window}; its records span {span}", file=sys.stderr)
     return 0
 
 
