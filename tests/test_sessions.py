@@ -269,6 +269,30 @@ async def test_arena_replay_onto_a_robot_with_a_master_is_refused_unless_it_take
     assert (str(robot.snapshot().mode), robot.snapshot().master) == ("idle", None)
 
 
+async def test_arena_replay_taken_over_while_it_plays_ends_without_an_error(
+    server: RunningServer, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A takeover closes the replay's socket with 4409, MASTER_ACTIVE's close code too, after
+    `detached TAKEN_OVER`: that is the server ending it (said, exit 0), not a refusal."""
+    args = ["replay", str(GOLDEN), "--robot", "arm", "--loop"]
+    args += ["--to", server.ws_url + "/ws/master/demo-arm"]
+    robot = server.app.manager.get("demo-arm")
+    async with trio.open_nursery() as nursery:
+        status: list[int] = []
+
+        async def replay() -> None:
+            status.append(await trio.to_thread.run_sync(cli.main, args))
+
+        nursery.start_soon(replay)
+        await eventually(lambda: robot.snapshot().master is not None, what="the replay drives")
+        async with httpx.AsyncClient(base_url=server.url) as http:
+            taken = await http.post("/api/robots/demo-arm/play-sequence/gentle-wave")
+            assert taken.status_code == 200, taken.text
+    assert status == [0]
+    err = capsys.readouterr().err
+    assert "server: " in err and "took over" in err and "arena replay:" not in err, err
+
+
 async def master_connections_closed(server: RunningServer) -> None:
     """Wait until the server has finished with every master WebSocket (a master lost shows by
     then: the server tells the robot before it counts the connection closed)."""

@@ -72,17 +72,19 @@ async def replay_to_server(
     sent = refused = 0
     released: dict[str, object] | None = None
     releasing = False
-    refusal: ArenaError | None = None  # the server refused this master: nothing was played
+    refusal: ArenaError | None = None  # the server refused this master
+    ended = False  # the server detached this master (taken over, lost): said, not an error
     async with open_websocket_url(url) as ws:
         stopped = trio.Event()
         answered = trio.Event()  # the release's answer (or the end of the link)
 
         async def read_answers() -> None:
-            nonlocal refused, released, refusal
+            nonlocal refused, released, refusal, ended
             try:
                 while True:
                     answer = json.loads(await ws.get_message())
                     kind = answer.get("type")
+                    ended = ended or kind == "detached"  # (its close code is no refusal)
                     if kind == "released":
                         released = answer.get("data") or {}
                         answered.set()
@@ -106,7 +108,9 @@ async def replay_to_server(
             except ConnectionClosed as closed:
                 reason = closed.reason
                 code = None if reason is None else _CLOSE_CODES.get(reason.code)
-                if refusal is None and code is not None:  # (the close came before its message)
+                # A refusal whose close came before its message (a takeover closes 4409 too,
+                # after its `detached`: that is an end, not a refusal).
+                if refusal is None and not ended and code is not None:
                     assert reason is not None
                     refusal = ArenaError(code, reason.reason or str(code))
                 stopped.set()
