@@ -314,6 +314,11 @@ async def test_a_move_without_plan_is_one_command_and_bad_bodies_are_refused(
         ]:
             refused = await http.post("/api/robots/demo-arm/move", json=body)
             assert refused.json()["error"]["code"] == code, (body, refused.text)
+        # PUT .../joints's list, sent here: the answer shows this route's form.
+        listed = {"joints": [{"name": "Rotation", "value": 1}]}
+        refused = await http.post("/api/robots/demo-arm/move", json=listed)
+        assert refused.json()["error"]["code"] == "INVALID_BODY", refused.text
+        assert '{"Rotation": 10}' in refused.json()["error"]["message"], refused.text
         sequence = await http.post("/api/robots/demo-arm/play-sequence/gentle-wave")
         assert sequence.status_code == 200, sequence.text
         held = await http.post(

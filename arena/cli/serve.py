@@ -96,6 +96,21 @@ def add(commands: Commands) -> None:
     )
     serve.add_argument("--recordings-dir", help="where recordings go (default recordings/)")
     serve.add_argument(
+        "--policy-dir",
+        metavar="DIR",
+        help="the policies a master may run, a folder each (default policies/; a tenant's: DIR/T/)",
+    )
+    serve.add_argument(
+        "--script-dir",
+        metavar="DIR",
+        help="the scripts a master may run (default scripts/; a tenant's: DIR/T/)",
+    )
+    serve.add_argument(
+        "--calibration-dir",
+        metavar="DIR",
+        help="the arms' calibration files (default calibration/; a tenant's: DIR/T/)",
+    )
+    serve.add_argument(
         "--policy-python",
         metavar="PATH",
         help="the Python policy workers run in: one with LeRobot, torch and msgspec, such as a "
@@ -169,6 +184,9 @@ def serve_command(args: argparse.Namespace) -> int:
         api_key_file=args.api_key_file,
         record=args.record,
         recordings_dir=args.recordings_dir,
+        policy_dir=args.policy_dir,
+        script_dir=args.script_dir,
+        calibration_dir=args.calibration_dir,
         policy_python=args.policy_python,
         record_foxglove=args.record_foxglove,
         foxglove_port=args.foxglove_port,

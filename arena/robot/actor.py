@@ -47,6 +47,7 @@ from arena.robot.mailbox import Observers
 from arena.robot.motion import Command, CommandResult
 from arena.robot.ownership import Master, MasterKeeping, Slave
 from arena.robot.peers import MasterPeer, Peers, SlavePeer
+from arena.robot.snapshot import MasterEnded
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +82,7 @@ class Actor(MasterKeeping):
         self.command_counts: collections.Counter[str] = collections.Counter()
         self.estop_count = 0
         self.intervention_count = 0  # interventions started (corrections)
+        self.last_master: MasterEnded | None = None  # the last master that left, and why
         self._superseded_by_gone = 0  # targets superseded at slaves that have left
         #: Data-collection episodes (changed only through `EpisodeMsg`).
         self.episodes = Episodes()

@@ -40,7 +40,7 @@ from arena.robot.links import MasterDriver, MasterLink, SlaveDriver, SlaveLink
 from arena.robot.mailbox import EventQueue
 from arena.robot.model import RobotModel, SafetyPolicy
 from arena.robot.motion import Command, CommandResult
-from arena.robot.snapshot import JointSnapshot, RobotSnapshot
+from arena.robot.snapshot import JointSnapshot, MasterEnded, RobotSnapshot
 from arena.robot.teleop import TeleopSettings
 from arena.robot.workspace import Workspace
 
@@ -88,6 +88,11 @@ class Robot:
     def intervention_count(self) -> int:
         """Interventions (corrections) started on the robot."""
         return self._actor.intervention_count
+
+    @property
+    def last_master(self) -> MasterEnded | None:
+        """The last master that left the robot, how and why (None: none has)."""
+        return self._actor.last_master
 
     @property
     def targets_superseded(self) -> int:

@@ -68,7 +68,7 @@ from arena.server.hand_api import blueprint as hand_blueprint
 from arena.server.health import blueprint as health_blueprint
 from arena.server.identity import Principal, TokenVerifier
 from arena.server.interventions_api import blueprint as interventions_blueprint
-from arena.server.interventions_api import operator_of
+from arena.server.manual import operator_of, refusal
 from arena.server.metrics import Metrics
 from arena.server.move_api import blueprint as move_blueprint
 from arena.server.origin import SAFE_METHODS, OriginPolicy, is_json
@@ -418,8 +418,7 @@ def _register_routes(app: ArenaApp) -> None:
             operator_of(robot, g.principal),  # an operator's intervention: as its master
         )
         if not result.accepted:
-            assert result.code is not None
-            raise ArenaError(result.code, result.message)
+            raise refusal(robot, result)
         ack: dict[str, Any] = msgspec.to_builtins(convert.ack(result).data)
         return ack
 

@@ -360,7 +360,13 @@ async def read_body(kind: Any, *, optional: bool = False) -> Any:
     raw = await request.get_data(cache=False)
     if len(raw) > MAX_MESSAGE_BYTES:
         raise too_large(len(raw))
-    if not raw.strip() and optional:
+    if not raw.strip():
+        if not optional:  # (msgspec would say "Input data was truncated", as of a cut body)
+            raise ArenaError(
+                ErrorCode.INVALID_JSON,
+                "The body is empty: this route takes a JSON object (send it with "
+                "Content-Type: application/json; see /docs for its fields).",
+            )
         raw = b"{}"
     try:
         return msgspec.json.decode(raw, type=kind)
