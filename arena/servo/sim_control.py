@@ -336,7 +336,7 @@ def usage(control: SimControl, port: int | None, keys: bool) -> str:
         first = control.names[0]
         lines += [
             f"control: JSON lines on 127.0.0.1:{port}, one answer a line, e.g.",
-            f'  echo \'{{"joint": "{first}", "deg": 30}}\' | nc -q1 127.0.0.1 {port}',
+            f'  echo \'{{"joint": "{first}", "deg": 30}}\' > /dev/tcp/127.0.0.1/{port}   (bash)',
             f'  {{"joints": {{"{first}": -20, ...}}, "duration": 1.0}}   (smoothly)',
             '  {"read": true}   (every joint)',
             f"  joints: {', '.join(control.names)}",
