@@ -156,7 +156,11 @@ def click_slider_at(page: Page, joint: str, fraction: float) -> float:
     """Click the slider's track like a hand would; returns the value the click gave it (the
     one the page commands). Read from the click's own `input` event: once the hand lets go the
     slider shows the robot's value again, which may still be on its way there."""
-    handle = slider(page, joint)
+    return click_range_at(page, slider(page, joint), fraction)
+
+
+def click_range_at(page: Page, handle: Any, fraction: float) -> float:
+    """Click a range input's track at `fraction` of its width; the value the click gave it."""
     handle.evaluate("el => el.addEventListener('input', () => { el.dataset.clicked = el.value; })")
     handle.scroll_into_view_if_needed()  # (a card with more buttons puts the last below the fold)
     box = handle.bounding_box()
@@ -1193,13 +1197,7 @@ def test_a_leader_arm_attaches_from_the_card_and_corrects_a_running_master(
 def click_leader_at(page: Page, joint: str, fraction: float) -> float:
     """Click the simulated leader's slider of `joint` like a hand would; the value it took."""
     handle = page.locator(f'input[type=range][data-leader-joint="{joint}"]')
-    handle.evaluate("el => el.addEventListener('input', () => { el.dataset.clicked = el.value; })")
-    handle.scroll_into_view_if_needed()
-    box = handle.bounding_box()
-    assert box is not None
-    page.mouse.click(box["x"] + box["width"] * fraction, box["y"] + box["height"] / 2)
-    expect(handle).to_have_attribute("data-clicked", re.compile(r"."))
-    return float(handle.get_attribute("data-clicked") or "nan")
+    return click_range_at(page, handle, fraction)
 
 
 def wait_for_real(page: Page, joint: str, wanted: float) -> None:
