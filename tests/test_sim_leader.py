@@ -13,6 +13,7 @@ from typing import Any
 import httpx
 import pytest
 
+from arena.cli import build_parser
 from arena.server.sim_leaders import SimLeader
 from arena.servo.sim_pty import PtySimBus
 from tests.conftest import RunningServer, eventually
@@ -183,3 +184,15 @@ def test_the_rate_refills_at_its_pace() -> None:
     assert allowed == [True] * int(leader.burst) + [False]
     assert leader.allow(1.0 / leader.rate) and not leader.allow(1.0 / leader.rate)
     assert sum(leader.allow(10.0) for _ in range(100)) == leader.burst  # never more than a burst
+
+
+@pytest.mark.parametrize(
+    ("flags", "expected"),
+    [([], None), (["--sim-leader"], "so-arm100"), (["--sim-leader", "so-101"], "so-101")],
+)
+def test_serve_takes_sim_leader_with_or_without_a_type(
+    flags: list[str], expected: str | None
+) -> None:
+    """`make run`'s `arena serve --demo --sim-leader --port 8080`: the type is optional."""
+    args = build_parser().parse_args(["serve", "--demo", *flags, "--port", "8080"])
+    assert args.sim_leader == expected and args.port == 8080
