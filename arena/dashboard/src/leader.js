@@ -23,12 +23,22 @@ export class LeaderPanel {
     this.pending = new Map(); // joint -> value not yet sent
     this.sending = false;
     this.asked = 0; // counts questions: an older answer that comes late changes nothing
+    this.offered = false; // the simulated leaders were offered for this robot
   }
 
-  /** Ask where the robot's leader is (polled with the rest of the card). */
-  async refresh(robotId, robotType) {
+  /** Ask where the robot's leader is (polled with the rest of the card, from the robot's
+   * details `summary`): once for a robot just opened (the simulated leaders to offer), then
+   * only while a leader arm drives it or waits on it. */
+  async refresh(robotId, summary) {
     if (robotId !== this.robotId) this.close();
     this.robotId = robotId;
+    const isLeader = (peer) => Boolean(peer) && (peer.kind || peer.type) === "usb-master";
+    if (this.offered && !isLeader(summary.master) && !isLeader(summary.paused_master)) {
+      $("sim-leader").hidden = true;
+      this.leaderId = null;
+      return;
+    }
+    const robotType = summary.robot_type;
     const mine = ++this.asked;
     let shown;
     try {
@@ -37,6 +47,7 @@ export class LeaderPanel {
       return; // (an older server, or a moment's error: the next refresh asks again)
     }
     if (mine !== this.asked || robotId !== this.robotId) return;
+    this.offered = true;
     this.offerPorts(shown.simulated, robotType);
     const leader = shown.leader && shown.leader.simulated ? shown.leader : null;
     $("sim-leader").hidden = !leader;
@@ -128,6 +139,7 @@ export class LeaderPanel {
 
   close() {
     this.robotId = null;
+    this.offered = false;
     this.leaderId = null;
     this.sliders.clear();
     this.pending.clear();

@@ -97,7 +97,7 @@ async function refresh() {
   } else {
     view.applySummary(summary);
   }
-  if (summary && !summary.remote) await leader.refresh(id, summary.robot_type);
+  if (summary && !summary.remote) await leader.refresh(id, summary);
   await recordings.refresh();
 }
 
