@@ -19,6 +19,14 @@ def add(commands: Commands) -> None:
         default=None,
         help="create robot demo-arm (so-arm100) with a mock slave",
     )
+    serve.add_argument(
+        "--sim-leader",
+        nargs="?",
+        const="so-arm100",
+        default=None,
+        metavar="TYPE",
+        help="a simulated leader arm (default so-arm100), moved from the dashboard",
+    )
     serve.add_argument("--config", help="a TOML file of server settings")
     serve.add_argument(
         "--api-key",
@@ -193,6 +201,7 @@ def serve_command(args: argparse.Namespace) -> int:
         host=args.host,
         port=args.port,
         demo=args.demo,
+        sim_leader=args.sim_leader,
         api_keys=tuple(args.api_keys),
         viewer_keys=tuple(args.viewer_keys) or None,
         insecure=args.insecure,

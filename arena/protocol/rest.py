@@ -373,6 +373,25 @@ class InterventionBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields
     master: MasterBody | None = None
 
 
+class LeaderJoint(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """A simulated leader arm's joint and where to move it (the robot's units)."""
+
+    name: JointKey
+    value: float
+
+
+#: The longest smooth move of a simulated leader's joints (milliseconds).
+MAX_LEADER_MOVE_MS = 60_000.0
+
+
+class LeaderJointsBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """`PUT .../leader/joints`: the robot's simulated leader arm moved as a hand moves it,
+    `duration` milliseconds (0: at once), its usb-master then driving the robot."""
+
+    joints: Annotated[list[LeaderJoint], msgspec.Meta(min_length=1, max_length=MAX_TORQUE_LIMITS)]
+    duration: Annotated[float, msgspec.Meta(ge=0, le=MAX_LEADER_MOVE_MS)] = 0.0
+
+
 class HandBackBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     """`DELETE .../intervention`: `resume` false leaves the paused master paused."""
 

@@ -77,6 +77,8 @@ from arena.server.recordings_api import blueprint as recordings_blueprint
 from arena.server.recordings_api import readable_recording, recorder_status
 from arena.server.robot_types_api import blueprint as robot_types_blueprint
 from arena.server.sensors_api import blueprint as sensors_blueprint
+from arena.server.sim_leader_api import blueprint as sim_leader_blueprint
+from arena.server.sim_leaders import SimLeaders
 from arena.server.ws.acks import AckCache
 
 
@@ -105,6 +107,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
         )
     app.cameras = Cameras()
     app.parts = Parts()
+    app.sim_leaders = SimLeaders()
     app.shutting_down = trio.Event()
     app.started_at = time.time()
     app.config["MAX_CONTENT_LENGTH"] = MAX_MESSAGE_BYTES
@@ -120,6 +123,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.register_blueprint(policies_blueprint)
     app.register_blueprint(hand_blueprint)
     app.register_blueprint(move_blueprint)
+    app.register_blueprint(sim_leader_blueprint)
     _register_errors(app)
     _register_routes(app)
     return app

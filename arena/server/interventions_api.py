@@ -108,6 +108,7 @@ async def intervene(robot_id: str) -> tuple[dict[str, Any], int]:
         if close is not None:
             await close()
         raise
+    app.sim_leaders.follow(robot, master_id, driver)
     return _intervention(robot, master_id), 201
 
 

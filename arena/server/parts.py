@@ -94,6 +94,7 @@ async def delete_robot(app: ArenaApp, robot: Robot) -> None:
     await app.manager.delete(robot.robot_id)
     app.metrics.retire(robot)
     app.parts.forget(robot.robot_id)
+    app.sim_leaders.forget(robot.robot_id)
 
 
 async def attach_slave(
@@ -166,6 +167,7 @@ async def attach_master(app: ArenaApp, robot: Robot, body: MasterBody, anywhere:
         if close is not None:
             await close()  # refused (another master holds the robot): free the port
         raise
+    app.sim_leaders.follow(robot, master_id, driver)
     if not isinstance(body, ReplayMasterBody):  # (a replay is an act, not a part)
         app.parts.masters[robot.robot_id] = (master_id, body)
     return master_id
