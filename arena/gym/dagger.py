@@ -1,16 +1,17 @@
 """`arena learn reach --dagger ROUNDS`: the loop that makes a policy better, whole, in the twin.
 
 A few of the expert's demonstrations train a first policy. Each round deploys the newest policy
-as the twin's master (a `PolicyMaster`, every master rule applying) on targets of its own, and a
-scripted corrector, the task's expert, watches it: when the policy strays (no progress toward
-the target for half a second) the corrector intervenes as a human would (the robot's
+as the twin's master (`arena.gym.deploy`: a `PolicyMaster`, every master rule applying) on
+targets of its own, with the task's expert watching as a corrector: when the policy strays (no
+progress toward the target for half a second) it intervenes as a human would (the robot's
 intervention: the policy paused, not ended; the corrector's commands eased in at the joining
-speed), brings the tip to the target and hands back (the policy resumes from a fresh
-observation, its first step within the step limit). Everything is recorded as a server
-records it; Arena's own export writes the corrections as a LeRobot dataset (`intervention`
-true on every frame, each correction an episode of its own, as `arena export
---corrections-only` does); they join the data and the policy is trained again. Held-out
-success is measured after each round. specs/learning.md has the figures and the reasons.
+speed) and hands back once the tip has held at the target. Everything is recorded as a server
+records it, and Arena's own export writes the deployments as a LeRobot dataset (`intervention`
+true on the corrector's frames). DAgger's labels: every frame, the policy's own too, is
+trained on with the action the expert takes from that frame's state (`expert_labels`: the
+corrector's very function, so its frames keep their commands). The data grows by each round's
+relabelled deployments and the policy is trained again; held-out success is measured after
+each round. specs/learning.md has the figures and the reasons.
 """
 
 from __future__ import annotations
