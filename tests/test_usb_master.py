@@ -14,6 +14,7 @@ from arena.drivers.usb_master import UsbMaster
 from arena.feetech import registers as reg
 from arena.protocol.rest import UsbMasterBody
 from arena.robot.handle import Robot
+from arena.robot.links import MasterLink
 from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
 from arena.robot.motion import Command, CommandResult
@@ -37,6 +38,7 @@ MODEL = load_robot_model("so-arm100")
 JOINTS = {j.name: j.servo_id for j in MODEL.joints}
 LEADER_REST = {1: 1000, 2: 1500, 3: 2500, 4: 3000, 5: 100, 6: 2048}
 FOLLOWER_REST = {1: 2100, 2: 900, 3: 3500, 4: 2000, 5: 4000, 6: 1500}
+STEP = 360 / 4096  # degrees an encoder step
 
 
 @pytest.fixture
@@ -69,9 +71,32 @@ def leader_arm(sim: PtySimBus, calibration: Path, **config: object) -> UsbMaster
     )
 
 
+def record_commands(master: UsbMaster, sent: list[Command]) -> None:
+    """Keep in `sent` every command the leader arm sends its robot."""
+    mirror = master._mirror
+
+    async def recording(link: MasterLink, bridge: BusBridge) -> None:
+        command = link.command
+
+        async def recorded(what: Command, *, in_burst: bool = False) -> CommandResult:
+            sent.append(what)
+            return await command(what, in_burst=in_burst)
+
+        link.command = recorded  # type: ignore[method-assign]
+        await mirror(link, bridge)
+
+    master._mirror = recording  # type: ignore[method-assign]
+
+
 async def teleop(
-    manager: RobotManager, leader: PtySimBus, follower: PtySimBus, tmp_path: Path
+    manager: RobotManager,
+    leader: PtySimBus,
+    follower: PtySimBus,
+    tmp_path: Path,
+    sent: list[Command] | None = None,
 ) -> tuple[Robot, UsbMaster]:
+    """A robot with the follower as its slave and the leader arm as its master (`sent`: keep
+    the commands the leader sends)."""
     pose(leader, LEADER_REST)
     pose(follower, FOLLOWER_REST)
     robot = await manager.create_robot("so-arm100", robot_id="arm")
@@ -81,6 +106,8 @@ async def teleop(
     await eventually(lambda: all(servo_torque(follower).values()), what="follower torque")
     await wait_joined(robot)  # the robot has the follower's pose before the leader commands
     master = leader_arm(leader, calibrated_at(LEADER_REST, tmp_path / "arm-leader.json"))
+    if sent is not None:
+        record_commands(master, sent)
     await master.prepare()  # as the server does: the bus is up before the master claims
     await robot.attach_master(master)
     return robot, master
@@ -143,6 +170,30 @@ async def test_a_leader_at_rest_sends_nothing(
     pose(leader, {2: LEADER_REST[2] + 40})  # 3.5 degrees: a real move
     await eventually(lambda: master.sent >= before + 1, what="one command for the move")
     assert master.sent - before <= 2  # (and its settle, should it come already)
+
+
+async def test_a_leader_s_slow_move_is_sent_from_its_start(
+    manager: RobotManager, leader: PtySimBus, follower: PtySimBus, tmp_path: Path
+) -> None:
+    # Issue 57: a move went out only once it had left the 0.5 degree dead band (six encoder
+    # steps); three steps the same way in a row are a move.
+    sent: list[Command] = []
+    _, master = await teleop(manager, leader, follower, tmp_path, sent)
+    acted = ActedOn(master)
+    await eventually(lambda: servo_goals(follower) == FOLLOWER_REST, what="rest mirrored")
+    # A move, and a last bit of it inside the band: the leader rests where it settled.
+    pose(leader, {2: LEADER_REST[2] + 40})
+    await eventually(lambda: servo_goals(follower)[2] == FOLLOWER_REST[2] + 40, what="a move")
+    pose(leader, {2: LEADER_REST[2] + 43})
+    await eventually(lambda: servo_goals(follower)[2] == FOLLOWER_REST[2] + 43, what="settled")
+    before = len(sent)
+    for step in range(44, 54):  # then a slow move: a step a read or so, none held long
+        pose(leader, {2: LEADER_REST[2] + step})
+        await acted.past(2, LEADER_REST[2] + step)
+    await eventually(lambda: servo_goals(follower)[2] == FOLLOWER_REST[2] + 53, what="the end")
+    pitches = [goal.value for c in sent[before:] for goal in c.joints if goal.name == "Pitch"]
+    first = next(value for value in pitches if value != pytest.approx(43 * STEP))
+    assert 0 < first - 43 * STEP < 0.5  # before the band: at its third step, or the fourth
 
 
 async def test_the_follower_settles_where_the_leader_settled(
@@ -219,7 +270,6 @@ async def test_leader_over_rest_claims_the_robot_and_frees_its_port(
 # -- The mirror's rules on trio's MockClock: a real BusBridge fed readings at the leader's rate
 # (250 Hz), a stand-in for the robot's link that records what the leader commands and when.
 
-STEP = 360 / 4096  # degrees an encoder step
 READ = 1 / 250  # seconds between the leader's reads
 
 
