@@ -46,7 +46,8 @@ SETTLE_AFTER = 0.1
 #: leader's encoder flickers (an STS3215's or XL330's reading toggling by a step, now and
 #: then two, back and forth): that never makes three changes the same way, while a hand's
 #: move does from its start (a slow minimum-jerk move: its third step some 15 ms after its
-#: first, its sixth, where it leaves a 0.5 degree band, some 27 ms). LeRobot sends every frame.
+#: first, its sixth, where it leaves a 0.5 degree band, some 27 ms). Each further step of the
+#: run goes out too, at most at the robot's rate limit; LeRobot sends every frame.
 TREND_CHANGES = 3
 
 
