@@ -82,7 +82,11 @@ def usb_control_rate(
 
 def teleop_latency(moves: int = 200, rate: float = 100.0) -> dict[str, float]:
     """Leader register change -> follower Goal_Position write, through a robot (usb-master and
-    usb-slave on two simulated buses with wire-time emulation, both loops at `rate`)."""
+    usb-slave on two simulated buses with wire-time emulation, both loops at `rate`): to the
+    write of the leader's new position (the follower there), and to the first write that moves
+    toward it (the first reaction; with a trajectory the way there takes longer). The drivers
+    are paced on the simulators (`share`: arena/servo/sim_pace.py), as on `arena sim-bus`: a
+    simulator kept off the CPU of a loaded machine is no lost servo."""
     import trio
 
     from arena.drivers.config import UsbMasterConfig, UsbSlaveConfig
@@ -95,6 +99,7 @@ def teleop_latency(moves: int = 200, rate: float = 100.0) -> dict[str, float]:
     from arena.servo.sim_pty import PtySimBus
 
     latencies: list[float] = []
+    reactions: list[float] = []
 
     async def run(leader: PtySimBus, follower: PtySimBus) -> None:
         model = load_robot_model("so-arm100")
@@ -110,18 +115,32 @@ def teleop_latency(moves: int = 200, rate: float = 100.0) -> dict[str, float]:
             await trio.sleep(0.3)
             with follower.paused() as bus:
                 bus.write_log = log
+            last: bytes | None = None  # the follower's newest goal for servo 1
             for i in range(moves):
                 target = 2048 + (25 if i % 2 == 0 else -25)  # 2.2 degrees: one direct step
+                with follower.paused():
+                    for _, sid, address, data in log:
+                        last = data if sid == 1 and address == 42 else last
+                    log.clear()
+                before = last  # a write that differs from it is the follower's reaction
                 with leader.paused() as bus:
                     bus.servo(1).move_by_hand(target)
                     moved_at = time.monotonic()
                 want = reg.GOAL_POSITION.encode(target)
                 deadline = moved_at + 1.0
+                reacted = False
                 while time.monotonic() < deadline:
                     await trio.sleep(0.0005)
                     with follower.paused():
-                        hit = [t for t, sid, a, d in log if sid == 1 and a == 42 and d == want]
+                        goals = [(t, d) for t, sid, a, d in log if sid == 1 and a == 42]
                         log.clear()
+                    if goals:
+                        last = goals[-1][1]
+                    moved = [t for t, d in goals if t >= moved_at and d != before]
+                    if moved and not reacted:
+                        reactions.append(moved[0] - moved_at)
+                        reacted = True
+                    hit = [t for t, d in goals if d == want]
                     if hit:
                         latencies.append(hit[0] - moved_at)
                         break
@@ -129,14 +148,17 @@ def teleop_latency(moves: int = 200, rate: float = 100.0) -> dict[str, float]:
 
     with (
         tempfile.TemporaryDirectory() as folder,
-        PtySimBus(Path(folder) / "leader", SimBus(), wire_time=True) as leader,
-        PtySimBus(Path(folder) / "follower", SimBus(), wire_time=True) as follower,
+        PtySimBus(Path(folder) / "leader", SimBus(), wire_time=True, share=True) as leader,
+        PtySimBus(Path(folder) / "follower", SimBus(), wire_time=True, share=True) as follower,
     ):
         trio.run(run, leader, follower)
     latencies.sort()
+    reactions.sort()
     tag = f"{rate:.0f}hz"
     return {
         f"teleop_{tag}_p50_ms": 1000 * percentile(latencies, 0.5),
         f"teleop_{tag}_p99_ms": 1000 * percentile(latencies, 0.99),
         f"teleop_{tag}_missed": float(moves - len(latencies)),
+        f"teleop_{tag}_first_reaction_p50_ms": 1000 * percentile(reactions, 0.5),
+        f"teleop_{tag}_first_reaction_p99_ms": 1000 * percentile(reactions, 0.99),
     }

@@ -234,8 +234,10 @@ class UsbMasterBody(
     off). No `baudRate`: the robot type's.
 
     `rate`: Hz at which it is read; `deadband`: degrees a joint must move before a new command
-    goes out; `calibration`: the leader's calibration name (default: `<robot id>-leader`);
-    `takeover`: displace the robot's master (else MASTER_ACTIVE while it has one);
+    goes out, unless it is plainly moving (three encoder steps the same way in a row: a move
+    is sent from its start); `calibration`: the leader's calibration name (default:
+    `<robot id>-leader`); `takeover`: displace the robot's master (else MASTER_ACTIVE while it
+    has one);
     `actuated`: the leader's servos take torque: it is first driven to the follower's pose at
     the robot's joining speed, then goes limp for the hand (no jerk when it takes over).
     """
