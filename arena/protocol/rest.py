@@ -427,7 +427,8 @@ class BoxBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
 
 class WorkspaceBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     """`PUT /api/robots/{id}/workspace`: the collision guard's floor (null: none), margin,
-    policy and keep-out boxes. What is left out takes its default (specs/collision.md)."""
+    policy and keep-out boxes. What is left out keeps the robot type's own (its table among
+    them; specs/collision.md)."""
 
     floor: float | msgspec.UnsetType | None = msgspec.UNSET
     margin: float | msgspec.UnsetType = msgspec.UNSET

@@ -433,7 +433,8 @@ def _register_routes(app: ArenaApp) -> None:
     @app.put("/api/robots/<robot_id>/workspace")
     async def put_workspace(robot_id: str) -> dict[str, Any]:
         robot = manager.get(robot_id)
-        workspace = await parts.set_workspace(robot, await read_body(WorkspaceBody))
+        body = await read_body(WorkspaceBody)
+        workspace = await parts.set_workspace(robot, body, robot.model.workspace)
         return workspace_to_json(workspace)
 
     @app.post("/api/robots/<robot_id>/slaves")
