@@ -44,6 +44,10 @@ from arena.robot.snapshot import JointSnapshot, MasterEnded, RobotSnapshot
 from arena.robot.teleop import TeleopSettings
 from arena.robot.workspace import Workspace
 
+#: Seconds a hand-back or detach waits for the master's driver to let its hardware go (a bus
+#: worker's stop gives up after 5).
+CLOSE_PATIENCE = 6.0
+
 
 class Robot:
     """One robot: its public handle; `run` is its actor's task."""
@@ -251,8 +255,16 @@ class Robot:
 
     async def end_intervention(self, resume: bool = True) -> safety.Outcome:
         """End the intervention: the intervening master goes and the paused master resumes
-        (unless `resume` is false: then it stays paused)."""
-        return await self._event(safety.InterventionEnd(resume))
+        (unless `resume` is false: then it stays paused). Returns once a driver the robot ran
+        for the intervening master has let its hardware go (a leader arm limp, its port
+        closed), at most `CLOSE_PATIENCE` seconds."""
+        peers = self._actor.peers
+        closed = peers.master.closed if peers.waiting and peers.master else None
+        outcome = await self._event(safety.InterventionEnd(resume))
+        if closed is not None and not isinstance(outcome, safety.Refused):
+            with trio.move_on_after(CLOSE_PATIENCE):
+                await closed()
+        return outcome
 
     async def set_workspace(self, workspace: Workspace) -> None:
         """Change where the arm may go, from the next command on."""
@@ -364,10 +376,21 @@ class Robot:
         return link
 
     async def detach_master(
-        self, master_id: str | None = None, reason: str = "detached on request"
+        self,
+        master_id: str | None = None,
+        reason: str = "detached on request",
+        *,
+        wait_closed: bool = False,
     ) -> None:
-        """Detach the master `master_id` (or whichever master holds the robot)."""
+        """Detach the master `master_id` (or whichever master holds the robot). With
+        `wait_closed`, return once a driver the robot ran for it has let its hardware go (at
+        most `CLOSE_PATIENCE` seconds; never from inside that driver: it would wait for
+        itself)."""
+        master = self._actor.peers.either_named(master_id)
         await self._leave("master", master_id, lost=False, reason=reason)
+        if wait_closed and master is not None and master.closed is not None:
+            with trio.move_on_after(CLOSE_PATIENCE):
+                await master.closed()
 
     async def attach_slave(self, driver: SlaveDriver, slave_id: str | None = None) -> str:
         """Run `driver` as a slave of this robot; returns its id. A driver whose `measures`

@@ -464,8 +464,8 @@ def _register_routes(app: ArenaApp) -> None:
     async def detach_master(robot_id: str) -> dict[str, Any]:
         robot = manager.get(robot_id)
         master = robot.snapshot().master
-        if master is not None:
-            await robot.detach_master(master.peer_id)
+        if master is not None:  # answered once its driver let go: a leader's port is free
+            await robot.detach_master(master.peer_id, wait_closed=True)
         return {"detached": master.peer_id if master else None}
 
     def servo_readings(robot: Robot) -> list[tuple[str, float, float]]:
