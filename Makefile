@@ -63,7 +63,7 @@ osmesa:
 		DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq libosmesa6 >/dev/null; }
 
 run: install ui
-	$(BIN)/arena serve --demo --port $(PORT)
+	$(BIN)/arena serve --demo --sim-leader --port $(PORT)
 
 # NODES fleet nodes on this machine, one per core (specs/fleet.md): n0 on PORT (8080) with the
 # demo robot, nK on PORT+K; Zenoh on tcp/127.0.0.1:ZENOH_PORT+K. Ctrl-C stops them all.

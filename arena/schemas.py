@@ -32,6 +32,7 @@ SCHEMA_TYPES: dict[str, Any] = {
     "heartbeat": wire.HeartbeatMessage,
     "rest-create-robot": rest.CreateRobotBody,
     "rest-joints": rest.JointsBody,
+    "rest-leader-joints": rest.LeaderJointsBody,
     "rest-slave": rest.SlaveBody,
     "rest-master": rest.MasterBody,
     "rest-reason": rest.ReasonBody,

@@ -135,6 +135,7 @@ async def test_every_change_is_audited_once_with_who_and_no_refusal_is(
         calibration_dir=str(tmp_path / "calibration"),
         node="n0",
         fleet_listen=("tcp/127.0.0.1:0",),
+        sim_leader="so-arm100",
     )
     arm = "/api/robots/arm"
     async with server.client() as http:
@@ -175,6 +176,11 @@ async def test_every_change_is_audited_once_with_who_and_no_refusal_is(
         await change("DELETE", f"{arm}/master", robots=("arm",))
         replay = {"recording": "gentle-wave.mcap", "speed": 100}
         await change("POST", f"{arm}/replay", replay, status=201, robots=("arm",))
+        await change("DELETE", f"{arm}/master", robots=("arm",))
+        leader = {"type": "usb-master", "port": server.app.sim_leaders.leaders[0].port}
+        await change("POST", f"{arm}/master", leader, status=201, robots=("arm",))
+        moved = {"joints": [{"name": "Rotation", "value": 5}]}
+        await change("PUT", f"{arm}/leader/joints", moved, robots=("arm",))
         await change("DELETE", f"{arm}/master", robots=("arm",))
         camera = {"name": "front", "source": "test-pattern", "fps": 5, "width": 64, "height": 48}
         await change("POST", f"{arm}/cameras", camera, status=201, robots=("arm",))

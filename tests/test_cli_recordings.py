@@ -217,6 +217,20 @@ def test_timeline_shows_a_clamped_command_as_clamped(
     assert line.endswith(f"-> {expected}") and "accepted" not in line
 
 
+def test_timeline_says_so_when_its_window_holds_nothing(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    """`--from`/`--to` past the robot's records printed nothing at all, as if the file were
+    empty; a note says where its records are (exit 0: an empty window is no error)."""
+    golden = str(GOLDEN / "gentle-wave.mcap")
+    status, out, err = run(["timeline", golden, "--robot", "arm", "--from", "100"], capsys)
+    assert status == 0 and out.strip() == ""
+    assert err.startswith("note: no record of robot 'arm' from 100 s to the end; ")
+    assert "its records span 0.000-6.5" in err, err
+    status, out, err = run(["timeline", golden, "--from", "1", "--to", "2"], capsys)
+    assert status == 0 and out.strip() and not err  # a window with records: no note
+
+
 # -- errors name the flag ----------------------------------------------------------------------
 
 

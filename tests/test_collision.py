@@ -396,9 +396,14 @@ async def test_the_workspace_over_rest_and_every_master_refused_at_the_table(
         assert refused.status_code == 422
         assert refused.json()["error"]["code"] == "COLLISION"
         box = {"name": "camera", "min": [-0.3, -0.5, 0.0], "max": [0.3, -0.3, 0.4]}
+        # a body of boxes alone keeps the type's table (it once took the floor away unsaid)
         changed = await http.put("/api/robots/demo-arm/workspace", json={"keep_out": [box]})
-        assert changed.status_code == 200 and changed.json()["floor"] is None
+        assert changed.status_code == 200 and changed.json()["floor"] == 0.0
         assert (await http.get("/api/robots/demo-arm/workspace")).json()["keep_out"] == [box]
+        tableless = {"floor": None, "keep_out": [box]}  # no floor: said so
+        gone = await http.put("/api/robots/demo-arm/workspace", json=tableless)
+        assert gone.status_code == 200 and gone.json()["floor"] is None
+        assert gone.json()["margin"] == 0.005 and gone.json()["keep_out"] == [box]
         bad = await http.put("/api/robots/demo-arm/workspace", json={"margin": -1})
         assert bad.status_code == 422 and "margin" in bad.json()["error"]["message"]
         # the arm stretched forward (towards -y) now reaches into the camera's box

@@ -244,3 +244,18 @@ async def test_a_dataset_lerobot_06_wrote_imports_as_a_recording(
     assert len(commands) == 5
     pans = [next(g.value for g in c.command.joints if g.name == "Rotation") for c in commands]
     assert pans == pytest.approx([10, 11, 12, 13, 14], abs=1e-3)
+
+
+def test_lerobots_teleoperation_loop_runs_the_bench_sweep(newer: str) -> None:
+    """`arena bench teleop`'s LeRobot side: `lerobot-teleoperate`'s loop (SO-101 leader and
+    follower, LeRobot 0.6 with its feetech extra) on two simulated buses follows the leader."""
+    from arena.bench import teleop
+
+    sweep = teleop.lerobot_sweep(Path(newer), [(30.0, 0.4), (-30.0, 0.35)], rest=1.0)
+    figures = teleop.summarise(sweep, "lerobot")
+    assert figures["lerobot_lag_samples"] > 10
+    assert figures["lerobot_unreached_samples"] == 0
+    assert figures["lerobot_no_reaction_moves"] == 0
+    # It sends the leader's value as it is: never past it, and it settles where the leader did.
+    assert figures["lerobot_overshoot_max_deg"] == 0
+    assert figures["lerobot_end_error_max_deg"] == 0

@@ -156,7 +156,11 @@ def click_slider_at(page: Page, joint: str, fraction: float) -> float:
     """Click the slider's track like a hand would; returns the value the click gave it (the
     one the page commands). Read from the click's own `input` event: once the hand lets go the
     slider shows the robot's value again, which may still be on its way there."""
-    handle = slider(page, joint)
+    return click_range_at(page, slider(page, joint), fraction)
+
+
+def click_range_at(page: Page, handle: Any, fraction: float) -> float:
+    """Click a range input's track at `fraction` of its width; the value the click gave it."""
     handle.evaluate("el => el.addEventListener('input', () => { el.dataset.clicked = el.value; })")
     handle.scroll_into_view_if_needed()  # (a card with more buttons puts the last below the fold)
     box = handle.bounding_box()
@@ -1188,6 +1192,64 @@ def test_a_leader_arm_attaches_from_the_card_and_corrects_a_running_master(
         expect(page.locator("#robot-state")).to_have_text("mastered")
     finally:
         sims.close()
+
+
+def click_leader_at(page: Page, joint: str, fraction: float) -> float:
+    """Click the simulated leader's slider of `joint` like a hand would; the value it took."""
+    handle = page.locator(f'input[type=range][data-leader-joint="{joint}"]')
+    return click_range_at(page, handle, fraction)
+
+
+def wait_for_real(page: Page, joint: str, wanted: float) -> None:
+    """Until the robot's measured `joint` on the page is within a degree and a half of `wanted`."""
+    page.wait_for_function(
+        """([joint, wanted]) => {
+            const cell = document.querySelector(`td[data-real="${joint}"]`);
+            return cell && Math.abs(parseFloat(cell.textContent) - wanted) < 1.5;
+        }""",
+        arg=[joint, wanted],
+        timeout=WAIT_MS,
+    )
+
+
+def test_a_simulated_leader_moves_from_the_card_and_the_robot_follows(
+    start_live: Any, page: Page, tmp_path: Path
+) -> None:
+    """Issue 61: with `--sim-leader` (make run) the card offers the server's simulated leader,
+    attaches it, and moves its joints with sliders of its own; the robot follows, as its
+    master and as a correction of a running one."""
+    server = start_live(
+        demo=True, sim_leader="so-arm100", calibration_dir=str(tmp_path / "calibrations")
+    )
+    with server.http() as http:
+        (simulated,) = http.get("/api/robots/demo-arm/leader").json()["simulated"]
+    page.goto(server.url + "/ui/#/robots/demo-arm")
+    expect(page.locator("#robot-state")).to_have_text("idle")
+    expect(page.locator("#leader-port")).to_have_value(simulated["port"])
+    expect(page.locator("#sim-leader")).to_be_hidden()  # no leader attached yet
+    page.click("#attach-leader")
+    expect(page.locator("#robot-state")).to_have_text("mastered", timeout=WAIT_MS)
+    expect(page.locator("#sim-leader")).to_be_visible()
+    expect(page.locator("#sim-leader-note")).to_contain_text("it drives the robot")
+    expect(slider(page, "Rotation")).to_be_disabled()  # the robot's own: the leader drives
+    wanted = click_leader_at(page, "Rotation", 0.8)
+    assert wanted > 20
+    wait_for_real(page, "Rotation", wanted)
+    assert real_value(server, "demo-arm", "Rotation") == pytest.approx(wanted, abs=1.5)
+    # A correction: a sequence runs, the simulated leader intervenes from the card and drives.
+    with server.http() as http:
+        assert http.delete("/api/robots/demo-arm/master").status_code == 200
+        sequence = {"type": "mock-sequence", "sequences": ["gentle-wave"], "loop": True}
+        assert http.post("/api/robots/demo-arm/master", json=sequence).status_code == 201
+    expect(page.locator("#attach-leader")).to_have_text("Correct with the leader arm")
+    page.click("#attach-leader")
+    expect(page.locator("#robot-state")).to_have_text("intervened", timeout=WAIT_MS)
+    expect(page.locator("#sim-leader")).to_be_visible()
+    wanted = click_leader_at(page, "Elbow", 0.25)
+    wait_for_real(page, "Elbow", wanted)
+    page.click("#hand-back")
+    expect(page.locator("#robot-state")).to_have_text("mastered")
+    expect(page.locator("#sim-leader")).to_be_hidden()  # the leader is gone with the correction
 
 
 def test_a_policy_of_the_tenant_s_folder_attaches_from_the_card(

@@ -48,7 +48,9 @@ def test_make_run_installs_only_the_runtime_packages(tmp_path: Path) -> None:
     venv = tmp_path / "venv"
     commands = make_dry_run("run", venv)
     assert pip_installs(commands) == ["."]
-    assert any(line.endswith("arena serve --demo --port 8080") for line in commands), commands
+    assert any(line.endswith("arena serve --demo --sim-leader --port 8080") for line in commands), (
+        commands
+    )
 
 
 @needs_make
@@ -68,7 +70,7 @@ def test_make_test_after_make_run_adds_the_rest(tmp_path: Path) -> None:
 def test_make_run_and_fleet_take_a_port(tmp_path: Path) -> None:
     venv = tmp_path / "venv"
     run = make_dry_run("run", venv, "PORT=9100")
-    assert any(line.endswith("arena serve --demo --port 9100") for line in run), run
+    assert any(line.endswith("arena serve --demo --sim-leader --port 9100") for line in run), run
     fleet = "\n".join(make_dry_run("fleet", venv, "PORT=9100", "ZENOH_PORT=7600"))
     assert "--node n0 --port 9100" in fleet
     assert "--port $((9100 + k))" in fleet

@@ -20,7 +20,7 @@ from arena.policy.wire import Observe
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot import safety as sm
 from arena.robot.events import CommandHandled, InterventionChanged, TargetsSent
-from arena.robot.handle import Robot
+from arena.robot.handle import CLOSE_PATIENCE, Robot
 from arena.robot.links import MasterLink
 from arena.robot.manager import RobotManager
 from arena.robot.model import LossPolicy
@@ -379,3 +379,44 @@ async def test_an_intervening_master_moves_the_arm_at_the_join_speed_until_they_
         await trio.sleep(60.0 / full + 1.0)
         straight = [e for e in events.drain() if isinstance(e, TargetsSent)]
         assert fastest(straight, "Rotation", burst) > 2 * join
+
+
+class SlowToLetGo:
+    """A master whose hardware takes `letting_go` seconds to let go (a leader arm's torque
+    off and port closing): its `run` waits until stopped, then closes."""
+
+    kind = "slow-leader"
+    autonomous = True
+    takes_over = False
+
+    def __init__(self, letting_go: float) -> None:
+        self.letting_go = letting_go
+        self.closed = False
+
+    async def run(self, link: MasterLink) -> None:
+        try:
+            await trio.sleep_forever()
+        finally:
+            with trio.CancelScope(shield=True):
+                await trio.sleep(self.letting_go)
+                self.closed = True
+
+
+async def test_handing_back_and_detaching_answer_once_the_masters_hardware_let_go(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    current = await scene(manager, "arm")
+    robot = current.robot
+    leader = SlowToLetGo(2.0)
+    await robot.attach_master(leader, intervene=True)
+    await robot.end_intervention()  # a leader limp and its port free when the answer comes
+    assert leader.closed
+    master = robot.snapshot().master
+    assert master is not None and master.kind == "mock-sequence"  # it drives again
+    await robot.detach_master(master.peer_id, wait_closed=True)
+    stuck = SlowToLetGo(60.0)  # a driver that does not let go holds the answer a bounded time
+    await robot.attach_master(stuck)
+    began = trio.current_time()
+    await robot.detach_master(wait_closed=True)
+    assert trio.current_time() - began == pytest.approx(CLOSE_PATIENCE)
+    assert not stuck.closed

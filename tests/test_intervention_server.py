@@ -252,3 +252,51 @@ async def test_corrections_are_counted_per_episode_in_the_details_and_on_metrics
         assert metric((await http.get("/metrics")).text, "arena_episode_corrections") is None
         assert (await http.post(f"{ROBOT}/episodes/start", json={"task": "again"})).is_success
         assert (await details(http))["corrections"] == {"total": 3, "episode": 0}
+
+
+async def test_the_intervening_operator_moves_the_hand_over_rest_too(
+    server: RunningServer,
+) -> None:
+    """`PUT .../pose` is manual control like `PUT .../joints`: the operator who intervenes
+    (`{}`) moves the hand with it; it was refused MASTER_ACTIVE naming the operator itself."""
+    async with server.client() as http:
+        started = await http.post(f"{ROBOT}/master", json=SEQUENCE)
+        assert started.status_code == 201, started.text
+        taken = await http.post(f"{ROBOT}/intervention", json={})
+        assert taken.status_code == 201, taken.text
+        here = (await http.get(f"{ROBOT}/pose")).json()["commanded"]["position"]
+        goal = [here[0], here[1], here[2] + 0.02]
+        moved = await http.put(f"{ROBOT}/pose", json={"position": goal})
+        assert moved.status_code == 200, moved.text
+        back = await http.request("DELETE", f"{ROBOT}/intervention")
+        assert back.status_code == 200, back.text
+        # Without the intervention the master drives, and the pose is refused again.
+        late = await http.put(f"{ROBOT}/pose", json={"position": goal})
+        assert late.status_code == 409 and late.json()["error"]["code"] == "MASTER_ACTIVE"
+
+
+async def test_manual_control_refused_by_a_master_says_which_and_what_to_do(
+    server: RunningServer,
+) -> None:
+    """A command over REST while a master drives is refused MASTER_ACTIVE with the master in
+    words (a user's own planned move or sequence had only an id like 'master-4') and the ways
+    out: wait, intervene, or detach it."""
+    joints = {"joints": [{"name": "Rotation", "value": 12}]}
+    async with server.client() as http:
+        started = await http.post(f"{ROBOT}/master", json=SEQUENCE)
+        assert started.status_code == 201, started.text
+        master = started.json()["id"]
+        for method, path, body in (
+            ("PUT", "joints", joints),
+            ("PUT", "pose", {"position": [0.0, -0.25, 0.2]}),
+            ("POST", "move", {"joints": {"Rotation": 12}}),
+            ("POST", "move", {"joints": {"Rotation": 12}, "plan": True}),
+        ):
+            refused = await http.request(method, f"{ROBOT}/{path}", json=body)
+            assert refused.status_code == 409, (path, body, refused.text)
+            error = refused.json()["error"]
+            assert error["code"] == "MASTER_ACTIVE", (path, error)
+            message = error["message"]
+            assert f"{master!r} (sequence 'gentle-wave' in a loop)" in message, (path, message)
+            assert "POST /api/robots/demo-arm/intervention" in message, (path, message)
+            assert "DELETE /api/robots/demo-arm/master" in message, (path, message)

@@ -36,7 +36,7 @@ async def test_one_small_round_corrects_exports_and_retrains(
     lerobot_dataset = need("lerobot.datasets.lerobot_dataset", "lerobot")
     need("gymnasium", "gym")
     need("mujoco", "physics")
-    from arena.gym.dagger import ROLLOUT_SEED, target_of
+    from arena.gym.dagger import ROLLOUT_SEED, expert_labels, target_of
     from arena.gym.task import Reach
 
     out = tmp_path / "dagger"
@@ -89,27 +89,36 @@ async def test_one_small_round_corrects_exports_and_retrains(
     starts = [m for m in messages if m.kind == "episode" and m.data["change"] == "start"]
     assert len(starts) == 2
 
-    # Its corrections, exported by Arena: every frame flagged, each with its episode's target.
-    root = out / "round-0" / "corrections"
+    # The deployments, exported by Arena: the corrector's frames flagged, each frame with
+    # its episode's target.
+    root = out / "round-0" / "rollouts"
     arena_info = json.loads((root / "meta" / "arena.json").read_text())
     assert arena_info["corrections"] and all(m == "corrector" for _, m in arena_info["corrections"])
     repo_id = json.loads((root / "meta" / "info.json").read_text()).get("repo_id")
-    dataset = lerobot_dataset.LeRobotDataset(repo_id or "arena/reach-corrections-0", root=root)
+    dataset = lerobot_dataset.LeRobotDataset(repo_id or "arena/reach-rollouts-0", root=root)
     feature = dataset.meta.features["intervention"]
     assert feature["dtype"] == "bool" and tuple(feature["shape"]) == (1,)
-    assert dataset.num_episodes == len(arena_info["corrections"])
-    rows = list(dataset.hf_dataset.with_format(None))
-    assert len(rows) == first["correction_frames"] > 0
-    assert all(bool(np.asarray(row["intervention"]).reshape(-1)[0]) for row in rows)
+    assert dataset.num_episodes == 2
+    table = dataset.hf_dataset.with_format("numpy")
+    columns = {name: np.asarray(table[name]) for name in table.column_names}
+    flags = columns["intervention"].reshape(-1).astype(bool)
+    assert len(flags) == first["rollout_frames"] and flags.sum() == first["correction_frames"] > 0
     task = Reach(load_robot_model("so-101"))
     targets = [target_of(task, ROLLOUT_SEED + k) for k in range(2)]  # the rollouts' own
-    for row in rows:
-        state = row["observation.environment_state"]
+    for state in columns["observation.environment_state"]:
         assert any(np.allclose(state, target, atol=1e-6) for target in targets)
 
-    # The data grew by the corrections, and round 1 trained on it all.
-    assert second["frames"] == first["frames"] + first["correction_frames"]
+    # DAgger's labels: every frame's action relabelled by the expert following the episode.
+    # Where the corrector commanded, that is its command (the same function of state);
+    # where the policy drove, what the expert would have done there instead.
+    labels = expert_labels(task.model)(columns)
+    assert np.allclose(labels[flags], columns["action"][flags], atol=1e-3)
+    assert np.abs(labels[~flags] - columns["action"][~flags]).max() > 1.0
+
+    # The data grew by the relabelled deployments, and round 1 trained on it all.
+    assert second["frames"] == first["frames"] + first["rollout_frames"]
     assert second["rollouts"] == 0 and 0.0 <= second["success"] <= 1.0
+    assert set(first["cpu_seconds"]) == {"collect", "train", "evaluate", "rollouts"}
 
     # The retrained policy is what a server's policy master loads, target and all.
     server = await start_server()
@@ -131,7 +140,7 @@ async def test_one_small_round_corrects_exports_and_retrains(
 
 def test_the_policy_strays_after_half_a_second_without_progress() -> None:
     need("gymnasium", "gym")
-    from arena.gym.dagger import Stray
+    from arena.gym.deploy import Stray
 
     stray = Stray(30.0)  # 15 steps
     # Coming closer by 3 mm a step is progress, however far it still is.
@@ -163,3 +172,38 @@ def test_a_following_expert_stays_on_a_leash_from_the_arm() -> None:
         ahead = np.abs(free.act(arm)[:ARM_JOINTS]).max()
         near = np.abs(leashed.act(arm)[:ARM_JOINTS]).max()
     assert near <= EXPERT_LEASH + EXPERT_STEP + 1e-9 < ahead
+
+
+def test_dagger_labels_are_what_the_following_expert_does_from_each_frame() -> None:
+    """A policy that never moved the arm: its frames are relabelled with the expert's actions
+    from where the arm is (toward the target, on the leash from the arm), not its own; each
+    episode's expert starts afresh."""
+    need("gymnasium", "gym")
+    from arena.gym.dagger import expert_labels
+    from arena.gym.task import ARM_JOINTS, EXPERT_LEASH, EXPERT_STEP, Reach
+    from arena.recording.dataset import ENVIRONMENT, to_dataset
+
+    model = load_robot_model("so-101")
+    task = Reach(model)
+    target = np.asarray(task.draw_target(np.random.default_rng(5)))
+    rest = np.array([to_dataset(joint, 0.0) for joint in model.joints], dtype=np.float32)
+    frames = 12
+    columns = {
+        "observation.state": np.tile(rest, (2 * frames, 1)),
+        ENVIRONMENT: np.tile(target, (2 * frames, 1)),
+        "episode_index": np.repeat([0, 1], frames),
+        "action": np.tile(rest, (2 * frames, 1)),  # what the policy did: nothing
+    }
+    labels = expert_labels(model)(columns)
+    assert labels.shape == columns["action"].shape
+    arm = labels[:, :ARM_JOINTS] - rest[:ARM_JOINTS]
+    goal = task.solve(target, [0.0] * len(model.joints))[:ARM_JOINTS]
+    # Toward the target's joints, every joint, and within the leash of the arm that stayed.
+    moving = np.abs(goal) > 1.0
+    assert np.all(np.sign(arm[:, moving]) == np.sign(goal[moving]))
+    assert np.abs(arm).max() <= EXPERT_LEASH + EXPERT_STEP + 1e-4
+    assert np.abs(arm[1]).max() > np.abs(arm[0]).max()  # its plan walks on, one step a frame
+    # The wrist's roll and the gripper stay where the arm has them (in the dataset's units).
+    assert np.allclose(labels[:, ARM_JOINTS:], rest[ARM_JOINTS:], atol=1e-4)
+    # The second episode's expert starts afresh: the same states, the same labels.
+    assert np.allclose(labels[:frames], labels[frames:])

@@ -74,6 +74,18 @@ def guarded(
     return guard, boxes(model, pillar)
 
 
+async def keep_out(http: Any, robot: Robot, *entries: dict[str, Any]) -> None:
+    """PUT the workspace with these boxes, the robot type's floor and margin kept (a PUT
+    replaces the whole workspace: without them the server's guard had no table, and the
+    planner could take the hand under it), and check the server's guard now has the one the
+    test's own checks use (`boxes`)."""
+    floor, margin = robot.model.workspace.floor, robot.model.workspace.margin
+    body = {"floor": floor, "margin": margin, "keep_out": list(entries)}
+    put = await http.put(f"/api/robots/{robot.robot_id}/workspace", json=body)
+    assert put.status_code == 200, put.text
+    assert robot.workspace == boxes(robot.model, *entries)
+
+
 def urdf(model: RobotModel, joints: dict[str, float]) -> dict[str, float]:
     return {j.urdf_name: j.to_urdf(joints[j.name]) for j in model.joints}
 
@@ -109,8 +121,7 @@ async def test_a_planned_move_goes_around_a_pillar_the_straight_way_runs_into(
         robot = await arm_at(server, http, "arm", start)
         recorder = RecordingSlave()
         await robot.attach_slave(recorder)
-        put = await http.put("/api/robots/arm/workspace", json={"keep_out": [pillar]})
-        assert put.status_code == 200, put.text
+        await keep_out(http, robot, pillar)
         # Without a plan the move is the straight way, which the guard refuses.
         refused = await http.post("/api/robots/arm/move", json={"joints": goal})
         assert refused.status_code == 422, refused.text
@@ -128,6 +139,7 @@ async def test_a_planned_move_goes_around_a_pillar_the_straight_way_runs_into(
     assert len(sent) > 10
     for joints in sent:  # every target that went out: the guard's own model finds it clear
         assert guard.hit(urdf(model, joints), workspace) is None, joints
+    assert robot.core.collision_stops == 0  # no target on the way was held back by the guard
     for name, value in goal.items():
         assert sent[-1][name] == pytest.approx(value, abs=1e-6)
 
@@ -242,7 +254,7 @@ async def test_a_master_plans_a_move_and_plays_it_as_its_own_commands(
         robot = await arm_at(server, http, "demo-arm", start)
         recorder = RecordingSlave()
         await robot.attach_slave(recorder)
-        await http.put("/api/robots/demo-arm/workspace", json={"keep_out": [pillar]})
+        await keep_out(http, robot, pillar)
         async with open_websocket_url(server.ws_url + "/ws/master/demo-arm?id=planner") as ws:
             move = {"type": "move", "data": {"joints": goal, "plan": True, "budget": GENEROUS}}
             await ws.send_message(json.dumps(move))
@@ -314,6 +326,11 @@ async def test_a_move_without_plan_is_one_command_and_bad_bodies_are_refused(
         ]:
             refused = await http.post("/api/robots/demo-arm/move", json=body)
             assert refused.json()["error"]["code"] == code, (body, refused.text)
+        # PUT .../joints's list, sent here: the answer shows this route's form.
+        listed = {"joints": [{"name": "Rotation", "value": 1}]}
+        refused = await http.post("/api/robots/demo-arm/move", json=listed)
+        assert refused.json()["error"]["code"] == "INVALID_BODY", refused.text
+        assert '{"Rotation": 10}' in refused.json()["error"]["message"], refused.text
         sequence = await http.post("/api/robots/demo-arm/play-sequence/gentle-wave")
         assert sequence.status_code == 200, sequence.text
         held = await http.post(
@@ -414,7 +431,7 @@ async def test_a_script_plans_its_move_around_the_pillar_on_the_server(
         robot = await arm_at(server, http, "demo-arm", start)
         recorder = RecordingSlave()
         await robot.attach_slave(recorder)
-        await http.put("/api/robots/demo-arm/workspace", json={"keep_out": [pillar]})
+        await keep_out(http, robot, pillar)
         with robot.subscribe(kinds=[FaultReported]) as faults:
             body = {"type": "script", "path": "around.py"}
             attached = await http.post("/api/robots/demo-arm/master", json=body)

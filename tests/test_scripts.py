@@ -23,6 +23,7 @@ from arena.robot.events import CommandHandled, FaultReported, StateChanged
 from arena.robot.model import load_robot_model
 from arena.robot.safety import Mode
 from tests.conftest import RunningServer
+from tests.serve_process import serving
 from tests.test_policy_server import next_event
 
 Start = Callable[..., Awaitable[RunningServer]]
@@ -145,6 +146,14 @@ async def test_a_script_that_raises_is_a_fault_naming_its_file_and_line(
     assert fault.message == f"{path.resolve()}, line 5: KeyError: 'Roll'"
     await wait_for_no_master(server)
     assert robot.snapshot().joint("Rotation").goal == 5  # what it did before is done
+    # Over REST too, once it has gone: the robot's details keep why its last master ended.
+    async with server.client() as http:
+        shown = (await http.get(ROBOT)).json()
+    assert shown["master"] is None
+    last = shown["last_master"]
+    assert last["id"] == "script:bad.py" and last["type"] == "script", last
+    assert last["ended"] == "detached" and last["reason"] == "driver finished", last
+    assert last["error"] == f"SCRIPT_FAILED: {fault.message}", last
 
 
 async def test_a_refused_command_raises_in_the_script_which_may_catch_it(
@@ -588,3 +597,19 @@ async def test_pause_holds_a_remote_script_and_resume_finishes_its_move(
     joints = [[(g.name, g.value) for g in e.command.joints] for e in rest]
     assert joints == [[("Rotation", 30)], [("Pitch", 10)]], joints
     assert robot.snapshot().joint("Rotation").virtual_value == pytest.approx(30, abs=0.1)
+
+
+def test_arena_serve_takes_its_script_and_policy_folders_as_flags(tmp_path: Path) -> None:
+    """`--script-dir` and `--policy-dir` (a real `arena serve`, started where neither default
+    folder is): a script of the folder given runs, and a missing policy is looked for in the
+    policy folder given. They were settings of the file and the environment only."""
+    mine, policies = tmp_path / "mine", tmp_path / "models"
+    write(mine, "hello.py", 'print("hello")\n')
+    argv = ["--demo", "--port", "0", "--no-record"]
+    argv += ["--script-dir", str(mine), "--policy-dir", str(policies)]
+    with serving(argv, cwd=tmp_path) as served, httpx.Client(base_url=served.url) as http:
+        ran = http.post(f"{ROBOT}/master", json={"type": "script", "path": "hello.py"})
+        assert ran.status_code == 201, ran.text
+        missing = http.post(f"{ROBOT}/master", json={"type": "policy", "path": "cube"})
+        assert missing.status_code == 422, missing.text
+        assert f"{policies}/cube/config.json" in missing.json()["error"]["message"]

@@ -162,6 +162,7 @@ async def test_manual_control_is_rate_limited(
         assert response.json()["error"]["code"] == "RATE_LIMITED"
 
 
+JOINTS = "/api/robots/demo-arm/joints"
 BAD_REQUESTS: list[tuple[str, str, Any, int, str]] = [
     ("POST", "/api/robots", b"{not json", 422, "INVALID_JSON"),
     ("POST", "/api/robots", {"robot_type": 5}, 422, "INVALID_BODY"),
@@ -271,6 +272,22 @@ async def test_bad_requests_get_a_json_error_and_change_nothing(
         assert error["code"] == code
         assert error["message"] and "Traceback" not in error["message"]
         assert (await http.get("/api/robots")).json() == before
+
+
+@pytest.mark.parametrize(("method", "path"), [("POST", "/api/robots"), ("PUT", JOINTS)])
+async def test_an_empty_body_is_called_empty_not_truncated_json(
+    server: RunningServer, method: str, path: str
+) -> None:
+    """`curl -X POST .../robots` with no `-d`: the answer said "not valid JSON: Input data was
+    truncated", which reads like a cut connection; it says the body is empty and what to send."""
+    async with server.client() as http:
+        for headers in ({}, {"Content-Type": "application/json"}):
+            response = await http.request(method, path, content=b"", headers=headers)
+            assert response.status_code == 422, response.text
+            error = response.json()["error"]
+            assert error["code"] == "INVALID_JSON", error
+            assert error["message"].startswith("The body is empty: "), error
+            assert "JSON object" in error["message"], error
 
 
 async def test_api_keys(start_server: StartServer, caplog: pytest.LogCaptureFixture) -> None:

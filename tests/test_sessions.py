@@ -13,6 +13,7 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
+import httpx
 import pytest
 import trio
 from trio_websocket import open_websocket_url
@@ -244,6 +245,55 @@ async def test_arena_replay_releases_the_robot_at_its_end(
     for timed in recorded_commands(read_recording(GOLDEN), "arm"):
         last.update({goal.name: goal.value for goal in timed.command.joints})
     assert {name: snapshot.joint(name).goal for name in last} == pytest.approx(last)
+
+
+async def test_arena_replay_onto_a_robot_with_a_master_is_refused_unless_it_takes_over(
+    server: RunningServer, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A robot another master drives: `arena replay` said "sent 1 commands, 0 refused" and
+    exited 0 though the server had refused it; now one line naming --takeover, exit 2, and
+    `--takeover` replaces the master."""
+    async with httpx.AsyncClient(base_url=server.url) as http:
+        looping = {"type": "mock-sequence", "sequences": ["gentle-wave"], "loop": True}
+        started = await http.post("/api/robots/demo-arm/master", json=looping)
+        assert started.status_code == 201, started.text
+    args = ["replay", str(GOLDEN), "--robot", "arm", "--speed", "20"]
+    args += ["--to", server.ws_url + "/ws/master/demo-arm"]
+    assert await trio.to_thread.run_sync(cli.main, args) == 2
+    out, err = capsys.readouterr()
+    last = err.splitlines()[-1]
+    assert last.startswith("arena replay: ") and "--takeover" in last, err
+    assert "sent" not in out, out
+    robot = server.app.manager.get("demo-arm")
+    assert robot.snapshot().master is not None  # the sequence still drives
+    assert await trio.to_thread.run_sync(cli.main, [*args, "--takeover"]) == 0
+    assert "0 refused" in capsys.readouterr().out
+    await master_connections_closed(server)
+    assert (str(robot.snapshot().mode), robot.snapshot().master) == ("idle", None)
+
+
+async def test_arena_replay_taken_over_while_it_plays_ends_without_an_error(
+    server: RunningServer, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A takeover closes the replay's socket with 4409, MASTER_ACTIVE's close code too, after
+    `detached TAKEN_OVER`: that is the server ending it (said, exit 0), not a refusal."""
+    args = ["replay", str(GOLDEN), "--robot", "arm", "--loop"]
+    args += ["--to", server.ws_url + "/ws/master/demo-arm"]
+    robot = server.app.manager.get("demo-arm")
+    async with trio.open_nursery() as nursery:
+        status: list[int] = []
+
+        async def replay() -> None:
+            status.append(await trio.to_thread.run_sync(cli.main, args))
+
+        nursery.start_soon(replay)
+        await eventually(lambda: robot.snapshot().master is not None, what="the replay drives")
+        async with httpx.AsyncClient(base_url=server.url) as http:
+            taken = await http.post("/api/robots/demo-arm/play-sequence/gentle-wave")
+            assert taken.status_code == 200, taken.text
+    assert status == [0]
+    err = capsys.readouterr().err
+    assert "server: " in err and "took over" in err and "arena replay:" not in err, err
 
 
 async def master_connections_closed(server: RunningServer) -> None:

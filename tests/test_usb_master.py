@@ -6,14 +6,18 @@ from collections.abc import Awaitable, Callable, Iterator
 from pathlib import Path
 
 import pytest
+import trio
+from trio.testing import MockClock
 
+from arena.drivers.bus_bridge import BusBridge
 from arena.drivers.usb_master import UsbMaster
 from arena.feetech import registers as reg
 from arena.protocol.rest import UsbMasterBody
 from arena.robot.handle import Robot
+from arena.robot.links import MasterLink
 from arena.robot.manager import RobotManager
 from arena.robot.model import load_robot_model
-from arena.robot.motion import Command
+from arena.robot.motion import Command, CommandResult
 from arena.robot.safety import Mode
 from arena.server.drivers import usb_master_config
 from arena.servo.calibration import Calibration, calibrate_rest
@@ -34,6 +38,7 @@ MODEL = load_robot_model("so-arm100")
 JOINTS = {j.name: j.servo_id for j in MODEL.joints}
 LEADER_REST = {1: 1000, 2: 1500, 3: 2500, 4: 3000, 5: 100, 6: 2048}
 FOLLOWER_REST = {1: 2100, 2: 900, 3: 3500, 4: 2000, 5: 4000, 6: 1500}
+STEP = 360 / 4096  # degrees an encoder step
 
 
 @pytest.fixture
@@ -66,9 +71,32 @@ def leader_arm(sim: PtySimBus, calibration: Path, **config: object) -> UsbMaster
     )
 
 
+def record_commands(master: UsbMaster, sent: list[Command]) -> None:
+    """Keep in `sent` every command the leader arm sends its robot."""
+    mirror = master._mirror
+
+    async def recording(link: MasterLink, bridge: BusBridge) -> None:
+        command = link.command
+
+        async def recorded(what: Command, *, in_burst: bool = False) -> CommandResult:
+            sent.append(what)
+            return await command(what, in_burst=in_burst)
+
+        link.command = recorded  # type: ignore[method-assign]
+        await mirror(link, bridge)
+
+    master._mirror = recording  # type: ignore[method-assign]
+
+
 async def teleop(
-    manager: RobotManager, leader: PtySimBus, follower: PtySimBus, tmp_path: Path
+    manager: RobotManager,
+    leader: PtySimBus,
+    follower: PtySimBus,
+    tmp_path: Path,
+    sent: list[Command] | None = None,
 ) -> tuple[Robot, UsbMaster]:
+    """A robot with the follower as its slave and the leader arm as its master (`sent`: keep
+    the commands the leader sends)."""
     pose(leader, LEADER_REST)
     pose(follower, FOLLOWER_REST)
     robot = await manager.create_robot("so-arm100", robot_id="arm")
@@ -78,6 +106,8 @@ async def teleop(
     await eventually(lambda: all(servo_torque(follower).values()), what="follower torque")
     await wait_joined(robot)  # the robot has the follower's pose before the leader commands
     master = leader_arm(leader, calibrated_at(LEADER_REST, tmp_path / "arm-leader.json"))
+    if sent is not None:
+        record_commands(master, sent)
     await master.prepare()  # as the server does: the bus is up before the master claims
     await robot.attach_master(master)
     return robot, master
@@ -140,6 +170,30 @@ async def test_a_leader_at_rest_sends_nothing(
     pose(leader, {2: LEADER_REST[2] + 40})  # 3.5 degrees: a real move
     await eventually(lambda: master.sent >= before + 1, what="one command for the move")
     assert master.sent - before <= 2  # (and its settle, should it come already)
+
+
+async def test_a_leader_s_slow_move_is_sent_from_its_start(
+    manager: RobotManager, leader: PtySimBus, follower: PtySimBus, tmp_path: Path
+) -> None:
+    # Issue 57: a move went out only once it had left the 0.5 degree dead band (six encoder
+    # steps); three steps the same way in a row are a move.
+    sent: list[Command] = []
+    _, master = await teleop(manager, leader, follower, tmp_path, sent)
+    acted = ActedOn(master)
+    await eventually(lambda: servo_goals(follower) == FOLLOWER_REST, what="rest mirrored")
+    # A move, and a last bit of it inside the band: the leader rests where it settled.
+    pose(leader, {2: LEADER_REST[2] + 40})
+    await eventually(lambda: servo_goals(follower)[2] == FOLLOWER_REST[2] + 40, what="a move")
+    pose(leader, {2: LEADER_REST[2] + 43})
+    await eventually(lambda: servo_goals(follower)[2] == FOLLOWER_REST[2] + 43, what="settled")
+    before = len(sent)
+    for step in range(44, 54):  # then a slow move: a step a read or so, none held long
+        pose(leader, {2: LEADER_REST[2] + step})
+        await acted.past(2, LEADER_REST[2] + step)
+    await eventually(lambda: servo_goals(follower)[2] == FOLLOWER_REST[2] + 53, what="the end")
+    pitches = [goal.value for c in sent[before:] for goal in c.joints if goal.name == "Pitch"]
+    first = next(value for value in pitches if value != pytest.approx(43 * STEP))
+    assert 0 < first - 43 * STEP < 0.5  # before the band: at its third step, or the fourth
 
 
 async def test_the_follower_settles_where_the_leader_settled(
@@ -211,3 +265,92 @@ async def test_leader_over_rest_claims_the_robot_and_frees_its_port(
         assert bad.json()["error"]["code"] == "INVALID_BODY"
     with leader.paused() as bus:
         assert all(s.peek(reg.TORQUE_ENABLE) == 0 for s in bus.servos.values())
+
+
+# -- The mirror's rules on trio's MockClock: a real BusBridge fed readings at the leader's rate
+# (250 Hz), a stand-in for the robot's link that records what the leader commands and when.
+
+READ = 1 / 250  # seconds between the leader's reads
+
+
+class RecordingLink:
+    """A master link that accepts every command and records (trio time, pose)."""
+
+    paused = False
+
+    def __init__(self) -> None:
+        self.commands: list[tuple[float, dict[str, float]]] = []
+
+    async def command(self, command: Command) -> CommandResult:
+        self.commands.append((trio.current_time(), {g.name: g.value for g in command.joints}))
+        return CommandResult(accepted=True)
+
+    async def lost(self, reason: str) -> None:
+        raise AssertionError(reason)
+
+
+async def mirrored(raws: list[int]) -> list[tuple[float, dict[str, float]]]:
+    """Run a leader's mirror on servo 1's raw readings `raws`, one a read (the other joints
+    still at 2048, 0 degrees uncalibrated); the commands it sent, with their trio times."""
+    master = UsbMaster(usb_master_config(UsbMasterBody(port="/dev/null")), MODEL)
+    link = RecordingLink()
+    bridge = BusBridge()
+    async with trio.open_nursery() as nursery:
+        nursery.start_soon(master._mirror, link, bridge)
+        for raw in raws:
+            bridge.reading(Reading({**dict.fromkeys(JOINTS.values(), 2048), 1: raw}, time=0.0))
+            await trio.sleep(READ)
+        await trio.sleep(1.0)
+        nursery.cancel_scope.cancel()
+    return link.commands
+
+
+def minimum_jerk(start: float, end: float, seconds: float) -> list[int]:
+    """Servo 1's raw readings (a read every `READ`) along a minimum-jerk move in degrees."""
+    reads = round(seconds / READ)
+    out = []
+    for k in range(reads + 1):
+        t = k / reads
+        degrees = start + (end - start) * (10 * t**3 - 15 * t**4 + 6 * t**5)
+        out.append(2048 + round(degrees / STEP))
+    return out
+
+
+async def test_a_slow_move_reaches_the_follower_from_its_start(autojump_clock: MockClock) -> None:
+    # Issue 57: a move was sent only once it had left the 0.5 degree dead band, 10-25 ms after
+    # its first visible step; three steps the same way in a row are a move, sent at once.
+    rest = [2048] * 100
+    there = minimum_jerk(0.0, 30.0, 1.0)  # a slow move, then back after a rest
+    back = minimum_jerk(30.0, 0.0, 1.0)
+    raws = rest + there + [there[-1]] * 125 + back + [back[-1]] * 125
+    commands = await mirrored(raws)
+    for move, origin in ((there, 100), (back, 100 + len(there) + 125)):
+        first_step = origin + next(k for k, raw in enumerate(move) if raw != move[0])
+        began = first_step * READ  # trio time of the read that shows the first step
+        value = next(pose["Rotation"] for at, pose in commands if at >= began - 1e-9)
+        # Three steps on (0.26 degrees), four should the robot's rate limit hold it a read.
+        assert 0 < abs(value - (move[0] - 2048) * STEP) < 0.5
+        # Each move ends where the leader stopped.
+        assert any(
+            pose["Rotation"] == pytest.approx((move[-1] - 2048) * STEP) for _, pose in commands
+        )
+    assert commands[-1][1]["Rotation"] == pytest.approx(0.0)  # and settles where it stopped
+
+
+@pytest.mark.parametrize(
+    ("flicker", "hold"),
+    [
+        ((0, 1, 0, -1, 1, -1, 0, 1, 1, 0, -1, -1), 2),  # +-1 step, two reads each
+        ((0, 2, -1, 1, -2, 0, 2, 1, -2, -1, 1, -1, 2, 0, -2), 1),  # +-2, back and forth
+    ],
+)
+async def test_a_resting_leader_s_flicker_sends_nothing(
+    autojump_clock: MockClock, flicker: tuple[int, ...], hold: int
+) -> None:
+    # A leader at rest whose encoder flickers (an STS3215's or XL330's reading toggling by a
+    # step or two) must not command the follower all the time: for three seconds, nothing
+    # after the first settled pose.
+    raws = [2048 + value for value in flicker for _ in range(hold)] * 60
+    assert len(raws) * READ >= 3.5
+    commands = await mirrored(raws)
+    assert [at for at, _ in commands if at > 0.5] == []

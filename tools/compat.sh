@@ -38,7 +38,7 @@ if [ ! -e "$DIR/venv/bin/$PYVER" ]; then
     PYTHONHOME=$ROOT/usr $LOADER --library-path "$LIBS" "$ROOT/usr/bin/$PYVER" \
         -m venv --without-pip "$DIR/venv"
 fi
-if [ ! -e "$DIR/venv/.installed-$LEROBOT_VERSION-dataset-diffusion" ]; then
+if [ ! -e "$DIR/venv/.installed-$LEROBOT_VERSION-dataset-diffusion-feetech" ]; then
     cp /etc/ssl/certs/ca-certificates.crt "$DIR/ca.crt"
     export PIP_CERT=$DIR/ca.crt SSL_CERT_FILE=$DIR/ca.crt PIP_CONFIG_FILE=/dev/null \
         PIP_DISABLE_PIP_VERSION_CHECK=1
@@ -53,7 +53,13 @@ urllib.request.urlretrieve(wheel["url"], sys.argv[1] + "/" + wheel["filename"])'
         WHEEL=$(echo "$DIR"/wheels/pip-*.whl)
         "$DIR/python" "$WHEEL/pip" install --quiet --no-index "$WHEEL"
     fi
-    "$DIR/python" -m pip install --quiet "lerobot[dataset,diffusion]==$LEROBOT_VERSION" msgspec
-    touch "$DIR/venv/.installed-$LEROBOT_VERSION-dataset-diffusion"
+    # The feetech extra (`arena bench teleop` runs LeRobot's SO-101 loop): its servo SDK is a
+    # source package, whose build pip would run in a Python started without the loader; this
+    # machine's Python builds its (pure Python) wheel instead.
+    HOST_PYTHON=${HOST_PYTHON:-$( [ -x .venv/bin/python ] && echo .venv/bin/python || echo python3)}
+    "$HOST_PYTHON" -m pip wheel --quiet --no-deps -w "$DIR/wheels" "feetech-servo-sdk>=1.0.0,<2.0.0"
+    "$DIR/python" -m pip install --quiet --find-links "$DIR/wheels" \
+        "lerobot[dataset,diffusion,feetech]==$LEROBOT_VERSION" msgspec
+    touch "$DIR/venv/.installed-$LEROBOT_VERSION-dataset-diffusion-feetech"
 fi
 "$DIR/python" -c 'import lerobot, sys; print("LeRobot", lerobot.__version__, "on Python", sys.version.split()[0])'

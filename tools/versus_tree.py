@@ -5,11 +5,15 @@ lag against main's, on a machine whose load changes by the minute).
     python tools/versus_tree.py fleet OTHER_TREE [--rounds 3]
     python tools/versus_tree.py core OTHER_TREE [--rounds 3]
     python tools/versus_tree.py teleop OTHER_TREE [--rounds 3]
+    python tools/versus_tree.py sweep OTHER_TREE [--rounds 3]
 
 OTHER_TREE is the root of another checkout (`git archive main | tar -x -C DIR`); this file's
 tree is the other side. The fleet is `arena bench fleet`'s (100 robots, a master at 50 Hz and
 a slave each, 10 s), its server started from each tree in turn; the teleop bench runs in a
-process of its own per tree (`python -m arena.bench teleop`). `core` is the fleet's robot
+process of its own per tree (`teleop_latency`, a teleported leader). `sweep` is `arena bench
+teleop`'s human-like sweep (arena/bench/teleop.py: this tree's leader and simulated buses,
+each tree's robot in a process of its own; Arena's side only, LeRobot's is the same for
+both). `core` is the fleet's robot
 work alone, in process and on simulated time: 100 `RobotCore`s with the fleet's commands
 (Rotation and Elbow alternating 0.001 degree, 50 Hz each), ticked as the actor ticks them,
 10 s; then every joint on a 12-degree sine (a teleoperation stream). Its figure is the
@@ -81,118 +85,13 @@ def _core_once(tree: Path) -> dict[str, float]:
     return _run(tree, _CORE)
 
 
-_SWEEP = """
-import json, math, tempfile, time
-from pathlib import Path
-import trio
-from arena.drivers.config import UsbMasterConfig, UsbSlaveConfig
-from arena.drivers.usb_master import UsbMaster
-from arena.drivers.usb_slave import UsbSlave
-from arena.feetech import registers as reg
-from arena.feetech.sim import SimBus
-from arena.robot.manager import open_manager
-from arena.robot.model import load_robot_model
-from arena.servo.sim_pty import PtySimBus
-
-STEP = 4096 / 360.0  # steps a degree
-# Human-like moves of the leader's first joint: minimum-jerk sweeps (degrees, seconds: peak
-# speed 1.875 A / T, up to 180 deg/s), back and forth, and a few fast flicks; still between.
-MOVES = [(40, 0.5), (-60, 0.625), (30, 0.4), (-30, 0.35), (50, 0.55), (-40, 0.45),
-         (20, 0.15), (-20, 0.15), (60, 0.7), (-50, 0.6)] * 2
-REST = 0.25
-
-def minimum_jerk(f):
-    return f * f * f * (10 - 15 * f + 6 * f * f)
-
-async def run(leader, follower, out):
-    model = load_robot_model("so-arm100")
-    log = []
-    async with open_manager() as manager:
-        robot = await manager.create_robot("so-arm100", robot_id="arm")
-        slave = UsbSlave(UsbSlaveConfig(port=str(follower.link), rate=100.0), model)
-        await robot.attach_slave(slave)
-        master = UsbMaster(UsbMasterConfig(port=str(leader.link), rate=100.0), model)
-        await master.prepare()
-        await robot.attach_master(master)
-        await trio.sleep(0.5)
-        with follower.paused() as bus:
-            bus.write_log = log
-        path = []  # (time, leader steps)
-        x = 0.0
-        for amount, span in MOVES:
-            start = time.monotonic()
-            while True:
-                f = min(1.0, (time.monotonic() - start) / span)
-                value = x + amount * minimum_jerk(f)
-                with leader.paused() as bus:
-                    bus.servo(1).move_by_hand(2048 + value * STEP)
-                    path.append((time.monotonic(), value))
-                if f >= 1.0:
-                    break
-                await trio.sleep(0.002)
-            x += amount
-            await trio.sleep(REST)
-        with follower.paused():
-            goals = [(t, d) for t, sid, a, d in log if sid == 1 and a == 42]
-        writes = [(t, reg.GOAL_POSITION.decode(d)) for t, d in goals]
-    out.update(path=path, writes=writes)
-
-def main():
-    out = {}
-    with tempfile.TemporaryDirectory() as folder, \
-            PtySimBus(Path(folder) / "leader", SimBus(), wire_time=True) as leader, \
-            PtySimBus(Path(folder) / "follower", SimBus(), wire_time=True) as follower:
-        trio.run(run, leader, follower, out)
-    path, writes = out["path"], out["writes"]
-    lags = []
-    # Each write while the leader moves: how long ago the leader was where it puts the follower.
-    t_end = path[-1][0]
-    k = 0
-    for t, steps in writes:
-        value = (steps - 2048) / STEP
-        if t > t_end:
-            break
-        while k + 1 < len(path) and path[k + 1][0] <= t:
-            k += 1
-        # back along the leader's path to where it passed `value` (within 0.5 s)
-        j = k
-        while j > 0 and path[k][0] - path[j][0] < 0.5:
-            a, b = path[j - 1][1], path[j][1]
-            if a != b and min(a, b) <= value <= max(a, b):
-                tj = path[j - 1][0] + (value - a) / (b - a) * (path[j][0] - path[j - 1][0])
-                lags.append(t - tj)
-                break
-            j -= 1
-    # Per leader sample while it moves: how long until the follower's goal gets there (the
-    # same set of samples for any follower, however many goals it writes).
-    reach = []
-    w = 0
-    for k in range(len(path) - 1):
-        (t, x), nxt = path[k], path[k + 1][1]
-        if nxt == x:
-            continue
-        up = nxt > x
-        while w < len(writes) and writes[w][0] < t:
-            w += 1
-        for tw, steps in writes[w:]:
-            value = (steps - 2048) / STEP
-            if (value >= x - 0.05) if up else (value <= x + 0.05):
-                reach.append(tw - t)
-                break
-    reach.sort()
-    at = lambda q: 1000 * reach[min(len(reach) - 1, int(q * len(reach)))] if reach else float("nan")
-    lags.sort()
-    pct = lambda q: 1000 * lags[min(len(lags) - 1, int(q * len(lags)))] if lags else float("nan")
-    print(json.dumps({"sweep_lag_p50_ms": pct(0.5), "sweep_lag_p99_ms": pct(0.99),
-                      "sweep_reach_p50_ms": at(0.5), "sweep_reach_p99_ms": at(0.99),
-                      "sweep_writes": len(writes), "sweep_lag_samples": len(lags)}))
-
-main()
-"""
-
-
 def _sweep_once(tree: Path) -> dict[str, float]:
-    return _run(tree, _SWEEP)
+    # `arena bench teleop`'s sweep (arena/bench/teleop.py): this tree's leader and simulated
+    # buses, `tree`'s robot in a process of its own.
+    sys.path.insert(0, str(HERE))
+    from arena.bench.teleop import arena_sweep, summarise
+
+    return summarise(arena_sweep(tree=tree), "teleop_sweep_arena")
 
 
 def _teleop_once(tree: Path) -> dict[str, float]:

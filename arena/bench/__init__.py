@@ -26,8 +26,12 @@ Scenarios:
               with it against without, capture-to-client latency p50/p99, frames dropped
   core        RobotCore.command calls/s (pure decision code); the collision guard's cost per
               command in a teleoperation stream, p50 / p99 with and without it
-  teleop      leader arm -> follower: a leader register change to the follower's goal write,
-              two simulated buses at 1 Mbaud in this process, p50/p99 at 100 and 500 Hz
+  teleop      leader arm -> follower on two simulated buses at 1 Mbaud: a leader moved like a
+              person (minimum-jerk sweeps, reversals, flicks) for Arena and for LeRobot's own
+              teleoperation loop (60 fps, in LeRobot 0.6's Python, `make compat`; skipped
+              without it), tracking lag p50/p99, first reaction, overshoot, ratios, one run
+              (arena/bench/teleop.py); then a teleported leader's value to the follower's
+              goal write, p50/p99 at 100, 250 and 500 Hz
   usb         the USB slave's control loop on a simulated bus (`arena sim-bus --wire-time`, its
               own process) at 1 Mbaud: the highest cycle rate, and the CPU at 500 Hz
   flood       one robot's REST e-stop alone and while a viewer floods the server with pings and
@@ -101,8 +105,10 @@ def run_benchmarks(
     fleet_robots: int = 100,
     soak_seconds: float = 600.0,
     soak_rate: float = 50.0,
+    lerobot_python: str | None = None,
 ) -> dict[str, Any]:
-    """Run the chosen scenarios (medians of `repeats` runs where cheap), print, write JSON."""
+    """Run the chosen scenarios (medians of `repeats` runs where cheap), print, write JSON.
+    `lerobot_python`: LeRobot 0.6's Python for teleop's comparison (default: `make compat`'s)."""
     chosen = only or list(SCENARIOS)
     unknown = sorted(set(chosen) - set(SCENARIOS) - set(LONG_SCENARIOS))
     if unknown:
@@ -206,6 +212,9 @@ def run_benchmarks(
     if "usb" in chosen:
         results.update(median_of([usb_control_rate() for _ in range(repeats)]))
     if "teleop" in chosen:
+        from arena.bench.teleop import teleop_versus
+
+        results.update(teleop_versus(python=Path(lerobot_python) if lerobot_python else None))
         for rate in (100.0, 250.0, 500.0):
             results.update(median_of([teleop_latency(rate=rate) for _ in range(repeats)]))
     width = max(len(k) for k in results)

@@ -84,7 +84,9 @@ def teleop_latency(moves: int = 200, rate: float = 100.0) -> dict[str, float]:
     """Leader register change -> follower Goal_Position write, through a robot (usb-master and
     usb-slave on two simulated buses with wire-time emulation, both loops at `rate`): to the
     write of the leader's new position (the follower there), and to the first write that moves
-    toward it (the first reaction; with a trajectory the way there takes longer)."""
+    toward it (the first reaction; with a trajectory the way there takes longer). The drivers
+    are paced on the simulators (`share`: arena/servo/sim_pace.py), as on `arena sim-bus`: a
+    simulator kept off the CPU of a loaded machine is no lost servo."""
     import trio
 
     from arena.drivers.config import UsbMasterConfig, UsbSlaveConfig
@@ -146,8 +148,8 @@ def teleop_latency(moves: int = 200, rate: float = 100.0) -> dict[str, float]:
 
     with (
         tempfile.TemporaryDirectory() as folder,
-        PtySimBus(Path(folder) / "leader", SimBus(), wire_time=True) as leader,
-        PtySimBus(Path(folder) / "follower", SimBus(), wire_time=True) as follower,
+        PtySimBus(Path(folder) / "leader", SimBus(), wire_time=True, share=True) as leader,
+        PtySimBus(Path(folder) / "follower", SimBus(), wire_time=True, share=True) as follower,
     ):
         trio.run(run, leader, follower)
     latencies.sort()

@@ -24,16 +24,15 @@ of it are taken apart (`resume_parts`).
 from __future__ import annotations
 
 import asyncio
-import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
 import httpx
 
-from arena.bench.common import Server, create_bench_robot, percentile
-from arena.bench.policy import ACTIONS_PER_CHUNK, CAMERA, FPS, saved_policy
-from arena.recording.mcap_file import RecordedMessage, read_recording
+from arena.bench.common import Server, percentile
+from arena.bench.policy import attach_policy, policy_run
+from arena.recording.mcap_file import RecordedMessage
 
 ROBOT = "pause-arm"
 
@@ -117,14 +116,7 @@ async def _runs(
     """Attach the policy in `folder`, pause and resume it `runs` times, detach it: its
     identity and the wall-clock times each pause and resume request left."""
     base = f"/api/robots/{ROBOT}"
-    body = {
-        "type": "policy",
-        "path": str(folder),
-        "fps": FPS,
-        "actions_per_chunk": ACTIONS_PER_CHUNK,
-    }
-    attached = await http.post(f"{base}/master", json=body)
-    attached.raise_for_status()
+    identity = await attach_policy(http, ROBOT, folder)
     await asyncio.sleep(warmup)
     pauses, resumes = [], []
     for _ in range(runs):
@@ -141,7 +133,7 @@ async def _runs(
             await asyncio.sleep(0.05)
         await asyncio.sleep(running)
     await http.delete(f"{base}/master")
-    return str(attached.json()["id"]), pauses, resumes
+    return identity, pauses, resumes
 
 
 def _figures(
@@ -191,21 +183,10 @@ async def pause(
     """The figures above over `runs` pauses and resumes of a small ACT (`pause_small_...`:
     milliseconds an inference, so Arena's own part shows) and of LeRobot's default ACT
     (`pause_act_...`), one after the other on the same server."""
-    with tempfile.TemporaryDirectory() as scratch:
-        small = await saved_policy(Path(scratch) / "small", "small")
-        act = await saved_policy(Path(scratch) / "act", "act")
-        async with httpx.AsyncClient(base_url=server.url, timeout=300) as http:
-            await create_bench_robot(http, ROBOT)
-            base = f"/api/robots/{ROBOT}"
-            (await http.post(f"{base}/slaves", json={"type": "mock-slave"})).raise_for_status()
-            (await http.post(f"{base}/cameras", json=CAMERA)).raise_for_status()
-            first = await _runs(http, small, runs, warmup, paused, running)
-            second = await _runs(http, act, runs, warmup, paused, running)
-            stopped = (await http.post("/api/recordings/current/stop")).json()["stopped"]
-            data = (await http.get(f"/api/recordings/{stopped}/file")).content
-        path = Path(scratch) / "run.mcap"
-        path.write_bytes(data)
-        messages = read_recording(path).messages
+    async with policy_run(server, ROBOT, ("small", "act")) as run:
+        first = await _runs(run.http, run.folders["small"], runs, warmup, paused, running)
+        second = await _runs(run.http, run.folders["act"], runs, warmup, paused, running)
+    messages = run.messages
     return {
         **_figures(messages, *first, "pause_small"),
         **_figures(messages, *second, "pause_act"),

@@ -26,7 +26,8 @@ import asyncio
 import contextlib
 import sys
 import tempfile
-from collections.abc import Sequence
+from collections.abc import AsyncIterator, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import httpx
@@ -94,24 +95,60 @@ async def saved_policy(folder: Path, kind: str) -> Path:
     return folder
 
 
-async def _drive(
-    http: httpx.AsyncClient, server: Server, folder: Path, seconds: float, warmup: float
-) -> tuple[str, float, float]:
-    """Attach the policy in `folder`, let it warm up, then measure `seconds`: its identity,
-    the server's CPU and the worker's (percent of one core); detached after."""
-    base = f"/api/robots/{ROBOT}"
+async def attach_policy(http: httpx.AsyncClient, robot: str, folder: Path) -> str:
+    """Attach the policy in `folder` as `robot`'s master at the benchmark's rate: its id."""
     body = {
         "type": "policy",
         "path": str(folder),
         "fps": FPS,
         "actions_per_chunk": ACTIONS_PER_CHUNK,
     }
-    attached = await http.post(f"{base}/master", json=body)
+    attached = await http.post(f"/api/robots/{robot}/master", json=body)
     attached.raise_for_status()
+    return str(attached.json()["id"])
+
+
+@dataclass
+class PolicyRun:
+    """A policy benchmark under way: its client, its saved policies by kind, and (once it is
+    over) the messages of its recording."""
+
+    http: httpx.AsyncClient
+    folders: dict[str, Path]
+    messages: list[RecordedMessage] = field(default_factory=list)
+
+
+@contextlib.asynccontextmanager
+async def policy_run(server: Server, robot: str, kinds: Sequence[str]) -> AsyncIterator[PolicyRun]:
+    """The benchmark's policies of `kinds` saved in a scratch folder, and `robot` made on
+    `server` with a mock slave and the camera; at the end the recording is stopped and read
+    back into `messages`."""
+    with tempfile.TemporaryDirectory() as scratch:
+        folders = {kind: await saved_policy(Path(scratch) / kind, kind) for kind in kinds}
+        async with httpx.AsyncClient(base_url=server.url, timeout=300) as http:
+            await create_bench_robot(http, robot)
+            base = f"/api/robots/{robot}"
+            (await http.post(f"{base}/slaves", json={"type": "mock-slave"})).raise_for_status()
+            (await http.post(f"{base}/cameras", json=CAMERA)).raise_for_status()
+            run = PolicyRun(http, folders)
+            yield run
+            stopped = (await http.post("/api/recordings/current/stop")).json()["stopped"]
+            data = (await http.get(f"/api/recordings/{stopped}/file")).content
+        path = Path(scratch) / "run.mcap"
+        path.write_bytes(data)
+        run.messages = read_recording(path).messages
+
+
+async def _drive(
+    http: httpx.AsyncClient, server: Server, folder: Path, seconds: float, warmup: float
+) -> tuple[str, float, float]:
+    """Attach the policy in `folder`, let it warm up, then measure `seconds`: its identity,
+    the server's CPU and the worker's (percent of one core); detached after."""
+    identity = await attach_policy(http, ROBOT, folder)
     await asyncio.sleep(warmup)  # the first inferences warm the policy up
     busy, worker_cpu = await _cpu_over(server, seconds, _worker_pid(server))
-    await http.delete(f"{base}/master")
-    return str(attached.json()["id"]), busy, worker_cpu
+    await http.delete(f"/api/robots/{ROBOT}/master")
+    return identity, busy, worker_cpu
 
 
 def _figures(
@@ -135,23 +172,14 @@ async def policy(server: Server, seconds: float = 20.0, warmup: float = 5.0) -> 
     """The figures above for an ACT (`policy_...`) and then a diffusion policy (`policy_
     diffusion_...`, 10 denoising steps: seconds an inference on a CPU, so it runs twice as
     long), each for `seconds` after its warm-up, on the same server."""
-    with tempfile.TemporaryDirectory() as scratch:
-        act = await saved_policy(Path(scratch) / "act", "act")
-        diffusion = await saved_policy(Path(scratch) / "diffusion", "diffusion")
-        async with httpx.AsyncClient(base_url=server.url, timeout=300) as http:
-            await create_bench_robot(http, ROBOT)
-            base = f"/api/robots/{ROBOT}"
-            (await http.post(f"{base}/slaves", json={"type": "mock-slave"})).raise_for_status()
-            (await http.post(f"{base}/cameras", json=CAMERA)).raise_for_status()
-            await asyncio.sleep(warmup)
-            idle, _ = await _cpu_over(server, seconds, None)
-            act_id, busy, worker_cpu = await _drive(http, server, act, seconds, warmup)
-            slow = await _drive(http, server, diffusion, 2 * seconds, 2 * warmup)
-            stopped = (await http.post("/api/recordings/current/stop")).json()["stopped"]
-            data = (await http.get(f"/api/recordings/{stopped}/file")).content
-        path = Path(scratch) / "run.mcap"
-        path.write_bytes(data)
-        messages = read_recording(path).messages
+    async with policy_run(server, ROBOT, ("act", "diffusion")) as run:
+        await asyncio.sleep(warmup)
+        idle, _ = await _cpu_over(server, seconds, None)
+        act_id, busy, worker_cpu = await _drive(
+            run.http, server, run.folders["act"], seconds, warmup
+        )
+        slow = await _drive(run.http, server, run.folders["diffusion"], 2 * seconds, 2 * warmup)
+    messages = run.messages
     return {
         "policy_server_cpu_percent": busy - idle,
         "policy_idle_server_cpu_percent": idle,

@@ -96,25 +96,13 @@ def control_port(text: str) -> int:
 
 def sim_bus_command(args: argparse.Namespace) -> int:
     """`arena sim-bus`: serve the simulated bus until Ctrl-C."""
-    from arena.drivers.servo_arm import family_of, servo_models
+    from arena.drivers.servo_arm import family_of, simulated_bus
     from arena.robot.model import load_robot_model
     from arena.servo import terminal
-    from arena.servo.sim_pty import SimulatedBus
 
     model = load_robot_model(args.robot_type)
     family = family_of(model)
-    if family.name == "dynamixel":
-        from arena.dynamixel.sim import SimBus as DynamixelSimBus
-
-        models = {sid: number for sid, (number, _) in servo_models(model, family).items()}
-        if args.ids:  # ids given: each servo the type's model, else its first one's
-            first = next(iter(models.values()))
-            models = {sid: models.get(sid, first) for sid in args.ids}
-        bus: SimulatedBus = DynamixelSimBus(models)
-    else:
-        from arena.feetech.sim import SimBus
-
-        bus = SimBus(args.ids or tuple(j.servo_id for j in model.joints))
+    bus = simulated_bus(model, args.ids)
     baud = args.baud or model.bus.baud_rate or family.default_baud
     keys = args.keys and sys.stdin.isatty()
     if args.keys and not keys:

@@ -119,6 +119,10 @@ def _dagger(args: argparse.Namespace, out: Path) -> int:
     )
     for stage in report.rounds:
         print(f"  round {stage.round}  {stage.success:6.0%}   (trained on {stage.frames} frames)")
-    print(f"took {report.seconds / 60:.1f} min")
+    load = ", ".join(f"{value:.1f}" for value in report.load_average)
+    print(
+        f"took {report.seconds / 60:.1f} min ({report.cpu_seconds / 60:.1f} min of CPU; "
+        f"load average {load})"
+    )
     print(f"policy saved in {report.rounds[-1].policy_dir}")
     return 0

@@ -73,6 +73,9 @@ def add(commands: Commands) -> None:
     replay.add_argument("--loop", action="store_true")
     replay.add_argument("--from", dest="start", type=float, help="seconds into the commands")
     replay.add_argument("--until", dest="end", type=float, help="seconds into the commands")
+    replay.add_argument(
+        "--takeover", action="store_true", help="replace the robot's master if it has one"
+    )
     replay.set_defaults(handler=replay_command)
 
 
@@ -121,7 +124,20 @@ def timeline_command(args: argparse.Namespace) -> int:
 
     recording = open_recording(args.file)
     robot = None if args.robot is None else pick_robot(recording, args.robot)
-    print("\n".join(analysis.timeline(recording, robot, args.start, args.end)))
+    lines = analysis.timeline(recording, robot, args.start, args.end)
+    if lines:
+        print("\n".join(lines))
+    elif recording.messages:  # (an empty window printed nothing, as if the file were empty)
+        origin = min(m.log_time for m in recording.messages)
+        times = [
+            (m.log_time - origin) / 1e9 for m in recording.messages if robot in (None, m.robot_id)
+        ]
+        whose = "any robot" if robot is None else f"robot {robot!r}"
+        window = f"from {args.start or 0:g} s to " + (
+            "the end" if args.end is None else f"{args.end:g} s"
+        )
+        span = f"{min(times):.3f}-{max(times):.3f} s" if times else "nothing"
+        print(f"note: no record of {whose} {window}; its records span {span}", file=sys.stderr)
     return 0
 
 
@@ -202,15 +218,25 @@ def replay_command(args: argparse.Namespace) -> int:
     recording = open_recording(args.file)
     source = pick_robot(recording, args.robot)
     commands = recorded_commands(recording, source, args.start, args.end)
+    url = args.to
+    if args.takeover:  # the master WebSocket's own way to ask
+        url += ("&" if "?" in url else "?") + "takeover=1"
     try:
         sent, refused = trio.run(
-            partial(replay_to_server, args.to, commands, speed=args.speed, loop=args.loop)
+            partial(replay_to_server, url, commands, speed=args.speed, loop=args.loop)
         )
     except (OSError, HandshakeError) as exc:
         reason = str(exc.__cause__ or exc) or type(exc).__name__
         raise ArenaError(
             ErrorCode.REMOTE_UNREACHABLE, f"cannot reach --to {args.to}: {reason}"
         ) from None
+    except ArenaError as error:
+        if error.code is ErrorCode.MASTER_ACTIVE:
+            raise ArenaError(
+                error.code,
+                f"the robot has a master: pass --takeover to replace it (server: {error.message})",
+            ) from None
+        raise
     print(f"sent {sent} commands, {refused} refused")
     return 0
 

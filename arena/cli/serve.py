@@ -19,6 +19,14 @@ def add(commands: Commands) -> None:
         default=None,
         help="create robot demo-arm (so-arm100) with a mock slave",
     )
+    serve.add_argument(
+        "--sim-leader",
+        nargs="?",
+        const="so-arm100",
+        default=None,
+        metavar="TYPE",
+        help="a simulated leader arm (default so-arm100), moved from the dashboard",
+    )
     serve.add_argument("--config", help="a TOML file of server settings")
     serve.add_argument(
         "--api-key",
@@ -96,6 +104,21 @@ def add(commands: Commands) -> None:
     )
     serve.add_argument("--recordings-dir", help="where recordings go (default recordings/)")
     serve.add_argument(
+        "--policy-dir",
+        metavar="DIR",
+        help="the policies a master may run, a folder each (default policies/; a tenant's: DIR/T/)",
+    )
+    serve.add_argument(
+        "--script-dir",
+        metavar="DIR",
+        help="the scripts a master may run (default scripts/; a tenant's: DIR/T/)",
+    )
+    serve.add_argument(
+        "--calibration-dir",
+        metavar="DIR",
+        help="the arms' calibration files (default calibration/; a tenant's: DIR/T/)",
+    )
+    serve.add_argument(
         "--policy-python",
         metavar="PATH",
         help="the Python policy workers run in: one with LeRobot, torch and msgspec, such as a "
@@ -169,12 +192,16 @@ def serve_command(args: argparse.Namespace) -> int:
         api_key_file=args.api_key_file,
         record=args.record,
         recordings_dir=args.recordings_dir,
+        policy_dir=args.policy_dir,
+        script_dir=args.script_dir,
+        calibration_dir=args.calibration_dir,
         policy_python=args.policy_python,
         record_foxglove=args.record_foxglove,
         foxglove_port=args.foxglove_port,
         host=args.host,
         port=args.port,
         demo=args.demo,
+        sim_leader=args.sim_leader,
         api_keys=tuple(args.api_keys),
         viewer_keys=tuple(args.viewer_keys) or None,
         insecure=args.insecure,

@@ -45,6 +45,12 @@ def add(commands: Commands) -> None:
     bench.add_argument("--fleet-robots", type=int, default=100, help="robots in fleet and soak")
     bench.add_argument("--soak-seconds", type=float, default=600.0)
     bench.add_argument("--soak-rate", type=float, default=50.0, help="commands/s per robot")
+    bench.add_argument(
+        "--lerobot-python",
+        metavar="PATH",
+        help="teleop: LeRobot 0.6's Python with lerobot[feetech], for its loop beside Arena's "
+        "(default: .compat/python, which `make compat` builds; without one it is skipped)",
+    )
     bench.set_defaults(handler=bench_command)
 
 
@@ -70,5 +76,6 @@ def bench_command(args: argparse.Namespace) -> int:
         args.fleet_robots,
         args.soak_seconds,
         args.soak_rate,
+        args.lerobot_python,
     )
     return 0

@@ -26,6 +26,7 @@ from arena.servo.lerobot_calibration import (
     read_register_homings,
 )
 from arena.servo.ports import DEFAULT_TIMEOUT_MARGIN
+from arena.servo.sim_pty import SimulatedBus
 from arena.servo.worker import BusWorker, Frames, WorkerSettings
 
 #: The servo families Arena drives, by the name a robot type's `[bus] family` gives.
@@ -79,6 +80,24 @@ def servo_models(model: RobotModel, family: ServoFamily) -> dict[int, tuple[int,
             )
         models[joint.servo_id] = (family.models[name], name.upper())
     return models
+
+
+def simulated_bus(model: RobotModel, ids: tuple[int, ...] | None = None) -> SimulatedBus:
+    """A simulated bus of the robot type's servo family with its servos (`ids`, default the
+    type's; a Dynamixel servo not of the type is its first one's model): what `arena sim-bus`
+    serves, and a simulated leader arm of the server's."""
+    family = family_of(model)
+    if family.name == "dynamixel":
+        from arena.dynamixel.sim import SimBus as DynamixelSimBus
+
+        models = {sid: number for sid, (number, _) in servo_models(model, family).items()}
+        if ids:
+            first = next(iter(models.values()))
+            models = {sid: models.get(sid, first) for sid in ids}
+        return DynamixelSimBus(models)
+    from arena.feetech.sim import SimBus
+
+    return SimBus(ids or tuple(j.servo_id for j in model.joints))
 
 
 def allowed_models(

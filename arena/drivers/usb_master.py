@@ -4,11 +4,13 @@ Torque stays off on the leader, but for an `actuated` one's first moments: it is
 the follower's pose at the robot's joining speed, then goes limp, so that the hand takes it
 where the follower is (no jerk when it starts to command). Its present positions are read on
 its own bus thread (the same `BusWorker` as the USB slave), turned into degrees through the
-leader's calibration, and sent as commands whenever a joint moved more than the dead band, at
-most as often as the robot's rate limit allows (the newest pose wins); a pose the leader
-holds after a move inside the band is sent once (`SETTLE_AFTER`), so the follower settles
-where the leader did. It claims the robot like any master (no takeover), an e-stop ends it
-for good, and losing the leader's bus is a lost master (the loss policy applies).
+leader's calibration, and sent as commands whenever a joint moved more than the dead band or
+is plainly moving (`TREND_CHANGES` changes of its reading in a row the same way: a move is
+sent from its start, not once it has left the band), at most as often as the robot's rate
+limit allows (the newest pose wins); a pose the leader holds after a move inside the band is
+sent once (`SETTLE_AFTER`), so the follower settles where the leader did. It claims the robot
+like any master (no takeover), an e-stop ends it for good, and losing the leader's bus is a
+lost master (the loss policy applies).
 """
 
 from __future__ import annotations
@@ -40,6 +42,14 @@ log = logging.getLogger(__name__)
 _FINAL_REFUSALS = frozenset({ErrorCode.ESTOPPED, ErrorCode.NOT_OWNER})
 #: Seconds a leader's pose must hold for its last move inside the dead band to be sent.
 SETTLE_AFTER = 0.1
+#: Changes of a joint's raw reading in a row the same way (readings that hold between them
+#: count for nothing) that make a move, sent at once though inside the dead band. A resting
+#: leader's encoder flickers (an STS3215's or XL330's reading toggling by a step, now and
+#: then two, back and forth): that never makes three changes the same way, while a hand's
+#: move does from its start (a slow minimum-jerk move: its third step some 15 ms after its
+#: first, its sixth, where it leaves a 0.5 degree band, some 27 ms). Each further step of the
+#: run goes out too, at most at the robot's rate limit; LeRobot sends every frame.
+TREND_CHANGES = 3
 
 
 class UsbMaster(ServoArm):
@@ -146,6 +156,7 @@ class UsbMaster(ServoArm):
         still: dict[str, float] | None = None
         still_since = -math.inf
         settled = False
+        trend = _Trend()
         while True:
             reading, events = await bridge.next()
             for event in events:
@@ -160,12 +171,17 @@ class UsbMaster(ServoArm):
                 await link.wait_resumed()
                 last_sent = None
                 continue
+            moving = trend.moving(reading.positions)
             pose = self._pose(reading)
             read_time = reading.time
             now = trio.current_time()
             if still is None or _moved(pose, still, self.config.deadband / 4):
                 still, still_since, settled = pose, now, False
-            if last_sent is not None and not _moved(pose, last_sent, self.config.deadband):
+            if (
+                last_sent is not None
+                and not _moved(pose, last_sent, self.config.deadband)
+                and not (moving and pose != last_sent)
+            ):
                 if settled or now - still_since < SETTLE_AFTER or pose == last_sent:
                     continue
                 settled = True  # once: a hand's flicker afterwards sends nothing
@@ -197,6 +213,30 @@ class UsbMaster(ServoArm):
 
     def _pose(self, reading: Reading) -> dict[str, float]:
         return self.calibration.to_values(reading.positions, self.spans)
+
+
+class _Trend:
+    """Per servo, the way its raw reading last changed and how many changes in a row went
+    that way: `moving` says when a reading takes a run to `TREND_CHANGES` or further."""
+
+    def __init__(self) -> None:
+        self._last: dict[int, int] = {}
+        self._way: dict[int, int] = {}
+        self._run: dict[int, int] = {}
+
+    def moving(self, positions: Mapping[int, int]) -> bool:
+        """Whether a servo's reading in `positions` went a step further in a run."""
+        moving = False
+        for sid, value in positions.items():
+            last = self._last.get(sid)
+            self._last[sid] = value
+            if last is None or value == last:
+                continue
+            way = 1 if value > last else -1
+            run = self._run.get(sid, 0) + 1 if way == self._way.get(sid) else 1
+            self._way[sid], self._run[sid] = way, run
+            moving = moving or run >= TREND_CHANGES
+        return moving
 
 
 def _near(pose: Mapping[str, float], goal: Mapping[str, float], tolerance: float) -> bool:

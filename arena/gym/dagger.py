@@ -1,22 +1,23 @@
 """`arena learn reach --dagger ROUNDS`: the loop that makes a policy better, whole, in the twin.
 
 A few of the expert's demonstrations train a first policy. Each round deploys the newest policy
-as the twin's master (a `PolicyMaster`, every master rule applying) on targets of its own, and a
-scripted corrector, the task's expert, watches it: when the policy strays (no progress toward
-the target for half a second) the corrector intervenes as a human would (the robot's
+as the twin's master (`arena.gym.deploy`: a `PolicyMaster`, every master rule applying) on
+targets of its own, with the task's expert watching as a corrector: when the policy strays (no
+progress toward the target for half a second) it intervenes as a human would (the robot's
 intervention: the policy paused, not ended; the corrector's commands eased in at the joining
-speed), brings the tip to the target and hands back (the policy resumes from a fresh
-observation, its first step within the step limit). Everything is recorded as a server
-records it; Arena's own export writes the corrections as a LeRobot dataset (`intervention`
-true on every frame, each correction an episode of its own, as `arena export
---corrections-only` does); they join the data and the policy is trained again. Held-out
-success is measured after each round. specs/learning.md has the figures and the reasons.
+speed) and hands back once the tip has held at the target. Everything is recorded as a server
+records it, and Arena's own export writes the deployments as a LeRobot dataset (`intervention`
+true on the corrector's frames). DAgger's labels: every frame, the policy's own too, is
+trained on with the action the expert takes from that frame's state (`expert_labels`: the
+corrector's very function, so its frames keep their commands). The data grows by each round's
+relabelled deployments and the policy is trained again; held-out success is measured after
+each round. specs/learning.md has the figures and the reasons.
 """
 
 from __future__ import annotations
 
 import json
-import math
+import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
@@ -26,35 +27,31 @@ from typing import Any
 import numpy as np
 from gymnasium.utils import seeding
 
-from arena.gym.learn import (
-    HELD_OUT_SEED,
-    REPO_ID,
+from arena.gym.deploy import (
+    CORRECTOR,
     TASK,
-    LearnSettings,
     SharedWorker,
-    collect,
+    Stray,
+    deploy,
+    policy_worker,
+    success_rate,
 )
-from arena.gym.task import SUCCESS_DISTANCE, Expert, Reach, Success
-from arena.gym.train import TrainSettings, train_act_on
-from arena.gym.worlds import TWIN_ROBOT, TwinWorld, command_of
-from arena.policy.master import PolicyMaster, PolicySettings
-from arena.policy.process import PolicyProcess
-from arena.recording.dataset import export_lerobot
+from arena.gym.learn import HELD_OUT_SEED, REPO_ID, LearnSettings, collect, export_episodes
+from arena.gym.task import Expert, Reach
+from arena.gym.train import Relabel, Source, TrainSettings, train_act_on
+from arena.gym.worlds import TwinWorld
+from arena.recording.dataset import ENVIRONMENT, INTERVENTION, from_dataset, to_dataset
+from arena.robot.model import RobotModel
 
-#: The corrector's master id (the source of its commands in the recording).
-CORRECTOR = "corrector"
-#: The policy strays when its tip has come no closer than its best by `PROGRESS` metres for
-#: `STRAY_SECONDS`, outside the success distance.
-STRAY_SECONDS = 0.5
-PROGRESS = 0.002
-#: The corrector hands back once the tip is this close to the target (metres): well inside
-#: the success distance, so what the policy resumes from is a pose it only has to hold.
-HANDBACK_DISTANCE = 0.01
+__all__ = ["CORRECTOR", "ROLLOUT_SEED", "STEPS", "DaggerSettings", "Stray", "learn_dagger"]
+
 #: Seeds of the rollouts' targets start here (demonstrations use seed + 0, 1, ...; held-out
 #: targets `HELD_OUT_SEED` + ...).
 ROLLOUT_SEED = 500_000
 #: Training steps of each round's policy (afresh, on all the data so far).
 STEPS = 1500
+#: An episode's longest run (seconds), deployed or evaluated.
+EPISODE_SECONDS = 6.0
 
 
 @dataclass(frozen=True, slots=True)
@@ -88,8 +85,10 @@ class RoundReport:
     rollout_success: float = 0.0  # of them, reached with or without help
     corrected_episodes: int = 0
     interventions: int = 0
-    correction_frames: int = 0  # exported, added to the next round's data
-    seconds: dict[str, float] = field(default_factory=dict)
+    rollout_frames: int = 0  # exported, relabelled, added to the next round's data
+    correction_frames: int = 0  # of them, the corrector's (`intervention` true)
+    seconds: dict[str, float] = field(default_factory=dict)  # wall, by stage
+    cpu_seconds: dict[str, float] = field(default_factory=dict)  # CPU (the worker's too)
     policy_dir: str = ""
 
 
@@ -99,39 +98,9 @@ class DaggerReport:
 
     rounds: list[RoundReport] = field(default_factory=list)
     demo_frames: int = 0
-    seconds: float = 0.0
-
-
-class Stray:
-    """Whether the policy strays: its tip has come no closer to the target than its best by
-    `PROGRESS` for `STRAY_SECONDS`, and is not within the success distance (holding there is
-    what it should do)."""
-
-    def __init__(self, fps: float) -> None:
-        self.window = max(1, math.ceil(STRAY_SECONDS * fps))
-        self.best = math.inf
-        self.since = 0
-
-    def restart(self) -> None:
-        """Watch afresh (the policy has the robot again)."""
-        self.best, self.since = math.inf, 0
-
-    def update(self, distance: float) -> bool:
-        """One step at `distance` (metres); True when the policy strays."""
-        if distance < self.best - PROGRESS:
-            self.best, self.since = distance, 0
-        else:
-            self.since += 1
-        return distance > SUCCESS_DISTANCE and self.since >= self.window
-
-
-@dataclass
-class Deployment:
-    """One episode of a policy in the twin: reached or not, and how it was corrected."""
-
-    success: bool = False
-    interventions: int = 0
-    corrected_steps: int = 0
+    seconds: float = 0.0  # wall
+    cpu_seconds: float = 0.0
+    load_average: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the machine's, at the end
 
 
 def target_of(task: Reach, seed: int) -> list[float]:
@@ -140,91 +109,32 @@ def target_of(task: Reach, seed: int) -> list[float]:
     return list(task.draw_target(rng))
 
 
-async def deploy(
-    world: TwinWorld,
-    worker: SharedWorker,
-    policy: Path,
-    target: Sequence[float],
-    max_steps: int,
-    corrector: bool,
-) -> Deployment:
-    """Run `policy` as the twin's master toward `target` (the twin reset for it) for
-    `max_steps` steps at most, until the tip holds there; with `corrector`, the expert
-    intervenes whenever it strays and hands back once the tip is at the target."""
-    task = Reach(world.model)
-    fps = world.fps
-    settings = PolicySettings(policy, task=TASK, fps=fps, environment_state=tuple(target))
+def expert_labels(model: RobotModel) -> Relabel:
+    """DAgger's labels: for each frame of a dataset's episodes, the action the task's expert
+    takes from that frame's state, the expert having followed the episode from its first
+    frame (`Expert(follow=True)`, the corrector's very function: on frames it commanded, the
+    label is its command). The policy's own frames get what the expert would have done there,
+    not what the policy did."""
+    task = Reach(model)
+    joints = model.joints
 
-    async def start() -> SharedWorker:
-        return worker
+    def relabel(columns: dict[str, Any]) -> Any:
+        states, targets = columns["observation.state"], columns[ENVIRONMENT]
+        episodes = columns["episode_index"]
+        labels = np.empty((len(states), len(joints)), dtype=np.float32)
+        expert, episode = None, None
+        for row, state in enumerate(states):
+            measured = [from_dataset(j, float(v)) for j, v in zip(joints, state, strict=True)]
+            if expert is None or episodes[row] != episode:
+                expert, episode = Expert(task, targets[row], measured, follow=True), episodes[row]
+            action = expert.act(measured)
+            labels[row] = [to_dataset(j, float(v)) for j, v in zip(joints, action, strict=True)]
+        return labels
 
-    master = PolicyMaster(settings, world.model, dict, start_worker=start)
-    await master.prepare()
-    robot = world.robot
-    await robot.attach_master(master, takeover=True)
-    outcome, success, stray = Deployment(), Success(fps), Stray(fps)
-    steps = 0
-
-    def reached() -> tuple[float, bool]:
-        distance = task.distance(world.measured(), target)
-        return distance, success.update(distance)
-
-    try:
-        while steps < max_steps:
-            await world.advance(world.period)
-            steps += 1
-            distance, done = reached()
-            if done:
-                outcome.success = True
-                break
-            if not (corrector and stray.update(distance)):
-                continue
-            # The corrector intervenes: the policy is paused (its worker stays loaded), and
-            # the corrector's commands are eased in at the joining speed.
-            outcome.interventions += 1
-            link = await robot.connect_master(
-                CORRECTOR, kind="corrector", description="the reach task's expert", intervene=True
-            )
-            expert = Expert(task, target, world.measured(), follow=True)
-            while steps < max_steps:
-                await world.command(
-                    command_of(world.model, expert.act(world.measured()).tolist()), link
-                )
-                await world.advance(world.period)
-                steps += 1
-                outcome.corrected_steps += 1
-                distance, done = reached()
-                if done or distance <= HANDBACK_DISTANCE:
-                    break
-            # Hand back: the policy resumes from a fresh observation (unless it is over).
-            await robot.end_intervention(resume=not done)
-            if done:
-                outcome.success = True
-                break
-            stray.restart()
-    finally:
-        snapshot = robot.snapshot()
-        if snapshot.paused_master is not None and snapshot.master is not None:
-            await robot.end_intervention(resume=False)
-        await robot.detach_master(reason="deployment over")
-    return outcome
+    return relabel
 
 
-def held_out_success(
-    world: TwinWorld, worker: SharedWorker, policy: Path, seeds: Sequence[int]
-) -> float:
-    """The policy's success rate alone (no corrector) on the targets of `seeds`."""
-    task = Reach(world.model)
-    max_steps = round(6.0 * world.fps)
-
-    async def run(target: list[float]) -> bool:
-        await world.reset_now(target)
-        return (await deploy(world, worker, policy, target, max_steps, False)).success
-
-    return float(np.mean([world.loop.call(run, target_of(task, seed)) for seed in seeds]))
-
-
-def rollouts(
+async def rollouts(
     world: TwinWorld,
     worker: SharedWorker,
     policy: Path,
@@ -234,27 +144,65 @@ def rollouts(
     """The policy deployed on the targets of `seeds` with the corrector watching, each run an
     episode of the recording; the target of each episode by its recorded index."""
     task = Reach(world.model)
-    max_steps = round(6.0 * world.fps)
+    max_steps = round(EPISODE_SECONDS * world.fps)
     targets: dict[int, list[float]] = {}
-    wins = []
+    wins = 0
     for seed in seeds:
         target = target_of(task, seed)
-
-        async def run(target: list[float] = target) -> tuple[int, Deployment]:
-            await world.reset_now(target)
-            index = await world.episode_now("start", TASK)
-            outcome = await deploy(world, worker, policy, target, max_steps, True)
-            await world.episode_now("stop")
-            return index, outcome
-
-        index, outcome = world.loop.call(run)
+        await world.reset_now(target)
+        index = await world.episode_now("start", TASK)
+        outcome = await deploy(world, worker, policy, target, max_steps, corrector=True)
+        await world.episode_now("stop")
         targets[index] = target
-        wins.append(outcome.success)
+        wins += outcome.success
         report.interventions += outcome.interventions
         report.corrected_episodes += outcome.interventions > 0
     report.rollouts = len(seeds)
-    report.rollout_success = float(np.mean(wins)) if wins else 0.0
+    report.rollout_success = wins / len(seeds) if seeds else 0.0
     return targets
+
+
+async def evaluate_and_deploy(
+    world: TwinWorld,
+    policy: Path,
+    goals: Sequence[Sequence[float]],
+    seeds: Sequence[int],
+    stage: RoundReport,
+    clock: Clock,
+    say: Callable[[str], None],
+) -> dict[int, list[float]]:
+    """A round's policy: its held-out success on `goals`, then its corrected deployments on
+    the targets of `seeds` (if any), in one policy worker."""
+    max_steps = round(EPISODE_SECONDS * world.fps)
+    async with policy_worker(world) as worker:
+        stage.success = await success_rate(world, worker, policy, goals, max_steps)
+        say(
+            f"round {stage.round}: policy {stage.success:.0%} on {len(goals)} held-out "
+            f"targets ({stage.frames} frames)"
+        )
+        clock.lap(stage, "evaluate")
+        return await rollouts(world, worker, policy, seeds, stage) if seeds else {}
+
+
+class Clock:
+    """Wall and CPU seconds (this process and its finished children: the policy's worker)
+    by stage."""
+
+    def __init__(self) -> None:
+        self.began = self.wall = time.perf_counter()
+        self.cpu = self._cpu()
+
+    @staticmethod
+    def _cpu() -> float:
+        times = os.times()
+        return times.user + times.system + times.children_user + times.children_system
+
+    def lap(self, stage: RoundReport, name: str) -> None:
+        """The time since the last lap, as `stage`'s `name`."""
+        wall, cpu = time.perf_counter(), self._cpu()
+        stage.seconds[name] = round(wall - self.wall, 1)
+        stage.cpu_seconds[name] = round(cpu - self.cpu, 1)
+        self.wall, self.cpu = wall, cpu
 
 
 def learn_dagger(settings: DaggerSettings, say: Callable[[str], None] = print) -> DaggerReport:
@@ -262,14 +210,7 @@ def learn_dagger(settings: DaggerSettings, say: Callable[[str], None] = print) -
     out = settings.out
     out.mkdir(parents=True, exist_ok=True)
     report = DaggerReport()
-    began = clock = time.perf_counter()
-
-    def lap(stage: RoundReport, name: str) -> None:
-        nonlocal clock
-        now = time.perf_counter()
-        stage.seconds[name] = round(now - clock, 1)
-        clock = now
-
+    clock = Clock()
     first = RoundReport(0)
     say(
         f"collecting {settings.demos} expert demonstrations in the {settings.robot_type}'s twin ..."
@@ -281,55 +222,42 @@ def learn_dagger(settings: DaggerSettings, say: Callable[[str], None] = print) -
     targets = collect(learn, say)
     if not targets:
         raise RuntimeError("the expert kept no demonstration")
-    exported = export_lerobot(
-        sorted((demos / "recordings").glob("*.mcap")),
-        TWIN_ROBOT,
-        demos / "dataset",
-        fps=round(settings.fps),
-        repo_id=REPO_ID,
-        environment=targets,
-        say=say,
+    exported = export_episodes(
+        demos / "recordings", demos / "dataset", settings.fps, REPO_ID, targets, say
     )
     report.demo_frames = sum(frames for _, _, frames in exported.episodes)
-    datasets: list[tuple[Path, str]] = [(demos / "dataset", exported.repo_id)]
-    lap(first, "collect")
+    datasets: list[Source] = [(demos / "dataset", exported.repo_id)]
+    clock.lap(first, "collect")
+    relabel: Relabel | None = None
+    goals: list[list[float]] = []
     held_out = [HELD_OUT_SEED + settings.seed + k for k in range(settings.targets)]
     stage = first
+    frames = report.demo_frames
     for number in range(settings.rounds + 1):
         folder = out / f"round-{number}"
-        frames = report.demo_frames + sum(r.correction_frames for r in report.rounds)
-        steps = settings.steps
-        say(f"round {number}: training ACT for {steps} steps on {frames} frames ...")
+        say(f"round {number}: training ACT for {settings.steps} steps on {frames} frames ...")
         policy = folder / "policy"
         train = TrainSettings(
-            steps=steps,
+            steps=settings.steps,
             dim_model=settings.dim_model,
             dim_feedforward=settings.dim_feedforward,
             seed=settings.seed,
         )
         stage.loss = train_act_on(datasets, policy, train, say)
         stage.frames, stage.policy_dir = frames, str(policy)
-        lap(stage, "train")
+        clock.lap(stage, "train")
         last = number == settings.rounds
         world = TwinWorld(
             settings.robot_type, settings.fps, recordings=None if last else folder / "recordings"
         )
+        relabel = relabel or expert_labels(world.model)
+        goals = goals or [target_of(Reach(world.model), seed) for seed in held_out]
+        begin = ROLLOUT_SEED + settings.seed + number * settings.rollouts
+        seeds = range(begin, 0 if last else begin + settings.rollouts)
         try:
-            process = world.loop.call(PolicyProcess.start)
-            worker = SharedWorker(process, world)
-            try:
-                stage.success = held_out_success(world, worker, policy, held_out)
-                say(
-                    f"round {number}: policy {stage.success:.0%} on {settings.targets} held-out "
-                    f"targets ({frames} frames)"
-                )
-                lap(stage, "evaluate")
-                if not last:
-                    begin = ROLLOUT_SEED + settings.seed + number * settings.rollouts
-                    seeds = range(begin, begin + settings.rollouts)
-                    episodes = rollouts(world, worker, policy, seeds, stage)
-            finally:
-                world.loop.call(process.close)
+            episodes = world.loop.call(
+                evaluate_and_deploy, world, policy, goals, seeds, stage, clock, say
+            )
         finally:
             world.close()
         report.rounds.append(stage)
@@ -340,23 +268,34 @@ def learn_dagger(settings: DaggerSettings, say: Callable[[str], None] = print) -
             f"{stage.rollout_success:.0%}; the corrector intervened {stage.interventions} "
             f"times in {stage.corrected_episodes} of them"
         )
-        if stage.interventions:
-            corrections = export_lerobot(
-                sorted((folder / "recordings").glob("*.mcap")),
-                TWIN_ROBOT,
-                folder / "corrections",
-                fps=round(settings.fps),
-                repo_id=f"{REPO_ID}-corrections-{number}",
-                environment=episodes,
-                corrections_only=True,
-                say=say,
-            )
-            stage.correction_frames = sum(frames for _, _, frames in corrections.episodes)
-            datasets.append((folder / "corrections", corrections.repo_id))
-        lap(stage, "rollouts")
+        deployed = export_episodes(
+            folder / "recordings",
+            folder / "rollouts",
+            settings.fps,
+            f"{REPO_ID}-rollouts-{number}",
+            episodes,
+            say,
+        )
+        stage.rollout_frames = sum(count for _, _, count in deployed.episodes)
+        stage.correction_frames = intervention_frames(folder / "rollouts", deployed.repo_id)
+        datasets.append((folder / "rollouts", deployed.repo_id, relabel))
+        frames += stage.rollout_frames
+        clock.lap(stage, "rollouts")
         stage = RoundReport(number + 1)
-    report.seconds = round(time.perf_counter() - began, 1)
+    report.seconds = round(time.perf_counter() - clock.began, 1)
+    report.cpu_seconds = round(sum(sum(r.cpu_seconds.values()) for r in report.rounds), 1)
+    report.load_average = os.getloadavg()
     record: dict[str, Any] = asdict(report) | {"settings": asdict(settings)}
     record["settings"]["out"] = str(out)
     (out / "report.json").write_text(json.dumps(record, indent=2), encoding="utf-8")
     return report
+
+
+def intervention_frames(root: Path, repo_id: str) -> int:
+    """How many frames of the dataset at `root` the corrector commanded."""
+    from lerobot.datasets.lerobot_dataset import LeRobotDataset
+
+    table = LeRobotDataset(repo_id, root=root).hf_dataset.with_format("numpy")
+    if INTERVENTION not in table.column_names:
+        return 0
+    return int(np.asarray(table[INTERVENTION]).sum())

@@ -9,25 +9,20 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import trio
 
+from arena.gym.deploy import TASK, policy_success
 from arena.gym.env import ArenaEnv
-from arena.gym.task import Expert, Success
+from arena.gym.task import Expert
 from arena.gym.train import TrainSettings, train_act
 from arena.gym.worlds import TWIN_ROBOT, TwinWorld
-from arena.policy.master import PolicyMaster, PolicySettings
-from arena.policy.process import PolicyProcess
-from arena.policy.wire import Chunk, Loaded, Observe
-from arena.recording.dataset import export_lerobot
+from arena.recording.dataset import ExportReport, export_lerobot
 
-#: The episodes' task, as the dataset names it.
-TASK = "reach the target"
 REPO_ID = "arena/reach"
 #: Seeds of the held-out targets start here (collection uses 0, 1, ...).
 HELD_OUT_SEED = 1_000_000
@@ -108,57 +103,28 @@ def collect(settings: LearnSettings, say: Callable[[str], None]) -> dict[int, li
     return targets
 
 
-class SharedWorker:
-    """One policy worker for every run of the policy on the held-out targets: loaded once,
-    left running when a run ends, and thinking in no time of the twin's (its clock stands
-    still while the worker answers)."""
-
-    def __init__(self, process: PolicyProcess, world: TwinWorld) -> None:
-        self.process = process
-        self.world = world
-        self.loaded: Loaded | None = None
-        self._one_at_a_time = trio.Lock()
-
-    async def load(self, path: Path) -> Loaded:
-        """The policy, loaded on the first call."""
-        if self.loaded is None:
-            self.loaded = await self.process.load(path)
-        return self.loaded
-
-    async def act(self, observation: Observe) -> Chunk:
-        """The worker's chunk, the twin's clock standing still meanwhile. A run that ends
-        waits for the answer in flight: a request abandoned half-way ends a worker's use (the
-        next run's would find the pipe out of step), and the answer takes milliseconds."""
-        with trio.CancelScope(shield=True):
-            async with self._one_at_a_time, self.world.standing_still():
-                chunk = await self.process.act(observation)
-        return chunk
-
-    async def close(self) -> None:
-        """Nothing: the worker outlives each run (`evaluate` stops it)."""
-
-
-async def _policy_episode(
-    world: TwinWorld, env: ArenaEnv, worker: SharedWorker, policy: Path, target: list[float]
-) -> bool:
-    await world.reset_now(target)
-    settings = PolicySettings(policy, task=TASK, fps=env.fps, environment_state=tuple(target))
-
-    async def start() -> SharedWorker:
-        return worker
-
-    master = PolicyMaster(settings, world.model, dict, start_worker=start)
-    await master.prepare()
-    await world.robot.attach_master(master, takeover=True)
-    success = Success(env.fps)
-    try:
-        for _ in range(env.max_steps):
-            await world.advance(world.period)
-            if success.update(env.task.distance(world.measured(), target)):
-                return True
-        return False
-    finally:
-        await world.robot.detach_master(reason="evaluation episode over")
+def export_episodes(
+    recordings: Path,
+    root: Path,
+    fps: float,
+    repo_id: str,
+    targets: Mapping[int, Sequence[float]],
+    say: Callable[[str], None],
+    **options: Any,
+) -> ExportReport:
+    """Arena's export (what `arena export --format lerobot` runs) of the twin's recordings in
+    `recordings` to `root`, each episode's target as its environment state; `options` are
+    `export_lerobot`'s."""
+    return export_lerobot(
+        sorted(recordings.glob("*.mcap")),
+        TWIN_ROBOT,
+        root,
+        fps=round(fps),
+        repo_id=repo_id,
+        environment=targets,
+        say=say,
+        **options,
+    )
 
 
 def evaluate(settings: LearnSettings, policy: Path | None) -> dict[str, float]:
@@ -176,16 +142,7 @@ def evaluate(settings: LearnSettings, policy: Path | None) -> dict[str, float]:
             for seed in seeds:
                 env.reset(seed=seed)
                 targets.append(list(env.target))
-            process = world.loop.call(PolicyProcess.start)
-            worker = SharedWorker(process, world)
-            try:
-                wins = [
-                    world.loop.call(_policy_episode, world, env, worker, policy, target)
-                    for target in targets
-                ]
-            finally:
-                world.loop.call(process.close)
-            rates["policy"] = float(np.mean(wins))
+            rates["policy"] = policy_success(world, policy, targets, env.max_steps)
     finally:
         env.close()
     return rates
@@ -211,14 +168,8 @@ def learn_reach(settings: LearnSettings, say: Callable[[str], None] = print) -> 
     if not targets:
         raise RuntimeError("the expert kept no episode")
     say("exporting the recording as a LeRobot dataset ...")
-    exported = export_lerobot(
-        sorted((out / "recordings").glob("*.mcap")),
-        TWIN_ROBOT,
-        out / "dataset",
-        fps=round(settings.fps),
-        repo_id=REPO_ID,
-        environment=targets,
-        say=say,
+    exported = export_episodes(
+        out / "recordings", out / "dataset", settings.fps, REPO_ID, targets, say
     )
     report.frames = sum(frames for _, _, frames in exported.episodes)
     lap("export")

@@ -58,8 +58,30 @@ def train_act(
     return train_act_on([(dataset, repo_id)], out, settings, say)
 
 
+#: What relabels a dataset: from its columns (`observation.state`, the environment state,
+#: `episode_index`, ..., each a numpy array of rows), the action of each row.
+Relabel = Callable[[dict[str, Any]], Any]
+#: A dataset to train on: its root and repo id, and optionally what relabels its actions.
+Source = tuple[Path, str] | tuple[Path, str, Relabel]
+
+
+def columns_stats(columns: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """Each column's statistics as LeRobot's normalisation reads them (over all rows)."""
+    stats = {}
+    for name, values in columns.items():
+        rows = np.asarray(values, dtype=np.float64).reshape(len(values), -1)
+        stats[name] = {
+            "mean": rows.mean(axis=0),
+            "std": rows.std(axis=0),
+            "min": rows.min(axis=0),
+            "max": rows.max(axis=0),
+            "count": np.array([len(rows)]),
+        }
+    return stats
+
+
 def train_act_on(
-    datasets: Sequence[tuple[Path, str]],
+    datasets: Sequence[Source],
     out: Path,
     settings: TrainSettings = TrainSettings(),
     say: Callable[[str], None] = print,
@@ -67,8 +89,11 @@ def train_act_on(
     """Train ACT on the frames of several datasets (root, repo id) taken as one, and save it
     in `out`; the last loss. The first dataset names the features (the others may have more,
     `intervention` say: unused); normalisation comes from all of them (LeRobot's
-    `aggregate_stats`). `arena learn reach --dagger` trains on its demonstrations and every
-    round's corrections so."""
+    `aggregate_stats`). A dataset given with a `Relabel` is trained on with the actions it
+    returns, not the recorded ones (DAgger's labels: what the expert would have done in the
+    states the policy reached), and normalisation then comes from the frames as trained on.
+    `arena learn reach --dagger` trains on its demonstrations and every round's relabelled
+    deployments so."""
     import torch
     from lerobot.configs.types import FeatureType, NormalizationMode
     from lerobot.datasets.compute_stats import aggregate_stats
@@ -86,7 +111,7 @@ def train_act_on(
     # One thread: on a small shared machine more threads fight over the cores (two threads
     # made a step of this small model 20 times slower here, not faster).
     torch.set_num_threads(1)
-    metas = [LeRobotDatasetMetadata(repo_id, root=root) for root, repo_id in datasets]
+    metas = [LeRobotDatasetMetadata(source[1], root=source[0]) for source in datasets]
     meta = metas[0]
     features = dataset_to_policy_features(meta.features)
     outputs = {k: f for k, f in features.items() if f.type is FeatureType.ACTION}
@@ -112,18 +137,26 @@ def train_act_on(
     )
     policy: Any = ACTPolicy(config)
     policy.train()
-    stats = meta.stats if len(metas) == 1 else aggregate_stats([m.stats for m in metas])
-    pre, post = make_pre_post_processors(config, dataset_stats=stats)
     parts: dict[str, list[Any]] = {name: [] for name in (*inputs, "action", "episode_index")}
     episodes = 0
-    for root, repo_id in datasets:
+    for root, repo_id, *relabel in datasets:
         table = LeRobotDataset(repo_id, root=root).hf_dataset.with_format("numpy")
-        for name, values in parts.items():
-            values.append(np.asarray(table[name]))
+        read = {name: np.asarray(table[name]) for name in parts}
+        for function in relabel:
+            read["action"] = np.asarray(function(read), dtype=np.float32)
         # Episodes of the next dataset numbered after this one's: chunks never cross them.
-        parts["episode_index"][-1] = parts["episode_index"][-1] + episodes
-        episodes = int(parts["episode_index"][-1].max()) + 1
+        read["episode_index"] = read["episode_index"] + episodes
+        episodes = int(read["episode_index"].max()) + 1
+        for name, values in parts.items():
+            values.append(read[name])
     columns = {name: np.concatenate(values) for name, values in parts.items()}
+    if any(len(source) > 2 for source in datasets):  # from the labels trained on
+        stats = columns_stats({n: v for n, v in columns.items() if n != "episode_index"})
+    elif len(metas) == 1:
+        stats = meta.stats
+    else:
+        stats = aggregate_stats([m.stats for m in metas])
+    pre, post = make_pre_post_processors(config, dataset_stats=stats)
     chunks, padded = action_chunks(columns["episode_index"], settings.chunk_size)
     tensors = {name: torch.as_tensor(columns[name], dtype=torch.float32) for name in inputs}
     actions = torch.as_tensor(columns["action"], dtype=torch.float32)

@@ -79,6 +79,8 @@ class ErrorCode(enum.StrEnum):
     UNCALIBRATED = "UNCALIBRATED"
     CALIBRATION_STATE = "CALIBRATION_STATE"
     NO_HARDWARE = "NO_HARDWARE"
+    NO_LEADER = "NO_LEADER"  # no leader arm (usb-master) drives the robot or waits on it
+    LEADER_NOT_SIMULATED = "LEADER_NOT_SIMULATED"  # its leader is hardware, not the server's sim
     # Links to other Arena servers
     REMOTE_UNREACHABLE = "REMOTE_UNREACHABLE"
     REMOTE_REFUSED = "REMOTE_REFUSED"

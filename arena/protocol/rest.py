@@ -234,8 +234,10 @@ class UsbMasterBody(
     off). No `baudRate`: the robot type's.
 
     `rate`: Hz at which it is read; `deadband`: degrees a joint must move before a new command
-    goes out; `calibration`: the leader's calibration name (default: `<robot id>-leader`);
-    `takeover`: displace the robot's master (else MASTER_ACTIVE while it has one);
+    goes out, unless it is plainly moving (three encoder steps the same way in a row: a move
+    is sent from its start); `calibration`: the leader's calibration name (default:
+    `<robot id>-leader`); `takeover`: displace the robot's master (else MASTER_ACTIVE while it
+    has one);
     `actuated`: the leader's servos take torque: it is first driven to the follower's pose at
     the robot's joining speed, then goes limp for the hand (no jerk when it takes over).
     """
@@ -378,6 +380,25 @@ class InterventionBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields
     master: MasterBody | None = None
 
 
+class LeaderJoint(msgspec.Struct, frozen=True, forbid_unknown_fields=True):
+    """A simulated leader arm's joint and where to move it (the robot's units)."""
+
+    name: JointKey
+    value: float
+
+
+#: The longest smooth move of a simulated leader's joints (milliseconds).
+MAX_LEADER_MOVE_MS = 60_000.0
+
+
+class LeaderJointsBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
+    """`PUT .../leader/joints`: the robot's simulated leader arm moved as a hand moves it,
+    `duration` milliseconds (0: at once), its usb-master then driving the robot."""
+
+    joints: Annotated[list[LeaderJoint], msgspec.Meta(min_length=1, max_length=MAX_TORQUE_LIMITS)]
+    duration: Annotated[float, msgspec.Meta(ge=0, le=MAX_LEADER_MOVE_MS)] = 0.0
+
+
 class HandBackBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     """`DELETE .../intervention`: `resume` false leaves the paused master paused."""
 
@@ -411,7 +432,8 @@ class BoxBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
 
 class WorkspaceBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
     """`PUT /api/robots/{id}/workspace`: the collision guard's floor (null: none), margin,
-    policy and keep-out boxes. What is left out takes its default (specs/collision.md)."""
+    policy and keep-out boxes. What is left out keeps the robot type's own (its table among
+    them; specs/collision.md)."""
 
     floor: float | msgspec.UnsetType | None = msgspec.UNSET
     margin: float | msgspec.UnsetType = msgspec.UNSET

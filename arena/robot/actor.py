@@ -47,6 +47,7 @@ from arena.robot.mailbox import Observers
 from arena.robot.motion import Command, CommandResult
 from arena.robot.ownership import Master, MasterKeeping, Slave
 from arena.robot.peers import MasterPeer, Peers, SlavePeer
+from arena.robot.snapshot import MasterEnded
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +82,7 @@ class Actor(MasterKeeping):
         self.command_counts: collections.Counter[str] = collections.Counter()
         self.estop_count = 0
         self.intervention_count = 0  # interventions started (corrections)
+        self.last_master: MasterEnded | None = None  # the last master that left, and why
         self._superseded_by_gone = 0  # targets superseded at slaves that have left
         #: Data-collection episodes (changed only through `EpisodeMsg`).
         self.episodes = Episodes()
@@ -367,10 +369,12 @@ class Actor(MasterKeeping):
             self.peers.add(peer)
         if message.driver is not None:
             scope = trio.CancelScope()
+            closed = trio.Event()
             peer.stop = scope.cancel
             peer.driver = message.driver
+            peer.closed = closed.wait
             assert self._nursery is not None
-            self._nursery.start_soon(self._run_driver, peer, message.driver, scope)
+            self._nursery.start_soon(self._run_driver, peer, message.driver, scope, closed)
         log.info("robot %s: %s %s attached (%s)", self.robot_id, peer.role, peer_id, peer.kind)
         self._peer_changed(peer, "attached", "", now)
         message.reply.set(peer.link)
@@ -565,7 +569,7 @@ class Actor(MasterKeeping):
     # -- drivers ------------------------------------------------------------------------------
 
     async def _run_driver(
-        self, peer: Master | Slave, driver: Driver, scope: trio.CancelScope
+        self, peer: Master | Slave, driver: Driver, scope: trio.CancelScope, closed: trio.Event
     ) -> None:
         error: BaseException | None = None
         with scope:
@@ -573,6 +577,8 @@ class Actor(MasterKeeping):
                 await driver.run(peer.link)
             except Exception as exc:  # a failing driver is reported, never fatal to the robot
                 error = exc
+            finally:
+                closed.set()
         if not scope.cancel_called:
             # Through the inbox, like every message: a `command_now` must not overtake it.
             with contextlib.suppress(ArenaError):  # the robot has stopped

@@ -40,9 +40,13 @@ from arena.robot.links import MasterDriver, MasterLink, SlaveDriver, SlaveLink
 from arena.robot.mailbox import EventQueue
 from arena.robot.model import RobotModel, SafetyPolicy
 from arena.robot.motion import Command, CommandResult
-from arena.robot.snapshot import JointSnapshot, RobotSnapshot
+from arena.robot.snapshot import JointSnapshot, MasterEnded, RobotSnapshot
 from arena.robot.teleop import TeleopSettings
 from arena.robot.workspace import Workspace
+
+#: Seconds a hand-back or detach waits for the master's driver to let its hardware go (a bus
+#: worker's stop gives up after 5).
+CLOSE_PATIENCE = 6.0
 
 
 class Robot:
@@ -88,6 +92,11 @@ class Robot:
     def intervention_count(self) -> int:
         """Interventions (corrections) started on the robot."""
         return self._actor.intervention_count
+
+    @property
+    def last_master(self) -> MasterEnded | None:
+        """The last master that left the robot, how and why (None: none has)."""
+        return self._actor.last_master
 
     @property
     def targets_superseded(self) -> int:
@@ -246,8 +255,16 @@ class Robot:
 
     async def end_intervention(self, resume: bool = True) -> safety.Outcome:
         """End the intervention: the intervening master goes and the paused master resumes
-        (unless `resume` is false: then it stays paused)."""
-        return await self._event(safety.InterventionEnd(resume))
+        (unless `resume` is false: then it stays paused). Returns once a driver the robot ran
+        for the intervening master has let its hardware go (a leader arm limp, its port
+        closed), at most `CLOSE_PATIENCE` seconds."""
+        peers = self._actor.peers
+        closed = peers.master.closed if peers.waiting and peers.master else None
+        outcome = await self._event(safety.InterventionEnd(resume))
+        if closed is not None and not isinstance(outcome, safety.Refused):
+            with trio.move_on_after(CLOSE_PATIENCE):
+                await closed()
+        return outcome
 
     async def set_workspace(self, workspace: Workspace) -> None:
         """Change where the arm may go, from the next command on."""
@@ -359,10 +376,21 @@ class Robot:
         return link
 
     async def detach_master(
-        self, master_id: str | None = None, reason: str = "detached on request"
+        self,
+        master_id: str | None = None,
+        reason: str = "detached on request",
+        *,
+        wait_closed: bool = False,
     ) -> None:
-        """Detach the master `master_id` (or whichever master holds the robot)."""
+        """Detach the master `master_id` (or whichever master holds the robot). With
+        `wait_closed`, return once a driver the robot ran for it has let its hardware go (at
+        most `CLOSE_PATIENCE` seconds; never from inside that driver: it would wait for
+        itself)."""
+        master = self._actor.peers.either_named(master_id)
         await self._leave("master", master_id, lost=False, reason=reason)
+        if wait_closed and master is not None and master.closed is not None:
+            with trio.move_on_after(CLOSE_PATIENCE):
+                await master.closed()
 
     async def attach_slave(self, driver: SlaveDriver, slave_id: str | None = None) -> str:
         """Run `driver` as a slave of this robot; returns its id. A driver whose `measures`

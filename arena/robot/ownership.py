@@ -17,6 +17,7 @@ from arena.robot.episodes import Episodes
 from arena.robot.events import InterventionChanged, MasterNotice, RobotEvent, TakenBy
 from arena.robot.links import MasterLink, SlaveLink
 from arena.robot.peers import FaultKeys, MasterPeer, Peer, Peers, SlavePeer
+from arena.robot.snapshot import MasterEnded
 
 log = logging.getLogger("arena.robot.actor")
 
@@ -33,6 +34,7 @@ class MasterKeeping:
     _publish: Callable[[RobotEvent], None]
     episodes: Episodes
     intervention_count: int
+    last_master: MasterEnded | None
 
     def _displaced(self, effect: safety.DetachMaster, now: float) -> None:
         """A master displaced (a takeover, an e-stop that ends a program, an intervention's
@@ -103,6 +105,7 @@ class MasterKeeping:
         link.notices.close()
         if master.stop is not None:
             master.stop()
+        self.last_master = _ended(master, code, reason, change)
         self._faults_over(master, f"the master {change}", now)
         log.info("robot %s: master %s %s (%s)", self.robot_id, master.peer_id, change, reason)
         self._peer_changed(master, change, reason, now)
@@ -115,3 +118,18 @@ class MasterKeeping:
         self, peer: Peer[Any], change: str, reason: str, now: float, code: str | None = None
     ) -> None:
         self._publish(peer.changed(self.robot_id, change, reason, now, wallclock.time(), code))
+
+
+#: The faults that say why a master ended (a warning does not).
+_SEVERE = frozenset({"error", "critical"})
+
+
+def _ended(master: Master, code: ErrorCode | None, reason: str, change: str) -> MasterEnded:
+    """What the details keep of a master that left (its faults end as it goes)."""
+    severe = [f for f in master.faults.values() if str(f.severity) in _SEVERE]
+    if severe:
+        error: str | None = f"{severe[-1].code}: {severe[-1].message}"
+    else:
+        error = f"{code}: {reason}" if code is not None and change == "lost" else None
+    kind, description = master.kind, master.description
+    return MasterEnded(master.peer_id, kind, description, change, reason, error, wallclock.time())

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Awaitable, Callable, Iterator
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Generic, TypeVar
 
@@ -52,6 +52,8 @@ class Peer(Generic[L]):
     stop: Callable[[], None] | None = None
     #: The driver the robot runs for this peer (None: the peer runs elsewhere).
     driver: object | None = None
+    #: Waits until that driver's `run` has returned: its hardware let go (None: no driver).
+    closed: Callable[[], Awaitable[None]] | None = None
     #: Its faults that last, by (code, joint), oldest first: each one until its source says it
     #: is over, the robot is reset or the peer leaves (`fault`, `faults_over`).
     faults: dict[tuple[str, str | None], FaultSnapshot] = field(default_factory=dict)

@@ -52,6 +52,21 @@ class PeerSnapshot:
 
 
 @dataclass(frozen=True, slots=True)
+class MasterEnded:
+    """The robot's last master that left: who, how (`change`: "detached" or "lost"), why, and
+    its newest fault of severity error or worse as `CODE: sentence` (a script's line, a
+    policy's failure), else its loss's code and reason, else None."""
+
+    peer_id: str
+    kind: str
+    description: str
+    change: str
+    reason: str
+    error: str | None
+    at: float  # wall clock (seconds since the epoch)
+
+
+@dataclass(frozen=True, slots=True)
 class RobotSnapshot:
     """A robot at one instant."""
 

@@ -68,6 +68,8 @@ ROLE_FOR: dict[tuple[str, str], Role] = {
     ("POST", "/api/robots/{robot_id}/master/resume"): OP,
     ("POST", "/api/robots/{robot_id}/intervention"): OP,
     ("DELETE", "/api/robots/{robot_id}/intervention"): OP,
+    ("GET", "/api/robots/{robot_id}/leader"): V,
+    ("PUT", "/api/robots/{robot_id}/leader/joints"): OP,
     ("POST", "/api/robots/{robot_id}/compliance"): OP,
     ("DELETE", "/api/robots/{robot_id}/compliance"): OP,
     ("POST", "/api/robots/{robot_id}/replay"): OP,

@@ -68,7 +68,7 @@ from arena.server.hand_api import blueprint as hand_blueprint
 from arena.server.health import blueprint as health_blueprint
 from arena.server.identity import Principal, TokenVerifier
 from arena.server.interventions_api import blueprint as interventions_blueprint
-from arena.server.interventions_api import operator_of
+from arena.server.manual import operator_of, refusal
 from arena.server.metrics import Metrics
 from arena.server.move_api import blueprint as move_blueprint
 from arena.server.origin import SAFE_METHODS, OriginPolicy, is_json
@@ -77,6 +77,8 @@ from arena.server.recordings_api import blueprint as recordings_blueprint
 from arena.server.recordings_api import readable_recording, recorder_status
 from arena.server.robot_types_api import blueprint as robot_types_blueprint
 from arena.server.sensors_api import blueprint as sensors_blueprint
+from arena.server.sim_leader_api import blueprint as sim_leader_blueprint
+from arena.server.sim_leaders import SimLeaders
 from arena.server.ws.acks import AckCache
 
 
@@ -105,6 +107,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
         )
     app.cameras = Cameras()
     app.parts = Parts()
+    app.sim_leaders = SimLeaders()
     app.shutting_down = trio.Event()
     app.started_at = time.time()
     app.config["MAX_CONTENT_LENGTH"] = MAX_MESSAGE_BYTES
@@ -120,6 +123,7 @@ def create_app(manager: RobotManager, config: ServerConfig, recorder: Recorder) 
     app.register_blueprint(policies_blueprint)
     app.register_blueprint(hand_blueprint)
     app.register_blueprint(move_blueprint)
+    app.register_blueprint(sim_leader_blueprint)
     _register_errors(app)
     _register_routes(app)
     return app
@@ -418,8 +422,7 @@ def _register_routes(app: ArenaApp) -> None:
             operator_of(robot, g.principal),  # an operator's intervention: as its master
         )
         if not result.accepted:
-            assert result.code is not None
-            raise ArenaError(result.code, result.message)
+            raise refusal(robot, result)
         ack: dict[str, Any] = msgspec.to_builtins(convert.ack(result).data)
         return ack
 
@@ -430,7 +433,8 @@ def _register_routes(app: ArenaApp) -> None:
     @app.put("/api/robots/<robot_id>/workspace")
     async def put_workspace(robot_id: str) -> dict[str, Any]:
         robot = manager.get(robot_id)
-        workspace = await parts.set_workspace(robot, await read_body(WorkspaceBody))
+        body = await read_body(WorkspaceBody)
+        workspace = await parts.set_workspace(robot, body, robot.model.workspace)
         return workspace_to_json(workspace)
 
     @app.post("/api/robots/<robot_id>/slaves")
@@ -460,8 +464,8 @@ def _register_routes(app: ArenaApp) -> None:
     async def detach_master(robot_id: str) -> dict[str, Any]:
         robot = manager.get(robot_id)
         master = robot.snapshot().master
-        if master is not None:
-            await robot.detach_master(master.peer_id)
+        if master is not None:  # answered once its driver let go: a leader's port is free
+            await robot.detach_master(master.peer_id, wait_closed=True)
         return {"detached": master.peer_id if master else None}
 
     def servo_readings(robot: Robot) -> list[tuple[str, float, float]]:

@@ -34,6 +34,7 @@ if TYPE_CHECKING:
     from arena.ros2.bridge import Ros2Bridge
     from arena.sensors.camera import Cameras
     from arena.server.foxglove_bridge import FoxgloveBridge  # imports the SDK
+    from arena.server.sim_leaders import SimLeaders
     from arena.server.ws.acks import AckCache
 
 #: HTTP status for each error code (anything missing is 400).
@@ -81,6 +82,8 @@ STATUS_FOR: dict[ErrorCode, int] = {
     ErrorCode.INTERNAL_ERROR: 500,
     ErrorCode.NOT_INSTALLED: 501,
     ErrorCode.NO_HARDWARE: 404,
+    ErrorCode.NO_LEADER: 404,
+    ErrorCode.LEADER_NOT_SIMULATED: 409,
     ErrorCode.PORT_NOT_FOUND: 404,
     ErrorCode.PORT_BUSY: 409,
     ErrorCode.CALIBRATION_STATE: 409,
@@ -298,6 +301,8 @@ class ArenaApp(QuartTrio):
     origin_policy: OriginPolicy
     #: Every robot's cameras (`arena/sensors`).
     cameras: Cameras
+    #: The simulated leader arms the server owns, and the leader arms attached to robots.
+    sim_leaders: SimLeaders
     #: The bodies the live parts were made from (`GET /api/config` writes them back).
     parts: Parts
     #: The setup the configuration file declares, once brought up (None: no file).
@@ -360,7 +365,13 @@ async def read_body(kind: Any, *, optional: bool = False) -> Any:
     raw = await request.get_data(cache=False)
     if len(raw) > MAX_MESSAGE_BYTES:
         raise too_large(len(raw))
-    if not raw.strip() and optional:
+    if not raw.strip():
+        if not optional:  # (msgspec would say "Input data was truncated", as of a cut body)
+            raise ArenaError(
+                ErrorCode.INVALID_JSON,
+                "The body is empty: this route takes a JSON object (send it with "
+                "Content-Type: application/json; see /docs for its fields).",
+            )
         raw = b"{}"
     try:
         return msgspec.json.decode(raw, type=kind)

@@ -30,6 +30,9 @@ class ServerConfig:
     host: str = "127.0.0.1"
     port: int = 8080
     demo: bool = False
+    #: A simulated leader arm of this robot type (on a pty the server owns), to attach as a
+    #: usb-master and move from the dashboard or `PUT .../leader/joints` (None: none).
+    sim_leader: str | None = None
     api_keys: tuple[str, ...] = ()
     viewer_keys: tuple[str, ...] = ()  # read-only keys (need api_keys to mean anything)
     open_reads: bool = False  # with keys configured, let GET requests through without one

@@ -12,7 +12,7 @@ from arena.protocol import messages as wire
 from arena.robot.events import FaultReported, NoticeKind, SlaveNotice, SlaveTarget
 from arena.robot.handle import Robot
 from arena.robot.motion import Command, CommandResult
-from arena.robot.snapshot import PeerSnapshot, RobotSnapshot
+from arena.robot.snapshot import MasterEnded, PeerSnapshot, RobotSnapshot
 from arena.server.link_quality import LinkQuality
 
 
@@ -185,12 +185,28 @@ def robot_summary(
         "estop_reason": snapshot.estop_reason,
         "master": _master(snapshot.master, links),
         "paused_master": _master(snapshot.paused_master, links),
+        "last_master": _ended(robot.last_master),
         "corrections": {
             "total": robot.intervention_count,
             "episode": robot.episodes.running_corrections(),
         },
         "slaves": [_peer(s) for s in snapshot.slaves],
         "joints": msgspec.to_builtins(joint_states(robot).data),
+    }
+
+
+def _ended(master: MasterEnded | None) -> dict[str, Any] | None:
+    """The last master that left, as the details show it."""
+    if master is None:
+        return None
+    return {
+        "id": master.peer_id,
+        "type": master.kind,
+        "description": master.description,
+        "ended": master.change,
+        "reason": master.reason,
+        "error": master.error,
+        "at": round(master.at, 3),
     }
 
 

@@ -15,7 +15,7 @@ from typing import Any
 
 import msgspec
 import trio
-from quart import Blueprint, current_app
+from quart import Blueprint, current_app, g
 
 from arena.protocol import messages as wire
 from arena.protocol.errors import ArenaError, ErrorCode
@@ -27,6 +27,7 @@ from arena.robot.motion import Command, CommandResult
 from arena.robot.teleop import TeleopSettings, settings_of
 from arena.server import convert
 from arena.server.base import ArenaApp, error_response, read_body
+from arena.server.manual import operator_of, refusal
 
 blueprint = Blueprint("hand", __name__)
 
@@ -171,10 +172,14 @@ async def put_pose(robot_id: str) -> dict[str, Any]:
     """Move the hand to a pose (manual control, refused while a master drives the robot)."""
     robot = _app().manager.get(robot_id)
     body: wire.PoseData = await read_body(wire.PoseData)
-    result, move = await command_pose(robot, body, robot.command, "rest")
+    master_id = operator_of(robot, g.principal)  # an operator's intervention: as its master
+
+    async def send(command: Command) -> CommandResult:
+        return await robot.command(command, master_id)
+
+    result, move = await command_pose(robot, body, send, "rest")
     if not result.accepted:
-        assert result.code is not None
-        raise ArenaError(result.code, result.message)
+        raise refusal(robot, result)
     return answer(result, move)
 
 

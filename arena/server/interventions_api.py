@@ -24,36 +24,15 @@ from arena.server import convert
 from arena.server.access import server_admin
 from arena.server.base import ArenaApp, read_body
 from arena.server.drivers import camera_frames, make_master, tenant_folder
-from arena.server.identity import Principal
+from arena.server.manual import OPERATOR_KIND, operator_id
 from arena.server.planned_moves import equip_script
 from arena.server.recordings_api import off_the_loop, readable_recording
 
 blueprint = Blueprint("interventions", __name__)
 
-#: The kind of the master an operator intervenes as over REST (`PUT .../joints`).
-OPERATOR_KIND = "operator"
-
 
 def _app() -> ArenaApp:
     return current_app  # type: ignore[return-value]
-
-
-def operator_id(principal: Principal) -> str:
-    """The master id an operator intervening over REST holds the robot under."""
-    return f"operator:{principal.audit_name()}"
-
-
-def operator_of(robot: Robot, principal: Principal) -> str | None:
-    """The caller's master id if the caller intervenes on `robot` over REST, else None (its
-    `PUT .../joints` is then manual control)."""
-    master = robot.snapshot().master
-    if (
-        master is not None
-        and master.kind == OPERATOR_KIND
-        and master.peer_id == operator_id(principal)
-    ):
-        return master.peer_id
-    return None
 
 
 def _answer(outcome: safety.Outcome) -> None:
@@ -129,6 +108,7 @@ async def intervene(robot_id: str) -> tuple[dict[str, Any], int]:
         if close is not None:
             await close()
         raise
+    app.sim_leaders.follow(robot, master_id, driver)
     return _intervention(robot, master_id), 201
 
 

@@ -25,10 +25,14 @@ from arena.robot.motion import Command, CommandResult
 from arena.server import convert
 from arena.server.base import ArenaApp, error_response, read_body
 from arena.server.hand_api import HandMove, answer, command_pose
-from arena.server.interventions_api import operator_of
+from arena.server.manual import operator_of, refusal
 from arena.server.planned_moves import PathNotFound, plan_move
 
 blueprint = Blueprint("move", __name__)
+
+#: The refusal of `joints` given as `PUT .../joints`'s list, and what this route takes instead.
+_LISTED = "Invalid `joints`: Expected `object"
+_JOINTS_FORM = 'Here `joints` maps names to degrees, e.g. {"Rotation": 10}.'
 
 
 def _app() -> ArenaApp:
@@ -39,7 +43,12 @@ def _app() -> ArenaApp:
 async def move(robot_id: str) -> dict[str, Any]:
     """Move to a joint or pose goal: straight (one command), or along a planned path."""
     robot = _app().manager.get(robot_id)
-    body: MoveBody = await read_body(MoveBody)
+    try:
+        body: MoveBody = await read_body(MoveBody)
+    except ArenaError as error:
+        if error.code is ErrorCode.INVALID_BODY and error.message.startswith(_LISTED):
+            raise ArenaError(error.code, f"{error.message} {_JOINTS_FORM}") from None
+        raise
     check_goal(body)
     if body.plan:
         return await _planned(robot, body)
@@ -50,8 +59,7 @@ async def move(robot_id: str) -> dict[str, Any]:
 
     result, solved = await move_straight(robot, body, send, "rest")
     if not result.accepted:
-        assert result.code is not None
-        raise ArenaError(result.code, result.message)
+        raise refusal(robot, result)
     if solved is not None:
         return {**answer(result, solved), "plan": False}
     ack: dict[str, Any] = msgspec.to_builtins(convert.ack(result).data)

@@ -19,6 +19,7 @@ from arena.protocol.rest import (
     HandBackBody,
     InterventionBody,
     JointsBody,
+    LeaderJointsBody,
     MasterBody,
     MockSlaveBody,
     MoveBody,
@@ -95,6 +96,13 @@ ROUTES: list[tuple[str, str, str, Any]] = [
         "/api/robots/{robot_id}/intervention",
         "End the intervention (the master resumes)",
         HandBackBody,
+    ),
+    ("GET", "/api/robots/{robot_id}/leader", "The robot's leader arm; the simulated ones", None),
+    (
+        "PUT",
+        "/api/robots/{robot_id}/leader/joints",
+        "Move the robot's simulated leader arm (its usb-master then drives)",
+        LeaderJointsBody,
     ),
     (
         "POST",
@@ -225,6 +233,7 @@ EXAMPLES: dict[type, dict[str, Any]] = {
         ],
         "duration": 1000,
     },
+    LeaderJointsBody: {"joints": [{"name": "Rotation", "value": 30}], "duration": 500},
     WorkspaceBody: {
         "floor": 0.0,
         "margin": 0.005,

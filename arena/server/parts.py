@@ -31,7 +31,7 @@ from arena.protocol.rest import (
 )
 from arena.robot.groups import Group
 from arena.robot.handle import Robot
-from arena.robot.workspace import Workspace, workspace_from_json
+from arena.robot.workspace import Workspace, workspace_from_json, workspace_to_json
 from arena.sensors.camera import Camera, CameraSpec, Opener
 from arena.server.auth import refuse
 from arena.server.drivers import (
@@ -94,6 +94,7 @@ async def delete_robot(app: ArenaApp, robot: Robot) -> None:
     await app.manager.delete(robot.robot_id)
     app.metrics.retire(robot)
     app.parts.forget(robot.robot_id)
+    app.sim_leaders.forget(robot.robot_id)
 
 
 async def attach_slave(
@@ -166,6 +167,7 @@ async def attach_master(app: ArenaApp, robot: Robot, body: MasterBody, anywhere:
         if close is not None:
             await close()  # refused (another master holds the robot): free the port
         raise
+    app.sim_leaders.follow(robot, master_id, driver)
     if not isinstance(body, ReplayMasterBody):  # (a replay is an act, not a part)
         app.parts.masters[robot.robot_id] = (master_id, body)
     return master_id
@@ -203,10 +205,17 @@ def camera_body(camera: Camera) -> CameraBody:
     return CameraBody(spec.name, spec.source, spec.fps, spec.width, spec.height)
 
 
-async def set_workspace(robot: Robot, body: WorkspaceBody) -> Workspace:
-    """`PUT /api/robots/{id}/workspace`."""
+async def set_workspace(
+    robot: Robot, body: WorkspaceBody, base: Workspace | None = None
+) -> Workspace:
+    """`PUT /api/robots/{id}/workspace` (`base`: what a field left out keeps; REST gives the
+    robot type's own, so a body of boxes alone keeps the type's table); a declared setup's
+    workspace (no base: what is left out is none, as TOML has no null)."""
+    data = msgspec.to_builtins(body)
+    if base is not None:
+        data = {**workspace_to_json(base), **data}
     try:
-        workspace = workspace_from_json(msgspec.to_builtins(body))
+        workspace = workspace_from_json(data)
     except ValueError as exc:
         raise ArenaError(ErrorCode.INVALID_BODY, f"Invalid workspace: {exc}.") from None
     await robot.set_workspace(workspace)

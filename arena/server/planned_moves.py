@@ -27,6 +27,7 @@ from arena.script.master import ScriptMaster
 from arena.script.wire import MoveToPose, PlannedJoints
 from arena.server.base import ArenaApp
 from arena.server.hand_api import hand_command, plan_pose
+from arena.server.manual import master_active
 
 #: Plans made at once on one server (each keeps a core busy); more wait for a turn.
 MAX_PLANS = 2
@@ -107,11 +108,9 @@ def _free_to_move(robot: Robot, master_id: str | None) -> None:
     if snapshot.mode is Mode.ESTOPPED:
         raise ArenaError(ErrorCode.ESTOPPED, "The robot is e-stopped: reset it first.")
     if snapshot.master is not None and snapshot.master.peer_id != master_id:
-        raise ArenaError(
-            ErrorCode.MASTER_ACTIVE,
-            f"Robot is controlled by master {snapshot.master.peer_id!r}: a planned move takes "
-            "no robot a master holds.",
-        )
+        refused = master_active(robot, "A planned move takes no robot a master holds")
+        if refused is not None:
+            raise refused
 
 
 async def _plan_off_the_loop(plans: _Planning, robot: Robot, plan: Any) -> planning.PlannedPath:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import errno
 import gc
@@ -29,6 +30,7 @@ from arena.server.listener import ArenaListener, ConnectionLimits
 from arena.server.sensors_api import stream_route
 from arena.server.setup_file import Setup
 from arena.server.shutdown import leave_slaves_as_set, stop_on_signals
+from arena.server.sim_leaders import SimLeaders
 from arena.server.systemd import notify
 from arena.server.ws.router import router
 
@@ -152,54 +154,60 @@ async def _run(
         foxglove=config.record_foxglove,
         foxglove_rate=config.record_foxglove_rate,
     )
-    async with trio.open_nursery() as recording_nursery:
-        await recording_nursery.start(recorder.run)
-        async with open_manager() as manager:
-            manager.on_create.append(recorder.follow)
-            app = create_app(manager, config, recorder)
-            app.cameras.on_attach.append(
-                lambda camera: recorder.follow_frames(
-                    camera.robot.robot_id, camera.subscribe(maxlen=2 * camera.spec.fps)
-                )
-            )
-            await recording_nursery.start(app.cameras.run)
-            if config.node is not None:
-                from arena.fleet.node import FleetNode  # imports zenoh only for a fleet
-                from arena.server.fleet_api import install
-
-                fleet = FleetNode(config.fleet_settings())
-                await recording_nursery.start(fleet.run)
-                install(app, fleet)
-            if config.ros2:
-                from arena.ros2.bridge import Ros2Bridge  # imports zenoh and rosbags
-
-                app.ros2 = Ros2Bridge(config.ros2_settings())
-                await recording_nursery.start(app.ros2.run)
-                manager.on_create.append(app.ros2.follow)
-            if config.foxglove_port is not None:
-                from arena.server.foxglove_bridge import FoxgloveBridge  # loads the SDK
-
-                app.foxglove = FoxgloveBridge(config.host, config.foxglove_port)
-                manager.on_create.append(app.foxglove.follow)
-                bridge = app.foxglove
+    # Simulated leader arms go last, once no usb-master reads them any more.
+    with contextlib.closing(SimLeaders()) as sim_leaders:
+        async with trio.open_nursery() as recording_nursery:
+            await recording_nursery.start(recorder.run)
+            async with open_manager() as manager:
+                manager.on_create.append(recorder.follow)
+                app = create_app(manager, config, recorder)
+                app.sim_leaders = sim_leaders
                 app.cameras.on_attach.append(
-                    lambda camera: bridge.follow_frames(
-                        camera.robot.robot_id, camera.spec.name, camera.subscribe(maxlen=2)
+                    lambda camera: recorder.follow_frames(
+                        camera.robot.robot_id, camera.subscribe(maxlen=2 * camera.spec.fps)
                     )
                 )
-                port = await recording_nursery.start(app.foxglove.run)
-                log.info("Foxglove: ws://%s:%d", config.host, port)
-            if config.demo:
-                await _create_demo_robot(app)
-            app.declared = DeclaredSetup(app, config.config_file or "")
-            if setup is not None:
-                await app.declared.apply(setup)  # in order; what cannot come up is retried
-            if handle_signals:  # (SIGHUP's default would end the process)
-                recording_nursery.start_soon(reload_on_sighup, app.declared)
-            if freeze_startup_objects:
-                tune_garbage_collector()
-            await _serve(app, config, sockets, stop, task_status)
-        recording_nursery.cancel_scope.cancel()  # robots are stopped: finish the file
+                await recording_nursery.start(app.cameras.run)
+                if config.node is not None:
+                    from arena.fleet.node import FleetNode  # imports zenoh only for a fleet
+                    from arena.server.fleet_api import install
+
+                    fleet = FleetNode(config.fleet_settings())
+                    await recording_nursery.start(fleet.run)
+                    install(app, fleet)
+                if config.ros2:
+                    from arena.ros2.bridge import Ros2Bridge  # imports zenoh and rosbags
+
+                    app.ros2 = Ros2Bridge(config.ros2_settings())
+                    await recording_nursery.start(app.ros2.run)
+                    manager.on_create.append(app.ros2.follow)
+                if config.foxglove_port is not None:
+                    from arena.server.foxglove_bridge import FoxgloveBridge  # loads the SDK
+
+                    app.foxglove = FoxgloveBridge(config.host, config.foxglove_port)
+                    manager.on_create.append(app.foxglove.follow)
+                    bridge = app.foxglove
+                    app.cameras.on_attach.append(
+                        lambda camera: bridge.follow_frames(
+                            camera.robot.robot_id, camera.spec.name, camera.subscribe(maxlen=2)
+                        )
+                    )
+                    port = await recording_nursery.start(app.foxglove.run)
+                    log.info("Foxglove: ws://%s:%d", config.host, port)
+                if config.demo:
+                    await _create_demo_robot(app)
+                if config.sim_leader is not None:
+                    leader = app.sim_leaders.start(config.sim_leader)
+                    log.info("simulated leader arm (%s): %s", leader.robot_type, leader.port)
+                app.declared = DeclaredSetup(app, config.config_file or "")
+                if setup is not None:
+                    await app.declared.apply(setup)  # in order; what cannot come up is retried
+                if handle_signals:  # (SIGHUP's default would end the process)
+                    recording_nursery.start_soon(reload_on_sighup, app.declared)
+                if freeze_startup_objects:
+                    tune_garbage_collector()
+                await _serve(app, config, sockets, stop, task_status)
+            recording_nursery.cancel_scope.cancel()  # robots are stopped: finish the file
 
 
 async def _serve(

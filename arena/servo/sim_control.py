@@ -170,6 +170,11 @@ class SimControl:
                 'Send {"joint": NAME, "deg": VALUE}, {"joints": {NAME: VALUE, ...}, '
                 '"duration": SECONDS} or {"read": true}.',
             )
+        return "move", self.check_goals(goals), float(duration)
+
+    def check_goals(self, goals: Mapping[Any, Any]) -> dict[str, float]:
+        """Goals by joint name, each a joint of the model within its limits, or
+        `ControlError` (INVALID_BODY, UNKNOWN_JOINT, OUT_OF_RANGE)."""
         if not goals:
             raise ControlError("INVALID_BODY", "No joint named.")
         checked = {}
@@ -187,7 +192,7 @@ class SimControl:
                     f"{value!r}.",
                 )
             checked[joint.name] = float(value)
-        return "move", checked, float(duration)
+        return checked
 
     def apply(self, line: bytes, now: float) -> dict[str, Any]:
         """One line's answer (and its move, if it is one)."""
@@ -336,7 +341,7 @@ def usage(control: SimControl, port: int | None, keys: bool) -> str:
         first = control.names[0]
         lines += [
             f"control: JSON lines on 127.0.0.1:{port}, one answer a line, e.g.",
-            f'  echo \'{{"joint": "{first}", "deg": 30}}\' | nc -q1 127.0.0.1 {port}',
+            f'  echo \'{{"joint": "{first}", "deg": 30}}\' > /dev/tcp/127.0.0.1/{port}   (bash)',
             f'  {{"joints": {{"{first}": -20, ...}}, "duration": 1.0}}   (smoothly)',
             '  {"read": true}   (every joint)',
             f"  joints: {', '.join(control.names)}",

@@ -7,6 +7,7 @@ import { closeCalibration, wireCalibration } from "./calibrate.js";
 import { HandDriver } from "./drive.js";
 import { GamepadSource } from "./gamepad.js";
 import { KeyboardSource } from "./keys.js";
+import { LeaderPanel } from "./leader.js";
 import { RecordingsPanel } from "./recordings.js";
 import { masterText, RobotView } from "./robot_view.js";
 import { SecondClickTakeover } from "./takeover.js";
@@ -51,6 +52,7 @@ function holder() {
 }
 
 const recordings = new RecordingsPanel({ selectedRobot: selectedId, report, takeover, holder });
+const leader = new LeaderPanel(report);
 
 async function refresh() {
   const mine = ++refreshes;
@@ -95,6 +97,7 @@ async function refresh() {
   } else {
     view.applySummary(summary);
   }
+  if (summary && !summary.remote) await leader.refresh(id, summary);
   await recordings.refresh();
 }
 
@@ -131,6 +134,7 @@ function closeView() {
   if (hand.driving) hand.stop();
   if (view) view.close();
   closeCalibration();
+  leader.close();
   view = null;
   $("robot-panel").hidden = true;
   $("estop").disabled = true;
