@@ -31,7 +31,7 @@ OPTIMAL_FACTOR = 1.05
 #: is sent): 11 / 17 ms measured with the so-arm100's limits (1 / 7 ms from the send;
 #: specs/motion.md). The stream planned to a stop at each goal trailed by 26 ms at the median.
 LAG = 0.015
-WORST_LAG = 0.025
+WORST_LAG = 0.03
 #: Seconds between the targets the derivatives are taken of (see `derivatives`).
 SPACING = 1e-3
 
@@ -294,17 +294,13 @@ def test_a_state_ruckig_finds_no_profile_for_is_planned_all_the_same() -> None:
     from arena.robot.motion import MotionLimiter
 
     limiter = MotionLimiter(MODEL, 0.0)
-    inp = limiter._input
-    inp.current_position = [17.78371797337839, 0, 0, 0, 0, 0]
-    inp.current_velocity = [-46.41630668564321, 0, 0, 0, 0, 0]
-    inp.current_acceleration = [-5760.374432796545, 0, 0, 0, 0, 0]
-    inp.target_position = [16.1, 0, 0, 0, 0, 0]
-    inp.target_velocity = [0.0] * 6
-    inp.max_velocity = [j.max_velocity for j in MODEL.joints]
     # (at the jerk limits it was met with: full acceleration in 40 ms)
-    inp.max_jerk = [25.0 * j.max_acceleration for j in MODEL.joints]
+    limiter._input.max_jerk = [25.0 * j.max_acceleration for j in MODEL.joints]
     trajectory = Trajectory(6)
-    assert limiter._solve(trajectory)
+    p = [17.78371797337839, 0, 0, 0, 0, 0]
+    v = [-46.41630668564321, 0, 0, 0, 0, 0]
+    a = [-5760.374432796545, 0, 0, 0, 0, 0]
+    assert limiter._solve(trajectory, p, v, a, [16.1, 0, 0, 0, 0, 0], None)
     assert limiter.fallbacks >= 1
     assert trajectory.at_time(trajectory.duration)[0][0] == pytest.approx(16.1)
 
@@ -337,4 +333,4 @@ def test_a_stream_that_stops_comes_to_rest_on_its_last_goal() -> None:
     assert emitted[-1][1]["Rotation"] == 30.0
     assert not core.motion.moving
     overshoot = max(t["Rotation"] for _, t in emitted) - 30.0
-    assert 0.0 < overshoot < 5.0  # the braking of a 100 deg/s stop, and no more
+    assert 0.0 <= overshoot < 5.0  # at most the braking of a 100 deg/s stop

@@ -11,6 +11,7 @@ Time is an argument everywhere (seconds, any monotonic origin): nothing here rea
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Iterable, Mapping
 
 import msgspec
@@ -147,6 +148,11 @@ OVERDUE = 1.5
 #: line (its last goal, carried on at its velocity): short, so the lag stays small; long
 #: enough that a correction keeps inside the acceleration and jerk limits (`_follow`).
 HORIZON_TICKS = 2
+#: Stamped goals of a stream kept to interpolate between (`_stamped`).
+STAMPED_KEPT = 8
+#: Seconds between the points of a history at rest (`_rest_times`): small against a tick,
+#: large against float rounding of the divided differences over it.
+REST_SPACING = 1e-4
 #: The oldest a command's `stamp` is taken to be (seconds before it arrived): a master's
 #: clock that is off cannot throw the stream's line further than this.
 MAX_AGE = 0.05
@@ -155,21 +161,26 @@ MAX_AGE = 0.05
 class MotionLimiter:
     """Turns goals into a jerk-limited trajectory for the slaves (Ruckig; specs/motion.md).
 
-    Every joint's targets follow one trajectory limited per joint in velocity (the joint's
-    limit, or a command's lower `speed`), acceleration and jerk (`JointSpec.max_acceleration`,
-    `max_jerk`), planned from where the trajectory is and how fast it moves there: a new goal
-    mid-motion bends it, and the velocity never steps. A step (a goal after a pause) is reached
-    at rest, all joints arriving together on the straight line in joint space the collision
-    guard checked (Ruckig's phase synchronization). A stream of goals (each within
-    `STREAM_WINDOW` of the last: a leader arm, a policy) is followed, not stopped at: each goal
-    is met as soon as the limits allow at the stream's own velocity (from the last two goals),
-    the trajectory coasts on at that velocity until the next goal bends it, and comes to rest
-    on the last goal when the stream's next is overdue (`OVERDUE`).
+    Every joint's targets are limited per joint in velocity (the joint's limit, or a command's
+    lower `speed`), acceleration and jerk (`JointSpec.max_acceleration`, `max_jerk`), and the
+    limits hold on the targets as they are emitted: every target is checked against the last
+    three by divided differences (the velocity, acceleration and jerk a slave's servo is asked
+    for, whatever the times between them) and moved into the interval they allow (`_emit`).
+
+    A step (a goal after a pause) is a Ruckig trajectory to rest on the goal, planned from
+    where the joints are and how fast they move: a new goal mid-motion bends it, the velocity
+    never steps, and all joints arrive together on the straight line in joint space the
+    collision guard checked (phase synchronization). A stream of goals (each within
+    `STREAM_WINDOW` of the last: a leader arm, a policy) is tracked goal by goal: a goal that
+    the limits allow next is the target itself (a person's hand, a policy's smooth actions:
+    passed on as they come, no lag added, no line carried on past where the hand stops);
+    one they do not is approached on a trajectory to rest on it, as far as one step goes.
+    A stream whose next goal is overdue (`OVERDUE`) comes to rest on its last.
 
     Costs: a robot at rest costs nothing per tick (no tick is asked for), and a move small
-    enough to be made within one tick from rest (`reach`: the jerk-limited distance of one
-    tick) is one target without planning; everything else is one Ruckig plan per new goal
-    and one sample per tick.
+    enough to be made within one tick from rest (`reach`) is one target without planning; a
+    step is one Ruckig plan per new goal and one sample per tick; a stream passed on costs
+    no plan.
 
     Targets lead the clock by one control tick: what is emitted at `now` is the trajectory at
     `now + 1 / control_rate`, so a command's first step goes out with the command. `freeze`
@@ -183,7 +194,7 @@ class MotionLimiter:
         self._names = tuple(j.name for j in model.joints)
         self._index = {name: k for k, name in enumerate(self._names)}
         self._clamps = {j.name: j.clamp for j in model.joints}
-        self._bounds = tuple((j.lower, j.upper) for j in model.joints)
+        self._clamp_list = tuple(j.clamp for j in model.joints)
         self._lead = lead = 1.0 / model.safety.control_rate
         dofs = len(self._names)
         self._otg = Ruckig(dofs)
@@ -191,11 +202,12 @@ class MotionLimiter:
         self._input.synchronization = Synchronization.Phase  # the straight line in joint space
         self._input.max_acceleration = [j.max_acceleration for j in model.joints]
         self._input.max_jerk = [j.max_jerk for j in model.joints]
+        self._velocity = tuple(j.max_velocity for j in model.joints)
         self._accel = tuple(j.max_acceleration for j in model.joints)
         self._jerk = tuple(j.max_jerk for j in model.joints)
-        #: Per joint, the distance a jerk-limited move from rest to rest covers in one tick
-        #: (jerk j T^3/32, peak acceleration j T/4 <= a, peak velocity j T^2/16 <= v): a
-        #: move no longer than this is made in one target, without a plan (`_jump`).
+        #: Per joint, the distance a move from rest covers in one tick within every limit
+        #: by divided differences (jerk j T^3/32 keeps a continuous move's too): a move no
+        #: longer than this is made in one target, without a plan (`_jump`).
         self._reach = tuple(
             min(
                 j.max_jerk * lead**3 / 32,
@@ -209,28 +221,23 @@ class MotionLimiter:
         start = dict(initial or {})
         self._position = {j.name: j.clamp(float(start.get(j.name, 0.0))) for j in model.joints}
         self._goals = self._position.copy()
-        self._speeds = [j.max_velocity for j in model.joints]  # caps of the move under way
+        self._speeds = list(self._velocity)  # caps of the move under way
         self._stamps = [-math.inf] * dofs  # when each joint's goal was last set
         self._duration: float | None = None  # a timed move's least duration, until planned
-        # The stream being followed: the goals before the newest (`_origin`, None when the
-        # goals are steps), the time between them, and the sample time at which the stream's
-        # next goal is overdue.
-        self._origin: list[float] | None = None
-        self._interval = 0.0
-        self._stamp = 0.0  # when the stream's newest goal was true
-        self._true_at = -math.inf  # when the newest goals were true
-        self._due = 0.0
-        self._planned = True  # the trajectory meets the newest goals
-        self._trajectory: Trajectory | None = None  # None: every joint rests at its target
-        # A stream tracked (`_track`): the last emitted targets' sample time, and every
-        # joint's position, velocity and acceleration there.
-        self._tracking = False
+        self._stream = False  # the newest goals continue a stream
+        self._due = 0.0  # sample time at which the stream's next goal is overdue
+        self._planned = True  # the trajectory (or the tracking) meets the newest goals
+        self._trajectory: Trajectory | None = None  # a step's; None: tracking or at rest
+        self._tracking = False  # a stream is tracked (`_track`)
+        # A stream whose goals carry when they were true (`stamp`): its newest goals by
+        # that time (`_played`).
+        self._stamped: deque[tuple[float, list[float]]] = deque(maxlen=STAMPED_KEPT)
         self._new_goal = False  # a goal came since the last targets
-        self._tt = 0.0
-        self._th = (0.0, 0.0)  # the last two steps' lengths (seconds)
-        self._tp = [0.0] * dofs
-        self._tv = [0.0] * dofs
-        self._ta = [0.0] * dofs
+        # The last three emitted targets, oldest first, and the sample times they stand for
+        # (`_emit`): what the limits are measured on.
+        self._history_t = _rest_times(now)
+        first = [self._position[name] for name in self._names]
+        self._history_p = [first, first, first]
         # Two trajectories, planned into in turn: the one in use is never overwritten (its
         # state is where the next plan starts), and a plan allocates none.
         self._pair = (Trajectory(dofs), Trajectory(dofs))
@@ -238,11 +245,13 @@ class MotionLimiter:
         self._t0 = 0.0  # sample time at which the trajectory starts
         self._sampled = -math.inf  # sample time of the last emitted targets
         self._fresh = False  # the last `set_goals` found every joint at rest
-        #: Trajectories planned (benchmarks and tests count them), and how many of them a
-        #: stream's timing made Ruckig fail, planned again as steps; moves made in one target.
+        #: Trajectories planned (benchmarks and tests count them), and how many of them
+        #: Ruckig failed at first, planned again; moves made in one target; targets the
+        #: limits moved off their candidate (seams, a state over a limit).
         self.plans = 0
         self.fallbacks = 0
         self.jumps = 0
+        self.clipped = 0
 
     @property
     def positions(self) -> dict[str, float]:
@@ -256,8 +265,13 @@ class MotionLimiter:
 
     @property
     def moving(self) -> bool:
-        """True while some joint has not reached its goal (ticks are needed)."""
-        return self._trajectory is not None or self._tracking or not self._planned
+        """True while some joint has not reached its goal at rest (ticks are needed)."""
+        return (
+            self._trajectory is not None
+            or self._tracking
+            or not self._planned
+            or self._position != self._goals
+        )
 
     def set_goals(
         self,
@@ -269,10 +283,11 @@ class MotionLimiter:
         """Aim joints at new goals (with `duration`, reached in no less than that time). The
         trajectory is planned by the next `advance`: a burst of commands plans once.
         `advance(now, fresh=True)` moves at once only a robot that was at rest. `stamp`: when
-        the goals were true (a leader's read; at most `MAX_AGE` before `now`), else `now`."""
-        self._fresh = self._trajectory is None and not self._tracking and self._planned
+        the goals were true (a leader's read; at most `MAX_AGE` before `now`): a stream of
+        stamped goals is played by those times at a steady delay, not as they arrive (a
+        loop's jitter would otherwise ask for accelerations the hand never made)."""
+        self._fresh = not self.moving
         targets = self._goals
-        origin = list(targets.values())  # (the goals before these, in the joints' order)
         index, stamps, speeds = self._index, self._stamps, self._speeds
         stream = duration is None
         interval = 0.0
@@ -283,21 +298,19 @@ class MotionLimiter:
             targets[goal.name] = goal.value
             speeds[k] = goal.speed
             if 0.0 < elapsed <= STREAM_WINDOW:
-                if elapsed > interval:
-                    interval = elapsed
+                interval = max(interval, elapsed)
             else:
                 stream = False
-        true_at = now if stamp is None else min(now, max(now - MAX_AGE, stamp))
-        if stream and interval > 0.0:
-            self._origin = origin
-            # the stream's pace by when its goals were true, where it is known
-            between = true_at - self._true_at
-            self._interval = between if stamp is not None and between > 0.0 else interval
-            self._stamp = true_at
+        self._stream = stream and interval > 0.0
+        if self._stream:
             self._due = now + self._lead + OVERDUE * interval
-        else:
-            self._origin = None
-        self._true_at = true_at
+        stamped = self._stamped
+        if stamp is None or not self._stream:
+            stamped.clear()
+        if stamp is not None:
+            true_at = min(now, max(now - MAX_AGE, stamp))
+            if not stamped or true_at > stamped[-1][0]:  # (one that overtook: dropped)
+                stamped.append((true_at, [targets[name] for name in self._names]))
         self._duration = duration
         self._planned = False
         self._new_goal = True
@@ -305,93 +318,212 @@ class MotionLimiter:
     def advance(
         self, now: float, *, fresh: bool = False, tick: bool = False
     ) -> dict[str, float] | None:
-        """The trajectory's targets for `now` (see the class docstring); with `fresh` (a
-        command in the middle of a burst) only if the robot was at rest: a robot already on
-        its way takes the newest goals at its next tick. A `tick` within half a tick of the
-        last targets (a command's) sends none: a stream's targets stay about a tick apart
-        instead of a command's and a tick's a few milliseconds apart (a third fewer targets
-        for a 50 Hz stream, at no cost in lag).
+        """The targets for `now` (see the class docstring); with `fresh` (a command in the
+        middle of a burst) only if the robot was at rest: a robot already on its way takes
+        the newest goals at its next tick. A `tick` within half a tick of the last targets
+        (a command's) sends none: a stream's targets stay about a tick apart instead of a
+        command's and a tick's a few milliseconds apart.
 
         Returns the full target vector if any joint moved, else None.
         """
         if fresh and not self._fresh:
             return None
         sample = now + self._lead
+        if sample <= self._sampled or (
+            (tick or self._tracking) and sample - self._sampled < 0.5 * self._lead
+        ):
+            return None  # (a step this short measures rounding: the next tick takes it)
+        self._settle_history(sample)
         if not self._planned:
             if self._trajectory is None and not self._tracking and self._jump():
-                self._sampled = max(self._sampled, sample)
-                return self._position.copy()
-            if not self._planned:
-                self._plan(max(self._sampled, now))
-        if sample <= self._sampled or (tick and sample - self._sampled < 0.5 * self._lead):
-            return None
+                targets = self._emit(sample, [self._goals[name] for name in self._names])
+                self._history_p = [self._history_p[2]] * 3  # (a whole move: at rest there)
+                self._history_t = _rest_times(sample)
+                return targets
+            self._plan(max(self._sampled, now))
         if self._tracking:
-            if not self._new_goal and self._origin is not None and sample < self._due:
+            if self._stamped and self._stream and not tick:
+                return None  # (played by its stamps on the ticks: arrivals' jitter unseen)
+            if self._stream and sample >= self._due:
+                self._stream = False  # overdue: it ended; to rest on its last goal
+            if not self._new_goal and self._stream and not self._stamped:
                 return None  # (a stream on time: its next goal, not a guess, moves it on)
-            if sample - self._tt < 0.5 * self._lead:
-                return None  # (a step this short measures rounding: the next tick takes it)
-            targets = self._track(sample)
-        elif self._trajectory is None:  # at rest: on the goals (a plan found it there)
-            if self._position == self._goals:
-                return None
-            self._position.update(self._goals)
-            self._sampled = sample
-            return self._position.copy()
+            candidates = self._track(sample)
+        elif self._trajectory is not None:
+            candidates = self._sample(sample)
+        elif self._position != self._goals:  # at rest on a plan's end, or clipped short
+            candidates = [self._goals[name] for name in self._names]
         else:
-            targets = self._sample(sample)
-        self._sampled = sample
+            return None
+        return self._emit(sample, candidates)
+
+    def _settle_history(self, sample: float) -> None:
+        """A history at rest is at rest until now: at rest a tick before `sample`, velocity
+        and acceleration zero there (`REST_SPACING`: a step from rest is measured as a
+        continuous move from rest would be, jerk first)."""
+        p2, p1, p0 = self._history_p
+        if p0 == p1 == p2 and self._history_t[2] < sample - self._lead:
+            self._history_t = _rest_times(sample - self._lead)
+
+    def _intervals(self, at: float) -> list[tuple[float, float, float, float]]:
+        """Per joint, what the last three targets allow a target at sample time `at`: the
+        interval of its step velocity (x - p0) / (at - t0) that keeps the acceleration and
+        jerk by divided differences within the limits, and the one the velocity allows
+        (the joint's limit and the move's cap)."""
+        t2, t1, t0 = self._history_t
+        p2, p1, p0 = self._history_p
+        h1, h2 = at - t1, at - t2
+        result = []
+        for k in range(len(self._names)):
+            d1 = (p0[k] - p1[k]) / (t0 - t1)
+            f2 = (d1 - (p1[k] - p2[k]) / (t1 - t2)) / (t0 - t2)  # acceleration / 2
+            spread_a = h1 * self._accel[k] / 2.0
+            low, high = d1 - spread_a, d1 + spread_a
+            mid, spread_j = d1 + h1 * f2, h1 * h2 * self._jerk[k] / 6.0
+            low_j, high_j = mid - spread_j, mid + spread_j
+            if low_j > high:  # (over the acceleration limit: brought back at the jerk's pace)
+                low = high = low_j
+            elif high_j < low:
+                low = high = high_j
+            else:
+                low, high = max(low, low_j), min(high, high_j)
+            cap = self._speeds[k]
+            result.append((low, high, -cap, cap))
+        return result
+
+    def _emit(self, sample: float, candidates: list[float]) -> dict[str, float] | None:
+        """Emit the targets for `sample`: each joint's candidate, moved into what its limits
+        allow after the last three targets (acceleration and jerk first: a velocity the
+        history has already brought over a cap is brought down as fast as they allow)."""
+        t0 = self._history_t[2]
+        p0 = self._history_p[2]
+        h = sample - t0
         position = self._position
+        out = []
         changed = False
-        for name, value in zip(self._names, targets, strict=True):
+        for k, (name, (low, high, slow, fast), want) in enumerate(
+            zip(self._names, self._intervals(sample), candidates, strict=True)
+        ):
+            if low < slow <= high or low <= fast < high:
+                low, high = max(low, slow), min(high, fast)
+            elif high <= slow:
+                low = high
+            elif low >= fast:
+                high = low
+            else:  # (the velocity interval holds the other)
+                pass
+            step = (want - p0[k]) / h
+            if step < low:
+                value = p0[k] + low * h
+            elif step > high:
+                value = p0[k] + high * h
+            else:
+                value = want
+            if value != want:
+                self.clipped += 1
+            out.append(value)
             if position[name] != value:
                 position[name] = value
                 changed = True
+        self._history_t = [self._history_t[1], t0, sample]
+        self._history_p = [self._history_p[1], p0, out]
+        self._sampled = sample
+        self._new_goal = False
+        if self._tracking and not self._stream and self._at_rest_on_goals():
+            self._tracking = False
         return position.copy() if changed else None
 
+    def _at_rest_on_goals(self) -> bool:
+        p2, p1, p0 = self._history_p
+        return p0 == p1 == p2 and all(
+            p0[k] == self._goals[name] for k, name in enumerate(self._names)
+        )
+
+    def _state(self) -> tuple[list[float], list[float], list[float]]:
+        """Position, velocity and acceleration of every joint at the last target, by the
+        parabola through the last three (what a plan from there starts with)."""
+        t2, t1, t0 = self._history_t
+        p2, p1, p0 = self._history_p
+        velocity, acceleration = [], []
+        for k in range(len(self._names)):
+            d1 = (p0[k] - p1[k]) / (t0 - t1)
+            f2 = (d1 - (p1[k] - p2[k]) / (t1 - t2)) / (t0 - t2)
+            cap, limit = self._velocity[k], self._accel[k]
+            velocity.append(max(-cap, min(cap, d1 + f2 * (t0 - t1))))
+            acceleration.append(max(-limit, min(limit, 2.0 * f2)) * (1.0 - 1e-6))
+        return list(p0), velocity, acceleration
+
     def _track(self, at: float) -> list[float]:
-        """A stream's targets at sample time `at`: each joint's goal itself when reaching it
-        there keeps the joint within its velocity, acceleration and jerk limits (a person's
-        hand on a leader, a policy's smooth actions: passed on as they come, no lag added);
-        otherwise as close as the limits allow, never faster than stopping on the goal allows
-        (a stream that jumps is approached without overshoot; one that stops dead is braked
-        at the acceleration limit, past its goal and back). Rests, and the tracking ends, once
-        every joint is on its goal at rest."""
-        h = at - self._tt
-        p, v, a = self._tp, self._tv, self._ta
-        h1, h0 = self._th  # the last two steps' lengths
-        speeds, accel, jerk = self._speeds, self._accel, self._jerk
-        rest = True
-        for k, name in enumerate(self._names):
-            goal = self._goals[name]
-            x, u, w = p[k], v[k], a[k]
-            cap, limit = speeds[k], accel[k]
-            # The limits as the divided differences of the targets measure them: linear in
-            # the new target, so an interval of velocities for this step.
-            spread = jerk[k] * (h0 + h1 + h) / 3.0
-            low_a, high_a = max(-limit, w - spread), min(limit, w + spread)
-            half = (h1 + h) / 2.0
-            low = max(-cap, u + low_a * half)
-            high = min(cap, u + high_a * half)
-            if low > high:  # (over the cap at once: the acceleration bound wins)
-                low = high = max(u + low_a * half, min(u + high_a * half, 0.0))
-            want = (goal - x) / h
-            if not low <= want <= high:
-                d = goal - x
-                brake = limit * h
-                stop = brake * (math.sqrt(0.25 + 2.0 * abs(d) / (brake * h)) - 0.5)
-                want = max(low, min(high, math.copysign(min(cap, stop), d)))
-            p[k] = goal if want == (goal - x) / h else x + want * h
-            a[k] = (want - u) / half
-            v[k] = want
-            if p[k] != goal or v[k] != 0.0 or a[k] != 0.0:
-                rest = False
-        self._th = (h, h1)
-        self._tt = at
-        self._new_goal = False
-        if rest:
-            self._tracking = False
-            self._origin = None
-        return list(p)
+        """A stream's candidates at sample time `at`: each joint's goal itself when the
+        limits allow it there and the joint could still keep under its velocity cap after
+        it (a hand's move, a policy's smooth actions: passed on, no lag added); otherwise a
+        step toward it no faster than stopping on it allows (a stream that jumps is
+        approached without overshoot; one that stops dead is braked as the limits allow,
+        past its goal and back if it must), which `_emit` keeps within the limits."""
+        t1, t0 = self._history_t[1], self._history_t[2]
+        p1, p0 = self._history_p[1], self._history_p[2]
+        h = at - t0
+        candidates = []
+        goals, velocity = self._played(at - self._lead)
+        known = 1.0 if len(self._stamped) > 1 and self._stream else math.inf
+        for k, (low, high, slow, fast) in enumerate(self._intervals(at)):
+            goal = goals[k]
+            step = (goal - p0[k]) / h
+            was = (p0[k] - p1[k]) / (t0 - t1)
+            accel = 2.0 * (step - was) / (at - t1)
+            # the velocity gained while the jerk takes that acceleration to zero (and a step
+            # more: the grid is discrete) must keep under the cap too
+            ahead = step + accel * h / 2.0 + accel * abs(accel) / (2.0 * self._jerk[k]) + accel * h
+            # (and, where the goals' velocity is known, not onto them much faster than they
+            # move: an arm catching up on a hand that stops would overshoot it)
+            if (
+                max(low, slow) <= step <= min(high, fast)
+                and -fast <= ahead <= fast
+                and abs(step - velocity[k]) <= known * self._accel[k] * h
+            ):
+                candidates.append(goal)
+                continue
+            # Toward the goal, relative to the goal's own velocity (a stamped stream's line;
+            # else taken as still), at most at the velocity from which braking at the
+            # acceleration limit, step by step, stops on it, the distance counted from a
+            # step on (the jerk's ramp to that braking).
+            moving = max(-fast, min(fast, velocity[k]))
+            distance = abs(goal - p0[k]) - abs(was - moving) * h
+            brake = self._accel[k] * h
+            stop = brake * (math.sqrt(0.25 + 2.0 * max(0.0, distance) / (brake * h)) - 0.5)
+            step = moving + max(-stop, min(stop, step - moving))
+            candidates.append(p0[k] + max(-fast, min(fast, step)) * h)
+        return candidates
+
+    def _played(self, when: float) -> tuple[list[float], list[float]]:
+        """The stream's goals for the time `when`, and their velocity: a stamped stream's
+        newest goals carried on to `when` along the parabola through its newest three (the
+        line through two at its start), by at most one and a half of their spacing and
+        never past where that parabola turns back (the time its goals take to arrive,
+        bridged, so that a loop's jitter does not jerk the arm, and a hand that slows
+        followed as it slows); unstamped, the newest, taken as still."""
+        stamped = self._stamped
+        newest = [self._goals[name] for name in self._names]
+        if len(stamped) < 2 or not self._stream:
+            return newest, self._zeros
+        (t1, earlier), (t0, later) = stamped[-2], stamped[-1]
+        spacing = t0 - t1
+        ahead = max(0.0, min(when - t0, 1.5 * spacing))
+        third = stamped[-3] if len(stamped) > 2 else None
+        goals, velocity = [], []
+        for k, clamp in enumerate(self._clamp_list):
+            slope = (later[k] - earlier[k]) / spacing
+            curve = 0.0  # (acceleration / 2)
+            if third is not None:
+                t2, oldest = third
+                curve = (slope - (earlier[k] - oldest[k]) / (t1 - t2)) / (t0 - t2)
+            v = slope + curve * spacing  # at the newest goal
+            reach = ahead
+            if curve * v < 0.0:  # slowing: not past where it would stop
+                reach = min(reach, -v / (2.0 * curve))
+            goals.append(clamp(later[k] + v * reach + curve * reach * reach))
+            velocity.append(v + 2.0 * curve * reach)
+        return goals, velocity
 
     def _jump(self) -> bool:
         """From rest, goals within one tick's `reach` of every joint's target: taken in one
@@ -400,160 +532,83 @@ class MotionLimiter:
         self._planned = True
         position, goals = self._position, self._goals
         if position == goals:
-            self._origin = None
             return False  # (nothing to move: at rest on the goals already)
         for name, reach in self._reaches:
             delta = goals[name] - position[name]
             if delta > reach or -delta > reach:
                 self._planned = False
                 return False
-        position.update(goals)
-        self._origin = None
         self._duration = None
         self.jumps += 1
         return True
 
-    def _state(self, at: float) -> tuple[list[float], list[float], list[float]]:
-        """Position, velocity and acceleration of every joint at sample time `at`."""
-        if self._tracking:  # (as of the last targets: a tick or less ago)
-            return list(self._tp), list(self._tv), list(self._ta)
-        trajectory = self._trajectory
-        if trajectory is None:
-            return [self._position[name] for name in self._names], self._zeros, self._zeros
-        p, v, a = trajectory.at_time(at - self._t0)  # (past its end: coasting, see `_sample`)
-        return p, v, a
-
     def _plan(self, start: float) -> None:
-        """Plan from the trajectory's state at sample time `start` to the goals: at rest, or,
-        following a stream, onto the stream's line (see `_follow`)."""
-        p, v, a = self._state(start)
+        """Plan from the last targets' state to the goals: a stream is tracked, a step is a
+        trajectory to rest on them."""
         self._planned = True
-        goals = [self._goals[name] for name in self._names]
-        if self._origin is not None:  # a stream: tracked, target by target (`_track`)
-            if not self._tracking:
-                self._tracking = True
-                self._trajectory = None
-                self._tt, self._tp, self._tv, self._ta = start, list(p), list(v), list(a)
-                self._th = (self._lead, self._lead)
+        if self._stream:
+            self._tracking = True
+            self._trajectory = None
             return
         self._tracking = False
-        velocity = self._zeros
-        if not any(velocity) and _settled(p, v, a, goals):
+        p, v, a = self._state()
+        goals = [self._goals[name] for name in self._names]
+        if _settled(p, v, a, goals):
             self._trajectory = None  # (`advance` puts the targets exactly on the goals)
             self._duration = None
             return
+        self._which ^= 1
+        trajectory = self._pair[self._which]
+        duration, self._duration = self._duration, None
+        if not self._solve(trajectory, p, v, a, goals, duration):
+            self.stop_at(self._position)  # (never seen: every retry failed) safe, if abrupt
+            return
+        self._trajectory = trajectory
+        self._t0 = self._history_t[2]
+
+    def _solve(
+        self,
+        trajectory: Trajectory,
+        p: list[float],
+        v: list[float],
+        a: list[float],
+        goals: list[float],
+        duration: float | None,
+    ) -> bool:
+        """Ruckig from (p, v, a) to rest on `goals`, retried when it finds no profile:
+        Ruckig 0.19 fails now and then on a state near its acceleration limit (seen: -5760
+        of 6016 deg/s^2), which the same state with the acceleration a little lower solves.
+        Each retry is counted (`fallbacks`)."""
         inp = self._input
         inp.current_position = p
         inp.current_velocity = v
         inp.current_acceleration = a
         inp.max_velocity = self._speeds
-        self._which ^= 1
-        trajectory = self._pair[self._which]
-        if self._origin is not None and self._follow(trajectory, start, goals, velocity):
-            self._trajectory = trajectory
-            self._t0 = start
-            return
         inp.target_position = goals
         inp.target_velocity = self._zeros
-        inp.minimum_duration = self._duration
-        self._duration = None
+        inp.minimum_duration = duration
         self.plans += 1
-        if not self._solve(trajectory):
-            self.stop_at(self._position)  # (never seen: every retry failed) safe, if abrupt
-            return
-        self._trajectory = trajectory
-        self._t0 = start
-
-    def _follow(
-        self, trajectory: Trajectory, start: float, goals: list[float], velocity: list[float]
-    ) -> bool:
-        """Plan onto the stream's line (its newest goal carried on at its velocity; the goal
-        set at `_stamp` stands for sample time `_stamp + lead`), meeting it `HORIZON_TICKS`
-        ahead, or twice or four times that when the nearer meeting is out of reach: Ruckig
-        then gives a long detour (seen: 0.13 s, backing up, for a joint 1.2 degrees ahead
-        of the line at 105 deg/s). False when no horizon is met (the caller plans to rest on
-        the goals)."""
-        inp = self._input
-        inp.target_velocity = velocity
-        bounds = self._bounds
-        for ticks in (HORIZON_TICKS, 2 * HORIZON_TICKS, 4 * HORIZON_TICKS):
-            horizon = ticks * self._lead
-            ahead = start + horizon - self._stamp - self._lead
-            inp.target_position = [
-                min(upper, max(lower, g + u * ahead))
-                for g, u, (lower, upper) in zip(goals, velocity, bounds, strict=True)
-            ]
-            inp.minimum_duration = horizon
-            self.plans += 1
-            try:
-                self._otg.calculate(inp, trajectory)
-            except RuckigError:
-                self.fallbacks += 1
-                continue
-            if trajectory.duration <= horizon + self._lead:
-                return True
-        self.fallbacks += 1
-        return False
-
-    def _solve(self, trajectory: Trajectory) -> bool:
-        """Ruckig on the input as set, retried when it finds no profile: Ruckig 0.19 fails
-        now and then on a state near its acceleration limit (seen: -5760 of 6016 deg/s^2),
-        which the same state with the acceleration a millionth lower solves; a stream's
-        target velocity that still fails is planned as a step. Each retry is counted
-        (`fallbacks`)."""
-        inp = self._input
         for attempt in range(4):
             try:
                 self._otg.calculate(inp, trajectory)
                 return True
             except RuckigError:
                 self.fallbacks += 1
-                inp.current_acceleration = [x * (1.0 - 1e-6) for x in inp.current_acceleration]
-                if attempt >= 1:
-                    self._origin = None
-                    inp.target_velocity = self._zeros
-                    inp.minimum_duration = None
-                if attempt >= 2:
-                    inp.current_acceleration = [x * 0.999 for x in inp.current_acceleration]
+                scale = 1.0 - (1e-6 if attempt == 0 else 1e-3 * attempt)
+                inp.current_acceleration = [x * scale for x in inp.current_acceleration]
+                inp.minimum_duration = None
         return False
 
-    def _stream_velocity(self) -> list[float]:
-        """The stream's velocity, per joint: inside the joint's cap, and none where coasting
-        until the stream is overdue and braking from there could pass a limit."""
-        assert self._origin is not None
-        span = self._interval
-        coast = OVERDUE * span + self._lead
-        velocity = []
-        for k, name in enumerate(self._names):
-            goal = self._goals[name]
-            cap = STREAM_SHARE * self._speeds[k]
-            v = max(-cap, min(cap, (goal - self._origin[k]) / span))
-            a = self._accel[k]
-            # coasting, then braking (jerk included)
-            reach = abs(v) * coast + v * v / (2.0 * a) + abs(v) * a / self._jerk[k]
-            lower, upper = self._bounds[k]
-            velocity.append(v if lower <= goal + math.copysign(reach, v) <= upper else 0.0)
-        return velocity
-
     def _sample(self, at: float) -> list[float]:
-        """Every joint's target at sample time `at`: on the trajectory; past its end, a stream
-        not yet overdue coasts on at its velocity, an overdue one comes to rest on its last
-        goal, and a step has arrived, exactly on its goals."""
+        """Every joint's candidate at sample time `at`: on the trajectory; past its end,
+        exactly on its goals (and the trajectory done)."""
         trajectory = self._trajectory
         assert trajectory is not None
         local = at - self._t0
-        coasting = self._origin is not None and at <= self._due
-        if local < trajectory.duration - EPSILON or coasting:
-            # (past its end Ruckig extrapolates at the end's velocity: a stream coasts on)
+        if local < trajectory.duration - EPSILON:
             position: list[float] = trajectory.at_time(local)[0]
             return position
-        if self._origin is not None:
-            self._origin = None  # the stream ended (or is late): to rest on its last goal
-            self._plan(max(self._due, self._t0 + trajectory.duration))
-            if self._trajectory is None:
-                return [self._goals[name] for name in self._names]
-            return self._sample(at)
-        self._trajectory = None  # arrived: exactly on the goals, at rest
+        self._trajectory = None  # arrived: exactly on the goals (clipped: on them soon)
         return [self._goals[name] for name in self._names]
 
     def stop_at(self, positions: Mapping[str, float]) -> None:
@@ -563,12 +618,16 @@ class MotionLimiter:
         self._rest()
 
     def _rest(self) -> None:
-        """Every joint rests where its last target put it."""
+        """Every joint rests where its last target put it (a hold: the history with it)."""
         self._trajectory = None
         self._tracking = False
-        self._origin = None
+        self._stream = False
+        self._stamped.clear()
         self._planned = True
         self._duration = None
+        here = [self._position[name] for name in self._names]
+        self._history_p = [here, here, here]
+        self._history_t = _rest_times(self._history_t[2])
 
     def adopt(self, pose: Mapping[str, float]) -> dict[str, float]:
         """Take `pose` (every joint, clamped to its limits) as where each joint is, at rest:
@@ -590,6 +649,12 @@ class MotionLimiter:
         """Stop every joint where it is: goals become the current targets."""
         self._goals.update(self._position)
         self._rest()
+
+
+def _rest_times(at: float) -> list[float]:
+    """The times of a history at rest at `at`: three points `REST_SPACING` apart, so that
+    its divided differences are a standstill's derivatives there."""
+    return [at - 2 * REST_SPACING, at - REST_SPACING, at]
 
 
 def _settled(p: list[float], v: list[float], a: list[float], goals: list[float]) -> bool:
