@@ -342,8 +342,6 @@ class MotionLimiter:
                 return targets
             self._plan(max(self._sampled, now))
         if self._tracking:
-            if self._stamped and self._stream and not tick:
-                return None  # (played by its stamps on the ticks: arrivals' jitter unseen)
             if self._stream and sample >= self._due:
                 self._stream = False  # overdue: it ended; to rest on its last goal
             if not self._new_goal and self._stream and not self._stamped:
@@ -498,8 +496,8 @@ class MotionLimiter:
     def _played(self, when: float) -> tuple[list[float], list[float]]:
         """The stream's goals for the time `when`, and their velocity: a stamped stream's
         newest goals carried on to `when` along the parabola through its newest three (the
-        line through two at its start), by at most one and a half of their spacing and
-        never past where that parabola turns back (the time its goals take to arrive,
+        line through two at its start), by at most one and a half of their spacing or a
+        tick, and never past where that parabola turns back (the time its goals take to arrive,
         bridged, so that a loop's jitter does not jerk the arm, and a hand that slows
         followed as it slows); unstamped, the newest, taken as still."""
         stamped = self._stamped
@@ -508,7 +506,7 @@ class MotionLimiter:
             return newest, self._zeros
         (t1, earlier), (t0, later) = stamped[-2], stamped[-1]
         spacing = t0 - t1
-        ahead = max(0.0, min(when - t0, 1.5 * spacing))
+        ahead = max(0.0, min(when - t0, 1.5 * spacing, self._lead))
         third = stamped[-3] if len(stamped) > 2 else None
         goals, velocity = [], []
         for k, clamp in enumerate(self._clamp_list):
