@@ -18,8 +18,10 @@ import trio
 from trio_websocket import open_websocket_url
 
 from arena.recording.mcap_file import read_recording
-from arena.robot.events import CommandHandled, MotionStopped
+from arena.robot.events import CommandHandled, FaultReported, MotionStopped
 from tests.conftest import RunningServer, eventually
+from tests.test_policy_server import next_event
+from tests.test_scripts import attach, scripted, wait_for_no_master, write
 from tests.test_server_ws import receive
 
 ROBOT = "/api/robots/demo-arm"
@@ -97,3 +99,35 @@ async def test_a_websocket_master_is_told_its_accepted_motion_was_stopped(
         assert (await receive(ws, "ack", timeout=WAIT))["data"]["status"] == "accepted"
         await eventually(lambda: not robot.core.motion.moving, what="the arm back at zero")
         assert link.stops == 1 and robot.core.motion.goals["Rotation"] == 0.0
+
+
+async def test_a_script_waiting_for_its_move_is_told_the_guard_stopped_it(
+    start_server: Any, tmp_path: Path
+) -> None:
+    """A script's move waits until the arm is there: one the guard holds short raises
+    COLLISION at the script's line (it may catch it), where it returned as if it had arrived."""
+    server = await scripted(start_server, tmp_path)
+    write(
+        tmp_path / "scripts",
+        "reach.py",
+        """\
+        from arena.script import ScriptError, move_joints
+
+        try:
+            move_joints({"Rotation": -45, "Pitch": 30, "Elbow": 30, "Wrist_Pitch": -40})
+        except ScriptError as error:
+            print("stopped", error.code)
+            move_joints({"Rotation": -10, "Pitch": 0, "Elbow": 0, "Wrist_Pitch": 0})
+        move_joints({"Nope": 1})
+        """,
+    )
+    robot = server.app.manager.get("demo-arm")
+    with robot.subscribe(kinds=[FaultReported, MotionStopped]) as events:
+        assert (await attach(server, "reach.py")).status_code == 201
+        stopped = await next_event(events, lambda e: isinstance(e, MotionStopped))
+        fault = await next_event(events, lambda e: isinstance(e, FaultReported))
+    assert stopped.source == "script:reach.py" and "floor" in stopped.blocked
+    # It caught the stop and went on: its next move ran, then its last line failed.
+    assert "reach.py, line 8: ScriptError: UNKNOWN_JOINT" in fault.message, fault.message
+    await wait_for_no_master(server)
+    assert robot.snapshot().joint("Rotation").goal == -10

@@ -71,6 +71,7 @@ class MasterSession(WatchingSession):
         #: `stopped` data, newest last: motions of this master's the collision guard stopped
         #: on their way after accepting them (the arm holds where it got to).
         self.stops: deque[dict[str, Any]] = deque(maxlen=64)
+        self.stop_count = 0  # `stopped` messages so far
         self._resumed = trio.Event()
         self._resumed.set()
         #: Why the server would not have this master (MASTER_ACTIVE, UNKNOWN_ROBOT, ...).
@@ -258,6 +259,7 @@ class MasterSession(WatchingSession):
             self._resumed.set()
         elif kind == "stopped":
             self.stops.append(message.get("data") or {})
+            self.stop_count += 1
         if kind == "released":
             self.released = message.get("data") or {}
             self.finished = True  # the server closes now: no reconnection

@@ -159,6 +159,7 @@ class MasterLink:
         #: Motions of this master's the collision guard stopped on their way (a driver
         #: compares it to tell that a move it waits for will not arrive).
         self.stops = 0
+        self.last_stop = ""  # the newest such stop's sentence
         self._resumed = trio.Event()
         self._resumed.set()
         self._paused_at = 0.0

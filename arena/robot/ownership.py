@@ -92,6 +92,7 @@ class MasterKeeping:
         master = self.peers.either_named(stop.source)
         if master is not None:
             master.link.stops += 1
+            master.link.last_stop = message
             blocked = (stop.hit.first, stop.hit.second)
             notice = MasterNotice("stopped", ErrorCode.COLLISION, message, blocked=blocked)
             master.link.notices.put(notice)
