@@ -21,7 +21,7 @@ from arena.recording.mcap_file import read_recording
 from arena.robot.events import CommandHandled, FaultReported, MotionStopped
 from tests.conftest import RunningServer, eventually
 from tests.test_policy_server import next_event
-from tests.test_scripts import attach, scripted, wait_for_no_master, write
+from tests.test_scripts import attach, run_arena_script, scripted, wait_for_no_master, write
 from tests.test_server_ws import receive
 
 ROBOT = "/api/robots/demo-arm"
@@ -101,26 +101,26 @@ async def test_a_websocket_master_is_told_its_accepted_motion_was_stopped(
         assert link.stops == 1 and robot.core.motion.goals["Rotation"] == 0.0
 
 
+#: A script whose first move the guard stops: it catches the COLLISION and moves on.
+REACH = """\
+from arena.script import ScriptError, move_joints
+
+try:
+    move_joints({"Rotation": -45, "Pitch": 30, "Elbow": 30, "Wrist_Pitch": -40})
+except ScriptError as error:
+    print("stopped", error.code)
+    move_joints({"Rotation": -10, "Pitch": 0, "Elbow": 0, "Wrist_Pitch": 0})
+move_joints({"Nope": 1})
+"""
+
+
 async def test_a_script_waiting_for_its_move_is_told_the_guard_stopped_it(
     start_server: Any, tmp_path: Path
 ) -> None:
     """A script's move waits until the arm is there: one the guard holds short raises
     COLLISION at the script's line (it may catch it), where it returned as if it had arrived."""
     server = await scripted(start_server, tmp_path)
-    write(
-        tmp_path / "scripts",
-        "reach.py",
-        """\
-        from arena.script import ScriptError, move_joints
-
-        try:
-            move_joints({"Rotation": -45, "Pitch": 30, "Elbow": 30, "Wrist_Pitch": -40})
-        except ScriptError as error:
-            print("stopped", error.code)
-            move_joints({"Rotation": -10, "Pitch": 0, "Elbow": 0, "Wrist_Pitch": 0})
-        move_joints({"Nope": 1})
-        """,
-    )
+    write(tmp_path / "scripts", "reach.py", REACH)
     robot = server.app.manager.get("demo-arm")
     with robot.subscribe(kinds=[FaultReported, MotionStopped]) as events:
         assert (await attach(server, "reach.py")).status_code == 201
@@ -130,4 +130,17 @@ async def test_a_script_waiting_for_its_move_is_told_the_guard_stopped_it(
     # It caught the stop and went on: its next move ran, then its last line failed.
     assert "reach.py, line 8: ScriptError: UNKNOWN_JOINT" in fault.message, fault.message
     await wait_for_no_master(server)
+    assert robot.snapshot().joint("Rotation").goal == -10
+
+
+async def test_a_remote_script_is_told_too(start_server: Any, tmp_path: Path) -> None:
+    """`arena script` on another machine: its session counts the socket's `stopped`."""
+    server = await start_server(demo=True)
+    path = write(tmp_path, "reach.py", REACH)
+    robot = server.app.manager.get("demo-arm")
+    with trio.fail_after(WAIT * 4):  # (a process of its own starts: generous)
+        done = await run_arena_script(server, path)
+    out = done.stdout.decode()
+    assert "stopped COLLISION" in out, (out, done.stderr.decode())
+    assert "UNKNOWN_JOINT" in done.stdout.decode() + done.stderr.decode()
     assert robot.snapshot().joint("Rotation").goal == -10
