@@ -85,6 +85,7 @@ class Actor(MasterKeeping):
         self.intervention_count = 0  # interventions started (corrections)
         self.last_master: MasterEnded | None = None  # the last master that left, and why
         self.last_stop: MotionStopped | None = None  # the last motion the guard stopped
+        self._stop_logged = -math.inf
         self._superseded_by_gone = 0  # targets superseded at slaves that have left
         #: Data-collection episodes (changed only through `EpisodeMsg`).
         self.episodes = Episodes()

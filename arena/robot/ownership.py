@@ -42,6 +42,7 @@ class MasterKeeping:
     intervention_count: int
     last_master: MasterEnded | None
     last_stop: MotionStopped | None
+    _stop_logged: float  # trio time a guard's stop was last logged
 
     def _displaced(self, effect: safety.DetachMaster, now: float) -> None:
         """A master displaced (a takeover, an e-stop that ends a program, an intervention's
@@ -87,7 +88,9 @@ class MasterKeeping:
             wallclock.time(),
         )
         self.last_stop = event
-        log.warning("robot %s: %s (%s)", self.robot_id, message, event.source)
+        if now - self._stop_logged >= 1.0:  # (a master pushing on at its rate: once a second)
+            self._stop_logged = now
+            log.warning("robot %s: %s (%s)", self.robot_id, message, event.source)
         self._publish(event)
         master = self.peers.either_named(stop.source)
         if master is not None:
