@@ -103,20 +103,13 @@ def _box(number: int, entry: object) -> Box:
 
 def point_inside(workspace: Workspace, point: Vector) -> tuple[str, str] | None:
     """What `point` (a goal for the hand, root frame) lies in: ("floor", where) below the
-    floor or within the margin kept above it, (a box's name, where) inside a keep-out box or
-    its margin; None: clear of both. `where` says it in words ("50.0 mm below the floor ...")."""
-    margin = workspace.margin
-    if workspace.floor is not None and point[2] < workspace.floor + margin:
+    floor, (a box's name, where) inside a keep-out box; None: in neither. `where` says it in
+    words ("50.0 mm below the floor ..."). The margin is left out: a point on the table's
+    surface out of reach is out of reach first (one in reach is the guard's to refuse)."""
+    if workspace.floor is not None and point[2] < workspace.floor:
         depth = workspace.floor - point[2]
-        if depth > 0:
-            where = f"{depth * 1000:.1f} mm below the floor (z = {workspace.floor:g} m)"
-        else:
-            where = f"within the {margin * 1000:g} mm kept clear above the floor"
-        return "floor", where
+        return "floor", f"{depth * 1000:.1f} mm below the floor (z = {workspace.floor:g} m)"
     for box in workspace.keep_out:
-        if all(
-            lo - margin <= value <= hi + margin
-            for lo, value, hi in zip(box.low, point, box.high, strict=True)
-        ):
+        if all(lo < value < hi for lo, value, hi in zip(box.low, point, box.high, strict=True)):
             return box.name, f"inside keep-out box {box.name!r}"
     return None
