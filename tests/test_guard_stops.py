@@ -50,7 +50,10 @@ async def test_a_rest_command_the_guard_stops_on_its_way_is_shown_and_recorded(
     server: RunningServer,
 ) -> None:
     robot = server.app.manager.get("demo-arm")
-    async with server.client() as http:
+    async with (
+        server.client() as http,
+        open_websocket_url(f"{server.ws_url}/ws/robots/demo-arm/state") as viewer,
+    ):
         assert (await http.get(ROBOT)).json()["last_stop"] is None
         with robot.subscribe(kinds=[MotionStopped]) as events, trio.fail_after(WAIT):
             moved = await http.put(f"{ROBOT}/joints", json=as_list(GOAL))
@@ -58,6 +61,14 @@ async def test_a_rest_command_the_guard_stops_on_its_way_is_shown_and_recorded(
             assert moved.json()["status"] == "accepted" and not moved.json()["clamped"]
             stopped = await events.get()
         assert isinstance(stopped, MotionStopped) and stopped.source == "manual"
+        # A viewer (the dashboard, whose sliders command as `manual`) sees it as a warning.
+        told = (await receive(viewer, "fault", timeout=WAIT))["data"]
+        assert (told["peer_id"], told["code"], told["severity"]) == (
+            "manual",
+            "COLLISION",
+            "warning",
+        )
+        assert "floor" in told["message"], told
         details = (await http.get(ROBOT)).json()
         check_stop(details["last_stop"], "manual")
         held = {j["name"]: j["virtual_value"] for j in (await http.get(f"{ROBOT}/joints")).json()}

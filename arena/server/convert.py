@@ -129,6 +129,13 @@ def fault(event: FaultReported) -> wire.FaultMessage:
     )
 
 
+def stop_fault(event: MotionStopped) -> wire.FaultMessage:
+    """A motion the guard stopped on its way, as viewers get it: a warning of whoever
+    commanded it (a master id, or `manual`: the dashboard's sliders, a REST caller)."""
+    data = wire.FaultData(event.robot_id, event.source, event.code, event.message, "warning")
+    return wire.FaultMessage(timestamp=wire.now_iso(), data=data)
+
+
 def _peer(peer: PeerSnapshot) -> dict[str, Any]:
     return {
         "id": peer.peer_id,
