@@ -11,6 +11,7 @@ import msgspec
 
 from arena.protocol import messages as wire
 from arena.protocol import rest
+from arena.protocol.stopped import StoppedNotice
 from arena.recording.records import RECORD_TYPES
 
 #: File name (without .json) -> the type it describes.
@@ -27,6 +28,7 @@ SCHEMA_TYPES: dict[str, Any] = {
     "slave-notice": wire.EStopNotice | wire.ResetNotice | wire.HoldNotice | wire.StopNotice,
     "detached": wire.DetachedMessage,
     "released": wire.ReleasedMessage,
+    "stopped": StoppedNotice,
     "missed": wire.MissedMessage,
     "member-left": wire.MemberLeftMessage,
     "heartbeat": wire.HeartbeatMessage,

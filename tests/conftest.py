@@ -212,6 +212,10 @@ async def start_server(
     async def start(**settings: Any) -> RunningServer:
         settings.setdefault("recordings_dir", str(tmp_path / "recordings"))
         settings.setdefault("port", 0)  # a restarted server may ask for its old port
+        # A loaded machine can stall a test's process between two requests on one connection
+        # longer than the default 5 s, and the server then closes it under the second (CI:
+        # "Server disconnected without sending a response"); the timeout's tests set theirs.
+        settings.setdefault("keep_alive_timeout", 60.0)
         config = ServerConfig(**settings)
         stop, done = trio.Event(), trio.Event()
 

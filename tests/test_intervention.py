@@ -298,6 +298,8 @@ async def test_a_paused_policy_keeps_its_worker_and_starts_afresh_on_resume(
             await trio.sleep(1 / 30)
         asked = len(worker.observations)
         await robot.pause()
+        # Counted where the pause is made: the figures say it before the control loop holds.
+        assert master.figures()["pauses"] == 1
         paused_at = trio.current_time()
         await trio.sleep(5.0)
         assert not events.drain()  # paused: it sends nothing
@@ -320,6 +322,32 @@ async def test_a_paused_policy_keeps_its_worker_and_starts_afresh_on_resume(
     assert paused_at < resumed_at
     # The worker stayed loaded: started and loaded once, never closed.
     assert starts == 1 and master.counters.loads == 1 and not worker.closed
+
+
+async def test_a_pause_is_counted_once_where_it_is_made(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    """The link counts a master's pauses (drivers and figures read it): a pause is one, an
+    intervention that finds the master already paused is none more, a later one is one."""
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    await robot.attach_slave(RecordingSlave())
+    link = await robot.connect_master("program")
+    session = await robot.connect_master("corrector", intervene=True)
+    await session.release()
+    assert link.pauses == 1  # the intervention paused it
+    assert isinstance(await robot.pause(), sm.Allowed)
+    assert link.pauses == 2 and link.paused
+    assert not isinstance(await robot.pause(), sm.Allowed)  # paused already: not counted
+    await trio.sleep(1.0)
+    assert link.pauses == 2
+    corrector = await robot.connect_master("corrector", intervene=True)
+    assert link.pauses == 2  # still the same pause
+    await robot.end_intervention(resume=False)
+    assert link.pauses == 2 and link.paused and not corrector.paused
+    assert isinstance(await robot.resume(), sm.Allowed)
+    assert link.pauses == 2 and not link.paused
+    notices = [n.kind for n in link.notices.drain()]
+    assert notices.count("paused") == 2 and notices.count("resumed") == 2, notices
 
 
 @pytest.mark.parametrize("resume", [True, False])

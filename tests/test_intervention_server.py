@@ -65,6 +65,11 @@ async def test_a_paused_policy_keeps_its_worker_and_resumes_within_the_step_limi
             paused = await http.post(f"{ROBOT}/master/pause")
             assert paused.status_code == 200, paused.text
             assert paused.json()["state"] == "paused" and paused.json()["master"]["paused"]
+            # The answer counts the pause it made (it said 0 until the policy's control loop
+            # had noticed it), and so does the robot's link: once.
+            assert paused.json()["master"]["figures"]["pauses"] == 1, paused.json()
+            link = robot._actor.peers.master.link
+            assert link.pauses == 1
             shown = await details(http)
             assert shown["state"] == "paused" and shown["master"]["paused"] is True
             events.drain()

@@ -446,3 +446,43 @@ async def test_a_script_plans_its_move_around_the_pillar_on_the_server(
         assert guard.hit(urdf(model, joints), workspace) is None, joints
     for name, value in goal.items():  # and reached the goal
         assert sent[-1][name] == pytest.approx(value, abs=1e-6)
+
+
+async def test_a_goal_in_the_table_or_a_box_is_refused_naming_it_whatever_the_solver_found(
+    server: RunningServer,
+) -> None:
+    """A pose goal under the table (or inside a keep-out box) is a collision of the goal
+    itself: refused COLLISION naming the floor (or the box) straight, NO_PATH with `blocked`
+    planned, whether or not the solver got the hand there. It was `UNREACHABLE` ("4.4 mm
+    away", the solver's residual) wherever the solver fell short of a point in the table."""
+    need("ompl", "plan")
+    robot: Robot = server.app.manager.get("demo-arm")
+    hand = hand_for(robot.model)
+    assert hand is not None and robot.workspace.floor == 0.0
+    shelf = {"name": "shelf", "min": [-0.1, -0.8, 0.05], "max": [0.1, -0.6, 0.2]}
+    async with server.client() as http:
+        await keep_out(http, robot, shelf)
+        goals = [
+            ([0.0, -0.2, -0.05], "floor"),  # the solver gets there: the guard refuses it
+            ([0.0, -0.1, -0.2], "floor"),  # the solver falls short (mm away)
+            ([0.0, -0.4, -0.2], "floor"),
+            ([0.0, -0.7, 0.1], "shelf"),  # out of reach, and in the box anyway
+        ]
+        start = {j.name: j.goal for j in robot.snapshot().joints}
+        reached = [hand.solve(tuple(p), None, start).reached for p, _ in goals]  # type: ignore[arg-type]
+        assert reached[0] and not any(reached[1:]), reached  # both ways are tried
+        for position, what in goals:
+            for method, path, body in (
+                ("PUT", "pose", {"position": position}),
+                ("POST", "move", {"pose": {"position": position}}),
+                ("POST", "move", {"pose": {"position": position}, "plan": True}),
+            ):
+                answer = await http.request(method, f"/api/robots/demo-arm/{path}", json=body)
+                assert answer.status_code == 422, (position, body, answer.text)
+                error = answer.json()["error"]
+                planned = body.get("plan") is True
+                assert error["code"] == ("NO_PATH" if planned else "COLLISION"), (body, error)
+                assert what in error["message"], (body, error)
+                if planned:
+                    assert error["blocked"][1] == what, (body, error)
+        assert {j.name: j.goal for j in robot.snapshot().joints} == start  # nothing moved

@@ -479,6 +479,7 @@ class SlowArm:
         pass
 
     paused = False  # never paused
+    pauses = 0
 
     async def wait_resumed(self) -> None:
         pass

@@ -14,6 +14,7 @@ from arena.robot.events import (
     FaultReported,
     InterventionChanged,
     JointStatesReceived,
+    MotionStopped,
     Observed,
     PeerChanged,
     PolicyInferred,
@@ -110,6 +111,15 @@ def test_every_kind_of_event_is_recorded_byte_for_byte_as_before() -> None:
             InterventionChanged("a", "started", "leader", "policy:act:0123456789ab", 19.0, 20.0),
             "intervention",
             '{"t":19.0,"change":"started","master":"leader","paused":"policy:act:0123456789ab"}',
+        ),
+        (
+            MotionStopped(
+                "a", "manual", "COLLISION", "Stopped on the way", ("gripper", "floor"),
+                {"Pitch": 25.4}, {"Pitch": 30.0}, 21.0, 22.0,
+            ),
+            "stop",
+            '{"t":21.0,"source":"manual","code":"COLLISION","message":"Stopped on the way",'
+            '"blocked":["gripper","floor"],"joints":{"Pitch":25.4},"goals":{"Pitch":30.0}}',
         ),
     ]  # fmt: skip
     assert {kind for _, kind, _ in cases} == set(RECORD_TYPES)

@@ -321,6 +321,8 @@ class StandIn:
 
     paused = False
     pauses = 0
+    stops = 0
+    last_stop = ""
 
     def __init__(self) -> None:
         self.commands: list[Any] = []

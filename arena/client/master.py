@@ -68,6 +68,10 @@ class MasterSession(WatchingSession):
         self.paused = False
         #: `pause` messages so far (one that came and went between two looks still counts).
         self.pauses = 0
+        #: `stopped` data, newest last: motions of this master's the collision guard stopped
+        #: on their way after accepting them (the arm holds where it got to).
+        self.stops: deque[dict[str, Any]] = deque(maxlen=64)
+        self.stop_count = 0  # `stopped` messages so far
         self._resumed = trio.Event()
         self._resumed.set()
         #: Why the server would not have this master (MASTER_ACTIVE, UNKNOWN_ROBOT, ...).
@@ -253,6 +257,9 @@ class MasterSession(WatchingSession):
         elif kind == "resume":
             self.paused = False
             self._resumed.set()
+        elif kind == "stopped":
+            self.stops.append(message.get("data") or {})
+            self.stop_count += 1
         if kind == "released":
             self.released = message.get("data") or {}
             self.finished = True  # the server closes now: no reconnection

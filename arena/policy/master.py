@@ -102,6 +102,10 @@ class Arm(Protocol):
     def paused(self) -> bool:
         """The robot has the policy paused: it sends nothing until resumed."""
 
+    @property
+    def pauses(self) -> int:
+        """Times the robot has paused the policy so far (counted where the pause is made)."""
+
     async def wait_resumed(self) -> None:
         """Return once the policy is not paused."""
 
@@ -125,6 +129,11 @@ class LinkArm:
     def paused(self) -> bool:
         """See `Arm.paused`."""
         return self.link.paused
+
+    @property
+    def pauses(self) -> int:
+        """See `Arm.pauses`."""
+        return self.link.pauses
 
     async def wait_resumed(self) -> None:
         """See `Arm.wait_resumed`."""
@@ -209,7 +218,7 @@ class PolicyCounters:
     last_latency: float = 0.0  # seconds, the worker's own measure of its last inference
     last_chunk: int = 0  # actions in the last chunk that came back
     loads: int = 0  # times the worker loaded the policy (a pause and resume never reloads)
-    pauses: int = 0  # times the robot paused the policy
+    pauses: int = 0  # times the robot paused the policy (`Arm.pauses`, read when shown)
     dropped: int = 0  # actions dropped at a pause (computed before it)
     episodes: int = 0  # episodes its strategy made
     resets: int = 0  # times its episodic strategy took the robot back to the start pose
@@ -284,6 +293,10 @@ class PolicyMaster:
         """Its counters, shown with the robot's master (`PolicyCounters`)."""
         if self.rollout is not None:
             self.counters.episodes = self.rollout.episodes
+        if self._arm is not None:
+            # The robot's own count: it includes the pause just made, which the control loop
+            # may not have noticed yet (`POST .../master/pause` answers with these figures).
+            self.counters.pauses = self._arm.pauses
         return dataclasses.asdict(self.counters)
 
     @property
@@ -466,8 +479,7 @@ class PolicyMaster:
         (the worker stays loaded), then start over from a fresh observation; its first step
         meets the step limit from the pose measured then, as every step does."""
         self._epoch += 1
-        if arm.paused:
-            self.counters.pauses += 1
+        self.counters.pauses = arm.pauses
         self.counters.dropped += len(queue)
         queue.drop()
         self._holding = True

@@ -108,6 +108,11 @@ class SessionArm:
         """The server paused this master (its `pause` message, until `resume`)."""
         return self.session.paused
 
+    @property
+    def pauses(self) -> int:
+        """The server's pauses of this master so far (its `pause` messages)."""
+        return self.session.pauses
+
     async def wait_resumed(self) -> None:
         """See `paused`."""
         await self.session.wait_resumed()

@@ -50,6 +50,7 @@ from arena.robot.events import (
     FaultReported,
     InterventionChanged,
     JointStatesReceived,
+    MotionStopped,
     PeerChanged,
     PolicyInferred,
     RobotEvent,
@@ -291,6 +292,10 @@ def _intervention_line(event: InterventionChanged) -> LogLine:
     return LogLevel.Info, f"intervention by {event.master} {event.change} ({event.paused} waits)"
 
 
+def _stop_line(event: MotionStopped) -> LogLine:
+    return LogLevel.Warning, f"stopped {event.code} ({event.source}): {event.message}"
+
+
 def _audit_line(event: Audited) -> LogLine:
     detail = f" ({event.detail})" if event.detail else ""
     return LogLevel.Info, f"{event.user}: {event.action}{detail}"
@@ -308,6 +313,7 @@ _LOG_LINES: dict[type[RobotEvent], Callable[[Any], LogLine | None]] = {
     EpisodeChanged: _episode_line,
     Audited: _audit_line,
     InterventionChanged: _intervention_line,
+    MotionStopped: _stop_line,
     PolicyInferred: lambda _: None,  # many a second: plotted from its topic, not logged
 }
 if set(TREE_OF) | set(_LOG_LINES) != set(get_args(RobotEvent)):  # (a new event is shown)

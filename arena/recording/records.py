@@ -28,6 +28,7 @@ from arena.robot.events import (
     FaultReported,
     InterventionChanged,
     JointStatesReceived,
+    MotionStopped,
     Observed,
     PeerChanged,
     PolicyInferred,
@@ -125,6 +126,13 @@ RECORDED = (
         "InterventionRecord",
         "An intervention started or ended: the intervening master and the master it paused "
         "(a correction; `arena export` marks its frames).",
+    ),
+    Recorded(
+        "stop",
+        MotionStopped,
+        "StopRecord",
+        "A motion the collision guard stopped on its way after accepting it: who commanded "
+        "it, why, what would have met, where the arm holds and where it was going.",
     ),
 )
 

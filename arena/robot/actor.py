@@ -24,7 +24,7 @@ from typing import Any
 import trio
 
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
-from arena.robot import inbox, safety, stops
+from arena.robot import inbox, safety
 from arena.robot.core import MANUAL_SOURCE, JoinChange, RobotCore, Step
 from arena.robot.episodes import Episode, Episodes
 from arena.robot.events import (
@@ -33,6 +33,7 @@ from arena.robot.events import (
     FaultReported,
     JointStatesReceived,
     MasterNotice,
+    MotionStopped,
     NoticeKind,
     RobotEvent,
     SlaveNotice,
@@ -83,6 +84,8 @@ class Actor(MasterKeeping):
         self.estop_count = 0
         self.intervention_count = 0  # interventions started (corrections)
         self.last_master: MasterEnded | None = None  # the last master that left, and why
+        self.last_stop: MotionStopped | None = None  # the last motion the guard stopped
+        self._stop_logged = -math.inf
         self._superseded_by_gone = 0  # targets superseded at slaves that have left
         #: Data-collection episodes (changed only through `EpisodeMsg`).
         self.episodes = Episodes()
@@ -183,6 +186,8 @@ class Actor(MasterKeeping):
                 self.robot_id, source or MANUAL_SOURCE, command, result, now, wallclock.time()
             )
         )
+        if (stop := self.core.take_stop()) is not None:  # (its own first step)
+            self._guard_stopped(stop, now)
         self._send_targets(step.targets, now, more_follow=in_burst)
         if step.joins:
             self._carry_out_joins(step.joins, now)
@@ -434,6 +439,8 @@ class Actor(MasterKeeping):
         if self.next_tick is not None and now >= self.next_tick:
             self.next_tick = None
             self._send_targets(self.core.tick(now), now)
+            if (stop := self.core.take_stop()) is not None:
+                self._guard_stopped(stop, now)
             self._carry_out_joins(self.core.advance_joins(now), now)
         for peer in self.peers.timed_out(now):
             log.warning(
@@ -490,8 +497,6 @@ class Actor(MasterKeeping):
     def _send_targets(
         self, targets: dict[str, float] | None, now: float, *, more_follow: bool = False
     ) -> None:
-        if self.core.stop is not None:  # a move stopped on its way: told (specs/motion.md)
-            self._publish(stops.report_stop(self, now))
         if targets is not None:
             target = SlaveTarget(targets, now, more_follow)
             joining = self.core.joining  # they get targets of their own (`_carry_out_joins`)

@@ -49,6 +49,19 @@ _MANUAL = ManualCommand()
 _ACCEPTED = CommandResult(True)
 
 
+@dataclass(frozen=True, slots=True)
+class GuardStop:
+    """A motion the collision guard stopped on its way, after its command was accepted: who
+    commanded it (`source`: a master id, None for manual control), what would have met
+    (`hit`), where the arm holds (`held`: the targets already sent) and where it was going
+    (`goals`)."""
+
+    source: str | None
+    hit: collision.Hit
+    held: dict[str, float]
+    goals: dict[str, float]
+
+
 @dataclass(slots=True)
 class Step:
     """What one input produced: the safety outcome, targets for the slaves, effects to carry out."""
@@ -109,10 +122,9 @@ class RobotCore:
         self.workspace = model.workspace
         #: Moves stopped on the way because an emitted target would have collided.
         self.collision_stops = 0
-        #: The last such stop not yet reported: (who commanded the move, what it would have
-        #: hit); `take_stop` hands it to the actor, which tells them.
-        self.stop: tuple[str, str] | None = None
-        self._commander = MANUAL_SOURCE  # who gave the last accepted command
+        #: The last such stop, until the actor takes it to report (`take_stop`).
+        self._stop: GuardStop | None = None
+        self._mover: str | None = None  # whose accepted command set the goals (None: manual)
         self._to_urdf = tuple((j.name, j.urdf_name, j.to_urdf) for j in model.joints)
         # Per joint of the model, its place in the guard's kinematics (None if not there): the
         # references are kept in the model's order and wire degrees, as the limiter lists its
@@ -394,7 +406,7 @@ class RobotCore:
                 way_out = f"out of a collision in the model: {self._escaping.describe()}"
                 message = f"{message}; {way_out}" if message else way_out
         self.motion.set_goals(goals, command.duration, now, command.stamp)
-        self._commander = key
+        self._mover = source
         targets = self._advance(now, fresh=in_burst)
         if self.easing is not None:
             self._eased_in()
@@ -500,17 +512,12 @@ class RobotCore:
                         return goals
                     self.motion.stop_at(self._sent)
                     self.collision_stops += 1
-                    self.stop = (self._commander, str(hit))
+                    self._stop = GuardStop(self._mover, hit, dict(self._sent), goals)
                     return None
             else:  # (a pose on its way out of a collision is no reference)
                 self._remember(targets, pose, clearance)
         self._sent = targets
         return targets
-
-    def take_stop(self) -> tuple[str, str] | None:
-        """The collision stop not yet reported (see `stop`), once."""
-        stop, self.stop = self.stop, None
-        return stop
 
     def _near_reference(self, degrees: dict[str, float]) -> bool:
         """True when no part of the arm can have moved from a pose checked in full as far as
@@ -540,6 +547,11 @@ class RobotCore:
         ordered = reference.in_order(values, self._guard_index, self._guard_scales)
         self._references.insert(0, ordered)
         del self._references[REFERENCES:]
+
+    def take_stop(self) -> GuardStop | None:
+        """The motion the guard stopped since the last call, if any (the actor reports it)."""
+        stop, self._stop = self._stop, None
+        return stop
 
     def tick(self, now: float) -> dict[str, float] | None:
         """Advance interpolation; returns new targets, or None if nothing moved."""

@@ -69,12 +69,12 @@ class MasterNotice(msgspec.Struct, frozen=True, gc=False):
     """Something a master should know: it was detached (`by`: who took over), or the robot
     changed state."""
 
-    #: "detached" | "state" | "paused" | "resumed" | "stopped" (a move stopped short of a collision)
-    kind: str
+    kind: str  # "detached" | "state" | "paused" | "resumed" | "stopped" (by the guard)
     code: ErrorCode | None = None
     message: str = ""
     mode: Mode | None = None
     by: TakenBy | None = None
+    blocked: tuple[str, str] | None = None  # "stopped": the two things that would have met
 
 
 class Observed(msgspec.Struct, frozen=True, gc=False, tag_field="event", tag=True):
@@ -215,6 +215,23 @@ class PolicyInferred(Observed, frozen=True, gc=False):
     wall_time: float
 
 
+class MotionStopped(Observed, frozen=True, gc=False):
+    """The collision guard stopped a motion on its way, after its command was accepted (a
+    target on the way the joints really take would have met something): `source` commanded
+    it (a master id, or 'manual'), `code` and `message` say why, `blocked` names the two
+    things, `joints` where the arm holds and `goals` where it was going."""
+
+    robot_id: str
+    source: str
+    code: str
+    message: str
+    blocked: tuple[str, str]
+    joints: dict[str, float]
+    goals: dict[str, float]
+    time: float
+    wall_time: float
+
+
 RobotEvent: TypeAlias = (
     StateChanged
     | CommandHandled
@@ -226,6 +243,7 @@ RobotEvent: TypeAlias = (
     | Audited
     | PolicyInferred
     | InterventionChanged
+    | MotionStopped
 )
 
 

@@ -21,7 +21,7 @@ from arena.robot import safety
 from arena.robot.actor import Actor
 from arena.robot.core import RobotCore
 from arena.robot.episodes import Episode
-from arena.robot.events import Audited, PolicyInferred, RobotEvent
+from arena.robot.events import Audited, MotionStopped, PolicyInferred, RobotEvent
 from arena.robot.idle import IdleTurn
 from arena.robot.inbox import (
     AliveMsg,
@@ -97,6 +97,11 @@ class Robot:
     def last_master(self) -> MasterEnded | None:
         """The last master that left the robot, how and why (None: none has)."""
         return self._actor.last_master
+
+    @property
+    def last_stop(self) -> MotionStopped | None:
+        """The last motion the collision guard stopped on its way (None: none was)."""
+        return self._actor.last_stop
 
     @property
     def targets_superseded(self) -> int:

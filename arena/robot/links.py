@@ -156,6 +156,10 @@ class MasterLink:
         self.paused = False
         #: Pauses so far: a driver compares it to tell that a pause came meanwhile.
         self.pauses = 0
+        #: Motions of this master's the collision guard stopped on their way (a driver
+        #: compares it to tell that a move it waits for will not arrive).
+        self.stops = 0
+        self.last_stop = ""  # the newest such stop's sentence
         self._resumed = trio.Event()
         self._resumed.set()
         self._paused_at = 0.0

@@ -12,9 +12,15 @@ from typing import Any
 
 from arena.protocol.errors import ErrorCode
 from arena.robot import safety
-from arena.robot.core import RobotCore
+from arena.robot.core import MANUAL_SOURCE, GuardStop, RobotCore
 from arena.robot.episodes import Episodes
-from arena.robot.events import InterventionChanged, MasterNotice, RobotEvent, TakenBy
+from arena.robot.events import (
+    InterventionChanged,
+    MasterNotice,
+    MotionStopped,
+    RobotEvent,
+    TakenBy,
+)
 from arena.robot.links import MasterLink, SlaveLink
 from arena.robot.peers import FaultKeys, MasterPeer, Peer, Peers, SlavePeer
 from arena.robot.snapshot import MasterEnded
@@ -35,6 +41,8 @@ class MasterKeeping:
     episodes: Episodes
     intervention_count: int
     last_master: MasterEnded | None
+    last_stop: MotionStopped | None
+    _stop_logged: float  # trio time a guard's stop was last logged
 
     def _displaced(self, effect: safety.DetachMaster, now: float) -> None:
         """A master displaced (a takeover, an e-stop that ends a program, an intervention's
@@ -54,6 +62,43 @@ class MasterKeeping:
             change = "paused" if paused else "resumed"
             log.info("robot %s: master %s %s", self.robot_id, master.peer_id, change)
             self._peer_changed(master, change, "", now)
+
+    def _guard_stopped(self, stop: GuardStop, now: float) -> None:
+        """A motion the guard stopped on its way after accepting it: recorded, kept for the
+        robot's details (`last_stop`), and told to the master that commanded it (a socket's
+        `stopped`, a driver's `MasterLink.stops`)."""
+        going = [
+            f"{name} {value:.1f} (of {stop.goals[name]:.1f})"
+            for name, value in stop.held.items()
+            if stop.goals.get(name, value) != value
+        ]
+        message = (
+            f"Stopped on the way by the collision guard: going on would have brought {stop.hit} "
+            f"together; the arm holds at {', '.join(going) or 'where it was'}."
+        )
+        event = MotionStopped(
+            self.robot_id,
+            stop.source or MANUAL_SOURCE,
+            str(ErrorCode.COLLISION),
+            message,
+            (stop.hit.first, stop.hit.second),
+            stop.held,
+            stop.goals,
+            now,
+            wallclock.time(),
+        )
+        self.last_stop = event
+        if now - self._stop_logged >= 1.0:  # (a master pushing on at its rate: once a second)
+            self._stop_logged = now
+            log.warning("robot %s: %s (%s)", self.robot_id, message, event.source)
+        self._publish(event)
+        master = self.peers.either_named(stop.source)
+        if master is not None:
+            master.link.stops += 1
+            master.link.last_stop = message
+            blocked = (stop.hit.first, stop.hit.second)
+            notice = MasterNotice("stopped", ErrorCode.COLLISION, message, blocked=blocked)
+            master.link.notices.put(notice)
 
     def _intervention(self, effect: safety.Intervention, now: float) -> None:
         """An intervention starts (the attach records the peers) or ends: the intervening

@@ -99,3 +99,17 @@ def _box(number: int, entry: object) -> Box:
     if not isinstance(name, str) or not 0 < len(name) <= 64:
         raise ValueError(f"keep_out[{number}].name must be a short string")
     return Box(name, low, high)
+
+
+def point_inside(workspace: Workspace, point: Vector) -> tuple[str, str] | None:
+    """What `point` (a goal for the hand, root frame) lies in: ("floor", where) below the
+    floor, (a box's name, where) inside a keep-out box; None: in neither. `where` says it in
+    words ("50.0 mm below the floor ..."). The margin is left out: a point on the table's
+    surface out of reach is out of reach first (one in reach is the guard's to refuse)."""
+    if workspace.floor is not None and point[2] < workspace.floor:
+        depth = workspace.floor - point[2]
+        return "floor", f"{depth * 1000:.1f} mm below the floor (z = {workspace.floor:g} m)"
+    for box in workspace.keep_out:
+        if all(lo < value < hi for lo, value, hi in zip(box.low, point, box.high, strict=True)):
+            return box.name, f"inside keep-out box {box.name!r}"
+    return None

@@ -138,6 +138,14 @@ class ScriptArm(Protocol):
     def pauses(self) -> int:
         """Pauses so far (a pause and resume between two looks still counts)."""
 
+    @property
+    def stops(self) -> int:
+        """This master's motions the collision guard stopped on their way, so far."""
+
+    @property
+    def last_stop(self) -> str:
+        """The newest such stop in a sentence (where the arm holds, what would have met)."""
+
     async def wait_resumed(self) -> None:
         """Return once the script is not paused."""
 
@@ -193,6 +201,16 @@ class LinkArm:
     def pauses(self) -> int:
         """See `ScriptArm.pauses`."""
         return self.link.pauses
+
+    @property
+    def stops(self) -> int:
+        """See `ScriptArm.stops`."""
+        return self.link.stops
+
+    @property
+    def last_stop(self) -> str:
+        """See `ScriptArm.last_stop`."""
+        return self.link.last_stop
 
     async def wait_resumed(self) -> None:
         """See `ScriptArm.wait_resumed`."""
@@ -450,7 +468,7 @@ class ScriptMaster:
     ) -> None:
         """Send a move; with `wait`, return once it is over; a pause meanwhile holds the arm,
         and the move is sent again on the resume."""
-        pauses = arm.pauses
+        pauses, stops = arm.pauses, arm.stops
         result, targets = await send()
         self._accepted(result)
         if not wait:
@@ -468,6 +486,8 @@ class ScriptMaster:
                 self._accepted(result)
                 ending = MoveEnd(targets, duration, trio.current_time(), self._clamped)
                 continue
+            if arm.stops != stops:  # held short of its goal: the script is told, not left
+                raise ArenaError(ErrorCode.COLLISION, arm.last_stop)  # to think it arrived
             commanded, _ = arm.joint_values()
             if ending.over(commanded, trio.current_time()):
                 return

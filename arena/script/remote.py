@@ -107,6 +107,16 @@ class SessionArm:
         """The server's `pause` messages so far."""
         return self.session.pauses
 
+    @property
+    def stops(self) -> int:
+        """The server's `stopped` messages so far."""
+        return self.session.stop_count
+
+    @property
+    def last_stop(self) -> str:
+        """The newest `stopped` message's sentence."""
+        return str(self.session.stops[-1].get("message", "")) if self.session.stops else ""
+
     async def wait_resumed(self) -> None:
         """See `paused`."""
         await self.session.wait_resumed()

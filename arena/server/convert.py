@@ -9,7 +9,7 @@ import msgspec
 
 from arena.drivers.sequences import Sequence, parse_sequence
 from arena.protocol import messages as wire
-from arena.robot.events import FaultReported, NoticeKind, SlaveNotice, SlaveTarget
+from arena.robot.events import FaultReported, MotionStopped, NoticeKind, SlaveNotice, SlaveTarget
 from arena.robot.handle import Robot
 from arena.robot.motion import Command, CommandResult
 from arena.robot.snapshot import MasterEnded, PeerSnapshot, RobotSnapshot
@@ -129,6 +129,13 @@ def fault(event: FaultReported) -> wire.FaultMessage:
     )
 
 
+def stop_fault(event: MotionStopped) -> wire.FaultMessage:
+    """A motion the guard stopped on its way, as viewers get it: a warning of whoever
+    commanded it (a master id, or `manual`: the dashboard's sliders, a REST caller)."""
+    data = wire.FaultData(event.robot_id, event.source, event.code, event.message, "warning")
+    return wire.FaultMessage(timestamp=wire.now_iso(), data=data)
+
+
 def _peer(peer: PeerSnapshot) -> dict[str, Any]:
     return {
         "id": peer.peer_id,
@@ -186,6 +193,7 @@ def robot_summary(
         "master": _master(snapshot.master, links),
         "paused_master": _master(snapshot.paused_master, links),
         "last_master": _ended(robot.last_master),
+        "last_stop": _stopped(robot.last_stop),
         "corrections": {
             "total": robot.intervention_count,
             "episode": robot.episodes.running_corrections(),
@@ -207,6 +215,21 @@ def _ended(master: MasterEnded | None) -> dict[str, Any] | None:
         "reason": master.reason,
         "error": master.error,
         "at": round(master.at, 3),
+    }
+
+
+def _stopped(stop: MotionStopped | None) -> dict[str, Any] | None:
+    """The last motion the collision guard stopped on its way, as the details show it."""
+    if stop is None:
+        return None
+    return {
+        "source": stop.source,
+        "code": stop.code,
+        "message": stop.message,
+        "blocked": list(stop.blocked),
+        "joints": {name: round(value, 4) for name, value in stop.joints.items()},
+        "goals": {name: round(value, 4) for name, value in stop.goals.items()},
+        "at": round(stop.wall_time, 3),
     }
 
 

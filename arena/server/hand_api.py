@@ -21,10 +21,12 @@ from arena.protocol import messages as wire
 from arena.protocol.errors import ArenaError, ErrorCode
 from arena.protocol.rest import TeleopBody
 from arena.robot.cartesian import Hand, HandPose, Solution, hand_for, normalized
+from arena.robot.collision import Hit
 from arena.robot.handle import Robot
 from arena.robot.links import RobotView
 from arena.robot.motion import Command, CommandResult
 from arena.robot.teleop import TeleopSettings, settings_of
+from arena.robot.workspace import point_inside
 from arena.server import convert
 from arena.server.base import ArenaApp, error_response, read_body
 from arena.server.manual import operator_of, refusal
@@ -95,9 +97,26 @@ class Unreachable(ArenaError):
         self.solution = solution
 
 
+class GoalInside(ArenaError):
+    """COLLISION: the pose's point itself lies in the table or a keep-out box (`hit`: the hand
+    and what it is in; `where`: the words). Said instead of UNREACHABLE when the solver fell
+    short of such a point: no pose could take the hand there, in reach or not."""
+
+    def __init__(self, link: str, what: str, where: str) -> None:
+        super().__init__(
+            ErrorCode.COLLISION,
+            f"The goal is {where}: the {link} cannot go there; command refused.",
+        )
+        self.hit = Hit(link, what)
+        self.where = where
+
+
 async def plan_pose(robot: Robot, data: wire.PoseData, source: str) -> HandMove:
     """Solve `data` from the joints' commanded goals; raises INVALID_VALUE for a zero
-    orientation and `Unreachable` when no pose gets within the solver's tolerances."""
+    orientation, `GoalInside` when the solver fell short of a point in the table or a
+    keep-out box, and `Unreachable` when no pose gets within the solver's tolerances. (A
+    point in the table the solver does reach is the collision guard's to refuse, or to stop
+    short of under its `stop-short` policy.)"""
     hand = hand_of(robot)
     orientation = None
     if data.orientation is not None:
@@ -117,6 +136,9 @@ async def plan_pose(robot: Robot, data: wire.PoseData, source: str) -> HandMove:
     position = (data.position[0], data.position[1], data.position[2])
     solution = await solve_off_the_loop(hand, position, orientation, start)
     if not solution.reached:
+        inside = point_inside(robot.workspace, position)
+        if inside is not None:
+            raise GoalInside(hand.link, *inside)
         raise Unreachable(solution, orientation is not None)
     goals = [wire.JointValue(name, value) for name, value in solution.joints.items()]
     if data.gripper is not None and hand.gripper is not None:

@@ -26,7 +26,7 @@ from arena.robot.safety_types import Mode
 from arena.script.master import ScriptMaster
 from arena.script.wire import MoveToPose, PlannedJoints
 from arena.server.base import ArenaApp
-from arena.server.hand_api import hand_command, plan_pose
+from arena.server.hand_api import GoalInside, hand_command, plan_pose
 from arena.server.manual import master_active
 
 #: Plans made at once on one server (each keeps a core busy); more wait for a turn.
@@ -78,7 +78,12 @@ async def plan_move(
     start = {joint.name: joint.goal for joint in robot.snapshot().joints}
     goal = dict(start)
     if data.pose is not None:
-        solved = await plan_pose(robot, data.pose, "move")
+        try:
+            solved = await plan_pose(robot, data.pose, "move")
+        except GoalInside as inside:  # as the planner says a goal pose that collides
+            raise PathNotFound(
+                planning.NoPath(f"the goal itself is {inside.where}", inside.hit)
+            ) from None
         goal.update((joint.name, joint.value) for joint in solved.command.joints)
     else:
         assert data.joints is not None

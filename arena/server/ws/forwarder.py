@@ -14,6 +14,7 @@ from arena.protocol import messages as wire
 from arena.robot.events import (
     FaultReported,
     JointStatesReceived,
+    MotionStopped,
     RobotEvent,
     StateChanged,
     TargetsSent,
@@ -26,8 +27,9 @@ from arena.server.ws.connection import CLOSE_NORMAL, Connection
 
 #: The events a `RobotEventForwarder` makes messages of (its queue takes no others).
 FORWARDED = (StateChanged, JointStatesReceived, TargetsSent)
-#: ... and for a viewer, faults as they happen and end (`fault` messages).
-FORWARDED_TO_VIEWERS = (*FORWARDED, FaultReported)
+#: ... and for a viewer, faults as they happen and end, and motions the collision guard
+#: stopped on their way (`fault` messages: the dashboard's sliders are told so).
+FORWARDED_TO_VIEWERS = (*FORWARDED, FaultReported, MotionStopped)
 #: Events a peer's queue holds before the oldest are dropped (the newest state wins).
 QUEUE_LENGTH = 256
 
@@ -115,6 +117,8 @@ class RobotEventForwarder:
             moved = moved or kind is TargetsSent or kind is JointStatesReceived
             if kind is FaultReported:  # (only a viewer's queue takes them)
                 out.append(convert.fault(event))  # type: ignore[arg-type]
+            elif kind is MotionStopped:  # (likewise)
+                out.append(convert.stop_fault(event))  # type: ignore[arg-type]
         if changed:
             state = convert.state(self.robot.snapshot())
             if self.name_robot:  # the newest of each member's is kept for a peer behind

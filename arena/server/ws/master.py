@@ -11,7 +11,8 @@ import trio
 from arena.drivers.planned_move import PlannedMove
 from arena.drivers.sequence_master import SequenceMaster
 from arena.protocol import messages as wire
-from arena.protocol.errors import ArenaError, ErrorCode, Severity
+from arena.protocol.errors import ArenaError, ErrorCode
+from arena.protocol.stopped import StoppedData, StoppedNotice
 from arena.robot.events import MasterNotice
 from arena.robot.handle import Robot
 from arena.robot.links import DETACHED_LINK, MasterLink
@@ -128,10 +129,10 @@ async def _forward_master_notices(
             await connection.send(wire.PauseNotice(timestamp=wire.now_iso()))
         elif notice.kind == "resumed":
             await connection.send(wire.ResumeNotice(timestamp=wire.now_iso()))
-        elif notice.kind == "stopped":  # a move of this master's stopped after its ack
-            code = str(notice.code or ErrorCode.COLLISION)
-            data = wire.ErrorData(code, notice.message, severity=Severity.WARNING)
-            await connection.send(wire.ErrorMessage(timestamp=wire.now_iso(), data=data))
+        elif notice.kind == "stopped":  # the guard stopped its motion after accepting it
+            blocked = None if notice.blocked is None else list(notice.blocked)
+            data = StoppedData(str(notice.code), notice.message, blocked)
+            await connection.send(StoppedNotice(timestamp=wire.now_iso(), data=data))
     if player.releasing:
         return  # the reader answers the release and closes
     # The robot closed the link (deleted, or detached without a word).
