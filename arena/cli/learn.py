@@ -44,7 +44,7 @@ def add(commands: Commands) -> None:
         "--demos", type=int, default=10, help="with --dagger: expert demonstrations (10)"
     )
     learn.add_argument(
-        "--rollouts", type=int, default=20, help="with --dagger: corrected episodes a round (20)"
+        "--rollouts", type=int, default=50, help="with --dagger: corrected episodes a round (50)"
     )
     learn.set_defaults(handler=learn_command)
 
