@@ -9,7 +9,8 @@ speed) and hands back once the tip has held at the target. Everything is recorde
 records it, and Arena's own export writes the deployments as a LeRobot dataset (`intervention`
 true on the corrector's frames). DAgger's labels: every frame, the policy's own too, is
 trained on with the action the expert takes from that frame's state (`expert_labels`: the
-corrector's very function, so its frames keep their commands). The data grows by each round's
+corrector's very function, so its frames keep their commands), its sag compensation learned
+per target in the twin and held fixed (`Compensation`). The data grows by each round's
 relabelled deployments and the policy is trained again; held-out success is measured after
 each round. specs/learning.md has the figures and the reasons.
 """
@@ -127,8 +128,8 @@ class Compensation:
     depends on the pose, which kinematics cannot know). The expert that corrects and labels
     holds it fixed from the first frame, so its action is a function of the state and the
     target alone; with the integral running, the same state got a different label the longer
-    the arm had lingered off the target (a policy that stops 3 cm short winds it up to its
-    clip), and the policy learned to overshoot."""
+    the arm had lingered off the target (a policy that stops 3 cm short winds it up toward
+    its clip): labels that disagree, for a policy to average."""
 
     def __init__(self) -> None:
         self.biases: dict[tuple[float, ...], list[float]] = {}

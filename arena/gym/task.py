@@ -177,7 +177,11 @@ class Expert:
     action stays a function of what it sees. A corrector is so: its commands are eased in
     at the joining speed, and a plan of its own would run far ahead of the arm, labelling
     the states it passes with actions the arm is nowhere near. (Not the plan reset to the
-    arm each step: an arm that sags more than a step under gravity then never gets there.)"""
+    arm each step: an arm that sags more than a step under gravity then never gets there.)
+
+    `bias`: the sag compensation, known beforehand (`arena.gym.dagger.Compensation`), added
+    from the first action and never changed: no integral term, so the action is a function of
+    the state and the target alone."""
 
     def __init__(
         self,
