@@ -36,7 +36,7 @@ async def test_one_small_round_corrects_exports_and_retrains(
     lerobot_dataset = need("lerobot.datasets.lerobot_dataset", "lerobot")
     need("gymnasium", "gym")
     need("mujoco", "physics")
-    from arena.gym.dagger import ROLLOUT_SEED, expert_labels, target_of
+    from arena.gym.dagger import ROLLOUT_SEED, expert_labels, target_key, target_of
     from arena.gym.task import Reach
 
     out = tmp_path / "dagger"
@@ -111,7 +111,16 @@ async def test_one_small_round_corrects_exports_and_retrains(
     # DAgger's labels: every frame's action relabelled by the expert following the episode.
     # Where the corrector commanded, that is its command (the same function of state);
     # where the policy drove, what the expert would have done there instead.
-    labels = expert_labels(task.model)(columns)
+    # The corrector held its sag compensation fixed, learned in the twin for each target
+    # (the demonstrations' and the deployments'), as report.json keeps it.
+    compensation = {tuple(target): bias for target, bias in report["compensation"]}
+    assert len(compensation) == 4 and all(len(bias) == 4 for bias in compensation.values())
+    assert all(target_key(target) in compensation for target in targets)
+
+    def bias_of(target: object) -> list[float]:
+        return compensation[target_key(target)]  # type: ignore[arg-type]
+
+    labels = expert_labels(task.model, bias_of)(columns)
     assert np.allclose(labels[flags], columns["action"][flags], atol=1e-3)
     assert np.abs(labels[~flags] - columns["action"][~flags]).max() > 1.0
 
@@ -207,3 +216,72 @@ def test_dagger_labels_are_what_the_following_expert_does_from_each_frame() -> N
     assert np.allclose(labels[:, ARM_JOINTS:], rest[ARM_JOINTS:], atol=1e-4)
     # The second episode's expert starts afresh: the same states, the same labels.
     assert np.allclose(labels[:frames], labels[frames:])
+
+
+def test_a_label_does_not_depend_on_how_long_the_arm_has_lingered() -> None:
+    """The expert's integral term wound up on a policy's frames: an arm that stayed 3 cm off
+    the target got a label further off with every frame (the same state, ever other
+    labels), and the policy learned to overshoot. With its sag compensation held fixed, the
+    label of a state is the same on the first frame there and the hundredth."""
+    need("gymnasium", "gym")
+    from arena.gym.dagger import expert_labels
+    from arena.gym.task import ARM_JOINTS, Reach
+    from arena.recording.dataset import ENVIRONMENT, to_dataset
+
+    model = load_robot_model("so-101")
+    task = Reach(model)
+    target = np.asarray(task.draw_target(np.random.default_rng(7)))
+    rest = [0.0] * len(model.joints)
+    # A pose whose tip is 3 cm below the target: where a policy that undershoots stops.
+    short = task.solve(np.asarray(target) - [0.0, 0.0, 0.03], rest)
+    assert 0.025 < task.distance(short, target) < 0.035
+    state = np.array([to_dataset(j, float(v)) for j, v in zip(model.joints, short, strict=True)])
+    frames = 100
+    columns = {
+        "observation.state": np.tile(state, (frames, 1)).astype(np.float32),
+        ENVIRONMENT: np.tile(target, (frames, 1)),
+        "episode_index": np.zeros(frames, dtype=np.int64),
+        "action": np.tile(state, (frames, 1)).astype(np.float32),
+    }
+    bias = [0.2, -3.0, -2.0, -1.0]
+    labels = expert_labels(model, lambda _: bias)(columns)[:, :ARM_JOINTS]
+    # Once the plan has walked to the goal (a few frames), every label is the goal plus the
+    # compensation, frame after frame.
+    goal = task.solve(target, short)[:ARM_JOINTS] + bias
+    wanted = [to_dataset(joint, float(v)) for joint, v in zip(model.joints, goal, strict=False)]
+    assert np.allclose(labels[20:], labels[20], atol=1e-4)
+    assert np.allclose(labels[20], wanted, atol=0.05)
+
+
+def test_the_compensation_learned_in_the_twin_takes_the_tip_onto_the_target() -> None:
+    """The expert's bias settled in the twin (its integral term run from rest), held fixed
+    from the first frame: the tip reaches the target and stays within a few millimetres,
+    where without it the arm's sag leaves the tip centimetres off."""
+    need("gymnasium", "gym")
+    need("mujoco", "physics")
+    from arena.gym.dagger import Compensation, target_of
+    from arena.gym.task import ARM_JOINTS, Expert, Reach
+    from arena.gym.worlds import TwinWorld, command_of
+
+    world = TwinWorld("so-101", 30.0)
+    task = Reach(world.model)
+    target = target_of(task, 11)
+    compensation = Compensation()
+
+    async def run(bias: list[float]) -> float:
+        measured = await world.reset_now(target)
+        expert = Expert(task, target, measured, follow=True, bias=bias)
+        for _ in range(60):
+            action = expert.act(world.measured())
+            await world.command(command_of(world.model, action.tolist()))
+            await world.advance(world.period)
+        return task.distance(world.measured(), target)
+
+    try:
+        bias = world.loop.call(compensation.learn, world, target)
+        assert compensation(target) == bias and np.abs(bias).max() > 0.5
+        compensated = world.loop.call(run, bias)
+        sagging = world.loop.call(run, [0.0] * ARM_JOINTS)
+    finally:
+        world.close()
+    assert compensated < 0.005 < sagging

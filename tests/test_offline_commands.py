@@ -1,7 +1,7 @@
 """Every offline command (`inspect`, `timeline`, `export`, `plot`, `recover`) on recordings of
 every kind the server writes: one real recording made by a running server that holds every
-record kind (episodes, policy inferences, faults, a group's e-stop, who did what, camera
-frames, Foxglove's view), and the golden files shipped in recordings/golden."""
+record kind (episodes, policy inferences, faults, a group's e-stop, who did what, a guard's
+stop, camera frames, Foxglove's view), and the golden files shipped in recordings/golden."""
 
 from __future__ import annotations
 
@@ -18,9 +18,11 @@ from arena import cli
 from arena.policy.master import PolicyMaster, PolicySettings
 from arena.recording.mcap_file import read_recording
 from arena.recording.records import RECORD_TYPES, camera_of_topic
+from arena.robot.events import MotionStopped, TargetsSent
 from arena.server.config import ServerConfig
 from arena.server.run import run_server
 from tests.conftest import eventually, need
+from tests.test_guard_stops import PILLAR, SLOW, on_the_way
 from tests.test_policy_master import FakeWorker, frames
 
 GOLDEN = Path(__file__).resolve().parent.parent / "recordings" / "golden"
@@ -29,7 +31,8 @@ GOLDEN = Path(__file__).resolve().parent.parent / "recordings" / "golden"
 async def record_every_kind(folder: Path) -> Path:
     """A running server (real sockets, real recorder) driven through every kind of record it
     writes: two robots, slaves, a camera, an episode, a policy master and an intervention on it,
-    a slave's fault, a group's e-stop and reset; the finished file."""
+    a slave's fault, a group's e-stop and reset, a motion the guard stops on its way; the
+    finished file."""
     config = ServerConfig(port=0, recordings_dir=str(folder))
     stop, done = trio.Event(), trio.Event()
     async with trio.open_nursery() as nursery:
@@ -105,6 +108,15 @@ async def record_every_kind(folder: Path) -> Path:
             await ok("POST", "/api/groups", {"id": "line", "members": ["arm", "follower"]})
             await ok("POST", "/api/groups/line/estop", {"reason": "line stop"})
             await ok("POST", "/api/groups/line/reset")
+            # A motion the guard stops on its way: a slow turn, then a pillar in its way.
+            with robot.subscribe(kinds=[TargetsSent, MotionStopped]) as seen:
+                await ok("PUT", "/api/robots/arm/joints", SLOW)
+                with trio.fail_after(30):
+                    while not on_the_way(await seen.get()):
+                        pass
+                    await ok("PUT", "/api/robots/arm/workspace", {"keep_out": [PILLAR]})
+                    while not isinstance(await seen.get(), MotionStopped):
+                        pass
             stopped = await ok("POST", "/api/recordings/current/stop")
         stop.set()
         await done.wait()

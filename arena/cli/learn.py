@@ -23,7 +23,9 @@ def add(commands: Commands) -> None:
     learn.add_argument("-o", "--out", required=True, help="the folder for everything it makes")
     learn.add_argument("--episodes", type=int, default=50, help="expert episodes (50)")
     learn.add_argument(
-        "--steps", type=int, help="training steps (3000; with --dagger, each round: 1500)"
+        "--steps",
+        type=int,
+        help="training steps (3000; with --dagger: 1500, later rounds twice that)",
     )
     learn.add_argument("--targets", type=int, default=20, help="held-out targets (20)")
     learn.add_argument("--seed", type=int, default=0, help="seed of targets and training (0)")
@@ -44,7 +46,7 @@ def add(commands: Commands) -> None:
         "--demos", type=int, default=10, help="with --dagger: expert demonstrations (10)"
     )
     learn.add_argument(
-        "--rollouts", type=int, default=20, help="with --dagger: corrected episodes a round (20)"
+        "--rollouts", type=int, default=50, help="with --dagger: corrected episodes a round (50)"
     )
     learn.set_defaults(handler=learn_command)
 

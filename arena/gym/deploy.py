@@ -117,12 +117,14 @@ async def deploy(
     target: Sequence[float],
     max_steps: int,
     corrector: bool = False,
+    bias: Sequence[float] | None = None,
 ) -> Deployment:
     """Run `policy` as the twin's master toward `target` (the twin just reset for it) for
     `max_steps` steps at most, until the tip holds there. With `corrector`, the task's expert
     watches from the start: it follows the arm every step (`Expert(follow=True)`, so its
     action is the same function of what it has seen whoever drives), and when the policy
-    strays it intervenes, commanding those actions, and hands back after a hold."""
+    strays it intervenes, commanding those actions, and hands back after a hold. `bias`: the
+    expert's sag compensation at the target, held fixed (`Expert`'s `bias`)."""
     task = Reach(world.model)
     fps = world.fps
     settings = PolicySettings(policy, task=TASK, fps=fps, environment_state=tuple(target))
@@ -137,7 +139,7 @@ async def deploy(
     outcome, success, stray = Deployment(), Success(fps), Stray(fps)
     handback = max(1, math.ceil(HANDBACK_SECONDS * fps))
     measured = world.measured()
-    expert = Expert(task, target, measured, follow=True) if corrector else None
+    expert = Expert(task, target, measured, follow=True, bias=bias) if corrector else None
     link, held = None, 0
     try:
         while outcome.steps < max_steps:

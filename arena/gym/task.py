@@ -177,17 +177,29 @@ class Expert:
     action stays a function of what it sees. A corrector is so: its commands are eased in
     at the joining speed, and a plan of its own would run far ahead of the arm, labelling
     the states it passes with actions the arm is nowhere near. (Not the plan reset to the
-    arm each step: an arm that sags more than a step under gravity then never gets there.)"""
+    arm each step: an arm that sags more than a step under gravity then never gets there.)
+
+    `bias`: the sag compensation, known beforehand (`arena.gym.dagger.Compensation`), added
+    from the first action and never changed: no integral term, so the action is a function of
+    the state and the target alone."""
 
     def __init__(
-        self, task: Reach, target: Sequence[float], start: Joints, follow: bool = False
+        self,
+        task: Reach,
+        target: Sequence[float],
+        start: Joints,
+        follow: bool = False,
+        bias: Joints | None = None,
     ) -> None:
         self.task = task
         self.follow = follow
         self.target = tuple(target)
         self.plan: Vec = np.array(start, dtype=float)
         self.goal = task.solve(target, start)
-        self.bias: Vec = np.zeros(ARM_JOINTS)
+        #: A given bias is held fixed (no integral term): the action is then a function of
+        #: the state alone, not of how long the arm has been near the target.
+        self.fixed = bias is not None
+        self.bias: Vec = np.array(bias if bias is not None else np.zeros(ARM_JOINTS), dtype=float)
 
     def act(self, measured: Joints) -> Vec:
         """The next action (every joint, wire units) from the measured joints."""
@@ -198,7 +210,7 @@ class Expert:
             )
         step = np.clip(self.goal - self.plan, -EXPERT_STEP, EXPERT_STEP)
         self.plan += step
-        if self.task.distance(self.plan, self.target) < PLAN_REACHED:
+        if not self.fixed and self.task.distance(self.plan, self.target) < PLAN_REACHED:
             correction = EXPERT_GAIN * self.task.ik_step(measured, self.target)
             self.bias = np.asarray(
                 np.clip(self.bias + np.clip(correction, -1.0, 1.0), -10.0, 10.0), dtype=float

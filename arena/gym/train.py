@@ -44,6 +44,7 @@ class TrainSettings:
     dim_model: int = 128
     dim_feedforward: int = 512
     n_encoder_layers: int = 2
+    dropout: float = 0.1  # ACT's default; `--dagger` trains without (specs/learning.md)
     seed: int = 0
 
 
@@ -125,6 +126,7 @@ def train_act_on(
         dim_feedforward=settings.dim_feedforward,
         n_encoder_layers=settings.n_encoder_layers,
         n_decoder_layers=1,
+        dropout=settings.dropout,
         use_vae=False,  # one right answer per state here: no modes for a VAE to model
         pretrained_backbone_weights=None,  # no images, no backbone, nothing downloaded
         normalization_mapping={
