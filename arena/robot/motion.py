@@ -1,4 +1,5 @@
-"""Motion safety, pure: command validation, clamping, jerk-limited trajectories, rate limits.
+"""Motion safety, pure: jerk-limited trajectories (command validation: `commands`; the rate
+limit and the join ramp: `ramps`; their names are here too, where callers import them).
 
 Every target that reaches a slave comes out of `MotionLimiter.advance`: a sample of one online
 trajectory (Ruckig) limited per joint in velocity, acceleration and jerk, planned afresh from
@@ -14,7 +15,6 @@ import math
 from collections import deque
 from collections.abc import Iterable, Mapping
 
-import msgspec
 from ruckig import (
     InputParameter,
     Ruckig,
@@ -23,112 +23,15 @@ from ruckig import (
     Trajectory,
 )
 
-from arena.protocol.errors import ArenaError, ErrorCode
-from arena.protocol.messages import ClampInfo, JointValue
+from arena.robot.commands import Clamp as Clamp
+from arena.robot.commands import Command as Command
+from arena.robot.commands import CommandResult as CommandResult
+from arena.robot.commands import JointGoal as JointGoal
+from arena.robot.commands import ResolvedGoal as ResolvedGoal
+from arena.robot.commands import resolve_command as resolve_command
 from arena.robot.model import RobotModel
-
-#: One joint's requested value in wire degrees, with an optional speed cap in deg/s: the
-#: wire's own type, so a command off the wire (or out of a recording) keeps its joints as
-#: they were decoded.
-JointGoal = JointValue
-
-
-class Command(msgspec.Struct, frozen=True, gc=False):
-    """A request to move some joints; `duration` (seconds) asks for a smooth move over that time."""
-
-    joints: tuple[JointGoal, ...]
-    duration: float | None = None
-    source: str | None = None  # free-form label (the wire's metadata.source)
-    #: When the values were true, on the robot's clock, if the master knows it (a leader
-    #: arm: its bus read, before the command arrived by the bus's and the loop's delays):
-    #: a stream's velocity and line are taken from it (`MotionLimiter.set_goals`).
-    stamp: float | None = None
-
-    @classmethod
-    def of(cls, values: Mapping[str, float], duration: float | None = None) -> Command:
-        """Shorthand: `Command.of({"Rotation": 45})`."""
-        return cls(tuple(JointGoal(n, v) for n, v in values.items()), duration)
-
-
-#: A requested value that was outside the limits and what was applied instead: the wire's
-#: own type, so an acknowledgment and a record carry a command's clamps as they are.
-Clamp = ClampInfo
-
-
-class CommandResult(msgspec.Struct, frozen=True, gc=False):
-    """The answer to a command: accepted (maybe clamped) or refused with a code."""
-
-    accepted: bool
-    code: ErrorCode | None = None
-    message: str = ""
-    clamped: tuple[Clamp, ...] = ()
-
-    @classmethod
-    def refused(cls, code: ErrorCode, message: str) -> CommandResult:
-        """A refusal."""
-        return cls(False, code, message)
-
-
-class ResolvedGoal(msgspec.Struct, frozen=True, gc=False):
-    """A validated goal: protocol joint name, value inside the limits, effective speed."""
-
-    name: str
-    value: float
-    speed: float
-
-
-def resolve_command(model: RobotModel, command: Command) -> tuple[list[ResolvedGoal], list[Clamp]]:
-    """Validate a command against the model.
-
-    Unknown joints, non-finite values, bad speeds or durations raise `ArenaError`; values outside
-    the limits are clamped and listed. Names come back as protocol names (aliases resolved).
-    """
-    if not command.joints:
-        raise ArenaError(ErrorCode.EMPTY_COMMAND, "The command names no joints.")
-    if command.duration is not None and not (
-        math.isfinite(command.duration) and command.duration >= 0
-    ):
-        raise ArenaError(ErrorCode.INVALID_VALUE, "duration must be a finite number >= 0.")
-    goals: list[ResolvedGoal] = []
-    clamps: list[Clamp] = []
-    seen: set[str] = set()
-    for goal in command.joints:
-        spec = model.joint(goal.name)
-        if spec is None:
-            known = ", ".join(model.joint_names)
-            raise ArenaError(
-                ErrorCode.UNKNOWN_JOINT, f"Unknown joint {goal.name!r}; this robot has {known}."
-            )
-        if spec.name in seen:
-            raise ArenaError(ErrorCode.INVALID_VALUE, f"Joint {spec.name!r} is named twice.")
-        seen.add(spec.name)
-        requested = goal.value
-        if not _is_finite_number(requested):
-            raise ArenaError(
-                ErrorCode.INVALID_VALUE,
-                f"Joint {spec.name!r}: value must be a finite number of degrees.",
-            )
-        speed = spec.max_velocity
-        if goal.speed is not None:
-            if not _is_finite_number(goal.speed) or goal.speed <= 0:
-                raise ArenaError(
-                    ErrorCode.INVALID_VALUE,
-                    f"Joint {spec.name!r}: speed must be a positive number (deg/s).",
-                )
-            speed = min(speed, float(goal.speed))
-        requested = float(requested)
-        value = spec.clamp(requested)
-        if value != requested:
-            clamps.append(Clamp(spec.name, requested, value))
-        goals.append(ResolvedGoal(spec.name, value, speed))
-    return goals, clamps
-
-
-def _is_finite_number(value: object) -> bool:
-    if type(value) is float:  # what the wire decodes to: one check, per command
-        return math.isfinite(value)
-    return isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-
+from arena.robot.ramps import JoinRamp as JoinRamp
+from arena.robot.ramps import RateLimiter as RateLimiter
 
 #: Seconds within which a trajectory counts as at its end: a tick that falls on the end in
 #: real arithmetic lands on either side of it in floating point (a replay's times are the
@@ -138,16 +41,9 @@ EPSILON = 1e-9
 #: a policy, a slider dragged), followed through them at the stream's own velocity; goals
 #: further apart are steps, reached at rest.
 STREAM_WINDOW = 0.1
-#: A stream is followed at up to this share of the joint's speed cap (Ruckig refuses a target
-#: velocity at the cap itself; the headroom lets a joint that trails catch up).
-STREAM_SHARE = 0.9
 #: A stream's next goal is overdue this many of its intervals after its last: the trajectory,
 #: coasting at the stream's velocity since it met the last goal, then comes to rest on it.
 OVERDUE = 1.5
-#: Control ticks within which a stream's trajectory is planned to be back on the stream's
-#: line (its last goal, carried on at its velocity): short, so the lag stays small; long
-#: enough that a correction keeps inside the acceleration and jerk limits (`_follow`).
-HORIZON_TICKS = 2
 #: Stamped goals of a stream kept to interpolate between (`_stamped`).
 STAMPED_KEPT = 8
 #: Seconds between the points of a history at rest (`_rest_times`): small against a tick,
@@ -662,69 +558,3 @@ def _settled(p: list[float], v: list[float], a: list[float], goals: list[float])
         if abs(x - g) > 1e-9 or abs(u) > 1e-9 or abs(w) > 1e-6:
             return False
     return True
-
-
-class RateLimiter:
-    """Token bucket: `rate` commands per second with bursts of up to `burst`."""
-
-    __slots__ = ("_last", "_tokens", "burst", "rate")
-
-    def __init__(self, rate: float, burst: int, now: float) -> None:
-        self.rate = rate
-        self.burst = float(burst)
-        self._tokens = float(burst)
-        self._last = now
-
-    def allow(self, now: float) -> bool:
-        """Take one token if there is one."""
-        tokens = self._tokens
-        if now > self._last:  # (no min or max: this runs for every command)
-            tokens += (now - self._last) * self.rate
-            if tokens > self.burst:
-                tokens = self.burst
-            self._last = now
-        if tokens >= 1.0:
-            self._tokens = tokens - 1.0
-            return True
-        self._tokens = tokens
-        return False
-
-
-class JoinRamp:
-    """A measuring slave's own targets while it joins: from where its arm is toward the robot's
-    targets, each joint at no more than `speed` deg/s (or its own lower velocity limit).
-
-    For any two targets it gives at times t1 <= t2 (the first compared with the measured
-    start), per joint: |x2 - x1| <= speed * (t2 - t1). No burst allowance: a joining arm is
-    the one place where the robot does not know that the way is clear, so it never jumps.
-    """
-
-    __slots__ = ("_last", "_speeds", "positions")
-
-    def __init__(
-        self, model: RobotModel, start: Mapping[str, float], speed: float, now: float
-    ) -> None:
-        self.positions = {j.name: float(start[j.name]) for j in model.joints}
-        self._speeds = {j.name: min(speed, j.max_velocity) for j in model.joints}
-        self._last = now
-
-    def advance(self, goal: Mapping[str, float], now: float) -> dict[str, float] | None:
-        """Step every joint toward `goal` (the robot's targets now) by what the time since
-        the last step allows. Returns the new targets, or None if nothing moved."""
-        elapsed = max(0.0, now - self._last)
-        self._last = now
-        changed = False
-        for name, position in self.positions.items():
-            delta = goal[name] - position
-            if delta == 0.0:
-                continue
-            step = self._speeds[name] * elapsed
-            self.positions[name] = (
-                goal[name] if abs(delta) <= step else position + math.copysign(step, delta)
-            )
-            changed = changed or step > 0.0
-        return dict(self.positions) if changed else None
-
-    def arrived(self, goal: Mapping[str, float]) -> bool:
-        """Whether every joint is at `goal`."""
-        return all(goal[name] == position for name, position in self.positions.items())
