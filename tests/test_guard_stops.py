@@ -98,7 +98,7 @@ async def block_the_way(
     with trio.fail_after(timeout):
         while not on_the_way(await moving.get()):
             pass
-    put = await http.put(f"{ROBOT}/workspace", json={"keep_out": [PILLAR]})
+    put = await http.put(f"/api/robots/{robot.robot_id}/workspace", json={"keep_out": [PILLAR]})
     assert put.status_code == 200, put.text
     assert put.json()["floor"] == robot.model.workspace.floor
     assert [box.name for box in robot.workspace.keep_out] == ["pillar"]

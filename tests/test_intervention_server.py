@@ -19,6 +19,7 @@ from trio_websocket import open_websocket_url
 from arena.client import MasterSession
 from arena.robot.events import CommandHandled
 from tests.conftest import RunningServer
+from tests.test_intervention import SlowToLetGo
 from tests.test_policy_server import (
     LOAD,
     ROBOT,
@@ -305,3 +306,25 @@ async def test_manual_control_refused_by_a_master_says_which_and_what_to_do(
             assert f"{master!r} (sequence 'gentle-wave' in a loop)" in message, (path, message)
             assert "POST /api/robots/demo-arm/intervention" in message, (path, message)
             assert "DELETE /api/robots/demo-arm/master" in message, (path, message)
+
+
+async def test_rest_hand_back_and_detach_answer_once_the_masters_hardware_let_go(
+    server: RunningServer,
+) -> None:
+    """`DELETE .../intervention` and `DELETE .../master` answer once the driver of the master
+    that goes has let its hardware go (a leader arm limp, its port free), not before."""
+    robot = server.app.manager.get("demo-arm")
+    async with server.client() as http:
+        sequence = {"type": "mock-sequence", "sequences": ["gentle-wave"], "loop": True}
+        assert (await http.post("/api/robots/demo-arm/master", json=sequence)).is_success
+        leader = SlowToLetGo(0.5)
+        await robot.attach_master(leader, intervene=True)
+        back = await http.request("DELETE", "/api/robots/demo-arm/intervention")
+        assert back.status_code == 200, back.text
+        assert leader.closed  # (an answer before it let go would find it still holding)
+        await http.request("DELETE", "/api/robots/demo-arm/master")
+        leader = SlowToLetGo(0.5)
+        await robot.attach_master(leader)
+        gone = await http.request("DELETE", "/api/robots/demo-arm/master")
+        assert gone.status_code == 200 and gone.json()["detached"], gone.text
+        assert leader.closed

@@ -22,7 +22,7 @@ from arena.robot.events import MotionStopped, TargetsSent
 from arena.server.config import ServerConfig
 from arena.server.run import run_server
 from tests.conftest import eventually, need
-from tests.test_guard_stops import PILLAR, SLOW, on_the_way
+from tests.test_guard_stops import SLOW, block_the_way
 from tests.test_policy_master import FakeWorker, frames
 
 GOLDEN = Path(__file__).resolve().parent.parent / "recordings" / "golden"
@@ -111,10 +111,8 @@ async def record_every_kind(folder: Path) -> Path:
             # A motion the guard stops on its way: a slow turn, then a pillar in its way.
             with robot.subscribe(kinds=[TargetsSent, MotionStopped]) as seen:
                 await ok("PUT", "/api/robots/arm/joints", SLOW)
+                await block_the_way(http, robot, seen)
                 with trio.fail_after(30):
-                    while not on_the_way(await seen.get()):
-                        pass
-                    await ok("PUT", "/api/robots/arm/workspace", {"keep_out": [PILLAR]})
                     while not isinstance(await seen.get(), MotionStopped):
                         pass
             stopped = await ok("POST", "/api/recordings/current/stop")
