@@ -48,7 +48,7 @@ def test_limits_come_from_the_urdf_in_wire_degrees() -> None:
     assert pitch.to_urdf(pitch.lower) == pytest.approx(0.0)
     assert pitch.to_urdf(pitch.upper) == pytest.approx(3.5)
     for joint in model.joints:
-        assert joint.max_velocity == pytest.approx(math.degrees(3.5))
+        assert joint.max_velocity == pytest.approx(math.degrees(4.712))  # the STS3215's
 
 
 def test_seed_example_values_are_valid_targets() -> None:
@@ -170,9 +170,9 @@ def test_a_new_robot_type_is_a_folder(tmp_path: Path, monkeypatch: pytest.Monkey
     assert tilt.max_velocity == 30.0
     assert (tilt.max_acceleration, tilt.max_jerk) == (120.0, 2400.0)  # the trajectory's limits
     pan = model.joint("Pan")
-    assert pan is not None  # unset: full speed in 1/30 s, full acceleration in 1/100 s
+    assert pan is not None  # unset: full speed in 1/30 s, full acceleration in 1/200 s
     assert pan.max_acceleration == 30 * pan.max_velocity
-    assert pan.max_jerk == 100 * pan.max_acceleration
+    assert pan.max_jerk == 200 * pan.max_acceleration
     assert model.safety.loss_policy is LossPolicy.HOLD
     assert model.safety.command_rate == 20.0
     assert model.safety.join_speed == 15.0  # the default when a type does not say

@@ -29,8 +29,9 @@ CONFIG_FILE = "robot.toml"
 #: specs/motion.md says why).
 ACCELERATION_PER_VELOCITY = 30.0
 #: A joint's default jerk limit per deg/s^2 of its acceleration limit: full acceleration in
-#: 10 ms, one control tick (specs/motion.md: a slower ramp cannot follow a leader's reads).
-JERK_PER_ACCELERATION = 100.0
+#: 5 ms, half a control tick (specs/motion.md: one encoder step read at 100 Hz is a jerk of
+#: 88,000 deg/s^3 by divided differences, and a slower ramp trails a leader's reads).
+JERK_PER_ACCELERATION = 200.0
 #: A joint's `unit` when its wire value is 0..100 across its URDF range (LeRobot's grippers).
 PERCENT = "percent"
 

@@ -44,8 +44,8 @@ STREAM_WINDOW = 0.1
 #: A stream's next goal is overdue this many of its intervals after its last: the trajectory,
 #: coasting at the stream's velocity since it met the last goal, then comes to rest on it.
 OVERDUE = 1.5
-#: Stamped goals of a stream kept to interpolate between (`_stamped`).
-STAMPED_KEPT = 8
+#: Stamped goals of a stream kept: the newest two give the stream's velocity (`_played`).
+STAMPED_KEPT = 2
 #: Seconds between the points of a history at rest (`_rest_times`): small against a tick,
 #: large against float rounding of the divided differences over it.
 REST_SPACING = 1e-4
@@ -71,7 +71,11 @@ class MotionLimiter:
     the limits allow next is the target itself (a person's hand, a policy's smooth actions:
     passed on as they come, no lag added, no line carried on past where the hand stops);
     one they do not is approached on a trajectory to rest on it, as far as one step goes.
-    A stream whose next goal is overdue (`OVERDUE`) comes to rest on its last.
+    A stream whose next goal is overdue (`OVERDUE`) comes to rest on its last. A stream's
+    targets go out when its goals arrive, none between: a guess of where a hand goes next is
+    a lag removed at the price of an overshoot where it stops. A stamped stream (a leader's
+    reads) is measured at the times its goals were true, a tick on (`_label`): its targets
+    then have the hand's own derivatives, however unevenly its goals arrive.
 
     Costs: a robot at rest costs nothing per tick (no tick is asked for), and a move small
     enough to be made within one tick from rest (`reach`) is one target without planning; a
@@ -79,7 +83,8 @@ class MotionLimiter:
     no plan.
 
     Targets lead the clock by one control tick: what is emitted at `now` is the trajectory at
-    `now + 1 / control_rate`, so a command's first step goes out with the command. `freeze`
+    `now + 1 / control_rate` (a stamped goal's: at its stamp's), so a command's first step
+    goes out with the command. `freeze`
     and `stop_at` stop at once (an e-stop's hold, a collision ahead): nothing is smoother
     than safe. Time is an argument everywhere (seconds, any monotonic origin).
     """
@@ -90,7 +95,6 @@ class MotionLimiter:
         self._names = tuple(j.name for j in model.joints)
         self._index = {name: k for k, name in enumerate(self._names)}
         self._clamps = {j.name: j.clamp for j in model.joints}
-        self._clamp_list = tuple(j.clamp for j in model.joints)
         self._lead = lead = 1.0 / model.safety.control_rate
         dofs = len(self._names)
         self._otg = Ruckig(dofs)
@@ -126,8 +130,10 @@ class MotionLimiter:
         self._trajectory: Trajectory | None = None  # a step's; None: tracking or at rest
         self._tracking = False  # a stream is tracked (`_track`)
         # A stream whose goals carry when they were true (`stamp`): its newest goals by
-        # that time (`_played`).
+        # that time (`_played`), and the sample time the newest stands for (a tick after
+        # it was true), on which its targets are measured.
         self._stamped: deque[tuple[float, list[float]]] = deque(maxlen=STAMPED_KEPT)
+        self._label: float | None = None
         self._new_goal = False  # a goal came since the last targets
         # The last three emitted targets, oldest first, and the sample times they stand for
         # (`_emit`): what the limits are measured on.
@@ -148,6 +154,12 @@ class MotionLimiter:
         self.fallbacks = 0
         self.jumps = 0
         self.clipped = 0
+
+    @property
+    def sampled(self) -> float:
+        """The trajectory time the last targets stand for (seconds; what the limits are
+        measured on)."""
+        return self._sampled
 
     @property
     def positions(self) -> dict[str, float]:
@@ -180,8 +192,8 @@ class MotionLimiter:
         trajectory is planned by the next `advance`: a burst of commands plans once.
         `advance(now, fresh=True)` moves at once only a robot that was at rest. `stamp`: when
         the goals were true (a leader's read; at most `MAX_AGE` before `now`): a stream of
-        stamped goals is played by those times at a steady delay, not as they arrive (a
-        loop's jitter would otherwise ask for accelerations the hand never made)."""
+        stamped goals is measured at those times, not at their arrival (a loop's jitter
+        would otherwise read as accelerations the hand never made)."""
         self._fresh = not self.moving
         targets = self._goals
         index, stamps, speeds = self._index, self._stamps, self._speeds
@@ -203,9 +215,15 @@ class MotionLimiter:
         stamped = self._stamped
         if stamp is None or not self._stream:
             stamped.clear()
+        self._label = None
         if stamp is not None:
             true_at = min(now, max(now - MAX_AGE, stamp))
             if not stamped or true_at > stamped[-1][0]:  # (one that overtook: dropped)
+                if self._stream and stamped:
+                    # a tick after it was true, or as far after the last targets as it is
+                    # after the last stamped goal (half a tick at least), whichever is later
+                    spacing = max(true_at - stamped[-1][0], 0.5 * self._lead + EPSILON)
+                    self._label = max(true_at + self._lead, self._sampled + spacing)
                 stamped.append((true_at, [targets[name] for name in self._names]))
         self._duration = duration
         self._planned = False
@@ -225,6 +243,9 @@ class MotionLimiter:
         if fresh and not self._fresh:
             return None
         sample = now + self._lead
+        label, self._label = self._label, None
+        if label is not None:
+            sample = label  # (a stamped stream's goal: at the time it stands for)
         if sample <= self._sampled or (
             (tick or self._tracking) and sample - self._sampled < 0.5 * self._lead
         ):
@@ -240,7 +261,7 @@ class MotionLimiter:
         if self._tracking:
             if self._stream and sample >= self._due:
                 self._stream = False  # overdue: it ended; to rest on its last goal
-            if not self._new_goal and self._stream and not self._stamped:
+            if not self._new_goal and self._stream:
                 return None  # (a stream on time: its next goal, not a guess, moves it on)
             candidates = self._track(sample)
         elif self._trajectory is not None:
@@ -358,7 +379,7 @@ class MotionLimiter:
         p1, p0 = self._history_p[1], self._history_p[2]
         h = at - t0
         candidates = []
-        goals, velocity = self._played(at - self._lead)
+        goals, velocity = self._played()
         known = 1.0 if len(self._stamped) > 1 and self._stream else math.inf
         for k, (low, high, slow, fast) in enumerate(self._intervals(at)):
             goal = goals[k]
@@ -389,35 +410,17 @@ class MotionLimiter:
             candidates.append(p0[k] + max(-fast, min(fast, step)) * h)
         return candidates
 
-    def _played(self, when: float) -> tuple[list[float], list[float]]:
-        """The stream's goals for the time `when`, and their velocity: a stamped stream's
-        newest goals carried on to `when` along the parabola through its newest three (the
-        line through two at its start), by at most one and a half of their spacing or a
-        tick, and never past where that parabola turns back (the time its goals take to arrive,
-        bridged, so that a loop's jitter does not jerk the arm, and a hand that slows
-        followed as it slows); unstamped, the newest, taken as still."""
-        stamped = self._stamped
+    def _played(self) -> tuple[list[float], list[float]]:
+        """The stream's newest goals and their velocity: a stamped stream's by its newest two
+        goals' read times (the hand's own speed, whatever their arrival's jitter); unstamped,
+        taken as still."""
         newest = [self._goals[name] for name in self._names]
+        stamped = self._stamped
         if len(stamped) < 2 or not self._stream:
             return newest, self._zeros
         (t1, earlier), (t0, later) = stamped[-2], stamped[-1]
         spacing = t0 - t1
-        ahead = max(0.0, min(when - t0, 1.5 * spacing, self._lead))
-        third = stamped[-3] if len(stamped) > 2 else None
-        goals, velocity = [], []
-        for k, clamp in enumerate(self._clamp_list):
-            slope = (later[k] - earlier[k]) / spacing
-            curve = 0.0  # (acceleration / 2)
-            if third is not None:
-                t2, oldest = third
-                curve = (slope - (earlier[k] - oldest[k]) / (t1 - t2)) / (t0 - t2)
-            v = slope + curve * spacing  # at the newest goal
-            reach = ahead
-            if curve * v < 0.0:  # slowing: not past where it would stop
-                reach = min(reach, -v / (2.0 * curve))
-            goals.append(clamp(later[k] + v * reach + curve * reach * reach))
-            velocity.append(v + 2.0 * curve * reach)
-        return goals, velocity
+        return newest, [(b - a) / spacing for a, b in zip(earlier, later, strict=True)]
 
     def _jump(self) -> bool:
         """From rest, goals within one tick's `reach` of every joint's target: taken in one
