@@ -15,22 +15,25 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
-import time as wallclock
-from collections.abc import Awaitable, Callable, Mapping
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import NamedTuple, Protocol
+from typing import Protocol
 
 import trio
 
 from arena.drivers.refusals import Refusals
 from arena.policy.actions import ActionQueue, check_step
+from arena.policy.arm import Arm as Arm
+from arena.policy.arm import CameraFrames as CameraFrames
+from arena.policy.arm import Inference as Inference
+from arena.policy.arm import LinkArm as LinkArm
+from arena.policy.arm import Shot as Shot
 from arena.policy.features import (
     action_targets,
     camera_images,
     check_features,
     lerobot_state,
-    measured,
 )
 from arena.policy.process import (
     LOAD_TIMEOUT,
@@ -43,10 +46,9 @@ from arena.policy.strategy import Keeper, Rollout, Strategy, describe
 from arena.policy.wire import Chunk, Loaded, Observe
 from arena.protocol.errors import ArenaError, ErrorCode, Severity
 from arena.robot.episodes import Episode
-from arena.robot.events import PolicyInferred
 from arena.robot.links import MasterLink
 from arena.robot.model import RobotModel
-from arena.robot.motion import Command, CommandResult, JointGoal
+from arena.robot.motion import Command, JointGoal
 
 log = logging.getLogger(__name__)
 
@@ -54,112 +56,6 @@ log = logging.getLogger(__name__)
 _FINAL_REFUSALS = frozenset({ErrorCode.ESTOPPED, ErrorCode.NOT_OWNER})
 #: Steps over which a new chunk's first actions are blended in from the old plan (issue 57).
 BLEND_STEPS = 3
-
-
-class Shot(NamedTuple):
-    """A camera's newest frame: its JPEG and when it was captured (trio time, this process)."""
-
-    jpeg: bytes
-    captured: float
-
-
-#: The newest frame of each of the robot's cameras by name (None: no frame yet).
-CameraFrames = Callable[[], Mapping[str, Shot | None]]
-
-
-@dataclass(frozen=True, slots=True)
-class Inference:
-    """One inference as recorded on `/robots/{id}/policy` (`events.PolicyInferred`): the
-    step its observation was taken at, the chunk's actions and those kept, the round trip
-    and the worker's part of it, and the age of the oldest camera frame it carried
-    (seconds; None without a camera)."""
-
-    timestep: int
-    chunk_size: int
-    kept: int
-    latency: float
-    inference: float
-    frame_age: float | None
-
-
-class Arm(Protocol):
-    """The robot as a running policy sees it: a master's link here (`LinkArm`), a master's
-    session over the API on another machine (`arena.policy.remote`)."""
-
-    def measured(self) -> tuple[float, ...]:
-        """Each joint's measured value (else its target), Arena's units, in servo order."""
-
-    async def command(self, command: Command) -> CommandResult:
-        """Send one command as the master; its answer."""
-
-    def fault(self, source: str, code: ErrorCode, message: str, severity: Severity) -> None:
-        """Report a fault of the policy."""
-
-    def inferred(self, source: str, inference: Inference) -> None:
-        """Report one inference of the policy."""
-
-    @property
-    def paused(self) -> bool:
-        """The robot has the policy paused: it sends nothing until resumed."""
-
-    @property
-    def pauses(self) -> int:
-        """Times the robot has paused the policy so far (counted where the pause is made)."""
-
-    async def wait_resumed(self) -> None:
-        """Return once the policy is not paused."""
-
-
-class LinkArm:
-    """`Arm` over a master's link to a robot of this server."""
-
-    def __init__(self, link: MasterLink, model: RobotModel) -> None:
-        self.link = link
-        self.model = model
-
-    def measured(self) -> tuple[float, ...]:
-        """See `Arm.measured`."""
-        return measured(self.model, self.link.robot.snapshot())
-
-    async def command(self, command: Command) -> CommandResult:
-        """See `Arm.command`."""
-        return await self.link.command(command)
-
-    @property
-    def paused(self) -> bool:
-        """See `Arm.paused`."""
-        return self.link.paused
-
-    @property
-    def pauses(self) -> int:
-        """See `Arm.pauses`."""
-        return self.link.pauses
-
-    async def wait_resumed(self) -> None:
-        """See `Arm.wait_resumed`."""
-        await self.link.wait_resumed()
-
-    def fault(self, source: str, code: ErrorCode, message: str, severity: Severity) -> None:
-        """Recorded and shown as a camera's faults are; never an e-stop by itself."""
-        self.link.robot.report_sensor_fault(source, code, message, severity)
-
-    def inferred(self, source: str, inference: Inference) -> None:
-        """Recorded on `/robots/{id}/policy`."""
-        robot = self.link.robot
-        robot.report_inference(
-            PolicyInferred(
-                robot.robot_id,
-                source,
-                inference.timestep,
-                inference.chunk_size,
-                inference.kept,
-                inference.latency,
-                inference.inference,
-                inference.frame_age,
-                trio.current_time(),
-                wallclock.time(),
-            )
-        )
 
 
 class Worker(Protocol):
