@@ -253,10 +253,7 @@ class MotionLimiter:
         self._settle_history(sample)
         if not self._planned:
             if self._trajectory is None and not self._tracking and self._jump():
-                targets = self._emit(sample, [self._goals[name] for name in self._names])
-                self._history_p = [self._history_p[2]] * 3  # (a whole move: at rest there)
-                self._history_t = _rest_times(sample)
-                return targets
+                return self._jumped(sample)
             self._plan(max(self._sampled, now))
         if self._tracking:
             if self._stream and sample >= self._due:
@@ -347,6 +344,27 @@ class MotionLimiter:
         if self._tracking and not self._stream and self._at_rest_on_goals():
             self._tracking = False
         return position.copy() if changed else None
+
+    def _jumped(self, sample: float) -> dict[str, float] | None:
+        """The targets of a move made in one (`_jump`), at rest on its goals after it. From a
+        history at rest (one list three times: set so by every rest) a move within `reach` is
+        within the limits by construction: the goals go out as they are, unchecked (the
+        fleet's commands: half of their cost was the check), if it has rested a tick."""
+        history = self._history_p
+        if history[0] is history[1] is history[2] and self._history_t[2] <= sample - self._lead:
+            goals = self._goals
+            out = [goals[name] for name in self._names]
+            changed = self._position != goals
+            self._position.update(goals)
+            self._sampled = sample
+            self._new_goal = False
+            targets = self._position.copy() if changed else None
+        else:
+            targets = self._emit(sample, [self._goals[name] for name in self._names])
+            out = self._history_p[2]
+        self._history_p = [out] * 3  # (a whole move: at rest there)
+        self._history_t = _rest_times(sample)
+        return targets
 
     def _at_rest_on_goals(self) -> bool:
         p2, p1, p0 = self._history_p
