@@ -41,6 +41,7 @@ SPEC = ROOT / "specs" / "mutation.md"
 MODULES: dict[str, tuple[str, tuple[str, ...]]] = {
     "safety": ("arena/robot/safety.py", ()),
     "motion": ("arena/robot/motion.py", ()),
+    "ramps": ("arena/robot/ramps.py", ()),
     "groups": ("arena/robot/groups.py", ()),
     "manager": ("arena/robot/manager.py", ()),
     "servo_arm": ("arena/drivers/servo_arm.py", ()),
@@ -108,14 +109,17 @@ HAND_WRITTEN: tuple[HandMutant, ...] = (
     HandMutant(
         "motion",
         "arena/robot/motion.py",
-        "self.tokens + self.speed * (now - self.stamp)",
-        "self.tokens + self.speed * 1.1 * (now - self.stamp)",
-        ("tests/test_motion.py::test_a_large_step_is_spread_at_the_velocity_limit",),
+        "speeds[k] = goal.speed",
+        "speeds[k] = goal.speed * 1.1",
+        (
+            "tests/test_motion_trajectory.py::"
+            "test_a_step_command_keeps_the_limits_and_arrives_near_the_optimal_time",
+        ),
         "every joint 10 % over its velocity limit",
     ),
     HandMutant(
-        "motion",
-        "arena/robot/motion.py",
+        "ramps",
+        "arena/robot/ramps.py",
         "step = self._speeds[name] * elapsed",
         "step = self._speeds[name] * elapsed * 1.5",
         (
