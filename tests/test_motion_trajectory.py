@@ -11,6 +11,7 @@ acceleration and velocity; so the only tolerance needed is float rounding, state
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from collections.abc import Iterable, Mapping
 
@@ -247,6 +248,22 @@ def test_a_leaders_stream_is_followed_by_its_read_times_not_its_late_arrivals() 
     tick = fast_core().tick_interval
     for arrival, goal, _ in schedule:
         assert sent[round(arrival + tick, 9)] == goal["Rotation"]
+
+
+def test_a_step_after_a_rest_starts_from_rest_now() -> None:
+    # A move that ended (its last three targets still a decelerating line), a rest of seconds,
+    # another step: it was planned from those targets' divided differences dated at their
+    # time, so sampled now it was already past its end: the whole step in one target (an
+    # intervening master's 60-degree move back was one target).
+    core = fast_core()
+    emitted = drive(core, [(0.0, {"Rotation": -60.0}), (3.0, {"Rotation": 0.0})], until=5.0)
+    assert_within_limits(emitted, MODEL)
+    assert emitted[-1][1]["Rotation"] == 0.0
+    # (the divided differences across the rest see a jump as a slow move: each step is
+    # bounded as well, by the velocity limit over a tick)
+    cap = MODEL.joints[0].max_velocity * core.tick_interval * (1 + TOL)
+    values = [targets["Rotation"] for _, targets in emitted]
+    assert all(abs(b - a) <= cap for a, b in itertools.pairwise(values))
 
 
 def test_a_command_speed_caps_the_trajectory() -> None:

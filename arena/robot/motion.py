@@ -466,6 +466,12 @@ class MotionLimiter:
             self._trajectory = None
             return
         self._tracking = False
+        if self._fresh and self._history_t[2] < start - self._lead:
+            # At rest since its last targets, over a tick ago: the plan starts at rest there
+            # now, not from the divided differences of a move long ended (from those, dated
+            # then, it began a second in the past: its end, sampled now, was a jump).
+            self._history_p = [self._history_p[2]] * 3
+            self._history_t = _rest_times(start)
         p, v, a = self._state()
         goals = [self._goals[name] for name in self._names]
         if _settled(p, v, a, goals):
