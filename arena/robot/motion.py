@@ -135,6 +135,7 @@ class MotionLimiter:
         self._stamped: deque[tuple[float, list[float]]] = deque(maxlen=STAMPED_KEPT)
         self._label: float | None = None
         self._new_goal = False  # a goal came since the last targets
+        self._behind = False  # the last targets were held short of their candidates
         # The last three emitted targets, oldest first, and the sample times they stand for
         # (`_emit`): what the limits are measured on.
         self._history_t = _rest_times(now)
@@ -258,7 +259,7 @@ class MotionLimiter:
         if self._tracking:
             if self._stream and sample >= self._due:
                 self._stream = False  # overdue: it ended; to rest on its last goal
-            if not self._new_goal and self._stream:
+            if not self._new_goal and self._stream and not self._behind:
                 return None  # (a stream on time: its next goal, not a guess, moves it on)
             candidates = self._track(sample)
         elif self._trajectory is not None:
@@ -313,6 +314,7 @@ class MotionLimiter:
         position = self._position
         out = []
         changed = False
+        behind = False
         for k, (name, (low, high, slow, fast), want) in enumerate(
             zip(self._names, self._intervals(sample), candidates, strict=True)
         ):
@@ -333,6 +335,7 @@ class MotionLimiter:
                 value = want
             if value != want:
                 self.clipped += 1
+                behind = True
             out.append(value)
             if position[name] != value:
                 position[name] = value
@@ -341,6 +344,7 @@ class MotionLimiter:
         self._history_p = [self._history_p[1], p0, out]
         self._sampled = sample
         self._new_goal = False
+        self._behind = behind
         if self._tracking and not self._stream and self._at_rest_on_goals():
             self._tracking = False
         return position.copy() if changed else None
@@ -461,17 +465,18 @@ class MotionLimiter:
         """Plan from the last targets' state to the goals: a stream is tracked, a step is a
         trajectory to rest on them."""
         self._planned = True
+        if self._fresh and self._history_t[2] < start - self._lead:
+            # At rest since its last targets, over a tick ago: the plan (or the stream) starts
+            # at rest there now, not from the divided differences of a move long ended (from
+            # those, dated then, a step began in the past and was sampled past its end, and a
+            # stream's first goals measured across the rest passed as slow: jumps both).
+            self._history_p = [self._history_p[2]] * 3
+            self._history_t = _rest_times(start)
         if self._stream:
             self._tracking = True
             self._trajectory = None
             return
         self._tracking = False
-        if self._fresh and self._history_t[2] < start - self._lead:
-            # At rest since its last targets, over a tick ago: the plan starts at rest there
-            # now, not from the divided differences of a move long ended (from those, dated
-            # then, it began a second in the past: its end, sampled now, was a jump).
-            self._history_p = [self._history_p[2]] * 3
-            self._history_t = _rest_times(start)
         p, v, a = self._state()
         goals = [self._goals[name] for name in self._names]
         if _settled(p, v, a, goals):
