@@ -51,10 +51,12 @@ async def test_a_group_master_fans_out_and_an_estopped_member_stays_still(
         owners = {state["master"] for state in states.values()}
         assert len(owners) == 1 and owners.pop().startswith("ws-group-master")
         await arena.estop("middle", "a hand in the way")
+        held = goal(server, "middle")  # (frozen where it was: on its way to 4 or there)
+        assert 0 < held <= 4
         ack = await master.command({"Rotation": 6})
         assert ack["data"]["status"] == "partial"
         assert ack["data"]["members"]["middle"]["code"] == "ESTOPPED"
-        assert (goal(server, "left"), goal(server, "middle"), goal(server, "right")) == (6, 4, 6)
+        assert (goal(server, "left"), goal(server, "middle"), goal(server, "right")) == (6, held, 6)
         await arena.reset("middle")
         assert (await master.command({"Rotation": 7}))["data"]["status"] == "accepted"
         assert goal(server, "middle") == 7

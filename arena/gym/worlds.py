@@ -220,7 +220,12 @@ class TwinWorld:
         if not result.accepted:
             raise RuntimeError(f"the twin could not be brought to rest: {result.message}")
         waited = 0.0
-        while any(abs(j.virtual_value) > 1e-9 for j in self.robot.snapshot().joints):
+        motion = self.robot.core.motion
+        # (until the trajectory is done, not only at the pose: a tick still due would fire
+        # after the jump below, at a phase the last episode left)
+        while motion.moving or any(
+            abs(j.virtual_value) > 1e-9 for j in self.robot.snapshot().joints
+        ):
             if waited > RESET_TIMEOUT:
                 raise RuntimeError("the twin's targets did not reach the rest pose")
             await self.advance(self.period)
@@ -233,6 +238,7 @@ class TwinWorld:
         )
         self.clock.jump(start - now)
         self._time = start
+        self._turn = False  # (the commands' delays too)
         await wait_all_tasks_blocked()
         await self.slave.place(rest)
         if self.slave.simulation is not None:

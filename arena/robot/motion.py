@@ -37,6 +37,10 @@ from arena.robot.ramps import RateLimiter as RateLimiter
 #: real arithmetic lands on either side of it in floating point (a replay's times are the
 #: recording's, rounded), and must arrive all the same.
 EPSILON = 1e-9
+#: Seconds by which two times on the same grid (ticks, a stream's goals) that tie in real
+#: arithmetic are taken as tied: on a clock a million seconds on, rounding alone puts them
+#: 1e-10 either side, and a choice made on that would differ from one episode to the next.
+TIME_DUST = 1e-6
 #: Seconds between two goals of a joint up to which they are taken as one stream (a leader arm,
 #: a policy, a slider dragged), followed through them at the stream's own velocity; goals
 #: further apart are steps, reached at rest.
@@ -206,7 +210,7 @@ class MotionLimiter:
             stamps[k] = now
             targets[goal.name] = goal.value
             speeds[k] = goal.speed
-            if 0.0 < elapsed <= STREAM_WINDOW:
+            if 0.0 < elapsed <= STREAM_WINDOW + TIME_DUST:
                 interval = max(interval, elapsed)
             else:
                 stream = False
@@ -257,7 +261,7 @@ class MotionLimiter:
                 return self._jumped(sample)
             self._plan(max(self._sampled, now))
         if self._tracking:
-            if self._stream and sample >= self._due:
+            if self._stream and sample >= self._due - TIME_DUST:
                 self._stream = False  # overdue: it ended; to rest on its last goal
             if not self._new_goal and self._stream and not self._behind:
                 return None  # (a stream on time: its next goal, not a guess, moves it on)
@@ -275,7 +279,7 @@ class MotionLimiter:
         and acceleration zero there (`REST_SPACING`: a step from rest is measured as a
         continuous move from rest would be, jerk first)."""
         p2, p1, p0 = self._history_p
-        if p0 == p1 == p2 and self._history_t[2] < sample - self._lead:
+        if p0 == p1 == p2 and self._history_t[2] < sample - self._lead - TIME_DUST:
             self._history_t = _rest_times(sample - self._lead)
 
     def _intervals(self, at: float) -> list[tuple[float, float, float, float]]:
@@ -355,7 +359,9 @@ class MotionLimiter:
         within the limits by construction: the goals go out as they are, unchecked (the
         fleet's commands: half of their cost was the check), if it has rested a tick."""
         history = self._history_p
-        if history[0] is history[1] is history[2] and self._history_t[2] <= sample - self._lead:
+        if history[0] is history[1] is history[2] and (
+            self._history_t[2] <= sample - self._lead + TIME_DUST
+        ):
             goals = self._goals
             out = [goals[name] for name in self._names]
             changed = self._position != goals
@@ -465,7 +471,7 @@ class MotionLimiter:
         """Plan from the last targets' state to the goals: a stream is tracked, a step is a
         trajectory to rest on them."""
         self._planned = True
-        if self._fresh and self._history_t[2] < start - self._lead:
+        if self._fresh and self._history_t[2] < start - self._lead - TIME_DUST:
             # At rest since its last targets, over a tick ago: the plan (or the stream) starts
             # at rest there now, not from the divided differences of a move long ended (from
             # those, dated then, a step began in the past and was sampled past its end, and a
@@ -549,6 +555,8 @@ class MotionLimiter:
         self._tracking = False
         self._stream = False
         self._stamped.clear()
+        self._label = None
+        self._behind = False
         self._planned = True
         self._duration = None
         here = [self._position[name] for name in self._names]
