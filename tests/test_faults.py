@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import threading
 from collections.abc import Awaitable, Callable
@@ -130,8 +131,13 @@ async def test_a_slave_that_stops_reading_slows_no_one(
     # A slave with a 4 KiB receive buffer that never reads: after a few frames the server's
     # writes to it block. Its targets are latest-wins, so the robot, the master and the other
     # slaves go on, and when it reads again it gets the newest target, not a backlog.
-    # (The robot type has its rate limit lifted, so the master can send as fast as it likes.)
-    monkeypatch.setenv(TYPES_PATH_ENV, str(bench_types(tmp_path / "types")))
+    # (The robot type has its rate limit lifted, so the master can send as fast as it likes,
+    # and a control rate of 5 kHz: the trajectory sends a target at most every half tick, and
+    # the slaves are to be offered about one a command.)
+    types = bench_types(tmp_path / "types")
+    config = types / BENCH_TYPE / "robot.toml"
+    config.write_text(re.sub(r"control_rate = [\d.]+", "control_rate = 5000.0", config.read_text()))
+    monkeypatch.setenv(TYPES_PATH_ENV, str(types))
     server = await start_server()
     async with server.client() as http:
         created = await http.post("/api/robots", json={"robot_type": BENCH_TYPE, "id": "fast"})
