@@ -361,14 +361,16 @@ def test_files_rotate_by_size_and_each_stands_alone(tmp_path: Path) -> None:
         FileSeries(tmp_path, {"test": "rotation"}, max_bytes=1)
     )  # every batch fills one
     writer.robots["arm"] = {"robot_type": "so-arm100", "name": "arm", "urdf": "<robot/>"}
-    batches = [items[i : i + 100] for i in range(0, 500, 100)]
+    whole = min(500, len(items) // 100 * 100)
+    assert whole >= 300  # (the demo's file holds several hundred messages)
+    batches = [items[i : i + 100] for i in range(0, whole, 100)]
     try:
         for batch in batches:
             writer.write(batch)
     finally:
         writer.shutdown()
     # each file brings the robot's 3D model along (one scene message)
-    assert len(writer.files) == len(batches) and writer.messages == 500 + len(batches)
+    assert len(writer.files) == len(batches) and writer.messages == whole + len(batches)
     for path, batch in zip(writer.files, batches, strict=True):
         with open(path, "rb") as stream:
             reader = make_reader(stream)

@@ -28,6 +28,9 @@ class Group:
     stop_together: bool = False
     tenant: str = DEFAULT_TENANT
     scope: trio.CancelScope = field(default_factory=trio.CancelScope)
+    #: Members the group is e-stopping for another's e-stop: theirs is not passed on again
+    #: (a member's own reason would otherwise race the first's to the others).
+    passing_on: set[str] = field(default_factory=set)
 
     def describe(self, manager: RobotManager) -> dict[str, object]:
         """The group and each member's state, for the REST API."""
@@ -120,7 +123,12 @@ class GroupRegistry:
                     event = await events.get()
                 except trio.EndOfChannel:  # the robot was deleted
                     return
-                if isinstance(event, StateChanged) and event.mode is Mode.ESTOPPED:
+                if not isinstance(event, StateChanged):
+                    continue
+                # Passed on by the group, or reset (its next e-stop is its own): forget it.
+                if event.mode is not Mode.ESTOPPED or robot_id in group.passing_on:
+                    group.passing_on.discard(robot_id)
+                else:
                     await self._estop_others(group, robot_id)
 
     async def _estop_others(self, group: Group, stopped: str) -> None:
@@ -134,4 +142,5 @@ class GroupRegistry:
                 continue
             if robot.snapshot().mode is not Mode.ESTOPPED:
                 others.append(robot)
+        group.passing_on.update(robot.robot_id for robot in others)
         await estop_together(others, f"group {group.group_id!r}: {stopped!r} was e-stopped")
