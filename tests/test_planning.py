@@ -5,7 +5,6 @@ stops a planned move; the move without `plan`; the timing within the joints' lim
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 import json
 import math
@@ -16,7 +15,6 @@ from typing import Any
 
 import pytest
 import trio
-from trio.testing import MockClock
 from trio_websocket import open_websocket_url
 
 from arena.robot import collision, planning
@@ -488,40 +486,3 @@ async def test_a_goal_in_the_table_or_a_box_is_refused_naming_it_whatever_the_so
                 if planned:
                     assert error["blocked"][1] == what, (body, error)
         assert {j.name: j.goal for j in robot.snapshot().joints} == start  # nothing moved
-
-
-async def test_a_planned_move_the_arm_trails_waits_at_its_corners(
-    autojump_clock: MockClock, manager: Any
-) -> None:
-    # A path timed for an arm three times as fast as this one: the trajectory trails the plan's
-    # poses, and the way from where it is to a pose past a corner cuts the corner, off the
-    # path that was checked, into the pillar. The player waits at each corner: every pose
-    # accepted, every target clear.
-    from arena.drivers.planned_move import PlannedMove
-
-    need("ompl", "plan")
-    model, start, goal, pillar = scene("so-arm100")
-    guard, workspace = guarded(model, pillar)
-    fast = dataclasses.replace(
-        model,
-        joints=tuple(dataclasses.replace(j, max_velocity=3 * j.max_velocity) for j in model.joints),
-    )
-    path = planning.plan(fast, guard, workspace, start, goal, budget=GENEROUS)
-    robot = await manager.create_robot("so-arm100", robot_id="arm")
-    recorder = RecordingSlave()
-    await robot.attach_slave(recorder)
-    from arena.robot.motion import Command
-
-    assert (await robot.command(Command.of(start))).accepted
-    await eventually(lambda: not robot.core.motion.moving, what="the arm at its start")
-    await robot.set_workspace(workspace)
-    player = PlannedMove(path)
-    await robot.attach_master(player)
-    await eventually(lambda: robot.snapshot().master is None, what="the planned move played")
-    await eventually(lambda: not robot.core.motion.moving, what="the arm at rest")
-    assert not player.refusals, player.refusals
-    assert player.sent == len(path.samples)
-    for _, joints in recorder.targets:
-        assert guard.hit(urdf(model, joints), workspace) is None, joints
-    assert robot.core.collision_stops == 0
-    assert recorder.targets[-1][1] == pytest.approx(goal, abs=1e-6)
