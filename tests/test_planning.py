@@ -5,6 +5,7 @@ stops a planned move; the move without `plan`; the timing within the joints' lim
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import math
@@ -15,6 +16,7 @@ from typing import Any
 
 import pytest
 import trio
+from trio.testing import MockClock
 from trio_websocket import open_websocket_url
 
 from arena.robot import collision, planning
@@ -486,3 +488,47 @@ async def test_a_goal_in_the_table_or_a_box_is_refused_naming_it_whatever_the_so
                 if planned:
                     assert error["blocked"][1] == what, (body, error)
         assert {j.name: j.goal for j in robot.snapshot().joints} == start  # nothing moved
+
+
+@pytest.mark.parametrize("seed", range(14, 22))
+async def test_a_path_the_arm_trails_is_run_on_the_lines_that_were_checked(
+    autojump_clock: MockClock, manager: Any, seed: int
+) -> None:
+    # A path timed for an arm ten times as fast as this one: the trajectory trails the plan's
+    # poses. Two things keep it on the path that was checked: the player waits at each corner
+    # (the way from where the arm is to a pose past a corner cuts the corner, into the pillar:
+    # refused COLLISION; without the wait 4 of these 8 plans, 21 of 40), and a stream the
+    # limits hold back is held back with one factor for every joint (clipped joint by joint,
+    # the arm left the line between two poses: a collision stop in 3 of these 8 plans, 8 of
+    # 40). Every pose accepted, every target clear. (The planner's random numbers seeded: the
+    # same plans in every run.)
+    from arena.drivers.planned_move import PlannedMove
+
+    need("ompl", "plan")
+    model, start, goal, pillar = scene("so-arm100")
+    guard, workspace = guarded(model, pillar)
+    specs = tuple(dataclasses.replace(j, max_velocity=10 * j.max_velocity) for j in model.joints)
+    fast = dataclasses.replace(model, joints=specs)
+    planning.ompl_modules()[2].RNG.setSeed(seed)
+    path = planning.plan(fast, guard, workspace, start, goal, budget=GENEROUS)
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    recorder = RecordingSlave()
+    await robot.attach_slave(recorder)
+    from arena.robot.motion import Command
+
+    assert (await robot.command(Command.of(start))).accepted
+    await eventually(lambda: not robot.core.motion.moving, what="the arm at its start")
+    await robot.set_workspace(workspace)
+    player = PlannedMove(path)
+    await robot.attach_master(player)
+    await eventually(lambda: robot.snapshot().master is None, what="the planned move played")
+    await eventually(lambda: not robot.core.motion.moving, what="the arm at rest")
+    assert not player.refusals, player.refusals
+    assert player.sent == len(path.samples)
+    for _, joints in recorder.targets:
+        assert guard.hit(urdf(model, joints), workspace) is None, joints
+    assert robot.core.collision_stops == 0
+    await eventually(
+        lambda: recorder.targets[-1][1] == pytest.approx(goal, abs=1e-6),
+        what="the last target, on the goal, delivered",
+    )

@@ -23,6 +23,7 @@ from ruckig import (
     Trajectory,
 )
 
+from arena.robot import steps
 from arena.robot.commands import Clamp as Clamp
 from arena.robot.commands import Command as Command
 from arena.robot.commands import CommandResult as CommandResult
@@ -282,65 +283,26 @@ class MotionLimiter:
         if p0 == p1 == p2 and self._history_t[2] < sample - self._lead - TIME_DUST:
             self._history_t = _rest_times(sample - self._lead)
 
-    def _intervals(self, at: float) -> list[tuple[float, float, float, float]]:
-        """Per joint, what the last three targets allow a target at sample time `at`: the
-        interval of its step velocity (x - p0) / (at - t0) that keeps the acceleration and
-        jerk by divided differences within the limits, and the one the velocity allows
-        (the joint's limit and the move's cap)."""
-        t2, t1, t0 = self._history_t
-        p2, p1, p0 = self._history_p
-        h1, h2 = at - t1, at - t2
-        result = []
-        for k in range(len(self._names)):
-            d1 = (p0[k] - p1[k]) / (t0 - t1)
-            f2 = (d1 - (p1[k] - p2[k]) / (t1 - t2)) / (t0 - t2)  # acceleration / 2
-            spread_a = h1 * self._accel[k] / 2.0
-            low, high = d1 - spread_a, d1 + spread_a
-            mid, spread_j = d1 + h1 * f2, h1 * h2 * self._jerk[k] / 6.0
-            low_j, high_j = mid - spread_j, mid + spread_j
-            if low_j > high:  # (over the acceleration limit: brought back at the jerk's pace)
-                low = high = low_j
-            elif high_j < low:
-                low = high = high_j
-            else:
-                low, high = max(low, low_j), min(high, high_j)
-            cap = self._speeds[k]
-            result.append((low, high, -cap, cap))
-        return result
+    def _allowed(self, at: float) -> list[tuple[float, float]]:
+        """Each joint's interval of step velocity at sample time `at` (`steps.allowed`)."""
+        return steps.allowed(
+            self._history_t, self._history_p, at, self._accel, self._jerk, self._speeds
+        )
 
     def _emit(self, sample: float, candidates: list[float]) -> dict[str, float] | None:
-        """Emit the targets for `sample`: each joint's candidate, moved into what its limits
-        allow after the last three targets (acceleration and jerk first: a velocity the
-        history has already brought over a cap is brought down as fast as they allow)."""
+        """Emit the targets for `sample`: the candidates, or, where the limits after the last
+        three targets do not allow them, held back on the line toward them (`steps.held`)."""
         t0 = self._history_t[2]
         p0 = self._history_p[2]
-        h = sample - t0
+        out = steps.held(p0, candidates, self._allowed(sample), sample - t0)
+        self._behind = out is not None
+        if out is None:
+            out = candidates
+        else:
+            self.clipped += sum(a != b for a, b in zip(out, candidates, strict=True))
         position = self._position
-        out = []
         changed = False
-        behind = False
-        for k, (name, (low, high, slow, fast), want) in enumerate(
-            zip(self._names, self._intervals(sample), candidates, strict=True)
-        ):
-            if low < slow <= high or low <= fast < high:
-                low, high = max(low, slow), min(high, fast)
-            elif high <= slow:
-                low = high
-            elif low >= fast:
-                high = low
-            else:  # (the velocity interval holds the other)
-                pass
-            step = (want - p0[k]) / h
-            if step < low:
-                value = p0[k] + low * h
-            elif step > high:
-                value = p0[k] + high * h
-            else:
-                value = want
-            if value != want:
-                self.clipped += 1
-                behind = True
-            out.append(value)
+        for name, value in zip(self._names, out, strict=True):
             if position[name] != value:
                 position[name] = value
                 changed = True
@@ -348,7 +310,6 @@ class MotionLimiter:
         self._history_p = [self._history_p[1], p0, out]
         self._sampled = sample
         self._new_goal = False
-        self._behind = behind
         if self._tracking and not self._stream and self._at_rest_on_goals():
             self._tracking = False
         return position.copy() if changed else None
@@ -402,15 +363,17 @@ class MotionLimiter:
         it (a hand's move, a policy's smooth actions: passed on, no lag added); otherwise a
         step toward it no faster than stopping on it allows (a stream that jumps is
         approached without overshoot; one that stops dead is braked as the limits allow,
-        past its goal and back if it must), which `_emit` keeps within the limits."""
+        past its goal and back if it must), which `_emit` keeps within the limits. Joints
+        held back hold every joint to the line to the goals (`steps.on_line`): the way the
+        guard checked."""
         t1, t0 = self._history_t[1], self._history_t[2]
         p1, p0 = self._history_p[1], self._history_p[2]
         h = at - t0
         candidates = []
         goals, velocity = self._played()
         known = 1.0 if len(self._stamped) > 1 and self._stream else math.inf
-        for k, (low, high, slow, fast) in enumerate(self._intervals(at)):
-            goal = goals[k]
+        for k, (low, high) in enumerate(self._allowed(at)):
+            goal, fast = goals[k], self._speeds[k]
             step = (goal - p0[k]) / h
             was = (p0[k] - p1[k]) / (t0 - t1)
             accel = 2.0 * (step - was) / (at - t1)
@@ -420,7 +383,7 @@ class MotionLimiter:
             # (and, where the goals' velocity is known, not onto them much faster than they
             # move: an arm catching up on a hand that stops would overshoot it)
             if (
-                max(low, slow) <= step <= min(high, fast)
+                low <= step <= high
                 and -fast <= ahead <= fast
                 and abs(step - velocity[k]) <= known * self._accel[k] * h
             ):
@@ -436,7 +399,7 @@ class MotionLimiter:
             stop = brake * (math.sqrt(0.25 + 2.0 * max(0.0, distance) / (brake * h)) - 0.5)
             step = moving + max(-stop, min(stop, step - moving))
             candidates.append(p0[k] + max(-fast, min(fast, step)) * h)
-        return candidates
+        return steps.on_line(p0, goals, candidates)
 
     def _played(self) -> tuple[list[float], list[float]]:
         """The stream's newest goals and their velocity: a stamped stream's by its newest two

@@ -1,0 +1,125 @@
+"""The step a target may take after the last three, pure (used by `arena.robot.motion`): the
+interval the limits allow each joint by divided differences, and targets held back within them
+on the line the collision guard checked.
+
+A step's velocity is `(x - p0) / (at - t0)`, with `x` the new target at sample time `at` and
+`(t0, p0)` the last. Velocity, acceleration and jerk by divided differences over the last three
+targets and the new one are each linear in `x`: each limit is an interval of step velocities,
+and so is their intersection.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+#: Degrees of a joint's way to its aim under which it counts as already there (no line to
+#: keep to: a joint a step aims to leave where it is).
+STILL = 1e-9
+
+
+def allowed(
+    times: Sequence[float],
+    points: Sequence[Sequence[float]],
+    at: float,
+    accel: Sequence[float],
+    jerk: Sequence[float],
+    speeds: Sequence[float],
+) -> list[tuple[float, float]]:
+    """Each joint's interval of step velocity at sample time `at` after the targets `points`
+    at `times` (the last three, oldest first): acceleration and jerk within their limits, and
+    within `speeds` where they allow it (a velocity the history has already brought over a cap
+    is brought down as fast as they allow)."""
+    t2, t1, t0 = times
+    p2, p1, p0 = points
+    h1, h2 = at - t1, at - t2
+    result = []
+    for k in range(len(p0)):
+        d1 = (p0[k] - p1[k]) / (t0 - t1)
+        f2 = (d1 - (p1[k] - p2[k]) / (t1 - t2)) / (t0 - t2)  # acceleration / 2
+        spread_a = h1 * accel[k] / 2.0
+        low, high = d1 - spread_a, d1 + spread_a
+        mid, spread_j = d1 + h1 * f2, h1 * h2 * jerk[k] / 6.0
+        low_j, high_j = mid - spread_j, mid + spread_j
+        if low_j > high:  # (over the acceleration limit: brought back at the jerk's pace)
+            low = high = low_j
+        elif high_j < low:
+            low = high = high_j
+        else:
+            low, high = max(low, low_j), min(high, high_j)
+        slow, fast = -speeds[k], speeds[k]
+        if low < slow <= high or low <= fast < high:
+            low, high = max(low, slow), min(high, fast)
+        elif high <= slow:
+            low = high
+        elif low >= fast:
+            high = low
+        result.append((low, high))
+    return result
+
+
+def on_line(p0: Sequence[float], aims: Sequence[float], wants: list[float]) -> list[float]:
+    """`wants` (each joint's own step toward `aims`) moved onto the line from `p0` to `aims`,
+    as far along it as the joint that goes the smallest part of its way: the targets of a
+    stream held back stay on the straight line the guard checked to its newest goal. Where a
+    joint's own step turns back (it must pass its aim and return), there is no such point:
+    `wants` as they are."""
+    part = 1.0
+    for start, aim, want in zip(p0, aims, wants, strict=True):
+        way = aim - start
+        if abs(way) > STILL:
+            share = (want - start) / way
+            if share < 0.0:
+                return wants
+            part = min(part, share)
+    if part == 1.0:
+        return wants
+    return [
+        start + part * (aim - start) if abs(aim - start) > STILL else want
+        for start, aim, want in zip(p0, aims, wants, strict=True)
+    ]
+
+
+def held(
+    p0: Sequence[float], wants: Sequence[float], bounds: Sequence[tuple[float, float]], h: float
+) -> list[float] | None:
+    """Targets within `bounds` (`allowed`) a step of `h` seconds after `p0`, toward `wants`;
+    None when `wants` are within them already. One factor for every joint where one suits
+    them all (the farthest along the line from `p0` to `wants`: the arm holds to the line the
+    guard checked); each joint its own nearest otherwise (a motion under way that must bend
+    off the line to keep within the limits). A joint that is not to move but cannot stop at
+    once is held on its own, the rest on the line."""
+    inside = True
+    least, most = 0.0, 1.0
+    loose = []
+    for k, ((low, high), want) in enumerate(zip(bounds, wants, strict=True)):
+        way = want - p0[k]
+        step = way / h
+        if step < low or step > high:
+            inside = False
+        if abs(way) <= STILL:
+            if low * h > STILL or high * h < -STILL:
+                loose.append(k)
+            continue
+        a, b = low * h / way, high * h / way
+        if way < 0.0:
+            a, b = b, a
+        least, most = max(least, a), min(most, b)
+    if inside:
+        return None
+    if least <= most:
+        out = [p0[k] + most * (want - p0[k]) for k, want in enumerate(wants)]
+        for k in loose:
+            out[k] = _nearest(p0[k], wants[k], bounds[k], h)
+        return out
+    return [_nearest(p0[k], want, bounds[k], h) for k, want in enumerate(wants)]
+
+
+def _nearest(p0: float, want: float, bound: tuple[float, float], h: float) -> float:
+    """One joint's target nearest `want` within its interval of step velocity."""
+    low, high = bound
+    step = (want - p0) / h
+    if step < low:
+        return p0 + low * h
+    if step > high:
+        return p0 + high * h
+    return want
