@@ -142,6 +142,9 @@ class BusWorker:
         self._goals: dict[int, int] | None = None
         self._jobs: list[tuple[Callable[[ServoBus], object], Future[object]]] = []
         self._stopping = threading.Event()
+        # Set by whatever wants the thread between two cycles (goals, a job, the stop): goals
+        # are written when they come, not at the next cycle (a tick's wait off every target).
+        self._wake = threading.Event()
         self._thread = threading.Thread(target=self._main, name="servo-bus", daemon=True)
 
     # -- other threads ------------------------------------------------------------------------
@@ -154,6 +157,7 @@ class BusWorker:
         """Torque off (or as `torque_at_exit` says), close the port, end the thread (blocks until
         it has)."""
         self._stopping.set()
+        self._wake.set()
         if self._thread.is_alive():
             self._thread.join(timeout)
 
@@ -166,6 +170,7 @@ class BusWorker:
             if self._bus is None:
                 return
             self._goals = dict(goals) if self._goals is None else {**self._goals, **goals}
+        self._wake.set()
 
     def clear_goals(self) -> None:
         """Drop goals not yet written."""
@@ -173,7 +178,8 @@ class BusWorker:
             self._goals = None
 
     def submit(self, job: Callable[[ServoBus], T]) -> Future[T]:
-        """Run `job(bus)` in the worker thread between cycles (fails at once if the bus is away)."""
+        """Run `job(bus)` in the worker thread as soon as the cycle under way ends (fails at
+        once if the bus is away)."""
         future: Future[T] = Future()
         with self._lock:
             if self._bus is None:
@@ -182,6 +188,7 @@ class BusWorker:
                 )
                 return future
             self._jobs.append((job, future))  # type: ignore[arg-type]
+        self._wake.set()
         return future
 
     @property
@@ -244,10 +251,34 @@ class BusWorker:
                 next_cycle += period
                 delay = next_cycle - time.monotonic()
                 if delay > 0:
-                    self._stopping.wait(delay)
+                    try:
+                        self._between(next_cycle)
+                    except BusError as exc:
+                        self._lose(exc.message)
                 else:
                     next_cycle = time.monotonic()  # fell behind: do not try to catch up
             self.stats.thread_cpu = time.thread_time()
+
+    def _between(self, until: float) -> None:
+        """Wait for the next cycle (`until`, monotonic), running jobs and writing goals as
+        they come (at most one write between two cycles: goals that come faster merge, the
+        newest wins, as at a cycle)."""
+        wrote = False
+        while not self._stopping.is_set():
+            delay = until - time.monotonic()
+            if delay <= 0 or not self._wake.wait(delay):
+                return
+            self._wake.clear()  # (before looking: a wake after this is seen at the next wait)
+            self._run_jobs()
+            if self._bus is None:
+                return  # (a job lost it: the loop connects again)
+            if wrote:
+                continue
+            with self._lock:
+                goals, self._goals = self._goals, None
+            if goals:
+                self._bus.write_goals(goals)
+                wrote = True
 
     def _try_connect(self, again: bool) -> bool:
         bus = self.open_bus()
