@@ -932,7 +932,10 @@ async def test_deleting_a_robot_under_load_stops_its_drivers(
         await manager.delete("arm")
     assert robot.stopped.is_set()
     assert flood_results[-1] is ErrorCode.ROBOT_STOPPED
-    assert mock.notices[-1].kind is NoticeKind.SHUTDOWN
+    # The driver ended: at the shutdown notice, or cancelled where it was (between two
+    # targets, the simulated latency), never left running.
+    assert mock.received > 0 and not mock.running
+    assert all(notice.kind is NoticeKind.SHUTDOWN for notice in mock.notices)
     messages = []
     with pytest.raises(trio.EndOfChannel):
         while True:

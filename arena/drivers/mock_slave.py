@@ -40,11 +40,21 @@ class MockSlave:
         self.dropped_updates = 0
         self.injected_faults: list[Severity] = []
         self.notices: list[SlaveNotice] = []
+        #: True while `run` runs (a robot going away ends it: at its shutdown notice, or
+        #: cancelled wherever it is).
+        self.running = False
 
     async def run(self, link: SlaveLink) -> None:
         """Follow targets until detached."""
         rng = random.Random(self.config.seed)
         delay = (self.config.simulate_latency + self.config.response_delay) / 1000.0
+        self.running = True
+        try:
+            await self._follow(link, rng, delay)
+        finally:
+            self.running = False
+
+    async def _follow(self, link: SlaveLink, rng: random.Random, delay: float) -> None:
         # A simulated arm starts at rest in its neutral pose, and says so.
         self.positions = dict.fromkeys(link.robot.model.joint_names, 0.0)
         await link.report_joint_states(self.positions)
