@@ -935,7 +935,6 @@ async def test_deleting_a_robot_under_load_stops_its_drivers(
     # The driver ended: at the shutdown notice, or cancelled where it was (between two
     # targets, the simulated latency), never left running.
     assert mock.received > 0 and not mock.running
-    assert all(notice.kind is NoticeKind.SHUTDOWN for notice in mock.notices)
     messages = []
     with pytest.raises(trio.EndOfChannel):
         while True:
