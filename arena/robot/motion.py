@@ -266,8 +266,9 @@ class MotionLimiter:
                 self._stream = False  # overdue: it ended; to rest on its last goal
             if not self._new_goal and self._stream and not self._behind:
                 return None  # (a stream on time: its next goal, not a guess, moves it on)
-            candidates = self._track(sample)
-        elif self._trajectory is not None:
+            candidates, bounds = self._track(sample)
+            return self._emit(sample, candidates, bounds)
+        if self._trajectory is not None:
             candidates = self._sample(sample)
         elif self._position != self._goals:  # at rest on a plan's end, or clipped short
             candidates = [self._goals[name] for name in self._names]
@@ -289,12 +290,19 @@ class MotionLimiter:
             self._history_t, self._history_p, at, self._accel, self._jerk, self._speeds
         )
 
-    def _emit(self, sample: float, candidates: list[float]) -> dict[str, float] | None:
+    def _emit(
+        self,
+        sample: float,
+        candidates: list[float],
+        bounds: list[tuple[float, float]] | None = None,
+    ) -> dict[str, float] | None:
         """Emit the targets for `sample`: the candidates, or, where the limits after the last
         three targets do not allow them, held back on the line toward them (`steps.held`)."""
         t0 = self._history_t[2]
         p0 = self._history_p[2]
-        out = steps.held(p0, candidates, self._allowed(sample), sample - t0)
+        if bounds is None:
+            bounds = self._allowed(sample)
+        out = steps.held(p0, candidates, bounds, sample - t0)
         self._behind = out is not None
         if out is None:
             out = candidates
@@ -357,7 +365,7 @@ class MotionLimiter:
             acceleration.append(max(-limit, min(limit, 2.0 * f2)) * (1.0 - 1e-6))
         return list(p0), velocity, acceleration
 
-    def _track(self, at: float) -> list[float]:
+    def _track(self, at: float) -> tuple[list[float], list[tuple[float, float]]]:
         """A stream's candidates at sample time `at`: each joint's goal itself when the
         limits allow it there and the joint could still keep under its velocity cap after
         it (a hand's move, a policy's smooth actions: passed on, no lag added); otherwise a
@@ -365,14 +373,15 @@ class MotionLimiter:
         approached without overshoot; one that stops dead is braked as the limits allow,
         past its goal and back if it must), which `_emit` keeps within the limits. Joints
         held back hold every joint to the line to the goals (`steps.on_line`): the way the
-        guard checked."""
+        guard checked. Returns them and the limits' intervals at `at` (`_emit`'s too)."""
         t1, t0 = self._history_t[1], self._history_t[2]
         p1, p0 = self._history_p[1], self._history_p[2]
         h = at - t0
         candidates = []
         goals, velocity = self._played()
         known = 1.0 if len(self._stamped) > 1 and self._stream else math.inf
-        for k, (low, high) in enumerate(self._allowed(at)):
+        bounds = self._allowed(at)
+        for k, (low, high) in enumerate(bounds):
             goal, fast = goals[k], self._speeds[k]
             step = (goal - p0[k]) / h
             was = (p0[k] - p1[k]) / (t0 - t1)
@@ -397,9 +406,17 @@ class MotionLimiter:
             distance = abs(goal - p0[k]) - abs(was - moving) * h
             brake = self._accel[k] * h
             stop = brake * (math.sqrt(0.25 + 2.0 * max(0.0, distance) / (brake * h)) - 0.5)
-            step = moving + max(-stop, min(stop, step - moving))
-            candidates.append(p0[k] + max(-fast, min(fast, step)) * h)
-        return steps.on_line(p0, goals, candidates)
+            ahead = moving + max(-stop, min(stop, step - moving))
+            # Never past the goal nor away from it: the goals' velocity is their last, not
+            # their next (the ticks carried an arm trailing a flick on at it past where the
+            # hand stopped: 2 degrees); a motion the limits cannot stop in time is carried on
+            # by `_emit`, as little as they allow.
+            if step >= 0.0:
+                ahead = 0.0 if ahead < 0.0 else step if ahead > step else ahead
+            else:
+                ahead = step if ahead < step else 0.0 if ahead > 0.0 else ahead
+            candidates.append(p0[k] + max(-fast, min(fast, ahead)) * h)
+        return steps.on_line(p0, goals, candidates), bounds
 
     def _played(self) -> tuple[list[float], list[float]]:
         """The stream's newest goals and their velocity: a stamped stream's by its newest two

@@ -40,15 +40,23 @@ def allowed(
         low, high = d1 - spread_a, d1 + spread_a
         mid, spread_j = d1 + h1 * f2, h1 * h2 * jerk[k] / 6.0
         low_j, high_j = mid - spread_j, mid + spread_j
+        # (comparisons, not min and max: this runs for every joint of every target)
         if low_j > high:  # (over the acceleration limit: brought back at the jerk's pace)
             low = high = low_j
         elif high_j < low:
             low = high = high_j
         else:
-            low, high = max(low, low_j), min(high, high_j)
-        slow, fast = -speeds[k], speeds[k]
+            if low_j > low:
+                low = low_j
+            if high_j < high:
+                high = high_j
+        fast = speeds[k]
+        slow = -fast
         if low < slow <= high or low <= fast < high:
-            low, high = max(low, slow), min(high, fast)
+            if slow > low:
+                low = slow
+            if fast < high:
+                high = fast
         elif high <= slow:
             low = high
         elif low >= fast:
