@@ -136,7 +136,7 @@ def fast_type(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> str:
     folder = tmp_path / "types" / "fast-arm"
     shutil.copytree(BUILTIN_TYPES_DIR / "so-arm100", folder)
     urdf = folder / "so-arm100.urdf"
-    fast = urdf.read_text(encoding="utf-8").replace('velocity="4.712"', 'velocity="100000"')
+    fast = urdf.read_text(encoding="utf-8").replace('velocity="4.71239"', 'velocity="100000"')
     assert fast.count('velocity="100000"') == 6
     urdf.write_text(fast, encoding="utf-8")
     monkeypatch.setenv("ARENA_ROBOT_TYPES", str(tmp_path / "types"))

@@ -48,7 +48,7 @@ def test_limits_come_from_the_urdf_in_wire_degrees() -> None:
     assert pitch.to_urdf(pitch.lower) == pytest.approx(0.0)
     assert pitch.to_urdf(pitch.upper) == pytest.approx(3.5)
     for joint in model.joints:
-        assert joint.max_velocity == pytest.approx(math.degrees(4.712))  # the STS3215's
+        assert joint.max_velocity == pytest.approx(math.degrees(4.71239))  # the STS3215's
 
 
 def test_seed_example_values_are_valid_targets() -> None:
