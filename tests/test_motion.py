@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 
 import pytest
@@ -328,8 +329,33 @@ def test_a_join_never_outruns_its_speed_and_arrives(
     final = dict(zip(names, steps[-1][1], strict=True))
     needed = max(abs(final[name] - last[name]) for name in names) / speed
     assert ramp.arrived(final) == (needed == 0.0)
-    ramp.advance(final, now + needed + 1e-6)  # (1 us: the rounding of `needed`)
+    # (and the time to get to the speed at the acceleration limit; 1 us: the rounding)
+    ramp.advance(final, now + needed + speed / MODEL.joints[0].max_acceleration + 1e-6)
     assert ramp.arrived(final)
+
+
+@pytest.mark.parametrize(("speed", "distance"), [(90.0, 30.0), (15.0, 3.0), (90.0, 0.3)])
+def test_a_join_starts_from_rest_and_lands_within_the_acceleration_limit(
+    speed: float, distance: float
+) -> None:
+    # At the control ticks (100 Hz), from rest to rest on the robot's pose: no velocity change
+    # between two ticks over the acceleration limit (velocity-limited only, the join went from
+    # rest to 90 deg/s in one tick: 9,000 deg/s^2 where the so-arm100's limit is 8,100).
+    names = MODEL.joint_names
+    ramp = JoinRamp(MODEL, dict.fromkeys(names, 0.0), speed, 0.0)
+    goal = {**dict.fromkeys(names, 0.0), "Rotation": distance}
+    positions, now = [0.0, 0.0], 0.0
+    while not ramp.arrived(goal):
+        now += 0.01
+        ramp.advance(goal, now)
+        positions.append(ramp.positions["Rotation"])
+        assert now < 5.0
+    positions.append(distance)  # (at rest there)
+    velocities = [(b - a) / 0.01 for a, b in itertools.pairwise(positions)]
+    assert max(abs(v) for v in velocities) <= speed + 1e-9
+    limit = MODEL.joints[0].max_acceleration
+    for before, after in itertools.pairwise(velocities):
+        assert abs(after - before) / 0.01 <= limit * (1 + 1e-9), velocities
 
 
 def test_a_join_moves_no_joint_faster_than_its_own_velocity_limit() -> None:

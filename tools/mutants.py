@@ -120,13 +120,24 @@ HAND_WRITTEN: tuple[HandMutant, ...] = (
     HandMutant(
         "ramps",
         "arena/robot/ramps.py",
-        "step = self._speeds[name] * elapsed",
-        "step = self._speeds[name] * elapsed * 1.5",
+        "min(self._speeds[name], stop)",
+        "min(self._speeds[name] * 1.5, stop)",
         (
             "tests/test_joining.py::"
             "test_an_arm_joining_a_mastered_robot_is_brought_to_its_pose_at_the_joining_speed",
         ),
         "a joining arm brought to the robot's pose half again as fast as the joining speed",
+    ),
+    HandMutant(
+        "ramps",
+        "arena/robot/ramps.py",
+        "change = accel * elapsed",
+        "change = accel * elapsed * 1.5",
+        (
+            "tests/test_motion.py::"
+            "test_a_join_starts_from_rest_and_lands_within_the_acceleration_limit",
+        ),
+        "a joining arm's velocity changed half again as fast as the acceleration limit",
     ),
 )
 

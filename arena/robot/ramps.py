@@ -36,22 +36,33 @@ class RateLimiter:
         return False
 
 
+#: Degrees within which a joining joint given any time at all lands on its goal (a distance
+#: whose braking speed underflows).
+LANDING = 1e-12
+
+
 class JoinRamp:
     """A measuring slave's own targets while it joins: from where its arm is toward the robot's
-    targets, each joint at no more than `speed` deg/s (or its own lower velocity limit).
+    targets, each joint at no more than `speed` deg/s (or its own lower velocity limit), its
+    velocity changed at no more than the joint's acceleration limit: it starts from rest and
+    brakes to land on the robot's pose.
 
     For any two targets it gives at times t1 <= t2 (the first compared with the measured
-    start), per joint: |x2 - x1| <= speed * (t2 - t1). No burst allowance: a joining arm is
-    the one place where the robot does not know that the way is clear, so it never jumps.
+    start), per joint: |x2 - x1| <= speed * (t2 - t1), and the velocity between two targets
+    differs from the one before by at most the acceleration limit times the time between
+    them. No burst allowance: a joining arm is the one place where the robot does not know
+    that the way is clear, so it never jumps.
     """
 
-    __slots__ = ("_last", "_speeds", "positions")
+    __slots__ = ("_accels", "_last", "_speeds", "_velocity", "positions")
 
     def __init__(
         self, model: RobotModel, start: Mapping[str, float], speed: float, now: float
     ) -> None:
         self.positions = {j.name: float(start[j.name]) for j in model.joints}
         self._speeds = {j.name: min(speed, j.max_velocity) for j in model.joints}
+        self._accels = {j.name: j.max_acceleration for j in model.joints}
+        self._velocity = dict.fromkeys(self.positions, 0.0)
         self._last = now
 
     def advance(self, goal: Mapping[str, float], now: float) -> dict[str, float] | None:
@@ -63,12 +74,28 @@ class JoinRamp:
         for name, position in self.positions.items():
             delta = goal[name] - position
             if delta == 0.0:
+                self._velocity[name] = 0.0
                 continue
-            step = self._speeds[name] * elapsed
-            self.positions[name] = (
-                goal[name] if abs(delta) <= step else position + math.copysign(step, delta)
-            )
-            changed = changed or step > 0.0
+            # The speed from which braking at the acceleration limit, step by step, stops on
+            # the goal (`MotionLimiter._track`'s), and no more than that limit's change from
+            # the last step's.
+            accel, was = self._accels[name], self._velocity[name]
+            brake = accel * elapsed
+            reach = 2.0 * accel * abs(delta)
+            # stop = brake (sqrt(1/4 + 2 d / (brake dt)) - 1/2), in a form without cancellation
+            stop = reach / (math.sqrt(brake * brake / 4.0 + reach) + brake / 2.0) if reach else 0.0
+            wanted = math.copysign(min(self._speeds[name], stop), delta)
+            change = accel * elapsed
+            velocity = max(was - change, min(was + change, wanted))
+            step = velocity * elapsed
+            if elapsed and (
+                abs(delta) <= LANDING or (step * delta > 0.0 and abs(step) >= abs(delta))
+            ):
+                # (it gets there, or is within float dust of it: land on it)
+                self.positions[name], self._velocity[name] = goal[name], 0.0
+            else:
+                self.positions[name], self._velocity[name] = position + step, velocity
+            changed = changed or self.positions[name] != position
         return dict(self.positions) if changed else None
 
     def arrived(self, goal: Mapping[str, float]) -> bool:
