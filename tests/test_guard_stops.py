@@ -98,6 +98,11 @@ async def block_the_way(
     with trio.fail_after(timeout):
         while not on_the_way(await moving.get()):
             pass
+    await put_pillar(http, robot)
+
+
+async def put_pillar(http: Any, robot: Robot) -> None:
+    """The pillar put in the workspace, the robot type's table kept."""
     put = await http.put(f"/api/robots/{robot.robot_id}/workspace", json={"keep_out": [PILLAR]})
     assert put.status_code == 200, put.text
     assert put.json()["floor"] == robot.model.workspace.floor
@@ -254,3 +259,63 @@ async def test_a_remote_script_is_told_too(start_server: Any, tmp_path: Path) ->
     assert robot.snapshot().joint("Rotation").goal == -10
     async with server.client() as http:
         assert "pillar" in (await http.get(ROBOT)).json()["last_stop"]["blocked"]
+
+
+async def test_a_rest_move_waited_for_is_answered_when_it_ends(server: RunningServer) -> None:
+    # `wait`: the answer is held until the arm is on its goals (`arrived`), until the guard
+    # stops it on its way (COLLISION, 422, as the stop says), or until an e-stop (ESTOPPED,
+    # 423); another command's goals, or the time running out, answer `arrived: false` and
+    # why. Waits are for events: the pillar goes in once the arm is on its way.
+    robot = server.app.manager.get("demo-arm")
+    waited = {**SLOW, "wait": WAIT}
+    async with server.client() as http:
+        near = {"joints": [{"name": "Rotation", "value": 5.0}], "wait": WAIT}
+        answer = await http.put(f"{ROBOT}/joints", json=near)
+        assert answer.status_code == 200, answer.text
+        assert answer.json()["arrived"] is True and answer.json()["status"] == "accepted"
+        assert robot.snapshot().joints[0].virtual_value == 5.0  # there when answered
+
+        answers: list[Any] = []
+
+        async def put(body: dict[str, Any]) -> None:
+            answers.append(await http.put(f"{ROBOT}/joints", json=body))
+
+        async def stopped_on_the_way(then: Any) -> Any:
+            answers.clear()
+            with robot.subscribe(kinds=[TargetsSent]) as moving, trio.fail_after(WAIT):
+                async with trio.open_nursery() as nursery:
+                    nursery.start_soon(put, waited)
+                    while not on_the_way(await moving.get()):
+                        pass
+                    await then()
+            return answers[0]
+
+        # the guard stops it
+        answer = await stopped_on_the_way(lambda: put_pillar(http, robot))
+        assert answer.status_code == 422, answer.text
+        error = answer.json()["error"]
+        assert error["code"] == "COLLISION" and "holds at Rotation" in error["message"], error
+        await http.put(f"{ROBOT}/workspace", json={"keep_out": []})
+        assert (await http.put(f"{ROBOT}/joints", json=near)).json()["arrived"] is True
+
+        # an e-stop
+        answer = await stopped_on_the_way(lambda: http.post(f"{ROBOT}/estop", json={}))
+        assert answer.status_code == 423, answer.text
+        assert answer.json()["error"]["code"] == "ESTOPPED", answer.text
+        assert (await http.post(f"{ROBOT}/reset")).status_code == 200
+        assert (await http.put(f"{ROBOT}/joints", json=near)).json()["arrived"] is True
+
+        # another command
+        back = {"joints": [{"name": "Rotation", "value": 0.0}]}
+        answer = await stopped_on_the_way(lambda: http.put(f"{ROBOT}/joints", json=back))
+        assert answer.status_code == 200, answer.text
+        assert answer.json()["arrived"] is False and "another command" in answer.json()["why"]
+
+        # the time (half a second of a move of seconds)
+        answer = await http.put(f"{ROBOT}/joints", json={**SLOW, "wait": 0.5})
+        assert answer.status_code == 200, answer.text
+        assert answer.json() | {"arrived": False, "why": "not there after 0.5 s"} == answer.json()
+
+        # a wait out of bounds is refused before anything moves
+        answer = await http.put(f"{ROBOT}/joints", json={**SLOW, "wait": 1e6})
+        assert answer.status_code == 422 and "wait" in answer.json()["error"]["message"]

@@ -32,11 +32,19 @@ class CreateRobotBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=
     tenant: Annotated[str, msgspec.Meta(pattern=TENANT_PATTERN)] | None = None
 
 
+#: Seconds a REST move may be waited for (`wait`).
+MAX_WAIT = 120.0
+
+
 class JointsBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
-    """`PUT /api/robots/{id}/joints`: manual control. `duration` is in milliseconds."""
+    """`PUT /api/robots/{id}/joints`: manual control. `duration` is in milliseconds. `wait`:
+    seconds to hold the answer until the arm is on its goals (`arrived`), a collision stop or
+    an e-stop ends the move short (COLLISION, ESTOPPED), or the time runs out (`arrived`
+    false, and `why`); absent: answered at acceptance."""
 
     joints: list[JointValue]
     duration: float | None = None
+    wait: Annotated[float, msgspec.Meta(gt=0, le=MAX_WAIT)] | None = None
 
 
 class ReasonBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=True):
@@ -139,7 +147,7 @@ class RemoteLinkBody(msgspec.Struct, omit_defaults=True, forbid_unknown_fields=T
     url: ServerUrl
     robotId: RemoteRobotId | None = None
     apiKey: str | None = None
-    heartbeat: Annotated[float, msgspec.Meta(gt=0, le=3600)] = 30.0
+    heartbeat: Annotated[float, msgspec.Meta(gt=0, le=3600.0)] = 30.0
     reconnectInitial: Annotated[float, msgspec.Meta(gt=0, le=60)] = 0.5
     reconnectMax: Annotated[float, msgspec.Meta(gt=0, le=600)] = 30.0
 

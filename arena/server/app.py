@@ -68,7 +68,7 @@ from arena.server.hand_api import blueprint as hand_blueprint
 from arena.server.health import blueprint as health_blueprint
 from arena.server.identity import Principal, TokenVerifier
 from arena.server.interventions_api import blueprint as interventions_blueprint
-from arena.server.manual import operator_of, refusal
+from arena.server.manual import move, operator_of, refusal
 from arena.server.metrics import Metrics
 from arena.server.move_api import blueprint as move_blueprint
 from arena.server.origin import SAFE_METHODS, OriginPolicy, is_json
@@ -417,13 +417,19 @@ def _register_routes(app: ArenaApp) -> None:
     async def put_joints(robot_id: str) -> dict[str, Any]:
         robot = manager.get(robot_id)
         body = await read_body(JointsBody)
-        result = await robot.command(
+        result, short = await move(
+            robot,
             convert.command_from_wire(body.joints, body.duration, {"source": "rest"}),
             operator_of(robot, g.principal),  # an operator's intervention: as its master
+            body.wait,
         )
         if not result.accepted:
             raise refusal(robot, result)
         ack: dict[str, Any] = msgspec.to_builtins(convert.ack(result).data)
+        if body.wait:
+            ack["arrived"] = short is None
+            if short is not None:
+                ack["why"] = short
         return ack
 
     @app.get("/api/robots/<robot_id>/workspace")

@@ -7,9 +7,14 @@ An operator who intervenes with `POST .../intervention {}` is the robot's master
 
 from __future__ import annotations
 
+import trio
+
 from arena.protocol.errors import ArenaError, ErrorCode
+from arena.robot.core import MANUAL_SOURCE
+from arena.robot.events import MotionStopped, StateChanged, TargetsSent
 from arena.robot.handle import Robot
-from arena.robot.motion import CommandResult
+from arena.robot.motion import Command, CommandResult
+from arena.robot.safety import Mode
 from arena.server.identity import Principal
 
 #: The kind of the master an operator intervenes as over REST (`PUT .../joints`).
@@ -62,3 +67,47 @@ def refusal(robot: Robot, result: CommandResult) -> ArenaError:
         if found is not None:
             return found
     return ArenaError(result.code, result.message)
+
+
+async def move(
+    robot: Robot, command: Command, master_id: str | None, wait: float | None
+) -> tuple[CommandResult, str | None]:
+    """Command `robot` as `master_id` (None: manual control). With `wait` seconds, answer when
+    the arm is on the goals the command set (its targets there, at rest), not at acceptance:
+    the result and None; or why it is not there (another command moved the goals, or the time
+    ran out). A move the collision guard stops on its way raises its COLLISION, and an e-stop
+    ESTOPPED: the move ended short (the robot's `last_stop` says where the arm holds)."""
+    if not wait:
+        return await robot.command(command, master_id), None
+    source = master_id or MANUAL_SOURCE
+    with robot.subscribe(kinds=(TargetsSent, MotionStopped, StateChanged)) as events:
+        result = await robot.command(command, master_id)
+        if not result.accepted:
+            return result, None
+        goals = _goals(robot)
+        with trio.move_on_after(wait):
+            while not _at(robot, goals):
+                try:
+                    event = await events.get()
+                except trio.EndOfChannel:
+                    raise ArenaError(
+                        ErrorCode.ROBOT_STOPPED, "The robot stopped before the arm got there."
+                    ) from None
+                if isinstance(event, MotionStopped) and event.source == source:
+                    raise ArenaError(ErrorCode.COLLISION, event.message)
+                if isinstance(event, StateChanged) and event.mode is Mode.ESTOPPED:
+                    why = event.estop_reason or event.cause
+                    raise ArenaError(ErrorCode.ESTOPPED, f"E-stopped on the way ({why}).")
+                if _goals(robot) != goals:
+                    return result, "another command changed the goals before the arm got there"
+            return result, None
+        return result, f"not there after {wait:g} s"
+
+
+def _goals(robot: Robot) -> dict[str, float]:
+    return {joint.name: joint.goal for joint in robot.snapshot().joints}
+
+
+def _at(robot: Robot, goals: dict[str, float]) -> bool:
+    """Whether every joint's target is on `goals` (a trajectory's last target is its goal)."""
+    return all(joint.virtual_value == goals[joint.name] for joint in robot.snapshot().joints)
