@@ -96,14 +96,16 @@ def held(
     guard checked); each joint its own nearest otherwise (a motion under way that must bend
     off the line to keep within the limits). A joint that is not to move but cannot stop at
     once is held on its own, the rest on the line."""
-    inside = True
+    for k, (low, high) in enumerate(bounds):  # (the common case first: nothing to hold back)
+        step = (wants[k] - p0[k]) / h
+        if step < low or step > high:
+            break
+    else:
+        return None
     least, most = 0.0, 1.0
     loose = []
     for k, ((low, high), want) in enumerate(zip(bounds, wants, strict=True)):
         way = want - p0[k]
-        step = way / h
-        if step < low or step > high:
-            inside = False
         if abs(way) <= STILL:
             if low * h > STILL or high * h < -STILL:
                 loose.append(k)
@@ -112,8 +114,6 @@ def held(
         if way < 0.0:
             a, b = b, a
         least, most = max(least, a), min(most, b)
-    if inside:
-        return None
     if least <= most:
         out = [p0[k] + most * (want - p0[k]) for k, want in enumerate(wants)]
         for k in loose:
