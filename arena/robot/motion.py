@@ -404,8 +404,7 @@ class MotionLimiter:
             # step on (the jerk's ramp to that braking).
             moving = max(-fast, min(fast, velocity[k]))
             distance = abs(goal - p0[k]) - abs(was - moving) * h
-            brake = self._accel[k] * h
-            stop = brake * (math.sqrt(0.25 + 2.0 * max(0.0, distance) / (brake * h)) - 0.5)
+            stop = steps.stopping_speed(distance, self._accel[k], h)
             ahead = moving + max(-stop, min(stop, step - moving))
             # Never past the goal nor away from it: the goals' velocity is their last, not
             # their next (the ticks carried an arm trailing a flick on at it past where the

@@ -8,6 +8,7 @@ import math
 from collections.abc import Mapping
 
 from arena.robot.model import RobotModel
+from arena.robot.steps import stopping_speed
 
 
 class RateLimiter:
@@ -77,13 +78,10 @@ class JoinRamp:
                 self._velocity[name] = 0.0
                 continue
             # The speed from which braking at the acceleration limit, step by step, stops on
-            # the goal (`MotionLimiter._track`'s), and no more than that limit's change from
-            # the last step's.
+            # the goal (`steps.stopping_speed`, as a held-back stream's), and no more than that
+            # limit's change from the last step's.
             accel, was = self._accels[name], self._velocity[name]
-            brake = accel * elapsed
-            reach = 2.0 * accel * abs(delta)
-            # stop = brake (sqrt(1/4 + 2 d / (brake dt)) - 1/2), in a form without cancellation
-            stop = reach / (math.sqrt(brake * brake / 4.0 + reach) + brake / 2.0) if reach else 0.0
+            stop = stopping_speed(abs(delta), accel, elapsed)
             wanted = math.copysign(min(self._speeds[name], stop), delta)
             change = accel * elapsed
             velocity = max(was - change, min(was + change, wanted))

@@ -10,6 +10,7 @@ and so is their intersection.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
 #: Degrees of a joint's way to its aim under which it counts as already there (no line to
@@ -120,6 +121,18 @@ def held(
             out[k] = _nearest(p0[k], wants[k], bounds[k], h)
         return out
     return [_nearest(p0[k], want, bounds[k], h) for k, want in enumerate(wants)]
+
+
+def stopping_speed(distance: float, accel: float, h: float) -> float:
+    """The speed from which braking at `accel`, a step of `h` seconds at a time, stops within
+    `distance` (a speed v, v - accel h, v - 2 accel h, ... whose steps add up to it):
+    accel h (sqrt(1/4 + 2 d / (accel h^2)) - 1/2), in a form without cancellation (a
+    distance of float dust still gives a speed) and without dividing by h (0 when h is)."""
+    if distance <= 0.0:
+        return 0.0
+    brake = accel * h
+    reach = 2.0 * accel * distance
+    return reach / (math.sqrt(brake * brake / 4.0 + reach) + brake / 2.0)
 
 
 def _nearest(p0: float, want: float, bound: tuple[float, float], h: float) -> float:
