@@ -6,6 +6,7 @@ lag against main's, on a machine whose load changes by the minute).
     python tools/versus_tree.py core OTHER_TREE [--rounds 3]
     python tools/versus_tree.py teleop OTHER_TREE [--rounds 3]
     python tools/versus_tree.py sweep OTHER_TREE [--rounds 3]
+    python tools/versus_tree.py instructions OTHER_TREE
 
 OTHER_TREE is the root of another checkout (`git archive main | tar -x -C DIR`); this file's
 tree is the other side. The fleet is `arena bench fleet`'s (100 robots, a master at 50 Hz and
@@ -18,7 +19,12 @@ work alone, in process and on simulated time: 100 `RobotCore`s with the fleet's 
 (Rotation and Elbow alternating 0.001 degree, 50 Hz each), ticked as the actor ticks them,
 10 s; then every joint on a 12-degree sine (a teleoperation stream). Its figure is the
 process's own CPU time (`time.process_time`), which a loaded machine leaves honest where the
-fleet's server CPU share is only what the machine gave it.
+fleet's server CPU share is only what the machine gave it. `instructions` is `core`'s work
+counted in machine instructions under valgrind's callgrind (10 robots: the fleet's commands
+for 20 s, the sine for 6 s; less each tree's own start-up, counted with no commands; what
+start-up made frozen, as `arena serve` does, so that a full collection's count is the same
+in both trees): the same on every run and every machine load, where CPU seconds on a shared
+machine are not.
 """
 
 from __future__ import annotations
@@ -81,6 +87,60 @@ print(json.dumps({"core_fleet_cpu_s": fleet[0], "core_fleet_targets": fleet[1],
 """
 
 
+_COUNTED = """
+import dataclasses, gc, math, sys
+from arena.robot.core import RobotCore
+from arena.robot.model import load_robot_model
+from arena.robot.motion import Command, JointGoal
+
+which, robots, steps = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
+model = load_robot_model("so-arm100")
+policy = dataclasses.replace(model.safety, command_rate=1e9, command_burst=10**9)
+names = [j.name for j in model.joints]
+if which == "fleet":
+    goals = lambda step, n: {"Rotation": (step % 2) * 0.001, "Elbow": -(step % 2) * 0.001}
+else:
+    goals = lambda step, n: {k: 12.0 * math.sin(step * 0.04 + n + i) for i, k in enumerate(names)}
+cores = [RobotCore(model, 0.0, policy) for _ in range(robots)]
+ticks = [None] * robots
+gc.collect()
+gc.freeze()  # (as `arena serve` does: a full collection's count is the start-up's, not the work's)
+for step in range(steps):
+    for n, core in enumerate(cores):
+        now = step * 0.02 + n * 0.0002
+        due = ticks[n]
+        while due is not None and due <= now:
+            core.tick(due)
+            due = core.next_tick(due)
+        core.command(None, Command(tuple(JointGoal(k, v) for k, v in goals(step, n).items())), now)
+        ticks[n] = due if due is not None else core.next_tick(now)
+"""
+#: Workloads counted (`instructions`): robots and 50 Hz command steps.
+_COUNTS = {"fleet": (10, 1000), "sine": (10, 300)}
+
+
+def _instructions(tree: Path, which: str, robots: int, steps: int) -> int:
+    """Machine instructions `_COUNTED` runs in `tree` (valgrind's callgrind)."""
+    counter = ["valgrind", "--tool=callgrind", "--callgrind-out-file=/dev/null"]
+    out = subprocess.run(
+        [*counter, sys.executable, "-c", _COUNTED, which, str(robots), str(steps)],
+        env={**os.environ, "PYTHONPATH": str(tree), "PYTHONHASHSEED": "0"},
+        cwd=tree,
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    return int(out.stderr.split("Collected : ")[1].split()[0])
+
+
+def _instructions_once(tree: Path) -> dict[str, float]:
+    base = _instructions(tree, "fleet", 10, 0)
+    return {
+        f"core_{which}_instructions_M": (_instructions(tree, which, *count) - base) / 1e6
+        for which, count in _COUNTS.items()
+    }
+
+
 def _core_once(tree: Path) -> dict[str, float]:
     return _run(tree, _CORE)
 
@@ -119,7 +179,7 @@ def _run(tree: Path, code: str) -> dict[str, float]:
 def main() -> None:
     """Alternate the two trees; print each round, then medians and this tree's ratio."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("bench", choices=("fleet", "core", "teleop", "sweep"))
+    parser.add_argument("bench", choices=("fleet", "core", "teleop", "sweep", "instructions"))
     parser.add_argument("other", type=Path)
     parser.add_argument("--rounds", type=int, default=3)
     args = parser.parse_args()
@@ -128,6 +188,7 @@ def main() -> None:
         "core": _core_once,
         "teleop": _teleop_once,
         "sweep": _sweep_once,
+        "instructions": _instructions_once,
     }[args.bench]
     trees = {"other": args.other.resolve(), "this": HERE}
     runs: dict[str, list[dict[str, float]]] = {"other": [], "this": []}

@@ -110,6 +110,7 @@ class MotionLimiter:
         self._velocity = tuple(j.max_velocity for j in model.joints)
         self._accel = tuple(j.max_acceleration for j in model.joints)
         self._jerk = tuple(j.max_jerk for j in model.joints)
+        self._jerk2 = tuple(2.0 * j for j in self._jerk)
         #: Per joint, the distance a move from rest covers in one tick within every limit
         #: by divided differences (jerk j T^3/32 keeps a continuous move's too): a move no
         #: longer than this is made in one target, without a plan (`_jump`).
@@ -205,14 +206,17 @@ class MotionLimiter:
         index, stamps, speeds = self._index, self._stamps, self._speeds
         stream = duration is None
         interval = 0.0
+        window = STREAM_WINDOW + TIME_DUST
         for goal in goals:
-            k = index[goal.name]
+            name = goal.name
+            k = index[name]
             elapsed = now - stamps[k]
             stamps[k] = now
-            targets[goal.name] = goal.value
+            targets[name] = goal.value
             speeds[k] = goal.speed
-            if 0.0 < elapsed <= STREAM_WINDOW + TIME_DUST:
-                interval = max(interval, elapsed)
+            if 0.0 < elapsed <= window:
+                if elapsed > interval:
+                    interval = elapsed
             else:
                 stream = False
         self._stream = stream and interval > 0.0
@@ -267,14 +271,14 @@ class MotionLimiter:
             if not self._new_goal and self._stream and not self._behind:
                 return None  # (a stream on time: its next goal, not a guess, moves it on)
             candidates, bounds = self._track(sample)
-            return self._emit(sample, candidates, bounds)
+            return self._emit(sample, candidates, bounds)  # (bounds None: within them)
         if self._trajectory is not None:
             candidates = self._sample(sample)
         elif self._position != self._goals:  # at rest on a plan's end, or clipped short
             candidates = [self._goals[name] for name in self._names]
         else:
             return None
-        return self._emit(sample, candidates)
+        return self._emit(sample, candidates, self._allowed(sample))
 
     def _settle_history(self, sample: float) -> None:
         """A history at rest is at rest until now: at rest a tick before `sample`, velocity
@@ -294,26 +298,22 @@ class MotionLimiter:
         self,
         sample: float,
         candidates: list[float],
-        bounds: list[tuple[float, float]] | None = None,
+        bounds: list[tuple[float, float]] | None,
     ) -> dict[str, float] | None:
         """Emit the targets for `sample`: the candidates, or, where the limits after the last
-        three targets do not allow them, held back on the line toward them (`steps.held`)."""
+        three targets (`bounds`, `_allowed`; None: candidates known to be within them) do not
+        allow them, held back on the line toward them (`steps.held`)."""
         t0 = self._history_t[2]
         p0 = self._history_p[2]
-        if bounds is None:
-            bounds = self._allowed(sample)
-        out = steps.held(p0, candidates, bounds, sample - t0)
+        out = None if bounds is None else steps.held(p0, candidates, bounds, sample - t0)
         self._behind = out is not None
         if out is None:
             out = candidates
         else:
             self.clipped += sum(a != b for a, b in zip(out, candidates, strict=True))
-        position = self._position
-        changed = False
-        for name, value in zip(self._names, out, strict=True):
-            if position[name] != value:
-                position[name] = value
-                changed = True
+        position = dict(zip(self._names, out, strict=True))
+        changed = position != self._position
+        self._position = position
         self._history_t = [self._history_t[1], t0, sample]
         self._history_p = [self._history_p[1], p0, out]
         self._sampled = sample
@@ -339,7 +339,9 @@ class MotionLimiter:
             self._new_goal = False
             targets = self._position.copy() if changed else None
         else:
-            targets = self._emit(sample, [self._goals[name] for name in self._names])
+            targets = self._emit(
+                sample, [self._goals[name] for name in self._names], self._allowed(sample)
+            )
             out = self._history_p[2]
         self._history_p = [out] * 3  # (a whole move: at rest there)
         self._history_t = _rest_times(sample)
@@ -365,7 +367,7 @@ class MotionLimiter:
             acceleration.append(max(-limit, min(limit, 2.0 * f2)) * (1.0 - 1e-6))
         return list(p0), velocity, acceleration
 
-    def _track(self, at: float) -> tuple[list[float], list[tuple[float, float]]]:
+    def _track(self, at: float) -> tuple[list[float], list[tuple[float, float]] | None]:
         """A stream's candidates at sample time `at`: each joint's goal itself when the
         limits allow it there and the joint could still keep under its velocity cap after
         it (a hand's move, a policy's smooth actions: passed on, no lag added); otherwise a
@@ -373,38 +375,55 @@ class MotionLimiter:
         approached without overshoot; one that stops dead is braked as the limits allow,
         past its goal and back if it must), which `_emit` keeps within the limits. Joints
         held back hold every joint to the line to the goals (`steps.on_line`): the way the
-        guard checked. Returns them and the limits' intervals at `at` (`_emit`'s too)."""
+        guard checked. Returns them and the limits' intervals at `at` (`_emit`'s too), None
+        when every candidate is its goal within them (the common case: nothing to hold)."""
         t1, t0 = self._history_t[1], self._history_t[2]
         p1, p0 = self._history_p[1], self._history_p[2]
         h = at - t0
-        candidates = []
         goals, velocity = self._played()
-        known = 1.0 if len(self._stamped) > 1 and self._stream else math.inf
+        known = len(self._stamped) > 1 and self._stream
+        speeds, limits = self._speeds, self._accel
+        if steps.passes(
+            self._history_t,
+            self._history_p,
+            at,
+            goals,
+            velocity if known else None,
+            limits,
+            self._jerk,
+            speeds,
+        ):
+            return goals, None  # (the common case, its comparisons without the intervals)
+        span, span2 = t0 - t1, at - t1
+        candidates = []
         bounds = self._allowed(at)
+        jerks = self._jerk2
+        passed = True
         for k, (low, high) in enumerate(bounds):
-            goal, fast = goals[k], self._speeds[k]
+            goal, fast = goals[k], speeds[k]
             step = (goal - p0[k]) / h
-            was = (p0[k] - p1[k]) / (t0 - t1)
-            accel = 2.0 * (step - was) / (at - t1)
+            was = (p0[k] - p1[k]) / span
+            accel = 2.0 * (step - was) / span2
             # the velocity gained while the jerk takes that acceleration to zero (and a step
             # more: the grid is discrete) must keep under the cap too
-            ahead = step + accel * h / 2.0 + accel * abs(accel) / (2.0 * self._jerk[k]) + accel * h
+            ahead = step + accel * h / 2.0 + accel * abs(accel) / jerks[k] + accel * h
             # (and, where the goals' velocity is known, not onto them much faster than they
             # move: an arm catching up on a hand that stops would overshoot it)
             if (
                 low <= step <= high
                 and -fast <= ahead <= fast
-                and abs(step - velocity[k]) <= known * self._accel[k] * h
+                and (not known or abs(step - velocity[k]) <= limits[k] * h)
             ):
                 candidates.append(goal)
                 continue
+            passed = False
             # Toward the goal, relative to the goal's own velocity (a stamped stream's line;
             # else taken as still), at most at the velocity from which braking at the
             # acceleration limit, step by step, stops on it, the distance counted from a
             # step on (the jerk's ramp to that braking).
             moving = max(-fast, min(fast, velocity[k]))
             distance = abs(goal - p0[k]) - abs(was - moving) * h
-            stop = steps.stopping_speed(distance, self._accel[k], h)
+            stop = steps.stopping_speed(distance, limits[k], h)
             ahead = moving + max(-stop, min(stop, step - moving))
             # Never past the goal nor away from it: the goals' velocity is their last, not
             # their next (the ticks carried an arm trailing a flick on at it past where the
@@ -415,6 +434,8 @@ class MotionLimiter:
             else:
                 ahead = step if ahead < step else 0.0 if ahead > 0.0 else ahead
             candidates.append(p0[k] + max(-fast, min(fast, ahead)) * h)
+        if passed:
+            return candidates, None
         return steps.on_line(p0, goals, candidates), bounds
 
     def _played(self) -> tuple[list[float], list[float]]:

@@ -33,13 +33,15 @@ def allowed(
     t2, t1, t0 = times
     p2, p1, p0 = points
     h1, h2 = at - t1, at - t2
+    hh = h1 * h2
+    span1, span2, span02 = t0 - t1, t1 - t2, t0 - t2
     result = []
     for k in range(len(p0)):
-        d1 = (p0[k] - p1[k]) / (t0 - t1)
-        f2 = (d1 - (p1[k] - p2[k]) / (t1 - t2)) / (t0 - t2)  # acceleration / 2
+        d1 = (p0[k] - p1[k]) / span1
+        f2 = (d1 - (p1[k] - p2[k]) / span2) / span02  # acceleration / 2
         spread_a = h1 * accel[k] / 2.0
         low, high = d1 - spread_a, d1 + spread_a
-        mid, spread_j = d1 + h1 * f2, h1 * h2 * jerk[k] / 6.0
+        mid, spread_j = d1 + h1 * f2, hh * jerk[k] / 6.0
         low_j, high_j = mid - spread_j, mid + spread_j
         # (comparisons, not min and max: this runs for every joint of every target)
         if low_j > high:  # (over the acceleration limit: brought back at the jerk's pace)
@@ -64,6 +66,50 @@ def allowed(
             high = low
         result.append((low, high))
     return result
+
+
+def passes(
+    times: Sequence[float],
+    points: Sequence[Sequence[float]],
+    at: float,
+    goals: Sequence[float],
+    velocity: Sequence[float] | None,
+    accel: Sequence[float],
+    jerk: Sequence[float],
+    speeds: Sequence[float],
+) -> bool:
+    """Whether a stream's `goals` go out as they are at sample time `at` (a stream's common
+    case, checked without building the intervals): each joint's step within the interval
+    `allowed` gives it (the same comparisons: within the speed, the acceleration's and the
+    jerk's intervals), the velocity the jerk adds while it takes the step's acceleration back
+    to zero (and a step more: the grid is discrete) within the speed too, and, where the
+    goals' `velocity` is known, the step within a tick's acceleration of it (an arm catching
+    up on a hand that stops would overshoot it). False sends the stream through the full
+    check (`MotionLimiter._track`), which passes the same goals where this does."""
+    t2, t1, t0 = times
+    p2, p1, p0 = points
+    h, h1 = at - t0, at - t1
+    hh = h1 * (at - t2)
+    span1, span2, span02 = t0 - t1, t1 - t2, t0 - t2
+    for k, (goal, x0, x1, fast, limit) in enumerate(zip(goals, p0, p1, speeds, accel, strict=True)):
+        step = (goal - x0) / h
+        if step > fast or step < -fast:
+            return False
+        d1 = (x0 - x1) / span1
+        spread = h1 * limit / 2.0
+        if step < d1 - spread or step > d1 + spread:
+            return False
+        mid = d1 + h1 * ((d1 - (x1 - p2[k]) / span2) / span02)
+        spread = hh * jerk[k] / 6.0
+        if step < mid - spread or step > mid + spread:
+            return False
+        gain = 2.0 * (step - d1) / h1
+        ahead = step + gain * h / 2.0 + gain * abs(gain) / (2.0 * jerk[k]) + gain * h
+        if ahead > fast or ahead < -fast:
+            return False
+        if velocity is not None and abs(step - velocity[k]) > limit * h:
+            return False
+    return True
 
 
 def on_line(p0: Sequence[float], aims: Sequence[float], wants: list[float]) -> list[float]:
