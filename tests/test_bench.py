@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import math
+import re
+import select
 import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -14,9 +18,10 @@ import pytest
 
 from arena import bench
 from arena.bench.camera import camera
-from arena.bench.client import BlockingHttp
-from arena.bench.common import process_cpu_seconds
+from arena.bench.client import BlockingHttp, BlockingWebSocket, masked_frame
+from arena.bench.common import EXECUTE_MARK, command_text, process_cpu_seconds, time_to
 from arena.bench.policy import observation_to_command
+from arena.protocol.ws_frames import OP_CLOSE, OP_TEXT, accept_key, encode_frame
 from arena.recording.mcap_file import RecordedMessage
 from tests.conftest import need
 
@@ -158,6 +163,53 @@ def test_the_lean_http_client_goes_on_after_the_server_closes_the_connection() -
         http.close()
         server.join(5)
         listener.close()
+
+
+def test_a_relay_times_each_command_to_its_own_answer_not_one_received_before() -> None:
+    # A motion tick's `execute_command` could reach the relay's slave after the answer it
+    # had timed: the next command was then timed to it, the next after that sent at once,
+    # and two commands in one burst left the arm where the third asked it to go (nothing
+    # sent, the relay waiting for ever: seen in CI). The server here sends an
+    # `execute_command` first, then closes once the timed frame came: the timing must end
+    # with the close (no answer to that frame), not on the message it had before.
+    listener = socket.create_server(("127.0.0.1", 0))
+    stale = json.dumps({"type": "execute_command", "data": {}}, separators=(",", ":")).encode()
+
+    def serve() -> None:
+        connection, _ = listener.accept()
+        with connection:
+            request = b""
+            while b"\r\n\r\n" not in request:
+                request += connection.recv(4096)
+            key = re.search(rb"Sec-WebSocket-Key: (\S+)", request, re.I)
+            assert key is not None
+            connection.sendall(
+                b"HTTP/1.1 101 Switching Protocols\r\nUpgrade: websocket\r\n"
+                b"Connection: Upgrade\r\nSec-WebSocket-Accept: "
+                + accept_key(key.group(1).decode()).encode()
+                + b"\r\n\r\n"
+            )
+            connection.sendall(encode_frame(OP_TEXT, stale))
+            connection.recv(4096)  # the timed frame
+            connection.sendall(encode_frame(OP_CLOSE, struct.pack("!H", 1000)))
+
+    server = threading.Thread(target=serve, daemon=True)
+    server.start()
+    both = BlockingWebSocket(f"ws://127.0.0.1:{listener.getsockname()[1]}/ws/slave/x", timeout=30)
+    try:
+        if not both._buffer:  # (it may have come with the handshake's answer)
+            select.select([both.sock], [], [])  # the early message is in
+        with pytest.raises(ConnectionError, match="closed by the server"):
+            time_to(EXECUTE_MARK, both, both, masked_frame(command_text(1)))
+    finally:
+        both.sock.close()
+        server.join(30)
+        listener.close()
+
+
+def test_no_relay_command_asks_for_a_goal_an_earlier_one_did() -> None:
+    goals = [json.loads(command_text(i))["data"]["joints"][0]["value"] for i in range(1, 5101)]
+    assert len(set(goals)) == len(goals)
 
 
 def commands_answered(server: bench.Server) -> float:

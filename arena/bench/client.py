@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import select
 import socket
 import struct
 from urllib.parse import urlsplit
@@ -72,6 +73,25 @@ class BlockingWebSocket:
                 if opcode == OP_CLOSE:
                     raise ConnectionError(f"closed by the server: {payload!r}")
                 continue  # ping/pong: not expected from Arena, skipped
+            chunk = self.sock.recv(65536)
+            if not chunk:
+                raise ConnectionError("the server closed the connection")
+            self._buffer += chunk
+
+    def drop_received(self) -> int:
+        """Drop the text messages received already (in hand or waiting in the socket), without
+        waiting for more; how many. Raises `ConnectionError` on a close frame or end of
+        stream."""
+        dropped = 0
+        while True:
+            while (frame := split_unmasked(self._buffer)) is not None:
+                opcode, payload, used = frame
+                self._buffer = self._buffer[used:]
+                if opcode == OP_CLOSE:
+                    raise ConnectionError(f"closed by the server: {payload!r}")
+                dropped += opcode == OP_TEXT
+            if not select.select([self.sock], [], [], 0)[0]:
+                return dropped
             chunk = self.sock.recv(65536)
             if not chunk:
                 raise ConnectionError("the server closed the connection")

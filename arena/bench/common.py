@@ -200,9 +200,11 @@ def joints_text(joints: dict[str, float]) -> str:
 
 
 def command_text(i: int) -> str:
-    """The `i`th command of a relay: tiny alternating steps of two joints, always inside the
-    velocity budget, so that each goes out to the slave at once."""
-    value = (i % 2) * 0.001
+    """The `i`th command of a relay: tiny alternating steps of two joints, each a nanodegree
+    off every earlier command's goal, so that none asks for where the arm already is (a
+    command that moves nothing sends its slave nothing: a relay timing each command to its
+    slave's `execute_command` waited for ever)."""
+    value = (i % 2) * 0.001 + i * 1e-9
     return joints_text({"Rotation": value, "Elbow": -value})
 
 
@@ -214,7 +216,10 @@ ESTOP_TEXT = encode(EStopMessage(data=ReasonData(reason="bench")))
 def time_to(
     marker: str, receiver: BlockingWebSocket, sender: BlockingWebSocket, frame: bytes
 ) -> float:
-    """Seconds from sending `frame` to `receiver`'s first message containing `marker`."""
+    """Seconds from sending `frame` to `receiver`'s first message containing `marker` (what
+    it had received before is dropped first: a motion tick's `execute_command` that came
+    after the last one timed is not this frame's answer)."""
+    receiver.drop_received()
     start = time.perf_counter()
     sender.send_raw(frame)
     while marker not in receiver.receive():
