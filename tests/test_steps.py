@@ -81,9 +81,10 @@ def test_the_quick_check_refuses_what_any_one_limit_refuses() -> None:
 
     assert quick(1e-4)
     assert not quick(3.0)  # 300 deg/s: over the speed
-    assert not quick(0.5)  # 50 deg/s from rest in one tick: over the jerk
+    assert not quick(0.01)  # 1 deg/s from rest in one tick: over the jerk alone
+    assert not quick(0.5)  # 50 deg/s: over the acceleration too
     assert not quick(1e-4, velocity=[-200.0, 0.0, 0.0])  # far off the goals' own velocity
-    for goal in (1e-4, 0.5, 3.0):
+    for goal in (1e-4, 0.01, 0.5, 3.0):
         assert quick(goal) == full_check(times, history, at, [goal, 0.0, 0.0], None)
     # At 260 deg/s and gaining, a step at 268 is within every interval, but the jerk's ramp
     # from its acceleration back to zero would carry the joint past its 270.
