@@ -110,7 +110,6 @@ class MotionLimiter:
         self._velocity = tuple(j.max_velocity for j in model.joints)
         self._accel = tuple(j.max_acceleration for j in model.joints)
         self._jerk = tuple(j.max_jerk for j in model.joints)
-        self._jerk2 = tuple(2.0 * j for j in self._jerk)
         #: Per joint, the distance a move from rest covers in one tick within every limit
         #: by divided differences (jerk j T^3/32 keeps a continuous move's too): a move no
         #: longer than this is made in one target, without a plan (`_jump`).
@@ -394,29 +393,23 @@ class MotionLimiter:
             speeds,
         ):
             return goals, None  # (the common case, its comparisons without the intervals)
-        span, span2 = t0 - t1, at - t1
+        span, h1 = t0 - t1, at - t1
         candidates = []
         bounds = self._allowed(at)
-        jerks = self._jerk2
-        passed = True
         for k, (low, high) in enumerate(bounds):
             goal, fast = goals[k], speeds[k]
             step = (goal - p0[k]) / h
             was = (p0[k] - p1[k]) / span
-            accel = 2.0 * (step - was) / span2
-            # the velocity gained while the jerk takes that acceleration to zero (and a step
-            # more: the grid is discrete) must keep under the cap too
-            ahead = step + accel * h / 2.0 + accel * abs(accel) / jerks[k] + accel * h
-            # (and, where the goals' velocity is known, not onto them much faster than they
-            # move: an arm catching up on a hand that stops would overshoot it)
+            # (the same rules as `steps.passes`, joint by joint: within the limits, the jerk's
+            # ramp under the cap, and not onto the goals much faster than they move, where
+            # that is known: an arm catching up on a hand that stops would overshoot it)
             if (
                 low <= step <= high
-                and -fast <= ahead <= fast
+                and not steps.ramp_over(step, was, h, h1, fast, self._jerk[k])
                 and (not known or abs(step - velocity[k]) <= limits[k] * h)
             ):
                 candidates.append(goal)
                 continue
-            passed = False
             # Toward the goal, relative to the goal's own velocity (a stamped stream's line;
             # else taken as still), at most at the velocity from which braking at the
             # acceleration limit, step by step, stops on it, the distance counted from a
@@ -434,8 +427,6 @@ class MotionLimiter:
             else:
                 ahead = step if ahead < step else 0.0 if ahead > 0.0 else ahead
             candidates.append(p0[k] + max(-fast, min(fast, ahead)) * h)
-        if passed:
-            return candidates, None
         return steps.on_line(p0, goals, candidates), bounds
 
     def _played(self) -> tuple[list[float], list[float]]:

@@ -103,13 +103,21 @@ def passes(
         spread = hh * jerk[k] / 6.0
         if step < mid - spread or step > mid + spread:
             return False
-        gain = 2.0 * (step - d1) / h1
-        ahead = step + gain * h / 2.0 + gain * abs(gain) / (2.0 * jerk[k]) + gain * h
-        if ahead > fast or ahead < -fast:
+        if ramp_over(step, d1, h, h1, fast, jerk[k]):
             return False
         if velocity is not None and abs(step - velocity[k]) > limit * h:
             return False
     return True
+
+
+def ramp_over(step: float, was: float, h: float, h1: float, fast: float, jerk: float) -> bool:
+    """Whether a step of velocity `step` after one of `was` (`h` seconds on, `h1` since the
+    target before) leaves the joint over `fast` once the jerk has taken the step's
+    acceleration back to zero, a step more counted (the grid is discrete): a goal allowed now
+    that the joint could not keep under its cap after."""
+    gain = 2.0 * (step - was) / h1
+    ahead = step + gain * h / 2.0 + gain * abs(gain) / (2.0 * jerk) + gain * h
+    return ahead > fast or ahead < -fast
 
 
 def on_line(p0: Sequence[float], aims: Sequence[float], wants: list[float]) -> list[float]:

@@ -84,9 +84,15 @@ async def move(
         result = await robot.command(command, master_id)
         if not result.accepted:
             return result, None
-        goals = _goals(robot)
+        goals = {joint.name: joint.goal for joint in robot.snapshot().joints}
         with trio.move_on_after(wait):
-            while not _at(robot, goals):
+            while True:
+                # (a trajectory's last target is its goal: there when every target is)
+                joints = robot.snapshot().joints
+                if any(joint.goal != goals[joint.name] for joint in joints):
+                    return result, "another command changed the goals before the arm got there"
+                if all(joint.virtual_value == goals[joint.name] for joint in joints):
+                    return result, None
                 try:
                     event = await events.get()
                 except trio.EndOfChannel:
@@ -98,16 +104,4 @@ async def move(
                 if isinstance(event, StateChanged) and event.mode is Mode.ESTOPPED:
                     why = event.estop_reason or event.cause
                     raise ArenaError(ErrorCode.ESTOPPED, f"E-stopped on the way ({why}).")
-                if _goals(robot) != goals:
-                    return result, "another command changed the goals before the arm got there"
-            return result, None
         return result, f"not there after {wait:g} s"
-
-
-def _goals(robot: Robot) -> dict[str, float]:
-    return {joint.name: joint.goal for joint in robot.snapshot().joints}
-
-
-def _at(robot: Robot, goals: dict[str, float]) -> bool:
-    """Whether every joint's target is on `goals` (a trajectory's last target is its goal)."""
-    return all(joint.virtual_value == goals[joint.name] for joint in robot.snapshot().joints)
