@@ -31,6 +31,7 @@ from arena.servo.sim_pty import (
     AMBIENT_C,
     COOLING_PER_S,
     HEATING_C_PER_S,
+    OVERLOAD_AFTER_S,
     Obstacle,
     Reply,
     ServoFaults,
@@ -67,6 +68,7 @@ class SimServo(SimServoBase):
     temperature: float = AMBIENT_C
     heating: float = HEATING_C_PER_S
     cooling: float = COOLING_PER_S
+    overload_after: float = OVERLOAD_AFTER_S
     obstacle: Obstacle | None = None
     hand: float | None = None
     load: float = 0.0

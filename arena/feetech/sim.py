@@ -44,6 +44,7 @@ class SimServo(SimServoBase):
     temperature: float = AMBIENT_C
     heating: float = HEATING_C_PER_S
     cooling: float = COOLING_PER_S
+    overload_after: float = OVERLOAD_AFTER_S
     obstacle: Obstacle | None = None
     hand: float | None = None
     load: float = 0.0
@@ -158,7 +159,7 @@ class SimServo(SimServoBase):
         bits = ErrorBit(self.faults.error_bits)
         if self.temperature >= self.peek(reg.MAX_TEMPERATURE):
             bits |= ErrorBit.OVERHEAT
-        if self.stall_time >= OVERLOAD_AFTER_S:
+        if self.stall_time >= self.overload_after:
             bits |= ErrorBit.OVERLOAD
         if not 4.5 <= self.voltage <= 14.0:
             bits |= ErrorBit.VOLTAGE

@@ -6,11 +6,12 @@ goal out of reach: its load stays high and it heats (I squared R), and a gripper
 out within minutes. `ForceGuard` is fed each telemetry read (positions, loads in percent of full
 torque, temperatures), with the goals the driver last sent and the bus thread's own clock, and
 says what to do: a joint whose load stays at or above `stall_share` of its torque limit while it
-is more than `stall_steps` short of a goal that has not changed for `stall_time` is stalled
-(`Stalled`); the driver stops pushing and the guard lowers a stalled gripper's torque limit to
-`hold_torque` (it keeps its grip, gently); a new goal releases it (`release`). A servo at or
-above the warm temperature (the health monitor's `hot`) gets its limit scaled by `hot_share`
-until it is `cool_margin` below it. specs/force.md gives the reasons and the values.
+is more than `stall_steps` short of its goal and moves no more than `stall_steps` for
+`stall_time` is stalled (`Stalled`), however its goal runs on meanwhile; the driver stops
+pushing and the guard lowers a stalled gripper's torque limit to `hold_torque` (it keeps its
+grip, gently); a new goal releases it (`release`). A servo at or above the warm temperature
+(the health monitor's `hot`) gets its limit scaled by `hot_share` until it is `cool_margin`
+below it. specs/force.md gives the reasons and the values.
 """
 
 from __future__ import annotations
@@ -47,6 +48,7 @@ class Stalled:
 class _Joint:
     goal: int | None = None
     pushing_since: float | None = None
+    pushing_at: int = 0  # where it was when it began to push (moving on restarts the wait)
     stalled: bool = False
     hot: bool = False
 
@@ -72,11 +74,11 @@ class ForceGuard:
         return self._joint(servo_id).stalled
 
     def goal(self, servo_id: int, steps: int) -> None:
-        """The driver sent `steps` as the servo's goal: a goal that moved restarts the wait."""
-        joint = self._joint(servo_id)
-        if joint.goal is None or abs(steps - joint.goal) > self.settings.stall_steps:
-            joint.pushing_since = None
-        joint.goal = steps
+        """The driver sent `steps` as the servo's goal. A goal that runs on does not restart
+        the wait: a joint held by an obstacle while its trajectory still runs is stalled as
+        much as one whose goal stopped (the servo's own overload protection counts from the
+        push, not from the goal's last change)."""
+        self._joint(servo_id).goal = steps
 
     def release(self, servo_id: int) -> None:
         """A new command for a stalled servo: it may push again (its limit comes back)."""
@@ -124,8 +126,11 @@ class ForceGuard:
             if not pushing:
                 joint.pushing_since = None
                 continue
-            if joint.pushing_since is None:
-                joint.pushing_since = now
+            if (
+                joint.pushing_since is None
+                or abs(present - joint.pushing_at) > self.settings.stall_steps
+            ):  # (it moved: loaded, as lifting the arm, but following its goal)
+                joint.pushing_since, joint.pushing_at = now, present
             if now - joint.pushing_since >= self.settings.stall_time:
                 joint.stalled = True
                 found.append(Stalled(servo_id, present, joint.goal, load, limit))

@@ -83,6 +83,7 @@ class SimServoBase:
     hand: float | None  # a hand holds the horn here (present steps): it moves neither way
     heating: float  # C/s at full load (`HEATING_C_PER_S`)
     cooling: float  # share of the excess lost per second (`COOLING_PER_S`)
+    overload_after: float  # seconds past OVERLOAD_SHARE before it trips (`OVERLOAD_AFTER_S`)
     load: float  # present load, as a share of full (0..1)
 
     def place_obstacle(self, at: float) -> None:
@@ -160,12 +161,12 @@ class SimServoBase:
 
     def overload_tripped(self, dt: float) -> bool:
         """The overload protection after `dt` more seconds at the present load: True once a
-        load past OVERLOAD_SHARE has lasted OVERLOAD_AFTER_S (the family then drops torque)."""
+        load past OVERLOAD_SHARE has lasted `overload_after` (the family then drops torque)."""
         if self.load < OVERLOAD_SHARE:
             self.stall_time = 0.0
             return False
         self.stall_time += dt
-        return self.stall_time >= OVERLOAD_AFTER_S
+        return self.stall_time >= self.overload_after
 
     def heat(self, dt: float) -> None:
         """The temperature after `dt` seconds at the present load: exact for a constant load
