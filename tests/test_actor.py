@@ -98,6 +98,35 @@ async def test_a_command_decided_in_the_callers_task_still_gets_its_motion_ticks
     assert trio.current_time() - started > 0.1  # it was limited, so ticks carried it
 
 
+async def test_a_stream_on_time_wakes_the_actor_for_nothing_but_its_end(
+    autojump_clock: MockClock, manager: RobotManager
+) -> None:
+    # Each tick of a stream on time sent nothing (its next command moves it on): the actor's
+    # timer is put off to when the stream would be overdue, in the idle turn too (the actor
+    # woke twice a command for nothing before).
+    robot = await new_robot(manager)
+    link = await robot.connect_master("alice")
+    actor = robot._actor
+    on_timers, woke = actor._on_timers, []
+
+    def counted(now: float) -> None:
+        woke.append(now)
+        on_timers(now)
+
+    actor._on_timers = counted  # type: ignore[method-assign]
+    for k in range(1, 51):  # 1 s at 50 Hz, 12 deg/s
+        await trio.sleep(0.02)
+        await trio.testing.wait_all_tasks_blocked()  # the robot idle: decided at once
+        result = link.command_now(Command.of({"Rotation": 0.24 * k}))
+        assert result is not None and result.accepted
+    last = trio.current_time()
+    assert all(t < last - 0.9 for t in woke)  # only as it set off from rest
+    await trio.sleep(1.0)
+    assert min(t for t in woke if t >= last) == pytest.approx(last + 0.03)  # overdue
+    assert robot.snapshot().joint("Rotation").virtual_value == pytest.approx(12.0)
+    assert robot.core.next_tick(trio.current_time()) is None  # at rest on its last goal
+
+
 async def test_a_run_of_commands_is_decided_at_once_each_on_its_own(
     autojump_clock: MockClock, manager: RobotManager
 ) -> None:

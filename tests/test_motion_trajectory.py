@@ -20,7 +20,7 @@ import pytest
 
 from arena.robot.core import RobotCore
 from arena.robot.model import RobotModel, load_robot_model
-from arena.robot.motion import Command, JointGoal
+from arena.robot.motion import OVERDUE, Command, JointGoal
 
 MODEL = load_robot_model("so-arm100")
 #: Relative tolerance on the limits (float rounding of divided differences over 10 ms).
@@ -76,8 +76,7 @@ def drive(
             result, step = core.command(None, command, now)
             assert result.accepted, result
             targets = step.targets
-            if next_tick is None:
-                next_tick = core.next_tick(now)
+            next_tick = core.reschedule(next_tick, now)
         else:
             next_tick = None
             targets = core.tick(now)
@@ -397,3 +396,73 @@ def test_a_stream_that_stops_comes_to_rest_on_its_last_goal() -> None:
     assert not core.motion.moving
     overshoot = max(t["Rotation"] for _, t in emitted) - 30.0
     assert 0.0 <= overshoot < 5.0  # at most the braking of a 100 deg/s stop
+
+
+def ticked_every_interval(
+    core: RobotCore, schedule: list[tuple[float, dict[str, float]]], until: float
+) -> tuple[list[tuple[float, dict[str, float]]], int]:
+    """`drive` with a tick every interval from each command while anything moves (the actor
+    before `reschedule`): the targets and how many ticks ran."""
+    emitted = [(0.0, core.motion.positions)]
+    pending, ticks, tick = list(schedule), 0, None
+    while True:
+        at = min(pending[0][0] if pending else math.inf, math.inf if tick is None else tick)
+        if at > until:
+            return emitted, ticks
+        if pending and pending[0][0] <= at:
+            now, goals = pending.pop(0)
+            targets = core.command(None, Command.of(goals), now)[1].targets
+            tick = tick if tick is not None else core.next_tick(now)
+        else:
+            now, ticks = at, ticks + 1
+            targets = core.tick(now)
+            tick = now + core.tick_interval if core.motion.moving else None
+        if targets is not None:
+            emitted.append((core.motion.sampled, targets))
+
+
+@pytest.mark.parametrize("rate", [50.0, 30.0, 100.0])
+def test_a_stream_on_time_is_not_ticked_and_its_targets_are_the_same(rate: float) -> None:
+    # A tick in a stream on time sent nothing (the next command moves it on): the actor now
+    # plans none until the stream is overdue. The targets are those of ticking every interval.
+    schedule = [
+        (k / rate, {"Rotation": 20.0 * math.sin(k / rate * 3.0), "Elbow": 10.0 * k / rate})
+        for k in range(1, int(rate) + 1)
+    ]
+    ticks: list[float] = []
+    core = fast_core()
+    tick = core.tick
+
+    def counted(now: float) -> dict[str, float] | None:
+        ticks.append(now)
+        return tick(now)
+
+    core.tick = counted  # type: ignore[method-assign]
+    emitted = drive(core, schedule, until=3.0)
+    every, ticked = ticked_every_interval(fast_core(), schedule, until=3.0)
+    last = schedule[-1][0]
+    stream_end = last + core.tick_interval  # (what the last command's target stands for)
+    during = [(t, p) for t, p in emitted if t <= stream_end]
+    assert during == [(t, p) for t, p in every if t <= stream_end]
+    # Ticked only while its start from rest held it back (was: one or two every command).
+    assert all(t < 0.1 for t in ticks if t < last) and ticked >= len(schedule)
+    # Overdue (OVERDUE intervals after its last goal), it comes to rest on its last goal.
+    assert min(t for t in ticks if t >= last) == pytest.approx(last + OVERDUE / rate)
+    assert_within_limits(emitted, MODEL)
+    assert emitted[-1][1] == pytest.approx({**core.motion.goals, **schedule[-1][1]})
+    assert not core.motion.moving
+
+
+def test_a_goal_left_for_the_next_tick_gets_it_whatever_tick_was_planned() -> None:
+    # A stream on time plans its next tick when it would be overdue; a command in the middle
+    # of a burst leaves its goal to the next tick, which must then be a tick away.
+    core = fast_core()  # a 10 Hz stream (a slow policy's actions)
+    drive(core, [(k / 10, {"Rotation": 1.0 * k}) for k in range(1, 11)], until=1.0)
+    planned = core.next_tick(1.0)
+    assert planned == pytest.approx(1.0 + OVERDUE / 10)
+    result, step = core.command(None, Command.of({"Rotation": 11.0}), 1.1, in_burst=True)
+    assert result.accepted and step.targets is None  # (moving: the next tick takes it)
+    assert core.motion.quiet_until is None
+    due = core.reschedule(planned, 1.1)
+    assert due == pytest.approx(1.1 + core.tick_interval)
+    assert core.tick(due) is not None  # and it moves on to it

@@ -151,9 +151,9 @@ async def test_the_idle_turn_is_taken_only_while_open_and_before_the_waiters_tim
         turn.open(wait)
         start = trio.current_time()
         assert turn.now() == start
-        turn.wake_by(start + 20.0)  # later than its own timer: unchanged
-        assert wait.deadline == start + 10.0
-        turn.wake_by(start + 1.0)  # a motion started in the turn needs a tick sooner
+        turn.wake_at(start + 20.0)  # a tick a stream on time does not need: put off
+        assert wait.deadline == start + 20.0
+        turn.wake_at(start + 1.0)  # a motion started in the turn needs a tick sooner
         assert wait.deadline == start + 1.0
         autojump_clock.jump(1.0)
         assert turn.now() is None  # its timer is due: the waiter goes first
@@ -163,7 +163,7 @@ async def test_the_idle_turn_is_taken_only_while_open_and_before_the_waiters_tim
     mailbox_turn = IdleTurn()
     mailbox_turn.open()  # a waiter without a timer
     assert mailbox_turn.is_open and mailbox_turn.now() is not None
-    mailbox_turn.wake_by(0.0)  # nothing to bring forward
+    mailbox_turn.wake_at(0.0)  # no timer to move
     mailbox_turn.close()
     assert not mailbox_turn.is_open and mailbox_turn.now() is None
 

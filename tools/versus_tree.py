@@ -53,7 +53,18 @@ def _fleet_once(tree: Path) -> dict[str, float]:
     return _run(tree, code)
 
 
-_CORE = """
+#: The actor's next tick after a command (`RobotCore.reschedule`); in a tree without it
+#: (every tick of a stream runs), the one planned, or the core's when none is.
+_SCHEDULE = """
+def schedule(core, tick, now):
+    if hasattr(core, "reschedule"):
+        return core.reschedule(tick, now)
+    return tick if tick is not None else core.next_tick(now)
+"""
+
+_CORE = (
+    _SCHEDULE
+    + """
 import dataclasses, json, math, time
 from arena.robot.core import RobotCore
 from arena.robot.model import load_robot_model
@@ -77,7 +88,7 @@ def run(goals):
                 due = core.next_tick(due)
             command = Command(tuple(JointGoal(k, v) for k, v in goals(step, n).items()))
             targets += core.command(None, command, now)[1].targets is not None
-            ticks[n] = due if due is not None else core.next_tick(now)
+            ticks[n] = schedule(core, due, now)
     return time.process_time() - started, targets
 
 fleet = run(lambda step, n: {"Rotation": (step % 2) * 0.001, "Elbow": -(step % 2) * 0.001})
@@ -85,9 +96,12 @@ sine = run(lambda step, n: {k: 12.0 * math.sin(step * 0.04 + n + i) for i, k in 
 print(json.dumps({"core_fleet_cpu_s": fleet[0], "core_fleet_targets": fleet[1],
                   "core_sine_cpu_s": sine[0], "core_sine_targets": sine[1]}))
 """
+)
 
 
-_COUNTED = """
+_COUNTED = (
+    _SCHEDULE
+    + """
 import dataclasses, gc, math, sys
 from arena.robot.core import RobotCore
 from arena.robot.model import load_robot_model
@@ -113,8 +127,9 @@ for step in range(steps):
             core.tick(due)
             due = core.next_tick(due)
         core.command(None, Command(tuple(JointGoal(k, v) for k, v in goals(step, n).items())), now)
-        ticks[n] = due if due is not None else core.next_tick(now)
+        ticks[n] = schedule(core, due, now)
 """
+)
 #: Workloads counted (`instructions`): robots and 50 Hz command steps.
 _COUNTS = {"fleet": (10, 1000), "sine": (10, 300)}
 

@@ -136,11 +136,8 @@ class Actor(MasterKeeping):
     async def _loop(self) -> None:
         handlers, turn = self._handlers, self.turn
         while True:
-            deadline = min(
-                math.inf if self.next_tick is None else self.next_tick, self.peers.next_deadline()
-            )
             message: Msg | None = None
-            with trio.move_on_at(deadline) as wait:
+            with trio.move_on_at(self.deadline()) as wait:
                 if not self._receive.statistics().current_buffer_used:
                     turn.open(wait)  # idle: a caller may take this turn (`arena.robot.idle`)
                 try:
@@ -157,6 +154,11 @@ class Actor(MasterKeeping):
                 return
             else:
                 handlers[type(message)](message, now)
+
+    def deadline(self) -> float:
+        """When the loop wakes by itself: the next tick, or a peer's heartbeat deadline."""
+        tick = self.next_tick
+        return min(math.inf if tick is None else tick, self.peers.next_deadline())
 
     def _stop_taking_messages(self) -> None:
         self.turn.close()
@@ -491,8 +493,7 @@ class Actor(MasterKeeping):
                 for peer in self.peers:
                     self._faults_over(peer, "cleared by the reset", now)
                 self._notify_slaves(SlaveNotice(NoticeKind.RESET, "e-stop reset"))
-        if self.next_tick is None:
-            self.next_tick = self.core.next_tick(now)
+        self.next_tick = self.core.reschedule(self.next_tick, now)
 
     def _send_targets(
         self, targets: dict[str, float] | None, now: float, *, more_follow: bool = False
@@ -504,8 +505,7 @@ class Actor(MasterKeeping):
                 if not joining or slave.peer_id not in joining:
                     slave.link.mailbox.put_target(target)
             self._publish(TargetsSent(self.robot_id, targets, now, wallclock.time()))
-        if self.next_tick is None:
-            self.next_tick = self.core.next_tick(now)
+        self.next_tick = self.core.reschedule(self.next_tick, now)
 
     def _carry_out_joins(self, changes: Iterable[JoinChange], now: float) -> None:
         """Send joining slaves their own targets, the robot's an adopted pose; report each
@@ -527,8 +527,7 @@ class Actor(MasterKeeping):
                     change.reason,
                 )
                 self._peer_changed(peer, change.change, change.reason, now)
-        if self.next_tick is None:
-            self.next_tick = self.core.next_tick(now)
+        self.next_tick = self.core.reschedule(self.next_tick, now)
 
     def _notify_slaves(self, notice: SlaveNotice, clears: bool = False) -> None:
         for slave in self.peers.slaves.values():

@@ -563,14 +563,31 @@ class RobotCore:
         return targets
 
     def next_tick(self, now: float) -> float | None:
-        """When the next control tick is due, or None while nothing is moving."""
+        """When the next control tick is due, or None while nothing is moving. A stream on
+        time ticks only when it goes overdue: its commands move it on."""
+        return self._next_tick(now)[0]
+
+    def reschedule(self, planned: float | None, now: float) -> float | None:
+        """The next tick after a step taken at `now`, given the one `planned` before it: the
+        core's (`next_tick`) where it is sooner, or where a stream runs on time (a tick
+        planned sooner would send nothing); else the one planned (a tick early is harmless)."""
+        due, quiet = self._next_tick(now)
+        if planned is None or (due is not None and (quiet or due < planned)):
+            return due
+        return planned
+
+    def _next_tick(self, now: float) -> tuple[float | None, bool]:
+        """`next_tick`, and whether it is a stream's on time (the only tick it needs)."""
         if self.state.mode is Mode.ESTOPPED:
-            return None
-        if self.motion.moving or (
-            self.joining and any(join.ramp is not None for join in self._joins.values())
-        ):
-            return now + self.tick_interval
-        return None
+            return None, False
+        if self.joining:
+            if any(join.ramp is not None for join in self._joins.values()):
+                return now + self.tick_interval, False
+        elif self.easing is None and (quiet := self.motion.quiet_until) is not None:
+            return max(quiet, now + self.tick_interval), True
+        if self.motion.moving:
+            return now + self.tick_interval, False
+        return None, False
 
 
 def _within(a: Mapping[str, float], b: Mapping[str, float], tolerance: float) -> bool:

@@ -221,7 +221,7 @@ class Robot:
             actor.decide(master_id, command, burst_goes_on or k < last, now)
             for k, command in enumerate(commands)
         ]
-        turn.wake_by(actor.next_tick)
+        turn.wake_at(actor.deadline())
         return results
 
     async def estop(self, reason: str = "emergency stop") -> safety.Outcome:
@@ -243,7 +243,7 @@ class Robot:
             return None
         event = safety.EStop(reason)
         outcome = self._actor.apply(event, now, cause=type(event).__name__)
-        self._turn.wake_by(self._actor.next_tick)
+        self._turn.wake_at(self._actor.deadline())
         return outcome
 
     async def reset(self) -> safety.Outcome:
@@ -517,7 +517,7 @@ class Robot:
     def _alive(self, peer_id: str) -> None:
         now = self._turn.now()
         if now is not None:
-            self._actor.peers.touch(peer_id, now)  # only moves a deadline later: no wake_by
+            self._actor.peers.touch(peer_id, now)  # only moves a deadline later: no wake_at
         else:
             self._post_nowait(AliveMsg(peer_id), drop_if_full=True)
 

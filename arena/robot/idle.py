@@ -54,10 +54,10 @@ class IdleTurn:
         wait = self._wait
         return now if wait is None or now < wait.deadline else None
 
-    def wake_by(self, deadline: float | None) -> None:
-        """After a step taken in the turn: the task wakes by `deadline` at the latest (a
-        command taken may have started a motion, which needs its next tick). A deadline only
-        moves sooner here; later ones the task finds for itself when it wakes."""
+    def wake_at(self, deadline: float) -> None:
+        """After a step taken in the turn: the task's timer is now `deadline`, the one it would
+        set itself (a command taken may have started a motion, which needs its next tick, or
+        put off a tick a stream on time does not need)."""
         wait = self._wait
-        if wait is not None and deadline is not None and deadline < wait.deadline:
+        if wait is not None:
             wait.deadline = deadline

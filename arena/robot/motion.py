@@ -187,6 +187,14 @@ class MotionLimiter:
             or self._position != self._goals
         )
 
+    @property
+    def quiet_until(self) -> float | None:
+        """While a stream runs on time (its next goal moves it on, a tick sends nothing): the
+        time of the first tick that does something, the one that finds the stream overdue
+        (it then comes to rest on its last goal). None otherwise: every tick may."""
+        quiet = self._tracking and self._stream and self._planned
+        return self._due - self._lead if quiet and not (self._new_goal or self._behind) else None
+
     def set_goals(
         self,
         goals: Iterable[ResolvedGoal],
