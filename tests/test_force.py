@@ -226,11 +226,19 @@ async def test_a_blocked_joint_stops_pushing_where_it_is(
         with sim.paused() as bus:
             bus.servo(1).place_obstacle(2048 + 100)  # a wall 8.8 degrees on
             bus.servo(1).overload_after = 60.0  # (no race in real time: as for the gripper)
-        move = {"joints": [{"name": "shoulder_pan", "value": 30}]}
+        # A slow move (8 s): the wall is met at about 3 s, the stall found while it runs on.
+        move = {"joints": [{"name": "shoulder_pan", "value": 30}], "duration": 8000}
         assert (await http.put("/api/robots/arm/joints", json=move)).status_code == 200
 
         async def stalled() -> bool:
             return ("STALL", "shoulder_pan") in await slave_faults(http)
+
+        async def moved_on() -> bool:
+            """The robot's target for it at the move's end; held at the wall until then."""
+            joints = (await http.get("/api/robots/arm/joints")).json()
+            pan = next(j for j in joints if j["name"] == "shoulder_pan")
+            assert peek(sim, 1, reg.GOAL_POSITION) == 2148, pan
+            return bool(pan["virtual_value"] == 30.0)
 
         await eventually(stalled, what="a STALL fault naming shoulder_pan")
         # It stops pushing: its goal is where it stopped, its load gone, no overload.
@@ -238,9 +246,11 @@ async def test_a_blocked_joint_stops_pushing_where_it_is(
             lambda: peek(sim, 1, reg.GOAL_POSITION) == 2148, what="the goal where it stopped"
         )
         await eventually(lambda: peek(sim, 1, reg.PRESENT_LOAD) == 0, what="no load")
-        await trio.sleep(0.5)  # targets still arriving do not push it again
+        # The rest of the move (targets further on into the wall) does not push it again.
+        await eventually(moved_on, what="the move's end")  # (never released meanwhile)
         assert peek(sim, 1, reg.GOAL_POSITION) == 2148
         assert peek(sim, 1, reg.TORQUE_ENABLE) == 1
+        assert await stalled()
         # The next command (away from the wall) moves it.
         move = {"joints": [{"name": "shoulder_pan", "value": -10}]}
         assert (await http.put("/api/robots/arm/joints", json=move)).status_code == 200
@@ -297,6 +307,9 @@ def test_the_guard_counts_a_stall_from_the_push_on_its_own_clock() -> None:
     assert (stall.servo_id, stall.present, stall.goal, stall.limit) == (GRIPPER, 2600, 3100, 50.0)
     assert guard.stalled(GRIPPER) and guard.limit(GRIPPER) == 25.0  # the holding torque
     assert guard.observe(9.0, {GRIPPER: 2600}, {GRIPPER: 25.0}, cool) == []  # told once
+    # Goals on into the object are the same push; one backing off is a new command.
+    assert guard.pushes_on(GRIPPER, 3100) and guard.pushes_on(GRIPPER, 3400)
+    assert guard.pushes_on(GRIPPER, 3080) and not guard.pushes_on(GRIPPER, 3079)
     guard.release(GRIPPER)
     assert not guard.stalled(GRIPPER) and guard.limit(GRIPPER) == 50.0
     # Warm: the limit halves; it comes back only once cooled past the margin.
@@ -416,3 +429,8 @@ def test_a_joint_held_while_its_goal_runs_on_stalls_before_the_servo_trips() -> 
     assert 1.0 <= found <= 1.2
     # Loaded as much but following its goal (25 steps behind it): never a stall.
     assert run_into_a_wall(ForceGuard({}, settings=settings), None, load_of_moving=90) == math.inf
+    # Pushed back while it pushes (a load it cannot hold, a hand): moving, but a stall.
+    guard = ForceGuard({}, settings=settings)
+    guard.goal(1, 3000)
+    sagging = [guard.observe(k / 10, {1: 2600 - 3 * k}, {1: 90.0}, {1: 30.0}) for k in range(11)]
+    assert [k for k, found in enumerate(sagging) if found] == [10]

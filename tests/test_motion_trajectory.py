@@ -421,6 +421,19 @@ def ticked_every_interval(
             emitted.append((core.motion.sampled, targets))
 
 
+def counting_ticks(core: RobotCore) -> list[float]:
+    """The times `core` is ticked from now on (its `tick` wrapped)."""
+    ticks: list[float] = []
+    tick = core.tick
+
+    def counted(now: float) -> dict[str, float] | None:
+        ticks.append(now)
+        return tick(now)
+
+    core.tick = counted  # type: ignore[method-assign]
+    return ticks
+
+
 @pytest.mark.parametrize("rate", [50.0, 30.0, 100.0])
 def test_a_stream_on_time_is_not_ticked_and_its_targets_are_the_same(rate: float) -> None:
     # A tick in a stream on time sent nothing (the next command moves it on): the actor now
@@ -429,15 +442,8 @@ def test_a_stream_on_time_is_not_ticked_and_its_targets_are_the_same(rate: float
         (k / rate, {"Rotation": 20.0 * math.sin(k / rate * 3.0), "Elbow": 10.0 * k / rate})
         for k in range(1, int(rate) + 1)
     ]
-    ticks: list[float] = []
     core = fast_core()
-    tick = core.tick
-
-    def counted(now: float) -> dict[str, float] | None:
-        ticks.append(now)
-        return tick(now)
-
-    core.tick = counted  # type: ignore[method-assign]
+    ticks = counting_ticks(core)
     emitted = drive(core, schedule, until=3.0)
     every, ticked = ticked_every_interval(fast_core(), schedule, until=3.0)
     last = schedule[-1][0]
@@ -466,3 +472,27 @@ def test_a_goal_left_for_the_next_tick_gets_it_whatever_tick_was_planned() -> No
     due = core.reschedule(planned, 1.1)
     assert due == pytest.approx(1.1 + core.tick_interval)
     assert core.tick(due) is not None  # and it moves on to it
+
+
+@pytest.mark.parametrize("seed", range(5))
+@pytest.mark.parametrize("stamped", [False, True])
+def test_a_jittered_stream_keeps_the_limits_with_its_ticks_put_off(
+    seed: int, stamped: bool
+) -> None:
+    # Off the tick grid (20 +- 6 ms apart), a tick after a command held back starts from that
+    # command, so the targets sample other times than ticking every interval: the limits and
+    # the rest on the last goal hold all the same.
+    rng = random.Random(seed)
+    schedule: list[tuple[float, dict[str, float], float]] = []
+    t = 0.0
+    for _ in range(80):
+        t += 0.02 + rng.uniform(-0.006, 0.006)
+        goals = {"Rotation": 25.0 * math.sin(2.5 * t), "Elbow": 15.0 * math.cos(1.7 * t) - 15}
+        schedule.append((t + rng.uniform(0.0, 0.003), goals, t))
+    runs = [(at, goals, read) if stamped else (at, goals) for at, goals, read in schedule]
+    core = fast_core()
+    ticks = counting_ticks(core)
+    emitted = drive(core, runs, until=schedule[-1][0] + 2.0)
+    assert_within_limits(emitted, MODEL)
+    assert emitted[-1][1] == pytest.approx({**core.motion.goals, **schedule[-1][1]})
+    assert len([t for t in ticks if t < schedule[-1][0]]) < len(schedule) // 2  # (was 2 each)

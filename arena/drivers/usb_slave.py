@@ -101,7 +101,6 @@ class UsbSlave(ServoArm):
         )
         self._limits_written: dict[int, float] = {}  # the torque limits the guard last wrote
         self._held: dict[int, int] = {}  # stalled joints held where they stopped (raw steps)
-        self._stalled_goal: dict[int, int] = {}  # the goal each stalled joint fell short of
         #: The newest reading: raw steps by servo id, and the joints' values (for hand guiding).
         self.present: dict[int, int] = {}
         self.pose: dict[str, float] = {}
@@ -158,8 +157,8 @@ class UsbSlave(ServoArm):
             goals = self.calibration.to_goal_steps(message.joints, self.spans)
             for servo_id, steps in goals.items():
                 if self.guard.stalled(servo_id):
-                    if abs(steps - self._stalled_goal[servo_id]) <= self.guard.settings.stall_steps:
-                        if servo_id in self._held:  # not a new command: it stays where it is
+                    if self.guard.pushes_on(servo_id, steps):
+                        if servo_id in self._held:  # no new command: it stays where it is
                             goals[servo_id] = self._held[servo_id]
                         continue
                     await self._release(link, servo_id)
@@ -272,7 +271,6 @@ class UsbSlave(ServoArm):
     async def _stall(self, link: SlaveLink, stall: Stalled) -> None:
         assert self.worker is not None
         sid, name = stall.servo_id, self.joint_of[stall.servo_id]
-        self._stalled_goal[sid] = stall.goal
         values = self.calibration.to_values({sid: stall.present}, self.spans)
         goals = self.calibration.to_values({sid: stall.goal}, self.spans)
         if sid in self.guard.grippers:

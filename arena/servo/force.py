@@ -6,12 +6,12 @@ goal out of reach: its load stays high and it heats (I squared R), and a gripper
 out within minutes. `ForceGuard` is fed each telemetry read (positions, loads in percent of full
 torque, temperatures), with the goals the driver last sent and the bus thread's own clock, and
 says what to do: a joint whose load stays at or above `stall_share` of its torque limit while it
-is more than `stall_steps` short of its goal and moves no more than `stall_steps` for
+is more than `stall_steps` short of its goal and gets no more than `stall_steps` nearer it for
 `stall_time` is stalled (`Stalled`), however its goal runs on meanwhile; the driver stops
 pushing and the guard lowers a stalled gripper's torque limit to `hold_torque` (it keeps its
-grip, gently); a new goal releases it (`release`). A servo at or above the warm temperature
-(the health monitor's `hot`) gets its limit scaled by `hot_share` until it is `cool_margin`
-below it. specs/force.md gives the reasons and the values.
+grip, gently); a goal that backs off releases it (`pushes_on`, `release`). A servo at or
+above the warm temperature (the health monitor's `hot`) gets its limit scaled by `hot_share`
+until it is `cool_margin` below it. specs/force.md gives the reasons and the values.
 """
 
 from __future__ import annotations
@@ -49,6 +49,7 @@ class _Joint:
     goal: int | None = None
     pushing_since: float | None = None
     pushing_at: int = 0  # where it was when it began to push (moving on restarts the wait)
+    stalled_on: tuple[int, int] = (0, 0)  # where it stalled, and the goal it fell short of
     stalled: bool = False
     hot: bool = False
 
@@ -79,6 +80,15 @@ class ForceGuard:
         much as one whose goal stopped (the servo's own overload protection counts from the
         push, not from the goal's last change)."""
         self._joint(servo_id).goal = steps
+
+    def pushes_on(self, servo_id: int, steps: int) -> bool:
+        """Whether a goal `steps` for a stalled servo asks for no more than the push it
+        stalled on: no more than `stall_steps` back toward the joint from the goal it fell
+        short of (the rest of the move that ran into the obstacle goes on past it). The
+        driver keeps such a joint stalled; a goal that backs off is a new command (`release`)."""
+        present, goal = self._joint(servo_id).stalled_on
+        side = 1 if goal >= present else -1  # the way it pushed
+        return (goal - steps) * side <= self.settings.stall_steps
 
     def release(self, servo_id: int) -> None:
         """A new command for a stalled servo: it may push again (its limit comes back)."""
@@ -126,12 +136,14 @@ class ForceGuard:
             if not pushing:
                 joint.pushing_since = None
                 continue
+            toward = 1 if joint.goal > present else -1
             if (
                 joint.pushing_since is None
-                or abs(present - joint.pushing_at) > self.settings.stall_steps
-            ):  # (it moved: loaded, as lifting the arm, but following its goal)
+                or (present - joint.pushing_at) * toward > self.settings.stall_steps
+            ):  # (it got on toward its goal: loaded, as lifting the arm, but following it)
                 joint.pushing_since, joint.pushing_at = now, present
             if now - joint.pushing_since >= self.settings.stall_time:
                 joint.stalled = True
+                joint.stalled_on = (present, joint.goal)
                 found.append(Stalled(servo_id, present, joint.goal, load, limit))
         return found
