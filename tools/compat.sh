@@ -45,10 +45,13 @@ if [ ! -e "$DIR/venv/.installed-$LEROBOT_VERSION-dataset-diffusion-feetech" ]; t
     # ensurepip would start the virtualenv's Python without the loader: pip from its wheel.
     if ! "$DIR/python" -m pip --version >/dev/null 2>&1; then
         rm -rf "$DIR/wheels"
-        "$DIR/python" -c 'import sys, urllib.request, json
-info = json.load(urllib.request.urlopen("https://pypi.org/pypi/pip/json"))
+        # (a mirror may answer with addresses relative to the page: joined to it)
+        "$DIR/python" -c 'import sys, urllib.parse, urllib.request, json
+page = "https://pypi.org/pypi/pip/json"
+info = json.load(urllib.request.urlopen(page))
 wheel = next(f for f in info["urls"] if f["filename"].endswith(".whl"))
-urllib.request.urlretrieve(wheel["url"], sys.argv[1] + "/" + wheel["filename"])' \
+url = urllib.parse.urljoin(page, wheel["url"])
+urllib.request.urlretrieve(url, sys.argv[1] + "/" + wheel["filename"])' \
             "$(mkdir -p "$DIR/wheels" && echo "$DIR/wheels")"
         WHEEL=$(echo "$DIR"/wheels/pip-*.whl)
         "$DIR/python" "$WHEEL/pip" install --quiet --no-index "$WHEEL"
