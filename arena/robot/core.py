@@ -565,29 +565,29 @@ class RobotCore:
     def next_tick(self, now: float) -> float | None:
         """When the next control tick is due, or None while nothing is moving. A stream on
         time ticks only when it goes overdue: its commands move it on."""
-        return self._next_tick(now)[0]
+        if self.state.mode is Mode.ESTOPPED:
+            return None
+        joining = self.joining
+        if joining and any(join.ramp is not None for join in self._joins.values()):
+            return now + self.tick_interval
+        motion = self.motion
+        if not motion.moving:  # (first: an arm at rest, the fleet's, asks nothing more)
+            return None
+        if not joining and self.easing is None and (quiet := motion.quiet_until) is not None:
+            return max(quiet, now + self.tick_interval)
+        return now + self.tick_interval
 
     def reschedule(self, planned: float | None, now: float) -> float | None:
         """The next tick after a step taken at `now`, given the one `planned` before it: the
-        core's (`next_tick`) where it is sooner, or where a stream runs on time (a tick
-        planned sooner would send nothing); else the one planned (a tick early is harmless)."""
-        due, quiet = self._next_tick(now)
-        if planned is None or (due is not None and (quiet or due < planned)):
+        core's (`next_tick`) where it is sooner, or where a stream runs on time (then, and
+        only then, it is more than a tick away: a tick planned sooner would send nothing);
+        else the one planned (a tick early is harmless)."""
+        due = self.next_tick(now)
+        if planned is None or (
+            due is not None and (due < planned or due > now + self.tick_interval)
+        ):
             return due
         return planned
-
-    def _next_tick(self, now: float) -> tuple[float | None, bool]:
-        """`next_tick`, and whether it is a stream's on time (the only tick it needs)."""
-        if self.state.mode is Mode.ESTOPPED:
-            return None, False
-        if self.joining:
-            if any(join.ramp is not None for join in self._joins.values()):
-                return now + self.tick_interval, False
-        elif self.easing is None and (quiet := self.motion.quiet_until) is not None:
-            return max(quiet, now + self.tick_interval), True
-        if self.motion.moving:
-            return now + self.tick_interval, False
-        return None, False
 
 
 def _within(a: Mapping[str, float], b: Mapping[str, float], tolerance: float) -> bool:
