@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import pytest
 import trio
@@ -107,11 +108,13 @@ async def test_a_stream_on_time_wakes_the_actor_for_nothing_but_its_end(
     robot = await new_robot(manager)
     link = await robot.connect_master("alice")
     actor = robot._actor
-    on_timers, woke = actor._on_timers, []
+    on_timers, woke, ended, after = actor._on_timers, [], trio.Event(), [math.inf]
 
     def counted(now: float) -> None:
         woke.append(now)
         on_timers(now)
+        if now >= after[0] and robot.core.next_tick(now) is None:
+            ended.set()  # (the stream's end taken, nothing left to tick)
 
     actor._on_timers = counted  # type: ignore[method-assign]
     for k in range(1, 51):  # 1 s at 50 Hz, 12 deg/s
@@ -119,9 +122,9 @@ async def test_a_stream_on_time_wakes_the_actor_for_nothing_but_its_end(
         await trio.testing.wait_all_tasks_blocked()  # the robot idle: decided at once
         result = link.command_now(Command.of({"Rotation": 0.24 * k}))
         assert result is not None and result.accepted
-    last = trio.current_time()
+    last = after[0] = trio.current_time()
     assert all(t < last - 0.9 for t in woke)  # only as it set off from rest
-    await trio.sleep(1.0)
+    await ended.wait()
     assert min(t for t in woke if t >= last) == pytest.approx(last + 0.03)  # overdue
     assert robot.snapshot().joint("Rotation").virtual_value == pytest.approx(12.0)
     assert robot.core.next_tick(trio.current_time()) is None  # at rest on its last goal
