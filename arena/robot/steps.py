@@ -189,6 +189,36 @@ def stopping_speed(distance: float, accel: float, h: float) -> float:
     return reach / (math.sqrt(brake * brake / 4.0 + reach) + brake / 2.0)
 
 
+def toward(
+    goal: float,
+    here: float,
+    step: float,
+    was: float,
+    moving: float,
+    accel: float,
+    h: float,
+    fast: float,
+) -> float:
+    """A stream's target for a joint the limits keep from its `goal` a step of `h` seconds
+    on (`step`: the velocity onto it; `was`: the joint's last): toward the goal, relative to
+    the goal's own velocity `moving` (a stamped stream's line; else 0), at most at the
+    velocity from which braking at `accel`, step by step, stops on it, the distance counted
+    from a step on (the jerk's ramp to that braking), and within the cap `fast`."""
+    moving = max(-fast, min(fast, moving))
+    distance = abs(goal - here) - abs(was - moving) * h
+    stop = stopping_speed(distance, accel, h)
+    ahead = moving + max(-stop, min(stop, step - moving))
+    # Never past the goal nor away from it: the goals' velocity is their last, not their next
+    # (the ticks carried an arm trailing a flick on at it past where the hand stopped: 2
+    # degrees); a motion the limits cannot stop in time is carried on by the caller's hold
+    # (`held`), as little as they allow.
+    if step >= 0.0:
+        ahead = 0.0 if ahead < 0.0 else step if ahead > step else ahead
+    else:
+        ahead = step if ahead < step else 0.0 if ahead > 0.0 else ahead
+    return here + max(-fast, min(fast, ahead)) * h
+
+
 def _nearest(p0: float, want: float, bound: tuple[float, float], h: float) -> float:
     """One joint's target nearest `want` within its interval of step velocity."""
     low, high = bound
