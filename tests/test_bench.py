@@ -19,7 +19,14 @@ import pytest
 from arena import bench
 from arena.bench.camera import camera
 from arena.bench.client import BlockingHttp, BlockingWebSocket, masked_frame
-from arena.bench.common import EXECUTE_MARK, command_text, process_cpu_seconds, time_to
+from arena.bench.common import (
+    EXECUTE_MARK,
+    command_text,
+    create_bench_robot,
+    process_cpu_seconds,
+    time_to,
+    wait_for_slaves,
+)
 from arena.bench.policy import observation_to_command
 from arena.protocol.ws_frames import OP_CLOSE, OP_TEXT, accept_key, encode_frame
 from arena.recording.mcap_file import RecordedMessage
@@ -205,6 +212,38 @@ def test_a_relay_times_each_command_to_its_own_answer_not_one_received_before() 
         both.sock.close()
         server.join(30)
         listener.close()
+
+
+def test_a_benchmark_commands_only_once_its_slave_is_the_robots() -> None:
+    # The server answers a slave's handshake before its robot has the slave: the relay's
+    # first command, sent in between, reached no slave (a twin gets targets from the next
+    # command on) and the relay waited for ever (CI, under load). `wait_for_slaves` is what
+    # each timed scenario waits on first: no slave, no return; the slave listed, it returns.
+    async def scenario() -> None:
+        async with (
+            bench.running_server() as server,
+            httpx.AsyncClient(base_url=server.url, timeout=60) as http,
+        ):
+            await create_bench_robot(http, "attach")
+            returned = threading.Event()
+
+            def wait() -> None:
+                wait_for_slaves(server.ws, ["attach"])
+                returned.set()
+
+            waiter = threading.Thread(target=wait, daemon=True)
+            waiter.start()
+            assert not await asyncio.to_thread(returned.wait, 0.3)  # (no slave yet)
+            slave = BlockingWebSocket(server.ws + "/ws/slave/attach")
+            try:
+                assert await asyncio.to_thread(returned.wait, 60)
+                robot = (await http.get("/api/robots/attach")).json()
+                assert len(robot["slaves"]) == 1
+            finally:
+                slave.close()
+                waiter.join(60)
+
+    asyncio.run(scenario())
 
 
 def test_no_relay_command_asks_for_a_goal_an_earlier_one_did() -> None:

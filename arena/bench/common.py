@@ -6,6 +6,7 @@ import asyncio
 import contextlib
 import dataclasses
 import gc
+import json
 import os
 import re
 import shutil
@@ -20,7 +21,7 @@ from typing import Any, TypeVar
 
 import httpx
 
-from arena.bench.client import BlockingWebSocket
+from arena.bench.client import BlockingHttp, BlockingWebSocket
 from arena.protocol.messages import (
     CommandData,
     CommandMessage,
@@ -172,6 +173,30 @@ async def running_server(record: bool = True, *options: str) -> AsyncIterator[Se
             process.terminate()
             await drain
             process.wait(timeout=10)
+
+
+def wait_for_slaves(url: str, robot_ids: list[str], timeout: float = REST_TIMEOUT) -> None:
+    """Block until each robot of `robot_ids` on the server at `url` (http or ws) has a slave.
+
+    A slave's socket is open before its robot has it (the handshake is answered first): a
+    command sent in between reaches no slave, and a slave that never reports gets targets
+    from the next command on (specs/api.md), so a benchmark timing its first command to the
+    slave waited for ever (seen in CI, under load)."""
+    http = BlockingHttp("http" + url[url.index(":") :])
+    deadline = time.monotonic() + timeout
+    try:
+        for robot_id in robot_ids:
+            request = http.request_bytes("GET", f"/api/robots/{robot_id}")
+            while True:
+                http.send(request)
+                status, body = http.answer()
+                if status == 200 and json.loads(body)["slaves"]:
+                    break
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"robot {robot_id!r} has no slave after {timeout:g} s")
+                time.sleep(0.005)  # (a poll: the server says nothing when a slave attaches)
+    finally:
+        http.close()
 
 
 async def create_bench_robot(http: httpx.AsyncClient, robot_id: str) -> None:

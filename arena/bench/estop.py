@@ -24,6 +24,7 @@ from arena.bench.common import (
     create_bench_robot,
     percentile,
     time_to,
+    wait_for_slaves,
     without_client_gc,
 )
 
@@ -51,6 +52,7 @@ async def estop(server: Server, trials: int = 200, robots: int = 100) -> dict[st
         async with websockets.connect(
             compression=None, uri=server.ws + "/ws/slave/stop-httpx"
         ) as slave:
+            await asyncio.to_thread(wait_for_slaves, server.url, ["stop-httpx"])
             for _ in range(trials):
                 start = time.perf_counter()
                 request = asyncio.create_task(http.post("/api/robots/stop-httpx/estop"))
@@ -72,6 +74,7 @@ async def estop(server: Server, trials: int = 200, robots: int = 100) -> dict[st
             await websockets.connect(compression=None, uri=server.ws + f"/ws/slave/stop-{n}")
             for n in range(robots)
         ]
+        await asyncio.to_thread(wait_for_slaves, server.url, [f"stop-{n}" for n in range(robots)])
         everyone = []
         try:
             for _ in range(5):
@@ -100,6 +103,7 @@ def _lean_estop_one(
     server: Server, trials: int, warm_up: int = 10, robot_id: str = "stop-one"
 ) -> dict[str, float]:
     slave = BlockingWebSocket(server.ws + f"/ws/slave/{robot_id}")
+    wait_for_slaves(server.url, [robot_id])
     http = BlockingHttp(server.url)
     stop = http.request_bytes("POST", f"/api/robots/{robot_id}/estop")
     reset = http.request_bytes("POST", f"/api/robots/{robot_id}/reset")
@@ -136,6 +140,7 @@ def _lean_estop_one(
 def _lean_estop_over_websocket(server: Server, trials: int, warm_up: int = 10) -> dict[str, float]:
     """A master's `estop` message to the slave's notice: the e-stop that skips HTTP."""
     slave = BlockingWebSocket(server.ws + "/ws/slave/stop-ws")
+    wait_for_slaves(server.url, ["stop-ws"])
     master = BlockingWebSocket(server.ws + "/ws/master/stop-ws")
     stop = masked_frame(ESTOP_TEXT)
     reset = masked_frame(RESET_TEXT)

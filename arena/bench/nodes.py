@@ -27,6 +27,7 @@ from arena.bench.common import (
     Server,
     create_bench_robot,
     running_server,
+    wait_for_slaves,
     without_client_gc,
 )
 from arena.bench.fleet import fleet
@@ -113,6 +114,8 @@ async def nodes_estop(nodes: int = 3, robots: int = 100, trials: int = 5) -> dic
                     ids.append((server, robot_id))
         await _known_everywhere(servers[:1], {robot_id for _, robot_id in ids})
         slaves = [BlockingWebSocket(server.ws + f"/ws/slave/{rid}") for server, rid in ids]
+        for server, rid in ids:
+            await asyncio.to_thread(wait_for_slaves, server.url, [rid])
         runs = []
         try:
             for _ in range(trials):

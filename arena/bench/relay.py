@@ -20,6 +20,7 @@ from arena.bench.common import (
     create_bench_robot,
     percentile,
     time_to,
+    wait_for_slaves,
     without_client_gc,
 )
 
@@ -50,6 +51,7 @@ def lean_relay(
     robot, name = ("relay-deaf", "relay_deaf") if deaf else ("relay", "relay")
     robot = robot_id or robot
     slave = BlockingWebSocket(ws + f"/ws/slave/{robot}")
+    wait_for_slaves(ws, [robot])
     master = BlockingWebSocket(
         (master_ws or ws) + f"/ws/master/{robot}", receive_buffer=4096 if deaf else None
     )
@@ -82,6 +84,7 @@ async def relay_with_websockets(server: Server, count: int = 5000) -> dict[str, 
         websockets.connect(compression=None, uri=server.ws + "/ws/slave/relay-ws") as slave,
         websockets.connect(compression=None, uri=server.ws + "/ws/master/relay-ws") as master,
     ):
+        await asyncio.to_thread(wait_for_slaves, server.url, ["relay-ws"])
         latencies = []
         for i in range(count + 100):
             sent = time.perf_counter()
@@ -115,6 +118,7 @@ async def throughput(
 
 def _lean_throughput(ws: str, robot_id: str, count: int) -> dict[str, float]:
     slave = BlockingWebSocket(ws + f"/ws/slave/{robot_id}")
+    wait_for_slaves(ws, [robot_id])
     master = BlockingWebSocket(ws + f"/ws/master/{robot_id}")
     frames = b"".join(masked_frame(command_text(i + 1)) for i in range(count))
     reached = 0
