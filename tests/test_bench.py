@@ -21,6 +21,7 @@ from arena.bench.camera import camera
 from arena.bench.client import BlockingHttp, BlockingWebSocket, masked_frame
 from arena.bench.common import (
     EXECUTE_MARK,
+    attached_slave,
     command_text,
     create_bench_robot,
     process_cpu_seconds,
@@ -215,33 +216,29 @@ def test_a_relay_times_each_command_to_its_own_answer_not_one_received_before() 
 
 
 def test_a_benchmark_commands_only_once_its_slave_is_the_robots() -> None:
-    # The server answers a slave's handshake before its robot has the slave: the relay's
-    # first command, sent in between, reached no slave (a twin gets targets from the next
-    # command on) and the relay waited for ever (CI, under load). `wait_for_slaves` is what
-    # each timed scenario waits on first: no slave, no return; the slave listed, it returns.
+    # The server answers a slave's handshake before its robot has the slave: a first command
+    # sent in between reaches no slave (a twin gets targets from the next command on), and a
+    # relay timed to the slave's answer would wait for ever (a candidate for a hang once seen
+    # in CI). Each timed scenario first waits for its slave (`attached_slave`,
+    # `wait_for_slaves`): no slave, no return; the slave the robot's, it returns.
     async def scenario() -> None:
         async with (
             bench.running_server() as server,
             httpx.AsyncClient(base_url=server.url, timeout=60) as http,
         ):
             await create_bench_robot(http, "attach")
-            returned = threading.Event()
-
-            def wait() -> None:
-                wait_for_slaves(server.ws, ["attach"])
-                returned.set()
-
-            waiter = threading.Thread(target=wait, daemon=True)
-            waiter.start()
-            assert not await asyncio.to_thread(returned.wait, 0.3)  # (no slave yet)
-            slave = BlockingWebSocket(server.ws + "/ws/slave/attach")
+            await create_bench_robot(http, "other")
+            with pytest.raises(RuntimeError, match=r"'attach' has no slave after 0\.2 s"):
+                await asyncio.to_thread(wait_for_slaves, server.url, ["attach"], 0.2)
+            slave = await asyncio.to_thread(attached_slave, server.ws, "attach")
             try:
-                assert await asyncio.to_thread(returned.wait, 60)
                 robot = (await http.get("/api/robots/attach")).json()
                 assert len(robot["slaves"]) == 1
+                # one robot of two with a slave: still waiting, for the other
+                with pytest.raises(RuntimeError, match="'other' has no slave"):
+                    await asyncio.to_thread(wait_for_slaves, server.url, ["attach", "other"], 0.2)
             finally:
                 slave.close()
-                waiter.join(60)
 
     asyncio.run(scenario())
 

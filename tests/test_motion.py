@@ -245,6 +245,8 @@ def test_random_operations_keep_targets_safe(ops: list[tuple]) -> None:  # type:
             record(core.handle(event, now).targets, estopped)
         if core.motion.positions != core.motion.goals:
             assert core.motion.moving, "a joint short of its goal is not `moving`"
+        # (a move made in one target sends its goals in their own order: the joints')
+        assert list(core.motion.goals) == list(core.motion.positions) == list(MODEL.joint_names)
 
     for _, targets in emitted:
         for joint in MODEL.joints:

@@ -97,6 +97,8 @@ class Server:
 
     process: subprocess.Popen[bytes]
     url: str
+    #: Arena (a floor relay is not: it has no robots to ask about, `wait_for_slaves`)
+    arena: bool = True
 
     @property
     def ws(self) -> str:
@@ -176,13 +178,14 @@ async def running_server(record: bool = True, *options: str) -> AsyncIterator[Se
 
 
 def wait_for_slaves(url: str, robot_ids: list[str], timeout: float = REST_TIMEOUT) -> None:
-    """Block until each robot of `robot_ids` on the server at `url` (http or ws) has a slave.
+    """Block until each robot of `robot_ids` on the Arena server at `url` (http:// or ws://:
+    its host and port are what count) has a slave, all within `timeout` seconds.
 
     A slave's socket is open before its robot has it (the handshake is answered first): a
     command sent in between reaches no slave, and a slave that never reports gets targets
     from the next command on (specs/api.md), so a benchmark timing its first command to the
-    slave waited for ever (seen in CI, under load)."""
-    http = BlockingHttp("http" + url[url.index(":") :])
+    slave would wait for ever (a candidate for a relay bench's hang once seen in CI)."""
+    http = BlockingHttp(url, timeout=min(timeout, 30.0))
     deadline = time.monotonic() + timeout
     try:
         for robot_id in robot_ids:
@@ -197,6 +200,18 @@ def wait_for_slaves(url: str, robot_ids: list[str], timeout: float = REST_TIMEOU
                 time.sleep(0.005)  # (a poll: the server says nothing when a slave attaches)
     finally:
         http.close()
+
+
+def attached_slave(ws: str, robot_id: str) -> BlockingWebSocket:
+    """A lean slave socket on robot `robot_id` at `ws`, once the robot has it
+    (`wait_for_slaves`; closed if it never does)."""
+    slave = BlockingWebSocket(ws + f"/ws/slave/{robot_id}")
+    try:
+        wait_for_slaves(ws, [robot_id])
+    except BaseException:
+        slave.close()
+        raise
+    return slave
 
 
 async def create_bench_robot(http: httpx.AsyncClient, robot_id: str) -> None:

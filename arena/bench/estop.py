@@ -21,6 +21,7 @@ from arena.bench.common import (
     RESET_TEXT,
     REST_TIMEOUT,
     Server,
+    attached_slave,
     create_bench_robot,
     percentile,
     time_to,
@@ -102,8 +103,7 @@ async def estop(server: Server, trials: int = 200, robots: int = 100) -> dict[st
 def _lean_estop_one(
     server: Server, trials: int, warm_up: int = 10, robot_id: str = "stop-one"
 ) -> dict[str, float]:
-    slave = BlockingWebSocket(server.ws + f"/ws/slave/{robot_id}")
-    wait_for_slaves(server.url, [robot_id])
+    slave = attached_slave(server.ws, robot_id)
     http = BlockingHttp(server.url)
     stop = http.request_bytes("POST", f"/api/robots/{robot_id}/estop")
     reset = http.request_bytes("POST", f"/api/robots/{robot_id}/reset")
@@ -139,8 +139,7 @@ def _lean_estop_one(
 
 def _lean_estop_over_websocket(server: Server, trials: int, warm_up: int = 10) -> dict[str, float]:
     """A master's `estop` message to the slave's notice: the e-stop that skips HTTP."""
-    slave = BlockingWebSocket(server.ws + "/ws/slave/stop-ws")
-    wait_for_slaves(server.url, ["stop-ws"])
+    slave = attached_slave(server.ws, "stop-ws")
     master = BlockingWebSocket(server.ws + "/ws/master/stop-ws")
     stop = masked_frame(ESTOP_TEXT)
     reset = masked_frame(RESET_TEXT)

@@ -114,10 +114,11 @@ async def nodes_estop(nodes: int = 3, robots: int = 100, trials: int = 5) -> dic
                     ids.append((server, robot_id))
         await _known_everywhere(servers[:1], {robot_id for _, robot_id in ids})
         slaves = [BlockingWebSocket(server.ws + f"/ws/slave/{rid}") for server, rid in ids]
-        for server, rid in ids:
-            await asyncio.to_thread(wait_for_slaves, server.url, [rid])
         runs = []
         try:
+            for server in servers:
+                mine = [rid for where, rid in ids if where is server]
+                await asyncio.to_thread(wait_for_slaves, server.url, mine)
             for _ in range(trials):
                 runs.append(await asyncio.to_thread(_estop_and_wait, servers[0], slaves))
                 await asyncio.to_thread(_reset_all, ids)

@@ -16,6 +16,7 @@ from arena.bench.common import (
     EXECUTE_MARK,
     REST_TIMEOUT,
     Server,
+    attached_slave,
     command_text,
     create_bench_robot,
     percentile,
@@ -50,8 +51,7 @@ def lean_relay(
     another server, `robot_id` names the robot (`bench nodes`: a node of the fleet)."""
     robot, name = ("relay-deaf", "relay_deaf") if deaf else ("relay", "relay")
     robot = robot_id or robot
-    slave = BlockingWebSocket(ws + f"/ws/slave/{robot}")
-    wait_for_slaves(ws, [robot])
+    slave = attached_slave(ws, robot)
     master = BlockingWebSocket(
         (master_ws or ws) + f"/ws/master/{robot}", receive_buffer=4096 if deaf else None
     )
@@ -117,8 +117,7 @@ async def throughput(
 
 
 def _lean_throughput(ws: str, robot_id: str, count: int) -> dict[str, float]:
-    slave = BlockingWebSocket(ws + f"/ws/slave/{robot_id}")
-    wait_for_slaves(ws, [robot_id])
+    slave = attached_slave(ws, robot_id)
     master = BlockingWebSocket(ws + f"/ws/master/{robot_id}")
     frames = b"".join(masked_frame(command_text(i + 1)) for i in range(count))
     reached = 0

@@ -41,7 +41,14 @@ from pathlib import Path
 
 import httpx
 
-from arena.bench.common import BENCH_TYPE, REST_TIMEOUT, Server, percentile, running_server
+from arena.bench.common import (
+    BENCH_TYPE,
+    REST_TIMEOUT,
+    Server,
+    percentile,
+    running_server,
+    wait_for_slaves,
+)
 from arena.bench.fleet import fleet
 
 FLOOR_PYTHON_ENV = "ARENA_FLOOR_PYTHON"
@@ -80,6 +87,8 @@ async def ordinary_relay(
         websockets.connect(compression=None, uri=f"{server.ws}/ws/slave/{robot_id}") as slave,
         websockets.connect(compression=None, uri=f"{server.ws}/ws/master/{robot_id}") as master,
     ):
+        if server.arena:
+            await asyncio.to_thread(wait_for_slaves, server.url, [robot_id])
 
         async def read_slave() -> None:
             async for raw in slave:
@@ -151,7 +160,7 @@ async def running_floor(python: str, script: Path, *options: str) -> AsyncIterat
                 await asyncio.sleep(0.05)
             else:
                 raise RuntimeError("the floor relay did not start")
-        yield Server(process, url)
+        yield Server(process, url, arena=False)
     finally:
         process.terminate()
         process.wait(timeout=10)
