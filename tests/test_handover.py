@@ -86,6 +86,46 @@ async def test_a_passive_leader_brings_the_follower_to_its_pose_at_the_join_spee
     assert targets[-1][0] - targets[0][0] >= abs(moved) / join - 0.1
 
 
+async def test_a_leader_attached_as_the_master_brings_the_follower_at_the_join_speed(
+    manager: RobotManager,
+    leader: PtySimBus,  # noqa: F811
+    follower: PtySimBus,  # noqa: F811
+    tmp_path: Path,
+) -> None:
+    # Not only an intervention: a leader attached as the robot's own master (the dashboard's
+    # "Attach leader arm") is wherever the hand holds it, and the follower once swung there
+    # at full speed (a newcomer: 133 degrees in under 0.9 s). Once they agree, the leader's
+    # moves pass as they are.
+    pose(follower, FOLLOWER_REST)
+    robot = await manager.create_robot("so-arm100", robot_id="arm")
+    await robot.attach_slave(
+        usb_slave(follower, MODEL, calibrated_at(FOLLOWER_REST, tmp_path / "arm.json"))
+    )
+    await wait_joined(robot)
+    pose(leader, {**LEADER_REST, 1: LEADER_REST[1] + OFFSET})  # the hand holds it elsewhere
+    master = leader_arm(leader, calibrated_at(LEADER_REST, tmp_path / "arm-leader.json"))
+    await master.prepare()
+    start, far = robot.core.motion.positions["Rotation"], OFFSET * 360 / 4096
+    with robot.subscribe(kinds=[TargetsSent]) as events:
+        await robot.attach_master(master)
+        assert robot.snapshot().mode is Mode.MASTERED
+        await eventually(
+            lambda: (
+                abs(robot.core.motion.positions["Rotation"] - start) >= far * 0.9
+                and robot.core.easing is None
+                and not robot.core.motion.moving
+            ),
+            timeout=far / MODEL.safety.join_speed * 4 + 10,
+            what="the follower at the leader's pose",
+        )
+        targets = [(e.time, e.joints) for e in events.drain() if isinstance(e, TargetsSent)]
+    moved = targets[-1][1]["Rotation"] - targets[0][1]["Rotation"]
+    assert abs(moved) >= far * 0.9
+    join = MODEL.safety.join_speed
+    assert max(speeds(targets, 0.0)) <= join + 1e-6
+    assert targets[-1][0] - targets[0][0] >= abs(moved) / join - 0.1
+
+
 async def test_an_actuated_leader_is_driven_to_the_follower_then_goes_limp(
     manager: RobotManager,
     leader: PtySimBus,  # noqa: F811

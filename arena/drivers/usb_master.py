@@ -57,6 +57,7 @@ class UsbMaster(ServoArm):
 
     kind = "usb-master"
     autonomous = True  # an e-stop ends it: a leader arm must not drive on after a reset
+    eases_in = True  # the hand holds it wherever it is: the robot goes there at joining speed
     takes_over = False
 
     def __init__(

@@ -374,6 +374,8 @@ class Actor(MasterKeeping):
             self.peers.intervene(peer)  # the master it paused waits
         else:
             self.peers.add(peer)
+            if getattr(message.driver, "eases_in", False):  # (an intervening one always is)
+                self.core.ease_in(peer_id)
         if message.driver is not None:
             scope = trio.CancelScope()
             closed = trio.Event()

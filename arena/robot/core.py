@@ -158,9 +158,9 @@ class RobotCore:
         self.unsure: dict[str, dict[str, float]] = {}
         #: Ids of the slaves that must not be sent the robot's targets (they are joining).
         self.joining: set[str] = set()
-        #: An intervening master whose commands move no joint faster than the joining speed
-        #: until the arm is where they command (a handover without a jerk: the leader arm in
-        #: the human's hand is wherever it is). None: none.
+        #: A master whose commands move no joint faster than the joining speed until the arm
+        #: is where they command (a handover without a jerk: the leader arm in the human's
+        #: hand is wherever it is; `ease_in`). None: none.
         self.easing: str | None = None
         self._eased = False  # a command of the easing master has been taken
 
@@ -187,8 +187,7 @@ class RobotCore:
                 for slave_id, join in list(self._joins.items()):
                     joins += self._decide(slave_id, join, now)  # held: moves nothing
             elif isinstance(effect, Intervention):
-                self.easing = None if effect.ended else effect.master_id
-                self._eased = False
+                self.ease_in(None if effect.ended else effect.master_id)
         return Step(outcome, None, outcome.effects, tuple(joins))
 
     # -- slaves that join ---------------------------------------------------------------------
@@ -350,6 +349,12 @@ class RobotCore:
     def forget_master(self, master_id: str) -> None:
         """Drop per-master bookkeeping once a master is gone for good."""
         self._rates.pop(master_id, None)
+        if self.easing == master_id:
+            self.easing = None
+
+    def ease_in(self, master_id: str | None) -> None:
+        """Ease `master_id`'s commands in at the joining speed (`easing`); None: none's."""
+        self.easing, self._eased = master_id, False
 
     def command(
         self, source: str | None, command: Command, now: float, *, in_burst: bool = False
