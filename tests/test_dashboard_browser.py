@@ -433,6 +433,11 @@ def test_the_twin_draws_the_workspace_and_what_a_refused_move_would_hit(
             j for j in http.get("/api/robots/demo-arm/joints").json() if j["name"] == "Pitch"
         )
     assert pitch["virtual_value"] < 60  # nothing of the refused move went out
+    # ...and the slider says so: back on the robot's value, not where the hand left it
+    page.wait_for_function(
+        "limit => Number(document.querySelector('input[data-joint=Pitch]').value) < limit",
+        arg=60,
+    )
 
 
 def test_a_camera_streams_beside_the_twin_and_episodes_are_marked(

@@ -34,8 +34,8 @@ from tests.test_usb_master import (
 OFFSET = 300
 
 
-async def paused_policy(manager: RobotManager, follower: PtySimBus, tmp_path: Path) -> Robot:  # noqa: F811
-    """A follower at its rest pose, held by a master that stands in for a policy."""
+async def follower_arm(manager: RobotManager, follower: PtySimBus, tmp_path: Path) -> Robot:  # noqa: F811
+    """A robot whose follower arm, at its rest pose, has joined."""
     pose(follower, FOLLOWER_REST)
     robot = await manager.create_robot("so-arm100", robot_id="arm")
     await robot.attach_slave(
@@ -43,6 +43,12 @@ async def paused_policy(manager: RobotManager, follower: PtySimBus, tmp_path: Pa
     )
     await eventually(lambda: all(servo_torque(follower).values()), what="follower torque")
     await wait_joined(robot)
+    return robot
+
+
+async def paused_policy(manager: RobotManager, follower: PtySimBus, tmp_path: Path) -> Robot:  # noqa: F811
+    """A follower at its rest pose, held by a master that stands in for a policy."""
+    robot = await follower_arm(manager, follower, tmp_path)
     await robot.connect_master("policy")
     return robot
 
@@ -58,57 +64,23 @@ def speeds(points: list[tuple[float, dict[str, float]]], burst: float) -> list[f
     return found
 
 
-async def test_a_passive_leader_brings_the_follower_to_its_pose_at_the_join_speed(
-    manager: RobotManager,
+async def brought_to_the_leader(
+    robot: Robot,
     leader: PtySimBus,  # noqa: F811
-    follower: PtySimBus,  # noqa: F811
     tmp_path: Path,
+    *,
+    intervene: bool,
 ) -> None:
-    robot = await paused_policy(manager, follower, tmp_path)
-    pose(leader, {**LEADER_REST, 1: LEADER_REST[1] + OFFSET})  # the hand holds it elsewhere
-    master = leader_arm(leader, calibrated_at(LEADER_REST, tmp_path / "arm-leader.json"))
-    await master.prepare()
-    with robot.subscribe(kinds=[TargetsSent]) as events:
-        await robot.attach_master(master, intervene=True)
-        assert robot.snapshot().mode is Mode.INTERVENED
-        assert not any(servo_torque(leader).values())  # a passive leader stays limp
-        far = OFFSET * 360 / 4096
-        await eventually(
-            lambda: robot.core.easing is None and not robot.core.motion.moving,
-            timeout=far / MODEL.safety.join_speed * 4 + 10,
-            what="the follower at the leader's pose",
-        )
-        targets = [(e.time, e.joints) for e in events.drain() if isinstance(e, TargetsSent)]
-    moved = targets[-1][1]["Rotation"] - targets[0][1]["Rotation"]
-    assert abs(moved) >= far * 0.9  # it did travel to the leader's pose...
-    join, burst = MODEL.safety.join_speed, 0.0
-    assert max(speeds(targets, burst)) <= join + 1e-6  # ...never faster than the join speed
-    assert targets[-1][0] - targets[0][0] >= abs(moved) / join - 0.1
-
-
-async def test_a_leader_attached_as_the_master_brings_the_follower_at_the_join_speed(
-    manager: RobotManager,
-    leader: PtySimBus,  # noqa: F811
-    follower: PtySimBus,  # noqa: F811
-    tmp_path: Path,
-) -> None:
-    # Not only an intervention: a leader attached as the robot's own master (the dashboard's
-    # "Attach leader arm") is wherever the hand holds it, and the follower once swung there
-    # at full speed (a newcomer: 133 degrees in under 0.9 s). Once they agree, the leader's
-    # moves pass as they are.
-    pose(follower, FOLLOWER_REST)
-    robot = await manager.create_robot("so-arm100", robot_id="arm")
-    await robot.attach_slave(
-        usb_slave(follower, MODEL, calibrated_at(FOLLOWER_REST, tmp_path / "arm.json"))
-    )
-    await wait_joined(robot)
+    """Attach a passive leader that a hand holds `OFFSET` from the follower's pose: the
+    follower travels there, never faster than the join speed (the targets the robot sent)."""
     pose(leader, {**LEADER_REST, 1: LEADER_REST[1] + OFFSET})  # the hand holds it elsewhere
     master = leader_arm(leader, calibrated_at(LEADER_REST, tmp_path / "arm-leader.json"))
     await master.prepare()
     start, far = robot.core.motion.positions["Rotation"], OFFSET * 360 / 4096
     with robot.subscribe(kinds=[TargetsSent]) as events:
-        await robot.attach_master(master)
-        assert robot.snapshot().mode is Mode.MASTERED
+        await robot.attach_master(master, intervene=intervene)
+        assert robot.snapshot().mode is (Mode.INTERVENED if intervene else Mode.MASTERED)
+        assert not any(servo_torque(leader).values())  # a passive leader stays limp
         await eventually(
             lambda: (
                 abs(robot.core.motion.positions["Rotation"] - start) >= far * 0.9
@@ -120,10 +92,33 @@ async def test_a_leader_attached_as_the_master_brings_the_follower_at_the_join_s
         )
         targets = [(e.time, e.joints) for e in events.drain() if isinstance(e, TargetsSent)]
     moved = targets[-1][1]["Rotation"] - targets[0][1]["Rotation"]
-    assert abs(moved) >= far * 0.9
-    join = MODEL.safety.join_speed
-    assert max(speeds(targets, 0.0)) <= join + 1e-6
+    assert abs(moved) >= far * 0.9  # it did travel to the leader's pose...
+    join, burst = MODEL.safety.join_speed, 0.0
+    assert max(speeds(targets, burst)) <= join + 1e-6  # ...never faster than the join speed
     assert targets[-1][0] - targets[0][0] >= abs(moved) / join - 0.1
+
+
+async def test_a_passive_leader_brings_the_follower_to_its_pose_at_the_join_speed(
+    manager: RobotManager,
+    leader: PtySimBus,  # noqa: F811
+    follower: PtySimBus,  # noqa: F811
+    tmp_path: Path,
+) -> None:
+    robot = await paused_policy(manager, follower, tmp_path)
+    await brought_to_the_leader(robot, leader, tmp_path, intervene=True)
+
+
+async def test_a_leader_attached_as_the_master_brings_the_follower_at_the_join_speed(
+    manager: RobotManager,
+    leader: PtySimBus,  # noqa: F811
+    follower: PtySimBus,  # noqa: F811
+    tmp_path: Path,
+) -> None:
+    # Not only an intervention: a leader attached as the robot's own master (the dashboard's
+    # "Attach leader arm") is wherever the hand holds it, and the follower once swung there
+    # at full speed (a newcomer: 133 degrees in under 0.9 s).
+    robot = await follower_arm(manager, follower, tmp_path)
+    await brought_to_the_leader(robot, leader, tmp_path, intervene=False)
 
 
 async def test_an_actuated_leader_is_driven_to_the_follower_then_goes_limp(

@@ -176,7 +176,8 @@ def test_a_port_in_use_is_one_line_exit_2_and_no_recording(
         argv = ["serve", "--demo", "--recordings-dir", str(recordings)]
         status = cli.main([*argv, *(a for pair in ports.items() for a in pair)])
     assert status == 2
-    assert capsys.readouterr().err == f"arena serve: port {port} is in use: pass {flag}\n"
+    how = " (make run PORT=9000)" if flag == "--port" else ""  # (make passes --port itself)
+    assert capsys.readouterr().err == f"arena serve: port {port} is in use: pass {flag}{how}\n"
     assert not recordings.exists() or not any(recordings.iterdir())
 
 

@@ -11,7 +11,7 @@ from arena.recording.mcap_file import Recording
 
 def plot_recording(recording: Recording, robot_id: str, output: Path) -> Path:
     """Draw one subplot per joint into `output` (PNG, SVG or PDF by suffix)."""
-    require("plot", "arena plot").use("Agg")  # no display needed
+    require("plot", "Plotting").use("Agg")  # no display needed
     import matplotlib.pyplot as plt
 
     series = joint_series(recording, robot_id)

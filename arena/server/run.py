@@ -80,6 +80,8 @@ def bind(config: ServerConfig) -> Sockets:
 def _cannot_listen(exc: OSError, host: str, port: int, flag: str) -> ArenaError:
     if exc.errno == errno.EADDRINUSE:
         reason = f"port {port} is in use: pass {flag}"
+        if flag == "--port":  # (`make run` passes its own: say how to choose it there)
+            reason += " (make run PORT=9000)"
     else:
         reason = f"cannot listen on {host} port {port} ({flag}): {exc.strerror or exc}"
     return ArenaError(ErrorCode.INVALID_CONFIG, reason)

@@ -281,7 +281,13 @@ function drawSeries(canvas, series) {
       if (!line.length) continue;
       context.setLineDash(dash);
       context.beginPath();
-      line.forEach(([t, v], i) => (i ? context.lineTo(x(t), y(v)) : context.moveTo(x(t), y(v))));
+      // Steps: a joint is recorded when it changes, so each value holds until the next (a
+      // straight line drew a slope over a still arm's minutes).
+      line.forEach(([t, v], i) => {
+        if (i === 0) context.moveTo(x(t), y(v));
+        else context.lineTo(x(t), y(line[i - 1][1]));
+        context.lineTo(x(t), y(v));
+      });
       context.stroke();
     }
   });

@@ -400,6 +400,18 @@ export class RobotView {
     document.querySelector('#twin-legend [data-part="measured"] .text').textContent = text;
   }
 
+  /** Put the sliders of `names` back on the robot's values: a refused move moved nothing,
+   * and no state comes to say so (a slider left where it was dragged lied about the arm). */
+  showRobotValues(names) {
+    for (const name of names) {
+      const entry = this.sliders.get(name);
+      const joint = (this.lastJoints || []).find((known) => known.name === name);
+      if (entry && joint && !entry.slider.dataset.held && !this.pending.has(name)) {
+        entry.slider.value = joint.virtual_value;
+      }
+    }
+  }
+
   /** A slider moved: send the newest values, one request at a time. */
   queue(joint, value) {
     this.pending.set(joint, value);
@@ -417,6 +429,7 @@ export class RobotView {
         if (ack && ack.status === "clamped") this.log(`clamped: ${ack.message}`);
       } catch (error) {
         this.log(`${error.code}: ${error.message}`, true);
+        this.showRobotValues(joints.map((joint) => joint.name));
         if (error.code === "COLLISION" && this.twin) {
           this.twin.showHit(collidingParts(error.message));
         }
