@@ -11,6 +11,8 @@ import itertools
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 
+import pytest
+
 from arena.robot.events import TargetsSent
 from arena.robot.handle import Robot
 from arena.robot.manager import RobotManager
@@ -98,27 +100,22 @@ async def brought_to_the_leader(
     assert targets[-1][0] - targets[0][0] >= abs(moved) / join - 0.1
 
 
+# An intervening leader, and one attached as the robot's own master (the dashboard's "Attach
+# leader arm"): either is wherever the hand holds it, and the follower once swung to the
+# latter at full speed (a newcomer: 133 degrees in under 0.9 s).
+@pytest.mark.parametrize("intervene", [True, False], ids=["intervening", "as-the-master"])
 async def test_a_passive_leader_brings_the_follower_to_its_pose_at_the_join_speed(
     manager: RobotManager,
     leader: PtySimBus,  # noqa: F811
     follower: PtySimBus,  # noqa: F811
     tmp_path: Path,
+    intervene: bool,
 ) -> None:
-    robot = await paused_policy(manager, follower, tmp_path)
-    await brought_to_the_leader(robot, leader, tmp_path, intervene=True)
-
-
-async def test_a_leader_attached_as_the_master_brings_the_follower_at_the_join_speed(
-    manager: RobotManager,
-    leader: PtySimBus,  # noqa: F811
-    follower: PtySimBus,  # noqa: F811
-    tmp_path: Path,
-) -> None:
-    # Not only an intervention: a leader attached as the robot's own master (the dashboard's
-    # "Attach leader arm") is wherever the hand holds it, and the follower once swung there
-    # at full speed (a newcomer: 133 degrees in under 0.9 s).
-    robot = await follower_arm(manager, follower, tmp_path)
-    await brought_to_the_leader(robot, leader, tmp_path, intervene=False)
+    if intervene:
+        robot = await paused_policy(manager, follower, tmp_path)
+    else:
+        robot = await follower_arm(manager, follower, tmp_path)
+    await brought_to_the_leader(robot, leader, tmp_path, intervene=intervene)
 
 
 async def test_an_actuated_leader_is_driven_to_the_follower_then_goes_limp(
